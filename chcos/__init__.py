@@ -1,0 +1,1 @@
+"""chcos - the Concurrent Hierarchical Control operating system (CHC-OS) for robot cells."""

@@ -1,0 +1,116 @@
+"""cli - the ``chcos`` command.
+
+``chcos run``     the main job (the figure 6.5 example on virtual time until the welding cell
+                  lands; ``--real-time`` for wall-clock time)
+``chcos shell``   a host console: an in-process system that reads host commands (install,
+                  setpri, invoke, suspend, resume, close, inject, map) from a script or stdin
+``chcos check``   validate device-map files without touching a bus
+``chcos map``     print a sysfile.map as the hierarchy
+``chcos sim``     simulated field devices (CAN, CANopen, Modbus, serial)
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+
+from chcos.errors import ChcosError
+
+
+def _run(args: argparse.Namespace) -> int:
+    from chcos import fig65run
+
+    fig65run.run(args.duration, real_time=args.real_time,
+                 workdir=Path(args.workdir) if args.workdir else None)
+    return 0
+
+
+def _shell(args: argparse.Namespace) -> int:
+    from chcos.clock import RealClock, VirtualClock
+    from chcos.system import System
+
+    clock = VirtualClock() if args.virtual else RealClock()
+    system = System(args.devmap, clock=clock, task_path=args.task_path or ["."],
+                    base_dir=args.base_dir, map_path=args.map)
+    lines: Iterable[str] = (Path(args.script).read_text(encoding="utf-8").splitlines()
+                            if args.script else sys.stdin)
+    if not args.virtual:
+        system.start()
+    status = 0
+    try:
+        for line in lines:
+            if line.strip() in ("quit", "exit"):
+                break
+            if line.strip().startswith("run ") and args.virtual:
+                system.run_for(float(line.split()[1]))
+                continue
+            try:
+                answer = system.execute(line)
+            except ChcosError as exc:
+                print(f"error: {exc}", file=sys.stderr)
+                status = 1
+                continue
+            if answer:
+                print(answer, flush=True)
+    finally:
+        system.shutdown()
+    return status
+
+
+def _map(args: argparse.Namespace) -> int:
+    from chcos import sysmap
+    from chcos.sysview import render_text
+
+    print(render_text(sysmap.read(args.map)))
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``chcos`` console script; returns the exit status."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["check"]:
+        from chcos.devmap import check_main
+
+        return check_main(argv[1:])
+    if argv[:1] == ["sim"]:
+        from chcos.sim.cli import main as sim_main
+
+        return sim_main(argv[1:])
+    parser = argparse.ArgumentParser(prog="chcos", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
+    sub = parser.add_subparsers(dest="cmd", required=True)
+    p = sub.add_parser("run", help="run the main job")
+    p.add_argument("--duration", type=float, default=20.0, help="seconds of clock time")
+    p.add_argument("--real-time", action="store_true", help="wall-clock time, not virtual")
+    p.add_argument("--workdir", help="where the map, log and test file go (default out/fig65)")
+    p.set_defaults(func=_run)
+    p = sub.add_parser("shell", help="host console for an in-process system")
+    p.add_argument("devmap", nargs="*", help="device-map files")
+    p.add_argument("--script", help="read commands from this file instead of stdin")
+    p.add_argument("--task-path", action="append", help="directory of task modules")
+    p.add_argument("--base-dir", default=".", help="relative file names start here")
+    p.add_argument("--map", default="sysfile.map", help="where sysfile.map is written")
+    p.add_argument("--virtual", action="store_true",
+                   help="virtual time: the script advances it with 'run SECONDS'")
+    p.set_defaults(func=_shell)
+    p = sub.add_parser("map", help="print a sysfile.map")
+    p.add_argument("map", nargs="?", default="sysfile.map")
+    p.set_defaults(func=_map)
+    sub.add_parser("check", help="validate device-map files (chcos check FILE...)")
+    sub.add_parser("sim", help="simulated field devices (chcos sim KIND ...)")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.ERROR,
+                        format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return int(args.func(args))
+    except ChcosError as exc:
+        print(f"chcos: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

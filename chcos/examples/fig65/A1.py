@@ -1,0 +1,11 @@
+"""A1 - user driver for S1 and S2, commanding actuator M1 (figure 6.5)."""
+
+from typing import Any
+
+from chcos.examples.fig65.common import condense
+from chcos.usrmgr import TaskContext
+
+
+async def main(ctx: TaskContext, command: Any) -> None:
+    """Keep M1 in step with S1/S2 and report every fifth reading to B1."""
+    await condense(ctx, actuator="M1")

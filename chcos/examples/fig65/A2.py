@@ -1,0 +1,11 @@
+"""A2 - user driver for S3, commanding actuator M2 (figure 6.5)."""
+
+from typing import Any
+
+from chcos.examples.fig65.common import condense
+from chcos.usrmgr import TaskContext
+
+
+async def main(ctx: TaskContext, command: Any) -> None:
+    """Keep M2 in step with S3 and report every fifth reading to B1 and B2."""
+    await condense(ctx, actuator="M2")

@@ -1,0 +1,348 @@
+"""msgmgr - the message manager: moves messages on links and keeps command ownership.
+
+It is the layer that readies tasks (thesis 6.1.2): a sensory message readies the receiver at the
+link's priority; ``open`` (topen) makes the caller the owner of a lower task, pre-empting a lower
+priority owner, who is told, or queueing the caller; ``close`` (tclose) hands the task to the best
+waiter or suspends it; the end of an activation reports normal or abnormal completion (teotsk) to
+the owner. Devices, files and the host are link ends too.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, TextIO
+
+from chcos.errors import Busy, DeviceError, MessageError, QueueOverflow
+from chcos.kernel import Kernel
+from chcos.messages import (
+    Completion,
+    EndpointKind,
+    InPort,
+    Link,
+    LinkStatus,
+    LinkType,
+    Msgtab,
+    TapPort,
+)
+from chcos.tasks import TaskEntry, TaskState, Tsktab
+
+if TYPE_CHECKING:
+    from chcos.devices import Devtab
+
+log = logging.getLogger("chcos.msgmgr")
+
+EventSink = Callable[[str, str], None]
+
+
+class MessageManager:
+    """Message transfer and ownership for one satellite's tables."""
+
+    def __init__(self, kernel: Kernel, tsktab: Tsktab, msgtab: Msgtab) -> None:
+        self.kernel = kernel
+        self.tsktab = tsktab
+        self.msgtab = msgtab
+        self.devtab: Devtab | None = None
+        self.taps: list[tuple[TaskEntry, TapPort, dict[str, Link]]] = []
+        self._files: dict[str, TextIO] = {}
+        self.base_dir = Path.cwd()
+        self._qseq = 0
+        kernel.set_end_handler(self._activation_ended)
+
+    # ---- events -----------------------------------------------------------------------------
+    def event(self, kind: str, detail: str) -> None:
+        """Report a system event to the instruments and the log."""
+        log.info("%s: %s", kind, detail)
+        for i in self.kernel.h_event:
+            i.event(kind, detail)
+
+    # ---- sensory messages (tputc) -----------------------------------------------------------
+    def put(self, t: TaskEntry, value: Any) -> int:
+        """Send ``value`` from ``t`` up every sensory link leaving it (and into exception taps).
+
+        Never blocks. Returns how many links took it. Raises QueueOverflow (after delivering to
+        every other link) if a queued link was full.
+        """
+        n = 0
+        overflow: QueueOverflow | None = None
+        for link in t.up_links:
+            try:
+                if self.deliver(link, value):
+                    n += 1
+            except QueueOverflow as exc:
+                overflow = exc
+        if self.taps:
+            self._tap(t, value)
+        if overflow is not None:
+            raise overflow
+        return n
+
+    def deliver(self, link: Link, value: Any) -> bool:
+        """Put ``value`` into ``link``'s destination port and ready a receiver waiting on it.
+
+        False if the link is suspended. Raises QueueOverflow for a full queued link.
+        """
+        if link.status is LinkStatus.SUSPENDED:
+            link.refused += 1
+            return False
+        port = link.port
+        if port.__class__ is not InPort:
+            raise MessageError(f"sensory link {link.name} has no input port")
+        assert isinstance(port, InPort)
+        kernel = self.kernel
+        if port.fifo is None and not kernel.h_delivered:  # the hot path: newest wins
+            if port.fresh:
+                link.overwritten += 1
+                if kernel.h_overwritten:
+                    for i in kernel.h_overwritten:
+                        i.message_overwritten(link)
+            port.value = value
+            port.fresh = True
+        elif port.store(value, kernel.clock.now()):
+            link.overwritten += 1
+            for i in kernel.h_overwritten:
+                i.message_overwritten(link)
+        link.sent += 1
+        if kernel.h_sent:
+            for i in kernel.h_sent:
+                i.message_sent(link)
+        w = port.waiter
+        if w is not None:
+            base = w.base_prio
+            kernel.wake(w, base if base > link.priority else link.priority, port)
+        return True
+
+    def _tap(self, t: TaskEntry, value: Any) -> None:
+        kernel = self.kernel
+        for _exc_task, tap, links in self.taps:
+            link = links.get(t.name)
+            if link is None or link.status is LinkStatus.SUSPENDED:
+                continue
+            if tap.store_from(t.name, value, kernel.clock.now()):
+                link.overwritten += 1
+            link.sent += 1
+            w = tap.waiter
+            if w is not None:
+                tap.waiter = None
+                kernel.wake(w, max(w.base_prio, link.priority), tap)
+
+    def taken(self, link: Link, sent_at: float) -> None:
+        """Count a delivery on ``link`` (the receiver read it) and feed latency instruments."""
+        link.delivered += 1
+        hooks = self.kernel.h_delivered
+        if hooks:
+            lat = self.kernel.clock.now() - sent_at
+            for i in hooks:
+                i.message_delivered(link, lat)
+
+    # ---- command output to actuators and files (putc) ---------------------------------------
+    def write(self, t: TaskEntry, link: Link, value: Any) -> None:
+        """Send ``value`` down command link ``link`` to an actuator or a file, without blocking.
+
+        Raises MessageError if the link leads to a task (use open), DeviceError if the actuator
+        refuses the value (outside its limits, failed device).
+        """
+        if link.status is LinkStatus.SUSPENDED:
+            link.refused += 1
+            raise MessageError(f"link {link.name} is suspended")
+        if link.dst_kind is EndpointKind.DEVICE:
+            if self.devtab is None:
+                raise DeviceError(f"no device table: cannot write {link.dst}")
+            self.devtab.write(link.dst, value, source=t.name)
+        elif link.dst_kind is EndpointKind.FILE:
+            self.write_file(link.dst, value)
+        else:
+            raise MessageError(
+                f"{link.name} is a command link to task {link.dst}: invoke it, do not write to it")
+        link.sent += 1
+        link.delivered += 1
+
+    def resolve_path(self, name: str) -> Path:
+        """A file endpoint's path: relative names are relative to the system's base directory."""
+        p = Path(name)
+        return p if p.is_absolute() else self.base_dir / p
+
+    def write_file(self, path: str, value: Any) -> None:
+        """Append ``value`` as one line to the file at ``path`` (kept open, line-buffered)."""
+        fh = self._files.get(path)
+        if fh is None:
+            try:
+                fh = open(self.resolve_path(path), "a", buffering=1,  # noqa: SIM115 - kept open
+                          encoding="utf-8")
+            except OSError as exc:
+                raise MessageError(f"cannot open output file {path}: {exc}") from exc
+            self._files[path] = fh
+        fh.write(f"{value}\n")
+
+    def close_files(self) -> None:
+        """Close every output file."""
+        for fh in self._files.values():
+            fh.close()
+        self._files.clear()
+
+    # ---- command messages (topen / tclose / teotsk) -----------------------------------------
+    def open(self, link: Link, command: Any, *, wait: bool) -> bool:
+        """Invoke ``link.dst`` with ``command`` on behalf of ``link.src`` (topen).
+
+        True if the caller now owns the target (it runs at the link's priority); False if the
+        caller was put in the target's wait queue (it must then block until woken). A lower
+        priority owner is pre-empted and told. Raises Busy if ``wait`` is False and the target is
+        held at an equal or higher priority, MessageError if the link is not a command link to a
+        task or is suspended.
+        """
+        if link.type is not LinkType.COMMAND or link.dst_kind is not EndpointKind.TASK:
+            raise MessageError(f"{link.name} is not a command link to a task")
+        if link.status is LinkStatus.SUSPENDED:
+            raise MessageError(f"link {link.name} is suspended")
+        target = self.tsktab.get(link.dst)
+        link.reported = False
+        link.result = None
+        link.error = ""
+        owner = target.owner
+        if owner is link or owner is None or owner.priority < link.priority:
+            if owner is not None and owner is not link:
+                self._report(owner, LinkStatus.PREEMPTED,
+                             error=f"pre-empted by {link.src} at priority {link.priority}")
+                self.event("preempt", f"{link.src} took {target.name} from {owner.src} "
+                                      f"(priority {link.priority} > {owner.priority})")
+            target.owner = link
+            link.status = LinkStatus.OK
+            link.pending = False
+            link.sent += 1
+            self._start(target, command, link)
+            return True
+        if not wait:
+            raise Busy(f"{target.name} is held by {owner.src} at priority {owner.priority} "
+                       f">= {link.priority} ({link.name})")
+        if not any(e[1] is link for e in target.waitq):
+            self._qseq += 1
+            target.waitq.append((self._qseq, link, command))
+        link.pending = True
+        link.status = LinkStatus.OK
+        return False
+
+    def close(self, link: Link) -> None:
+        """Release ``link.dst`` from the invocation by ``link.src`` (tclose): ownership passes to
+        the highest-priority waiter, or the target is suspended. A caller that was only waiting
+        leaves the wait queue."""
+        target = self.tsktab.get(link.dst)
+        link.pending = False
+        target.waitq[:] = [e for e in target.waitq if e[1] is not link]
+        if target.owner is link:
+            self._release(target)
+
+    def _start(self, target: TaskEntry, command: Any, link: Link) -> None:
+        """Begin an activation of ``target`` for ``command`` at ``link``'s priority (a running
+        activation is cancelled first: the newest command wins)."""
+        if target.coro is None:
+            self._activate(target, command, link.priority)
+        else:
+            target.next_command = (command, link.priority, link)
+            self.kernel.cancel(target, f"new command from {link.src}")
+
+    def _activate(self, target: TaskEntry, command: Any, prio: int) -> None:
+        target.command = command
+        target.activations += 1
+        try:
+            coro = target.func(target.ctx, command)
+        except Exception as exc:  # a task function that fails before its first await
+            self._activation_ended(target, "error", exc)
+            return
+        if not hasattr(coro, "send"):
+            self._activation_ended(target, "error", MessageError(
+                f"task {target.name}: {target.code or 'its function'} is not an async def"))
+            return
+        target.coro = coro  # type: ignore[assignment]
+        self.kernel.ready(target, prio)
+
+    def _release(self, t: TaskEntry) -> None:
+        t.owner = None
+        if t.waitq:
+            best = max(t.waitq, key=lambda e: (e[1].priority, -e[0]))
+            t.waitq.remove(best)
+            _, link, command = best
+            link.pending = False
+            link.status = LinkStatus.OK
+            t.owner = link
+            caller = self._caller(link)
+            if caller is not None and caller.wait_link is link:
+                self.kernel.wake(caller, caller.base_prio, True)
+            self._start(t, command, link)
+        elif t.coro is not None:
+            self.kernel.cancel(t, "released by its owner")
+
+    def _caller(self, link: Link) -> TaskEntry | None:
+        if link.src_kind is EndpointKind.TASK and link.src in self.tsktab:
+            return self.tsktab.get(link.src)
+        return None
+
+    def _report(self, link: Link, status: LinkStatus, result: Any = None, error: str = "") -> None:
+        """Set ``link``'s status and tell the calling task (wakes it if it waits in ``done``)."""
+        link.status = status
+        link.result = result
+        link.error = error
+        link.reported = True
+        caller = self._caller(link)
+        if caller is not None and caller.wait_link is link and not link.pending:
+            link.reported = False
+            self.kernel.wake(caller, max(caller.base_prio, link.priority), link.completion())
+
+    def complete(self, t: TaskEntry, result: Any) -> None:
+        """Report normal completion of ``t``'s command to its owner (teotsk) and end the command
+        message. A waiter, if any, gets the task next; otherwise the activation may carry on
+        unowned (a monitoring loop that has answered its owner)."""
+        link = t.owner
+        if link is None:
+            return
+        t.completions += 1
+        self._report(link, LinkStatus.NORMAL, result=result)
+        t.owner = None
+        if t.waitq:
+            self._release(t)
+
+    def _activation_ended(self, t: TaskEntry, how: str, value: Any) -> None:
+        t.coro = None
+        if how == "return":
+            if t.owner is not None:
+                self.complete(t, value)
+            elif t.waitq:
+                self._release(t)
+        elif how == "error":
+            t.abnormal += 1
+            text = f"{type(value).__name__}: {value}"
+            t.last_error = text
+            log.error("task %s ended abnormally: %s", t.name, text)
+            self.event("abnormal", f"{t.name}: {text}")
+            link = t.owner
+            if link is not None:
+                self._report(link, LinkStatus.ABNORMAL, error=text)
+            if self.devtab is not None:
+                self.devtab.safe_outputs(t)
+            t.owner = None
+            if t.waitq:
+                self._release(t)
+        if t.coro is None:
+            nxt, t.next_command = t.next_command, None
+            if nxt is not None:
+                command, prio, link = nxt
+                if t.owner is link:
+                    self._activate(t, command, prio)
+                    return
+            t.state = TaskState.SUSPENDED
+
+    # ---- status (msgstat) and priorities ----------------------------------------------------
+    def setpri(self, link: Link, prio: int) -> None:
+        """Change ``link``'s priority now; a ready task it owns is re-queued at the new one."""
+        link.priority = prio
+        if link.dst_kind is EndpointKind.TASK and link.dst in self.tsktab:
+            target = self.tsktab.get(link.dst)
+            if target.owner is link and target.state is TaskState.READY:
+                self.kernel.ready(target, prio)
+
+    def done_now(self, link: Link) -> Completion | None:
+        """The pending report on ``link`` if there is one (and consume it), else None."""
+        if link.reported:
+            link.reported = False
+            return link.completion()
+        return None

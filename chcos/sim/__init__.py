@@ -1,0 +1,1 @@
+"""sim - simulated slaves and cells that stand in for hardware (loopback and virtual CAN only)."""

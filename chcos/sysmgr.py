@@ -1,0 +1,399 @@
+"""sysmgr - the system manager (TSK0): install, setpri and invoke, and the system map.
+
+``install`` places a task on a machine with its input sources and output destinations. It checks
+everything first and changes nothing unless all is well: the name is new (tasks are never removed),
+the machine is loaded, every peer exists and is of the right kind (sensory inputs come from sensors,
+files, terminals or tasks; command outputs go to actuators, files or tasks), at most eight of each,
+and every link keeps the hierarchy: sensory links go to a strictly higher level, command links to a
+strictly lower one (levels follow from the links, or ``--level`` places a task higher). Then it
+enters the task, its links and ports, the exception taps and assassin links, and writes
+sysfile.map.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from chcos import sysmap
+from chcos.cmdline import Boot, Inject, Install, Invoke, Request, SetPri, ShowMap, TaskOp
+from chcos.errors import ChcosError, InstallError, MessageError, TaskError
+from chcos.loader import resolve
+from chcos.messages import (
+    DEFAULT_COMMAND_PRIORITY,
+    DEFAULT_SENSORY_PRIORITY,
+    PORTS,
+    TOP_PRIORITY,
+    EndpointKind,
+    InPort,
+    Link,
+    LinkType,
+    TapPort,
+)
+from chcos.tasks import Role, TaskEntry, TaskFunc
+from chcos.usrmgr import TaskContext
+from chcos.worldmodel import WorldModel
+
+if TYPE_CHECKING:
+    from chcos.system import System
+
+_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_.-]*$")
+
+
+@dataclass(frozen=True)
+class _Peer:
+    name: str
+    kind: EndpointKind
+    level: int
+    machine: int
+    direction: str = ""  # sensor/actuator for devices, "terminal" for terminals
+
+
+def is_path(name: str) -> bool:
+    """True if an install argument names a file or terminal rather than a task or device."""
+    return "/" in name or name.startswith(".")
+
+
+class SystemManager:
+    """TSK0 of a system: every table change goes through here."""
+
+    def __init__(self, system: System) -> None:
+        self.sys = system
+        self.machines: set[int] = set()
+        self.installs: list[Install] = []
+        self.host_links: dict[str, Link] = {}
+        self.terminals: dict[str, list[Link]] = {}
+        self.on_change: list[Callable[[str, str], None]] = []
+
+    # ---- helpers ----------------------------------------------------------------------------
+    def _path(self, name: str) -> Path:
+        return self.sys.msgmgr.resolve_path(name)
+
+    def _peer(self, name: str) -> _Peer | None:
+        s = self.sys
+        if name in s.tsktab:
+            t = s.tsktab.get(name)
+            return _Peer(name, EndpointKind.TASK, t.level, t.machine)
+        if name in s.devtab:
+            d = s.devtab.get(name).spec
+            return _Peer(name, EndpointKind.DEVICE, 0, d.machine, d.direction)
+        if name.startswith("/dev/tty"):
+            return _Peer(name, EndpointKind.FILE, 0, -1, "terminal")
+        if is_path(name):
+            return _Peer(name, EndpointKind.FILE, 0, -1, "file")
+        return None
+
+    def _changed(self, kind: str, detail: str) -> None:
+        self.sys.msgmgr.event(kind, detail)
+        self.save_map()
+        for hook in self.on_change:
+            hook(kind, detail)
+
+    # ---- boot -------------------------------------------------------------------------------
+    def boot(self, machine: int, sysfile: str = "sysfile") -> str:
+        """Load machine ``machine`` (``install -mN sysfile``): start the drivers of its devices.
+        Loading a machine twice changes nothing. Raises BusError if a driver cannot start."""
+        if machine in self.machines:
+            return f"machine {machine} already loaded"
+        self.sys.start_drivers([machine])
+        self.machines.add(machine)
+        self._changed("boot", f"machine {machine} loaded from {sysfile}")
+        return f"machine {machine} loaded"
+
+    # ---- install ----------------------------------------------------------------------------
+    def check_install(self, req: Install) -> tuple[TaskFunc, int, list[_Peer], list[_Peer]]:
+        """Validate ``req`` without changing anything; returns (function, level, inputs,
+        outputs). Raises InstallError listing every problem found."""
+        errs: list[str] = []
+        s = self.sys
+        if not _NAME.match(req.name):
+            errs.append(f"task name {req.name!r} is not a valid name (letters, digits, _ . -)")
+        elif req.name in s.tsktab:
+            t = s.tsktab.get(req.name)
+            errs.append(f"task {req.name} is already installed on machine {t.machine} "
+                        "(tasks are never removed or replaced)")
+        elif req.name in s.devtab:
+            errs.append(f"{req.name} is a device in Devtab; a task cannot take its name")
+        if req.machine not in self.machines:
+            errs.append(f"machine {req.machine} is not loaded "
+                        f"(run 'install -m{req.machine} sysfile' first)")
+        for what, names in (("inputs", req.inputs), ("outputs", req.outputs)):
+            if len(names) > PORTS:
+                errs.append(f"{len(names)} {what}: a task has at most {PORTS}")
+            dup = sorted({n for n in names if names.count(n) > 1})
+            if dup:
+                errs.append(f"{what} name {', '.join(dup)} more than once")
+        if req.role not in ("task", "exception", "assassin"):
+            errs.append(f"role {req.role!r}: expected task, exception or assassin")
+        for src in req.queued:
+            if src not in req.inputs:
+                errs.append(f"--queue {src}: {src} is not an input of {req.name}")
+        ins: list[_Peer] = []
+        outs: list[_Peer] = []
+        for n in req.inputs:
+            p = self._peer(n)
+            if n == req.name:
+                errs.append(f"sensory link {n}/{req.name}: a task cannot read itself")
+            elif p is None:
+                errs.append(f"input {n} of {req.name} does not exist "
+                            "(no task, device, file or terminal of that name)")
+            elif p.kind is EndpointKind.DEVICE and p.direction != "sensor":
+                errs.append(f"input {n} of {req.name} is an actuator: sensory links come from "
+                            "sensors, files, terminals or lower tasks")
+            elif p.direction == "file" and not self._path(n).is_file():
+                errs.append(f"input file {n} of {req.name} does not exist "
+                            f"(looked for {self._path(n)})")
+            else:
+                ins.append(p)
+        for n in req.outputs:
+            p = self._peer(n)
+            if n == req.name:
+                errs.append(f"command link {req.name}/{n}: a task cannot command itself")
+            elif p is None:
+                errs.append(f"output {n} of {req.name} does not exist "
+                            "(no task, device or file of that name)")
+            elif p.kind is EndpointKind.DEVICE and p.direction != "actuator":
+                errs.append(f"output {n} of {req.name} is a sensor: command links go to "
+                            "actuators, files or lower tasks")
+            elif p.direction == "terminal":
+                errs.append(f"output {n} of {req.name} is a terminal: terminals are inputs")
+            elif p.direction == "file" and not self._path(n).parent.is_dir():
+                errs.append(f"output file {n} of {req.name}: directory "
+                            f"{self._path(n).parent} does not exist")
+            else:
+                outs.append(p)
+        peers = ins + outs
+        level = req.level if req.level is not None else 1 + max((p.level for p in peers),
+                                                                 default=0)
+        for p in ins:
+            if p.level >= level:
+                errs.append(f"sensory link {p.name}/{req.name} must go up to a strictly higher "
+                            f"level: {p.name} is at level {p.level}, {req.name} would be at "
+                            f"level {level}")
+        for p in outs:
+            if p.level >= level:
+                errs.append(f"command link {req.name}/{p.name} must go down to a strictly lower "
+                            f"level: {p.name} is at level {p.level}, {req.name} would be at "
+                            f"level {level}")
+        func: TaskFunc | None = None
+        try:
+            func = resolve(req.code or req.name, self.sys.task_path)
+        except InstallError as exc:
+            errs.append(str(exc))
+        if errs or func is None:
+            raise InstallError(f"install {req.name} refused, tables unchanged:\n  - "
+                               + "\n  - ".join(errs))
+        return func, level, ins, outs
+
+    def install(self, req: Install) -> TaskEntry:
+        """Install a task (see the module doc). Raises InstallError (tables unchanged)."""
+        func, level, ins, outs = self.check_install(req)
+        s = self.sys
+        role = Role(req.role)
+        if getattr(func, "chcos_system_driver", False):
+            role = Role.SYSTEM
+        t = TaskEntry(tid=s.tsktab.next_tid(), name=req.name, machine=req.machine, level=level,
+                      func=func, code=req.code, role=role, params=dict(req.params))
+        factory = getattr(func, "world_model", None)
+        t.world = factory() if callable(factory) else WorldModel()
+        t.ctx = TaskContext(t, s.kernel, s.msgmgr)
+        t.prio = DEFAULT_COMMAND_PRIORITY
+        s.tsktab.add(t)
+        for i, p in enumerate(ins):
+            prio = (s.devtab.get(p.name).spec.priority if p.kind is EndpointKind.DEVICE
+                    else DEFAULT_SENSORY_PRIORITY)
+            link = self._link(p.name, t.name, LinkType.SENSORY, prio, p.kind, EndpointKind.TASK,
+                              p.machine, t.machine, queued=req.queued.get(p.name, 0))
+            link.dst_port = i
+            port = InPort(link, i)
+            link.port = port
+            t.in_ports.append(port)
+            if p.kind is EndpointKind.TASK:
+                s.tsktab.get(p.name).up_links.append(link)
+            elif p.kind is EndpointKind.DEVICE:
+                s.devtab.get(p.name).links.append(link)
+            elif p.direction == "terminal":
+                self.terminals.setdefault(p.name, []).append(link)
+        for j, p in enumerate(outs):
+            link = self._link(t.name, p.name, LinkType.COMMAND, DEFAULT_COMMAND_PRIORITY,
+                              EndpointKind.TASK, p.kind, t.machine, p.machine)
+            link.src_port = j
+            t.out_links.append(link)
+        self._exception_wiring(t)
+        self.installs.append(req)
+        self._changed("install", f"{t.name} on machine {t.machine} at level {t.level} "
+                                 f"({len(ins)} in, {len(outs)} out)")
+        return t
+
+    def _link(self, src: str, dst: str, type: LinkType, prio: int, sk: EndpointKind,
+              dk: EndpointKind, sm: int, dm: int, queued: int = 0, tap: bool = False) -> Link:
+        mt = self.sys.msgtab
+        link = Link(mt.next_lid(), src, dst, type, prio, sk, dk, sm, dm, queued=queued, tap=tap)
+        mt.add(link)
+        return link
+
+    def _exception_wiring(self, t: TaskEntry) -> None:
+        s = self.sys
+        others = [u for u in s.tsktab if u is not t]
+        if t.role is Role.EXCEPTION:
+            tap = TapPort()
+            t.tap = tap
+            links: dict[str, Link] = {}
+            s.msgmgr.taps.append((t, tap, links))
+            for u in others:
+                if u.level < t.level:
+                    links[u.name] = self._link(u.name, t.name, LinkType.SENSORY, TOP_PRIORITY,
+                                               EndpointKind.TASK, EndpointKind.TASK, u.machine,
+                                               t.machine, tap=True)
+        for e, _tap, links in s.msgmgr.taps:
+            if e is not t and e.level > t.level:
+                links[t.name] = self._link(t.name, e.name, LinkType.SENSORY, TOP_PRIORITY,
+                                           EndpointKind.TASK, EndpointKind.TASK, t.machine,
+                                           e.machine, tap=True)
+        if t.role is Role.ASSASSIN:
+            for u in others:
+                if u.level < t.level and s.msgtab.get(t.name, u.name, LinkType.COMMAND) is None:
+                    t.special_links[u.name] = self._link(
+                        t.name, u.name, LinkType.COMMAND, TOP_PRIORITY, EndpointKind.TASK,
+                        EndpointKind.TASK, t.machine, u.machine, tap=True)
+        for a in others:
+            if a.role is Role.ASSASSIN and a.level > t.level:
+                a.special_links[t.name] = self._link(
+                    a.name, t.name, LinkType.COMMAND, TOP_PRIORITY, EndpointKind.TASK,
+                    EndpointKind.TASK, a.machine, t.machine, tap=True)
+
+    # ---- setpri, invoke and task operations -------------------------------------------------
+    def setpri(self, src: str, dst: str, priority: int) -> Link:
+        """Set the priority of link ``src``/``dst`` now. Raises InstallError for an unknown link
+        or a priority outside 0..99."""
+        if not 0 <= priority <= 99:
+            raise InstallError(f"setpri {src} {dst}: priority {priority} outside 0..99")
+        try:
+            link = self.sys.msgtab.find(src, dst)
+        except MessageError as exc:
+            raise InstallError(f"setpri: {exc}") from exc
+        old = link.priority
+        self.sys.msgmgr.setpri(link, priority)
+        self._changed("setpri", f"{link.name} {old} -> {priority}")
+        return link
+
+    def host_link(self, task: str) -> Link:
+        """The implicit command link from the host to ``task`` (made on first use). Raises
+        InstallError if there is no such task."""
+        link = self.host_links.get(task)
+        if link is None:
+            if task not in self.sys.tsktab:
+                raise InstallError(f"no task named {task!r}")
+            t = self.sys.tsktab.get(task)
+            link = self._link("host", task, LinkType.COMMAND, DEFAULT_COMMAND_PRIORITY,
+                              EndpointKind.HOST, EndpointKind.TASK, -1, t.machine, tap=True)
+            self.host_links[task] = link
+        return link
+
+    def invoke(self, task: str, command: Any = None, priority: int | None = None) -> str:
+        """Send a command message from the host to ``task`` (at ``priority`` if given).
+        Raises InstallError for an unknown task, Busy if it is held at a higher priority."""
+        link = self.host_link(task)
+        if priority is not None:
+            if not 0 <= priority <= 99:
+                raise InstallError(f"invoke {task}: priority {priority} outside 0..99")
+            link.priority = priority
+        self.sys.msgmgr.open(link, command, wait=False)
+        self.sys.msgmgr.event("invoke", f"host -> {task} at priority {link.priority}: {command}")
+        return f"{task} invoked at priority {link.priority}"
+
+    def task_op(self, op: str, task: str) -> str:
+        """Host ``suspend``, ``resume`` or ``close`` of ``task``. Raises InstallError if unknown."""
+        try:
+            t = self.sys.tsktab.get(task)
+        except TaskError as exc:
+            raise InstallError(str(exc)) from exc
+        if op == "suspend":
+            self.sys.kernel.suspend(t)
+        elif op == "resume":
+            self.sys.kernel.resume(t)
+        else:
+            self.sys.msgmgr.close(self.host_link(task))
+        self.sys.msgmgr.event(op, f"host {op} {task}")
+        return f"{task}: {op}"
+
+    def inject(self, name: str, value: Any) -> str:
+        """Feed ``value`` to sensor or terminal ``name`` (as an interrupt would). Raises
+        InstallError if there is no such sensor or terminal."""
+        if name in self.terminals:
+            for link in self.terminals[name]:
+                self.sys.msgmgr.deliver(link, value)
+            return f"{name} <- {value!r}"
+        if name in self.sys.devtab and self.sys.devtab.get(name).is_sensor:
+            self.sys.devtab.inject(name, value)
+            return f"{name} <- {value!r}"
+        raise InstallError(f"inject: no sensor or terminal named {name!r}")
+
+    # ---- dispatch and map -------------------------------------------------------------------
+    def execute(self, req: Request) -> str:
+        """Carry out one parsed host request; returns a one-line answer. Raises ChcosError."""
+        if isinstance(req, Boot):
+            return self.boot(req.machine, req.sysfile)
+        if isinstance(req, Install):
+            t = self.install(req)
+            return f"installed {t.name} on machine {t.machine} at level {t.level}"
+        if isinstance(req, SetPri):
+            link = self.setpri(req.src, req.dst, req.priority)
+            return f"{link.name} priority {link.priority}"
+        if isinstance(req, Invoke):
+            return self.invoke(req.task, req.command or None, req.priority)
+        if isinstance(req, TaskOp):
+            return self.task_op(req.op, req.task)
+        if isinstance(req, Inject):
+            return self.inject(req.device, req.value)
+        if isinstance(req, ShowMap):
+            from chcos.sysview import render_text
+
+            return render_text(self.map_doc())
+        raise ChcosError(f"unknown request {req!r}")
+
+    def map_doc(self) -> dict[str, Any]:
+        """The system map as a JSON-ready dict (see :mod:`chcos.sysmap`)."""
+        s = self.sys
+        tasks = []
+        by_name = {r.name: r for r in self.installs}
+        for t in s.tsktab:
+            r = by_name[t.name]
+            tasks.append({
+                "name": t.name, "machine": t.machine, "level": t.level,
+                "level_given": r.level is not None, "code": t.code, "role": r.role,
+                "inputs": list(r.inputs), "outputs": list(r.outputs), "params": dict(r.params),
+                "queued": dict(r.queued), "status": t.state.value,
+                "owner": t.owner.src if t.owner is not None else None, "priority": t.prio,
+                "steps": t.steps, "activations": t.activations, "completions": t.completions,
+                "abnormal": t.abnormal, "last_error": t.last_error,
+            })
+        links = []
+        for lk in s.msgtab:
+            default = (TOP_PRIORITY if lk.tap and lk.src != "host" else
+                       DEFAULT_COMMAND_PRIORITY if lk.type is LinkType.COMMAND else
+                       s.devtab.get(lk.src).spec.priority if lk.src_kind is EndpointKind.DEVICE
+                       else DEFAULT_SENSORY_PRIORITY)
+            links.append({
+                "src": lk.src, "dst": lk.dst, "type": lk.type.value, "priority": lk.priority,
+                "default_priority": default, "status": lk.status.value, "queued": lk.queued,
+                "implicit": lk.tap, "sent": lk.sent, "overwritten": lk.overwritten,
+                "delivered": lk.delivered,
+            })
+        devices = [{
+            "name": d.name, "direction": d.spec.direction, "machine": d.spec.machine,
+            "bus": d.spec.bus, "status": d.status.value, "value": d.value,
+            "readings": d.readings, "overwrites": d.overwrites, "units": d.spec.units,
+        } for d in s.devtab]
+        return {"machines": sorted(self.machines), "devmaps": list(s.devmap.files),
+                "base_dir": str(s.base_dir), "task_path": [str(p) for p in s.task_path],
+                "time": s.kernel.clock.now(), "tasks": tasks, "links": links,
+                "devices": devices}
+
+    def save_map(self) -> None:
+        """Write sysfile.map (atomically) if the system has a map path."""
+        if self.sys.map_path is not None:
+            sysmap.write(self.sys.map_path, self.map_doc())

@@ -1,0 +1,49 @@
+"""sysview - the system map drawn as text: levels top to bottom, tasks, links, devices.
+
+Works on the document of :meth:`chcos.sysmgr.SystemManager.map_doc` or a sysfile.map read with
+:func:`chcos.sysmap.read`, so it draws a running system and a saved one alike.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from typing import Any
+
+
+def render_text(doc: dict[str, Any]) -> str:
+    """The hierarchy as lines of text (highest level first)."""
+    out: list[str] = []
+    by_level: dict[int, list[dict[str, Any]]] = defaultdict(list)
+    for t in doc["tasks"]:
+        by_level[int(t["level"])].append(t)
+    links_from: dict[str, list[dict[str, Any]]] = defaultdict(list)
+    for lk in doc["links"]:
+        if not lk.get("implicit"):
+            links_from[lk["src"]].append(lk)
+    out.append(f"machines: {', '.join(str(m) for m in doc['machines']) or 'none'}"
+               f"   time {doc.get('time', 0.0):.3f} s")
+    for level in sorted(by_level, reverse=True):
+        out.append(f"level {level}")
+        for t in by_level[level]:
+            owner = f" owner {t['owner']}" if t.get("owner") else ""
+            role = f" [{t['role']}]" if t.get("role", "task") != "task" else ""
+            err = f" last error: {t['last_error']}" if t.get("last_error") else ""
+            out.append(f"  {t['name']:<8} m{t['machine']} {t.get('status', '?'):<9} "
+                       f"p{t.get('priority', '?')}{owner}{role} "
+                       f"steps {t.get('steps', 0)}{err}")
+            for lk in links_from.get(t["name"], []):
+                arrow = "^" if lk["type"] == "sensory" else "v"
+                out.append(f"      {arrow} {lk['src']}/{lk['dst']:<10} {lk['type']:<7} "
+                           f"p{lk['priority']:<3} {lk['status']:<19} sent {lk.get('sent', 0)} "
+                           f"overwritten {lk.get('overwritten', 0)}")
+    devs = doc.get("devices", [])
+    if devs:
+        out.append("level 0 (devices)")
+        for d in devs:
+            val = d.get("value")
+            out.append(f"  {d['name']:<8} m{d['machine']} {d['direction']:<8} "
+                       f"{d.get('status', '?'):<9} value {val!r} {d.get('units', '')}")
+            for lk in links_from.get(d["name"], []):
+                out.append(f"      ^ {lk['src']}/{lk['dst']:<10} sensory p{lk['priority']} "
+                           f"sent {lk.get('sent', 0)} overwritten {lk.get('overwritten', 0)}")
+    return "\n".join(out)

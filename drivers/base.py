@@ -1,0 +1,85 @@
+"""base - the one abstract base every bus driver implements, and the host interface it talks to.
+
+A driver owns one bus (a :class:`chcos.devspec.BusSpec`) and the devices on it. All its bus I/O
+runs outside the kernel thread (python-can notifier threads, an asyncio loop for pymodbus, a reader
+thread for serial); it reaches the kernel only through the thread-safe :class:`DriverHost` calls.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Sequence
+from typing import Any, ClassVar, Protocol
+
+from chcos.devspec import BusSpec, DeviceSpec
+
+
+class DriverHost(Protocol):
+    """What the device manager offers a driver. Every method is thread-safe unless noted."""
+
+    def deliver(self, device: str, value: Any) -> None:
+        """A new reading of sensor ``device`` (decoded by the bus codec, before the device's own
+        scale/offset). Lands in the device's last-value buffer as an interrupt."""
+
+    def fail(self, device: str, reason: str) -> None:
+        """Device ``device`` has failed (heartbeat lost, bus error, timeout); ``reason`` says why."""
+
+    def recover(self, device: str) -> None:
+        """Device ``device`` works again after a failure."""
+
+    def error(self, bus: str, kind: str, detail: str) -> None:
+        """Count and report a bus-level error that hit no single device: a malformed frame, an
+        unknown id, garbage on a serial line. ``kind`` is a short key (``"malformed"``...)."""
+
+    def every(self, period: float, fn: Callable[[], None]) -> None:
+        """Run ``fn`` on the kernel thread every ``period`` seconds of the kernel clock (virtual or
+        real). ``fn`` must not block: it hands work to the driver's own I/O thread. Call only from
+        :meth:`Driver.start`."""
+
+    def now(self) -> float:
+        """The kernel clock's current time in seconds."""
+
+
+class Driver(ABC):
+    """One bus and its devices.
+
+    Subclasses set :attr:`kind`, and implement :meth:`start`, :meth:`write`, :meth:`stop`
+    and :meth:`settle`. :meth:`check_bus` and :meth:`check_device` validate the kind-specific
+    options of a device map without touching any bus (used by ``chcos check``).
+    """
+
+    kind: ClassVar[str] = ""
+
+    def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
+        self.bus = bus
+        self.devices = {d.name: d for d in devices}
+        self.host = host
+
+    @classmethod
+    def check_bus(cls, bus: BusSpec) -> list[str]:
+        """Errors in ``bus.options``, each as ``"<key path>: <what was expected>"``; [] if valid."""
+        return []
+
+    @classmethod
+    def check_device(cls, bus: BusSpec, device: DeviceSpec) -> list[str]:
+        """Errors in ``device.address`` for this bus kind, like :meth:`check_bus`."""
+        return []
+
+    @abstractmethod
+    def start(self) -> None:
+        """Open the bus and start the I/O threads. Raises :class:`chcos.errors.BusError`."""
+
+    @abstractmethod
+    def write(self, device: str, value: Any) -> None:
+        """Send raw ``value`` to actuator ``device`` without blocking the caller (queue it to the
+        I/O thread). Failures are reported later through :meth:`DriverHost.fail`."""
+
+    @abstractmethod
+    def stop(self) -> None:
+        """Stop the I/O threads and close the bus. Idempotent; never raises."""
+
+    @abstractmethod
+    def settle(self, timeout: float) -> bool:
+        """Block until everything that reached this driver so far has been handed to the host and no
+        request is outstanding; True if quiet, False on timeout. The kernel calls it before it jumps
+        virtual time ahead, so that virtual-time runs on real protocols are deterministic."""

@@ -1,0 +1,268 @@
+"""Message manager: newest wins, queued links, reads, ownership, pre-emption, completion."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+
+from chcos.errors import Busy, QueueOverflow, ReadTimeout, SensorFailure
+from chcos.messages import LinkStatus
+from chcos.tasks import TaskState
+from chcos.usrmgr import TaskContext
+from vcan_tests.conftest import MakeSystem, memory_map
+
+M = "vcan_tests.test_core_messages"
+
+
+# ---- tasks used by the tests (module level so install can find them by reference) ----------
+async def reader(ctx: TaskContext, cmd: dict[str, Any]) -> None:
+    while True:
+        cmd["log"].append(await ctx.read(0))
+        if cmd.get("slow"):
+            await ctx.sleep(cmd["slow"])
+
+
+async def reader_any(ctx: TaskContext, cmd: dict[str, Any]) -> None:
+    while True:
+        port, value = await ctx.read_any()
+        cmd["log"].append((ctx.inputs[port], value))
+
+
+async def reader_timeout(ctx: TaskContext, cmd: dict[str, Any]) -> None:
+    try:
+        await ctx.read(0, timeout=0.25)
+    except ReadTimeout as exc:
+        cmd["log"].append(("timeout", ctx.now, str(exc)))
+
+
+async def reader_sensor(ctx: TaskContext, cmd: dict[str, Any]) -> None:
+    while True:
+        try:
+            cmd["log"].append(await ctx.read(0))
+        except SensorFailure as exc:
+            cmd["log"].append(("failure", exc.device))
+            return
+
+
+async def producer(ctx: TaskContext, cmd: dict[str, Any]) -> None:
+    for v in cmd["values"]:
+        ctx.put(v)
+        if cmd.get("gap"):
+            await ctx.sleep(cmd["gap"])
+    await ctx.checkpoint()
+
+
+async def queued_producer(ctx: TaskContext, cmd: dict[str, Any]) -> None:
+    for v in cmd["values"]:
+        try:
+            ctx.put(v)
+        except QueueOverflow as exc:
+            cmd["log"].append(("overflow", v, str(exc)))
+
+
+async def worker(ctx: TaskContext, cmd: Any) -> Any:
+    """A lower task: logs who commands it, works a while, completes with a result."""
+    log = cmd["log"]
+    log.append(("start", cmd["who"], ctx.priority))
+    await ctx.sleep(cmd.get("work", 1.0))
+    if cmd.get("fail"):
+        raise ValueError(f"worker broke for {cmd['who']}")
+    log.append(("done", cmd["who"]))
+    return f"result for {cmd['who']}"
+
+
+async def boss(ctx: TaskContext, cmd: dict[str, Any]) -> None:
+    """Invokes W (after an optional delay) and records how it ended."""
+    await ctx.sleep(cmd.get("delay", 0.0))
+    try:
+        await ctx.invoke("W", {"who": ctx.name, "log": cmd["log"], "work": cmd.get("work", 1.0),
+                               "fail": cmd.get("fail", False)}, wait=cmd.get("wait", True))
+    except Busy as exc:
+        cmd["log"].append(("busy", ctx.name, str(exc)))
+        return
+    done = await ctx.done("W")
+    cmd["log"].append(("report", ctx.name, done.status, done.result, done.error))
+
+
+async def writer(ctx: TaskContext, cmd: dict[str, Any]) -> None:
+    ctx.write("M1", 10.0)
+    await ctx.sleep(0.5)
+    raise RuntimeError("controller fault")
+
+
+async def bystander(ctx: TaskContext, cmd: dict[str, Any]) -> None:
+    for _ in range(10):
+        await ctx.sleep(0.1)
+        cmd["log"].append(ctx.now)
+
+
+def install(s: Any, line: str) -> None:
+    s.execute(line)
+
+
+# ---- sensory messages ----------------------------------------------------------------------
+def test_newest_message_overwrites_unread_one(make_system: MakeSystem) -> None:
+    s = make_system()
+    s.execute(f"install -m0 --code={M}:producer P")
+    s.execute(f"install -m0i1 --code={M}:reader R P")
+    log: list[Any] = []
+    s.invoke("R", {"log": log, "slow": 1.0})
+    s.run_for(0.01)
+    s.invoke("P", {"values": [1, 2, 3, 4], "gap": 0.4})
+    s.run_for(3.0)
+    # R reads 1 at once; while it sleeps 1 s, 2 and 3 arrive and 3 overwrites 2; then 4
+    assert log == [1, 3, 4]
+    link = s.msgtab.find("P", "R")
+    assert (link.sent, link.overwritten, link.delivered) == (4, 1, 3)
+
+
+def test_queued_link_keeps_fifo_and_refuses_overflow(make_system: MakeSystem) -> None:
+    s = make_system()
+    s.execute(f"install -m0 --code={M}:queued_producer P")
+    s.execute(f"install -m0i1 --queue=P=3 --code={M}:reader R P")
+    log: list[Any] = []
+    plog: list[Any] = []
+    s.invoke("P", {"values": [1, 2, 3, 4, 5], "log": plog}, priority=50)
+    s.run_for(0.1)
+    s.invoke("R", {"log": log})
+    s.run_for(1.0)
+    assert log == [1, 2, 3]
+    assert [p[1] for p in plog] == [4, 5]
+    assert "queued link P/R is full" in plog[0][2]
+    assert s.msgtab.find("P", "R").refused == 2
+
+
+def test_read_any_prefers_higher_priority_link(make_system: MakeSystem) -> None:
+    s = make_system(memory_map(["S1", "S2"]))
+    s.execute(f"install -m0i2 --code={M}:reader_any R S1 S2")
+    s.execute("setpri -30 S2 R")
+    log: list[Any] = []
+    s.devtab.inject("S1", 1.0)
+    s.devtab.inject("S2", 2.0)
+    s.run_for(0.1)
+    s.invoke("R", {"log": log})
+    s.run_for(0.1)
+    assert log == [("S2", 2.0), ("S1", 1.0)]
+
+
+def test_read_timeout_on_virtual_time(make_system: MakeSystem) -> None:
+    s = make_system(memory_map(["S1"]))
+    s.execute(f"install -m0i1 --code={M}:reader_timeout R S1")
+    log: list[Any] = []
+    s.invoke("R", {"log": log})
+    s.run_for(1.0)
+    assert log[0][0] == "timeout" and log[0][1] == pytest.approx(0.25)
+    assert "S1/R" in log[0][2]
+
+
+def test_stale_sensor_is_a_sensor_failure_for_its_reader(make_system: MakeSystem) -> None:
+    s = make_system(memory_map(["S1"], stale_after=0.5))
+    s.execute(f"install -m0i1 --code={M}:reader_sensor R S1")
+    log: list[Any] = []
+    s.invoke("R", {"log": log})
+    s.devtab.inject("S1", 5.0)
+    s.run_for(2.0)
+    assert log == [5.0, ("failure", "S1")]
+    assert s.devtab.get("S1").status.value == "stale"
+
+
+# ---- command messages: ownership, pre-emption, queues, completion ---------------------------
+def _boss_system(make_system: MakeSystem) -> Any:
+    s = make_system()
+    s.execute(f"install -m0 --code={M}:worker W")
+    s.execute(f"install -m0o1 --code={M}:boss LOW W")
+    s.execute(f"install -m0o1 --code={M}:boss HIGH W")
+    s.execute("setpri -2 LOW W")
+    s.execute("setpri -20 HIGH W")
+    return s
+
+
+def test_free_target_runs_at_link_priority_and_reports_completion(
+        make_system: MakeSystem) -> None:
+    s = _boss_system(make_system)
+    log: list[Any] = []
+    s.invoke("LOW", {"log": log})
+    s.run_for(5.0)
+    assert log[0] == ("start", "LOW", 2)
+    assert log[-1] == ("report", "LOW", LinkStatus.NORMAL, "result for LOW", "")
+    assert s.tsktab.get("W").state is TaskState.SUSPENDED
+    assert s.tsktab.get("W").owner is None
+
+
+def test_higher_priority_preempts_lower_owner_who_is_told(make_system: MakeSystem) -> None:
+    s = _boss_system(make_system)
+    log: list[Any] = []
+    s.invoke("LOW", {"log": log, "work": 2.0})
+    s.invoke("HIGH", {"log": log, "delay": 0.5, "work": 1.0})
+    s.run_for(5.0)
+    assert ("start", "LOW", 2) in log and ("start", "HIGH", 20) in log
+    low_report = next(e for e in log if e[0] == "report" and e[1] == "LOW")
+    assert low_report[2] is LinkStatus.PREEMPTED and "HIGH" in low_report[4]
+    assert ("done", "LOW") not in log  # the pre-empted activation never finished
+    assert ("report", "HIGH", LinkStatus.NORMAL, "result for HIGH", "") in log
+    assert s.msgtab.find("LOW", "W").status is LinkStatus.PREEMPTED
+
+
+def test_lower_priority_caller_waits_then_gets_the_task(make_system: MakeSystem) -> None:
+    s = _boss_system(make_system)
+    log: list[Any] = []
+    s.invoke("HIGH", {"log": log, "work": 1.0})
+    s.invoke("LOW", {"log": log, "delay": 0.2, "work": 1.0})
+    s.run_for(5.0)
+    starts = [e for e in log if e[0] == "start"]
+    assert starts == [("start", "HIGH", 20), ("start", "LOW", 2)]
+    assert [e[1] for e in log if e[0] == "report"] == ["HIGH", "LOW"]
+
+
+def test_no_wait_invoke_gets_busy_at_once(make_system: MakeSystem) -> None:
+    s = _boss_system(make_system)
+    log: list[Any] = []
+    s.invoke("HIGH", {"log": log, "work": 1.0})
+    s.invoke("LOW", {"log": log, "delay": 0.2, "wait": False})
+    s.run_for(5.0)
+    busy = [e for e in log if e[0] == "busy"]
+    assert busy and "held by HIGH at priority 20" in busy[0][2]
+
+
+def test_abnormal_completion_is_contained_and_reported(make_system: MakeSystem) -> None:
+    s = _boss_system(make_system)
+    log: list[Any] = []
+    s.invoke("LOW", {"log": log, "fail": True, "work": 0.5})
+    s.run_for(5.0)
+    report = next(e for e in log if e[0] == "report")
+    assert report[2] is LinkStatus.ABNORMAL
+    assert "ValueError: worker broke for LOW" in report[4]
+    w = s.tsktab.get("W")
+    assert w.abnormal == 1 and w.state is TaskState.SUSPENDED
+    # the task is suspended, not dead: it can be invoked again
+    s.invoke("HIGH", {"log": log, "work": 0.5})
+    s.run_for(5.0)
+    assert ("report", "HIGH", LinkStatus.NORMAL, "result for HIGH", "") in log
+
+
+def test_fault_drives_owned_actuators_safe_and_others_keep_running(
+        make_system: MakeSystem) -> None:
+    s = make_system(memory_map([], {"M1": -1.0}))
+    s.execute(f"install -m0o1 --code={M}:writer C M1")
+    s.execute(f"install -m0 --code={M}:bystander B")
+    log: list[Any] = []
+    s.invoke("C", {})
+    s.invoke("B", {"log": log})
+    s.run_for(3.0)
+    assert s.devtab.get("M1").value == -1.0  # safe value after the fault
+    assert len(log) == 10  # the bystander ran to the end
+    assert "controller fault" in s.tsktab.get("C").last_error
+
+
+def test_host_invoke_close_and_msgstat(make_system: MakeSystem) -> None:
+    s = _boss_system(make_system)
+    log: list[Any] = []
+    s.invoke("W", {"who": "host", "log": log, "work": 10.0}, priority=30)
+    s.run_for(1.0)
+    assert s.tsktab.get("W").owner is s.sysmgr.host_links["W"]
+    s.execute("close W")
+    s.run_for(1.0)
+    assert s.tsktab.get("W").owner is None
+    assert s.tsktab.get("W").state is TaskState.SUSPENDED
+    assert ("done", "host") not in log
