@@ -7,6 +7,8 @@
 ``chcos check``   validate device-map files without touching a bus
 ``chcos map``     print a sysfile.map as the hierarchy
 ``chcos sim``     simulated field devices (CAN, CANopen, Modbus, serial)
+``chcos satellite -m N --system FILE``  run machine N of a multi-satellite system
+``chcos host --system FILE [COMMAND...]``  host commands to a running multi-satellite system
 """
 
 from __future__ import annotations
@@ -60,6 +62,55 @@ def _shell(args: argparse.Namespace) -> int:
     return status
 
 
+def _satellite(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    from chcos import sysfile
+    from chcos.link.transport import enable_zenoh_logging
+    from chcos.satellite import Satellite
+
+    enable_zenoh_logging("warn")  # Zenoh reports refused (unauthenticated) sessions
+    sf = sysfile.load(args.system)
+    done = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: done.set())
+    signal.signal(signal.SIGINT, lambda *_: done.set())
+    with Satellite(sf, args.machine) as sat:
+        sat.start()
+        print(f"satellite {args.machine} of {sf.name} up ({len(sat.log)} log entries)",
+              flush=True)
+        done.wait()
+    return 0
+
+
+def _host(args: argparse.Namespace) -> int:
+    from chcos import sysfile
+    from chcos.host import Host
+
+    sf = sysfile.load(args.system)
+    status = 0
+    with Host(sf) as host:
+        if args.wait:
+            host.wait_for(sorted(sf.satellites), timeout=args.wait)
+        lines: Iterable[str]
+        if args.command:
+            lines = [" ".join(args.command)]
+        elif args.script:
+            lines = Path(args.script).read_text(encoding="utf-8").splitlines()
+        else:
+            lines = sys.stdin
+        for line in lines:
+            try:
+                answer = host.execute(line)
+            except ChcosError as exc:
+                print(f"error: {exc}", file=sys.stderr)
+                status = 1
+                continue
+            if answer:
+                print(answer, flush=True)
+    return status
+
+
 def _map(args: argparse.Namespace) -> int:
     from chcos import sysmap
     from chcos.sysview import render_text
@@ -97,6 +148,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--virtual", action="store_true",
                    help="virtual time: the script advances it with 'run SECONDS'")
     p.set_defaults(func=_shell)
+    p = sub.add_parser("satellite", help="run one machine of a multi-satellite system")
+    p.add_argument("-m", "--machine", type=int, required=True)
+    p.add_argument("--system", required=True, help="the system file (TOML)")
+    p.set_defaults(func=_satellite)
+    p = sub.add_parser("host", help="host commands to a running multi-satellite system")
+    p.add_argument("--system", required=True, help="the system file (TOML)")
+    p.add_argument("--script", help="read commands from this file")
+    p.add_argument("--wait", type=float, default=0.0,
+                   help="first wait this many seconds for every satellite to be up")
+    p.add_argument("command", nargs=argparse.REMAINDER, help="one command, e.g. setpri -9 A4 C1")
+    p.set_defaults(func=_host)
     p = sub.add_parser("map", help="print a sysfile.map")
     p.add_argument("map", nargs="?", default="sysfile.map")
     p.set_defaults(func=_map)

@@ -214,12 +214,16 @@ class Devtab:
         if over:
             e.overwrites += 1
 
-    def _set_status(self, device: str, status: DeviceStatus, reason: str) -> None:
+    def _set_status(self, device: str, status: DeviceStatus, reason: str,
+                    tell: bool = True) -> None:
         e = self._entries.get(device)
         if e is None or e.status is status:
             return
         e.status = status
         e.reason = reason
+        comm = self.msgmgr.comm
+        if tell and comm is not None and self.msgmgr.is_local(e.spec.machine):
+            comm.device_status(device, status.value, reason)
         self.msgmgr.event(f"device-{status.name.lower()}",
                           f"{device}: {reason}" if reason else device)
         if status in (DeviceStatus.FAILED, DeviceStatus.STALE):
@@ -284,7 +288,11 @@ class Devtab:
         e.value = value
         e.updated_at = self.kernel.clock.now()
         e.commands += 1
-        if e.driver is not None:
+        mm = self.msgmgr
+        if not mm.is_local(spec.machine):
+            assert mm.comm is not None
+            mm.comm.actuator(device, spec.machine, value, source)
+        elif e.driver is not None:
             e.driver.write(device, raw)
         for hook in self.on_write:
             hook(device, value)
@@ -297,11 +305,16 @@ class Devtab:
                 n += 1
         return n
 
+    def set_status(self, device: str, status: str, reason: str) -> None:
+        """Another satellite reports the status of one of its devices."""
+        self._set_status(device, DeviceStatus(status), reason, tell=False)
+
     def estop(self, reason: str) -> int:
-        """Write every actuator's safe value (where configured); returns how many were written."""
+        """Write the safe value of every actuator of this satellite (where configured); returns
+        how many were written. Other satellites are told by the caller (see TaskContext.estop)."""
         n = 0
         for e in self._entries.values():
-            if not e.is_sensor and self._safe(e.name):
+            if not e.is_sensor and self.msgmgr.is_local(e.spec.machine) and self._safe(e.name):
                 n += 1
         log.warning("estop (%s): %d actuator(s) at safe values", reason, n)
         return n

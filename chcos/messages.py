@@ -82,7 +82,8 @@ class Link:
     src_machine: int = 0
     dst_machine: int = 0
     queued: int = 0  # 0: newest wins; n > 0: FIFO of at most n messages
-    tap: bool = False  # an exception task's tap on a lower task
+    tap: bool = False  # an implicit link: exception tap, assassin or host link
+    remote: bool = False  # the destination lives on another satellite
     status: LinkStatus = LinkStatus.OK
     port: InPort | TapPort | None = None  # where sensory messages to a task land
     src_port: int = -1  # index in the source task's out_links (command links)

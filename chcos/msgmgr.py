@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TextIO
+from typing import TYPE_CHECKING, Any, Protocol, TextIO
 
 from chcos.errors import Busy, DeviceError, MessageError, QueueOverflow
 from chcos.kernel import Kernel
@@ -36,6 +36,39 @@ log = logging.getLogger("chcos.msgmgr")
 EventSink = Callable[[str, str], None]
 
 
+class Comm(Protocol):
+    """What the message manager asks of the communications manager when a link leads to another
+    satellite (see :mod:`chcos.comm`). Every call is made on the kernel thread and must not
+    block."""
+
+    def sensory(self, link: Link, value: Any) -> None:
+        """Carry a sensory message to the destination's satellite."""
+
+    def tap(self, link: Link, source: str, value: Any) -> None:
+        """Carry a tapped sensory message to a remote exception task."""
+
+    def open(self, link: Link, command: Any, wait: bool) -> None:
+        """Ask the target's satellite to invoke it for ``link``'s caller."""
+
+    def close(self, link: Link) -> None:
+        """Ask the target's satellite to release it from ``link``'s caller."""
+
+    def report(self, link: Link) -> None:
+        """Send ``link``'s new status (completion, pre-emption) to the caller's satellite."""
+
+    def granted(self, link: Link) -> None:
+        """Tell the caller's satellite that ``link``'s caller now owns the target."""
+
+    def actuator(self, device: str, machine: int, value: Any, source: str) -> None:
+        """Carry an actuator command to the device's satellite."""
+
+    def device_status(self, device: str, status: str, reason: str) -> None:
+        """Tell every satellite that a local device changed status."""
+
+    def estop(self, reason: str) -> None:
+        """Emergency stop on every other satellite, at top priority."""
+
+
 class MessageManager:
     """Message transfer and ownership for one satellite's tables."""
 
@@ -47,8 +80,17 @@ class MessageManager:
         self.taps: list[tuple[TaskEntry, TapPort, dict[str, Link]]] = []
         self._files: dict[str, TextIO] = {}
         self.base_dir = Path.cwd()
+        self.comm: Comm | None = None
+        self.local: set[int] | None = None  # machines hosted here (None: every machine)
         self._qseq = 0
         kernel.set_end_handler(self._activation_ended)
+
+    def is_local(self, machine: int) -> bool:
+        """True if ``machine`` runs in this process."""
+        return self.local is None or machine in self.local
+
+    def _remote_task(self, t: TaskEntry | None) -> bool:
+        return t is not None and self.local is not None and t.machine not in self.local
 
     # ---- events -----------------------------------------------------------------------------
     def event(self, kind: str, detail: str) -> None:
@@ -86,6 +128,11 @@ class MessageManager:
         if link.status is LinkStatus.SUSPENDED:
             link.refused += 1
             return False
+        if link.remote:
+            assert self.comm is not None
+            link.sent += 1
+            self.comm.sensory(link, value)
+            return True
         port = link.port
         if port.__class__ is not InPort:
             raise MessageError(f"sensory link {link.name} has no input port")
@@ -114,18 +161,27 @@ class MessageManager:
         return True
 
     def _tap(self, t: TaskEntry, value: Any) -> None:
-        kernel = self.kernel
         for _exc_task, tap, links in self.taps:
             link = links.get(t.name)
             if link is None or link.status is LinkStatus.SUSPENDED:
                 continue
-            if tap.store_from(t.name, value, kernel.clock.now()):
-                link.overwritten += 1
-            link.sent += 1
-            w = tap.waiter
-            if w is not None:
-                tap.waiter = None
-                kernel.wake(w, max(w.base_prio, link.priority), tap)
+            if link.remote:
+                assert self.comm is not None
+                link.sent += 1
+                self.comm.tap(link, t.name, value)
+                continue
+            self.deliver_tap(link, tap, t.name, value)
+
+    def deliver_tap(self, link: Link, tap: TapPort, source: str, value: Any) -> None:
+        """Put ``source``'s message into an exception task's tap and ready the task."""
+        kernel = self.kernel
+        if tap.store_from(source, value, kernel.clock.now()):
+            link.overwritten += 1
+        link.sent += 1
+        w = tap.waiter
+        if w is not None:
+            tap.waiter = None
+            kernel.wake(w, max(w.base_prio, link.priority), tap)
 
     def taken(self, link: Link, sent_at: float) -> None:
         """Count a delivery on ``link`` (the receiver read it) and feed latency instruments."""
@@ -199,6 +255,12 @@ class MessageManager:
         link.reported = False
         link.result = None
         link.error = ""
+        if link.remote:  # the target's satellite decides; the caller waits for its answer
+            assert self.comm is not None
+            link.pending = True
+            link.sent += 1
+            self.comm.open(link, command, wait)
+            return False
         owner = target.owner
         if owner is link or owner is None or owner.priority < link.priority:
             if owner is not None and owner is not link:
@@ -228,6 +290,10 @@ class MessageManager:
         leaves the wait queue."""
         target = self.tsktab.get(link.dst)
         link.pending = False
+        if link.remote:
+            assert self.comm is not None
+            self.comm.close(link)
+            return
         target.waitq[:] = [e for e in target.waitq if e[1] is not link]
         if target.owner is link:
             self._release(target)
@@ -266,7 +332,10 @@ class MessageManager:
             link.status = LinkStatus.OK
             t.owner = link
             caller = self._caller(link)
-            if caller is not None and caller.wait_link is link:
+            if self._remote_task(caller):
+                assert self.comm is not None
+                self.comm.granted(link)
+            elif caller is not None and caller.wait_link is link:
                 self.kernel.wake(caller, caller.base_prio, True)
             self._start(t, command, link)
         elif t.coro is not None:
@@ -284,7 +353,10 @@ class MessageManager:
         link.error = error
         link.reported = True
         caller = self._caller(link)
-        if caller is not None and caller.wait_link is link and not link.pending:
+        if self._remote_task(caller):
+            assert self.comm is not None
+            self.comm.report(link)
+        elif caller is not None and caller.wait_link is link and not link.pending:
             link.reported = False
             self.kernel.wake(caller, max(caller.base_prio, link.priority), link.completion())
 
@@ -330,6 +402,53 @@ class MessageManager:
                     self._activate(t, command, prio)
                     return
             t.state = TaskState.SUSPENDED
+
+    # ---- answers from other satellites (called by the communications manager) ---------------
+    def remote_open(self, link: Link, command: Any, wait: bool) -> str:
+        """Run an ``open`` that a task on another satellite asked for; returns ``"owner"``,
+        ``"queued"`` or ``"busy: <why>"`` for the caller's satellite."""
+        try:
+            return "owner" if self.open(link, command, wait=wait) else "queued"
+        except Busy as exc:
+            return f"busy: {exc}"
+
+    def open_answer(self, link: Link, answer: str) -> None:
+        """The target's satellite answered this satellite's ``open`` on ``link``."""
+        caller = self._caller(link)
+        if answer == "queued":
+            return
+        link.pending = False
+        if answer == "owner":
+            link.status = LinkStatus.OK
+            if caller is not None and caller.wait_link is link:
+                self.kernel.wake(caller, caller.base_prio, True)
+        else:
+            if caller is not None and caller.wait_link is link:
+                self.kernel.wake(caller, caller.base_prio, exc=Busy(answer.removeprefix("busy: ")))
+
+    def remote_report(self, link: Link, status: LinkStatus, result: Any, error: str) -> None:
+        """The target's satellite reports a completion or pre-emption on ``link``."""
+        link.pending = False
+        self._report(link, status, result, error)
+
+    def satellite_lost(self, machine: int) -> int:
+        """Machine ``machine`` died: every local caller of a task there gets an abnormal
+        completion. Returns how many links were told."""
+        n = 0
+        for link in self.msgtab:
+            if link.type is not LinkType.COMMAND or link.dst_kind is not EndpointKind.TASK:
+                continue
+            if not link.remote or link.dst_machine != machine:
+                continue
+            caller = self._caller(link)
+            if caller is None or self._remote_task(caller):
+                continue
+            if link.pending or (link.status is LinkStatus.OK and link.sent):
+                link.pending = False
+                self._report(link, LinkStatus.ABNORMAL,
+                             error=f"satellite {machine} running {link.dst} died")
+                n += 1
+        return n
 
     # ---- status (msgstat) and priorities ----------------------------------------------------
     def setpri(self, link: Link, prio: int) -> None:

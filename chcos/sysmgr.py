@@ -52,6 +52,11 @@ class _Peer:
     direction: str = ""  # sensor/actuator for devices, "terminal" for terminals
 
 
+async def _elsewhere(ctx: TaskContext, command: Any) -> None:
+    """Stands for the code of a task that runs on another satellite (never activated here)."""
+    raise TaskError(f"task {ctx.name} runs on machine {ctx.machine}, not on this satellite")
+
+
 def is_path(name: str) -> bool:
     """True if an install argument names a file or terminal rather than a task or device."""
     return "/" in name or name.startswith(".")
@@ -98,7 +103,8 @@ class SystemManager:
         Loading a machine twice changes nothing. Raises BusError if a driver cannot start."""
         if machine in self.machines:
             return f"machine {machine} already loaded"
-        self.sys.start_drivers([machine])
+        if self.sys.msgmgr.is_local(machine):
+            self.sys.start_drivers([machine])
         self.machines.add(machine)
         self._changed("boot", f"machine {machine} loaded from {sysfile}")
         return f"machine {machine} loaded"
@@ -179,10 +185,13 @@ class SystemManager:
                             f"level: {p.name} is at level {p.level}, {req.name} would be at "
                             f"level {level}")
         func: TaskFunc | None = None
-        try:
-            func = resolve(req.code or req.name, self.sys.task_path)
-        except InstallError as exc:
-            errs.append(str(exc))
+        if not self.sys.msgmgr.is_local(req.machine):
+            func = _elsewhere  # its own satellite loads the code
+        else:
+            try:
+                func = resolve(req.code or req.name, self.sys.task_path)
+            except InstallError as exc:
+                errs.append(str(exc))
         if errs or func is None:
             raise InstallError(f"install {req.name} refused, tables unchanged:\n  - "
                                + "\n  - ".join(errs))
@@ -223,6 +232,7 @@ class SystemManager:
             link.src_port = j
             t.out_links.append(link)
         self._exception_wiring(t)
+        self.host_link(t.name)  # made now so that every satellite numbers its links alike
         self.installs.append(req)
         self._changed("install", f"{t.name} on machine {t.machine} at level {t.level} "
                                  f"({len(ins)} in, {len(outs)} out)")
@@ -232,6 +242,7 @@ class SystemManager:
               dk: EndpointKind, sm: int, dm: int, queued: int = 0, tap: bool = False) -> Link:
         mt = self.sys.msgtab
         link = Link(mt.next_lid(), src, dst, type, prio, sk, dk, sm, dm, queued=queued, tap=tap)
+        link.remote = dm >= 0 and not self.sys.msgmgr.is_local(dm)
         mt.add(link)
         return link
 

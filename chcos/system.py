@@ -11,9 +11,9 @@ from __future__ import annotations
 import concurrent.futures
 import logging
 import threading
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from chcos import cmdline, sysmap
 from chcos.clock import Clock, VirtualClock
@@ -27,6 +27,7 @@ from chcos.sysmgr import SystemManager
 from chcos.tasks import Tsktab
 
 log = logging.getLogger("chcos.system")
+T = TypeVar("T")
 
 
 class System:
@@ -35,18 +36,22 @@ class System:
     ``devmaps`` are device-map files (loaded and validated together), or a ready
     :class:`DeviceMap`; ``machines`` are loaded at once (else use ``install -mN sysfile``);
     ``task_path`` lists directories where bare task names (``A1``) are found; ``base_dir``
-    resolves relative file names in installs; ``map_path`` is where sysfile.map is written.
+    resolves relative file names in installs; ``map_path`` is where sysfile.map is written;
+    ``local_machines`` are the machines this process runs (None: all of them, the embedded
+    default; a satellite runs one and reaches the others through :mod:`chcos.comm`).
     Raises ConfigError for invalid device maps, BusError if a driver cannot start.
     """
 
     def __init__(self, devmaps: Sequence[str | Path] | DeviceMap = (), *,
                  clock: Clock | None = None, machines: Iterable[int] = (),
                  task_path: Sequence[str | Path] = (), base_dir: str | Path | None = None,
-                 map_path: str | Path | None = None) -> None:
+                 map_path: str | Path | None = None,
+                 local_machines: Iterable[int] | None = None) -> None:
         self.kernel = Kernel(clock)
         self.tsktab = Tsktab()
         self.msgtab = Msgtab()
         self.msgmgr = MessageManager(self.kernel, self.tsktab, self.msgtab)
+        self.msgmgr.local = set(local_machines) if local_machines is not None else None
         self.devtab = Devtab(self.kernel, self.msgmgr)
         if isinstance(devmaps, DeviceMap):
             self.devmap = devmaps
@@ -84,18 +89,27 @@ class System:
         req = cmdline.parse(line) if isinstance(line, str) else line
         if req is None:
             return ""
+        return self.call(self.sysmgr.execute, req)
+
+    def call(self, fn: Callable[..., T], *args: Any) -> T:
+        """Run ``fn(*args)`` on the kernel thread (between task steps) and return its result,
+        or run it here if the kernel is not running on another thread. Exceptions propagate.
+        Raises KernelError if the kernel does not get to it within 30 s."""
         if self.kernel.running and not self.kernel.on_kernel_thread():
-            fut: concurrent.futures.Future[str] = concurrent.futures.Future()
+            fut: concurrent.futures.Future[T] = concurrent.futures.Future()
 
             def job() -> None:
                 try:
-                    fut.set_result(self.sysmgr.execute(req))
+                    fut.set_result(fn(*args))
                 except BaseException as exc:
                     fut.set_exception(exc)
 
             self.kernel.interrupt(job)
-            return fut.result(timeout=30)
-        return self.sysmgr.execute(req)
+            try:
+                return fut.result(timeout=30)
+            except concurrent.futures.TimeoutError as exc:
+                raise KernelError(f"kernel did not run {fn.__name__} within 30 s") from exc
+        return fn(*args)
 
     def run_script(self, path: str | Path) -> list[str]:
         """Execute every line of a host script (such as the thesis' install script) in order.

@@ -386,6 +386,8 @@ class TaskContext:
         if self._mm.devtab is None:
             raise MessageError("no device table to stop")
         self._mm.event("estop", f"{self._t.name}: {reason}")
+        if self._mm.comm is not None:
+            self._mm.comm.estop(reason)
         return self._mm.devtab.estop(reason)
 
     def suspend_task(self, name: str) -> None:

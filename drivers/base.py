@@ -22,7 +22,7 @@ class DriverHost(Protocol):
         scale/offset). Lands in the device's last-value buffer as an interrupt."""
 
     def fail(self, device: str, reason: str) -> None:
-        """Device ``device`` has failed (heartbeat lost, bus error, timeout); ``reason`` says why."""
+        """Device ``device`` failed (heartbeat lost, bus error, timeout); ``reason`` says why."""
 
     def recover(self, device: str) -> None:
         """Device ``device`` works again after a failure."""

@@ -1,0 +1,561 @@
+"""canopen_node - the ``canopen`` bus driver: remote CANopen nodes through the canopen library.
+
+Bus options (``[[bus]] kind = "canopen"``):
+
+* ``interface``, ``channel``, ``bitrate`` - the python-can bus; any left out comes from python-can's
+  own configuration (``can.util.load_config``: ``CAN_INTERFACE``, ``CAN_CHANNEL``, config files).
+* ``nodes = [{id, eds, heartbeat_timeout, nmt_start}]`` - node id 1..127, the node's EDS file
+  (absolute, or relative to the device-map file), heartbeat timeout in seconds (optional: no
+  heartbeat supervision), and whether the driver puts the node OPERATIONAL (default true).
+* ``sync_period`` (s, optional) - produce SYNC at this period; ``poll_period`` (s, default 0.1) -
+  default SDO polling period; ``sdo_timeout`` (s, default 0.3) - SDO response timeout.
+
+Device address: ``{node, index, subindex = 0, poll_period}``. A sensor whose object is mapped in an
+enabled TPDO of the node's EDS is delivered from the PDO callback; any other sensor is read by SDO
+every ``poll_period`` (the ``host.every`` callback only enqueues; the SDO runs on the driver's I/O
+thread). An actuator write goes in the RPDO that maps the object, else by SDO download.
+
+Failures: a node whose heartbeat is missing longer than its ``heartbeat_timeout`` fails all its
+devices until a heartbeat returns. Every EMCY is reported through ``host.error(bus, "emcy", ...)``;
+EMCY codes of the classes current (2xxx), voltage (3xxx), temperature (4xxx), device hardware (50xx)
+and monitoring (8xxx) are fatal: they fail the node's devices until an error-reset EMCY (code 0000).
+An SDO abort or timeout fails that device (with the abort code text) until its next good transfer.
+Short PDO and EMCY frames, and heartbeats of nodes not in ``nodes``, are ``host.error`` reports.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import queue
+import struct
+import threading
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeGuard
+
+import can
+import canopen
+from canopen.objectdictionary import BOOLEAN, FLOAT_TYPES, INTEGER_TYPES
+from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
+
+from chcos.devspec import BusSpec, DeviceSpec
+from chcos.errors import BusError
+from drivers.base import Driver, DriverHost
+
+BUS_OPTIONS = ("interface", "channel", "bitrate", "nodes", "sync_period", "poll_period",
+               "sdo_timeout")
+NODE_KEYS = ("id", "eds", "heartbeat_timeout", "nmt_start")
+ADDRESS_KEYS = ("node", "index", "subindex", "poll_period")
+FATAL_EMCY_MASKS = ((0x2000, 0xF000), (0x3000, 0xF000), (0x4000, 0xF000), (0x5000, 0xFF00),
+                    (0x8000, 0xF000))
+DEFAULT_POLL = 0.1
+DEFAULT_SDO_TIMEOUT = 0.3
+#: How long the python-can notifier blocks in one receive; bounds the time stop() takes.
+NOTIFIER_CYCLE = 0.05
+
+
+def is_fatal_emcy(code: int) -> bool:
+    """True for EMCY codes that fail the node's devices (see the module doc)."""
+    return any(code & mask == value for value, mask in FATAL_EMCY_MASKS)
+
+
+def _is_number(v: object) -> TypeGuard[int | float]:
+    return isinstance(v, int | float) and not isinstance(v, bool)
+
+
+def _is_int(v: object) -> TypeGuard[int]:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def eds_path(bus: BusSpec, eds: str) -> Path:
+    """The EDS path ``eds`` of ``bus``: absolute as given, else relative to the bus's file."""
+    p = Path(eds).expanduser()
+    if p.is_absolute() or bus.file.startswith("<"):
+        return p
+    return Path(bus.file).resolve().parent / p
+
+
+def load_od(bus: BusSpec, node_id: int, eds: str) -> Any:
+    """canopen's object dictionary of node ``node_id`` from ``eds``; raises ``ValueError`` naming
+    the file when canopen cannot read it."""
+    path = eds_path(bus, eds)
+    if not path.is_file():
+        raise ValueError(f"EDS file {path} does not exist")
+    try:
+        return canopen.import_od(str(path), node_id)
+    except Exception as exc:  # canopen raises assorted types for a malformed EDS
+        raise ValueError(f"canopen cannot read EDS {path}: {exc}") from exc
+
+
+class Health:
+    """Per-device failure causes; reports fail on the first cause and recover when none is left.
+    Thread-safe."""
+
+    def __init__(self, host: DriverHost) -> None:
+        self._host = host
+        self._lock = threading.Lock()
+        self._causes: dict[str, dict[str, str]] = {}
+
+    def fail(self, device: str, cause: str, reason: str) -> None:
+        """Add ``cause`` (a key such as ``"heartbeat"``) to ``device``; ``host.fail`` if new."""
+        with self._lock:
+            causes = self._causes.setdefault(device, {})
+            report = cause not in causes
+            causes[cause] = reason
+        if report:
+            self._host.fail(device, reason)
+
+    def clear(self, device: str, cause: str) -> None:
+        """Remove ``cause`` from ``device``; ``host.recover`` when it was the last one."""
+        if not self._causes.get(device):       # the common case, a healthy device: no lock
+            return
+        with self._lock:
+            causes = self._causes.get(device)
+            if not causes or cause not in causes:
+                return
+            del causes[cause]
+            recovered = not causes
+        if recovered:
+            self._host.recover(device)
+
+    def failed(self, device: str) -> bool:
+        """True while ``device`` has any failure cause."""
+        with self._lock:
+            return bool(self._causes.get(device))
+
+
+@dataclass
+class _Binding:
+    device: DeviceSpec
+    node: int
+    index: int
+    subindex: int
+    od_var: Any
+    pdo_var: Any = None        # TPDO variable (sensor) or RPDO variable (actuator), or None
+    poll_period: float = DEFAULT_POLL
+
+
+@dataclass
+class _NodeState:
+    node: Any
+    heartbeat_timeout: float | None
+    nmt_start: bool
+    last_heartbeat: float = field(default_factory=time.monotonic)
+    lost: bool = False
+    devices: list[str] = field(default_factory=list)
+
+
+class CanopenDriver(Driver):
+    """The ``canopen`` bus: see the module doc for options, addresses and failure handling."""
+
+    kind = "canopen"
+
+    def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
+        super().__init__(bus, devices, host)
+        self._health = Health(host)
+        self._hb_lock = threading.Lock()      # guards _NodeState.last_heartbeat and .lost
+        self._network: Any = None
+        self._nodes: dict[int, _NodeState] = {}
+        self._bindings: dict[str, _Binding] = {}
+        self._pdo_sensors: dict[tuple[int, int, int], list[str]] = {}
+        self._jobs: queue.Queue[tuple[str, str, Any]] = queue.Queue()
+        self._idle = threading.Condition()
+        self._pending = 0
+        self._polls_queued: set[str] = set()
+        self._thread: threading.Thread | None = None
+        self._running = False
+
+    # -- validation ---------------------------------------------------------------------------
+
+    @classmethod
+    def check_bus(cls, bus: BusSpec) -> list[str]:
+        """Errors of the bus options (unknown keys, types, node ids, unreadable EDS files)."""
+        errs: list[str] = []
+        k = bus.key
+        opts = bus.options
+        for key in opts:
+            if key not in BUS_OPTIONS:
+                errs.append(f"{k}.{key}: unknown option for a canopen bus; valid options: "
+                            f"{', '.join(BUS_OPTIONS)}")
+        for key in ("interface", "channel"):
+            if key in opts and (not isinstance(opts[key], str | int) or opts[key] == ""):
+                errs.append(f"{k}.{key}: expected a python-can {key} name, got {opts[key]!r}")
+        if "bitrate" in opts and not (_is_int(opts["bitrate"]) and opts["bitrate"] > 0):
+            errs.append(f"{k}.bitrate: expected an integer > 0 (bit/s), got {opts['bitrate']!r}")
+        for key in ("sync_period", "poll_period", "sdo_timeout"):
+            if key in opts and not (_is_number(opts[key]) and opts[key] > 0):
+                errs.append(f"{k}.{key}: expected a number of seconds > 0, got {opts[key]!r}")
+        nodes = opts.get("nodes")
+        if not isinstance(nodes, list) or not nodes:
+            return [*errs, f"{k}.nodes: expected a non-empty array of {{id, eds}} tables, "
+                           f"got {nodes!r}"]
+        seen: set[int] = set()
+        for i, node in enumerate(nodes):
+            errs.extend(cls._check_node(bus, f"{k}.nodes[{i}]", node, seen))
+        return errs
+
+    @classmethod
+    def _check_node(cls, bus: BusSpec, k: str, node: object, seen: set[int]) -> list[str]:
+        if not isinstance(node, Mapping):
+            return [f"{k}: expected a table {{id, eds}}, got {node!r}"]
+        errs = [f"{k}.{key}: unknown key; valid keys: {', '.join(NODE_KEYS)}"
+                for key in node if key not in NODE_KEYS]
+        nid = node.get("id")
+        if not (_is_int(nid) and 1 <= nid <= 127):
+            errs.append(f"{k}.id: expected a CANopen node id 1..127, got {nid!r}")
+        elif nid in seen:
+            errs.append(f"{k}.id: node id {nid} appears twice on bus {bus.name}")
+        else:
+            seen.add(nid)
+        eds = node.get("eds")
+        if not isinstance(eds, str) or not eds:
+            errs.append(f"{k}.eds: expected the path of the node's EDS file, got {eds!r}")
+        elif _is_int(nid):
+            try:
+                load_od(bus, nid, eds)
+            except ValueError as exc:
+                errs.append(f"{k}.eds: expected a readable EDS file; {exc}")
+        hb = node.get("heartbeat_timeout")
+        if hb is not None and not (_is_number(hb) and hb > 0):
+            errs.append(f"{k}.heartbeat_timeout: expected a number of seconds > 0, got {hb!r}")
+        if "nmt_start" in node and not isinstance(node["nmt_start"], bool):
+            errs.append(f"{k}.nmt_start: expected true or false, got {node['nmt_start']!r}")
+        return errs
+
+    @classmethod
+    def check_device(cls, bus: BusSpec, device: DeviceSpec) -> list[str]:
+        """Errors of a device address: keys, node on this bus, object present in the node's EDS,
+        readable for a sensor and writable for an actuator."""
+        k = f"{device.key}.address"
+        a = device.address
+        errs = [f"{k}.{key}: unknown key; valid keys: {', '.join(ADDRESS_KEYS)}"
+                for key in a if key not in ADDRESS_KEYS]
+        nodes = {n.get("id"): n for n in bus.options.get("nodes", []) if isinstance(n, Mapping)}
+        nid, index, sub = a.get("node"), a.get("index"), a.get("subindex", 0)
+        if not _is_int(nid) or nid not in nodes:
+            errs.append(f"{k}.node: expected the id of a node of bus {bus.name} "
+                        f"({', '.join(str(n) for n in nodes) or 'none'}), got {nid!r}")
+        if not (_is_int(index) and 0 <= index <= 0xFFFF):
+            errs.append(f"{k}.index: expected an object index 0..0xFFFF, got {index!r}")
+        if not (_is_int(sub) and 0 <= sub <= 0xFF):
+            errs.append(f"{k}.subindex: expected a subindex 0..255, got {sub!r}")
+        pp = a.get("poll_period")
+        if pp is not None and not (_is_number(pp) and pp > 0):
+            errs.append(f"{k}.poll_period: expected a number of seconds > 0, got {pp!r}")
+        if errs or not _is_int(nid):
+            return errs
+        eds = nodes[nid].get("eds")
+        try:
+            od = load_od(bus, nid, eds) if isinstance(eds, str) else None
+        except ValueError:
+            return []  # reported by check_bus
+        var = od.get_variable(index, sub) if od is not None else None
+        if od is not None and var is None:
+            errs.append(f"{k}: expected an object of node {nid}'s EDS, no 0x{index:04X}:{sub:02X}")
+        elif var is not None and device.direction == "sensor" and not var.readable:
+            errs.append(f"{k}: 0x{index:04X}:{sub:02X} is not readable; a sensor needs a readable "
+                        f"object")
+        elif var is not None and device.direction == "actuator" and not var.writable:
+            errs.append(f"{k}: 0x{index:04X}:{sub:02X} is read-only; an actuator needs a writable "
+                        f"object")
+        return errs
+
+    # -- life cycle ---------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Validate, open the CAN bus, bind devices to PDOs or SDO polling, start the I/O thread
+        and put the nodes OPERATIONAL. Raises :class:`BusError` (invalid options included)."""
+        errs = self.check_bus(self.bus)
+        for dev in self.devices.values():
+            errs.extend(self.check_device(self.bus, dev))
+        if errs:
+            raise BusError(f"canopen bus {self.bus.name} ({self.bus.file}): " + "; ".join(errs))
+        network: Any = canopen.Network()
+        network.NOTIFIER_CYCLE = NOTIFIER_CYCLE
+        network.listeners.append(_FrameCheck(self))
+        opts = self.bus.options
+        for ncfg in opts["nodes"]:
+            nid = int(ncfg["id"])
+            node: Any = canopen.RemoteNode(nid, load_od(self.bus, nid, ncfg["eds"]))
+            node.sdo.RESPONSE_TIMEOUT = float(opts.get("sdo_timeout", DEFAULT_SDO_TIMEOUT))
+            network.add_node(node)
+            hb = ncfg.get("heartbeat_timeout")
+            self._nodes[nid] = _NodeState(node, float(hb) if hb is not None else None,
+                                          bool(ncfg.get("nmt_start", True)))
+        self._network = network
+        self._bind_devices()
+        config = {k: opts[k] for k in ("interface", "channel", "bitrate") if k in opts}
+        try:
+            network.connect(**can.util.load_config(config=config))
+        except (can.CanError, OSError, ValueError, ImportError) as exc:
+            raise BusError(f"canopen bus {self.bus.name} ({self.bus.file} {self.bus.key}): cannot "
+                           f"open CAN bus {config or 'from python-can config'}: {exc}") from exc
+        for state in self._nodes.values():
+            state.node.nmt.add_heartbeat_callback(
+                lambda nmt_state, s=state: self._on_heartbeat(s, nmt_state))
+            state.node.emcy.add_callback(lambda entry, s=state: self._on_emcy(s, entry))
+            state.last_heartbeat = time.monotonic()
+        self._running = True
+        self._thread = threading.Thread(target=self._io_loop, name=f"canopen-{self.bus.name}",
+                                        daemon=True)
+        self._thread.start()
+        for nid, state in self._nodes.items():
+            if state.nmt_start:
+                self._enqueue("nmt", str(nid), None)
+        if "sync_period" in opts:
+            network.sync.start(float(opts["sync_period"]))
+        for name, b in self._bindings.items():
+            if b.device.direction == "sensor" and b.pdo_var is None:
+                self.host.every(b.poll_period, functools.partial(self._enqueue_poll, name))
+
+    def _bind_devices(self) -> None:
+        default_poll = float(self.bus.options.get("poll_period", DEFAULT_POLL))
+        for state in self._nodes.values():
+            state.node.tpdo.read(from_od=True)
+            state.node.rpdo.read(from_od=True)
+            for pdo_map in state.node.tpdo.map.values():
+                pdo_map.add_callback(self._on_tpdo)
+        for dev in self.devices.values():
+            a = dev.address
+            nid, index, sub = int(a["node"]), int(a["index"]), int(a.get("subindex", 0))
+            node = self._nodes[nid].node
+            maps = node.tpdo.map if dev.direction == "sensor" else node.rpdo.map
+            pdo_var = next((v for m in maps.values() if m.enabled for v in m.map
+                            if v.index == index and v.subindex == sub), None)
+            self._bindings[dev.name] = _Binding(
+                dev, nid, index, sub, node.object_dictionary.get_variable(index, sub), pdo_var,
+                float(a.get("poll_period", default_poll)))
+            self._nodes[nid].devices.append(dev.name)
+            if dev.direction == "sensor" and pdo_var is not None:
+                self._pdo_sensors.setdefault((nid, index, sub), []).append(dev.name)
+
+    def stop(self) -> None:
+        """Stop SYNC, the I/O thread and the bus. Idempotent; never raises."""
+        if self._running:
+            self._running = False
+            self._jobs.put(("stop", "", None))
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+        network, self._network = self._network, None
+        if network is not None:
+            with contextlib.suppress(Exception):
+                network.sync.stop()
+            with contextlib.suppress(Exception):
+                network.disconnect()
+        with self._idle:
+            self._pending = 0
+            self._idle.notify_all()
+
+    # -- kernel side --------------------------------------------------------------------------
+
+    def write(self, device: str, value: Any) -> None:
+        """Queue ``value`` for actuator ``device`` (RPDO if mapped, else SDO download); never
+        blocks. An unknown device or a sensor is reported through ``host.error``."""
+        dev = self.devices.get(device)
+        if dev is None or dev.direction != "actuator":
+            self.host.error(self.bus.name, "unknown-device",
+                            f"write to {device!r}: not an actuator of canopen bus {self.bus.name}")
+            return
+        if not self._running:
+            self.host.error(self.bus.name, "stopped", f"write {value!r} to {device} dropped: "
+                                                      f"canopen bus {self.bus.name} is not running")
+            return
+        self._enqueue("write", device, value)
+
+    def settle(self, timeout: float) -> bool:
+        """Wait until every queued SDO/write is done and no PDO callback is delivering."""
+        with self._idle:
+            return self._idle.wait_for(lambda: self._pending == 0, timeout)
+
+    # -- I/O thread ---------------------------------------------------------------------------
+
+    def _enqueue(self, op: str, name: str, arg: Any) -> None:
+        if not self._running:
+            return
+        with self._idle:
+            self._pending += 1
+        self._jobs.put((op, name, arg))
+
+    def _enqueue_poll(self, device: str) -> None:
+        with self._idle:
+            if device in self._polls_queued:
+                return
+            self._polls_queued.add(device)
+        self._enqueue("poll", device, None)
+
+    def _done(self) -> None:
+        with self._idle:
+            self._pending = max(0, self._pending - 1)
+            if self._pending == 0:
+                self._idle.notify_all()
+
+    def _io_loop(self) -> None:
+        while self._running:
+            try:
+                op, name, arg = self._jobs.get(timeout=self._watchdog())
+            except queue.Empty:
+                continue
+            if op == "stop":
+                break
+            try:
+                if op == "poll":
+                    with self._idle:
+                        self._polls_queued.discard(name)
+                    self._poll(self._bindings[name])
+                elif op == "write":
+                    self._write(self._bindings[name], arg)
+                elif op == "nmt":
+                    self._nodes[int(name)].node.nmt.state = "OPERATIONAL"
+            except can.CanError as exc:
+                self.host.error(self.bus.name, "can", f"{op} {name}: CAN send failed: {exc}")
+            finally:
+                self._done()
+
+    def _watchdog(self) -> float:
+        """Fail the devices of nodes whose heartbeat is overdue; the time to the next deadline."""
+        now = time.monotonic()
+        wait = 0.5
+        for nid, s in self._nodes.items():
+            with self._hb_lock:
+                if s.heartbeat_timeout is None or s.lost:
+                    continue
+                late = now - s.last_heartbeat
+                s.lost = late > s.heartbeat_timeout
+            if s.lost:
+                reason = (f"canopen node {nid} on bus {self.bus.name}: no heartbeat for more than "
+                          f"heartbeat_timeout {s.heartbeat_timeout} s")
+                for dev in s.devices:
+                    self._health.fail(dev, "heartbeat", reason)
+            else:
+                wait = min(wait, s.heartbeat_timeout - late + 0.001)
+        return wait
+
+    def _where(self, b: _Binding) -> str:
+        return f"canopen node {b.node} 0x{b.index:04X}:{b.subindex:02X} (device {b.device.name})"
+
+    def _poll(self, b: _Binding) -> None:
+        node = self._nodes[b.node].node
+        try:
+            data = node.sdo.upload(b.index, b.subindex)
+            value = b.od_var.decode_raw(data)
+        except SdoAbortedError as exc:
+            self._health.fail(b.device.name, "sdo", f"SDO read of {self._where(b)} aborted: {exc}")
+            return
+        except (SdoCommunicationError, struct.error) as exc:
+            self._health.fail(b.device.name, "sdo", f"SDO read of {self._where(b)} failed: {exc}")
+            return
+        self._health.clear(b.device.name, "sdo")
+        self.host.deliver(b.device.name, value)
+
+    def _write(self, b: _Binding, value: Any) -> None:
+        try:
+            raw = _coerce(b.od_var, value)
+            data = b.od_var.encode_raw(raw)
+        except (struct.error, TypeError, ValueError, OverflowError) as exc:
+            self.host.error(self.bus.name, "range",
+                            f"write {value!r} to {self._where(b)}: expected a value of data "
+                            f"type {b.od_var.data_type:#x}: {exc}")
+            return
+        if b.pdo_var is not None:
+            b.pdo_var.set_data(data)
+            b.pdo_var.pdo_parent.transmit()
+            return
+        try:
+            self._nodes[b.node].node.sdo.download(b.index, b.subindex, data)
+        except SdoAbortedError as exc:
+            self._health.fail(b.device.name, "sdo", f"SDO write to {self._where(b)} aborted: {exc}")
+            return
+        except SdoCommunicationError as exc:
+            self._health.fail(b.device.name, "sdo", f"SDO write to {self._where(b)} failed: {exc}")
+            return
+        self._health.clear(b.device.name, "sdo")
+
+    # -- notifier thread ----------------------------------------------------------------------
+
+    def _on_tpdo(self, pdo_map: Any) -> None:
+        with self._idle:
+            self._pending += 1
+        try:
+            nid = pdo_map.pdo_node.node.id
+            if len(pdo_map.data) * 8 < pdo_map.length:
+                self.host.error(self.bus.name, "malformed",
+                                f"{pdo_map.name} from canopen node {nid}: {len(pdo_map.data)} "
+                                f"bytes, expected {(pdo_map.length + 7) // 8}")
+                return
+            for var in pdo_map.map:
+                for dev in self._pdo_sensors.get((nid, var.index, var.subindex), ()):
+                    self.host.deliver(dev, var.raw)
+        finally:
+            self._done()
+
+    def _on_heartbeat(self, state: _NodeState, nmt_state: int) -> None:
+        with self._hb_lock:
+            state.last_heartbeat = time.monotonic()
+            was_lost, state.lost = state.lost, False
+        if was_lost:
+            for dev in state.devices:
+                self._health.clear(dev, "heartbeat")
+        if state.nmt_start and nmt_state in (0, 127):  # boot-up or PRE-OPERATIONAL
+            self._enqueue("nmt", str(state.node.id), None)
+
+    def _on_emcy(self, state: _NodeState, entry: Any) -> None:
+        nid = state.node.id
+        text = f"canopen node {nid} on bus {self.bus.name}: EMCY {entry} register " \
+               f"0x{entry.register:02X}"
+        self.host.error(self.bus.name, "emcy", text)
+        if entry.code & 0xFF00 == 0:
+            for dev in state.devices:
+                self._health.clear(dev, "emcy")
+        elif is_fatal_emcy(entry.code):
+            for dev in state.devices:
+                self._health.fail(dev, "emcy", text)
+
+    def report_frame(self, kind: str, detail: str) -> None:
+        """A frame-level problem seen by the bus listener (see :class:`_FrameCheck`)."""
+        self.host.error(self.bus.name, kind, detail)
+
+    def knows_node(self, node_id: int) -> bool:
+        """True if ``node_id`` is one of this bus's nodes."""
+        return node_id in self._nodes
+
+
+def _coerce(od_var: Any, value: Any) -> Any:
+    """``value`` as the Python type canopen encodes for ``od_var``'s data type."""
+    if od_var.data_type == BOOLEAN:
+        return bool(value)
+    if od_var.data_type in INTEGER_TYPES:
+        if isinstance(value, float):
+            if value != value or value in (float("inf"), float("-inf")):
+                raise ValueError("not a finite number")
+            return round(value)
+        return int(value)
+    if od_var.data_type in FLOAT_TYPES:
+        return float(value)
+    return value
+
+
+class _FrameCheck(can.Listener):
+    """Reports frames canopen would drop quietly: heartbeats of unknown nodes, short EMCYs."""
+
+    def __init__(self, driver: CanopenDriver) -> None:
+        self._driver = driver
+
+    def on_message_received(self, msg: can.Message) -> None:
+        cob = msg.arbitration_id
+        if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+            return
+        if 0x701 <= cob <= 0x77F and not self._driver.knows_node(cob - 0x700):
+            self._driver.report_frame("unknown-node",
+                                      f"heartbeat of node {cob - 0x700} (COB-ID 0x{cob:03X}), "
+                                      f"which is not in the bus's nodes")
+        elif 0x81 <= cob <= 0xFF and self._driver.knows_node(cob - 0x80) and msg.dlc < 8:
+            self._driver.report_frame("malformed",
+                                      f"EMCY from node {cob - 0x80} with {msg.dlc} bytes, "
+                                      f"expected 8")
+
+    def stop(self) -> None:
+        """Nothing to release."""

@@ -1,0 +1,132 @@
+"""memory - the bus-less driver: actuator writes kept in memory, sensor values from the host.
+
+Used by examples and tests. Bus options: ``history`` (int >= 1, default 100: how many writes per
+actuator are kept). Device addresses must be empty. Sensor values reach the Devtab only through the
+host side (:meth:`MemoryDriver.inject` or ``host.deliver`` directly).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any
+
+from chcos.devspec import BusSpec, DeviceSpec
+from chcos.errors import DeviceError
+from drivers.base import Driver, DriverHost
+
+
+def check_history(bus: BusSpec, allowed: Iterable[str]) -> list[str]:
+    """Errors of the ``history`` option and of keys outside ``allowed`` (shared with ``signal``)."""
+    errs: list[str] = []
+    valid = sorted(allowed)
+    for k in bus.options:
+        if k not in valid:
+            errs.append(f"{bus.key}.{k}: unknown option for a {bus.kind} bus; valid options: "
+                        f"{', '.join(valid) or 'none'}")
+    h = bus.options.get("history", 100)
+    if not isinstance(h, int) or isinstance(h, bool) or h < 1:
+        errs.append(f"{bus.key}.history: expected an integer >= 1, got {h!r}")
+    return errs
+
+
+class ActuatorStore:
+    """The last value and a bounded history of every write to a set of actuators; thread-safe.
+
+    ``wait_for`` lets a test or the host block (with a timeout) until a write satisfies a predicate.
+    """
+
+    def __init__(self, actuators: Iterable[str], history: int) -> None:
+        self._cond = threading.Condition()
+        self._hist: dict[str, deque[Any]] = {a: deque(maxlen=history) for a in actuators}
+        self._count: dict[str, int] = dict.fromkeys(self._hist, 0)
+
+    def put(self, device: str, value: Any) -> None:
+        """Record a write; raises :class:`DeviceError` if ``device`` is not one of the actuators."""
+        with self._cond:
+            if device not in self._hist:
+                raise DeviceError(f"write to {device!r}: not an actuator of this bus; expected one "
+                                  f"of {', '.join(self._hist) or 'none'}")
+            self._hist[device].append(value)
+            self._count[device] += 1
+            self._cond.notify_all()
+
+    def last(self, device: str) -> Any:
+        """The last value written to ``device`` (None if never written); DeviceError if unknown."""
+        with self._cond:
+            return self._known(device)[-1] if self._known(device) else None
+
+    def history(self, device: str) -> list[Any]:
+        """The kept writes to ``device``, oldest first; DeviceError if unknown."""
+        with self._cond:
+            return list(self._known(device))
+
+    def count(self, device: str) -> int:
+        """How many writes ``device`` has had in total (not bounded by the history)."""
+        with self._cond:
+            self._known(device)
+            return self._count[device]
+
+    def wait_for(self, device: str, pred: Callable[[Any], bool], timeout: float) -> bool:
+        """Block until the last write to ``device`` satisfies ``pred``; False on timeout."""
+        with self._cond:
+            return self._cond.wait_for(
+                lambda: bool(self._known(device)) and pred(self._hist[device][-1]), timeout)
+
+    def _known(self, device: str) -> deque[Any]:
+        try:
+            return self._hist[device]
+        except KeyError:
+            raise DeviceError(f"{device!r} is not an actuator of this bus; expected one of "
+                              f"{', '.join(self._hist) or 'none'}") from None
+
+
+class MemoryDriver(Driver):
+    """Driver for kind ``memory``: no I/O at all; writes land in :attr:`store`."""
+
+    kind = "memory"
+    OPTIONS = ("history",)
+
+    def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
+        super().__init__(bus, devices, host)
+        self.store = ActuatorStore(
+            (d.name for d in devices if d.direction == "actuator"),
+            int(bus.options.get("history", 100)))
+        self._running = False
+
+    @classmethod
+    def check_bus(cls, bus: BusSpec) -> list[str]:
+        """Only ``history`` is allowed."""
+        return check_history(bus, cls.OPTIONS)
+
+    @classmethod
+    def check_device(cls, bus: BusSpec, device: DeviceSpec) -> list[str]:
+        """A memory device has no address."""
+        return [f"{device.key}.address.{k}: unknown key; a memory device takes no address"
+                for k in device.address]
+
+    def start(self) -> None:
+        """Nothing to open."""
+        self._running = True
+
+    def stop(self) -> None:
+        """Nothing to close."""
+        self._running = False
+
+    def settle(self, timeout: float) -> bool:
+        """Always quiet: nothing is ever in flight."""
+        return True
+
+    def write(self, device: str, value: Any) -> None:
+        """Keep ``value`` as the last write of actuator ``device``; DeviceError if not one."""
+        self.store.put(device, value)
+
+    def inject(self, device: str, value: Any) -> None:
+        """Hand a reading of sensor ``device`` to the host; DeviceError if it is no sensor here."""
+        spec = self.devices.get(device)
+        if spec is None or spec.direction != "sensor":
+            sensors = [n for n, d in self.devices.items() if d.direction == "sensor"]
+            raise DeviceError(f"inject into {device!r} on bus {self.bus.name!r}: expected one of "
+                              f"its sensors {', '.join(sensors) or '(none)'}")
+        self.host.deliver(device, value)

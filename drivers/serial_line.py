@@ -1,0 +1,539 @@
+"""serial_line - the serial driver (kind ``serial``): pyserial port, line or binary protocol.
+
+The port is opened with ``serial.serial_for_url``, so ``url`` may be a device path
+(``/dev/ttyUSB0``, a pty slave such as ``/dev/pts/7``), ``socket://127.0.0.1:5000`` (a TCP
+serial server) or ``loop://``. A reader thread reads and decodes; a writer thread sends
+actuator commands, so :meth:`SerialDriver.write` never blocks. When the port goes away
+(read/write error, socket closed, open fails) every device is ``host.fail``-ed and the reader
+reopens it with a backoff doubling from ``reconnect_min`` to ``reconnect_max`` seconds; on
+success the devices are ``host.recover``-ed.
+
+Bus options:
+
+- ``url`` (required), ``baudrate`` (int, default 9600), ``poll`` (read timeout s, default 0.01),
+  ``reconnect_min`` (default 0.05), ``reconnect_max`` (default 2.0)
+- ``protocol = "line"``: ``pattern`` (required; a Python regular expression with named groups that
+  must match a whole line), ``eol`` (default ``"\\n"``; a trailing ``"\\r"`` is stripped),
+  ``encoding`` (default ``"ascii"``), ``max_line`` (default 1024 bytes)
+- ``protocol = "binary"``: ``sync`` (required; hex bytes such as ``"AA 55"``), ``struct``
+  (required; a :mod:`struct` format of the payload after the sync), ``fields`` (required; one name
+  per struct item, ``"_"`` for items to ignore), ``checksum`` (``"none"`` (default), ``"sum8"`` or
+  ``"xor8"``: one byte after the payload, over the payload)
+
+Device addresses: a sensor names its value, ``{ group = "t1" }`` (line) or ``{ field = "t1" }``
+(binary). An actuator gives how a command is written: line, ``{ format = "SET M1 {value:.2f}" }``
+(``str.format`` with ``value``; ``eol`` is appended); binary, ``{ struct = "<h", prefix = "10" }``
+(the frame sent is sync + payload + checksum, payload = prefix bytes + the value packed with
+``struct``; integer codes get the value rounded).
+
+A line that does not match, bytes that are not a frame, a bad checksum: ``host.error(bus,
+"garbage" | "malformed" | "checksum", ...)``, also counted in ``SerialDriver.error_counts``;
+nothing stops the reader. A command that cannot be encoded or written is ``host.fail(device)``;
+the next one that goes out is ``host.recover(device)``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import re
+import struct
+import threading
+from collections import Counter, deque
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import serial
+
+from chcos.devspec import BusSpec, DeviceSpec
+from chcos.errors import BusError
+from drivers.base import Driver, DriverHost
+
+COMMON_OPTIONS = ("url", "baudrate", "protocol", "poll", "reconnect_min", "reconnect_max")
+LINE_OPTIONS = ("pattern", "eol", "encoding", "max_line")
+BINARY_OPTIONS = ("sync", "struct", "fields", "checksum")
+CHECKSUMS = ("none", "sum8", "xor8")
+_INT_CODES = set("bBhHiIlLqQnN")
+
+Event = tuple[str, Any]   # ("values", {name: value}) or (error kind, detail)
+
+
+def checksum(kind: str, payload: bytes) -> bytes:
+    """The checksum byte(s) of ``payload``: b"" for none, one byte for sum8/xor8."""
+    if kind == "sum8":
+        return bytes([sum(payload) & 0xFF])
+    if kind == "xor8":
+        x = 0
+        for b in payload:
+            x ^= b
+        return bytes([x])
+    return b""
+
+
+def parse_hex(text: str) -> bytes:
+    """``"AA 55"`` -> b"\\xaa\\x55"; raises ValueError."""
+    return bytes.fromhex(text)
+
+
+class LineFramer:
+    """Bytes in, decoded lines out: each complete line matched against ``pattern``."""
+
+    def __init__(self, pattern: str, eol: str = "\n", encoding: str = "ascii",
+                 max_line: int = 1024) -> None:
+        self.pattern = re.compile(pattern)
+        self.eol = eol.encode(encoding)
+        self.encoding = encoding
+        self.max_line = max_line
+        self._buf = bytearray()
+
+    def feed(self, data: bytes) -> list[Event]:
+        """Append ``data``; return an event per complete line (empty lines are skipped)."""
+        self._buf += data
+        events: list[Event] = []
+        while True:
+            idx = self._buf.find(self.eol)
+            if idx < 0:
+                if len(self._buf) > self.max_line:
+                    events.append(("garbage", f"{len(self._buf)} bytes without an end of line"))
+                    self._buf.clear()
+                return events
+            raw = bytes(self._buf[:idx])
+            del self._buf[:idx + len(self.eol)]
+            if raw.rstrip(b"\r"):
+                events.append(self._line(raw.rstrip(b"\r")))
+
+    def _line(self, raw: bytes) -> Event:
+        try:
+            text = raw.decode(self.encoding)
+        except UnicodeDecodeError:
+            return "garbage", f"line {raw[:40]!r} is not {self.encoding}"
+        m = self.pattern.fullmatch(text)
+        if m is None:
+            return "garbage", f"line {text[:80]!r} does not match {self.pattern.pattern!r}"
+        values: dict[str, Any] = {}
+        for name, val in m.groupdict().items():
+            if val is None:
+                continue
+            try:
+                values[name] = float(val)
+            except ValueError:
+                return "malformed", f"line {text[:80]!r}: group {name} = {val!r} is no number"
+        return "values", values
+
+
+class BinaryFramer:
+    """Bytes in, decoded frames out: ``sync`` + struct payload + optional checksum byte."""
+
+    MAX_RUN = 1024
+
+    def __init__(self, sync: bytes, fmt: str, fields: Sequence[str], check: str = "none") -> None:
+        self.sync = sync
+        self.struct = struct.Struct(fmt)
+        self.fields = list(fields)
+        self.check = check
+        self.frame_len = len(sync) + self.struct.size + len(checksum(check, b""))
+        self._buf = bytearray()
+        self._skipped = 0
+        self._absorb = 0
+
+    def feed(self, data: bytes) -> list[Event]:
+        """Append ``data``; return an event per frame and per run of skipped bytes.
+
+        A run of bytes that are no frame is reported once, when the next sync ends it (or every
+        ``MAX_RUN`` bytes), however the bytes were split over reads. The rest of a frame that
+        failed its checksum is not reported again as garbage."""
+        self._buf += data
+        events: list[Event] = []
+        while True:
+            idx = self._buf.find(self.sync)
+            if idx < 0:
+                keep = self._sync_prefix_len()
+                self._skip(len(self._buf) - keep)
+                if self._skipped >= self.MAX_RUN:
+                    events.append(self._garbage())
+                return events
+            self._skip(idx)
+            if self._skipped:
+                events.append(self._garbage())
+            if len(self._buf) < self.frame_len:
+                return events
+            start = len(self.sync)
+            payload = bytes(self._buf[start:start + self.struct.size])
+            got = bytes(self._buf[start + self.struct.size:self.frame_len])
+            if got != checksum(self.check, payload):
+                events.append(("checksum", f"frame {bytes(self._buf[:self.frame_len]).hex()}: "
+                                           f"{self.check} checksum mismatch"))
+                del self._buf[:1]
+                self._absorb = self.frame_len - 1
+                continue
+            del self._buf[:self.frame_len]
+            self._absorb = 0
+            items = self.struct.unpack(payload)
+            events.append(("values", {f: v for f, v in zip(self.fields, items, strict=True)
+                                      if f != "_"}))
+
+    def _sync_prefix_len(self) -> int:
+        """How many trailing bytes of the buffer could be the start of a sync."""
+        for n in range(min(len(self.sync) - 1, len(self._buf)), 0, -1):
+            if self._buf.endswith(self.sync[:n]):
+                return n
+        return 0
+
+    def _skip(self, n: int) -> None:
+        if n <= 0:
+            return
+        del self._buf[:n]
+        absorbed = min(n, self._absorb)
+        self._absorb -= absorbed
+        self._skipped += n - absorbed
+
+    def _garbage(self) -> Event:
+        n, self._skipped = self._skipped, 0
+        return "garbage", f"{n} bytes that are no frame (sync {self.sync.hex()})"
+
+
+def _num_ok(v: object, lo: float, hi: float) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and lo < v <= hi
+
+
+def _check_line_bus(key: str, o: Mapping[str, Any]) -> list[str]:
+    errs: list[str] = []
+    pat = o.get("pattern")
+    if not isinstance(pat, str):
+        return [f"{key}.pattern: expected a regular expression with named groups, got {pat!r}"]
+    try:
+        if not re.compile(pat).groupindex:
+            errs.append(f"{key}.pattern: expected at least one named group (?P<name>...)")
+    except re.error as exc:
+        errs.append(f"{key}.pattern: invalid regular expression: {exc}")
+    enc = o.get("encoding", "ascii")
+    try:
+        str(o.get("eol", "\n")).encode(str(enc))
+    except LookupError:
+        errs.append(f"{key}.encoding: unknown encoding {enc!r}")
+    if not isinstance(o.get("eol", "\n"), str) or not o.get("eol", "\n"):
+        errs.append(f"{key}.eol: expected a non-empty string, got {o.get('eol')!r}")
+    ml = o.get("max_line", 1024)
+    if not isinstance(ml, int) or isinstance(ml, bool) or ml < 16:
+        errs.append(f"{key}.max_line: expected an integer >= 16, got {ml!r}")
+    return errs
+
+
+def _check_binary_bus(key: str, o: Mapping[str, Any]) -> list[str]:
+    errs: list[str] = []
+    try:
+        if not parse_hex(str(o.get("sync", ""))):
+            errs.append(f"{key}.sync: expected hex bytes such as \"AA 55\", got {o.get('sync')!r}")
+    except ValueError:
+        errs.append(f"{key}.sync: expected hex bytes such as \"AA 55\", got {o.get('sync')!r}")
+    fields = o.get("fields")
+    if not (isinstance(fields, list) and fields and all(isinstance(f, str) for f in fields)):
+        errs.append(f"{key}.fields: expected a list of field names, got {fields!r}")
+        fields = None
+    try:
+        st = struct.Struct(str(o.get("struct")))
+        n = len(st.unpack(bytes(st.size)))
+        if fields is not None and n != len(fields):
+            errs.append(f"{key}.fields: struct {st.format!r} has {n} items, expected as many "
+                        f"names, got {len(fields)}")
+    except struct.error as exc:
+        errs.append(f"{key}.struct: expected a struct format, got {o.get('struct')!r}: {exc}")
+    if o.get("checksum", "none") not in CHECKSUMS:
+        errs.append(f"{key}.checksum: expected one of {', '.join(CHECKSUMS)}, "
+                    f"got {o.get('checksum')!r}")
+    return errs
+
+
+class SerialDriver(Driver):
+    """Driver for kind ``serial`` (see the module docstring for options, addresses, threads)."""
+
+    kind = "serial"
+
+    def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
+        super().__init__(bus, devices, host)
+        o = bus.options
+        self._binary = o["protocol"] == "binary"
+        self._eol = str(o.get("eol", "\n")).encode(str(o.get("encoding", "ascii")))
+        self._sync = parse_hex(str(o["sync"])) if self._binary else b""
+        self._check = str(o.get("checksum", "none"))
+        self._poll = float(o.get("poll", 0.01))
+        self._backoff = (float(o.get("reconnect_min", 0.05)), float(o.get("reconnect_max", 2.0)))
+        key = "field" if self._binary else "group"
+        self._sensors: dict[str, list[str]] = {}
+        for d in devices:
+            if d.direction == "sensor":
+                self._sensors.setdefault(str(d.address[key]), []).append(d.name)
+        self._cond = threading.Condition()
+        self._outbox: deque[tuple[str, Any]] = deque()
+        self._sending = False
+        self._idle_gen = 0
+        self._running = False
+        self._failed = False
+        self._port: Any = None
+        self._threads: list[threading.Thread] = []
+        self._write_failed: set[str] = set()
+        self.connects = 0
+        self.error_counts: Counter[str] = Counter()
+
+    def _framer(self) -> LineFramer | BinaryFramer:
+        o = self.bus.options
+        if self._binary:
+            return BinaryFramer(self._sync, str(o["struct"]), list(o["fields"]), self._check)
+        return LineFramer(str(o["pattern"]), str(o.get("eol", "\n")),
+                          str(o.get("encoding", "ascii")), int(o.get("max_line", 1024)))
+
+    @classmethod
+    def check_bus(cls, bus: BusSpec) -> list[str]:
+        """Options of the common part and of the chosen protocol."""
+        o, key = bus.options, bus.key
+        proto = o.get("protocol")
+        valid = COMMON_OPTIONS + (LINE_OPTIONS if proto == "line" else BINARY_OPTIONS
+                                  if proto == "binary" else ())
+        errs = [f"{key}.{k}: unknown option for a {proto} serial bus; valid options: "
+                f"{', '.join(valid)}" for k in o if k not in valid and proto in ("line", "binary")]
+        if not isinstance(o.get("url"), str) or not o.get("url"):
+            errs.append(f"{key}.url: expected a port path or pyserial URL (socket://host:port, "
+                        f"loop://), got {o.get('url')!r}")
+        br = o.get("baudrate", 9600)
+        if not isinstance(br, int) or isinstance(br, bool) or br <= 0:
+            errs.append(f"{key}.baudrate: expected bits per second > 0, got {br!r}")
+        for k, lo, hi in (("poll", 0, 1), ("reconnect_min", 0, 60), ("reconnect_max", 0, 600)):
+            if k in o and not _num_ok(o[k], lo, hi):
+                errs.append(f"{key}.{k}: expected seconds in ({lo}, {hi}], got {o[k]!r}")
+        if proto == "line":
+            errs += _check_line_bus(key, o)
+        elif proto == "binary":
+            errs += _check_binary_bus(key, o)
+        else:
+            errs.append(f"{key}.protocol: expected \"line\" or \"binary\", got {proto!r}")
+        return errs
+
+    @classmethod
+    def check_device(cls, bus: BusSpec, device: DeviceSpec) -> list[str]:
+        """A sensor's group/field exists; an actuator's format/struct is usable."""
+        key, a, o = f"{device.key}.address", device.address, bus.options
+        proto = o.get("protocol")
+        if device.direction == "sensor":
+            want = "group" if proto == "line" else "field"
+            errs = [f"{key}.{k}: unknown key; a {proto} sensor takes only {want}"
+                    for k in a if k != want]
+            name = a.get(want)
+            try:
+                names = (list(re.compile(str(o.get("pattern"))).groupindex) if proto == "line"
+                         else [f for f in o.get("fields", []) if f != "_"])
+            except re.error:
+                return errs            # reported by check_bus
+            if name not in names:
+                errs.append(f"{key}.{want}: expected one of {', '.join(map(str, names))}, "
+                            f"got {name!r}")
+            return errs
+        if proto == "line":
+            errs = [f"{key}.{k}: unknown key; a line actuator takes only format"
+                    for k in a if k != "format"]
+            fmt = a.get("format")
+            try:
+                if not isinstance(fmt, str):
+                    raise TypeError(f"got {fmt!r}")
+                fmt.format(value=0.0)
+            except (TypeError, ValueError, KeyError, IndexError) as exc:
+                errs.append(f"{key}.format: expected a str.format string using {{value}}: {exc}")
+            return errs
+        errs = [f"{key}.{k}: unknown key; a binary actuator takes struct and prefix"
+                for k in a if k not in ("struct", "prefix")]
+        try:
+            if len(struct.Struct(str(a.get("struct"))).unpack(bytes(
+                    struct.calcsize(str(a.get("struct")))))) != 1:
+                errs.append(f"{key}.struct: expected a format of exactly one item")
+        except struct.error as exc:
+            errs.append(f"{key}.struct: expected a struct format, got {a.get('struct')!r}: {exc}")
+        try:
+            parse_hex(str(a.get("prefix", "")))
+        except ValueError:
+            errs.append(f"{key}.prefix: expected hex bytes, got {a.get('prefix')!r}")
+        return errs
+
+    def command(self, device: str, value: Any) -> bytes:
+        """The bytes that set actuator ``device`` to ``value``; raises :class:`BusError`."""
+        a = self.devices[device].address
+        try:
+            if not self._binary:
+                enc = str(self.bus.options.get("encoding", "ascii"))
+                return str(a["format"]).format(value=value).encode(enc) + self._eol
+            fmt = str(a["struct"])
+            v = round(float(value)) if fmt[-1] in _INT_CODES else value
+            payload = parse_hex(str(a.get("prefix", ""))) + struct.pack(fmt, v)
+            return self._sync + payload + checksum(self._check, payload)
+        except (struct.error, ValueError, TypeError, UnicodeEncodeError, OverflowError) as exc:
+            raise BusError(f"cannot encode {device}={value!r} for serial bus "
+                           f"{self.bus.name!r}: {exc}") from exc
+
+    def start(self) -> None:
+        """Start the reader (which opens the port, and reopens it) and the writer thread."""
+        self._running = True
+        for target, role in ((self._read_loop, "rx"), (self._write_loop, "tx")):
+            t = threading.Thread(target=target, name=f"serial-{self.bus.name}-{role}",
+                                 daemon=True)
+            self._threads.append(t)
+            t.start()
+
+    def write(self, device: str, value: Any) -> None:
+        """Queue a command to actuator ``device``; failures arrive later as ``host.fail``."""
+        with self._cond:
+            self._outbox.append((device, value))
+            self._cond.notify_all()
+
+    def wait_open(self, timeout: float) -> bool:
+        """Wait until the port is open (after start or a reconnect); False on timeout."""
+        with self._cond:
+            return self._cond.wait_for(lambda: self._port is not None or not self._running,
+                                       timeout) and self._running
+
+    def settle(self, timeout: float) -> bool:
+        """Wait until no command is queued and the reader found the port empty after this call
+        (False on timeout, or while the port is down)."""
+        with self._cond:
+            if not self._running:
+                return True
+            gen = self._idle_gen
+            return self._cond.wait_for(
+                lambda: not self._running or (self._idle_gen > gen + 1 and not self._outbox
+                                               and not self._sending), timeout)
+
+    def stop(self) -> None:
+        """Stop both threads and close the port. Idempotent; never raises."""
+        with self._cond:
+            self._running = False
+            self._cond.notify_all()
+        for t in self._threads:
+            t.join(timeout=2.0)
+        self._threads.clear()
+        self._close()
+
+    # -- threads ---------------------------------------------------------------------------
+
+    def _close(self) -> None:
+        with self._cond:
+            port, self._port = self._port, None
+        if port is not None:
+            with contextlib.suppress(OSError, serial.SerialException):
+                port.close()
+
+    def _open(self) -> Any:
+        o = self.bus.options
+        try:
+            return serial.serial_for_url(str(o["url"]), baudrate=int(o.get("baudrate", 9600)),
+                                         timeout=self._poll, write_timeout=1.0)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            self._down(f"cannot open {o['url']}: {exc}")
+            return None
+
+    def _read_loop(self) -> None:
+        delay = self._backoff[0]
+        while self._running:
+            port = self._open()
+            if port is None:
+                with self._cond:
+                    self._cond.wait_for(lambda: not self._running, delay)
+                delay = min(delay * 2, self._backoff[1])
+                continue
+            delay = self._backoff[0]
+            with self._cond:
+                self._port = port
+                self.connects += 1
+                self._cond.notify_all()
+            self._up()
+            self._pump(port, self._framer())
+            self._close()
+
+    def _pump(self, port: Any, framer: LineFramer | BinaryFramer) -> None:
+        while self._running:
+            try:
+                data = port.read(max(1, port.in_waiting))
+            except (serial.SerialException, OSError, TypeError) as exc:
+                if self._running:
+                    self._down(f"port {self.bus.options['url']} lost: {exc}")
+                return
+            if not data:
+                with self._cond:
+                    self._idle_gen += 1
+                    self._cond.notify_all()
+                continue
+            for kind, detail in framer.feed(data):
+                try:
+                    self._event(kind, detail)
+                except Exception as exc:  # the reader must survive any host surprise
+                    self._error("internal", f"delivery failed: {exc!r}")
+
+    def _event(self, kind: str, detail: Any) -> None:
+        if kind != "values":
+            self._error(kind, str(detail))
+            return
+        for name, value in detail.items():
+            for device in self._sensors.get(name, ()):
+                self.host.deliver(device, value)
+
+    def _error(self, kind: str, detail: str) -> None:
+        self.error_counts[kind] += 1
+        self.host.error(self.bus.name, kind, detail)
+
+    def _write_loop(self) -> None:
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda: bool(self._outbox) or not self._running)
+                if not self._running:
+                    return
+                device, value = self._outbox.popleft()
+                self._sending = True
+                # At start-up, wait for the first open attempt; while down, fail at once.
+                self._cond.wait_for(
+                    lambda: self._port is not None or self._failed or not self._running)
+                if not self._running:
+                    self._sending = False
+                    return
+                port = self._port
+            try:
+                self._send(port, device, value)
+            finally:
+                with self._cond:
+                    self._sending = False
+                    self._cond.notify_all()
+
+    def _send(self, port: Any, device: str, value: Any) -> None:
+        try:
+            data = self.command(device, value)
+            if port is None:
+                raise BusError(f"serial port {self.bus.options['url']} is not open; command "
+                               f"{data!r} not sent")
+            try:
+                port.write(data)
+                port.flush()
+            except (serial.SerialException, OSError) as exc:
+                raise BusError(f"write to {self.bus.options['url']} failed: {exc}") from exc
+        except BusError as exc:
+            with self._cond:
+                self._write_failed.add(device)
+            self.host.fail(device, str(exc))
+            return
+        with self._cond:
+            recovered = device in self._write_failed
+            self._write_failed.discard(device)
+        if recovered:
+            self.host.recover(device)
+
+    def _down(self, reason: str) -> None:
+        with self._cond:
+            was, self._failed = self._failed, True
+            self._cond.notify_all()
+        if not was:
+            for name in self.devices:
+                self.host.fail(name, f"serial bus {self.bus.name!r}: {reason}")
+
+    def _up(self) -> None:
+        with self._cond:
+            was, self._failed = self._failed, False
+            if was:
+                self._write_failed.clear()       # recovered below with every device
+            self._cond.notify_all()
+        if was:
+            for name in self.devices:
+                self.host.recover(name)
+

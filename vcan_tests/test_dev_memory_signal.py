@@ -1,0 +1,100 @@
+"""The bus-less drivers: memory (host-fed sensors, kept writes) and signal (clocked waveforms)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+
+from chcos.devmap import load
+from chcos.errors import DeviceError
+from drivers.memory import MemoryDriver
+from drivers.registry import driver_class
+from drivers.signal import SignalDriver, make_waveform
+from vcan_tests.support_dev import FakeHost, bus, device
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_registry_finds_the_bus_less_drivers() -> None:
+    assert driver_class("memory") is MemoryDriver and driver_class("signal") is SignalDriver
+
+
+def test_memory_keeps_bounded_history_and_feeds_sensors_from_the_host() -> None:
+    host = FakeHost()
+    drv = MemoryDriver(bus("memory", history=3),
+                       [device("P", "sensor", i=0), device("V", "actuator", i=1)], host)
+    drv.start()
+    assert drv.store.last("V") is None
+    for v in range(5):
+        drv.write("V", v)
+    assert drv.store.history("V") == [2, 3, 4] and drv.store.last("V") == 4
+    assert drv.store.count("V") == 5 and drv.store.wait_for("V", lambda v: v == 4, 0.0)
+    assert not drv.store.wait_for("V", lambda v: v == 9, 0.01)
+    drv.inject("P", 1.25)
+    assert host.delivered == [("P", 1.25)]
+    with pytest.raises(DeviceError, match="expected one of its sensors P"):
+        drv.inject("V", 1.0)
+    with pytest.raises(DeviceError, match="not an actuator of this bus; expected one of V"):
+        drv.write("P", 1.0)
+    assert drv.settle(0.0)
+    drv.stop()
+
+
+def test_memory_check_rejects_options_and_addresses() -> None:
+    assert MemoryDriver.check_bus(bus("memory", history=0)) == [
+        "bus[0].history: expected an integer >= 1, got 0"]
+    assert MemoryDriver.check_device(bus("memory"), device("A", "sensor", x=1)) == [
+        "device[0].address.x: unknown key; a memory device takes no address"]
+
+
+@pytest.mark.parametrize(("address", "samples"), [
+    ({"waveform": "sine", "amplitude": 2.0, "period": 4.0}, [0.0, 2.0, 0.0, -2.0]),
+    ({"waveform": "square", "center": 1.0, "period": 2.0}, [2.0, 0.0, 2.0, 0.0]),
+    ({"waveform": "ramp", "amplitude": 1.0, "period": 4.0}, [-1.0, -0.5, 0.0, 0.5]),
+    ({"waveform": "constant", "value": 7.5}, [7.5, 7.5, 7.5, 7.5]),
+])
+def test_waveforms(address: dict[str, float], samples: list[float]) -> None:
+    wave = make_waveform(address)
+    assert [wave(t) for t in (0.0, 1.0, 2.0, 3.0)] == [pytest.approx(s, abs=1e-9)
+                                                       for s in samples]
+
+
+def test_random_waveform_is_seeded_and_bounded() -> None:
+    a = make_waveform({"waveform": "random", "seed": 3, "center": 10.0, "amplitude": 1.0})
+    b = make_waveform({"waveform": "random", "seed": 3, "center": 10.0, "amplitude": 1.0})
+    xs = [a(0.0) for _ in range(50)]
+    assert xs == [b(0.0) for _ in range(50)] and all(9.0 <= x <= 11.0 for x in xs)
+    assert len(set(xs)) == 50
+
+
+def test_fig65_runs_on_virtual_time() -> None:
+    dm = load(ROOT / "busconfig" / "fig65.toml")
+    host = FakeHost()
+    spec = dm.buses[0]
+    drv = SignalDriver(spec, dm.devices_on(spec.name), host)
+    drv.start()
+    assert sorted(p for p, _, _ in host.timers) == [0.1, 0.1, 0.1]
+    host.advance(1.0)
+    for name in ("S1", "S2", "S3"):
+        assert len(host.values(name)) == 10
+    s1 = host.values("S1")
+    assert s1[0] == pytest.approx(50.0 + 50.0 * math.sin(2 * math.pi * 0.1 / 4.0))
+    assert all(0.0 <= v <= 100.0 for v in s1)
+    assert set(host.values("S2")[:9]) == {2.0}        # the high half of a 2 s square
+    drv.write("M1", 12.0)
+    assert drv.store.last("M1") == 12.0
+    drv.stop()
+    host.advance(1.0)
+    assert len(host.values("S1")) == 10 and drv.samples == 30
+
+
+def test_signal_check_device() -> None:
+    errs = SignalDriver.check_device(bus("signal"), device(
+        "S", "sensor", waveform="sine", rate_hz=0, period=-1, colour=1))
+    assert errs == [
+        "device[0].address.colour: unknown key; valid keys: waveform, rate_hz, amplitude, center, "
+        "period, phase, value, seed",
+        "device[0].address.rate_hz: expected samples per second > 0, got 0",
+        "device[0].address.period: expected seconds > 0, got -1"]
