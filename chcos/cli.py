@@ -5,7 +5,8 @@
 ``chcos shell``   a host console: an in-process system that reads host commands (install,
                   setpri, invoke, suspend, resume, close, inject, map) from a script or stdin
 ``chcos check``   validate device-map files without touching a bus
-``chcos map``     print a sysfile.map as the hierarchy
+``chcos map``     draw a sysfile.map as the hierarchy (text, dot or svg)
+``chcos view``    serve a live page of a running system on 127.0.0.1
 ``chcos sim``     simulated field devices (CAN, CANopen, Modbus, serial)
 ``chcos satellite -m N --system FILE``  run machine N of a multi-satellite system
 ``chcos host --system FILE [COMMAND...]``  host commands to a running multi-satellite system
@@ -111,14 +112,6 @@ def _host(args: argparse.Namespace) -> int:
     return status
 
 
-def _map(args: argparse.Namespace) -> int:
-    from chcos import sysmap
-    from chcos.sysview import render_text
-
-    print(render_text(sysmap.read(args.map)))
-    return 0
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``chcos`` console script; returns the exit status."""
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -130,6 +123,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         from chcos.sim.cli import main as sim_main
 
         return sim_main(argv[1:])
+    if argv[:1] == ["map"]:
+        from chcos.viewer.cli import map_main
+
+        return map_main(argv[1:])
+    if argv[:1] == ["view"]:
+        from chcos.viewer.cli import view_main
+
+        return view_main(argv[1:])
     parser = argparse.ArgumentParser(prog="chcos", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
@@ -159,9 +160,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="first wait this many seconds for every satellite to be up")
     p.add_argument("command", nargs=argparse.REMAINDER, help="one command, e.g. setpri -9 A4 C1")
     p.set_defaults(func=_host)
-    p = sub.add_parser("map", help="print a sysfile.map")
-    p.add_argument("map", nargs="?", default="sysfile.map")
-    p.set_defaults(func=_map)
+    sub.add_parser("map", help="draw a sysfile.map (chcos map [MAP] --format text|dot|svg)")
+    sub.add_parser("view", help="live page of a running system (chcos view --example fig65)")
     sub.add_parser("check", help="validate device-map files (chcos check FILE...)")
     sub.add_parser("sim", help="simulated field devices (chcos sim KIND ...)")
     args = parser.parse_args(argv)

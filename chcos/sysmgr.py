@@ -381,6 +381,7 @@ class SystemManager:
                 "owner": t.owner.src if t.owner is not None else None, "priority": t.prio,
                 "steps": t.steps, "activations": t.activations, "completions": t.completions,
                 "abnormal": t.abnormal, "last_error": t.last_error,
+                "world": t.world.snapshot() if t.world is not None else {},
             })
         links = []
         for lk in s.msgtab:
@@ -398,6 +399,7 @@ class SystemManager:
             "name": d.name, "direction": d.spec.direction, "machine": d.spec.machine,
             "bus": d.spec.bus, "status": d.status.value, "value": d.value,
             "readings": d.readings, "overwrites": d.overwrites, "units": d.spec.units,
+            "commands": d.commands, "reason": d.reason,
         } for d in s.devtab]
         return {"machines": sorted(self.machines), "devmaps": list(s.devmap.files),
                 "base_dir": str(s.base_dir), "task_path": [str(p) for p in s.task_path],

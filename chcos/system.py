@@ -157,6 +157,10 @@ class System:
     def shutdown(self) -> None:
         """Stop, write safe values to every actuator, stop the drivers, close output files."""
         self.stop()
+        for t in self.tsktab:  # end every activation (runs their finally blocks)
+            if t.coro is not None:
+                t.coro.close()
+                t.coro = None
         self.devtab.stop_drivers()
         self.msgmgr.close_files()
 

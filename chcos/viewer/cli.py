@@ -1,0 +1,161 @@
+"""cli - ``chcos map`` (a sysfile.map drawn as text, dot or SVG) and ``chcos view`` (live page).
+
+``chcos map [MAP] [--format text|dot|svg] [-o FILE] [--implicit]``
+    reads a sysfile.map (default ./sysfile.map) and prints the hierarchy, levels top to bottom.
+
+``chcos view [MAP | --example fig65] [--port 0] [--invoke TASK]... [--duration S] [--terminal]``
+    rebuilds the system from MAP (or builds the figure 6.5 example), runs it on real time, and
+    serves the live page on 127.0.0.1 (port 0: a free one); prints the URL. ``--terminal`` also
+    redraws the hierarchy as text, with message rates, once a second.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import threading
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, TextIO
+
+from chcos import sysmap
+from chcos.errors import ChcosError
+from chcos.viewer import ViewerError
+from chcos.viewer.graph import render_dot, render_svg
+
+if TYPE_CHECKING:
+    from chcos.system import System
+    from chcos.viewer.server import Viewer
+
+
+def map_main(argv: Sequence[str], out: TextIO | None = None) -> int:
+    """``chcos map``: print a sysfile.map as text, dot or SVG; returns the exit status (1 with
+    a message on stderr if the map cannot be read)."""
+    from chcos.sysview import render_text
+
+    out = out or sys.stdout
+    p = argparse.ArgumentParser(prog="chcos map", description="Draw a sysfile.map: levels top "
+                                "to bottom, tasks with machine, status, owner and priority, "
+                                "links with type and priority.")
+    p.add_argument("map", nargs="?", default="sysfile.map", help="the map (./sysfile.map)")
+    p.add_argument("--format", "-f", choices=("text", "dot", "svg"), default="text")
+    p.add_argument("-o", "--output", help="write to this file instead of stdout")
+    p.add_argument("--implicit", action="store_true",
+                   help="also draw implicit links (exception taps, assassin and host links)")
+    args = p.parse_args(list(argv))
+    try:
+        doc = sysmap.read(args.map)
+        if args.format == "text":
+            body = render_text(doc, implicit=args.implicit) + "\n"
+        elif args.format == "dot":
+            body = render_dot(doc, args.implicit)
+        else:
+            body = render_svg(doc, implicit=args.implicit) + "\n"
+        if args.output:
+            Path(args.output).write_text(body, encoding="utf-8")
+        else:
+            out.write(body)
+    except (ChcosError, OSError) as exc:
+        print(f"chcos map: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _build(args: argparse.Namespace) -> tuple[System, Path | None, list[str]]:
+    """The system to view (on real time), the host script to run on it before it starts, and
+    the tasks to invoke once it runs. Raises ChcosError if it cannot be built."""
+    from chcos.clock import RealClock
+    from chcos.system import System
+
+    if args.example:
+        from chcos import fig65run
+        from chcos.examples import fig65
+
+        workdir = Path(args.workdir or "out/fig65")
+        workdir.mkdir(parents=True, exist_ok=True)
+        shutil.copy(fig65.HERE / "testfile", workdir / "testfile")
+        system = System([fig65run.default_devmap()], clock=RealClock(), task_path=[fig65.HERE],
+                        base_dir=workdir, map_path=workdir / "sysfile.map")
+        return system, fig65.SCRIPT, list(args.invoke or ["C1"])
+    path = Path(args.map or "sysfile.map")
+    system = System.from_map(path, clock=RealClock(),
+                             map_path=Path(args.workdir) / "sysfile.map" if args.workdir
+                             else None)
+    return system, None, list(args.invoke or [])
+
+
+def view_main(argv: Sequence[str], *, stop: threading.Event | None = None,
+              on_ready: Callable[[Viewer], None] | None = None, out: TextIO | None = None
+              ) -> int:
+    """``chcos view``: run a system on real time and serve its live page until ``--duration``
+    passes, Ctrl-C, or ``stop`` is set; ``on_ready(viewer)`` is called once the page is up.
+    Returns the exit status (1 with a message on stderr if the system or server cannot start).
+    """
+    from chcos.sysview import render_text
+    from chcos.viewer.server import Viewer
+    from chcos.viewer.snapshot import EventLog, Snapshotter
+
+    out = out or sys.stdout
+    p = argparse.ArgumentParser(prog="chcos view", description="Serve the live hierarchy of a "
+                                "running system on a web page (and the terminal).")
+    p.add_argument("map", nargs="?", help="sysfile.map to rebuild the system from")
+    p.add_argument("--example", choices=("fig65",), help="view the thesis' figure 6.5 system")
+    p.add_argument("--workdir", help="where the example's files and the map go")
+    p.add_argument("--host", default="127.0.0.1", help="address to serve on (127.0.0.1)")
+    p.add_argument("--port", type=int, default=0, help="port (0: a free one)")
+    p.add_argument("--invoke", action="append", help="invoke this task once running")
+    p.add_argument("--period", type=float, default=0.1, help="seconds between snapshots")
+    p.add_argument("--duration", type=float, help="stop after this many seconds")
+    p.add_argument("--terminal", action="store_true",
+                   help="also redraw the hierarchy as text on the terminal once a second")
+    p.add_argument("--read-only", action="store_true", help="refuse commands from the page")
+    args = p.parse_args(list(argv))
+    if args.map and args.example:
+        p.error("give a map or --example, not both")
+    stop = stop or threading.Event()
+    system: System | None = None
+    viewer: Viewer | None = None
+    try:
+        system, script, invokes = _build(args)
+        events = EventLog(system.kernel.clock)
+        system.kernel.add_instrument(events)
+        if script is not None:
+            system.run_script(script)
+        system.start()
+        for task in invokes:
+            print(f"host: {system.execute(f'invoke {task}')}", file=out)
+        viewer = Viewer(system, args.host, args.port, period=args.period, events=events,
+                        allow_commands=not args.read_only).start()
+        print(f"chcos view: serving {viewer.url}", file=out, flush=True)
+        if on_ready is not None:
+            on_ready(viewer)
+        clock = system.kernel.clock
+        end = None if args.duration is None else clock.now() + args.duration
+        terminal = Snapshotter(system, events) if args.terminal else None
+        while True:
+            if terminal is not None:  # its own snapshotter: the page's runs on its own thread
+                snap = terminal.take(None, svg=False)
+                out.write("\x1b[H\x1b[2J" + render_text(snap["map"], rates=snap["rates"])
+                          + f"\n\n{viewer.url}\n")
+                out.flush()
+            left = None if end is None else end - clock.now()
+            if left is not None and left <= 0:
+                break
+            wait = 1.0 if terminal is not None else left
+            if stop.wait(wait if left is None or wait is None else min(wait, left)):
+                break
+    except KeyboardInterrupt:
+        pass
+    except (ChcosError, OSError) as exc:
+        print(f"chcos view: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        if viewer is not None:
+            viewer.stop()
+        if system is not None:
+            system.shutdown()
+    return 0
+
+
+__all__ = ["ViewerError", "map_main", "view_main"]

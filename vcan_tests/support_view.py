@@ -1,0 +1,145 @@
+"""support_view - helpers for the viewer tests: the figure 6.5 system, HTTP on 127.0.0.1, SSE,
+and a headless Debian chromium driven by Playwright (never a downloaded browser)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import urllib.request
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from chcos.clock import Clock, VirtualClock
+from chcos.devspec import BusSpec, DeviceMap, DeviceSpec
+from chcos.examples import fig65
+from chcos.examples.fig65.common import condense
+from chcos.fig65run import default_devmap
+from chcos.system import System
+from chcos.usrmgr import TaskContext
+from chcos.viewer.snapshot import EventLog
+
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
+                 "--no-first-run", "--disable-background-networking",
+                 "--disable-component-update", "--disable-sync"]
+DOCS = Path(__file__).resolve().parent.parent / "docs"
+TIMEOUT = 10.0
+FIG65_TASKS = ("A1", "A2", "A3", "A4", "B1", "B2", "C1")
+
+# loopback only, whatever proxy the environment names
+_opener = urllib.request.build_opener(urllib.request.ProxyHandler({}))
+
+
+def fig65_system(workdir: Path, clock: Clock | None = None, invoke: bool = True) -> System:
+    """The figure 6.5 system (thesis install script run, C1 invoked) with its files in
+    ``workdir``; on a VirtualClock unless ``clock`` is given. Not started. An EventLog listens
+    from the start, so a viewer shows the installs too."""
+    shutil.copy(fig65.HERE / "testfile", workdir / "testfile")
+    s = System([default_devmap()], clock=clock or VirtualClock(), task_path=[fig65.HERE],
+               base_dir=workdir, map_path=workdir / "sysfile.map")
+    s.kernel.add_instrument(EventLog(s.kernel.clock))
+    s.run_script(fig65.SCRIPT)
+    if invoke:
+        s.execute("invoke C1")
+    return s
+
+
+async def follow(ctx: TaskContext, command: Any) -> None:
+    """Task code: drive the actuator from the sensor (the fig65 loop)."""
+    await condense(ctx, actuator=ctx.outputs[0])
+
+
+async def halt(ctx: TaskContext, command: Any) -> None:
+    """Task code: an emergency stop when invoked, then a normal completion."""
+    ctx.estop(f"halt by {ctx.name}: {command}")
+    ctx.complete("halted")
+
+
+async def crash(ctx: TaskContext, command: Any) -> None:
+    """Task code: fails at once (an abnormal completion)."""
+    raise RuntimeError(f"{ctx.name} crashed on purpose")
+
+
+def small_cell(workdir: Path, clock: Clock | None = None) -> System:
+    """A cell that is not fig65: in-memory sensor P1 (stale after 0.3 s without data) and
+    actuator V1 on machine 0; T1 follows P1 on V1, H2 above it halts (estop) and X2 above it
+    crashes when invoked. Nothing is invoked; an EventLog listens from the start."""
+    me = "vcan_tests.support_view"
+    devmap = DeviceMap((BusSpec("mem", "memory"),), (
+        DeviceSpec("P1", "sensor", 0, "mem", stale_after=0.3, units="bar"),
+        DeviceSpec("V1", "actuator", 0, "mem", safe_value=0.0, limits=(-100, 100), units="%")))
+    s = System(devmap, clock=clock or VirtualClock(), base_dir=workdir,
+               map_path=workdir / "sysfile.map")
+    s.kernel.add_instrument(EventLog(s.kernel.clock))
+    for line in ("install -m0 sysfile",
+                 f"install -m0i1o1 --code={me}:follow T1 P1 V1",
+                 f"install -m0o1 --code={me}:halt H2 T1",
+                 f"install -m0i1 --code={me}:crash X2 T1"):
+        s.execute(line)
+    return s
+
+
+def get(url: str) -> tuple[int, str]:
+    """GET ``url`` (127.0.0.1 only); (status, body) also for error statuses."""
+    assert url.startswith("http://127.0.0.1:"), url
+    try:
+        with _opener.open(url, timeout=TIMEOUT) as resp:
+            return int(resp.status), resp.read().decode()
+    except urllib.error.HTTPError as exc:
+        return int(exc.code), exc.read().decode()
+
+
+def get_json(url: str) -> Any:
+    """GET ``url`` and decode its JSON body (asserting status 200)."""
+    status, body = get(url)
+    assert status == 200, body
+    return json.loads(body)
+
+
+def post_json(url: str, payload: Any) -> tuple[int, Any]:
+    """POST ``payload`` as JSON; (status, decoded JSON answer)."""
+    assert url.startswith("http://127.0.0.1:"), url
+    data = payload if isinstance(payload, bytes) else json.dumps(payload).encode()
+    req = urllib.request.Request(url, data=data, method="POST",
+                                 headers={"Content-Type": "application/json"})
+    try:
+        with _opener.open(req, timeout=TIMEOUT) as resp:
+            return int(resp.status), json.loads(resp.read())
+    except urllib.error.HTTPError as exc:
+        return int(exc.code), json.loads(exc.read())
+
+
+def sse_messages(url: str, count: int) -> list[dict[str, Any]]:
+    """The first ``count`` server-sent ``data:`` messages of ``url``, decoded from JSON."""
+    out: list[dict[str, Any]] = []
+    with _opener.open(url, timeout=TIMEOUT) as resp:
+        assert resp.headers["Content-Type"].startswith("text/event-stream")
+        for raw in resp:
+            line = raw.decode().rstrip("\n")
+            if line.startswith("data: "):
+                out.append(json.loads(line[6:]))
+                if len(out) == count:
+                    break
+    return out
+
+
+@contextmanager
+def browser_page() -> Iterator[Any]:
+    """A Playwright page in headless Debian chromium; skips the test when chromium or
+    Playwright is missing."""
+    if not CHROMIUM.exists():
+        pytest.skip(f"{CHROMIUM} is absent (apt-get install chromium); browser tests need it")
+    sync_api = pytest.importorskip("playwright.sync_api",
+                                   reason="the playwright package is not installed")
+    with sync_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        try:
+            page = browser.new_page(viewport={"width": 1600, "height": 1100})
+            page.set_default_timeout(TIMEOUT * 1000)
+            yield page
+        finally:
+            browser.close()

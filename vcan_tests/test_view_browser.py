@@ -1,0 +1,163 @@
+"""The live page in a real browser: headless Debian chromium driven by Playwright, against the
+figure 6.5 system running on real time on a background kernel thread. Skipped (with the reason)
+where /usr/bin/chromium or Playwright is missing. Also writes docs/screenshot-fig65.png."""
+
+from __future__ import annotations
+
+import re
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from chcos.clock import RealClock
+from chcos.system import System
+from chcos.viewer.server import Viewer, serve
+from vcan_tests.support_view import DOCS, FIG65_TASKS, browser_page, fig65_system, small_cell
+
+SEQ = "Number(document.getElementById('seq').dataset.seq)"
+
+
+@pytest.fixture
+def live(tmp_path: Path) -> Iterator[tuple[System, Viewer]]:
+    """The fig65 system running on real time, C1 invoked, and its viewer."""
+    s = fig65_system(tmp_path, RealClock())
+    s.start()
+    v = serve(s)
+    yield s, v
+    v.stop()
+    s.shutdown()
+
+
+def _expect() -> Any:
+    return pytest.importorskip("playwright.sync_api").expect
+
+
+def test_page_draws_every_task_and_updates_live(live: tuple[System, Viewer]) -> None:
+    _system, viewer = live
+    with browser_page() as page:
+        expect = _expect()
+        page.goto(viewer.url)
+        page.wait_for_function(f"{SEQ} >= 2")
+        for task in FIG65_TASKS:
+            expect(page.locator(f'#graph g.node.task[data-name="{task}"]')).to_have_count(1)
+            expect(page.locator(f'#tasks tr[data-name="{task}"]')).to_have_count(1)
+        for dev in ("S1", "S2", "S3", "M1", "M2"):
+            expect(page.locator(f'#graph g.node[data-name="{dev}"]')).to_have_count(1)
+        expect(page.locator('#graph g.node[data-name="C1"]')).to_contain_text("owner host")
+        expect(page.locator("#conn")).to_have_text("live")
+        # at least 5 updates a second, without reloading
+        page.evaluate("window.__marker = 1")
+        seq0 = page.evaluate(SEQ)
+        t0 = time.monotonic()
+        page.wait_for_function(f"{SEQ} >= {seq0 + 10}")
+        elapsed = time.monotonic() - t0
+        assert elapsed < 2.0, f"10 updates took {elapsed:.2f} s"
+        assert page.evaluate("window.__marker") == 1
+        # message rates per link and device values/ages arrive from successive snapshots
+        rate = page.locator('#graph g.link[data-link="S1/A1"] tspan.rate')
+        expect(rate).to_have_text(re.compile(r"^ (?:[5-9]|1[0-5])\.\d/s$"))
+        expect(page.locator('#devices tr[data-name="S1"]')).to_contain_text("mm")
+        expect(page.locator('#graph g.node[data-name="S1"]')).to_contain_text(
+            re.compile(r"age \d+\.\d\d s · OK"))
+
+
+def test_setpri_and_invoke_from_the_page(live: tuple[System, Viewer]) -> None:
+    system, viewer = live
+    with browser_page() as page:
+        expect = _expect()
+        page.goto(viewer.url)
+        label = page.locator('#graph g.link[data-link="C1/B1"] tspan.prio')
+        expect(label).to_have_text("p9")
+        page.select_option("#setpri-link", "C1 B1")
+        page.fill("#setpri-prio", "13")
+        page.click("#setpri-go")
+        expect(page.locator("#cmd-result")).to_have_text("C1/B1 priority 13")
+        expect(label).to_have_text("p13")
+        assert system.sysmgr.map_doc()["links"][
+            [lk["src"] + "/" + lk["dst"] for lk in system.sysmgr.map_doc()["links"]]
+            .index("C1/B1")]["priority"] == 13
+        expect(page.locator('#events li[data-kind="setpri"]').first).to_contain_text(
+            "C1/B1 9 -> 13")
+        # errors of the system manager are shown on the page
+        page.fill("#setpri-prio", "150")
+        page.click("#setpri-go")
+        expect(page.locator("#cmd-result.error")).to_contain_text("out of range")
+        # invoke A3 above B1's priority: the pre-emption shows in the log and on the node
+        page.select_option("#invoke-task", "A3")
+        page.fill("#invoke-prio", "7")
+        page.click("#invoke-go")
+        expect(page.locator("#cmd-result")).to_have_text(re.compile("^A3 invoked at priority 7"))
+        expect(page.locator('#events li[data-kind="preempt"]').first).to_contain_text(
+            "took A3 from B1")
+        expect(page.locator('#graph g.node[data-name="A3"]')).to_have_class(
+            re.compile(r"\bmark-preempt\b"))
+        expect(page.locator('#graph g.node[data-name="A3"]')).to_contain_text("owner host")
+
+
+def test_injected_events_appear_and_mark_nodes(live: tuple[System, Viewer]) -> None:
+    system, viewer = live
+    with browser_page() as page:
+        expect = _expect()
+        page.goto(viewer.url)
+        page.wait_for_function(f"{SEQ} >= 2")
+        # the log of a newly opened page starts with what happened before it
+        expect(page.locator('#events li[data-kind="install"]')).to_have_count(7)
+        system.execute("suspend B2")
+        expect(page.locator('#events li[data-kind="suspend"]').first).to_contain_text(
+            "host suspend B2")
+        node = page.locator('#graph g.node[data-name="B2"]')
+        expect(node).to_have_class(re.compile(r"\bfrozen\b.*\bmark-suspend\b"))
+        expect(node).to_contain_text("FROZEN")
+        expect(page.locator('#tasks tr[data-name="B2"]')).to_have_class("alert")
+        # a driver reports S3 failed; its next reading (10 Hz) recovers it: both are logged
+        system.devtab.fail("S3", "cable cut")
+        expect(page.locator('#events li[data-kind="device-failed"]').first).to_contain_text(
+            "S3: cable cut")
+        expect(page.locator('#events li[data-kind="device-ok"]').first).to_contain_text("S3")
+        page.screenshot(path=str(DOCS / "screenshot-fig65.png"), full_page=True)
+        system.execute("resume B2")
+        expect(node).not_to_have_class(re.compile(r"\bfrozen\b"))
+        expect(page.locator('#events li[data-kind="resume"]')).to_have_count(1)
+
+
+def test_page_is_generic_stale_estop_abnormal(tmp_path: Path) -> None:
+    system = small_cell(tmp_path, RealClock())
+    system.start()
+    try:
+        with serve(system) as viewer, browser_page() as page:
+            expect = _expect()
+            page.goto(viewer.url)
+            for name in ("T1", "H2", "X2", "P1", "V1"):
+                expect(page.locator(f'#graph g.node[data-name="{name}"]')).to_have_count(1)
+            # P1 gets no data: stale after 0.3 s, drawn red, logged
+            p1 = page.locator('#graph g.node[data-name="P1"]')
+            expect(p1).to_have_class(re.compile(r"\bstatus-stale\b.*\balert\b"))
+            expect(p1.locator("rect")).to_have_attribute("fill", "#ff8a80")
+            expect(page.locator('#devices tr[data-name="P1"]')).to_have_class("alert")
+            expect(page.locator('#events li[data-kind="device-stale"]').first).to_contain_text(
+                "P1: no data")
+            # an estop from a task, and an abnormal completion, from page invokes
+            page.select_option("#invoke-task", "H2")
+            page.fill("#invoke-args", "why=test")
+            page.click("#invoke-go")
+            expect(page.locator('#events li[data-kind="estop"]').first).to_contain_text(
+                "H2: halt by H2")
+            expect(page.locator('#graph g.node[data-name="H2"]')).to_have_class(
+                re.compile(r"\bmark-estop\b"))
+            page.select_option("#invoke-task", "X2")
+            page.fill("#invoke-args", "")
+            page.click("#invoke-go")
+            expect(page.locator('#events li[data-kind="abnormal"]').first).to_contain_text(
+                "X2 crashed on purpose")
+            x2 = page.locator('#graph g.node[data-name="X2"]')
+            expect(x2).to_have_class(re.compile(r"\babnormal\b.*\bmark-abnormal\b"))
+            expect(page.locator('#tasks tr[data-name="X2"]')).to_contain_text("crashed")
+            # a bad argument is refused with the parser's reason
+            page.fill("#invoke-args", "noequals")
+            page.click("#invoke-go")
+            expect(page.locator("#cmd-result.error")).to_contain_text("key=value")
+    finally:
+        system.shutdown()
