@@ -31,6 +31,8 @@ from chcos.nbs.executor import DEFAULT_PERIOD, DeviceIO, Level, NbsExecutor
 
 __all__ = ["DevtabIO", "KernelScheduler", "NbsOnSystem", "attach"]
 
+_EPSILON = 1e-9  # the executor's own tolerance for "due at" (float rounding of k * period)
+
 
 class KernelScheduler:
     """The NBS :class:`~chcos.nbs.executor.RunnableScheduler` on a chcos kernel.
@@ -69,9 +71,11 @@ class KernelScheduler:
     def run_until(self, when: float) -> int:
         """Run the kernel on this thread until clock time ``when`` (on a virtual clock also
         until nothing more can happen); return how many callbacks armed here ran meanwhile.
-        Raises KernelError if the kernel already runs or a callback failed."""
+        As with :class:`~chcos.nbs.executor.VirtualScheduler`, a timer due within 1 ns after
+        ``when`` counts as due (``k * period`` rounds). Raises KernelError if the kernel already
+        runs or a callback failed."""
         before = self.fired
-        self.kernel.run(until=when)
+        self.kernel.run(until=when + _EPSILON)
         failure, self._failure = self._failure, None
         if failure is not None:
             raise KernelError(f"NBS cycle failed at {self.now():.6f} s: "

@@ -1,0 +1,227 @@
+"""comm - the communications manager: messages between satellites, over the Zenoh link.
+
+A satellite's message manager hands this layer every message whose destination lives on another
+satellite (sensory messages, exception taps, topen/tclose, completion and pre-emption reports,
+actuator commands, device status, the emergency stop). Each goes out as one
+:class:`chcos.link.codec.LinkMessage` carrying its link id and priority, to the key of the
+destination machine. Incoming messages arrive on Zenoh's threads and are handed to the kernel as
+interrupts (thesis 6.1.2: an incoming message readies TSK0), so the tables are only ever touched
+on the kernel thread. Link ids agree across satellites because every satellite applies the same
+install log in the same order.
+
+Keys, under ``chcos/<system>``: ``m/<N>/msg`` (messages to machine N), ``all/msg`` (broadcast:
+estop, device status), ``alive/<N>`` (liveliness tokens).
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import time
+from typing import TYPE_CHECKING, Any
+
+from chcos.errors import LinkError, MessageError
+from chcos.link.codec import LinkMessage, MessageKind, decode
+from chcos.link.transport import Subscription, Transport
+from chcos.messages import TOP_PRIORITY, Link, LinkStatus
+
+if TYPE_CHECKING:
+    from chcos.system import System
+
+log = logging.getLogger("chcos.comm")
+
+
+class CommManager:
+    """The link between one satellite (machine ``machine``) and all the others."""
+
+    def __init__(self, system: System, transport: Transport, prefix: str, machine: int) -> None:
+        self.sys = system
+        self.transport = transport
+        self.prefix = prefix
+        self.machine = machine
+        self._seq = itertools.count(1)
+        self._subs: list[Subscription] = []
+        self.received = 0
+        self.sent = 0
+        self.errors: list[str] = []
+        self.alive: set[int] = {machine}
+        system.msgmgr.comm = self
+
+    # ---- keys -------------------------------------------------------------------------------
+    def key(self, machine: int) -> str:
+        """The message key of ``machine``."""
+        return f"{self.prefix}/m/{machine}/msg"
+
+    def start(self) -> None:
+        """Subscribe to this machine's messages and the broadcasts and watch the other
+        satellites come and go. Raises LinkError if Zenoh refuses."""
+        t = self.transport
+        self._subs.append(t.subscribe(self.key(self.machine), self._incoming))
+        self._subs.append(t.subscribe(f"{self.prefix}/all/msg", self._incoming))
+        self._subs.append(t.watch(f"{self.prefix}/alive/*", self._joined, self._left))
+
+    def announce(self) -> None:
+        """Declare this satellite alive. Call it last, once everything it serves is declared:
+        one session's declarations reach the others in order, so whoever sees the token can
+        also reach the servers."""
+        self._subs.append(self.transport.announce(f"{self.prefix}/alive/{self.machine}"))
+
+    def stop(self) -> None:
+        """Withdraw from the link (the other satellites see this one leave)."""
+        for sub in reversed(self._subs):
+            sub.close()
+        self._subs.clear()
+
+    # ---- outgoing (kernel thread) -----------------------------------------------------------
+    def _send(self, machine: int | None, kind: MessageKind, src: str, dst: str, lid: int,
+              priority: int, value: Any) -> None:
+        msg = LinkMessage(kind, src, dst, lid, priority, next(self._seq), time.time_ns(), value)
+        key = f"{self.prefix}/all/msg" if machine is None else self.key(machine)
+        try:
+            self.transport.send(key, msg)
+        except LinkError as exc:
+            raise MessageError(f"cannot send {kind.name.lower()} {src}->{dst} to machine "
+                               f"{machine}: {exc}") from exc
+        self.sent += 1
+
+    def sensory(self, link: Link, value: Any) -> None:
+        """A sensory message to a task on another satellite."""
+        self._send(link.dst_machine, MessageKind.SENSORY, link.src, link.dst, link.lid,
+                   link.priority, value)
+
+    def tap(self, link: Link, source: str, value: Any) -> None:
+        """A tapped sensory message to an exception task on another satellite."""
+        self._send(link.dst_machine, MessageKind.SENSORY, source, link.dst, link.lid,
+                   link.priority, value)
+
+    def open(self, link: Link, command: Any, wait: bool) -> None:
+        """topen of a task on another satellite."""
+        self._send(link.dst_machine, MessageKind.COMMAND, link.src, link.dst, link.lid,
+                   link.priority, {"op": "open", "command": command, "wait": wait})
+
+    def close(self, link: Link) -> None:
+        """tclose of a task on another satellite."""
+        self._send(link.dst_machine, MessageKind.COMMAND, link.src, link.dst, link.lid,
+                   link.priority, {"op": "close"})
+
+    def report(self, link: Link) -> None:
+        """A completion or pre-emption on ``link`` to its caller's satellite."""
+        kind = (MessageKind.PREEMPTION if link.status is LinkStatus.PREEMPTED
+                else MessageKind.COMPLETION)
+        self._send(link.src_machine, kind, link.src, link.dst, link.lid, link.priority,
+                   {"status": link.status.value, "result": link.result, "error": link.error})
+
+    def granted(self, link: Link) -> None:
+        """The caller of ``link`` (on another satellite) now owns the target."""
+        self._send(link.src_machine, MessageKind.REPLY, link.src, link.dst, link.lid,
+                   link.priority, {"op": "open", "answer": "owner"})
+
+    def actuator(self, device: str, machine: int, value: Any, source: str) -> None:
+        """An actuator command to the device's satellite."""
+        self._send(machine, MessageKind.COMMAND, source, device, 0, TOP_PRIORITY - 1,
+                   {"op": "actuator", "device": device, "value": value})
+
+    def device_status(self, device: str, status: str, reason: str) -> None:
+        """A local device changed status: tell everybody."""
+        self._send(None, MessageKind.STATUS, "", device, 0, TOP_PRIORITY - 1,
+                   {"device": device, "status": status, "reason": reason,
+                    "from": self.machine})
+
+    def estop(self, reason: str) -> None:
+        """Emergency stop everywhere, at top priority, sent express."""
+        self._send(None, MessageKind.COMMAND, "", "", 0, TOP_PRIORITY,
+                   {"op": "estop", "reason": reason, "from": self.machine})
+
+    # ---- incoming (Zenoh thread -> kernel thread) -------------------------------------------
+    def _incoming(self, key: str, payload: bytes) -> None:
+        msg = decode(payload)
+        self.sys.kernel.interrupt(self._handle, msg)
+
+    def _link(self, msg: LinkMessage) -> Link:
+        links = self.sys.msgtab.links
+        if not 0 <= msg.link < len(links):
+            raise MessageError(f"message from {msg.src} names link {msg.link}, which this "
+                               f"satellite does not have (tables out of step?)")
+        return links[msg.link]
+
+    def _handle(self, msg: LinkMessage) -> None:
+        """Act on one incoming message (kernel thread)."""
+        self.received += 1
+        try:
+            self._dispatch(msg)
+        except Exception as exc:
+            text = f"{msg.kind.name} {msg.src}->{msg.dst}: {type(exc).__name__}: {exc}"
+            log.error("incoming message refused: %s", text)
+            self.errors.append(text)
+            del self.errors[:-100]
+
+    def _dispatch(self, msg: LinkMessage) -> None:
+        s = self.sys
+        mm = s.msgmgr
+        v = msg.value
+        kind = msg.kind
+        if kind is MessageKind.STATUS:
+            if v.get("from") != self.machine:
+                s.devtab.set_status(v["device"], v["status"], v["reason"])
+            return
+        if kind is MessageKind.COMMAND and isinstance(v, dict) and v.get("op") == "estop":
+            if v.get("from") != self.machine:
+                mm.event("estop", f"from machine {v.get('from')}: {v.get('reason')}")
+                s.devtab.estop(str(v.get("reason")))
+            return
+        if kind is MessageKind.COMMAND and isinstance(v, dict) and v.get("op") == "actuator":
+            s.devtab.write(v["device"], v["value"], source=msg.src)
+            return
+        link = self._link(msg)
+        if kind is MessageKind.SENSORY:
+            if link.tap:
+                tap = s.tsktab.get(link.dst).tap
+                mm.deliver_tap(link, tap, msg.src, v)
+            else:
+                mm.deliver(link, v)
+        elif kind is MessageKind.COMMAND:
+            if v["op"] == "open":
+                answer = mm.remote_open(link, v["command"], bool(v["wait"]))
+                self._send(link.src_machine, MessageKind.REPLY, link.src, link.dst, link.lid,
+                           link.priority, {"op": "open", "answer": answer})
+            elif v["op"] == "close":
+                mm.close(link)
+            else:
+                raise MessageError(f"unknown command op {v['op']!r}")
+        elif kind is MessageKind.REPLY:
+            mm.open_answer(link, str(v["answer"]))
+        elif kind in (MessageKind.COMPLETION, MessageKind.PREEMPTION):
+            mm.remote_report(link, LinkStatus(v["status"]), v.get("result"), v.get("error", ""))
+        else:
+            raise MessageError(f"unexpected message kind {kind.name}")
+
+    # ---- liveliness -------------------------------------------------------------------------
+    def _machine_of(self, key: str) -> int | None:
+        tail = key.rsplit("/", 1)[-1]
+        return int(tail) if tail.isdigit() else None
+
+    def _joined(self, key: str) -> None:
+        m = self._machine_of(key)
+        if m is not None and m != self.machine:
+            self.sys.kernel.interrupt(self._on_join, m)
+
+    def _left(self, key: str) -> None:
+        m = self._machine_of(key)
+        if m is not None and m != self.machine:
+            self.sys.kernel.interrupt(self._on_leave, m)
+
+    def _on_join(self, machine: int) -> None:
+        self.alive.add(machine)
+        self.sys.msgmgr.event("satellite-up", f"machine {machine} joined")
+        for e in self.sys.devtab:
+            if e.spec.machine == machine and e.status.value == "failed":
+                self.sys.devtab.set_status(e.name, "OK", "")
+
+    def _on_leave(self, machine: int) -> None:
+        self.alive.discard(machine)
+        mm = self.sys.msgmgr
+        told = mm.satellite_lost(machine)
+        mm.event("satellite-down", f"machine {machine} died; {told} owner(s) told")
+        for e in self.sys.devtab:
+            if e.spec.machine == machine:
+                self.sys.devtab.set_status(e.name, "failed", f"satellite {machine} died")

@@ -1,0 +1,171 @@
+"""host - the development host (the thesis' Unix side): install, setpri, invoke over the link.
+
+``Host.execute("install -m1i1o1 A2 S3 M2")`` reaches a running multi-satellite system from another
+terminal, exactly as the thesis' shell script of section 6.3 does. Table changes are prepared on
+every live satellite (each checks them; the target machine also loads the task's code) and only
+then committed everywhere, so a refused install changes no satellite's tables. Runtime commands go
+to the satellite of the task or device concerned.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from typing import Any
+
+from chcos import cmdline
+from chcos.errors import CommandSyntaxError, InstallError, LinkError
+from chcos.link.config import UsrPwdAuth
+from chcos.link.transport import Transport
+from chcos.sysfile import SystemFile, link_config_for
+from chcos.sysview import render_text
+
+
+class Host:
+    """A host session on the system of ``sf``. ``auth`` (user, password) overrides the system
+    file's credentials (``("", "")``: none at all). Raises ConfigError for a bad system file."""
+
+    def __init__(self, sf: SystemFile, *, auth: tuple[str, str] | None = None,
+                 timeout: float = 10.0, settle: float = 3.0) -> None:
+        cfg = link_config_for(sf, None)
+        if auth is not None:
+            from dataclasses import replace
+
+            cfg = replace(cfg, auth=UsrPwdAuth(*auth, None) if auth[0] else None)
+        self.sf = sf
+        self.timeout = timeout
+        self.settle = settle
+        self._settled = False
+        self.transport = Transport(cfg)
+        self._where: dict[str, int] = {}
+
+    def close(self) -> None:
+        """Leave the link."""
+        self.transport.close()
+
+    def __enter__(self) -> Host:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ---- who is there -----------------------------------------------------------------------
+    def alive(self) -> list[int]:
+        """The machines whose satellites are up now."""
+        keys = self.transport.alive(f"{self.sf.prefix}/alive/*", timeout=1.0)
+        return sorted(int(k.rsplit("/", 1)[-1]) for k in keys if k.rsplit("/", 1)[-1].isdigit())
+
+    def wait_for(self, machines: list[int], timeout: float = 20.0) -> list[int]:
+        """Wait until every machine in ``machines`` is up; returns those that are. Raises
+        LinkError naming the missing ones after ``timeout`` seconds."""
+        deadline = time.monotonic() + timeout
+        up: list[int] = []
+        while time.monotonic() < deadline:
+            up = self.alive()
+            if set(machines) <= set(up):
+                return up
+        missing = sorted(set(machines) - set(up))
+        raise LinkError(f"satellite(s) {missing} of {self.sf.name} not up after {timeout} s")
+
+    # ---- requests ---------------------------------------------------------------------------
+    def _ask(self, machine: int, req: dict[str, Any]) -> dict[str, Any]:
+        raw = self.transport.request(f"{self.sf.prefix}/m/{machine}/ctl", json.dumps(req).encode(),
+                                     timeout=self.timeout)
+        reply: dict[str, Any] = json.loads(raw)
+        if not reply.get("ok"):
+            kind = reply.get("type", "")
+            err = str(reply.get("error", "refused"))
+            if kind == "CommandSyntaxError":
+                raise CommandSyntaxError(err)
+            if kind == "LinkError":
+                raise LinkError(f"machine {machine}: {err}")
+            raise InstallError(f"machine {machine}: {err}")
+        return reply
+
+    def _up(self) -> list[int]:
+        """The machines up. A new session first waits (at most ``timeout``) to reach any, and
+        up to ``settle`` seconds more to reach every satellite of the system file."""
+        start = time.monotonic()
+        up = self.alive()
+        want = set(self.sf.satellites)
+        while time.monotonic() - start < self.timeout and (
+                not up or (not self._settled and set(up) != want
+                           and time.monotonic() - start < self.settle)):
+            up = self.alive()
+        self._settled = True
+        if not up:
+            raise LinkError(f"no satellite of {self.sf.name} is reachable (not started, or this "
+                            "host is not authenticated)")
+        return up
+
+    def map_doc(self, machine: int | None = None) -> dict[str, Any]:
+        """The system map. With ``machine`` as that satellite sees it; by default merged from
+        every satellite up: each task and device as its own machine reports it, each link's
+        ``sent`` from its source's machine and ``delivered``/``overwritten``/``status`` from its
+        destination's (a command link's status from its caller's mirror)."""
+        up = self._up()
+        views = {m: self._ask(m, {"op": "map"})["map"]
+                 for m in ([machine] if machine is not None else up)}
+        doc: dict[str, Any] = dict(views[min(views)])
+        where = {t["name"]: t["machine"] for t in doc["tasks"]}
+        where.update({d["name"]: d["machine"] for d in doc["devices"]})
+        for t in doc["tasks"]:  # terminals and files belong to the machine of their task
+            for name in t["inputs"]:
+                where.setdefault(name, t["machine"])
+        self._where = where
+        if machine is None:
+            def own(kind: str, item: dict[str, Any]) -> dict[str, Any]:
+                view = views.get(where.get(item["name"], -1))
+                if view is None:
+                    return item
+                return next((x for x in view[kind] if x["name"] == item["name"]), item)
+
+            doc["tasks"] = [own("tasks", t) for t in doc["tasks"]]
+            doc["devices"] = [own("devices", d) for d in doc["devices"]]
+            links = []
+            for i, lk in enumerate(doc["links"]):
+                merged = dict(lk)
+                src_view = views.get(where.get(lk["src"], -1))
+                dst_view = views.get(where.get(lk["dst"], -1))
+                if src_view is not None:
+                    merged["sent"] = src_view["links"][i]["sent"]
+                    if lk["type"] == "command":
+                        merged["status"] = src_view["links"][i]["status"]
+                if dst_view is not None:
+                    for key in ("delivered", "overwritten"):
+                        merged[key] = dst_view["links"][i][key]
+                    if lk["type"] == "sensory":
+                        merged["status"] = dst_view["links"][i]["status"]
+                links.append(merged)
+            doc["links"] = links
+        doc["alive"] = up
+        return doc
+
+    def execute(self, line: str) -> str:
+        """Carry out one host command line on the system; returns the answer. Raises
+        CommandSyntaxError, InstallError (nothing changed anywhere), LinkError."""
+        req = cmdline.parse(line)
+        if req is None:
+            return ""
+        if isinstance(req, cmdline.ShowMap):
+            return render_text(self.map_doc())
+        up = self._up()
+        if isinstance(req, cmdline.Install | cmdline.SetPri | cmdline.Boot):
+            seq = len(self._ask(up[0], {"op": "log"})["log"])
+            target = getattr(req, "machine", None)
+            order = sorted(up, key=lambda m: m != target)
+            for m in order:
+                self._ask(m, {"op": "prepare", "line": line, "seq": seq})
+            answers = [self._ask(m, {"op": "commit", "line": line, "seq": seq})["answer"]
+                       for m in order]
+            return str(answers[0])
+        name = (req.task if isinstance(req, cmdline.Invoke | cmdline.TaskOp)
+                else req.device if isinstance(req, cmdline.Inject) else "")
+        if name not in self._where:
+            self.map_doc()
+        machine = self._where.get(name)
+        if machine is None:
+            raise InstallError(f"no task or device named {name!r} in {self.sf.name}")
+        if machine not in up:
+            raise LinkError(f"{name} runs on machine {machine}, which is not up")
+        return str(self._ask(machine, {"op": "exec", "line": line})["answer"])

@@ -1,0 +1,211 @@
+"""bench_link - figures for the chcos inter-satellite link (Zenoh on loopback, two processes).
+
+Prints:
+
+* round-trip latency p50/p90/p99/max of a ping published by this process, echoed by a child
+  process and received back, at ``--rate`` messages/s for ``--seconds`` (target: p99 < 1 ms);
+* raw one-way throughput (messages/s, MB/s) of ``--count`` messages sent as fast as the link
+  takes them (congestion control BLOCK, so nothing is dropped) for two payload sizes;
+* how long after ``kill -9`` of the child its liveliness token is seen gone.
+
+Usage: ``python tools/bench_link.py [--rate 5000] [--seconds 5] [--count 200000]``. Only
+127.0.0.1 is used, on free ports.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import queue
+import socket
+import struct
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+from chcos.link import LinkConfig, MessageKind, Transport
+
+REPO = Path(__file__).resolve().parent.parent
+PING = "bench/ping"
+PONG = "bench/pong"
+BULK = "bench/bulk"
+COUNT = "bench/count"
+ALIVE = "bench/alive/echo"
+STAMP = struct.Struct(">QQ")  # sequence number, send time (perf_counter_ns of the sender)
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def echo_main(listen: int, connect: int) -> int:
+    """The child: echo pings back as pongs, count bulk messages, report counts on request."""
+    with Transport(LinkConfig(listen, (connect,))) as link:
+        received = [0]
+        lock = threading.Lock()
+
+        def on_ping(_key: str, payload: bytes) -> None:
+            link.publish(PONG, payload, priority=95, kind=MessageKind.REPLY)
+
+        def on_bulk(_key: str, _payload: bytes) -> None:
+            with lock:
+                received[0] += 1
+
+        def count(_payload: bytes) -> bytes:
+            with lock:
+                n, received[0] = received[0], 0
+            return str(n).encode()
+
+        link.subscribe(PING, on_ping)
+        link.subscribe(BULK, on_bulk)
+        link.serve(COUNT, count)
+        link.announce(ALIVE)
+        sys.stdin.read()  # until the parent closes our stdin (or kills us)
+    return 0
+
+
+def _percentile(sorted_values: list[float], p: float) -> float:
+    index = min(len(sorted_values) - 1, max(0, round(p / 100 * (len(sorted_values) - 1))))
+    return sorted_values[index]
+
+
+def latency(link: Transport, rate: int, seconds: float) -> None:
+    """Ping at ``rate``/s for ``seconds``; print round-trip percentiles."""
+    rtts: list[float] = []
+    done = threading.Event()
+    total = int(rate * seconds)
+
+    def on_pong(_key: str, payload: bytes) -> None:
+        now = time.perf_counter_ns()
+        seq, sent = STAMP.unpack(payload)
+        rtts.append((now - sent) / 1000.0)
+        if seq == total - 1:
+            done.set()
+
+    sub = link.subscribe(PONG, on_pong)
+    # warm up: the first messages pay for route and publisher set-up
+    for i in range(200):
+        link.publish(
+            PING,
+            STAMP.pack(10**9 + i, time.perf_counter_ns()),
+            priority=95,
+            kind=MessageKind.COMMAND,
+        )
+    time.sleep(0.5)
+    rtts.clear()
+    period = 1.0 / rate
+    start = time.perf_counter()
+    late = 0
+    for seq in range(total):
+        due = start + seq * period
+        now = time.perf_counter()
+        if due > now:  # sleep, never spin: a spinning thread holds the GIL from the callbacks
+            time.sleep(due - now)
+            now = time.perf_counter()
+        if now - due > period:
+            late += 1
+        link.publish(
+            PING, STAMP.pack(seq, time.perf_counter_ns()), priority=95, kind=MessageKind.COMMAND
+        )
+    sent_for = time.perf_counter() - start
+    done.wait(5.0)
+    sub.close()
+    got = sorted(rtts)
+    if not got:
+        print("latency: no pong received")
+        return
+    print(
+        f"round trip at {rate} msg/s for {seconds:g} s ({total} pings, sent in {sent_for:.2f} s, "
+        f"{late} sent late, {total - len(got)} lost):"
+    )
+    print(
+        f"  p50 {_percentile(got, 50):.1f} us   p90 {_percentile(got, 90):.1f} us   "
+        f"p99 {_percentile(got, 99):.1f} us   p99.9 {_percentile(got, 99.9):.1f} us   "
+        f"max {got[-1]:.1f} us   target p99 < 1000 us: "
+        f"{'met' if _percentile(got, 99) < 1000 else 'NOT met'}"
+    )
+
+
+def throughput(link: Transport, count: int, size: int) -> None:
+    """Send ``count`` messages of ``size`` bytes as fast as possible; print the rates."""
+    payload = bytes(size)
+    link.request(COUNT, timeout=5.0)  # reset the child's counter
+    start = time.perf_counter()
+    for _ in range(count):
+        link.publish(BULK, payload, priority=30, kind=MessageKind.COMMAND)
+    sent = time.perf_counter() - start
+    # the count request travels behind the bulk data on the same link, in order, but at a
+    # higher priority: poll until everything arrived
+    total = 0
+    deadline = time.monotonic() + 30
+    while total < count and time.monotonic() < deadline:
+        total += int(link.request(COUNT, timeout=5.0, priority=0))
+    elapsed = time.perf_counter() - start
+    print(
+        f"throughput {size:>5} B: {count} sent in {sent:.2f} s, {total} received in "
+        f"{elapsed:.2f} s: {total / elapsed:,.0f} msg/s, {total * size / elapsed / 1e6:.1f} MB/s"
+    )
+
+
+def kill_detection(link: Transport, child: subprocess.Popen[str]) -> None:
+    """Kill -9 the child and print how long its token took to vanish."""
+    gone = threading.Event()
+    link.watch(ALIVE, lambda _k: None, lambda _k: gone.set())
+    start = time.perf_counter()
+    child.kill()
+    seen = gone.wait(10.0)
+    elapsed = (time.perf_counter() - start) * 1000
+    child.wait(10)
+    print(
+        f"kill -9 of the echo process seen as a leave after {elapsed:.1f} ms"
+        if seen
+        else "kill -9: leave NOT seen within 10 s"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark (or, with ``--echo``, be its child)."""
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0] if __doc__ else None)
+    p.add_argument("--rate", type=int, default=5000)
+    p.add_argument("--seconds", type=float, default=5.0)
+    p.add_argument("--count", type=int, default=200_000)
+    p.add_argument("--echo", nargs=2, type=int, metavar=("LISTEN", "CONNECT"), help="internal")
+    a = p.parse_args(argv)
+    if a.echo is not None:
+        return echo_main(*a.echo)
+    me, child_port = _free_port(), _free_port()
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")])
+    with Transport(LinkConfig(me, (child_port,))) as link:
+        joined: queue.Queue[str] = queue.Queue()
+        watcher = link.watch(ALIVE, joined.put, lambda _k: None)
+        child = subprocess.Popen(
+            [sys.executable, __file__, "--echo", str(child_port), str(me)],
+            env=env,
+            stdin=subprocess.PIPE,
+            text=True,
+        )
+        try:
+            joined.get(timeout=10)
+            watcher.close()
+            load = ", ".join(f"{x:.2f}" for x in os.getloadavg())
+            print(
+                f"python {sys.version.split()[0]}, {os.cpu_count()} CPUs, load {load}, loopback TCP"
+            )
+            latency(link, a.rate, a.seconds)
+            for size in (64, 1024):
+                throughput(link, a.count, size)
+            kill_detection(link, child)
+        finally:
+            if child.poll() is None:
+                child.kill()
+                child.wait(10)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
