@@ -17,7 +17,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 
 from chcos.errors import ChcosError
@@ -42,24 +42,32 @@ def _shell(args: argparse.Namespace) -> int:
                             if args.script else sys.stdin)
     if not args.virtual:
         system.start()
-    status = 0
+    def execute(line: str) -> str:
+        if line.strip().startswith("run ") and args.virtual:
+            system.run_for(float(line.split()[1]))
+            return ""
+        return system.execute(line)
+
     try:
-        for line in lines:
-            if line.strip() in ("quit", "exit"):
-                break
-            if line.strip().startswith("run ") and args.virtual:
-                system.run_for(float(line.split()[1]))
-                continue
-            try:
-                answer = system.execute(line)
-            except ChcosError as exc:
-                print(f"error: {exc}", file=sys.stderr)
-                status = 1
-                continue
-            if answer:
-                print(answer, flush=True)
+        return _console(lines, execute)
     finally:
         system.shutdown()
+
+
+def _console(lines: Iterable[str], execute: Callable[[str], str]) -> int:
+    """Execute host command lines until ``quit``; errors are printed and make the status 1."""
+    status = 0
+    for line in lines:
+        if line.strip() in ("quit", "exit"):
+            break
+        try:
+            answer = execute(line)
+        except ChcosError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            status = 1
+            continue
+        if answer:
+            print(answer, flush=True)
     return status
 
 
@@ -89,7 +97,6 @@ def _host(args: argparse.Namespace) -> int:
     from chcos.host import Host
 
     sf = sysfile.load(args.system)
-    status = 0
     with Host(sf) as host:
         if args.wait:
             host.wait_for(sorted(sf.satellites), timeout=args.wait)
@@ -100,16 +107,7 @@ def _host(args: argparse.Namespace) -> int:
             lines = Path(args.script).read_text(encoding="utf-8").splitlines()
         else:
             lines = sys.stdin
-        for line in lines:
-            try:
-                answer = host.execute(line)
-            except ChcosError as exc:
-                print(f"error: {exc}", file=sys.stderr)
-                status = 1
-                continue
-            if answer:
-                print(answer, flush=True)
-    return status
+        return _console(lines, host.execute)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

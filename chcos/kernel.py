@@ -225,7 +225,8 @@ class Kernel:
                 continue
             if tm.period is not None:
                 tm.count += 1
-                tm.deadline = tm.base + tm.count * tm.period  # no accumulated rounding
+                # no accumulated rounding; whole nanoseconds so k * period lands on k * period
+                tm.deadline = round(tm.base + tm.count * tm.period, 9)
                 self._seq += 1
                 heappush(timers, (tm.deadline, self._seq, tm))
             try:

@@ -44,6 +44,7 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 from chcos.devspec import BusSpec, DeviceSpec
 from chcos.errors import BusError
 from drivers.base import Driver, DriverHost
+from drivers.health import Health
 
 BUS_OPTIONS = ("interface", "channel", "bitrate", "nodes", "sync_period", "poll_period",
                "sdo_timeout")
@@ -88,43 +89,6 @@ def load_od(bus: BusSpec, node_id: int, eds: str) -> Any:
         return canopen.import_od(str(path), node_id)
     except Exception as exc:  # canopen raises assorted types for a malformed EDS
         raise ValueError(f"canopen cannot read EDS {path}: {exc}") from exc
-
-
-class Health:
-    """Per-device failure causes; reports fail on the first cause and recover when none is left.
-    Thread-safe."""
-
-    def __init__(self, host: DriverHost) -> None:
-        self._host = host
-        self._lock = threading.Lock()
-        self._causes: dict[str, dict[str, str]] = {}
-
-    def fail(self, device: str, cause: str, reason: str) -> None:
-        """Add ``cause`` (a key such as ``"heartbeat"``) to ``device``; ``host.fail`` if new."""
-        with self._lock:
-            causes = self._causes.setdefault(device, {})
-            report = cause not in causes
-            causes[cause] = reason
-        if report:
-            self._host.fail(device, reason)
-
-    def clear(self, device: str, cause: str) -> None:
-        """Remove ``cause`` from ``device``; ``host.recover`` when it was the last one."""
-        if not self._causes.get(device):       # the common case, a healthy device: no lock
-            return
-        with self._lock:
-            causes = self._causes.get(device)
-            if not causes or cause not in causes:
-                return
-            del causes[cause]
-            recovered = not causes
-        if recovered:
-            self._host.recover(device)
-
-    def failed(self, device: str) -> bool:
-        """True while ``device`` has any failure cause."""
-        with self._lock:
-            return bool(self._causes.get(device))
 
 
 @dataclass

@@ -47,6 +47,7 @@ from pymodbus.framer import FramerType
 from chcos.devspec import BusSpec, DeviceSpec
 from chcos.errors import BusError
 from drivers.base import Driver, DriverHost
+from drivers.health import Health
 
 DT = ModbusClientMixin.DATATYPE
 REGISTER_TYPES: dict[str, Any] = {"int16": DT.INT16, "uint16": DT.UINT16, "int32": DT.INT32,
@@ -72,38 +73,6 @@ def _is_number(v: object) -> TypeGuard[int | float]:
 
 def _is_int(v: object) -> TypeGuard[int]:
     return isinstance(v, int) and not isinstance(v, bool)
-
-
-class Health:
-    """Per-device failure causes; reports fail on the first cause and recover when none is left.
-    Thread-safe."""
-
-    def __init__(self, host: DriverHost) -> None:
-        self._host = host
-        self._lock = threading.Lock()
-        self._causes: dict[str, dict[str, str]] = {}
-
-    def fail(self, device: str, cause: str, reason: str) -> None:
-        """Add ``cause`` (``"link"``, ``"exception"``...) to ``device``; ``host.fail`` if new."""
-        with self._lock:
-            causes = self._causes.setdefault(device, {})
-            report = cause not in causes
-            causes[cause] = reason
-        if report:
-            self._host.fail(device, reason)
-
-    def clear(self, device: str, cause: str) -> None:
-        """Remove ``cause`` from ``device``; ``host.recover`` when it was the last one."""
-        if not self._causes.get(device):       # the common case, a healthy device: no lock
-            return
-        with self._lock:
-            causes = self._causes.get(device)
-            if not causes or cause not in causes:
-                return
-            del causes[cause]
-            recovered = not causes
-        if recovered:
-            self._host.recover(device)
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,46 @@
+"""health - per-device failure causes shared by drivers: a device fails on its first cause and
+recovers when its last cause clears (heartbeat lost and SDO abort at once, link down...)."""
+
+from __future__ import annotations
+
+import threading
+
+from drivers.base import DriverHost
+
+
+class Health:
+    """Per-device failure causes; reports fail on the first cause and recover when none is left.
+    Thread-safe."""
+
+    def __init__(self, host: DriverHost) -> None:
+        self._host = host
+        self._lock = threading.Lock()
+        self._causes: dict[str, dict[str, str]] = {}
+
+    def fail(self, device: str, cause: str, reason: str) -> None:
+        """Add ``cause`` (a key such as ``"heartbeat"``, ``"link"``) to ``device``;
+        ``host.fail`` if it is the first."""
+        with self._lock:
+            causes = self._causes.setdefault(device, {})
+            report = cause not in causes
+            causes[cause] = reason
+        if report:
+            self._host.fail(device, reason)
+
+    def clear(self, device: str, cause: str) -> None:
+        """Remove ``cause`` from ``device``; ``host.recover`` when it was the last one."""
+        if not self._causes.get(device):       # the common case, a healthy device: no lock
+            return
+        with self._lock:
+            causes = self._causes.get(device)
+            if not causes or cause not in causes:
+                return
+            del causes[cause]
+            recovered = not causes
+        if recovered:
+            self._host.recover(device)
+
+    def failed(self, device: str) -> bool:
+        """True while ``device`` has any failure cause."""
+        with self._lock:
+            return bool(self._causes.get(device))
