@@ -1,7 +1,7 @@
 """cli - the ``chcos`` command.
 
-``chcos run``     the main job (the figure 6.5 example on virtual time until the welding cell
-                  lands; ``--real-time`` for wall-clock time)
+``chcos run``     the main job: the arc-welding cell end to end (``--example fig65``: the thesis'
+                  figure 6.5 system)
 ``chcos shell``   a host console: an in-process system that reads host commands (install,
                   setpri, invoke, suspend, resume, close, inject, map) from a script or stdin
 ``chcos check``   validate device-map files without touching a bus
@@ -23,7 +23,13 @@ from pathlib import Path
 from chcos.errors import ChcosError
 
 
-def _run(args: argparse.Namespace) -> int:
+def _run_example(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(prog="chcos run --example fig65",
+                                 description="the thesis' figure 6.5 example system")
+    ap.add_argument("--duration", type=float, default=20.0, help="seconds of clock time")
+    ap.add_argument("--real-time", action="store_true", help="wall-clock time, not virtual")
+    ap.add_argument("--workdir", help="where the map, log and test file go (default out/fig65)")
+    args = ap.parse_args(argv)
     from chcos import fig65run
 
     fig65run.run(args.duration, real_time=args.real_time,
@@ -121,6 +127,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         from chcos.sim.cli import main as sim_main
 
         return sim_main(argv[1:])
+    if argv[:1] == ["run"]:
+        rest = argv[1:]
+        if rest[:2] == ["--example", "fig65"] or rest[:1] == ["--example=fig65"]:
+            return _run_example(rest[2:] if rest[:1] == ["--example"] else rest[1:])
+        from chcos.weldrun import main as weld_main
+
+        return weld_main(rest)
     if argv[:1] == ["map"]:
         from chcos.viewer.cli import map_main
 
@@ -133,11 +146,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
     sub = parser.add_subparsers(dest="cmd", required=True)
-    p = sub.add_parser("run", help="run the main job")
-    p.add_argument("--duration", type=float, default=20.0, help="seconds of clock time")
-    p.add_argument("--real-time", action="store_true", help="wall-clock time, not virtual")
-    p.add_argument("--workdir", help="where the map, log and test file go (default out/fig65)")
-    p.set_defaults(func=_run)
+    sub.add_parser("run", help="the main job: the arc-welding cell (chcos run --help); "
+                               "--example fig65 runs the thesis' figure 6.5 system")
     p = sub.add_parser("shell", help="host console for an in-process system")
     p.add_argument("devmap", nargs="*", help="device-map files")
     p.add_argument("--script", help="read commands from this file instead of stdin")

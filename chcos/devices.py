@@ -316,7 +316,8 @@ class Devtab:
         for e in self._entries.values():
             if not e.is_sensor and self.msgmgr.is_local(e.spec.machine) and self._safe(e.name):
                 n += 1
-        log.warning("estop (%s): %d actuator(s) at safe values", reason, n)
+        log.log(logging.INFO if reason == "shutdown" else logging.WARNING,
+                "estop (%s): %d actuator(s) at safe values", reason, n)
         return n
 
     def _safe(self, device: str) -> bool:

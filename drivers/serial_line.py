@@ -21,7 +21,9 @@ Bus options:
   ``"xor8"``: one byte after the payload, over the payload)
 
 Device addresses: a sensor names its value, ``{ group = "t1" }`` (line) or ``{ field = "t1" }``
-(binary). An actuator gives how a command is written: line, ``{ format = "SET M1 {value:.2f}" }``
+(binary); a line group is a number unless the address says ``type = "text"`` (then the matched
+text is delivered as it is, e.g. a linear sensor's pixel string). An actuator gives how a
+command is written: line, ``{ format = "SET M1 {value:.2f}" }``
 (``str.format`` with ``value``; ``eol`` is appended); binary, ``{ struct = "<h", prefix = "10" }``
 (the frame sent is sync + payload + checksum, payload = prefix bytes + the value packed with
 ``struct``; integer codes get the value rounded).
@@ -39,7 +41,7 @@ import re
 import struct
 import threading
 from collections import Counter, deque
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 import serial
@@ -78,8 +80,9 @@ class LineFramer:
     """Bytes in, decoded lines out: each complete line matched against ``pattern``."""
 
     def __init__(self, pattern: str, eol: str = "\n", encoding: str = "ascii",
-                 max_line: int = 1024) -> None:
+                 max_line: int = 1024, text_groups: Iterable[str] = ()) -> None:
         self.pattern = re.compile(pattern)
+        self.text_groups = frozenset(text_groups)
         self.eol = eol.encode(encoding)
         self.encoding = encoding
         self.max_line = max_line
@@ -112,6 +115,9 @@ class LineFramer:
         values: dict[str, Any] = {}
         for name, val in m.groupdict().items():
             if val is None:
+                continue
+            if name in self.text_groups:
+                values[name] = val
                 continue
             try:
                 values[name] = float(val)
@@ -278,8 +284,10 @@ class SerialDriver(Driver):
         o = self.bus.options
         if self._binary:
             return BinaryFramer(self._sync, str(o["struct"]), list(o["fields"]), self._check)
+        text = (str(d.address["group"]) for d in self.devices.values()
+                if d.direction == "sensor" and d.address.get("type") == "text")
         return LineFramer(str(o["pattern"]), str(o.get("eol", "\n")),
-                          str(o.get("encoding", "ascii")), int(o.get("max_line", 1024)))
+                          str(o.get("encoding", "ascii")), int(o.get("max_line", 1024)), text)
 
     @classmethod
     def check_bus(cls, bus: BusSpec) -> list[str]:
@@ -314,8 +322,12 @@ class SerialDriver(Driver):
         proto = o.get("protocol")
         if device.direction == "sensor":
             want = "group" if proto == "line" else "field"
-            errs = [f"{key}.{k}: unknown key; a {proto} sensor takes only {want}"
-                    for k in a if k != want]
+            allowed = (want, "type") if proto == "line" else (want,)
+            errs = [f"{key}.{k}: unknown key; a {proto} sensor takes only "
+                    f"{' and '.join(allowed)}" for k in a if k not in allowed]
+            if a.get("type", "number") not in ("number", "text"):
+                errs.append(f"{key}.type: expected \"number\" (default) or \"text\", got "
+                            f"{a.get('type')!r}")
             name = a.get(want)
             try:
                 names = (list(re.compile(str(o.get("pattern"))).groupindex) if proto == "line"

@@ -49,6 +49,8 @@ from chcos.weld.seam import LinearView, Seam, SeamPoint
 
 CONTACT_MM = 0.05
 """Stand-off (mm) at or below which the tip touches the plate."""
+#: Time constant (s) over which the weld pool averages the travel speed (see WeldCell.step).
+POOL_SPEED_TAU = 0.1
 
 
 class SimulationError(ChcosError):
@@ -247,6 +249,7 @@ class WeldCell:
         self._pose = self.arm.tool_pose(self.joints)
         self._tip = self.seam.nearest(self._pose.position[0], self._pose.position[1])
         self._travel_speed = 0.0
+        self._pool_speed = 0.0
         self._bins = [0] * math.ceil(self.seam.length)
         self._weld_s: float | None = None
         self._pending: list[Fault] = []
@@ -478,7 +481,7 @@ class WeldCell:
             cfg.temp_gain
             * (self.voltage_setpoint / cfg.nominal_voltage)
             * math.exp(-(self.standoff - cfg.nominal_standoff) / cfg.standoff_scale)
-            * math.exp(-(self._travel_speed - cfg.nominal_travel_speed) / cfg.speed_scale)
+            * math.exp(-(self._pool_speed - cfg.nominal_travel_speed) / cfg.speed_scale)
         )
         return min(cfg.temp_max, cfg.ambient + heat)
 
@@ -488,6 +491,10 @@ class WeldCell:
             raise SimulationError(f"step dt={dt!r} s, expected 0 < dt <= 1 s")
         cfg = self.config
         self._move_arm(dt)
+        # the weld pool feels the travel speed averaged over a fraction of a second, not the
+        # servo's millisecond steps: low-pass it, so a stepwise trajectory heats like a smooth one
+        self._pool_speed += (self._travel_speed - self._pool_speed) * (
+            1.0 - math.exp(-dt / POOL_SPEED_TAU))
         if self.voltage_setpoint > 0.0 and self.touching:
             self.tip_stuck = True  # power switched on while touching
         # gas

@@ -1,0 +1,32 @@
+"""B4 - level 2: move 5 mm in direction d at speed s (B4.c).
+
+Reads the present T5 from A4, translates it by ``dist`` (default 5) mm along ``d`` (a 3-vector,
+normalised) and moves there (A4) at ``speed`` mm/s with tool yaw ``yaw`` (default: unchanged).
+``{"op": "hold"}`` stops the motion where it is. Completes with A4's answer; a newer command
+replaces the move in progress (segments join smoothly). Raises MotionFailed if A4 fails.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from chcos.messages import LinkStatus
+from chcos.usrmgr import TaskContext
+from chcos.weld.tasks.common import MotionFailed, add, as_dict, latest, unit
+
+
+async def main(ctx: TaskContext, command: Any) -> Any:
+    """One 5 mm move (or a hold)."""
+    cmd = as_dict(command)
+    if cmd.get("op") == "hold":
+        done = await ctx.call("A4", {"op": "hold"})
+    else:
+        here = await latest(ctx, "A4")
+        d = unit([float(c) for c in cmd.get("d", (0.0, 0.0, 0.0))])
+        p = add(here["pos"], d, float(cmd.get("dist", 5.0)))
+        move = {"op": "move", "p": p, "speed": float(cmd.get("speed", 5.0)),
+                "yaw": float(cmd.get("yaw", here["yaw"]))}
+        done = await ctx.call("A4", move)
+    if done.status is LinkStatus.ABNORMAL:
+        raise MotionFailed(f"B4: A4 failed: {done.error}")
+    return {"status": done.status.value, "result": done.result}

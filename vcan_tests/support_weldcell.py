@@ -1,0 +1,93 @@
+"""support_weldcell - run the welding job for the weldcell scenario tests and keep what it did.
+
+:func:`run_job` builds the cell (:func:`chcos.weldrun.open_cell`) on a binding, starts the job,
+runs it on virtual time until it has an outcome (or a limit), and returns a :class:`JobRun`
+holding everything the tests check, captured *before* the shutdown writes its safe values.
+:func:`faulty_b4` is the test-only task that makes a task raise mid-weld.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import pytest
+
+from chcos.usrmgr import TaskContext
+from chcos.weld.tasks import B4
+from chcos.weldrun import Cell, open_cell
+
+M = "vcan_tests.support_weldcell"
+FAIL_ON_WELD_MOVE = 150
+"""faulty_b4 raises on this activation at welding speed (10 a second: about 15 s into the weld)."""
+
+
+async def faulty_b4(ctx: TaskContext, command: Any) -> Any:
+    """B4, except that its ``FAIL_ON_WELD_MOVE``-th move at welding speed (< 10 mm/s) raises."""
+    if isinstance(command, dict) and "d" in command and float(command.get("speed", 0)) < 10:
+        n = ctx.world.command.get("weld_moves", 0) + 1
+        ctx.world.command["weld_moves"] = n
+        if n == FAIL_ON_WELD_MOVE:
+            raise RuntimeError(f"injected fault in B4 on weld move {n}")
+    return await B4.main(ctx, command)
+
+
+@dataclass
+class JobRun:
+    """What a job did: E2's outcome, the summary figures, the actuator outputs and the cell
+    model's state at the end, snapshots of world models, task statistics."""
+
+    outcome: dict[str, Any] | None
+    summary: dict[str, Any]
+    outputs: dict[str, Any]
+    model: dict[str, Any]
+    worlds: dict[str, dict[str, dict[str, Any]]]
+    tasks: dict[str, dict[str, Any]]
+    devices: dict[str, str]
+    irq_errors: list[str]
+    events: list[tuple[str, str]]
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def buses_or_skip(binding: str, *, always: bool = False) -> None:
+    """Skip the real-bus variant with the reason when it cannot run here."""
+    if binding != "buses":
+        return
+    try:
+        import chcos.sim.weld  # noqa: F401
+    except ImportError as exc:
+        pytest.skip(f"the real-bus simulator chcos.sim.weld does not import yet: {exc}")
+    if not always and os.environ.get("CHCOS_WELD_BUSES") != "1":
+        pytest.skip("full welding jobs on the real buses take about a minute each; the good gap "
+                    "always runs on them, the other scenarios with CHCOS_WELD_BUSES=1")
+
+
+def run_job(binding: str = "direct", scenario: str = "", *, limit: float = 150.0,
+            replace: dict[str, str] | None = None, command: dict[str, Any] | None = None,
+            after: Callable[[Cell], dict[str, Any]] | None = None,
+            tmp: Any = None) -> JobRun:
+    """Run the job (see the module doc). ``after(cell)`` runs once the job is over, before the
+    capture; what it returns lands in :attr:`JobRun.extra`."""
+    with open_cell(binding, scenario=scenario, replace=replace, workdir=tmp) as cell:
+        cell.start_job(command)
+        cell.run(limit)
+        extra = after(cell) if after is not None else {}
+        m = cell.model
+        s = cell.system
+        run = JobRun(
+            outcome=cell.outcome(), summary=cell.summary(), outputs=cell.outputs(),
+            model={"volts": m.voltage_setpoint, "gas": m.gas_valve, "wire": m.wire_setpoint,
+                   "temp": m.temperature, "s": m.seam_point.s, "stuck": m.tip_stuck,
+                   "events": [(e.t, e.fault.kind, e.action) for e in m.events],
+                   "enabled": getattr(next(iter(s.devtab.drivers), None), "enabled", None),
+                   "pos": m.pose.position},
+            worlds={t.name: cell.world(t.name) for t in s.tsktab},
+            tasks={t.name: {"level": t.level, "role": t.role.value, "abnormal": t.abnormal,
+                            "last_error": t.last_error, "frozen": t.frozen,
+                            "activations": t.activations} for t in s.tsktab},
+            devices={d.name: d.status.value for d in s.devtab},
+            irq_errors=list(s.kernel.irq_errors), events=list(cell.counters.events),
+            extra=extra)
+    return run

@@ -1,0 +1,217 @@
+"""The welding cell's parts: the direct binding, the linear-image analysis, the tracker, the
+exception task's patterns and context, and the hierarchy the install script builds."""
+
+from __future__ import annotations
+
+import io
+import math
+from pathlib import Path
+
+import pytest
+
+from chcos.clock import VirtualClock
+from chcos.devspec import BusSpec, DeviceSpec
+from chcos.messages import LinkType
+from chcos.system import System
+from chcos.weld import Seam
+from chcos.weld.tasks import B1, D3
+from chcos.weld.tasks.common import Tracker, analyse, offset_mm
+from chcos.weldrun import _direct_map, main, open_cell, run
+from drivers.weld_direct import WeldDirectDriver
+
+
+def booted(tmp_path: Path, scenario: str = "") -> System:
+    s = System(_direct_map(scenario, 0), clock=VirtualClock(), base_dir=tmp_path)
+    s.execute("install -m0 sysfile")
+    return s
+
+
+def driver(s: System) -> WeldDirectDriver:
+    d = s.devtab.drivers[0]
+    assert isinstance(d, WeldDirectDriver)
+    return d
+
+
+# ---- the direct binding ----------------------------------------------------------------------
+def test_direct_binding_delivers_at_the_bus_rates(tmp_path: Path) -> None:
+    with booted(tmp_path) as s:
+        s.run_for(1.0)
+        n = {d.name: d.readings for d in s.devtab if d.is_sensor}
+    assert n["theta1"] == n["theta5"] == 100
+    assert n["arc_temp"] == n["linear"] == n["range"] == n["intruder"] == 50
+    assert n["start_marker"] == n["end_marker"] == 20
+    assert n["gas_bottle"] == n["arc_volts"] == n["wire_speed"] == 20
+
+
+def test_direct_binding_honours_dropouts_and_servo_timeouts(tmp_path: Path) -> None:
+    scenario = "sensor-dropout(arc_temperature)@t=0.5s,servo-timeout(2;for=0.3s)@t=0.5s"
+    with booted(tmp_path, scenario) as s:
+        s.run_for(0.7)
+        assert s.devtab.get("arc_temp").status.value == "stale"
+        assert s.devtab.get("theta2").status.value == "failed"
+        assert "servo drive of joint 2" in s.devtab.get("theta2").reason
+        assert s.devtab.get("theta1").status.value == "OK"
+        temps = s.devtab.get("arc_temp").readings
+        s.run_for(0.5)
+        assert s.devtab.get("arc_temp").readings == temps  # silent for good
+        assert s.devtab.get("theta2").status.value == "OK"  # the servo came back
+
+
+def test_direct_binding_applies_actuators_and_holds_joints_when_disabled(tmp_path: Path) -> None:
+    with booted(tmp_path) as s:
+        cell = driver(s).cell
+        s.devtab.write("volts_set", 24.0)
+        s.devtab.write("gas_valve", 1.0)
+        s.devtab.write("wire_set", 80.0)
+        assert (cell.voltage_setpoint, cell.gas_valve, cell.wire_setpoint) == (24.0, True, 80.0)
+        s.devtab.write("drives_enable", 0.0)
+        before = list(cell.joints)
+        s.devtab.write("target1", before[0] + 0.3)
+        s.run_for(0.5)
+        assert cell.joints == pytest.approx(before)
+        s.devtab.write("drives_enable", 1.0)
+        s.devtab.write("target1", before[0] + 0.3)
+        s.run_for(0.5)
+        assert cell.joints[0] == pytest.approx(before[0] + 0.3)
+        driver(s).write("wire_set", 999.0)  # past the Devtab check: the model refuses
+        s.run_for(0.01)
+        assert s.devtab.bus_errors[("cell", "refused")] == 1
+        assert cell.wire_setpoint == 80.0
+
+
+def test_direct_binding_checks_its_options_and_addresses() -> None:
+    bus = BusSpec("cell", "weld-direct", {"scenario": "tip-stuck@x=1", "tick": 0.5, "speed": 1},
+                  key="bus[0]")
+    errs = WeldDirectDriver.check_bus(bus)
+    assert len(errs) == 3
+    assert any("bus[0].speed: unknown option" in e for e in errs)
+    assert any("bus[0].scenario:" in e and "trigger" in e for e in errs)
+    assert any("bus[0].tick:" in e for e in errs)
+    dev = DeviceSpec("nozzle", "sensor", 0, "cell", key="device[3]")
+    (err,) = WeldDirectDriver.check_device(bus, dev)
+    assert "device[3].address.signal: 'nozzle' is not a sensor of the welding cell" in err
+    ok = DeviceSpec("T", "sensor", 0, "cell", address={"signal": "arc_temp"})
+    assert WeldDirectDriver.check_device(bus, ok) == []
+
+
+# ---- the linear image and the tracker --------------------------------------------------------
+def view(seam: Seam, s: float, lateral: float = 0.0) -> str:
+    x, y = seam.centre(s)
+    h = seam.heading(s)
+    x, y = x - lateral * math.sin(h), y + lateral * math.cos(h)
+    v = seam.sense(x, y, 10.0, h + math.pi / 2)
+    return "".join("1" if p else "0" for p in v.pixels)
+
+
+def test_linear_images_of_the_seam_are_classified() -> None:
+    seam = Seam()
+    gap = analyse(view(seam, 40.0))
+    assert gap.pattern == "gap" and gap.centre is not None and abs(gap.centre) <= 0.5
+    assert gap.width is not None and 1.5 <= gap.width <= 2.5
+    shifted = analyse(view(seam, 40.0, lateral=1.5))  # sensor 1.5 mm left: gap 1.5 mm right
+    assert shifted.centre == pytest.approx(-1.5, abs=0.5)
+    start = analyse(view(seam, 0.5))
+    assert start.pattern == "start" and start.marker_centre == pytest.approx(0.0, abs=0.5)
+    end = analyse(view(seam, seam.length + 3.0, lateral=2.0))
+    assert end.pattern == "end" and end.marker_centre == pytest.approx(-2.0, abs=0.5)
+    assert analyse("0" * 64).pattern == "none"
+    assert offset_mm(63) == pytest.approx(15.75)
+
+
+def test_tracker_predicts_and_steers_towards_the_gap() -> None:
+    t = Tracker(heading=0.0, z_work=10.0)
+    for k in range(6):  # tip moving along +x, the gap 1 mm to its left (+y), sensor 5 mm ahead
+        t.sighting((float(k), 0.0, 10.0), 0.0, 1.0)
+    assert t.heading == pytest.approx(0.0, abs=1e-9)
+    nxt = t.predict(5.0)
+    assert nxt is not None and nxt == pytest.approx((15.0, 1.0))
+    d, yaw = t.steer((5.0, 0.0, 12.0))
+    assert d[1] > 0 and d[0] > 0.9 and d[2] < 0  # towards the gap, and down to 10 mm
+    assert yaw == pytest.approx(0.0)
+
+
+# ---- D3's patterns and B1's context ----------------------------------------------------------
+def test_exception_patterns() -> None:
+    c = D3.classify
+    assert c("A1", {"fail": "arc_temp", "reason": "stale"}, 400, 2600) == (
+        "sensor failure", "arc_temp (reported by A1): stale")
+    assert c("A1", {"temp": 1500.0}, 400, 2600) == ("heat?", "arc temperature 1500 degC")
+    assert c("A1", {"temp": 2700.0}, 400, 2600)[0] == "overheat"  # type: ignore[index]
+    assert c("A1", {"temp": 300.0}, 400, 2600) is None
+    assert c("B1", {"weld": "fail", "reason": "gas fail"}, 400, 2600) is None
+
+
+def test_heat_is_expected_while_welding_and_while_cooling() -> None:
+    wm = B1.WeldModel()
+    assert not wm.answer("heat_expected", 10.0)
+    wm.command["weld"] = "on"
+    assert wm.answer("welding") and wm.answer("heat_expected", 10.0)
+    wm.command.update(weld="off", off_at=10.0)
+    assert wm.answer("heat_expected", 10.0 + B1.COOLING_S - 1)
+    assert not wm.answer("heat_expected", 10.0 + B1.COOLING_S + 1)
+
+
+# ---- the hierarchy ---------------------------------------------------------------------------
+def test_install_script_builds_the_appendix_2_hierarchy(tmp_path: Path) -> None:
+    with open_cell(workdir=tmp_path) as cell:
+        s = cell.system
+        levels = {t.name: t.level for t in s.tsktab}
+        assert levels == {**{f"A{i}": 1 for i in range(1, 8)}, **{f"B{i}": 2 for i in range(1, 6)},
+                          "C1": 3, "C2": 3, "D1": 4, "D2": 4, "D3": 4, "E1": 5, "E2": 5}
+        roles = {t.name: t.role.value for t in s.tsktab if t.role.value != "task"}
+        assert roles == {"D3": "exception", "E1": "assassin"}
+        taps = {lk.src for lk in s.msgtab
+                if lk.dst == "D3" and lk.tap and lk.type is LinkType.SENSORY}
+        assert taps == {n for n, lv in levels.items() if lv < 4}
+        e1 = s.tsktab.get("E1")
+        assert set(e1.special_links) == {n for n, lv in levels.items() if lv < 5} - {"B2", "A6"}
+        assert s.msgtab.find("E1", "B2").priority == 99
+        assert s.msgtab.find("B2", "A4").priority == 90
+        assert s.msgtab.get("D3", "E1", LinkType.SENSORY) is not None
+        assert (tmp_path / "sysfile.map").is_file()
+
+
+def test_unexpected_heat_while_only_inspecting_is_an_alarm(tmp_path: Path) -> None:
+    with open_cell(workdir=tmp_path) as cell:
+        cell.start_job({"inspect_only": True})
+        cell.run(14.0)
+        assert cell.phase() == "inspect/track"
+        # someone switches the power source on behind the hierarchy's back
+        cell.system.invoke("A2", {"volts": 24.0}, priority=50)
+        cell.run(2.0)
+        alarms = cell.world("D3")["sensory"]["alarms"]
+        assert [a["alarm"] for a in alarms] == ["unexpected heat"]
+        outcome = cell.outcome()
+        assert outcome is not None and outcome["outcome"] == "aborted"
+        assert cell.outputs()["volts_set"] == 0.0 and cell.model.voltage_setpoint == 0.0
+
+
+def test_the_hierarchy_runs_on_the_real_buses_too(tmp_path: Path) -> None:
+    pytest.importorskip("chcos.sim.weld", reason="the real-bus simulator does not import yet")
+    with open_cell("buses", workdir=tmp_path) as cell:
+        cell.run(0.5, until_done=False)
+        s = cell.system
+        assert all(s.devtab.get(f"theta{j}").status.value == "OK" for j in range(1, 6))
+        pos = cell.world("A4")["sensory"]["pos"]  # T5 from the CANopen TPDOs, via A4
+        assert pos == pytest.approx(cell.model.pose.position, abs=0.5)
+        assert s.devtab.get("arc_temp").readings >= 20  # raw CAN, every 20 ms
+        assert s.devtab.get("gas_bottle").readings >= 5  # Modbus TCP
+
+
+def test_run_prints_progress_each_second_and_a_summary(tmp_path: Path) -> None:
+    out = io.StringIO()
+    summary = run(scenario="intruder(for=1s)@t=2.5s", duration=4.0, workdir=tmp_path, out=out)
+    text = out.getvalue()
+    progress = [ln for ln in text.splitlines() if ln.startswith("  t=")]
+    assert [ln.split()[0] for ln in progress] == ["t=", "t=", "t="]  # 1, 2, 3 s: then aborted
+    assert "inspect/search" in progress[0] and "messages/s" in progress[0]
+    assert "job outcome: aborted (intruder: light curtain broken)" in text
+    assert "assassin reaction (intruder interrupt -> all safe values): 0.00 ms" in text
+    assert summary["outcome"]["outcome"] == "aborted"
+    assert summary["latency_s"] == [0.0]
+    assert set(summary["steps_by_level"]) == {1, 2, 3, 4, 5}
+
+
+def test_main_reports_a_bad_scenario(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["--scenario", "meteor@t=1s"]) == 2
+    assert "unknown fault kind 'meteor'" in capsys.readouterr().err
