@@ -21,14 +21,20 @@ import time
 from typing import TYPE_CHECKING, Any
 
 from chcos.errors import LinkError, MessageError
-from chcos.link.codec import LinkMessage, MessageKind, decode
-from chcos.link.transport import Subscription, Transport
+from chcos.kernel import Timer
+from chcos.link.codec import LinkMessage, MessageKind, decode_batch, encode, encode_batch
+from chcos.link.transport import EXPRESS_FROM, Subscription, Transport
 from chcos.messages import TOP_PRIORITY, Link, LinkStatus
 
 if TYPE_CHECKING:
     from chcos.system import System
 
 log = logging.getLogger("chcos.comm")
+
+#: A batch goes out when it holds this many messages...
+BATCH_MAX = 64
+#: ...or this long (s) after its first message, if the kernel has not gone idle before.
+BATCH_DELAY = 0.0005
 
 
 class CommManager:
@@ -45,7 +51,15 @@ class CommManager:
         self.sent = 0
         self.errors: list[str] = []
         self.alive: set[int] = {machine}
+        # messages below EXPRESS_FROM wait in a batch per destination key and kind until the
+        # kernel goes idle, BATCH_MAX are waiting, or BATCH_DELAY has passed: one Zenoh put and
+        # one interrupt carry many messages when the satellite is busy
+        self._batches: dict[tuple[str, bool], list[bytes]] = {}
+        self._batch_prio: dict[tuple[str, bool], int] = {}
+        self._flush_timer: Timer | None = None
+        self.batches_sent = 0
         system.msgmgr.comm = self
+        system.kernel.add_idle_hook(self.flush)
 
     # ---- keys -------------------------------------------------------------------------------
     def key(self, machine: int) -> str:
@@ -78,11 +92,47 @@ class CommManager:
         msg = LinkMessage(kind, src, dst, lid, priority, next(self._seq), time.time_ns(), value)
         key = f"{self.prefix}/all/msg" if machine is None else self.key(machine)
         try:
-            self.transport.send(key, msg)
+            data = encode(msg)
+            self.sent += 1
+            if priority >= EXPRESS_FROM:  # urgent: out at once, on its own
+                self.transport.publish(key, data, priority=priority, kind=kind)
+                return
         except LinkError as exc:
             raise MessageError(f"cannot send {kind.name.lower()} {src}->{dst} to machine "
                                f"{machine}: {exc}") from exc
-        self.sent += 1
+        slot = (key, kind.droppable)
+        batch = self._batches.setdefault(slot, [])
+        batch.append(data)
+        self._batch_prio[slot] = max(priority, self._batch_prio.get(slot, 0))
+        if len(batch) >= BATCH_MAX:
+            self._flush_slot(slot)
+        elif self._flush_timer is None:
+            self._flush_timer = self.sys.kernel.call_later(BATCH_DELAY, self.flush)
+
+    def flush(self) -> None:
+        """Send every waiting batch (kernel thread; called when the kernel goes idle and at the
+        latest BATCH_DELAY after a message was queued)."""
+        if self._flush_timer is not None:
+            self._flush_timer.cancel()
+            self._flush_timer = None
+        for slot in list(self._batches):
+            self._flush_slot(slot)
+
+    def _flush_slot(self, slot: tuple[str, bool]) -> None:
+        batch = self._batches.pop(slot, None)
+        prio = self._batch_prio.pop(slot, 0)
+        if not batch:
+            return
+        key, droppable = slot
+        kind = MessageKind.SENSORY if droppable else MessageKind.COMMAND
+        try:
+            self.transport.publish(key, encode_batch(batch), priority=prio, kind=kind)
+        except LinkError as exc:
+            text = f"batch of {len(batch)} message(s) to {key} lost: {exc}"
+            log.error("%s", text)
+            self.errors.append(text)
+            return
+        self.batches_sent += 1
 
     def sensory(self, link: Link, value: Any) -> None:
         """A sensory message to a task on another satellite."""
@@ -134,8 +184,11 @@ class CommManager:
 
     # ---- incoming (Zenoh thread -> kernel thread) -------------------------------------------
     def _incoming(self, key: str, payload: bytes) -> None:
-        msg = decode(payload)
-        self.sys.kernel.interrupt(self._handle, msg)
+        self.sys.kernel.interrupt(self._handle_batch, decode_batch(payload))
+
+    def _handle_batch(self, msgs: list[LinkMessage]) -> None:
+        for msg in msgs:
+            self._handle(msg)
 
     def _link(self, msg: LinkMessage) -> Link:
         links = self.sys.msgtab.links

@@ -79,6 +79,7 @@ class Kernel:
         self._running = False
         self._thread: int | None = None
         self._settlers: list[Callable[[float], bool]] = []
+        self._idle_hooks: list[Callable[[], None]] = []
         self._steps = 0
         self._on_end: EndHandler | None = None
         self.irq_errors: list[str] = []
@@ -264,6 +265,11 @@ class Kernel:
         that everything already on a bus is delivered first."""
         self._settlers.append(settle)
 
+    def add_idle_hook(self, hook: Callable[[], None]) -> None:
+        """Call ``hook()`` on the kernel thread each time nothing is left to run, before the
+        kernel waits (the communications manager flushes its batches there)."""
+        self._idle_hooks.append(hook)
+
     def set_end_handler(self, handler: EndHandler) -> None:
         """Who is told when an activation ends: ``handler(task, how, value)`` with ``how`` one of
         ``"return"``, ``"preempted"``, ``"error"``. The message manager installs itself here."""
@@ -319,6 +325,11 @@ class Kernel:
 
     def _idle_wait(self, until: float | None) -> bool:
         """Nothing is ready: wait for the next event. False when :meth:`run` should return."""
+        if self._idle_hooks:
+            for hook in self._idle_hooks:
+                hook()
+            if self._ready or self._irq:
+                return True
         clock = self.clock
         while self._timers and self._timers[0][2].cancelled:
             heappop(self._timers)

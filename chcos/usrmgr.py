@@ -342,12 +342,16 @@ class TaskContext:
     def ask(self, peer: str, topic: str, *args: Any) -> Generator[Any, Any, Any]:
         """Ask task ``peer``'s world model about ``topic`` (a request on the link joining the
         two tasks, answered by the peer's model, never by reading its memory). Raises
-        MessageError if no link joins the tasks or the model has no answer."""
+        MessageError if no link joins the tasks, the peer runs on another satellite, or the
+        model has no answer."""
         me = self._t.name
         mt = self._mm.msgtab
         if not any(mt.get(a, b, ty) for a, b in ((me, peer), (peer, me)) for ty in LinkType):
             raise MessageError(f"task {me} has no link to {peer}: it may not query its world model")
         target = self._mm.tsktab.get(peer)
+        if not self._mm.is_local(target.machine):
+            raise MessageError(f"task {peer} runs on machine {target.machine}: world-model "
+                               "queries do not cross satellites yet")
         if target.world is None:
             raise MessageError(f"task {peer} has no world model")
         k = self._k

@@ -232,3 +232,32 @@ def _decode_name(field: str, raw: bytes) -> str:
         return raw.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise LinkError(f"link message {field}: expected a UTF-8 name, got {raw!r}") from exc
+
+
+def encode_batch(encoded: list[bytes]) -> bytes:
+    """Several encoded messages as one payload: they are simply concatenated (each header gives
+    its message's length)."""
+    return b"".join(encoded)
+
+
+def decode_batch(data: bytes | bytearray | memoryview) -> list[LinkMessage]:
+    """The messages of a payload made by :func:`encode_batch` (a single message is a batch of
+    one). Raises LinkError like :func:`decode`, naming the message's position in the batch."""
+    buf = bytes(data)
+    out: list[LinkMessage] = []
+    i = 0
+    while i < len(buf):
+        if len(buf) - i < HEADER_SIZE:
+            raise LinkError(f"link batch: message {len(out)} at byte {i}: {len(buf) - i} bytes, "
+                            f"at least a {HEADER_SIZE}-byte header expected")
+        src_len, dst_len, pay_len = _LENGTHS.unpack_from(buf, i + 26)
+        end = i + HEADER_SIZE + src_len + dst_len + pay_len
+        try:
+            out.append(decode(buf[i:end]))
+        except LinkError as exc:
+            raise LinkError(f"link batch: message {len(out)} at byte {i}: {exc}") from exc
+        i = end
+    return out
+
+
+_LENGTHS = struct.Struct(">BBI")
