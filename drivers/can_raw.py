@@ -33,8 +33,7 @@ reports ``host.recover(device)``. Bus errors are also counted in ``CanDriver.err
 from __future__ import annotations
 
 import contextlib
-import threading
-from collections import Counter, deque
+from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,8 +46,9 @@ from cantools.database.can import Signal as DbcSignal
 
 from chcos.devspec import BusSpec, DeviceSpec
 from chcos.errors import BusError
-from drivers.base import Driver, DriverHost
+from drivers.base import DriverHost
 from drivers.recording import LOG_SUFFIXES, Recorder
+from drivers.threaded import ThreadedDriver
 
 BUS_OPTIONS = ("interface", "channel", "bitrate", "fd", "dbc", "record", "poll")
 DBC_KEYS = ("message", "signal")
@@ -230,7 +230,7 @@ def check_address(bus: BusSpec, device: DeviceSpec, dbc: Any) -> list[str]:
     return errs
 
 
-class CanDriver(Driver):
+class CanDriver(ThreadedDriver):
     """Driver for kind ``can`` (see the module docstring for options, addresses and threads)."""
 
     kind = "can"
@@ -239,15 +239,9 @@ class CanDriver(Driver):
         super().__init__(bus, devices, host)
         self.codec = CanCodec(bus, devices)
         self._poll = float(bus.options.get("poll", 0.005))
-        self._cond = threading.Condition()
-        self._outbox: deque[tuple[str, Any]] = deque()
-        self._sending = 0
-        self._idle_gen = 0
-        self._running = False
         self._failed = False
         self._bus: can.BusABC | None = None
         self._recorder: Recorder | None = None
-        self._threads: list[threading.Thread] = []
         self._write_failed: set[str] = set()
         self.received = 0
         self.sent = 0
@@ -321,38 +315,11 @@ class CanDriver(Driver):
             except BusError:
                 self._bus.shutdown()
                 raise
-        self._running = True
-        for target, role in ((self._read_loop, "rx"), (self._write_loop, "tx")):
-            t = threading.Thread(target=target, name=f"can-{self.bus.name}-{role}", daemon=True)
-            self._threads.append(t)
-            t.start()
-
-    def write(self, device: str, value: Any) -> None:
-        """Queue ``value`` for actuator ``device``; the writer thread encodes and sends it."""
-        with self._cond:
-            self._outbox.append((device, value))
-            self._cond.notify_all()
-
-    def settle(self, timeout: float) -> bool:
-        """Wait until the writer's queue is empty and the reader has found the bus empty after
-        this call (so every frame queued before it was handed to the host)."""
-        with self._cond:
-            if not self._running:
-                return True
-            gen = self._idle_gen
-            return self._cond.wait_for(
-                lambda: not self._running or (self._idle_gen > gen + 1 and not self._outbox
-                                               and not self._sending), timeout)
+        self._start_threads("can")
 
     def stop(self) -> None:
         """Stop the threads, close the bus and the record file. Idempotent; never raises."""
-        with self._cond:
-            self._running = False
-            self._cond.notify_all()
-        for t in self._threads:
-            if t is not threading.current_thread():
-                t.join(timeout=2.0)
-        self._threads.clear()
+        self._stop_threads()
         if self._bus is not None:
             with contextlib.suppress(can.CanError, OSError):
                 self._bus.shutdown()
@@ -373,9 +340,7 @@ class CanDriver(Driver):
                     self._cond.wait(0.1)
                 continue
             if frame is None:
-                with self._cond:
-                    self._idle_gen += 1
-                    self._cond.notify_all()
+                self._idle()
                 continue
             self._bus_up()
             try:
@@ -409,12 +374,12 @@ class CanDriver(Driver):
                 if not self._running:
                     return
                 device, value = self._outbox.popleft()
-                self._sending = 1
+                self._sending = True
             try:
                 self._send(device, value)
             finally:
                 with self._cond:
-                    self._sending = 0
+                    self._sending = False
                     self._cond.notify_all()
 
     def _send(self, device: str, value: Any) -> None:

@@ -39,8 +39,7 @@ from __future__ import annotations
 import contextlib
 import re
 import struct
-import threading
-from collections import Counter, deque
+from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
@@ -48,7 +47,8 @@ import serial
 
 from chcos.devspec import BusSpec, DeviceSpec
 from chcos.errors import BusError
-from drivers.base import Driver, DriverHost
+from drivers.base import DriverHost
+from drivers.threaded import ThreadedDriver
 
 COMMON_OPTIONS = ("url", "baudrate", "protocol", "poll", "reconnect_min", "reconnect_max")
 LINE_OPTIONS = ("pattern", "eol", "encoding", "max_line")
@@ -249,7 +249,7 @@ def _check_binary_bus(key: str, o: Mapping[str, Any]) -> list[str]:
     return errs
 
 
-class SerialDriver(Driver):
+class SerialDriver(ThreadedDriver):
     """Driver for kind ``serial`` (see the module docstring for options, addresses, threads)."""
 
     kind = "serial"
@@ -268,14 +268,8 @@ class SerialDriver(Driver):
         for d in devices:
             if d.direction == "sensor":
                 self._sensors.setdefault(str(d.address[key]), []).append(d.name)
-        self._cond = threading.Condition()
-        self._outbox: deque[tuple[str, Any]] = deque()
-        self._sending = False
-        self._idle_gen = 0
-        self._running = False
         self._failed = False
         self._port: Any = None
-        self._threads: list[threading.Thread] = []
         self._write_failed: set[str] = set()
         self.connects = 0
         self.error_counts: Counter[str] = Counter()
@@ -380,18 +374,7 @@ class SerialDriver(Driver):
 
     def start(self) -> None:
         """Start the reader (which opens the port, and reopens it) and the writer thread."""
-        self._running = True
-        for target, role in ((self._read_loop, "rx"), (self._write_loop, "tx")):
-            t = threading.Thread(target=target, name=f"serial-{self.bus.name}-{role}",
-                                 daemon=True)
-            self._threads.append(t)
-            t.start()
-
-    def write(self, device: str, value: Any) -> None:
-        """Queue a command to actuator ``device``; failures arrive later as ``host.fail``."""
-        with self._cond:
-            self._outbox.append((device, value))
-            self._cond.notify_all()
+        self._start_threads("serial")
 
     def wait_open(self, timeout: float) -> bool:
         """Wait until the port is open (after start or a reconnect); False on timeout."""
@@ -399,25 +382,9 @@ class SerialDriver(Driver):
             return self._cond.wait_for(lambda: self._port is not None or not self._running,
                                        timeout) and self._running
 
-    def settle(self, timeout: float) -> bool:
-        """Wait until no command is queued and the reader found the port empty after this call
-        (False on timeout, or while the port is down)."""
-        with self._cond:
-            if not self._running:
-                return True
-            gen = self._idle_gen
-            return self._cond.wait_for(
-                lambda: not self._running or (self._idle_gen > gen + 1 and not self._outbox
-                                               and not self._sending), timeout)
-
     def stop(self) -> None:
         """Stop both threads and close the port. Idempotent; never raises."""
-        with self._cond:
-            self._running = False
-            self._cond.notify_all()
-        for t in self._threads:
-            t.join(timeout=2.0)
-        self._threads.clear()
+        self._stop_threads()
         self._close()
 
     # -- threads ---------------------------------------------------------------------------
@@ -465,9 +432,7 @@ class SerialDriver(Driver):
                     self._down(f"port {self.bus.options['url']} lost: {exc}")
                 return
             if not data:
-                with self._cond:
-                    self._idle_gen += 1
-                    self._cond.notify_all()
+                self._idle()
                 continue
             for kind, detail in framer.feed(data):
                 try:

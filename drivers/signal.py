@@ -26,8 +26,8 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import Any, TypeGuard
 
 from chcos.devspec import BusSpec, DeviceSpec
-from drivers.base import Driver, DriverHost
-from drivers.memory import ActuatorStore, check_history
+from drivers.base import DriverHost
+from drivers.memory import MemoryDriver
 
 WAVEFORMS = ("sine", "square", "ramp", "constant", "random")
 ADDRESS_KEYS = ("waveform", "rate_hz", "amplitude", "center", "period", "phase", "value", "seed")
@@ -57,24 +57,15 @@ def make_waveform(address: Mapping[str, Any]) -> Callable[[float], float]:
     return lambda t: rng.uniform(center - amp, center + amp)
 
 
-class SignalDriver(Driver):
-    """Driver for kind ``signal``: waveform sensors on the kernel clock, memory actuators."""
+class SignalDriver(MemoryDriver):
+    """Driver for kind ``signal``: waveform sensors on the kernel clock; actuators (and the
+    ``history`` option) as on a ``memory`` bus."""
 
     kind = "signal"
-    OPTIONS = ("history",)
 
     def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
         super().__init__(bus, devices, host)
-        self.store = ActuatorStore(
-            (d.name for d in devices if d.direction == "actuator"),
-            int(bus.options.get("history", 100)))
-        self._running = False
         self.samples = 0
-
-    @classmethod
-    def check_bus(cls, bus: BusSpec) -> list[str]:
-        """Only ``history`` is allowed."""
-        return check_history(bus, cls.OPTIONS)
 
     @classmethod
     def check_device(cls, bus: BusSpec, device: DeviceSpec) -> list[str]:
@@ -120,11 +111,3 @@ class SignalDriver(Driver):
     def stop(self) -> None:
         """Stop sampling (the host's periodic calls become no-ops)."""
         self._running = False
-
-    def settle(self, timeout: float) -> bool:
-        """Always quiet: samples are delivered synchronously on the kernel thread."""
-        return True
-
-    def write(self, device: str, value: Any) -> None:
-        """Keep ``value`` as the last write of actuator ``device``; DeviceError if not one."""
-        self.store.put(device, value)
