@@ -134,9 +134,8 @@ class MessageManager:
             self.comm.sensory(link, value)
             return True
         port = link.port
-        if port.__class__ is not InPort:
+        if not isinstance(port, InPort):
             raise MessageError(f"sensory link {link.name} has no input port")
-        assert isinstance(port, InPort)
         kernel = self.kernel
         if port.fifo is None and not kernel.h_delivered:  # the hot path: newest wins
             if port.fresh:

@@ -33,7 +33,6 @@ reports ``host.recover(device)``. Bus errors are also counted in ``CanDriver.err
 from __future__ import annotations
 
 import contextlib
-from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -245,7 +244,6 @@ class CanDriver(ThreadedDriver):
         self._write_failed: set[str] = set()
         self.received = 0
         self.sent = 0
-        self.error_counts: Counter[str] = Counter()
 
     @classmethod
     def check_bus(cls, bus: BusSpec) -> list[str]:
@@ -362,25 +360,6 @@ class CanDriver(ThreadedDriver):
                 self.host.deliver(device, value)
         elif status != "ignore":
             self._error(status, str(result))
-
-    def _error(self, kind: str, detail: str) -> None:
-        self.error_counts[kind] += 1
-        self.host.error(self.bus.name, kind, detail)
-
-    def _write_loop(self) -> None:
-        while True:
-            with self._cond:
-                self._cond.wait_for(lambda: bool(self._outbox) or not self._running)
-                if not self._running:
-                    return
-                device, value = self._outbox.popleft()
-                self._sending = True
-            try:
-                self._send(device, value)
-            finally:
-                with self._cond:
-                    self._sending = False
-                    self._cond.notify_all()
 
     def _send(self, device: str, value: Any) -> None:
         assert self._bus is not None

@@ -39,7 +39,6 @@ from __future__ import annotations
 import contextlib
 import re
 import struct
-from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
@@ -272,7 +271,6 @@ class SerialDriver(ThreadedDriver):
         self._port: Any = None
         self._write_failed: set[str] = set()
         self.connects = 0
-        self.error_counts: Counter[str] = Counter()
 
     def _framer(self) -> LineFramer | BinaryFramer:
         o = self.bus.options
@@ -448,33 +446,13 @@ class SerialDriver(ThreadedDriver):
             for device in self._sensors.get(name, ()):
                 self.host.deliver(device, value)
 
-    def _error(self, kind: str, detail: str) -> None:
-        self.error_counts[kind] += 1
-        self.host.error(self.bus.name, kind, detail)
+    def _can_send(self) -> bool:
+        """At start-up a command waits for the first open attempt; while down it fails at once."""
+        return self._port is not None or self._failed
 
-    def _write_loop(self) -> None:
-        while True:
-            with self._cond:
-                self._cond.wait_for(lambda: bool(self._outbox) or not self._running)
-                if not self._running:
-                    return
-                device, value = self._outbox.popleft()
-                self._sending = True
-                # At start-up, wait for the first open attempt; while down, fail at once.
-                self._cond.wait_for(
-                    lambda: self._port is not None or self._failed or not self._running)
-                if not self._running:
-                    self._sending = False
-                    return
-                port = self._port
-            try:
-                self._send(port, device, value)
-            finally:
-                with self._cond:
-                    self._sending = False
-                    self._cond.notify_all()
-
-    def _send(self, port: Any, device: str, value: Any) -> None:
+    def _send(self, device: str, value: Any) -> None:
+        with self._cond:
+            port = self._port
         try:
             data = self.command(device, value)
             if port is None:

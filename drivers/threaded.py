@@ -1,15 +1,16 @@
 """threaded - the reader/writer-thread plumbing shared by stream drivers (raw CAN, serial).
 
-A subclass runs ``_read_loop`` (receive, hand readings to the host, call :meth:`_idle` whenever a
-receive finds nothing) and ``_write_loop`` (take commands from ``_outbox`` under ``_cond``, set
-``_sending`` while one is on its way). This base queues writes without blocking the caller, starts
-and stops the two threads, and implements :meth:`settle` on top of the reader's idle count.
+A subclass writes ``_read_loop`` (receive, hand readings to the host, call :meth:`_idle` whenever
+a receive finds nothing) and ``_send`` (put one command on the wire); it may override
+``_can_send`` to hold commands back (a serial port not open yet). This base queues writes without
+blocking the caller, runs the writer thread, starts and stops both threads, counts bus errors, and
+implements :meth:`settle` on top of the reader's idle count.
 """
 
 from __future__ import annotations
 
 import threading
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Sequence
 from typing import Any
 
@@ -28,12 +29,42 @@ class ThreadedDriver(Driver):
         self._idle_gen = 0
         self._running = False
         self._threads: list[threading.Thread] = []
+        self.error_counts: Counter[str] = Counter()
 
     def _read_loop(self) -> None:
         raise NotImplementedError
 
-    def _write_loop(self) -> None:
+    def _send(self, device: str, value: Any) -> None:
+        """Put one command on the wire (writer thread); report failures to the host."""
         raise NotImplementedError
+
+    def _can_send(self) -> bool:
+        """Whether a taken command may go now (checked under ``_cond``); default always."""
+        return True
+
+    def _write_loop(self) -> None:
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda: bool(self._outbox) or not self._running)
+                if not self._running:
+                    return
+                device, value = self._outbox.popleft()
+                self._sending = True
+                self._cond.wait_for(lambda: self._can_send() or not self._running)
+                if not self._running:
+                    self._sending = False
+                    return
+            try:
+                self._send(device, value)
+            finally:
+                with self._cond:
+                    self._sending = False
+                    self._cond.notify_all()
+
+    def _error(self, kind: str, detail: str) -> None:
+        """Count and report a bus-level error (malformed frame, garbage line...)."""
+        self.error_counts[kind] += 1
+        self.host.error(self.bus.name, kind, detail)
 
     def _start_threads(self, prefix: str) -> None:
         """Start the reader and the writer, named ``<prefix>-<bus>-rx``/``-tx``."""
