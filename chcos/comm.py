@@ -9,13 +9,19 @@ interrupts (thesis 6.1.2: an incoming message readies TSK0), so the tables are o
 on the kernel thread. Link ids agree across satellites because every satellite applies the same
 install log in the same order.
 
+Newest wins across the link as inside one satellite: a sensory message on a newest-wins link
+(not queued, not a tap) that is still waiting in its batch when a newer one on the same link is
+sent is replaced by it, so a busy producer costs the link no more than its consumer can use.
+Sequence numbers count per link, so the receiving satellite sees how many messages were
+superseded on the way (a gap) and counts them as sent and overwritten on its copy of the link:
+``msgstat`` keeps sent = delivered + overwritten + unread on the destination's satellite.
+
 Keys, under ``chcos/<system>``: ``m/<N>/msg`` (messages to machine N), ``all/msg`` (broadcast:
 estop, device status), ``alive/<N>`` (liveliness tokens).
 """
 
 from __future__ import annotations
 
-import itertools
 import logging
 import time
 from typing import TYPE_CHECKING, Any
@@ -31,10 +37,14 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("chcos.comm")
 
-#: A batch goes out when it holds this many messages...
+#: A batch goes out when it holds this many messages, or BATCH_DELAY seconds after its first
+#: message; a batch of messages that must arrive (commands, completions, queued links) also as
+#: soon as the kernel goes idle. Newest-wins sensory messages wait for the delay on real time, so
+#: that newer values on the same link replace them on the way: a busy producer then costs one
+#: Zenoh put per BATCH_DELAY instead of one per message (a put that wakes Zenoh's sender costs
+#: tens of microseconds, as much as a task step), and the data is at most BATCH_DELAY older.
 BATCH_MAX = 64
-#: ...or this long (s) after its first message, if the kernel has not gone idle before.
-BATCH_DELAY = 0.0005
+BATCH_DELAY = 0.001
 
 
 class CommManager:
@@ -45,7 +55,9 @@ class CommManager:
         self.transport = transport
         self.prefix = prefix
         self.machine = machine
-        self._seq = itertools.count(1)
+        self._seq: dict[int, int] = {}       # outgoing: last sequence number per link id
+        self._seen: dict[int, int] = {}      # incoming: last sequence number per link id
+        self._uniq = 0
         self._subs: list[Subscription] = []
         self.received = 0
         self.sent = 0
@@ -53,13 +65,17 @@ class CommManager:
         self.alive: set[int] = {machine}
         # messages below EXPRESS_FROM wait in a batch per destination key and kind until the
         # kernel goes idle, BATCH_MAX are waiting, or BATCH_DELAY has passed: one Zenoh put and
-        # one interrupt carry many messages when the satellite is busy
-        self._batches: dict[tuple[str, bool], list[bytes]] = {}
-        self._batch_prio: dict[tuple[str, bool], int] = {}
+        # one interrupt carry many messages when the satellite is busy. A batch maps a link id
+        # (newest-wins sensory messages: a newer one replaces the waiting one) or a unique
+        # negative number (everything else) to the encoded message.
+        self._batches: dict[tuple[str, bool, bool], dict[int, bytes]] = {}
+        self._batch_prio: dict[tuple[str, bool, bool], int] = {}
         self._flush_timer: Timer | None = None
         self.batches_sent = 0
+        self.coalesced = 0
+        self.superseded = 0
         system.msgmgr.comm = self
-        system.kernel.add_idle_hook(self.flush)
+        system.kernel.add_idle_hook(self._on_idle)
 
     # ---- keys -------------------------------------------------------------------------------
     def key(self, machine: int) -> str:
@@ -88,26 +104,51 @@ class CommManager:
 
     # ---- outgoing (kernel thread) -----------------------------------------------------------
     def _send(self, machine: int | None, kind: MessageKind, src: str, dst: str, lid: int,
-              priority: int, value: Any) -> None:
-        msg = LinkMessage(kind, src, dst, lid, priority, next(self._seq), time.time_ns(), value)
+              priority: int, value: Any, newest_wins: bool = False,
+              droppable: bool | None = None) -> None:
+        seq = self._seq.get(lid, 0) + 1
+        self._seq[lid] = seq
+        msg = LinkMessage(kind, src, dst, lid, priority, seq, time.time_ns(), value)
         key = f"{self.prefix}/all/msg" if machine is None else self.key(machine)
+        drop = kind.droppable if droppable is None else droppable
         try:
             data = encode(msg)
             self.sent += 1
             if priority >= EXPRESS_FROM:  # urgent: out at once, on its own
-                self.transport.publish(key, data, priority=priority, kind=kind)
+                self.transport.publish(key, data, priority=priority,
+                                       kind=MessageKind.SENSORY if drop else MessageKind.COMMAND)
                 return
         except LinkError as exc:
             raise MessageError(f"cannot send {kind.name.lower()} {src}->{dst} to machine "
                                f"{machine}: {exc}") from exc
-        slot = (key, kind.droppable)
-        batch = self._batches.setdefault(slot, [])
-        batch.append(data)
+        slot = (key, drop, newest_wins)
+        batch = self._batches.get(slot)
+        if batch is None:
+            batch = self._batches[slot] = {}
+        if newest_wins:
+            if batch.pop(lid, None) is not None:
+                self.coalesced += 1
+            batch[lid] = data
+        else:
+            self._uniq -= 1
+            batch[self._uniq] = data
         self._batch_prio[slot] = max(priority, self._batch_prio.get(slot, 0))
         if len(batch) >= BATCH_MAX:
             self._flush_slot(slot)
         elif self._flush_timer is None:
             self._flush_timer = self.sys.kernel.call_later(BATCH_DELAY, self.flush)
+
+    def _on_idle(self) -> None:
+        """Kernel idle hook: send the batches of messages that must arrive (commands, queued
+        links, completions) now; newest-wins sensory batches wait for the batch timer (real
+        time only), so that newer values on the same links replace them on the way."""
+        if not self._batches:
+            return
+        if self.sys.kernel.clock.virtual:
+            self.flush()
+            return
+        for slot in [sl for sl in self._batches if not sl[2]]:
+            self._flush_slot(slot)
 
     def flush(self) -> None:
         """Send every waiting batch (kernel thread; called when the kernel goes idle and at the
@@ -118,15 +159,16 @@ class CommManager:
         for slot in list(self._batches):
             self._flush_slot(slot)
 
-    def _flush_slot(self, slot: tuple[str, bool]) -> None:
+    def _flush_slot(self, slot: tuple[str, bool, bool]) -> None:
         batch = self._batches.pop(slot, None)
         prio = self._batch_prio.pop(slot, 0)
         if not batch:
             return
-        key, droppable = slot
-        kind = MessageKind.SENSORY if droppable else MessageKind.COMMAND
+        key, drop, _newest = slot
+        kind = MessageKind.SENSORY if drop else MessageKind.COMMAND  # congestion: drop or block
         try:
-            self.transport.publish(key, encode_batch(batch), priority=prio, kind=kind)
+            self.transport.publish(key, encode_batch(list(batch.values())), priority=prio,
+                                   kind=kind)
         except LinkError as exc:
             text = f"batch of {len(batch)} message(s) to {key} lost: {exc}"
             log.error("%s", text)
@@ -137,7 +179,8 @@ class CommManager:
     def sensory(self, link: Link, value: Any) -> None:
         """A sensory message to a task on another satellite."""
         self._send(link.dst_machine, MessageKind.SENSORY, link.src, link.dst, link.lid,
-                   link.priority, value)
+                   link.priority, value, newest_wins=not link.queued and not link.tap,
+                   droppable=not link.queued)
 
     def tap(self, link: Link, source: str, value: Any) -> None:
         """A tapped sensory message to an exception task on another satellite."""
@@ -231,6 +274,7 @@ class CommManager:
                 tap = s.tsktab.get(link.dst).tap
                 mm.deliver_tap(link, tap, msg.src, v)
             else:
+                self._count_superseded(link, msg.seq)
                 mm.deliver(link, v)
         elif kind is MessageKind.COMMAND:
             if v["op"] == "open":
@@ -247,6 +291,18 @@ class CommManager:
             mm.remote_report(link, LinkStatus(v["status"]), v.get("result"), v.get("error", ""))
         else:
             raise MessageError(f"unexpected message kind {kind.name}")
+
+    def _count_superseded(self, link: Link, seq: int) -> None:
+        """Count the messages of a newest-wins link that a newer one replaced before they left
+        the sender (a gap in its sequence numbers) as sent and overwritten. A sequence number
+        that does not move forward (the sender restarted) starts counting afresh."""
+        last = self._seen.get(link.lid, 0)
+        self._seen[link.lid] = seq
+        if not link.queued and seq > last + 1 and last:
+            gap = seq - last - 1
+            link.sent += gap
+            link.overwritten += gap
+            self.superseded += gap
 
     # ---- liveliness -------------------------------------------------------------------------
     def _machine_of(self, key: str) -> int | None:

@@ -9,7 +9,9 @@ Bus options:
 - ``bitrate`` (int > 0, optional), ``fd`` (bool, default false)
 - ``dbc``: a DBC file (relative to the map file); needed for ``{message, signal}`` addresses
 - ``record``: a log file (``.log``/``.asc``/``.blf``...) receiving every frame received and sent
-- ``poll``: the reader's receive timeout in seconds (default 0.005); it bounds :meth:`settle`
+- ``poll``: the reader's receive timeout in seconds (default 0.005) on interfaces without a file
+  descriptor (``virtual``); it bounds :meth:`settle` there. On SocketCAN the reader sleeps in
+  ``select`` and :meth:`settle` drains the socket itself, so ``poll`` is not used
 
 Device addresses, one of two forms:
 
@@ -33,7 +35,7 @@ reports ``host.recover(device)``. Bus errors are also counted in ``CanDriver.err
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeGuard
@@ -47,7 +49,7 @@ from chcos.devspec import BusSpec, DeviceSpec
 from chcos.errors import BusError
 from drivers.base import DriverHost
 from drivers.recording import LOG_SUFFIXES, Recorder
-from drivers.threaded import ThreadedDriver
+from drivers.threaded import ReaderThread, ThreadedDriver
 
 BUS_OPTIONS = ("interface", "channel", "bitrate", "fd", "dbc", "record", "poll")
 DBC_KEYS = ("message", "signal")
@@ -229,6 +231,60 @@ def check_address(bus: BusSpec, device: DeviceSpec, dbc: Any) -> list[str]:
     return errs
 
 
+def bus_fileno(bus: can.BusABC) -> int | None:
+    """The bus's file descriptor if its interface has one (SocketCAN), else None."""
+    try:
+        fd = bus.fileno()
+    except (NotImplementedError, OSError, AttributeError):
+        return None
+    return fd if isinstance(fd, int) and fd >= 0 else None
+
+
+def read_frames(rx: ReaderThread, bus: can.BusABC, poll: float,
+                on_frame: Callable[[can.Message], None], on_error: Callable[[str], None]) -> None:
+    """The read loop of a CAN driver's :class:`ReaderThread`: every frame received goes to
+    ``on_frame`` (which must not raise), a receive error to ``on_error`` (then a pause of 0.1 s).
+    On a bus with a file descriptor (SocketCAN) it sleeps in ``select`` and drains without
+    blocking, and the reader's settle drains the socket itself; elsewhere (``virtual``) it
+    receives with timeout ``poll`` and reports empty receives (see :mod:`drivers.threaded`)."""
+    fd = bus_fileno(bus)
+    if fd is None:
+        while rx.running:
+            try:
+                frame = bus.recv(poll)
+            except (can.CanError, OSError) as exc:
+                on_error(str(exc))
+                rx.pause(0.1)
+                continue
+            if frame is None:
+                rx.idle()
+            else:
+                on_frame(frame)
+        return
+
+    def drain(limit: int = 0) -> bool:
+        n = 0
+        while limit <= 0 or n < limit:
+            try:
+                frame = bus.recv(0)
+            except (can.CanError, OSError) as exc:
+                on_error(str(exc))
+                return False
+            if frame is None:
+                break
+            n += 1
+            on_frame(frame)
+        return True
+
+    rx.set_drain(drain)
+    while rx.running:
+        if rx.wait_readable(fd, 1.0):
+            with rx.lock:
+                ok = drain(64)
+            if not ok:
+                rx.pause(0.1)
+
+
 class CanDriver(ThreadedDriver):
     """Driver for kind ``can`` (see the module docstring for options, addresses and threads)."""
 
@@ -313,7 +369,7 @@ class CanDriver(ThreadedDriver):
             except BusError:
                 self._bus.shutdown()
                 raise
-        self._start_threads("can")
+        self._start_threads()
 
     def stop(self) -> None:
         """Stop the threads, close the bus and the record file. Idempotent; never raises."""
@@ -329,22 +385,14 @@ class CanDriver(ThreadedDriver):
 
     def _read_loop(self) -> None:
         assert self._bus is not None
-        while self._running:
-            try:
-                frame = self._bus.recv(self._poll)
-            except (can.CanError, OSError) as exc:
-                self._bus_down(str(exc))
-                with self._cond:
-                    self._cond.wait(0.1)
-                continue
-            if frame is None:
-                self._idle()
-                continue
-            self._bus_up()
-            try:
-                self._handle(frame)
-            except Exception as exc:  # the reader must survive any host/codec surprise
-                self._error("internal", f"frame handling failed: {exc!r}")
+        read_frames(self._rx, self._bus, self._poll, self._receive, self._bus_down)
+
+    def _receive(self, frame: can.Message) -> None:
+        self._bus_up()
+        try:
+            self._handle(frame)
+        except Exception as exc:  # the reader must survive any host/codec surprise
+            self._error("internal", f"frame handling failed: {exc!r}")
 
     def _handle(self, frame: can.Message) -> None:
         self.received += 1

@@ -9,6 +9,14 @@ Bus options (``[[bus]] kind = "canopen"``):
   heartbeat supervision), and whether the driver puts the node OPERATIONAL (default true).
 * ``sync_period`` (s, optional) - produce SYNC at this period; ``poll_period`` (s, default 0.1) -
   default SDO polling period; ``sdo_timeout`` (s, default 0.3) - SDO response timeout.
+* ``poll`` (s, default 0.005) - the receive timeout of the driver's reader on interfaces without a
+  file descriptor (``virtual``); it bounds :meth:`CanopenDriver.settle` there. On SocketCAN the
+  reader sleeps in ``select`` and settle drains the socket itself.
+
+Frames are received by the driver's own reader thread (:func:`drivers.can_raw.read_frames`), not
+by canopen's notifier, and handed to canopen's listeners (SDO responses, PDOs, heartbeats, EMCY),
+so that :meth:`CanopenDriver.settle` can promise that every frame that arrived before it has been
+handled: virtual-time runs are deterministic on CANopen too.
 
 Device address: ``{node, index, subindex = 0, poll_period}``. A sensor whose object is mapped in an
 enabled TPDO of the node's EDS is delivered from the PDO callback; any other sensor is read by SDO
@@ -44,18 +52,20 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 from chcos.devspec import BusSpec, DeviceSpec
 from chcos.errors import BusError
 from drivers.base import Driver, DriverHost
+from drivers.can_raw import read_frames
 from drivers.health import Health
+from drivers.threaded import ReaderThread
 
 BUS_OPTIONS = ("interface", "channel", "bitrate", "nodes", "sync_period", "poll_period",
-               "sdo_timeout")
+               "sdo_timeout", "poll")
 NODE_KEYS = ("id", "eds", "heartbeat_timeout", "nmt_start")
 ADDRESS_KEYS = ("node", "index", "subindex", "poll_period")
 FATAL_EMCY_MASKS = ((0x2000, 0xF000), (0x3000, 0xF000), (0x4000, 0xF000), (0x5000, 0xFF00),
                     (0x8000, 0xF000))
 DEFAULT_POLL = 0.1
 DEFAULT_SDO_TIMEOUT = 0.3
-#: How long the python-can notifier blocks in one receive; bounds the time stop() takes.
-NOTIFIER_CYCLE = 0.05
+#: The reader's default receive timeout on interfaces without a file descriptor.
+DEFAULT_RX_POLL = 0.005
 
 
 def is_fatal_emcy(code: int) -> bool:
@@ -131,6 +141,8 @@ class CanopenDriver(Driver):
         self._polls_queued: set[str] = set()
         self._thread: threading.Thread | None = None
         self._running = False
+        self._rx: ReaderThread | None = None
+        self._bus_failed = False
 
     # -- validation ---------------------------------------------------------------------------
 
@@ -149,6 +161,8 @@ class CanopenDriver(Driver):
                 errs.append(f"{k}.{key}: expected a python-can {key} name, got {opts[key]!r}")
         if "bitrate" in opts and not (_is_int(opts["bitrate"]) and opts["bitrate"] > 0):
             errs.append(f"{k}.bitrate: expected an integer > 0 (bit/s), got {opts['bitrate']!r}")
+        if "poll" in opts and not (_is_number(opts["poll"]) and 0 < opts["poll"] <= 1):
+            errs.append(f"{k}.poll: expected seconds in (0, 1], got {opts['poll']!r}")
         for key in ("sync_period", "poll_period", "sdo_timeout"):
             if key in opts and not (_is_number(opts[key]) and opts[key] > 0):
                 errs.append(f"{k}.{key}: expected a number of seconds > 0, got {opts[key]!r}")
@@ -238,7 +252,6 @@ class CanopenDriver(Driver):
         if errs:
             raise BusError(f"canopen bus {self.bus.name} ({self.bus.file}): " + "; ".join(errs))
         network: Any = canopen.Network()
-        network.NOTIFIER_CYCLE = NOTIFIER_CYCLE
         network.listeners.append(_FrameCheck(self))
         opts = self.bus.options
         for ncfg in opts["nodes"]:
@@ -253,10 +266,21 @@ class CanopenDriver(Driver):
         self._bind_devices()
         config = {k: opts[k] for k in ("interface", "channel", "bitrate") if k in opts}
         try:
-            network.connect(**can.util.load_config(config=config))
+            cfg = dict(can.util.load_config(config=config))
+            if "bitrate" not in cfg:   # as canopen's connect(): the first EDS that names one
+                rates = [s.node.object_dictionary.bitrate for s in self._nodes.values()]
+                if any(rates):
+                    cfg["bitrate"] = next(r for r in rates if r)
+            bus = can.Bus(**cfg)
         except (can.CanError, OSError, ValueError, ImportError) as exc:
             raise BusError(f"canopen bus {self.bus.name} ({self.bus.file} {self.bus.key}): cannot "
                            f"open CAN bus {config or 'from python-can config'}: {exc}") from exc
+        network.bus = bus
+        poll = float(opts.get("poll", DEFAULT_RX_POLL))
+        rx = self._rx = ReaderThread(
+            lambda: read_frames(rx, bus, poll, self._on_frame, self._on_bus_error),
+            f"canopen-{self.bus.name}-rx")
+        rx.start()
         for state in self._nodes.values():
             state.node.nmt.add_heartbeat_callback(
                 lambda nmt_state, s=state: self._on_heartbeat(s, nmt_state))
@@ -304,6 +328,9 @@ class CanopenDriver(Driver):
         if self._thread is not None:
             self._thread.join(timeout=5.0)
             self._thread = None
+        rx, self._rx = self._rx, None
+        if rx is not None:
+            rx.stop()
         network, self._network = self._network, None
         if network is not None:
             with contextlib.suppress(Exception):
@@ -331,9 +358,15 @@ class CanopenDriver(Driver):
         self._enqueue("write", device, value)
 
     def settle(self, timeout: float) -> bool:
-        """Wait until every queued SDO/write is done and no PDO callback is delivering."""
+        """Hand every frame that arrived before this call to canopen (PDOs to the host), then
+        wait until every queued SDO/write is done and no PDO callback is delivering."""
+        deadline = time.monotonic() + timeout
+        rx = self._rx
+        if rx is not None and not rx.settle(timeout):
+            return False
         with self._idle:
-            return self._idle.wait_for(lambda: self._pending == 0, timeout)
+            return self._idle.wait_for(lambda: self._pending == 0,
+                                       max(0.0, deadline - time.monotonic()))
 
     # -- I/O thread ---------------------------------------------------------------------------
 
@@ -438,7 +471,25 @@ class CanopenDriver(Driver):
             return
         self._health.clear(b.device.name, "sdo")
 
-    # -- notifier thread ----------------------------------------------------------------------
+    # -- reader thread ------------------------------------------------------------------------
+
+    def _on_frame(self, frame: can.Message) -> None:
+        """A received frame to canopen's listeners (what its notifier would do)."""
+        self._bus_failed = False     # a receive error is reported again after a good frame
+        network = self._network
+        if network is None:
+            return
+        for listener in network.listeners:
+            try:
+                listener.on_message_received(frame)
+            except Exception as exc:  # the reader must survive any canopen/host surprise
+                self.host.error(self.bus.name, "internal", f"frame handling failed: {exc!r}")
+
+    def _on_bus_error(self, reason: str) -> None:
+        if not self._bus_failed:
+            self._bus_failed = True
+            self.host.error(self.bus.name, "bus-error",
+                            f"canopen bus {self.bus.name}: receive failed: {reason}")
 
     def _on_tpdo(self, pdo_map: Any) -> None:
         with self._idle:

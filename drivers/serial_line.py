@@ -10,7 +10,9 @@ success the devices are ``host.recover``-ed.
 
 Bus options:
 
-- ``url`` (required), ``baudrate`` (int, default 9600), ``poll`` (read timeout s, default 0.01),
+- ``url`` (required), ``baudrate`` (int, default 9600), ``poll`` (read timeout s, default 0.01;
+  only for ports without a file descriptor such as ``loop://``: on a tty or ``socket://`` the
+  reader sleeps in ``select`` and ``settle`` reads what has arrived itself),
   ``reconnect_min`` (default 0.05), ``reconnect_max`` (default 2.0)
 - ``protocol = "line"``: ``pattern`` (required; a Python regular expression with named groups that
   must match a whole line), ``eol`` (default ``"\\n"``; a trailing ``"\\r"`` is stripped),
@@ -372,7 +374,7 @@ class SerialDriver(ThreadedDriver):
 
     def start(self) -> None:
         """Start the reader (which opens the port, and reopens it) and the writer thread."""
-        self._start_threads("serial")
+        self._start_threads()
 
     def wait_open(self, timeout: float) -> bool:
         """Wait until the port is open (after start or a reconnect); False on timeout."""
@@ -422,6 +424,44 @@ class SerialDriver(ThreadedDriver):
             self._close()
 
     def _pump(self, port: Any, framer: LineFramer | BinaryFramer) -> None:
+        try:
+            fd = port.fileno()
+        except (AttributeError, OSError, NotImplementedError, serial.SerialException):
+            fd = None
+        if not isinstance(fd, int) or fd < 0:
+            self._pump_polling(port, framer)
+            return
+        port.timeout = 0
+        lost: list[str] = []
+
+        def drain() -> None:
+            self._drain_port(port, framer, lost)
+
+        rx = self._rx
+        rx.set_drain(drain)
+        try:
+            while rx.running and not lost:
+                if rx.wait_readable(fd, 1.0):
+                    with rx.lock:
+                        drain()
+        finally:
+            rx.set_drain(None)
+        if lost and self._running:
+            self._down(lost[0])
+
+    def _drain_port(self, port: Any, framer: LineFramer | BinaryFramer, lost: list[str]) -> None:
+        """Read what the port holds now without blocking (port timeout 0) and hand it over;
+        a read error is noted in ``lost`` for the reader to reconnect."""
+        if lost:
+            return
+        try:
+            data = port.read(65536)
+        except (serial.SerialException, OSError, TypeError) as exc:
+            lost.append(f"port {self.bus.options['url']} lost: {exc}")
+            return
+        self._feed(framer, data)
+
+    def _pump_polling(self, port: Any, framer: LineFramer | BinaryFramer) -> None:
         while self._running:
             try:
                 data = port.read(max(1, port.in_waiting))
@@ -430,13 +470,16 @@ class SerialDriver(ThreadedDriver):
                     self._down(f"port {self.bus.options['url']} lost: {exc}")
                 return
             if not data:
-                self._idle()
+                self._rx.idle()
                 continue
-            for kind, detail in framer.feed(data):
-                try:
-                    self._event(kind, detail)
-                except Exception as exc:  # the reader must survive any host surprise
-                    self._error("internal", f"delivery failed: {exc!r}")
+            self._feed(framer, data)
+
+    def _feed(self, framer: LineFramer | BinaryFramer, data: bytes) -> None:
+        for kind, detail in framer.feed(data):
+            try:
+                self._event(kind, detail)
+            except Exception as exc:  # the reader must survive any host surprise
+                self._error("internal", f"delivery failed: {exc!r}")
 
     def _event(self, kind: str, detail: Any) -> None:
         if kind != "values":

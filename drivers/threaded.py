@@ -1,21 +1,133 @@
 """threaded - the reader/writer-thread plumbing shared by stream drivers (raw CAN, serial).
 
-A subclass writes ``_read_loop`` (receive, hand readings to the host, call :meth:`_idle` whenever
-a receive finds nothing) and ``_send`` (put one command on the wire); it may override
-``_can_send`` to hold commands back (a serial port not open yet). This base queues writes without
-blocking the caller, runs the writer thread, starts and stops both threads, counts bus errors, and
-implements :meth:`settle` on top of the reader's idle count.
+:class:`ReaderThread` is the receive half, usable on its own (the CANopen driver): one thread
+running a read loop, and the ``settle`` the kernel needs from it, in one of two ways:
+
+- event-driven, when the link has a file descriptor (SocketCAN, a TCP serial server, a tty): the
+  reader sleeps in ``select`` on that descriptor and a wake-up pipe
+  (:meth:`ReaderThread.wait_readable`), and handles input by calling a non-blocking drain under
+  ``lock``; the loop registers that drain with :meth:`ReaderThread.set_drain`. ``settle`` then
+  runs the same drain itself, in the caller's thread, so everything already received by the
+  operating system is handed over without waiting for any timer (a short receive timeout costs a
+  whole timer tick on a virtual machine);
+- polling otherwise (python-can's ``virtual`` interface, ``loop://``): the reader receives with a
+  short timeout and calls :meth:`ReaderThread.idle` whenever a receive finds nothing, and
+  ``settle`` waits for two such empty receives after it was called.
+
+:class:`ThreadedDriver` adds the send half: a subclass writes ``_read_loop`` (run by its
+ReaderThread ``_rx``) and ``_send`` (put one command on the wire); it may override ``_can_send`` to
+hold commands back (a serial port not open yet). The base queues writes without blocking the
+caller, runs the writer thread, starts and stops both threads, counts bus errors, and its
+:meth:`ThreadedDriver.settle` settles the reader, then waits until the writer has sent every
+queued command.
 """
 
 from __future__ import annotations
 
+import contextlib
+import os
+import select
 import threading
+import time
 from collections import Counter, deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from chcos.devspec import BusSpec, DeviceSpec
 from drivers.base import Driver, DriverHost
+
+
+class ReaderThread:
+    """One reader thread running ``loop()`` while :attr:`running`, and the settle of its input
+    (see the module doc). ``lock`` is held by whoever drains."""
+
+    def __init__(self, loop: Callable[[], None], name: str) -> None:
+        self._loop = loop
+        self.name = name
+        self.lock = threading.Lock()
+        self._cond = threading.Condition()
+        self._drain: Callable[[], object] | None = None
+        self._wake: tuple[int, int] | None = None
+        self._idle_gen = 0
+        self._thread: threading.Thread | None = None
+        self.running = False
+
+    def start(self) -> None:
+        """Start the thread (once)."""
+        r, w = os.pipe()
+        os.set_blocking(r, False)
+        os.set_blocking(w, False)
+        self._wake = (r, w)
+        self.running = True
+        self._thread = threading.Thread(target=self._loop, name=self.name, daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Tell the loop to end, wake it and wait for it (not when called from the loop)."""
+        with self._cond:
+            self.running = False
+            self._cond.notify_all()
+        wake, self._wake = self._wake, None
+        if wake is not None:
+            with contextlib.suppress(OSError):
+                os.write(wake[1], b"x")
+        t, self._thread = self._thread, None
+        if t is not None and t is not threading.current_thread():
+            t.join(timeout=2.0)
+        self.set_drain(None)
+        if wake is not None:
+            for fd in wake:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+
+    def pause(self, seconds: float) -> None:
+        """Loop: wait ``seconds`` (after an error), or less if stopped."""
+        with self._cond:
+            self._cond.wait_for(lambda: not self.running, seconds)
+
+    def wait_readable(self, fd: int, timeout: float) -> bool:
+        """Loop: sleep until ``fd`` has input (True), or until :meth:`stop` wakes it, the
+        timeout passes or ``fd`` is closed under it (False)."""
+        wake = self._wake
+        if wake is None:
+            return False
+        try:
+            ready, _, _ = select.select([fd, wake[0]], [], [], timeout)
+        except (OSError, ValueError):
+            return False
+        if wake[0] in ready:
+            with contextlib.suppress(OSError):
+                os.read(wake[0], 64)
+        return fd in ready
+
+    def set_drain(self, drain: Callable[[], object] | None) -> None:
+        """Make :meth:`settle` event-driven with ``drain`` (a call that hands over all input
+        receivable now, without blocking; run under ``lock``), or polling again (None)."""
+        with self.lock:
+            self._drain = drain
+
+    def idle(self) -> None:
+        """Loop (polling): a receive found nothing (wakes :meth:`settle`)."""
+        with self._cond:
+            self._idle_gen += 1
+            self._cond.notify_all()
+
+    def settle(self, timeout: float) -> bool:
+        """Hand over everything that arrived before this call: drain it here (event-driven), or
+        wait for two empty receives of the loop (polling). True at once when stopped; False on
+        timeout."""
+        if self._drain is not None:
+            with self.lock:
+                drain = self._drain
+                if drain is not None:
+                    drain()
+                    return True
+        with self._cond:
+            if not self.running:
+                return True
+            gen = self._idle_gen
+            return self._cond.wait_for(lambda: not self.running or self._idle_gen > gen + 1,
+                                       timeout)
 
 
 class ThreadedDriver(Driver):
@@ -26,9 +138,9 @@ class ThreadedDriver(Driver):
         self._cond = threading.Condition()
         self._outbox: deque[tuple[str, Any]] = deque()
         self._sending = False
-        self._idle_gen = 0
         self._running = False
-        self._threads: list[threading.Thread] = []
+        self._writer: threading.Thread | None = None
+        self._rx = ReaderThread(self._read_loop, f"{self.kind}-{bus.name}-rx")
         self.error_counts: Counter[str] = Counter()
 
     def _read_loop(self) -> None:
@@ -66,30 +178,23 @@ class ThreadedDriver(Driver):
         self.error_counts[kind] += 1
         self.host.error(self.bus.name, kind, detail)
 
-    def _start_threads(self, prefix: str) -> None:
-        """Start the reader and the writer, named ``<prefix>-<bus>-rx``/``-tx``."""
+    def _start_threads(self) -> None:
+        """Start the reader and the writer, named ``<kind>-<bus>-rx``/``-tx``."""
         self._running = True
-        for target, role in ((self._read_loop, "rx"), (self._write_loop, "tx")):
-            t = threading.Thread(target=target, name=f"{prefix}-{self.bus.name}-{role}",
-                                 daemon=True)
-            self._threads.append(t)
-            t.start()
+        self._rx.start()
+        self._writer = threading.Thread(target=self._write_loop,
+                                        name=f"{self.kind}-{self.bus.name}-tx", daemon=True)
+        self._writer.start()
 
     def _stop_threads(self) -> None:
         """Tell both threads to end and wait for them (a thread never waits for itself)."""
         with self._cond:
             self._running = False
             self._cond.notify_all()
-        for t in self._threads:
-            if t is not threading.current_thread():
-                t.join(timeout=2.0)
-        self._threads.clear()
-
-    def _idle(self) -> None:
-        """The reader found nothing to receive (wakes :meth:`settle`)."""
-        with self._cond:
-            self._idle_gen += 1
-            self._cond.notify_all()
+        self._rx.stop()
+        t, self._writer = self._writer, None
+        if t is not None and t is not threading.current_thread():
+            t.join(timeout=2.0)
 
     def write(self, device: str, value: Any) -> None:
         """Queue ``value`` for actuator ``device``; the writer thread sends it (failures arrive
@@ -99,13 +204,13 @@ class ThreadedDriver(Driver):
             self._cond.notify_all()
 
     def settle(self, timeout: float) -> bool:
-        """Wait until no command is queued or on its way and the reader has found nothing to
-        receive twice after this call, so every frame or line that arrived before it has been
-        handed to the host. True at once when stopped; False on timeout."""
+        """Hand the host every frame or line that arrived before this call and wait until no
+        command is queued or on its way (see the module doc). True at once when stopped; False
+        on timeout."""
+        deadline = time.monotonic() + timeout
+        if not self._rx.settle(timeout):
+            return False
         with self._cond:
-            if not self._running:
-                return True
-            gen = self._idle_gen
             return self._cond.wait_for(
-                lambda: not self._running or (self._idle_gen > gen + 1 and not self._outbox
-                                               and not self._sending), timeout)
+                lambda: not self._running or (not self._outbox and not self._sending),
+                max(0.0, deadline - time.monotonic()))

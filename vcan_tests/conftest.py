@@ -44,3 +44,22 @@ def make_system(tmp_path: Path) -> Iterator[MakeSystem]:
     yield make
     for s in made:
         s.shutdown()
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """Start the long User-Mode-Linux runs of the selected tests marked ``uml_background`` (their
+    module's ``start_in_background(config)``) now, so they overlap the rest of the session on
+    the other core; each test then waits for its run's result."""
+    for item in session.items:
+        if isinstance(item, pytest.Function) and item.get_closest_marker("uml_background"):
+            start = getattr(item.module, "start_in_background", None)
+            if start is not None:
+                start(item.config)
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    """Stop background UML runs nobody collected (the session was interrupted)."""
+    from vcan_tests.uml import BACKGROUND
+
+    for run, _workdir in session.config.stash.get(BACKGROUND, {}).values():
+        run.kill()

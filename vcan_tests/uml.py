@@ -98,6 +98,20 @@ def uml_available(kernel: Path = UML_KERNEL, modules_root: Path = UML_MODULES_RO
     return None
 
 
+def _uml_command(argv: Sequence[str], timeout: float, mem: str) -> tuple[list[str], int]:
+    """The host command line that runs ``argv`` in UML, and its timeout in whole seconds.
+    Raises like :func:`run_in_uml`."""
+    if not argv:
+        raise ValueError("run_in_uml: empty argv")
+    if timeout <= 0:
+        raise ValueError(f"run_in_uml: timeout must be positive, not {timeout}")
+    reason = uml_available()
+    if reason is not None:
+        raise UmlUnavailable(reason)
+    seconds = max(1, math.ceil(timeout))
+    return ["bash", str(RUN_IN_UML), "--timeout", str(seconds), "--mem", mem, "--", *argv], seconds
+
+
 def run_in_uml(
     argv: Sequence[str],
     env: Mapping[str, str] | None = None,
@@ -113,15 +127,7 @@ def run_in_uml(
     not run the command (stderr says why, with the console log). Raises :class:`UmlUnavailable`
     when :func:`uml_available` finds a reason, ``ValueError`` for an empty ``argv``.
     """
-    if not argv:
-        raise ValueError("run_in_uml: empty argv")
-    if timeout <= 0:
-        raise ValueError(f"run_in_uml: timeout must be positive, not {timeout}")
-    reason = uml_available()
-    if reason is not None:
-        raise UmlUnavailable(reason)
-    seconds = max(1, math.ceil(timeout))
-    cmd = ["bash", str(RUN_IN_UML), "--timeout", str(seconds), "--mem", mem, "--", *argv]
+    cmd, seconds = _uml_command(argv, timeout, mem)
     return subprocess.run(
         cmd,
         env=dict(env) if env is not None else None,
@@ -132,6 +138,54 @@ def run_in_uml(
         timeout=seconds + _HOST_GRACE,
         check=False,
     )
+
+
+class BackgroundUml:
+    """A :func:`run_in_uml` that runs while the caller goes on (UML takes one core; the rest of
+    a test session uses the other). Start it with :meth:`start`, collect it with :meth:`result`.
+    """
+
+    def __init__(self, proc: subprocess.Popen[str], out: Path, err: Path, seconds: int) -> None:
+        self._proc, self._out, self._err, self._seconds = proc, out, err, seconds
+
+    @classmethod
+    def start(
+        cls,
+        argv: Sequence[str],
+        workdir: Path,
+        env: Mapping[str, str] | None = None,
+        timeout: float = DEFAULT_TIMEOUT,
+        cwd: str | os.PathLike[str] | None = None,
+        mem: str = "512M",
+    ) -> BackgroundUml:
+        """Boot UML and start ``argv`` there; its output goes to files in ``workdir``. Raises
+        like :func:`run_in_uml`."""
+        cmd, seconds = _uml_command(argv, timeout, mem)
+        out, err = workdir / "uml.stdout", workdir / "uml.stderr"
+        with out.open("w") as fo, err.open("w") as fe:
+            proc = subprocess.Popen(cmd, env=dict(env) if env is not None else None, cwd=cwd,
+                                    stdin=subprocess.DEVNULL, stdout=fo, stderr=fe, text=True)
+        return cls(proc, out, err, seconds)
+
+    def result(self) -> subprocess.CompletedProcess[str]:
+        """Wait for the command (bounded by its timeout) and return what :func:`run_in_uml`
+        would have returned."""
+        try:
+            code = self._proc.wait(timeout=self._seconds + _HOST_GRACE)
+        except subprocess.TimeoutExpired:
+            self._proc.kill()
+            code = self._proc.wait()
+        return subprocess.CompletedProcess(self._proc.args, code, self._out.read_text(),
+                                           self._err.read_text())
+
+    def kill(self) -> None:
+        """Stop it now (the session ended without asking for the result)."""
+        if self._proc.poll() is None:
+            self._proc.terminate()
+            try:
+                self._proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()
 
 
 @functools.cache
@@ -189,3 +243,7 @@ def can_channel(interface: str) -> str:
             pytest.skip(socketcan_skip_reason())
         return channel
     raise ValueError(f"can_channel: unknown CAN interface {interface!r} (virtual or socketcan)")
+
+
+BACKGROUND = pytest.StashKey[dict[str, tuple[BackgroundUml, Path]]]()
+"""Long UML runs started when the session's tests are collected, by name (see conftest)."""

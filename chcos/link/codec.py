@@ -113,10 +113,19 @@ def _name_bytes(field: str, name: str) -> bytes:
     return raw
 
 
+def _no_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not JSON")
+
+
+# made once: json.dumps/json.loads with options build a new encoder/decoder on every call
+_ENCODER = json.JSONEncoder(separators=(",", ":"), allow_nan=False, ensure_ascii=False)
+_DECODER = json.JSONDecoder(parse_constant=_no_constant)
+
+
 def encode_value(value: Any) -> bytes:
     """The JSON payload bytes of ``value``; raises LinkError if it is not JSON-representable."""
     try:
-        text = json.dumps(value, separators=(",", ":"), allow_nan=False, ensure_ascii=False)
+        text = _ENCODER.encode(value)
     except (TypeError, ValueError) as exc:
         raise LinkError(
             f"link message value: expected JSON data (None, bool, int, finite float, str, list, "
@@ -134,11 +143,8 @@ def decode_value(payload: bytes) -> Any:
             f"link message payload: expected UTF-8 JSON, bad byte at {exc.start}"
         ) from exc
 
-    def _no_constant(name: str) -> Any:
-        raise ValueError(f"{name} is not JSON")
-
     try:
-        return json.loads(text, parse_constant=_no_constant)
+        return _DECODER.decode(text)
     except ValueError as exc:
         raise LinkError(f"link message payload: expected JSON, {exc}") from exc
 

@@ -279,7 +279,13 @@ class ServoDrives:
             raise BusError(_where("canopen", f"cannot open {interface} channel {channel!r}: "
                                              f"{exc}")) from exc
         try:
-            self.pdo_bus = can.Bus(interface=interface, channel=channel)
+            # only NMT (0x000) and RPDO1 (0x200 + node) are read here: SocketCAN filters the
+            # rest (heartbeats, SDO) out in the kernel. Not elsewhere: python-can filters in
+            # software, and recv(0) then stops at the first frame that does not match
+            filters = [{"can_id": 0x000, "can_mask": 0x7FF, "extended": False},
+                       {"can_id": 0x200, "can_mask": 0x7F8, "extended": False}]
+            self.pdo_bus = can.Bus(interface=interface, channel=channel,
+                                   can_filters=filters if interface == "socketcan" else None)
         except (can.CanError, OSError, ValueError, ImportError) as exc:
             with contextlib.suppress(Exception):
                 network.disconnect()
