@@ -9,9 +9,10 @@ Bus options:
 - ``bitrate`` (int > 0, optional), ``fd`` (bool, default false)
 - ``dbc``: a DBC file (relative to the map file); needed for ``{message, signal}`` addresses
 - ``record``: a log file (``.log``/``.asc``/``.blf``...) receiving every frame received and sent
-- ``poll``: the reader's receive timeout in seconds (default 0.005) on interfaces without a file
-  descriptor (``virtual``); it bounds :meth:`settle` there. On SocketCAN the reader sleeps in
-  ``select`` and :meth:`settle` drains the socket itself, so ``poll`` is not used
+- ``poll``: the reader's receive timeout in seconds (default 0.005) on interfaces it cannot wait
+  on without receiving; it bounds :meth:`settle` there. On SocketCAN (``select`` on the socket)
+  and python-can's ``virtual`` interface (its receive queue) the reader sleeps until a frame is
+  there and :meth:`settle` drains the bus itself, so ``poll`` is not used
 
 Device addresses, one of two forms:
 
@@ -35,6 +36,8 @@ reports ``host.recover(device)``. Bus errors are also counted in ``CanDriver.err
 from __future__ import annotations
 
 import contextlib
+import functools
+import queue
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -240,15 +243,32 @@ def bus_fileno(bus: can.BusABC) -> int | None:
     return fd if isinstance(fd, int) and fd >= 0 else None
 
 
+def _readiness(rx: ReaderThread, bus: can.BusABC) -> Callable[[float], bool] | None:
+    """How the reader can wait until a frame is there without taking it: ``select`` on the
+    bus's file descriptor (SocketCAN), or the receive queue of python-can's ``virtual``
+    interface; None for interfaces with neither (then the reader polls)."""
+    fd = bus_fileno(bus)
+    if fd is not None:
+        return functools.partial(rx.wait_readable, fd)
+    q = getattr(bus, "queue", None)
+    if isinstance(q, queue.Queue):
+        def wait(timeout: float) -> bool:
+            with q.not_empty:   # the queue's own condition; q.queue is its deque
+                return q.not_empty.wait_for(lambda: len(q.queue) > 0, timeout)
+        return wait
+    return None
+
+
 def read_frames(rx: ReaderThread, bus: can.BusABC, poll: float,
                 on_frame: Callable[[can.Message], None], on_error: Callable[[str], None]) -> None:
     """The read loop of a CAN driver's :class:`ReaderThread`: every frame received goes to
     ``on_frame`` (which must not raise), a receive error to ``on_error`` (then a pause of 0.1 s).
-    On a bus with a file descriptor (SocketCAN) it sleeps in ``select`` and drains without
-    blocking, and the reader's settle drains the socket itself; elsewhere (``virtual``) it
-    receives with timeout ``poll`` and reports empty receives (see :mod:`drivers.threaded`)."""
-    fd = bus_fileno(bus)
-    if fd is None:
+    Where it can wait for a frame without taking it (SocketCAN's file descriptor, the
+    ``virtual`` interface's queue) it drains without blocking under the reader's lock, and the
+    reader's settle drains itself; elsewhere it receives with timeout ``poll`` and reports empty
+    receives (see :mod:`drivers.threaded`)."""
+    wait = _readiness(rx, bus)
+    if wait is None:
         while rx.running:
             try:
                 frame = bus.recv(poll)
@@ -278,7 +298,7 @@ def read_frames(rx: ReaderThread, bus: can.BusABC, poll: float,
 
     rx.set_drain(drain)
     while rx.running:
-        if rx.wait_readable(fd, 1.0):
+        if wait(0.05):
             with rx.lock:
                 ok = drain(64)
             if not ok:

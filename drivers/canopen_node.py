@@ -9,9 +9,9 @@ Bus options (``[[bus]] kind = "canopen"``):
   heartbeat supervision), and whether the driver puts the node OPERATIONAL (default true).
 * ``sync_period`` (s, optional) - produce SYNC at this period; ``poll_period`` (s, default 0.1) -
   default SDO polling period; ``sdo_timeout`` (s, default 0.3) - SDO response timeout.
-* ``poll`` (s, default 0.005) - the receive timeout of the driver's reader on interfaces without a
-  file descriptor (``virtual``); it bounds :meth:`CanopenDriver.settle` there. On SocketCAN the
-  reader sleeps in ``select`` and settle drains the socket itself.
+* ``poll`` (s, default 0.005) - the receive timeout of the driver's reader on interfaces it cannot
+  wait on without receiving; it bounds :meth:`CanopenDriver.settle` there. Not used on SocketCAN
+  or python-can's ``virtual`` interface (see :func:`drivers.can_raw.read_frames`).
 
 Frames are received by the driver's own reader thread (:func:`drivers.can_raw.read_frames`), not
 by canopen's notifier, and handed to canopen's listeners (SDO responses, PDOs, heartbeats, EMCY),
