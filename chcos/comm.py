@@ -63,11 +63,10 @@ class CommManager:
         self.sent = 0
         self.errors: list[str] = []
         self.alive: set[int] = {machine}
-        # messages below EXPRESS_FROM wait in a batch per destination key and kind until the
-        # kernel goes idle, BATCH_MAX are waiting, or BATCH_DELAY has passed: one Zenoh put and
-        # one interrupt carry many messages when the satellite is busy. A batch maps a link id
-        # (newest-wins sensory messages: a newer one replaces the waiting one) or a unique
-        # negative number (everything else) to the encoded message.
+        # messages below EXPRESS_FROM wait in a batch per (destination key, droppable,
+        # newest-wins) until it is sent (see BATCH_DELAY). A batch maps a link id (newest-wins
+        # sensory messages: a newer one replaces the waiting one) or a unique negative number
+        # (everything else) to the encoded message.
         self._batches: dict[tuple[str, bool, bool], dict[int, bytes]] = {}
         self._batch_prio: dict[tuple[str, bool, bool], int] = {}
         self._flush_timer: Timer | None = None
@@ -104,13 +103,13 @@ class CommManager:
 
     # ---- outgoing (kernel thread) -----------------------------------------------------------
     def _send(self, machine: int | None, kind: MessageKind, src: str, dst: str, lid: int,
-              priority: int, value: Any, newest_wins: bool = False,
-              droppable: bool | None = None) -> None:
+              priority: int, value: Any, queued: bool = False,
+              newest_wins: bool = False) -> None:
         seq = self._seq.get(lid, 0) + 1
         self._seq[lid] = seq
         msg = LinkMessage(kind, src, dst, lid, priority, seq, time.time_ns(), value)
         key = f"{self.prefix}/all/msg" if machine is None else self.key(machine)
-        drop = kind.droppable if droppable is None else droppable
+        drop = kind.droppable and not queued      # a queued link's messages must all arrive
         try:
             data = encode(msg)
             self.sent += 1
@@ -151,8 +150,8 @@ class CommManager:
             self._flush_slot(slot)
 
     def flush(self) -> None:
-        """Send every waiting batch (kernel thread; called when the kernel goes idle and at the
-        latest BATCH_DELAY after a message was queued)."""
+        """Send every waiting batch (kernel thread; BATCH_DELAY after a batch was started, and
+        when the kernel goes idle on virtual time)."""
         if self._flush_timer is not None:
             self._flush_timer.cancel()
             self._flush_timer = None
@@ -179,8 +178,8 @@ class CommManager:
     def sensory(self, link: Link, value: Any) -> None:
         """A sensory message to a task on another satellite."""
         self._send(link.dst_machine, MessageKind.SENSORY, link.src, link.dst, link.lid,
-                   link.priority, value, newest_wins=not link.queued and not link.tap,
-                   droppable=not link.queued)
+                   link.priority, value, queued=bool(link.queued),
+                   newest_wins=not link.queued and not link.tap)
 
     def tap(self, link: Link, source: str, value: Any) -> None:
         """A tapped sensory message to an exception task on another satellite."""

@@ -359,7 +359,7 @@ class CanopenDriver(Driver):
 
     def settle(self, timeout: float) -> bool:
         """Hand every frame that arrived before this call to canopen (PDOs to the host), then
-        wait until every queued SDO/write is done and no PDO callback is delivering."""
+        wait until every queued SDO/write is done."""
         deadline = time.monotonic() + timeout
         rx = self._rx
         if rx is not None and not rx.settle(timeout):
@@ -492,20 +492,17 @@ class CanopenDriver(Driver):
                             f"canopen bus {self.bus.name}: receive failed: {reason}")
 
     def _on_tpdo(self, pdo_map: Any) -> None:
-        with self._idle:
-            self._pending += 1
-        try:
-            nid = pdo_map.pdo_node.node.id
-            if len(pdo_map.data) * 8 < pdo_map.length:
-                self.host.error(self.bus.name, "malformed",
-                                f"{pdo_map.name} from canopen node {nid}: {len(pdo_map.data)} "
-                                f"bytes, expected {(pdo_map.length + 7) // 8}")
-                return
-            for var in pdo_map.map:
-                for dev in self._pdo_sensors.get((nid, var.index, var.subindex), ()):
-                    self.host.deliver(dev, var.raw)
-        finally:
-            self._done()
+        """A TPDO arrived (reader thread, or settle's drain: both under the reader's lock, so
+        settle never returns while one is being delivered)."""
+        nid = pdo_map.pdo_node.node.id
+        if len(pdo_map.data) * 8 < pdo_map.length:
+            self.host.error(self.bus.name, "malformed",
+                            f"{pdo_map.name} from canopen node {nid}: {len(pdo_map.data)} "
+                            f"bytes, expected {(pdo_map.length + 7) // 8}")
+            return
+        for var in pdo_map.map:
+            for dev in self._pdo_sensors.get((nid, var.index, var.subindex), ()):
+                self.host.deliver(dev, var.raw)
 
     def _on_heartbeat(self, state: _NodeState, nmt_state: int) -> None:
         with self._hb_lock:

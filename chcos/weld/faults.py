@@ -38,7 +38,7 @@ import re
 import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 from chcos.errors import ConfigError
 
@@ -51,15 +51,7 @@ FaultKind = Literal[
     "servo-timeout",
     "intruder",
 ]
-FAULT_KINDS: tuple[FaultKind, ...] = (
-    "gap-wide",
-    "gap-narrow",
-    "tip-stuck",
-    "gas-empty",
-    "sensor-dropout",
-    "servo-timeout",
-    "intruder",
-)
+FAULT_KINDS: tuple[FaultKind, ...] = get_args(FaultKind)
 
 SENSOR_NAMES: tuple[str, ...] = (
     "joint1",
