@@ -2,12 +2,12 @@
 
 A satellite's message manager hands this layer every message whose destination lives on another
 satellite (sensory messages, exception taps, topen/tclose, completion and pre-emption reports,
-actuator commands, device status, the emergency stop). Each goes out as one
-:class:`chcos.link.codec.LinkMessage` carrying its link id and priority, to the key of the
-destination machine. Incoming messages arrive on Zenoh's threads and are handed to the kernel as
-interrupts (thesis 6.1.2: an incoming message readies TSK0), so the tables are only ever touched
-on the kernel thread. Link ids agree across satellites because every satellite applies the same
-install log in the same order.
+actuator commands, device status, the emergency stop, world-model queries and their answers).
+Each goes out as one :class:`chcos.link.codec.LinkMessage` carrying its link id and priority, to
+the key of the destination machine. Incoming messages arrive on Zenoh's threads and are handed
+to the kernel as interrupts (thesis 6.1.2: an incoming message readies TSK0), so the tables are
+only ever touched on the kernel thread. Link ids agree across satellites because every satellite
+applies the same install log in the same order.
 
 Newest wins across the link as inside one satellite: a sensory message on a newest-wins link
 (not queued, not a tap) that is still waiting in its batch when a newer one on the same link is
@@ -34,6 +34,7 @@ from chcos.messages import TOP_PRIORITY, Link, LinkStatus
 
 if TYPE_CHECKING:
     from chcos.system import System
+    from chcos.tasks import TaskEntry
 
 log = logging.getLogger("chcos.comm")
 
@@ -224,6 +225,17 @@ class CommManager:
         self._send(None, MessageKind.COMMAND, "", "", 0, TOP_PRIORITY,
                    {"op": "estop", "reason": reason, "from": self.machine})
 
+    def is_up(self, machine: int) -> bool:
+        """Whether satellite ``machine`` is on the link now (its liveliness token is seen)."""
+        return machine in self.alive
+
+    def query(self, link: Link, asker: TaskEntry, peer: TaskEntry, qid: int, topic: str,
+              args: list[Any]) -> None:
+        """A world-model query of ``asker`` to ``peer`` on another satellite, at the priority
+        ``asker`` runs at. Raises MessageError if it cannot be encoded."""
+        self._send(peer.machine, MessageKind.QUERY, asker.name, peer.name, link.lid, asker.prio,
+                   {"qid": qid, "topic": topic, "args": args})
+
     # ---- incoming (Zenoh thread -> kernel thread) -------------------------------------------
     def _incoming(self, key: str, payload: bytes) -> None:
         self.sys.kernel.interrupt(self._handle_batch, decode_batch(payload))
@@ -284,12 +296,35 @@ class CommManager:
                 mm.close(link)
             else:
                 raise MessageError(f"unknown command op {v['op']!r}")
+        elif kind is MessageKind.QUERY:
+            self._answer(msg, link)
+        elif kind is MessageKind.REPLY and v.get("op") == "answer":
+            mm.ask_answered(int(v["qid"]), v.get("answer"), None)
+        elif kind is MessageKind.ERROR:
+            mm.ask_answered(int(v["qid"]), None, str(v["error"]))
         elif kind is MessageKind.REPLY:
             mm.open_answer(link, str(v["answer"]))
         elif kind in (MessageKind.COMPLETION, MessageKind.PREEMPTION):
             mm.remote_report(link, LinkStatus(v["status"]), v.get("result"), v.get("error", ""))
         else:
             raise MessageError(f"unexpected message kind {kind.name}")
+
+    def _answer(self, msg: LinkMessage, link: Link) -> None:
+        """Answer a world-model query from another satellite with the local task's model, or
+        tell the asker why not (an ERROR message, which raises MessageError in the asker)."""
+        v = msg.value
+        tsktab = self.sys.tsktab
+        asker = tsktab.get(msg.src)
+        qid = int(v["qid"])
+        try:
+            answer = self.sys.msgmgr.world_answer(tsktab.get(msg.dst), str(v["topic"]),
+                                                  v.get("args") or [])
+            self._send(asker.machine, MessageKind.REPLY, msg.dst, msg.src, link.lid,
+                       msg.priority, {"op": "answer", "qid": qid, "answer": answer})
+        except Exception as exc:
+            why = str(exc) if isinstance(exc, MessageError) else f"{type(exc).__name__}: {exc}"
+            self._send(asker.machine, MessageKind.ERROR, msg.dst, msg.src, link.lid,
+                       msg.priority, {"qid": qid, "error": f"{msg.dst}'s world model: {why}"})
 
     def _count_superseded(self, link: Link, seq: int) -> None:
         """Count the messages of a newest-wins link that a newer one replaced before they left

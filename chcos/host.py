@@ -10,6 +10,7 @@ to the satellite of the task or device concerned.
 from __future__ import annotations
 
 import json
+import threading
 import time
 from typing import Any
 
@@ -56,15 +57,35 @@ class Host:
         return sorted(int(k.rsplit("/", 1)[-1]) for k in keys if k.rsplit("/", 1)[-1].isdigit())
 
     def wait_for(self, machines: list[int], timeout: float = 20.0) -> list[int]:
-        """Wait until every machine in ``machines`` is up; returns those that are. Raises
-        LinkError naming the missing ones after ``timeout`` seconds."""
+        """Wait until every machine in ``machines`` is up (its liveliness token is seen; no
+        polling); returns the machines up then. Raises LinkError naming the missing ones after
+        ``timeout`` seconds."""
+        want = set(machines)
+        up: set[int] = set()
+        lock = threading.Lock()
+        changed = threading.Event()
+
+        def seen(key: str, present: bool) -> None:
+            tail = key.rsplit("/", 1)[-1]
+            if tail.isdigit():
+                with lock:
+                    (up.add if present else up.discard)(int(tail))
+                changed.set()
+
         deadline = time.monotonic() + timeout
-        up: list[int] = []
-        while time.monotonic() < deadline:
-            up = self.alive()
-            if set(machines) <= set(up):
-                return up
-        missing = sorted(set(machines) - set(up))
+        with self.transport.watch(f"{self.sf.prefix}/alive/*", lambda k: seen(k, True),
+                                  lambda k: seen(k, False)):
+            while True:
+                changed.clear()
+                with lock:
+                    now_up = sorted(up)
+                if want <= set(now_up):
+                    return now_up
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    break
+                changed.wait(remaining)
+        missing = sorted(want - set(now_up))
         raise LinkError(f"satellite(s) {missing} of {self.sf.name} not up after {timeout} s")
 
     # ---- requests ---------------------------------------------------------------------------

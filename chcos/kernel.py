@@ -141,7 +141,7 @@ class Kernel:
                 if p.waiter is t:
                     p.waiter = None
             t.wait_ports = ()
-        if t.timer is not None or t.wait_link is not None:
+        if t.timer is not None or t.wait_link is not None or t.wait_query is not None:
             self.unhook(t)
         t.send_value = value
         t.throw_exc = exc
@@ -154,6 +154,7 @@ class Kernel:
                 p.waiter = None
         t.wait_ports = ()
         t.wait_link = None
+        t.wait_query = None
         t.sleep_until = None
         if t.timer is not None:
             t.timer.cancel()
@@ -189,7 +190,7 @@ class Kernel:
             self.ready(t, pending)
         elif t.timer is not None:
             t.state = TaskState.ASLEEP if t.sleep_until is not None else TaskState.WAITING
-        elif t.wait_ports or t.wait_link is not None:
+        elif t.wait_ports or t.wait_link is not None or t.wait_query is not None:
             t.state = TaskState.WAITING
         else:
             t.state = TaskState.SUSPENDED

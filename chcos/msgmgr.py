@@ -10,7 +10,7 @@ the owner. Devices, files and the host are link ends too.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol, TextIO
 
@@ -68,6 +68,14 @@ class Comm(Protocol):
     def estop(self, reason: str) -> None:
         """Emergency stop on every other satellite, at top priority."""
 
+    def is_up(self, machine: int) -> bool:
+        """Whether satellite ``machine`` is on the link now."""
+
+    def query(self, link: Link, asker: TaskEntry, peer: TaskEntry, qid: int, topic: str,
+              args: list[Any]) -> None:
+        """Carry ``asker``'s world-model query ``qid`` to ``peer``'s satellite (on ``link``, a
+        link joining the two). Raises MessageError if it cannot be encoded or sent."""
+
 
 class MessageManager:
     """Message transfer and ownership for one satellite's tables."""
@@ -83,6 +91,8 @@ class MessageManager:
         self.comm: Comm | None = None
         self.local: set[int] | None = None  # machines hosted here (None: every machine)
         self._qseq = 0
+        self._ask_seq = 0
+        self._asks: dict[int, tuple[TaskEntry, int]] = {}  # remote queries: id -> (asker, machine)
         kernel.set_end_handler(self._activation_ended)
 
     def is_local(self, machine: int) -> bool:
@@ -430,10 +440,63 @@ class MessageManager:
         link.pending = False
         self._report(link, status, result, error)
 
+    # ---- world-model queries (thesis 5.4) ---------------------------------------------------
+    def world_answer(self, target: TaskEntry, topic: str, args: Sequence[Any]) -> Any:
+        """What ``target``'s world model answers about ``topic`` (run as ``target``, so the
+        model sees its own task as current). Raises MessageError if the task has no model or
+        the model knows nothing about ``topic``; a model's own failure propagates."""
+        if target.world is None:
+            raise MessageError(f"task {target.name} has no world model")
+        k = self.kernel
+        caller, k.current = k.current, target
+        try:
+            return target.world.answer(topic, *args)
+        finally:
+            k.current = caller
+
+    def ask_remote(self, t: TaskEntry, link: Link, peer: TaskEntry, topic: str,
+                   args: Sequence[Any]) -> None:
+        """Send ``t``'s query about ``topic`` to ``peer`` on another satellite and mark ``t`` as
+        waiting for the answer; its caller then blocks ``t``, which :meth:`ask_answered` (or the
+        loss of ``peer``'s satellite) wakes. Raises MessageError if that satellite is not up or
+        the query cannot be sent (e.g. ``args`` are not JSON-representable)."""
+        comm = self.comm
+        if comm is None or not comm.is_up(peer.machine):
+            raise MessageError(f"cannot ask {peer.name}: satellite {peer.machine} is not up")
+        self._ask_seq += 1
+        qid = self._ask_seq
+        comm.query(link, t, peer, qid, topic, list(args))
+        self._asks[qid] = (t, peer.machine)
+        t.wait_query = qid
+
+    def ask_answered(self, qid: int, answer: Any, error: str | None) -> None:
+        """The answer (or, with ``error``, the refusal) of remote query ``qid`` arrived: wake
+        the asker with it. An answer nobody waits for any more (the asker timed out or was
+        pre-empted) is dropped."""
+        entry = self._asks.pop(qid, None)
+        if entry is None:
+            return
+        t = entry[0]
+        if t.wait_query != qid:
+            return
+        if error is None:
+            self.kernel.wake(t, t.base_prio, answer)
+        else:
+            self.kernel.wake(t, t.base_prio, exc=MessageError(error))
+
     def satellite_lost(self, machine: int) -> int:
         """Machine ``machine`` died: every local caller of a task there gets an abnormal
-        completion. Returns how many links were told."""
+        completion, every task waiting for a world-model answer from there a MessageError.
+        Returns how many links and queries were told."""
         n = 0
+        for qid, (t, m) in list(self._asks.items()):
+            if m != machine:
+                continue
+            del self._asks[qid]
+            if t.wait_query == qid:
+                self.kernel.wake(t, t.base_prio, exc=MessageError(
+                    f"satellite {machine} died before answering {t.name}'s query"))
+                n += 1
         for link in self.msgtab:
             if link.type is not LinkType.COMMAND or link.dst_kind is not EndpointKind.TASK:
                 continue

@@ -80,6 +80,7 @@ class TaskEntry:
     next_command: tuple[Any, int, Link | None] | None = None
     wait_ports: tuple[InPort, ...] = ()
     wait_link: Link | None = None
+    wait_query: int | None = None  # the remote world-model query awaiting its answer
     timer: Timer | None = None
     sleep_until: float | None = None
     # statistics

@@ -339,29 +339,31 @@ class TaskContext:
 
     # ---- world model queries ----------------------------------------------------------------
     @types.coroutine
-    def ask(self, peer: str, topic: str, *args: Any) -> Generator[Any, Any, Any]:
-        """Ask task ``peer``'s world model about ``topic`` (a request on the link joining the
-        two tasks, answered by the peer's model, never by reading its memory). Raises
-        MessageError if no link joins the tasks, the peer runs on another satellite, or the
-        model has no answer."""
+    def ask(self, peer: str, topic: str, *args: Any,
+            timeout: float | None = None) -> Generator[Any, Any, Any]:
+        """Ask task ``peer``'s world model about ``topic`` (a request on a link joining the two
+        tasks, answered by the peer's model, never by reading its memory). A peer on another
+        satellite is asked over the link: this task waits for the answer, at most ``timeout``
+        seconds if given. Raises MessageError if no link joins the tasks, the peer has no model,
+        the model has no answer, or the peer's satellite is down or dies before answering;
+        ReadTimeout if no answer came within ``timeout``."""
         me = self._t.name
-        mt = self._mm.msgtab
-        if not any(mt.get(a, b, ty) for a, b in ((me, peer), (peer, me)) for ty in LinkType):
+        mm = self._mm
+        mt = mm.msgtab
+        joining = [lk for a, b in ((me, peer), (peer, me)) for ty in LinkType
+                   if (lk := mt.get(a, b, ty)) is not None]
+        if not joining:
             raise MessageError(f"task {me} has no link to {peer}: it may not query its world model")
-        target = self._mm.tsktab.get(peer)
-        if not self._mm.is_local(target.machine):
-            raise MessageError(f"task {peer} runs on machine {target.machine}: world-model "
-                               "queries do not cross satellites yet")
-        if target.world is None:
-            raise MessageError(f"task {peer} has no world model")
-        k = self._k
-        caller, k.current = k.current, target
-        try:
-            answer = target.world.answer(topic, *args)
-        finally:
-            k.current = caller
-        yield YIELD
-        return answer
+        target = mm.tsktab.get(peer)
+        if mm.is_local(target.machine):
+            answer = mm.world_answer(target, topic, args)
+            yield YIELD
+            return answer
+        t = self._t
+        mm.ask_remote(t, joining[0], target, topic, args)
+        self._k.block(t, TaskState.WAITING)
+        self._arm_timeout(timeout, f"the answer of {peer} about {topic!r}")
+        return (yield BLOCK)
 
     # ---- exception task and assassin --------------------------------------------------------
     @types.coroutine

@@ -10,8 +10,11 @@
    1.7x the single one (the thesis estimated 1.83x).
 2. Cross-satellite message latency: a task on machine 0 sends 5,000 sensory messages/s to a task
    on machine 1 over a queued link (so every message counts), each stamped with the wall clock;
-   p50/p99 of arrival minus stamp (target p99 < 1 ms).
-Usage: tools/bench_satellites.py [--seconds S] [--json FILE]
+   p50/p99 of arrival minus stamp (target p99 < 1 ms). Measured in the same run, side by side:
+   the bare transport under it (two processes, chcos' own Zenoh configuration, the same rate and
+   count; the receiver's Zenoh callback hands each stamp to a second thread, as a satellite hands
+   messages to its kernel): what chcos adds to the floor this machine gives today.
+Usage: tools/bench_satellites.py [--seconds S] [--rate N] [--json FILE] [--latency-only]
 """
 
 from __future__ import annotations
@@ -73,9 +76,7 @@ async def receiver(ctx: TaskContext, cmd: dict[str, Any]) -> None:
         lat.append((time.time_ns() - int(stamp)) / 1e3)
         if len(lat) % 500 == 0:
             ctx.world.sensory["latency_us"] = {"n": len(lat)}
-    s = sorted(lat)
-    ctx.world.sensory["latency_us"] = {"n": len(s), "p50": s[len(s) // 2],
-                                       "p99": s[int(len(s) * 0.99) - 1], "max": s[-1]}
+    ctx.world.sensory["latency_us"] = _stats(lat)
 
 
 DEVMAP = """
@@ -188,25 +189,119 @@ def latency(rate: int, seconds: float) -> dict[str, float]:
         c.close()
 
 
+def _stats(lat: list[float]) -> dict[str, float]:
+    s = sorted(lat)
+    return {"n": len(s), "p50": s[len(s) // 2], "p99": s[int(len(s) * 0.99) - 1], "max": s[-1]}
+
+
+def _raw_receiver(port: int, peer: int, count: int) -> None:
+    """The bare-transport receiver process: prints the latency figures as JSON."""
+    import collections
+
+    from chcos.link.config import LinkConfig
+    from chcos.link.transport import Transport
+
+    stamps: collections.deque[int] = collections.deque()
+    arrived = threading.Event()
+    lat: list[float] = []
+
+    def on_payload(key: str, payload: bytes) -> None:
+        stamps.append(int(payload))
+        arrived.set()
+
+    with Transport(LinkConfig(port, (peer,))) as t:
+        t.subscribe("bench/raw", on_payload)
+        t.announce("bench/raw/alive/rx")
+        while len(lat) < count:                 # the second thread (a satellite's kernel)
+            if not arrived.wait(30.0):
+                raise SystemExit("raw receiver: no message for 30 s")
+            arrived.clear()
+            while stamps:
+                lat.append((time.time_ns() - stamps.popleft()) / 1e3)
+        print(json.dumps(_stats(lat)), flush=True)
+
+
+def _raw_sender(port: int, peer: int, count: int, rate: int) -> None:
+    """The bare-transport sender process: ``count`` stamps at ``rate`` per second."""
+    from chcos.link.codec import MessageKind
+    from chcos.link.config import LinkConfig
+    from chcos.link.transport import Transport
+
+    with Transport(LinkConfig(port, (peer,))) as t:
+        up = threading.Event()
+        with t.watch("bench/raw/alive/*", lambda k: up.set(), lambda k: None):
+            if not up.wait(30.0):
+                raise SystemExit("raw sender: the receiver did not come up")
+        pace = threading.Event()
+        period = 1.0 / rate
+        start = time.monotonic()
+        for i in range(count):
+            t.publish("bench/raw", str(time.time_ns()).encode(), priority=60,
+                      kind=MessageKind.COMMAND)
+            delay = start + (i + 1) * period - time.monotonic()
+            if delay > 0:
+                pace.wait(delay)
+        pace.wait(1.0)  # let the last messages leave before the session closes
+
+
+def raw_latency(rate: int, seconds: float) -> dict[str, float]:
+    """The bare transport's latency at ``rate`` messages/s (see the module docstring)."""
+    count = int(rate * seconds)
+    rx_port, tx_port = free_port(), free_port()
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    me = [sys.executable, str(Path(__file__).resolve())]
+    rx = subprocess.Popen([*me, "--raw", "rx", str(rx_port), str(tx_port), str(count), "0"],
+                          cwd=ROOT, env=env, stdout=subprocess.PIPE, text=True)
+    tx = subprocess.Popen([*me, "--raw", "tx", str(tx_port), str(rx_port), str(count),
+                           str(rate)], cwd=ROOT, env=env)
+    try:
+        out, _ = rx.communicate(timeout=seconds * 3 + 60)
+        tx.wait(30)
+    finally:
+        for p in (rx, tx):
+            if p.poll() is None:
+                p.kill()
+    if rx.returncode != 0:
+        raise SystemExit(f"raw latency run failed (receiver exit {rx.returncode})")
+    return {k: float(v) for k, v in json.loads(out.strip().splitlines()[-1]).items()}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=5.0)
     ap.add_argument("--rate", type=int, default=5000)
     ap.add_argument("--json")
+    ap.add_argument("--latency-only", action="store_true",
+                    help="only the latency part (chcos and the bare transport)")
+    ap.add_argument("--raw", nargs=5, metavar=("ROLE", "PORT", "PEER", "COUNT", "RATE"),
+                    help=argparse.SUPPRESS)  # internal: one bare-transport process
     args = ap.parse_args()
-    one = scaling(1, args.seconds)
-    two = scaling(2, args.seconds)
-    lat = latency(args.rate, args.seconds)
+    if args.raw:
+        role, port, peer, count, rate = args.raw
+        if role == "rx":
+            _raw_receiver(int(port), int(peer), int(count))
+        else:
+            _raw_sender(int(port), int(peer), int(count), int(rate))
+        return 0
+    res: dict[str, Any] = {}
     print(f"cores: {os.cpu_count()}")
-    print(f"1 satellite : {one:10,.0f} loops/s")
-    print(f"2 satellites: {two:10,.0f} loops/s total = {two / one:.2f}x "
-          f"(target >= 1.7x; thesis 2100/1150 = 1.83x)")
+    if not args.latency_only:
+        one = scaling(1, args.seconds)
+        two = scaling(2, args.seconds)
+        res.update(one=one, two=two, ratio=two / one)
+        print(f"1 satellite : {one:10,.0f} loops/s")
+        print(f"2 satellites: {two:10,.0f} loops/s total = {two / one:.2f}x "
+              f"(target >= 1.7x; thesis 2100/1150 = 1.83x)")
+    lat = res["latency_us"] = latency(args.rate, args.seconds)
+    raw = res["raw_latency_us"] = raw_latency(args.rate, args.seconds)
     print(f"cross-satellite latency at {args.rate}/s over {lat['n']:.0f} messages: "
           f"p50 {lat['p50']:.0f} us, p99 {lat['p99']:.0f} us, max {lat['max']:.0f} us "
           f"(target p99 < 1000 us)")
+    print(f"  bare transport, same run     : p50 {raw['p50']:.0f} us, p99 {raw['p99']:.0f} us, "
+          f"max {raw['max']:.0f} us (chcos/bare: p50 {lat['p50'] / raw['p50']:.2f}x, "
+          f"p99 {lat['p99'] / raw['p99']:.2f}x)")
     if args.json:
-        Path(args.json).write_text(json.dumps({"one": one, "two": two, "ratio": two / one,
-                                               "latency_us": lat}))
+        Path(args.json).write_text(json.dumps(res))
     return 0
 
 

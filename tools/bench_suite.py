@@ -58,12 +58,14 @@ def satellite_scaling(seconds: float) -> dict[str, Any]:
     """Item 6: total sensor-to-actuator loops/s with 1 and 2 satellite processes (see
     tools/bench_satellites.py), and the cross-satellite latency at 5,000 messages/s, beside
     the thesis' 1150 / 2100 / 3075 interrupts/s for 1 / 2 / 3 satellites."""
-    from tools.bench_satellites import latency, scaling
+    from tools.bench_satellites import latency, raw_latency, scaling
 
     one = scaling(1, seconds)
     two = scaling(2, seconds)
     lat = latency(5000, seconds)
+    raw = raw_latency(5000, seconds)
     return {"one": one, "two": two, "ratio": two / one, "latency_us": lat,
+            "raw_latency_us": raw,
             "thesis_total_interrupts_per_s": {"1": 1150, "2": 2100, "3": 3075}}
 
 
@@ -317,6 +319,12 @@ def main(argv: list[str] | None = None) -> int:
                  f"p50 {sat_lat['p50'] / 1000:.3f} / p99 {sat_lat['p99'] / 1000:.3f} / "
                  f"max {sat_lat['max'] / 1000:.3f} ms",
                  "yes" if sat_lat["p99"] < 1000 else "NO"))
+    raw_lat = sat["raw_latency_us"]
+    rows.append(("  bare transport (Zenoh + one thread hand-off), same run", "baseline",
+                 f"p50 {raw_lat['p50'] / 1000:.3f} / p99 {raw_lat['p99'] / 1000:.3f} / "
+                 f"max {raw_lat['max'] / 1000:.3f} ms",
+                 f"chcos/bare p50 {sat_lat['p50'] / raw_lat['p50']:.1f}x, "
+                 f"p99 {sat_lat['p99'] / raw_lat['p99']:.1f}x"))
 
     # output -------------------------------------------------------------------------------------
     info["loadavg_end"] = os.getloadavg()[0]

@@ -53,10 +53,12 @@ async def worker(ctx: TaskContext, cmd: dict[str, Any]) -> str:
 
 
 async def boss(ctx: TaskContext, cmd: dict[str, Any] | None) -> None:
-    """Invokes W (its only output) and keeps how that ended in its world model."""
+    """Invokes W (its only output), asks W's world model whom it serves, and keeps both and
+    how the command ended in its own world model."""
     cmd = cmd or {}
     await ctx.invoke("W", {"who": ctx.name, "work": cmd.get("work", 1.0)})
     ctx.world.command["owns"] = "W"
+    ctx.world.command["W serves"] = await ctx.ask("W", "serving", timeout=10.0)
     done = await ctx.done("W")
     ctx.world.sensory["W"] = done.status.value
 

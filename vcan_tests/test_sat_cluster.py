@@ -78,6 +78,9 @@ def test_cross_satellite_preemption(cluster: Cluster) -> None:
                              and task(d, "W")["owner"] is None)
     assert link(doc, "LOW", "W")["status"] == "pre-empted"
     assert task(doc, "W")["completions"] == 1
+    # each owner asked W's world model (on machine 0) whom it serves, over the link
+    assert task(doc, "LOW")["world"]["command"]["W serves"] == "LOW"
+    assert task(doc, "HIGH")["world"]["command"]["W serves"] == "HIGH"
 
 
 def test_late_joiner_catches_up_before_it_runs(cluster: Cluster) -> None:

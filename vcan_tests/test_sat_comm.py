@@ -2,7 +2,8 @@
 stand-in for the Zenoh transport, on virtual time. Checks what the link does to messages:
 newest-wins sensory messages that wait in a batch are replaced by newer ones (and the receiving
 satellite counts them as overwritten), queued links carry every message and are never dropped
-under congestion, batches go out when the kernel idles."""
+under congestion, batches go out when the kernel idles; world-model queries (``ctx.ask``) to a
+task on the other satellite are answered, refused, timed out, or failed when it dies."""
 
 from __future__ import annotations
 
@@ -15,9 +16,11 @@ import pytest
 from chcos.clock import VirtualClock
 from chcos.comm import CommManager
 from chcos.devmap import DeviceMap
+from chcos.errors import MessageError, ReadTimeout
 from chcos.link.codec import MessageKind, decode_batch
 from chcos.system import System
 from chcos.usrmgr import TaskContext
+from chcos.worldmodel import WorldModel
 
 M = "vcan_tests.test_sat_comm"
 
@@ -36,6 +39,40 @@ async def reader(ctx: TaskContext, cmd: Any) -> None:
         got.append(await ctx.read(0))
 
 
+class SeamModel(WorldModel):
+    """Answers "ahead" with a prediction from the arguments; fails on "broken"."""
+
+    def answer(self, topic: str, *args: Any) -> Any:
+        if topic == "ahead":
+            return self.sensory["centre"] + args[0]
+        if topic == "broken":
+            raise ZeroDivisionError("division by zero")
+        return super().answer(topic, *args)
+
+
+async def modelled(ctx: TaskContext, cmd: Any) -> None:
+    """Keeps a seam centre in its world model and sends it upward."""
+    ctx.world.sensory["centre"] = 12.5
+    ctx.put(12.5)
+    await ctx.sleep(1000.0)
+
+
+modelled.world_model = SeamModel  # type: ignore[attr-defined]
+
+
+async def asker(ctx: TaskContext, cmd: dict[str, Any]) -> None:
+    """Asks W each ``topic`` or ``topic:number`` of the comma-separated ``cmd["ask"]``; keeps
+    answers and errors in its model."""
+    log = ctx.world.sensory.setdefault("answers", [])
+    for item in str(cmd["ask"]).split(","):
+        topic, *rest = item.split(":")
+        args = [float(x) for x in rest]
+        try:
+            log.append(await ctx.ask("W", topic, *args, timeout=cmd.get("timeout")))
+        except (MessageError, ReadTimeout) as exc:
+            log.append(f"{type(exc).__name__}: {exc}")
+
+
 class _Handle:
     def close(self) -> None:
         pass
@@ -47,6 +84,12 @@ class LoopNet:
     def __init__(self) -> None:
         self.subs: dict[str, list[Callable[[str, bytes], None]]] = {}
         self.held: list[tuple[str, bytes, MessageKind]] = []
+        self.left: list[Callable[[str], object]] = []
+
+    def kill(self, machine: int) -> None:
+        """What every satellite sees when ``machine`` dies: its liveliness token vanishes."""
+        for cb in self.left:
+            cb(f"chcos/t/alive/{machine}")
 
     def deliver(self) -> int:
         held, self.held = self.held, []
@@ -67,6 +110,9 @@ class LoopTransport:
         return _Handle()
 
     def watch(self, key: str, joined: Any, left: Any) -> _Handle:
+        for m in (0, 1):  # both satellites are up (as Zenoh reports existing tokens)
+            joined(f"chcos/t/alive/{m}")
+        self.net.left.append(left)
         return _Handle()
 
     def announce(self, key: str) -> _Handle:
@@ -92,8 +138,12 @@ def pair(tmp_path: Path) -> Iterator[tuple[System, System, LoopNet, list[CommMan
         s.execute(f"install -m0 --code={M}:producer P")
         s.execute(f"install -m1i1 --code={M}:reader R P")
         s.execute(f"install -m1i1 --queue=P=64 --code={M}:reader Q P")
+        s.execute(f"install -m1 --code={M}:modelled W")
+        s.execute(f"install -m0i1 --code={M}:asker A W")
     systems[1].execute("invoke R")
     systems[1].execute("invoke Q")
+    for s in systems:   # each satellite learns that the other is up
+        s.run_for(0.001)
     yield systems[0], systems[1], net, comms
     for s in systems:
         s.shutdown()
@@ -147,3 +197,70 @@ def test_a_restarted_sender_does_not_count_as_a_gap(
     _step(m1)
     link = m1.msgtab.find("P", "R")
     assert link.overwritten == 0 and link.sent == 2
+
+
+def _exchange(m0: System, m1: System, net: LoopNet, rounds: int = 4) -> None:
+    for _ in range(rounds):
+        _step(m0)
+        net.deliver()
+        _step(m1)
+        net.deliver()
+
+
+def _answers(s: System) -> list[Any]:
+    a = s.tsktab.get("A")
+    assert a.world is not None
+    return list(a.world.sensory.get("answers", []))
+
+
+def test_a_world_model_on_another_satellite_answers(
+        pair: tuple[System, System, LoopNet, list[CommManager]]) -> None:
+    m0, m1, net, _ = pair
+    m1.execute("invoke W")
+    _exchange(m0, m1, net)
+    m0.execute("invoke A ask=centre,ahead:2.5,nothing,broken")
+    _exchange(m0, m1, net, rounds=8)
+    assert _answers(m0) == [
+        12.5, 15.0,
+        "MessageError: W's world model: world model has nothing on 'nothing'",
+        "MessageError: W's world model: ZeroDivisionError: division by zero"]
+    assert m0.tsktab.get("A").completions == 1
+
+
+def test_a_query_times_out_and_its_late_answer_is_dropped(
+        pair: tuple[System, System, LoopNet, list[CommManager]]) -> None:
+    m0, m1, net, _ = pair
+    m1.execute("invoke W")
+    _exchange(m0, m1, net)
+    m0.execute("invoke A timeout=0.5 ask=centre,ahead:1.0")
+    m0.run_for(0.6)           # the first query is held on the way past its timeout
+    assert _answers(m0) == ["ReadTimeout: task A: no message on the answer of W about "
+                            "'centre' within 0.5 s"]
+    _exchange(m0, m1, net)    # both answers arrive; the late one finds nobody waiting
+    assert _answers(m0)[1:] == [13.5]
+    assert m0.msgmgr._asks == {}
+
+
+def test_a_query_fails_when_the_peer_satellite_dies(
+        pair: tuple[System, System, LoopNet, list[CommManager]]) -> None:
+    m0, _m1, net, _ = pair
+    m0.execute("invoke A ask=centre,centre")
+    _step(m0)                  # the first query left; machine 1 dies before answering
+    net.kill(1)
+    _step(m0)
+    assert _answers(m0) == [
+        "MessageError: satellite 1 died before answering A's query",
+        "MessageError: cannot ask W: satellite 1 is not up"]
+    assert m0.msgmgr._asks == {}
+
+
+def test_a_query_that_cannot_be_encoded_is_refused_in_the_asker(
+        pair: tuple[System, System, LoopNet, list[CommManager]]) -> None:
+    m0 = pair[0]
+    a = m0.tsktab.get("A")
+    ctx = a.ctx
+    assert ctx is not None
+    coro = ctx.ask("W", "ahead", object())
+    with pytest.raises(MessageError, match="cannot send query A->W"):
+        coro.send(None)
+    assert a.wait_query is None and m0.msgmgr._asks == {}
