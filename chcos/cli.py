@@ -78,23 +78,27 @@ def _console(lines: Iterable[str], execute: Callable[[str], str]) -> int:
 
 
 def _satellite(args: argparse.Namespace) -> int:
+    """Run one satellite until SIGTERM or SIGINT, then stop it cleanly (actuators safe).
+
+    The stop signals are blocked in every thread (set before any is started, so Zenoh's and the
+    drivers' threads inherit the mask) and taken by ``sigwait`` in the main thread: a signal
+    that the kernel happened to deliver to another thread would otherwise leave a main thread
+    asleep in a lock wait that nothing interrupts."""
     import signal
-    import threading
 
     from chcos import sysfile
     from chcos.link.transport import enable_zenoh_logging
     from chcos.satellite import Satellite
 
+    stops = {signal.SIGTERM, signal.SIGINT}
+    signal.pthread_sigmask(signal.SIG_BLOCK, stops)
     enable_zenoh_logging("warn")  # Zenoh reports refused (unauthenticated) sessions
     sf = sysfile.load(args.system)
-    done = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: done.set())
-    signal.signal(signal.SIGINT, lambda *_: done.set())
     with Satellite(sf, args.machine) as sat:
         sat.start()
         print(f"satellite {args.machine} of {sf.name} up ({len(sat.log)} log entries)",
               flush=True)
-        done.wait()
+        signal.sigwait(stops)
     return 0
 
 
