@@ -48,6 +48,13 @@ BATCH_MAX = 64
 BATCH_DELAY = 0.001
 
 
+def machine_of(token_key: str) -> int | None:
+    """The machine number of a satellite's liveliness token key (``.../alive/<N>``), or None
+    for a key that does not end in a number."""
+    tail = token_key.rsplit("/", 1)[-1]
+    return int(tail) if tail.isdigit() else None
+
+
 class CommManager:
     """The link between one satellite (machine ``machine``) and all the others."""
 
@@ -339,17 +346,13 @@ class CommManager:
             self.superseded += gap
 
     # ---- liveliness -------------------------------------------------------------------------
-    def _machine_of(self, key: str) -> int | None:
-        tail = key.rsplit("/", 1)[-1]
-        return int(tail) if tail.isdigit() else None
-
     def _joined(self, key: str) -> None:
-        m = self._machine_of(key)
+        m = machine_of(key)
         if m is not None and m != self.machine:
             self.sys.kernel.interrupt(self._on_join, m)
 
     def _left(self, key: str) -> None:
-        m = self._machine_of(key)
+        m = machine_of(key)
         if m is not None and m != self.machine:
             self.sys.kernel.interrupt(self._on_leave, m)
 

@@ -15,6 +15,7 @@ import time
 from typing import Any
 
 from chcos import cmdline
+from chcos.comm import machine_of
 from chcos.errors import CommandSyntaxError, InstallError, LinkError
 from chcos.link.config import UsrPwdAuth
 from chcos.link.transport import Transport
@@ -54,7 +55,7 @@ class Host:
     def alive(self) -> list[int]:
         """The machines whose satellites are up now."""
         keys = self.transport.alive(f"{self.sf.prefix}/alive/*", timeout=1.0)
-        return sorted(int(k.rsplit("/", 1)[-1]) for k in keys if k.rsplit("/", 1)[-1].isdigit())
+        return sorted(m for k in keys if (m := machine_of(k)) is not None)
 
     def wait_for(self, machines: list[int], timeout: float = 20.0) -> list[int]:
         """Wait until every machine in ``machines`` is up (its liveliness token is seen; no
@@ -66,10 +67,10 @@ class Host:
         changed = threading.Event()
 
         def seen(key: str, present: bool) -> None:
-            tail = key.rsplit("/", 1)[-1]
-            if tail.isdigit():
+            m = machine_of(key)
+            if m is not None:
                 with lock:
-                    (up.add if present else up.discard)(int(tail))
+                    (up.add if present else up.discard)(m)
                 changed.set()
 
         deadline = time.monotonic() + timeout
@@ -78,14 +79,13 @@ class Host:
             while True:
                 changed.clear()
                 with lock:
-                    now_up = sorted(up)
-                if want <= set(now_up):
-                    return now_up
+                    if want <= up:
+                        return sorted(up)
+                    missing = sorted(want - up)
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     break
                 changed.wait(remaining)
-        missing = sorted(want - set(now_up))
         raise LinkError(f"satellite(s) {missing} of {self.sf.name} not up after {timeout} s")
 
     # ---- requests ---------------------------------------------------------------------------

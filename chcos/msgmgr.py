@@ -490,13 +490,10 @@ class MessageManager:
         Returns how many links and queries were told."""
         n = 0
         for qid, (t, m) in list(self._asks.items()):
-            if m != machine:
-                continue
-            del self._asks[qid]
-            if t.wait_query == qid:
-                self.kernel.wake(t, t.base_prio, exc=MessageError(
-                    f"satellite {machine} died before answering {t.name}'s query"))
-                n += 1
+            if m == machine:
+                n += t.wait_query == qid
+                self.ask_answered(qid, None,
+                                  f"satellite {machine} died before answering {t.name}'s query")
         for link in self.msgtab:
             if link.type is not LinkType.COMMAND or link.dst_kind is not EndpointKind.TASK:
                 continue

@@ -350,9 +350,9 @@ class TaskContext:
         me = self._t.name
         mm = self._mm
         mt = mm.msgtab
-        joining = [lk for a, b in ((me, peer), (peer, me)) for ty in LinkType
-                   if (lk := mt.get(a, b, ty)) is not None]
-        if not joining:
+        joining = next((lk for a, b in ((me, peer), (peer, me)) for ty in LinkType
+                        if (lk := mt.get(a, b, ty)) is not None), None)
+        if joining is None:
             raise MessageError(f"task {me} has no link to {peer}: it may not query its world model")
         target = mm.tsktab.get(peer)
         if mm.is_local(target.machine):
@@ -360,7 +360,7 @@ class TaskContext:
             yield YIELD
             return answer
         t = self._t
-        mm.ask_remote(t, joining[0], target, topic, args)
+        mm.ask_remote(t, joining, target, topic, args)
         self._k.block(t, TaskState.WAITING)
         self._arm_timeout(timeout, f"the answer of {peer} about {topic!r}")
         return (yield BLOCK)

@@ -10,7 +10,7 @@
   sent from one transport in the same priority band arrive in the order sent; a message of a
   higher band may overtake lower ones (that is what priorities are for);
 * ``request``/``serve``: request/reply over Zenoh queryables (e.g. a late joiner fetching the
-  message table, a task asking another satellite's world model);
+  message table, the host's install and map requests);
 * ``announce``/``watch``/``alive``: liveliness tokens, so satellites see each other appear and
   die (a killed process's tokens vanish when its TCP links reset, or at the latest when its lease
   expires).
