@@ -53,6 +53,11 @@ DT = ModbusClientMixin.DATATYPE
 REGISTER_TYPES: dict[str, Any] = {"int16": DT.INT16, "uint16": DT.UINT16, "int32": DT.INT32,
                                   "uint32": DT.UINT32, "float32": DT.FLOAT32,
                                   "float64": DT.FLOAT64}
+#: What each type can carry on the wire (float32: its largest finite value).
+RAW_RANGE: dict[str, tuple[float, float]] = {
+    "bool": (0, 1), "int16": (-2**15, 2**15 - 1), "uint16": (0, 2**16 - 1),
+    "int32": (-2**31, 2**31 - 1), "uint32": (0, 2**32 - 1),
+    "float32": (-3.4028234663852886e38, 3.4028234663852886e38)}
 TABLES = ("coil", "discrete", "holding", "input")
 WRITABLE = ("coil", "holding")
 READ_METHOD = {"coil": "read_coils", "discrete": "read_discrete_inputs",
@@ -164,6 +169,7 @@ def check_address(bus: BusSpec, device: DeviceSpec) -> list[str]:
         errs.append(f"{k}.table: {table} is read-only; an actuator needs coil or holding")
     bits = table in ("coil", "discrete")
     typ = a.get("type", "bool" if bits else "uint16")
+    typ = typ if isinstance(typ, str) else repr(typ)
     size = 1
     if bits and typ != "bool":
         errs.append(f"{k}.type: a {table} holds one bit; expected \"bool\", got {typ!r}")
@@ -238,6 +244,17 @@ class _ModbusDriver(Driver):
     def check_device(cls, bus: BusSpec, device: DeviceSpec) -> list[str]:
         """Errors of a device address: unit, table, address range for the type, word order."""
         return check_address(bus, device)
+
+    @classmethod
+    def encodable(cls, bus: BusSpec, device: DeviceSpec) -> tuple[float, float] | None:
+        """The range of the address's type: 0..1 for a coil, the integer types' ranges, the
+        largest float32; None for float64."""
+        return RAW_RANGE.get(point_of(device).type)
+
+    @classmethod
+    def poll_period(cls, bus: BusSpec, device: DeviceSpec) -> float | None:
+        """The sensor's ``poll_period``, else the bus's, else 0.1 s."""
+        return float(device.address.get("poll_period", bus.options.get("poll_period", 0.1)))
 
     # -- life cycle ---------------------------------------------------------------------------
 

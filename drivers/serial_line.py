@@ -225,6 +225,24 @@ def _check_line_bus(key: str, o: Mapping[str, Any]) -> list[str]:
     return errs
 
 
+MAX_FRAME = 4096   # bytes in a binary frame's struct payload
+
+
+def _struct_of(fmt: object) -> struct.Struct:
+    """``struct.Struct(fmt)`` for a device map's ``struct`` string. Raises struct.error with
+    what was expected: a string of ASCII format characters, a payload of at most MAX_FRAME
+    bytes."""
+    if not isinstance(fmt, str) or not fmt.isascii():
+        raise struct.error("expected a string of ASCII struct format characters")
+    try:
+        st = struct.Struct(fmt)
+    except (ValueError, OverflowError, MemoryError) as exc:
+        raise struct.error(str(exc)) from None
+    if st.size > MAX_FRAME:
+        raise struct.error(f"payload of {st.size} bytes; expected at most {MAX_FRAME}")
+    return st
+
+
 def _check_binary_bus(key: str, o: Mapping[str, Any]) -> list[str]:
     errs: list[str] = []
     try:
@@ -237,7 +255,7 @@ def _check_binary_bus(key: str, o: Mapping[str, Any]) -> list[str]:
         errs.append(f"{key}.fields: expected a list of field names, got {fields!r}")
         fields = None
     try:
-        st = struct.Struct(str(o.get("struct")))
+        st = _struct_of(o.get("struct"))
         n = len(st.unpack(bytes(st.size)))
         if fields is not None and n != len(fields):
             errs.append(f"{key}.fields: struct {st.format!r} has {n} items, expected as many "
@@ -324,8 +342,9 @@ class SerialDriver(ThreadedDriver):
                             f"{a.get('type')!r}")
             name = a.get(want)
             try:
+                fields = o.get("fields", [])
                 names = (list(re.compile(str(o.get("pattern"))).groupindex) if proto == "line"
-                         else [f for f in o.get("fields", []) if f != "_"])
+                         else [f for f in fields if f != "_"] if isinstance(fields, list) else [])
             except re.error:
                 return errs            # reported by check_bus
             if name not in names:
@@ -346,8 +365,8 @@ class SerialDriver(ThreadedDriver):
         errs = [f"{key}.{k}: unknown key; a binary actuator takes struct and prefix"
                 for k in a if k not in ("struct", "prefix")]
         try:
-            if len(struct.Struct(str(a.get("struct"))).unpack(bytes(
-                    struct.calcsize(str(a.get("struct")))))) != 1:
+            st = _struct_of(a.get("struct"))
+            if len(st.unpack(bytes(st.size))) != 1:
                 errs.append(f"{key}.struct: expected a format of exactly one item")
         except struct.error as exc:
             errs.append(f"{key}.struct: expected a struct format, got {a.get('struct')!r}: {exc}")
