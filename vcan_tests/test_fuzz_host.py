@@ -10,6 +10,7 @@ actuator.
 
 from __future__ import annotations
 
+import contextlib
 import math
 from pathlib import Path
 from typing import Any
@@ -234,10 +235,8 @@ def test_any_script_on_a_system_refuses_with_chcos_errors(make_system: MakeSyste
     s = make_system(memory_map(["S1"], {"V": 0.0}))
     s.execute(f"install -m0o1 --code={M}:setter A1 V")
     for line in lines:
-        try:
+        with contextlib.suppress(ChcosError):
             s.execute(line)
-        except ChcosError:
-            pass
         s.run_for(0.01)
     for value in s.devtab.get("V").driver.store.history("V"):  # type: ignore[union-attr]
         assert math.isfinite(value)
