@@ -59,6 +59,7 @@ DEVICE_KEYS = ("name", "direction", "machine", "bus", "address", "priority", "st
                "scale", "offset", "limits", "safe_value", "units")
 TOP_KEYS = ("bus", "device")
 PATH_KEYS = frozenset({"dbc", "eds", "record"})
+MAX_MESSAGE = 300        # characters of one error's expectation
 MAX_NAME = 64            # characters in a bus or device name
 MAX_DEPTH = 8            # nesting of tables/arrays inside a bus's options or a device's address
 MAX_INT = 2**63 - 1      # any integer in a device map
@@ -83,6 +84,8 @@ class _FileErrors:
         """Record ``key: message`` at the line of the table ``key`` starts with."""
         line = self._line(key)
         where = f"{self.path}:{line}" if line else self.path
+        message = _clip(message, MAX_MESSAGE)   # a driver quoting a huge value keeps it short
+        key = _clip(key, 120)                   # keys are free-form in TOML (quoted keys)
         self.errors.append(f"{where}: {key}: {message}" if key else f"{where}: {message}")
 
     def _line(self, key: str) -> int | None:
@@ -92,6 +95,12 @@ class _FileErrors:
         lines = self.bus_lines if m.group(1) == "bus" else self.device_lines
         i = int(m.group(2))
         return lines[i] if i < len(lines) else None
+
+
+def _clip(text: str, limit: int) -> str:
+    """``text`` on one line (newlines escaped), cut to ``limit`` characters."""
+    text = text.replace("\r", "\\r").replace("\n", "\\n")
+    return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
 def _header_lines(text: str, table: str) -> list[int]:
@@ -129,7 +138,7 @@ def _unknown_keys(fe: _FileErrors, key: str, table: Mapping[str, Any],
                   valid: Sequence[str]) -> None:
     for k in table:
         if k not in valid:
-            fe.add(key, f"unknown key {k!r}; valid keys: {', '.join(valid)}")
+            fe.add(key, f"unknown key {_short(k)}; valid keys: {', '.join(valid)}")
 
 
 def _name(fe: _FileErrors, key: str, table: Mapping[str, Any]) -> str | None:
@@ -139,7 +148,7 @@ def _name(fe: _FileErrors, key: str, table: Mapping[str, Any]) -> str | None:
         return None
     if not isinstance(v, str) or not _NAME_RE.fullmatch(v) or len(v) > MAX_NAME:
         fe.add(f"{key}.name", f"expected a name of letters, digits, _ . - starting with a letter "
-                              f"or _, at most {MAX_NAME} characters, got {v!r}")
+                              f"or _, at most {MAX_NAME} characters, got {_short(v)}")
         return None
     return v
 
@@ -153,7 +162,7 @@ def _parse_bus(fe: _FileErrors, i: int, table: Any, base: Path) -> BusSpec | Non
     kind = table.get("kind")
     if not isinstance(kind, str) or not kind:
         fe.add(f"{key}.kind", f"expected a bus kind string (memory, signal, can, canopen, "
-                              f"modbus-tcp, modbus-rtu, serial), got {kind!r}")
+                              f"modbus-tcp, modbus-rtu, serial), got {_short(kind)}")
         return None
     if name is None:
         return None
@@ -223,19 +232,21 @@ def _in_range(fe: _FileErrors, key: str, v: float | None, rng: tuple[float, floa
 _SECONDS_RE = re.compile(r"(?:.*_)?(?:period|timeout|delay|delay_max|tick)\Z")
 
 
-def _check_values(fe: _FileErrors, key: str, v: object, depth: int = 0) -> bool:
+def _check_values(fe: _FileErrors, key: str, v: object, depth: int = 0,
+                  top: str | None = None) -> bool:
     """Rules every value of a bus's options or a device's address obeys, whatever its kind:
     nesting at most MAX_DEPTH, integers within +-MAX_INT, floats finite, seconds (keys ending in
     period, timeout, delay, delay_max, tick) within SECONDS_RANGE, ``rate_hz`` within RATE_RANGE.
     Records every violation; True if there was none."""
     ok = True
     if depth > MAX_DEPTH:
-        fe.add(key, f"nested more than {MAX_DEPTH} levels deep; expected a flat value")
+        fe.add(top or key, f"nested more than {MAX_DEPTH} levels deep; expected a flatter "
+                           f"value")
         return False
     if isinstance(v, dict):
         for k, item in v.items():
             sub = f"{key}.{k}" if key else str(k)
-            ok = _check_values(fe, sub, item, depth + 1) and ok
+            ok = _check_values(fe, sub, item, depth + 1, top or sub) and ok
             if ok and _is_number(item):
                 last = str(k)
                 if _SECONDS_RE.match(last):
@@ -246,7 +257,7 @@ def _check_values(fe: _FileErrors, key: str, v: object, depth: int = 0) -> bool:
         return ok
     if isinstance(v, list):
         for i, item in enumerate(v):
-            ok = _check_values(fe, f"{key}[{i}]", item, depth + 1) and ok
+            ok = _check_values(fe, f"{key}[{i}]", item, depth + 1, top or key) and ok
         return ok
     if isinstance(v, int) and not isinstance(v, bool) and abs(v) > MAX_INT:
         fe.add(key, f"expected an integer of magnitude <= {MAX_INT}, got {_short(v)}")
@@ -418,16 +429,19 @@ def _guarded(fe: _FileErrors, key: str, fn: Any, *args: Any) -> list[str]:
 
 
 def _driver_checks(fe_by_file: Mapping[str, _FileErrors], buses: Sequence[BusSpec],
-                   devices: Sequence[DeviceSpec]) -> dict[str, type[Driver] | None]:
+                   devices: Sequence[DeviceSpec]) -> tuple[dict[str, type[Driver] | None],
+                                                           set[int]]:
     """Run each bus kind's check_bus / check_device; normalise their key paths. Returns the
-    driver class of each bus (None where the kind has no usable driver or the bus is invalid)."""
+    driver class of each bus (None where the kind has no usable driver or the bus is invalid)
+    and the ids of the devices whose address the driver refused."""
     classes: dict[str, type[Driver] | None] = {}
+    refused: set[int] = set()
     for b in buses:
         fe = fe_by_file[b.file]
         try:
             cls: type[Driver] | None = driver_class(b.kind)
         except DriverNotAvailable as exc:
-            fe.add(f"{b.key}.kind", f"bus kind {b.kind!r} has no usable driver: {exc}")
+            fe.add(f"{b.key}.kind", f"bus kind {_short(b.kind)} has no usable driver: {exc}")
             cls = None
         classes[b.name] = cls
         if cls is not None:
@@ -443,9 +457,12 @@ def _driver_checks(fe_by_file: Mapping[str, _FileErrors], buses: Sequence[BusSpe
         if bus is None or cls is None:
             continue
         fe = fe_by_file[d.file]
+        before = len(fe.errors)
         for msg in _guarded(fe, f"{d.key}.address", cls.check_device, bus, d):
             fe.add(*_split(msg, d.key, "address."))
-    return classes
+        if len(fe.errors) != before:
+            refused.add(id(d))
+    return classes, refused
 
 
 def _split(msg: str, prefix: str, relative: str) -> tuple[str, str]:
@@ -554,11 +571,12 @@ def check(paths: str | Path | Iterable[str | Path]) -> tuple[DeviceMap | None, l
         else:
             seen_dev[d.name] = d
         if d.bus not in seen_bus:
-            fe_by_file[d.file].add(f"{d.key}.bus", f"no bus named {d.bus!r}; expected one of: "
-                                                   f"{', '.join(seen_bus) or 'no buses declared'}")
-    classes = _driver_checks(fe_by_file, list(seen_bus.values()), checkable)
+            fe_by_file[d.file].add(f"{d.key}.bus",
+                                   f"no bus named {_short(d.bus)}; expected one of: "
+                                   f"{', '.join(seen_bus) or 'no buses declared'}")
+    classes, refused = _driver_checks(fe_by_file, list(seen_bus.values()), checkable)
     errors = [e for fe in fe_by_file.values() for e in fe.errors]
-    valid = {id(d) for d in devices}
+    valid = {id(d) for d in devices} - refused
     warnings = _warnings(fe_by_file, seen_bus, classes,
                          [d for d in checkable if id(d) in valid], empty)
     if errors:

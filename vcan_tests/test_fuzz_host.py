@@ -138,7 +138,9 @@ def test_refused_invoke_leaves_the_host_link_priority_alone(make_system: MakeSys
 def test_task_names_may_not_end_in_a_newline(make_system: MakeSystem) -> None:
     s = make_system()
     with pytest.raises(InstallError, match="not a valid name"):
-        s.execute(cmdline.parse(["install", "-m0", f"--code={M}:holder", "B1\n"]))
+        req = cmdline.parse(["install", "-m0", f"--code={M}:holder", "B1\n"])
+        assert req is not None
+        s.execute(req)
     assert len(s.tsktab) == 0
 
 
