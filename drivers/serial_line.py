@@ -24,7 +24,9 @@ Bus options:
 
 Device addresses: a sensor names its value, ``{ group = "t1" }`` (line) or ``{ field = "t1" }``
 (binary); a line group is a number unless the address says ``type = "text"`` (then the matched
-text is delivered as it is, e.g. a linear sensor's pixel string). An actuator gives how a
+text is delivered as it is, e.g. a linear sensor's pixel string). A number is a finite decimal
+as instruments write it (``-12.5``, ``1e3``); ``nan``, ``inf``, ``1_000``, ``0x10`` and non-ASCII
+digits are "malformed", and so is a binary frame whose float field is nan or infinite. An actuator gives how a
 command is written: line, ``{ format = "SET M1 {value:.2f}" }``
 (``str.format`` with ``value``; ``eol`` is appended); binary, ``{ struct = "<h", prefix = "10" }``
 (the frame sent is sync + payload + checksum, payload = prefix bytes + the value packed with
@@ -39,6 +41,7 @@ the next one that goes out is ``host.recover(device)``.
 from __future__ import annotations
 
 import contextlib
+import math
 import re
 import struct
 from collections.abc import Iterable, Mapping, Sequence
@@ -120,11 +123,26 @@ class LineFramer:
             if name in self.text_groups:
                 values[name] = val
                 continue
-            try:
-                values[name] = float(val)
-            except ValueError:
-                return "malformed", f"line {text[:80]!r}: group {name} = {val!r} is no number"
+            number = parse_number(val)
+            if number is None:
+                return "malformed", (f"line {text[:80]!r}: group {name} = {val[:40]!r} is no "
+                                     f"finite decimal number")
+            values[name] = number
         return "values", values
+
+
+_DECIMAL = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+
+
+def parse_number(text: str) -> float | None:
+    """A decimal number as an instrument writes it (``-12.5``, ``1e3``, ``.5``, surrounding
+    blanks allowed), or None: ``nan``, ``inf``, ``1_000``, hex, non-ASCII digits and numbers
+    too large for a float (``1e999``) are no readings."""
+    text = text.strip()
+    if not _DECIMAL.fullmatch(text):
+        return None
+    value = float(text)
+    return value if math.isfinite(value) else None
 
 
 class BinaryFramer:
@@ -175,8 +193,13 @@ class BinaryFramer:
             del self._buf[:self.frame_len]
             self._absorb = 0
             items = self.struct.unpack(payload)
-            events.append(("values", {f: v for f, v in zip(self.fields, items, strict=True)
-                                      if f != "_"}))
+            values = {f: v for f, v in zip(self.fields, items, strict=True) if f != "_"}
+            bad = [f for f, v in values.items() if isinstance(v, float) and not math.isfinite(v)]
+            if bad:
+                events.append(("malformed", f"frame {payload.hex()}: field {bad[0]} is "
+                                            f"{values[bad[0]]}, not a finite number"))
+                continue
+            events.append(("values", values))
 
     def _sync_prefix_len(self) -> int:
         """How many trailing bytes of the buffer could be the start of a sync."""
