@@ -32,6 +32,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import functools
+import math
 import struct
 import threading
 from abc import abstractmethod
@@ -482,6 +483,9 @@ class _ModbusDriver(Driver):
             off = p.address - r.address
             try:
                 value = p.decode(entries[off:off + p.size])
+                if isinstance(value, float) and not math.isfinite(value):
+                    raise ValueError(f"{p.type} registers {list(entries[off:off + p.size])} "
+                                     f"hold {value}, not a finite number")
             except (ModbusException, IndexError, ValueError) as exc:
                 self.host.error(self.bus.name, "malformed",
                                 f"{r.describe()} answer for {p.device}: {exc}")

@@ -26,8 +26,8 @@ Device addresses: a sensor names its value, ``{ group = "t1" }`` (line) or ``{ f
 (binary); a line group is a number unless the address says ``type = "text"`` (then the matched
 text is delivered as it is, e.g. a linear sensor's pixel string). A number is a finite decimal
 as instruments write it (``-12.5``, ``1e3``); ``nan``, ``inf``, ``1_000``, ``0x10`` and non-ASCII
-digits are "malformed", and so is a binary frame whose float field is nan or infinite. An actuator gives how a
-command is written: line, ``{ format = "SET M1 {value:.2f}" }``
+digits are "malformed", and so is a binary frame whose float field is nan or infinite. An
+actuator gives how a command is written: line, ``{ format = "SET M1 {value:.2f}" }``
 (``str.format`` with ``value``; ``eol`` is appended); binary, ``{ struct = "<h", prefix = "10" }``
 (the frame sent is sync + payload + checksum, payload = prefix bytes + the value packed with
 ``struct``; integer codes get the value rounded).
