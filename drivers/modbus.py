@@ -482,10 +482,7 @@ class _ModbusDriver(Driver):
         for p in r.points:
             off = p.address - r.address
             try:
-                value = p.decode(entries[off:off + p.size])
-                if isinstance(value, float) and not math.isfinite(value):
-                    raise ValueError(f"{p.type} registers {list(entries[off:off + p.size])} "
-                                     f"hold {value}, not a finite number")
+                value = reading_of(p, entries[off:off + p.size])
             except (ModbusException, IndexError, ValueError) as exc:
                 self.host.error(self.bus.name, "malformed",
                                 f"{r.describe()} answer for {p.device}: {exc}")
@@ -523,6 +520,18 @@ class _ModbusDriver(Driver):
                               f"{code} ({EXCEPTION_TEXT.get(code, 'unknown')})")
             return
         self._health.clear(p.device, "exception")
+
+
+def reading_of(p: Point, entries: Sequence[Any]) -> Any:
+    """The value of ``p`` from its slice of an answer. Raises ValueError (or pymodbus'
+    ModbusException, IndexError) if the entries are too few or a float is nan or infinite: such
+    a value is reported as malformed, never delivered."""
+    if len(entries) < p.size:
+        raise IndexError(f"{len(entries)} entries for a {p.type}, expected {p.size}")
+    value = p.decode(entries)
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ValueError(f"{p.type} registers {list(entries)} hold {value}, not a finite number")
+    return value
 
 
 def _rtu_answer_size(head: bytes) -> int | None:
