@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import socket
+import subprocess
 
 import can
 import pytest
@@ -150,3 +151,31 @@ def test_any_rtu_bytes_are_classified(request: bytes, received: bytes) -> None:
     assert kind in ("timeout", "crc", "framing") and why
     assert (kind == "timeout") == (received == b"")
 
+
+
+@pytest.mark.socketcan
+def test_a_flood_past_the_socket_buffer_is_reported_with_the_frames_lost() -> None:
+    """On real SocketCAN (inside User-Mode Linux): can-utils' cangen floods vcan0 with 6,000
+    frames while the driver's reader is held; the driver reports the overrun with exactly the
+    frames the kernel dropped, so received + lost = sent."""
+    from vcan_tests import uml
+
+    channel = uml.socketcan_channel()
+    if channel is None:
+        pytest.skip(uml.socketcan_skip_reason())
+    host = FakeHost()
+    drv = CanDriver(bus("can", interface="socketcan", channel=channel, dbc=str(CELL_DBC)),
+                    [device("T1", "sensor", i=0, message="Temps", signal="T1")], host)
+    drv.start()
+    try:
+        with drv._rx.lock:                                  # the reader cannot drain meanwhile
+            subprocess.run(["cangen", channel, "-I", "101", "-L", "4", "-D", "i", "-g", "0",
+                            "-n", "6000"], check=True, timeout=60)
+        assert host.wait(lambda h: drv.received + drv.overrun_lost >= 6000, 30)
+        assert drv.settle(WAIT)
+        assert drv.overrun_lost > 0
+        assert drv.received + drv.overrun_lost == 6000
+        assert drv.error_counts["overrun"] >= 1
+        assert any(k == "overrun" and "frame(s) lost" in d for _, k, d in host.errors)
+    finally:
+        drv.stop()
