@@ -16,11 +16,12 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 
-from chcos.errors import ChcosError
+from chcos.errors import ChcosError, CommandSyntaxError
 
 
 def _run_example(argv: list[str]) -> int:
@@ -50,7 +51,15 @@ def _shell(args: argparse.Namespace) -> int:
         system.start()
     def execute(line: str) -> str:
         if line.strip().startswith("run ") and args.virtual:
-            system.run_for(float(line.split()[1]))
+            words = line.split()
+            try:
+                seconds = float(words[1])
+            except ValueError:
+                seconds = math.nan
+            if len(words) != 2 or not 0 <= seconds <= 1e6:
+                raise CommandSyntaxError(f"run: expected seconds of virtual time 0..1e6, got "
+                                         f"{' '.join(words[1:])!r}")
+            system.run_for(seconds)
             return ""
         return system.execute(line)
 

@@ -10,11 +10,13 @@ the word and what was expected.
 from __future__ import annotations
 
 import json
+import math
 import re
 import shlex
 from dataclasses import dataclass, field
 from typing import Any
 
+from chcos.devspec import MAX_MACHINE
 from chcos.errors import CommandSyntaxError
 
 _COMBINED = re.compile(r"^-(?:m(\d+))?(?:i(\d+))?(?:o(\d+))?$")
@@ -97,12 +99,55 @@ def _int(cmd: str, word: str, what: str, lo: int = 0, hi: int | None = None) -> 
     return n
 
 
-def parse_value(text: str) -> Any:
-    """A command-line value: JSON if it parses (numbers, true, lists...), else the string."""
+MAX_DEPTH = 16          # nesting of lists/objects in a command-line value
+_NON_FINITE = frozenset({"nan", "inf", "infinity"})
+
+
+def _bad_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not a number")
+
+
+def _check_json(cmd: str, word: str, v: Any, depth: int = 0) -> None:
+    if depth > MAX_DEPTH:
+        raise CommandSyntaxError(f"{cmd}: value {_short(word)} is nested more than {MAX_DEPTH} "
+                                 f"levels deep; expected a flatter value")
+    if isinstance(v, float) and not math.isfinite(v):
+        raise CommandSyntaxError(f"{cmd}: value {_short(word)} is out of range; expected a "
+                                 f"finite number")
+    if isinstance(v, int) and not isinstance(v, bool) and abs(v) > 2**63 - 1:
+        raise CommandSyntaxError(f"{cmd}: value {_short(word)} is out of range; expected an "
+                                 f"integer of magnitude < 2**63")
+    items = v.values() if isinstance(v, dict) else v if isinstance(v, list) else ()
+    for item in items:
+        _check_json(cmd, word, item, depth + 1)
+
+
+def _short(text: str, limit: int = 40) -> str:
+    return repr(text if len(text) <= limit else text[:limit - 3] + "...")
+
+
+def parse_value(text: str, cmd: str = "value", numbers_only_finite: bool = False) -> Any:
+    """A command-line value: JSON if it parses (numbers, true, lists...), else the string.
+
+    Raises CommandSyntaxError (naming ``cmd``) for JSON's NaN/Infinity, numbers that overflow
+    (``1e400``), integers of 2**63 and more, and values nested more than MAX_DEPTH levels; with
+    ``numbers_only_finite`` also for words that ``float()`` would read as nan or an infinity
+    (``nan``, ``-inf``...), so that they never reach a task as a number."""
+    if numbers_only_finite and text.strip().lower().lstrip("+-") in _NON_FINITE:
+        raise CommandSyntaxError(f"{cmd}: value {_short(text)} is not a finite number; expected "
+                                 f"a finite number or a word that is not one")
     try:
-        return json.loads(text)
-    except ValueError:
+        v = json.loads(text, parse_constant=_bad_constant)
+    except RecursionError:
+        raise CommandSyntaxError(f"{cmd}: value {_short(text)} is nested too deeply; expected "
+                                 f"at most {MAX_DEPTH} levels") from None
+    except ValueError as exc:
+        if "is not a number" in str(exc):
+            raise CommandSyntaxError(f"{cmd}: value {_short(text)} is not a finite number "
+                                     f"({exc}); expected a finite number") from None
         return text
+    _check_json(cmd, text, v)
+    return v
 
 
 def _kv(cmd: str, word: str) -> tuple[str, str]:
@@ -127,7 +172,7 @@ def _install(args: list[str]) -> Install | Boot:
         m = _COMBINED.match(word)
         if m and word != "-":
             if m.group(1) is not None:
-                machine = _int("install", m.group(1), "machine number")
+                machine = _int("install", m.group(1), "machine number", 0, MAX_MACHINE)
             if m.group(2) is not None:
                 n_in = _int("install", m.group(2), "input count", 0, 8)
             if m.group(3) is not None:
@@ -140,7 +185,7 @@ def _install(args: list[str]) -> Install | Boot:
             if not val:
                 raise CommandSyntaxError(f"install: option {opt} needs a value")
             if opt == "--machine":
-                machine = _int("install", val, "machine number")
+                machine = _int("install", val, "machine number", 0, MAX_MACHINE)
             elif opt == "--inputs":
                 n_in = _int("install", val, "input count", 0, 8)
             elif opt == "--outputs":
@@ -156,7 +201,7 @@ def _install(args: list[str]) -> Install | Boot:
                 level = _int("install", val, "level", 1)
             elif opt == "--param":
                 k, v = _kv("install --param", val)
-                params[k] = parse_value(v)
+                params[k] = parse_value(v, f"install --param {k}", numbers_only_finite=True)
             elif opt == "--queue":
                 k, v = _kv("install --queue", val)
                 queued[k] = _int("install --queue", v, "queue length", 1)
@@ -212,7 +257,14 @@ def parse(line: str | list[str]) -> Request | None:
 
     Raises CommandSyntaxError naming the command and the offending word.
     """
-    words = shlex.split(line, comments=True) if isinstance(line, str) else list(line)
+    if isinstance(line, str):
+        try:
+            words = shlex.split(line, comments=True)
+        except ValueError as exc:
+            raise CommandSyntaxError(f"{_short(line.strip())}: {exc} (an unbalanced quote); "
+                                     f"expected every ' and \" closed") from None
+    else:
+        words = list(line)
     if not words:
         return None
     cmd, args = words[0], words[1:]
@@ -232,7 +284,9 @@ def parse(line: str | list[str]) -> Request | None:
         if not rest:
             raise CommandSyntaxError("invoke: no task given")
         command = dict(_kv("invoke", w) for w in rest[1:])
-        return Invoke(rest[0], {k: parse_value(v) for k, v in command.items()}, prio)
+        return Invoke(rest[0], {k: parse_value(v, f"invoke {rest[0]} {k}",
+                                               numbers_only_finite=True)
+                                for k, v in command.items()}, prio)
     if cmd in ("suspend", "resume", "close"):
         if len(args) != 1:
             raise CommandSyntaxError(f"{cmd}: expected one task name")
@@ -240,7 +294,7 @@ def parse(line: str | list[str]) -> Request | None:
     if cmd == "inject":
         if len(args) < 2:
             raise CommandSyntaxError("inject: expected a device and a value")
-        return Inject(args[0], parse_value(" ".join(args[1:])))
+        return Inject(args[0], parse_value(" ".join(args[1:]), f"inject {args[0]}"))
     if cmd == "map":
         return ShowMap()
     raise CommandSyntaxError(

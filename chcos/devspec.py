@@ -13,6 +13,9 @@ from typing import Any, Literal
 
 Direction = Literal["sensor", "actuator"]
 
+#: Machine (satellite) numbers are 0..MAX_MACHINE, in device maps and host commands alike.
+MAX_MACHINE = 9999
+
 
 @dataclass(frozen=True)
 class BusSpec:
@@ -64,6 +67,8 @@ class DeviceMap:
     buses: tuple[BusSpec, ...] = ()
     devices: tuple[DeviceSpec, ...] = ()
     files: tuple[str, ...] = ()
+    #: What ``chcos check`` warns about: legal, but bound to misbehave (``file:line: key: ...``).
+    warnings: tuple[str, ...] = ()
 
     def bus(self, name: str) -> BusSpec:
         """Return the bus called ``name``; raises KeyError if there is none."""
@@ -79,4 +84,4 @@ class DeviceMap:
     def merged(self, other: DeviceMap) -> DeviceMap:
         """This map with ``other`` appended (no validation; see :func:`chcos.devmap.load`)."""
         return DeviceMap(self.buses + other.buses, self.devices + other.devices,
-                         self.files + other.files)
+                         self.files + other.files, self.warnings + other.warnings)

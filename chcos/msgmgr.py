@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol, TextIO
 
 from chcos.errors import Busy, DeviceError, MessageError, QueueOverflow
-from chcos.kernel import Kernel
+from chcos.kernel import Kernel, describe_error
 from chcos.messages import (
     Completion,
     EndpointKind,
@@ -391,7 +391,7 @@ class MessageManager:
                 self._release(t)
         elif how == "error":
             t.abnormal += 1
-            text = f"{type(value).__name__}: {value}"
+            text = describe_error(value)
             t.last_error = text
             log.error("task %s ended abnormally: %s", t.name, text)
             self.event("abnormal", f"{t.name}: {text}")

@@ -12,6 +12,7 @@ sysfile.map.
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -40,7 +41,7 @@ from chcos.worldmodel import WorldModel
 if TYPE_CHECKING:
     from chcos.system import System
 
-_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_.-]*$")
+_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_.-]*")
 
 
 @dataclass(frozen=True)
@@ -115,7 +116,7 @@ class SystemManager:
         outputs). Raises InstallError listing every problem found."""
         errs: list[str] = []
         s = self.sys
-        if not _NAME.match(req.name):
+        if not _NAME.fullmatch(req.name):
             errs.append(f"task name {req.name!r} is not a valid name (letters, digits, _ . -)")
         elif req.name in s.tsktab:
             t = s.tsktab.get(req.name)
@@ -308,11 +309,16 @@ class SystemManager:
         """Send a command message from the host to ``task`` (at ``priority`` if given).
         Raises InstallError for an unknown task, Busy if it is held at a higher priority."""
         link = self.host_link(task)
+        old = link.priority
         if priority is not None:
             if not 0 <= priority <= 99:
                 raise InstallError(f"invoke {task}: priority {priority} outside 0..99")
             link.priority = priority
-        self.sys.msgmgr.open(link, command, wait=False)
+        try:
+            self.sys.msgmgr.open(link, command, wait=False)
+        except BaseException:
+            link.priority = old        # a refused invoke changes nothing, its priority neither
+            raise
         self.sys.msgmgr.event("invoke", f"host -> {task} at priority {link.priority}: {command}")
         return f"{task} invoked at priority {link.priority}"
 
@@ -333,12 +339,17 @@ class SystemManager:
 
     def inject(self, name: str, value: Any) -> str:
         """Feed ``value`` to sensor or terminal ``name`` (as an interrupt would). Raises
-        InstallError if there is no such sensor or terminal."""
+        InstallError if there is no such sensor or terminal, or if a sensor's value is not a
+        finite number or a boolean (nan, inf, strings, lists are refused)."""
         if name in self.terminals:
             for link in self.terminals[name]:
                 self.sys.msgmgr.deliver(link, value)
             return f"{name} <- {value!r}"
         if name in self.sys.devtab and self.sys.devtab.get(name).is_sensor:
+            if not (isinstance(value, bool) or (isinstance(value, int) and abs(value) < 2**63)
+                    or (isinstance(value, float) and math.isfinite(value))):
+                raise InstallError(f"inject {name}: {value!r} is not a reading; expected a "
+                                   f"finite number (or true/false)")
             self.sys.devtab.inject(name, value)
             return f"{name} <- {value!r}"
         raise InstallError(f"inject: no sensor or terminal named {name!r}")

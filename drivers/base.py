@@ -65,6 +65,19 @@ class Driver(ABC):
         """Errors in ``device.address`` for this bus kind, like :meth:`check_bus`."""
         return []
 
+    @classmethod
+    def encodable(cls, bus: BusSpec, device: DeviceSpec) -> tuple[float, float] | None:
+        """The raw values a valid ``device``'s address can carry on the wire, as (lo, hi), or
+        None where the driver does not know or the type is unbounded. ``chcos check`` warns when
+        an actuator's limits reach outside it (after scale and offset)."""
+        return None
+
+    @classmethod
+    def poll_period(cls, bus: BusSpec, device: DeviceSpec) -> float | None:
+        """Seconds between two readings the driver asks for of a valid sensor ``device``, or None
+        if the device sends on its own. ``chcos check`` warns when ``stale_after`` is shorter."""
+        return None
+
     @abstractmethod
     def start(self) -> None:
         """Open the bus and start the I/O threads. Raises :class:`chcos.errors.BusError`."""

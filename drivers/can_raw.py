@@ -26,7 +26,12 @@ Received frames are decoded on the reader thread: a frame of a sensor message is
 sensor signal in it delivered; a frame whose id carries only actuator signals is ignored (another
 node, or a replayed log, sends it); any other id is ``host.error(bus, "unknown-id")``, a frame of
 the wrong length ``"wrong-length"``, one cantools cannot decode ``"undecodable"``, an error frame
-``"error-frame"``. Actuator writes are queued to a writer thread (the caller never blocks); it
+``"error-frame"``, a remote frame (a data request, which chcos does not answer) ``"remote-frame"``.
+On SocketCAN, frames the kernel dropped because the socket's receive buffer was full are
+``"overrun"`` with the number lost (the socket's drop count, read with ``SO_MEMINFO``, the count
+``SO_RXQ_OVFL`` reports), also summed in ``CanDriver.overrun_lost``; python-can's ``virtual``
+interface has no such buffer and never overruns. Actuator writes are queued to a writer thread
+(the caller never blocks); it
 encodes the whole message, keeping the other signals at their last written value or else the
 DBC initial value (0 if none, clipped into the signal's range), and sends it. Encoding or send
 failures are reported with ``host.fail(device, ...)``; the next successful write of that actuator
@@ -37,7 +42,10 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import math
 import queue
+import socket
+import struct
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -146,7 +154,12 @@ class CanCodec:
 
     def decode(self, frame: can.Message) -> tuple[str, list[tuple[str, Any]] | str]:
         """Classify and decode ``frame``: ``("ok", [(device, value)...])``, ``("ignore", why)``,
-        or ``(error_kind, detail)`` with error_kind in unknown-id, wrong-length, undecodable."""
+        or ``(error_kind, detail)`` with error_kind in remote-frame, unknown-id, wrong-length,
+        undecodable."""
+        if frame.is_remote_frame:
+            return "remote-frame", (f"remote frame (a data request) for id "
+                                    f"0x{frame.arbitration_id:X}, dlc {frame.dlc}: chcos does "
+                                    f"not answer remote requests")
         fr = self._by_id.get((frame.arbitration_id, bool(frame.is_extended_id)))
         if fr is None:
             return "unknown-id", f"frame id 0x{frame.arbitration_id:X} is in no device's message"
@@ -159,7 +172,12 @@ class CanCodec:
             vals = fr.message.decode(bytes(frame.data), decode_choices=False)
         except (cantools.database.DecodeError, ValueError, KeyError) as exc:
             return "undecodable", f"frame id 0x{frame.arbitration_id:X}: {exc}"
-        return "ok", [(dev, vals[sig]) for sig, dev in fr.sensors.items()]
+        out = [(dev, vals[sig]) for sig, dev in fr.sensors.items()]
+        for dev, v in out:
+            if isinstance(v, float) and not math.isfinite(v):
+                return "undecodable", (f"frame id 0x{frame.arbitration_id:X}: signal of {dev} "
+                                       f"is {v}, not a finite number")
+        return "ok", out
 
     def encode(self, device: str, value: Any) -> can.Message:
         """The frame that sets actuator ``device`` to ``value``, other signals unchanged.
@@ -259,14 +277,32 @@ def _readiness(rx: ReaderThread, bus: can.BusABC) -> Callable[[float], bool] | N
     return None
 
 
+SO_MEMINFO = 55          # Linux <asm-generic/socket.h>: the socket's memory info, u32[9]
+SK_MEMINFO_DROPS = 8     # ... whose last entry is sk_drops, the frames the kernel dropped
+
+
+def socket_drops(sock: Any) -> int | None:
+    """How many packets the kernel dropped on ``sock`` because its receive buffer was full (the
+    count ``SO_RXQ_OVFL`` reports), or None where the OS does not tell."""
+    try:
+        raw = sock.getsockopt(socket.SOL_SOCKET, SO_MEMINFO, 4 * (SK_MEMINFO_DROPS + 1))
+    except (OSError, AttributeError, TypeError):
+        return None
+    if not isinstance(raw, bytes) or len(raw) < 4 * (SK_MEMINFO_DROPS + 1):
+        return None
+    return int(struct.unpack_from(f"={SK_MEMINFO_DROPS + 1}I", raw)[SK_MEMINFO_DROPS])
+
+
 def read_frames(rx: ReaderThread, bus: can.BusABC, poll: float,
-                on_frame: Callable[[can.Message], None], on_error: Callable[[str], None]) -> None:
+                on_frame: Callable[[can.Message], None], on_error: Callable[[str], None],
+                after_drain: Callable[[], None] | None = None) -> None:
     """The read loop of a CAN driver's :class:`ReaderThread`: every frame received goes to
     ``on_frame`` (which must not raise), a receive error to ``on_error`` (then a pause of 0.1 s).
     Where it can wait for a frame without taking it (SocketCAN's file descriptor, the
     ``virtual`` interface's queue) it drains without blocking under the reader's lock, and the
     reader's settle drains itself; elsewhere it receives with timeout ``poll`` and reports empty
-    receives (see :mod:`drivers.threaded`)."""
+    receives (see :mod:`drivers.threaded`). ``after_drain`` runs after each batch drained (the
+    CAN driver reads the socket's drop count there)."""
     wait = _readiness(rx, bus)
     if wait is None:
         while rx.running:
@@ -301,6 +337,8 @@ def read_frames(rx: ReaderThread, bus: can.BusABC, poll: float,
         if wait(0.05):
             with rx.lock:
                 ok = drain(64)
+                if after_drain is not None:
+                    after_drain()
             if not ok:
                 rx.pause(0.1)
 
@@ -316,6 +354,9 @@ class CanDriver(ThreadedDriver):
         self._poll = float(bus.options.get("poll", 0.005))
         self._failed = False
         self._bus: can.BusABC | None = None
+        self._drops_seen: int | None = None
+        #: Frames the kernel dropped because the socket's receive buffer was full (SocketCAN).
+        self.overrun_lost = 0
         self._recorder: Recorder | None = None
         self._write_failed: set[str] = set()
         self.received = 0
@@ -405,7 +446,21 @@ class CanDriver(ThreadedDriver):
 
     def _read_loop(self) -> None:
         assert self._bus is not None
-        read_frames(self._rx, self._bus, self._poll, self._receive, self._bus_down)
+        sock = getattr(self._bus, "socket", None) if bus_fileno(self._bus) is not None else None
+        self._drops_seen = socket_drops(sock) if sock is not None else None
+        read_frames(self._rx, self._bus, self._poll, self._receive, self._bus_down,
+                    functools.partial(self._check_overrun, sock) if self._drops_seen is not None
+                    else None)
+
+    def _check_overrun(self, sock: Any) -> None:
+        """Report the frames the kernel dropped since the last look (reader thread)."""
+        drops = socket_drops(sock)
+        if drops is None or self._drops_seen is None or drops <= self._drops_seen:
+            return
+        lost, self._drops_seen = drops - self._drops_seen, drops
+        self.overrun_lost += lost
+        self._error("overrun", f"{lost} frame(s) lost on bus {self.bus.name!r}: the socket's "
+                               f"receive buffer overflowed (kernel drop count {drops})")
 
     def _receive(self, frame: can.Message) -> None:
         self._bus_up()

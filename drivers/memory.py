@@ -16,6 +16,8 @@ from chcos.devspec import BusSpec, DeviceSpec
 from chcos.errors import DeviceError
 from drivers.base import Driver, DriverHost
 
+MAX_HISTORY = 1_000_000  # writes kept per actuator
+
 
 def check_history(bus: BusSpec, allowed: Iterable[str]) -> list[str]:
     """Errors of the ``history`` option and of keys outside ``allowed`` (shared with ``signal``)."""
@@ -26,8 +28,8 @@ def check_history(bus: BusSpec, allowed: Iterable[str]) -> list[str]:
             errs.append(f"{bus.key}.{k}: unknown option for a {bus.kind} bus; valid options: "
                         f"{', '.join(valid) or 'none'}")
     h = bus.options.get("history", 100)
-    if not isinstance(h, int) or isinstance(h, bool) or h < 1:
-        errs.append(f"{bus.key}.history: expected an integer >= 1, got {h!r}")
+    if not isinstance(h, int) or isinstance(h, bool) or not 1 <= h <= MAX_HISTORY:
+        errs.append(f"{bus.key}.history: expected an integer 1..{MAX_HISTORY}, got {h!r}")
     return errs
 
 

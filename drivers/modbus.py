@@ -32,6 +32,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import functools
+import math
 import struct
 import threading
 from abc import abstractmethod
@@ -42,7 +43,7 @@ from typing import Any, ClassVar, Literal, TypeGuard
 from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient
 from pymodbus.client.mixin import ModbusClientMixin
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
-from pymodbus.framer import FramerType
+from pymodbus.framer import FramerRTU, FramerType
 
 from chcos.devspec import BusSpec, DeviceSpec
 from chcos.errors import BusError
@@ -53,6 +54,11 @@ DT = ModbusClientMixin.DATATYPE
 REGISTER_TYPES: dict[str, Any] = {"int16": DT.INT16, "uint16": DT.UINT16, "int32": DT.INT32,
                                   "uint32": DT.UINT32, "float32": DT.FLOAT32,
                                   "float64": DT.FLOAT64}
+#: What each type can carry on the wire (float32: its largest finite value).
+RAW_RANGE: dict[str, tuple[float, float]] = {
+    "bool": (0, 1), "int16": (-2**15, 2**15 - 1), "uint16": (0, 2**16 - 1),
+    "int32": (-2**31, 2**31 - 1), "uint32": (0, 2**32 - 1),
+    "float32": (-3.4028234663852886e38, 3.4028234663852886e38)}
 TABLES = ("coil", "discrete", "holding", "input")
 WRITABLE = ("coil", "holding")
 READ_METHOD = {"coil": "read_coils", "discrete": "read_discrete_inputs",
@@ -164,6 +170,7 @@ def check_address(bus: BusSpec, device: DeviceSpec) -> list[str]:
         errs.append(f"{k}.table: {table} is read-only; an actuator needs coil or holding")
     bits = table in ("coil", "discrete")
     typ = a.get("type", "bool" if bits else "uint16")
+    typ = typ if isinstance(typ, str) else repr(typ)
     size = 1
     if bits and typ != "bool":
         errs.append(f"{k}.type: a {table} holds one bit; expected \"bool\", got {typ!r}")
@@ -234,10 +241,26 @@ class _ModbusDriver(Driver):
     def _link(self) -> str:
         """Where the bus goes (``host:port``, the serial port), for failure reasons."""
 
+    def _unanswered(self, request: str) -> str:
+        """Why the last request got no valid answer, for a failure reason; drivers that see the
+        raw bytes (RTU) also count it as a bus error by class."""
+        return "no response"
+
     @classmethod
     def check_device(cls, bus: BusSpec, device: DeviceSpec) -> list[str]:
         """Errors of a device address: unit, table, address range for the type, word order."""
         return check_address(bus, device)
+
+    @classmethod
+    def encodable(cls, bus: BusSpec, device: DeviceSpec) -> tuple[float, float] | None:
+        """The range of the address's type: 0..1 for a coil, the integer types' ranges, the
+        largest float32; None for float64."""
+        return RAW_RANGE.get(point_of(device).type)
+
+    @classmethod
+    def poll_period(cls, bus: BusSpec, device: DeviceSpec) -> float | None:
+        """The sensor's ``poll_period``, else the bus's, else 0.1 s."""
+        return float(device.address.get("poll_period", bus.options.get("poll_period", 0.1)))
 
     # -- life cycle ---------------------------------------------------------------------------
 
@@ -442,9 +465,10 @@ class _ModbusDriver(Driver):
         except ModbusIOException as exc:
             if not c.connected or self.timeout_is_link_loss:
                 raise ConnectionException(f"no response: {exc}") from exc
+            what = self._unanswered(r.describe())
             for p in r.points:
                 self._health.fail(p.device, "exception", f"{self.kind} bus {self.bus.name} "
-                                  f"{r.describe()} (device {p.device}): no response: {exc}")
+                                  f"{r.describe()} (device {p.device}): {what}")
             return
         if resp.isError():
             code = int(getattr(resp, "exception_code", 0))
@@ -458,7 +482,7 @@ class _ModbusDriver(Driver):
         for p in r.points:
             off = p.address - r.address
             try:
-                value = p.decode(entries[off:off + p.size])
+                value = reading_of(p, entries[off:off + p.size])
             except (ModbusException, IndexError, ValueError) as exc:
                 self.host.error(self.bus.name, "malformed",
                                 f"{r.describe()} answer for {p.device}: {exc}")
@@ -496,6 +520,55 @@ class _ModbusDriver(Driver):
                               f"{code} ({EXCEPTION_TEXT.get(code, 'unknown')})")
             return
         self._health.clear(p.device, "exception")
+
+
+def reading_of(p: Point, entries: Sequence[Any]) -> Any:
+    """The value of ``p`` from its slice of an answer. Raises ValueError (or pymodbus'
+    ModbusException, IndexError) if the entries are too few or a float is nan or infinite: such
+    a value is reported as malformed, never delivered."""
+    if len(entries) < p.size:
+        raise IndexError(f"{len(entries)} entries for a {p.type}, expected {p.size}")
+    value = p.decode(entries)
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ValueError(f"{p.type} registers {list(entries)} hold {value}, not a finite number")
+    return value
+
+
+def _rtu_answer_size(head: bytes) -> int | None:
+    """The length of an RTU answer starting with ``head`` (unit, function...), None if it
+    cannot be told yet or the function is not one chcos asks."""
+    if len(head) < 2:
+        return None
+    fc = head[1]
+    if fc & 0x80:
+        return 5                                    # unit, fc|0x80, exception code, CRC
+    if fc in (1, 2, 3, 4):
+        return 3 + head[2] + 2 if len(head) >= 3 else None
+    if fc in (5, 6, 15, 16):
+        return 8
+    return None
+
+
+def classify_rtu_answer(request: bytes, received: bytes) -> tuple[str, str]:
+    """Why ``received`` is no valid answer to the RTU ``request``: ``("timeout", ...)`` for
+    silence, ``("crc", ...)`` for a whole frame of the right unit and function whose CRC is
+    wrong, ``("framing", ...)`` for a truncated answer or bytes that are no answer (junk)."""
+    if not received:
+        return "timeout", "no response (silence)"
+    unit, fc = (request[0], request[1]) if len(request) >= 2 else (-1, -1)
+    head = received
+    if head[0] == unit and (len(head) < 2 or head[1] & 0x7F == fc):
+        size = _rtu_answer_size(head)
+        if size is not None and len(head) >= size:
+            frame = head[:size]
+            crc = FramerRTU.compute_CRC(frame[:-2])
+            if crc.to_bytes(2, "big") != frame[-2:]:
+                return "crc", (f"answer {frame.hex()} fails its CRC (expected "
+                               f"{crc:04x}, got {frame[-2:].hex()})")
+        if size is None or len(head) < size:
+            return "framing", (f"truncated answer {head.hex()} ({len(head)} of "
+                               f"{size if size is not None else '?'} bytes)")
+    return "framing", f"{len(received)} bytes that are no answer: {received[:32].hex()}"
 
 
 def _coerce(type_: str, value: Any) -> int | float:
@@ -561,9 +634,38 @@ class ModbusRtuDriver(_ModbusDriver):
             errs.append(f"{k}.bytesize: expected 7 or 8, got {o.get('bytesize')!r}")
         return errs
 
+    def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
+        super().__init__(bus, devices, host)
+        self._tx = b""                  # the last request frame sent
+        self._rx = bytearray()          # every byte received since it was sent
+        self._rx_buffer = b""           # pymodbus' receive buffer as last seen
+        #: Requests that got no valid answer, by class: crc, framing (junk or a truncated
+        #: answer), timeout (silence). Each is also reported through ``host.error``.
+        self.unanswered: dict[str, int] = {}
+
+    def _trace(self, sending: bool, data: bytes) -> bytes:
+        """pymodbus' packet hook (I/O thread): keeps the request and the bytes of its answer."""
+        if sending:
+            self._tx, self._rx, self._rx_buffer = bytes(data), bytearray(), b""
+        else:
+            prev = self._rx_buffer
+            self._rx += data[len(prev):] if data.startswith(prev) else data
+            self._rx_buffer = bytes(data)
+        return data
+
+    def _unanswered(self, request: str) -> str:
+        """Classify the bytes that came back for the last request (none: timeout; a frame of
+        the right unit and function, long enough, failing its CRC: crc; anything else: framing),
+        count the class and report it through ``host.error``."""
+        kind, why = classify_rtu_answer(self._tx, bytes(self._rx))
+        self.unanswered[kind] = self.unanswered.get(kind, 0) + 1
+        self.host.error(self.bus.name, kind, f"{request}: {why}")
+        return why
+
     def _make_client(self) -> Any:
         o = self.bus.options
         return AsyncModbusSerialClient(str(o["port"]), framer=FramerType.RTU,
+                                       trace_packet=self._trace,
                                        baudrate=int(o.get("baudrate", 19200)),
                                        parity=str(o.get("parity", "N")),
                                        stopbits=int(o.get("stopbits", 1)),

@@ -24,8 +24,10 @@ Bus options:
 
 Device addresses: a sensor names its value, ``{ group = "t1" }`` (line) or ``{ field = "t1" }``
 (binary); a line group is a number unless the address says ``type = "text"`` (then the matched
-text is delivered as it is, e.g. a linear sensor's pixel string). An actuator gives how a
-command is written: line, ``{ format = "SET M1 {value:.2f}" }``
+text is delivered as it is, e.g. a linear sensor's pixel string). A number is a finite decimal
+as instruments write it (``-12.5``, ``1e3``); ``nan``, ``inf``, ``1_000``, ``0x10`` and non-ASCII
+digits are "malformed", and so is a binary frame whose float field is nan or infinite. An
+actuator gives how a command is written: line, ``{ format = "SET M1 {value:.2f}" }``
 (``str.format`` with ``value``; ``eol`` is appended); binary, ``{ struct = "<h", prefix = "10" }``
 (the frame sent is sync + payload + checksum, payload = prefix bytes + the value packed with
 ``struct``; integer codes get the value rounded).
@@ -39,6 +41,7 @@ the next one that goes out is ``host.recover(device)``.
 from __future__ import annotations
 
 import contextlib
+import math
 import re
 import struct
 from collections.abc import Iterable, Mapping, Sequence
@@ -120,11 +123,26 @@ class LineFramer:
             if name in self.text_groups:
                 values[name] = val
                 continue
-            try:
-                values[name] = float(val)
-            except ValueError:
-                return "malformed", f"line {text[:80]!r}: group {name} = {val!r} is no number"
+            number = parse_number(val)
+            if number is None:
+                return "malformed", (f"line {text[:80]!r}: group {name} = {val[:40]!r} is no "
+                                     f"finite decimal number")
+            values[name] = number
         return "values", values
+
+
+_DECIMAL = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+
+
+def parse_number(text: str) -> float | None:
+    """A decimal number as an instrument writes it (``-12.5``, ``1e3``, ``.5``, surrounding
+    blanks allowed), or None: ``nan``, ``inf``, ``1_000``, hex, non-ASCII digits and numbers
+    too large for a float (``1e999``) are no readings."""
+    text = text.strip()
+    if not _DECIMAL.fullmatch(text):
+        return None
+    value = float(text)
+    return value if math.isfinite(value) else None
 
 
 class BinaryFramer:
@@ -175,8 +193,13 @@ class BinaryFramer:
             del self._buf[:self.frame_len]
             self._absorb = 0
             items = self.struct.unpack(payload)
-            events.append(("values", {f: v for f, v in zip(self.fields, items, strict=True)
-                                      if f != "_"}))
+            values = {f: v for f, v in zip(self.fields, items, strict=True) if f != "_"}
+            bad = [f for f, v in values.items() if isinstance(v, float) and not math.isfinite(v)]
+            if bad:
+                events.append(("malformed", f"frame {payload.hex()}: field {bad[0]} is "
+                                            f"{values[bad[0]]}, not a finite number"))
+                continue
+            events.append(("values", values))
 
     def _sync_prefix_len(self) -> int:
         """How many trailing bytes of the buffer could be the start of a sync."""
@@ -225,6 +248,24 @@ def _check_line_bus(key: str, o: Mapping[str, Any]) -> list[str]:
     return errs
 
 
+MAX_FRAME = 4096   # bytes in a binary frame's struct payload
+
+
+def _struct_of(fmt: object) -> struct.Struct:
+    """``struct.Struct(fmt)`` for a device map's ``struct`` string. Raises struct.error with
+    what was expected: a string of ASCII format characters, a payload of at most MAX_FRAME
+    bytes."""
+    if not isinstance(fmt, str) or not fmt.isascii():
+        raise struct.error("expected a string of ASCII struct format characters")
+    try:
+        st = struct.Struct(fmt)
+    except (ValueError, OverflowError, MemoryError) as exc:
+        raise struct.error(str(exc)) from None
+    if st.size > MAX_FRAME:
+        raise struct.error(f"payload of {st.size} bytes; expected at most {MAX_FRAME}")
+    return st
+
+
 def _check_binary_bus(key: str, o: Mapping[str, Any]) -> list[str]:
     errs: list[str] = []
     try:
@@ -237,7 +278,7 @@ def _check_binary_bus(key: str, o: Mapping[str, Any]) -> list[str]:
         errs.append(f"{key}.fields: expected a list of field names, got {fields!r}")
         fields = None
     try:
-        st = struct.Struct(str(o.get("struct")))
+        st = _struct_of(o.get("struct"))
         n = len(st.unpack(bytes(st.size)))
         if fields is not None and n != len(fields):
             errs.append(f"{key}.fields: struct {st.format!r} has {n} items, expected as many "
@@ -324,8 +365,9 @@ class SerialDriver(ThreadedDriver):
                             f"{a.get('type')!r}")
             name = a.get(want)
             try:
+                fields = o.get("fields", [])
                 names = (list(re.compile(str(o.get("pattern"))).groupindex) if proto == "line"
-                         else [f for f in o.get("fields", []) if f != "_"])
+                         else [f for f in fields if f != "_"] if isinstance(fields, list) else [])
             except re.error:
                 return errs            # reported by check_bus
             if name not in names:
@@ -346,8 +388,8 @@ class SerialDriver(ThreadedDriver):
         errs = [f"{key}.{k}: unknown key; a binary actuator takes struct and prefix"
                 for k in a if k not in ("struct", "prefix")]
         try:
-            if len(struct.Struct(str(a.get("struct"))).unpack(bytes(
-                    struct.calcsize(str(a.get("struct")))))) != 1:
+            st = _struct_of(a.get("struct"))
+            if len(st.unpack(bytes(st.size))) != 1:
                 errs.append(f"{key}.struct: expected a format of exactly one item")
         except struct.error as exc:
             errs.append(f"{key}.struct: expected a struct format, got {a.get('struct')!r}: {exc}")

@@ -68,6 +68,11 @@ class SignalDriver(MemoryDriver):
         self.samples = 0
 
     @classmethod
+    def poll_period(cls, bus: BusSpec, device: DeviceSpec) -> float | None:
+        """One sample period, ``1 / rate_hz``."""
+        return 1.0 / float(device.address["rate_hz"])
+
+    @classmethod
     def check_device(cls, bus: BusSpec, device: DeviceSpec) -> list[str]:
         """Checks a sensor's waveform address; an actuator takes no address."""
         key = f"{device.key}.address"

@@ -49,7 +49,7 @@ BAD = [
     ("no such bus", MEM_BUS + '[[device]]\nname="A"\ndirection="sensor"\nbus="x"\n',
      "device[0].bus: no bus named 'x'; expected one of: m"),
     ("machine type", MEM_BUS + '[[device]]\nname="A"\ndirection="sensor"\nbus="m"\n'
-     'machine="one"\n', "device[0].machine: expected an integer >= 0, got 'one'"),
+     'machine="one"\n', "device[0].machine: expected an integer 0..9999, got 'one'"),
     ("scale zero", MEM_BUS + '[[device]]\nname="A"\ndirection="sensor"\nbus="m"\nscale=0\n',
      "device[0].scale: expected a non-zero number"),
     ("stale on actuator", MEM_BUS + '[[device]]\nname="A"\ndirection="actuator"\nbus="m"\n'

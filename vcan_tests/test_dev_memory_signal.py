@@ -44,7 +44,7 @@ def test_memory_keeps_bounded_history_and_feeds_sensors_from_the_host() -> None:
 
 def test_memory_check_rejects_options_and_addresses() -> None:
     assert MemoryDriver.check_bus(bus("memory", history=0)) == [
-        "bus[0].history: expected an integer >= 1, got 0"]
+        "bus[0].history: expected an integer 1..1000000, got 0"]
     assert MemoryDriver.check_device(bus("memory"), device("A", "sensor", x=1)) == [
         "device[0].address.x: unknown key; a memory device takes no address"]
 

@@ -1,0 +1,1 @@
+"""peers - independent bus peers for chcos' tests (C sources built by the tests)."""
