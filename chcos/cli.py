@@ -135,9 +135,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         rest = argv[1:]
         if rest[:2] == ["--example", "fig65"] or rest[:1] == ["--example=fig65"]:
             return _run_example(rest[2:] if rest[:1] == ["--example"] else rest[1:])
+        if rest[:1] == ["weld"]:
+            rest = rest[1:]
+        elif rest and not rest[0].startswith("-"):
+            from chcos.cellrun import main as cell_main
+
+            return cell_main(rest)
         from chcos.weldrun import main as weld_main
 
         return weld_main(rest)
+    if argv[:1] == ["new"]:
+        from chcos.scaffold import main as new_main
+
+        return new_main(argv[1:])
     if argv[:1] == ["map"]:
         from chcos.viewer.cli import map_main
 
@@ -176,6 +186,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     sub.add_parser("view", help="live page of a running system (chcos view --example fig65)")
     sub.add_parser("check", help="validate device-map files (chcos check FILE...)")
     sub.add_parser("sim", help="simulated field devices (chcos sim KIND ...)")
+    sub.add_parser("new", help="create a new cell project (chcos new DIR)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.ERROR,
                         format="%(levelname)s %(name)s: %(message)s")
