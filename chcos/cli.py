@@ -144,6 +144,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         from chcos.weldrun import main as weld_main
 
         return weld_main(rest)
+    if argv[:1] == ["import"]:
+        from chcos.importers import main as import_main
+
+        return import_main(argv[1:])
     if argv[:1] == ["new"]:
         from chcos.scaffold import main as new_main
 
@@ -187,6 +191,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     sub.add_parser("check", help="validate device-map files (chcos check FILE...)")
     sub.add_parser("sim", help="simulated field devices (chcos sim KIND ...)")
     sub.add_parser("new", help="create a new cell project (chcos new DIR)")
+    sub.add_parser("import", help="device map from an EDS, a DBC or a Modbus register list "
+                                  "(chcos import eds|dbc|modbus FILE)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.ERROR,
                         format="%(levelname)s %(name)s: %(message)s")
