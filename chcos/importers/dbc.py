@@ -58,7 +58,9 @@ def import_dbc(path: str | Path, *, bus: str = "can0", node: str | None = None,
             if sig.unit:
                 dev["units"] = sig.unit
             ext = ", extended" if msg.is_extended_frame else ""
-            notes = [f"{msg.name} (0x{msg.frame_id:X}{ext}, from {', '.join(msg.senders) or '?'}) {sig.name}: {sig.length} bit "
+            senders = ", ".join(msg.senders) or "?"
+            notes = [f"{msg.name} (0x{msg.frame_id:X}{ext}, from {senders}) {sig.name}: "
+                     f"{sig.length} bit "
                      f"{'signed' if sig.is_signed else 'unsigned'}, raw * {sig.scale:g} + "
                      f"{sig.offset:g} (applied by the driver)"]
             if sig.choices:
