@@ -193,6 +193,8 @@ def open_cell(system_file: str | Path, *, virtual: bool = False, outputs: bool =
                             clock=clock or (VirtualClock() if virtual else RealClock()),
                             task_path=list(sf.task_path), base_dir=sf.base_dir,
                             map_path=work / "sysfile.map")
+        if slaves is not None:
+            slaves.attach(system.kernel)
         counters = Counters()
         system.kernel.add_instrument(counters)
         cell = Cell(sf, system, counters, slaves, virtual)

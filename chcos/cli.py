@@ -127,6 +127,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         from chcos.devmap import check_main
 
         return check_main(argv[1:])
+    if argv[:1] == ["sim"] and argv[1:2] and argv[1].split("=")[0] == "--from":
+        from chcos.sim.from_map import main as sim_from_main
+
+        return sim_from_main(argv[1:])
     if argv[:1] == ["sim"]:
         from chcos.sim.cli import main as sim_main
 
