@@ -321,11 +321,12 @@ class RunResult:
 
 def run(system_file: str | Path, *, virtual: bool = False, duration: float | None = None,
         outputs: bool = True, workdir: str | Path | None = None, period: float = 1.0,
-        out: TextIO = sys.stdout, stop: threading.Event | None = None) -> RunResult:
+        out: TextIO | None = None, stop: threading.Event | None = None) -> RunResult:
     """The ``chcos run SYSTEM`` job: build, run until ``stop`` is set (SIGINT/SIGTERM in the
     command), or ``duration`` seconds of clock time, printing progress every ``period``; then
     safe values and the summary. Raises ChcosError if the system cannot be built."""
     stop = stop or threading.Event()
+    out = out or sys.stdout
     with open_cell(system_file, virtual=virtual, outputs=outputs, workdir=workdir) as cell:
         s = cell.system
         print(f"system {cell.sf.name}: {len(s.devtab)} devices, {len(s.tsktab)} tasks, "

@@ -152,6 +152,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         from chcos.importers import main as import_main
 
         return import_main(argv[1:])
+    if argv[:1] == ["monitor"]:
+        from chcos.monitor import main as monitor_main
+
+        return monitor_main(argv[1:])
     if argv[:1] == ["new"]:
         from chcos.scaffold import main as new_main
 
@@ -195,6 +199,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     sub.add_parser("check", help="validate device-map files (chcos check FILE...)")
     sub.add_parser("sim", help="simulated field devices (chcos sim KIND ...)")
     sub.add_parser("new", help="create a new cell project (chcos new DIR)")
+    sub.add_parser("monitor", help="commission a live bus listen-only (chcos monitor SYSTEM)")
     sub.add_parser("import", help="device map from an EDS, a DBC or a Modbus register list "
                                   "(chcos import eds|dbc|modbus FILE)")
     args = parser.parse_args(argv)

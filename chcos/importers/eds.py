@@ -42,7 +42,8 @@ def _load(path: str | Path, node: int) -> Any:
         raise ConfigError(f"{path}: not a readable EDS: {exc}") from exc
 
 
-def _default(od: Any, index: int, sub: int) -> int | None:
+def od_default(od: Any, index: int, sub: int) -> int | None:
+    """The EDS default of object ``index:sub`` as an integer (None: no such object or value)."""
     try:
         var = od.get_variable(index, sub)
     except Exception:
@@ -55,20 +56,20 @@ def _default(od: Any, index: int, sub: int) -> int | None:
         return None
 
 
-def _pdos(od: Any, comm: int, mapping: int) -> list[tuple[int, int, int, int, int]]:
+def pdo_mappings(od: Any, comm: int, mapping: int) -> list[tuple[int, int, int, int, int]]:
     """(pdo number, index, subindex, event timer ms, cob id) of every object mapped in an
     enabled PDO of the given communication/mapping ranges."""
     out = []
     for n in range(512):
         if comm + n not in od or mapping + n not in od:
             continue
-        cob = _default(od, comm + n, 1)
+        cob = od_default(od, comm + n, 1)
         if cob is None or cob & 0x8000_0000:
             continue  # no COB-ID, or the PDO is disabled
-        timer = _default(od, comm + n, 5) or 0
-        count = _default(od, mapping + n, 0) or 0
+        timer = od_default(od, comm + n, 5) or 0
+        count = od_default(od, mapping + n, 0) or 0
         for sub in range(1, count + 1):
-            entry = _default(od, mapping + n, sub)
+            entry = od_default(od, mapping + n, sub)
             if not entry:
                 continue
             index, subindex = entry >> 16, (entry >> 8) & 0xFF
@@ -124,7 +125,7 @@ def import_eds(path: str | Path, node: int, *, bus: str = "canopen", machine: in
                     "by chcos import eds. Check with chcos check; set safe_value on the actuators.",
                     "Delete interface/channel to take them from python-can's configuration."]
     node_table: dict[str, Any] = {"id": node, "eds": eds_ref or str(path)}
-    hb = _default(od, 0x1017, 0)
+    hb = od_default(od, 0x1017, 0)
     if hb:
         node_table["heartbeat_timeout"] = round(3 * hb / 1000, 3)
     draft.buses.append({"name": bus, "kind": "canopen", "interface": interface,
@@ -132,7 +133,7 @@ def import_eds(path: str | Path, node: int, *, bus: str = "canopen", machine: in
     done: set[tuple[int, int]] = set()
     for kind, comm, mapping, direction in (("TPDO", 0x1800, 0x1A00, "sensor"),
                                            ("RPDO", 0x1400, 0x1600, "actuator")):
-        for n, index, sub, timer, cob in _pdos(od, comm, mapping):
+        for n, index, sub, timer, cob in pdo_mappings(od, comm, mapping):
             var = od.get_variable(index, sub)
             if var is None or (index, sub) in done:
                 continue
