@@ -362,9 +362,8 @@ def run(system_file: str | Path, *, virtual: bool = False, duration: float | Non
         return RunResult(not found, found, snap["t"], snap)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """``chcos run SYSTEM``. Exit status 0: the run was healthy; 1: it ran but something was
-    wrong (listed in the summary); 2: the system could not be built."""
+def parser() -> argparse.ArgumentParser:
+    """The command line of ``chcos run SYSTEM``."""
     ap = argparse.ArgumentParser(
         prog="chcos run",
         description="Run the cell a system file describes (device maps, task path, install "
@@ -384,6 +383,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="off: tasks run, actuator writes are logged, never sent (default on)")
     ap.add_argument("--workdir",
                     help="where sysfile.map is written (default: a temporary directory)")
+    return ap
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``chcos run SYSTEM``. Exit status 0: the run was healthy; 1: it ran but something was
+    wrong (listed in the summary); 2: the system could not be built."""
+    ap = parser()
     args = ap.parse_args(argv)
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         ap.error(f"--duration {args.duration}: expected seconds > 0")
