@@ -94,3 +94,15 @@ address = {{ table = "input", address = 0 }}
     assert res.returncode == 1, res.stdout  # unhealthy: the sensor never answered
     assert "WARNING pymodbus.logging: Failed to connect" in res.stderr, res.stderr
     assert "sensor level never delivered a value" in res.stdout or "level is failed" in res.stdout
+
+
+def test_the_readme_satellite_example_has_its_system_file() -> None:
+    from chcos import sysfile
+
+    root = Path(__file__).resolve().parent.parent
+    sf = sysfile.load(root / "chcos" / "examples" / "fig65" / "system.toml")
+    assert sorted(sf.satellites) == [0, 1, 2]
+    assert sf.install is not None and sf.install.name == "install.chcos" and sf.install.exists()
+    assert all(p.exists() for p in sf.devmaps)
+    readme = (root / "README.md").read_text(encoding="utf-8")
+    assert "cd chcos/examples/fig65" in readme
