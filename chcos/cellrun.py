@@ -200,8 +200,9 @@ def open_cell(system_file: str | Path, *, virtual: bool = False, outputs: bool =
         cell = Cell(sf, system, counters, slaves, virtual)
         holder.append(cell)
         cell.start = system.kernel.clock.now()
-        if sf.install is not None:
-            cell.answers = system.run_script(sf.install)
+        if sf.install:
+            for script in sf.install:
+                cell.answers += system.run_script(script)
         else:
             machines = {d.machine for d in system.devmap.devices}
             for line in _boot_lines(sf, machines):

@@ -8,7 +8,7 @@ satellites with the loopback port each listens on::
     devmaps = ["../busconfig/fig65.toml"]  # relative to this file
     task_path = ["tasks"]
     base_dir = "."                         # relative file names in installs start here
-    install = "install.chcos"              # optional: the host script ``chcos run`` executes
+    install = "install.chcos"              # optional: host script(s) ``chcos run`` executes
 
     [[satellite]]
     machine = 0
@@ -26,7 +26,8 @@ its own port and connects to every other satellite; a host only connects. Everyt
 
 ``chcos run SYSTEM`` runs every machine in one process: it needs no ``[[satellite]]`` table (one
 is required only by ``chcos satellite`` and ``chcos host``), and executes ``system.install``, a
-host script (``install``, ``setpri``, ``invoke`` lines), before it starts the clock.
+host script (``install``, ``setpri``, ``invoke`` lines) or a list of them run in order, before it
+starts the clock.
 """
 
 from __future__ import annotations
@@ -56,7 +57,7 @@ class SystemFile:
     base_dir: Path
     satellites: dict[int, int]  # machine -> port
     link: Mapping[str, Any] = field(default_factory=dict)
-    install: Path | None = None  # the host script ``chcos run`` executes (system.install)
+    install: tuple[Path, ...] = ()  # host scripts ``chcos run`` executes (system.install)
 
     @property
     def prefix(self) -> str:
@@ -131,11 +132,13 @@ def load(path: str | Path) -> SystemFile:
     if not isinstance(link, dict) or "listen" in link or "connect" in link:
         raise fail("link", "expected a table without listen/connect (ports come from "
                            "[[satellite]])")
-    install = sys_sec.get("install")
-    if install is not None and not isinstance(install, str):
-        raise fail("system.install", "expected the path of a host script")
+    install = sys_sec.get("install", [])
+    if isinstance(install, str):
+        install = [install]
+    if not isinstance(install, list) or not all(isinstance(p, str) for p in install):
+        raise fail("system.install", "expected the path of a host script, or a list of them")
     sf = SystemFile(path, name, paths("devmaps"), paths("task_path"), (base / base_dir).resolve(),
-                    sats, link, (base / install).resolve() if install is not None else None)
+                    sats, link, tuple((base / p).resolve() for p in install))
     if sats:  # a single-process system (no [[satellite]]) opens no link
         link_config_for(sf, None)  # check the [link] section now
     return sf

@@ -109,7 +109,7 @@ units = "%"
 def test_system_file_install_key_and_no_satellites(tmp_path: Path) -> None:
     system = _modbus_cell(tmp_path, 5020)
     sf = sysfile.load(system)
-    assert sf.install == (tmp_path / "install.chcos").resolve()
+    assert sf.install == ((tmp_path / "install.chcos").resolve(),)
     assert sf.satellites == {}
     system.write_text('[system]\nname = "cell"\ninstall = 3\n', encoding="utf-8")
     with pytest.raises(ConfigError, match=r"system.toml: system.install: expected the path"):
@@ -224,3 +224,15 @@ def test_welding_cell_still_behind_chcos_run(capsys: pytest.CaptureFixture[str])
     assert "welding cell on the direct binding" in out and "summary" in out
     assert cli.main(["run", "--binding", "direct", "--duration", "2"]) in (0, 1)
     assert "welding cell on the direct binding" in capsys.readouterr().out
+
+
+def test_the_welding_cell_is_a_system_file(tmp_path: Path) -> None:
+    out = io.StringIO()
+    result = cellrun.run(ROOT / "chcos" / "weld" / "system.toml", virtual=True, duration=15.0,
+                         out=out, workdir=tmp_path)
+    text = out.getvalue()
+    assert result.healthy, text
+    steps = {t["name"]: t["steps"] for t in result.snapshot["tasks"]}
+    assert len(steps) == 19 and steps["E2"] > 0 and steps["D2"] > 0
+    for device in ("drives_enable", "volts_set", "wire_set", "gas_valve"):
+        assert f"safe value {device} = 0" in text
