@@ -233,6 +233,6 @@ def test_the_welding_cell_is_a_system_file(tmp_path: Path) -> None:
     text = out.getvalue()
     assert result.healthy, text
     steps = {t["name"]: t["steps"] for t in result.snapshot["tasks"]}
-    assert len(steps) == 19 and steps["E2"] > 0 and steps["D2"] > 0
+    assert len(steps) == 19 and steps["E2"] > 0 and steps["D1"] > 0  # inspecting the gap
     for device in ("drives_enable", "volts_set", "wire_set", "gas_valve"):
         assert f"safe value {device} = 0" in text
