@@ -234,17 +234,23 @@ def _value(v: Any, units: str) -> str:
 
 
 def show_progress(snap: dict[str, Any], rate: float, out: TextIO) -> None:
-    """Print one progress block: time since start, message rate, devices, tasks."""
+    """Print one progress block: time since start, message rate, devices, tasks. On a terminal
+    the block replaces the previous one (the screen is redrawn); otherwise blocks follow each
+    other (logs, pipes)."""
+    if out.isatty():
+        out.write("\033[H\033[J")  # cursor home, clear: a live table
+    width = max([len(d["name"]) for d in snap["devices"]] +
+                [len(t["name"]) for t in snap["tasks"]] + [8])
     print(f"t={snap['t']:7.1f} s  messages/s {rate:7.0f}  bus errors "
           f"{snap['bus_error_count']}", file=out)
     for d in snap["devices"]:
         age = "never" if d["age"] is None else f"{d['age']:.1f} s ago"
         status = d["status"] + (f" ({d['reason']})" if d["reason"] else "")
-        print(f"  {d['direction']:<8} {d['name']:<16} {_value(d['value'], d['units']):>16}  "
-              f"{age:<12} {status}", file=out)
+        print(f"  {d['direction']:<8} {d['name']:<{width}} {_value(d['value'], d['units']):>16}"
+              f"  {age:<12} {status}", file=out)
     for t in snap["tasks"]:
         err = f"  last error: {t['error']}" if t["abnormal"] else ""
-        print(f"  task     {t['name']:<16} level {t['level']} machine {t['machine']}  "
+        print(f"  task     {t['name']:<{width}} level {t['level']} machine {t['machine']}  "
               f"{t['state']:<9} executions {t['steps']}{err}", file=out)
     out.flush()
 
