@@ -117,16 +117,92 @@ def test_canopen_node_from_an_imported_eds(tmp_path: Path) -> None:
         assert cell.device("position_actual_value").status.value == "OK"
 
 
-def test_serial_bus_is_refused_naming_it(tmp_path: Path) -> None:
+def test_serial_peers_speak_the_maps_framing(tmp_path: Path) -> None:
     devmap = tmp_path / "serial.toml"
-    devmap.write_text('[[bus]]\nname = "scale"\nkind = "serial"\nurl = "socket://127.0.0.1:9"\n'
-                      'protocol = "line"\npattern = "W=(?P<w>[0-9.]+)"\n\n[[device]]\n'
+    devmap.write_text(r"""
+[[bus]]
+name = "scale"
+kind = "serial"
+url = "/dev/ttyUSB0"
+protocol = "line"
+pattern = 'W=(?P<w>-?[0-9.]+)\s+T=(?P<t>\d+)\s*(?:C)?'
+eol = "\r\n"
+
+[[device]]
+name = "weight"
+direction = "sensor"
+bus = "scale"
+address = { group = "w" }
+scale = 0.001
+units = "kg"
+
+[[device]]
+name = "temp"
+direction = "sensor"
+bus = "scale"
+address = { group = "t" }
+
+[[device]]
+name = "tare"
+direction = "actuator"
+bus = "scale"
+address = { format = "TARE {value:.2f}" }
+
+[[bus]]
+name = "gauge"
+kind = "serial"
+url = "socket://127.0.0.1:9"
+protocol = "binary"
+sync = "AA 55"
+struct = "<hHb"
+fields = ["p", "_", "q"]
+checksum = "sum8"
+
+[[device]]
+name = "pressure"
+direction = "sensor"
+bus = "gauge"
+address = { field = "p" }
+
+[[device]]
+name = "valve"
+direction = "actuator"
+bus = "gauge"
+address = { struct = "<h", prefix = "10" }
+""", encoding="utf-8")
+    system = _system(tmp_path, devmap, "install -m0 sysfile\n")
+    with cellrun.open_cell(system, virtual=True) as cell:
+        slaves = cell.slaves
+        assert slaves is not None
+        slaves.set("weight", 12.5)   # raw 12500 g in the line
+        slaves.set("temp", 21)
+        slaves.script("pressure", "ramp(-100, 100, 2)")
+        cell.run_for(1.5)
+        assert cell.device("weight").value == pytest.approx(12.5)
+        assert cell.device("temp").value == 21
+        assert cell.device("pressure").value == pytest.approx(50, abs=1)
+        assert cell.system.devtab.bus_errors == {}  # every line and frame was understood
+        cell.system.devtab.write("tare", 0.25)
+        cell.system.devtab.write("valve", -300)
+        cell.run_for(0.2)
+        assert slaves.get("tare") == pytest.approx(0.25)
+        assert slaves.get("valve") == -300
+
+
+def test_unsimulatable_serial_is_refused_naming_the_bus(tmp_path: Path) -> None:
+    from chcos.devmap import load
+    from chcos.sim.from_map import simulate
+
+    devmap = tmp_path / "serial.toml"
+    devmap.write_text('[[bus]]\nname = "scale"\nkind = "serial"\nurl = "/dev/ttyUSB0"\n'
+                      'protocol = "line"\npattern = "(?P<w>a)\\\\1"\n\n[[device]]\n'
                       'name = "weight"\ndirection = "sensor"\nbus = "scale"\n'
                       'address = { group = "w" }\n', encoding="utf-8")
-    system = _system(tmp_path, devmap, "install -m0 sysfile\n")
-    with pytest.raises(ConfigError, match=r"serial.toml: bus\[0\] \(scale\): no simulated peer"), \
-            cellrun.open_cell(system, virtual=True):
-        pass
+    dm = load([devmap])
+    with pytest.raises(ConfigError, match=r"serial.toml: bus\[0\] \(scale\): url "):
+        simulate(dm, rewrite=False)
+    with pytest.raises(ConfigError, match=r"bus\[0\] \(scale\): pattern .*back-references"):
+        simulate(dm)
 
 
 def test_sim_from_map_serves_the_maps_own_address(tmp_path: Path) -> None:
