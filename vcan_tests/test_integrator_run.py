@@ -218,12 +218,13 @@ def test_bad_system_file_names_file_and_key(tmp_path: Path,
     assert "bad.toml: system.devmap: unknown key" in err
 
 
-def test_welding_cell_still_behind_chcos_run(capsys: pytest.CaptureFixture[str]) -> None:
-    assert cli.main(["run", "weld", "--binding", "direct", "--duration", "3"]) in (0, 1)
-    out = capsys.readouterr().out
-    assert "welding cell on the direct binding" in out and "summary" in out
-    assert cli.main(["run", "--binding", "direct", "--duration", "2"]) in (0, 1)
-    assert "welding cell on the direct binding" in capsys.readouterr().out
+def test_welding_cell_still_behind_chcos_run(tmp_path: Path) -> None:
+    for args in (["run", "weld", "--binding", "direct", "--duration", "3"],
+                 ["run", "--binding", "direct", "--duration", "2"]):
+        res = subprocess.run([sys.executable, "-m", "chcos.cli", *args], cwd=tmp_path,
+                             capture_output=True, text=True, timeout=300)
+        assert res.returncode in (0, 1), res.stderr  # 1: the duration limit came first
+        assert "welding cell on the direct binding" in res.stdout and "summary" in res.stdout
 
 
 def test_the_welding_cell_is_a_system_file(tmp_path: Path) -> None:
