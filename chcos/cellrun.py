@@ -4,7 +4,8 @@
 task path, install script) in one process, every machine in it: on real time against the buses
 the maps name, or on virtual time against simulated slaves generated from the maps
 (:mod:`chcos.sim.from_map`). With ``outputs=False`` actuator writes are logged and never reach a
-driver (commissioning a live bus without driving anything). :func:`run` is the whole command:
+driver (commissioning a live bus without driving anything); the command line runs that way on
+real time unless ``--outputs on`` is given. :func:`run` is the whole command:
 it runs until Ctrl-C, SIGTERM or the duration, prints each device's value, age and status, each
 task's state and the message rate once a second (times since the start), then puts every
 actuator at its safe value and prints a summary; its result says whether the run was healthy.
@@ -338,7 +339,10 @@ def run(system_file: str | Path, *, virtual: bool = False, duration: float | Non
         s = cell.system
         print(f"system {cell.sf.name}: {len(s.devtab)} devices, {len(s.tsktab)} tasks, "
               f"{'virtual time, simulated slaves' if virtual else 'real time'}, outputs "
-              f"{'on' if outputs else 'off'}; Ctrl-C stops", file=out)
+              f"{'on' if outputs else 'OFF: actuator writes are logged, not sent'}; Ctrl-C "
+              "stops", file=out)
+        if not outputs and not virtual:
+            print("  (give --outputs on to drive the actuators)", file=out)
         for a in cell.answers:
             print(f"  host: {a}", file=out)
         out.flush()
@@ -386,8 +390,10 @@ def parser() -> argparse.ArgumentParser:
                          "(as fast as possible; give --duration)")
     ap.add_argument("--duration", type=float, default=None,
                     help="stop after this many seconds of clock time (default: run until Ctrl-C)")
-    ap.add_argument("--outputs", choices=("on", "off"), default="on",
-                    help="off: tasks run, actuator writes are logged, never sent (default on)")
+    ap.add_argument("--outputs", choices=("on", "off"), default=None,
+                    help="on: actuator writes go to the buses; off: tasks run, actuator writes "
+                         "(safe values included) are logged, never sent. Default: off on real "
+                         "time (outputs are on only when asked), on with --virtual")
     ap.add_argument("--workdir",
                     help="where sysfile.map is written (default: a temporary directory)")
     return ap
@@ -408,7 +414,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         result = run(args.system, virtual=args.virtual, duration=args.duration,
-                     outputs=args.outputs == "on", workdir=args.workdir, stop=stop)
+                     outputs=args.outputs == "on" or (args.outputs is None and args.virtual),
+                     workdir=args.workdir, stop=stop)
     except ChcosError as exc:
         print(f"chcos run: {exc}", file=sys.stderr)
         return 2

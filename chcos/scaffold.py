@@ -3,7 +3,7 @@
 Writes a system file, a device map (one Modbus TCP PLC with one sensor and one actuator), one task,
 an install script, a README and a test that runs the cell on virtual time against a simulated PLC
 through the ``chcos.testing`` pytest plugin, so that ``cd DIR && pytest`` passes at once and
-``chcos run system.toml`` runs the cell against the real PLC.
+``chcos run system.toml --outputs on`` runs the cell against the real PLC.
 """
 
 from __future__ import annotations
@@ -134,8 +134,8 @@ the valve in proportion to how far the level is below its set-point.
 chcos check devices.toml                     # validate the device map
 pytest                                       # the tests, no hardware needed
 chcos run system.toml --virtual --duration 5 # the cell against a simulated PLC
-chcos run system.toml --outputs off          # the real PLC: tasks run, the valve is not driven
-chcos run system.toml                        # the real PLC; Ctrl-C stops, the valve goes to 0
+chcos run system.toml                        # the real PLC: tasks run, the valve is not driven
+chcos run system.toml --outputs on           # the real PLC, driven; Ctrl-C: the valve goes to 0
 ```
 """
 

@@ -180,7 +180,8 @@ def test_sigterm_stops_a_real_time_run_with_safe_values(
     server.data_bank.set_input_registers(0, [61])
     system = _modbus_cell(tmp_path, server.port)
     env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
-    proc = subprocess.Popen([sys.executable, "-m", "chcos.cli", "run", str(system)],
+    proc = subprocess.Popen([sys.executable, "-m", "chcos.cli", "run", str(system),
+                             "--outputs", "on"],
                             cwd=tmp_path, env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
     try:

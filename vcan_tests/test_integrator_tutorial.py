@@ -80,7 +80,7 @@ class _Reader:
 
 def test_tutorial_commands_verbatim(tmp_path: Path) -> None:
     commands = tutorial_commands()
-    assert "chcos new mycell" in commands and "chcos run system.toml" in commands
+    assert "chcos new mycell" in commands and "chcos run system.toml --outputs on" in commands
     env = dict(os.environ)
     env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
     env.pop("PYTEST_ADDOPTS", None)
@@ -101,7 +101,7 @@ def test_tutorial_commands_verbatim(tmp_path: Path) -> None:
                 _wait(lambda r=reader: "PLC: level" in r.get(), 30, "the PLC stand-in to run")
                 assert _valve_register() == 0
                 continue
-            if cmd == "chcos run system.toml":  # interactive: runs until Ctrl-C
+            if cmd == "chcos run system.toml --outputs on":  # interactive: until Ctrl-C
                 proc = subprocess.Popen(["bash", "-c", f"exec {cmd}"], cwd=cwd, env=env,
                                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                         text=True)
