@@ -19,6 +19,7 @@ import signal
 import sys
 import tempfile
 import threading
+import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -35,6 +36,29 @@ from chcos.instrument import Counters
 from chcos.sim.from_map import SimSlaves, simulate
 from chcos.system import System
 from drivers.base import Driver
+
+
+class SinceStartClock(RealClock):
+    """Wall-clock time counted from the clock's creation, so every time a user sees (progress,
+    ``map``, events) reads as seconds since the start, not the machine's uptime. Only for a
+    system in one process: satellites keep :class:`RealClock`, whose times agree across
+    processes."""
+
+    def __init__(self) -> None:
+        self.origin = time.monotonic()
+
+    def now(self) -> float:
+        """Seconds since this clock was made."""
+        return time.monotonic() - self.origin
+
+    def idle(self, wake: threading.Event, deadline: float | None) -> None:
+        """Wait on ``wake`` until the deadline (or forever if there is none)."""
+        if deadline is None:
+            wake.wait()
+        else:
+            delay = deadline - self.now()
+            if delay > 0:
+                wake.wait(delay)
 
 
 class OutputsOff(Driver):
@@ -191,7 +215,7 @@ def open_cell(system_file: str | Path, *, virtual: bool = False, outputs: bool =
 
         system = CellSystem(devmap if devmap is not None else (), outputs=outputs,
                             on_output=logged,
-                            clock=clock or (VirtualClock() if virtual else RealClock()),
+                            clock=clock or (VirtualClock() if virtual else SinceStartClock()),
                             task_path=list(sf.task_path), base_dir=sf.base_dir,
                             map_path=work / "sysfile.map")
         if slaves is not None:

@@ -78,10 +78,14 @@ def _run_help() -> int:
 
 
 def _shell(args: argparse.Namespace) -> int:
-    from chcos.clock import RealClock, VirtualClock
+    import threading
+
+    from chcos.cellrun import SinceStartClock
+    from chcos.clock import VirtualClock
+    from chcos.errors import CommandSyntaxError
     from chcos.system import System
 
-    clock = VirtualClock() if args.virtual else RealClock()
+    clock = VirtualClock() if args.virtual else SinceStartClock()
     base_dir, map_path = args.base_dir, args.map
     if args.workdir:
         Path(args.workdir).mkdir(parents=True, exist_ok=True)
@@ -94,8 +98,18 @@ def _shell(args: argparse.Namespace) -> int:
     if not args.virtual:
         system.start()
     def execute(line: str) -> str:
-        if line.strip().startswith("run ") and args.virtual:
-            system.run_for(float(line.split()[1]))
+        words = line.split()
+        if words[:1] == ["run"]:
+            try:
+                seconds = float(words[1]) if len(words) == 2 else -1.0
+            except ValueError:
+                seconds = -1.0
+            if not seconds >= 0:
+                raise CommandSyntaxError(f"run: expected 'run SECONDS', got {line.strip()!r}")
+            if args.virtual:
+                system.run_for(seconds)
+            else:  # the kernel runs on its own thread: let it, then go on with the script
+                threading.Event().wait(seconds)
             return ""
         return system.execute(line)
 
@@ -227,8 +241,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                        description="Build a system from device maps in this process and carry "
                                    "out host commands (install, setpri, invoke, suspend, "
                                    "resume, close, inject, map) from --script or stdin, one per "
-                                   "line; 'quit' ends. On real time the kernel runs meanwhile; "
-                                   "with --virtual, 'run SECONDS' advances the clock. To run "
+                                   "line; 'quit' ends. 'run SECONDS' lets the system run that long "
+                                   "(on real time the kernel runs meanwhile anyway; with "
+                                   "--virtual only 'run' advances the clock). To run "
                                    "a whole cell until Ctrl-C, use 'chcos run SYSTEM'.")
     p.add_argument("devmap", nargs="*", metavar="MAP", help="device-map files")
     p.add_argument("--script", help="read commands from this file instead of stdin")
@@ -242,7 +257,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="where sysfile.map is written (default: --workdir/sysfile.map or "
                         "./sysfile.map)")
     p.add_argument("--virtual", action="store_true",
-                   help="virtual time: the script advances it with 'run SECONDS'")
+                   help="virtual time: only 'run SECONDS' advances it")
     p.set_defaults(func=_shell)
     p = sub.add_parser("satellite", help="run one machine of a multi-process system",
                        description="Run machine N of the system file's satellites in this "

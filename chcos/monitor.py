@@ -34,7 +34,6 @@ from types import FrameType
 from typing import Any, TextIO
 
 from chcos import sysfile
-from chcos.clock import RealClock
 from chcos.devices import DeviceStatus
 from chcos.devmap import load
 from chcos.devspec import BusSpec, DeviceMap, DeviceSpec
@@ -200,7 +199,7 @@ class Monitor:
     """Every bus of a system file, listen-only (see the module doc). Close with :meth:`close`."""
 
     def __init__(self, system_file: str | Path, *, grace: float = 2.0) -> None:
-        from chcos.cellrun import CellSystem
+        from chcos.cellrun import CellSystem, SinceStartClock
 
         self.sf = sysfile.load(system_file)
         self.grace = grace
@@ -213,7 +212,7 @@ class Monitor:
         self.writes_held: list[tuple[str, Any]] = []
         self.system = CellSystem(rest, outputs=False,
                                  on_output=lambda d, v: self.writes_held.append((d, v)),
-                                 clock=RealClock(), base_dir=self.sf.base_dir)
+                                 clock=SinceStartClock(), base_dir=self.sf.base_dir)
         self.passive: list[PassiveCanopen] = []
         self.start = time.monotonic()
         try:

@@ -106,3 +106,19 @@ def test_the_readme_satellite_example_has_its_system_file() -> None:
     assert all(p.exists() for p in sf.devmaps)
     readme = (root / "README.md").read_text(encoding="utf-8")
     assert "cd chcos/examples/fig65" in readme
+
+
+def test_shell_run_on_real_time_and_times_since_start(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    root = Path(__file__).resolve().parent.parent
+    script = tmp_path / "s.chcos"
+    script.write_text("install -m0 sysfile\nrun 0.5\nmap\n", encoding="utf-8")
+    assert cli.main(["shell", str(root / "busconfig" / "fig65.toml"), "--script", str(script),
+                     "--workdir", str(tmp_path / "w")]) == 0
+    out = capsys.readouterr().out
+    m = re.search(r"time (\d+\.\d+) s", out)
+    assert m is not None and 0.5 <= float(m.group(1)) < 30, out  # since start, not uptime
+    assert re.search(r"S1 +m0 sensor +OK +value \d", out), out  # the kernel ran meanwhile
+    script.write_text("run soon\n", encoding="utf-8")
+    assert cli.main(["shell", "--script", str(script), "--workdir", str(tmp_path / "w")]) == 1
+    assert "expected 'run SECONDS'" in capsys.readouterr().err
