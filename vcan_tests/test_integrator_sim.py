@@ -243,3 +243,18 @@ def test_sim_from_map_serves_the_maps_own_address(tmp_path: Path) -> None:
         if sim.poll() is None:
             sim.kill()
             sim.wait()
+
+
+def test_sim_from_map_faults_on_a_schedule(tmp_path: Path,
+                                          capsys: pytest.CaptureFixture[str]) -> None:
+    scaffold.create(tmp_path / "cell", port=free_port())
+    devices = str(tmp_path / "cell" / "devices.toml")
+    assert cli.main(["sim", "--from", devices, "--value", "level=42", "--fault", "plc@0.3-0.6",
+                     "--duration", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "fault: plc silenced" in out and "fault over: plc answers again" in out
+    assert "level=42" in out
+    assert cli.main(["sim", "--from", devices, "--fault", "plc@5-2"]) == 2
+    assert "the end must come after the start" in capsys.readouterr().err
+    assert cli.main(["sim", "--from", devices, "--value", "valve=3"]) == 2
+    assert "'valve' is not a sensor" in capsys.readouterr().err

@@ -837,6 +837,21 @@ def simulate(devmap: DeviceMap, *, rewrite: bool = True) -> SimSlaves:
     return slaves
 
 
+def _fault(item: str, slaves: SimSlaves) -> tuple[str, float, float]:
+    """``BUS@START[-END]`` -> (bus, start, end); raises ConfigError naming the item."""
+    m = re.fullmatch(r"([\w.\-]+)@([0-9.]+)(?:-([0-9.]+))?", item.strip())
+    if not m:
+        raise ConfigError(f"--fault {item!r}: expected BUS@START[-END] (seconds), e.g. plc@5-8")
+    bus, t0 = m.group(1), float(m.group(2))
+    t1 = float(m.group(3)) if m.group(3) else math.inf
+    if bus not in slaves.peers:
+        raise ConfigError(f"--fault {item!r}: bus {bus!r} has no simulated peer (simulated: "
+                          f"{', '.join(sorted(slaves.peers)) or 'none'})")
+    if t1 <= t0:
+        raise ConfigError(f"--fault {item!r}: the end must come after the start")
+    return bus, t0, t1
+
+
 def main(argv: list[str]) -> int:
     """``chcos sim --from MAP...``: serve simulated slaves at the addresses the maps name until
     Ctrl-C, SIGTERM or ``--duration``; prints what each actuator was sent once a second.
@@ -859,6 +874,9 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--value", action="append", default=[], metavar="DEVICE=SCRIPT",
                     help="a sensor's value: a number, ramp(start, end, period), sine(center, "
                          "amplitude, period), square(low, high, period) or csv(FILE[, column])")
+    ap.add_argument("--fault", action="append", default=[], metavar="BUS@START[-END]",
+                    help="silence the peer of BUS from START seconds (to END), e.g. plc@5-8: "
+                         "a Modbus server closes its port, CAN and CANopen nodes stop sending")
     ap.add_argument("--duration", type=float, help="stop after this many seconds")
     args = ap.parse_args(argv)
     stop = threading.Event()
@@ -875,12 +893,28 @@ def main(argv: list[str]) -> int:
                 if name not in slaves.specs or slaves.specs[name].direction != "sensor":
                     raise ConfigError(f"--value {item!r}: {name!r} is not a sensor of the maps")
                 slaves.script(name, parse_script(spec, Path.cwd()))
+            faults = [_fault(item, slaves) for item in args.fault]
             for line in slaves.describe():
                 print(f"simulating {line}", flush=True)
             slaves.run_realtime()
             start = time.monotonic()
-            while not stop.wait(1.0):
+            shown_at = 0.0
+            silenced: set[str] = set()
+            while not stop.wait(0.1):
                 t = time.monotonic() - start
+                for bus, t0, t1 in faults:
+                    want = t0 <= t < t1
+                    if want and bus not in silenced:
+                        slaves.silence(bus)
+                        silenced.add(bus)
+                        print(f"t={t:6.1f} s  fault: {bus} silenced", flush=True)
+                    elif not want and bus in silenced and t >= t1:
+                        slaves.restore(bus)
+                        silenced.discard(bus)
+                        print(f"t={t:6.1f} s  fault over: {bus} answers again", flush=True)
+                if t + 1e-9 < shown_at + 1.0:
+                    continue
+                shown_at = t
                 shown = []
                 for d in devmap.devices:
                     if slaves.simulated(d.name):
