@@ -3,11 +3,11 @@
 Opens every bus of a system file's device maps listen-only and shows each device live against the
 map, flagging mismatches; it never writes:
 
-* ``modbus-tcp``/``modbus-rtu``: the driver polls the sensors (read requests only); actuators are
-  never written (their driver sits behind :class:`chcos.cellrun.OutputsOff`, which also catches
-  the safe values at the end);
-* ``can``: the driver only receives (no actuator frame is sent); frames of ids no device uses and
-  frames of the wrong length are counted and flagged;
+* ``modbus-tcp``/``modbus-rtu``: the driver polls the sensors and reads the actuators' coils and
+  holding registers back (read requests only); nothing is written (every write, the safe values
+  at the end included, stops at :class:`chcos.cellrun.OutputsOff`);
+* ``can``: the driver only receives: sensors' frames, and the actuators' frames when another node
+  sends them; frames of ids no device uses and frames of the wrong length are counted and flagged;
 * ``canopen``: no NMT, no SDO, no SYNC - a passive listener (:class:`PassiveCanopen`) decodes the
   TPDOs and RPDOs the nodes' EDS files map, watches heartbeats, and flags heartbeats of nodes not
   in the map, PDOs whose length does not fit the mapping, and ids that belong to nothing;
@@ -22,6 +22,7 @@ something was, 2 when the system cannot be opened.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import signal
 import sys
 import threading
@@ -40,6 +41,8 @@ from chcos.devspec import BusSpec, DeviceMap, DeviceSpec
 from chcos.errors import BusError, ChcosError
 
 _FIXED_IDS = {0x000: "NMT", 0x080: "SYNC", 0x100: "TIME"}
+READ_BACK = ("modbus-tcp", "modbus-rtu", "can")
+"""Bus kinds whose outputs the monitor reads without writing."""
 
 
 @dataclass
@@ -206,8 +209,13 @@ class Monitor:
         devmap = load(list(self.sf.devmaps))
         self.devmap = devmap
         passive = [b for b in devmap.buses if b.kind == "canopen"]
+        # outputs that can be read without writing (Modbus coils and holding registers, CAN
+        # frames another node sends) are watched as inputs
+        self.read_back = {d.name for d in devmap.devices if d.direction == "actuator"
+                          and devmap.bus(d.bus).kind in READ_BACK}
         rest = DeviceMap(tuple(b for b in devmap.buses if b.kind != "canopen"),
-                         tuple(d for d in devmap.devices
+                         tuple(dataclasses.replace(d, direction="sensor", stale_after=None)
+                               if d.name in self.read_back else d for d in devmap.devices
                                if devmap.bus(d.bus).kind != "canopen"), devmap.files)
         self.writes_held: list[tuple[str, Any]] = []
         self.system = CellSystem(rest, outputs=False,
@@ -239,7 +247,11 @@ class Monitor:
                 value, at, status, reason, readings = entries[d.name]
                 age = None if at is None else know - at
                 state = status.value + (f" ({reason})" if reason else "")
-                if d.direction == "actuator":
+                if d.name in self.read_back:
+                    state = "output, read back: " + state
+                    if status is DeviceStatus.FAILED:
+                        flags.append(f"no answer: {reason}")
+                elif d.direction == "actuator":
                     value, age, state = None, None, "output: not read, never written"
                 elif status is DeviceStatus.FAILED:
                     flags.append(f"no answer: {reason}")

@@ -53,6 +53,7 @@ def cell(tmp_path: Path) -> Iterator[dict[str, Any]]:
     server = ModbusServer(host="127.0.0.1", port=free_port(), no_block=True, data_hdl=handler)
     server.start()
     server.data_bank.set_input_registers(0, [120, 50])
+    server.data_bank.set_holding_registers(1, [33])
     n = next(_chan)
     can_chan, co_chan = f"i18-mon-can-{os.getpid()}-{n}", f"i18-mon-co-{os.getpid()}-{n}"
     eds_map = tmp_path / "axis.toml"
@@ -142,6 +143,7 @@ def test_monitor_shows_devices_flags_mismatches_and_never_writes(cell: dict[str,
         can_peer.send(can.Message(arbitration_id=0x123, data=(215).to_bytes(2, "little"),
                                   is_extended_id=False))
         can_peer.send(can.Message(arbitration_id=0x555, data=b"\x01", is_extended_id=False))
+        can_peer.send(can.Message(arbitration_id=0x200, data=b"\x09", is_extended_id=False))
         # TPDO1 of node 5: statusword 0x0237, position -4096; TPDO2 too short; heartbeats
         co_peer.send(can.Message(arbitration_id=0x185, is_extended_id=False,
                                  data=(0x0237).to_bytes(2, "little")
@@ -156,13 +158,15 @@ def test_monitor_shows_devices_flags_mismatches_and_never_writes(cell: dict[str,
 
         _wait(lambda: rows()["level"]["value"] == 120 and rows()["temp"]["value"] == 215
               and rows()["position_actual_value"]["value"] == -4096
-              and rows()["missing"]["flags"] != [], 20, "the devices")
+              and rows()["missing"]["flags"] != [] and rows()["fan"]["value"] == 9
+              and rows()["valve"]["value"] == 33, 20, "the devices")
         r = rows()
         assert r["level"]["flags"] == []
         assert r["pressure"]["flags"] == ["value 50 outside limits [0.0, 10.0]"]
         assert r["missing"]["flags"][0].startswith("no answer")
         assert r["statusword"]["value"] == 0x0237
-        assert r["valve"]["state"] == "output: not read, never written"
+        assert r["valve"]["value"] == 33 and r["valve"]["state"].startswith("output, read back")
+        assert r["fan"]["value"] == 9  # another node's command frame, observed
         flags = "\n".join(mon.bus_flags())
         assert "bus line: unknown-id" in flags and "0x555" in flags
         assert "heartbeat of node 9, which is not in the map" in flags
@@ -172,10 +176,10 @@ def test_monitor_shows_devices_flags_mismatches_and_never_writes(cell: dict[str,
         mon.close()
     # nothing was written: not the safe values at the end either
     assert cell["handler"].writes == []
-    assert {d for d, _ in mon.writes_held} == {"valve", "fan"}
+    assert mon.writes_held == []  # read-back outputs are inputs here: not even a safe value
     assert can_peer.recv(timeout=0.2) is None       # no CAN frame from the monitor
     assert co_peer.recv(timeout=0.2) is None        # no NMT, no SDO, no SYNC
-    assert cell["server"].data_bank.get_holding_registers(1) == [0]
+    assert cell["server"].data_bank.get_holding_registers(1) == [33]
 
 
 def test_monitor_command_exit_status(cell: dict[str, Any],
