@@ -1,27 +1,46 @@
-"""cli - the ``chcos`` command.
+"""cli - the ``chcos`` command: a thin dispatcher to each subcommand's own module.
 
-``chcos run``     the main job: the arc-welding cell end to end (``--example fig65``: the thesis'
-                  figure 6.5 system)
-``chcos shell``   a host console: an in-process system that reads host commands (install,
-                  setpri, invoke, suspend, resume, close, inject, map) from a script or stdin
-``chcos check``   validate device-map files without touching a bus
-``chcos map``     draw a sysfile.map as the hierarchy (text, dot or svg)
-``chcos view``    serve a live page of a running system on 127.0.0.1
-``chcos sim``     simulated field devices (CAN, CANopen, Modbus, serial)
-``chcos satellite -m N --system FILE``  run machine N of a multi-satellite system
-``chcos host --system FILE [COMMAND...]``  host commands to a running multi-satellite system
+:data:`DESCRIPTION` is what ``chcos --help`` shows; each subcommand's parser and help live in its
+module (``chcos.cellrun``, ``chcos.weldrun``, ``chcos.scaffold``, ``chcos.importers``,
+``chcos.monitor``, ``chcos.sim``, ``chcos.devmap``, ``chcos.viewer.cli``), except ``shell``,
+``satellite`` and ``host``, which are here.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
-import math
 import sys
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 
 from chcos.errors import ChcosError, CommandSyntaxError
+
+DESCRIPTION = """\
+chcos runs CHC-OS control hierarchies on real field buses (CAN, CANopen, Modbus, serial).
+
+Your own cell:
+  chcos new DIR                  create a cell project (system file, device map, task, tests)
+  chcos run SYSTEM               run a system file until Ctrl-C (--virtual, --outputs off, ...)
+  chcos monitor SYSTEM           commission a live bus: listen-only, mismatches flagged
+  chcos import eds|dbc|modbus F  write a device map from an EDS, a DBC or a register list
+  chcos check FILE...            validate device maps without opening a bus
+  chcos sim --from MAP           simulated slaves for every device of a map
+
+The thesis' systems:
+  chcos run [weld]               the arc-welding cell end to end (chcos run weld --help)
+  chcos run --example fig65      the figure 6.5 system
+
+Consoles and views:
+  chcos shell [MAP...]           host commands to an in-process system (script or stdin)
+  chcos satellite -m N --system SYSTEM   one machine of a multi-process system
+  chcos host --system SYSTEM [COMMAND]   host commands to running satellites
+  chcos map [sysfile.map]        draw the hierarchy (text, dot, svg)
+  chcos view                     live web page of a running system
+  chcos sim KIND                 one simulated device (can, serial, canopen, modbus, weld)
+
+'chcos COMMAND --help' describes each command. Warnings go to stderr; -v adds INFO messages.
+"""
 
 
 def _run_example(argv: list[str]) -> int:
@@ -38,28 +57,59 @@ def _run_example(argv: list[str]) -> int:
     return 0
 
 
+def _run_help() -> int:
+    """``chcos run --help``: the three forms of ``chcos run`` on one page."""
+    import contextlib
+    import io
+
+    from chcos.cellrun import parser as cell_parser
+
+    print(cell_parser().format_help())
+    weld = io.StringIO()
+    with contextlib.redirect_stdout(weld), contextlib.suppress(SystemExit):
+        from chcos.weldrun import main as weld_main
+
+        weld_main(["--help"])
+    print(weld.getvalue())
+    print("usage: chcos run --example fig65 [--duration S] [--real-time] [--workdir DIR]\n\n"
+          "The thesis' figure 6.5 system (section 6.1.5) on virtual time: executions and "
+          "messages per second against the thesis' estimate.")
+    return 0
+
+
 def _shell(args: argparse.Namespace) -> int:
-    from chcos.clock import RealClock, VirtualClock
+    import threading
+
+    from chcos.cellrun import SinceStartClock
+    from chcos.clock import VirtualClock
     from chcos.system import System
 
-    clock = VirtualClock() if args.virtual else RealClock()
+    clock = VirtualClock() if args.virtual else SinceStartClock()
+    base_dir, map_path = args.base_dir, args.map
+    if args.workdir:
+        Path(args.workdir).mkdir(parents=True, exist_ok=True)
+        base_dir = base_dir or args.workdir
+        map_path = map_path or str(Path(args.workdir) / "sysfile.map")
     system = System(args.devmap, clock=clock, task_path=args.task_path or ["."],
-                    base_dir=args.base_dir, map_path=args.map)
+                    base_dir=base_dir or ".", map_path=map_path or "sysfile.map")
     lines: Iterable[str] = (Path(args.script).read_text(encoding="utf-8").splitlines()
                             if args.script else sys.stdin)
     if not args.virtual:
         system.start()
     def execute(line: str) -> str:
-        if line.strip().startswith("run ") and args.virtual:
-            words = line.split()
+        words = line.split()
+        if words[:1] == ["run"]:
             try:
-                seconds = float(words[1])
+                seconds = float(words[1]) if len(words) == 2 else -1.0
             except ValueError:
-                seconds = math.nan
-            if len(words) != 2 or not 0 <= seconds <= 1e6:
-                raise CommandSyntaxError(f"run: expected seconds of virtual time 0..1e6, got "
-                                         f"{' '.join(words[1:])!r}")
-            system.run_for(seconds)
+                seconds = -1.0
+            if not 0 <= seconds <= 1e6:
+                raise CommandSyntaxError(f"run: expected 'run SECONDS' (0..1e6), got "
+                                         f"{line.strip()!r}")
+            if args.virtual:
+                system.run_for(seconds)
+            else:  # the kernel runs on its own thread: let it, then go on with the script
+                threading.Event().wait(seconds)
             return ""
         return system.execute(line)
 
@@ -132,21 +182,47 @@ def _host(args: argparse.Namespace) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``chcos`` console script; returns the exit status."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    # warnings are shown by default (a handler set by an embedding program or pytest is kept)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     if argv[:1] == ["check"]:
         from chcos.devmap import check_main
 
         return check_main(argv[1:])
+    if argv[:1] == ["sim"] and argv[1:2] and argv[1].split("=")[0] == "--from":
+        from chcos.sim.from_map import main as sim_from_main
+
+        return sim_from_main(argv[1:])
     if argv[:1] == ["sim"]:
         from chcos.sim.cli import main as sim_main
 
         return sim_main(argv[1:])
     if argv[:1] == ["run"]:
         rest = argv[1:]
+        if rest[:1] in (["-h"], ["--help"]):
+            return _run_help()
         if rest[:2] == ["--example", "fig65"] or rest[:1] == ["--example=fig65"]:
             return _run_example(rest[2:] if rest[:1] == ["--example"] else rest[1:])
+        if rest[:1] == ["weld"]:
+            rest = rest[1:]
+        elif rest and not rest[0].startswith("-"):
+            from chcos.cellrun import main as cell_main
+
+            return cell_main(rest)
         from chcos.weldrun import main as weld_main
 
         return weld_main(rest)
+    if argv[:1] == ["import"]:
+        from chcos.importers import main as import_main
+
+        return import_main(argv[1:])
+    if argv[:1] == ["monitor"]:
+        from chcos.monitor import main as monitor_main
+
+        return monitor_main(argv[1:])
+    if argv[:1] == ["new"]:
+        from chcos.scaffold import main as new_main
+
+        return new_main(argv[1:])
     if argv[:1] == ["map"]:
         from chcos.viewer.cli import map_main
 
@@ -155,39 +231,63 @@ def main(argv: Sequence[str] | None = None) -> int:
         from chcos.viewer.cli import view_main
 
         return view_main(argv[1:])
-    parser = argparse.ArgumentParser(prog="chcos", description=__doc__,
+    parser = argparse.ArgumentParser(prog="chcos", description=DESCRIPTION,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
-    sub = parser.add_subparsers(dest="cmd", required=True)
-    sub.add_parser("run", help="the main job: the arc-welding cell (chcos run --help); "
-                               "--example fig65 runs the thesis' figure 6.5 system")
-    p = sub.add_parser("shell", help="host console for an in-process system")
-    p.add_argument("devmap", nargs="*", help="device-map files")
+    sub = parser.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
+    sub.add_parser("run", help="run a system file, the welding cell or figure 6.5 "
+                               "(chcos run --help)")
+    p = sub.add_parser("shell", help="host console for an in-process system",
+                       description="Build a system from device maps in this process and carry "
+                                   "out host commands (install, setpri, invoke, suspend, "
+                                   "resume, close, inject, map) from --script or stdin, one per "
+                                   "line; 'quit' ends. 'run SECONDS' lets the system run that long "
+                                   "(on real time the kernel runs meanwhile anyway; with "
+                                   "--virtual only 'run' advances the clock). To run "
+                                   "a whole cell until Ctrl-C, use 'chcos run SYSTEM'.")
+    p.add_argument("devmap", nargs="*", metavar="MAP", help="device-map files")
     p.add_argument("--script", help="read commands from this file instead of stdin")
-    p.add_argument("--task-path", action="append", help="directory of task modules")
-    p.add_argument("--base-dir", default=".", help="relative file names start here")
-    p.add_argument("--map", default="sysfile.map", help="where sysfile.map is written")
+    p.add_argument("--task-path", action="append", metavar="DIR",
+                   help="directory where task code is found (repeatable; default .)")
+    p.add_argument("--workdir", metavar="DIR",
+                   help="where sysfile.map goes and relative file names start")
+    p.add_argument("--base-dir", metavar="DIR",
+                   help="relative file names in installs start here (default: --workdir or .)")
+    p.add_argument("--map", metavar="FILE",
+                   help="where sysfile.map is written (default: --workdir/sysfile.map or "
+                        "./sysfile.map)")
     p.add_argument("--virtual", action="store_true",
-                   help="virtual time: the script advances it with 'run SECONDS'")
+                   help="virtual time: only 'run SECONDS' advances it")
     p.set_defaults(func=_shell)
-    p = sub.add_parser("satellite", help="run one machine of a multi-satellite system")
-    p.add_argument("-m", "--machine", type=int, required=True)
-    p.add_argument("--system", required=True, help="the system file (TOML)")
+    p = sub.add_parser("satellite", help="run one machine of a multi-process system",
+                       description="Run machine N of the system file's satellites in this "
+                                   "process (its kernel, tasks and devices) until Ctrl-C or "
+                                   "SIGTERM; actuators go to their safe values on the way out.")
+    p.add_argument("-m", "--machine", type=int, required=True, metavar="N",
+                   help="the machine number (a [[satellite]] of the system file)")
+    p.add_argument("--system", required=True, metavar="SYSTEM", help="the system file (TOML)")
     p.set_defaults(func=_satellite)
-    p = sub.add_parser("host", help="host commands to a running multi-satellite system")
-    p.add_argument("--system", required=True, help="the system file (TOML)")
+    p = sub.add_parser("host", help="host commands to a running multi-process system",
+                       description="Connect to the satellites of a system file and carry out "
+                                   "host commands: one given on the command line, or every "
+                                   "line of --script, or stdin.")
+    p.add_argument("--system", required=True, metavar="SYSTEM", help="the system file (TOML)")
     p.add_argument("--script", help="read commands from this file")
-    p.add_argument("--wait", type=float, default=0.0,
-                   help="first wait this many seconds for every satellite to be up")
+    p.add_argument("--wait", type=float, default=0.0, metavar="S",
+                   help="first wait up to S seconds for every satellite to be up")
     p.add_argument("command", nargs=argparse.REMAINDER, help="one command, e.g. setpri -9 A4 C1")
     p.set_defaults(func=_host)
+    sub.add_parser("new", help="create a new cell project (chcos new DIR)")
+    sub.add_parser("import", help="device map from an EDS, a DBC or a Modbus register list "
+                                  "(chcos import eds|dbc|modbus FILE)")
+    sub.add_parser("monitor", help="commission a live bus listen-only (chcos monitor SYSTEM)")
+    sub.add_parser("check", help="validate device-map files (chcos check FILE...)")
+    sub.add_parser("sim", help="simulated devices (chcos sim KIND ..., chcos sim --from MAP)")
     sub.add_parser("map", help="draw a sysfile.map (chcos map [MAP] --format text|dot|svg)")
     sub.add_parser("view", help="live page of a running system (chcos view --example fig65)")
-    sub.add_parser("check", help="validate device-map files (chcos check FILE...)")
-    sub.add_parser("sim", help="simulated field devices (chcos sim KIND ...)")
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.ERROR,
-                        format="%(levelname)s %(name)s: %(message)s")
+    if args.verbose:
+        logging.getLogger().setLevel(logging.INFO)
     try:
         return int(args.func(args))
     except ChcosError as exc:

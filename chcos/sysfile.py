@@ -8,6 +8,7 @@ satellites with the loopback port each listens on::
     devmaps = ["../busconfig/fig65.toml"]  # relative to this file
     task_path = ["tasks"]
     base_dir = "."                         # relative file names in installs start here
+    install = "install.chcos"              # optional: host script(s) ``chcos run`` executes
 
     [[satellite]]
     machine = 0
@@ -22,6 +23,11 @@ satellites with the loopback port each listens on::
 Every node builds its Zenoh configuration from it (:func:`link_config_for`): a satellite listens on
 its own port and connects to every other satellite; a host only connects. Everything is on
 127.0.0.1 with multicast scouting off (see :mod:`chcos.link.config`).
+
+``chcos run SYSTEM`` runs every machine in one process: it needs no ``[[satellite]]`` table (one
+is required only by ``chcos satellite`` and ``chcos host``), and executes ``system.install``, a
+host script (``install``, ``setpri``, ``invoke`` lines) or a list of them run in order, before it
+starts the clock.
 """
 
 from __future__ import annotations
@@ -36,7 +42,7 @@ from chcos.errors import ConfigError
 from chcos.link.config import LinkConfig, link_config_from_section
 
 _TOP = {"system", "satellite", "link"}
-_SYSTEM = {"name", "devmaps", "task_path", "base_dir"}
+_SYSTEM = {"name", "devmaps", "task_path", "base_dir", "install"}
 _SAT = {"machine", "port"}
 
 
@@ -51,6 +57,7 @@ class SystemFile:
     base_dir: Path
     satellites: dict[int, int]  # machine -> port
     link: Mapping[str, Any] = field(default_factory=dict)
+    install: tuple[Path, ...] = ()  # host scripts ``chcos run`` executes (system.install)
 
     @property
     def prefix(self) -> str:
@@ -102,8 +109,8 @@ def load(path: str | Path) -> SystemFile:
         raise fail("system.base_dir", "expected a path")
     sats: dict[int, int] = {}
     entries = doc.get("satellite", [])
-    if not isinstance(entries, list) or not entries:
-        raise fail("satellite", "expected at least one [[satellite]] table")
+    if not isinstance(entries, list):
+        raise fail("satellite", "expected [[satellite]] tables")
     for i, sat in enumerate(entries):
         where = f"satellite[{i}]"
         if not isinstance(sat, dict):
@@ -125,9 +132,15 @@ def load(path: str | Path) -> SystemFile:
     if not isinstance(link, dict) or "listen" in link or "connect" in link:
         raise fail("link", "expected a table without listen/connect (ports come from "
                            "[[satellite]])")
+    install = sys_sec.get("install", [])
+    if isinstance(install, str):
+        install = [install]
+    if not isinstance(install, list) or not all(isinstance(p, str) for p in install):
+        raise fail("system.install", "expected the path of a host script, or a list of them")
     sf = SystemFile(path, name, paths("devmaps"), paths("task_path"), (base / base_dir).resolve(),
-                    sats, link)
-    link_config_for(sf, None)  # check the [link] section now
+                    sats, link, tuple((base / p).resolve() for p in install))
+    if sats:  # a single-process system (no [[satellite]]) opens no link
+        link_config_for(sf, None)  # check the [link] section now
     return sf
 
 

@@ -406,7 +406,15 @@ def run(binding: str = "direct", *, scenario: str = "", seed: int = 0, real_time
 def main(argv: Sequence[str] | None = None) -> int:
     """``chcos run``: the welding job. Returns 0 when the job finished (whatever its outcome),
     1 when it hit the duration limit, 2 when the cell could not be built."""
-    ap = argparse.ArgumentParser(prog="chcos run", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(
+        prog="chcos run [weld]",
+        description="The welding cell of the thesis (appendix 2): a five-joint manipulator "
+                    "inspects a curving gap and welds it, on simulated buses (virtual CAN, "
+                    "Modbus TCP, serial) or the protocol-free model, on virtual time unless "
+                    "--real-time. Prints progress once a simulated second and a summary. Exit "
+                    "status 0 when the job finished, 1 at the duration limit, 2 when the cell "
+                    "could not be built. 'chcos run SYSTEM' runs your own cell instead; "
+                    "'chcos run --example fig65' the thesis' figure 6.5 system.")
     ap.add_argument("--binding", choices=BINDINGS, default="buses",
                     help="buses (default): the simulated cell on virtual CAN (CANopen servos, "
                          "raw CAN), Modbus TCP and serial; direct: the model in-process, no "

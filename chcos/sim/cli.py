@@ -137,9 +137,15 @@ def _serial(args: argparse.Namespace) -> int:
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="chcos sim", description="run a simulated field device")
+    parser = argparse.ArgumentParser(
+        prog="chcos sim",
+        description="Run a simulated field device on loopback or a CAN channel, for tests and "
+                    "demos without hardware. 'chcos sim --from MAP' simulates every device of "
+                    "a device map instead (see 'chcos sim --from MAP --help').")
     sub = parser.add_subparsers(dest="what", required=True)
-    c = sub.add_parser("can", help="a DBC-coded raw CAN node")
+    c = sub.add_parser("can", help="a DBC-coded raw CAN node",
+                       description="A raw CAN node that sends DBC-coded messages every round "
+                                   "on a python-can channel (virtual by default).")
     c.add_argument("--dbc", required=True, help="DBC file of the messages")
     c.add_argument("--interface", default="virtual", help="python-can interface (virtual)")
     c.add_argument("--channel", default="vcan0", help="python-can channel (vcan0)")
@@ -150,7 +156,10 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--node", action="append", default=[], metavar="NODE",
                    help="send every message whose DBC sender is NODE (repeatable)")
     _common(c)
-    s = sub.add_parser("serial", help="a line or binary serial instrument")
+    s = sub.add_parser("serial", help="a line or binary serial instrument",
+                       description="A serial instrument on a pty or a loopback TCP port "
+                                   "(socket://) sending text lines or binary frames every "
+                                   "round.")
     where = s.add_mutually_exclusive_group(required=True)
     where.add_argument("--tcp", type=int, metavar="PORT",
                        help="listen on 127.0.0.1:PORT (0: any) for socket://")
@@ -168,8 +177,12 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--wait-client", type=float, default=60.0, metavar="S",
                    help="seconds to wait for the driver to connect or write (60)")
     _common(s)
+    delegated_help = {"canopen": "a CANopen servo drive (SDO, PDOs, heartbeat, EMCY)",
+                      "modbus": "a Modbus TCP or RTU server with a shared register store",
+                      "weld": "the whole welding cell on its real protocols"}
     for name in DELEGATED:
-        sub.add_parser(name, help=f"handed to {DELEGATED[name]}:main", add_help=False)
+        sub.add_parser(name, help=delegated_help.get(name, "a simulated device"),
+                       add_help=False)
     return parser
 
 

@@ -1,0 +1,151 @@
+"""testing - the chcos pytest plugin: a user's own cell in their own CI.
+
+Registered through the ``pytest11`` entry point, so any project with chcos installed gets the
+``chcos_cell`` fixture. ``chcos_cell("system.toml")`` builds the system that file describes on
+virtual time against simulated slaves generated from its device maps
+(:mod:`chcos.sim.from_map`), runs its install script, and returns a :class:`TestCell` to drive
+and read it; every cell is shut down (actuators at their safe values) when the test ends::
+
+    def test_valve_opens(chcos_cell):
+        cell = chcos_cell("system.toml")       # relative to the pytest root directory
+        cell.set("level", 100.0)               # the simulated PLC now serves 100 cm
+        cell.run_for(1.0)                      # one second of virtual time
+        assert cell.value("level") == 100.0    # what Devtab holds
+        assert cell.peer("valve") == 40        # what the simulated PLC was sent
+        cell.silence("plc")                    # fault: the PLC stops answering
+        cell.invoke("fill", setpoint=80)       # a host command
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from contextlib import ExitStack
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import pytest
+
+if TYPE_CHECKING:  # the plugin loads in every pytest run: import chcos only when used
+    from chcos.cellrun import Cell
+    from chcos.tasks import TaskEntry
+
+
+class TestCell:
+    """A user's system on virtual time, for tests (see the module doc)."""
+
+    __test__ = False  # not a test class for pytest's collector
+
+    def __init__(self, cell: Cell) -> None:
+        self.cell = cell
+        self.system = cell.system
+
+    # ---- time -------------------------------------------------------------------------------
+    def run_for(self, seconds: float) -> None:
+        """Run ``seconds`` of virtual time (as fast as possible)."""
+        self.cell.run_for(seconds)
+
+    @property
+    def now(self) -> float:
+        """Seconds of virtual time since the cell was built."""
+        return self.cell.now()
+
+    # ---- host commands ----------------------------------------------------------------------
+    def execute(self, line: str) -> str:
+        """Any host command (``setpri -9 A B``, ``suspend T``...); raises ChcosError as the
+        console would print it."""
+        return self.system.execute(line)
+
+    def invoke(self, task: str, priority: int | None = None, **command: Any) -> str:
+        """Send ``task`` a command message from the host (``invoke task key=value...``)."""
+        return self.system.invoke(task, command, priority)
+
+    def inject(self, device: str, value: Any) -> None:
+        """Feed a reading to ``device`` directly (bypassing its bus), as host ``inject`` does."""
+        self.system.devtab.get(device)
+        self.system.devtab.inject(device, value)
+
+    # ---- the simulated slaves ---------------------------------------------------------------
+    def set(self, device: str, value: Any) -> None:
+        """Put ``value`` (engineering units) into the simulated slave serving sensor
+        ``device``; the system reads it at its next poll. Raises DeviceError for a device with
+        no simulated slave (use :meth:`inject`)."""
+        assert self.cell.slaves is not None
+        self.cell.slaves.set(device, value)
+
+    def peer(self, device: str) -> Any:
+        """What the simulated slave holds for ``device``: for an actuator, what the system last
+        put on the wire (engineering units)."""
+        assert self.cell.slaves is not None
+        return self.cell.slaves.get(device)
+
+    def silence(self, bus: str) -> None:
+        """Fault: the simulated slave of ``bus`` stops answering (its connection drops)."""
+        assert self.cell.slaves is not None
+        self.cell.slaves.silence(bus)
+
+    def restore(self, bus: str) -> None:
+        """The simulated slave of ``bus`` answers again, with the values it held."""
+        assert self.cell.slaves is not None
+        self.cell.slaves.restore(bus)
+
+    def fail(self, device: str, reason: str = "failed by the test") -> None:
+        """Fault: mark ``device`` failed, as its driver would (readers get SensorFailure)."""
+        self.system.devtab.get(device)
+        self.system.devtab.fail(device, reason)
+
+    # ---- reading ----------------------------------------------------------------------------
+    def value(self, device: str) -> Any:
+        """Devtab's value of ``device`` (last reading, or last command of an actuator)."""
+        return self.system.devtab.get(device).value
+
+    def status(self, device: str) -> str:
+        """Devtab's status of ``device``: ``OK``, ``failed``, ``stale`` or ``suspended``."""
+        return self.system.devtab.get(device).status.value
+
+    def task(self, name: str) -> TaskEntry:
+        """The Tsktab entry of task ``name`` (``state``, ``steps``, ``abnormal``,
+        ``last_error``...). Raises TaskError if there is none."""
+        for t in self.system.tsktab:
+            if t.name == name:
+                return t
+        from chcos.errors import TaskError
+
+        raise TaskError(f"no task named {name!r}")
+
+    def world(self, task: str) -> Any:
+        """The world model of ``task`` (None if it has none)."""
+        return self.task(task).world
+
+    @property
+    def outputs_log(self) -> list[tuple[float, str, Any]]:
+        """Actuator writes logged instead of sent (``outputs=False``)."""
+        return self.cell.outputs_log
+
+    def close(self) -> None:
+        """Shut down now (actuators at their safe values); the fixture also does this."""
+        self.cell.close()
+
+
+@pytest.fixture
+def chcos_cell(request: pytest.FixtureRequest,
+               tmp_path: Path) -> Iterator[Callable[..., TestCell]]:
+    """Factory ``chcos_cell(system_file, outputs=True)`` -> :class:`TestCell`: the system on
+    virtual time against simulated slaves; a relative path starts at the pytest root
+    directory. Every cell is shut down at the end of the test."""
+    from chcos.cellrun import open_cell
+
+    stack = ExitStack()
+    built = [0]
+
+    def build(system_file: str | Path = "system.toml", *, outputs: bool = True) -> TestCell:
+        path = Path(system_file)
+        if not path.is_absolute():
+            path = Path(request.config.rootpath) / path
+        built[0] += 1
+        work = tmp_path / f"chcos-cell-{built[0]}"
+        cell = stack.enter_context(open_cell(path, virtual=True, outputs=outputs,
+                                             workdir=work))
+        return TestCell(cell)
+
+    with stack:
+        yield build
