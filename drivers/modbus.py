@@ -314,8 +314,10 @@ class _ModbusDriver(Driver):
                             f"{self.bus.name}")
             return
         if self._loop is None or not self._submit("write", self._points[device], value):
-            self.host.write_failed(device, value, f"{self.kind} bus {self.bus.name} is not "
-                                                  f"running")
+            why = f"{self.kind} bus {self.bus.name} is not running"
+            self.host.error(self.bus.name, "stopped", f"write {value!r} to {device} dropped: "
+                                                      f"{why}", device)
+            self.host.write_failed(device, value, why)
             return
 
     def settle(self, timeout: float) -> bool:
