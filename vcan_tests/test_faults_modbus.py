@@ -16,7 +16,7 @@ from chcos.clock import VirtualClock
 from chcos.errors import DeviceError
 from chcos.system import System
 from vcan_tests.netutil import free_port
-from vcan_tests.support_faults import WAIT, ModbusPeer, run_until
+from vcan_tests.support_faults import ModbusPeer, run_until
 
 HEATER, VALVE, TEMP = 100, 0, 10
 MAP = """
@@ -151,7 +151,7 @@ def test_server_killed_and_restarted_gets_safe_values_before_any_command(
         s.run_for(0.05)
         assert peer.holding(HEATER) == 250
         assert ("heater", False) in [(d, ok) for d, ok, _ in health]
-        assert [c for d, ok, c in health if d == "heater" and ok][0].startswith("modbus-tcp")
+        assert next(c for d, ok, c in health if d == "heater" and ok).startswith("modbus-tcp")
         assert s.devtab.bus_stats["mb"].counts["reconnects"] >= 1
     finally:
         s.shutdown()
