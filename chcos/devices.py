@@ -308,6 +308,11 @@ class Devtab:
         w.reason = reason
         self.kernel.interrupt(self._write_done, w)
 
+    def stats_doc(self) -> dict[str, Any]:
+        """The bus statistics as plain data, per bus (see :class:`BusStats`)."""
+        with self._stats_lock:
+            return {bus: st.as_dict() for bus, st in sorted(self.bus_stats.items())}
+
     def add_health_listener(self, fn: Callable[[str, bool, str], None]) -> None:
         """Call ``fn(device, healthy, cause)`` on the kernel thread whenever a device's health
         changes: ``healthy`` False with the failure's cause, True with the event that ended it."""

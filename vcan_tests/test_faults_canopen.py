@@ -68,14 +68,15 @@ class Peer:
     """canopen.LocalNode ``NODE`` with the servo EDS, heartbeat producer, EMCY producer."""
 
     def __init__(self, channel: str) -> None:
-        self.od = canopen.import_od(str(SERVO_EDS), NODE)
+        self.od: Any = canopen.import_od(str(SERVO_EDS), NODE)
         self.net: Any = canopen.Network()
         self.net.NOTIFIER_CYCLE = 0.05
         self.net.connect(interface="virtual", channel=channel)
         self.node: Any = canopen.LocalNode(NODE, self.od)
         self.net.add_node(self.node)
         self.dump = Candump()
-        self.net.notifier.add_listener(self.dump)
+        notifier: Any = self.net.notifier
+        notifier.add_listener(self.dump)
         self.node.nmt.state = "OPERATIONAL"
         self.beat()
 
