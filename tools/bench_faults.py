@@ -18,6 +18,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import can
 
@@ -29,9 +30,9 @@ from vcan_tests.support_faults import ModbusPeer
 WAIT = 20.0
 
 
-def _wait(pred: Callable[[], bool], what: str) -> None:
+def _wait(pred: Callable[..., bool], what: str, *args: Any) -> None:
     deadline = time.monotonic() + WAIT
-    while not pred():
+    while not pred(*args):
         if time.monotonic() > deadline:
             raise RuntimeError(f"timed out waiting for {what}")
         time.sleep(0.0005)
@@ -78,7 +79,7 @@ address = {{ table = "holding", address = 10, poll_period = 0.02 }}
             _wait(lambda: s.devtab.get("heater").value == 300, "command")
             t0 = time.monotonic()
             s.call(s.devtab.estop, "bench")
-            _wait(lambda t0=t0: any(w.values == [0] for w in peer.writes(t0)), "safe value")
+            _wait(lambda t0: any(w.values == [0] for w in peer.writes(t0)), "safe value", t0)
             out["estop"].append(next(w.at for w in peer.writes(t0) if w.values == [0]) - t0)
         for _ in range(max(1, runs // 4)):
             s.call(s.devtab.write, "heater", 300)
@@ -87,7 +88,7 @@ address = {{ table = "holding", address = 10, poll_period = 0.02 }}
             _wait(lambda: s.devtab.get("heater").status.value == "failed", "failure")
             peer.start()
             t0 = peer.started_at
-            _wait(lambda t0=t0: any(w.values == [0] for w in peer.writes(t0)), "safe value")
+            _wait(lambda t0: any(w.values == [0] for w in peer.writes(t0)), "safe value", t0)
             out["server back"].append(next(w.at for w in peer.writes(t0)
                                            if w.values == [0]) - t0)
     finally:
@@ -120,7 +121,7 @@ def canopen_bus(tmp: Path, runs: int) -> dict[str, list[float]]:
             _wait(lambda: s.devtab.get("speed").value == 5000, "command")
             t0 = time.monotonic()
             s.call(s.devtab.estop, "bench")
-            _wait(lambda t0=t0: first_zero(t0) is not None, "safe value")
+            _wait(lambda t0: first_zero(t0) is not None, "safe value", t0)
             out["estop"].append((first_zero(t0) or 0.0) - t0)
         for _ in range(max(1, runs // 4)):
             s.call(s.devtab.write, "speed", 5000)
@@ -129,7 +130,7 @@ def canopen_bus(tmp: Path, runs: int) -> dict[str, list[float]]:
             _wait(lambda: s.devtab.get("speed").status.value == "failed", "failure")
             t0 = time.monotonic()
             peer.beat()
-            _wait(lambda t0=t0: first_zero(t0) is not None, "safe value")
+            _wait(lambda t0: first_zero(t0) is not None, "safe value", t0)
             out["heartbeat back"].append((first_zero(t0) or 0.0) - t0)
     finally:
         s.shutdown()
@@ -172,7 +173,7 @@ safe_value = 0
             _wait(lambda: s.devtab.get("drive").value == 77, "command")
             t0 = time.monotonic()
             s.call(s.devtab.estop, "bench")
-            _wait(lambda t0=t0: any(a >= t0 and d == b"\0\0" for a, d in seen), "safe frame")
+            _wait(lambda t0: any(a >= t0 and d == b"\0\0" for a, d in seen), "safe frame", t0)
             out["estop"].append(next(a for a, d in seen if a >= t0 and d == b"\0\0") - t0)
     finally:
         s.shutdown()
@@ -231,7 +232,7 @@ safe_value = 0
             _wait(lambda: s.devtab.get("out").value == 5, "command")
             t0 = time.monotonic()
             s.call(s.devtab.estop, "bench")
-            _wait(lambda t0=t0: any(a >= t0 and ln == "SET 0" for a, ln in lines), "safe line")
+            _wait(lambda t0: any(a >= t0 and ln == "SET 0" for a, ln in lines), "safe line", t0)
             out["estop"].append(next(a for a, ln in lines if a >= t0 and ln == "SET 0") - t0)
     finally:
         s.shutdown()
