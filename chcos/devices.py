@@ -213,8 +213,11 @@ class Devtab:
     def stop_drivers(self) -> list[tuple[str, str]]:
         """Write safe values (whatever state the actuators are in), let every driver put them on
         the wire (up to SHUTDOWN_FLUSH s each), then stop every driver. Never raises; returns
-        (device, reason) of every safe value that was not delivered (also logged)."""
+        (device, reason) of every safe value that was not delivered (also logged). Without
+        running drivers (none started, or already stopped) there is nothing to do."""
         undelivered: list[tuple[str, str]] = []
+        if not self.drivers:
+            return undelivered
         try:
             issued = self._safe_all("shutdown")
             for drv in self.drivers:
