@@ -515,8 +515,8 @@ class Devtab:
         """The raw value for ``value``; raises DeviceError (counted as rejected) if refused."""
         spec = e.spec
         device = e.name
-        numeric = (spec.limits != (None, None) or spec.safe_value is not None or spec.round
-                   or (e.driver is not None and e.driver.numeric_only))
+        # a bus that carries numbers only (every field bus); memory actuators may hold any value
+        numeric = spec.round or (e.driver is not None and e.driver.numeric_only)
         if isinstance(value, bool):
             value = int(value)
         if numeric and not _scalable(value):
