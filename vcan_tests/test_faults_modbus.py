@@ -56,6 +56,12 @@ limits = [0, 600]
 round = true
 
 [[device]]
+name = "raw16"
+direction = "actuator"
+bus = "mb"
+address = {{ table = "holding", address = 130, type = "uint16" }}
+
+[[device]]
 name = "temp"
 direction = "sensor"
 bus = "mb"
@@ -105,6 +111,10 @@ def test_a_command_is_shown_once_on_the_wire_and_bad_values_are_refused(
         s.devtab.write("setpoint", 27.267)                       # round = true: 2727 (0.01)
         s.run_for(0.05)
         assert peer.holding(120) == 2727 and peer.holding(HEATER) == 300
+        with pytest.raises(DeviceError, match=r"raw16.*70000.*uint16 value 0\.\.65535"):
+            s.devtab.write("raw16", 70000)                       # no limits: the type refuses
+        s.run_for(0.05)
+        assert peer.holding(130) == 0 and s.devtab.get("raw16").value is None
         assert s.devtab.get("valve").value is None               # never commanded
         with pytest.raises(DeviceError, match="valve"):
             s.devtab.write("valve", 0.5)                         # a coil is 0 or 1
