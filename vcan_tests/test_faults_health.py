@@ -131,3 +131,17 @@ def test_the_map_shows_status_cause_and_time_of_change(system: System, tmp_path:
     assert dev["status"] == "failed" and dev["reason"] == "canopen node 3: no heartbeat"
     assert dev["since"] == pytest.approx(0.2)
     assert "since t=0.200: canopen node 3: no heartbeat" in render_text(doc)
+
+
+def test_staleness_is_judged_from_the_drivers_receive_time(system: System) -> None:
+    s, dt = system, system.devtab
+    clock = s.kernel.clock
+    assert isinstance(clock, VirtualClock)
+    clock.advance(0.3)
+    dt.deliver("S", 1.0)                         # received by the driver at t=0.3 ...
+    clock.advance(0.05)                          # ... handled by the kernel at t=0.35
+    s.run_for(0.01)
+    e = dt.get("S")
+    assert e.rx_at == pytest.approx(0.3) and e.updated_at == pytest.approx(0.35)
+    s.run_for(0.44)                              # t=0.80: 0.5 s after it was received
+    assert status(e) is DeviceStatus.STALE and e.since == pytest.approx(0.8)
