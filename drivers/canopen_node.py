@@ -451,6 +451,17 @@ class CanopenDriver(Driver):
     def _watchdog(self) -> float:
         """Fail the devices of nodes whose heartbeat is overdue; the time to the next deadline."""
         now = time.monotonic()
+        overdue = False
+        with self._hb_lock:
+            for s in self._nodes.values():
+                if (s.heartbeat_timeout is not None and not s.lost
+                        and now - s.last_heartbeat > s.heartbeat_timeout):
+                    overdue = True
+        rx = self._rx
+        if overdue and rx is not None:
+            # a late heartbeat is not a dead node: first hand over every frame the OS already
+            # received (this thread or the reader may simply have been starved of CPU)
+            rx.settle(0.05)
         wait = 0.5
         for nid, s in self._nodes.items():
             with self._hb_lock:
