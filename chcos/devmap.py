@@ -25,6 +25,7 @@ Schema (see also ``busconfig/README.md``)::
     limits = [-inf, 120.0]  # engineering units, inclusive; TOML's -inf / inf leaves an end open
     safe_value = 0.0        # actuators only; must lie within limits
     units = "degC"          # free text, default ""
+    round = false           # actuators only: round the raw value to an integer (else refused)
 
 Top-level keys other than ``bus`` and ``device`` are rejected. Option keys that name files
 (``dbc``, ``eds``, ``record``, and any key ending in ``_file`` or ``_path``, in bus options and in
@@ -56,7 +57,7 @@ from drivers.registry import driver_class
 
 BUS_KEYS = ("name", "kind")
 DEVICE_KEYS = ("name", "direction", "machine", "bus", "address", "priority", "stale_after",
-               "scale", "offset", "limits", "safe_value", "units")
+               "scale", "offset", "limits", "safe_value", "units", "round")
 TOP_KEYS = ("bus", "device")
 PATH_KEYS = frozenset({"dbc", "eds", "record"})
 MAX_MESSAGE = 300        # characters of one error's expectation
@@ -340,6 +341,12 @@ def _parse_device(fe: _FileErrors, i: int, table: Any, base: Path) -> _Parsed:
         fe.add(f"{key}.units", f"expected a string of at most 64 characters, got "
                                f"{_type_name(units)} {_short(units)}")
         units = ""
+    rounding = table.get("round", False)
+    if not isinstance(rounding, bool):
+        fe.add(f"{key}.round",
+               f"expected true or false, got {_type_name(rounding)} {_short(rounding)}")
+    elif rounding and direction != "actuator":
+        fe.add(f"{key}.round", "applies to actuators only; remove it from a sensor")
     if name is None or direction not in ("sensor", "actuator") or not isinstance(bus, str) \
             or not bus or not address_ok or not isinstance(address, dict):
         return _Parsed(None, None)
@@ -349,7 +356,8 @@ def _parse_device(fe: _FileErrors, i: int, table: Any, base: Path) -> _Parsed:
                       scale=scale if scale is not None else 1.0,
                       offset=offset if offset is not None else 0.0,
                       limits=limits if limits is not None else (None, None),
-                      safe_value=safe, units=units, file=fe.path, key=key)
+                      safe_value=safe, units=units, file=fe.path, key=key,
+                      round=rounding is True)
     return _Parsed(spec if len(fe.errors) == before and limits is not None else None, spec)
 
 

@@ -41,7 +41,9 @@ class DeviceSpec:
     ends inclusive, ``None`` for open. ``stale_after`` is seconds without fresh data before a sensor
     is marked stale (``None``: never). ``safe_value`` is written to an actuator on e-stop, on
     abnormal completion of its owning task, and on shutdown (``None``: nothing is written).
-    ``priority`` is the interrupt priority 0..99 of the device's sensory link.
+    ``priority`` is the interrupt priority 0..99 of the device's sensory link. ``round`` (actuators
+    only) lets Devtab round the raw value to the nearest integer before the driver gets it; without
+    it a value an integer address cannot carry exactly is refused at write.
     """
 
     name: str
@@ -58,6 +60,7 @@ class DeviceSpec:
     units: str = ""
     file: str = "<memory>"
     key: str = "device[?]"
+    round: bool = False
 
 
 @dataclass(frozen=True)

@@ -73,6 +73,8 @@ class SystemManager:
         self.host_links: dict[str, Link] = {}
         self.terminals: dict[str, list[Link]] = {}
         self.on_change: list[Callable[[str, str], None]] = []
+        # a device's health (status, cause, since) is part of the map: rewrite it on a change
+        system.devtab.add_health_listener(lambda _d, _ok, _c: self.save_map())
 
     # ---- helpers ----------------------------------------------------------------------------
     def _path(self, name: str) -> Path:
@@ -410,12 +412,14 @@ class SystemManager:
             "name": d.name, "direction": d.spec.direction, "machine": d.spec.machine,
             "bus": d.spec.bus, "status": d.status.value, "value": d.value,
             "readings": d.readings, "overwrites": d.overwrites, "units": d.spec.units,
-            "commands": d.commands, "reason": d.reason,
+            "commands": d.commands, "reason": d.reason, "since": d.since,
+            "pending": d.pending, "write_errors": d.write_errors,
+            "last_write_error": d.last_write_error,
         } for d in s.devtab]
         return {"machines": sorted(self.machines), "devmaps": list(s.devmap.files),
                 "base_dir": str(s.base_dir), "task_path": [str(p) for p in s.task_path],
                 "time": s.kernel.clock.now(), "tasks": tasks, "links": links,
-                "devices": devices}
+                "devices": devices, "buses": s.devtab.stats_doc()}
 
     def save_map(self) -> None:
         """Write sysfile.map (atomically) if the system has a map path."""

@@ -55,12 +55,24 @@ def render_text(doc: dict[str, Any], rates: Mapping[str, float] | None = None,
         out.append("level 0 (devices)")
         for d in devs:
             val = d.get("value")
+            pend = (f" (pending {d['pending']!r})" if d.get("pending") is not None else "")
+            why = (f" since t={d['since']:.3f}: {d['reason']}" if d.get("reason")
+                   and d.get("since") is not None else f": {d['reason']}" if d.get("reason")
+                   else "")
+            werr = (f" [{d['write_errors']} write error(s): {d.get('last_write_error', '')}]"
+                    if d.get("write_errors") else "")
             out.append(f"  {d['name']:<8} m{d['machine']} {d['direction']:<8} "
-                       f"{d.get('status', '?'):<9} value {val!r} {d.get('units', '')}")
+                       f"{d.get('status', '?'):<9} value {val!r} {d.get('units', '')}{pend}"
+                       f"{why}{werr}")
             for lk in links_from.get(d["name"], []):
                 out.append(f"      ^ {lk['src']}/{lk['dst']:<10} sensory p{lk['priority']} "
                            f"sent {lk.get('sent', 0)} overwritten {lk.get('overwritten', 0)}"
                            f"{_rate(lk, rates)}")
+    for bus, st in (doc.get("buses") or {}).items():
+        counts = " ".join(f"{k} {v}" for k, v in sorted(st.get("counts", {}).items()))
+        errors = " ".join(f"{k} {v}" for k, v in sorted(st.get("errors", {}).items()))
+        out.append(f"  bus {bus}: {counts or 'no traffic'}"
+                   f"{'; errors: ' + errors if errors else ''}")
     known = {t["name"] for t in doc["tasks"]} | {d["name"] for d in devs}
     others = sorted({lk["src"] for lk in doc["links"] if lk["src"] not in known}
                     - {"host"})

@@ -24,12 +24,30 @@ class DriverHost(Protocol):
     def fail(self, device: str, reason: str) -> None:
         """Device ``device`` failed (heartbeat lost, bus error, timeout); ``reason`` says why."""
 
-    def recover(self, device: str) -> None:
-        """Device ``device`` works again after a failure."""
+    def recover(self, device: str, reason: str = "") -> None:
+        """Device ``device`` works again: the event that ended its failure happened (a heartbeat
+        back, an error-reset EMCY, a request answered); ``reason`` says which. Never call it for
+        a reconnect alone, nor for an unrelated reading."""
 
-    def error(self, bus: str, kind: str, detail: str) -> None:
-        """Count and report a bus-level error that hit no single device: a malformed frame, an
-        unknown id, garbage on a serial line. ``kind`` is a short key (``"malformed"``...)."""
+    def written(self, device: str, value: Any) -> None:
+        """Raw ``value`` (as given to :meth:`Driver.write`) is on the wire for actuator ``device``
+        (acknowledged where the protocol acknowledges). Drivers with ``confirms_writes`` report
+        every write exactly once, in order: :meth:`written` or :meth:`write_failed`."""
+
+    def write_failed(self, device: str, value: Any, reason: str) -> None:
+        """Raw ``value`` for actuator ``device`` did not reach the wire (refused, not answered,
+        link down, dropped at stop); ``reason`` says why."""
+
+    def stat(self, bus: str, key: str, n: int = 1, device: str = "") -> None:
+        """Add ``n`` to counter ``key`` of bus ``bus`` (and of ``device`` if given) in the bus
+        statistics: ``frames``, ``requests``, ``reconnects``, ``lost`` (frames the OS dropped).
+        Error classes go through :meth:`error`. Cheap; callable per frame."""
+
+    def error(self, bus: str, kind: str, detail: str, device: str = "") -> None:
+        """Count and report a bus-level error: a malformed frame, an unknown id, garbage on a
+        serial line, a timeout, an exception answer. ``kind`` is the error class, a short key
+        (``"malformed"``, ``"timeout"``, ``"exception-6"``...) counted in the bus statistics,
+        also under ``device`` if the error concerns one device."""
 
     def every(self, period: float, fn: Callable[[], None]) -> None:
         """Run ``fn`` on the kernel thread every ``period`` seconds of the kernel clock (virtual or
@@ -49,6 +67,11 @@ class Driver(ABC):
     """
 
     kind: ClassVar[str] = ""
+    #: True if the driver reports the outcome of every write (``host.written`` /
+    #: ``host.write_failed``); otherwise Devtab takes a write as done when it is handed over.
+    confirms_writes: ClassVar[bool] = False
+    #: True if every actuator of the bus takes numbers only (Devtab refuses anything else).
+    numeric_only: ClassVar[bool] = False
 
     def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
         self.bus = bus
@@ -77,6 +100,17 @@ class Driver(ABC):
         """Seconds between two readings the driver asks for of a valid sensor ``device``, or None
         if the device sends on its own. ``chcos check`` warns when ``stale_after`` is shorter."""
         return None
+
+    def check_value(self, device: str, value: Any) -> str | None:
+        """Why raw ``value`` cannot be written to actuator ``device`` as it is (``"expected ..."``:
+        out of the address type's range, not an integer for an integer address...), or None if it
+        can. Called by Devtab before :meth:`write`; must not block."""
+        return None
+
+    def flush(self, timeout: float) -> bool:
+        """Block until every write queued so far has been put on the wire or reported failed;
+        True if done within ``timeout``. Called at shutdown before :meth:`stop`."""
+        return self.settle(timeout)
 
     @abstractmethod
     def start(self) -> None:

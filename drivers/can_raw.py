@@ -179,6 +179,37 @@ class CanCodec:
                                        f"is {v}, not a finite number")
         return "ok", out
 
+    def check(self, device: str, value: Any) -> str | None:
+        """Why ``value`` cannot be encoded for actuator ``device`` (None if it can): not a
+        finite number, outside the signal's range or bit width, a fraction for a raw (non-DBC)
+        integer signal. Nothing is remembered."""
+        item = self._by_device.get(device)
+        if item is None:
+            return None
+        fr, sig = item
+        if isinstance(value, bool):
+            value = int(value)
+        if not isinstance(value, int | float) or value != value or value in (float("inf"),
+                                                                             float("-inf")):
+            return f"expected a finite number, got {value!r}"
+        signal = fr.message.get_signal_by_name(sig)
+        if (fr.message.name.startswith("raw_0x") and not signal.is_float
+                and isinstance(value, float) and not value.is_integer()):
+            return f"expected an integer for raw signal {sig} ({signal.length} bits), got {value!r}"
+        values = dict(fr.values)
+        values[sig] = value
+        try:
+            fr.message.encode(values, strict=True)
+            if fr.message.name.startswith("raw_0x"):
+                lo = -(1 << (signal.length - 1)) if signal.is_signed else 0
+                hi = ((1 << (signal.length - 1)) - 1 if signal.is_signed
+                      else (1 << signal.length) - 1)
+                if not signal.is_float and not lo <= value <= hi:
+                    return f"expected {lo}..{hi} for raw signal {sig}, got {value!r}"
+        except (cantools.database.EncodeError, ValueError, KeyError, OverflowError) as exc:
+            return f"cannot encode into {fr.message.name}: {exc}"
+        return None
+
     def encode(self, device: str, value: Any) -> can.Message:
         """The frame that sets actuator ``device`` to ``value``, other signals unchanged.
 
@@ -471,6 +502,7 @@ class CanDriver(ThreadedDriver):
 
     def _handle(self, frame: can.Message) -> None:
         self.received += 1
+        self.host.stat(self.bus.name, "frames")
         if self._recorder is not None:
             self._recorder.on_message_received(frame)
         if frame.is_error_frame:
@@ -484,24 +516,33 @@ class CanDriver(ThreadedDriver):
         elif status != "ignore":
             self._error(status, str(result))
 
+    def check_value(self, device: str, value: Any) -> str | None:
+        """Why ``value`` cannot be encoded for ``device`` (see :meth:`CanCodec.check`)."""
+        return self.codec.check(device, value)
+
     def _send(self, device: str, value: Any) -> None:
         assert self._bus is not None
         try:
             frame = self.codec.encode(device, value)
-        except BusError as exc:
-            self._write_failed.add(device)
-            self.host.fail(device, str(exc))
+        except BusError as exc:    # a value that does not fit: refused, the device is fine
+            self._error("range", str(exc))
+            self.host.write_failed(device, value, str(exc))
             return
         try:
             self._bus.send(frame, timeout=0.5)
         except (can.CanError, OSError) as exc:
+            reason = f"CAN send on bus {self.bus.name!r} failed: {exc}"
+            self._error("send", reason)
+            self.host.write_failed(device, value, reason)
             self._write_failed.add(device)
-            self.host.fail(device, f"CAN send on bus {self.bus.name!r} failed: {exc}")
+            self.host.fail(device, reason)
             return
         self.sent += 1
+        self.host.stat(self.bus.name, "frames-sent", device=device)
+        self.host.written(device, value)
         if device in self._write_failed:
             self._write_failed.discard(device)
-            self.host.recover(device)
+            self.host.recover(device, "a frame was sent")
         if self._recorder is not None:
             frame.is_rx = False
             self._recorder.on_message_received(frame)
@@ -516,4 +557,4 @@ class CanDriver(ThreadedDriver):
         if self._failed:
             self._failed = False
             for name in self.devices:
-                self.host.recover(name)
+                self.host.recover(name, "frames received again")

@@ -126,6 +126,8 @@ class CanopenDriver(Driver):
     """The ``canopen`` bus: see the module doc for options, addresses and failure handling."""
 
     kind = "canopen"
+    confirms_writes = True
+    numeric_only = True
 
     def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
         super().__init__(bus, devices, host)
@@ -321,13 +323,22 @@ class CanopenDriver(Driver):
                 self._pdo_sensors.setdefault((nid, index, sub), []).append(dev.name)
 
     def stop(self) -> None:
-        """Stop SYNC, the I/O thread and the bus. Idempotent; never raises."""
+        """Put every queued write on the wire (safe values at shutdown), then stop SYNC, the I/O
+        thread and the bus. Idempotent; never raises."""
         if self._running:
             self._running = False
-            self._jobs.put(("stop", "", None))
+            self._jobs.put(("stop", "", None))   # after every queued job: they run first
         if self._thread is not None:
             self._thread.join(timeout=5.0)
             self._thread = None
+        while True:    # the I/O thread did not get to these (stuck past the join timeout)
+            try:
+                op, name, arg = self._jobs.get_nowait()
+            except queue.Empty:
+                break
+            if op == "write":
+                self.host.write_failed(name, arg, f"canopen bus {self.bus.name} stopped before "
+                                                  f"the write was sent")
         rx, self._rx = self._rx, None
         if rx is not None:
             rx.stop()
@@ -354,8 +365,30 @@ class CanopenDriver(Driver):
         if not self._running:
             self.host.error(self.bus.name, "stopped", f"write {value!r} to {device} dropped: "
                                                       f"canopen bus {self.bus.name} is not running")
+            self.host.write_failed(device, value, f"canopen bus {self.bus.name} is not running")
             return
         self._enqueue("write", device, value)
+
+    def check_value(self, device: str, value: Any) -> str | None:
+        """Why ``value`` cannot be encoded for ``device``'s object (None if it can): not a
+        finite number, a fraction for an integer object, outside the data type's range."""
+        b = self._bindings.get(device)
+        if b is None:
+            return None
+        if isinstance(value, bool):
+            value = int(value)
+        if not isinstance(value, int | float) or value != value or value in (float("inf"),
+                                                                             float("-inf")):
+            return f"expected a finite number, got {value!r}"
+        if (b.od_var.data_type in INTEGER_TYPES and isinstance(value, float)
+                and not value.is_integer()):
+            return f"expected an integer for object 0x{b.index:04X}:{b.subindex:02X}, got {value!r}"
+        try:
+            b.od_var.encode_raw(_coerce(b.od_var, value))
+        except (struct.error, TypeError, ValueError, OverflowError) as exc:
+            return (f"expected a value of data type {b.od_var.data_type:#x} for object "
+                    f"0x{b.index:04X}:{b.subindex:02X}: {exc}")
+        return None
 
     def settle(self, timeout: float) -> bool:
         """Hand every frame that arrived before this call to canopen (PDOs to the host), then
@@ -391,7 +424,8 @@ class CanopenDriver(Driver):
                 self._idle.notify_all()
 
     def _io_loop(self) -> None:
-        while self._running:
+        # ends on the "stop" job only, which stop() queues after every write already queued
+        while True:
             try:
                 op, name, arg = self._jobs.get(timeout=self._watchdog())
             except queue.Empty:
@@ -409,12 +443,25 @@ class CanopenDriver(Driver):
                     self._nodes[int(name)].node.nmt.state = "OPERATIONAL"
             except can.CanError as exc:
                 self.host.error(self.bus.name, "can", f"{op} {name}: CAN send failed: {exc}")
+                if op == "write":
+                    self.host.write_failed(name, arg, f"CAN send failed: {exc}")
             finally:
                 self._done()
 
     def _watchdog(self) -> float:
         """Fail the devices of nodes whose heartbeat is overdue; the time to the next deadline."""
         now = time.monotonic()
+        overdue = False
+        with self._hb_lock:
+            for s in self._nodes.values():
+                if (s.heartbeat_timeout is not None and not s.lost
+                        and now - s.last_heartbeat > s.heartbeat_timeout):
+                    overdue = True
+        rx = self._rx
+        if overdue and rx is not None:
+            # a late heartbeat is not a dead node: first hand over every frame the OS already
+            # received (this thread or the reader may simply have been starved of CPU)
+            rx.settle(0.05)
         wait = 0.5
         for nid, s in self._nodes.items():
             with self._hb_lock:
@@ -445,7 +492,7 @@ class CanopenDriver(Driver):
         except (SdoCommunicationError, struct.error) as exc:
             self._health.fail(b.device.name, "sdo", f"SDO read of {self._where(b)} failed: {exc}")
             return
-        self._health.clear(b.device.name, "sdo")
+        self._health.clear(b.device.name, "sdo", f"SDO read of {self._where(b)} answered")
         self.host.deliver(b.device.name, value)
 
     def _write(self, b: _Binding, value: Any) -> None:
@@ -453,29 +500,42 @@ class CanopenDriver(Driver):
             raw = _coerce(b.od_var, value)
             data = b.od_var.encode_raw(raw)
         except (struct.error, TypeError, ValueError, OverflowError) as exc:
-            self.host.error(self.bus.name, "range",
-                            f"write {value!r} to {self._where(b)}: expected a value of data "
-                            f"type {b.od_var.data_type:#x}: {exc}")
+            text = (f"write {value!r} to {self._where(b)}: expected a value of data "
+                    f"type {b.od_var.data_type:#x}: {exc}")
+            self.host.error(self.bus.name, "range", text, b.device.name)
+            self.host.write_failed(b.device.name, value, text)
             return
+        name = b.device.name
         if b.pdo_var is not None:
             b.pdo_var.set_data(data)
             b.pdo_var.pdo_parent.transmit()
+            self.host.stat(self.bus.name, "frames-sent", device=name)
+            self.host.written(name, value)
             return
+        self.host.stat(self.bus.name, "requests", device=name)
         try:
             self._nodes[b.node].node.sdo.download(b.index, b.subindex, data)
         except SdoAbortedError as exc:
-            self._health.fail(b.device.name, "sdo", f"SDO write to {self._where(b)} aborted: {exc}")
+            text = f"SDO write to {self._where(b)} aborted: {exc}"
+            self.host.error(self.bus.name, "sdo-abort", text, name)
+            self.host.write_failed(name, value, text)
+            self._health.fail(name, "sdo", text)
             return
         except SdoCommunicationError as exc:
-            self._health.fail(b.device.name, "sdo", f"SDO write to {self._where(b)} failed: {exc}")
+            text = f"SDO write to {self._where(b)} failed: {exc}"
+            self.host.error(self.bus.name, "timeout", text, name)
+            self.host.write_failed(name, value, text)
+            self._health.fail(name, "sdo", text)
             return
-        self._health.clear(b.device.name, "sdo")
+        self.host.written(name, value)
+        self._health.clear(name, "sdo", f"SDO write to {self._where(b)} answered")
 
     # -- reader thread ------------------------------------------------------------------------
 
     def _on_frame(self, frame: can.Message) -> None:
         """A received frame to canopen's listeners (what its notifier would do)."""
         self._bus_failed = False     # a receive error is reported again after a good frame
+        self.host.stat(self.bus.name, "frames")
         network = self._network
         if network is None:
             return
@@ -510,7 +570,8 @@ class CanopenDriver(Driver):
             was_lost, state.lost = state.lost, False
         if was_lost:
             for dev in state.devices:
-                self._health.clear(dev, "heartbeat")
+                self._health.clear(dev, "heartbeat", f"canopen node {state.node.id}: heartbeat "
+                                                     f"back")
         if state.nmt_start and nmt_state in (0, 127):  # boot-up or PRE-OPERATIONAL
             self._enqueue("nmt", str(state.node.id), None)
 
@@ -521,7 +582,7 @@ class CanopenDriver(Driver):
         self.host.error(self.bus.name, "emcy", text)
         if entry.code & 0xFF00 == 0:
             for dev in state.devices:
-                self._health.clear(dev, "emcy")
+                self._health.clear(dev, "emcy", f"canopen node {nid}: error-reset EMCY")
         elif is_fatal_emcy(entry.code):
             for dev in state.devices:
                 self._health.fail(dev, "emcy", text)

@@ -27,8 +27,9 @@ class Health:
         if report:
             self._host.fail(device, reason)
 
-    def clear(self, device: str, cause: str) -> None:
-        """Remove ``cause`` from ``device``; ``host.recover`` when it was the last one."""
+    def clear(self, device: str, cause: str, why: str = "") -> None:
+        """Remove ``cause`` from ``device``; ``host.recover`` (with ``why``, the event that ended
+        it) when it was the last one."""
         if not self._causes.get(device):       # the common case, a healthy device: no lock
             return
         with self._lock:
@@ -38,7 +39,7 @@ class Health:
             del causes[cause]
             recovered = not causes
         if recovered:
-            self._host.recover(device)
+            self._host.recover(device, why or f"{cause} failure ended")
 
     def failed(self, device: str) -> bool:
         """True while ``device`` has any failure cause."""

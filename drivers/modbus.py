@@ -19,12 +19,17 @@ in order on an asyncio loop in the driver's own thread; values are converted wit
 ``convert_from_registers``/``convert_to_registers``.
 
 Failures: when the connection cannot be made or is lost, every device of the bus fails with the
-reason, the driver reconnects with backoff, and the devices recover when it is back. An exception
+reason and the driver reconnects with backoff. A reconnect is not health: on ``modbus-tcp`` the
+devices recover only once a request is answered (a probe read right after the connect; a server
+that accepts connections but does not answer - frozen, SIGSTOPped - keeps them failed). An exception
 response fails the devices of that request (code and meaning in the reason) until a later request
 for them succeeds. A request timeout counts as a lost link on ``modbus-tcp`` (the connection is
 closed and re-made), and on ``modbus-rtu`` fails only the devices of that request (one unit of the
-line not answering). Writes of values the type
-cannot hold, and writes while disconnected, are reported through ``host.error``.
+line not answering). Every write is confirmed (``host.written`` once the server answered it) or
+reported failed (``host.write_failed``: exception answer, no answer, link down, dropped at stop);
+a value the register type cannot hold is refused before it is queued (:meth:`check_value`).
+Statistics (``host.stat``/``host.error``): ``requests``, ``reconnects``; errors ``timeout``,
+``exception-<code>``, ``disconnected``, ``malformed``.
 """
 
 from __future__ import annotations
@@ -33,7 +38,6 @@ import asyncio
 import contextlib
 import functools
 import math
-import struct
 import threading
 from abc import abstractmethod
 from collections.abc import Mapping, Sequence
@@ -211,6 +215,8 @@ class _ModbusDriver(Driver):
     client and describe the link."""
 
     kind: ClassVar[str] = ""
+    confirms_writes = True
+    numeric_only = True
     #: A request timeout means the link is gone (TCP: the server or its connection hangs) rather
     #: than one unit not answering (RTU: the other units on the line may still answer).
     timeout_is_link_loss: ClassVar[bool] = False
@@ -230,6 +236,8 @@ class _ModbusDriver(Driver):
         self._plans: dict[float, list[ReadRequest]] = {}
         self._points: dict[str, Point] = {}
         self._first_attempt = threading.Event()
+        self._answered = True      # a request was answered since the last (re)connect
+        self._connects = 0
 
     # -- to be provided by the kinds ----------------------------------------------------------
 
@@ -241,10 +249,10 @@ class _ModbusDriver(Driver):
     def _link(self) -> str:
         """Where the bus goes (``host:port``, the serial port), for failure reasons."""
 
-    def _unanswered(self, request: str) -> str:
-        """Why the last request got no valid answer, for a failure reason; drivers that see the
-        raw bytes (RTU) also count it as a bus error by class."""
-        return "no response"
+    def _unanswered(self, request: str) -> tuple[str, str]:
+        """The error class (``timeout``, and for RTU also ``crc``/``framing``) and the reason
+        why the last request got no valid answer; the caller counts it as a bus error."""
+        return "timeout", "no response"
 
     @classmethod
     def check_device(cls, bus: BusSpec, device: DeviceSpec) -> list[str]:
@@ -308,21 +316,32 @@ class _ModbusDriver(Driver):
 
     # -- kernel side --------------------------------------------------------------------------
 
+    def check_value(self, device: str, value: Any) -> str | None:
+        """Why raw ``value`` does not fit the device's coil or register type (None if it does):
+        a coil takes 0/1, an integer type an integer within its range, a float type a finite
+        number within its range. Nothing is rounded here."""
+        p = self._points.get(device) or (point_of(self.devices[device])
+                                         if device in self.devices else None)
+        if p is None:
+            return None
+        return value_error(p.type, value)
+
     def write(self, device: str, value: Any) -> None:
         """Queue ``value`` for actuator ``device``; never blocks. An unknown device or a sensor is
-        reported through ``host.error``."""
+        reported through ``host.error``; a write that cannot be queued through
+        ``host.write_failed``."""
         dev = self.devices.get(device)
         if dev is None or dev.direction != "actuator":
             self.host.error(self.bus.name, "unknown-device",
                             f"write to {device!r}: not an actuator of {self.kind} bus "
                             f"{self.bus.name}")
             return
-        if self._loop is None:
-            self.host.error(self.bus.name, "stopped",
-                            f"write {value!r} to {device} dropped: {self.kind} bus "
-                            f"{self.bus.name} is not running")
+        if self._loop is None or not self._submit("write", self._points[device], value):
+            why = f"{self.kind} bus {self.bus.name} is not running"
+            self.host.error(self.bus.name, "stopped", f"write {value!r} to {device} dropped: "
+                                                      f"{why}", device)
+            self.host.write_failed(device, value, why)
             return
-        self._submit("write", self._points[device], value)
 
     def settle(self, timeout: float) -> bool:
         """Wait until no request is queued or in flight and every result is delivered."""
@@ -336,16 +355,18 @@ class _ModbusDriver(Driver):
             self._polls_queued.add(period)
         self._submit("poll", period, None)
 
-    def _submit(self, op: str, what: Any, value: Any) -> None:
+    def _submit(self, op: str, what: Any, value: Any) -> bool:
         loop, jobs = self._loop, self._jobs
         if loop is None or jobs is None:
-            return
+            return False
         with self._idle:
             self._pending += 1
         try:
             loop.call_soon_threadsafe(jobs.put_nowait, (op, what, value))
         except RuntimeError:  # loop closed by a concurrent stop()
             self._done()
+            return False
+        return True
 
     def _done(self) -> None:
         with self._idle:
@@ -365,8 +386,17 @@ class _ModbusDriver(Driver):
             while not self._stop_seen:
                 ok = await self._client.connect()
                 if ok and self._client.connected:
-                    delay = first
+                    self._connects += 1
+                    if self._connects > 1:
+                        self.host.stat(self.bus.name, "reconnects")
                     self._link_up()
+                    if self.timeout_is_link_loss and not await self._probe():
+                        self._first_attempt.set()
+                        await self._backoff(delay)
+                        delay = min(delay * 2, most)
+                        self._client.close()
+                        continue
+                    delay = first
                     self._first_attempt.set()
                     await self._serve()
                 else:
@@ -393,9 +423,38 @@ class _ModbusDriver(Driver):
             self._finish_unsent(job)
 
     def _link_up(self) -> None:
+        """Connected - not yet healthy: the link clears on the first answered request."""
         self._connected = True
+        self._answered = False
+        if not self.timeout_is_link_loss:  # RTU: the port is open, units are judged by requests
+            self._answer()
+
+    def _answer(self) -> None:
+        """A request was answered (with data or an exception): the link works."""
+        if self._answered:
+            return
+        self._answered = True
         for name in self.devices:
-            self._health.clear(name, "link")
+            self._health.clear(name, "link", f"{self.kind} bus {self.bus.name}: a request to "
+                                             f"{self._link()} was answered")
+
+    async def _probe(self) -> bool:
+        """Right after a connect: read one entry of the first device; True if answered (the
+        link is up), False (link down, devices still failed) if not."""
+        p = next(iter(self._points.values()), None)
+        if p is None:
+            return True
+        self.host.stat(self.bus.name, "requests")
+        try:
+            await getattr(self._client, READ_METHOD[p.table])(p.address, count=1,
+                                                              device_id=p.unit)
+        except (ModbusException, OSError) as exc:
+            self.host.error(self.bus.name, "timeout", f"probe of {self._link()} after connect: "
+                                                      f"no answer: {exc}")
+            self._link_down(f"{self._link()} accepted the connection but sent no response: {exc}")
+            return False
+        self._answer()
+        return True
 
     def _link_down(self, why: str) -> None:
         was = self._connected
@@ -419,9 +478,11 @@ class _ModbusDriver(Driver):
             self._stop_seen = True
             return
         if op == "write":
+            why = (f"{self.kind} bus {self.bus.name} is not connected to {self._link()}"
+                   if not self._stop_seen else f"{self.kind} bus {self.bus.name} stopped")
             self.host.error(self.bus.name, "disconnected",
-                            f"write {value!r} to {what.device} dropped: {self.kind} bus "
-                            f"{self.bus.name} is not connected to {self._link()}")
+                            f"write {value!r} to {what.device} dropped: {why}", what.device)
+            self.host.write_failed(what.device, value, why)
         elif op == "poll":
             with self._idle:
                 self._polls_queued.discard(what)
@@ -442,6 +503,9 @@ class _ModbusDriver(Driver):
             try:
                 await self._run(job)
             except ConnectionException as exc:
+                if job[0] == "write":
+                    self.host.write_failed(job[1].device, job[2], f"connection to "
+                                                                  f"{self._link()} lost: {exc}")
                 self._link_down(f"connection to {self._link()} lost: {exc}")
                 return
             finally:
@@ -459,19 +523,26 @@ class _ModbusDriver(Driver):
 
     async def _read(self, r: ReadRequest) -> None:
         c = self._client
+        self.host.stat(self.bus.name, "requests")
         try:
             resp = await getattr(c, READ_METHOD[r.table])(r.address, count=r.count,
                                                           device_id=r.unit)
         except ModbusIOException as exc:
+            kind, what = self._unanswered(r.describe())
+            for p in r.points:
+                self.host.error(self.bus.name, kind, f"{r.describe()}: {what}: {exc}", p.device)
             if not c.connected or self.timeout_is_link_loss:
                 raise ConnectionException(f"no response: {exc}") from exc
-            what = self._unanswered(r.describe())
             for p in r.points:
                 self._health.fail(p.device, "exception", f"{self.kind} bus {self.bus.name} "
                                   f"{r.describe()} (device {p.device}): {what}")
             return
+        self._answer()
         if resp.isError():
             code = int(getattr(resp, "exception_code", 0))
+            for p in r.points:
+                self.host.error(self.bus.name, f"exception-{code}",
+                                f"{r.describe()}: exception code {code}", p.device)
             for p in r.points:
                 self._health.fail(p.device, "exception",
                                   f"{self.kind} bus {self.bus.name} {r.describe()} (device "
@@ -487,39 +558,75 @@ class _ModbusDriver(Driver):
                 self.host.error(self.bus.name, "malformed",
                                 f"{r.describe()} answer for {p.device}: {exc}")
                 continue
-            self._health.clear(p.device, "exception")
+            self._health.clear(p.device, "exception", f"{r.describe()} answered")
             self.host.deliver(p.device, value)
 
     async def _write(self, p: Point, value: Any) -> None:
         c = self._client
-        try:
-            if p.table == "coil":
-                call = c.write_coil(p.address, bool(value), device_id=p.unit)
-            else:
-                regs = ModbusClientMixin.convert_to_registers(_coerce(p.type, value),
-                                                              REGISTER_TYPES[p.type], p.word_order)
-                call = (c.write_register(p.address, regs[0], device_id=p.unit) if len(regs) == 1
-                        else c.write_registers(p.address, regs, device_id=p.unit))
-        except (TypeError, ValueError, ArithmeticError, struct.error) as exc:
-            self.host.error(self.bus.name, "range", f"write {value!r} to {p.device}: expected a "
-                                                    f"{p.type} value: {exc}")
+        why = value_error(p.type, value)
+        if why is not None:
+            self.host.error(self.bus.name, "range", f"write {value!r} to {p.device}: {why}",
+                            p.device)
+            self.host.write_failed(p.device, value, why)
             return
+        if p.table == "coil":
+            call = c.write_coil(p.address, bool(value), device_id=p.unit)
+        else:
+            regs = ModbusClientMixin.convert_to_registers(_coerce(p.type, value),
+                                                          REGISTER_TYPES[p.type], p.word_order)
+            call = (c.write_register(p.address, regs[0], device_id=p.unit) if len(regs) == 1
+                    else c.write_registers(p.address, regs, device_id=p.unit))
         where = f"{self.kind} bus {self.bus.name} unit {p.unit} {p.table} {p.address}"
+        self.host.stat(self.bus.name, "requests", device=p.device)
         try:
             resp = await call
         except ModbusIOException as exc:
+            kind, what = self._unanswered(where)
+            self.host.error(self.bus.name, kind, f"{where}: write not answered: {what}: {exc}",
+                            p.device)
             if not c.connected or self.timeout_is_link_loss:
                 raise ConnectionException(f"no response: {exc}") from exc
+            self.host.write_failed(p.device, value, f"{where}: write not answered: {exc}")
             self._health.fail(p.device, "exception", f"{where} (device {p.device}): write not "
                                                      f"answered: {exc}")
             return
+        self._answer()
         if resp.isError():
             code = int(getattr(resp, "exception_code", 0))
-            self._health.fail(p.device, "exception",
-                              f"{where} (device {p.device}): write refused with exception code "
-                              f"{code} ({EXCEPTION_TEXT.get(code, 'unknown')})")
+            text = (f"{where} (device {p.device}): write refused with exception code "
+                    f"{code} ({EXCEPTION_TEXT.get(code, 'unknown')})")
+            self.host.error(self.bus.name, f"exception-{code}", text, p.device)
+            self.host.write_failed(p.device, value, text)
+            self._health.fail(p.device, "exception", text)
             return
-        self._health.clear(p.device, "exception")
+        self.host.written(p.device, value)
+        self._health.clear(p.device, "exception", f"{where}: write answered")
+
+
+INT_RANGES = {"int16": (-2**15, 2**15 - 1), "uint16": (0, 2**16 - 1),
+              "int32": (-2**31, 2**31 - 1), "uint32": (0, 2**32 - 1)}
+FLOAT_MAX = {"float32": 3.4028234663852886e38, "float64": 1.7976931348623157e308}
+
+
+def value_error(type_: str, value: Any) -> str | None:
+    """Why ``value`` cannot be written to a point of ``type_`` exactly (None if it can)."""
+    if isinstance(value, bool):
+        value = int(value)
+    if not _is_number(value):
+        return f"expected a number for a {type_} address, got {value!r}"
+    if value != value or value in (float("inf"), float("-inf")):
+        return f"expected a finite number for a {type_} address, got {value!r}"
+    if type_ == "bool":
+        return None if value in (0, 1) else f"expected 0 or 1 for a coil, got {value!r}"
+    if type_ in FLOAT_MAX:
+        return (None if abs(value) <= FLOAT_MAX[type_] else
+                f"expected a {type_} value within +-{FLOAT_MAX[type_]:g}, got {value!r}")
+    lo, hi = INT_RANGES[type_]
+    if isinstance(value, float) and not value.is_integer():
+        return f"expected an integer for a {type_} register, got {value!r}"
+    if not lo <= value <= hi:
+        return f"expected a {type_} value {lo}..{hi}, got {value!r}"
+    return None
 
 
 def reading_of(p: Point, entries: Sequence[Any]) -> Any:
@@ -653,14 +760,13 @@ class ModbusRtuDriver(_ModbusDriver):
             self._rx_buffer = bytes(data)
         return data
 
-    def _unanswered(self, request: str) -> str:
+    def _unanswered(self, request: str) -> tuple[str, str]:
         """Classify the bytes that came back for the last request (none: timeout; a frame of
-        the right unit and function, long enough, failing its CRC: crc; anything else: framing),
-        count the class and report it through ``host.error``."""
+        the right unit and function, long enough, failing its CRC: crc; anything else:
+        framing) and count the class."""
         kind, why = classify_rtu_answer(self._tx, bytes(self._rx))
         self.unanswered[kind] = self.unanswered.get(kind, 0) + 1
-        self.host.error(self.bus.name, kind, f"{request}: {why}")
-        return why
+        return kind, why
 
     def _make_client(self) -> Any:
         o = self.bus.options

@@ -452,6 +452,7 @@ class SerialDriver(ThreadedDriver):
         while self._running:
             port = self._open()
             if port is None:
+                self._rx.set_offline(True)
                 with self._cond:
                     self._cond.wait_for(lambda: not self._running, delay)
                 delay = min(delay * 2, self._backoff[1])
@@ -461,8 +462,12 @@ class SerialDriver(ThreadedDriver):
                 self._port = port
                 self.connects += 1
                 self._cond.notify_all()
+            if self.connects > 1:
+                self.host.stat(self.bus.name, "reconnects")
+            self._rx.set_offline(False)
             self._up()
             self._pump(port, self._framer())
+            self._rx.set_offline(True)
             self._close()
 
     def _pump(self, port: Any, framer: LineFramer | BinaryFramer) -> None:
@@ -527,6 +532,7 @@ class SerialDriver(ThreadedDriver):
         if kind != "values":
             self._error(kind, str(detail))
             return
+        self.host.stat(self.bus.name, "frames")
         for name, value in detail.items():
             for device in self._sensors.get(name, ()):
                 self.host.deliver(device, value)
@@ -535,11 +541,36 @@ class SerialDriver(ThreadedDriver):
         """At start-up a command waits for the first open attempt; while down it fails at once."""
         return self._port is not None or self._failed
 
+    def check_value(self, device: str, value: Any) -> str | None:
+        """Why ``value`` cannot be sent to ``device`` (None if it can): not a finite number,
+        a fraction for an integer struct code, or a value its format cannot encode."""
+        if device not in self.devices:
+            return None
+        if isinstance(value, bool):
+            value = int(value)
+        if not isinstance(value, int | float) or value != value or value in (float("inf"),
+                                                                             float("-inf")):
+            return f"expected a finite number, got {value!r}"
+        a = self.devices[device].address
+        if self._binary and str(a.get("struct", "x"))[-1:] in _INT_CODES and isinstance(
+                value, float) and not value.is_integer():
+            return f"expected an integer for struct {a.get('struct')!r}, got {value!r}"
+        try:
+            self.command(device, value)
+        except BusError as exc:
+            return str(exc)
+        return None
+
     def _send(self, device: str, value: Any) -> None:
         with self._cond:
             port = self._port
         try:
             data = self.command(device, value)
+        except BusError as exc:     # a value that does not fit: refused, the device is fine
+            self._error("range", str(exc))
+            self.host.write_failed(device, value, str(exc))
+            return
+        try:
             if port is None:
                 raise BusError(f"serial port {self.bus.options['url']} is not open; command "
                                f"{data!r} not sent")
@@ -551,13 +582,15 @@ class SerialDriver(ThreadedDriver):
         except BusError as exc:
             with self._cond:
                 self._write_failed.add(device)
+            self.host.write_failed(device, value, str(exc))
             self.host.fail(device, str(exc))
             return
+        self.host.written(device, value)
         with self._cond:
             recovered = device in self._write_failed
             self._write_failed.discard(device)
         if recovered:
-            self.host.recover(device)
+            self.host.recover(device, "a command was written")
 
     def _down(self, reason: str) -> None:
         with self._cond:
@@ -575,5 +608,5 @@ class SerialDriver(ThreadedDriver):
             self._cond.notify_all()
         if was:
             for name in self.devices:
-                self.host.recover(name)
+                self.host.recover(name, f"serial port {self.bus.options['url']} open again")
 

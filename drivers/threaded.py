@@ -49,6 +49,7 @@ class ReaderThread:
         self._drain: Callable[[], object] | None = None
         self._wake: tuple[int, int] | None = None
         self._idle_gen = 0
+        self._offline = False
         self._thread: threading.Thread | None = None
         self.running = False
 
@@ -106,6 +107,13 @@ class ReaderThread:
         with self.lock:
             self._drain = drain
 
+    def set_offline(self, offline: bool) -> None:
+        """Loop: the link is down (True: nothing can arrive, so :meth:`settle` returns at once
+        instead of waiting for receives that never come) or open again (False)."""
+        with self._cond:
+            self._offline = offline
+            self._cond.notify_all()
+
     def idle(self) -> None:
         """Loop (polling): a receive found nothing (wakes :meth:`settle`)."""
         with self._cond:
@@ -123,15 +131,20 @@ class ReaderThread:
                     drain()
                     return True
         with self._cond:
-            if not self.running:
+            if not self.running or self._offline:
                 return True
             gen = self._idle_gen
-            return self._cond.wait_for(lambda: not self.running or self._idle_gen > gen + 1,
-                                       timeout)
+            return self._cond.wait_for(
+                lambda: not self.running or self._offline or self._idle_gen > gen + 1, timeout)
 
 
 class ThreadedDriver(Driver):
-    """A driver with one reader and one writer thread (see the module doc)."""
+    """A driver with one reader and one writer thread (see the module doc). ``_send`` reports
+    every write through ``host.written`` or ``host.write_failed``; writes still queued when the
+    threads stop are reported failed."""
+
+    confirms_writes = True
+    numeric_only = True
 
     def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
         super().__init__(bus, devices, host)
@@ -195,13 +208,26 @@ class ThreadedDriver(Driver):
         t, self._writer = self._writer, None
         if t is not None and t is not threading.current_thread():
             t.join(timeout=2.0)
+        with self._cond:
+            left = list(self._outbox)
+            self._outbox.clear()
+        for device, value in left:
+            self.host.write_failed(device, value, f"{self.kind} bus {self.bus.name} stopped "
+                                                  f"before the write was sent")
 
     def write(self, device: str, value: Any) -> None:
-        """Queue ``value`` for actuator ``device``; the writer thread sends it (failures arrive
-        later as ``host.fail``). Never blocks."""
+        """Queue ``value`` for actuator ``device``; the writer thread sends it (the outcome
+        arrives later as ``host.written``/``host.write_failed``). Never blocks."""
         with self._cond:
-            self._outbox.append((device, value))
-            self._cond.notify_all()
+            if not self._running:
+                refused = True
+            else:
+                refused = False
+                self._outbox.append((device, value))
+                self._cond.notify_all()
+        if refused:
+            self.host.write_failed(device, value, f"{self.kind} bus {self.bus.name} is not "
+                                                  f"running")
 
     def settle(self, timeout: float) -> bool:
         """Hand the host every frame or line that arrived before this call and wait until no

@@ -57,11 +57,20 @@ class CountingHost:
     def fail(self, device: str, reason: str) -> None:
         self.failures.append(f"{device}: {reason}")
 
-    def recover(self, device: str) -> None:
+    def recover(self, device: str, reason: str = "") -> None:
         """Recoveries do not matter to the rate."""
 
-    def error(self, bus: str, kind: str, detail: str) -> None:
+    def error(self, bus: str, kind: str, detail: str, device: str = "") -> None:
         self.failures.append(f"{bus} {kind}: {detail}")
+
+    def written(self, device: str, value: Any) -> None:
+        """Write confirmations do not matter to the rate."""
+
+    def write_failed(self, device: str, value: Any, reason: str) -> None:
+        self.failures.append(f"{device}: write {value!r} failed: {reason}")
+
+    def stat(self, bus: str, key: str, n: int = 1, device: str = "") -> None:
+        """Counters do not matter to the rate."""
 
     def every(self, period: float, fn: Callable[[], None]) -> None:
         self.callbacks.append(fn)

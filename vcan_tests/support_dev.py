@@ -29,6 +29,8 @@ class FakeHost:
         self.failures: list[tuple[str, str]] = []
         self.recoveries: list[str] = []
         self.errors: list[tuple[str, str, str]] = []
+        self.writes: list[tuple[str, Any, str]] = []   # (device, raw, failure or "")
+        self.stats: dict[str, int] = {}
         self.timers: list[list[Any]] = []      # [period, next_due, fn]
         self.clock = 0.0
 
@@ -42,15 +44,29 @@ class FakeHost:
             self.failures.append((device, reason))
             self._cond.notify_all()
 
-    def recover(self, device: str) -> None:
+    def recover(self, device: str, reason: str = "") -> None:
         with self._cond:
             self.recoveries.append(device)
             self._cond.notify_all()
 
-    def error(self, bus: str, kind: str, detail: str) -> None:
+    def error(self, bus: str, kind: str, detail: str, device: str = "") -> None:
         with self._cond:
             self.errors.append((bus, kind, detail))
             self._cond.notify_all()
+
+    def written(self, device: str, value: Any) -> None:
+        with self._cond:
+            self.writes.append((device, value, ""))
+            self._cond.notify_all()
+
+    def write_failed(self, device: str, value: Any, reason: str) -> None:
+        with self._cond:
+            self.writes.append((device, value, reason or "failed"))
+            self._cond.notify_all()
+
+    def stat(self, bus: str, key: str, n: int = 1, device: str = "") -> None:
+        with self._cond:
+            self.stats[key] = self.stats.get(key, 0) + n
 
     def every(self, period: float, fn: Callable[[], None]) -> None:
         self.timers.append([period, self.clock + period, fn])

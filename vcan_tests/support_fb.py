@@ -32,6 +32,8 @@ class FakeHost:
     failures: list[tuple[str, str]] = field(default_factory=list)
     recoveries: list[str] = field(default_factory=list)
     errors: list[tuple[str, str, str]] = field(default_factory=list)
+    writes: list[tuple[str, Any, str]] = field(default_factory=list)  # (device, raw, failure)
+    stats: dict[str, int] = field(default_factory=dict)
     periodics: list[Periodic] = field(default_factory=list)
     clock: float = 0.0
     cond: threading.Condition = field(default_factory=threading.Condition)
@@ -48,15 +50,29 @@ class FakeHost:
             self.failures.append((device, reason))
             self.cond.notify_all()
 
-    def recover(self, device: str) -> None:
+    def recover(self, device: str, reason: str = "") -> None:
         with self.cond:
             self.recoveries.append(device)
             self.cond.notify_all()
 
-    def error(self, bus: str, kind: str, detail: str) -> None:
+    def error(self, bus: str, kind: str, detail: str, device: str = "") -> None:
         with self.cond:
             self.errors.append((bus, kind, detail))
             self.cond.notify_all()
+
+    def written(self, device: str, value: Any) -> None:
+        with self.cond:
+            self.writes.append((device, value, ""))
+            self.cond.notify_all()
+
+    def write_failed(self, device: str, value: Any, reason: str) -> None:
+        with self.cond:
+            self.writes.append((device, value, reason or "failed"))
+            self.cond.notify_all()
+
+    def stat(self, bus: str, key: str, n: int = 1, device: str = "") -> None:
+        with self.cond:
+            self.stats[key] = self.stats.get(key, 0) + n
 
     def every(self, period: float, fn: Callable[[], None]) -> None:
         with self.cond:

@@ -76,15 +76,17 @@ def test_actuator_write_keeps_other_signals_of_the_message(rig: Any) -> None:
     assert drv.settle(WAIT) and drv.sent == 2
 
 
-def test_unencodable_write_fails_the_device_until_a_good_write(rig: Any) -> None:
+def test_unencodable_write_is_refused_and_reported_not_a_device_failure(rig: Any) -> None:
     drv, host, sim = rig
-    drv.write("Spindle", 5000)
-    assert host.wait(lambda h: h.failures)
-    assert host.failures[0][0] == "Spindle" and "Drive" in host.failures[0][1]
-    assert drv.settle(WAIT) and drv.sent == 0 and host.recoveries == []
+    assert "Drive" in (drv.check_value("Spindle", 5000) or "")    # Devtab refuses it up front
+    assert drv.check_value("Spindle", 100) is None
+    drv.write("Spindle", 5000)                 # a driver-level write still is not sent
+    assert host.wait(lambda h: h.writes)
+    assert host.writes[0][0] == "Spindle" and "Drive" in host.writes[0][2]
+    assert drv.settle(WAIT) and drv.sent == 0 and host.failures == []
     drv.write("Spindle", 100)
     assert sim.wait_for("Drive", "Speed", lambda v: v == 100, WAIT)
-    assert host.wait(lambda h: h.recoveries == ["Spindle"])
+    assert host.wait(lambda h: h.writes[-1] == ("Spindle", 100, ""))
 
 
 def test_unknown_id_and_wrong_length_are_counted_not_fatal(rig: Any) -> None:

@@ -85,11 +85,21 @@ def test_poll_delivers_converted_values_in_grouped_requests(rig: Rig) -> None:
 def test_writes_reach_the_datastore(rig: Rig) -> None:
     rig.driver.write("valve", True)
     rig.driver.write("sp", -1.25e9)
-    rig.driver.write("sp16", -7.6)             # rounded for an int16 register
+    rig.driver.write("sp16", -8)
     assert rig.driver.settle(WAIT)
     assert rig.store.read(1, "coil", 7) == [True]
     assert rig.store.get_value(1, "holding", 50, "float64") == -1.25e9
     assert rig.store.get_value(1, "holding", 60, "int16") == -8
+    assert [(d, r) for d, _, r in rig.host.writes] == [("valve", ""), ("sp", ""), ("sp16", "")]
+
+
+def test_fractions_are_never_rounded_silently(rig: Rig) -> None:
+    assert rig.driver.check_value("sp16", -7.6) is not None
+    assert rig.driver.check_value("sp16", -8.0) is None
+    rig.driver.write("sp16", -7.6)             # an int16 register cannot carry it
+    assert rig.driver.settle(WAIT)
+    assert rig.store.client_writes == 0
+    assert rig.host.writes and "integer" in rig.host.writes[0][2]
 
 
 def test_bad_writes_are_reported_not_sent(rig: Rig) -> None:
@@ -222,7 +232,7 @@ def test_tcp_server_that_accepts_but_never_answers_is_a_lost_link() -> None:
             driver.stop()
     reason = host.failed("x")[0]
     assert f"127.0.0.1:{port}" in reason and "no response" in reason
-    assert host.error_kinds() == ["disconnected"]
+    assert host.error_kinds() == ["timeout", "disconnected"]
 
 
 def test_rtu_unit_that_does_not_answer_fails_only_its_devices() -> None:

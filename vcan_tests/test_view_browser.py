@@ -112,11 +112,16 @@ def test_injected_events_appear_and_mark_nodes(live: tuple[System, Viewer]) -> N
         expect(node).to_have_class(re.compile(r"\bfrozen\b.*\bmark-suspend\b"))
         expect(node).to_contain_text("FROZEN")
         expect(page.locator('#tasks tr[data-name="B2"]')).to_have_class("alert")
-        # a driver reports S3 failed; its next reading (10 Hz) recovers it: both are logged
+        # a driver reports S3 failed; readings (10 Hz) do not clear it, the driver's end event
+        # does: both are logged, the table shows the cause and the time of the change
         system.devtab.fail("S3", "cable cut")
         expect(page.locator('#events li[data-kind="device-failed"]').first).to_contain_text(
             "S3: cable cut")
-        expect(page.locator('#events li[data-kind="device-ok"]').first).to_contain_text("S3")
+        expect(page.locator('#devices tr[data-name="S3"]')).to_contain_text(
+            re.compile(r"failed since t=\d+\.\d{3}: cable cut"))
+        system.devtab.recover("S3", "cable mended")
+        expect(page.locator('#events li[data-kind="device-ok"]').first).to_contain_text(
+            "S3: cable mended")
         page.screenshot(path=str(DOCS / "screenshot-fig65.png"), full_page=True)
         system.execute("resume B2")
         expect(node).not_to_have_class(re.compile(r"\bfrozen\b"))

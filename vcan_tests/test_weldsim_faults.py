@@ -26,8 +26,8 @@ def watch_failures(rig: WeldRig, monkeypatch: pytest.MonkeyPatch,
         if name == device:
             failed.set()
 
-    def on_recover(name: str) -> None:
-        recover(name)
+    def on_recover(name: str, reason: str = "") -> None:
+        recover(name, reason)
         if name == device:
             recovered.set()
 

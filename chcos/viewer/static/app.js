@@ -96,10 +96,16 @@ function update(snap) {
     tr.dataset.name = d.name;
     if (d.status === "stale" || d.status === "failed") tr.className = "alert";
     cell(tr, d.name); cell(tr, d.direction); cell(tr, d.machine, "num");
-    cell(tr, fmt(d.value) + " " + (d.units || ""), "num");
+    cell(tr, fmt(d.value) + " " + (d.units || "") +
+             (d.pending !== null && d.pending !== undefined ? " (pending " + fmt(d.pending) + ")"
+              : ""), "num");
     const age = snap.ages[d.name];
     cell(tr, age === null || age === undefined ? "–" : age.toFixed(2), "num");
-    cell(tr, d.status + (d.reason ? ": " + d.reason : ""));
+    cell(tr, d.status + (d.since !== null && d.since !== undefined && d.reason
+                         ? " since t=" + Number(d.since).toFixed(3) : "") +
+             (d.reason ? ": " + d.reason : "") +
+             (d.write_errors ? " [write errors " + d.write_errors + ": " +
+              (d.last_write_error || "") + "]" : ""));
   });
   setOptions($("setpri-link"), links.map((l) => l.src + " " + l.dst),
              links.map((l) => l.src + "/" + l.dst + " (" + l.type + ")"));

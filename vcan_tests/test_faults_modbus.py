@@ -1,0 +1,249 @@
+"""Faults at the Modbus TCP boundary, against pyModbusTCP's server in its own process: killed and
+restarted, frozen with SIGSTOP, answering busy. Each test asserts what the server holds or
+received on its side, not only chcos' own tables (issue 15, items 1-4 and 6)."""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from chcos.clock import VirtualClock
+from chcos.errors import DeviceError
+from chcos.system import System
+from vcan_tests.netutil import free_port
+from vcan_tests.support_faults import ModbusPeer, run_until
+
+HEATER, VALVE, TEMP = 100, 0, 10
+MAP = """
+[[bus]]
+name = "mb"
+kind = "modbus-tcp"
+host = "127.0.0.1"
+port = {port}
+timeout = 0.3
+retries = 0
+reconnect_delay = 0.05
+reconnect_delay_max = 0.2
+
+[[device]]
+name = "heater"
+direction = "actuator"
+bus = "mb"
+address = {{ table = "holding", address = {heater}, type = "uint16" }}
+limits = [0, 1000]
+safe_value = 0
+
+[[device]]
+name = "valve"
+direction = "actuator"
+bus = "mb"
+address = {{ table = "coil", address = {valve} }}
+limits = [0, 1]
+safe_value = 0
+
+[[device]]
+name = "setpoint"
+direction = "actuator"
+bus = "mb"
+address = {{ table = "holding", address = 120, type = "uint16" }}
+scale = 0.01
+limits = [0, 600]
+round = true
+
+[[device]]
+name = "raw16"
+direction = "actuator"
+bus = "mb"
+address = {{ table = "holding", address = 130, type = "uint16" }}
+
+[[device]]
+name = "temp"
+direction = "sensor"
+bus = "mb"
+address = {{ table = "holding", address = {temp} }}
+stale_after = 0.5
+"""
+
+
+@pytest.fixture
+def peer(tmp_path: Path) -> Iterator[ModbusPeer]:
+    p = ModbusPeer(free_port(), tmp_path / "peer.log", {str(HEATER): 555, f"c{VALVE}": 1,
+                                                        str(TEMP): 21})
+    p.start()
+    try:
+        yield p
+    finally:
+        p.kill()
+
+
+def make_system(tmp_path: Path, peer: ModbusPeer) -> System:
+    path = tmp_path / "mb.toml"
+    path.write_text(MAP.format(port=peer.port, heater=HEATER, valve=VALVE, temp=TEMP),
+                    encoding="utf-8")
+    return System([path], clock=VirtualClock(), machines=[0])
+
+
+def status(system: System, name: str) -> str:
+    return system.devtab.get(name).status.value
+
+
+def test_a_command_is_shown_once_on_the_wire_and_bad_values_are_refused(
+        tmp_path: Path, peer: ModbusPeer) -> None:
+    s = make_system(tmp_path, peer)
+    try:
+        s.run_for(0.2)
+        heater = s.devtab.get("heater")
+        s.devtab.write("heater", 300)
+        assert heater.pending == 300 and heater.value != 300     # handed over, not yet written
+        s.run_for(0.05)
+        assert peer.holding(HEATER) == 300
+        assert heater.value == 300 and heater.pending is None
+        for bad in (math.nan, math.inf, -math.inf, "12", [1], None):
+            with pytest.raises(DeviceError, match="heater"):
+                s.devtab.write("heater", bad)
+        with pytest.raises(DeviceError, match=r"heater.*27\.265.*integer"):
+            s.devtab.write("heater", 27.265)                     # never rounded silently
+        s.devtab.write("setpoint", 27.267)                       # round = true: 2727 (0.01)
+        s.run_for(0.05)
+        assert peer.holding(120) == 2727 and peer.holding(HEATER) == 300
+        with pytest.raises(DeviceError, match=r"raw16.*70000.*uint16 value 0\.\.65535"):
+            s.devtab.write("raw16", 70000)                       # no limits: the type refuses
+        s.run_for(0.05)
+        assert peer.holding(130) == 0 and s.devtab.get("raw16").value is None
+        assert s.devtab.get("valve").value is None               # never commanded
+        with pytest.raises(DeviceError, match="valve"):
+            s.devtab.write("valve", 0.5)                         # a coil is 0 or 1
+        stats = s.devtab.bus_stats["mb"]
+        assert stats.counts["requests"] >= 3 and stats.devices["heater"]["requests"] == 1
+    finally:
+        s.shutdown()
+
+
+def test_server_killed_and_restarted_gets_safe_values_before_any_command(
+        tmp_path: Path, peer: ModbusPeer) -> None:
+    s = make_system(tmp_path, peer)
+    health: list[tuple[str, bool, str]] = []
+    s.devtab.add_health_listener(lambda d, ok, cause: health.append((d, ok, cause)))
+    try:
+        s.devtab.write("heater", 300)
+        s.devtab.write("valve", 1)
+        s.run_for(0.2)
+        assert peer.holding(HEATER) == 300 and peer.coil(VALVE)
+        peer.kill()
+        assert run_until(s, lambda: status(s, "heater") == "failed")
+        assert all(status(s, n) == "failed" for n in ("heater", "valve", "temp"))
+        assert "mb" in s.devtab.get("heater").reason and s.devtab.get("heater").since is not None
+        with pytest.raises(DeviceError, match="failed"):
+            s.devtab.write("heater", 400)                          # commands wait for recovery
+        sent = s.devtab.estop("test")                              # safe values are still tried
+        assert sent == 2
+        s.run_for(0.05)
+        assert {d for d, _ in s.devtab.safe_failures} == {"heater", "valve"}
+        # the server comes back as it powered up: not at the safe values
+        peer.start()
+        back = peer.started_at
+        assert run_until(s, lambda: status(s, "heater") == "OK" and status(s, "valve") == "OK")
+        s.run_for(0.05)
+        first = peer.writes(since=back)
+        assert first[:2] and {(w.address, w.values[0]) for w in first[:2]} == {(HEATER, 0),
+                                                                               (VALVE, 0)}
+        assert peer.holding(HEATER) == 0 and not peer.coil(VALVE)
+        assert s.devtab.get("heater").value == 0
+        # the sensor is OK only with fresh data: it was stale or failed until a reading came
+        assert run_until(s, lambda: status(s, "temp") == "OK")
+        assert s.devtab.get("temp").readings > 0
+        s.devtab.write("heater", 250)                              # the owner commands again
+        s.run_for(0.05)
+        assert peer.holding(HEATER) == 250
+        assert ("heater", False) in [(d, ok) for d, ok, _ in health]
+        assert next(c for d, ok, c in health if d == "heater" and ok).startswith("modbus-tcp")
+        assert s.devtab.bus_stats["mb"].counts["reconnects"] >= 1
+    finally:
+        s.shutdown()
+
+
+def test_frozen_server_keeps_devices_failed_until_it_answers(
+        tmp_path: Path, peer: ModbusPeer) -> None:
+    s = make_system(tmp_path, peer)
+    health: list[tuple[str, bool, str]] = []
+    s.devtab.add_health_listener(lambda d, ok, cause: health.append((d, ok, cause)))
+    try:
+        s.devtab.write("heater", 300)
+        s.run_for(0.2)
+        assert peer.holding(HEATER) == 300
+        peer.freeze()
+        try:
+            assert run_until(s, lambda: status(s, "temp") == "failed")
+            stats = s.devtab.bus_stats["mb"]
+            base = stats.counts["reconnects"]
+            # the kernel accepts each new connection although nobody answers: 3 reconnects
+            assert run_until(s, lambda: stats.counts["reconnects"] >= base + 3)
+            assert not [h for h in health if h[1]], f"a frozen server was reported healthy: " \
+                                                    f"{health}"
+            assert status(s, "heater") == "failed" and status(s, "temp") == "failed"
+            assert stats.errors["timeout"] >= 3
+        finally:
+            peer.thaw()
+        thawed = time.monotonic()
+        assert run_until(s, lambda: status(s, "heater") == "OK")
+        s.run_for(0.05)
+        assert peer.holding(HEATER) == 0                    # safe value before any command
+        assert [w.values for w in peer.writes(since=thawed) if w.address == HEATER][:1] == [[0]]
+    finally:
+        s.shutdown()
+
+
+def test_busy_answers_fail_the_actuator_and_safe_values_still_reach_the_server(
+        tmp_path: Path, peer: ModbusPeer, caplog: pytest.LogCaptureFixture) -> None:
+    s = make_system(tmp_path, peer)
+    try:
+        s.devtab.write("heater", 300)
+        s.run_for(0.2)
+        assert peer.holding(HEATER) == 300
+        peer.set_busy(True)
+        with caplog.at_level(logging.WARNING, logger="chcos.devices.faults"):
+            s.devtab.write("heater", 400)
+            s.run_for(0.05)
+        heater = s.devtab.get("heater")
+        assert heater.status.value == "failed" and "exception code 6" in heater.reason
+        assert heater.value == 300 and heater.write_errors == 1     # 400 never reached it
+        assert any("400" in r.getMessage() and r.levelno >= logging.WARNING
+                   for r in caplog.records)
+        assert peer.holding(HEATER) == 300
+        with pytest.raises(DeviceError, match="failed"):
+            s.devtab.write("heater", 500)
+        t0 = time.monotonic()
+        s.devtab.estop("test: busy")                     # tried SAFE_ATTEMPTS times, reported
+        s.run_for(0.05)
+        tries = [w for w in peer.writes(since=t0) if w.address == HEATER]
+        assert [(w.values, w.outcome) for w in tries] == [([0], "busy")] * 3
+        assert ("heater", heater.last_write_error) in s.devtab.safe_failures
+        assert s.devtab.bus_stats["mb"].errors["exception-6"] >= 4
+        peer.set_busy(False)
+        undelivered = s.devtab.stop_drivers()            # shutdown: the server is free again
+        assert undelivered == []
+        assert peer.holding(HEATER) == 0 and not peer.coil(VALVE)
+    finally:
+        s.shutdown()
+
+
+def test_shutdown_reports_each_safe_value_it_could_not_deliver(
+        tmp_path: Path, peer: ModbusPeer) -> None:
+    s = make_system(tmp_path, peer)
+    try:
+        s.devtab.write("heater", 300)
+        s.run_for(0.2)
+        peer.set_busy(True)
+        undelivered = dict(s.devtab.stop_drivers())
+        assert set(undelivered) == {"heater", "valve"}
+        assert "exception code 6" in undelivered["heater"]
+        assert peer.holding(HEATER) == 300
+        busy = [w for w in peer.writes() if w.outcome == "busy"]
+        assert len(busy) == 6                           # 3 attempts for each of the two
+    finally:
+        s.shutdown()
