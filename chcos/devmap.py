@@ -25,6 +25,7 @@ Schema (see also ``busconfig/README.md``)::
     limits = [-inf, 120.0]  # engineering units, inclusive; TOML's -inf / inf leaves an end open
     safe_value = 0.0        # actuators only; must lie within limits
     units = "degC"          # free text, default ""
+    north_writable = false  # actuators only: the Modbus/OPC UA facades may command it
 
 Top-level keys other than ``bus`` and ``device`` are rejected. Option keys that name files
 (``dbc``, ``eds``, ``record``, and any key ending in ``_file`` or ``_path``, in bus options and in
@@ -56,7 +57,7 @@ from drivers.registry import driver_class
 
 BUS_KEYS = ("name", "kind")
 DEVICE_KEYS = ("name", "direction", "machine", "bus", "address", "priority", "stale_after",
-               "scale", "offset", "limits", "safe_value", "units")
+               "scale", "offset", "limits", "safe_value", "units", "north_writable")
 TOP_KEYS = ("bus", "device")
 PATH_KEYS = frozenset({"dbc", "eds", "record"})
 _NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_.\-]*$")
@@ -231,6 +232,11 @@ def _parse_device(fe: _FileErrors, i: int, table: Any, base: Path) -> DeviceSpec
     units = table.get("units", "")
     if not isinstance(units, str):
         fe.add(f"{key}.units", f"expected a string, got {_type_name(units)}")
+    north = table.get("north_writable", False)
+    if not isinstance(north, bool):
+        fe.add(f"{key}.north_writable", f"expected true or false, got {north!r}")
+    elif north and direction == "sensor":
+        fe.add(f"{key}.north_writable", "applies to actuators only; remove it from a sensor")
     if len(fe.errors) != before or name is None or limits is None or not isinstance(bus, str):
         return None
     dir_: Direction = "sensor" if direction == "sensor" else "actuator"
@@ -238,7 +244,8 @@ def _parse_device(fe: _FileErrors, i: int, table: Any, base: Path) -> DeviceSpec
                       address=_resolve_paths(address, base), stale_after=stale,
                       scale=scale if scale is not None else 1.0,
                       offset=offset if offset is not None else 0.0, limits=limits,
-                      safe_value=safe, units=units, file=fe.path, key=key)
+                      safe_value=safe, units=units, file=fe.path, key=key,
+                      north_writable=north is True)
 
 
 def _tables(fe: _FileErrors, doc: Mapping[str, Any], name: str) -> list[Any]:

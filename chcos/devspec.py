@@ -39,6 +39,7 @@ class DeviceSpec:
     is marked stale (``None``: never). ``safe_value`` is written to an actuator on e-stop, on
     abnormal completion of its owning task, and on shutdown (``None``: nothing is written).
     ``priority`` is the interrupt priority 0..99 of the device's sensory link.
+    ``north_writable`` lets the north-side facades command the actuator.
     """
 
     name: str
@@ -55,6 +56,9 @@ class DeviceSpec:
     units: str = ""
     file: str = "<memory>"
     key: str = "device[?]"
+    #: the north side (Modbus facade, OPC UA) may command this actuator (limits and owner rules
+    #: still apply); default False: read-only from above
+    north_writable: bool = False
 
 
 @dataclass(frozen=True)
