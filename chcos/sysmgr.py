@@ -313,7 +313,9 @@ class SystemManager:
                 raise InstallError(f"invoke {task}: priority {priority} outside 0..99")
             link.priority = priority
         self.sys.msgmgr.open(link, command, wait=False)
-        self.sys.msgmgr.event("invoke", f"host -> {task} at priority {link.priority}: {command}")
+        args = (" " + " ".join(f"{k}={v}" for k, v in command.items())
+                if isinstance(command, dict) else "" if command is None else f" {command!r}")
+        self.sys.msgmgr.event("invoke", f"host -> {task} at priority {link.priority}{args}")
         return f"{task} invoked at priority {link.priority}"
 
     def task_op(self, op: str, task: str) -> str:

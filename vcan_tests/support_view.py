@@ -8,6 +8,7 @@ import shutil
 import urllib.request
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +19,7 @@ from chcos.devspec import BusSpec, DeviceMap, DeviceSpec
 from chcos.examples import fig65
 from chcos.examples.fig65.common import condense
 from chcos.fig65run import default_devmap
+from chcos.north.auth import User, Users, hash_password
 from chcos.system import System
 from chcos.usrmgr import TaskContext
 from chcos.viewer.snapshot import EventLog
@@ -100,12 +102,50 @@ def get_json(url: str) -> Any:
     return json.loads(body)
 
 
-def post_json(url: str, payload: Any) -> tuple[int, Any]:
-    """POST ``payload`` as JSON; (status, decoded JSON answer)."""
+#: Accounts for the viewer tests (a cheap hash: 1000 PBKDF2 rounds).
+PASSWORDS = {"alice": "alice-pw", "sam": "sam-pw", "olga": "olga-pw"}
+ROLES = {"alice": "operator", "sam": "supervisor", "olga": "observer"}
+
+
+def viewer_users() -> Users:
+    """alice (operator), sam (supervisor), olga (observer); passwords in PASSWORDS."""
+    return Users({n: User(n, ROLES[n], hash_password(pw, 1000)) for n, pw in PASSWORDS.items()})
+
+
+@dataclass
+class Login:
+    """A logged-in viewer session: its cookie header and command token."""
+
+    cookie: str
+    token: str
+
+    def headers(self) -> dict[str, str]:
+        """The headers a command from this session carries."""
+        return {"Cookie": self.cookie, "X-CHCOS-Token": self.token}
+
+
+def login(base: str, user: str = "alice") -> Login:
+    """Log ``user`` in on the viewer at ``base`` (its URL); raises AssertionError if refused."""
+    req = urllib.request.Request(base + "api/login", method="POST",
+                                 data=json.dumps({"user": user,
+                                                  "password": PASSWORDS[user]}).encode(),
+                                 headers={"Content-Type": "application/json"})
+    with _opener.open(req, timeout=TIMEOUT) as resp:
+        body = json.loads(resp.read())
+        cookie = resp.headers["Set-Cookie"].split(";")[0]
+    assert body["ok"] and "HttpOnly" in resp.headers["Set-Cookie"]
+    return Login(cookie, body["token"])
+
+
+def post_json(url: str, payload: Any, session: Login | None = None,
+              headers: dict[str, str] | None = None) -> tuple[int, Any]:
+    """POST ``payload`` as JSON (bytes as they are) with ``session``'s cookie and token;
+    (status, decoded JSON answer)."""
     assert url.startswith("http://127.0.0.1:"), url
     data = payload if isinstance(payload, bytes) else json.dumps(payload).encode()
-    req = urllib.request.Request(url, data=data, method="POST",
-                                 headers={"Content-Type": "application/json"})
+    hdrs = {"Content-Type": "application/json", **(session.headers() if session else {}),
+            **(headers or {})}
+    req = urllib.request.Request(url, data=data, method="POST", headers=hdrs)
     try:
         with _opener.open(req, timeout=TIMEOUT) as resp:
             return int(resp.status), json.loads(resp.read())

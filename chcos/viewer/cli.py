@@ -3,9 +3,11 @@
 ``chcos map [MAP] [--format text|dot|svg] [-o FILE] [--implicit]``
     reads a sysfile.map (default ./sysfile.map) and prints the hierarchy, levels top to bottom.
 
-``chcos view [MAP | --example fig65] [--port 0] [--invoke TASK]... [--duration S] [--terminal]``
+``chcos view [MAP | --example fig65] [--port 0] [--invoke TASK]... [--duration S] [--terminal]
+[--users FILE]``
     rebuilds the system from MAP (or builds the figure 6.5 example), runs it on real time, and
-    serves the live page on 127.0.0.1 (port 0: a free one); prints the URL. ``--terminal`` also
+    serves the live page on 127.0.0.1 (port 0: a free one); prints the URL. Read-only unless
+    ``--users`` names a users file (operator credentials). ``--terminal`` also
     redraws the hierarchy as text, with message rates, once a second.
 """
 
@@ -109,7 +111,12 @@ def view_main(argv: Sequence[str], *, stop: threading.Event | None = None,
     p.add_argument("--duration", type=float, help="stop after this many seconds")
     p.add_argument("--terminal", action="store_true",
                    help="also redraw the hierarchy as text on the terminal once a second")
-    p.add_argument("--read-only", action="store_true", help="refuse commands from the page")
+    p.add_argument("--users", metavar="FILE",
+                   help="operator credentials (a users file, see chcos.north.auth): who may log "
+                        "in on the page and issue setpri/invoke; without it the page is "
+                        "read-only")
+    p.add_argument("--read-only", action="store_true",
+                   help="refuse commands from the page even with --users")
     args = p.parse_args(list(argv))
     if args.map and args.example:
         p.error("give a map or --example, not both")
@@ -125,8 +132,13 @@ def view_main(argv: Sequence[str], *, stop: threading.Event | None = None,
         system.start()
         for task in invokes:
             print(f"host: {system.execute(f'invoke {task}')}", file=out)
+        users = None
+        if args.users and not args.read_only:
+            from chcos.north.auth import Users
+
+            users = Users.from_file(args.users)
         viewer = Viewer(system, args.host, args.port, period=args.period, events=events,
-                        allow_commands=not args.read_only).start()
+                        users=users).start()
         print(f"chcos view: serving {viewer.url}", file=out, flush=True)
         if on_ready is not None:
             on_ready(viewer)
