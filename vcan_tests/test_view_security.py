@@ -43,7 +43,7 @@ def run(viewer: Viewer, body: Any) -> Any:
     return asyncio.run(_with_client(viewer, body))
 
 
-async def _login(client: TestClient, user: str = "alice") -> str:
+async def _login(client: TestClient[Any, Any], user: str = "alice") -> str:
     resp = await client.post("/api/login", json={"user": user, "password": PASSWORDS[user]})
     assert resp.status == 200, await resp.text()
     body = await resp.json()
@@ -56,7 +56,7 @@ def test_cross_origin_and_simple_requests_are_refused(fig65: System) -> None:
     viewer = Viewer(fig65, users=viewer_users())
     before = fig65.sysmgr.map_doc()
 
-    async def body(client: TestClient, own: str) -> None:
+    async def body(client: TestClient[Any, Any], own: str) -> None:
         token = await _login(client)  # even a logged-in operator's browser is safe
         # the attack: text/plain from another origin
         r = await client.post("/api/command", data='{"line": "invoke C1"}',
@@ -100,7 +100,7 @@ def test_cross_origin_and_simple_requests_are_refused(fig65: System) -> None:
 def test_roles_and_refusals_are_4xx_with_a_reason(fig65: System) -> None:
     viewer = Viewer(fig65, users=viewer_users())
 
-    async def body(client: TestClient, own: str) -> None:
+    async def body(client: TestClient[Any, Any], own: str) -> None:
         r = await client.post("/api/command", json={"line": "invoke C1"})
         assert r.status == 401 and "log in" in (await r.json())["error"]
         r = await client.post("/api/login", json={"user": "alice", "password": "wrong"})
