@@ -8,6 +8,8 @@
 ``chcos map``     draw a sysfile.map as the hierarchy (text, dot or svg)
 ``chcos view``    serve a live page of a running system on 127.0.0.1
 ``chcos sim``     simulated field devices (CAN, CANopen, Modbus, serial)
+``chcos facade modbus --print-map FILE...``  the Modbus facade's register map of a system
+``chcos north passwd``  a password hash for the north-side users file
 ``chcos satellite -m N --system FILE``  run machine N of a multi-satellite system
 ``chcos host --system FILE [COMMAND...]``  host commands to a running multi-satellite system
 """
@@ -146,6 +148,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         from chcos.viewer.cli import view_main
 
         return view_main(argv[1:])
+    if argv[:1] == ["facade"]:
+        from chcos.north.modbus_facade import facade_main
+
+        return facade_main(argv[1:])
+    if argv[:1] == ["north"]:
+        from chcos.north.services import north_main
+
+        return north_main(argv[1:])
     parser = argparse.ArgumentParser(prog="chcos", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
@@ -175,6 +185,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     sub.add_parser("map", help="draw a sysfile.map (chcos map [MAP] --format text|dot|svg)")
     sub.add_parser("view", help="live page of a running system (chcos view --example fig65)")
     sub.add_parser("check", help="validate device-map files (chcos check FILE...)")
+    sub.add_parser("facade", help="north-side facades (chcos facade modbus --print-map FILE)")
+    sub.add_parser("north", help="north-side accounts (chcos north passwd: a password hash)")
     sub.add_parser("sim", help="simulated field devices (chcos sim KIND ...)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.ERROR,
