@@ -188,5 +188,5 @@ def test_bad_password_and_remote_endpoint_refused(served: tuple[System, OpcUaSer
     c.disconnect()
     with pytest.raises(NorthError, match="certificate"):
         OpcUaServer(system, "opc.tcp://192.0.2.1:4840/")
-    with pytest.raises(NorthError, match="opc.tcp://HOST:PORT"):
+    with pytest.raises(NorthError, match=r"opc\.tcp://HOST:PORT"):
         OpcUaServer(system, "http://127.0.0.1:4840/")

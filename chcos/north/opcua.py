@@ -42,10 +42,10 @@ from datetime import UTC, datetime, timedelta
 from typing import TYPE_CHECKING, Any
 from urllib.parse import urlparse
 
-from asyncua.server.server import Server
 from asyncua import ua as _ua
 from asyncua.crypto.permission_rules import USER_TYPES, PermissionRuleset, User, UserRole
 from asyncua.server.internal_session import InternalSession
+from asyncua.server.server import Server
 from asyncua.server.user_managers import UserManager
 
 from chcos.errors import Busy, ChcosError
