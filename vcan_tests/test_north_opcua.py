@@ -79,7 +79,7 @@ class Collector:
 
     def wait(self, pred: Any) -> bool:
         with self.cond:
-            return self.cond.wait_for(pred, TIMEOUT)
+            return bool(self.cond.wait_for(pred, TIMEOUT))
 
 
 def ns(c: Client) -> int:

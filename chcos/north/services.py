@@ -10,7 +10,9 @@ all. Flags (every address is loopback unless given; a service not named does not
 ``--view [HOST:PORT]``           the live page (default 127.0.0.1:8765)
 ``--north-users FILE``           accounts and roles (:mod:`chcos.north.auth`): without it the
                                  view and OPC UA are read-only
-``--north-tls-cert/--north-tls-key``  TLS for the metrics endpoint off loopback
+``--north-tls-cert/--north-tls-key``  certificate and key (PEM): TLS for the metrics endpoint
+                                 and the view, the OPC UA server certificate (Basic256Sha256);
+                                 required for any address off loopback
 
 ``chcos north passwd`` reads a password (twice, from the terminal, or once from stdin) and prints
 the hash for a users file.
@@ -142,7 +144,8 @@ def start(system: System, options: NorthOptions) -> NorthHandle:
         if options.opcua:
             from chcos.north.opcua import OpcUaServer
 
-            o = OpcUaServer(system, options.opcua, users=options.users).start()
+            o = OpcUaServer(system, options.opcua, users=options.users,
+                            certificate=options.tls_cert, private_key=options.tls_key).start()
             h.services["opcua"], h.urls["opcua"] = o, o.endpoint
             h._stops.append(o.stop)
         if options.view:
@@ -150,8 +153,14 @@ def start(system: System, options: NorthOptions) -> NorthHandle:
             from chcos.viewer.server import Viewer
 
             host, port = host_port(options.view, "view")
+            ctx = None
+            if options.tls_cert and options.tls_key:
+                import ssl
+
+                ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+                ctx.load_cert_chain(options.tls_cert, options.tls_key)
             try:
-                v = Viewer(system, host, port, users=options.users).start()
+                v = Viewer(system, host, port, users=options.users, ssl_context=ctx).start()
             except ViewerError as exc:
                 raise NorthError(str(exc)) from exc
             h.services["view"], h.urls["view"] = v, v.url

@@ -45,6 +45,7 @@ import ipaddress
 import json
 import logging
 import secrets
+import ssl
 import threading
 import time
 from collections import OrderedDict
@@ -83,6 +84,15 @@ COOKIE = "chcos_session"
 TOKEN_HEADER = "X-CHCOS-Token"
 #: Sessions kept at once (the oldest is ended beyond this).
 MAX_SESSIONS = 64
+
+
+def _loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
 
 
 def _dumps(obj: Any) -> str:
@@ -129,14 +139,19 @@ class Viewer:
                  period: float = 0.1, events: EventLog | None = None,
                  users: Users | None = None, implicit: bool = False,
                  svg_period: float = 1.0, stall_timeout: float = 5.0,
-                 max_buffer: int = 1 << 20) -> None:
+                 max_buffer: int = 1 << 20, ssl_context: ssl.SSLContext | None = None) -> None:
         if period <= 0:
             raise ViewerError(f"snapshot period {period} s: must be positive")
         if stall_timeout <= 0 or max_buffer <= 0:
             raise ViewerError("stall_timeout and max_buffer must be positive")
+        if ssl_context is None and not _loopback(host):
+            raise ViewerError(f"viewer on {host}: an address off loopback needs TLS "
+                              "(a certificate and key)")
         self.system = system
         self.host = host
         self.port = port
+        self.ssl_context = ssl_context
+        self.scheme = "https" if ssl_context is not None else "http"
         self.period = period
         self.svg_period = svg_period
         self.stall_timeout = stall_timeout
@@ -172,7 +187,7 @@ class Viewer:
     def url(self) -> str:
         """The page's address (valid once started)."""
         host = f"[{self.host}]" if ":" in self.host else self.host
-        return f"http://{host}:{self.port}/"
+        return f"{self.scheme}://{host}:{self.port}/"
 
     @property
     def clients(self) -> int:
@@ -261,7 +276,7 @@ class Viewer:
         runner = web.AppRunner(self.app(), access_log=None, shutdown_timeout=1.0)
         await runner.setup()
         try:
-            site = web.TCPSite(runner, self.host, self.port)
+            site = web.TCPSite(runner, self.host, self.port, ssl_context=self.ssl_context)
             await site.start()
         except BaseException:
             await runner.cleanup()
@@ -334,10 +349,11 @@ class Viewer:
                                        f"({self.host}:{self.port}); refused (DNS rebinding?)"},
                 status=421)
         origin = request.headers.get("Origin")
-        if origin is not None and origin not in {f"http://{h}" for h in own}:
+        if origin is not None and origin not in {f"{self.scheme}://{h}" for h in own}:
             return web.json_response(
                 {"ok": False, "error": f"Origin {origin!r} is not this viewer "
-                                       f"(http://{host}); cross-site requests are refused"},
+                                       f"({self.scheme}://{host}); cross-site requests are "
+                                       "refused"},
                 status=403)
         return await handler(request)
 
@@ -475,7 +491,8 @@ class Viewer:
         while len(self._sessions) > MAX_SESSIONS:
             self._sessions.popitem(last=False)
         resp = web.json_response({"ok": True, **self._session_json(s)})
-        resp.set_cookie(COOKIE, sid, httponly=True, samesite="Strict", path="/")
+        resp.set_cookie(COOKIE, sid, httponly=True, samesite="Strict", path="/",
+                        secure=self.ssl_context is not None)
         return resp
 
     async def _logout(self, request: web.Request) -> web.Response:
