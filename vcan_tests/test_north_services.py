@@ -211,3 +211,28 @@ def test_chcos_run_serves_every_north_service(tmp_path: Path) -> None:
     finally:
         th.join(timeout=120)
     assert "summary" in result, result
+
+
+def test_users_file_and_passwd(tmp_path: Path) -> None:
+    from chcos.errors import ConfigError
+    from chcos.north.auth import Users
+    from chcos.north.services import north_main
+
+    out = io.StringIO()
+    import contextlib
+
+    with contextlib.redirect_stdout(out):
+        assert north_main(["passwd"], stdin=io.StringIO("s3cret\n")) == 0
+    digest = out.getvalue().strip()
+    assert digest.startswith("pbkdf2-sha256$") and "s3cret" not in digest
+    f = tmp_path / "users.toml"
+    f.write_text(f'[users.alice]\nrole = "operator"\npassword_hash = "{digest}"\n')
+    users = Users.from_file(f)
+    assert users.check("alice", "s3cret") is not None
+    assert users.check("alice", "wrong") is None and users.check("bob", "s3cret") is None
+    f.write_text(f'[users.alice]\nrole = "root"\npassword_hash = "{digest}"\n')
+    with pytest.raises(ConfigError, match=r"users\.alice\.role: expected one of observer"):
+        Users.from_file(f)
+    f.write_text('[users.alice]\nrole = "operator"\npassword = "plain"\n')
+    with pytest.raises(ConfigError, match="unknown key"):
+        Users.from_file(f)
