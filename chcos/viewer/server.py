@@ -541,7 +541,7 @@ class Viewer:
                                "may not issue it")
         loop = asyncio.get_running_loop()
         try:
-            answer = await loop.run_in_executor(None, self.system.execute, req)
+            answer = await loop.run_in_executor(None, self.system.execute, line)
         except Busy as exc:
             return refuse(409, str(exc))
         except ChcosError as exc:

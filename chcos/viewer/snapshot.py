@@ -138,8 +138,9 @@ class Snapshotter:
                 last = exc
                 continue
             for d in doc["devices"]:
-                d["updated_at"], d["reason"] = extra.get(d["name"], (None, ""))
-            doc["frozen"] = frozen
+                d["updated_at"], d["reason"] = extra.get(
+                    d["name"], (d.get("updated_at"), d.get("reason", "")))
+            doc.setdefault("frozen", frozen)
             return doc
         raise ViewerError(f"no consistent snapshot of the tables after {RETRIES} tries: "
                           f"{last}") from last
