@@ -7,7 +7,7 @@ Address space (namespace ``urn:chcos``, string node ids):
   BadDeviceFailure when failed, BadOutOfService when suspended, BadWaitingForInitialData before
   the first value; SourceTimestamp when the value was taken), with properties
   ``EngineeringUnits`` (EUInformation), ``EURange`` (from its limits, if any) and variables
-  ``Age`` (seconds since the value, refreshed once a second) and ``Status`` (text with cause);
+  ``Age`` (seconds since the value, refreshed every 0.5 s) and ``Status`` (text with cause);
 * ``Tasks.<name>``: every task an object with ``State``, ``Level``, ``Owner``, ``Priority``,
   ``Completions``, ``Abnormal`` and ``LastError`` (the last completion's error, "" if normal);
 * ``Links.<src>/<dst>``: every link with ``Sent``, ``Delivered``, ``Overwritten``, ``Status``
@@ -21,9 +21,11 @@ Address space (namespace ``urn:chcos``, string node ids):
 * events (BaseEventType, emitted by the ``chcos`` object): sensor failures and staleness,
   e-stops and abnormal completions, with severity 700-900 and the cause in the message.
 
-The values are copied from the tables on the server's own thread every ``period`` seconds (only
-what changed is written; subscriptions see it at their next publishing interval); the kernel
-only pays for the event hook. Anonymous sessions may read and subscribe; username/password
+Device values and health are copied from the tables on the server's own thread every ``period``
+seconds (0.05), ages and the task and link figures every 0.5 s (only what changed is written;
+subscriptions see it at their next publishing interval); the kernel only pays for the event hook
+(and shares the interpreter: ``tools/bench_north.py`` measures what the server costs the control
+loops). Anonymous sessions may read and subscribe; username/password
 sessions get their role. The endpoint is loopback by default; any other address needs a
 certificate and private key and then offers only Basic256Sha256 Sign&Encrypt.
 """
@@ -155,6 +157,8 @@ class OpcUaServer:
         self.users = users
         self.certificate, self.private_key = certificate, private_key
         self.period = period
+        #: seconds between refreshes of ages, task and link figures
+        self.slow_period = 0.5
         self.refused: list[tuple[str, str, str]] = []
         self._thread: threading.Thread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -333,6 +337,9 @@ class OpcUaServer:
         await self._server.write_attribute_value(node.nodeid, dv)
 
     async def _refresh(self, force: bool = False, ages: bool = False) -> None:
+        """Copy what changed into the address space: device values and health every period;
+        with ``ages`` (once a second) also ages and the task and link figures, which change
+        with every message and are not worth an OPC UA write each time."""
         s = self.system
         now = s.kernel.clock.now()
         wall = datetime.now(UTC)
@@ -359,6 +366,8 @@ class OpcUaServer:
             if ages or force:
                 await self._set(n["age"], nid + ".Age",
                                 math.nan if at is None else max(0.0, now - at), DBL)
+        if not (ages or force):
+            return
         for t in list(s.tsktab):
             nid = f"Tasks.{t.name}"
             if nid not in self._nodes:
@@ -388,7 +397,7 @@ class OpcUaServer:
         last_age = 0.0
         while True:
             await asyncio.sleep(self.period)
-            ages = loop.time() - last_age >= 1.0
+            ages = loop.time() - last_age >= self.slow_period
             if ages:
                 last_age = loop.time()
             try:
