@@ -17,6 +17,7 @@ from chcos.clock import RealClock
 from chcos.devspec import BusSpec, DeviceMap, DeviceSpec
 from chcos.north import NorthError
 from chcos.north.opcua import OpcUaServer
+from chcos.north.opcua_process import OpcUaProcess
 from chcos.system import System
 from vcan_tests.support_view import PASSWORDS, viewer_users
 
@@ -39,17 +40,19 @@ def cell(workdir: Path) -> System:
     return s
 
 
-@pytest.fixture
-def served(tmp_path: Path) -> Iterator[tuple[System, OpcUaServer]]:
-    """The running cell and its OPC UA server on a free loopback port, with users."""
+@pytest.fixture(params=["process", "thread"])
+def served(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[tuple[System, Any]]:
+    """The running cell and its OPC UA server on a free loopback port, with users: in a
+    process of its own (the default of ``--opcua``) and on a thread of this one."""
     s = cell(tmp_path)
-    o = OpcUaServer(s, "opc.tcp://127.0.0.1:0/chcos/", users=viewer_users()).start()
+    kind = OpcUaProcess if request.param == "process" else OpcUaServer
+    o = kind(s, "opc.tcp://127.0.0.1:0/chcos/", users=viewer_users()).start()
     yield s, o
     o.stop()
     s.shutdown()
 
 
-def client(o: OpcUaServer, user: str | None = None) -> Client:
+def client(o: Any, user: str | None = None) -> Client:
     """A connected python-opcua client, anonymous or as ``user``."""
     c = Client(o.endpoint, timeout=TIMEOUT)
     if user is not None:
@@ -86,7 +89,7 @@ def ns(c: Client) -> int:
     return int(c.get_namespace_index("urn:chcos"))
 
 
-def test_devices_tasks_links_and_a_subscription(served: tuple[System, OpcUaServer]) -> None:
+def test_devices_tasks_links_and_a_subscription(served: tuple[System, Any]) -> None:
     system, o = served
     c = client(o)
     try:
@@ -129,7 +132,7 @@ def test_devices_tasks_links_and_a_subscription(served: tuple[System, OpcUaServe
         c.disconnect()
 
 
-def test_anonymous_estop_refused_operator_obeyed(served: tuple[System, OpcUaServer]) -> None:
+def test_anonymous_estop_refused_operator_obeyed(served: tuple[System, Any]) -> None:
     system, o = served
     system.call(system.devtab.write, "V1", 42.0)
     anon = client(o)
@@ -139,6 +142,8 @@ def test_anonymous_estop_refused_operator_obeyed(served: tuple[System, OpcUaServ
         with pytest.raises(ua.UaStatusCodeError, match="BadUserAccessDenied"):
             root.call_method(f"{i}:EStop", "from an HMI without login")
         assert system.devtab.get("V1").value == 42.0
+        if isinstance(o, OpcUaProcess):
+            assert o.wait_refused(1, TIMEOUT)
         assert o.refused[-1][:2] == ("anonymous", "estop")
         handler = Collector()
         anon.create_subscription(20, handler).subscribe_events(root)
@@ -178,7 +183,7 @@ def test_anonymous_estop_refused_operator_obeyed(served: tuple[System, OpcUaServ
         sam.disconnect()
 
 
-def test_bad_password_and_remote_endpoint_refused(served: tuple[System, OpcUaServer]) -> None:
+def test_bad_password_and_remote_endpoint_refused(served: tuple[System, Any]) -> None:
     system, o = served
     c = Client(o.endpoint, timeout=TIMEOUT)
     c.set_user("alice")

@@ -74,6 +74,21 @@ EVENT_KINDS = {"device-failed": 900, "device-stale": 700, "estop": 900, "abnorma
 _WRITE = ua.NodeId(ua.ObjectIds.WriteRequest_Encoding_DefaultBinary)
 
 
+def estop(system: System, who: str, reason: str) -> str:
+    """An emergency stop from the north: logged as ``estop``, told to the other satellites,
+    every local actuator with a safe value gets it (on the kernel thread). Returns the answer
+    text."""
+    def on_kernel() -> int:
+        mm = system.msgmgr
+        mm.event("estop", f"{who}: {reason}")
+        if mm.comm is not None:
+            mm.comm.estop(reason)
+        return system.devtab.estop(reason)
+
+    n = system.call(on_kernel)
+    return f"estop: {n} actuator(s) at safe values"
+
+
 class _Rules(PermissionRuleset):
     """Everyone may read, browse, subscribe and call; nobody writes attributes or changes the
     address space (methods check roles themselves)."""
@@ -427,7 +442,7 @@ class OpcUaServer:
             if account is None or not account.may(command):
                 reason = (f"{command}: {who} may not issue it (role "
                           f"{account.role if account else 'anonymous'})")
-                self.refused.append((who, command, reason))
+                self._refusal(who, command, reason)
                 log.warning("opcua: %s", reason)
                 return ua.StatusCode(ua.StatusCodes.BadUserAccessDenied)
             values = [a.Value if isinstance(a, ua.Variant) else a for a in args]
@@ -435,14 +450,14 @@ class OpcUaServer:
             try:
                 what = build(*values)
                 if isinstance(what, str):
-                    answer = await loop.run_in_executor(None, self.system.execute, what)
+                    answer = await loop.run_in_executor(None, self._execute, what)
                 else:
                     answer = await loop.run_in_executor(None, what, who)
             except Busy as exc:
-                self.refused.append((who, command, str(exc)))
+                self._refusal(who, command, str(exc))
                 return ua.StatusCode(ua.StatusCodes.BadResourceUnavailable)
             except (ChcosError, ValueError, TypeError) as exc:
-                self.refused.append((who, command, str(exc)))
+                self._refusal(who, command, str(exc))
                 log.warning("opcua: %s by %s refused: %s", command, who, exc)
                 return ua.StatusCode(ua.StatusCodes.BadInvalidArgument)
             log.info("opcua: %s by %s: %s", command, who, answer)
@@ -450,17 +465,21 @@ class OpcUaServer:
 
         return call
 
+    def _refusal(self, who: str, command: str, reason: str) -> None:
+        """Remember a refused method call."""
+        self.refused.append((who, command, reason))
+
+    def _execute(self, line: str) -> str:
+        """Run one host command line on the system (raises ChcosError)."""
+        return self.system.execute(line)
+
+    def _do_estop(self, who: str, reason: str) -> str:
+        """Every actuator to its safe value, on the kernel thread; the answer text."""
+        return estop(self.system, f"opcua {who}", reason)
+
     def _estop(self, reason: str) -> Callable[[str], str]:
         def run(who: str) -> str:
-            def on_kernel() -> int:
-                mm = self.system.msgmgr
-                mm.event("estop", f"opcua {who}: {reason}")
-                if mm.comm is not None:
-                    mm.comm.estop(reason)
-                return self.system.devtab.estop(reason)
-
-            n = self.system.call(on_kernel)
-            return f"estop: {n} actuator(s) at safe values"
+            return self._do_estop(who, reason)
 
         return run
 

@@ -142,10 +142,10 @@ def start(system: System, options: NorthOptions) -> NorthHandle:
             h.urls["modbus"] = f"modbus-tcp://{host}:{f.port}"
             h._stops.append(f.stop)
         if options.opcua:
-            from chcos.north.opcua import OpcUaServer
+            from chcos.north.opcua_process import OpcUaProcess
 
-            o = OpcUaServer(system, options.opcua, users=options.users,
-                            certificate=options.tls_cert, private_key=options.tls_key).start()
+            o = OpcUaProcess(system, options.opcua, users=options.users,
+                             certificate=options.tls_cert, private_key=options.tls_key).start()
             h.services["opcua"], h.urls["opcua"] = o, o.endpoint
             h._stops.append(o.stop)
         if options.view:
