@@ -183,3 +183,29 @@ def browser_page() -> Iterator[Any]:
             yield page
         finally:
             browser.close()
+
+
+async def idle(ctx: TaskContext, command: Any) -> None:
+    """Task code: completes at once."""
+    ctx.complete("ok")
+
+
+def big_cell(workdir: Path, clock: Clock | None = None, tasks: int = 60) -> System:
+    """A wide hierarchy of ``tasks`` tasks (half on level 1 over one sensor each, a third on
+    level 2 above them, the rest on level 3 commanding them), for the legibility tests."""
+    n1, n2 = tasks // 2, tasks // 3
+    n3 = tasks - n1 - n2
+    devmap = DeviceMap((BusSpec("mem", "memory"),), tuple(
+        DeviceSpec(f"D{i}", "sensor", 0, "mem", units="mm") for i in range(n1)))
+    s = System(devmap, clock=clock or VirtualClock(), base_dir=workdir,
+               map_path=workdir / "sysfile.map")
+    s.kernel.add_instrument(EventLog(s.kernel.clock))
+    code = "--code=vcan_tests.support_view:idle"
+    s.execute("install -m0 sysfile")
+    for i in range(n1):
+        s.execute(f"install -m0i1 {code} T{i} D{i}")
+    for i in range(n2):
+        s.execute(f"install -m0i1 {code} U{i} T{i}")
+    for i in range(n3):
+        s.execute(f"install -m0o1 {code} V{i} U{i}")
+    return s

@@ -250,3 +250,57 @@ def test_a_page_from_another_origin_cannot_command(live: tuple[System, Viewer],
     finally:
         httpd.shutdown()
         httpd.server_close()
+
+
+OVERLAPS = """() => {
+  const svg = document.querySelector('#graph svg');
+  const boxes = [];
+  for (const el of svg.querySelectorAll('g.link text.label')) {
+    const b = el.getBBox(); boxes.push(['label ' + el.parentNode.dataset.link, b]);
+  }
+  for (const el of svg.querySelectorAll('g.node rect')) {
+    const b = el.getBBox(); boxes.push(['node ' + el.parentNode.dataset.name, b]);
+  }
+  const legend = svg.querySelector('g.legend text:nth-of-type(3)').getBBox();
+  const clock = svg.querySelector('g.legend text.clock').getBBox();
+  const bad = [];
+  if (legend.x + legend.width > clock.x) bad.push('legend over the clock');
+  for (let i = 0; i < boxes.length; i++)
+    for (let j = i + 1; j < boxes.length; j++) {
+      const [n1, a] = boxes[i], [n2, b] = boxes[j];
+      if (n1.startsWith('node') && n2.startsWith('node')) continue;
+      if (a.x < b.x + b.width - 1 && b.x < a.x + a.width - 1 &&
+          a.y < b.y + b.height - 1 && b.y < a.y + a.height - 1) bad.push(n1 + ' / ' + n2);
+    }
+  return bad;
+}"""
+
+
+@pytest.mark.parametrize("kind", ["small", "fig65", "60 tasks"])
+def test_the_drawing_stays_legible(kind: str, tmp_path: Path) -> None:
+    """At 1400x900: no link label overlaps another or a node, the legend leaves the clock
+    alone, a small system is not blown up, a large one not shrunk below 60 % (the pane
+    scrolls), the devices table starts above the fold, times are since start."""
+    from vcan_tests.support_view import big_cell
+
+    make = {"small": small_cell, "fig65": fig65_system, "60 tasks": big_cell}[kind]
+    system = make(tmp_path, RealClock())
+    system.start()
+    try:
+        with serve(system) as viewer, browser_page() as page:
+            page.set_viewport_size({"width": 1400, "height": 900})
+            page.goto(viewer.url)
+            page.wait_for_function(f"{SEQ} >= 2")
+            assert page.evaluate(OVERLAPS) == []
+            natural = float(page.locator("#graph svg").get_attribute("width") or 0)
+            shown = page.evaluate("document.querySelector('#graph svg')"
+                                  ".getBoundingClientRect().width")
+            assert natural * 0.6 - 1 <= shown <= natural + 1
+            top = page.evaluate("document.getElementById('devices')"
+                                ".getBoundingClientRect().top")
+            assert top < 900 - 60, f"devices table starts at {top} px"
+            since = float(page.locator("#clock").inner_text())
+            assert 0 <= since < 60  # seconds since the system started, not uptime
+            page.screenshot(path=str(tmp_path / f"view-{kind}.png"))
+    finally:
+        system.shutdown()

@@ -82,6 +82,17 @@ function mergePatch(target, patch) {
   return target;
 }
 
+// Fit the drawing to the pane, but never below 60 % of its natural size (text stays legible;
+// the pane scrolls instead), nor above it (a small system is not blown up).
+function fitGraph() {
+  const svg = $("graph").querySelector("svg");
+  if (!svg) return;
+  const natural = Number(svg.getAttribute("width"));
+  const pane = $("graph-pane").clientWidth - 2;
+  svg.style.width = Math.max(Math.min(natural, pane), natural * 0.6) + "px";
+}
+window.addEventListener("resize", fitGraph);
+
 function nn(v) { return v === undefined ? null : v; }
 
 function render(snap, events) {
@@ -90,6 +101,7 @@ function render(snap, events) {
   if (snap.svg !== undefined && snap.svg !== lastSvg) {
     $("graph").innerHTML = snap.svg;
     lastSvg = snap.svg;
+    fitGraph();
   }
   const marks = snap.marks || {};
   const tasks = Object.entries(snap.tasks || {});
