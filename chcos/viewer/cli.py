@@ -3,15 +3,16 @@
 ``chcos map [MAP] [--format text|dot|svg] [-o FILE] [--implicit]``
     reads a sysfile.map (default ./sysfile.map) and prints the hierarchy, levels top to bottom.
 
-``chcos view --system SYSTEM.toml [--users FILE]`` attaches to running satellites through the
-    host's link (see :mod:`chcos.viewer.remote`) instead.
-
 ``chcos view [MAP | --example fig65] [--port 0] [--invoke TASK]... [--duration S] [--terminal]
 [--users FILE]``
     rebuilds the system from MAP (or builds the figure 6.5 example), runs it on real time, and
     serves the live page on 127.0.0.1 (port 0: a free one); prints the URL. Read-only unless
     ``--users`` names a users file (operator credentials). ``--terminal`` also
     redraws the hierarchy as text, with message rates, once a second.
+
+``chcos view --system SYSTEM.toml [--users FILE]``
+    attaches to running satellites through the host's link (see :mod:`chcos.viewer.remote`)
+    instead of running a system here.
 """
 
 from __future__ import annotations
