@@ -195,3 +195,50 @@ def test_bad_password_and_remote_endpoint_refused(served: tuple[System, Any]) ->
         OpcUaServer(system, "opc.tcp://192.0.2.1:4840/")
     with pytest.raises(NorthError, match=r"opc\.tcp://HOST:PORT"):
         OpcUaServer(system, "http://127.0.0.1:4840/")
+
+
+def _certificate(tmp: Path, name: str) -> tuple[str, str]:
+    """A self-signed application certificate (DER) and key (PEM) from asyncua's helper."""
+    import asyncio
+
+    from asyncua.crypto.cert_gen import setup_self_signed_certificate
+    from cryptography.x509.oid import ExtendedKeyUsageOID
+
+    key, cert = tmp / f"{name}-key.pem", tmp / f"{name}-cert.der"
+    asyncio.run(setup_self_signed_certificate(
+        key, cert, f"urn:chcos:test:{name}", "127.0.0.1",
+        [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH],
+        {"commonName": name}))
+    return str(cert), str(key)
+
+
+def test_secure_endpoint_refuses_security_none(tmp_path: Path) -> None:
+    """With security asked for (as off loopback), only Basic256Sha256 Sign&Encrypt is offered:
+    a client without security is refused, one with it logs in and its EStop is obeyed."""
+    s = cell(tmp_path)
+    cert, key = _certificate(tmp_path, "server")
+    ccert, ckey = _certificate(tmp_path, "client")
+    o = OpcUaServer(s, "opc.tcp://127.0.0.1:0/chcos/", users=viewer_users(), certificate=cert,
+                    private_key=key, secure=True).start()
+    try:
+        plain = Client(o.endpoint, timeout=TIMEOUT)
+        with pytest.raises(Exception):  # noqa: B017 - python-opcua's own error types
+            plain.connect()
+        plain.disconnect()
+        c = Client(o.endpoint, timeout=TIMEOUT)
+        c.set_security_string(f"Basic256Sha256,SignAndEncrypt,{ccert},{ckey}")
+        c.set_user("alice")
+        c.set_password(PASSWORDS["alice"])
+        c.connect()
+        try:
+            s.call(s.devtab.write, "V1", 42.0)
+            i = ns(c)
+            root = c.get_node(f"ns={i};s=chcos")
+            assert root.call_method(f"{i}:EStop", "secure") == \
+                "estop: 1 actuator(s) at safe values"
+            assert s.devtab.get("V1").value == 0.0
+        finally:
+            c.disconnect()
+    finally:
+        o.stop()
+        s.shutdown()

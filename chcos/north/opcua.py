@@ -152,19 +152,21 @@ class _Events(Instrument):
 class OpcUaServer:
     """The OPC UA server of ``system`` at ``endpoint`` (port 0: a free one), served from a
     background thread. ``users`` may log in (None: everyone is anonymous, read-only).
-    ``certificate``/``private_key`` (PEM or DER paths) are required off loopback. ``refused``
-    lists (user, command, reason) of refused method calls, newest last."""
+    ``certificate``/``private_key`` (PEM or DER paths) are required off loopback, where only
+    Basic256Sha256 Sign&Encrypt is offered; ``secure=True`` asks for that on loopback too.
+    ``refused`` lists (user, command, reason) of refused method calls, newest last."""
 
     def __init__(self, system: System, endpoint: str = "opc.tcp://127.0.0.1:4840/chcos/", *,
                  users: Users | None = None, certificate: str | None = None,
-                 private_key: str | None = None, period: float = 0.05) -> None:
+                 private_key: str | None = None, period: float = 0.05,
+                 secure: bool | None = None) -> None:
         url = urlparse(endpoint)
         if url.scheme != "opc.tcp" or not url.hostname:
             raise NorthError(f"--opcua {endpoint!r}: expected opc.tcp://HOST:PORT/PATH")
         self.host = url.hostname
         self.port = 4840 if url.port is None else url.port
         self.path = url.path or "/"
-        self.secure = not is_loopback(self.host)
+        self.secure = not is_loopback(self.host) if secure is None else secure
         if self.secure and not (certificate and private_key):
             raise NorthError(f"--opcua {endpoint}: an endpoint off loopback needs a certificate "
                              "and private key (security policy Basic256Sha256)")
