@@ -33,6 +33,7 @@ from chcos.devices import DeviceEntry, DeviceStatus
 from chcos.devmap import load
 from chcos.errors import ChcosError
 from chcos.instrument import Counters
+from chcos.north.services import NorthOptions, add_north_arguments
 from chcos.sim.from_map import SimSlaves, simulate
 from chcos.system import System
 from drivers.base import Driver
@@ -353,10 +354,18 @@ class RunResult:
 
 def run(system_file: str | Path, *, virtual: bool = False, duration: float | None = None,
         outputs: bool = True, workdir: str | Path | None = None, period: float = 1.0,
-        out: TextIO | None = None, stop: threading.Event | None = None) -> RunResult:
+        out: TextIO | None = None, stop: threading.Event | None = None,
+        north: NorthOptions | None = None) -> RunResult:
     """The ``chcos run SYSTEM`` job: build, run until ``stop`` is set (SIGINT/SIGTERM in the
     command), or ``duration`` seconds of clock time, printing progress every ``period``; then
-    safe values and the summary. Raises ChcosError if the system cannot be built."""
+    safe values and the summary. ``north`` names the north-side services (OPC UA, Modbus
+    facade, metrics, the live view) to serve while it runs; they need real time. Raises
+    ChcosError if the system or a service cannot be set up."""
+    from chcos.north.services import start as start_north
+
+    if north is not None and north.any and virtual:
+        raise ChcosError("north-side services (--opcua, --modbus-facade, --metrics, --view) "
+                         "need real time: leave out --virtual")
     stop = stop or threading.Event()
     out = out or sys.stdout
     with open_cell(system_file, virtual=virtual, outputs=outputs, workdir=workdir) as cell:
@@ -370,31 +379,45 @@ def run(system_file: str | Path, *, virtual: bool = False, duration: float | Non
         for a in cell.answers:
             print(f"  host: {a}", file=out)
         out.flush()
-        last_msgs, last_t = 0, 0.0
-        tick = 1
         if not virtual:
             s.start()
-        while not stop.is_set():
-            due = tick * period
-            if duration is not None:
-                due = min(due, duration)
-            if virtual:
-                s.run(until=cell.start + due)
-            else:
-                stop.wait(max(0.0, due - cell.now()))
-            snap = s.call(cell.snapshot)
-            rate = (snap["messages"] - last_msgs) / max(1e-9, snap["t"] - last_t)
-            last_msgs, last_t = snap["messages"], snap["t"]
-            show_progress(snap, rate, out)
-            tick += 1
-            if duration is not None and snap["t"] >= duration - 1e-9:
-                break
+        services = start_north(s, north) if north is not None and north.any else None
+        for name, url in (services.urls.items() if services else ()):
+            print(f"  {name}: {url}", file=out, flush=True)
+        try:
+            _loop(cell, virtual, duration, period, stop, out)
+        finally:
+            if services is not None:
+                services.stop()
         s.stop()
         cell.close()
         snap = cell.snapshot()
         found = problems(cell, snap)
         report(cell, snap, found, out)
         return RunResult(not found, found, snap["t"], snap)
+
+
+def _loop(cell: Cell, virtual: bool, duration: float | None, period: float,
+          stop: threading.Event, out: TextIO) -> None:
+    """Run ``cell`` until ``stop`` or ``duration``, showing progress every ``period``."""
+    s = cell.system
+    last_msgs, last_t = 0, 0.0
+    tick = 1
+    while not stop.is_set():
+        due = tick * period
+        if duration is not None:
+            due = min(due, duration)
+        if virtual:
+            s.run(until=cell.start + due)
+        else:
+            stop.wait(max(0.0, due - cell.now()))
+        snap = s.call(cell.snapshot)
+        rate = (snap["messages"] - last_msgs) / max(1e-9, snap["t"] - last_t)
+        last_msgs, last_t = snap["messages"], snap["t"]
+        show_progress(snap, rate, out)
+        tick += 1
+        if duration is not None and snap["t"] >= duration - 1e-9:
+            break
 
 
 def parser() -> argparse.ArgumentParser:
@@ -420,6 +443,7 @@ def parser() -> argparse.ArgumentParser:
                          "time (outputs are on only when asked), on with --virtual")
     ap.add_argument("--workdir",
                     help="where sysfile.map is written (default: a temporary directory)")
+    add_north_arguments(ap)
     return ap
 
 
@@ -439,7 +463,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         result = run(args.system, virtual=args.virtual, duration=args.duration,
                      outputs=args.outputs == "on" or (args.outputs is None and args.virtual),
-                     workdir=args.workdir, stop=stop)
+                     workdir=args.workdir, stop=stop, north=NorthOptions.from_args(args))
     except ChcosError as exc:
         print(f"chcos run: {exc}", file=sys.stderr)
         return 2

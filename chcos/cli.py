@@ -231,6 +231,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         from chcos.viewer.cli import view_main
 
         return view_main(argv[1:])
+    if argv[:1] == ["facade"]:
+        from chcos.north.modbus_facade import facade_main
+
+        return facade_main(argv[1:])
+    if argv[:1] == ["north"]:
+        from chcos.north.services import north_main
+
+        return north_main(argv[1:])
     parser = argparse.ArgumentParser(prog="chcos", description=DESCRIPTION,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
@@ -285,6 +293,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     sub.add_parser("sim", help="simulated devices (chcos sim KIND ..., chcos sim --from MAP)")
     sub.add_parser("map", help="draw a sysfile.map (chcos map [MAP] --format text|dot|svg)")
     sub.add_parser("view", help="live page of a running system (chcos view --example fig65)")
+    sub.add_parser("facade", help="north-side facades (chcos facade modbus --print-map FILE)")
+    sub.add_parser("north", help="north-side accounts (chcos north passwd: a password hash)")
     args = parser.parse_args(argv)
     if args.verbose:
         logging.getLogger().setLevel(logging.INFO)

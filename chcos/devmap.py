@@ -26,6 +26,7 @@ Schema (see also ``busconfig/README.md``)::
     safe_value = 0.0        # actuators only; must lie within limits
     units = "degC"          # free text, default ""
     round = false           # actuators only: round the raw value to an integer (else refused)
+    north_writable = false  # actuators only: the Modbus/OPC UA facades may command it
 
 Top-level keys other than ``bus`` and ``device`` are rejected. Option keys that name files
 (``dbc``, ``eds``, ``record``, and any key ending in ``_file`` or ``_path``, in bus options and in
@@ -57,7 +58,8 @@ from drivers.registry import driver_class
 
 BUS_KEYS = ("name", "kind")
 DEVICE_KEYS = ("name", "direction", "machine", "bus", "address", "priority", "stale_after",
-               "scale", "offset", "limits", "safe_value", "units", "round")
+               "scale", "offset", "limits", "safe_value", "units", "round",
+               "north_writable")
 TOP_KEYS = ("bus", "device")
 PATH_KEYS = frozenset({"dbc", "eds", "record"})
 MAX_MESSAGE = 300        # characters of one error's expectation
@@ -347,6 +349,12 @@ def _parse_device(fe: _FileErrors, i: int, table: Any, base: Path) -> _Parsed:
                f"expected true or false, got {_type_name(rounding)} {_short(rounding)}")
     elif rounding and direction != "actuator":
         fe.add(f"{key}.round", "applies to actuators only; remove it from a sensor")
+    north = table.get("north_writable", False)
+    if not isinstance(north, bool):
+        fe.add(f"{key}.north_writable",
+               f"expected true or false, got {_type_name(north)} {_short(north)}")
+    elif north and direction == "sensor":
+        fe.add(f"{key}.north_writable", "applies to actuators only; remove it from a sensor")
     if name is None or direction not in ("sensor", "actuator") or not isinstance(bus, str) \
             or not bus or not address_ok or not isinstance(address, dict):
         return _Parsed(None, None)
@@ -357,7 +365,7 @@ def _parse_device(fe: _FileErrors, i: int, table: Any, base: Path) -> _Parsed:
                       offset=offset if offset is not None else 0.0,
                       limits=limits if limits is not None else (None, None),
                       safe_value=safe, units=units, file=fe.path, key=key,
-                      round=rounding is True)
+                      round=rounding is True, north_writable=north is True)
     return _Parsed(spec if len(fe.errors) == before and limits is not None else None, spec)
 
 

@@ -44,6 +44,7 @@ class DeviceSpec:
     ``priority`` is the interrupt priority 0..99 of the device's sensory link. ``round`` (actuators
     only) lets Devtab round the raw value to the nearest integer before the driver gets it; without
     it a value an integer address cannot carry exactly is refused at write.
+    ``north_writable`` lets the north-side facades command the actuator.
     """
 
     name: str
@@ -61,6 +62,9 @@ class DeviceSpec:
     file: str = "<memory>"
     key: str = "device[?]"
     round: bool = False
+    #: the north side (Modbus facade, OPC UA) may command this actuator (limits and owner rules
+    #: still apply); default False: read-only from above
+    north_writable: bool = False
 
 
 @dataclass(frozen=True)

@@ -321,7 +321,9 @@ class SystemManager:
         except BaseException:
             link.priority = old        # a refused invoke changes nothing, its priority neither
             raise
-        self.sys.msgmgr.event("invoke", f"host -> {task} at priority {link.priority}: {command}")
+        args = (" " + " ".join(f"{k}={v}" for k, v in command.items())
+                if isinstance(command, dict) else "" if command is None else f" {command!r}")
+        self.sys.msgmgr.event("invoke", f"host -> {task} at priority {link.priority}{args}")
         return f"{task} invoked at priority {link.priority}"
 
     def task_op(self, op: str, task: str) -> str:

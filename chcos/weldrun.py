@@ -42,6 +42,7 @@ from chcos.devmap import load
 from chcos.errors import ChcosError, ConfigError
 from chcos.instrument import Counters, Instrument
 from chcos.messages import Link, LinkType
+from chcos.north.services import NorthOptions, add_north_arguments
 from chcos.system import System
 from chcos.weld import WeldCell, parse_scenario
 from chcos.weld.tasks import HERE as TASK_PATH
@@ -389,16 +390,28 @@ def report(summary: dict[str, Any], out: TextIO) -> None:
 
 def run(binding: str = "direct", *, scenario: str = "", seed: int = 0, real_time: bool = False,
         record: str | Path | None = None, duration: float = 300.0,
-        workdir: str | Path | None = None, out: TextIO = sys.stdout) -> dict[str, Any]:
-    """Run the main job (see the module doc) and return the summary figures. Raises ChcosError
-    (WeldRunError, ConfigError, InstallError, BusError) if the cell cannot be built."""
+        workdir: str | Path | None = None, out: TextIO = sys.stdout,
+        north: NorthOptions | None = None) -> dict[str, Any]:
+    """Run the main job (see the module doc) and return the summary figures; ``north`` names
+    the north-side services to serve while it runs (:mod:`chcos.north.services`). Raises
+    ChcosError (WeldRunError, ConfigError, InstallError, BusError, NorthError) if the cell or
+    a service cannot be set up."""
+    from chcos.north.services import start as start_north
+
     with open_cell(binding, scenario=scenario, seed=seed, real_time=real_time, record=record,
                    workdir=workdir) as cell:
         print(f"welding cell on the {binding} binding, scenario: {scenario or 'none'}, "
               f"{'real' if real_time else 'virtual'} time", file=out)
-        print(f"  host: {cell.start_job()}", file=out)
-        cell.run(duration, each_second=_progress(out))
-        summary = cell.summary()
+        services = start_north(cell.system, north) if north is not None and north.any else None
+        try:
+            for name, url in (services.urls.items() if services else ()):
+                print(f"  {name}: {url}", file=out, flush=True)
+            print(f"  host: {cell.start_job()}", file=out)
+            cell.run(duration, each_second=_progress(out))
+            summary = cell.summary()
+        finally:
+            if services is not None:
+                services.stop()
     report(summary, out)
     return summary
 
@@ -428,13 +441,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--duration", type=float, default=300.0,
                     help="stop after this many seconds of clock time (default 300)")
     ap.add_argument("--workdir", help="where sysfile.map goes (default: a temporary directory)")
+    add_north_arguments(ap)
     args = ap.parse_args(argv)
     if not (math.isfinite(args.duration) and args.duration > 0):
         ap.error(f"--duration {args.duration}: expected seconds > 0")
     try:
+        north = NorthOptions.from_args(args)
+        if north.any and not args.real_time:
+            print("chcos run: north-side services asked for: running on real time",
+                  file=sys.stderr)
         summary = run(args.binding, scenario=args.scenario, seed=args.seed,
-                      real_time=args.real_time, record=args.record, duration=args.duration,
-                      workdir=args.workdir)
+                      real_time=args.real_time or north.any, record=args.record,
+                      duration=args.duration, workdir=args.workdir, north=north)
     except (ChcosError, ConfigError) as exc:
         print(f"chcos run: {exc}", file=sys.stderr)
         return 2

@@ -8,6 +8,7 @@ import shutil
 import urllib.request
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +19,7 @@ from chcos.devspec import BusSpec, DeviceMap, DeviceSpec
 from chcos.examples import fig65
 from chcos.examples.fig65.common import condense
 from chcos.fig65run import default_devmap
+from chcos.north.auth import User, Users, hash_password
 from chcos.system import System
 from chcos.usrmgr import TaskContext
 from chcos.viewer.snapshot import EventLog
@@ -100,12 +102,50 @@ def get_json(url: str) -> Any:
     return json.loads(body)
 
 
-def post_json(url: str, payload: Any) -> tuple[int, Any]:
-    """POST ``payload`` as JSON; (status, decoded JSON answer)."""
+#: Accounts for the viewer tests (a cheap hash: 1000 PBKDF2 rounds).
+PASSWORDS = {"alice": "alice-pw", "sam": "sam-pw", "olga": "olga-pw"}
+ROLES = {"alice": "operator", "sam": "supervisor", "olga": "observer"}
+
+
+def viewer_users() -> Users:
+    """alice (operator), sam (supervisor), olga (observer); passwords in PASSWORDS."""
+    return Users({n: User(n, ROLES[n], hash_password(pw, 1000)) for n, pw in PASSWORDS.items()})
+
+
+@dataclass
+class Login:
+    """A logged-in viewer session: its cookie header and command token."""
+
+    cookie: str
+    token: str
+
+    def headers(self) -> dict[str, str]:
+        """The headers a command from this session carries."""
+        return {"Cookie": self.cookie, "X-CHCOS-Token": self.token}
+
+
+def login(base: str, user: str = "alice") -> Login:
+    """Log ``user`` in on the viewer at ``base`` (its URL); raises AssertionError if refused."""
+    req = urllib.request.Request(base + "api/login", method="POST",
+                                 data=json.dumps({"user": user,
+                                                  "password": PASSWORDS[user]}).encode(),
+                                 headers={"Content-Type": "application/json"})
+    with _opener.open(req, timeout=TIMEOUT) as resp:
+        body = json.loads(resp.read())
+        cookie = resp.headers["Set-Cookie"].split(";")[0]
+    assert body["ok"] and "HttpOnly" in resp.headers["Set-Cookie"]
+    return Login(cookie, body["token"])
+
+
+def post_json(url: str, payload: Any, session: Login | None = None,
+              headers: dict[str, str] | None = None) -> tuple[int, Any]:
+    """POST ``payload`` as JSON (bytes as they are) with ``session``'s cookie and token;
+    (status, decoded JSON answer)."""
     assert url.startswith("http://127.0.0.1:"), url
     data = payload if isinstance(payload, bytes) else json.dumps(payload).encode()
-    req = urllib.request.Request(url, data=data, method="POST",
-                                 headers={"Content-Type": "application/json"})
+    hdrs = {"Content-Type": "application/json", **(session.headers() if session else {}),
+            **(headers or {})}
+    req = urllib.request.Request(url, data=data, method="POST", headers=hdrs)
     try:
         with _opener.open(req, timeout=TIMEOUT) as resp:
             return int(resp.status), json.loads(resp.read())
@@ -143,3 +183,29 @@ def browser_page() -> Iterator[Any]:
             yield page
         finally:
             browser.close()
+
+
+async def idle(ctx: TaskContext, command: Any) -> None:
+    """Task code: completes at once."""
+    ctx.complete("ok")
+
+
+def big_cell(workdir: Path, clock: Clock | None = None, tasks: int = 60) -> System:
+    """A wide hierarchy of ``tasks`` tasks (half on level 1 over one sensor each, a third on
+    level 2 above them, the rest on level 3 commanding them), for the legibility tests."""
+    n1, n2 = tasks // 2, tasks // 3
+    n3 = tasks - n1 - n2
+    devmap = DeviceMap((BusSpec("mem", "memory"),), tuple(
+        DeviceSpec(f"D{i}", "sensor", 0, "mem", units="mm") for i in range(n1)))
+    s = System(devmap, clock=clock or VirtualClock(), base_dir=workdir,
+               map_path=workdir / "sysfile.map")
+    s.kernel.add_instrument(EventLog(s.kernel.clock))
+    code = "--code=vcan_tests.support_view:idle"
+    s.execute("install -m0 sysfile")
+    for i in range(n1):
+        s.execute(f"install -m0i1 {code} T{i} D{i}")
+    for i in range(n2):
+        s.execute(f"install -m0i1 {code} U{i} T{i}")
+    for i in range(n3):
+        s.execute(f"install -m0o1 {code} V{i} U{i}")
+    return s

@@ -15,7 +15,15 @@ import pytest
 from chcos.clock import RealClock
 from chcos.system import System
 from chcos.viewer.server import Viewer, serve
-from vcan_tests.support_view import DOCS, FIG65_TASKS, browser_page, fig65_system, small_cell
+from vcan_tests.support_view import (
+    DOCS,
+    FIG65_TASKS,
+    PASSWORDS,
+    browser_page,
+    fig65_system,
+    small_cell,
+    viewer_users,
+)
 
 SEQ = "Number(document.getElementById('seq').dataset.seq)"
 
@@ -25,7 +33,7 @@ def live(tmp_path: Path) -> Iterator[tuple[System, Viewer]]:
     """The fig65 system running on real time, C1 invoked, and its viewer."""
     s = fig65_system(tmp_path, RealClock())
     s.start()
-    v = serve(s)
+    v = serve(s, users=viewer_users())
     yield s, v
     v.stop()
     s.shutdown()
@@ -33,6 +41,14 @@ def live(tmp_path: Path) -> Iterator[tuple[System, Viewer]]:
 
 def _expect() -> Any:
     return pytest.importorskip("playwright.sync_api").expect
+
+
+def _log_in(page: Any, user: str = "alice") -> None:
+    """Log in through the page's form and wait until the commands are offered."""
+    page.fill("#login-user", user)
+    page.fill("#login-password", PASSWORDS[user])
+    page.click("#login-go")
+    _expect()(page.locator("#who")).to_contain_text(user)
 
 
 def test_page_draws_every_task_and_updates_live(live: tuple[System, Viewer]) -> None:
@@ -69,6 +85,8 @@ def test_setpri_and_invoke_from_the_page(live: tuple[System, Viewer]) -> None:
     with browser_page() as page:
         expect = _expect()
         page.goto(viewer.url)
+        expect(page.locator("#setpri-form")).to_be_hidden()  # nothing offered before login
+        _log_in(page)
         label = page.locator('#graph g.link[data-link="C1/B1"] tspan.prio')
         expect(label).to_have_text("p9")
         page.select_option("#setpri-link", "C1 B1")
@@ -132,9 +150,10 @@ def test_page_is_generic_stale_estop_abnormal(tmp_path: Path) -> None:
     system = small_cell(tmp_path, RealClock())
     system.start()
     try:
-        with serve(system) as viewer, browser_page() as page:
+        with serve(system, users=viewer_users()) as viewer, browser_page() as page:
             expect = _expect()
             page.goto(viewer.url)
+            _log_in(page)
             for name in ("T1", "H2", "X2", "P1", "V1"):
                 expect(page.locator(f'#graph g.node[data-name="{name}"]')).to_have_count(1)
             # P1 gets no data: stale after 0.3 s, drawn red, logged
@@ -164,5 +183,129 @@ def test_page_is_generic_stale_estop_abnormal(tmp_path: Path) -> None:
             page.fill("#invoke-args", "noequals")
             page.click("#invoke-go")
             expect(page.locator("#cmd-result.error")).to_contain_text("key=value")
+    finally:
+        system.shutdown()
+
+
+EVIL_PAGE = """<!DOCTYPE html><html><body>
+<form id="f" method="POST" enctype="text/plain" action="{url}api/command">
+<input name='{{"line": "invoke C1", "x": "' value='"}}'></form>
+<script>
+window.results = [];
+async function attack() {{
+  for (const [type, body] of [["text/plain", '{{"line": "invoke C1"}}'],
+                              ["application/x-www-form-urlencoded", "line=invoke+C1"]]) {{
+    try {{
+      const r = await fetch("{url}api/command", {{method: "POST", mode: "no-cors",
+        credentials: "include", headers: {{"Content-Type": type}}, body: body}});
+      window.results.push(type + ":" + r.type);
+    }} catch (e) {{ window.results.push(type + ":error"); }}
+  }}
+  try {{  // a CORS JSON request: the preflight fails, nothing is sent
+    await fetch("{url}api/command", {{method: "POST", credentials: "include",
+      headers: {{"Content-Type": "application/json"}}, body: '{{"line": "invoke C1"}}'}});
+    window.results.push("json:sent");
+  }} catch (e) {{ window.results.push("json:blocked"); }}
+  window.done = true;
+}}
+attack();
+</script></body></html>"""
+
+
+def test_a_page_from_another_origin_cannot_command(live: tuple[System, Viewer],
+                                                   tmp_path: Path) -> None:
+    """The operator is logged in in the same browser; a page served from another origin
+    (another port on 127.0.0.1: same site, so even the SameSite cookie goes along) tries
+    text/plain and form-encoded POSTs, a CORS JSON fetch and a plain form: nothing runs."""
+    import http.server
+    import threading
+
+    system, viewer = live
+    evil = tmp_path / "evil"
+    evil.mkdir()
+    (evil / "index.html").write_text(EVIL_PAGE.format(url=viewer.url), encoding="utf-8")
+
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def __init__(self, *a: Any, **kw: Any) -> None:
+            super().__init__(*a, directory=str(evil), **kw)
+
+        def log_message(self, *args: Any) -> None:
+            pass
+
+    httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Quiet)
+    threading.Thread(target=httpd.serve_forever, daemon=True).start()
+    try:
+        with browser_page() as page:
+            page.goto(viewer.url)
+            _log_in(page)
+            c1 = next(t for t in system.sysmgr.map_doc()["tasks"] if t["name"] == "C1")
+            before = c1["activations"]
+            seen: list[tuple[str, int]] = []
+            page.on("response", lambda r: seen.append((r.url, r.status))
+                    if r.url.endswith("/api/command") else None)
+            page.goto(f"http://127.0.0.1:{httpd.server_address[1]}/index.html")
+            page.wait_for_function("window.done === true")
+            page.evaluate("document.getElementById('f').submit()")
+            page.wait_for_load_state()
+            statuses = [st for _url, st in seen]
+            assert statuses and all(400 <= st < 500 for st in statuses), seen
+            assert 403 in statuses  # the Origin check
+            c1 = next(t for t in system.sysmgr.map_doc()["tasks"] if t["name"] == "C1")
+            assert c1["activations"] == before
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
+
+
+OVERLAPS = """() => {
+  const svg = document.querySelector('#graph svg');
+  const boxes = [];
+  for (const el of svg.querySelectorAll('g.link text.label')) {
+    const b = el.getBBox(); boxes.push(['label ' + el.parentNode.dataset.link, b]);
+  }
+  for (const el of svg.querySelectorAll('g.node rect')) {
+    const b = el.getBBox(); boxes.push(['node ' + el.parentNode.dataset.name, b]);
+  }
+  const legend = svg.querySelector('g.legend text:nth-of-type(3)').getBBox();
+  const clock = svg.querySelector('g.legend text.clock').getBBox();
+  const bad = [];
+  if (legend.x + legend.width > clock.x) bad.push('legend over the clock');
+  for (let i = 0; i < boxes.length; i++)
+    for (let j = i + 1; j < boxes.length; j++) {
+      const [n1, a] = boxes[i], [n2, b] = boxes[j];
+      if (n1.startsWith('node') && n2.startsWith('node')) continue;
+      if (a.x < b.x + b.width - 1 && b.x < a.x + a.width - 1 &&
+          a.y < b.y + b.height - 1 && b.y < a.y + a.height - 1) bad.push(n1 + ' / ' + n2);
+    }
+  return bad;
+}"""
+
+
+@pytest.mark.parametrize("kind", ["small", "fig65", "60 tasks"])
+def test_the_drawing_stays_legible(kind: str, tmp_path: Path) -> None:
+    """At 1400x900: no link label overlaps another or a node, the legend leaves the clock
+    alone, a small system is not blown up, a large one not shrunk below 60 % (the pane
+    scrolls), the devices table starts above the fold, times are since start."""
+    from vcan_tests.support_view import big_cell
+
+    make = {"small": small_cell, "fig65": fig65_system, "60 tasks": big_cell}[kind]
+    system = make(tmp_path, RealClock())
+    system.start()
+    try:
+        with serve(system) as viewer, browser_page() as page:
+            page.set_viewport_size({"width": 1400, "height": 900})
+            page.goto(viewer.url)
+            page.wait_for_function(f"{SEQ} >= 2")
+            assert page.evaluate(OVERLAPS) == []
+            natural = float(page.locator("#graph svg").get_attribute("width") or 0)
+            shown = page.evaluate("document.querySelector('#graph svg')"
+                                  ".getBoundingClientRect().width")
+            assert natural * 0.6 - 1 <= shown <= natural + 1
+            top = page.evaluate("document.getElementById('devices')"
+                                ".getBoundingClientRect().top")
+            assert top < 900 - 60, f"devices table starts at {top} px"
+            since = float(page.locator("#clock").inner_text())
+            assert 0 <= since < 60  # seconds since the system started, not uptime
+            page.screenshot(path=str(tmp_path / f"view-{kind}.png"))
     finally:
         system.shutdown()

@@ -23,8 +23,10 @@ from vcan_tests.support_view import (
     fig65_system,
     get,
     get_json,
+    login,
     post_json,
     sse_messages,
+    viewer_users,
 )
 
 
@@ -39,8 +41,8 @@ def fig65(tmp_path: Path) -> Iterator[System]:
 
 @pytest.fixture
 def viewer(fig65: System) -> Iterator[Viewer]:
-    """A viewer of the fig65 system on 127.0.0.1, a free port."""
-    v = serve(fig65)
+    """A viewer of the fig65 system on 127.0.0.1, a free port, with operator credentials."""
+    v = serve(fig65, users=viewer_users())
     yield v
     v.stop()
 
@@ -106,13 +108,14 @@ def test_event_log_and_marks_from_host_commands(fig65: System, viewer: Viewer) -
 
 
 def test_setpri_and_invoke_from_the_page(fig65: System, viewer: Viewer) -> None:
-    status, ans = post_json(viewer.url + "api/command", {"line": "setpri -12 C1 B1"})
+    alice = login(viewer.url)
+    status, ans = post_json(viewer.url + "api/command", {"line": "setpri -12 C1 B1"}, alice)
     assert (status, ans) == (200, {"ok": True, "answer": "C1/B1 priority 12"})
     snap = get_json(viewer.url + "api/snapshot")
     c1b1 = next(lk for lk in snap["map"]["links"] if lk["key"] == "C1/B1:command")
     assert c1b1["priority"] == 12
     assert '<tspan class="prio" font-weight="bold">p12</tspan>' in snap["svg"]
-    status, ans = post_json(viewer.url + "api/command", {"line": "invoke -7 A3"})
+    status, ans = post_json(viewer.url + "api/command", {"line": "invoke -7 A3"}, alice)
     assert status == 200 and ans["answer"].startswith("A3 invoked at priority 7")
     snap = get_json(viewer.url + "api/snapshot?since=0")
     # the host's link outranks B1's (priority 4): A3 is pre-empted, and marked so
@@ -125,33 +128,47 @@ def test_setpri_and_invoke_from_the_page(fig65: System, viewer: Viewer) -> None:
     ({"line": "setpri -120 C1 B1"}, 400, "out of range"),
     ({"line": "setpri -5 C1 A1"}, 400, "setpri"),
     ({"line": "invoke NOPE"}, 400, "no task named 'NOPE'"),
-    ({"line": "install -m0i1 Z1 S1"}, 403, "only setpri, invoke"),
-    ({"line": "inject S1 5"}, 403, "only setpri, invoke"),
+    ({"line": "install -m0i1 Z1 S1"}, 403, "only setpri and invoke"),
+    ({"line": "inject S1 5"}, 403, "only setpri and invoke"),
+    ({"line": "suspend A1"}, 403, "only setpri and invoke"),
+    ({"line": "resume A1"}, 403, "only setpri and invoke"),
+    ({"line": "invoke C1 'unbalanced"}, 400, "quotation"),
+    ({"line": ""}, 400, "empty command line"),
     ({"cmd": "x"}, 400, "expected JSON"),
     (b"not json", 400, "expected JSON"),
 ])
 def test_bad_commands_are_refused_with_a_reason(fig65: System, viewer: Viewer, payload: object,
                                                  status: int, error: str) -> None:
     before = fig65.sysmgr.map_doc()["links"]
-    got, ans = post_json(viewer.url + "api/command", payload)
+    got, ans = post_json(viewer.url + "api/command", payload, login(viewer.url, "sam"))
     assert got == status and ans["ok"] is False and error in ans["error"]
     assert fig65.sysmgr.map_doc()["links"] == before
 
 
-def test_read_only_viewer_refuses_commands(fig65: System) -> None:
-    with serve(fig65, allow_commands=False) as v:
+def test_viewer_is_read_only_without_credentials(fig65: System) -> None:
+    with serve(fig65) as v:
         status, ans = post_json(v.url + "api/command", {"line": "setpri -9 C1 B2"})
-    assert status == 403 and "read-only" in ans["error"]
+        assert status == 403 and "read-only" in ans["error"]
+        status, ans = post_json(v.url + "api/login", {"user": "alice", "password": "x"})
+        assert status == 403 and "read-only" in ans["error"]
+        assert get_json(v.url + "api/session") == {"user": None, "read_only": True}
 
 
-def test_stream_sends_snapshots_with_new_events(fig65: System) -> None:
+def test_stream_sends_a_snapshot_then_deltas_with_new_events(fig65: System) -> None:
     with serve(fig65, period=0.05) as v:
         msgs = sse_messages(v.url + "api/stream", 3)
-        assert [m["seq"] for m in msgs] == sorted({m["seq"] for m in msgs})
-        assert "svg" in msgs[0] and msgs[0]["map"]["tasks"]
+        first = msgs[0]
+        assert first["type"] == "snapshot" and "svg" in first["state"]
+        assert set(first["state"]["tasks"]) == set(FIG65_TASKS)
         # a newly connected page gets the history, then only what is new
-        assert [e["kind"] for e in msgs[0]["events"]][:3] == ["boot", "boot", "boot"]
+        assert [e["kind"] for e in first["events"]][:3] == ["boot", "boot", "boot"]
         assert msgs[1]["events"] == [] and msgs[2]["events"] == []
+        # the clock stands still (virtual time, kernel not running): the deltas carry only the
+        # update number, never the map or the drawing again
+        for m in msgs[1:]:
+            assert m["type"] == "delta" and set(m["patch"]) <= {"seq"}, m["patch"]
+        seqs = [first["state"]["seq"], *(m["patch"].get("seq") for m in msgs[1:])]
+        assert seqs == sorted(seqs)
 
 
 def test_map_endpoints(viewer: Viewer) -> None:
@@ -164,13 +181,16 @@ def test_map_endpoints(viewer: Viewer) -> None:
 
 
 def test_event_log_keeps_the_newest() -> None:
-    log = EventLog(VirtualClock(5.0), keep=3)
+    clock = VirtualClock(5.0)
+    log = EventLog(clock, keep=3)  # times since the log (the system) started, not the clock's
     for i in range(5):
+        if i == 4:
+            clock.jump_to(6.5)
         log.event("install", f"T{i}")
     assert log.last_seq == 5
     assert [e.detail for e in log.since(0)] == ["T2", "T3", "T4"]
     assert [e.seq for e in log.since(4)] == [5]
-    assert log.since(5) == [] and log.since(0)[0].time == 5.0
+    assert log.since(5) == [] and log.since(0)[0].time == 0.0 and log.since(4)[0].time == 1.5
 
 
 @pytest.mark.parametrize(("kind", "detail", "marks"), [

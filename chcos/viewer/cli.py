@@ -3,10 +3,16 @@
 ``chcos map [MAP] [--format text|dot|svg] [-o FILE] [--implicit]``
     reads a sysfile.map (default ./sysfile.map) and prints the hierarchy, levels top to bottom.
 
-``chcos view [MAP | --example fig65] [--port 0] [--invoke TASK]... [--duration S] [--terminal]``
+``chcos view [MAP | --example fig65] [--port 0] [--invoke TASK]... [--duration S] [--terminal]
+[--users FILE]``
     rebuilds the system from MAP (or builds the figure 6.5 example), runs it on real time, and
-    serves the live page on 127.0.0.1 (port 0: a free one); prints the URL. ``--terminal`` also
+    serves the live page on 127.0.0.1 (port 0: a free one); prints the URL. Read-only unless
+    ``--users`` names a users file (operator credentials). ``--terminal`` also
     redraws the hierarchy as text, with message rates, once a second.
+
+``chcos view --system SYSTEM.toml [--users FILE]``
+    attaches to running satellites through the host's link (see :mod:`chcos.viewer.remote`)
+    instead of running a system here.
 """
 
 from __future__ import annotations
@@ -17,7 +23,7 @@ import sys
 import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, TextIO
+from typing import TYPE_CHECKING, TextIO, cast
 
 from chcos import sysmap
 from chcos.errors import ChcosError
@@ -101,6 +107,9 @@ def view_main(argv: Sequence[str], *, stop: threading.Event | None = None,
                                 "running system on a web page (and the terminal).")
     p.add_argument("map", nargs="?", help="sysfile.map to rebuild the system from")
     p.add_argument("--example", choices=("fig65",), help="view the thesis' figure 6.5 system")
+    p.add_argument("--system", metavar="FILE",
+                   help="attach to the running satellites of this system file through the "
+                        "host's (authenticated) link instead of running a system here")
     p.add_argument("--workdir", help="where the example's files and the map go")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (127.0.0.1)")
     p.add_argument("--port", type=int, default=0, help="port (0: a free one)")
@@ -109,10 +118,17 @@ def view_main(argv: Sequence[str], *, stop: threading.Event | None = None,
     p.add_argument("--duration", type=float, help="stop after this many seconds")
     p.add_argument("--terminal", action="store_true",
                    help="also redraw the hierarchy as text on the terminal once a second")
-    p.add_argument("--read-only", action="store_true", help="refuse commands from the page")
+    p.add_argument("--users", metavar="FILE",
+                   help="operator credentials (a users file, see chcos.north.auth): who may log "
+                        "in on the page and issue setpri/invoke; without it the page is "
+                        "read-only")
+    p.add_argument("--read-only", action="store_true",
+                   help="refuse commands from the page even with --users")
     args = p.parse_args(list(argv))
-    if args.map and args.example:
-        p.error("give a map or --example, not both")
+    if sum(bool(x) for x in (args.map, args.example, args.system)) > 1:
+        p.error("give one of a map, --example or --system")
+    if args.system:
+        return _view_remote(args, stop, on_ready, out)
     stop = stop or threading.Event()
     system: System | None = None
     viewer: Viewer | None = None
@@ -125,8 +141,13 @@ def view_main(argv: Sequence[str], *, stop: threading.Event | None = None,
         system.start()
         for task in invokes:
             print(f"host: {system.execute(f'invoke {task}')}", file=out)
+        users = None
+        if args.users and not args.read_only:
+            from chcos.north.auth import Users
+
+            users = Users.from_file(args.users)
         viewer = Viewer(system, args.host, args.port, period=args.period, events=events,
-                        allow_commands=not args.read_only).start()
+                        users=users).start()
         print(f"chcos view: serving {viewer.url}", file=out, flush=True)
         if on_ready is not None:
             on_ready(viewer)
@@ -155,6 +176,50 @@ def view_main(argv: Sequence[str], *, stop: threading.Event | None = None,
             viewer.stop()
         if system is not None:
             system.shutdown()
+    return 0
+
+
+def _view_remote(args: argparse.Namespace, stop: threading.Event | None,
+                 on_ready: Callable[[Viewer], None] | None, out: TextIO) -> int:
+    """``chcos view --system FILE``: serve the page of running satellites until stopped."""
+    from chcos import sysfile
+    from chcos.host import Host
+    from chcos.viewer.remote import HostSystem
+    from chcos.viewer.server import Viewer
+    from chcos.viewer.snapshot import EventLog
+
+    stop = stop or threading.Event()
+    host: Host | None = None
+    viewer: Viewer | None = None
+    try:
+        host = Host(sysfile.load(args.system))
+        remote = HostSystem(host)
+        events = EventLog(remote.kernel.clock)
+        remote.kernel.add_instrument(events)
+        remote.map_doc()  # fails early (LinkError) if no satellite answers
+        users = None
+        if args.users and not args.read_only:
+            from chcos.north.auth import Users
+
+            users = Users.from_file(args.users)
+        # duck-typed: the viewer reads only map_doc, execute, the clock and the event hook
+        viewer = Viewer(cast("System", remote), args.host, args.port,
+                        period=max(args.period, 0.25), events=events, users=users).start()
+        print(f"chcos view: serving {viewer.url} (satellites of {args.system})", file=out,
+              flush=True)
+        if on_ready is not None:
+            on_ready(viewer)
+        stop.wait(args.duration)
+    except KeyboardInterrupt:
+        pass
+    except (ChcosError, OSError) as exc:
+        print(f"chcos view: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        if viewer is not None:
+            viewer.stop()
+        if host is not None:
+            host.close()
     return 0
 
 

@@ -169,7 +169,7 @@ def layout(doc: dict[str, Any], implicit: bool = False) -> Layout:
             row.sort(key=lambda n: keys[n.name])
             place(row)
     width = max(len(r) * NODE_W + (len(r) - 1) * GAP for r in rows) + 2 * MARGIN if rows else 300
-    width = max(width, 420.0)
+    width = max(width, 520.0)  # the legend and the clock side by side
     for r, row in enumerate(rows):
         row_w = len(row) * NODE_W + (len(row) - 1) * GAP
         x0 = (width - row_w) / 2 + NODE_W / 2
@@ -242,7 +242,45 @@ def _bezier(e: Edge, t: float) -> tuple[float, float]:
     return x, y
 
 
-def _edge_svg(e: Edge, live: Live | None) -> str:
+def _label_text(e: Edge, live: Live | None) -> str:
+    lk = e.link
+    text = f"p{lk.get('priority', '?')}"
+    if live is not None:
+        text += f" {_fmt_rate(live.rates.get(e.key, 0.0))}"
+    if lk.get("overwritten"):
+        text += f" ow {lk['overwritten']}"
+    if str(lk.get("status", "OK")) != "OK":
+        text += f" {lk.get('status')}"
+    return text
+
+
+#: Where along its curve a link's label may sit, in order of preference.
+LABEL_TS = (0.3, 0.42, 0.2, 0.55, 0.12, 0.66, 0.5, 0.36)
+
+
+def place_labels(lay: Layout, live: Live | None) -> dict[int, float]:
+    """Where (curve parameter) each edge's label goes so that labels do not overlap each other
+    or a node box: the first position in :data:`LABEL_TS` that is free (estimated at 6.6 px a
+    character of 11 px text), else the default."""
+    boxes = [(n.x - NODE_W / 2, n.y - NODE_H / 2, n.x + NODE_W / 2, n.y + NODE_H / 2)
+             for n in lay.nodes.values()]
+    placed: dict[int, float] = {}
+    for i, e in enumerate(lay.edges):
+        w = 6.6 * len(_label_text(e, live)) / 2 + 2
+        for t in LABEL_TS:
+            x, y = _bezier(e, t)
+            box = (x - w, y - 8, x + w, y + 7)
+            if not any(box[0] < b[2] and b[0] < box[2] and box[1] < b[3] and b[1] < box[3]
+                       for b in boxes):
+                placed[i] = t
+                boxes.append(box)
+                break
+        else:
+            placed[i] = LABEL_TS[0]
+    return placed
+
+
+def _edge_svg(e: Edge, live: Live | None, t: float = LABEL_TS[0]) -> str:
     lk = e.link
     implicit = bool(lk.get("implicit"))
     color = TAP_COLOR if implicit else SENSORY_COLOR if lk["type"] == "sensory" else COMMAND_COLOR
@@ -254,7 +292,7 @@ def _edge_svg(e: Edge, live: Live | None) -> str:
     dash = ' stroke-dasharray="5 4"' if implicit or status == "suspended" else ""
     width = "2.2" if status in ("OK", "normal completion") else "3"
     stroke = ALERT_COLOR if status in ("pre-empted", "abnormal completion") else color
-    lx, ly = _bezier(e, 0.3)
+    lx, ly = _bezier(e, t)
     parts = [f'<g class="link {lk["type"]}{" implicit" if implicit else ""}" '
              f'data-link={quoteattr(lk["src"] + "/" + lk["dst"])} data-key={quoteattr(e.key)} '
              f'data-type={quoteattr(str(lk["type"]))}>',
@@ -374,8 +412,9 @@ def render_svg(doc: dict[str, Any], live: Live | None = None, implicit: bool = F
             f"level {level}" if level else "level 0: devices")
         out.append(_text(6, y - NODE_H / 2 - 8, label, "level-label", font_size="10",
                          fill="#888"))
-    for e in lay.edges:
-        out.append(_edge_svg(e, live))
+    where = place_labels(lay, live)
+    for i, e in enumerate(lay.edges):
+        out.append(_edge_svg(e, live, where[i]))
     for n in lay.nodes.values():
         out.append(_node_svg(n, live))
     out.append("</svg>")

@@ -1,96 +1,208 @@
-"""server - the live page of ``chcos view``: aiohttp on its own asyncio loop in its own thread.
+"""server - the live page of ``chcos view`` and ``chcos run --view``: aiohttp on its own asyncio
+loop in its own thread.
 
-Routes (all on 127.0.0.1 unless told otherwise):
+Routes (on 127.0.0.1 unless told otherwise):
 
 ``GET /``                  the page (static HTML/JS/CSS from ``chcos/viewer/static``, no build)
 ``GET /api/snapshot``      one JSON snapshot (see :meth:`Snapshotter.take`); ``?since=N`` adds
                            the events numbered above N, ``?svg=0`` leaves the drawing out
-``GET /api/stream``        server-sent events: a snapshot every ``period`` seconds (default 0.1,
-                           10 a second), each with the events the client has not seen yet
+``GET /api/stream``        server-sent events: the first message is the whole state
+                           (``{"type": "snapshot", "state": ...}``), every later one a JSON merge
+                           patch of it (``{"type": "delta", "patch": ...}``), one per ``period``
+                           (default 0.1 s), each with the events the client has not seen yet; the
+                           drawing is resent only when it changed, at most once per ``svg_period``
+                           unless the structure (statuses, owners, priorities, marks) changed
 ``GET /api/map.svg|.dot|.txt``  the current map drawn as SVG, graphviz dot or text
-``POST /api/command``      ``{"line": "setpri -9 C1 B1"}``: setpri, invoke, suspend or resume,
-                           run through :meth:`System.execute` (the CLI's parser and checks);
-                           answers ``{"ok": true, "answer": ...}`` or ``{"ok": false, "error":
-                           ...}`` with status 400 (refused or failed) or 403 (not allowed here)
+``GET /api/session``       who this browser session is logged in as, and its command token
+``POST /api/login``        ``{"user": ..., "password": ...}`` (JSON only): a session cookie
+                           (HttpOnly, SameSite=Strict) and a per-session command token
+``POST /api/logout``       ends the session
+``POST /api/command``      ``{"line": "setpri -9 C1 B1"}`` with header ``X-CHCOS-Token``: setpri
+                           or invoke, run through :meth:`System.execute` (the CLI's parser and
+                           checks); ``{"ok": true, "answer": ...}`` or ``{"ok": false, "error":
+                           ...}`` with a 4xx status saying why
+
+Security. Every request's ``Host`` must be this server's own address (``127.0.0.1:PORT``, or
+``localhost:PORT`` on loopback) and an ``Origin``, when sent, the same: a page from another site,
+also one reached through DNS rebinding, can neither read nor command. The viewer is read-only
+unless it is given ``users`` (an operator credential, :class:`chcos.north.auth.Users`);
+commands then need a logged-in session (cookie) *and* its token in a header, as JSON: a
+cross-site form or ``text/plain`` POST is refused (CSRF). The page offers setpri and invoke only,
+and only to a role that may issue them (operator, supervisor).
 
 The cell is never slowed by the page: snapshots are taken on the viewer's thread at the viewer's
 rate, only while a page is connected, by reading the tables (torn reads accepted, see
-:mod:`chcos.viewer.snapshot`); the kernel only pays for the event hook.
+:mod:`chcos.viewer.snapshot`); the kernel only pays for the event hook. A client that stops
+reading is dropped once its stream has not drained for ``stall_timeout`` seconds or more than
+``max_buffer`` bytes wait for it, and its buffers go with it.
 """
 
 from __future__ import annotations
 
 import asyncio
+import hmac
+import ipaddress
 import json
+import logging
+import secrets
+import ssl
 import threading
+import time
+from collections import OrderedDict
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from aiohttp import web
 
 from chcos import cmdline
-from chcos.errors import ChcosError
+from chcos.errors import Busy, ChcosError
 from chcos.sysview import render_text
 from chcos.viewer import ViewerError
-from chcos.viewer.graph import render_dot, render_svg
-from chcos.viewer.snapshot import EventLog, Snapshotter
+from chcos.viewer.graph import Live, render_dot, render_svg
+from chcos.viewer.snapshot import (
+    SAME,
+    EventLog,
+    Snapshotter,
+    merge_diff,
+    stream_state,
+    structure_key,
+)
 
 if TYPE_CHECKING:
+    from chcos.north.auth import User, Users
     from chcos.system import System
 
+log = logging.getLogger("chcos.viewer")
 STATIC = Path(__file__).resolve().parent / "static"
 #: Events a newly connected page receives from before it connected.
 HISTORY = 200
+#: The commands the page offers at all (a role may allow fewer).
+PAGE_COMMANDS = ("setpri", "invoke")
+COOKIE = "chcos_session"
+TOKEN_HEADER = "X-CHCOS-Token"
+#: Sessions kept at once (the oldest is ended beyond this).
+MAX_SESSIONS = 64
+
+
+def _loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
 
 
 def _dumps(obj: Any) -> str:
     return json.dumps(obj, default=str, separators=(",", ":"))
 
 
+def command_name(req: cmdline.Request) -> str:
+    """The host command a parsed request is (``setpri``, ``invoke``, ``suspend``...)."""
+    if isinstance(req, cmdline.SetPri):
+        return "setpri"
+    if isinstance(req, cmdline.Invoke):
+        return "invoke"
+    if isinstance(req, cmdline.TaskOp):
+        return req.op
+    if isinstance(req, cmdline.Inject):
+        return "inject"
+    if isinstance(req, cmdline.ShowMap):
+        return "map"
+    return "install"
+
+
 def allowed(req: cmdline.Request) -> bool:
-    """True for the host commands the page may issue: setpri, invoke, suspend, resume."""
-    if isinstance(req, cmdline.SetPri | cmdline.Invoke):
-        return True
-    return isinstance(req, cmdline.TaskOp) and req.op in ("suspend", "resume")
+    """True for the host commands the page may issue at all: setpri and invoke."""
+    return command_name(req) in PAGE_COMMANDS
+
+
+@dataclass
+class Session:
+    """One logged-in browser: its user and the token its commands must carry."""
+
+    user: User
+    token: str
+    started: float
 
 
 class Viewer:
     """The live view of ``system`` served on ``host:port`` (port 0: a free one) from a
     background thread. :meth:`start` raises ViewerError if the server cannot start; ``url`` is
     where the page is. ``events`` is the EventLog to show (default: the one already listening
-    on the kernel, so the page also shows what happened before it started, else a new one)."""
+    on the kernel, so the page also shows what happened before it started, else a new one).
+    ``users`` are the accounts that may log in and command (None: read-only)."""
 
     def __init__(self, system: System, host: str = "127.0.0.1", port: int = 0, *,
                  period: float = 0.1, events: EventLog | None = None,
-                 allow_commands: bool = True, implicit: bool = False) -> None:
+                 users: Users | None = None, implicit: bool = False,
+                 svg_period: float = 1.0, stall_timeout: float = 5.0,
+                 max_buffer: int = 1 << 20, ssl_context: ssl.SSLContext | None = None) -> None:
         if period <= 0:
             raise ViewerError(f"snapshot period {period} s: must be positive")
+        if stall_timeout <= 0 or max_buffer <= 0:
+            raise ViewerError("stall_timeout and max_buffer must be positive")
+        if ssl_context is None and not _loopback(host):
+            raise ViewerError(f"viewer on {host}: an address off loopback needs TLS "
+                              "(a certificate and key)")
         self.system = system
         self.host = host
         self.port = port
+        self.ssl_context = ssl_context
+        self.scheme = "https" if ssl_context is not None else "http"
         self.period = period
-        self.allow_commands = allow_commands
+        self.svg_period = svg_period
+        self.stall_timeout = stall_timeout
+        self.max_buffer = max_buffer
+        self.users = users
         self.snapshots = Snapshotter(system, events, implicit)
         self.events = self.snapshots.events
+        self.implicit = implicit
         self._thread: threading.Thread | None = None
         self._ready = threading.Event()
         self._error: BaseException | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stop_evt: asyncio.Event | None = None
         self._tick: asyncio.Condition | None = None
-        self._latest: dict[str, Any] | None = None
+        # the newest state and the patch from the one before it (shared by every stream)
+        self._state: dict[str, Any] | None = None
+        self._patch: Any = SAME
+        self._prev: dict[str, Any] | None = None
+        self._svg: tuple[Any, float, str] | None = None  # (structure, when, svg)
+        self._sessions: OrderedDict[str, Session] = OrderedDict()
         self._clients = 0
+        self._count = threading.Condition()
+        self.dropped = 0
+        self.sent_bytes = 0
         self._stopping = False
+
+    @property
+    def read_only(self) -> bool:
+        """True when nobody can log in: the page only shows."""
+        return self.users is None
 
     @property
     def url(self) -> str:
         """The page's address (valid once started)."""
-        return f"http://{self.host}:{self.port}/"
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"{self.scheme}://{host}:{self.port}/"
 
     @property
     def clients(self) -> int:
         """Pages connected to the stream now."""
         return self._clients
+
+    def wait_clients(self, pred: Callable[[int], bool], timeout: float) -> bool:
+        """Wait until ``pred(clients)`` holds (True) or ``timeout`` seconds pass (False)."""
+        with self._count:
+            return self._count.wait_for(lambda: pred(self._clients), timeout)
+
+    def _set_clients(self, delta: int) -> None:
+        with self._count:
+            self._clients += delta
+            self._count.notify_all()
 
     # ---- life cycle -------------------------------------------------------------------------
     def start(self) -> Viewer:
@@ -142,10 +254,9 @@ class Viewer:
             loop.run_until_complete(loop.shutdown_default_executor())
             loop.close()
 
-    async def _start(self) -> web.AppRunner:
-        self._stop_evt = asyncio.Event()
-        self._tick = asyncio.Condition()
-        app = web.Application()
+    def app(self) -> web.Application:
+        """The aiohttp application (routes and the Host/Origin guard); also for test clients."""
+        app = web.Application(middlewares=[self._guard])
         app.router.add_get("/", self._index)
         app.router.add_static("/static/", STATIC)
         app.router.add_get("/api/snapshot", self._snapshot)
@@ -153,11 +264,19 @@ class Viewer:
         app.router.add_get("/api/map.svg", self._map_svg)
         app.router.add_get("/api/map.dot", self._map_dot)
         app.router.add_get("/api/map.txt", self._map_txt)
+        app.router.add_get("/api/session", self._session)
+        app.router.add_post("/api/login", self._login)
+        app.router.add_post("/api/logout", self._logout)
         app.router.add_post("/api/command", self._command)
-        runner = web.AppRunner(app, access_log=None, shutdown_timeout=1.0)
+        return app
+
+    async def _start(self) -> web.AppRunner:
+        self._stop_evt = asyncio.Event()
+        self._tick = asyncio.Condition()
+        runner = web.AppRunner(self.app(), access_log=None, shutdown_timeout=1.0)
         await runner.setup()
         try:
-            site = web.TCPSite(runner, self.host, self.port)
+            site = web.TCPSite(runner, self.host, self.port, ssl_context=self.ssl_context)
             await site.start()
         except BaseException:
             await runner.cleanup()
@@ -175,18 +294,68 @@ class Viewer:
             self._tick.notify_all()
         await runner.cleanup()
 
+    # ---- the state the streams send ---------------------------------------------------------
+    def _render(self, snap: dict[str, Any]) -> str:
+        marks = {k: (v["kind"], v["detail"]) for k, v in snap["marks"].items()}
+        live = Live(snap["rates"], snap["ages"], marks, frozenset(snap["map"]["frozen"]))
+        return render_svg(snap["map"], live, self.implicit)
+
+    def _next_state(self) -> dict[str, Any]:
+        """A new state; the SVG is redrawn when the structure changed or once per svg_period."""
+        snap = self.snapshots.take(None, svg=False)
+        state = stream_state(snap)
+        key = structure_key(state)
+        now = time.monotonic()
+        if self._svg is None or self._svg[0] != key or now - self._svg[1] >= self.svg_period:
+            self._svg = (key, now, self._render(snap))
+        state["svg"] = self._svg[2]
+        return state
+
     async def _ticker(self) -> None:
-        """Take one snapshot a period while pages are connected and wake their streams."""
+        """Take one state a period while pages are connected and wake their streams."""
         assert self._tick is not None
         while True:
             await asyncio.sleep(self.period)
             if self._clients:
                 try:
-                    self._latest = self.snapshots.take(None)
-                except ViewerError as exc:  # keep serving the last good snapshot
-                    self._latest = {**(self._latest or {}), "error": str(exc)}
+                    new = self._next_state()
+                except ViewerError as exc:  # keep serving the last good state
+                    new = {**(self._state or {}), "error": str(exc)}
+                self._patch = SAME if self._state is None else merge_diff(self._state, new)
+                self._prev, self._state = self._state, new
                 async with self._tick:
                     self._tick.notify_all()
+
+    # ---- guard: Host and Origin -------------------------------------------------------------
+    def _own_hosts(self) -> set[str]:
+        port = self.port
+        hosts = {f"{self.host}:{port}", f"[{self.host}]:{port}"}
+        try:
+            if ipaddress.ip_address(self.host).is_loopback:
+                hosts.add(f"localhost:{port}")
+        except ValueError:
+            pass
+        return hosts
+
+    @web.middleware
+    async def _guard(self, request: web.Request,
+                     handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
+                     ) -> web.StreamResponse:
+        own = self._own_hosts()
+        host = request.headers.get("Host", "")
+        if host not in own:
+            return web.json_response(
+                {"ok": False, "error": f"Host {host!r} is not this viewer's address "
+                                       f"({self.host}:{self.port}); refused (DNS rebinding?)"},
+                status=421)
+        origin = request.headers.get("Origin")
+        if origin is not None and origin not in {f"{self.scheme}://{h}" for h in own}:
+            return web.json_response(
+                {"ok": False, "error": f"Origin {origin!r} is not this viewer "
+                                       f"({self.scheme}://{host}); cross-site requests are "
+                                       "refused"},
+                status=403)
+        return await handler(request)
 
     # ---- handlers ---------------------------------------------------------------------------
     async def _index(self, request: web.Request) -> web.StreamResponse:
@@ -215,67 +384,181 @@ class Viewer:
     async def _map_txt(self, request: web.Request) -> web.Response:
         return web.Response(text=render_text(self.snapshots.map_doc()) + "\n")
 
+    async def _write(self, request: web.Request, resp: web.StreamResponse, data: bytes) -> bool:
+        """Send ``data`` to one stream; False (and the connection aborted, its buffers freed)
+        if the client has stopped reading."""
+        transport = request.transport
+        if transport is None or transport.is_closing():
+            return False
+        if transport.get_write_buffer_size() > self.max_buffer:
+            transport.abort()
+            self.dropped += 1
+            return False
+        try:
+            await asyncio.wait_for(resp.write(data), self.stall_timeout)
+        except TimeoutError:
+            transport.abort()
+            self.dropped += 1
+            return False
+        self.sent_bytes += len(data)
+        return True
+
     async def _stream(self, request: web.Request) -> web.StreamResponse:
         assert self._tick is not None
         resp = web.StreamResponse(headers={"Content-Type": "text/event-stream",
                                            "Cache-Control": "no-cache"})
         await resp.prepare(request)
-        self._clients += 1
+        self._set_clients(+1)
         seen = max(0, self.events.last_seq - HISTORY)
         try:
-            snap = self.snapshots.take(None)
-            self._latest = snap
+            try:
+                state = self._next_state()
+            except ViewerError as exc:
+                state = {**(self._state or {}), "error": str(exc)}
+            self._state = self._state or state
+            msg: dict[str, Any] = {"type": "snapshot", "state": state}
             while not self._stopping:
                 events = self.events.since(seen)
                 if events:
                     seen = events[-1].seq
-                payload = {**snap, "events": [e.as_dict() for e in events]}
-                await resp.write(f"data: {_dumps(payload)}\n\n".encode())
+                msg["events"] = [e.as_dict() for e in events]
+                if not await self._write(request, resp, f"data: {_dumps(msg)}\n\n".encode()):
+                    break
+                sent = state
                 async with self._tick:
                     await self._tick.wait()
-                snap = self._latest or snap
+                state = self._state or sent
+                if sent is self._prev and state is self._state:
+                    patch = self._patch  # the shared patch fits: this client is up to date
+                else:
+                    patch = merge_diff(sent, state)
+                msg = {"type": "delta", "patch": {} if patch is SAME else patch}
         except (ConnectionResetError, ViewerError):
             pass
         finally:
-            self._clients -= 1
+            self._set_clients(-1)
+        return resp
+
+    # ---- sessions ---------------------------------------------------------------------------
+    def _session_of(self, request: web.Request) -> Session | None:
+        sid = request.cookies.get(COOKIE)
+        return None if sid is None else self._sessions.get(sid)
+
+    async def _session(self, request: web.Request) -> web.Response:
+        s = self._session_of(request)
+        if s is None:
+            return web.json_response({"user": None, "read_only": self.read_only})
+        return web.json_response(self._session_json(s))
+
+    def _session_json(self, s: Session) -> dict[str, Any]:
+        from chcos.north.auth import ROLE_COMMANDS
+
+        return {"user": s.user.name, "role": s.user.role, "token": s.token,
+                "read_only": self.read_only,
+                "commands": [c for c in PAGE_COMMANDS if c in ROLE_COMMANDS[s.user.role]]}
+
+    @staticmethod
+    def _json_only(request: web.Request) -> web.Response | None:
+        if request.content_type != "application/json":
+            return web.json_response(
+                {"ok": False, "error": f"Content-Type {request.content_type!r}: expected "
+                                       "application/json (forms and text/plain are refused)"},
+                status=415)
+        return None
+
+    async def _login(self, request: web.Request) -> web.Response:
+        if self.users is None:
+            return web.json_response({"ok": False, "error": "this viewer is read-only: it was "
+                                      "started without operator credentials"}, status=403)
+        bad = self._json_only(request)
+        if bad is not None:
+            return bad
+        try:
+            body = await request.json()
+            name, password = body["user"], body["password"]
+            if not isinstance(name, str) or not isinstance(password, str):
+                raise TypeError("user and password must be strings")
+        except (ValueError, KeyError, TypeError) as exc:
+            return web.json_response({"ok": False, "error": 'expected JSON {"user": ..., '
+                                      f'"password": ...}}: {exc}'}, status=400)
+        loop = asyncio.get_running_loop()
+        user = await loop.run_in_executor(None, self.users.check, name, password)
+        if user is None:
+            return web.json_response({"ok": False, "error": "unknown user or wrong password"},
+                                     status=401)
+        sid, token = secrets.token_urlsafe(32), secrets.token_urlsafe(32)
+        self._sessions[sid] = s = Session(user, token, time.monotonic())
+        while len(self._sessions) > MAX_SESSIONS:
+            self._sessions.popitem(last=False)
+        resp = web.json_response({"ok": True, **self._session_json(s)})
+        resp.set_cookie(COOKIE, sid, httponly=True, samesite="Strict", path="/",
+                        secure=self.ssl_context is not None)
+        return resp
+
+    async def _logout(self, request: web.Request) -> web.Response:
+        sid = request.cookies.get(COOKIE)
+        if sid is not None:
+            self._sessions.pop(sid, None)
+        resp = web.json_response({"ok": True})
+        resp.del_cookie(COOKIE, path="/")
         return resp
 
     async def _command(self, request: web.Request) -> web.Response:
-        if not self.allow_commands:
-            return web.json_response({"ok": False, "error": "this viewer is read-only"},
-                                     status=403)
+        def refuse(status: int, error: str) -> web.Response:
+            return web.json_response({"ok": False, "error": error}, status=status)
+
+        if self.users is None:
+            return refuse(403, "this viewer is read-only: it was started without operator "
+                               "credentials")
+        bad = self._json_only(request)
+        if bad is not None:
+            return bad
+        session = self._session_of(request)
+        if session is None:
+            return refuse(401, "not logged in: log in as an operator first")
+        token = request.headers.get(TOKEN_HEADER, "")
+        if not hmac.compare_digest(token.encode(), session.token.encode()):
+            return refuse(403, f"missing or wrong {TOKEN_HEADER} header for this session")
         try:
             body = await request.json()
             line = body["line"]
             if not isinstance(line, str):
                 raise TypeError("line must be a string")
         except (ValueError, KeyError, TypeError) as exc:
-            return web.json_response(
-                {"ok": False, "error": f'expected JSON {{"line": "setpri -9 C1 B1"}}: {exc}'},
-                status=400)
+            return refuse(400, f'expected JSON {{"line": "setpri -9 C1 B1"}}: {exc}')
         try:
             req = cmdline.parse(line)
-        except ChcosError as exc:
-            return web.json_response({"ok": False, "error": str(exc)}, status=400)
-        if req is None or not allowed(req):
-            return web.json_response(
-                {"ok": False, "error": f"{line.split()[0] if line.split() else 'empty line'}: "
-                                       "only setpri, invoke, suspend and resume may be issued "
-                                       "from the viewer"}, status=403)
+        except (ChcosError, ValueError) as exc:
+            return refuse(400, str(exc))
+        if req is None:
+            return refuse(400, "empty command line")
+        name = command_name(req)
+        if not allowed(req):
+            return refuse(403, f"{name}: only {' and '.join(PAGE_COMMANDS)} may be issued "
+                               "from the viewer")
+        if not session.user.may(name):
+            return refuse(403, f"{name}: role {session.user.role!r} of {session.user.name} "
+                               "may not issue it")
         loop = asyncio.get_running_loop()
         try:
-            answer = await loop.run_in_executor(None, self.system.execute, req)
+            answer = await loop.run_in_executor(None, self.system.execute, line)
+        except Busy as exc:
+            return refuse(409, str(exc))
         except ChcosError as exc:
-            return web.json_response({"ok": False, "error": str(exc)}, status=400)
+            return refuse(400, str(exc))
         except TimeoutError:
-            return web.json_response({"ok": False, "error": f"{line}: the kernel did not "
-                                      "answer in time"}, status=504)
+            return refuse(503, f"{line}: the kernel did not answer in time")
+        except Exception as exc:  # a refused command never answers 500
+            log.exception("viewer command %r failed", line)
+            return refuse(422, f"{line}: {type(exc).__name__}: {exc}")
+        log.info("viewer: %s (%s) ran %r", session.user.name, session.user.role, line)
         return web.json_response({"ok": True, "answer": answer})
 
 
 def serve(system: System, host: str = "127.0.0.1", port: int = 0, *, period: float = 0.1,
-          events: EventLog | None = None, allow_commands: bool = True) -> Viewer:
+          events: EventLog | None = None, users: Users | None = None,
+          **kwargs: Any) -> Viewer:
     """Serve the live view of ``system`` from a background thread and return the running
     :class:`Viewer` (``.url``, ``.stop()``). Raises ViewerError if it cannot start."""
-    return Viewer(system, host, port, period=period, events=events,
-                  allow_commands=allow_commands).start()
+    return Viewer(system, host, port, period=period, events=events, users=users,
+                  **kwargs).start()

@@ -49,10 +49,13 @@ class Event:
 
 
 class EventLog(Instrument):
-    """The newest ``keep`` system events, numbered from 1; fed by the kernel's ``event`` hook."""
+    """The newest ``keep`` system events, numbered from 1; fed by the kernel's ``event`` hook.
+    Times are seconds since ``t0`` (default: the clock's time when the log was made, which is
+    when the system was built: the page shows times since start, not the machine's uptime)."""
 
-    def __init__(self, clock: Clock, keep: int = 500) -> None:
+    def __init__(self, clock: Clock, keep: int = 500, t0: float | None = None) -> None:
         self.clock = clock
+        self.t0 = clock.now() if t0 is None else t0
         self._events: deque[Event] = deque(maxlen=keep)
         self._seq = 0
         self._lock = threading.Lock()
@@ -61,7 +64,7 @@ class EventLog(Instrument):
         """Keep one event (runs on the kernel thread; never blocks for long)."""
         with self._lock:
             self._seq += 1
-            self._events.append(Event(self._seq, self.clock.now(), kind, detail))
+            self._events.append(Event(self._seq, self.clock.now() - self.t0, kind, detail))
 
     @property
     def last_seq(self) -> int:
@@ -135,8 +138,9 @@ class Snapshotter:
                 last = exc
                 continue
             for d in doc["devices"]:
-                d["updated_at"], d["reason"] = extra.get(d["name"], (None, ""))
-            doc["frozen"] = frozen
+                d["updated_at"], d["reason"] = extra.get(
+                    d["name"], (d.get("updated_at"), d.get("reason", "")))
+            doc.setdefault("frozen", frozen)
             return doc
         raise ViewerError(f"no consistent snapshot of the tables after {RETRIES} tries: "
                           f"{last}") from last
@@ -167,26 +171,31 @@ class Snapshotter:
             self._marked_upto = e.seq
 
     def take(self, events_since: int | None = None, svg: bool = True) -> dict[str, Any]:
-        """One snapshot: ``seq``, ``time`` (clock), ``map`` (the map document), ``rates``
-        (messages per second by :func:`~chcos.viewer.graph.link_key`), ``ages`` (seconds since
-        each device's last value), ``marks`` (latest notable event per name), ``events`` (those
+        """One snapshot: ``seq``, ``time`` (seconds since the system started), ``map`` (the map
+        document, its ``time`` also since start), ``rates`` (messages per second by
+        :func:`~chcos.viewer.graph.link_key`), ``ages`` (seconds since each device's last
+        value), ``marks`` (latest notable event per name), ``events`` (those
         numbered above ``events_since``; none if it is None), ``last_event`` and ``svg`` (the
         drawing, unless ``svg`` is false). Raises ViewerError if the tables cannot be read."""
         doc = self.map_doc()
-        now = float(doc["time"])
+        now = float(doc["time"]) - self.events.t0
+        doc["time"] = now
         counters = {link_key(lk): int(lk.get("sent", 0)) for lk in doc["links"]}
         self._update_rates(now, counters)
         names = {t["name"] for t in doc["tasks"]} | {d["name"] for d in doc["devices"]}
         self._update_marks(names)
+        t0 = self.events.t0
         ages: dict[str, float | None] = {
-            d["name"]: (None if d.get("updated_at") is None else max(0.0, now - d["updated_at"]))
+            d["name"]: (None if d.get("updated_at") is None
+                        else max(0.0, now - (d["updated_at"] - t0)))
             for d in doc["devices"]}
         for lk in doc["links"]:
             lk["key"] = link_key(lk)
             lk["rate"] = self._rates.get(lk["key"], 0.0)
         self.seq += 1
         snap: dict[str, Any] = {
-            "seq": self.seq, "time": now, "map": doc, "rates": dict(self._rates), "ages": ages,
+            "seq": self.seq, "time": now, "t0": t0, "map": doc, "rates": dict(self._rates),
+            "ages": ages,
             "marks": {k: {"kind": v[0], "detail": v[1]} for k, v in self._marks.items()},
             "events": ([] if events_since is None else
                        [e.as_dict() for e in self.events.since(events_since)]),
@@ -196,3 +205,79 @@ class Snapshotter:
             live = Live(self._rates, ages, dict(self._marks), frozenset(doc["frozen"]))
             snap["svg"] = render_svg(doc, live, self.implicit)
         return snap
+
+
+def stream_state(snap: dict[str, Any]) -> dict[str, Any]:
+    """What the live page keeps of a snapshot from :meth:`Snapshotter.take`: tasks, links and
+    devices keyed by name (so a change is a small merge patch, see :func:`merge_diff`), with
+    rates, ages and frozen flags folded in. ``svg`` is carried over if the snapshot has one."""
+    doc = snap["map"]
+    frozen = set(doc.get("frozen", ()))
+    tasks = {t["name"]: {"level": t["level"], "machine": t["machine"], "status": t["status"],
+                         "owner": t["owner"], "priority": t["priority"], "steps": t["steps"],
+                         "abnormal": t["abnormal"], "last_error": t["last_error"],
+                         "frozen": t["name"] in frozen} for t in doc["tasks"]}
+    links = {lk["key"]: {"src": lk["src"], "dst": lk["dst"], "type": lk["type"],
+                         "priority": lk["priority"], "status": lk["status"],
+                         "implicit": lk["implicit"], "sent": lk["sent"],
+                         "overwritten": lk["overwritten"], "rate": round(lk["rate"], 2)}
+             for lk in doc["links"]}
+    ages = snap["ages"]
+    t0 = snap.get("t0", 0.0)
+    devices = {d["name"]: {"direction": d["direction"], "machine": d["machine"],
+                           "status": d["status"], "reason": d.get("reason", ""),
+                           "value": d["value"], "units": d["units"],
+                           "age": None if ages.get(d["name"]) is None
+                           else round(ages[d["name"]], 2),
+                           "since": None if d.get("since") is None
+                           else round(float(d["since"]) - t0, 3),
+                           "pending": d.get("pending"),
+                           "write_errors": d.get("write_errors", 0),
+                           "last_write_error": d.get("last_write_error", "")}
+               for d in doc["devices"]}
+    state: dict[str, Any] = {"seq": snap["seq"], "time": round(snap["time"], 3),
+                             "machines": doc["machines"], "tasks": tasks, "links": links,
+                             "devices": devices, "marks": snap["marks"],
+                             "last_event": snap["last_event"]}
+    if "svg" in snap:
+        state["svg"] = snap["svg"]
+    if "error" in snap:
+        state["error"] = snap["error"]
+    return state
+
+
+class _Same:
+    pass
+
+
+SAME: Any = _Same()
+
+
+def merge_diff(old: Any, new: Any) -> Any:
+    """The JSON merge patch (RFC 7386) that turns ``old`` into ``new``, or :data:`SAME` if they
+    are equal. A removed key is patched to None; the page treats a missing key as null, so a
+    None value and an absent key mean the same to it."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        patch: dict[str, Any] = {}
+        for k, v in new.items():
+            if k not in old:
+                patch[k] = v
+            else:
+                d = merge_diff(old[k], v)
+                if d is not SAME:
+                    patch[k] = d
+        for k in old:
+            if k not in new:
+                patch[k] = None
+        return patch if patch else SAME
+    return SAME if old == new and type(old) is type(new) else new
+
+
+def structure_key(state: dict[str, Any]) -> Any:
+    """What the drawing depends on apart from rates and ages: when this changes the SVG is
+    redrawn at once, otherwise at most once per SVG period."""
+    return (tuple((n, t["status"], t["owner"], t["priority"], t["frozen"], t["abnormal"])
+                  for n, t in state["tasks"].items()),
+            tuple((k, lk["priority"], lk["status"]) for k, lk in state["links"].items()),
+            tuple((n, d["status"]) for n, d in state["devices"].items()),
+            tuple(sorted((k, v["kind"]) for k, v in state["marks"].items())))

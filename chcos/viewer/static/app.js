@@ -1,5 +1,6 @@
 // chcos view: live hierarchy page. Plain JS, no build step. Data: server-sent events from
-// /api/stream (one JSON snapshot per message); commands: POST /api/command {"line": "..."}.
+// /api/stream (a first snapshot, then JSON merge patches); commands (after logging in):
+// POST /api/command {"line": "..."} with the session's X-CHCOS-Token header.
 "use strict";
 
 const ALERTS = new Set(["abnormal", "estop", "suspend", "preempt", "device-failed",
@@ -67,24 +68,52 @@ function addEvents(events) {
   while (list.children.length > MAX_EVENTS) list.lastChild.remove();
 }
 
-function update(snap) {
-  const map = snap.map;
+let state = null;
+let session = {user: null, token: null, commands: []};
+
+// JSON merge patch (RFC 7386): null deletes a key, objects merge, anything else replaces.
+function mergePatch(target, patch) {
+  if (patch === null || typeof patch !== "object" || Array.isArray(patch)) return patch;
+  if (target === null || typeof target !== "object" || Array.isArray(target)) target = {};
+  for (const [k, v] of Object.entries(patch)) {
+    if (v === null) delete target[k];
+    else target[k] = mergePatch(target[k], v);
+  }
+  return target;
+}
+
+// Fit the drawing to the pane, but never below 60 % of its natural size (text stays legible;
+// the pane scrolls instead), nor above it (a small system is not blown up).
+function fitGraph() {
+  const svg = $("graph").querySelector("svg");
+  if (!svg) return;
+  const natural = Number(svg.getAttribute("width"));
+  const pane = $("graph-pane").clientWidth - 2;
+  svg.style.width = Math.max(Math.min(natural, pane), natural * 0.6) + "px";
+}
+window.addEventListener("resize", fitGraph);
+
+function nn(v) { return v === undefined ? null : v; }
+
+function render(snap, events) {
   $("clock").textContent = snap.time.toFixed(2);
   $("snap-error").textContent = snap.error || "";
-  if (snap.svg !== lastSvg) {
+  if (snap.svg !== undefined && snap.svg !== lastSvg) {
     $("graph").innerHTML = snap.svg;
     lastSvg = snap.svg;
+    fitGraph();
   }
-  const frozen = new Set(map.frozen || []);
-  fillTable("tasks", map.tasks, (tr, t) => {
-    if (t.abnormal || frozen.has(t.name) || snap.marks[t.name]) tr.className = "alert";
-    tr.dataset.name = t.name;
-    cell(tr, t.name); cell(tr, t.level, "num"); cell(tr, t.machine, "num");
-    cell(tr, frozen.has(t.name) ? "FROZEN (" + t.status + ")" : t.status);
-    cell(tr, t.owner || "–"); cell(tr, t.priority, "num"); cell(tr, t.steps, "num");
-    cell(tr, t.abnormal, "num"); cell(tr, t.last_error || "");
+  const marks = snap.marks || {};
+  const tasks = Object.entries(snap.tasks || {});
+  fillTable("tasks", tasks, (tr, [name, t]) => {
+    if (t.abnormal || t.frozen || marks[name]) tr.className = "alert";
+    tr.dataset.name = name;
+    cell(tr, name); cell(tr, t.level, "num"); cell(tr, t.machine, "num");
+    cell(tr, t.frozen ? "FROZEN (" + t.status + ")" : t.status);
+    cell(tr, nn(t.owner) || "–"); cell(tr, t.priority, "num"); cell(tr, t.steps, "num");
+    cell(tr, t.abnormal, "num"); cell(tr, nn(t.last_error) || "");
   });
-  const links = map.links.filter((l) => !l.implicit);
+  const links = Object.values(snap.links || {}).filter((l) => !l.implicit);
   fillTable("links", links, (tr, l) => {
     tr.dataset.link = l.src + "/" + l.dst;
     if (l.status !== "OK") tr.className = "alert";
@@ -92,16 +121,15 @@ function update(snap) {
     cell(tr, (l.rate || 0).toFixed(1), "num"); cell(tr, l.sent, "num");
     cell(tr, l.overwritten, "num"); cell(tr, l.status);
   });
-  fillTable("devices", map.devices || [], (tr, d) => {
-    tr.dataset.name = d.name;
+  fillTable("devices", Object.entries(snap.devices || {}), (tr, [name, d]) => {
+    tr.dataset.name = name;
     if (d.status === "stale" || d.status === "failed") tr.className = "alert";
-    cell(tr, d.name); cell(tr, d.direction); cell(tr, d.machine, "num");
-    cell(tr, fmt(d.value) + " " + (d.units || "") +
-             (d.pending !== null && d.pending !== undefined ? " (pending " + fmt(d.pending) + ")"
-              : ""), "num");
-    const age = snap.ages[d.name];
-    cell(tr, age === null || age === undefined ? "–" : age.toFixed(2), "num");
-    cell(tr, d.status + (d.since !== null && d.since !== undefined && d.reason
+    cell(tr, name); cell(tr, d.direction); cell(tr, d.machine, "num");
+    cell(tr, fmt(nn(d.value)) + " " + (d.units || "") +
+             (nn(d.pending) !== null ? " (pending " + fmt(d.pending) + ")" : ""), "num");
+    const age = nn(d.age);
+    cell(tr, age === null ? "–" : age.toFixed(2), "num");
+    cell(tr, d.status + (nn(d.since) !== null && d.reason
                          ? " since t=" + Number(d.since).toFixed(3) : "") +
              (d.reason ? ": " + d.reason : "") +
              (d.write_errors ? " [write errors " + d.write_errors + ": " +
@@ -109,11 +137,36 @@ function update(snap) {
   });
   setOptions($("setpri-link"), links.map((l) => l.src + " " + l.dst),
              links.map((l) => l.src + "/" + l.dst + " (" + l.type + ")"));
-  const names = map.tasks.map((t) => t.name);
+  const names = tasks.map(([name]) => name);
   setOptions($("invoke-task"), names, names);
-  addEvents(snap.events || []);
+  addEvents(events || []);
   $("seq").textContent = snap.seq;
   $("seq").dataset.seq = snap.seq;
+}
+
+function update(msg) {
+  if (msg.type === "snapshot") state = msg.state;
+  else if (state !== null) state = mergePatch(state, msg.patch);
+  if (state !== null) render(state, msg.events);
+}
+
+function showSession(s) {
+  session = {user: s.user || null, token: s.token || null, commands: s.commands || []};
+  $("who").textContent = session.user ? session.user + " (" + s.role + ")"
+                                       : (s.read_only ? "read-only" : "not logged in");
+  $("login-form").hidden = !!session.user || !!s.read_only;
+  $("logout-go").hidden = !session.user;
+  $("setpri-form").hidden = !session.commands.includes("setpri");
+  $("invoke-form").hidden = !session.commands.includes("invoke");
+}
+
+async function loadSession() {
+  try {
+    const resp = await fetch("/api/session", {credentials: "same-origin"});
+    showSession(await resp.json());
+  } catch (err) {
+    showSession({user: null, read_only: true});
+  }
 }
 
 async function command(line) {
@@ -121,7 +174,8 @@ async function command(line) {
   out.className = ""; out.textContent = "› " + line;
   try {
     const resp = await fetch("/api/command", {
-      method: "POST", headers: {"Content-Type": "application/json"},
+      method: "POST", credentials: "same-origin",
+      headers: {"Content-Type": "application/json", "X-CHCOS-Token": session.token || ""},
       body: JSON.stringify({line: line}),
     });
     const res = await resp.json();
@@ -131,6 +185,25 @@ async function command(line) {
     out.className = "error"; out.textContent = "error: " + err;
   }
 }
+
+$("login-form").addEventListener("submit", async (ev) => {
+  ev.preventDefault();
+  const out = $("cmd-result");
+  const resp = await fetch("/api/login", {
+    method: "POST", credentials: "same-origin", headers: {"Content-Type": "application/json"},
+    body: JSON.stringify({user: $("login-user").value, password: $("login-password").value}),
+  });
+  const res = await resp.json();
+  $("login-password").value = "";
+  if (res.ok) { showSession(res); out.className = "ok"; out.textContent = "logged in"; }
+  else { out.className = "error"; out.textContent = "error: " + res.error; }
+});
+
+$("logout-go").addEventListener("click", async () => {
+  await fetch("/api/logout", {method: "POST", credentials: "same-origin",
+                              headers: {"Content-Type": "application/json"}, body: "{}"});
+  loadSession();
+});
 
 $("setpri-form").addEventListener("submit", (ev) => {
   ev.preventDefault();
@@ -162,4 +235,5 @@ function connect() {
   es.onmessage = (msg) => update(JSON.parse(msg.data));
   es.onerror = () => { $("conn").textContent = "disconnected"; $("conn").className = "conn down"; };
 }
+loadSession();
 connect();

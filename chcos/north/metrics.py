@@ -1,0 +1,257 @@
+"""metrics - a Prometheus endpoint for a running system (prometheus-client).
+
+:class:`SystemCollector` is a custom collector: every figure is read from the tables (Devtab,
+Tsktab, Msgtab) when Prometheus scrapes, on the scrape thread, so the control loops pay nothing
+for counters they already keep. The only thing measured on the kernel thread is what the tables
+do not hold: :class:`StepTimes` (an instrument, added only when metrics are on) counts each
+task step's duration and its scheduling latency (ready to running) into fixed histogram buckets
+(two ``perf_counter`` calls and a bisect per step; no prometheus object is touched there).
+
+Exported (``chcos_`` prefix; labels in brackets):
+
+=========================================== ====================================================
+``device_value``, ``device_age_seconds``    last value (numeric only), seconds since it [device]
+``device_healthy``, ``device_status``       1/0; 1 for the current status [device, status]
+``device_readings_total`` … ``_rejected``   readings, overwrites, dropped, commands, rejected
+``bus_errors_total``, ``bus_devices``       errors by kind [bus, kind]; devices per bus [bus]
+``task_executions_total``                   steps [task]; also activations, completions,
+                                            ``task_abnormal_total``
+``task_priority``, ``task_level``           current priority and level [task]
+``task_step_seconds``                       histogram of step durations [task]
+``task_schedule_latency_seconds``           histogram: made ready → first step [task]
+``link_sent_total`` … ``_overwritten_total`` per link [link, type]; ``link_priority``
+=========================================== ====================================================
+
+The endpoint (:func:`serve`) binds loopback by default; another address needs a TLS certificate
+and key, as every north-side service here.
+"""
+
+from __future__ import annotations
+
+import bisect
+import ipaddress
+import threading
+import time
+from collections.abc import Iterator
+from typing import TYPE_CHECKING, Any
+
+from prometheus_client import CollectorRegistry
+from prometheus_client.core import (
+    CounterMetricFamily,
+    GaugeMetricFamily,
+    HistogramMetricFamily,
+)
+from prometheus_client.exposition import start_http_server
+from prometheus_client.registry import Collector
+
+from chcos.instrument import Instrument
+from chcos.north import NorthError
+from chcos.north.health import bus_stats, device_health
+
+if TYPE_CHECKING:
+    from wsgiref.simple_server import WSGIServer
+
+    from chcos.system import System
+    from chcos.tasks import TaskEntry
+
+#: Histogram bucket upper bounds, seconds (the last, +Inf, is implicit).
+BUCKETS = (1e-5, 2.5e-5, 5e-5, 1e-4, 2.5e-4, 5e-4, 1e-3, 2.5e-3, 5e-3, 1e-2, 2.5e-2, 0.1)
+STATUSES = ("OK", "suspended", "failed", "stale")
+
+
+class _Hist:
+    __slots__ = ("counts", "total")
+
+    def __init__(self) -> None:
+        self.counts = [0] * (len(BUCKETS) + 1)
+        self.total = 0.0
+
+    def add(self, v: float) -> None:
+        self.counts[bisect.bisect_left(BUCKETS, v)] += 1
+        self.total += v
+
+    def buckets(self) -> list[tuple[str, float]]:
+        out, acc = [], 0
+        for bound, n in zip((*map(str, BUCKETS), "+Inf"), list(self.counts), strict=True):
+            acc += n
+            out.append((bound, float(acc)))
+        return out
+
+
+class StepTimes(Instrument):
+    """Per-task histograms of step durations and of the latency from being made ready to the
+    next step, in wall-clock seconds (``perf_counter``)."""
+
+    def __init__(self) -> None:
+        self.steps: dict[str, _Hist] = {}
+        self.latency: dict[str, _Hist] = {}
+        self._ready: dict[int, float] = {}
+        self._t0 = 0.0
+
+    def task_scheduled(self, task: TaskEntry) -> None:
+        """Remember when ``task`` became ready (first time since its last step)."""
+        self._ready.setdefault(task.tid, time.perf_counter())
+
+    def before_step(self, task: TaskEntry) -> None:
+        """Count the scheduling latency; start timing the step."""
+        now = time.perf_counter()
+        ready = self._ready.pop(task.tid, None)
+        if ready is not None:
+            h = self.latency.get(task.name)
+            if h is None:
+                h = self.latency[task.name] = _Hist()
+            h.add(now - ready)
+        self._t0 = now
+
+    def after_step(self, task: TaskEntry) -> None:
+        """Count the step's duration."""
+        h = self.steps.get(task.name)
+        if h is None:
+            h = self.steps[task.name] = _Hist()
+        h.add(time.perf_counter() - self._t0)
+
+
+def _num(v: Any) -> float | None:
+    if isinstance(v, bool):
+        return float(v)
+    return float(v) if isinstance(v, int | float) else None
+
+
+class SystemCollector(Collector):
+    """Collects every ``chcos_`` metric of ``system`` at scrape time (see the module doc)."""
+
+    def __init__(self, system: System, steps: StepTimes | None = None) -> None:
+        self.system = system
+        self.step_times = steps
+
+    def collect(self) -> Iterator[Any]:
+        """Yield the metric families (read from the tables; torn reads accepted)."""
+        s = self.system
+        now = s.kernel.clock.now()
+        devs = list(s.devtab)
+        value = GaugeMetricFamily("chcos_device_value", "last value in engineering units",
+                                  labels=["device", "units"])
+        age = GaugeMetricFamily("chcos_device_age_seconds", "seconds since the last value",
+                                labels=["device"])
+        healthy = GaugeMetricFamily("chcos_device_healthy", "1 if the device is OK",
+                                    labels=["device"])
+        status = GaugeMetricFamily("chcos_device_status", "1 for the device's current status",
+                                   labels=["device", "status"])
+        counters = {k: CounterMetricFamily(f"chcos_device_{k}", f"device {k} so far",
+                                           labels=["device"])
+                    for k in ("readings", "overwrites", "dropped", "commands", "rejected")}
+        for d in devs:
+            v = _num(d.value)
+            if v is not None:
+                value.add_metric([d.name, d.spec.units], v)
+            if d.updated_at is not None:
+                age.add_metric([d.name], max(0.0, now - d.updated_at))
+            h = device_health(d)
+            healthy.add_metric([d.name], 1.0 if h.healthy else 0.0)
+            for st in STATUSES:
+                status.add_metric([d.name, st], 1.0 if h.status == st else 0.0)
+            for k, fam in counters.items():
+                fam.add_metric([d.name], float(getattr(d, k)))
+        yield from (value, age, healthy, status, *counters.values())
+
+        errors = CounterMetricFamily("chcos_bus_errors", "bus errors by kind",
+                                     labels=["bus", "kind"])
+        bcounts = CounterMetricFamily("chcos_bus", "bus counters (frames, frames-sent, "
+                                      "requests, reconnects, lost)", labels=["bus", "counter"])
+        ndev = GaugeMetricFamily("chcos_bus_devices", "devices on the bus", labels=["bus"])
+        for b in bus_stats(s.devtab):
+            ndev.add_metric([b.name], float(b.devices))
+            for kind, n in sorted(b.errors.items()):
+                errors.add_metric([b.name, kind], float(n))
+            for key, n in sorted(b.counts.items()):
+                bcounts.add_metric([b.name, key], float(n))
+        yield from (errors, bcounts, ndev)
+
+        tasks = list(s.tsktab)
+        fams = {k: CounterMetricFamily(f"chcos_task_{n}", d, labels=["task"]) for k, n, d in (
+            ("steps", "executions", "task steps executed"),
+            ("activations", "activations", "activations (commands started)"),
+            ("completions", "completions", "normal completions"),
+            ("abnormal", "abnormal", "abnormal completions"))}
+        prio = GaugeMetricFamily("chcos_task_priority", "current priority", labels=["task"])
+        level = GaugeMetricFamily("chcos_task_level", "level in the hierarchy", labels=["task"])
+        for t in tasks:
+            for k, fam in fams.items():
+                fam.add_metric([t.name], float(getattr(t, k)))
+            prio.add_metric([t.name], float(t.prio))
+            level.add_metric([t.name], float(t.level))
+        yield from (*fams.values(), prio, level)
+        timer = self.step_times
+        if timer is not None:
+            for attr, name, doc in (("steps", "chcos_task_step_seconds", "step durations"),
+                                    ("latency", "chcos_task_schedule_latency_seconds",
+                                     "from being made ready to the next step")):
+                fam_h = HistogramMetricFamily(name, doc, labels=["task"])
+                for task, hist in sorted(dict(getattr(timer, attr)).items()):
+                    fam_h.add_metric([task], hist.buckets(), hist.total)
+                yield fam_h
+
+        lfams = {k: CounterMetricFamily(f"chcos_link_{k}", f"messages {k}",
+                                        labels=["link", "type"])
+                 for k in ("sent", "delivered", "overwritten")}
+        lprio = GaugeMetricFamily("chcos_link_priority", "link priority", labels=["link", "type"])
+        for lk in list(s.msgtab):
+            labels = [f"{lk.src}/{lk.dst}", lk.type.value]
+            for k, fam in lfams.items():
+                fam.add_metric(labels, float(getattr(lk, k)))
+            lprio.add_metric(labels, float(lk.priority))
+        yield from (*lfams.values(), lprio)
+
+
+def is_loopback(host: str) -> bool:
+    """True for 127.0.0.0/8, ::1 and ``localhost``."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+class MetricsServer:
+    """The running endpoint: ``url``, :meth:`stop`."""
+
+    def __init__(self, httpd: WSGIServer, thread: threading.Thread, system: System,
+                 steps: StepTimes, url: str) -> None:
+        self.httpd = httpd
+        self.thread = thread
+        self.system = system
+        self.steps = steps
+        self.url = url
+
+    def stop(self) -> None:
+        """Stop serving and remove the step timer from the kernel."""
+        self.httpd.shutdown()
+        self.httpd.server_close()
+        self.thread.join(timeout=10)
+        self.system.kernel.remove_instrument(self.steps)
+
+
+def serve(system: System, host: str = "127.0.0.1", port: int = 0, *,
+          certfile: str | None = None, keyfile: str | None = None) -> MetricsServer:
+    """Serve ``/metrics`` of ``system`` on ``host:port`` (0: a free port). Raises NorthError if
+    the address is not loopback and no TLS certificate and key are given, or it cannot bind."""
+    if not is_loopback(host) and not (certfile and keyfile):
+        raise NorthError(f"metrics on {host}: a non-loopback address needs TLS "
+                         "(--metrics-tls-cert/--metrics-tls-key)")
+    steps = StepTimes()
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(SystemCollector(system, steps))
+    try:
+        httpd, thread = start_http_server(port, host, registry=registry,
+                                          certfile=certfile, keyfile=keyfile)
+    except OSError as exc:
+        raise NorthError(f"metrics: cannot serve on {host}:{port}: {exc}") from exc
+    system.kernel.add_instrument(steps)
+    scheme = "https" if certfile else "http"
+    h = f"[{host}]" if ":" in host else host
+    return MetricsServer(httpd, thread, system, steps,
+                         f"{scheme}://{h}:{httpd.server_address[1]}/metrics")
+
+
+__all__ = ["MetricsServer", "StepTimes", "SystemCollector", "is_loopback", "serve"]

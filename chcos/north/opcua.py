@@ -1,0 +1,518 @@
+"""opcua - the running system as an OPC UA server (asyncua), for SCADA, HMIs and historians.
+
+Address space (namespace ``urn:chcos``, string node ids):
+
+* ``Devices.<name>``: every device a Double variable (value in engineering units; StatusCode
+  from the device's health: Good, UncertainLastUsableValue when stale, BadSensorFailure or
+  BadDeviceFailure when failed, BadOutOfService when suspended, BadWaitingForInitialData before
+  the first value; SourceTimestamp when the value was taken), with properties
+  ``EngineeringUnits`` (EUInformation), ``EURange`` (from its limits, if any) and variables
+  ``Age`` (seconds since the value, refreshed every 0.5 s) and ``Status`` (text with cause);
+* ``Tasks.<name>``: every task an object with ``State``, ``Level``, ``Owner``, ``Priority``,
+  ``Completions``, ``Abnormal`` and ``LastError`` (the last completion's error, "" if normal);
+* ``Links.<src>/<dst>``: every link with ``Sent``, ``Delivered``, ``Overwritten``, ``Status``
+  (msgstat) and ``Priority``;
+* methods on the ``chcos`` object: ``Invoke(Task, Args, Priority)``, ``SetPri(Src, Dst,
+  Priority)``, ``Suspend(Task)``, ``Resume(Task)``, ``EStop(Reason)``; each runs through the
+  host's command path (:meth:`System.execute`, the system manager's checks) and is refused
+  (BadUserAccessDenied) unless the session's user has a role that may issue it
+  (:mod:`chcos.north.auth`); a refused or failed command answers a Bad status
+  (BadInvalidArgument: the system manager refused it; BadResourceUnavailable: busy);
+* events (BaseEventType, emitted by the ``chcos`` object): sensor failures and staleness,
+  e-stops and abnormal completions, with severity 700-900 and the cause in the message.
+
+Device values and health are copied from the tables on the server's own thread every ``period``
+seconds (0.05), ages and the task and link figures every 0.5 s (only what changed is written;
+subscriptions see it at their next publishing interval); the kernel only pays for the event hook
+(and shares the interpreter: ``tools/bench_north.py`` measures what the server costs the control
+loops). Anonymous sessions may read and subscribe; username/password
+sessions get their role. The endpoint is loopback by default; any other address needs a
+certificate and private key and then offers only Basic256Sha256 Sign&Encrypt.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextvars
+import logging
+import math
+import shlex
+import socket
+import threading
+from collections.abc import Awaitable, Callable
+from datetime import UTC, datetime, timedelta
+from typing import TYPE_CHECKING, Any
+from urllib.parse import urlparse
+
+from asyncua import ua as _ua
+from asyncua.crypto.permission_rules import USER_TYPES, PermissionRuleset, User, UserRole
+from asyncua.server.internal_session import InternalSession
+from asyncua.server.server import Server
+from asyncua.server.user_managers import UserManager
+
+from chcos.errors import Busy, ChcosError
+from chcos.instrument import Instrument
+from chcos.north import NorthError
+from chcos.north.health import device_health
+from chcos.north.metrics import is_loopback
+
+if TYPE_CHECKING:
+    from asyncua.common.node import Node
+
+    from chcos.north.auth import Users
+    from chcos.system import System
+
+#: asyncua's ua module, untyped here: its NewType-wrapped scalars (UInt32, Int16, String...)
+#: would need a cast at every call
+ua: Any = _ua
+log = logging.getLogger("chcos.north.opcua")
+NAMESPACE = "urn:chcos"
+#: The user of the OPC UA session whose method call is running.
+CURRENT_USER: contextvars.ContextVar[User | None] = contextvars.ContextVar("chcos_opcua_user",
+                                                                           default=None)
+EVENT_KINDS = {"device-failed": 900, "device-stale": 700, "estop": 900, "abnormal": 800}
+_WRITE = ua.NodeId(ua.ObjectIds.WriteRequest_Encoding_DefaultBinary)
+
+
+def estop(system: System, who: str, reason: str) -> str:
+    """An emergency stop from the north: logged as ``estop``, told to the other satellites,
+    every local actuator with a safe value gets it (on the kernel thread). Returns the answer
+    text."""
+    def on_kernel() -> int:
+        mm = system.msgmgr
+        mm.event("estop", f"{who}: {reason}")
+        if mm.comm is not None:
+            mm.comm.estop(reason)
+        return system.devtab.estop(reason)
+
+    n = system.call(on_kernel)
+    return f"estop: {n} actuator(s) at safe values"
+
+
+class _Rules(PermissionRuleset):
+    """Everyone may read, browse, subscribe and call; nobody writes attributes or changes the
+    address space (methods check roles themselves)."""
+
+    def __init__(self) -> None:
+        self._allowed = {ua.NodeId(i) for i in USER_TYPES} - {_WRITE}
+
+    def check_validity(self, user: Any, action_type_id: Any, body: Any) -> bool:
+        return action_type_id in self._allowed
+
+
+class _UserManager(UserManager):
+    def __init__(self, users: Users | None) -> None:
+        self.users = users
+
+    def get_user(self, iserver: Any, username: str | None = None, password: str | None = None,
+                 certificate: Any = None) -> User | None:
+        if not username and not certificate:
+            return User(role=UserRole.Anonymous)
+        if self.users is None or not username:
+            return None
+        u = self.users.check(username, password or "")
+        return None if u is None else User(role=UserRole.User, name=u.name)
+
+
+class _Session(InternalSession):
+    async def call(self, params: list[ua.CallMethodRequest]) -> list[ua.CallMethodResult]:
+        token = CURRENT_USER.set(self.user)
+        try:
+            return await super().call(params)
+        finally:
+            CURRENT_USER.reset(token)
+
+
+def _status(direction: str, status: str, has_value: bool) -> ua.StatusCode:
+    S = ua.StatusCodes
+    if status == "failed":
+        return ua.StatusCode(S.BadSensorFailure if direction == "sensor" else S.BadDeviceFailure)
+    if status == "suspended":
+        return ua.StatusCode(S.BadOutOfService)
+    if not has_value:
+        return ua.StatusCode(S.BadWaitingForInitialData)
+    if status == "stale":
+        return ua.StatusCode(S.UncertainLastUsableValue)
+    return ua.StatusCode(S.Good)
+
+
+class _Events(Instrument):
+    """Hands the kernel's notable events to the server's loop (never blocks the kernel)."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, queue: asyncio.Queue[tuple[str, str]]
+                 ) -> None:
+        self.loop = loop
+        self.queue = queue
+
+    def event(self, kind: str, detail: str) -> None:
+        if kind in EVENT_KINDS and not self.loop.is_closed():
+            self.loop.call_soon_threadsafe(self.queue.put_nowait, (kind, detail))
+
+
+class OpcUaServer:
+    """The OPC UA server of ``system`` at ``endpoint`` (port 0: a free one), served from a
+    background thread. ``users`` may log in (None: everyone is anonymous, read-only).
+    ``certificate``/``private_key`` (PEM or DER paths) are required off loopback, where only
+    Basic256Sha256 Sign&Encrypt is offered; ``secure=True`` asks for that on loopback too.
+    ``refused`` lists (user, command, reason) of refused method calls, newest last."""
+
+    def __init__(self, system: System, endpoint: str = "opc.tcp://127.0.0.1:4840/chcos/", *,
+                 users: Users | None = None, certificate: str | None = None,
+                 private_key: str | None = None, period: float = 0.05,
+                 secure: bool | None = None) -> None:
+        url = urlparse(endpoint)
+        if url.scheme != "opc.tcp" or not url.hostname:
+            raise NorthError(f"--opcua {endpoint!r}: expected opc.tcp://HOST:PORT/PATH")
+        self.host = url.hostname
+        self.port = 4840 if url.port is None else url.port
+        self.path = url.path or "/"
+        self.secure = not is_loopback(self.host) if secure is None else secure
+        if self.secure and not (certificate and private_key):
+            raise NorthError(f"--opcua {endpoint}: an endpoint off loopback needs a certificate "
+                             "and private key (security policy Basic256Sha256)")
+        self.system = system
+        self.users = users
+        self.certificate, self.private_key = certificate, private_key
+        self.period = period
+        #: seconds between refreshes of ages, task and link figures
+        self.slow_period = 0.5
+        self.refused: list[tuple[str, str, str]] = []
+        self._thread: threading.Thread | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop: asyncio.Event | None = None
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        self._instrument: _Events | None = None
+        self._nodes: dict[str, dict[str, Node]] = {}
+        self._last: dict[str, Any] = {}
+
+    @property
+    def endpoint(self) -> str:
+        """The endpoint URL (valid once started)."""
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"opc.tcp://{host}:{self.port}{self.path}"
+
+    # ---- life cycle -------------------------------------------------------------------------
+    def start(self) -> OpcUaServer:
+        """Build the address space and serve; returns self. Raises NorthError if it cannot."""
+        if self.port == 0:
+            with socket.socket(socket.AF_INET6 if ":" in self.host else socket.AF_INET) as s:
+                s.bind((self.host, 0))
+                self.port = int(s.getsockname()[1])
+        self._thread = threading.Thread(target=self._main, name="chcos-opcua", daemon=True)
+        self._thread.start()
+        self._ready.wait()
+        if self._error is not None:
+            self._thread.join(timeout=10)
+            raise NorthError(f"opcua: cannot serve {self.endpoint}: {self._error}") \
+                from self._error
+        return self
+
+    def stop(self) -> None:
+        """Stop serving and join the thread (no error if not running)."""
+        loop, stop = self._loop, self._stop
+        if self._thread is None or loop is None or stop is None or loop.is_closed():
+            return
+        loop.call_soon_threadsafe(stop.set)
+        self._thread.join(timeout=15)
+        self._thread = None
+
+    def __enter__(self) -> OpcUaServer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def _main(self) -> None:
+        loop = asyncio.new_event_loop()
+        self._loop = loop
+        try:
+            loop.run_until_complete(self._serve())
+        except BaseException as exc:
+            if not self._ready.is_set():
+                self._error = exc
+            else:
+                log.exception("opcua server failed")
+        finally:
+            self._ready.set()
+            if self._instrument is not None:
+                self.system.kernel.remove_instrument(self._instrument)
+            loop.run_until_complete(loop.shutdown_default_executor())
+            loop.close()
+
+    async def _serve(self) -> None:
+        self._stop = asyncio.Event()
+        server = Server(user_manager=_UserManager(self.users))
+        await server.init()
+        iserver = server.iserver
+
+        def create_session(name: str, user: User = User(role=UserRole.Anonymous),  # noqa: B008
+                           external: bool = False) -> InternalSession:
+            return _Session(iserver, iserver.aspace, iserver.subscription_service, name,
+                            user=user, external=external)
+
+        iserver.create_session = create_session  # type: ignore[method-assign]
+        server.set_endpoint(self.endpoint)
+        server.set_server_name("chcos")
+        policies = []
+        if self.certificate and self.private_key:
+            await server.load_certificate(self.certificate)
+            await server.load_private_key(self.private_key)
+            policies.append(ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt)
+        if not self.secure:
+            policies.insert(0, ua.SecurityPolicyType.NoSecurity)
+        server.set_security_policy(policies, permission_ruleset=_Rules())  # type: ignore[arg-type]
+        tokens: list[type] = [ua.AnonymousIdentityToken]
+        if self.users is not None:
+            tokens.append(ua.UserNameIdentityToken)
+        server.set_identity_tokens(tokens)
+        idx = await server.register_namespace(NAMESPACE)
+        self._idx, self._server = idx, server
+        root = await server.nodes.objects.add_object(ua.NodeId("chcos", idx), self._qn("chcos"))
+        self._folders = {k: await root.add_folder(ua.NodeId(k, idx), self._qn(k))
+                         for k in ("Devices", "Tasks", "Links")}
+        await self._add_methods(root, idx)
+        evgen = await server.get_event_generator(emitting_node=root.nodeid)
+        queue: asyncio.Queue[tuple[str, str]] = asyncio.Queue()
+        await self._refresh(force=True)
+        async with server:
+            self._instrument = _Events(asyncio.get_running_loop(), queue)
+            self.system.kernel.add_instrument(self._instrument)
+            self._ready.set()
+            refresher = asyncio.create_task(self._refresher())
+            emitter = asyncio.create_task(self._emit(evgen, queue))
+            await self._stop.wait()
+            refresher.cancel()
+            emitter.cancel()
+
+    # ---- address space ----------------------------------------------------------------------
+    async def _var(self, parent: Node, nid: str, name: str, value: Any,
+                   vtype: ua.VariantType) -> Node:
+        return await parent.add_variable(ua.NodeId(nid, self._idx), self._qn(name),
+                                         ua.Variant(value, vtype))
+
+    def _qn(self, name: str) -> Any:
+        return ua.QualifiedName(name, self._idx)
+
+    async def _add_device(self, d: Any) -> None:
+        spec = d.spec
+        nid = f"Devices.{d.name}"
+        var = await self._var(self._folders["Devices"], nid, d.name, math.nan,
+                              ua.VariantType.Double)
+        await var.add_property(ua.NodeId(f"{nid}.EngineeringUnits", self._idx),
+                               self._qn("EngineeringUnits"),
+                               ua.EUInformation(
+                                   NamespaceUri="http://www.opcfoundation.org/UA/units/un/cefact",
+                                   UnitId=-1, DisplayName=ua.LocalizedText(spec.units),
+                                   Description=ua.LocalizedText(spec.units)))
+        lo, hi = spec.limits
+        if lo is not None or hi is not None:
+            await var.add_property(ua.NodeId(f"{nid}.EURange", self._idx), self._qn("EURange"),
+                                   ua.Range(Low=-math.inf if lo is None else float(lo),
+                                            High=math.inf if hi is None else float(hi)))
+        age = await self._var(var, f"{nid}.Age", "Age", math.nan, ua.VariantType.Double)
+        status = await self._var(var, f"{nid}.Status", "Status", "", ua.VariantType.String)
+        self._nodes[nid] = {"value": var, "age": age, "status": status}
+
+    async def _add_task(self, t: Any) -> None:
+        nid = f"Tasks.{t.name}"
+        obj = await self._folders["Tasks"].add_object(ua.NodeId(nid, self._idx),
+                                                      self._qn(t.name))
+        nodes: dict[str, Node] = {}
+        for name, vt, init in (("State", ua.VariantType.String, ""),
+                               ("Level", ua.VariantType.Int32, 0),
+                               ("Owner", ua.VariantType.String, ""),
+                               ("Priority", ua.VariantType.Int32, 0),
+                               ("Completions", ua.VariantType.Int64, 0),
+                               ("Abnormal", ua.VariantType.Int64, 0),
+                               ("LastError", ua.VariantType.String, "")):
+            nodes[name] = await self._var(obj, f"{nid}.{name}", name, init, vt)
+        self._nodes[nid] = nodes
+
+    async def _add_link(self, key: str) -> None:
+        nid = f"Links.{key}"
+        obj = await self._folders["Links"].add_object(ua.NodeId(nid, self._idx),
+                                                      self._qn(key))
+        nodes: dict[str, Node] = {}
+        for name, vt, init in (("Sent", ua.VariantType.Int64, 0),
+                               ("Delivered", ua.VariantType.Int64, 0),
+                               ("Overwritten", ua.VariantType.Int64, 0),
+                               ("Status", ua.VariantType.String, ""),
+                               ("Priority", ua.VariantType.Int32, 0)):
+            nodes[name] = await self._var(obj, f"{nid}.{name}", name, init, vt)
+        self._nodes[nid] = nodes
+
+    # ---- refreshing -------------------------------------------------------------------------
+    async def _set(self, node: Node, key: str, value: Any, vtype: ua.VariantType,
+                   status: ua.StatusCode | None = None, source: datetime | None = None) -> None:
+        sig = (value, None if status is None else status.value, source)
+        if self._last.get(key) == sig:
+            return
+        self._last[key] = sig
+        dv = ua.DataValue(ua.Variant(value, vtype), StatusCode=status or ua.StatusCode(),
+                          SourceTimestamp=source, ServerTimestamp=datetime.now(UTC))
+        await self._server.write_attribute_value(node.nodeid, dv)
+
+    async def _refresh(self, force: bool = False, ages: bool = False) -> None:
+        """Copy what changed into the address space: device values and health every period;
+        with ``ages`` (once a second) also ages and the task and link figures, which change
+        with every message and are not worth an OPC UA write each time."""
+        s = self.system
+        now = s.kernel.clock.now()
+        wall = datetime.now(UTC)
+        I32, I64, STR, DBL = (ua.VariantType.Int32, ua.VariantType.Int64, ua.VariantType.String,
+                              ua.VariantType.Double)
+        for d in list(s.devtab):
+            nid = f"Devices.{d.name}"
+            if nid not in self._nodes:
+                await self._add_device(d)
+            n = self._nodes[nid]
+            h = device_health(d)
+            v, at = d.value, d.updated_at
+            num = float(v) if isinstance(v, int | float) else math.nan
+            src = None if at is None else wall - timedelta(seconds=max(0.0, now - at))
+            # the source time is derived from the clock: only a new value moves it
+            key_src = None if at is None else at
+            sig = (num, h.status, key_src)
+            if force or self._last.get(nid + "#") != sig:
+                self._last[nid + "#"] = sig
+                await self._set(n["value"], nid, num, DBL,
+                                _status(d.spec.direction, h.status, at is not None), src)
+                await self._set(n["status"], nid + ".Status",
+                                h.status + (f": {h.cause}" if h.cause else ""), STR)
+            if ages or force:
+                await self._set(n["age"], nid + ".Age",
+                                math.nan if at is None else max(0.0, now - at), DBL)
+        if not (ages or force):
+            return
+        for t in list(s.tsktab):
+            nid = f"Tasks.{t.name}"
+            if nid not in self._nodes:
+                await self._add_task(t)
+            n = self._nodes[nid]
+            for name, value, vt in (
+                    ("State", "frozen" if t.frozen else t.state.value, STR),
+                    ("Level", t.level, I32),
+                    ("Owner", t.owner.src if t.owner is not None else "", STR),
+                    ("Priority", t.prio, I32), ("Completions", t.completions, I64),
+                    ("Abnormal", t.abnormal, I64), ("LastError", t.last_error or "", STR)):
+                await self._set(n[name], f"{nid}.{name}", value, vt)
+        for lk in list(s.msgtab):
+            key = f"{lk.src}/{lk.dst}"
+            nid = f"Links.{key}"
+            if nid not in self._nodes:
+                await self._add_link(key)
+            n = self._nodes[nid]
+            for name, value, vt in (("Sent", lk.sent, I64), ("Delivered", lk.delivered, I64),
+                                    ("Overwritten", lk.overwritten, I64),
+                                    ("Status", lk.status.value, STR),
+                                    ("Priority", lk.priority, I32)):
+                await self._set(n[name], f"{nid}.{name}", value, vt)
+
+    async def _refresher(self) -> None:
+        loop = asyncio.get_running_loop()
+        last_age = 0.0
+        while True:
+            await asyncio.sleep(self.period)
+            ages = loop.time() - last_age >= self.slow_period
+            if ages:
+                last_age = loop.time()
+            try:
+                await self._refresh(ages=ages)
+            except (RuntimeError, KeyError, AttributeError):  # a table changed under us
+                continue
+
+    async def _emit(self, evgen: Any, queue: asyncio.Queue[tuple[str, str]]) -> None:
+        while True:
+            kind, detail = await queue.get()
+            evgen.event.Message = ua.LocalizedText(f"{kind}: {detail}")
+            evgen.event.Severity = EVENT_KINDS[kind]
+            evgen.event.SourceName = detail.split(":", 1)[0].strip()
+            await evgen.trigger()
+
+    # ---- methods ----------------------------------------------------------------------------
+    def _user(self) -> tuple[str, Any]:
+        u = CURRENT_USER.get()
+        name = u.name if u is not None and u.name else ""
+        account = self.users.users.get(name) if self.users is not None and name else None
+        return name or "anonymous", account
+
+    def _method(self, command: str, build: Callable[..., str | Callable[[str], str]]
+                ) -> Callable[..., Awaitable[Any]]:
+        async def call(parent: ua.NodeId, *args: ua.Variant) -> Any:
+            who, account = self._user()
+            if account is None or not account.may(command):
+                reason = (f"{command}: {who} may not issue it (role "
+                          f"{account.role if account else 'anonymous'})")
+                self._refusal(who, command, reason)
+                log.warning("opcua: %s", reason)
+                return ua.StatusCode(ua.StatusCodes.BadUserAccessDenied)
+            values = [a.Value if isinstance(a, ua.Variant) else a for a in args]
+            loop = asyncio.get_running_loop()
+            try:
+                what = build(*values)
+                if isinstance(what, str):
+                    answer = await loop.run_in_executor(None, self._execute, what)
+                else:
+                    answer = await loop.run_in_executor(None, what, who)
+            except Busy as exc:
+                self._refusal(who, command, str(exc))
+                return ua.StatusCode(ua.StatusCodes.BadResourceUnavailable)
+            except (ChcosError, ValueError, TypeError) as exc:
+                self._refusal(who, command, str(exc))
+                log.warning("opcua: %s by %s refused: %s", command, who, exc)
+                return ua.StatusCode(ua.StatusCodes.BadInvalidArgument)
+            log.info("opcua: %s by %s: %s", command, who, answer)
+            return [ua.Variant(str(answer), ua.VariantType.String)]
+
+        return call
+
+    def _refusal(self, who: str, command: str, reason: str) -> None:
+        """Remember a refused method call."""
+        self.refused.append((who, command, reason))
+
+    def _execute(self, line: str) -> str:
+        """Run one host command line on the system (raises ChcosError)."""
+        return self.system.execute(line)
+
+    def _do_estop(self, who: str, reason: str) -> str:
+        """Every actuator to its safe value, on the kernel thread; the answer text."""
+        return estop(self.system, f"opcua {who}", reason)
+
+    def _estop(self, reason: str) -> Callable[[str], str]:
+        def run(who: str) -> str:
+            return self._do_estop(who, reason)
+
+        return run
+
+    async def _add_methods(self, root: Node, idx: int) -> None:
+        S, I32 = ua.VariantType.String, ua.VariantType.Int32
+
+        def arg(name: str, vt: ua.VariantType) -> ua.Argument:
+            a = ua.Argument()
+            a.Name = name
+            a.DataType = ua.NodeId(vt.value)
+            a.ValueRank = -1
+            return a
+
+        out = [arg("Answer", S)]
+        q = shlex.quote
+
+        def invoke(task: str, args: str = "", prio: int = -1) -> str:
+            return (f"invoke {'-' + str(prio) + ' ' if prio >= 0 else ''}{q(task)} "
+                    f"{args}").strip()
+
+        for name, command, build, inputs in (
+                ("Invoke", "invoke", invoke,
+                 [arg("Task", S), arg("Args", S), arg("Priority", I32)]),
+                ("SetPri", "setpri",
+                 lambda src, dst, prio: f"setpri -{int(prio)} {q(src)} {q(dst)}",
+                 [arg("Src", S), arg("Dst", S), arg("Priority", I32)]),
+                ("Suspend", "suspend", lambda task: f"suspend {q(task)}", [arg("Task", S)]),
+                ("Resume", "resume", lambda task: f"resume {q(task)}", [arg("Task", S)]),
+                ("EStop", "estop", self._estop, [arg("Reason", S)])):
+            await root.add_method(ua.NodeId(f"chcos.{name}", idx), self._qn(name),
+                                  self._method(command, build), inputs, out)
+
+
+__all__ = ["CURRENT_USER", "NAMESPACE", "OpcUaServer"]

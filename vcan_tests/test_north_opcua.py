@@ -1,0 +1,244 @@
+"""The OPC UA server seen by an independent client (python-opcua, not asyncua): devices as
+variables with units, range, status and timestamps; a subscription sees every new sample;
+anonymous sessions read but cannot command; an operator's EStop is obeyed and arrives as an
+event; roles decide Suspend; tasks and links are there with their figures."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from opcua import Client, ua
+
+from chcos.clock import RealClock
+from chcos.devspec import BusSpec, DeviceMap, DeviceSpec
+from chcos.north import NorthError
+from chcos.north.opcua import OpcUaServer
+from chcos.north.opcua_process import OpcUaProcess
+from chcos.system import System
+from vcan_tests.support_view import PASSWORDS, viewer_users
+
+ME = "vcan_tests.support_view"
+TIMEOUT = 15.0
+
+
+def cell(workdir: Path) -> System:
+    """Sensor P1 (bar), actuator V1 (%, limits ±100, safe 0) driven by T1 from P1, X2 above
+    T1 crashes when invoked; on real time, running."""
+    devmap = DeviceMap((BusSpec("mem", "memory"),), (
+        DeviceSpec("P1", "sensor", 0, "mem", units="bar"),
+        DeviceSpec("V1", "actuator", 0, "mem", safe_value=0.0, limits=(-100, 100),
+                   units="%")))
+    s = System(devmap, clock=RealClock(), base_dir=workdir)
+    for line in ("install -m0 sysfile", f"install -m0i1o1 --code={ME}:follow T1 P1 V1",
+                 f"install -m0i1 --code={ME}:crash X2 T1"):
+        s.execute(line)
+    s.start()
+    return s
+
+
+@pytest.fixture(params=["process", "thread"])
+def served(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[tuple[System, Any]]:
+    """The running cell and its OPC UA server on a free loopback port, with users: in a
+    process of its own (the default of ``--opcua``) and on a thread of this one."""
+    s = cell(tmp_path)
+    kind = OpcUaProcess if request.param == "process" else OpcUaServer
+    o = kind(s, "opc.tcp://127.0.0.1:0/chcos/", users=viewer_users()).start()
+    yield s, o
+    o.stop()
+    s.shutdown()
+
+
+def client(o: Any, user: str | None = None) -> Client:
+    """A connected python-opcua client, anonymous or as ``user``."""
+    c = Client(o.endpoint, timeout=TIMEOUT)
+    if user is not None:
+        c.set_user(user)
+        c.set_password(PASSWORDS[user])
+    c.connect()
+    return c
+
+
+class Collector:
+    """python-opcua subscription handler: data changes and events, with a condition."""
+
+    def __init__(self) -> None:
+        self.values: list[Any] = []
+        self.events: list[Any] = []
+        self.cond = threading.Condition()
+
+    def datachange_notification(self, node: Any, val: Any, data: Any) -> None:
+        with self.cond:
+            self.values.append(val)
+            self.cond.notify_all()
+
+    def event_notification(self, event: Any) -> None:
+        with self.cond:
+            self.events.append(event)
+            self.cond.notify_all()
+
+    def wait(self, pred: Any) -> bool:
+        with self.cond:
+            return bool(self.cond.wait_for(pred, TIMEOUT))
+
+
+def ns(c: Client) -> int:
+    return int(c.get_namespace_index("urn:chcos"))
+
+
+def test_devices_tasks_links_and_a_subscription(served: tuple[System, Any]) -> None:
+    system, o = served
+    c = client(o)
+    try:
+        i = ns(c)
+        p1 = c.get_node(f"ns={i};s=Devices.P1")
+        v1 = c.get_node(f"ns={i};s=Devices.V1")
+        with pytest.raises(ua.UaStatusCodeError, match="BadWaitingForInitialData"):
+            p1.get_data_value()  # no value yet: python-opcua raises the Bad status
+        units = c.get_node(f"ns={i};s=Devices.P1.EngineeringUnits").get_value()
+        assert units.DisplayName.Text == "bar"
+        rng = c.get_node(f"ns={i};s=Devices.V1.EURange").get_value()
+        assert (rng.Low, rng.High) == (-100.0, 100.0)
+        handler = Collector()
+        sub = c.create_subscription(20, handler)
+        sub.subscribe_data_change(p1)
+        for k, value in enumerate((1.5, 2.5, 3.5, 4.5)):  # every sample reaches the client
+            system.execute(f"inject P1 {value}")
+            assert handler.wait(lambda v=value: v in handler.values), (k, handler.values)
+        dv = p1.get_data_value()
+        assert dv.StatusCode.is_good() and dv.Value.Value == 4.5
+        assert dv.SourceTimestamp is not None
+        assert c.get_node(f"ns={i};s=Devices.P1.Status").get_value() == "OK"
+        # the task and its links
+        system.execute("invoke T1")
+        state = c.get_node(f"ns={i};s=Tasks.T1.Owner")
+        h2 = Collector()
+        c.create_subscription(20, h2).subscribe_data_change(state)
+        assert h2.wait(lambda: "host" in h2.values)
+        assert c.get_node(f"ns={i};s=Tasks.T1.Level").get_value() == 1
+        sent = c.get_node(f"ns={i};s=Links.P1/T1.Sent")
+        system.execute("inject P1 5.5")
+        h3 = Collector()
+        c.create_subscription(20, h3).subscribe_data_change(sent)
+        assert h3.wait(lambda: any(v >= 1 for v in h3.values))
+        assert c.get_node(f"ns={i};s=Links.P1/T1.Status").get_value() == "OK"
+        h4 = Collector()  # the actuator's last command, as T1 wrote it
+        c.create_subscription(20, h4).subscribe_data_change(v1)
+        assert h4.wait(lambda: system.devtab.get("V1").value in h4.values)
+    finally:
+        c.disconnect()
+
+
+def test_anonymous_estop_refused_operator_obeyed(served: tuple[System, Any]) -> None:
+    system, o = served
+    system.call(system.devtab.write, "V1", 42.0)
+    anon = client(o)
+    try:
+        i = ns(anon)
+        root = anon.get_node(f"ns={i};s=chcos")
+        with pytest.raises(ua.UaStatusCodeError, match="BadUserAccessDenied"):
+            root.call_method(f"{i}:EStop", "from an HMI without login")
+        assert system.devtab.get("V1").value == 42.0
+        if isinstance(o, OpcUaProcess):
+            assert o.wait_refused(1, TIMEOUT)
+        assert o.refused[-1][:2] == ("anonymous", "estop")
+        handler = Collector()
+        anon.create_subscription(20, handler).subscribe_events(root)
+    finally:
+        pass
+    alice = client(o, "alice")
+    try:
+        root = alice.get_node(f"ns={i};s=chcos")
+        answer = root.call_method(f"{i}:EStop", "operator pressed stop")
+        assert answer == "estop: 1 actuator(s) at safe values"
+        assert system.devtab.get("V1").value == 0.0
+        assert handler.wait(lambda: any("operator pressed stop" in e.Message.Text
+                                        for e in handler.events))
+        ev = next(e for e in handler.events if "estop" in e.Message.Text)
+        assert ev.Severity == 900
+        # an operator may invoke, not suspend; a supervisor may suspend
+        with pytest.raises(ua.UaStatusCodeError, match="BadUserAccessDenied"):
+            root.call_method(f"{i}:Suspend", "T1")
+        assert root.call_method(f"{i}:Invoke", "T1", "", -1).startswith("T1 invoked")
+        with pytest.raises(ua.UaStatusCodeError, match="BadInvalidArgument"):
+            root.call_method(f"{i}:SetPri", "P1", "NOPE", 9)
+        assert root.call_method(f"{i}:SetPri", "P1", "T1", 12) == "P1/T1 priority 12"
+        # an abnormal completion is an event too
+        root.call_method(f"{i}:Invoke", "X2", "", -1)
+        assert handler.wait(lambda: any("X2 crashed on purpose" in e.Message.Text
+                                        for e in handler.events))
+    finally:
+        alice.disconnect()
+        anon.disconnect()
+    sam = client(o, "sam")
+    try:
+        root = sam.get_node(f"ns={i};s=chcos")
+        assert root.call_method(f"{i}:Suspend", "T1") == "T1: suspend"
+        assert system.tsktab.get("T1").frozen
+        assert root.call_method(f"{i}:Resume", "T1") == "T1: resume"
+    finally:
+        sam.disconnect()
+
+
+def test_bad_password_and_remote_endpoint_refused(served: tuple[System, Any]) -> None:
+    system, o = served
+    c = Client(o.endpoint, timeout=TIMEOUT)
+    c.set_user("alice")
+    c.set_password("wrong")
+    with pytest.raises(Exception):  # noqa: B017 - python-opcua raises its own errors
+        c.connect()
+    c.disconnect()
+    with pytest.raises(NorthError, match="certificate"):
+        OpcUaServer(system, "opc.tcp://192.0.2.1:4840/")
+    with pytest.raises(NorthError, match=r"opc\.tcp://HOST:PORT"):
+        OpcUaServer(system, "http://127.0.0.1:4840/")
+
+
+def _certificate(tmp: Path, name: str) -> tuple[str, str]:
+    """A self-signed application certificate (DER) and key (PEM) from asyncua's helper."""
+    import asyncio
+
+    from asyncua.crypto.cert_gen import setup_self_signed_certificate
+    from cryptography.x509.oid import ExtendedKeyUsageOID
+
+    key, cert = tmp / f"{name}-key.pem", tmp / f"{name}-cert.der"
+    asyncio.run(setup_self_signed_certificate(
+        key, cert, f"urn:chcos:test:{name}", "127.0.0.1",
+        [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH],
+        {"commonName": name}))
+    return str(cert), str(key)
+
+
+def test_secure_endpoint_refuses_security_none(tmp_path: Path) -> None:
+    """With security asked for (as off loopback), only Basic256Sha256 Sign&Encrypt is offered:
+    a client without security is refused, one with it logs in and its EStop is obeyed."""
+    s = cell(tmp_path)
+    cert, key = _certificate(tmp_path, "server")
+    ccert, ckey = _certificate(tmp_path, "client")
+    o = OpcUaServer(s, "opc.tcp://127.0.0.1:0/chcos/", users=viewer_users(), certificate=cert,
+                    private_key=key, secure=True).start()
+    try:
+        plain = Client(o.endpoint, timeout=TIMEOUT)
+        with pytest.raises(Exception):  # noqa: B017 - python-opcua's own error types
+            plain.connect()
+        plain.disconnect()
+        c = Client(o.endpoint, timeout=TIMEOUT)
+        c.set_security_string(f"Basic256Sha256,SignAndEncrypt,{ccert},{ckey}")
+        c.set_user("alice")
+        c.set_password(PASSWORDS["alice"])
+        c.connect()
+        try:
+            s.call(s.devtab.write, "V1", 42.0)
+            i = ns(c)
+            root = c.get_node(f"ns={i};s=chcos")
+            assert root.call_method(f"{i}:EStop", "secure") == \
+                "estop: 1 actuator(s) at safe values"
+            assert s.devtab.get("V1").value == 0.0
+        finally:
+            c.disconnect()
+    finally:
+        o.stop()
+        s.shutdown()
