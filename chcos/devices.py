@@ -86,6 +86,24 @@ class Devtab:
         self.bus_errors: Counter[tuple[str, str]] = Counter()
         self.last_bus_error: dict[str, str] = {}
         self.on_write: list[Callable[[str, Any], None]] = []
+        self._health_listeners: list[Callable[[str, bool, str], None]] = []
+
+    def add_health_listener(self, fn: Callable[[str, bool, str], None]) -> None:
+        """Call ``fn(device_name, healthy, cause)`` on the kernel thread on every health change
+        of a device (healthy: OK; not healthy: failed, stale or suspended)."""
+        self._health_listeners.append(fn)
+
+    def suspend(self, device: str) -> None:
+        """Host ``suspend`` of a device: SUSPENDED (readings dropped, commands refused) until
+        :meth:`resume`. Raises DeviceError for an unknown device."""
+        self.get(device)
+        self._set_status(device, DeviceStatus.SUSPENDED, "suspended by the host")
+
+    def resume(self, device: str) -> None:
+        """Undo :meth:`suspend` (a device that is not suspended is left as it is). Raises
+        DeviceError for an unknown device."""
+        if self.get(device).status is DeviceStatus.SUSPENDED:
+            self._set_status(device, DeviceStatus.OK, "")
 
     # ---- table ------------------------------------------------------------------------------
     def load(self, devmap: DeviceMap) -> None:
@@ -226,6 +244,8 @@ class Devtab:
             comm.device_status(device, status.value, reason)
         self.msgmgr.event(f"device-{status.name.lower()}",
                           f"{device}: {reason}" if reason else device)
+        for fn in self._health_listeners:
+            fn(device, status is DeviceStatus.OK, reason or status.value)
         if status in (DeviceStatus.FAILED, DeviceStatus.STALE):
             failure = SensorFailure(device, reason or status.value)
             for link in e.links:

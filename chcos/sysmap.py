@@ -71,6 +71,12 @@ def install_lines(doc: dict[str, Any]) -> list[str]:
             extra.append(f"--param={k}={json.dumps(v)}")
         for k, v in t.get("queued", {}).items():
             extra.append(f"--queue={k}={v}")
+        if t.get("standing"):
+            extra.append("--standing")
+        if t.get("restart", "never") != "never":
+            extra.append(f"--restart={t['restart']}")
+        if t.get("backoff", 1.0) != 1.0:
+            extra.append(f"--backoff={t['backoff']}")
         words = ["install", flags, *extra, t["name"], *t["inputs"], *t["outputs"]]
         lines.append(" ".join(_quote(w) for w in words))
     for lk in doc["links"]:

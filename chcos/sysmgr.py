@@ -19,7 +19,17 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from chcos import sysmap
-from chcos.cmdline import Boot, Inject, Install, Invoke, Request, SetPri, ShowMap, TaskOp
+from chcos.cmdline import (
+    Boot,
+    Inject,
+    Install,
+    Invoke,
+    Request,
+    ResetPri,
+    SetPri,
+    ShowMap,
+    TaskOp,
+)
 from chcos.errors import ChcosError, InstallError, MessageError, TaskError
 from chcos.loader import resolve
 from chcos.messages import (
@@ -209,7 +219,8 @@ class SystemManager:
         factory = getattr(func, "world_model", None)
         t.world = factory() if callable(factory) else WorldModel()
         t.ctx = TaskContext(t, s.kernel, s.msgmgr)
-        t.prio = DEFAULT_COMMAND_PRIORITY
+        t.prio = t.default_prio = DEFAULT_COMMAND_PRIORITY
+        t.standing, t.restart, t.backoff = req.standing, req.restart, req.backoff
         s.tsktab.add(t)
         for i, p in enumerate(ins):
             prio = (s.devtab.get(p.name).spec.priority if p.kind is EndpointKind.DEVICE
@@ -235,7 +246,11 @@ class SystemManager:
         self.host_link(t.name)  # made now so that every satellite numbers its links alike
         self.installs.append(req)
         self._changed("install", f"{t.name} on machine {t.machine} at level {t.level} "
-                                 f"({len(ins)} in, {len(outs)} out)")
+                                 f"({len(ins)} in, {len(outs)} out)"
+                      + (", standing" if t.standing else "")
+                      + (f", restart={t.restart}" if t.restart != "never" else ""))
+        if t.standing:
+            s.msgmgr.start_standing(t, "started at install (standing task)")
         return t
 
     def _link(self, src: str, dst: str, type: LinkType, prio: int, sk: EndpointKind,
@@ -291,6 +306,23 @@ class SystemManager:
         self._changed("setpri", f"{link.name} {old} -> {priority}")
         return link
 
+    def default_priority(self, lk: Link) -> int:
+        """The priority ``lk`` had when it was made (before any setpri)."""
+        s = self.sys
+        return (TOP_PRIORITY if lk.tap and lk.src != "host" else
+                DEFAULT_COMMAND_PRIORITY if lk.type is LinkType.COMMAND else
+                s.devtab.get(lk.src).spec.priority if lk.src_kind is EndpointKind.DEVICE
+                else DEFAULT_SENSORY_PRIORITY)
+
+    def resetpri_link(self, src: str, dst: str) -> Link:
+        """``resetpri SRC DST``: link ``src``/``dst`` back to its default priority. Raises
+        InstallError for an unknown link."""
+        try:
+            link = self.sys.msgtab.find(src, dst)
+        except MessageError as exc:
+            raise InstallError(f"resetpri: {exc}") from exc
+        return self.setpri(src, dst, self.default_priority(link))
+
     def host_link(self, task: str) -> Link:
         """The implicit command link from the host to ``task`` (made on first use). Raises
         InstallError if there is no such task."""
@@ -317,19 +349,56 @@ class SystemManager:
         return f"{task} invoked at priority {link.priority}"
 
     def task_op(self, op: str, task: str) -> str:
-        """Host ``suspend``, ``resume`` or ``close`` of ``task``. Raises InstallError if unknown."""
+        """Host ``suspend``, ``resume``, ``close``, ``resetpri`` or ``reset`` of ``task`` (or of
+        a device, for suspend/resume: its readings are dropped and writes refused meanwhile).
+        ``reset`` without a task resets every suspended task (see :meth:`reset`). Raises
+        InstallError if unknown."""
+        mm = self.sys.msgmgr
+        if op == "reset":
+            return self.reset(task or None)
+        if op in ("suspend", "resume") and task not in self.sys.tsktab \
+                and task in self.sys.devtab:
+            self.sys.devtab.suspend(task) if op == "suspend" else self.sys.devtab.resume(task)
+            mm.event(op, f"host {op} device {task}")
+            self.save_map()
+            return f"{task}: {op}"
         try:
             t = self.sys.tsktab.get(task)
         except TaskError as exc:
             raise InstallError(str(exc)) from exc
         if op == "suspend":
-            self.sys.kernel.suspend(t)
+            mm.suspend_task(t, "the host")
         elif op == "resume":
-            self.sys.kernel.resume(t)
+            mm.resume_task(t)
+        elif op == "resetpri":
+            prio = mm.resetpri(t)
+            mm.event("resetpri", f"host resetpri {task}: priority {prio}")
+            return f"{task}: priority {prio}"
         else:
-            self.sys.msgmgr.close(self.host_link(task))
-        self.sys.msgmgr.event(op, f"host {op} {task}")
+            mm.close(self.host_link(task))
+        mm.event(op, f"host {op} {task}")
+        self.save_map()
         return f"{task}: {op}"
+
+    def reset(self, task: str | None = None) -> str:
+        """The operator's acknowledgement after an emergency: every suspended task (below and
+        including ``task`` if given) has its activation ended, is resumed unowned at its
+        default priority (standing tasks re-arm themselves), and every link raised by setpri
+        keeps its priority. Nothing is commanded: the job is started again by an ``invoke``.
+        Raises InstallError for an unknown task."""
+        mm = self.sys.msgmgr
+        if task is not None:
+            try:
+                top = self.sys.tsktab.get(task)
+            except TaskError as exc:
+                raise InstallError(str(exc)) from exc
+            todo = [t for t in self.sys.tsktab if t is top or t.level < top.level]
+        else:
+            todo = list(self.sys.tsktab)
+        done = [t.name for t in todo if mm.is_local(t.machine) and t.frozen and mm.reset_task(t)]
+        mm.event("reset", f"host reset: {', '.join(done) or 'nothing was suspended'}")
+        self.save_map()
+        return f"reset: {', '.join(done) or 'nothing was suspended'}"
 
     def inject(self, name: str, value: Any) -> str:
         """Feed ``value`` to sensor or terminal ``name`` (as an interrupt would). Raises
@@ -354,6 +423,9 @@ class SystemManager:
         if isinstance(req, SetPri):
             link = self.setpri(req.src, req.dst, req.priority)
             return f"{link.name} priority {link.priority}"
+        if isinstance(req, ResetPri):
+            link = self.resetpri_link(req.src, req.dst)
+            return f"{link.name} priority {link.priority}"
         if isinstance(req, Invoke):
             return self.invoke(req.task, req.command or None, req.priority)
         if isinstance(req, TaskOp):
@@ -363,6 +435,7 @@ class SystemManager:
         if isinstance(req, ShowMap):
             from chcos.sysview import render_text
 
+            self.save_map()
             return render_text(self.map_doc())
         raise ChcosError(f"unknown request {req!r}")
 
@@ -377,7 +450,9 @@ class SystemManager:
                 "name": t.name, "machine": t.machine, "level": t.level,
                 "level_given": r.level is not None, "code": t.code, "role": r.role,
                 "inputs": list(r.inputs), "outputs": list(r.outputs), "params": dict(r.params),
-                "queued": dict(r.queued), "status": t.state.value,
+                "queued": dict(r.queued), "standing": r.standing, "restart": r.restart,
+                "backoff": r.backoff, "restarts": t.restarts,
+                "frozen": t.frozen, "status": t.state.value,
                 "owner": t.owner.src if t.owner is not None else None, "priority": t.prio,
                 "steps": t.steps, "activations": t.activations, "completions": t.completions,
                 "abnormal": t.abnormal, "last_error": t.last_error,
@@ -385,10 +460,7 @@ class SystemManager:
             })
         links = []
         for lk in s.msgtab:
-            default = (TOP_PRIORITY if lk.tap and lk.src != "host" else
-                       DEFAULT_COMMAND_PRIORITY if lk.type is LinkType.COMMAND else
-                       s.devtab.get(lk.src).spec.priority if lk.src_kind is EndpointKind.DEVICE
-                       else DEFAULT_SENSORY_PRIORITY)
+            default = self.default_priority(lk)
             links.append({
                 "src": lk.src, "dst": lk.dst, "type": lk.type.value, "priority": lk.priority,
                 "default_priority": default, "status": lk.status.value, "queued": lk.queued,
