@@ -56,11 +56,18 @@ async def _turn_off(ctx: TaskContext) -> str:
 
 async def main(ctx: TaskContext, command: Any) -> str:
     """Turn the weld on (and watch the gas) or off. While on, a newer command from the owner
-    (a repeated topen, no new activation) that is not ``on`` turns the weld off."""
+    (a repeated topen, no new activation) is taken up at once: ``on`` runs the start-up again
+    (gas, wire, voltage: after C1 freed a stuck tip the voltage is off), anything else turns the
+    weld off and completes."""
     cmd = as_dict(command)
+    while cmd.get("op", "off") == "on":
+        cmd = await _on(ctx, cmd)
+    return await _turn_off(ctx)
+
+
+async def _on(ctx: TaskContext, cmd: dict[str, Any]) -> dict[str, Any]:
+    """Start the weld and watch the gas until the owner's next command, which is returned."""
     wm = ctx.world
-    if cmd.get("op", "off") != "on":
-        return await _turn_off(ctx)
     volts = float(param(ctx, cmd, "volts", 24.0))
     wire = float(param(ctx, cmd, "wire", 80.0))
     gas_wait = float(param(ctx, cmd, "gas_wait", 1.0))
@@ -70,9 +77,9 @@ async def main(ctx: TaskContext, command: Any) -> str:
     t0 = ctx.now
     while True:
         ev = await ctx.wait_any(["A3"], commands=True, timeout=gas_wait)
-        if ev.kind == "command" and as_dict(ev.value).get("op", "off") != "on":
-            return await _turn_off(ctx)
-        gas = ev.value if ev.kind == "message" else None
+        if ev.kind == "command":
+            return as_dict(ev.value)
+        gas = ev.value
         if isinstance(gas, dict) and gas.get("flow_ok"):
             break
         if ctx.now - t0 > gas_wait:
@@ -86,9 +93,7 @@ async def main(ctx: TaskContext, command: Any) -> str:
     while True:
         ev = await ctx.wait_any(["A3"], commands=True)
         if ev.kind == "command":
-            if as_dict(ev.value).get("op", "off") != "on":
-                return await _turn_off(ctx)
-            continue
+            return as_dict(ev.value)
         gas = ev.value
         if not isinstance(gas, dict) or "empty" not in gas:
             continue
