@@ -388,8 +388,11 @@ class MessageManager:
 
     def _back_to_default(self, t: TaskEntry) -> None:
         """A released task goes back to its default priority (resetpri)."""
-        if t.prio != t.default_prio and t.state is not TaskState.READY:
-            t.prio = t.default_prio
+        if t.prio != t.default_prio:
+            if t.state is TaskState.READY and not t.frozen:
+                self.kernel.ready(t, t.default_prio)
+            else:
+                t.prio = t.default_prio
 
     def _caller(self, link: Link) -> TaskEntry | None:
         if link.src_kind is EndpointKind.TASK and link.src in self.tsktab:
@@ -424,6 +427,8 @@ class MessageManager:
         t.owner = None
         if t.waitq:
             self._release(t)
+        else:
+            self._back_to_default(t)
 
     def _activation_ended(self, t: TaskEntry, how: str, value: Any) -> None:
         t.coro = None

@@ -107,8 +107,9 @@ class TaskEntry:
 
     @property
     def base_prio(self) -> int:
-        """The priority of the owning command message, or the last one the task ran at."""
-        return self.owner.priority if self.owner is not None else self.prio
+        """The priority of the owning command message, or the task's default priority when
+        nobody owns it (a message wakes it at the higher of this and the link's priority)."""
+        return self.owner.priority if self.owner is not None else self.default_prio
 
     def __repr__(self) -> str:
         return f"<task {self.name} m{self.machine} L{self.level} {self.state.value} p{self.prio}>"

@@ -52,6 +52,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     """Run the job and report its outcome."""
     cmd = as_dict(command)
     wm = ctx.world
+    wm.command.pop("outcome", None)  # a new job: the last one's outcome is history
     where = {"start": [float(v) for v in param(ctx, cmd, "start", [542.0, -164.0])],
              "heading": float(param(ctx, cmd, "heading", math.pi / 2)),
              "z": float(param(ctx, cmd, "z", 10.0))}
