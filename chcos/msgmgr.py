@@ -423,6 +423,8 @@ class MessageManager:
         if link is None:
             return
         t.completions += 1
+        if self.kernel.h_event:
+            self.event("complete", f"{t.name} completed for {link.src}")
         self._report(link, LinkStatus.NORMAL, result=result)
         t.owner = None
         if t.waitq:
@@ -598,6 +600,48 @@ class MessageManager:
         if t.coro is None:
             t.prio = t.default_prio
         return frozen
+
+    def wipe(self, t: TaskEntry, why: str) -> None:
+        """Forget everything ``t`` was doing (a reload from scratch): its owner and waiters are
+        told it was pre-empted, its activation is closed at once (its ``finally`` blocks run),
+        what it owned is released, its unread messages, newest command, suspension and pending
+        restart are dropped; it stays SUSPENDED at its default priority."""
+        for link in [e[1] for e in t.waitq] + ([t.owner] if t.owner is not None else []):
+            link.pending = False
+            self._report(link, LinkStatus.PREEMPTED, error=why)
+        t.owner = None
+        t.waitq.clear()
+        coro, t.coro = t.coro, None
+        self.kernel.unhook(t)
+        t.stamp = -1  # drop any ready-heap entry
+        if coro is not None:
+            try:
+                coro.close()
+            except Exception:
+                log.exception("task %s: closing its activation failed", t.name)
+        self.release_subordinates(t, why)
+        t.frozen = False
+        t.frozen_ready = None
+        t.cancelling = False
+        t.next_command = t.new_command = None
+        t.send_value = t.throw_exc = None
+        t.waiting_devices = frozenset()
+        if t.restart_timer is not None:
+            t.restart_timer.cancel()
+            t.restart_timer = None
+        for p in t.in_ports:
+            p.fresh = False
+            p.value = None
+            if p.fifo is not None:
+                p.fifo.clear()
+        if isinstance(t.tap, TapPort):
+            t.tap.newest.clear()
+            t.tap.order.clear()
+        for link in self.msgtab:
+            if link.dst == t.name and link.status is LinkStatus.SUSPENDED:
+                link.status = LinkStatus.OK
+        t.prio = t.default_prio
+        t.state = TaskState.SUSPENDED
 
     def resetpri(self, t: TaskEntry) -> int:
         """resetpri: ``t`` runs again at the priority of its owning link, or at its default

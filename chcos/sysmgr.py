@@ -95,7 +95,7 @@ class SystemManager:
         if name in s.devtab:
             d = s.devtab.get(name).spec
             return _Peer(name, EndpointKind.DEVICE, 0, d.machine, d.direction)
-        if name.startswith("/dev/tty"):
+        if name.startswith(("/dev/tty", "/dev/pts/")):
             return _Peer(name, EndpointKind.FILE, 0, -1, "terminal")
         if is_path(name):
             return _Peer(name, EndpointKind.FILE, 0, -1, "file")
@@ -110,14 +110,47 @@ class SystemManager:
     # ---- boot -------------------------------------------------------------------------------
     def boot(self, machine: int, sysfile: str = "sysfile") -> str:
         """Load machine ``machine`` (``install -mN sysfile``): start the drivers of its devices.
-        Loading a machine twice changes nothing. Raises BusError if a driver cannot start."""
+        Loading a loaded machine again reloads it from scratch (thesis 6.3, see :meth:`reload`).
+        Raises BusError if a driver cannot start."""
         if machine in self.machines:
-            return f"machine {machine} already loaded"
+            return self.reload(machine, sysfile)
         if self.sys.msgmgr.is_local(machine):
             self.sys.start_drivers([machine])
         self.machines.add(machine)
         self._changed("boot", f"machine {machine} loaded from {sysfile}")
         return f"machine {machine} loaded"
+
+    def reload(self, machine: int, sysfile: str = "sysfile") -> str:
+        """A second ``install -mN sysfile``: "the satellite is to be reloaded from scratch"
+        (thesis 6.3). Every task of the machine loses its activation (its owner is told it was
+        pre-empted), its ownership, wait queue, unread messages, world model and suspension;
+        whatever it owned is released; the machine's actuators go to their safe values; then its
+        standing tasks start again as at install. The tables (tasks, links, priorities) and the
+        bus drivers stay: they are the configuration the satellite is loaded with."""
+        s = self.sys
+        mm = s.msgmgr
+        if not mm.is_local(machine):
+            self._changed("reload", f"machine {machine} reloaded from {sysfile} (remote)")
+            return f"machine {machine} reloaded"
+        tasks = [t for t in s.tsktab if t.machine == machine]
+        for t in tasks:
+            mm.wipe(t, f"machine {machine} reloaded from {sysfile}")
+            factory = getattr(t.func, "world_model", None)
+            t.world = factory() if callable(factory) else WorldModel()
+        safe = 0
+        for d in s.devtab:
+            if not d.is_sensor and d.spec.machine == machine and d.spec.safe_value is not None:
+                try:
+                    s.devtab.write(d.name, d.spec.safe_value, source="reload")
+                    safe += 1
+                except ChcosError as exc:
+                    mm.event("reload", f"safe value for {d.name} not written: {exc}")
+        self._changed("reload", f"machine {machine} reloaded from scratch from {sysfile}: "
+                                f"{len(tasks)} task(s) reset, {safe} actuator(s) safe")
+        for t in tasks:
+            if t.standing:
+                mm.start_standing(t, "started after the reload")
+        return f"machine {machine} reloaded from scratch ({len(tasks)} task(s))"
 
     # ---- install ----------------------------------------------------------------------------
     def check_install(self, req: Install) -> tuple[TaskFunc, int, list[_Peer], list[_Peer]]:

@@ -347,6 +347,33 @@ class TaskContext:
             return Event("message", best.link.src, self._take(best), best.index)
         return None
 
+    def feed(self, port: Port, value: Any) -> None:
+        """Deliver ``value`` on input ``port`` as if its source had sent it. Thread-safe: for
+        system drivers whose own thread reads a terminal or a file (the delivery happens on
+        the kernel thread, between task steps). Raises MessageError for a bad port."""
+        link = self._in(port).link
+        mm = self._mm
+
+        def deliver() -> None:
+            mm.deliver(link, value)
+
+        self._k.interrupt(deliver)
+
+    def watch_events(self, fn: Callable[[str, str], None]) -> Callable[[], None]:
+        """Call ``fn(kind, detail)`` on every system event (installs, setpri, invokes,
+        completions, abnormal completions, pre-emptions, restarts, suspends, e-stops, device
+        failures...) until the returned function is called. ``fn`` runs on the kernel thread in
+        whatever step caused the event: it must not block (a system driver's log, e.g.)."""
+        from chcos.instrument import Instrument
+
+        class _Watch(Instrument):
+            def event(self, kind: str, detail: str) -> None:
+                fn(kind, detail)
+
+        watch = _Watch()
+        self._k.add_instrument(watch)
+        return lambda: self._k.remove_instrument(watch)
+
     def pending(self, port: Port = 0) -> bool:
         """True if a message waits on ``port``."""
         return self._in(port).fresh
@@ -372,12 +399,24 @@ class TaskContext:
         return link
 
     @types.coroutine
-    def invoke(self, port: Port, command: Any = None, *,
-               wait: bool = True) -> Generator[Any, Any, None]:
+    def invoke(self, port: Port, command: Any = None, *, wait: bool = True,
+               priority: int | None = None) -> Generator[Any, Any, None]:
         """Invoke the lower task on ``port`` with ``command`` (topen). Returns once this task
         owns it (the target then runs at the link's priority). If a higher or equal priority owner
-        holds it, waits in its queue, or with ``wait=False`` raises Busy at once."""
+        holds it, waits in its queue, or with ``wait=False`` raises Busy at once.
+
+        ``priority`` raises the link's priority for this and later commands (until setpri or
+        resetpri), up to the priority this task runs at now: a task that a high-priority command
+        made urgent may pass that urgency down (thesis 6.1.5: C1's priority-9 command makes B1
+        take every A-level task). Raises MessageError for a priority above that or outside
+        0..99."""
         link = self._task_link(port)
+        if priority is not None:
+            cap = max(self._t.prio, self._t.base_prio)
+            if not 0 <= priority <= min(99, cap):
+                raise MessageError(f"task {self._t.name} runs at priority {cap}: it cannot "
+                                   f"invoke {link.dst} at priority {priority}")
+            link.priority = max(link.priority, priority)
         if self._mm.open(link, command, wait=wait):
             return
         t = self._t
