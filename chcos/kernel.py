@@ -200,7 +200,8 @@ class Kernel:
             self.ready(t, pending)
         elif t.timer is not None:
             t.state = TaskState.ASLEEP if t.sleep_until is not None else TaskState.WAITING
-        elif t.wait_ports or t.wait_link is not None or t.wait_query is not None:
+        elif (t.wait_ports or t.wait_link is not None or t.wait_query is not None
+              or t.multi_wait):
             t.state = TaskState.WAITING
         else:
             t.state = TaskState.SUSPENDED

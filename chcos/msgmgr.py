@@ -276,7 +276,8 @@ class MessageManager:
         if link.type is not LinkType.COMMAND or link.dst_kind is not EndpointKind.TASK:
             raise MessageError(f"{link.name} is not a command link to a task")
         if link.status is LinkStatus.SUSPENDED:
-            raise MessageError(f"link {link.name} is suspended")
+            raise MessageError(f"link {link.name} is suspended: task {link.dst} is suspended "
+                               "(host 'resume' or, after an emergency, 'reset')")
         target = self.tsktab.get(link.dst)
         link.reported = False
         link.result = None
@@ -288,9 +289,11 @@ class MessageManager:
             self.comm.open(link, command, wait)
             return False
         owner = target.owner
-        if owner is link and target.coro is not None and not target.cancelling:
+        if (owner is link and target.coro is not None and not target.cancelling
+                and link.src_kind is not EndpointKind.HOST):
             # Appendix 3: the task already belongs to the caller - no change; the parameters
-            # reach the running activation as its newest command
+            # reach the running activation as its newest command. (The host's invoke is the
+            # system manager's, not a topen: it starts the command afresh.)
             link.status = LinkStatus.OK
             link.pending = False
             link.sent += 1

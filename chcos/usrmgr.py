@@ -447,7 +447,9 @@ class TaskContext:
         report = self._mm.done_now(link)
         if report is not None:
             return report
-        if target.owner is not link:
+        outstanding = (link.sent > 0 and link.status is LinkStatus.OK if link.remote
+                       else target.owner is link)  # a remote target's owner is known there
+        if not outstanding:
             raise MessageError(f"no command outstanding on {link.name} (status "
                                f"{link.status.value})")
         t.wait_link = link

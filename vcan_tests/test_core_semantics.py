@@ -289,18 +289,37 @@ def test_weld_map_rebuilt_invoke_job_then_intruder_puts_every_actuator_safe(
 
 
 # ---- 2. waiting on what happens ----------------------------------------------------------------
-def test_wait_any_returns_a_message_a_completion_and_a_command(make_system: MakeSystem) -> None:
+async def top(ctx: TaskContext, cmd: Any) -> None:
+    """Invokes C, then again with a newer command (a repeated topen)."""
+    await ctx.invoke("C", "first")
+    await ctx.sleep(0.1)
+    await ctx.invoke("C", "newer")
+    await ctx.sleep(100.0)
+
+
+def test_wait_any_returns_a_completion_and_a_command(make_system: MakeSystem) -> None:
+    s = make_system()
+    s.execute(f"install -m0 --code={M}:quick Q")
+    s.execute(f"install -m0o1 --code={M}:caller C Q")
+    s.execute(f"install -m0o1 --code={M}:top T C")
+    s.invoke("T")
+    s.run_for(1.0)
+    ev = _world(s, "C")["events"]
+    assert ev[0] == Event("command", "T", "newer")
+    assert ev[1].kind == "completion" and ev[1].source == "Q" and ev[1].value.result == "job"
+    assert s.tsktab.get("C").activations == 1
+
+
+def test_a_host_invoke_starts_the_command_afresh(make_system: MakeSystem) -> None:
+    """The host's invoke is the system manager's, not a topen: it restarts a running task."""
     s = make_system()
     s.execute(f"install -m0 --code={M}:quick Q")
     s.execute(f"install -m0o1 --code={M}:caller C Q")
     s.invoke("C")
     s.run_for(0.1)
-    s.invoke("C", "newer")  # the host owns C: a repeated topen -> a command event
-    s.run_for(1.0)
-    ev = _world(s, "C")["events"]
-    assert ev[0] == Event("command", "host", "newer")
-    assert ev[1].kind == "completion" and ev[1].source == "Q" and ev[1].value.result == "job"
-    assert s.tsktab.get("C").activations == 1
+    s.invoke("C", "again")
+    s.run_for(0.1)
+    assert s.tsktab.get("C").activations == 2
 
 
 def test_wait_any_when_filter_wakes_only_for_news(make_system: MakeSystem) -> None:
