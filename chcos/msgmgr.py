@@ -749,10 +749,10 @@ class MessageManager:
 
     def satellite_lost(self, machine: int) -> int:
         """Machine ``machine`` died: every local caller of a task there gets an abnormal
-        completion, every task waiting for a world-model answer from there a MessageError.
-        Returns how many links and queries were told."""
-        n = 0
-        n += self._release_from(machine)
+        completion, every task waiting for a world-model answer from there a MessageError, and
+        every local task owned by a task there is released (tclose). Returns how many links,
+        queries and tasks were told."""
+        n = self._release_from(machine)
         for qid, (t, m) in list(self._asks.items()):
             if m == machine:
                 n += t.wait_query == qid
