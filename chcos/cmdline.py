@@ -1,8 +1,11 @@
 """cmdline - the host's command syntax, as in thesis section 6.3, plus ordinary long options.
 
-``install [-m#i#o#] tsk infile... outfile...`` (also ``-m0 -i2 -o1`` and ``--machine 0 --inputs 2
---outputs 1``; ``install -m1 sysfile`` loads a satellite), ``setpri -# srctsk dsttsk``,
-``invoke [-#] tsk [key=value...]``, plus ``suspend``, ``resume``, ``close``, ``inject`` and ``map``.
+``install [-m#i#o#[s]] tsk infile... outfile...`` (also ``-m0 -i2 -o1`` and ``--machine 0 --inputs 2
+--outputs 1``; ``s``, ``-s`` or ``--standing`` for a standing task, ``--restart=never|on-recovery|
+always`` and ``--backoff=S`` for its restart policy; ``install -m1 sysfile`` loads a satellite, a
+second time reloads it), ``setpri -# srctsk dsttsk``, ``resetpri tsk`` / ``resetpri srctsk
+dsttsk``, ``invoke [-#] tsk [key=value...]``, plus ``suspend``, ``resume``, ``close``, ``reset``,
+``inject`` and ``map``.
 Parsing is pure: it returns a request record and raises CommandSyntaxError naming the command,
 the word and what was expected.
 """

@@ -1,7 +1,10 @@
 """sysmap - sysfile.map: the system's record of itself, written after every change.
 
 A readable JSON document: the loaded machines and device maps, every task in install order with
-its code, links and parameters, every link with its type and current priority, every device. It
+its code, links, parameters and options (standing, restart policy, back-off), every link with its
+type and current priority, every device; beside them the runtime fields (status, owner, counters),
+which are as current as the last time the map was written (every table change, host task
+operations, ``map``, shutdown). It
 is written atomically (temporary file, fsync, rename), so a crash never leaves half a map, and
 :func:`replay` rebuilds a restarted system from it (installs in order, then priorities).
 """

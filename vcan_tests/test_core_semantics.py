@@ -13,7 +13,7 @@ import pytest
 from chcos import sysmap
 from chcos.clock import VirtualClock
 from chcos.cmdline import Install, parse
-from chcos.errors import CommandSyntaxError, ReadTimeout, SensorFailure
+from chcos.errors import CommandSyntaxError, MessageError, ReadTimeout, SensorFailure
 from chcos.messages import LinkStatus
 from chcos.system import System
 from chcos.tasks import TaskState
@@ -440,6 +440,30 @@ def test_resetpri_host_and_task(make_system: MakeSystem) -> None:
     s.execute("close W")
     s.run_for(0.1)
     assert w.prio == w.default_prio == 4
+
+
+async def urgent(ctx: TaskContext, cmd: Any) -> None:
+    """Invokes W at ``cmd["prio"]`` (at most its own running priority)."""
+    try:
+        await ctx.invoke("W", "urgent", priority=cmd["prio"])
+        ctx.world.sensory["got"] = "owner"
+    except MessageError as exc:
+        ctx.world.sensory["got"] = str(exc)
+    await ctx.sleep(100.0)
+
+
+def test_a_task_passes_down_at_most_its_own_priority(make_system: MakeSystem) -> None:
+    s = make_system(memory_map([], {"M1": -1.0}))
+    s.execute(f"install -m0o1 --code={M}:worker W M1")
+    s.execute(f"install -m0o1 --code={M}:urgent U W")
+    s.execute(f"install -m0o1 --code={M}:urgent V W")
+    s.execute("invoke -30 W x=1")  # the host holds W at 30
+    s.execute("invoke -40 U prio=40")
+    s.execute("invoke -20 V prio=50")
+    s.run_for(0.1)
+    assert _world(s, "U")["got"] == "owner"  # 40 > 30: pre-empts the host
+    assert "runs at priority 20: it cannot invoke W at priority 50" in _world(s, "V")["got"]
+    assert s.tsktab.get("W").owner is s.msgtab.find("U", "W")
 
 
 def test_tasks_owned_from_a_dead_satellite_are_released(make_system: MakeSystem) -> None:
