@@ -49,11 +49,13 @@ def _run_example(argv: list[str]) -> int:
     ap.add_argument("--duration", type=float, default=20.0, help="seconds of clock time")
     ap.add_argument("--real-time", action="store_true", help="wall-clock time, not virtual")
     ap.add_argument("--workdir", help="where the map, log and test file go (default out/fig65)")
+    ap.add_argument("--tty", help="a terminal for A4 instead of /dev/tty0, e.g. $(tty): lines "
+                                  "typed there reach C1 ('stop', 'shutdown'); implies --real-time")
     args = ap.parse_args(argv)
     from chcos import fig65run
 
-    fig65run.run(args.duration, real_time=args.real_time,
-                 workdir=Path(args.workdir) if args.workdir else None)
+    fig65run.run(args.duration, real_time=args.real_time or bool(args.tty),
+                 workdir=Path(args.workdir) if args.workdir else None, tty=args.tty)
     return 0
 
 

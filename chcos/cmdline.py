@@ -1,8 +1,11 @@
 """cmdline - the host's command syntax, as in thesis section 6.3, plus ordinary long options.
 
-``install [-m#i#o#] tsk infile... outfile...`` (also ``-m0 -i2 -o1`` and ``--machine 0 --inputs 2
---outputs 1``; ``install -m1 sysfile`` loads a satellite), ``setpri -# srctsk dsttsk``,
-``invoke [-#] tsk [key=value...]``, plus ``suspend``, ``resume``, ``close``, ``inject`` and ``map``.
+``install [-m#i#o#[s]] tsk infile... outfile...`` (also ``-m0 -i2 -o1`` and ``--machine 0 --inputs 2
+--outputs 1``; ``s``, ``-s`` or ``--standing`` for a standing task, ``--restart=never|on-recovery|
+always`` and ``--backoff=S`` for its restart policy; ``install -m1 sysfile`` loads a satellite, a
+second time reloads it), ``setpri -# srctsk dsttsk``, ``resetpri tsk`` / ``resetpri srctsk
+dsttsk``, ``invoke [-#] tsk [key=value...]``, plus ``suspend``, ``resume``, ``close``, ``reset``,
+``inject`` and ``map``.
 Parsing is pure: it returns a request record and raises CommandSyntaxError naming the command,
 the word and what was expected.
 """
@@ -19,7 +22,7 @@ from typing import Any
 from chcos.devspec import MAX_MACHINE
 from chcos.errors import CommandSyntaxError
 
-_COMBINED = re.compile(r"^-(?:m(\d+))?(?:i(\d+))?(?:o(\d+))?$")
+_COMBINED = re.compile(r"^-(?:m(\d+))?(?:i(\d+))?(?:o(\d+))?(s)?$")
 _PRIO = re.compile(r"^-(\d+)$")
 
 
@@ -36,6 +39,13 @@ class Install:
     level: int | None = None
     params: dict[str, Any] = field(default_factory=dict)
     queued: dict[str, int] = field(default_factory=dict)
+    standing: bool = False  # always on: started at install/boot, re-armed when released
+    restart: str = "never"  # after an abnormal end: never, on-recovery, always
+    backoff: float = 1.0  # seconds before a restart
+
+
+#: Restart policies of ``install --restart=``: the thesis' default is ``never`` (the owner decides).
+RESTART_POLICIES = ("never", "on-recovery", "always")
 
 
 @dataclass(frozen=True)
@@ -51,6 +61,14 @@ class SetPri:
     """Set the priority of the link ``src``/``dst``."""
 
     priority: int
+    src: str
+    dst: str
+
+
+@dataclass(frozen=True)
+class ResetPri:
+    """``resetpri SRC DST``: the link ``src``/``dst`` back to its default priority."""
+
     src: str
     dst: str
 
@@ -85,7 +103,7 @@ class ShowMap:
     """Print the system map."""
 
 
-Request = Install | Boot | SetPri | Invoke | TaskOp | Inject | ShowMap
+Request = Install | Boot | SetPri | ResetPri | Invoke | TaskOp | Inject | ShowMap
 
 
 def _int(cmd: str, word: str, what: str, lo: int = 0, hi: int | None = None) -> int:
@@ -166,11 +184,19 @@ def _install(args: list[str]) -> Install | Boot:
     level: int | None = None
     params: dict[str, Any] = {}
     queued: dict[str, int] = {}
+    standing = False
+    restart = "never"
+    backoff = 1.0
     rest: list[str] = []
     it = iter(args)
     for word in it:
+        if word in ("-s", "--standing"):
+            standing = True
+            continue
         m = _COMBINED.match(word)
         if m and word != "-":
+            if m.group(4) is not None:
+                standing = True
             if m.group(1) is not None:
                 machine = _int("install", m.group(1), "machine number", 0, MAX_MACHINE)
             if m.group(2) is not None:
@@ -205,10 +231,18 @@ def _install(args: list[str]) -> Install | Boot:
             elif opt == "--queue":
                 k, v = _kv("install --queue", val)
                 queued[k] = _int("install --queue", v, "queue length", 1)
+            elif opt == "--restart":
+                if val not in RESTART_POLICIES:
+                    raise CommandSyntaxError(f"install: --restart {val!r}: expected "
+                                             f"{', '.join(RESTART_POLICIES)}")
+                restart = val
+            elif opt == "--backoff":
+                backoff = _seconds("install --backoff", val)
             else:
                 raise CommandSyntaxError(
-                    f"install: unknown option {opt} (expected -m#i#o#, --machine, --inputs, "
-                    "--outputs, --code, --role, --level, --param, --queue)")
+                    f"install: unknown option {opt} (expected -m#i#o#[s], --machine, --inputs, "
+                    "--outputs, --code, --role, --level, --param, --queue, --standing, "
+                    "--restart, --backoff)")
             continue
         if word.startswith("-") and len(word) > 1:
             raise CommandSyntaxError(f"install: bad option {word!r} (expected -m#i#o#)")
@@ -232,7 +266,19 @@ def _install(args: list[str]) -> Install | Boot:
         code = ref
     return Install(name=name, machine=machine, inputs=tuple(files[:n_in]),
                    outputs=tuple(files[n_in:]), code=code or name, role=role, level=level,
-                   params=params, queued=queued)
+                   params=params, queued=queued, standing=standing, restart=restart,
+                   backoff=backoff)
+
+
+def _seconds(cmd: str, word: str) -> float:
+    """A finite, non-negative number of seconds at most one day."""
+    try:
+        v = float(word)
+    except ValueError:
+        raise CommandSyntaxError(f"{cmd}: {word!r} is not a number of seconds") from None
+    if not 0.0 <= v <= 86400.0:  # also refuses nan and inf
+        raise CommandSyntaxError(f"{cmd}: {word!r}: expected seconds in 0..86400")
+    return v
 
 
 def _priority_word(cmd: str, args: list[str]) -> tuple[int | None, list[str]]:
@@ -291,6 +337,17 @@ def parse(line: str | list[str]) -> Request | None:
         if len(args) != 1:
             raise CommandSyntaxError(f"{cmd}: expected one task name")
         return TaskOp(cmd, args[0])
+    if cmd == "resetpri":
+        if len(args) == 1:
+            return TaskOp(cmd, args[0])
+        if len(args) == 2:
+            return ResetPri(args[0], args[1])
+        raise CommandSyntaxError("resetpri: expected a task (resetpri T) or a link "
+                                 "(resetpri SRC DST)")
+    if cmd == "reset":
+        if len(args) > 1:
+            raise CommandSyntaxError("reset: expected at most one task name")
+        return TaskOp(cmd, args[0] if args else "")
     if cmd == "inject":
         if len(args) < 2:
             raise CommandSyntaxError("inject: expected a device and a value")
@@ -298,5 +355,5 @@ def parse(line: str | list[str]) -> Request | None:
     if cmd == "map":
         return ShowMap()
     raise CommandSyntaxError(
-        f"unknown command {cmd!r} (expected install, setpri, invoke, suspend, resume, close, "
-        "inject or map)")
+        f"unknown command {cmd!r} (expected install, setpri, resetpri, invoke, suspend, "
+        "resume, close, reset, inject or map)")

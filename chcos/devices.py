@@ -150,6 +150,21 @@ class Devtab:
         self._inflight: dict[str, deque[_Write]] = {}
         self._rx_stamp: dict[str, float] = {}
 
+    def suspend(self, device: str) -> None:
+        """Host ``suspend`` of a device: SUSPENDED (readings dropped, commands refused) until
+        :meth:`resume`. Raises DeviceError for an unknown device."""
+        self.get(device)
+        self._set_status(device, DeviceStatus.SUSPENDED, "suspended by the host")
+
+    def resume(self, device: str) -> None:
+        """Undo :meth:`suspend`: the device takes the status its health gives (a failure its
+        driver reported meanwhile, staleness, else OK); one that is not suspended is left as
+        it is. Raises DeviceError for an unknown device."""
+        e = self.get(device)
+        if e.status is DeviceStatus.SUSPENDED:
+            status, reason = self._health_status(e)
+            self._set_status(device, status, reason, ended="resumed by the host")
+
     # ---- table ------------------------------------------------------------------------------
     def load(self, devmap: DeviceMap) -> None:
         """Enter every device of ``devmap``; raises DeviceError (nothing entered) if a name is
@@ -371,16 +386,21 @@ class Devtab:
             # back: the safe value before any command; it stays until the owner commands again
             self._safe(device, "recovery")
 
+    @staticmethod
+    def _health_status(e: DeviceEntry) -> tuple[DeviceStatus, str]:
+        """The status ``e``'s health gives, with its reason: a driver failure first, then
+        staleness, else OK."""
+        if e.failure:
+            return DeviceStatus.FAILED, e.failure
+        if e.stale:
+            return DeviceStatus.STALE, f"no data for {e.spec.stale_after} s (stale_after)"
+        return DeviceStatus.OK, ""
+
     def _refresh(self, e: DeviceEntry, ended: str) -> None:
-        """Set ``e``'s status from its health: a driver failure first, then staleness."""
+        """Set ``e``'s status from its health (unless the host suspended it)."""
         if e.status is DeviceStatus.SUSPENDED:
             return
-        if e.failure:
-            status, reason = DeviceStatus.FAILED, e.failure
-        elif e.stale:
-            status, reason = DeviceStatus.STALE, f"no data for {e.spec.stale_after} s (stale_after)"
-        else:
-            status, reason = DeviceStatus.OK, ""
+        status, reason = self._health_status(e)
         if status is e.status:
             e.reason = reason
             return

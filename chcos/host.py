@@ -171,7 +171,7 @@ class Host:
         if isinstance(req, cmdline.ShowMap):
             return render_text(self.map_doc())
         up = self._up()
-        if isinstance(req, cmdline.Install | cmdline.SetPri | cmdline.Boot):
+        if isinstance(req, cmdline.Install | cmdline.SetPri | cmdline.ResetPri | cmdline.Boot):
             seq = len(self._ask(up[0], {"op": "log"})["log"])
             target = getattr(req, "machine", None)
             order = sorted(up, key=lambda m: m != target)
@@ -180,6 +180,9 @@ class Host:
             answers = [self._ask(m, {"op": "commit", "line": line, "seq": seq})["answer"]
                        for m in order]
             return str(answers[0])
+        if isinstance(req, cmdline.TaskOp) and req.op == "reset" and not req.task:
+            return "; ".join(f"machine {m}: {self._ask(m, {'op': 'exec', 'line': line})['answer']}"
+                             for m in up)
         name = (req.task if isinstance(req, cmdline.Invoke | cmdline.TaskOp)
                 else req.device if isinstance(req, cmdline.Inject) else "")
         if name not in self._where:

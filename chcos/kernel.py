@@ -174,7 +174,8 @@ class Kernel:
                 if p.waiter is t:
                     p.waiter = None
             t.wait_ports = ()
-        if t.timer is not None or t.wait_link is not None or t.wait_query is not None:
+        if (t.timer is not None or t.wait_link is not None or t.wait_query is not None
+                or t.multi_wait):
             self.unhook(t)
         t.send_value = value
         t.throw_exc = exc
@@ -189,6 +190,15 @@ class Kernel:
         t.wait_link = None
         t.wait_query = None
         t.sleep_until = None
+        if t.multi_wait:
+            t.multi_wait = False
+            t.wait_links = ()
+            t.wait_commands = False
+            t.wake_filter = None
+            if t.wait_tap:
+                t.wait_tap = False
+                if t.tap is not None and t.tap.waiter is t:
+                    t.tap.waiter = None
         if t.timer is not None:
             t.timer.cancel()
             t.timer = None
@@ -223,7 +233,8 @@ class Kernel:
             self.ready(t, pending)
         elif t.timer is not None:
             t.state = TaskState.ASLEEP if t.sleep_until is not None else TaskState.WAITING
-        elif t.wait_ports or t.wait_link is not None or t.wait_query is not None:
+        elif (t.wait_ports or t.wait_link is not None or t.wait_query is not None
+              or t.multi_wait):
             t.state = TaskState.WAITING
         else:
             t.state = TaskState.SUSPENDED

@@ -58,6 +58,10 @@ COMMON_DEVICE = (
     Key("safe_value", "float", "none", "actuators: written on e-stop, on abnormal completion "
         "of the commanding task and on shutdown; within limits"),
     Key("units", "string", '""', "shown with values"),
+    Key("round", "bool", "false", "actuators only: round the raw value to an integer for an "
+        "integer address (without it a value the address cannot carry exactly is refused)"),
+    Key("north_writable", "bool", "false", "actuators only: the north-side facades (Modbus "
+        "facade, OPC UA) may command it, within its limits and the owner rules"),
 )
 COMMON = {"bus": COMMON_BUS, "device": COMMON_DEVICE}
 

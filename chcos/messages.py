@@ -191,6 +191,13 @@ class TapPort:
         value, at = self.newest.pop(src)
         return src, value, at
 
+    def take_from(self, source: str) -> tuple[str, Any, float]:
+        """Remove and return ``source``'s unread (source, message, time sent); raises KeyError
+        if there is none."""
+        value, at = self.newest.pop(source)
+        self.order.remove(source)
+        return source, value, at
+
 
 @dataclass
 class Msgtab:

@@ -34,6 +34,12 @@ if TYPE_CHECKING:
 log = logging.getLogger("chcos.msgmgr")
 
 EventSink = Callable[[str, str], None]
+_COMMAND = object()  # what wakes a task waiting (wait_any) for a command message
+
+
+def _healthy(devtab: Devtab, device: str) -> bool:
+    """Whether ``device`` delivers (neither failed nor stale)."""
+    return devtab.get(device).status.name not in ("FAILED", "STALE")
 
 
 class Comm(Protocol):
@@ -164,10 +170,21 @@ class MessageManager:
             for i in kernel.h_sent:
                 i.message_sent(link)
         w = port.waiter
-        if w is not None:
+        if w is not None and (w.wake_filter is None or self._wanted(w, link.src, value)):
             base = w.base_prio
             kernel.wake(w, base if base > link.priority else link.priority, port)
         return True
+
+    @staticmethod
+    def _wanted(w: TaskEntry, source: str, value: Any) -> bool:
+        """Whether ``w``'s ``wait_any(when=...)`` filter lets this message wake it (a filter
+        that raises lets it through: a failure is never masked)."""
+        f = w.wake_filter
+        try:
+            return f is None or bool(f(source, value))
+        except Exception:
+            log.exception("wake filter of %s failed on a message from %s", w.name, source)
+            return True
 
     def _tap(self, t: TaskEntry, value: Any) -> None:
         for _exc_task, tap, links in self.taps:
@@ -188,7 +205,7 @@ class MessageManager:
             link.overwritten += 1
         link.sent += 1
         w = tap.waiter
-        if w is not None:
+        if w is not None and (w.wake_filter is None or self._wanted(w, source, value)):
             tap.waiter = None
             kernel.wake(w, max(w.base_prio, link.priority), tap)
 
@@ -259,7 +276,8 @@ class MessageManager:
         if link.type is not LinkType.COMMAND or link.dst_kind is not EndpointKind.TASK:
             raise MessageError(f"{link.name} is not a command link to a task")
         if link.status is LinkStatus.SUSPENDED:
-            raise MessageError(f"link {link.name} is suspended")
+            raise MessageError(f"link {link.name} is suspended: task {link.dst} is suspended "
+                               "(host 'resume' or, after an emergency, 'reset')")
         target = self.tsktab.get(link.dst)
         link.reported = False
         link.result = None
@@ -271,6 +289,16 @@ class MessageManager:
             self.comm.open(link, command, wait)
             return False
         owner = target.owner
+        if (owner is link and target.coro is not None and not target.cancelling
+                and link.src_kind is not EndpointKind.HOST):
+            # Appendix 3: the task already belongs to the caller - no change; the parameters
+            # reach the running activation as its newest command. (The host's invoke is the
+            # system manager's, not a topen: it starts the command afresh.)
+            link.status = LinkStatus.OK
+            link.pending = False
+            link.sent += 1
+            self.give_command(target, command)
+            return True
         if owner is link or owner is None or owner.priority < link.priority:
             if owner is not None and owner is not link:
                 self._report(owner, LinkStatus.PREEMPTED,
@@ -307,6 +335,13 @@ class MessageManager:
         if target.owner is link:
             self._release(target)
 
+    def give_command(self, target: TaskEntry, command: Any) -> None:
+        """Hand ``command`` to ``target``'s running activation as its newest command (an older
+        one not yet taken is overwritten) and wake it if it waits for commands."""
+        target.new_command = (command,)
+        if target.wait_commands:
+            self.kernel.wake(target, target.base_prio, _COMMAND)
+
     def _start(self, target: TaskEntry, command: Any, link: Link) -> None:
         """Begin an activation of ``target`` for ``command`` at ``link``'s priority (a running
         activation is cancelled first: the newest command wins)."""
@@ -318,6 +353,8 @@ class MessageManager:
 
     def _activate(self, target: TaskEntry, command: Any, prio: int) -> None:
         target.command = command
+        target.last_command = command
+        target.new_command = None
         target.activations += 1
         try:
             coro = target.func(target.ctx, command)
@@ -349,6 +386,16 @@ class MessageManager:
             self._start(t, command, link)
         elif t.coro is not None:
             self.kernel.cancel(t, "released by its owner")
+        if t.owner is None:
+            self._back_to_default(t)
+
+    def _back_to_default(self, t: TaskEntry) -> None:
+        """A released task goes back to its default priority (resetpri)."""
+        if t.prio != t.default_prio:
+            if t.state is TaskState.READY and not t.frozen:
+                self.kernel.ready(t, t.default_prio)
+            else:
+                t.prio = t.default_prio
 
     def _caller(self, link: Link) -> TaskEntry | None:
         if link.src_kind is EndpointKind.TASK and link.src in self.tsktab:
@@ -368,6 +415,8 @@ class MessageManager:
         elif caller is not None and caller.wait_link is link and not link.pending:
             link.reported = False
             self.kernel.wake(caller, max(caller.base_prio, link.priority), link.completion())
+        elif caller is not None and caller.multi_wait and link in caller.wait_links:
+            self.kernel.wake(caller, max(caller.base_prio, link.priority), link)
 
     def complete(self, t: TaskEntry, result: Any) -> None:
         """Report normal completion of ``t``'s command to its owner (teotsk) and end the command
@@ -377,13 +426,19 @@ class MessageManager:
         if link is None:
             return
         t.completions += 1
+        if self.kernel.h_event:
+            self.event("complete", f"{t.name} completed for {link.src}")
         self._report(link, LinkStatus.NORMAL, result=result)
         t.owner = None
         if t.waitq:
             self._release(t)
+        else:
+            self._back_to_default(t)
 
     def _activation_ended(self, t: TaskEntry, how: str, value: Any) -> None:
         t.coro = None
+        t.new_command = None
+        self.release_subordinates(t, f"{t.name} ended ({how})")
         if how == "return":
             if t.owner is not None:
                 self.complete(t, value)
@@ -411,6 +466,195 @@ class MessageManager:
                     self._activate(t, command, prio)
                     return
             t.state = TaskState.SUSPENDED
+            if t.owner is None:
+                t.prio = t.default_prio
+                if how == "error":
+                    self._plan_restart(t, value)
+                elif how == "preempted":  # released (tclose): suspended with actuators safe
+                    if self.devtab is not None:
+                        self.devtab.safe_outputs(t)
+                    if t.standing and not t.frozen:
+                        self.start_standing(t, "re-armed after its owner released it")
+
+    # ---- standing tasks and restart policies ------------------------------------------------
+    def start_standing(self, t: TaskEntry, why: str = "started") -> None:
+        """Start a standing task's own activation (no owner, no command) if it has none and
+        nobody owns it; local tasks only."""
+        if not self.is_local(t.machine) or t.coro is not None or t.owner is not None:
+            return
+        self.event("standing", f"{t.name} {why}")
+        self._activate(t, None, t.default_prio)
+
+    def _plan_restart(self, t: TaskEntry, err: Any) -> None:
+        """After an abnormal end with nobody to take the task over: apply its restart policy."""
+        if t.restart == "never" or not self.is_local(t.machine):
+            return
+        if t.restart == "always":
+            self._restart_later(t, f"restart=always after {type(err).__name__}")
+            return
+        bad = self._unhealthy_devices(t)
+        if not bad:  # on-recovery: it did not end because a device failed
+            self.event("restart-skipped", f"{t.name}: ended abnormally with its devices healthy "
+                                          "(restart=on-recovery restarts only after a device "
+                                          "failure)")
+            return
+        t.waiting_devices = frozenset(bad)
+        self.event("restart-waiting", f"{t.name}: waiting for {', '.join(sorted(bad))} to be "
+                                      "healthy again")
+
+    def _unhealthy_devices(self, t: TaskEntry) -> set[str]:
+        devtab = self.devtab
+        if devtab is None:
+            return set()
+        names = {p.link.src for p in t.in_ports if p.link.src_kind is EndpointKind.DEVICE}
+        names |= {lk.dst for lk in t.out_links if lk.dst_kind is EndpointKind.DEVICE}
+        return {n for n in names if not _healthy(devtab, n)}
+
+    def _restart_later(self, t: TaskEntry, why: str) -> None:
+        if t.restart_timer is not None:
+            return
+
+        def fire() -> None:
+            t.restart_timer = None
+            if t.coro is not None or t.owner is not None or t.frozen:
+                return  # somebody took it over meanwhile: the owner decides
+            t.restarts += 1
+            self.event("restart", f"{t.name} restarted ({why}) with its last command "
+                                  f"{t.last_command!r}")
+            self._activate(t, t.last_command, t.default_prio)
+
+        t.restart_timer = self.kernel.call_later(t.backoff, fire)
+
+    def device_health(self, device: str, healthy: bool, cause: str) -> None:
+        """Devtab health listener: restart the on-recovery tasks waiting for ``device``."""
+        if not healthy:
+            return
+        devtab = self.devtab
+        for t in self.tsktab:
+            if device in t.waiting_devices:
+                if devtab is not None and any(not _healthy(devtab, n)
+                                              for n in t.waiting_devices):
+                    continue
+                t.waiting_devices = frozenset()
+                self._restart_later(t, f"restart=on-recovery: {device} healthy again")
+
+    # ---- ownership of subordinates ------------------------------------------------------------
+    def release_subordinates(self, t: TaskEntry, why: str) -> int:
+        """Release every task ``t`` owns or waits for (tclose on each command link): ownership
+        passes to the next waiter, or the task is suspended with its actuators safe (a standing
+        task goes back to its own loop). Returns how many were released."""
+        n = 0
+        links = t.out_links if not t.special_links else [*t.out_links,
+                                                          *t.special_links.values()]
+        for link in links:
+            if link.dst_kind is not EndpointKind.TASK:
+                continue
+            if link.remote:
+                if link.pending or (link.status is LinkStatus.OK and link.sent):
+                    assert self.comm is not None
+                    link.pending = False
+                    self.comm.close(link)
+                continue
+            target = self.tsktab.get(link.dst)
+            if link.pending:
+                link.pending = False
+                target.waitq[:] = [e for e in target.waitq if e[1] is not link]
+            if target.owner is link:
+                n += 1
+                self.event("release", f"{target.name} released: {why}")
+                self._release(target)
+        return n
+
+    def suspend_task(self, t: TaskEntry, by: str) -> None:
+        """Freeze ``t`` (host ``suspend``, the assassin): msgstat shows its command links
+        SUSPENDED and it releases its subordinates."""
+        self.kernel.suspend(t)
+        for link in self.msgtab:
+            if (link.dst == t.name and link.type is LinkType.COMMAND
+                    and link.status is LinkStatus.OK):
+                link.status = LinkStatus.SUSPENDED
+        self.release_subordinates(t, f"its owner {t.name} was suspended by {by}")
+
+    def resume_task(self, t: TaskEntry) -> None:
+        """Undo :meth:`suspend_task`."""
+        for link in self.msgtab:
+            if link.dst == t.name and link.status is LinkStatus.SUSPENDED:
+                link.status = LinkStatus.OK
+        self.kernel.resume(t)
+
+    def reset_task(self, t: TaskEntry) -> bool:
+        """Bring a frozen task back to work: its activation is ended (pre-empted), it is
+        resumed, unowned, at its default priority; a standing task re-arms itself. True if the
+        task was frozen."""
+        frozen = t.frozen
+        if t.owner is not None:
+            link = t.owner
+            self._report(link, LinkStatus.PREEMPTED, error=f"{t.name} reset after an emergency")
+            t.owner = None
+        for _seq, link, _cmd in t.waitq:
+            link.pending = False
+            self._report(link, LinkStatus.PREEMPTED, error=f"{t.name} reset")
+        t.waitq.clear()
+        t.next_command = None
+        if t.coro is not None:
+            self.kernel.cancel(t, "reset")
+        self.resume_task(t)
+        t.frozen_ready = None
+        if t.coro is None:
+            t.prio = t.default_prio
+        return frozen
+
+    def wipe(self, t: TaskEntry, why: str) -> None:
+        """Forget everything ``t`` was doing (a reload from scratch): its owner and waiters are
+        told it was pre-empted, its activation is closed at once (its ``finally`` blocks run),
+        what it owned is released, its unread messages, newest command, suspension and pending
+        restart are dropped; it stays SUSPENDED at its default priority."""
+        for link in [e[1] for e in t.waitq] + ([t.owner] if t.owner is not None else []):
+            link.pending = False
+            self._report(link, LinkStatus.PREEMPTED, error=why)
+        t.owner = None
+        t.waitq.clear()
+        coro, t.coro = t.coro, None
+        self.kernel.unhook(t)
+        t.stamp = -1  # drop any ready-heap entry
+        if coro is not None:
+            try:
+                coro.close()
+            except Exception:
+                log.exception("task %s: closing its activation failed", t.name)
+        self.release_subordinates(t, why)
+        t.frozen = False
+        t.frozen_ready = None
+        t.cancelling = False
+        t.next_command = t.new_command = None
+        t.send_value = t.throw_exc = None
+        t.waiting_devices = frozenset()
+        if t.restart_timer is not None:
+            t.restart_timer.cancel()
+            t.restart_timer = None
+        for p in t.in_ports:
+            p.fresh = False
+            p.value = None
+            if p.fifo is not None:
+                p.fifo.clear()
+        if isinstance(t.tap, TapPort):
+            t.tap.newest.clear()
+            t.tap.order.clear()
+        for link in self.msgtab:
+            if link.dst == t.name and link.status is LinkStatus.SUSPENDED:
+                link.status = LinkStatus.OK
+        t.prio = t.default_prio
+        t.state = TaskState.SUSPENDED
+
+    def resetpri(self, t: TaskEntry) -> int:
+        """resetpri: ``t`` runs again at the priority of its owning link, or at its default
+        priority when unowned (a ready task is re-queued). Returns the priority."""
+        prio = t.owner.priority if t.owner is not None else t.default_prio
+        if t.state is TaskState.READY:
+            self.kernel.ready(t, prio)
+        else:
+            t.prio = prio
+        return prio
 
     # ---- answers from other satellites (called by the communications manager) ---------------
     def remote_open(self, link: Link, command: Any, wait: bool) -> str:
@@ -484,11 +728,31 @@ class MessageManager:
         else:
             self.kernel.wake(t, t.base_prio, exc=MessageError(error))
 
+    def _release_from(self, machine: int) -> int:
+        """Local tasks owned by (or queued for) a caller on dead ``machine`` are released."""
+        n = 0
+        for t in self.tsktab:
+            if not self.is_local(t.machine):
+                continue
+            for _seq, link, _cmd in list(t.waitq):
+                if link.src_machine == machine and link.src_kind is EndpointKind.TASK:
+                    t.waitq[:] = [e for e in t.waitq if e[1] is not link]
+                    link.pending = False
+            owner = t.owner
+            if (owner is not None and owner.src_kind is EndpointKind.TASK
+                    and owner.src_machine == machine):
+                n += 1
+                self.event("release", f"{t.name} released: its owner {owner.src} died with "
+                                      f"satellite {machine}")
+                self._release(t)
+        return n
+
     def satellite_lost(self, machine: int) -> int:
         """Machine ``machine`` died: every local caller of a task there gets an abnormal
-        completion, every task waiting for a world-model answer from there a MessageError.
-        Returns how many links and queries were told."""
-        n = 0
+        completion, every task waiting for a world-model answer from there a MessageError, and
+        every local task owned by a task there is released (tclose). Returns how many links,
+        queries and tasks were told."""
+        n = self._release_from(machine)
         for qid, (t, m) in list(self._asks.items()):
             if m == machine:
                 n += t.wait_query == qid

@@ -32,7 +32,7 @@ from chcos.system import System
 
 log = logging.getLogger("chcos.satellite")
 
-MUTATING = (cmdline.Install, cmdline.SetPri, cmdline.Boot)
+MUTATING = (cmdline.Install, cmdline.SetPri, cmdline.ResetPri, cmdline.Boot)
 #: How long a starting satellite keeps asking for the install log before it concludes that it is
 #: alone (links to the other satellites are made in the background, within milliseconds).
 CATCH_UP_WAIT = 2.0
@@ -181,6 +181,11 @@ class Satellite:
         mgr = self.system.sysmgr
         if isinstance(req, cmdline.Install):
             mgr.check_install(req)
+        elif isinstance(req, cmdline.ResetPri):
+            try:
+                self.system.msgtab.find(req.src, req.dst)
+            except MessageError as exc:
+                raise InstallError(f"resetpri: {exc}") from exc
         elif isinstance(req, cmdline.SetPri):
             if not 0 <= req.priority <= 99:
                 raise InstallError(f"setpri: priority {req.priority} outside 0..99")

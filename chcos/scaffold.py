@@ -109,8 +109,9 @@ def test_a_failed_sensor_makes_the_valve_safe(chcos_cell):
     cell.run_for(0.5)
     assert cell.task("fill").abnormal == 1   # the task was told and ended abnormally
     assert cell.peer("valve") == 0           # its actuator's safe value reached the PLC
+    cell.recover("level")                    # the fault ends (a reading alone would not)
     cell.invoke("fill", setpoint=100)        # a new command starts it again
-    cell.run_for(1.0)                        # the next reading clears the failure
+    cell.run_for(1.0)
     assert cell.status("level") == "OK"
     assert cell.peer("valve") == 20
 '''

@@ -1,7 +1,10 @@
 """sysmap - sysfile.map: the system's record of itself, written after every change.
 
 A readable JSON document: the loaded machines and device maps, every task in install order with
-its code, links and parameters, every link with its type and current priority, every device. It
+its code, links, parameters and options (standing, restart policy, back-off), every link with its
+type and current priority, every device; beside them the runtime fields (status, owner, counters),
+which are as current as the last time the map was written (every table change, host task
+operations, ``map``, shutdown). It
 is written atomically (temporary file, fsync, rename), so a crash never leaves half a map, and
 :func:`replay` rebuilds a restarted system from it (installs in order, then priorities).
 """
@@ -71,6 +74,12 @@ def install_lines(doc: dict[str, Any]) -> list[str]:
             extra.append(f"--param={k}={json.dumps(v)}")
         for k, v in t.get("queued", {}).items():
             extra.append(f"--queue={k}={v}")
+        if t.get("standing"):
+            extra.append("--standing")
+        if t.get("restart", "never") != "never":
+            extra.append(f"--restart={t['restart']}")
+        if t.get("backoff", 1.0) != 1.0:
+            extra.append(f"--backoff={t['backoff']}")
         words = ["install", flags, *extra, t["name"], *t["inputs"], *t["outputs"]]
         lines.append(" ".join(_quote(w) for w in words))
     for lk in doc["links"]:

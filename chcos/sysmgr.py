@@ -20,7 +20,17 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from chcos import sysmap
-from chcos.cmdline import Boot, Inject, Install, Invoke, Request, SetPri, ShowMap, TaskOp
+from chcos.cmdline import (
+    Boot,
+    Inject,
+    Install,
+    Invoke,
+    Request,
+    ResetPri,
+    SetPri,
+    ShowMap,
+    TaskOp,
+)
 from chcos.errors import ChcosError, InstallError, MessageError, TaskError
 from chcos.loader import resolve
 from chcos.messages import (
@@ -88,7 +98,7 @@ class SystemManager:
         if name in s.devtab:
             d = s.devtab.get(name).spec
             return _Peer(name, EndpointKind.DEVICE, 0, d.machine, d.direction)
-        if name.startswith("/dev/tty"):
+        if name.startswith(("/dev/tty", "/dev/pts/")):
             return _Peer(name, EndpointKind.FILE, 0, -1, "terminal")
         if is_path(name):
             return _Peer(name, EndpointKind.FILE, 0, -1, "file")
@@ -103,14 +113,47 @@ class SystemManager:
     # ---- boot -------------------------------------------------------------------------------
     def boot(self, machine: int, sysfile: str = "sysfile") -> str:
         """Load machine ``machine`` (``install -mN sysfile``): start the drivers of its devices.
-        Loading a machine twice changes nothing. Raises BusError if a driver cannot start."""
+        Loading a loaded machine again reloads it from scratch (thesis 6.3, see :meth:`reload`).
+        Raises BusError if a driver cannot start."""
         if machine in self.machines:
-            return f"machine {machine} already loaded"
+            return self.reload(machine, sysfile)
         if self.sys.msgmgr.is_local(machine):
             self.sys.start_drivers([machine])
         self.machines.add(machine)
         self._changed("boot", f"machine {machine} loaded from {sysfile}")
         return f"machine {machine} loaded"
+
+    def reload(self, machine: int, sysfile: str = "sysfile") -> str:
+        """A second ``install -mN sysfile``: "the satellite is to be reloaded from scratch"
+        (thesis 6.3). Every task of the machine loses its activation (its owner is told it was
+        pre-empted), its ownership, wait queue, unread messages, world model and suspension;
+        whatever it owned is released; the machine's actuators go to their safe values; then its
+        standing tasks start again as at install. The tables (tasks, links, priorities) and the
+        bus drivers stay: they are the configuration the satellite is loaded with."""
+        s = self.sys
+        mm = s.msgmgr
+        if not mm.is_local(machine):
+            self._changed("reload", f"machine {machine} reloaded from {sysfile} (remote)")
+            return f"machine {machine} reloaded"
+        tasks = [t for t in s.tsktab if t.machine == machine]
+        for t in tasks:
+            mm.wipe(t, f"machine {machine} reloaded from {sysfile}")
+            factory = getattr(t.func, "world_model", None)
+            t.world = factory() if callable(factory) else WorldModel()
+        safe = 0
+        for d in s.devtab:
+            if not d.is_sensor and d.spec.machine == machine and d.spec.safe_value is not None:
+                try:
+                    s.devtab.write(d.name, d.spec.safe_value, source="reload")
+                    safe += 1
+                except ChcosError as exc:
+                    mm.event("reload", f"safe value for {d.name} not written: {exc}")
+        self._changed("reload", f"machine {machine} reloaded from scratch from {sysfile}: "
+                                f"{len(tasks)} task(s) reset, {safe} actuator(s) safe")
+        for t in tasks:
+            if t.standing:
+                mm.start_standing(t, "started after the reload")
+        return f"machine {machine} reloaded from scratch ({len(tasks)} task(s))"
 
     # ---- install ----------------------------------------------------------------------------
     def check_install(self, req: Install) -> tuple[TaskFunc, int, list[_Peer], list[_Peer]]:
@@ -212,7 +255,8 @@ class SystemManager:
         factory = getattr(func, "world_model", None)
         t.world = factory() if callable(factory) else WorldModel()
         t.ctx = TaskContext(t, s.kernel, s.msgmgr)
-        t.prio = DEFAULT_COMMAND_PRIORITY
+        t.prio = t.default_prio = DEFAULT_COMMAND_PRIORITY
+        t.standing, t.restart, t.backoff = req.standing, req.restart, req.backoff
         s.tsktab.add(t)
         for i, p in enumerate(ins):
             prio = (s.devtab.get(p.name).spec.priority if p.kind is EndpointKind.DEVICE
@@ -238,7 +282,11 @@ class SystemManager:
         self.host_link(t.name)  # made now so that every satellite numbers its links alike
         self.installs.append(req)
         self._changed("install", f"{t.name} on machine {t.machine} at level {t.level} "
-                                 f"({len(ins)} in, {len(outs)} out)")
+                                 f"({len(ins)} in, {len(outs)} out)"
+                      + (", standing" if t.standing else "")
+                      + (f", restart={t.restart}" if t.restart != "never" else ""))
+        if t.standing:
+            s.msgmgr.start_standing(t, "started at install (standing task)")
         return t
 
     def _link(self, src: str, dst: str, type: LinkType, prio: int, sk: EndpointKind,
@@ -294,6 +342,23 @@ class SystemManager:
         self._changed("setpri", f"{link.name} {old} -> {priority}")
         return link
 
+    def default_priority(self, lk: Link) -> int:
+        """The priority ``lk`` had when it was made (before any setpri)."""
+        s = self.sys
+        return (TOP_PRIORITY if lk.tap and lk.src != "host" else
+                DEFAULT_COMMAND_PRIORITY if lk.type is LinkType.COMMAND else
+                s.devtab.get(lk.src).spec.priority if lk.src_kind is EndpointKind.DEVICE
+                else DEFAULT_SENSORY_PRIORITY)
+
+    def resetpri_link(self, src: str, dst: str) -> Link:
+        """``resetpri SRC DST``: link ``src``/``dst`` back to its default priority. Raises
+        InstallError for an unknown link."""
+        try:
+            link = self.sys.msgtab.find(src, dst)
+        except MessageError as exc:
+            raise InstallError(f"resetpri: {exc}") from exc
+        return self.setpri(src, dst, self.default_priority(link))
+
     def host_link(self, task: str) -> Link:
         """The implicit command link from the host to ``task`` (made on first use). Raises
         InstallError if there is no such task."""
@@ -327,19 +392,56 @@ class SystemManager:
         return f"{task} invoked at priority {link.priority}"
 
     def task_op(self, op: str, task: str) -> str:
-        """Host ``suspend``, ``resume`` or ``close`` of ``task``. Raises InstallError if unknown."""
+        """Host ``suspend``, ``resume``, ``close``, ``resetpri`` or ``reset`` of ``task`` (or of
+        a device, for suspend/resume: its readings are dropped and writes refused meanwhile).
+        ``reset`` without a task resets every suspended task (see :meth:`reset`). Raises
+        InstallError if unknown."""
+        mm = self.sys.msgmgr
+        if op == "reset":
+            return self.reset(task or None)
+        if op in ("suspend", "resume") and task not in self.sys.tsktab \
+                and task in self.sys.devtab:
+            self.sys.devtab.suspend(task) if op == "suspend" else self.sys.devtab.resume(task)
+            mm.event(op, f"host {op} device {task}")
+            self.save_map()
+            return f"{task}: {op}"
         try:
             t = self.sys.tsktab.get(task)
         except TaskError as exc:
             raise InstallError(str(exc)) from exc
         if op == "suspend":
-            self.sys.kernel.suspend(t)
+            mm.suspend_task(t, "the host")
         elif op == "resume":
-            self.sys.kernel.resume(t)
+            mm.resume_task(t)
+        elif op == "resetpri":
+            prio = mm.resetpri(t)
+            mm.event("resetpri", f"host resetpri {task}: priority {prio}")
+            return f"{task}: priority {prio}"
         else:
-            self.sys.msgmgr.close(self.host_link(task))
-        self.sys.msgmgr.event(op, f"host {op} {task}")
+            mm.close(self.host_link(task))
+        mm.event(op, f"host {op} {task}")
+        self.save_map()
         return f"{task}: {op}"
+
+    def reset(self, task: str | None = None) -> str:
+        """The operator's acknowledgement after an emergency: every suspended task (below and
+        including ``task`` if given) has its activation ended, is resumed unowned at its
+        default priority (standing tasks re-arm themselves), and every link raised by setpri
+        keeps its priority. Nothing is commanded: the job is started again by an ``invoke``.
+        Raises InstallError for an unknown task."""
+        mm = self.sys.msgmgr
+        if task is not None:
+            try:
+                top = self.sys.tsktab.get(task)
+            except TaskError as exc:
+                raise InstallError(str(exc)) from exc
+            todo = [t for t in self.sys.tsktab if t is top or t.level < top.level]
+        else:
+            todo = list(self.sys.tsktab)
+        done = [t.name for t in todo if mm.is_local(t.machine) and t.frozen and mm.reset_task(t)]
+        mm.event("reset", f"host reset: {', '.join(done) or 'nothing was suspended'}")
+        self.save_map()
+        return f"reset: {', '.join(done) or 'nothing was suspended'}"
 
     def inject(self, name: str, value: Any) -> str:
         """Feed ``value`` to sensor or terminal ``name`` (as an interrupt would). Raises
@@ -369,6 +471,9 @@ class SystemManager:
         if isinstance(req, SetPri):
             link = self.setpri(req.src, req.dst, req.priority)
             return f"{link.name} priority {link.priority}"
+        if isinstance(req, ResetPri):
+            link = self.resetpri_link(req.src, req.dst)
+            return f"{link.name} priority {link.priority}"
         if isinstance(req, Invoke):
             return self.invoke(req.task, req.command or None, req.priority)
         if isinstance(req, TaskOp):
@@ -378,6 +483,7 @@ class SystemManager:
         if isinstance(req, ShowMap):
             from chcos.sysview import render_text
 
+            self.save_map()
             return render_text(self.map_doc())
         raise ChcosError(f"unknown request {req!r}")
 
@@ -392,7 +498,9 @@ class SystemManager:
                 "name": t.name, "machine": t.machine, "level": t.level,
                 "level_given": r.level is not None, "code": t.code, "role": r.role,
                 "inputs": list(r.inputs), "outputs": list(r.outputs), "params": dict(r.params),
-                "queued": dict(r.queued), "status": t.state.value,
+                "queued": dict(r.queued), "standing": r.standing, "restart": r.restart,
+                "backoff": r.backoff, "restarts": t.restarts,
+                "frozen": t.frozen, "status": t.state.value,
                 "owner": t.owner.src if t.owner is not None else None, "priority": t.prio,
                 "steps": t.steps, "activations": t.activations, "completions": t.completions,
                 "abnormal": t.abnormal, "last_error": t.last_error,
@@ -400,10 +508,7 @@ class SystemManager:
             })
         links = []
         for lk in s.msgtab:
-            default = (TOP_PRIORITY if lk.tap and lk.src != "host" else
-                       DEFAULT_COMMAND_PRIORITY if lk.type is LinkType.COMMAND else
-                       s.devtab.get(lk.src).spec.priority if lk.src_kind is EndpointKind.DEVICE
-                       else DEFAULT_SENSORY_PRIORITY)
+            default = self.default_priority(lk)
             links.append({
                 "src": lk.src, "dst": lk.dst, "type": lk.type.value, "priority": lk.priority,
                 "default_priority": default, "status": lk.status.value, "queued": lk.queued,

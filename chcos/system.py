@@ -53,6 +53,7 @@ class System:
         self.msgmgr = MessageManager(self.kernel, self.tsktab, self.msgtab)
         self.msgmgr.local = set(local_machines) if local_machines is not None else None
         self.devtab = Devtab(self.kernel, self.msgmgr)
+        self.devtab.add_health_listener(self.msgmgr.device_health)
         if isinstance(devmaps, DeviceMap):
             self.devmap = devmaps
         elif devmaps:
@@ -163,6 +164,10 @@ class System:
                 t.coro = None
         self.devtab.stop_drivers()
         self.msgmgr.close_files()
+        try:  # the map's runtime fields as they were at the end
+            self.sysmgr.save_map()
+        except OSError:
+            log.exception("cannot write the system map at shutdown")
 
     def __enter__(self) -> System:
         return self

@@ -70,6 +70,20 @@ class TaskEntry:
     waitq: list[tuple[int, Link, Any]] = field(default_factory=list)
     ctx: TaskContext | None = None
     world: WorldModel | None = None
+    # standing task and restart policy (install --standing --restart=... --backoff=...)
+    standing: bool = False
+    restart: str = "never"
+    backoff: float = 1.0
+    default_prio: int = 4  # the priority a released task goes back to (resetpri)
+    last_command: Any = None  # the command of the last activation (restarts reuse it)
+    waiting_devices: frozenset[str] = frozenset()  # on-recovery: devices that must be healthy
+    restart_timer: Timer | None = None
+    new_command: tuple[Any] | None = None  # a newer command from the owner, not yet taken
+    wait_commands: bool = False  # waiting (wait_any) for a command message
+    wait_links: tuple[Link, ...] = ()  # waiting (wait_any) for a completion on these links
+    wait_tap: bool = False  # waiting (wait_any) on the exception tap
+    wake_filter: Callable[[str, Any], bool] | None = None  # wait_any(when=...)
+    multi_wait: bool = False  # any of the four above is set
     # scheduler bookkeeping
     stamp: int = 0
     send_value: Any = None
@@ -88,12 +102,14 @@ class TaskEntry:
     activations: int = 0
     completions: int = 0
     abnormal: int = 0
+    restarts: int = 0
     last_error: str = ""
 
     @property
     def base_prio(self) -> int:
-        """The priority of the owning command message, or the last one the task ran at."""
-        return self.owner.priority if self.owner is not None else self.prio
+        """The priority of the owning command message, or the task's default priority when
+        nobody owns it (a message wakes it at the higher of this and the link's priority)."""
+        return self.owner.priority if self.owner is not None else self.default_prio
 
     def __repr__(self) -> str:
         return f"<task {self.name} m{self.machine} L{self.level} {self.state.value} p{self.prio}>"

@@ -93,6 +93,13 @@ class TestCell:
         self.system.devtab.get(device)
         self.system.devtab.fail(device, reason)
 
+    def recover(self, device: str, reason: str = "recovered in the test") -> None:
+        """End the failure :meth:`fail` injected, as its driver's end event would (a reading
+        alone never clears a failure the driver reported); a sensor is OK again with its next
+        reading."""
+        self.system.devtab.get(device)
+        self.system.devtab.recover(device, reason)
+
     # ---- reading ----------------------------------------------------------------------------
     def value(self, device: str) -> Any:
         """Devtab's value of ``device`` (last reading, or last command of an actuator)."""

@@ -16,11 +16,13 @@ sleep → :meth:`~TaskContext.sleep`; gettid → :attr:`~TaskContext.tid`.
 
 from __future__ import annotations
 
+import logging
 import types
-from collections.abc import Generator, Sequence
+from collections.abc import Callable, Generator, Sequence
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from chcos.errors import MessageError, ReadTimeout
+from chcos.errors import MessageError, ReadTimeout, SensorFailure
 from chcos.kernel import BLOCK, YIELD, Kernel
 from chcos.messages import Completion, EndpointKind, InPort, Link, LinkStatus, LinkType, TapPort
 from chcos.msgmgr import MessageManager
@@ -31,6 +33,24 @@ if TYPE_CHECKING:
     from chcos.worldmodel import WorldModel
 
 Port = int | str
+log = logging.getLogger("chcos.usrmgr")
+
+
+@dataclass(frozen=True)
+class Event:
+    """What :meth:`TaskContext.wait_any` returns: what happened first.
+
+    ``kind`` is ``"command"`` (a newer command from this task's owner; ``value`` is the
+    command, ``source`` the owner), ``"completion"`` (a subordinate completed or was
+    pre-empted; ``value`` is the :class:`Completion`, ``port`` the output port), ``"exception"``
+    (a tapped sensory message of a lower task; ``source`` is that task), ``"message"`` (a message
+    on input ``port`` from ``source``) or ``"failure"`` (the sensor on input ``port`` failed or
+    went stale while waiting; ``value`` is the reason)."""
+
+    kind: str
+    source: str
+    value: Any = None
+    port: int = -1
 
 
 class TaskContext:
@@ -69,8 +89,25 @@ class TaskContext:
 
     @property
     def command(self) -> Any:
-        """The command (parameters) of the current activation."""
+        """The command (parameters) of the current activation; after :meth:`take_command`, the
+        newest one taken."""
         return self._t.command
+
+    @property
+    def has_command(self) -> bool:
+        """True when the owner sent a newer command to this running activation (a repeated
+        topen from the owner, Appendix 3) that :meth:`take_command` has not taken yet."""
+        return self._t.new_command is not None
+
+    def take_command(self) -> Any:
+        """The owner's newest command to this running activation (it becomes :attr:`command`).
+        Raises MessageError if there is none (see :attr:`has_command`)."""
+        t = self._t
+        if t.new_command is None:
+            raise MessageError(f"task {t.name}: no new command from its owner")
+        (cmd,), t.new_command = t.new_command, None
+        t.command = t.last_command = cmd
+        return cmd
 
     @property
     def world(self) -> WorldModel:
@@ -224,6 +261,119 @@ class TaskContext:
         self._check_source(p)
         return default
 
+    @types.coroutine
+    def wait_any(self, ports: Sequence[Port] = (), *, exceptions: bool = False,
+                 completions: Sequence[Port] = (), commands: bool = False,
+                 when: Callable[[str, Any], bool] | None = None,
+                 timeout: float | None = None) -> Generator[Any, Any, Event]:
+        """Wait for whichever happens first and return it as an :class:`Event`: a message on one
+        of the input ``ports``, a tapped message (``exceptions``, exception task only), the
+        completion or pre-emption of a command sent on one of the output ports in
+        ``completions``, a newer command from this task's owner (``commands``). What is already
+        there is returned at once, in that order of importance: command, completion, tapped
+        message, port message (highest link priority first). The returned message, completion or
+        command is consumed.
+
+        ``when(source, message)``, if given, decides which port and tap messages are worth
+        waking for; it runs at delivery time in the sender's step, so it must be cheap and must
+        not block. Messages it turns down stay unread (a newer one overwrites them).
+        A sensor that fails while waited on gives a ``"failure"`` event (an already failed sensor
+        is not reported again: wait for its next reading). Raises MessageError for a bad port or
+        ``exceptions`` in a task that is not the exception task, ReadTimeout after ``timeout``
+        seconds with nothing."""
+        t = self._t
+        ins = tuple(self._in(p) for p in ports)
+        links = tuple(self._task_link(p) for p in completions)
+        tap = t.tap if exceptions else None
+        if exceptions and not isinstance(tap, TapPort):
+            raise MessageError(f"task {t.name} is not an exception task: it has no tap to wait on")
+        if not (ins or links or exceptions or commands):
+            raise MessageError(f"task {t.name}: wait_any with nothing to wait for")
+        deadline = None if timeout is None else self._k.clock.now() + timeout
+        while True:
+            ev = self._happened(ins, links, tap, commands, when)
+            if ev is not None:
+                if t.timer is not None:
+                    t.timer.cancel()
+                    t.timer = None
+                return ev
+            for p in ins:
+                p.waiter = t
+            t.wait_ports = ins
+            if tap is not None:
+                tap.waiter = t
+                t.wait_tap = True
+            t.wait_links = links
+            t.wait_commands = commands
+            t.wake_filter = when
+            t.multi_wait = True
+            self._k.block(t, TaskState.WAITING)
+            if deadline is not None:
+                self._arm_timeout(max(0.0, deadline - self._k.clock.now()), "wait_any")
+            try:
+                yield BLOCK
+            except SensorFailure as exc:
+                self._k.unhook(t)
+                index = next((p.index for p in ins if p.link.src == exc.device), -1)
+                return Event("failure", exc.device, exc.reason, index)
+            finally:
+                if t.multi_wait:
+                    timer, t.timer = t.timer, None
+                    self._k.unhook(t)
+                    t.timer = timer
+
+    def _happened(self, ins: tuple[InPort, ...], links: tuple[Link, ...], tap: Any,
+                  commands: bool, when: Callable[[str, Any], bool] | None) -> Event | None:
+        t = self._t
+        if commands and t.new_command is not None:
+            src = t.owner.src if t.owner is not None else ""
+            return Event("command", src, self.take_command())
+        for link in links:
+            report = self._mm.done_now(link)
+            if report is not None:
+                return Event("completion", link.dst, report, link.src_port)
+        if tap is not None and tap.order:
+            for src in tap.order:
+                value = tap.newest[src][0]
+                if when is None or _accepts(when, src, value):
+                    _s, value, _at = tap.take_from(src)
+                    return Event("exception", src, value)
+        best: InPort | None = None
+        for p in ins:
+            if (p.fresh and (best is None or p.link.priority > best.link.priority)
+                    and (when is None or _accepts(when, p.link.src, _head(p)))):
+                best = p
+        if best is not None:
+            return Event("message", best.link.src, self._take(best), best.index)
+        return None
+
+    def feed(self, port: Port, value: Any) -> None:
+        """Deliver ``value`` on input ``port`` as if its source had sent it. Thread-safe: for
+        system drivers whose own thread reads a terminal or a file (the delivery happens on
+        the kernel thread, between task steps). Raises MessageError for a bad port."""
+        link = self._in(port).link
+        mm = self._mm
+
+        def deliver() -> None:
+            mm.deliver(link, value)
+
+        self._k.interrupt(deliver)
+
+    def watch_events(self, fn: Callable[[str, str], None]) -> Callable[[], None]:
+        """Call ``fn(kind, detail)`` on every system event (installs, setpri, invokes,
+        completions, abnormal completions, pre-emptions, restarts, suspends, e-stops, device
+        failures...) until the returned function is called. ``fn`` runs on the kernel thread in
+        whatever step caused the event: it must not block (a system driver's log, e.g.)."""
+        from chcos.instrument import Instrument
+
+        class _Watch(Instrument):
+            def event(self, kind: str, detail: str) -> None:
+                fn(kind, detail)
+
+        watch = _Watch()
+        self._k.add_instrument(watch)
+        return lambda: self._k.remove_instrument(watch)
+
     def pending(self, port: Port = 0) -> bool:
         """True if a message waits on ``port``."""
         return self._in(port).fresh
@@ -249,12 +399,24 @@ class TaskContext:
         return link
 
     @types.coroutine
-    def invoke(self, port: Port, command: Any = None, *,
-               wait: bool = True) -> Generator[Any, Any, None]:
+    def invoke(self, port: Port, command: Any = None, *, wait: bool = True,
+               priority: int | None = None) -> Generator[Any, Any, None]:
         """Invoke the lower task on ``port`` with ``command`` (topen). Returns once this task
         owns it (the target then runs at the link's priority). If a higher or equal priority owner
-        holds it, waits in its queue, or with ``wait=False`` raises Busy at once."""
+        holds it, waits in its queue, or with ``wait=False`` raises Busy at once.
+
+        ``priority`` raises the link's priority for this and later commands (until setpri or
+        resetpri), up to the priority this task runs at now: a task that a high-priority command
+        made urgent may pass that urgency down (thesis 6.1.5: C1's priority-9 command makes B1
+        take every A-level task). Raises MessageError for a priority above that or outside
+        0..99."""
         link = self._task_link(port)
+        if priority is not None:
+            cap = max(self._t.prio, self._t.base_prio)
+            if not 0 <= priority <= min(99, cap):
+                raise MessageError(f"task {self._t.name} runs at priority {cap}: it cannot "
+                                   f"invoke {link.dst} at priority {priority}")
+            link.priority = max(link.priority, priority)
         if self._mm.open(link, command, wait=wait):
             return
         t = self._t
@@ -285,7 +447,9 @@ class TaskContext:
         report = self._mm.done_now(link)
         if report is not None:
             return report
-        if target.owner is not link:
+        outstanding = (link.sent > 0 and link.status is LinkStatus.OK if link.remote
+                       else target.owner is link)  # a remote target's owner is known there
+        if not outstanding:
             raise MessageError(f"no command outstanding on {link.name} (status "
                                f"{link.status.value})")
         t.wait_link = link
@@ -308,8 +472,16 @@ class TaskContext:
         self._mm.complete(self._t, result)
 
     def status(self, port: Port) -> LinkStatus:
-        """The status of the link on output ``port`` (msgstat)."""
+        """The status of the link on output ``port`` (msgstat): SUSPENDED while the task on it
+        is suspended."""
         return self._out(port).status
+
+    def resetpri(self, port: Port | None = None) -> int:
+        """resetpri (Appendix 3): this task (or the task on output ``port``) runs again at the
+        priority of the command message that owns it, or at its default priority when unowned.
+        Returns that priority. Raises MessageError for a bad port."""
+        t = self._t if port is None else self._mm.tsktab.get(self._task_link(port).dst)
+        return self._mm.resetpri(t)
 
     def input_status(self, port: Port) -> LinkStatus:
         """The status of the link on input ``port``."""
@@ -400,16 +572,30 @@ class TaskContext:
         """Freeze task ``name`` where it is (assassin only; any lower command task).
         Raises MessageError if this task has no assassin link to it."""
         self._assassin_link(name)
-        self._k.suspend(self._mm.tsktab.get(name))
+        self._mm.suspend_task(self._mm.tsktab.get(name), self._t.name)
         self._mm.event("suspend", f"{self._t.name} suspended {name}")
 
     def resume_task(self, name: str) -> None:
         """Undo :meth:`suspend_task` (assassin only)."""
         self._assassin_link(name)
-        self._k.resume(self._mm.tsktab.get(name))
+        self._mm.resume_task(self._mm.tsktab.get(name))
 
     def _assassin_link(self, name: str) -> Link:
         link = self._t.special_links.get(name)
         if link is None:
             raise MessageError(f"task {self._t.name} has no assassin link to {name}")
         return link
+
+
+def _head(p: InPort) -> Any:
+    """The message a fresh port would give next (without taking it)."""
+    return p.fifo[0][0] if p.fifo is not None else p.value
+
+
+def _accepts(when: Callable[[str, Any], bool], source: str, value: Any) -> bool:
+    """``when(source, value)``; a filter that raises accepts (a failure is never masked)."""
+    try:
+        return bool(when(source, value))
+    except Exception:
+        log.exception("wait_any filter failed on a message from %s", source)
+        return True

@@ -25,13 +25,25 @@ FAIL_ON_WELD_MOVE = 150
 
 
 async def faulty_b4(ctx: TaskContext, command: Any) -> Any:
-    """B4, except that its ``FAIL_ON_WELD_MOVE``-th move at welding speed (< 10 mm/s) raises."""
-    if isinstance(command, dict) and "d" in command and float(command.get("speed", 0)) < 10:
-        n = ctx.world.command.get("weld_moves", 0) + 1
-        ctx.world.command["weld_moves"] = n
-        if n == FAIL_ON_WELD_MOVE:
-            raise RuntimeError(f"injected fault in B4 on weld move {n}")
-    return await B4.main(ctx, command)
+    """B4, except that its ``FAIL_ON_WELD_MOVE``-th move at welding speed (< 10 mm/s) raises
+    (counting the newer commands a running activation takes up as well)."""
+
+    def count(cmd: Any) -> None:
+        if isinstance(cmd, dict) and "d" in cmd and float(cmd.get("speed", 0)) < 10:
+            n = ctx.world.command.get("weld_moves", 0) + 1
+            ctx.world.command["weld_moves"] = n
+            if n == FAIL_ON_WELD_MOVE:
+                raise RuntimeError(f"injected fault in B4 on weld move {n}")
+
+    count(command)
+    await B4._order(ctx, command)
+    while True:
+        ev = await ctx.wait_any(completions=["A4"], commands=True)
+        if ev.kind != "command":
+            break
+        count(ev.value)
+        await B4._order(ctx, ev.value)
+    return {"status": ev.value.status.value, "result": ev.value.result}
 
 
 @dataclass

@@ -6,6 +6,8 @@ from chcos.examples.fig65.common import condense
 from chcos.usrmgr import TaskContext
 
 
-async def main(ctx: TaskContext, command: Any) -> None:
-    """Keep M1 in step with S1/S2 and report every fifth reading to B1."""
-    await condense(ctx, actuator="M1")
+async def main(ctx: TaskContext, command: Any) -> Any:
+    """Keep M1 in step with S1/S2 and report every fifth reading to B1, until shut down."""
+    while await condense(ctx, actuator="M1") != "shut down":
+        pass
+    return "shut down"

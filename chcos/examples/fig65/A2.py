@@ -6,6 +6,8 @@ from chcos.examples.fig65.common import condense
 from chcos.usrmgr import TaskContext
 
 
-async def main(ctx: TaskContext, command: Any) -> None:
-    """Keep M2 in step with S3 and report every fifth reading to B1 and B2."""
-    await condense(ctx, actuator="M2")
+async def main(ctx: TaskContext, command: Any) -> Any:
+    """Keep M2 in step with S3 and report every fifth reading to B1 and B2, until shut down."""
+    while await condense(ctx, actuator="M2") != "shut down":
+        pass
+    return "shut down"

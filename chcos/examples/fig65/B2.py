@@ -19,4 +19,5 @@ async def main(ctx: TaskContext, command: Any) -> None:
         ctx.world.command["A3"] = "owned"
     except Busy as exc:
         ctx.world.command["A3"] = f"busy: {exc}"
-    await condense(ctx)
+    while True:
+        await condense(ctx)

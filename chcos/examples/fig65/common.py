@@ -4,28 +4,39 @@ from __future__ import annotations
 
 from typing import Any
 
-from chcos.errors import SensorFailure
 from chcos.usrmgr import TaskContext
 
 FAN_IN = 5  # five inputs at level n make one output at level n+1 (thesis 6.4)
 
 
-async def condense(ctx: TaskContext, actuator: str | None = None, gain: float = 0.5) -> None:
-    """Read whichever input has news; drive ``actuator`` proportionally to the newest numeric
-    input; every FAN_IN inputs send their mean upward. A failed sensor is reported upward as
-    ``("sensor failure", name)`` and the loop goes on with the other inputs."""
+def shutdown_requested(command: Any) -> bool:
+    """True for the command that shuts a figure 6.5 task down (``{"op": "shutdown"}``)."""
+    return isinstance(command, dict) and command.get("op") == "shutdown"
+
+
+async def condense(ctx: TaskContext, actuator: str | None = None, gain: float = 0.5) -> Any:
+    """Wait for whichever input has news (or a newer command from the owner); drive
+    ``actuator`` proportionally to the newest numeric input; every FAN_IN inputs send their
+    mean upward. A sensor that fails is reported upward once as ``("sensor failure", name)``
+    and the loop goes on with the other inputs. Returns the owner's newer command when it is not
+    for this loop (the caller decides), after a shutdown command with ``"shut down"`` (the
+    actuator at 0 first)."""
     acc: list[float] = []
     while True:
-        try:
-            port, value = await ctx.read_any()
-        except SensorFailure as exc:
-            ctx.put(("sensor failure", exc.device))
-            ctx.world.sensory[exc.device] = "failed"
-            await ctx.sleep(0.1)
+        ev = await ctx.wait_any(range(len(ctx.inputs)), commands=True)
+        if ev.kind == "command":
+            if shutdown_requested(ev.value):
+                if actuator is not None:
+                    ctx.write(actuator, 0.0)
+                ctx.world.command["state"] = "shut down"
+                return "shut down"
+            return ev.value
+        if ev.kind == "failure":
+            ctx.put(("sensor failure", ev.source))
+            ctx.world.sensory[ev.source] = "failed"
             continue
-        src = ctx.inputs[port]
-        ctx.world.sensory[src] = value
-        number = _number(value)
+        ctx.world.sensory[ev.source] = ev.value
+        number = _number(ev.value)
         if number is None:
             continue
         if actuator is not None:

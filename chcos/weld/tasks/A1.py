@@ -14,7 +14,13 @@ from typing import Any
 
 from chcos.errors import SensorFailure
 from chcos.usrmgr import TaskContext
-from chcos.weld.tasks.common import SpikeFilter, as_dict, clear_failure, report_failure
+from chcos.weld.tasks.common import (
+    SpikeFilter,
+    as_dict,
+    await_recovery,
+    clear_failure,
+    report_failure,
+)
 
 
 def compare(temp: float, band: Any) -> str | None:
@@ -38,7 +44,7 @@ async def main(ctx: TaskContext, command: Any) -> None:
             raw = await ctx.read("arc_temp")
         except SensorFailure as exc:
             report_failure(ctx, exc)
-            await ctx.sleep(0.1)
+            await await_recovery(ctx, exc)
             continue
         clear_failure(ctx, "arc_temp")
         temp = filt.push(float(raw))

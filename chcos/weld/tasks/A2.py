@@ -16,6 +16,7 @@ from chcos.usrmgr import TaskContext
 from chcos.weld.tasks.common import (
     SpikeFilter,
     as_dict,
+    await_recovery,
     clear_failure,
     latest,
     report_failure,
@@ -42,7 +43,7 @@ async def main(ctx: TaskContext, command: Any) -> None:
             amps = af.push(float(await latest(ctx, "arc_amps")))
         except SensorFailure as exc:
             report_failure(ctx, exc)
-            await ctx.sleep(0.1)
+            await await_recovery(ctx, exc)
             continue
         clear_failure(ctx, "arc_volts")
         clear_failure(ctx, "arc_amps")

@@ -13,7 +13,7 @@ from typing import Any
 
 from chcos.errors import SensorFailure
 from chcos.usrmgr import TaskContext
-from chcos.weld.tasks.common import as_dict, clear_failure, latest, report_failure
+from chcos.weld.tasks.common import as_dict, await_recovery, clear_failure, latest, report_failure
 
 
 async def main(ctx: TaskContext, command: Any) -> None:
@@ -33,7 +33,7 @@ async def main(ctx: TaskContext, command: Any) -> None:
             flow = float(await latest(ctx, "gas_flow"))
         except SensorFailure as exc:
             report_failure(ctx, exc)
-            await ctx.sleep(0.1)
+            await await_recovery(ctx, exc)
             continue
         clear_failure(ctx, "gas_bottle")
         clear_failure(ctx, "gas_flow")

@@ -12,8 +12,10 @@ Commands:
 * ``{"op": "hold"}`` - keep the joints where they are; ``{"op": "stop"}`` - also drop
   ``drives_enable`` (safe torque off); ``{"op": "monitor"}`` or no command - just report.
 
-Raises ServoFailure (after dropping the drives) when a joint sensor fails, MotionFailed when the
-position cannot be reached (inverse kinematics) or the tip stalls for 2 s.
+A newer command from the same owner while a move is under way (a repeated topen) is taken up in
+the next cycle, without a new activation. Raises ServoFailure (after dropping the drives) when a
+joint sensor fails, MotionFailed when the position cannot be reached (inverse kinematics) or the
+tip stalls for 2 s.
 """
 
 from __future__ import annotations
@@ -63,20 +65,13 @@ async def _next_thetas(ctx: TaskContext) -> list[float]:
     return [first, *[float(await latest(ctx, j, timeout=0.1)) for j in JOINTS[1:]]]
 
 
-async def main(ctx: TaskContext, command: Any) -> None:
-    """Execute one motion command (or none) and report T5 forever."""
+def _command(ctx: TaskContext, command: Any, thetas: list[float],
+             pose: Any) -> tuple[tuple[float, float, float] | None, float, float]:
+    """Take up one motion command; returns (goal or None, yaw goal, speed)."""
     cmd = as_dict(command)
     op = cmd.get("op", "move" if "p" in cmd else "monitor")
     wm = ctx.world
-    try:
-        thetas = await _thetas(ctx)
-    except SensorFailure as exc:
-        await _servo_failed(ctx, exc)
-    pose = pose_of(thetas)
     pos = pose.position
-    goal: tuple[float, float, float] | None = None
-    yaw_goal = pose.yaw
-    speed = 0.0
     if op == "move":
         goal = (float(cmd["p"][0]), float(cmd["p"][1]), float(cmd["p"][2]))
         yaw_goal = float(cmd.get("yaw", pose.yaw))
@@ -94,17 +89,34 @@ async def main(ctx: TaskContext, command: Any) -> None:
                           yaw=float(wm.command.get("yaw", pose.yaw)) if fresh else pose.yaw,
                           goal=goal, speed=speed, moving=True, t=ctx.now)
         ctx.write("drives_enable", 1.0)
-    else:
-        wm.command.update(goal=None, moving=False, point=pos, yaw=pose.yaw, t=ctx.now)
-        if op in ("hold", "stop"):
-            for name, angle in zip(TARGETS, thetas, strict=True):
-                ctx.write(name, angle)
-        if op == "stop":
-            ctx.write("drives_enable", 0.0)
-        ctx.complete({"at": pos, "op": op})
+        return goal, yaw_goal, speed
+    wm.command.update(goal=None, moving=False, point=pos, yaw=pose.yaw, t=ctx.now)
+    if op in ("hold", "stop"):
+        for name, angle in zip(TARGETS, thetas, strict=True):
+            ctx.write(name, angle)
+    if op == "stop":
+        ctx.write("drives_enable", 0.0)
+    ctx.complete({"at": pos, "op": op})
+    return None, pose.yaw, 0.0
+
+
+async def main(ctx: TaskContext, command: Any) -> None:
+    """Execute motion commands (the first, then each newer one its owner sends) and report T5
+    forever."""
+    wm = ctx.world
+    try:
+        thetas = await _thetas(ctx)
+    except SensorFailure as exc:
+        await _servo_failed(ctx, exc)
+    pose = pose_of(thetas)
+    pos = pose.position
+    goal, yaw_goal, speed = _command(ctx, command, thetas, pose)
     last_t = ctx.now
     progress_t, progress_pos = ctx.now, pos
     while True:
+        if ctx.has_command:  # the owner's newer command (a repeated topen): no restart
+            goal, yaw_goal, speed = _command(ctx, ctx.take_command(), thetas, pose)
+            progress_t, progress_pos = ctx.now, pos
         if goal is not None:
             dt = max(0.0, ctx.now - last_t)
             point = wm.command["point"]

@@ -11,7 +11,7 @@ from typing import Any
 
 from chcos.errors import SensorFailure
 from chcos.usrmgr import TaskContext
-from chcos.weld.tasks.common import as_dict, clear_failure, report_failure
+from chcos.weld.tasks.common import as_dict, await_recovery, clear_failure, report_failure
 
 WIRE_MAX = 250.0
 
@@ -35,7 +35,7 @@ async def main(ctx: TaskContext, command: Any) -> None:
             wire = float(await ctx.read("wire_speed"))
         except SensorFailure as exc:
             report_failure(ctx, exc)
-            await ctx.sleep(0.1)
+            await await_recovery(ctx, exc)
             continue
         clear_failure(ctx, "wire_speed")
         wm.sensory["wire"] = wire

@@ -15,7 +15,14 @@ from typing import Any
 
 from chcos.errors import SensorFailure
 from chcos.usrmgr import TaskContext
-from chcos.weld.tasks.common import PIXELS, analyse, clear_failure, latest, report_failure
+from chcos.weld.tasks.common import (
+    PIXELS,
+    analyse,
+    await_recovery,
+    clear_failure,
+    latest,
+    report_failure,
+)
 
 
 async def main(ctx: TaskContext, command: Any) -> None:
@@ -34,7 +41,7 @@ async def main(ctx: TaskContext, command: Any) -> None:
             end = int(await latest(ctx, "end_marker"))
         except SensorFailure as exc:
             report_failure(ctx, exc)
-            await ctx.sleep(0.1)
+            await await_recovery(ctx, exc)
             continue
         clear_failure(ctx, "linear")
         hint = float(wm.sensory.get("hint", 0.0))

@@ -47,15 +47,27 @@ async def _off(ctx: TaskContext) -> None:
                                 f"{done.status.value}: {done.error}")
 
 
+async def _turn_off(ctx: TaskContext) -> str:
+    await _off(ctx)
+    ctx.world.command["weld"] = "off"
+    ctx.put({"weld": "off"})
+    return "off"
+
+
 async def main(ctx: TaskContext, command: Any) -> str:
-    """Turn the weld on (and watch the gas) or off."""
+    """Turn the weld on (and watch the gas) or off. While on, a newer command from the owner
+    (a repeated topen, no new activation) is taken up at once: ``on`` runs the start-up again
+    (gas, wire, voltage: after C1 freed a stuck tip the voltage is off), anything else turns the
+    weld off and completes."""
     cmd = as_dict(command)
+    while cmd.get("op", "off") == "on":
+        cmd = await _on(ctx, cmd)
+    return await _turn_off(ctx)
+
+
+async def _on(ctx: TaskContext, cmd: dict[str, Any]) -> dict[str, Any]:
+    """Start the weld and watch the gas until the owner's next command, which is returned."""
     wm = ctx.world
-    if cmd.get("op", "off") != "on":
-        await _off(ctx)
-        wm.command["weld"] = "off"
-        ctx.put({"weld": "off"})
-        return "off"
     volts = float(param(ctx, cmd, "volts", 24.0))
     wire = float(param(ctx, cmd, "wire", 80.0))
     gas_wait = float(param(ctx, cmd, "gas_wait", 1.0))
@@ -64,7 +76,10 @@ async def main(ctx: TaskContext, command: Any) -> str:
     await ctx.call("A3", {"gas": "on"})
     t0 = ctx.now
     while True:
-        gas = await ctx.read("A3", timeout=gas_wait)
+        ev = await ctx.wait_any(["A3"], commands=True, timeout=gas_wait)
+        if ev.kind == "command":
+            return as_dict(ev.value)
+        gas = ev.value
         if isinstance(gas, dict) and gas.get("flow_ok"):
             break
         if ctx.now - t0 > gas_wait:
@@ -76,7 +91,10 @@ async def main(ctx: TaskContext, command: Any) -> str:
     ctx.put({"weld": "on"})
     bad_since: float | None = None
     while True:
-        gas = await ctx.read("A3")
+        ev = await ctx.wait_any(["A3"], commands=True)
+        if ev.kind == "command":
+            return as_dict(ev.value)
+        gas = ev.value
         if not isinstance(gas, dict) or "empty" not in gas:
             continue
         if gas["empty"] or not gas["flow_ok"]:

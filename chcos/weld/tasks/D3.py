@@ -12,17 +12,25 @@ curtain ``intruder`` itself (priority 99). It recognises the dangerous patterns 
 * ``overheat`` - above ``overheat`` (default 2600 degC) whatever the context.
 
 Anything else worth knowing (a gas failure, which the weld loop handles itself) is kept as a
-notice in the world model. The intruder is waited on; the tap is drained each time it reports,
-so the reaction to the light curtain never waits for the tap.
+notice in the world model. D3 waits on the light curtain and the tap at once
+(``ctx.wait_any(["intruder"], exceptions=True, when=news)``); the ``news`` filter runs at
+delivery and wakes D3 only for a change of the curtain, a failure not yet reported, a weld failure
+or an arc hotter than the context allows (after B1 said heat is expected, not again for
+``HEAT_RECHECK_S``), so D3 runs when a lower task reports something new, not at the curtain's
+50 Hz.
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
-from chcos.errors import MessageError, ReadTimeout, SensorFailure
+from chcos.errors import MessageError, SensorFailure
 from chcos.usrmgr import TaskContext
 from chcos.worldmodel import WorldModel
+
+HEAT_RECHECK_S = 0.5
+"""After B1 said heat is expected, D3 does not ask again (nor wake for heat) for this long."""
 
 
 def classify(src: str, msg: Any, hot: float, overheat: float) -> tuple[str, str] | None:
@@ -65,49 +73,76 @@ async def _heat_expected(ctx: TaskContext) -> bool:
 
 
 async def main(ctx: TaskContext, command: Any) -> None:
-    """Watch the intruder and every lower sensory message for dangerous patterns."""
+    """Watch the intruder and every lower sensory message for dangerous patterns; run only when
+    one of them has something new to say."""
     ctx.complete("watching")
     wm = ctx.world
     hot = float(ctx.params.get("hot", 200.0))
     overheat = float(ctx.params.get("overheat", 2600.0))
     failed: set[str] = wm.sensory.setdefault("failed", set())
-    intruder = False
+    seen = {"intruder": False, "heat_ok_until": -math.inf}
+
+    def news(src: str, msg: Any) -> bool:
+        """Worth waking D3 for (runs when the message is delivered, in the sender's step): a
+        change of the light curtain, a failure not reported yet, a weld failure, an arc hotter
+        than the context allows."""
+        if src == "intruder":
+            return bool(msg) != seen["intruder"]
+        if not isinstance(msg, dict):
+            return False
+        if "fail" in msg:
+            return str(msg["fail"]) not in failed
+        if msg.get("weld") == "fail":
+            return True
+        if "temp" in msg:
+            temp = float(msg["temp"])
+            if temp > overheat:
+                return not wm.sensory.get("overheat")
+            if temp > hot:
+                return not wm.sensory.get("heat_alarm") and ctx.now >= seen["heat_ok_until"]
+        return False
+
+    try:  # a light curtain that is already dead when D3 starts
+        ctx.poll("intruder")
+    except SensorFailure as exc:
+        failed.add("intruder")
+        _alarm(ctx, "intruder", f"light curtain sensor failed: {exc.reason}")
     while True:
-        try:
-            present = bool(await ctx.read("intruder"))
-        except SensorFailure as exc:
-            present = False
+        ev = await ctx.wait_any(["intruder"], exceptions=True, when=news)
+        if ev.kind == "failure":
             if "intruder" not in failed:
                 failed.add("intruder")
-                _alarm(ctx, "intruder", f"light curtain sensor failed: {exc.reason}")
-            await ctx.sleep(0.02)
-        if present and not intruder:
-            _alarm(ctx, "intruder", "light curtain broken")
-        intruder = present
-        while True:  # drain the tap: every lower sensory message since the last look
-            try:
-                src, msg = await ctx.read_exception(timeout=0.0)
-            except ReadTimeout:
-                break
-            found = classify(src, msg, hot, overheat)
-            if found is None:
-                if isinstance(msg, dict) and msg.get("weld") == "fail":
-                    wm.sensory.setdefault("notices", []).append(
-                        {"from": src, "notice": msg.get("reason"), "t": ctx.now})
-                continue
-            kind, detail = found
-            if kind == "sensor failure":
-                device = str(msg["fail"])
-                if device not in failed:
-                    failed.add(device)
-                    _alarm(ctx, kind, detail)
-            elif kind == "heat?":
-                if not await _heat_expected(ctx) and not wm.sensory.get("heat_alarm"):
-                    wm.sensory["heat_alarm"] = True
-                    _alarm(ctx, "unexpected heat", f"{detail} while no weld is on")
-            elif not wm.sensory.get(kind):
-                wm.sensory[kind] = True
+                _alarm(ctx, "intruder", f"light curtain sensor failed: {ev.value}")
+            continue
+        if ev.kind == "message":
+            failed.discard("intruder")
+            present = bool(ev.value)
+            if present and not seen["intruder"]:
+                _alarm(ctx, "intruder", "light curtain broken")
+            seen["intruder"] = present
+            continue
+        src, msg = ev.source, ev.value
+        found = classify(src, msg, hot, overheat)
+        if found is None:
+            if isinstance(msg, dict) and msg.get("weld") == "fail":
+                wm.sensory.setdefault("notices", []).append(
+                    {"from": src, "notice": msg.get("reason"), "t": ctx.now})
+            continue
+        kind, detail = found
+        if kind == "sensor failure":
+            device = str(msg["fail"])
+            if device not in failed:
+                failed.add(device)
                 _alarm(ctx, kind, detail)
+        elif kind == "heat?":
+            if await _heat_expected(ctx):
+                seen["heat_ok_until"] = ctx.now + HEAT_RECHECK_S
+            elif not wm.sensory.get("heat_alarm"):
+                wm.sensory["heat_alarm"] = True
+                _alarm(ctx, "unexpected heat", f"{detail} while no weld is on")
+        elif not wm.sensory.get(kind):
+            wm.sensory[kind] = True
+            _alarm(ctx, kind, detail)
 
 
 main.world_model = ExceptionModel  # type: ignore[attr-defined]

@@ -16,8 +16,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from chcos.errors import ReadTimeout
-from chcos.messages import Completion, LinkStatus
+from chcos.messages import Completion
 from chcos.usrmgr import TaskContext
 from chcos.weld.tasks.common import as_dict, param
 from chcos.worldmodel import WorldModel
@@ -36,15 +35,15 @@ class Alarm(Exception):
 
 
 async def _run(ctx: TaskContext, port: str, command: dict[str, Any]) -> Completion:
-    """Invoke ``port`` and wait for its completion while listening to D3."""
+    """Invoke ``port`` and wait for its completion or an alarm from D3, whichever comes first
+    (no polling: E2 runs only on completions and alarms)."""
     await ctx.invoke(port, command)
     while True:
-        if ctx.status(port) in (LinkStatus.NORMAL, LinkStatus.ABNORMAL, LinkStatus.PREEMPTED):
-            return await ctx.done(port)
-        try:
-            msg = await ctx.read("D3", timeout=0.05)
-        except ReadTimeout:
-            continue
+        ev = await ctx.wait_any(["D3"], completions=[port])
+        if ev.kind == "completion":
+            done: Completion = ev.value
+            return done
+        msg = ev.value
         if isinstance(msg, dict) and "alarm" in msg:
             raise Alarm(msg)
 
@@ -53,6 +52,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     """Run the job and report its outcome."""
     cmd = as_dict(command)
     wm = ctx.world
+    wm.command.pop("outcome", None)  # a new job: the last one's outcome is history
     where = {"start": [float(v) for v in param(ctx, cmd, "start", [542.0, -164.0])],
              "heading": float(param(ctx, cmd, "heading", math.pi / 2)),
              "z": float(param(ctx, cmd, "z", 10.0))}

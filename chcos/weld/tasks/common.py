@@ -107,6 +107,17 @@ def report_failure(ctx: TaskContext, exc: SensorFailure) -> None:
         ctx.put({"fail": exc.device, "reason": exc.reason, "t": ctx.now})
 
 
+async def await_recovery(ctx: TaskContext, exc: SensorFailure) -> None:
+    """After a sensor failure, wait (without polling) until the failed sensor delivers again:
+    its next reading is kept as the last value seen (see :func:`latest`)."""
+    if exc.device not in ctx.inputs:
+        await ctx.sleep(0.1)  # not one of this task's inputs: nothing to wait on
+        return
+    ev = await ctx.wait_any([exc.device])
+    if ev.kind == "message":
+        ctx.world.sensory[f"last:{exc.device}"] = ev.value
+
+
 def clear_failure(ctx: TaskContext, device: str) -> None:
     """Forget a reported failure of ``device`` (it delivers again)."""
     failed: set[str] = ctx.world.sensory.setdefault("failed", set())
