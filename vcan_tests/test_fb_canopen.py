@@ -24,14 +24,9 @@ def can_link(request: pytest.FixtureRequest) -> tuple[str, str]:
     """(interface, channel): a fresh virtual channel, or vcan0 when real SocketCAN is up."""
     if request.param == "virtual":
         return "virtual", unique_channel("fb")
-    try:
-        from vcan_tests import uml
-    except ImportError as exc:
-        pytest.skip(f"vcan_tests.uml is not available: {exc}")
-    channel = uml.socketcan_channel()
-    if channel is None:
-        pytest.skip("no SocketCAN vcan0 in this process")
-    return "socketcan", channel
+    from vcan_tests import uml
+
+    return "socketcan", uml.can_channel("socketcan")
 
 
 @dataclass

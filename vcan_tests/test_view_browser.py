@@ -32,7 +32,9 @@ def live(tmp_path: Path) -> Iterator[tuple[System, Viewer]]:
 
 
 def _expect() -> Any:
-    return pytest.importorskip("playwright.sync_api").expect
+    from playwright.sync_api import expect
+
+    return expect
 
 
 def test_page_draws_every_task_and_updates_live(live: tuple[System, Viewer]) -> None:
