@@ -240,7 +240,7 @@ def socketcan_channel() -> str | None:
 
 
 def socketcan_skip_reason() -> str:
-    """Why the socketcan variants are skipped in this process (for ``pytest.mark.skipif``)."""
+    """Why this process has no socketcan channel (for a :func:`vcan_tests.conftest.require`)."""
     return (
         f"no SocketCAN {SOCKETCAN_CHANNEL} in this process (host kernel without CAN?); "
         "these run inside User-Mode Linux via vcan_tests/test_uml_socketcan.py"
