@@ -146,8 +146,11 @@ def pytest_terminal_summary(terminalreporter: Any, exitstatus: int, config: pyte
         return
     terminalreporter.section("real SocketCAN (vcan0/vcan1 in a User-Mode-Linux guest)")
     if moved:
+        guest = "test_uml_socketcan.py::test_socketcan_suite_passes_inside_uml"
+        selected = any(guest in i.nodeid for i in terminalreporter.stats.get("passed", [])
+                       + terminalreporter.stats.get("failed", []))
         terminalreporter.write_line(
-            f"{len(moved)} socketcan tests deselected in this process (no vcan0 here); "
-            "test_uml_socketcan.py::test_socketcan_suite_passes_inside_uml runs them in the guest")
+            f"{len(moved)} socketcan tests deselected in this process (no vcan0 here); they run "
+            f"in the guest through {guest}" + ("" if selected else " (not run this time)"))
     for line in results:
         terminalreporter.write_line(line)
