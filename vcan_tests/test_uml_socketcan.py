@@ -246,6 +246,20 @@ def test_run_in_uml_reports_a_boot_panic_by_its_cause_first(tmp_path: Path) -> N
     assert result.stderr.count("os_dump_core") <= 15  # only the log's tail, after the cause
 
 
+def test_boot_problem_names_the_panic_first(tmp_path: Path,
+                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """What a UML test fails with (under CI) when UML panics at boot: the cause, not frames."""
+    require(UML_REASON is None, f"the UML set-up ({UML_REASON})")
+    for name, value in _fake_kernel(tmp_path).items():
+        monkeypatch.setenv(name, value)
+    problem = uml_boot_problem.__wrapped__()
+    assert problem is not None
+    assert problem.startswith("User-Mode Linux does not boot or has no vcan0/vcan1 (status 125): "
+                              "run-in-uml: UML exited (134) without running the command: "
+                              "userspace - ptrace set fp regs failed, errno = 14"), problem
+    assert "os_dump_core" not in problem
+
+
 @pytest.mark.uml
 def test_uml_boots_with_vcan0_and_vcan1() -> None:
     """The boot self-test: the other UML tests depend on it; its message is the cause."""

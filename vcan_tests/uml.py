@@ -116,7 +116,12 @@ def uml_boot_problem() -> str | None:
         return "run-in-uml did not return within its timeout"
     if result.returncode == 0 and result.stdout.count("UP") >= 2:
         return None
-    lines = [ln for ln in result.stderr.splitlines() if ln.strip()][:4]
+    lines = []  # the cause lines run-in-uml puts first, not the console log's tail after them
+    for line in result.stderr.splitlines():
+        if "console log ends" in line or len(lines) == 4:
+            break
+        if line.strip():
+            lines.append(line.strip())
     return (f"User-Mode Linux does not boot or has no vcan0/vcan1 (status {result.returncode}): "
             + " | ".join(lines or [result.stdout.strip()[:200]]))
 
