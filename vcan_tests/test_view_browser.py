@@ -1,9 +1,11 @@
 """The live page in a real browser: headless Debian chromium driven by Playwright, against the
-figure 6.5 system running on real time on a background kernel thread. Skipped (with the reason)
-where /usr/bin/chromium or Playwright is missing. Also writes docs/screenshot-fig65.png."""
+figure 6.5 system running on real time on a background kernel thread. Skipped (with the reason;
+under CI=true failed) where /usr/bin/chromium is missing. Takes a screenshot into the test's
+temporary directory, or docs/screenshot-fig65.png with CHCOS_DOCS_SCREENSHOT=1 (to refresh it)."""
 
 from __future__ import annotations
 
+import os
 import re
 import time
 from collections.abc import Iterator
@@ -99,7 +101,8 @@ def test_setpri_and_invoke_from_the_page(live: tuple[System, Viewer]) -> None:
         expect(page.locator('#graph g.node[data-name="A3"]')).to_contain_text("owner host")
 
 
-def test_injected_events_appear_and_mark_nodes(live: tuple[System, Viewer]) -> None:
+def test_injected_events_appear_and_mark_nodes(live: tuple[System, Viewer],
+                                               tmp_path: Path) -> None:
     system, viewer = live
     with browser_page() as page:
         expect = _expect()
@@ -119,7 +122,8 @@ def test_injected_events_appear_and_mark_nodes(live: tuple[System, Viewer]) -> N
         expect(page.locator('#events li[data-kind="device-failed"]').first).to_contain_text(
             "S3: cable cut")
         expect(page.locator('#events li[data-kind="device-ok"]').first).to_contain_text("S3")
-        page.screenshot(path=str(DOCS / "screenshot-fig65.png"), full_page=True)
+        shot = DOCS if os.environ.get("CHCOS_DOCS_SCREENSHOT") == "1" else tmp_path
+        page.screenshot(path=str(shot / "screenshot-fig65.png"), full_page=True)
         system.execute("resume B2")
         expect(node).not_to_have_class(re.compile(r"\bfrozen\b"))
         expect(page.locator('#events li[data-kind="resume"]')).to_have_count(1)
