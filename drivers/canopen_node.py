@@ -59,6 +59,9 @@ from drivers.threaded import ReaderThread
 BUS_OPTIONS = ("interface", "channel", "bitrate", "nodes", "sync_period", "poll_period",
                "sdo_timeout", "poll")
 NODE_KEYS = ("id", "eds", "heartbeat_timeout", "nmt_start")
+HEARTBEAT_SETTLE = 0.1
+"""Bound (s) on handing over received frames before a heartbeat loss is declared (polling
+interfaces; on SocketCAN the drain is immediate)."""
 ADDRESS_KEYS = ("node", "index", "subindex", "poll_period")
 FATAL_EMCY_MASKS = ((0x2000, 0xF000), (0x3000, 0xF000), (0x4000, 0xF000), (0x5000, 0xFF00),
                     (0x8000, 0xF000))
@@ -449,19 +452,21 @@ class CanopenDriver(Driver):
                 self._done()
 
     def _watchdog(self) -> float:
-        """Fail the devices of nodes whose heartbeat is overdue; the time to the next deadline."""
+        """Fail the devices of nodes whose heartbeat is overdue; the time to the next deadline.
+        Before it declares a node lost it has the reader hand over every frame the operating
+        system already holds: after this process was stalled (a loaded machine, a virtual one)
+        the I/O thread may wake before the reader, and a heartbeat waiting in the socket is not a
+        missing one."""
         now = time.monotonic()
-        overdue = False
         with self._hb_lock:
-            for s in self._nodes.values():
-                if (s.heartbeat_timeout is not None and not s.lost
-                        and now - s.last_heartbeat > s.heartbeat_timeout):
-                    overdue = True
+            overdue = any(s.heartbeat_timeout is not None and not s.lost
+                          and now - s.last_heartbeat > s.heartbeat_timeout
+                          for s in self._nodes.values())
         rx = self._rx
         if overdue and rx is not None:
             # a late heartbeat is not a dead node: first hand over every frame the OS already
             # received (this thread or the reader may simply have been starved of CPU)
-            rx.settle(0.05)
+            rx.settle(HEARTBEAT_SETTLE)
         wait = 0.5
         for nid, s in self._nodes.items():
             with self._hb_lock:

@@ -1,9 +1,13 @@
-"""Shared fixtures: a system on virtual time with in-memory devices."""
+"""Shared fixtures (a system on virtual time with in-memory devices) and the suite's rules:
+``require`` for environment needs (skip locally, fail under CI=true), ``opt_in`` for long runs
+(the only skips allowed under CI), socketcan tests moved to the UML guest, a summary of both."""
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -63,3 +67,90 @@ def pytest_sessionfinish(session: pytest.Session) -> None:
 
     for run, _workdir in session.config.stash.get(BACKGROUND, {}).values():
         run.kill()
+
+
+# -- environment requirements, opt-in runs, and what ran where ------------------------------------
+
+OPT_IN = "opt-in: "
+"""Prefix of the reason of every allowed skip (see :func:`opt_in`)."""
+
+
+def under_ci() -> bool:
+    """True under CI (the CI variable set to true/1/yes), where nothing may skip for a missing
+    tool."""
+    return os.environ.get("CI", "").strip().lower() in ("1", "true", "yes")
+
+
+def require(ok: object, what: str) -> None:
+    """Declare an environment requirement of the running test: when ``ok`` is false, the test
+    is skipped with ``missing: what`` locally and fails with that message under CI (see
+    :func:`under_ci`). ``what`` names the missing thing and how to get it, e.g.
+    ``"/usr/bin/chromium (apt-get install chromium)"``."""
+    if ok:
+        return
+    if under_ci():
+        pytest.fail(f"missing under CI=true: {what}", pytrace=False)
+    pytest.skip(f"missing: {what}")
+
+
+def opt_in(variable: str, what: str) -> None:
+    """Skip the running test unless the environment variable ``variable`` is 1: the only kind of
+    skip allowed under CI. ``what`` says what the run costs (it lands in the skip reason)."""
+    if os.environ.get(variable) != "1":
+        pytest.skip(f"{OPT_IN}{what}; set {variable}=1 to run it")
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) -> Iterator[None]:
+    """Under CI a skip that is not an opt-in run (:func:`opt_in`) is a failure: whatever
+    skipped it (``pytest.skip``, ``skipif``, ``importorskip``) found the environment
+    incomplete."""
+    outcome = yield
+    report: pytest.TestReport = outcome.get_result()
+    if not (under_ci() and report.skipped and not hasattr(report, "wasxfail")):
+        return
+    reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else str(report.longrepr)
+    if OPT_IN not in reason:
+        report.outcome = "failed"
+        report.longrepr = (f"skipped under CI=true, where only opt-in runs may skip: {reason}\n"
+                           "(declare environment needs with vcan_tests.conftest.require)")
+
+
+_SOCKETCAN_HERE = pytest.StashKey[list[str]]()
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Tests marked ``socketcan`` need vcan0; in a process without it (the host, whose kernel
+    has no CAN) they are deselected: ``test_uml_socketcan.py`` runs them inside the guest, and
+    the terminal summary says so."""
+    from vcan_tests.uml import socketcan_channel
+
+    if socketcan_channel() is not None:
+        return
+    keep, moved = [], []
+    for item in items:
+        (moved if item.get_closest_marker("socketcan") else keep).append(item)
+    if moved:
+        config.hook.pytest_deselected(items=moved)
+        items[:] = keep
+        config.stash[_SOCKETCAN_HERE] = [item.nodeid for item in moved]
+
+
+def pytest_terminal_summary(terminalreporter: Any, exitstatus: int, config: pytest.Config) -> None:
+    """Say what ran where: socketcan tests moved to the guest, and what the guest runs gave."""
+    from vcan_tests.uml import GUEST_RESULTS
+
+    moved = config.stash.get(_SOCKETCAN_HERE, [])
+    results = config.stash.get(GUEST_RESULTS, [])
+    if not moved and not results:
+        return
+    terminalreporter.section("real SocketCAN (vcan0/vcan1 in a User-Mode-Linux guest)")
+    if moved:
+        guest = "test_uml_socketcan.py::test_socketcan_suite_passes_inside_uml"
+        selected = any(guest in i.nodeid for i in terminalreporter.stats.get("passed", [])
+                       + terminalreporter.stats.get("failed", []))
+        terminalreporter.write_line(
+            f"{len(moved)} socketcan tests deselected in this process (no vcan0 here); they run "
+            f"in the guest through {guest}" + ("" if selected else " (not run this time)"))
+    for line in results:
+        terminalreporter.write_line(line)

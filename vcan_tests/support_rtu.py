@@ -22,7 +22,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO
 
-import pytest
+from vcan_tests.conftest import require
 
 SOURCE = Path(__file__).resolve().parent / "peers" / "rtu_slave.c"
 GAP = 0.004      # seconds of quiet that end one answer (t3.5 at 19200 baud is 1.8 ms)
@@ -31,11 +31,7 @@ GAP = 0.004      # seconds of quiet that end one answer (t3.5 at 19200 baud is 1
 def need(what: str, ok: bool) -> None:
     """Skip the test when ``what`` is missing, or fail it under CI=true (where the set-up must
     have installed it)."""
-    if ok:
-        return
-    if os.environ.get("CI") == "true":
-        pytest.fail(f"{what} is missing; the CI set-up must install it")
-    pytest.skip(f"{what} is missing (apt-get install socat libmodbus-dev gcc)")
+    require(ok, f"{what} (apt-get install socat libmodbus-dev gcc)")
 
 
 def build_slave(out_dir: Path) -> Path:

@@ -8,12 +8,9 @@ holding everything the tests check, captured *before* the shutdown writes its sa
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
-
-import pytest
 
 from chcos.usrmgr import TaskContext
 from chcos.weld.tasks import B4
@@ -64,16 +61,13 @@ class JobRun:
 
 
 def buses_or_skip(binding: str, *, always: bool = False) -> None:
-    """Skip the real-bus variant with the reason when it cannot run here."""
-    if binding != "buses":
+    """Skip the real-bus variant unless it always runs or CHCOS_WELD_BUSES=1 (an opt-in run)."""
+    if binding != "buses" or always:
         return
-    try:
-        import chcos.sim.weld  # noqa: F401
-    except ImportError as exc:
-        pytest.skip(f"the real-bus simulator chcos.sim.weld does not import yet: {exc}")
-    if not always and os.environ.get("CHCOS_WELD_BUSES") != "1":
-        pytest.skip("full welding jobs on the real buses take about a minute each; the good gap "
-                    "always runs on them, the other scenarios with CHCOS_WELD_BUSES=1")
+    from vcan_tests.conftest import opt_in
+
+    opt_in("CHCOS_WELD_BUSES", "full welding jobs on the real buses take about a minute each; "
+           "the good gap always runs on them")
 
 
 def run_job(binding: str = "direct", scenario: str = "", *, limit: float = 150.0,

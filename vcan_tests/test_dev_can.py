@@ -19,14 +19,9 @@ def can_iface(request: pytest.FixtureRequest) -> tuple[str, str]:
     """(interface, channel): a fresh virtual channel, or the SocketCAN channel UML provides."""
     if request.param == "virtual":
         return "virtual", unique_channel("dev")
-    try:
-        from vcan_tests import uml
-    except ImportError:
-        pytest.skip("vcan_tests.uml is not available: no SocketCAN set-up in this tree")
-    channel = uml.socketcan_channel()
-    if channel is None:
-        pytest.skip("no SocketCAN channel (vcan0) on this machine")
-    return "socketcan", str(channel)
+    from vcan_tests import uml
+
+    return "socketcan", uml.can_channel("socketcan")
 
 
 DEVICES = [

@@ -18,6 +18,7 @@ from pymodbus.exceptions import ModbusException
 
 from drivers.can_raw import CanCodec, CanDriver, socket_drops
 from drivers.modbus import REGISTER_TYPES, Point, classify_rtu_answer, reading_of
+from vcan_tests.conftest import require
 from vcan_tests.netutil import unique_channel
 from vcan_tests.support_dev import CELL_DBC, WAIT, FakeHost, bus, device
 
@@ -161,8 +162,8 @@ def test_a_flood_past_the_socket_buffer_is_reported_with_the_frames_lost() -> No
     from vcan_tests import uml
 
     channel = uml.socketcan_channel()
-    if channel is None:
-        pytest.skip(uml.socketcan_skip_reason())
+    require(channel is not None, f"a SocketCAN channel: {uml.socketcan_skip_reason()}")
+    assert channel is not None
     host = FakeHost()
     drv = CanDriver(bus("can", interface="socketcan", channel=channel, dbc=str(CELL_DBC)),
                     [device("T1", "sensor", i=0, message="Temps", signal="T1")], host)

@@ -12,10 +12,9 @@ import signal
 import time
 from pathlib import Path
 
-import pytest
-
 from chcos.link import LinkConfig, LinkMessage, MessageKind, Transport, decode
 from chcos.link.config import DEFAULT_LEASE_MS
+from vcan_tests.conftest import require
 from vcan_tests.netutil import free_port
 from vcan_tests.support_link import Child, Collector, child_args
 
@@ -68,9 +67,9 @@ def _address(hex_addr: str) -> str:
     return f"{ip}:{int(port, 16)}"
 
 
-@pytest.mark.skipif(not Path("/proc/self/net/tcp").exists(), reason="needs Linux /proc")
 def test_a_satellite_holds_only_loopback_tcp_sockets() -> None:
     """No multicast/UDP scouting socket, no wildcard listener, no peer off the loopback."""
+    require(Path("/proc/self/net/tcp").exists(), "Linux /proc/self/net/tcp")
     host_port, sat_port = free_port(), free_port()
     with Transport(LinkConfig(host_port)) as host:
         joins = Collector()

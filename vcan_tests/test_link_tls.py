@@ -10,10 +10,14 @@ from pathlib import Path
 import pytest
 
 from chcos.link import LinkConfig, TlsSettings, Transport
+from vcan_tests.conftest import require
 from vcan_tests.netutil import free_port
 from vcan_tests.support_link import Child, Collector, child_args
 
-pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="no openssl tool")
+
+@pytest.fixture(autouse=True)
+def _openssl() -> None:
+    require(shutil.which("openssl"), "the openssl tool (apt-get install openssl)")
 
 EXT = """subjectAltName = IP:127.0.0.1
 basicConstraints = CA:FALSE

@@ -187,7 +187,6 @@ def test_unexpected_heat_while_only_inspecting_is_an_alarm(tmp_path: Path) -> No
 
 
 def test_the_hierarchy_runs_on_the_real_buses_too(tmp_path: Path) -> None:
-    pytest.importorskip("chcos.sim.weld", reason="the real-bus simulator does not import yet")
     with open_cell("buses", workdir=tmp_path) as cell:
         cell.run(0.5, until_done=False)
         s = cell.system

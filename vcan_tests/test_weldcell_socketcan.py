@@ -2,7 +2,7 @@
 sensors) inside User-Mode Linux.
 
 Two halves. ``test_good_gap_over_socketcan`` (marked ``socketcan``) is the job itself; it runs
-where vcan0/vcan1 are up, that is inside UML, and only when CHCOS_UML_WELD=1 (it takes about ten
+where vcan0/vcan1 are up, that is inside UML, and only when CHCOS_UML_WELD=1 (it takes about five
 minutes there: UML makes every system call slow). ``test_good_gap_passes_inside_uml`` is the
 host side: it boots UML with CHCOS_UML_WELD=1 and runs the first half there. Its UML run starts
 as soon as the session's tests are collected (marker ``uml_background``, see conftest), so it
@@ -16,6 +16,7 @@ import json
 import os
 import sys
 import tempfile
+import time
 import xml.etree.ElementTree as ET
 from collections.abc import Callable
 from pathlib import Path
@@ -23,9 +24,16 @@ from pathlib import Path
 import pytest
 
 from chcos.weldrun import open_cell
-from vcan_tests.uml import BACKGROUND, REPO_ROOT, BackgroundUml, uml_available
+from vcan_tests.conftest import opt_in, require
+from vcan_tests.uml import (
+    BACKGROUND,
+    GUEST_RESULTS,
+    REPO_ROOT,
+    BackgroundUml,
+    require_uml,
+    uml_boot_problem,
+)
 
-UML_REASON = uml_available()
 GUEST_TIMEOUT = 780.0   # seconds for the whole UML run; about ten minutes are needed
 GUEST_TEST = "test_good_gap_over_socketcan"
 
@@ -34,10 +42,9 @@ GUEST_TEST = "test_good_gap_over_socketcan"
 def test_good_gap_over_socketcan(tmp_path: Path) -> None:
     from vcan_tests.uml import socketcan_channel
 
-    if socketcan_channel() is None:
-        pytest.skip("no SocketCAN channel (vcan0): runs inside User-Mode Linux")
-    if os.environ.get("CHCOS_UML_WELD") != "1":
-        pytest.skip("the whole welding job takes ~10 min inside UML: set CHCOS_UML_WELD=1")
+    require(socketcan_channel() is not None, "SocketCAN vcan0 (runs inside User-Mode Linux)")
+    opt_in("CHCOS_UML_WELD", "the whole welding job inside UML (about five minutes; "
+           "test_good_gap_passes_inside_uml runs it on every CI run)")
     with open_cell("buses", workdir=tmp_path, interface="socketcan",
                    channels=("vcan0", "vcan1")) as cell:
         cell.start_job(None)
@@ -53,9 +60,9 @@ def test_good_gap_over_socketcan(tmp_path: Path) -> None:
 
 
 def start_in_background(config: pytest.Config) -> None:
-    """Boot UML and start the job there (once per session; nothing where UML is unavailable)."""
+    """Boot UML and start the job there (once per session; nothing where UML cannot boot)."""
     runs = config.stash.setdefault(BACKGROUND, {})
-    if UML_REASON is not None or "weld" in runs:
+    if "weld" in runs or uml_boot_problem() is not None:
         return
     workdir = Path(tempfile.mkdtemp(prefix="chcos-weld-uml-"))
     env = dict(os.environ, CHCOS_UML_WELD="1", CHCOS_UML_WELD_OUT=str(workdir / "weld.json"))
@@ -68,12 +75,13 @@ def start_in_background(config: pytest.Config) -> None:
 @pytest.mark.uml
 @pytest.mark.slow
 @pytest.mark.uml_background
-@pytest.mark.skipif(UML_REASON is not None, reason=f"UML unavailable: {UML_REASON}")
 def test_good_gap_passes_inside_uml(request: pytest.FixtureRequest,
                                     record_property: Callable[[str, object], None]) -> None:
+    require_uml()
     start_in_background(request.config)   # already running unless this test was selected late
     run, workdir = request.config.stash[BACKGROUND]["weld"]
     result = run.result()
+    wall = time.monotonic() - run.started
     detail = f"status {result.returncode}\n{result.stdout[-6000:]}\n{result.stderr[-3000:]}"
     assert result.returncode == 0, detail
     cases = {c.get("name"): [k.tag for k in c] for c in ET.parse(workdir / "weld.xml").iter(
@@ -85,3 +93,6 @@ def test_good_gap_passes_inside_uml(request: pytest.FixtureRequest,
         record_property(f"uml_weld_{key}", summary[key])
     assert done["outcome"]["outcome"] == "welded"
     assert summary["in_band_pct"] >= 95.0, summary
+    request.config.stash.setdefault(GUEST_RESULTS, []).append(
+        f"welding job (good gap) over vcan0/vcan1 inside UML: welded, "
+        f"{summary['in_band_pct']:.1f} % in band, {wall:.0f} s from boot to halt")

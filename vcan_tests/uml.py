@@ -7,7 +7,10 @@ its ``.venv`` are at the same paths inside, and runs one command there with vcan
 Test classes that talk CAN are parametrised over the interface with :func:`can_interfaces` and
 :func:`can_channel`: they run on python-can's ``virtual`` bus everywhere, and on ``socketcan`` /
 ``vcan0`` (marked ``socketcan``) where :func:`socketcan_channel` finds it, that is inside UML.
-The host-side test in ``test_uml_socketcan.py`` runs ``pytest -m socketcan`` inside UML.
+The host-side test in ``test_uml_socketcan.py`` runs ``pytest -m socketcan`` inside UML; on the
+host, conftest deselects the ``socketcan`` tests. Host-side tests that boot UML call
+:func:`require_uml` first: it boots UML once per session (:func:`uml_boot_problem`) and skips,
+or under CI fails, with the cause when UML cannot run here.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import os
 import socket
 import subprocess
 import sys
+import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -98,6 +102,38 @@ def uml_available(kernel: Path = UML_KERNEL, modules_root: Path = UML_MODULES_RO
     return None
 
 
+@functools.cache
+def uml_boot_problem() -> str | None:
+    """None when UML boots here with vcan0 and vcan1 up, else why not: the first lines of what
+    ``run-in-uml`` reported (the panic line, the missing package). Boots once per process."""
+    reason = uml_available()
+    if reason is not None:
+        return reason
+    probe = "ip -o link show vcan0 && ip -o link show vcan1"
+    try:
+        result = run_in_uml(["sh", "-c", probe], timeout=120)
+    except subprocess.TimeoutExpired:
+        return "run-in-uml did not return within its timeout"
+    if result.returncode == 0 and result.stdout.count("UP") >= 2:
+        return None
+    lines = []  # the cause lines run-in-uml puts first, not the console log's tail after them
+    for line in result.stderr.splitlines():
+        if "console log ends" in line or len(lines) == 4:
+            break
+        if line.strip():
+            lines.append(line.strip())
+    return (f"User-Mode Linux does not boot or has no vcan0/vcan1 (status {result.returncode}): "
+            + " | ".join(lines or [result.stdout.strip()[:200]]))
+
+
+def require_uml() -> None:
+    """Skip the running test (fail under CI=true) when UML cannot boot here, naming the cause."""
+    from vcan_tests.conftest import require
+
+    reason = uml_boot_problem()
+    require(reason is None, str(reason))
+
+
 def _uml_command(argv: Sequence[str], timeout: float, mem: str) -> tuple[list[str], int]:
     """The host command line that runs ``argv`` in UML, and its timeout in whole seconds.
     Raises like :func:`run_in_uml`."""
@@ -147,6 +183,8 @@ class BackgroundUml:
 
     def __init__(self, proc: subprocess.Popen[str], out: Path, err: Path, seconds: int) -> None:
         self._proc, self._out, self._err, self._seconds = proc, out, err, seconds
+        self.started = time.monotonic()
+        """When it was started (``time.monotonic()``)."""
 
     @classmethod
     def start(
@@ -207,7 +245,7 @@ def socketcan_channel() -> str | None:
 
 
 def socketcan_skip_reason() -> str:
-    """Why the socketcan variants are skipped in this process (for ``pytest.mark.skipif``)."""
+    """Why this process has no socketcan channel (for a :func:`vcan_tests.conftest.require`)."""
     return (
         f"no SocketCAN {SOCKETCAN_CHANNEL} in this process (host kernel without CAN?); "
         "these run inside User-Mode Linux via vcan_tests/test_uml_socketcan.py"
@@ -215,7 +253,8 @@ def socketcan_skip_reason() -> str:
 
 
 def can_interfaces() -> list[Any]:
-    """pytest params for a CAN test's interface: "virtual" always, "socketcan" marked/skipped.
+    """pytest params for a CAN test's interface: "virtual" always, "socketcan" marked (conftest
+    deselects those where there is no vcan0, and they run inside UML).
 
     Use as ``@pytest.fixture(params=can_interfaces())`` and open the bus with
     ``can.Bus(interface=request.param, channel=can_channel(request.param))``.
@@ -225,10 +264,7 @@ def can_interfaces() -> list[Any]:
         pytest.param(
             "socketcan",
             id="socketcan",
-            marks=[
-                pytest.mark.socketcan,
-                pytest.mark.skipif(socketcan_channel() is None, reason=socketcan_skip_reason()),
-            ],
+            marks=[pytest.mark.socketcan],
         ),
     ]
 
@@ -238,12 +274,16 @@ def can_channel(interface: str) -> str:
     if interface == "virtual":
         return unique_channel("can")
     if interface == "socketcan":
+        from vcan_tests.conftest import require
+
         channel = socketcan_channel()
-        if channel is None:
-            pytest.skip(socketcan_skip_reason())
-        return channel
+        require(channel is not None, socketcan_skip_reason())
+        return str(channel)
     raise ValueError(f"can_channel: unknown CAN interface {interface!r} (virtual or socketcan)")
 
+
+GUEST_RESULTS = pytest.StashKey[list[str]]()
+"""Lines for the terminal summary: what the guest runs did (counts, times), by the UML tests."""
 
 BACKGROUND = pytest.StashKey[dict[str, tuple[BackgroundUml, Path]]]()
 """Long UML runs started when the session's tests are collected, by name (see conftest)."""

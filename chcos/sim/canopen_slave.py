@@ -127,6 +127,11 @@ class CanopenSlave:
                 node.object_dictionary[0x1017].encode_raw(int(self._heartbeat_period * 1000))
             node.nmt.state = "INITIALISING"
             node.nmt.state = "PRE-OPERATIONAL"
+            # A master's NMT start answering the boot-up can land between the two lines above;
+            # canopen then starts no heartbeat (it does so only on INITIALISING -> PRE-OP), and
+            # the node would sit silent in PRE-OPERATIONAL. Start it here whatever the order.
+            if self._heartbeat_period > 0:
+                node.nmt.start_heartbeat(int(self._heartbeat_period * 1000))
             self._network.subscribe(0, self._on_nmt)
             self._started = True
 
