@@ -8,10 +8,13 @@ satellites with the loopback port each listens on::
     devmaps = ["../busconfig/fig65.toml"]  # relative to this file
     task_path = ["tasks"]
     base_dir = "."                         # relative file names in installs start here
+    state_dir = "/var/lib/chcos"           # optional: run state goes to <state_dir>/<name>/
+    secret_file = "fig65.secret"           # optional: default <state_dir>/<name>/secret.json
 
     [[satellite]]
     machine = 0
     port = 17447
+    host = "127.0.0.1"                     # optional: its address (IPv4, IPv6 or a name)
 
     [link]                                 # optional: lease_ms, retry_ms, auth, tls
     [link.auth]                            # Zenoh user/password; a node with a dictionary_file
@@ -20,12 +23,21 @@ satellites with the loopback port each listens on::
     dictionary_file = "users.txt"
 
 Every node builds its Zenoh configuration from it (:func:`link_config_for`): a satellite listens on
-its own port and connects to every other satellite; a host only connects. Everything is on
-127.0.0.1 with multicast scouting off (see :mod:`chcos.link.config`).
+its own address and port and connects to every other satellite; a host only connects. Multicast
+scouting is off (see :mod:`chcos.link.config`).
+
+Security (see README "Security"): without ``[link.auth]`` every node authenticates with the
+system's secret (:mod:`chcos.link.secret`, generated on first use in the state directory);
+a system with a satellite on a non-loopback address is refused unless ``[link.tls]`` has mutual
+TLS (or TLS plus ``[link.auth]`` with a dictionary); ``[link.auth]`` without
+``dictionary_file`` is refused. Run state (each satellite's sysfile.map) lives in
+``<state_dir>/<name>/`` (default ``$CHCOS_STATE_DIR``, else ``$XDG_STATE_HOME/chcos``, else
+``~/.local/state/chcos``), never beside the task sources, and one system never adopts another's.
 """
 
 from __future__ import annotations
 
+import os
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -33,11 +45,21 @@ from pathlib import Path
 from typing import Any
 
 from chcos.errors import ConfigError
-from chcos.link.config import LinkConfig, link_config_from_section
+from chcos.link.config import LOOPBACK, LinkConfig, UsrPwdAuth, check_host, link_config_from_section
+from chcos.link.secret import SystemSecret, load_or_create
 
 _TOP = {"system", "satellite", "link"}
-_SYSTEM = {"name", "devmaps", "task_path", "base_dir"}
-_SAT = {"machine", "port"}
+_SYSTEM = {"name", "devmaps", "task_path", "base_dir", "state_dir", "secret_file"}
+_SAT = {"machine", "port", "host"}
+
+
+def default_state_base() -> Path:
+    """Where run state goes when the system file names no ``state_dir``: ``$CHCOS_STATE_DIR``,
+    else ``$XDG_STATE_HOME/chcos``, else ``~/.local/state/chcos``."""
+    if os.environ.get("CHCOS_STATE_DIR"):
+        return Path(os.environ["CHCOS_STATE_DIR"]).resolve()
+    xdg = os.environ.get("XDG_STATE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".local" / "state") / "chcos"
 
 
 @dataclass(frozen=True)
@@ -51,15 +73,32 @@ class SystemFile:
     base_dir: Path
     satellites: dict[int, int]  # machine -> port
     link: Mapping[str, Any] = field(default_factory=dict)
+    hosts: dict[int, str] = field(default_factory=dict)  # machine -> address (default loopback)
+    state_base: Path | None = None
+    secret_file: Path | None = None
 
     @property
     def prefix(self) -> str:
         """The Zenoh key prefix of this system."""
         return f"chcos/{self.name}"
 
+    @property
+    def state_dir(self) -> Path:
+        """This system's own run-state directory, ``<state_dir>/<name>``."""
+        return (self.state_base or default_state_base()) / self.name
+
     def map_path(self, machine: int) -> Path:
-        """Where satellite ``machine`` keeps its sysfile.map."""
-        return self.base_dir / f"sysfile-m{machine}.map"
+        """Where satellite ``machine`` keeps its sysfile.map (in the state directory)."""
+        return self.state_dir / f"m{machine}.map"
+
+    def host_of(self, machine: int) -> str:
+        """The address satellite ``machine`` listens on."""
+        return self.hosts.get(machine, LOOPBACK)
+
+    def secret(self) -> SystemSecret:
+        """The system's secret, generated on first use (mode 0600). Raises ConfigError if the
+        file belongs to another system or is readable by others."""
+        return load_or_create(self.secret_file or self.state_dir / "secret.json", self.name)
 
 
 def load(path: str | Path) -> SystemFile:
@@ -100,7 +139,16 @@ def load(path: str | Path) -> SystemFile:
     base_dir = sys_sec.get("base_dir", ".")
     if not isinstance(base_dir, str):
         raise fail("system.base_dir", "expected a path")
+    def opt_dir(key: str) -> Path | None:
+        v = sys_sec.get(key)
+        if v is None:
+            return None
+        if not isinstance(v, str) or not v:
+            raise fail(f"system.{key}", "expected a path")
+        return (base / v).resolve()
+
     sats: dict[int, int] = {}
+    hosts: dict[int, str] = {}
     entries = doc.get("satellite", [])
     if not isinstance(entries, list) or not entries:
         raise fail("satellite", "expected at least one [[satellite]] table")
@@ -110,7 +158,7 @@ def load(path: str | Path) -> SystemFile:
             raise fail(where, "expected a table")
         for key in sat:
             if key not in _SAT:
-                raise fail(f"{where}.{key}", "unknown key, expected machine and port")
+                raise fail(f"{where}.{key}", "unknown key, expected machine, port and host")
         m, port = sat.get("machine"), sat.get("port")
         if not isinstance(m, int) or isinstance(m, bool) or m < 0:
             raise fail(f"{where}.machine", "expected a machine number >= 0")
@@ -118,24 +166,56 @@ def load(path: str | Path) -> SystemFile:
             raise fail(f"{where}.port", "expected a TCP port 1..65535")
         if m in sats:
             raise fail(f"{where}.machine", f"machine {m} named twice")
-        if port in sats.values():
+        host = sat.get("host", LOOPBACK)
+        try:
+            check_host(f"{where}.host", host)
+        except ConfigError as exc:
+            raise ConfigError(f"{path}: {exc}") from exc
+        if (host, port) in {(hosts[k], p) for k, p in sats.items()}:
             raise fail(f"{where}.port", f"port {port} used twice")
         sats[m] = port
+        hosts[m] = host
     link = doc.get("link", {})
     if not isinstance(link, dict) or "listen" in link or "connect" in link:
         raise fail("link", "expected a table without listen/connect (ports come from "
                            "[[satellite]])")
+    auth = link.get("auth")
+    if isinstance(auth, dict) and "dictionary_file" not in auth:
+        raise fail("link.auth.dictionary_file",
+                   "missing: a satellite with [link.auth] but no dictionary file accepts no "
+                   "peer (the mesh never forms); add dictionary_file = \"users.txt\" with a "
+                   "user:password line for each node, or drop [link.auth] to use the "
+                   "system's generated secret")
     sf = SystemFile(path, name, paths("devmaps"), paths("task_path"), (base / base_dir).resolve(),
-                    sats, link)
-    link_config_for(sf, None)  # check the [link] section now
+                    sats, link, hosts, opt_dir("state_dir"), opt_dir("secret_file"))
+    for m in [None, *sats]:  # check the [link] section and what each node exposes now
+        cfg = link_config_for(sf, m)
+        cfg.check_exposure(f"{path}: " + ("host" if m is None else f"satellite {m}")
+                           + f" ({', '.join(cfg.exposed)})")
     return sf
 
 
-def link_config_for(sf: SystemFile, machine: int | None) -> LinkConfig:
+def link_config_for(sf: SystemFile, machine: int | None,
+                    secret: SystemSecret | None = None) -> LinkConfig:
     """The Zenoh configuration of satellite ``machine`` (None: a host, which only connects).
-    Raises ConfigError for a bad [link] section."""
+    Without a [link.auth] section and with the system's ``secret``, the node authenticates with
+    the user/password of its role and checks peers against the secret's dictionary. Raises
+    ConfigError for a bad [link] section."""
+    from dataclasses import replace
+
     section: dict[str, Any] = dict(sf.link)
     if machine is not None:
         section["listen"] = sf.satellites[machine]
-    section["connect"] = [p for m, p in sorted(sf.satellites.items()) if m != machine]
-    return link_config_from_section(section, where=f"{sf.path}: link", base_dir=sf.path.parent)
+    others = [m for m in sorted(sf.satellites) if m != machine]
+    section["connect"] = [sf.satellites[m] for m in others]
+    cfg = link_config_from_section(section, where=f"{sf.path}: link", base_dir=sf.path.parent)
+    changes: dict[str, Any] = {"connect_hosts": tuple(sf.host_of(m) for m in others)}
+    if machine is not None:
+        changes["listen_host"] = sf.host_of(machine)
+    if secret is not None and "auth" not in sf.link:
+        role = "host" if machine is None else "satellite"
+        changes["auth"] = UsrPwdAuth(role, secret.password(role), secret.dictionary())
+    try:
+        return replace(cfg, **changes)
+    except ConfigError as exc:
+        raise ConfigError(f"{sf.path}: link: {exc}") from exc
