@@ -208,6 +208,10 @@ class Host:
         raise RaceLost(f"{line!r} not applied: other hosts changed the install log first "
                        f"{RACE_RETRIES} times in a row")
 
+    def rejected(self, machine: int) -> dict[str, int]:
+        """How many payloads satellite ``machine`` refused so far, by cause."""
+        return dict(self._ask(machine, {"op": "map"})["rejected"])
+
     def log_heads(self) -> dict[int, tuple[int, str]]:
         """(length, SHA-256) of the install log of every satellite up."""
         out = {}

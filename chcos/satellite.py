@@ -200,6 +200,14 @@ class Satellite:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
+    def rejected_counts(self) -> dict[str, int]:
+        """How many payloads were refused or malformed so far, by cause (link, messages, host
+        requests, install logs)."""
+        out: dict[str, int] = {}
+        for t in (self.transport.rejected, self.comm.rejected, self.rejected):
+            out.update(t.counts)
+        return out
+
     # ---- the install log ----------------------------------------------------------------------
     def _log_bytes(self) -> bytes:
         return json.dumps(list(self.log)).encode()  # a snapshot; no lock (peers may hold theirs)
@@ -297,7 +305,8 @@ class Satellite:
         op = req["op"]
         if op == "map":
             doc = self.system.call(self.system.sysmgr.map_doc)
-            return {"ok": True, "map": doc, "alive": sorted(self.comm.alive)}
+            return {"ok": True, "map": doc, "alive": sorted(self.comm.alive),
+                    "rejected": self.rejected_counts()}
         if op == "log":
             return {"ok": True, "log": list(self.log)}
         if op == "head":

@@ -176,9 +176,10 @@ def load(path: str | Path) -> SystemFile:
         sats[m] = port
         hosts[m] = host
     link = doc.get("link", {})
-    if not isinstance(link, dict) or "listen" in link or "connect" in link:
-        raise fail("link", "expected a table without listen/connect (ports come from "
-                           "[[satellite]])")
+    if not isinstance(link, dict) or {"listen", "connect", "listen_host",
+                                      "connect_hosts"} & set(link):
+        raise fail("link", "expected a table without listen/connect (ports and addresses come "
+                           "from [[satellite]])")
     auth = link.get("auth")
     if isinstance(auth, dict) and "dictionary_file" not in auth:
         raise fail("link.auth.dictionary_file",
@@ -208,10 +209,11 @@ def link_config_for(sf: SystemFile, machine: int | None,
         section["listen"] = sf.satellites[machine]
     others = [m for m in sorted(sf.satellites) if m != machine]
     section["connect"] = [sf.satellites[m] for m in others]
-    cfg = link_config_from_section(section, where=f"{sf.path}: link", base_dir=sf.path.parent)
-    changes: dict[str, Any] = {"connect_hosts": tuple(sf.host_of(m) for m in others)}
+    section["connect_hosts"] = [sf.host_of(m) for m in others]
     if machine is not None:
-        changes["listen_host"] = sf.host_of(machine)
+        section["listen_host"] = sf.host_of(machine)
+    cfg = link_config_from_section(section, where=f"{sf.path}: link", base_dir=sf.path.parent)
+    changes: dict[str, Any] = {}
     if secret is not None and "auth" not in sf.link:
         role = "host" if machine is None else "satellite"
         changes["auth"] = UsrPwdAuth(role, secret.password(role), secret.dictionary())

@@ -112,7 +112,7 @@ class Cluster:
                        for m in range(machines))
         (self.tmp / "system.toml").write_text(
             f'[system]\nname = "bench{os.getpid()}x{machines}"\ndevmaps = ["devices.toml"]\n'
-            f"{sats}")
+            f'state_dir = "state"\n{sats}')
         self.sf = sysfile.load(self.tmp / "system.toml")
         env = dict(os.environ, PYTHONPATH=str(ROOT))
         self.procs = [subprocess.Popen(

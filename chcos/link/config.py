@@ -81,7 +81,9 @@ DEFAULT_LEASE_MS = 3000
 DEFAULT_RETRY_MS = 100
 MAX_RETRY_MS = 1000
 
-_SECTION_KEYS = frozenset({"listen", "connect", "lease_ms", "retry_ms", "auth", "tls"})
+_SECTION_KEYS = frozenset(
+    {"listen", "connect", "lease_ms", "retry_ms", "auth", "tls", "listen_host", "connect_hosts"}
+)
 _AUTH_KEYS = frozenset({"user", "password", "dictionary_file"})
 _TLS_KEYS = frozenset(
     {
@@ -429,6 +431,8 @@ def link_config_from_section(
 
         listen = 7447                 # this node's port on 127.0.0.1 (optional)
         connect = [7448, 7449]        # the other peers' ports
+        listen_host = "10.0.0.2"      # optional: the address to listen on (default 127.0.0.1)
+        connect_hosts = ["10.0.0.3", "10.0.0.4"]  # optional: one address per connect port
         lease_ms = 3000               # optional
         retry_ms = 100                # optional
         [link.auth]                   # optional: Zenoh usrpwd
@@ -488,6 +492,14 @@ def link_config_from_section(
         except ConfigError as exc:
             raise ConfigError(f"{where}: {exc}") from exc
     kwargs: dict[str, Any] = {}
+    if "listen_host" in sec:
+        kwargs["listen_host"] = check_host(f"{where}.listen_host", sec["listen_host"])
+    if "connect_hosts" in sec:
+        hosts = sec["connect_hosts"]
+        if not isinstance(hosts, list | tuple):
+            raise ConfigError(f"{where}.connect_hosts: expected a list of addresses")
+        kwargs["connect_hosts"] = tuple(
+            check_host(f"{where}.connect_hosts[{i}]", h) for i, h in enumerate(hosts))
     for key in ("lease_ms", "retry_ms"):
         if key in sec:
             kwargs[key] = sec[key]
