@@ -23,8 +23,10 @@ satellites with the loopback port each listens on::
     dictionary_file = "users.txt"
 
 Every node builds its Zenoh configuration from it (:func:`link_config_for`): a satellite listens on
-its own address and port and connects to every other satellite; a host only connects. Multicast
-scouting is off (see :mod:`chcos.link.config`).
+its own address and port and connects to every satellite of a lower machine number (one TCP/TLS
+connection per pair: with authentication on, Zenoh refuses the second session a pair would
+open if both sides connected, and the refused side would retry it every second for ever); a host
+only connects, to every satellite. Multicast scouting is off (see :mod:`chcos.link.config`).
 
 Security (see README "Security"): without ``[link.auth]`` every node authenticates with the
 system's secret (:mod:`chcos.link.secret`, generated on first use in the state directory);
@@ -198,7 +200,8 @@ def load(path: str | Path) -> SystemFile:
 
 def link_config_for(sf: SystemFile, machine: int | None,
                     secret: SystemSecret | None = None) -> LinkConfig:
-    """The Zenoh configuration of satellite ``machine`` (None: a host, which only connects).
+    """The Zenoh configuration of satellite ``machine`` (None: a host, which only connects):
+    it listens on its own address and connects to the satellites of lower machine numbers.
     Without a [link.auth] section and with the system's ``secret``, the node authenticates with
     the user/password of its role and checks peers against the secret's dictionary. Raises
     ConfigError for a bad [link] section."""
@@ -207,7 +210,7 @@ def link_config_for(sf: SystemFile, machine: int | None,
     section: dict[str, Any] = dict(sf.link)
     if machine is not None:
         section["listen"] = sf.satellites[machine]
-    others = [m for m in sorted(sf.satellites) if m != machine]
+    others = [m for m in sorted(sf.satellites) if machine is None or m < machine]
     section["connect"] = [sf.satellites[m] for m in others]
     section["connect_hosts"] = [sf.host_of(m) for m in others]
     if machine is not None:

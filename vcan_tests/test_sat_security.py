@@ -76,7 +76,10 @@ def test_non_loopback_satellite_without_tls_is_refused_saying_what_to_add(tmp_pa
     sf = sysfile.load(_sysfile(tmp_path, tls + "enable_mtls = true\n", sats=sats))
     cfg = sysfile.link_config_for(sf, 0)
     assert cfg.listen_endpoints == ["tls/10.99.0.2:7447"]
-    assert cfg.connect_endpoints == ["tls/10.99.0.3:7447"]
+    assert cfg.connect_endpoints == []  # the higher-numbered satellites connect to it
+    assert sysfile.link_config_for(sf, 1).connect_endpoints == ["tls/10.99.0.2:7447"]
+    assert sysfile.link_config_for(sf, None).connect_endpoints == [
+        "tls/10.99.0.2:7447", "tls/10.99.0.3:7447"]
     v6 = sats.replace("10.99.0.2", "fd00::2")
     sf = sysfile.load(_sysfile(tmp_path, tls + "enable_mtls = true\n", sats=v6))
     assert sysfile.link_config_for(sf, 1).connect_endpoints == ["tls/[fd00::2]:7447"]

@@ -2,16 +2,17 @@
 
 Topology: **full mesh of equal peers, each listening on its own loopback port.** Every satellite
 (the host included) runs a Zenoh session in ``peer`` mode that listens on ``127.0.0.1:<its
-port>`` and connects to the ports of every other satellite named in the system file, retrying in
-the background for ever. Why:
+port>`` and connects to the ports of the other satellites named in the system file, retrying in
+the background for ever (:func:`chcos.sysfile.link_config_for` has each satellite connect to the
+lower-numbered ones only, so that each pair shares one connection). Why:
 
 * no router: a killed satellite takes only its own links down; the others keep talking directly
   (a router or a host-as-hub would be a single point of failure);
 * a killed satellite is noticed at once: its TCP connections are reset by the OS, Zenoh drops the
   session and withdraws its liveliness tokens; a machine that vanishes without a reset is noticed
   when its lease (``lease_ms``) expires;
-* a late joiner (or a restarted satellite) connects to everybody already up; those that come up
-  after it are reached by its background retries or connect to it themselves. Opening a session
+* a late joiner (or a restarted satellite) connects to the lower-numbered satellites already up;
+  the higher-numbered ones reach it by their background retries. Opening a session
   never waits for absent peers: connections are made in the background (a peer that is up is
   typically reached within a millisecond on loopback; synchronise on liveliness tokens, not on
   ``open`` returning).
