@@ -198,6 +198,7 @@ class Host:
                                                       "seq": seq})["answer"]}
             except RaceLost:
                 self.races_lost += 1
+                self._sync_sequencer(up)
                 time.sleep(random.uniform(0.0, 0.02 * (attempt + 1)))  # back off, then retry
                 continue
             for m in order:
@@ -207,6 +208,18 @@ class Host:
             return str(answers.get(target if target in answers else leader))
         raise RaceLost(f"{line!r} not applied: other hosts changed the install log first "
                        f"{RACE_RETRIES} times in a row")
+
+    def _sync_sequencer(self, up: list[int]) -> None:
+        """If the sequencer holds fewer log entries than another satellite (it restarted alone
+        and reloaded an older map), have it fetch the missing ones from the longest log."""
+        try:
+            lengths = {m: int(self._ask(m, {"op": "head"})["length"]) for m in up}
+            longest = max(lengths, key=lambda m: (lengths[m], -m))
+            leader = min(up)
+            if lengths[leader] < lengths[longest]:
+                self._ask(leader, {"op": "sync", "source": longest, "need": lengths[longest]})
+        except (InstallError, LinkError):
+            pass  # the next attempt finds out again
 
     def rejected(self, machine: int) -> dict[str, int]:
         """How many payloads satellite ``machine`` refused so far, by cause."""

@@ -23,9 +23,12 @@ numbers its links alike) but raises when invoked, and the host is told why.
 
 A satellite that starts late or restarts fetches the log from a live member before it runs
 anything, checks that it is a list of install lines that extends its own, and applies each entry
-as an install would be; with nobody up it reloads its own sysfile.map from the system's state
-directory. Runtime commands (invoke, suspend, resume, close, inject) go only to the satellite that
-runs the task or device.
+as an install would be; with nobody up it replays its own saved install log ``m<N>.log`` from
+the system's state directory (or, without one, its sysfile.map there). A satellite
+whose saved log is longer than its peers' and extends theirs replays its own (the host then
+brings the sequencer up to date); one whose saved log contradicts its peers' refuses to start,
+naming the first entry that differs. Runtime commands (invoke, suspend, resume, close, inject)
+go only to the satellite that runs the task or device.
 
 Control keys, under ``chcos/<system>``: ``m/<N>/ctl`` (host requests to machine N, JSON; only
 payloads sealed by the host role are accepted), ``log`` and ``m/<N>/log`` (the install log, to
@@ -38,6 +41,7 @@ import hashlib
 import importlib.machinery
 import json
 import logging
+import os
 import sys
 import threading
 import time
@@ -239,31 +243,72 @@ class Satellite:
                 break
             self._stopping.wait(0.05)  # retry back-off
         with self._lock:
+            start = not self.log
+            saved = self._saved_log() if start else None
             if entries is None:
                 if need:
                     raise LinkError(f"satellite {self.machine} needs log entry {need - 1} and "
                                     f"could not fetch it from {key}")
                 path = self.sf.map_path(self.machine)
-                if not self.log and path.exists():
+                if saved:
+                    entries = saved
+                    log.info("no satellite answered: replaying %s", self.log_path)
+                elif start and path.exists():
                     entries = sysmap.install_lines(sysmap.read(path))
                     log.info("no satellite answered: reloading %s", path)
                 else:
                     return 0
-            if entries[:len(self.log)] != self.log[:len(entries)]:
-                first = next(i for i, (a, b) in enumerate(zip(entries, self.log, strict=False))
+            elif saved and len(saved) > len(entries) and saved[:len(entries)] == entries:
+                log.info("satellite %d holds %d log entries, its peers %d: replaying its own "
+                         "(the host brings the peers up to date)", self.machine, len(saved),
+                         len(entries))
+                entries = saved
+            held = saved or self.log
+            if entries[:len(held)] != held[:len(entries)]:
+                first = next(i for i, (a, b) in enumerate(zip(entries, held, strict=False))
                              if a != b)
                 raise LinkError(f"satellite {self.machine}: the install log of {key} differs "
                                 f"from this satellite's at entry {first}: {entries[first]!r} "
-                                f"against {self.log[first]!r}")
+                                f"against {held[first]!r} (the logs diverged; move "
+                                f"{self.log_path} away to take the peers' log)")
             n = 0
             for line in entries[len(self.log):]:
-                self._apply(line)
+                self._apply(line, persist=False)
                 n += 1
+            if start or n:
+                self._save_log()
             return n
 
-    def _apply(self, line: str) -> str:
-        """Validate ``line`` as an install would be and apply it as the next log entry. Raises
-        InstallError (nothing applied) if it is not valid here."""
+    @property
+    def log_path(self) -> Path:
+        """Where this satellite keeps its install log (one JSON string per line)."""
+        return self.sf.state_dir / f"m{self.machine}.log"
+
+    def _saved_log(self) -> list[str]:
+        """The install log this satellite saved last time ([] if none). Raises LinkError if the
+        file is corrupt."""
+        try:
+            raw = self.log_path.read_text(encoding="utf-8")
+        except FileNotFoundError:
+            return []
+        try:
+            return parse_log(("[" + ",".join(raw.splitlines()) + "]").encode())
+        except LinkError as exc:
+            raise LinkError(f"{self.log_path}: {exc}") from exc
+
+    def _save_log(self) -> None:
+        """Write the whole install log (atomically, fsync'd)."""
+        tmp = self.log_path.with_name(f".{self.log_path.name}.tmp")
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write("".join(json.dumps(line) + "\n" for line in self.log))
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, self.log_path)
+
+    def _apply(self, line: str, persist: bool = True) -> str:
+        """Validate ``line`` as an install would be and apply it as the next log entry (appended
+        to the saved log if ``persist``). Raises InstallError (nothing applied) if it is not
+        valid here."""
         req = cmdline.parse(line)
         if not isinstance(req, MUTATING):
             raise InstallError(f"log entry {len(self.log)} ({line!r}) is not an install, setpri "
@@ -280,6 +325,11 @@ class Satellite:
             answer = (f"{req.name} entered in the tables, but its code failed to load on machine "
                       f"{self.machine}: {exc}")
         self.log.append(line)
+        if persist:
+            with open(self.log_path, "a", encoding="utf-8") as f:
+                f.write(json.dumps(line) + "\n")
+                f.flush()
+                os.fsync(f.fileno())
         return answer
 
     # ---- host requests ----------------------------------------------------------------------
@@ -293,7 +343,8 @@ class Satellite:
             text = str(exc)
             self.refused.append(text)
             del self.refused[:-100]
-            log.warning("satellite %d refused a host request: %s", self.machine, text)
+            log.log(logging.INFO if isinstance(exc, RaceLost) else logging.WARNING,
+                    "satellite %d refused a host request: %s", self.machine, text)
             reply = {"ok": False, "error": text, "type": type(exc).__name__}
         except (ValueError, KeyError, TypeError) as exc:
             text = f"malformed host request: {type(exc).__name__}: {exc}"
@@ -312,7 +363,14 @@ class Satellite:
         if op == "head":
             with self._lock:
                 return {"ok": True, "length": len(self.log), "hash": self.log_hash()}
-        line = req["line"]
+        if op == "sync":  # the host found this satellite behind another: fetch what it misses
+            source, need = req["source"], req["need"]
+            if source not in self.sf.satellites or source == self.machine or isinstance(
+                    need, bool) or not isinstance(need, int):
+                raise TypeError("sync: expected another machine and a log length")
+            with self._lock:
+                return {"ok": True, "applied": self.catch_up(source, need=need)}
+        line = req.get("line", "")
         if not isinstance(line, str) or len(line) > MAX_LINE:
             raise TypeError("line: expected a command line string")
         parsed = cmdline.parse(line)

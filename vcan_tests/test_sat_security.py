@@ -359,3 +359,56 @@ def test_commit_below_the_log_length_compares_the_line(tmp_path: Path) -> None:
                 host._ask(0, {"op": "commit", "line": f"install -m0 --code={S}:worker W",
                               "seq": 0})
             assert sat.log == ["install -m0 sysfile"]
+
+
+def _two(tmp_path: Path) -> sysfile.SystemFile:
+    sats = "".join(f"[[satellite]]\nmachine = {m}\nport = {free_port()}\n" for m in (0, 1))
+    return sysfile.load(_sysfile(tmp_path, sats=sats))
+
+
+def _install(sf: sysfile.SystemFile, up: list[int], *lines: str) -> Host:
+    host = Host(sf, timeout=10.0, settle=0.5)
+    host.wait_for(up)
+    for line in lines:
+        host.execute(line)
+    return host
+
+
+@pytest.mark.slow
+def test_a_stale_sequencer_is_brought_up_to_date(tmp_path: Path) -> None:
+    sf = _two(tmp_path)
+    boots = ("install -m0 sysfile", "install -m1 sysfile")
+    with Satellite(sf, 0) as s0, Satellite(sf, 1) as s1:
+        s0.start()
+        s1.start()
+        _install(sf, [0, 1], *boots).close()
+        s0.stop()
+        _install(sf, [1], f"install -m1 --code={S}:worker W").close()
+    with Satellite(sf, 0) as s0:  # alone: replays its own (older) log
+        s0.start()
+        assert s0.log == list(boots)
+        with Satellite(sf, 1) as s1:  # its saved log extends the sequencer's: keeps its own
+            s1.start()
+            assert len(s1.log) == 3
+            host = _install(sf, [0, 1], f"install -m0 --code={S}:worker Z")
+            assert host.races_lost >= 1  # the sequencer was behind, then synced
+            assert s0.log == s1.log and s0.log[2:] == [f"install -m1 --code={S}:worker W",
+                                                        f"install -m0 --code={S}:worker Z"]
+            host.close()
+
+
+@pytest.mark.slow
+def test_a_satellite_whose_log_contradicts_its_peers_refuses_to_start(tmp_path: Path) -> None:
+    sf = _two(tmp_path)
+    with Satellite(sf, 0) as s0, Satellite(sf, 1) as s1:
+        s0.start()
+        s1.start()
+        _install(sf, [0, 1], "install -m0 sysfile", "install -m1 sysfile").close()
+        s1.stop()
+        _install(sf, [0], f"install -m0 --code={S}:worker X").close()  # only 0 has entry 2
+    with Satellite(sf, 1) as s1:  # alone (a partition): entry 2 becomes something else
+        s1.start()
+        _install(sf, [1], f"install -m1 --code={S}:worker Y").close()
+        with Satellite(sf, 0) as s0, pytest.raises(LinkError, match="differs from this "
+                                                   "satellite's at entry 2"):
+            s0.start()
