@@ -65,6 +65,8 @@ MUTATING = (cmdline.Install, cmdline.SetPri, cmdline.Boot)
 #: How long a starting satellite keeps asking for the install log before it concludes that it is
 #: alone (links to the other satellites are made in the background, within milliseconds).
 CATCH_UP_WAIT = 2.0
+#: Seconds between a change of the tables and the write of sysfile.map.
+MAP_DELAY = 1.0
 #: Longest install line accepted in a log.
 MAX_LINE = 4096
 HOST_ONLY = frozenset({"host"})
@@ -160,7 +162,7 @@ class Satellite:
         secret = sf.secret()
         sf.state_dir.mkdir(parents=True, exist_ok=True, mode=0o700)
         self.system = System(sf.devmaps, clock=clock or RealClock(), task_path=sf.task_path,
-                             base_dir=sf.base_dir, map_path=sf.map_path(machine),
+                             base_dir=sf.base_dir, map_path=None,
                              local_machines={machine})
         self.transport = Transport(link_config_for(sf, machine, secret),
                                    sealer=secret.sealer("satellite"))
@@ -171,6 +173,7 @@ class Satellite:
         self._stopping = threading.Event()
         self.refused: list[str] = []
         self.rejected = Throttle(log)
+        self._map_timer: threading.Timer | None = None
 
     # ---- life -------------------------------------------------------------------------------
     def start(self) -> None:
@@ -189,8 +192,13 @@ class Satellite:
                  len(self.log))
 
     def stop(self) -> None:
-        """Leave the link, stop the kernel, put actuators safe, stop the drivers."""
+        """Leave the link, write the map, stop the kernel, put actuators safe, stop the
+        drivers."""
         self._stopping.set()
+        timer = self._map_timer
+        if timer is not None:
+            timer.cancel()
+            self.write_map()
         for sub in reversed(self._subs):
             sub.close()
         self._subs.clear()
@@ -272,12 +280,33 @@ class Satellite:
                                 f"against {held[first]!r} (the logs diverged; move "
                                 f"{self.log_path} away to take the peers' log)")
             n = 0
-            for line in entries[len(self.log):]:
-                self._apply(line, persist=False)
-                n += 1
-            if start or n:
-                self._save_log()
+            try:
+                for line in entries[len(self.log):]:
+                    self._apply(line, persist=False)
+                    n += 1
+            finally:
+                if start or n:
+                    self._save_log()
             return n
+
+    def _map_changed(self) -> None:
+        """Write sysfile.map MAP_DELAY seconds after the first change not yet written (the
+        fsync'd install log is the durable record; the map is a view of it, so a burst of
+        installs costs one map write instead of one per install)."""
+        if self._map_timer is None and not self._stopping.is_set():
+            self._map_timer = threading.Timer(MAP_DELAY, self.write_map)
+            self._map_timer.daemon = True
+            self._map_timer.start()
+
+    def write_map(self) -> None:
+        """Write this satellite's sysfile.map now (in the system's state directory)."""
+        self._map_timer = None
+        try:
+            doc = self.system.call(self.system.sysmgr.map_doc)
+            sysmap.write(self.sf.map_path(self.machine), doc)
+        except (ChcosError, OSError) as exc:
+            log.error("satellite %d: cannot write %s: %s", self.machine,
+                      self.sf.map_path(self.machine), exc)
 
     @property
     def log_path(self) -> Path:
@@ -325,6 +354,7 @@ class Satellite:
             answer = (f"{req.name} entered in the tables, but its code failed to load on machine "
                       f"{self.machine}: {exc}")
         self.log.append(line)
+        self._map_changed()
         if persist:
             with open(self.log_path, "a", encoding="utf-8") as f:
                 f.write(json.dumps(line) + "\n")
