@@ -123,6 +123,10 @@ def _host(args: argparse.Namespace) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``chcos`` console script; returns the exit status."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:2] == ["check", "--system"]:
+        from chcos.sysfile import check_main as check_system
+
+        return check_system(argv[2:])
     if argv[:1] == ["check"]:
         from chcos.devmap import check_main
 
@@ -174,7 +178,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.set_defaults(func=_host)
     sub.add_parser("map", help="draw a sysfile.map (chcos map [MAP] --format text|dot|svg)")
     sub.add_parser("view", help="live page of a running system (chcos view --example fig65)")
-    sub.add_parser("check", help="validate device-map files (chcos check FILE...)")
+    sub.add_parser("check", help="validate device-map files (chcos check FILE...) or system "
+                                 "files (chcos check --system FILE...)")
     sub.add_parser("sim", help="simulated field devices (chcos sim KIND ...)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.ERROR,

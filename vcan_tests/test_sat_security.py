@@ -88,6 +88,19 @@ def test_non_loopback_satellite_without_tls_is_refused_saying_what_to_add(tmp_pa
             sysfile.load(_sysfile(tmp_path, sats=sats.replace("10.99.0.2", bad)))
 
 
+def test_chcos_check_system_refuses_an_exposed_satellite(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from chcos.cli import main
+
+    ok = _sysfile(tmp_path)
+    assert main(["check", "--system", str(ok)]) == 0
+    assert "peers authenticated by the system secret" in capsys.readouterr().out
+    exposed = tmp_path / "exposed.toml"
+    exposed.write_text(ok.read_text().replace("port =", 'host = "192.0.2.7"\nport ='))
+    assert main(["check", "--system", str(exposed)]) == 1
+    assert "192.0.2.7 is not a loopback address: add a [link.tls]" in capsys.readouterr().err
+
+
 def test_auth_without_dictionary_is_refused_at_load(tmp_path: Path) -> None:
     body = '[link.auth]\nuser = "sat"\npassword = "pw"\n'
     with pytest.raises(ConfigError, match=r"link\.auth\.dictionary_file: missing"):
