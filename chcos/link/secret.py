@@ -140,12 +140,14 @@ class Sealer:
     def __init__(self, role: str, keys: dict[str, bytes], identity: str) -> None:
         self.role = role
         self.identity = identity
-        self._keys = {ROLES[r]: k for r, k in keys.items()}
+        self._keys = {ROLES[r]: hmac.new(k, digestmod=hashlib.sha256) for r, k in keys.items()}
         self._mine = ROLES[role]
 
     def _tag(self, role: int, key_expr: str, payload: bytes) -> bytes:
-        msg = key_expr.encode() + b"\0" + bytes((role,)) + payload
-        return hmac.digest(self._keys[role], msg, "sha256")[:TAG_BYTES]
+        h = self._keys[role].copy()  # keyed state made once; copying it is cheaper than a new key
+        h.update(key_expr.encode() + b"\0" + bytes((role,)))
+        h.update(payload)
+        return h.digest()[:TAG_BYTES]
 
     def seal(self, key_expr: str, payload: bytes) -> bytes:
         """``payload`` followed by this node's role byte and the tag over key and payload."""
