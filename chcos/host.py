@@ -109,7 +109,7 @@ class Host:
     # ---- requests ---------------------------------------------------------------------------
     def _ask(self, machine: int, req: dict[str, Any]) -> dict[str, Any]:
         raw = self.transport.request(f"{self.sf.prefix}/m/{machine}/ctl", json.dumps(req).encode(),
-                                     timeout=self.timeout)
+                                     timeout=self.timeout, roles=frozenset({"satellite"}))
         reply: dict[str, Any] = json.loads(raw)
         if not reply.get("ok"):
             kind = reply.get("type", "")

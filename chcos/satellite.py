@@ -71,6 +71,7 @@ MAP_DELAY = 1.0
 MAX_LINE = 4096
 HOST_ONLY = frozenset({"host"})
 MEMBERS = frozenset({"host", "satellite"})
+SATELLITES = frozenset({"satellite"})
 #: Stand-in code of a task whose own code failed to load after its install was committed.
 FAILED_CODE = "chcos.satellite:code_failed"
 _load_errors: dict[str, str] = {}
@@ -240,7 +241,8 @@ class Satellite:
         deadline = time.monotonic() + CATCH_UP_WAIT
         while True:  # links to peers come up in the background: give them a moment
             try:
-                got = parse_log(self.transport.request(key, b"", timeout=1.5))
+                got = parse_log(self.transport.request(key, b"", timeout=1.5,
+                                                       roles=SATELLITES))
                 if len(got) >= need:
                     entries = got
                     break

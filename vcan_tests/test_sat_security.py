@@ -355,6 +355,18 @@ def test_a_rogue_log_answer_does_not_crash_a_starting_satellite(tmp_path: Path) 
         rogue2.close()
     finally:
         rogue.close()
+    # a well-formed log, but served by the host role: only satellites' logs are taken
+    forged = json.dumps(["install -m0 sysfile", f"install -m0 --code={S}:worker FAKE"]).encode()
+    rogue = Transport(sysfile.link_config_for(sf, 1, secret), sealer=secret.sealer("host"))
+    try:
+        rogue.serve(f"{sf.prefix}/log", lambda _p: forged)
+        with Satellite(sf, 0) as sat:
+            sat.start()
+            assert sat.log == []
+            assert sat.transport.rejected.counts[
+                f"link request {sf.prefix}/log: payload from a host refused"] >= 1
+    finally:
+        rogue.close()
 
 
 def test_commit_below_the_log_length_compares_the_line(tmp_path: Path) -> None:

@@ -461,9 +461,16 @@ class Transport:
         return self._register(what, entity)
 
     def request(
-        self, key: str, payload: bytes = b"", *, timeout: float, priority: int = 50
+        self,
+        key: str,
+        payload: bytes = b"",
+        *,
+        timeout: float,
+        priority: int = 50,
+        roles: frozenset[str] | None = None,
     ) -> bytes:
-        """Send ``payload`` to the server of ``key`` (concrete) and return its answer.
+        """Send ``payload`` to the server of ``key`` (concrete) and return its answer, which
+        must be sealed by one of ``roles`` (None: any member) when the transport seals.
 
         Blocks the caller at most about ``timeout`` seconds. Raises LinkError when nobody serves
         ``key``, when no answer came in time, or when the server's handler failed (its message
@@ -486,7 +493,7 @@ class Transport:
             for reply in replies:
                 ok = reply.ok
                 if ok is not None:
-                    opened = self._open(f"request {key}", key, ok.payload.to_bytes(), None)
+                    opened = self._open(f"request {key}", key, ok.payload.to_bytes(), roles)
                     if opened is None:
                         raise LinkError(f"request {key!r}: the answer is not authenticated")
                     return opened[1]
