@@ -35,13 +35,24 @@ def _ip(*args: str) -> None:
     subprocess.run(["ip", *args], check=True, capture_output=True, timeout=30)
 
 
+def _remove_orphans() -> None:
+    """Remove namespaces left by a test run that was killed (its process is gone)."""
+    out = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True,
+                         timeout=30).stdout
+    for ns in (line.split()[0] for line in out.splitlines() if line.startswith("c19x")):
+        pid = ns[4:].split("x", 1)[0]
+        if pid.isdigit() and not Path(f"/proc/{pid}").exists():
+            subprocess.run(["ip", "netns", "del", ns], capture_output=True, timeout=30)
+
+
 class Net:
     """Namespaces ``<tag><name>`` for ``names``, each with one interface ``eth0`` at
     ``10.19.0.<address>``, joined through a bridge in namespace ``<tag>br``. :meth:`close`
     removes everything (deleting a namespace deletes its veth ends)."""
 
     def __init__(self, addresses: dict[str, int]) -> None:
-        self.tag = f"c19x{os.getpid() % 100000}"
+        _remove_orphans()
+        self.tag = f"c19x{os.getpid()}x"
         self.addresses = {n: f"{SUBNET}.{a}" for n, a in addresses.items()}
         self.made: list[str] = []
         try:
