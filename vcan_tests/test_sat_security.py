@@ -11,6 +11,7 @@ import json
 import os
 import stat
 import threading
+import time
 from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
@@ -437,3 +438,28 @@ def test_a_satellite_whose_log_contradicts_its_peers_refuses_to_start(tmp_path: 
         with Satellite(sf, 0) as s0, pytest.raises(LinkError, match="differs from this "
                                                    "satellite's at entry 2"):
             s0.start()
+
+
+def test_code_that_fails_to_load_after_commit_keeps_the_tables_alike(tmp_path: Path) -> None:
+    (tmp_path / "tasks").mkdir()
+    (tmp_path / "tasks" / "BROKEN.py").write_text("raise RuntimeError('no such hardware')\n")
+    path = _sysfile(tmp_path)
+    path.write_text(path.read_text().replace('state_dir = "state"',
+                                             'state_dir = "state"\ntask_path = ["tasks"]'))
+    sf = sysfile.load(path)
+    with Satellite(sf, 0) as sat:
+        sat.start()
+        with Host(sf, timeout=10.0) as host:
+            host.wait_for([0])
+            host.execute("install -m0 sysfile")
+            answer = host.execute("install -m0 BROKEN")
+            assert "BROKEN entered in the tables, but its code failed to load" in answer
+            assert "no such hardware" in answer
+            assert [t["name"] for t in host.map_doc()["tasks"]] == ["BROKEN"]
+            assert sat.log[-1] == "install -m0 BROKEN"
+            host.execute("invoke BROKEN")
+            deadline = time.monotonic() + 20
+            doc = host.map_doc()
+            while not doc["tasks"][0]["last_error"] and time.monotonic() < deadline:
+                doc = host.map_doc()  # each poll is a round trip
+            assert "no such hardware" in doc["tasks"][0]["last_error"]
