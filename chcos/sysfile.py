@@ -25,7 +25,8 @@ satellites with the loopback port each listens on::
 Every node builds its Zenoh configuration from it (:func:`link_config_for`): a satellite listens on
 its own address and port and connects to every satellite of a lower machine number (one TCP/TLS
 connection per pair: with authentication on, Zenoh refuses the second session a pair would
-open if both sides connected, and the refused side would retry it every second for ever); a host
+open if both sides connected, and the refused side would retry it every second for ever --
+eclipse-zenoh/zenoh issue 2577); a host
 only connects, to every satellite. Multicast scouting is off (see :mod:`chcos.link.config`).
 
 Security (see README "Security"): without ``[link.auth]`` every node authenticates with the
