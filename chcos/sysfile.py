@@ -30,7 +30,10 @@ eclipse-zenoh/zenoh issue 2577); a host
 only connects, to every satellite. Multicast scouting is off (see :mod:`chcos.link.config`).
 
 Security (see README "Security"): without ``[link.auth]`` every node authenticates with the
-system's secret (:mod:`chcos.link.secret`, generated on first use in the state directory);
+system's secret (:mod:`chcos.link.secret`, generated on first use in the state directory), and
+without ``[link.tls]`` a loopback system talks mutual TLS with certificates of its own, made on
+first use by the openssl tool in ``<state_dir>/<name>/tls/`` (so that a local process that takes
+a stopped satellite's port can neither pass for it nor read what is sent to it);
 a system with a satellite on a non-loopback address is refused unless ``[link.tls]`` has mutual
 TLS (or TLS plus ``[link.auth]`` with a dictionary); ``[link.auth]`` without
 ``dictionary_file`` is refused. Run state (each satellite's sysfile.map) lives in
@@ -40,6 +43,7 @@ TLS (or TLS plus ``[link.auth]`` with a dictionary); ``[link.auth]`` without
 
 from __future__ import annotations
 
+import logging
 import os
 import tomllib
 from collections.abc import Mapping
@@ -48,8 +52,17 @@ from pathlib import Path
 from typing import Any
 
 from chcos.errors import ConfigError
-from chcos.link.config import LOOPBACK, LinkConfig, UsrPwdAuth, check_host, link_config_from_section
-from chcos.link.secret import SystemSecret, load_or_create
+from chcos.link.config import (
+    LOOPBACK,
+    LinkConfig,
+    TlsSettings,
+    UsrPwdAuth,
+    check_host,
+    link_config_from_section,
+)
+from chcos.link.secret import SystemSecret, load_or_create, loopback_pki
+
+log = logging.getLogger("chcos.sysfile")
 
 _TOP = {"system", "satellite", "link"}
 _SYSTEM = {"name", "devmaps", "task_path", "base_dir", "state_dir", "secret_file"}
@@ -221,6 +234,15 @@ def link_config_for(sf: SystemFile, machine: int | None,
     if secret is not None and "auth" not in sf.link:
         role = "host" if machine is None else "satellite"
         changes["auth"] = UsrPwdAuth(role, secret.password(role), secret.dictionary())
+    if secret is not None and "tls" not in sf.link and not cfg.exposed:
+        files = loopback_pki(sf.state_dir, sf.name)
+        if files is None:
+            log.warning("%s: no openssl tool to make the loopback TLS certificates: peers "
+                        "authenticate by user/password and seals only (install openssl to "
+                        "have mutual TLS on loopback too)", sf.path)
+        else:
+            ca, cert, key = files
+            changes["tls"] = TlsSettings(ca, cert, key, cert, key, enable_mtls=True)
     try:
         return replace(cfg, **changes)
     except ConfigError as exc:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import stat
 import threading
 import time
@@ -59,6 +60,23 @@ def test_secret_is_generated_owner_only_in_the_system_state_dir(tmp_path: Path) 
     os.chmod(secret.path, 0o600)
     with pytest.raises(ConfigError, match="not of 'other'"):
         load_or_create(secret.path, "other")
+
+
+def test_a_loopback_system_talks_mutual_tls_with_certificates_of_its_own(tmp_path: Path) -> None:
+    if shutil.which("openssl") is None:
+        pytest.fail("the openssl tool is needed (Debian: openssl)")
+    sf = sysfile.load(_sysfile(tmp_path))
+    cfg = sysfile.link_config_for(sf, 0, sf.secret())
+    assert cfg.listen_endpoints[0].startswith("tls/127.0.0.1:")
+    assert cfg.tls is not None and cfg.tls.enable_mtls and cfg.tls.verify_name_on_connect
+    assert cfg.auth is not None and cfg.auth.user == "satellite"
+    tls = tmp_path / "state" / "sec" / "tls"
+    assert sorted(f.name for f in tls.iterdir()) == ["ca.pem", "node.key", "node.pem"]
+    assert all(stat.S_IMODE(f.stat().st_mode) == 0o600 for f in tls.iterdir())
+    assert cfg.tls.root_ca_certificate == tls / "ca.pem"  # its key is gone: nothing else signed
+    host_cfg = sysfile.link_config_for(sf, None, sf.secret())
+    assert host_cfg.connect_endpoints[0].startswith("tls/") and host_cfg.auth is not None
+    assert host_cfg.auth.user == "host"
 
 
 def test_non_loopback_satellite_without_tls_is_refused_saying_what_to_add(tmp_path: Path) -> None:

@@ -26,7 +26,10 @@ import json
 import logging
 import os
 import secrets
+import shutil
 import stat
+import subprocess
+import tempfile
 import threading
 import time
 from dataclasses import dataclass
@@ -131,6 +134,60 @@ def load_or_create(path: Path, system: str) -> SystemSecret:
     if owner != system:
         raise ConfigError(f"{path}: the secret of system {owner!r}, not of {system!r}")
     return SystemSecret(path, system, identity, keys)
+
+
+_EXT = ("subjectAltName = IP:127.0.0.1,IP:::1,DNS:localhost\nbasicConstraints = CA:FALSE\n"
+        "keyUsage = digitalSignature\nextendedKeyUsage = serverAuth, clientAuth\n")
+
+
+def loopback_pki(directory: Path, system: str) -> tuple[Path, Path, Path] | None:
+    """The system's own loopback TLS files (ca.pem, node.pem, node.key) in ``directory/tls``,
+    made on first use with the openssl tool (EC P-256, ten years, naming 127.0.0.1, ::1 and
+    localhost; the CA's key is deleted once the node certificate is signed, so nothing else can
+    be signed with it). Returns None if the openssl tool is missing. Raises ConfigError if
+    openssl fails or the files are readable by others."""
+    final = directory / "tls"
+    files = (final / "ca.pem", final / "node.pem", final / "node.key")
+    if not final.exists():
+        openssl = shutil.which("openssl")
+        if openssl is None:
+            return None
+        directory.mkdir(parents=True, exist_ok=True, mode=0o700)
+        work = Path(tempfile.mkdtemp(prefix=".tls-", dir=directory))
+        ec = ("-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes")
+        (work / "ext.cnf").write_text(_EXT)
+        try:
+            for args in (
+                ("req", "-x509", *ec, "-keyout", "ca.key", "-out", "ca.pem", "-days", "3650",
+                 "-subj", f"/CN=chcos {system} CA"),
+                ("req", *ec, "-keyout", "node.key", "-out", "node.csr",
+                 "-subj", f"/CN=chcos {system} node"),
+                ("x509", "-req", "-in", "node.csr", "-CA", "ca.pem", "-CAkey", "ca.key",
+                 "-CAcreateserial", "-out", "node.pem", "-days", "3650", "-extfile", "ext.cnf"),
+            ):
+                subprocess.run([openssl, *args], cwd=work, check=True, capture_output=True,
+                               timeout=60)
+            for name in ("ca.key", "node.csr", "ext.cnf", "ca.srl"):
+                (work / name).unlink(missing_ok=True)
+            for f in work.iterdir():
+                f.chmod(0o600)
+            try:
+                work.rename(final)  # atomic; another process may have been first
+            except OSError:
+                if not final.exists():
+                    raise
+        except (OSError, subprocess.SubprocessError) as exc:
+            err = getattr(exc, "stderr", b"") or b""
+            raise ConfigError(f"{final}: cannot make the loopback TLS certificates with "
+                              f"openssl: {exc} {err.decode(errors='replace')[:300]}") from exc
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+        log.info("made the loopback TLS certificates of system %s in %s", system, final)
+    for f in files:
+        if not f.is_file():
+            raise ConfigError(f"{final}: expected {f.name} (remove the directory to remake it)")
+        _owner_only(f)
+    return files
 
 
 class Sealer:
