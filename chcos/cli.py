@@ -186,6 +186,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     # warnings are shown by default (a handler set by an embedding program or pytest is kept)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if argv[:2] == ["check", "--system"]:
+        from chcos.sysfile import check_main as check_system
+
+        return check_system(argv[2:])
     if argv[:1] == ["check"]:
         from chcos.devmap import check_main
 
@@ -291,7 +295,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     sub.add_parser("import", help="device map from an EDS, a DBC or a Modbus register list "
                                   "(chcos import eds|dbc|modbus FILE)")
     sub.add_parser("monitor", help="commission a live bus listen-only (chcos monitor SYSTEM)")
-    sub.add_parser("check", help="validate device-map files (chcos check FILE...)")
+    sub.add_parser("check", help="validate device-map files (chcos check FILE...) or system "
+                                 "files (chcos check --system FILE...)")
     sub.add_parser("sim", help="simulated devices (chcos sim KIND ..., chcos sim --from MAP)")
     sub.add_parser("map", help="draw a sysfile.map (chcos map [MAP] --format text|dot|svg)")
     sub.add_parser("view", help="live page of a running system (chcos view --example fig65)")

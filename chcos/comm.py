@@ -17,18 +17,24 @@ superseded on the way (a gap) and counts them as sent and overwritten on its cop
 ``msgstat`` keeps sent = delivered + overwritten + unread on the destination's satellite.
 
 Keys, under ``chcos/<system>``: ``m/<N>/msg`` (messages to machine N), ``all/msg`` (broadcast:
-estop, device status), ``alive/<N>`` (liveliness tokens).
+estop, device status), ``alive/<N>`` (liveliness tokens). Only payloads sealed by the satellite
+role are accepted on the message keys (a host cannot set device values, write actuators, forge
+statuses or e-stop through them). A malformed or refused message is counted by cause and logged
+at most once per cause per interval (:attr:`CommManager.rejected`); actuator values must match
+the actuator's type (a number where the safe value or limits are numbers) and be finite.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import time
 from typing import TYPE_CHECKING, Any
 
 from chcos.errors import LinkError, MessageError
 from chcos.kernel import Timer
 from chcos.link.codec import LinkMessage, MessageKind, decode_batch, encode, encode_batch
+from chcos.link.secret import Throttle
 from chcos.link.transport import EXPRESS_FROM, Subscription, Transport
 from chcos.messages import TOP_PRIORITY, Link, LinkStatus
 
@@ -46,6 +52,26 @@ log = logging.getLogger("chcos.comm")
 #: tens of microseconds, as much as a task step), and the data is at most BATCH_DELAY older.
 BATCH_MAX = 64
 BATCH_DELAY = 0.001
+#: The roles that may send on the message keys.
+SATELLITES = frozenset({"satellite"})
+_STATUSES = ("OK", "failed", "suspended", "stale")
+
+
+def check_actuator_value(device: str, safe: Any, limits: tuple[Any, Any], value: Any) -> None:
+    """Refuse an actuator command from the link whose type does not fit the actuator: a number
+    (int or float, finite; bool only where the safe value is a bool) where the safe value or a
+    limit is a number. Raises MessageError naming the device and the value."""
+    numeric = any(isinstance(x, int | float) and not isinstance(x, bool)
+                  for x in (safe, *limits))
+    if isinstance(safe, bool):
+        if not isinstance(value, bool):
+            raise MessageError(f"actuator {device}: expected true or false, got {value!r:.80}")
+    elif numeric:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise MessageError(f"actuator {device}: expected a number, got "
+                               f"{type(value).__name__} {value!r:.80}")
+        if not math.isfinite(value):
+            raise MessageError(f"actuator {device}: expected a finite number, got {value!r}")
 
 
 def machine_of(token_key: str) -> int | None:
@@ -70,6 +96,7 @@ class CommManager:
         self.received = 0
         self.sent = 0
         self.errors: list[str] = []
+        self.rejected = Throttle(log)
         self.alive: set[int] = {machine}
         # messages below EXPRESS_FROM wait in a batch per (destination key, droppable,
         # newest-wins) until it is sent (see BATCH_DELAY). A batch maps a link id (newest-wins
@@ -93,8 +120,9 @@ class CommManager:
         """Subscribe to this machine's messages and the broadcasts and watch the other
         satellites come and go. Raises LinkError if Zenoh refuses."""
         t = self.transport
-        self._subs.append(t.subscribe(self.key(self.machine), self._incoming))
-        self._subs.append(t.subscribe(f"{self.prefix}/all/msg", self._incoming))
+        self._subs.append(t.subscribe(self.key(self.machine), self._incoming, roles=SATELLITES))
+        self._subs.append(t.subscribe(f"{self.prefix}/all/msg", self._incoming,
+                                      roles=SATELLITES))
         self._subs.append(t.watch(f"{self.prefix}/alive/*", self._joined, self._left))
 
     def announce(self) -> None:
@@ -245,7 +273,12 @@ class CommManager:
 
     # ---- incoming (Zenoh thread -> kernel thread) -------------------------------------------
     def _incoming(self, key: str, payload: bytes) -> None:
-        self.sys.kernel.interrupt(self._handle_batch, decode_batch(payload))
+        try:
+            msgs = decode_batch(payload)
+        except LinkError as exc:
+            self.rejected.note("incoming batch refused (malformed)", f"{key}: {exc}")
+            return
+        self.sys.kernel.interrupt(self._handle_batch, msgs)
 
     def _handle_batch(self, msgs: list[LinkMessage]) -> None:
         for msg in msgs:
@@ -265,7 +298,8 @@ class CommManager:
             self._dispatch(msg)
         except Exception as exc:
             text = f"{msg.kind.name} {msg.src}->{msg.dst}: {type(exc).__name__}: {exc}"
-            log.error("incoming message refused: %s", text)
+            self.rejected.note(f"incoming message refused ({msg.kind.name} "
+                               f"{type(exc).__name__})", text)
             self.errors.append(text)
             del self.errors[:-100]
 
@@ -275,6 +309,9 @@ class CommManager:
         v = msg.value
         kind = msg.kind
         if kind is MessageKind.STATUS:
+            if not (isinstance(v, dict) and isinstance(v.get("device"), str)
+                    and v.get("status") in _STATUSES and isinstance(v.get("reason"), str)):
+                raise MessageError(f"malformed status message {v!r:.120}")
             if v.get("from") != self.machine:
                 s.devtab.set_status(v["device"], v["status"], v["reason"])
             return
@@ -284,6 +321,8 @@ class CommManager:
                 s.devtab.estop(str(v.get("reason")))
             return
         if kind is MessageKind.COMMAND and isinstance(v, dict) and v.get("op") == "actuator":
+            spec = s.devtab.get(str(v["device"])).spec
+            check_actuator_value(spec.name, spec.safe_value, spec.limits, v.get("value"))
             s.devtab.write(v["device"], v["value"], source=msg.src)
             return
         link = self._link(msg)

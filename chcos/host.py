@@ -3,13 +3,18 @@
 ``Host.execute("install -m1i1o1 A2 S3 M2")`` reaches a running multi-satellite system from another
 terminal, exactly as the thesis' shell script of section 6.3 does. Table changes are prepared on
 every live satellite (each checks them; the target machine also loads the task's code) and only
-then committed everywhere, so a refused install changes no satellite's tables. Runtime commands go
-to the satellite of the task or device concerned.
+then appended to the install log by the sequencer (the lowest-numbered live satellite, a
+compare-and-append at the log length every satellite prepared at) and committed everywhere else;
+a host that lost the race to another host prepares again at the new length (up to
+:data:`RACE_RETRIES` times, then InstallError). A refused install changes no satellite's tables.
+Runtime commands go to the satellite of the task or device concerned. Every request is sealed with
+the host role's key of the system secret (see :mod:`chcos.link.secret`).
 """
 
 from __future__ import annotations
 
 import json
+import random
 import threading
 import time
 from typing import Any
@@ -18,18 +23,30 @@ from chcos import cmdline
 from chcos.comm import machine_of
 from chcos.errors import CommandSyntaxError, InstallError, LinkError
 from chcos.link.config import UsrPwdAuth
+from chcos.link.secret import SystemSecret
 from chcos.link.transport import Transport
 from chcos.sysfile import SystemFile, link_config_for
 from chcos.sysview import render_text
 
+#: How often a host whose install lost the race to another host prepares it again.
+RACE_RETRIES = 50
+
+
+class RaceLost(InstallError):
+    """Another host changed the install log first; the install was not applied."""
+
 
 class Host:
-    """A host session on the system of ``sf``. ``auth`` (user, password) overrides the system
-    file's credentials (``("", "")``: none at all). Raises ConfigError for a bad system file."""
+    """A host session on the system of ``sf``. ``auth`` (user, password) overrides the
+    credentials of the system file or secret (``("", "")``: none at all); ``secret`` overrides
+    the system's secret (tests: a process holding another secret). Raises ConfigError for a bad
+    system file or secret."""
 
     def __init__(self, sf: SystemFile, *, auth: tuple[str, str] | None = None,
-                 timeout: float = 10.0, settle: float = 3.0) -> None:
-        cfg = link_config_for(sf, None)
+                 timeout: float = 10.0, settle: float = 3.0,
+                 secret: SystemSecret | None = None) -> None:
+        secret = secret or sf.secret()
+        cfg = link_config_for(sf, None, secret)
         if auth is not None:
             from dataclasses import replace
 
@@ -38,7 +55,8 @@ class Host:
         self.timeout = timeout
         self.settle = settle
         self._settled = False
-        self.transport = Transport(cfg)
+        self.transport = Transport(cfg, sealer=secret.sealer("host"))
+        self.races_lost = 0
         self._where: dict[str, int] = {}
 
     def close(self) -> None:
@@ -91,7 +109,7 @@ class Host:
     # ---- requests ---------------------------------------------------------------------------
     def _ask(self, machine: int, req: dict[str, Any]) -> dict[str, Any]:
         raw = self.transport.request(f"{self.sf.prefix}/m/{machine}/ctl", json.dumps(req).encode(),
-                                     timeout=self.timeout)
+                                     timeout=self.timeout, roles=frozenset({"satellite"}))
         reply: dict[str, Any] = json.loads(raw)
         if not reply.get("ok"):
             kind = reply.get("type", "")
@@ -100,6 +118,8 @@ class Host:
                 raise CommandSyntaxError(err)
             if kind == "LinkError":
                 raise LinkError(f"machine {machine}: {err}")
+            if kind == "RaceLost":
+                raise RaceLost(f"machine {machine}: {err}")
             raise InstallError(f"machine {machine}: {err}")
         return reply
 
@@ -162,6 +182,57 @@ class Host:
         doc["alive"] = up
         return doc
 
+    def _change(self, line: str, target: int | None) -> str:
+        """Prepare ``line`` everywhere, have the sequencer append it to the install log at the
+        length everybody prepared at, commit it everywhere else; start again when another host
+        got there first. Returns the answer of the task's own satellite."""
+        for attempt in range(RACE_RETRIES):
+            up = self._up() if attempt == 0 else self.alive() or self._up()
+            leader = min(up)
+            order = sorted(up, key=lambda m: (m != target, m))
+            try:
+                seq = int(self._ask(leader, {"op": "head"})["length"])
+                for m in order:
+                    self._ask(m, {"op": "prepare", "line": line, "seq": seq, "leader": leader})
+                answers = {leader: self._ask(leader, {"op": "append", "line": line,
+                                                      "seq": seq})["answer"]}
+            except RaceLost:
+                self.races_lost += 1
+                self._sync_sequencer(up)
+                time.sleep(random.uniform(0.0, 0.02 * (attempt + 1)))  # back off, then retry
+                continue
+            for m in order:
+                if m != leader:
+                    answers[m] = self._ask(m, {"op": "commit", "line": line, "seq": seq,
+                                               "leader": leader})["answer"]
+            return str(answers.get(target if target in answers else leader))
+        raise RaceLost(f"{line!r} not applied: other hosts changed the install log first "
+                       f"{RACE_RETRIES} times in a row")
+
+    def _sync_sequencer(self, up: list[int]) -> None:
+        """If the sequencer holds fewer log entries than another satellite (it restarted alone
+        and reloaded an older map), have it fetch the missing ones from the longest log."""
+        try:
+            lengths = {m: int(self._ask(m, {"op": "head"})["length"]) for m in up}
+            longest = max(lengths, key=lambda m: (lengths[m], -m))
+            leader = min(up)
+            if lengths[leader] < lengths[longest]:
+                self._ask(leader, {"op": "sync", "source": longest, "need": lengths[longest]})
+        except (InstallError, LinkError):
+            pass  # the next attempt finds out again
+
+    def rejected(self, machine: int) -> dict[str, int]:
+        """How many payloads satellite ``machine`` refused so far, by cause."""
+        return dict(self._ask(machine, {"op": "map"})["rejected"])
+
+    def log_heads(self) -> dict[int, tuple[int, str]]:
+        """(length, SHA-256) of the install log of every satellite up."""
+        out = {}
+        for m in self._up():
+            head = self._ask(m, {"op": "head"})
+            out[m] = (int(head["length"]), str(head["hash"]))
+        return out
+
     def execute(self, line: str) -> str:
         """Carry out one host command line on the system; returns the answer. Raises
         CommandSyntaxError, InstallError (nothing changed anywhere), LinkError."""
@@ -170,16 +241,9 @@ class Host:
             return ""
         if isinstance(req, cmdline.ShowMap):
             return render_text(self.map_doc())
-        up = self._up()
         if isinstance(req, cmdline.Install | cmdline.SetPri | cmdline.ResetPri | cmdline.Boot):
-            seq = len(self._ask(up[0], {"op": "log"})["log"])
-            target = getattr(req, "machine", None)
-            order = sorted(up, key=lambda m: m != target)
-            for m in order:
-                self._ask(m, {"op": "prepare", "line": line, "seq": seq})
-            answers = [self._ask(m, {"op": "commit", "line": line, "seq": seq})["answer"]
-                       for m in order]
-            return str(answers[0])
+            return self._change(line, getattr(req, "machine", None))
+        up = self._up()
         if isinstance(req, cmdline.TaskOp) and req.op == "reset" and not req.task:
             return "; ".join(f"machine {m}: {self._ask(m, {'op': 'exec', 'line': line})['answer']}"
                              for m in up)

@@ -1,8 +1,10 @@
 """memory - the bus-less driver: actuator writes kept in memory, sensor values from the host.
 
 Used by examples and tests. Bus options: ``history`` (int >= 1, default 100: how many writes per
-actuator are kept). Device addresses must be empty. Sensor values reach the Devtab only through the
-host side (:meth:`MemoryDriver.inject` or ``host.deliver`` directly).
+actuator are kept; older writes are also dropped once the kept ones exceed
+:data:`HISTORY_BYTES` per actuator, so huge values cannot pile up; the last write is always
+kept). Device addresses must be empty. Sensor values reach the Devtab only through the host side
+(:meth:`MemoryDriver.inject` or ``host.deliver`` directly).
 """
 
 from __future__ import annotations
@@ -17,6 +19,17 @@ from chcos.errors import DeviceError
 from drivers.base import Driver, DriverHost
 
 MAX_HISTORY = 1_000_000  # writes kept per actuator
+#: Most bytes of kept history per actuator (approximate: text and byte strings by length, other
+#: values by the length of their repr), beyond the last write.
+HISTORY_BYTES = 1024 * 1024
+
+
+def _size(value: Any) -> int:
+    if isinstance(value, str | bytes | bytearray):
+        return len(value)
+    if isinstance(value, int | float | bool) or value is None:
+        return 8
+    return len(repr(value))
 
 
 def check_history(bus: BusSpec, allowed: Iterable[str]) -> list[str]:
@@ -42,6 +55,7 @@ class ActuatorStore:
     def __init__(self, actuators: Iterable[str], history: int) -> None:
         self._cond = threading.Condition()
         self._hist: dict[str, deque[Any]] = {a: deque(maxlen=history) for a in actuators}
+        self._sizes: dict[str, deque[int]] = {a: deque(maxlen=history) for a in self._hist}
         self._count: dict[str, int] = dict.fromkeys(self._hist, 0)
 
     def put(self, device: str, value: Any) -> None:
@@ -50,7 +64,13 @@ class ActuatorStore:
             if device not in self._hist:
                 raise DeviceError(f"write to {device!r}: not an actuator of this bus; expected one "
                                   f"of {', '.join(self._hist) or 'none'}")
-            self._hist[device].append(value)
+            hist, sizes = self._hist[device], self._sizes[device]
+            hist.append(value)
+            sizes.append(_size(value))
+            total = sum(sizes)
+            while len(hist) > 1 and total > HISTORY_BYTES:
+                hist.popleft()
+                total -= sizes.popleft()
             self._count[device] += 1
             self._cond.notify_all()
 

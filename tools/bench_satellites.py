@@ -13,7 +13,9 @@
    p50/p99 of arrival minus stamp (target p99 < 1 ms). Measured in the same run, side by side:
    the bare transport under it (two processes, chcos' own Zenoh configuration, the same rate and
    count; the receiver's Zenoh callback hands each stamp to a second thread, as a satellite hands
-   messages to its kernel): what chcos adds to the floor this machine gives today.
+   messages to its kernel): what chcos adds to the floor this machine gives today; and the same
+   bare transport secured as satellites are (mutual TLS, user/password, a seal on every
+   payload): what the security costs by itself.
 Usage: tools/bench_satellites.py [--seconds S] [--rate N] [--json FILE] [--latency-only]
 """
 
@@ -112,7 +114,7 @@ class Cluster:
                        for m in range(machines))
         (self.tmp / "system.toml").write_text(
             f'[system]\nname = "bench{os.getpid()}x{machines}"\ndevmaps = ["devices.toml"]\n'
-            f"{sats}")
+            f'state_dir = "state"\n{sats}')
         self.sf = sysfile.load(self.tmp / "system.toml")
         env = dict(os.environ, PYTHONPATH=str(ROOT))
         self.procs = [subprocess.Popen(
@@ -194,12 +196,24 @@ def _stats(lat: list[float]) -> dict[str, float]:
     return {"n": len(s), "p50": s[len(s) // 2], "p99": s[int(len(s) * 0.99) - 1], "max": s[-1]}
 
 
-def _raw_receiver(port: int, peer: int, count: int) -> None:
-    """The bare-transport receiver process: prints the latency figures as JSON."""
-    import collections
-
+def _raw_transport(port: int, peer: int, system: str | None, machine: int) -> Any:
+    """A bare transport: chcos' plain-TCP configuration, or (``system``: a system file naming
+    both ports) exactly what a satellite of that system uses: mutual TLS, user/password and a
+    seal on every payload."""
     from chcos.link.config import LinkConfig
     from chcos.link.transport import Transport
+
+    if system is None:
+        return Transport(LinkConfig(port, (peer,)))
+    sf = sysfile.load(system)
+    secret = sf.secret()
+    return Transport(sysfile.link_config_for(sf, machine, secret),
+                     sealer=secret.sealer("satellite"))
+
+
+def _raw_receiver(port: int, peer: int, count: int, system: str | None = None) -> None:
+    """The bare-transport receiver process: prints the latency figures as JSON."""
+    import collections
 
     stamps: collections.deque[int] = collections.deque()
     arrived = threading.Event()
@@ -209,7 +223,7 @@ def _raw_receiver(port: int, peer: int, count: int) -> None:
         stamps.append(int(payload))
         arrived.set()
 
-    with Transport(LinkConfig(port, (peer,))) as t:
+    with _raw_transport(port, peer, system, 0) as t:
         t.subscribe("bench/raw", on_payload)
         t.announce("bench/raw/alive/rx")
         while len(lat) < count:                 # the second thread (a satellite's kernel)
@@ -221,13 +235,11 @@ def _raw_receiver(port: int, peer: int, count: int) -> None:
         print(json.dumps(_stats(lat)), flush=True)
 
 
-def _raw_sender(port: int, peer: int, count: int, rate: int) -> None:
+def _raw_sender(port: int, peer: int, count: int, rate: int, system: str | None = None) -> None:
     """The bare-transport sender process: ``count`` stamps at ``rate`` per second."""
     from chcos.link.codec import MessageKind
-    from chcos.link.config import LinkConfig
-    from chcos.link.transport import Transport
 
-    with Transport(LinkConfig(port, (peer,))) as t:
+    with _raw_transport(port, peer, system, 1) as t:
         up = threading.Event()
         with t.watch("bench/raw/alive/*", lambda k: up.set(), lambda k: None):
             if not up.wait(30.0):
@@ -244,16 +256,27 @@ def _raw_sender(port: int, peer: int, count: int, rate: int) -> None:
         pace.wait(1.0)  # let the last messages leave before the session closes
 
 
-def raw_latency(rate: int, seconds: float) -> dict[str, float]:
-    """The bare transport's latency at ``rate`` messages/s (see the module docstring)."""
+def raw_latency(rate: int, seconds: float, secure: bool = False) -> dict[str, float]:
+    """The bare transport's latency at ``rate`` messages/s (see the module docstring); with
+    ``secure`` configured as the satellites are (mutual TLS, user/password, seals)."""
     count = int(rate * seconds)
     rx_port, tx_port = free_port(), free_port()
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     me = [sys.executable, str(Path(__file__).resolve())]
-    rx = subprocess.Popen([*me, "--raw", "rx", str(rx_port), str(tx_port), str(count), "0"],
-                          cwd=ROOT, env=env, stdout=subprocess.PIPE, text=True)
+    extra: list[str] = []
+    if secure:
+        tmp = Path(tempfile.mkdtemp(prefix="chcos-bench-raw-"))
+        (tmp / "system.toml").write_text(
+            f'[system]\nname = "raw{os.getpid()}"\nstate_dir = "state"\n'
+            f"[[satellite]]\nmachine = 0\nport = {rx_port}\n"
+            f"[[satellite]]\nmachine = 1\nport = {tx_port}\n")
+        extra = ["--raw-system", str(tmp / "system.toml")]
+        sf = sysfile.load(tmp / "system.toml")
+        sysfile.link_config_for(sf, 0, sf.secret())  # make the secret and certificates once
+    rx = subprocess.Popen([*me, "--raw", "rx", str(rx_port), str(tx_port), str(count), "0",
+                           *extra], cwd=ROOT, env=env, stdout=subprocess.PIPE, text=True)
     tx = subprocess.Popen([*me, "--raw", "tx", str(tx_port), str(rx_port), str(count),
-                           str(rate)], cwd=ROOT, env=env)
+                           str(rate), *extra], cwd=ROOT, env=env)
     try:
         out, _ = rx.communicate(timeout=seconds * 3 + 60)
         tx.wait(30)
@@ -275,13 +298,14 @@ def main() -> int:
                     help="only the latency part (chcos and the bare transport)")
     ap.add_argument("--raw", nargs=5, metavar=("ROLE", "PORT", "PEER", "COUNT", "RATE"),
                     help=argparse.SUPPRESS)  # internal: one bare-transport process
+    ap.add_argument("--raw-system", help=argparse.SUPPRESS)  # internal: secured as satellites
     args = ap.parse_args()
     if args.raw:
         role, port, peer, count, rate = args.raw
         if role == "rx":
-            _raw_receiver(int(port), int(peer), int(count))
+            _raw_receiver(int(port), int(peer), int(count), args.raw_system)
         else:
-            _raw_sender(int(port), int(peer), int(count), int(rate))
+            _raw_sender(int(port), int(peer), int(count), int(rate), args.raw_system)
         return 0
     res: dict[str, Any] = {}
     print(f"cores: {os.cpu_count()}")
@@ -300,6 +324,10 @@ def main() -> int:
     print(f"  bare transport, same run     : p50 {raw['p50']:.0f} us, p99 {raw['p99']:.0f} us, "
           f"max {raw['max']:.0f} us (chcos/bare: p50 {lat['p50'] / raw['p50']:.2f}x, "
           f"p99 {lat['p99'] / raw['p99']:.2f}x)")
+    sec = res["raw_secure_latency_us"] = raw_latency(args.rate, args.seconds, secure=True)
+    print(f"  bare, secured as satellites : p50 {sec['p50']:.0f} us, p99 {sec['p99']:.0f} us, "
+          f"max {sec['max']:.0f} us (mutual TLS, user/password, seals; chcos/secured bare: "
+          f"p50 {lat['p50'] / sec['p50']:.2f}x, p99 {lat['p99'] / sec['p99']:.2f}x)")
     if args.json:
         Path(args.json).write_text(json.dumps(res))
     return 0

@@ -88,7 +88,8 @@ class Cluster:
             link = ('[link.auth]\nuser = "sat"\npassword = "s3cret"\n'
                     'dictionary_file = "users.txt"\n')
         (tmp / "system.toml").write_text(
-            f'[system]\nname = "{name}"\ndevmaps = ["devices.toml"]\nbase_dir = "."\n\n'
+            f'[system]\nname = "{name}"\ndevmaps = ["devices.toml"]\nbase_dir = "."\n'
+            f'state_dir = "state"\n\n'
             f"{sats}\n{link}")
         self.sf = sysfile.load(tmp / "system.toml")
         self.procs: dict[int, subprocess.Popen[bytes]] = {}

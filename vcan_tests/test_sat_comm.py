@@ -105,7 +105,7 @@ class LoopTransport:
     def __init__(self, net: LoopNet) -> None:
         self.net = net
 
-    def subscribe(self, key: str, cb: Callable[[str, bytes], None]) -> _Handle:
+    def subscribe(self, key: str, cb: Callable[[str, bytes], None], roles: Any = None) -> _Handle:
         self.net.subs.setdefault(key, []).append(cb)
         return _Handle()
 

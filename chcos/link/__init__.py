@@ -1,8 +1,9 @@
 """link - the chcos inter-satellite transport over eclipse-zenoh.
 
-:mod:`chcos.link.config` builds safe loopback-only Zenoh configurations, :mod:`chcos.link.codec`
-is the wire format of link messages, :mod:`chcos.link.transport` is the :class:`Transport` the
-communications manager sits on.
+:mod:`chcos.link.config` builds safe Zenoh configurations (loopback unless a host address is given,
+and then only with TLS), :mod:`chcos.link.codec` is the wire format of link messages,
+:mod:`chcos.link.secret` the per-system secret and the role seals on every payload,
+:mod:`chcos.link.transport` is the :class:`Transport` the communications manager sits on.
 """
 
 from chcos.link.codec import LinkMessage, MessageKind, decode, encode

@@ -2,23 +2,28 @@
 
 Topology: **full mesh of equal peers, each listening on its own loopback port.** Every satellite
 (the host included) runs a Zenoh session in ``peer`` mode that listens on ``127.0.0.1:<its
-port>`` and connects to the ports of every other satellite named in the system file, retrying in
-the background for ever. Why:
+port>`` and connects to the ports of the other satellites named in the system file, retrying in
+the background for ever (:func:`chcos.sysfile.link_config_for` has each satellite connect to the
+lower-numbered ones only, so that each pair shares one connection). Why:
 
 * no router: a killed satellite takes only its own links down; the others keep talking directly
   (a router or a host-as-hub would be a single point of failure);
 * a killed satellite is noticed at once: its TCP connections are reset by the OS, Zenoh drops the
   session and withdraws its liveliness tokens; a machine that vanishes without a reset is noticed
   when its lease (``lease_ms``) expires;
-* a late joiner (or a restarted satellite) connects to everybody already up; those that come up
-  after it are reached by its background retries or connect to it themselves. Opening a session
+* a late joiner (or a restarted satellite) connects to the lower-numbered satellites already up;
+  the higher-numbered ones reach it by their background retries. Opening a session
   never waits for absent peers: connections are made in the background (a peer that is up is
   typically reached within a millisecond on loopback; synchronise on liveliness tokens, not on
   ``open`` returning).
 
 Everything that could send to a non-loopback address is off: multicast scouting (neither sent nor
 listened for), gossip never auto-connects to locators learnt from others, only ``tcp`` (or ``tls``)
-is admitted, and endpoints are built here from port numbers on ``127.0.0.1`` only.
+is admitted, and endpoints are built here from port numbers on ``127.0.0.1`` unless a host
+address is given (``listen_host``, ``connect_hosts``: a satellite on another computer). A
+configuration that listens on or connects to a non-loopback address is refused unless it uses
+TLS with mutual authentication, or TLS with user/password authentication
+(:meth:`LinkConfig.check_exposure`); the wildcard addresses 0.0.0.0 and :: are always refused.
 
 Zenoh keys set by :meth:`LinkConfig.to_json` (and why):
 
@@ -61,6 +66,7 @@ credentials are not in it. In a mesh every node should have all three.
 
 from __future__ import annotations
 
+import ipaddress
 import json
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -76,7 +82,9 @@ DEFAULT_LEASE_MS = 3000
 DEFAULT_RETRY_MS = 100
 MAX_RETRY_MS = 1000
 
-_SECTION_KEYS = frozenset({"listen", "connect", "lease_ms", "retry_ms", "auth", "tls"})
+_SECTION_KEYS = frozenset(
+    {"listen", "connect", "lease_ms", "retry_ms", "auth", "tls", "listen_host", "connect_hosts"}
+)
 _AUTH_KEYS = frozenset({"user", "password", "dictionary_file"})
 _TLS_KEYS = frozenset(
     {
@@ -94,6 +102,36 @@ _TLS_KEYS = frozenset(
 def _check_port(where: str, value: object) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 65535:
         raise ConfigError(f"{where}: expected a TCP port number 1..65535, got {value!r}")
+    return value
+
+
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` (an IPv4/IPv6 address or a name) is this computer's loopback."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def check_host(where: str, value: object) -> str:
+    """``value`` if it is an IPv4 or IPv6 address or a host name (not a wildcard address).
+    Raises ConfigError naming ``where`` otherwise."""
+    if not isinstance(value, str) or not value or len(value) > 253:
+        raise ConfigError(f"{where}: expected an IPv4/IPv6 address or a host name, got {value!r}")
+    try:
+        addr = ipaddress.ip_address(value)
+    except ValueError:
+        labels = value.rstrip(".").split(".")
+        if not all(lb and len(lb) <= 63 and lb.replace("-", "").isalnum()
+                   and not lb.startswith("-") for lb in labels):
+            raise ConfigError(
+                f"{where}: expected an IPv4/IPv6 address or a host name, got {value!r}") from None
+        return value
+    if addr.is_unspecified or addr.is_multicast:
+        raise ConfigError(f"{where}: {value} is a wildcard or multicast address; expected the "
+                          "address of one interface (chcos never listens on every interface)")
     return value
 
 
@@ -205,8 +243,17 @@ class LinkConfig:
     retry_ms: int = DEFAULT_RETRY_MS
     auth: UsrPwdAuth | None = None
     tls: TlsSettings | None = None
+    listen_host: str = LOOPBACK
+    connect_hosts: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
+        check_host("link.listen_host", self.listen_host)
+        if not isinstance(self.connect_hosts, tuple) or (
+                self.connect_hosts and len(self.connect_hosts) != len(self.connect_ports)):
+            raise ConfigError("link.connect_hosts: expected a tuple with one address per "
+                              "connect port, or ()")
+        for i, host in enumerate(self.connect_hosts):
+            check_host(f"link.connect_hosts[{i}]", host)
         if self.listen_port is not None:
             _check_port("link.listen", self.listen_port)
         if not isinstance(self.connect_ports, tuple):
@@ -215,9 +262,10 @@ class LinkConfig:
             )
         for i, port in enumerate(self.connect_ports):
             _check_port(f"link.connect[{i}]", port)
-        if len(set(self.connect_ports)) != len(self.connect_ports):
+        pairs = self.connect_pairs
+        if len(set(pairs)) != len(pairs):
             raise ConfigError(f"link.connect: expected distinct ports, got {self.connect_ports}")
-        if self.listen_port is not None and self.listen_port in self.connect_ports:
+        if self.listen_port is not None and (self.listen_host, self.listen_port) in pairs:
             raise ConfigError(
                 f"link.connect: port {self.listen_port} is this node's own listen port; expected "
                 "only the other peers' ports"
@@ -242,23 +290,59 @@ class LinkConfig:
                 )
 
     @property
+    def connect_pairs(self) -> list[tuple[str, int]]:
+        """(host, port) of every peer this node connects to."""
+        hosts = self.connect_hosts or (LOOPBACK,) * len(self.connect_ports)
+        return list(zip(hosts, self.connect_ports, strict=True))
+
+    @property
     def protocol(self) -> str:
         """``"tls"`` when TLS is configured, else ``"tcp"``."""
         return "tls" if self.tls is not None else "tcp"
 
-    def endpoint(self, port: int) -> str:
-        """The Zenoh endpoint string for ``port`` on the loopback address."""
-        return f"{self.protocol}/{LOOPBACK}:{port}"
+    def endpoint(self, port: int, host: str = LOOPBACK) -> str:
+        """The Zenoh endpoint string for ``port`` on ``host`` (IPv6 in brackets)."""
+        return f"{self.protocol}/{f'[{host}]' if ':' in host else host}:{port}"
 
     @property
     def listen_endpoints(self) -> list[str]:
         """Where this node listens (empty for a connect-only node)."""
-        return [] if self.listen_port is None else [self.endpoint(self.listen_port)]
+        return ([] if self.listen_port is None
+                else [self.endpoint(self.listen_port, self.listen_host)])
 
     @property
     def connect_endpoints(self) -> list[str]:
         """Whom this node connects to."""
-        return [self.endpoint(port) for port in self.connect_ports]
+        return [self.endpoint(port, host) for host, port in self.connect_pairs]
+
+    @property
+    def exposed(self) -> list[str]:
+        """The non-loopback addresses this node listens on or connects to."""
+        hosts = [h for h, _ in self.connect_pairs]
+        if self.listen_port is not None:
+            hosts.insert(0, self.listen_host)
+        return [h for h in dict.fromkeys(hosts) if not is_loopback(h)]
+
+    def check_exposure(self, where: str = "link") -> None:
+        """Refuse a configuration that talks to a non-loopback address without TLS and peer
+        authentication (mutual TLS, or user/password with a dictionary over TLS). Raises
+        ConfigError saying what to add."""
+        exposed = self.exposed
+        if not exposed:
+            return
+        tls = self.tls
+        if tls is None:
+            raise ConfigError(
+                f"{where}: {', '.join(exposed)} is not a loopback address: add a [link.tls] "
+                "table with root_ca_certificate, listen_certificate, listen_private_key, "
+                "connect_certificate, connect_private_key and enable_mtls = true (or TLS with "
+                "[link.auth] user, password and dictionary_file)")
+        if not tls.enable_mtls and (self.auth is None or self.auth.dictionary_file is None):
+            raise ConfigError(
+                f"{where}: {', '.join(exposed)} is not a loopback address and peers are not "
+                "authenticated: set enable_mtls = true in [link.tls] (with "
+                "connect_certificate and connect_private_key), or add [link.auth] with user, "
+                "password and dictionary_file")
 
     def to_json(self) -> dict[str, Any]:
         """The Zenoh configuration as a JSON-able dict (see the module docstring for each key)."""
@@ -348,6 +432,8 @@ def link_config_from_section(
 
         listen = 7447                 # this node's port on 127.0.0.1 (optional)
         connect = [7448, 7449]        # the other peers' ports
+        listen_host = "10.0.0.2"      # optional: the address to listen on (default 127.0.0.1)
+        connect_hosts = ["10.0.0.3", "10.0.0.4"]  # optional: one address per connect port
         lease_ms = 3000               # optional
         retry_ms = 100                # optional
         [link.auth]                   # optional: Zenoh usrpwd
@@ -407,6 +493,14 @@ def link_config_from_section(
         except ConfigError as exc:
             raise ConfigError(f"{where}: {exc}") from exc
     kwargs: dict[str, Any] = {}
+    if "listen_host" in sec:
+        kwargs["listen_host"] = check_host(f"{where}.listen_host", sec["listen_host"])
+    if "connect_hosts" in sec:
+        hosts = sec["connect_hosts"]
+        if not isinstance(hosts, list | tuple):
+            raise ConfigError(f"{where}.connect_hosts: expected a list of addresses")
+        kwargs["connect_hosts"] = tuple(
+            check_host(f"{where}.connect_hosts[{i}]", h) for i, h in enumerate(hosts))
     for key in ("lease_ms", "retry_ms"):
         if key in sec:
             kwargs[key] = sec[key]

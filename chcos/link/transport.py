@@ -27,6 +27,13 @@ data to your own queue (``queue.Queue.put_nowait``, ``loop.call_soon_threadsafe`
 An exception escaping a callback is logged on the ``chcos.link`` logger and counted in
 :attr:`Transport.callback_errors`; it never stops the transport or later deliveries. A server
 handler's exception is also sent back to the requester, whose ``request`` raises LinkError.
+
+Authentication (:mod:`chcos.link.secret`): a transport made with a :class:`Sealer` seals every
+payload it sends (publish, request, reply) with its role's key and opens every payload it
+receives; ``subscribe`` and ``serve`` take the ``roles`` they accept. A payload that is not
+sealed by a member of the system, sealed by a role not accepted there, or larger than
+``max_bytes`` never reaches the callback: it is counted by cause in :attr:`Transport.rejected`
+and logged at most once per cause per interval (no traceback), so junk cannot flood the log.
 """
 
 from __future__ import annotations
@@ -43,6 +50,7 @@ import zenoh
 from chcos.errors import LinkError
 from chcos.link.codec import MAX_PRIORITY, LinkMessage, MessageKind, decode, encode
 from chcos.link.config import LinkConfig
+from chcos.link.secret import SEAL_BYTES, Sealer, Throttle
 
 log = logging.getLogger("chcos.link")
 
@@ -60,6 +68,8 @@ PRIORITY_BANDS: tuple[tuple[int, zenoh.Priority], ...] = (
 EXPRESS_FROM = 75
 #: Encoding of the error replies chcos servers send (Zenoh's own errors, e.g. timeouts, differ).
 SERVER_ERROR_ENCODING = "text/plain;chcos-server-error"
+#: Largest payload sent or accepted on the link by default (bytes, before the seal).
+MAX_MESSAGE_BYTES = 1024 * 1024
 #: Publishers kept declared (one per key and QoS); the least recently used beyond this is dropped.
 PUBLISHER_CACHE_SIZE = 256
 
@@ -153,8 +163,12 @@ class Transport:
     method raises LinkError on a closed transport, a bad key or priority, or a Zenoh failure.
     """
 
-    def __init__(self, config: LinkConfig) -> None:
+    def __init__(self, config: LinkConfig, *, sealer: Sealer | None = None,
+                 max_bytes: int = MAX_MESSAGE_BYTES) -> None:
         self.config = config
+        self.sealer = sealer
+        self.max_bytes = max_bytes
+        self.rejected = Throttle(log)
         self._lock = threading.Lock()
         self._errors = 0
         self._malformed = 0
@@ -249,7 +263,38 @@ class Transport:
     def _failed(self, what: str) -> None:
         with self._lock:
             self._errors += 1
-        log.exception("link %s: a callback raised (ignored, %d so far)", what, self._errors)
+        import sys
+
+        exc = sys.exc_info()[1]
+        self.rejected.note(f"link {what}: a callback raised (ignored)",
+                           f"{type(exc).__name__}: {exc} ({self._errors} so far)")
+
+    def _seal(self, key: str, payload: bytes) -> bytes:
+        if len(payload) > self.max_bytes:
+            raise LinkError(f"{key!r}: payload of {len(payload)} bytes is larger than the "
+                            f"link's limit of {self.max_bytes} bytes")
+        return payload if self.sealer is None else self.sealer.seal(key, payload)
+
+    def _open(self, what: str, key: str, data: bytes, roles: frozenset[str] | None
+              ) -> tuple[str, bytes] | None:
+        """(role, payload) of an accepted payload, or None (counted and logged by cause)."""
+        limit = self.max_bytes + (SEAL_BYTES if self.sealer is not None else 0)
+        if len(data) > limit:
+            self.rejected.note(f"link {what}: oversized payload dropped",
+                               f"{len(data)} bytes on {key}, limit {self.max_bytes}")
+            return None
+        if self.sealer is None:
+            return "", data
+        try:
+            role, payload = self.sealer.open(key, data)
+        except LinkError as exc:
+            self.rejected.note(f"link {what}: unauthenticated payload dropped", f"{key}: {exc}")
+            return None
+        if roles is not None and role not in roles:
+            self.rejected.note(f"link {what}: payload from a {role} refused",
+                               f"{key}: only {', '.join(sorted(roles))} may send here")
+            return None
+        return role, payload
 
     # -- publish/subscribe -------------------------------------------------------------------
 
@@ -307,8 +352,9 @@ class Transport:
         except ValueError as exc:
             raise LinkError(f"publish {key!r}: expected a MessageKind, got {kind!r}") from exc
         try:
+            data = self._seal(key, bytes(payload))
             pub = self._publisher(key, band, express, block)
-            pub.put(bytes(payload))
+            pub.put(data)
         except zenoh.ZError as exc:
             raise LinkError(f"publish {key!r}: Zenoh refused: {exc}") from exc
 
@@ -317,17 +363,22 @@ class Transport:
         own priority and kind. Raises LinkError like :meth:`publish` and :func:`codec.encode`."""
         self.publish(key, encode(message), priority=message.priority, kind=message.kind)
 
-    def subscribe(self, key_expr: str, callback: Callback) -> Subscription:
+    def subscribe(self, key_expr: str, callback: Callback,
+                  roles: frozenset[str] | None = None) -> Subscription:
         """Call ``callback(key, payload)`` on a Zenoh thread for each message on a key matching
-        ``key_expr`` (wildcards allowed). Hand the data off quickly; exceptions are logged and
-        counted. Raises LinkError on a closed transport or a bad key expression."""
+        ``key_expr`` (wildcards allowed) that is sealed by one of ``roles`` (None: any member).
+        Hand the data off quickly; exceptions are logged and counted. Raises LinkError on a
+        closed transport or a bad key expression."""
         self._check_open("subscribe")
         _check_key("subscribe", key_expr, concrete=False)
         what = f"subscriber {key_expr}"
 
         def on_sample(sample: zenoh.Sample) -> None:
             try:
-                callback(str(sample.key_expr), sample.payload.to_bytes())
+                key = str(sample.key_expr)
+                opened = self._open(what, key, sample.payload.to_bytes(), roles)
+                if opened is not None:
+                    callback(key, opened[1])
             except Exception:
                 self._failed(what)
 
@@ -351,7 +402,7 @@ class Transport:
             except LinkError as exc:
                 with self._lock:
                     self._malformed += 1
-                log.warning("link %s: dropped a malformed message on %s: %s", what, key, exc)
+                self.rejected.note(f"link {what}: malformed message dropped", f"{key}: {exc}")
                 return
             callback(key, message)
 
@@ -364,11 +415,13 @@ class Transport:
 
     # -- request/reply -----------------------------------------------------------------------
 
-    def serve(self, key_expr: str, handler: Handler) -> Subscription:
+    def serve(self, key_expr: str, handler: Handler,
+              roles: frozenset[str] | None = None) -> Subscription:
         """Answer requests on keys matching ``key_expr`` with ``handler(payload) -> bytes``, run
-        on a Zenoh thread. If the handler raises, the error is logged, counted and sent back
-        (the requester's :meth:`request` raises LinkError). Raises LinkError on a closed
-        transport or a bad key expression."""
+        on a Zenoh thread; requests not sealed by one of ``roles`` (None: any member) are
+        answered with a refusal and never reach the handler. If the handler raises, the error
+        is logged, counted and sent back (the requester's :meth:`request` raises LinkError).
+        Raises LinkError on a closed transport or a bad key expression."""
         self._check_open("serve")
         _check_key("serve", key_expr, concrete=False)
         what = f"server {key_expr}"
@@ -376,11 +429,18 @@ class Transport:
         def on_query(query: zenoh.Query) -> None:
             try:
                 payload = query.payload
-                request = b"" if payload is None else payload.to_bytes()
+                key = str(query.key_expr)
+                opened = self._open(what, key, b"" if payload is None else payload.to_bytes(),
+                                    roles)
+                if opened is None:
+                    query.reply_err(b"refused: not authenticated or not authorised here",
+                                    encoding=SERVER_ERROR_ENCODING)
+                    return
                 try:
-                    answer = handler(request)
-                    if not isinstance(answer, bytes | bytearray | memoryview):
-                        raise TypeError(f"handler returned {type(answer).__name__}, expected bytes")
+                    result = handler(opened[1])
+                    if not isinstance(result, bytes | bytearray | memoryview):
+                        raise TypeError(f"handler returned {type(result).__name__}, expected bytes")
+                    answer = self._seal(key, bytes(result))
                 except Exception as exc:
                     self._failed(what)
                     query.reply_err(
@@ -388,7 +448,7 @@ class Transport:
                         encoding=SERVER_ERROR_ENCODING,
                     )
                 else:
-                    query.reply(query.key_expr, bytes(answer))
+                    query.reply(query.key_expr, answer)
             except zenoh.ZError:
                 log.warning("link %s: could not reply (requester gone?)", what, exc_info=True)
             finally:
@@ -401,9 +461,16 @@ class Transport:
         return self._register(what, entity)
 
     def request(
-        self, key: str, payload: bytes = b"", *, timeout: float, priority: int = 50
+        self,
+        key: str,
+        payload: bytes = b"",
+        *,
+        timeout: float,
+        priority: int = 50,
+        roles: frozenset[str] | None = None,
     ) -> bytes:
-        """Send ``payload`` to the server of ``key`` (concrete) and return its answer.
+        """Send ``payload`` to the server of ``key`` (concrete) and return its answer, which
+        must be sealed by one of ``roles`` (None: any member) when the transport seals.
 
         Blocks the caller at most about ``timeout`` seconds. Raises LinkError when nobody serves
         ``key``, when no answer came in time, or when the server's handler failed (its message
@@ -416,7 +483,7 @@ class Transport:
         try:
             replies = self._session.get(
                 key,
-                payload=bytes(payload),
+                payload=self._seal(key, bytes(payload)),
                 timeout=timeout,
                 target=zenoh.QueryTarget.BEST_MATCHING,
                 priority=zenoh_priority(priority),
@@ -426,7 +493,10 @@ class Transport:
             for reply in replies:
                 ok = reply.ok
                 if ok is not None:
-                    return bytes(ok.payload.to_bytes())
+                    opened = self._open(f"request {key}", key, ok.payload.to_bytes(), roles)
+                    if opened is None:
+                        raise LinkError(f"request {key!r}: the answer is not authenticated")
+                    return opened[1]
                 err = reply.err
                 if err is None:  # pragma: no cover - a reply is either ok or err
                     continue
