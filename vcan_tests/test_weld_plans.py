@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 from vcan_tests.support_weldcell import run_job
 
@@ -24,3 +25,39 @@ def test_first_search_fails_and_the_gap_is_welded_with_the_second_plan(tmp_path:
     assert learned["responses"]["find start of gap"]["spiral"][1] < \
         learned["responses"]["find start of gap"]["spiral"][0]
     assert all(t["abnormal"] == 0 for t in run.tasks.values()), run.tasks
+
+
+def tower_script(tmp_path: Path) -> Path:
+    """The cell's install script with E2 also reading D1 and D2 (so level 4's sensory results
+    reach level 5)."""
+    from chcos.weld.tasks import SCRIPT
+
+    lines = []
+    for line in Path(SCRIPT).read_text(encoding="utf-8").splitlines():
+        words = line.split()
+        if words[:1] == ["install"] and words[-5:] == ["E2", "D3", "D1", "D2", "B3"]:
+            line = line.replace("-m0i1o3", "-m0i3o3").replace(" E2 D3 D1 D2 B3",
+                                                              " E2 D3 D1 D2 D1 D2 B3")
+        lines.append(line)
+    out = tmp_path / "install.chcos"
+    out.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    assert "E2 D3 D1 D2 D1 D2 B3" in out.read_text()
+    return out
+
+
+def test_good_gap_sends_sensory_results_up_from_every_level(tmp_path: Path) -> None:
+    def per_link(cell: Any) -> dict[str, Any]:
+        return {"sent": {f"{lk.src}->{lk.dst}": lk.sent for lk in cell.system.msgtab}}
+
+    run = run_job("direct", "", tmp=tmp_path, after=per_link,
+                  script=tower_script(tmp_path))
+    assert run.outcome is not None and run.outcome["outcome"] == "welded", run.outcome
+    msgs = run.summary["messages"]
+    for level in (1, 2, 3, 4):
+        assert msgs.get(f"level {level} up", 0) > 0, msgs
+    sent = run.extra["sent"]
+    # B5.s (level 2), C2.s (level 3) reach the exception task; D1.s, D2.s reach the job
+    assert sent["B5->D3"] >= 4 and sent["C2->D3"] >= 2, sent
+    assert sent["D1->E2"] >= 10 and sent["D2->E2"] >= 10, sent
+    # D2's temperature comparison is its world model's error vector against its prediction
+    assert run.worlds["D2"]["sensory"]["cmp"] in ("above", "equal", "below")

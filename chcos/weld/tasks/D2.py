@@ -10,6 +10,11 @@ When C1 reports the tip stuck, D2 calls C1 to free it, moves back down to where 
 turns the weld on again. When the end marker comes under the sensor the tip goes on until it has
 passed the gap end, then the weld is turned off and the tip held.
 
+The comparison is the world model's: D2 predicts the temperature (the band's middle, tolerance
+``deadband``) and the error vector of each A1 sample gives above/equal/below. D2.s puts
+``{"temp", "cmp", "error", "travelled", "phase", "t"}`` upward at most every ``steer`` s, and
+``{"tip": "stuck"}`` / ``{"phase": "done"}`` when those happen.
+
 Completes with ``{"welded_mm", "in_band", "unstuck", "speed_range"}``. Raises WeldAborted
 (after turning the weld off and holding the tip) when B1 reports a gas failure, the start cannot
 be found, the tip cannot be freed or a lower task ends abnormally; ArcFailure if the arc does not
@@ -116,6 +121,8 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
         raise WeldAborted(f"D2: cannot find the start of the gap: {found.error}")
     start = found.result["at"]
     tracker = Tracker(float(found.result["yaw"]), float(start[2]))
+    wm.predict("temp", centre, deadband, ctx.now)
+    last_put = -math.inf
     await ctx.call("C1", {"op": "watch"})
     await _weld_on(ctx, volts, wire0, band, strike)
     wm.command["phase"] = "weld"
@@ -139,6 +146,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
             await _shutdown(ctx)
             raise WeldAborted(f"D2: weld stopped: {msg['reason']}")
         if src == "C1" and msg.get("tip") == "stuck":
+            ctx.put({"tip": "stuck", "travelled": travelled, "phase": "unstick", "t": ctx.now})
             unstuck += 1
             wm.command.update(phase="unstick", unstuck=unstuck)
             await _unstick(ctx, volts, wire0 * speed / speed0, band, strike)
@@ -149,9 +157,15 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
             temp = float(msg["temp"])
             samples += 1
             in_band += band[0] <= temp <= band[1]
-            cmp = "above" if temp > centre + deadband else "below" if temp < centre - deadband \
-                else "equal"
+            ev = wm.compare("temp", temp, ctx.now)
+            err = ev.error[""] if ev is not None else temp - centre
+            cmp = "equal" if ev is not None and not ev.surprise else \
+                "above" if err > 0 else "below"
             wm.sensory.update(temp=temp, cmp=cmp)
+            if ctx.now - last_put >= steer_s:
+                last_put = ctx.now
+                ctx.put({"temp": temp, "cmp": cmp, "error": err, "travelled": travelled,
+                         "phase": "weld", "t": ctx.now})
             if cmp != "equal" and ctx.now - last_regulate >= 0.2:
                 last_regulate = ctx.now
                 speed = max(0.5 * speed0, min(2.0 * speed0, speed + (0.1 if cmp == "above"
@@ -175,6 +189,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     result = {"welded_mm": tracker.travelled, "in_band": in_band / max(1, samples),
               "unstuck": unstuck, "speed_range": speeds}
     wm.command.update(phase="done", result=result)
+    ctx.put({"phase": "done", "travelled": tracker.travelled, "t": ctx.now})
     return result
 
 
