@@ -7,7 +7,9 @@ import json
 from pathlib import Path
 from typing import Any
 
-from vcan_tests.support_weldcell import run_job
+import pytest
+
+from vcan_tests.support_weldcell import buses_or_skip, run_job
 
 TRUE_START = (550.0, -150.0)
 
@@ -61,3 +63,45 @@ def test_good_gap_sends_sensory_results_up_from_every_level(tmp_path: Path) -> N
     assert sent["D1->E2"] >= 10 and sent["D2->E2"] >= 10, sent
     # D2's temperature comparison is its world model's error vector against its prediction
     assert run.worlds["D2"]["sensory"]["cmp"] in ("above", "equal", "below")
+
+
+def supply_script(tmp_path: Path) -> Path:
+    """The cell's install script with A5 reading the electrode supply ``wire_left`` and B1
+    watching A5."""
+    from chcos.weld.tasks import SCRIPT
+
+    text = Path(SCRIPT).read_text(encoding="utf-8")
+    new = (text.replace("install -m0i1o1   A5 wire_speed wire_set",
+                        "install -m0i2o1   A5 wire_speed wire_left wire_set")
+               .replace("install -m0i2o3   B1 A2 A3 A2 A3 A5",
+                        "install -m0i3o3   B1 A2 A3 A5 A2 A3 A5"))
+    assert new.count("wire_left") == 1 and "B1 A2 A3 A5 A2 A3 A5" in new
+    out = tmp_path / "install-supply.chcos"
+    out.write_text(new, encoding="utf-8")
+    return out
+
+
+@pytest.mark.parametrize("binding", ["direct", "buses"])
+def test_wire_empty_stops_the_weld_and_is_reported(binding: str, tmp_path: Path) -> None:
+    buses_or_skip(binding)
+    # the spool runs out during the weld (the inspection is over by t=30 s)
+    run = run_job(binding, "wire-empty@t=45s", tmp=tmp_path, script=supply_script(tmp_path))
+    assert run.outcome is not None and run.outcome["outcome"] == "weld failed", run.outcome
+    assert "wire fail: electrode supply empty" in run.outcome["reason"]
+    assert 10.0 <= run.summary["welded_mm"] <= run.summary["seam_mm"] - 20.0, run.summary
+    assert "wire fail" in run.worlds["B1"]["command"]["reason"]  # then D2 turned it off
+    assert any("B1" in h and "wire fail" in h for h in run.summary["handled"]), \
+        run.summary["handled"]
+    assert run.model["volts"] == 0.0 and not run.model["gas"] and run.model["wire"] == 0.0
+
+
+def test_a_failed_supply_sensor_is_reported_and_the_cell_made_safe(tmp_path: Path) -> None:
+    run = run_job("direct", "sensor-dropout(wire_remaining)@t=45s", tmp=tmp_path,
+                  script=supply_script(tmp_path))
+    assert run.outcome is not None and run.outcome["outcome"] != "welded", run.outcome
+    alarms = run.worlds["D3"]["sensory"].get("alarms", [])
+    assert any(a["alarm"] == "sensor failure" and "wire_left" in a["detail"] for a in alarms), \
+        alarms
+    assert run.devices["wire_left"] == "failed" or run.devices["wire_left"] == "stale", \
+        run.devices
+    assert run.model["volts"] == 0.0 and not run.model["gas"]

@@ -7,6 +7,7 @@ A :class:`Fault` is a kind, a trigger and a few parameters. Kinds (thesis append
 ``gap-narrow``     the gap is ``width`` mm (default 0.8) over ``length`` mm (default 20)
 ``tip-stuck``      the electrode freezes to the metal (arc voltage 0 until freed)
 ``gas-empty``      the gas bottle is empty (pressure 0 bar)
+``wire-empty``     the electrode wire spool runs out (nothing left to feed)
 ``sensor-dropout`` sensor ``sensor`` stops reporting, for ``for`` s (default: for good)
 ``servo-timeout``  joint ``joint`` (1..5) stops responding and freezes, for ``for`` s
 ``intruder``       the light curtain is broken, for ``for`` s (default: until cleared)
@@ -50,6 +51,7 @@ FaultKind = Literal[
     "sensor-dropout",
     "servo-timeout",
     "intruder",
+    "wire-empty",
 ]
 FAULT_KINDS: tuple[FaultKind, ...] = get_args(FaultKind)
 
@@ -78,6 +80,7 @@ _PARAMS: dict[str, tuple[str, ...]] = {
     "gap-narrow": ("width", "length"),
     "tip-stuck": (),
     "gas-empty": (),
+    "wire-empty": (),
     "sensor-dropout": ("sensor", "for"),
     "servo-timeout": ("joint", "for"),
     "intruder": ("for",),

@@ -373,6 +373,9 @@ class WeldCell:
             self._cache = None
         elif fault.kind == "gas-empty":
             self.bottle_pressure = 0.0
+        elif fault.kind == "wire-empty":
+            self.wire_remaining = 0.0
+            self.wire_speed = 0.0
         elif fault.kind == "sensor-dropout":
             assert fault.sensor is not None
             self._silence(fault.sensor, until, fault)

@@ -45,6 +45,10 @@ class GasFailure(WeldTaskError):
     """Shielding gas failed (bottle empty or no flow) while the weld needed it."""
 
 
+class WireFailure(WeldTaskError):
+    """The electrode supply ran out (A5.s: nothing left on the spool) while the weld needed it."""
+
+
 class ServoFailure(WeldTaskError):
     """A joint's position sensor failed (servo timeout): the arm cannot be moved safely."""
 
