@@ -438,6 +438,12 @@ class WeldCell:
         """The torch pose now (tip position mm, yaw/tilt rad)."""
         return self._pose
 
+    def move_surface(self, dz: float) -> None:
+        """Raise (``dz`` > 0) or lower the plate surface by ``dz`` mm (a warped or re-clamped
+        workpiece): the range sensor, the stand-off and the arc see it at once."""
+        self.seam.plate_z += float(dz)
+        self._cache = None
+
     @property
     def standoff(self) -> float:
         """Height (mm) of the tip above the plate."""

@@ -82,6 +82,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
         travelled = tracker.moved(here["pos"])
         if not isinstance(msg, dict) or "fail" in msg:
             continue
+        tracker.ranged(msg.get("range"))
         if msg["centre"] is not None and msg["pattern"] in ("gap", "start", "end"):
             tracker.sighting(here["pos"], float(here["yaw"]), float(msg["centre"]))
         if msg["pattern"] == "gap" and msg["width"] is not None:

@@ -173,6 +173,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
                 speeds = [min(speeds[0], speed), max(speeds[1], speed)]
                 await ctx.call("A5", {"speed": wire0 * speed / speed0})
         if src == "A7":
+            tracker.ranged(msg.get("range"))
             if msg["centre"] is not None and msg["pattern"] in ("gap", "start", "end"):
                 tracker.sighting(here["pos"], float(here["yaw"]), float(msg["centre"]))
             if msg["end"] and end_at is None:
