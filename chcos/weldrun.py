@@ -44,6 +44,7 @@ from chcos.instrument import Counters, Instrument
 from chcos.messages import Link, LinkType
 from chcos.system import System
 from chcos.weld import WeldCell, parse_scenario
+from chcos.weld.report import Recorder, write_report
 from chcos.weld.tasks import HERE as TASK_PATH
 from chcos.weld.tasks import SCRIPT
 
@@ -109,6 +110,14 @@ class Cell:
     started: float = 0.0
     closers: list[Callable[[], None]] = field(default_factory=list)
     injector: Callable[[str], None] | None = None
+    recorder: Recorder | None = None
+
+    def write_report(self, path: str | Path, title: str | None = None) -> Path:
+        """Write the run as a picture (``chcos.weld.report``: one self-contained HTML page) to
+        ``path``; returns it. Raises ChcosError if it cannot be written."""
+        samples = self.recorder.samples if self.recorder is not None else []
+        return write_report(path, self.summary(), samples,
+                            title or f"welding cell, {self.binding} binding")
 
     # ---- driving the job --------------------------------------------------------------------
     def start_job(self, command: dict[str, Any] | None = None) -> str:
@@ -320,6 +329,8 @@ def open_cell(binding: str = "direct", *, scenario: str = "", seed: int = 0,
             model = next(d.cell for d in system.devtab.drivers if hasattr(d, "cell"))
         cell = Cell(system, model, binding, counters, timeline, closers=closers,
                     injector=sim.inject if sim is not None else None)
+        cell.recorder = Recorder(system.kernel, model, cell.phase)
+        cell.recorder.start()
     except BaseException:
         for close in reversed(closers):
             close()
@@ -385,13 +396,20 @@ def report(summary: dict[str, Any], out: TextIO) -> None:
               + (f" (worst {1000 * max(lat):.2f} ms)" if lat else ""), file=out)
     else:
         print("  assassin reaction: no intruder interrupt in this run", file=out)
+    if summary.get("report"):
+        print(f"  the run as a picture: {summary['report']}", file=out)
 
 
 def run(binding: str = "direct", *, scenario: str = "", seed: int = 0, real_time: bool = False,
         record: str | Path | None = None, duration: float = 300.0,
-        workdir: str | Path | None = None, out: TextIO = sys.stdout) -> dict[str, Any]:
-    """Run the main job (see the module doc) and return the summary figures. Raises ChcosError
+        workdir: str | Path | None = None, out: TextIO = sys.stdout,
+        report_to: str | Path | None = None) -> dict[str, Any]:
+    """Run the main job (see the module doc) and return the summary figures; the run's picture
+    (``chcos.weld.report``) goes to ``report_to`` (default: ``weld-report.html`` beside the map
+    in ``workdir``, or in the current directory when the map is temporary). Raises ChcosError
     (WeldRunError, ConfigError, InstallError, BusError) if the cell cannot be built."""
+    if report_to is None:
+        report_to = Path(workdir if workdir is not None else ".") / "weld-report.html"
     with open_cell(binding, scenario=scenario, seed=seed, real_time=real_time, record=record,
                    workdir=workdir) as cell:
         print(f"welding cell on the {binding} binding, scenario: {scenario or 'none'}, "
@@ -399,6 +417,7 @@ def run(binding: str = "direct", *, scenario: str = "", seed: int = 0, real_time
         print(f"  host: {cell.start_job()}", file=out)
         cell.run(duration, each_second=_progress(out))
         summary = cell.summary()
+        summary["report"] = str(cell.write_report(report_to))
     report(summary, out)
     return summary
 
@@ -420,13 +439,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--duration", type=float, default=300.0,
                     help="stop after this many seconds of clock time (default 300)")
     ap.add_argument("--workdir", help="where sysfile.map goes (default: a temporary directory)")
+    ap.add_argument("--report", metavar="FILE.html",
+                    help="where the run's picture goes (default: weld-report.html in --workdir, "
+                         "else in the current directory)")
     args = ap.parse_args(argv)
     if not (math.isfinite(args.duration) and args.duration > 0):
         ap.error(f"--duration {args.duration}: expected seconds > 0")
     try:
         summary = run(args.binding, scenario=args.scenario, seed=args.seed,
                       real_time=args.real_time, record=args.record, duration=args.duration,
-                      workdir=args.workdir)
+                      workdir=args.workdir, report_to=args.report)
     except (ChcosError, ConfigError) as exc:
         print(f"chcos run: {exc}", file=sys.stderr)
         return 2
