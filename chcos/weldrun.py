@@ -215,6 +215,10 @@ class Cell:
         unstuck = self.world("D2")["command"].get("unstuck", 0)
         if unstuck:
             handled.append(f"D2: tip freed by C1 {unstuck} time(s), welding resumed")
+        retracts = self.world("D2")["command"].get("retracts", 0)
+        if retracts:
+            handled.append(f"C1 recognized a tip about to stick (learned) {retracts} time(s); D2 "
+                           f"cut the wire feed for a moment")
         elapsed = s.kernel.clock.now() - self.started
         return {
             "binding": self.binding, "seconds": elapsed, "outcome": self.outcome(),

@@ -312,10 +312,10 @@ class LearnedPattern:
 
     Each sample is a vector of named ``features``. When the outcome happens,
     :meth:`learn` takes the history of the ``lead`` seconds before it (skipping the last
-    ``guard`` seconds, which are the outcome's own onset) as an example, summarized as the mean
-    rate of change of each feature over the window. :meth:`push` matches the current window
-    against the learned examples: it fires when every feature's rate is within ``tolerance``
-    (relative) of an example's. Examples are kept in a :class:`Store` across runs."""
+    ``guard`` seconds, which are the outcome's own onset) as an example, summarized as the
+    rate of change (least-squares slope) of each feature over the window. :meth:`push`
+    matches the current window against the learned examples: it fires when every feature's
+    rate is within ``tolerance`` (relative) of an example's. Examples are kept in a :class:`Store` across runs."""
 
     def __init__(self, features: Sequence[str], store: Store, *, lead: float = 1.0,
                  guard: float = 0.0, tolerance: float = 0.35, keep: int = 20) -> None:
@@ -337,11 +337,19 @@ class LearnedPattern:
         self.history: deque[tuple[float, list[float]]] = deque()
 
     def _rates(self, window: Sequence[tuple[float, list[float]]]) -> dict[str, float] | None:
-        if len(window) < 2 or window[-1][0] - window[0][0] <= 0:
+        """Least-squares slope of each feature over ``window`` (robust to noisy end points)."""
+        if len(window) < 3 or window[-1][0] - window[0][0] <= 0:
             return None
-        dt = window[-1][0] - window[0][0]
-        return {f: (window[-1][1][i] - window[0][1][i]) / dt
-                for i, f in enumerate(self.features)}
+        n = len(window)
+        tm = sum(t for t, _ in window) / n
+        stt = sum((t - tm) ** 2 for t, _ in window)
+        if stt <= 0:
+            return None
+        out: dict[str, float] = {}
+        for i, f in enumerate(self.features):
+            vm = sum(v[i] for _, v in window) / n
+            out[f] = sum((t - tm) * (v[i] - vm) for t, v in window) / stt
+        return out
 
     def push(self, t: float, sample: Mapping[str, float]) -> bool:
         """Add a sample; True if the newest ``lead`` s look like a learned precursor. Raises

@@ -6,7 +6,9 @@ then moves along the gap (tracking as D1: gap points from A7 and A4, the next ce
 5 mm ahead, B4 told every ``steer`` s to move 5 mm towards the gap). The temperature is kept in
 its band by the travel speed and the electrode speed: above the band's middle (by more than
 ``deadband``) the tip speeds up and the electrode is advanced (A5), below it both slow down.
-When C1 reports the tip stuck, D2 calls C1 to free it, moves back down to where it stuck and
+When C1 reports the tip about to stick (its learned recognizer), D2 cuts the wire feed to
+``RETRACT_SHARE`` for ``RETRACT_S`` s, so the arc burns the wire back. When C1 reports the tip
+stuck, D2 calls C1 to free it, moves back down to where it stuck and
 turns the weld on again. When the end marker comes under the sensor the tip goes on until it has
 passed the gap end, then the weld is turned off and the tip held.
 
@@ -41,6 +43,11 @@ from chcos.weld.tasks.common import (
     unit,
 )
 from chcos.worldmodel import WorldModel
+
+RETRACT_S = 0.8
+"""How long the wire feed is cut when C1 reports the tip about to stick (s)."""
+RETRACT_SHARE = 0.2
+"""The share of its speed the wire is fed at meanwhile."""
 
 END_RUN_MM = 6.0 + LOOK_AHEAD + 0.5
 """How far the tip goes on after the end marker is first seen: the marker reaches 6 mm before
@@ -133,6 +140,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     last_steer = last_regulate = -math.inf
     end_at: float | None = None
     samples = in_band = unstuck = 0
+    retract_until: float | None = None
     while True:
         for task in ("B1", "B4", "A5"):
             await _check(ctx, task)
@@ -145,6 +153,17 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
         if src == "B1" and msg.get("weld") == "fail":
             await _shutdown(ctx)
             raise WeldAborted(f"D2: weld stopped: {msg['reason']}")
+        if src == "C1" and msg.get("tip") == "sticking":
+            # C1 recognized the pattern that precedes a stuck tip: cut the wire feed for a
+            # moment so the arc burns the wire back, then feed again
+            retract_until = ctx.now + RETRACT_S
+            ctx.put({"tip": "sticking", "travelled": travelled, "phase": "weld", "t": ctx.now})
+            wm.command["retracts"] = wm.command.get("retracts", 0) + 1
+            await ctx.call("A5", {"speed": RETRACT_SHARE * wire0 * speed / speed0})
+            continue
+        if retract_until is not None and ctx.now >= retract_until:
+            retract_until = None
+            await ctx.call("A5", {"speed": wire0 * speed / speed0})
         if src == "C1" and msg.get("tip") == "stuck":
             ctx.put({"tip": "stuck", "travelled": travelled, "phase": "unstick", "t": ctx.now})
             unstuck += 1
@@ -166,7 +185,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
                 last_put = ctx.now
                 ctx.put({"temp": temp, "cmp": cmp, "error": err, "travelled": travelled,
                          "phase": "weld", "t": ctx.now})
-            if cmp != "equal" and ctx.now - last_regulate >= 0.2:
+            if cmp != "equal" and ctx.now - last_regulate >= 0.2 and retract_until is None:
                 last_regulate = ctx.now
                 speed = max(0.5 * speed0, min(2.0 * speed0, speed + (0.1 if cmp == "above"
                                                                         else -0.1)))
