@@ -315,7 +315,8 @@ class LearnedPattern:
     ``guard`` seconds, which are the outcome's own onset) as an example, summarized as the
     rate of change (least-squares slope) of each feature over the window. :meth:`push`
     matches the current window against the learned examples: it fires when every feature's
-    rate is within ``tolerance`` (relative) of an example's. Examples are kept in a :class:`Store` across runs."""
+    rate is within ``tolerance`` (relative) of an example's. Examples are kept in a
+    :class:`Store` across runs."""
 
     def __init__(self, features: Sequence[str], store: Store, *, lead: float = 1.0,
                  guard: float = 0.0, tolerance: float = 0.35, keep: int = 20) -> None:
