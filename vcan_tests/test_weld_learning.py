@@ -37,3 +37,24 @@ def test_learned_recognizer_reacts_earlier_on_repeated_runs(tmp_path: Path) -> N
     forget(tmp_path)
     assert not learned.exists()
     assert not LearnedPattern(["volts"], Store.beside(tmp_path, "C1-tip")).examples
+
+
+def test_precursor_parameter_parses_round_trips_and_is_checked() -> None:
+    import pytest
+
+    from chcos.errors import ConfigError
+    from chcos.weld import parse_scenario
+    from chcos.weld.model import WeldCell
+
+    (fault,) = parse_scenario("tip-stuck(precursor=1500ms)@t=50s").faults
+    assert fault.precursor == 1.5
+    assert fault.describe() == "tip-stuck(precursor=1.5s)@t=50.0s"
+    with pytest.raises(ConfigError, match="precursor"):
+        parse_scenario("gas-empty(precursor=1s)")
+    with pytest.raises(ConfigError):
+        parse_scenario("tip-stuck(precursor=-1s)")
+    # without the arc nothing stubs: the precursor ends at once
+    cell = WeldCell()
+    cell.inject(fault.__class__("tip-stuck", precursor=1.0))
+    cell.step(0.01)
+    assert cell.stubbing is None and not cell.tip_stuck
