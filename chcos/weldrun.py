@@ -215,6 +215,10 @@ class Cell:
         unstuck = self.world("D2")["command"].get("unstuck", 0)
         if unstuck:
             handled.append(f"D2: tip freed by C1 {unstuck} time(s), welding resumed")
+        for p in self.world("C2")["command"].get("plans", []):
+            if not p["ok"]:
+                handled.append(f"C2: plan {p['plan']} failed ({p['error']}); the world model "
+                               f"chose the next permissible plan")
         retracts = self.world("D2")["command"].get("retracts", 0)
         if retracts:
             handled.append(f"C1 recognized a tip about to stick (learned) {retracts} time(s); D2 "

@@ -23,6 +23,7 @@ def test_first_search_fails_and_the_gap_is_welded_with_the_second_plan(tmp_path:
     plans = run.worlds["C2"]["command"]["plans"]
     assert [(p["plan"], p["ok"]) for p in plans][:2] == [("spiral", False), ("raster", True)]
     assert "no start-of-gap marker within 30 mm" in plans[0]["error"]
+    assert any(h.startswith("C2: plan spiral failed") for h in run.summary["handled"])
     learned = json.loads((tmp_path / "learned" / "C2.json").read_text())
     assert learned["responses"]["find start of gap"]["spiral"][1] < \
         learned["responses"]["find start of gap"]["spiral"][0]
