@@ -20,6 +20,7 @@ import logging
 import types
 from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from chcos.errors import MessageError, ReadTimeout, SensorFailure
@@ -508,6 +509,21 @@ class TaskContext:
     def checkpoint(self) -> Generator[Any, Any, None]:
         """Give the processor to any ready task of higher or equal priority, then go on."""
         yield YIELD
+
+    @property
+    def commander(self) -> str | None:
+        """The name of the task that owns (commands) this one now; None if idle or owned by the
+        host (world-model context, ``chcos.worldmodel.context``)."""
+        owner = self._t.owner
+        if owner is None or owner.src not in self._mm.tsktab:
+            return None
+        return owner.src
+
+    @property
+    def state_dir(self) -> Path:
+        """Where this system keeps state beside its map (learned world-model data goes to
+        ``state_dir/learned``): the system's base directory."""
+        return Path(self._mm.base_dir)
 
     # ---- world model queries ----------------------------------------------------------------
     @types.coroutine

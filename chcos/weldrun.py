@@ -45,6 +45,7 @@ from chcos.messages import Link, LinkType
 from chcos.north.services import NorthOptions, add_north_arguments
 from chcos.system import System
 from chcos.weld import WeldCell, parse_scenario
+from chcos.weld.report import Recorder, write_report
 from chcos.weld.tasks import HERE as TASK_PATH
 from chcos.weld.tasks import SCRIPT
 
@@ -110,6 +111,14 @@ class Cell:
     started: float = 0.0
     closers: list[Callable[[], None]] = field(default_factory=list)
     injector: Callable[[str], None] | None = None
+    recorder: Recorder | None = None
+
+    def write_report(self, path: str | Path, title: str | None = None) -> Path:
+        """Write the run as a picture (``chcos.weld.report``: one self-contained HTML page) to
+        ``path``; returns it. Raises ChcosError if it cannot be written."""
+        samples = self.recorder.samples if self.recorder is not None else []
+        return write_report(path, self.summary(), samples,
+                            title or f"welding cell, {self.binding} binding")
 
     # ---- driving the job --------------------------------------------------------------------
     def start_job(self, command: dict[str, Any] | None = None) -> str:
@@ -207,6 +216,14 @@ class Cell:
         unstuck = self.world("D2")["command"].get("unstuck", 0)
         if unstuck:
             handled.append(f"D2: tip freed by C1 {unstuck} time(s), welding resumed")
+        for p in self.world("C2")["command"].get("plans", []):
+            if not p["ok"]:
+                handled.append(f"C2: plan {p['plan']} failed ({p['error']}); the world model "
+                               f"chose the next permissible plan")
+        retracts = self.world("D2")["command"].get("retracts", 0)
+        if retracts:
+            handled.append(f"C1 recognized a tip about to stick (learned) {retracts} time(s); D2 "
+                           f"cut the wire feed for a moment")
         elapsed = s.kernel.clock.now() - self.started
         return {
             "binding": self.binding, "seconds": elapsed, "outcome": self.outcome(),
@@ -321,6 +338,8 @@ def open_cell(binding: str = "direct", *, scenario: str = "", seed: int = 0,
             model = next(d.cell for d in system.devtab.drivers if hasattr(d, "cell"))
         cell = Cell(system, model, binding, counters, timeline, closers=closers,
                     injector=sim.inject if sim is not None else None)
+        cell.recorder = Recorder(system.kernel, model, cell.phase)
+        cell.recorder.start()
     except BaseException:
         for close in reversed(closers):
             close()
@@ -386,18 +405,25 @@ def report(summary: dict[str, Any], out: TextIO) -> None:
               + (f" (worst {1000 * max(lat):.2f} ms)" if lat else ""), file=out)
     else:
         print("  assassin reaction: no intruder interrupt in this run", file=out)
+    if summary.get("report"):
+        print(f"  the run as a picture: {summary['report']}", file=out)
 
 
 def run(binding: str = "direct", *, scenario: str = "", seed: int = 0, real_time: bool = False,
         record: str | Path | None = None, duration: float = 300.0,
         workdir: str | Path | None = None, out: TextIO = sys.stdout,
-        north: NorthOptions | None = None) -> dict[str, Any]:
+        north: NorthOptions | None = None,
+        report_to: str | Path | None = None) -> dict[str, Any]:
     """Run the main job (see the module doc) and return the summary figures; ``north`` names
-    the north-side services to serve while it runs (:mod:`chcos.north.services`). Raises
+    the north-side services to serve while it runs (:mod:`chcos.north.services`); the run's
+    picture (``chcos.weld.report``) goes to ``report_to`` (default: ``weld-report.html`` beside
+    the map in ``workdir``, or in the current directory when the map is temporary). Raises
     ChcosError (WeldRunError, ConfigError, InstallError, BusError, NorthError) if the cell or
     a service cannot be set up."""
     from chcos.north.services import start as start_north
 
+    if report_to is None:
+        report_to = Path(workdir if workdir is not None else ".") / "weld-report.html"
     with open_cell(binding, scenario=scenario, seed=seed, real_time=real_time, record=record,
                    workdir=workdir) as cell:
         print(f"welding cell on the {binding} binding, scenario: {scenario or 'none'}, "
@@ -412,6 +438,7 @@ def run(binding: str = "direct", *, scenario: str = "", seed: int = 0, real_time
         finally:
             if services is not None:
                 services.stop()
+        summary["report"] = str(cell.write_report(report_to))
     report(summary, out)
     return summary
 
@@ -442,6 +469,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="stop after this many seconds of clock time (default 300)")
     ap.add_argument("--workdir", help="where sysfile.map goes (default: a temporary directory)")
     add_north_arguments(ap)
+    ap.add_argument("--report", metavar="FILE.html",
+                    help="where the run's picture goes (default: weld-report.html in --workdir, "
+                         "else in the current directory)")
     args = ap.parse_args(argv)
     if not (math.isfinite(args.duration) and args.duration > 0):
         ap.error(f"--duration {args.duration}: expected seconds > 0")
@@ -452,7 +482,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                   file=sys.stderr)
         summary = run(args.binding, scenario=args.scenario, seed=args.seed,
                       real_time=args.real_time or north.any, record=args.record,
-                      duration=args.duration, workdir=args.workdir, north=north)
+                      duration=args.duration, workdir=args.workdir, north=north,
+                      report_to=args.report)
     except (ChcosError, ConfigError) as exc:
         print(f"chcos run: {exc}", file=sys.stderr)
         return 2

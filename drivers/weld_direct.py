@@ -72,6 +72,7 @@ SENSORS: dict[str, tuple[int, str, Callable[[Readings], Any]]] = {
     "arc_volts": (5, "arc_voltage", lambda r: r.arc_voltage),
     "arc_amps": (5, "arc_current", lambda r: r.arc_current),
     "wire_speed": (5, "wire_speed", lambda r: r.wire_speed),
+    "wire_left": (5, "wire_remaining", lambda r: r.wire_remaining),
     "gas_bottle": (5, "gas_bottle_pressure", lambda r: r.gas_bottle_pressure),
     "gas_flow": (5, "gas_flow", lambda r: r.gas_flow),
 }

@@ -73,10 +73,12 @@ def buses_or_skip(binding: str, *, always: bool = False) -> None:
 def run_job(binding: str = "direct", scenario: str = "", *, limit: float = 150.0,
             replace: dict[str, str] | None = None, command: dict[str, Any] | None = None,
             after: Callable[[Cell], dict[str, Any]] | None = None,
-            tmp: Any = None) -> JobRun:
+            tmp: Any = None, script: Any = None) -> JobRun:
     """Run the job (see the module doc). ``after(cell)`` runs once the job is over, before the
-    capture; what it returns lands in :attr:`JobRun.extra`."""
-    with open_cell(binding, scenario=scenario, replace=replace, workdir=tmp) as cell:
+    capture; what it returns lands in :attr:`JobRun.extra`. ``script`` replaces the cell's
+    install script."""
+    kw: dict[str, Any] = {} if script is None else {"script": script}
+    with open_cell(binding, scenario=scenario, replace=replace, workdir=tmp, **kw) as cell:
         cell.start_job(command)
         cell.run(limit)
         extra = after(cell) if after is not None else {}

@@ -28,7 +28,8 @@ M = "vcan_tests.support_weldsim"
 TASKS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "JOINTS": (("theta1", "theta2", "theta3", "theta4", "theta5"),
                ("target1", "target2", "target3", "target4", "target5")),
-    "POWER": (("arc_temp", "arc_volts", "arc_amps", "wire_speed", "gas_bottle", "gas_flow"),
+    "POWER": (("arc_temp", "arc_volts", "arc_amps", "wire_speed", "wire_left", "gas_bottle",
+               "gas_flow"),
               ("drives_enable", "volts_set", "wire_set", "gas_valve")),
     "SEAM": (("linear", "range", "start_marker", "end_marker", "intruder"), ()),
 }

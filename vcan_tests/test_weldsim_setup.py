@@ -33,7 +33,7 @@ ACTUATORS = {a for _, outs in TASKS.values() for a in outs}
 def test_the_cell_map_checks_and_matches_the_device_table(capsys: pytest.CaptureFixture[str]
                                                           ) -> None:
     assert check_main([str(CELL_TOML)]) == 0
-    assert "ok: 4 buses, 25 devices" in capsys.readouterr().out
+    assert "ok: 4 buses, 26 devices" in capsys.readouterr().out
     m = load([CELL_TOML])
     assert {d.name for d in m.devices if d.direction == "sensor"} == set(SENSORS)
     assert {d.name for d in m.devices if d.direction == "actuator"} == ACTUATORS

@@ -127,9 +127,10 @@ SETPOINT_SCALE = 0.01
 COIL_DRIVES_ENABLE = 0
 COIL_GAS_VALVE = 1
 
-CAN_MESSAGES: tuple[str, ...] = ("LightCurtain", "ArcTemperature", "GapMarkers")
-"""DBC messages sent by default: those ``weld_cell.toml`` binds (GasSupply and WireFeed would be
-unknown ids to the raw-CAN driver; pass ``can_messages`` to send them too)."""
+CAN_MESSAGES: tuple[str, ...] = ("LightCurtain", "ArcTemperature", "GapMarkers", "WireFeed")
+"""DBC messages sent by default: those ``weld_cell.toml`` binds (GasSupply would be an unknown
+id to the raw-CAN driver; pass ``can_messages`` to send it too). WireFeed carries the electrode
+supply (``wire_left``)."""
 
 LINE_FORMAT = "L {pixels} R {range:.2f}"
 """One serial line: 64 pixels as '0'/'1' (1 = dark, pixel 0 on the tool -y side), range in mm

@@ -5,8 +5,12 @@ A :class:`Fault` is a kind, a trigger and a few parameters. Kinds (thesis append
 =================  ===========================================================================
 ``gap-wide``       the gap is ``width`` mm (default 4.0) over ``length`` mm (default 20)
 ``gap-narrow``     the gap is ``width`` mm (default 0.8) over ``length`` mm (default 20)
-``tip-stuck``      the electrode freezes to the metal (arc voltage 0 until freed)
+``tip-stuck``      the electrode freezes to the metal (arc voltage 0 until freed); with
+                   ``precursor`` s the wire first stubs into the pool over that time (the arc
+                   shortens, its voltage sinks) and freezes at the end - unless the wire feed
+                   is cut below half its speed meanwhile, which lets the arc recover
 ``gas-empty``      the gas bottle is empty (pressure 0 bar)
+``wire-empty``     the electrode wire spool runs out (nothing left to feed)
 ``sensor-dropout`` sensor ``sensor`` stops reporting, for ``for`` s (default: for good)
 ``servo-timeout``  joint ``joint`` (1..5) stops responding and freezes, for ``for`` s
 ``intruder``       the light curtain is broken, for ``for`` s (default: until cleared)
@@ -50,6 +54,7 @@ FaultKind = Literal[
     "sensor-dropout",
     "servo-timeout",
     "intruder",
+    "wire-empty",
 ]
 FAULT_KINDS: tuple[FaultKind, ...] = get_args(FaultKind)
 
@@ -76,8 +81,9 @@ SENSOR_NAMES: tuple[str, ...] = (
 _PARAMS: dict[str, tuple[str, ...]] = {
     "gap-wide": ("width", "length"),
     "gap-narrow": ("width", "length"),
-    "tip-stuck": (),
+    "tip-stuck": ("precursor",),
     "gas-empty": (),
+    "wire-empty": (),
     "sensor-dropout": ("sensor", "for"),
     "servo-timeout": ("joint", "for"),
     "intruder": ("for",),
@@ -127,6 +133,7 @@ class Fault:
     duration: float | None = None
     sensor: str | None = None
     joint: int | None = None
+    precursor: float = 0.0
 
     def __post_init__(self) -> None:
         if self.kind not in FAULT_KINDS:
@@ -144,6 +151,8 @@ class Fault:
                 f"fault sensor-dropout: sensor={self.sensor!r}, expected one of "
                 f"{', '.join(SENSOR_NAMES)}"
             )
+        if not (math.isfinite(self.precursor) and self.precursor >= 0.0):
+            raise ConfigError(f"fault {self.kind}: precursor={self.precursor} s, expected >= 0")
         if self.kind == "servo-timeout" and self.joint not in (1, 2, 3, 4, 5):
             raise ConfigError(f"fault servo-timeout: joint={self.joint!r}, expected 1..5")
         if isinstance(self.trigger, AtTime) and not (
@@ -164,6 +173,8 @@ class Fault:
             params.append(f"joint={self.joint}")
         if self.duration is not None:
             params.append(f"for={self.duration!r}s")
+        if self.precursor > 0.0:
+            params.append(f"precursor={self.precursor!r}s")
         text = self.kind + (f"({';'.join(params)})" if params else "")
         if isinstance(self.trigger, AtTime):
             text += f"@t={self.trigger.t!r}s"
@@ -254,6 +265,8 @@ def _build(kind: str, trigger: Trigger, params: Mapping[str, Any], where: str) -
             kw[key] = _quantity(text, _LENGTH_UNITS, key, where)
         elif key == "for":
             kw["duration"] = _quantity(text, _TIME_UNITS, "duration", where)
+        elif key == "precursor":
+            kw["precursor"] = _quantity(text, _TIME_UNITS, "precursor", where)
         elif key == "joint":
             if not re.fullmatch(r"\s*[1-5]\s*", text):
                 raise ConfigError(f"{where}: joint {text!r}, expected a joint number 1..5")

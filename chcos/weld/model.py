@@ -205,7 +205,7 @@ class FaultEvent:
 
     t: float
     fault: Fault
-    action: Literal["fired", "cleared"]
+    action: Literal["fired", "cleared", "froze", "averted"]
 
 
 def _joint_sensor(j: int) -> str:
@@ -245,6 +245,8 @@ class WeldCell:
         self.bottle_pressure = cfg.bottle_pressure
         self.temperature = cfg.ambient
         self.tip_stuck = False
+        self.stubbing: tuple[Fault, float, float] | None = None
+        """A tip-stuck precursor in progress: (fault, progress 0..1, wire set-point at onset)."""
         self.intruder_input = False
         self._pose = self.arm.tool_pose(self.joints)
         self._tip = self.seam.nearest(self._pose.position[0], self._pose.position[1])
@@ -369,10 +371,16 @@ class WeldCell:
             self.seam = self.seam.with_width_override(s0, s0 + fault.length, width)
             self._cache = None
         elif fault.kind == "tip-stuck":
-            self.tip_stuck = True
+            if fault.precursor > 0.0:
+                self.stubbing = (fault, 0.0, self.wire_setpoint)
+            else:
+                self.tip_stuck = True
             self._cache = None
         elif fault.kind == "gas-empty":
             self.bottle_pressure = 0.0
+        elif fault.kind == "wire-empty":
+            self.wire_remaining = 0.0
+            self.wire_speed = 0.0
         elif fault.kind == "sensor-dropout":
             assert fault.sensor is not None
             self._silence(fault.sensor, until, fault)
@@ -435,6 +443,12 @@ class WeldCell:
         """The torch pose now (tip position mm, yaw/tilt rad)."""
         return self._pose
 
+    def move_surface(self, dz: float) -> None:
+        """Raise (``dz`` > 0) or lower the plate surface by ``dz`` mm (a warped or re-clamped
+        workpiece): the range sensor, the stand-off and the arc see it at once."""
+        self.seam.plate_z += float(dz)
+        self._cache = None
+
     @property
     def standoff(self) -> float:
         """Height (mm) of the tip above the plate."""
@@ -454,6 +468,38 @@ class WeldCell:
     def touching(self) -> bool:
         """True when the tip touches the plate (stand-off within :data:`CONTACT_MM`)."""
         return self.standoff <= CONTACT_MM
+
+    def _stub(self, dt: float) -> None:
+        """Advance a tip-stuck precursor: the wire stubs into the pool (progress grows over the
+        fault's ``precursor`` s) unless its feed is below half the onset speed (then the arc
+        burns it back twice as fast); at 1 the tip freezes, at 0 the fault is averted."""
+        if self.stubbing is None:
+            return
+        fault, progress, wire0 = self.stubbing
+        if self.tip_stuck or self.voltage_setpoint <= 0.0:
+            self.stubbing = None
+            return
+        if self.wire_setpoint < 0.5 * wire0:
+            progress -= 2.0 * dt / fault.precursor
+        else:
+            progress += dt / fault.precursor
+        self._cache = None
+        if progress >= 1.0:
+            self.stubbing = None
+            self.tip_stuck = True
+            self.events.append(FaultEvent(self.t, fault, "froze"))
+        elif progress <= 0.0:
+            self.stubbing = None
+            self.events.append(FaultEvent(self.t, fault, "averted"))
+        else:
+            self.stubbing = (fault, progress, wire0)
+
+    @property
+    def arc_length(self) -> float:
+        """The arc's length (mm): the stand-off, shortened while the wire stubs into the pool."""
+        if self.stubbing is None:
+            return self.standoff
+        return self.standoff * (1.0 - self.stubbing[1])
 
     @property
     def arc_burning(self) -> bool:
@@ -497,6 +543,7 @@ class WeldCell:
             1.0 - math.exp(-dt / POOL_SPEED_TAU))
         if self.voltage_setpoint > 0.0 and self.touching:
             self.tip_stuck = True  # power switched on while touching
+        self._stub(dt)
         # gas
         flow = self.gas_flow
         self.bottle_pressure = max(0.0, self.bottle_pressure - flow / 60.0 * dt / cfg.bottle_volume)
@@ -656,7 +703,8 @@ class WeldCell:
         elif self.tip_stuck or self.touching:
             volts, amps = 0.0, cfg.short_circuit_current
         elif self.arc_burning:
-            volts = max(0.0, v + cfg.arc_voltage_per_mm * (self.standoff - cfg.nominal_standoff))
+            volts = max(0.0, v + cfg.arc_voltage_per_mm * (self.arc_length
+                                                            - cfg.nominal_standoff))
             amps = cfg.amps_per_wire_speed * self.wire_speed
         else:
             volts, amps = v + cfg.open_circuit_extra, 0.0

@@ -5,8 +5,10 @@ then the wire feed (A5) and the voltage to its start-up value (A2); report ``{"w
 stay active, watching the gas (A3.s) while the weld is on. ``{"op": "off"}``: voltage off, wire
 off, gas off, report ``{"weld": "off"}``, complete. If the gas fails (bottle empty or no flow for
 ``gas_grace`` s) while on, the weld is turned off, ``{"weld": "fail", "reason"}`` is reported and
-the activation raises GasFailure (its owner sees an abnormal completion). The world model answers
-``welding`` (is the weld on), the context D3 asks for.
+the activation raises GasFailure (its owner sees an abnormal completion). Installed with A5
+among its inputs, B1 also watches the electrode supply (A5.s): when the spool is empty the weld
+is turned off the same way, reported as ``wire fail`` and WireFailure is raised. The world
+model answers ``welding`` (is the weld on), the context D3 asks for.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from __future__ import annotations
 from typing import Any
 
 from chcos.usrmgr import TaskContext
-from chcos.weld.tasks.common import GasFailure, WeldTaskError, as_dict, param
+from chcos.weld.tasks.common import GasFailure, WeldTaskError, WireFailure, as_dict, param
 from chcos.worldmodel import WorldModel
 
 COOLING_S = 15.0
@@ -90,11 +92,17 @@ async def _on(ctx: TaskContext, cmd: dict[str, Any]) -> dict[str, Any]:
     wm.command["weld"] = "on"
     ctx.put({"weld": "on"})
     bad_since: float | None = None
+    watch = ["A3", "A5"] if "A5" in ctx.inputs else ["A3"]
     while True:
-        ev = await ctx.wait_any(["A3"], commands=True)
+        ev = await ctx.wait_any(watch, commands=True)
         if ev.kind == "command":
             return as_dict(ev.value)
         gas = ev.value
+        if ev.source == "A5":
+            if isinstance(gas, dict) and gas.get("empty"):
+                await _fail(ctx, f"electrode supply empty ({gas.get('left', 0.0):.2f} m of wire "
+                                 f"left)", "wire")
+            continue
         if not isinstance(gas, dict) or "empty" not in gas:
             continue
         if gas["empty"] or not gas["flow_ok"]:
@@ -106,13 +114,14 @@ async def _on(ctx: TaskContext, cmd: dict[str, Any]) -> dict[str, Any]:
             bad_since = None
 
 
-async def _fail(ctx: TaskContext, why: str) -> None:
+async def _fail(ctx: TaskContext, why: str, what: str = "gas") -> None:
     await _off(ctx)
     ctx.world.command["weld"] = "fail"
-    reason = f"gas fail: {why}"
+    reason = f"{what} fail: {why}"
     ctx.world.command["reason"] = reason
     ctx.put({"weld": "fail", "reason": reason})
-    raise GasFailure(f"B1: {reason}; weld turned off")
+    error = WireFailure if what == "wire" else GasFailure
+    raise error(f"B1: {reason}; weld turned off")
 
 
 def _bar(gas: Any) -> str:

@@ -6,6 +6,10 @@ the tool yaw until the marker leaves the sensor (which is 5 mm ahead of the tip,
 reaches 6 mm past the gap start), and backs off ``backoff`` mm so the tip stands at the gap
 start. Completes with ``{"at": pos, "yaw"}``. Raises TargetNotSighted if no marker is seen,
 MotionFailed if a move fails.
+
+B5.s decides from the present and the previous binary image whether the gap-start marker has
+been sighted (both show it: one stray image is not a sighting) and puts ``{"target": "sighted" |
+"not sighted" | "passed" | "centred", "marker", "at", "t"}`` upward.
 """
 
 from __future__ import annotations
@@ -38,18 +42,23 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     cmd = as_dict(command)
     backoff = float(param(ctx, cmd, "backoff", 1.5))
     seen: dict[str, Any] | None = None
+    previous: Any = None
     t0 = ctx.now
     while ctx.now - t0 < 0.5:
         try:
             msg = await ctx.read("A7", timeout=0.5)
         except ReadTimeout:
             break
-        if sighted(msg, "start"):
+        if sighted(msg, "start") and sighted(previous, "start"):
             seen = msg
             if msg.get("marker") is not None:
                 break
+        previous = msg
     if seen is None:
-        raise TargetNotSighted("B5: no start-of-gap marker under the linear sensor")
+        ctx.put({"target": "not sighted", "marker": None, "at": None, "t": ctx.now})
+        raise TargetNotSighted("B5: no start-of-gap marker under the linear sensor (two "
+                               "successive images)")
+    ctx.put({"target": "sighted", "marker": seen.get("marker"), "at": None, "t": ctx.now})
     here = await latest(ctx, "A4")
     yaw = float(cmd.get("yaw", here["yaw"]))
     ctx.world.sensory["sighted"] = seen
@@ -68,8 +77,10 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
         if not sighted(msg, "start"):
             break
     here = await latest(ctx, "A4")
+    ctx.put({"target": "passed", "marker": None, "at": here["pos"], "t": ctx.now})
     await _move(ctx, add(here["pos"], fwd, -backoff), yaw, 4.0)
     here = await latest(ctx, "A4")
     result = {"at": here["pos"], "yaw": yaw}
     ctx.world.sensory["aligned"] = result
+    ctx.put({"target": "centred", "marker": None, "at": here["pos"], "t": ctx.now})
     return result

@@ -7,6 +7,11 @@ to move 5 mm towards the gap. The gap width is compared with ``too_narrow``/``to
 (default 1.2 / 3.0 mm); ``confirm`` (default 3) successive images out of tolerance fail the
 inspection at once. At the end marker the tip is stopped and the inspection is OK.
 
+The world model predicts the width (the middle of the tolerance, ``chcos.worldmodel``
+prediction) and compares each measured width with it: the error vector's surprise is "width not
+OK". D1.s puts ``{"target", "next_centre", "width", "width_ok", "travelled", "t"}`` upward every
+``steer`` s and at the end: target sighted, the predicted next centre, the width check.
+
 Completes with ``{"inspection": "OK" | "fail", "reason", "at_mm", "width", "start", ...}`` (a
 failed inspection is a normal completion: the inspection itself worked). Raises WeldAborted if
 the start cannot be found or a lower task fails.
@@ -58,6 +63,8 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     heading = float(found.result["yaw"])
     tracker = Tracker(heading, float(start[2]))
     wm.command.update(phase="track", start=start)
+    wm.predict("width", (too_narrow + too_wide) / 2.0, (too_wide - too_narrow) / 2.0, ctx.now)
+    width_ok = True
     here = await latest(ctx, "A4")
     tracker.moved(here["pos"])
     bad: dict[str, int] = {"too wide": 0, "too narrow": 0}
@@ -75,11 +82,14 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
         travelled = tracker.moved(here["pos"])
         if not isinstance(msg, dict) or "fail" in msg:
             continue
+        tracker.ranged(msg.get("range"))
         if msg["centre"] is not None and msg["pattern"] in ("gap", "start", "end"):
             tracker.sighting(here["pos"], float(here["yaw"]), float(msg["centre"]))
         if msg["pattern"] == "gap" and msg["width"] is not None:
             w = float(msg["width"])
             widths.append(w)
+            ev = wm.compare("width", w, ctx.now)
+            width_ok = ev is None or not ev.surprise
             bad["too wide"] = bad["too wide"] + 1 if w > too_wide else 0
             bad["too narrow"] = bad["too narrow"] + 1 if w < too_narrow else 0
             for reason, n in bad.items():
@@ -94,12 +104,20 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
                           width=msg.get("width"))
         if outcome is None and ctx.now - last_steer >= steer_s:
             last_steer = ctx.now
+            nxt = tracker.predict()
+            ctx.put({"target": msg["centre"] is not None,
+                     "next_centre": list(nxt) if nxt is not None else None,
+                     "width": msg.get("width"), "width_ok": width_ok, "travelled": travelled,
+                     "t": ctx.now})
             d, yaw = tracker.steer(here["pos"])
             await ctx.invoke("B4", {"d": d, "yaw": yaw, "speed": speed})
     await ctx.call("B4", {"op": "hold"})
     outcome.update(start=start, heading=heading, length_mm=tracker.travelled,
                    width_min=min(widths, default=None), width_max=max(widths, default=None))
     wm.command.update(phase="done", outcome=outcome)
+    ctx.put({"target": True, "next_centre": None, "width": outcome.get("width"),
+             "width_ok": outcome["inspection"] == "OK", "travelled": tracker.travelled,
+             "t": ctx.now, "inspection": outcome["inspection"]})
     return outcome
 
 

@@ -6,9 +6,16 @@ then moves along the gap (tracking as D1: gap points from A7 and A4, the next ce
 5 mm ahead, B4 told every ``steer`` s to move 5 mm towards the gap). The temperature is kept in
 its band by the travel speed and the electrode speed: above the band's middle (by more than
 ``deadband``) the tip speeds up and the electrode is advanced (A5), below it both slow down.
-When C1 reports the tip stuck, D2 calls C1 to free it, moves back down to where it stuck and
+When C1 reports the tip about to stick (its learned recognizer), D2 cuts the wire feed to
+``RETRACT_SHARE`` for ``RETRACT_S`` s, so the arc burns the wire back. When C1 reports the tip
+stuck, D2 calls C1 to free it, moves back down to where it stuck and
 turns the weld on again. When the end marker comes under the sensor the tip goes on until it has
 passed the gap end, then the weld is turned off and the tip held.
+
+The comparison is the world model's: D2 predicts the temperature (the band's middle, tolerance
+``deadband``) and the error vector of each A1 sample gives above/equal/below. D2.s puts
+``{"temp", "cmp", "error", "travelled", "phase", "t"}`` upward at most every ``steer`` s, and
+``{"tip": "stuck"}`` / ``{"phase": "done"}`` when those happen.
 
 Completes with ``{"welded_mm", "in_band", "unstuck", "speed_range"}``. Raises WeldAborted
 (after turning the weld off and holding the tip) when B1 reports a gas failure, the start cannot
@@ -36,6 +43,11 @@ from chcos.weld.tasks.common import (
     unit,
 )
 from chcos.worldmodel import WorldModel
+
+RETRACT_S = 0.8
+"""How long the wire feed is cut when C1 reports the tip about to stick (s)."""
+RETRACT_SHARE = 0.2
+"""The share of its speed the wire is fed at meanwhile."""
 
 END_RUN_MM = 6.0 + LOOK_AHEAD + 0.5
 """How far the tip goes on after the end marker is first seen: the marker reaches 6 mm before
@@ -116,6 +128,8 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
         raise WeldAborted(f"D2: cannot find the start of the gap: {found.error}")
     start = found.result["at"]
     tracker = Tracker(float(found.result["yaw"]), float(start[2]))
+    wm.predict("temp", centre, deadband, ctx.now)
+    last_put = -math.inf
     await ctx.call("C1", {"op": "watch"})
     await _weld_on(ctx, volts, wire0, band, strike)
     wm.command["phase"] = "weld"
@@ -126,6 +140,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     last_steer = last_regulate = -math.inf
     end_at: float | None = None
     samples = in_band = unstuck = 0
+    retract_until: float | None = None
     while True:
         for task in ("B1", "B4", "A5"):
             await _check(ctx, task)
@@ -138,7 +153,19 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
         if src == "B1" and msg.get("weld") == "fail":
             await _shutdown(ctx)
             raise WeldAborted(f"D2: weld stopped: {msg['reason']}")
+        if src == "C1" and msg.get("tip") == "sticking":
+            # C1 recognized the pattern that precedes a stuck tip: cut the wire feed for a
+            # moment so the arc burns the wire back, then feed again
+            retract_until = ctx.now + RETRACT_S
+            ctx.put({"tip": "sticking", "travelled": travelled, "phase": "weld", "t": ctx.now})
+            wm.command["retracts"] = wm.command.get("retracts", 0) + 1
+            await ctx.call("A5", {"speed": RETRACT_SHARE * wire0 * speed / speed0})
+            continue
+        if retract_until is not None and ctx.now >= retract_until:
+            retract_until = None
+            await ctx.call("A5", {"speed": wire0 * speed / speed0})
         if src == "C1" and msg.get("tip") == "stuck":
+            ctx.put({"tip": "stuck", "travelled": travelled, "phase": "unstick", "t": ctx.now})
             unstuck += 1
             wm.command.update(phase="unstick", unstuck=unstuck)
             await _unstick(ctx, volts, wire0 * speed / speed0, band, strike)
@@ -149,16 +176,23 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
             temp = float(msg["temp"])
             samples += 1
             in_band += band[0] <= temp <= band[1]
-            cmp = "above" if temp > centre + deadband else "below" if temp < centre - deadband \
-                else "equal"
+            ev = wm.compare("temp", temp, ctx.now)
+            err = ev.error[""] if ev is not None else temp - centre
+            cmp = "equal" if ev is not None and not ev.surprise else \
+                "above" if err > 0 else "below"
             wm.sensory.update(temp=temp, cmp=cmp)
-            if cmp != "equal" and ctx.now - last_regulate >= 0.2:
+            if ctx.now - last_put >= steer_s:
+                last_put = ctx.now
+                ctx.put({"temp": temp, "cmp": cmp, "error": err, "travelled": travelled,
+                         "phase": "weld", "t": ctx.now})
+            if cmp != "equal" and ctx.now - last_regulate >= 0.2 and retract_until is None:
                 last_regulate = ctx.now
                 speed = max(0.5 * speed0, min(2.0 * speed0, speed + (0.1 if cmp == "above"
                                                                         else -0.1)))
                 speeds = [min(speeds[0], speed), max(speeds[1], speed)]
                 await ctx.call("A5", {"speed": wire0 * speed / speed0})
         if src == "A7":
+            tracker.ranged(msg.get("range"))
             if msg["centre"] is not None and msg["pattern"] in ("gap", "start", "end"):
                 tracker.sighting(here["pos"], float(here["yaw"]), float(msg["centre"]))
             if msg["end"] and end_at is None:
@@ -175,6 +209,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     result = {"welded_mm": tracker.travelled, "in_band": in_band / max(1, samples),
               "unstuck": unstuck, "speed_range": speeds}
     wm.command.update(phase="done", result=result)
+    ctx.put({"phase": "done", "travelled": tracker.travelled, "t": ctx.now})
     return result
 
 

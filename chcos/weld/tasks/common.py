@@ -45,6 +45,10 @@ class GasFailure(WeldTaskError):
     """Shielding gas failed (bottle empty or no flow) while the weld needed it."""
 
 
+class WireFailure(WeldTaskError):
+    """The electrode supply ran out (A5.s: nothing left on the spool) while the weld needed it."""
+
+
 class ServoFailure(WeldTaskError):
     """A joint's position sensor failed (servo timeout): the arm cannot be moved safely."""
 
@@ -240,14 +244,33 @@ class Tracker:
     point of the gap in the plate plane, keeps the recent ones, estimates the gap's heading and
     predicts the next centre ``ahead`` mm on. :meth:`steer` gives the direction the tip should
     move in (towards the newest gap point, about 5 mm ahead of the tip, with a height
-    correction) and the yaw that keeps the sensor looking along the gap."""
+    correction) and the yaw that keeps the sensor looking along the gap.
 
-    def __init__(self, heading: float, z_work: float, keep: int = 16) -> None:
+    The height is held by the range sensor (A7's ``range``, the distance from the sensor to the
+    surface 5 mm ahead): :meth:`ranged` takes each reading, and the first one (or ``standoff``)
+    is the stand-off to hold; a surface that rises or falls is followed. Without readings the
+    tip keeps the height ``z_work`` it started at."""
+
+    def __init__(self, heading: float, z_work: float, keep: int = 16,
+                 standoff: float | None = None) -> None:
         self.points: deque[tuple[float, float]] = deque(maxlen=keep)
         self.heading = heading
         self.z_work = z_work
         self.travelled = 0.0
         self._last_pos: tuple[float, float] | None = None
+        self.standoff = standoff
+        self.ranges: deque[float] = deque(maxlen=5)
+
+    def ranged(self, range_mm: Any) -> None:
+        """Take a range reading (mm; None or negative: nothing in range, ignored)."""
+        if range_mm is None:
+            return
+        r = float(range_mm)
+        if not (0.0 <= r <= 100.0):
+            return
+        if self.standoff is None:
+            self.standoff = r
+        self.ranges.append(r)
 
     def sighting(self, pos: Sequence[float], yaw: float, centre: float) -> tuple[float, float]:
         """Record the gap seen ``centre`` mm left of the sensor while the tip is at ``pos``
@@ -293,6 +316,10 @@ class Tracker:
         else:
             dx, dy = math.cos(self.heading), math.sin(self.heading)
         n = math.hypot(dx, dy)
+        if self.ranges and self.standoff is not None:
+            # the surface ahead is range below the sensor: hold the stand-off above it
+            surface = pos[2] - sum(self.ranges) / len(self.ranges)
+            self.z_work = surface + self.standoff
         dz = max(-0.5, min(0.5, (self.z_work - pos[2]) / LOOK_AHEAD))
         return (dx / n, dy / n, dz), self.heading
 
