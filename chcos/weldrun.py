@@ -417,13 +417,18 @@ def run(binding: str = "direct", *, scenario: str = "", seed: int = 0, real_time
     """Run the main job (see the module doc) and return the summary figures; ``north`` names
     the north-side services to serve while it runs (:mod:`chcos.north.services`); the run's
     picture (``chcos.weld.report``) goes to ``report_to`` (default: ``weld-report.html`` beside
-    the map in ``workdir``, or in the current directory when the map is temporary). Raises
+    the map in ``workdir``, or in the welding cell's state directory, ``<state base>/weld``
+    (:func:`chcos.sysfile.default_state_base`), when the map is temporary — never into the
+    source tree). Raises
     ChcosError (WeldRunError, ConfigError, InstallError, BusError, NorthError) if the cell or
     a service cannot be set up."""
     from chcos.north.services import start as start_north
 
     if report_to is None:
-        report_to = Path(workdir if workdir is not None else ".") / "weld-report.html"
+        from chcos.sysfile import default_state_base
+
+        report_to = (Path(workdir) if workdir is not None
+                     else default_state_base() / "weld") / "weld-report.html"
     with open_cell(binding, scenario=scenario, seed=seed, real_time=real_time, record=record,
                    workdir=workdir) as cell:
         print(f"welding cell on the {binding} binding, scenario: {scenario or 'none'}, "
@@ -471,7 +476,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     add_north_arguments(ap)
     ap.add_argument("--report", metavar="FILE.html",
                     help="where the run's picture goes (default: weld-report.html in --workdir, "
-                         "else in the current directory)")
+                         "else in the state directory: $CHCOS_STATE_DIR/weld or "
+                         "~/.local/state/chcos/weld)")
     args = ap.parse_args(argv)
     if not (math.isfinite(args.duration) and args.duration > 0):
         ap.error(f"--duration {args.duration}: expected seconds > 0")

@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import os
+import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -154,3 +155,11 @@ def pytest_terminal_summary(terminalreporter: Any, exitstatus: int, config: pyte
             f"in the guest through {guest}" + ("" if selected else " (not run this time)"))
     for line in results:
         terminalreporter.write_line(line)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Run state (satellites' maps, logs and secrets, run reports, learned data) goes to a
+    directory of this session, never to the user's ~/.local/state: CHCOS_STATE_DIR is set for
+    the whole session (and every process it starts) unless the caller set it."""
+    if not os.environ.get("CHCOS_STATE_DIR"):
+        os.environ["CHCOS_STATE_DIR"] = tempfile.mkdtemp(prefix="chcos-test-state-")

@@ -139,11 +139,15 @@ def test_run_state_belongs_to_one_system(tmp_path: Path) -> None:
     # the default is outside the system file's directory (never the task sources)
     plain = tmp_path / "plain.toml"
     plain.write_text(f'[system]\nname = "p"\n[[satellite]]\nmachine = 0\nport = {free_port()}\n')
+    before = os.environ.get("CHCOS_STATE_DIR")
     os.environ["CHCOS_STATE_DIR"] = str(tmp_path / "elsewhere")
     try:
         assert sysfile.load(plain).map_path(0) == tmp_path / "elsewhere" / "p" / "m0.map"
     finally:
-        del os.environ["CHCOS_STATE_DIR"]
+        if before is None:
+            del os.environ["CHCOS_STATE_DIR"]
+        else:
+            os.environ["CHCOS_STATE_DIR"] = before
 
 
 def test_another_system_with_the_same_base_dir_does_not_adopt_the_tables(tmp_path: Path) -> None:
