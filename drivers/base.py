@@ -7,11 +7,21 @@ thread for serial); it reaches the kernel only through the thread-safe :class:`D
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from typing import Any, ClassVar, Protocol
 
 from chcos.devspec import BusSpec, DeviceSpec
+
+
+def not_finite(value: Any) -> str | None:
+    """Why ``value`` is no finite number (``"expected a finite number, got ..."``), or None if it
+    is one (an int, a bool, or a float that is neither NaN nor infinite). The first check of
+    every driver's ``check_value``."""
+    if isinstance(value, int) or (isinstance(value, float) and math.isfinite(value)):
+        return None
+    return f"expected a finite number, got {value!r}"
 
 
 class DriverHost(Protocol):

@@ -58,7 +58,7 @@ from cantools.database.can import Signal as DbcSignal
 
 from chcos.devspec import BusSpec, DeviceSpec
 from chcos.errors import BusError
-from drivers.base import DriverHost
+from drivers.base import DriverHost, not_finite
 from drivers.recording import LOG_SUFFIXES, Recorder
 from drivers.threaded import ReaderThread, ThreadedDriver
 
@@ -187,11 +187,10 @@ class CanCodec:
         if item is None:
             return None
         fr, sig = item
+        if (why := not_finite(value)) is not None:
+            return why
         if isinstance(value, bool):
             value = int(value)
-        if not isinstance(value, int | float) or value != value or value in (float("inf"),
-                                                                             float("-inf")):
-            return f"expected a finite number, got {value!r}"
         signal = fr.message.get_signal_by_name(sig)
         if (fr.message.name.startswith("raw_0x") and not signal.is_float
                 and isinstance(value, float) and not value.is_integer()):

@@ -51,7 +51,7 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from chcos.devspec import BusSpec, DeviceSpec
 from chcos.errors import BusError
-from drivers.base import Driver, DriverHost
+from drivers.base import Driver, DriverHost, not_finite
 from drivers.can_raw import read_frames
 from drivers.health import Health
 from drivers.threaded import ReaderThread
@@ -378,11 +378,10 @@ class CanopenDriver(Driver):
         b = self._bindings.get(device)
         if b is None:
             return None
+        if (why := not_finite(value)) is not None:
+            return why
         if isinstance(value, bool):
             value = int(value)
-        if not isinstance(value, int | float) or value != value or value in (float("inf"),
-                                                                             float("-inf")):
-            return f"expected a finite number, got {value!r}"
         if (b.od_var.data_type in INTEGER_TYPES and isinstance(value, float)
                 and not value.is_integer()):
             return f"expected an integer for object 0x{b.index:04X}:{b.subindex:02X}, got {value!r}"

@@ -51,7 +51,7 @@ import serial
 
 from chcos.devspec import BusSpec, DeviceSpec
 from chcos.errors import BusError
-from drivers.base import DriverHost
+from drivers.base import DriverHost, not_finite
 from drivers.threaded import ThreadedDriver
 
 COMMON_OPTIONS = ("url", "baudrate", "protocol", "poll", "reconnect_min", "reconnect_max")
@@ -546,11 +546,10 @@ class SerialDriver(ThreadedDriver):
         a fraction for an integer struct code, or a value its format cannot encode."""
         if device not in self.devices:
             return None
+        if (why := not_finite(value)) is not None:
+            return why
         if isinstance(value, bool):
             value = int(value)
-        if not isinstance(value, int | float) or value != value or value in (float("inf"),
-                                                                             float("-inf")):
-            return f"expected a finite number, got {value!r}"
         a = self.devices[device].address
         if self._binary and str(a.get("struct", "x"))[-1:] in _INT_CODES and isinstance(
                 value, float) and not value.is_integer():

@@ -106,11 +106,12 @@ def _check_port(where: str, value: object) -> int:
 
 
 def is_loopback(host: str) -> bool:
-    """Whether ``host`` (an IPv4/IPv6 address or a name) is this computer's loopback."""
+    """Whether ``host`` (an IPv4/IPv6 address, bracketed or not, or a name) is this computer's
+    loopback: 127.0.0.0/8, ::1 or ``localhost``."""
     if host == "localhost":
         return True
     try:
-        return ipaddress.ip_address(host).is_loopback
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
     except ValueError:
         return False
 

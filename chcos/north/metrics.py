@@ -29,7 +29,6 @@ and key, as every north-side service here.
 from __future__ import annotations
 
 import bisect
-import ipaddress
 import threading
 import time
 from collections.abc import Iterator
@@ -45,6 +44,7 @@ from prometheus_client.exposition import start_http_server
 from prometheus_client.registry import Collector
 
 from chcos.instrument import Instrument
+from chcos.link.config import is_loopback
 from chcos.north import NorthError
 from chcos.north.health import bus_stats, device_health
 
@@ -203,16 +203,6 @@ class SystemCollector(Collector):
         yield from (*lfams.values(), lprio)
 
 
-def is_loopback(host: str) -> bool:
-    """True for 127.0.0.0/8, ::1 and ``localhost``."""
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host.strip("[]")).is_loopback
-    except ValueError:
-        return False
-
-
 class MetricsServer:
     """The running endpoint: ``url``, :meth:`stop`."""
 
@@ -254,4 +244,4 @@ def serve(system: System, host: str = "127.0.0.1", port: int = 0, *,
                          f"{scheme}://{h}:{httpd.server_address[1]}/metrics")
 
 
-__all__ = ["MetricsServer", "StepTimes", "SystemCollector", "is_loopback", "serve"]
+__all__ = ["MetricsServer", "StepTimes", "SystemCollector", "serve"]

@@ -47,9 +47,9 @@ from pymodbus.server import ModbusTcpServer
 
 from chcos.devspec import DeviceMap, DeviceSpec
 from chcos.errors import ChcosError, DeviceError
+from chcos.link.config import is_loopback
 from chcos.north import NorthError
 from chcos.north.health import device_health
-from chcos.north.metrics import is_loopback
 from chcos.tasks import TaskState
 
 if TYPE_CHECKING:

@@ -52,9 +52,9 @@ from asyncua.server.user_managers import UserManager
 
 from chcos.errors import Busy, ChcosError
 from chcos.instrument import Instrument
+from chcos.link.config import is_loopback
 from chcos.north import NorthError
 from chcos.north.health import device_health
-from chcos.north.metrics import is_loopback
 
 if TYPE_CHECKING:
     from asyncua.common.node import Node

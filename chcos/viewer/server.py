@@ -41,7 +41,6 @@ from __future__ import annotations
 
 import asyncio
 import hmac
-import ipaddress
 import json
 import logging
 import secrets
@@ -58,6 +57,7 @@ from aiohttp import web
 
 from chcos import cmdline
 from chcos.errors import Busy, ChcosError
+from chcos.link.config import is_loopback
 from chcos.sysview import render_text
 from chcos.viewer import ViewerError
 from chcos.viewer.graph import Live, render_dot, render_svg
@@ -84,15 +84,6 @@ COOKIE = "chcos_session"
 TOKEN_HEADER = "X-CHCOS-Token"
 #: Sessions kept at once (the oldest is ended beyond this).
 MAX_SESSIONS = 64
-
-
-def _loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host.strip("[]")).is_loopback
-    except ValueError:
-        return False
 
 
 def _dumps(obj: Any) -> str:
@@ -144,7 +135,7 @@ class Viewer:
             raise ViewerError(f"snapshot period {period} s: must be positive")
         if stall_timeout <= 0 or max_buffer <= 0:
             raise ViewerError("stall_timeout and max_buffer must be positive")
-        if ssl_context is None and not _loopback(host):
+        if ssl_context is None and not is_loopback(host):
             raise ViewerError(f"viewer on {host}: an address off loopback needs TLS "
                               "(a certificate and key)")
         self.system = system
@@ -330,11 +321,8 @@ class Viewer:
     def _own_hosts(self) -> set[str]:
         port = self.port
         hosts = {f"{self.host}:{port}", f"[{self.host}]:{port}"}
-        try:
-            if ipaddress.ip_address(self.host).is_loopback:
-                hosts.add(f"localhost:{port}")
-        except ValueError:
-            pass
+        if is_loopback(self.host):
+            hosts.add(f"localhost:{port}")
         return hosts
 
     @web.middleware
