@@ -17,8 +17,9 @@ module writes the ones the tables name, and nothing more:
   :data:`VOLT_STEP`, ``CUT VOLTAGE`` sets 0; ``OPEN``/``CLOSE VALVE`` is ``gas_valve``;
   ``SPEEDUP(v)``/``SLOWDOWN(v)`` set ``wire_set``; ``MEMORIZE(p)`` stores p.
 * **G1/M1**: joint angles to the tip pose (forward kinematics), the level-0 reports as facts
-  relative to the order H1 is running (``arrived`` = the tip within :data:`ARRIVED_MM` of that
-  order's goal, ``timeout`` = the order has run longer than its allowance), ``gas flowing``
+  relative to the order H1 is running, one of three as the tables expect (``arrived`` = the tip
+  within :data:`ARRIVED_MM` of that order's goal, ``timeout`` = not arrived and the order has run
+  longer than its allowance, else ``not arrived``), ``gas flowing``
   (``gas_flow``), ``bottle full`` (``gas_bottle``), ``arc on`` (the power source sees an arc:
   set-point on, arc voltage neither short-circuit nor open-circuit), ``motors on``, ``aligned``
   (the linear image shows the start-of-gap marker); values ``temp``, ``threshold`` (the bottom
@@ -51,19 +52,19 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from chcos.nbs.adapter import NbsOnSystem, attach
 from chcos.nbs.executor import CommonMemory, Level, LevelContext, Order, Report, TableH
-from chcos.nbs.statetable import Call, load_builtin
+from chcos.nbs.statetable import Call, Facts, Machine, Row, StateTable, Step, load_builtin
 from chcos.weld.kinematics import UnreachableError
 from chcos.weld.model import CellConfig
 from chcos.weld.tasks.common import ARM, LOOK_AHEAD, analyse, left, pose_of
 
-__all__ = ["NBS_SCRIPT", "NbsCell", "diagnose", "job_params"]
+__all__ = ["NBS_SCRIPT", "Fired", "NbsCell", "diagnose", "job_params"]
 
 HERE = Path(__file__).resolve().parent
 NBS_SCRIPT = HERE / "weld.chcos"
@@ -147,6 +148,41 @@ def _direction(w: _World, d: object) -> tuple[float, float, float]:
     return (math.cos(a), math.sin(a), 0.0)
 
 
+@dataclass(frozen=True)
+class Fired:
+    """A row that reported a failure up (``... fail``, ``... notOK``): when, where, why."""
+
+    t: float
+    module: str
+    row: Row
+    facts: str
+
+    def describe(self) -> str:
+        """One line: the table row and what G/M said when it fired."""
+        r = self.row
+        lower = "-" if r.lower is None else (
+            r.lower.name + (f"({', '.join(a.text for a in r.lower.args)})" if r.lower.args else ""))
+        return (f"t={self.t:7.2f} s {self.module} {r.command} row {r.index} (state "
+                f"{'-' if r.state is None else r.state} -> {r.next_state}, lower {lower}, up "
+                f"{r.up!r}); {self.facts}")
+
+
+class _TracingMachine(Machine):
+    """A Machine that hands every fired row to ``on_row`` (the failure log)."""
+
+    def __init__(self, table: StateTable, on_row: Callable[[Row], None]) -> None:
+        super().__init__(table)
+        self.on_row = on_row
+
+    def step(self, facts: Facts, report: str | None,
+             values: Mapping[str, object] | None = None) -> Step:
+        """As :meth:`Machine.step`, then report the row that fired."""
+        out = super().step(facts, report, values)
+        if out.row is not None:
+            self.on_row(out.row)
+        return out
+
+
 class NbsCell:
     """The NBS hierarchy bound to a running cell's System (see the module doc).
 
@@ -161,6 +197,9 @@ class NbsCell:
         self.w.yaw = heading
         self.h = [TableH(load_builtin("H1"), actuate=self._actuate),
                   TableH(load_builtin("H2")), TableH(load_builtin("H3"))]
+        self.failures: list[Fired] = []
+        for i, h in enumerate(self.h, start=1):
+            h.machine = _TracingMachine(h.machine.table, self._row_logger(i))
         self.mem_writes = {"down": [0, 0, 0], "up": [0, 0, 0]}
         levels = [Level(self._g1, self._m1, self._counted(0)),
                   Level(self._g2, self._m2, self._counted(1)),
@@ -231,6 +270,61 @@ class NbsCell:
         name = self.job[-1][1].split()[0].lower()
         return f"{name}/H3 state {m.state}" if not m.idle else f"{name}/done"
 
+    def _row_logger(self, level: int) -> Callable[[Row], None]:
+        def log(row: Row) -> None:
+            up = row.up or ""
+            if not (up.endswith("fail") or up.endswith("notOK")):
+                return
+            if any(f.row is row for f in self.failures) or len(self.failures) >= 50:
+                return
+            ctx = self.ex.context(level)
+            true = sorted(k for k, v in ctx.facts.items() if not callable(v) and v)
+            vals = {k: v for k, v in ctx.values.items()
+                    if isinstance(v, float | int) and not isinstance(v, bool)}
+            shown = ", ".join(f"{k}={v:.1f}" for k, v in sorted(vals.items()))
+            self.failures.append(Fired(ctx.now, f"H{level}", row,
+                                       f"G{level}/M{level}: {shown}; true: {', '.join(true)}"))
+
+        return log
+
+    # ---- the report -------------------------------------------------------------------------
+    def summary(self) -> dict[str, Any]:
+        """The run's figures under the keys of :meth:`chcos.weldrun.Cell.summary` (so
+        :func:`chcos.weld.report.write_report` draws it), plus ``hierarchy``, ``executions``
+        per module, ``failures`` (rows that reported a failure up, with what G/M said) and
+        ``standing`` (where each H machine stands at the end)."""
+        model = self.cell.model
+        prog = model.progress()
+        in_band = prog.welded - prog.too_hot - prog.too_cold
+        counts = self.ex.counts
+        steps = {n: counts[f"G{n}"] + counts[f"M{n}"] + counts[f"H{n}"] for n in (1, 2, 3)}
+        msgs: dict[str, int] = {}
+        for i in range(3):
+            msgs[f"level {i + 1} down"] = self.mem_writes["down"][i]
+            msgs[f"level {i + 1} up"] = self.mem_writes["up"][i]
+        msgs["device writes"] = self.device_writes
+        faults = [f"t={e.t:6.2f} s {e.action:7s} {e.fault.describe()}" for e in model.events]
+        handled = [f"t={t:6.2f} s G1 reflex: intruder -> safe values" + (
+            "" if a is None else f" {1000 * (a - t):.2f} ms later")
+                   for t, a in zip(self.w.intruder_seen, self.w.safe_at, strict=True)]
+        handled += [f"table row reporting a failure: {f.describe()}" for f in self.failures]
+        handled += [f"level 0: goal unreachable, {u}" for u in self.w.unreachable]
+        return {
+            "hierarchy": "nbs", "binding": self.cell.binding,
+            "seconds": self.system.kernel.clock.now() - self.started, "outcome": self.outcome,
+            "seam_mm": prog.length, "welded_mm": prog.welded,
+            "in_band_mm": in_band, "in_band_pct": 100.0 * in_band / prog.length,
+            "too_hot_mm": prog.too_hot, "too_cold_mm": prog.too_cold, "no_gas_mm": prog.no_gas,
+            "band": model.config.weld_band, "faults": faults, "handled": handled,
+            "steps_by_level": steps, "messages": msgs,
+            "messages_total": sum(msgs.values()),
+            "latency_s": [None if a is None else a - t
+                          for t, a in zip(self.w.intruder_seen, self.w.safe_at, strict=True)],
+            "outputs": self.cell.outputs(), "executions": counts, "cycles": self.ex.cycles,
+            "failures": [f.describe() for f in self.failures], "standing": diagnose(self),
+            "job": [f"t={t:.2f} s {name}" for t, name in self.job],
+        }
+
     # ---- counting ----------------------------------------------------------------------------
     def _counted(self, i: int) -> Callable[[LevelContext], None]:
         h = self.h[i]
@@ -285,7 +379,9 @@ class NbsCell:
             sp = w.setpoint or w.tip or w.goal
             dx = [g - s for g, s in zip(w.goal, sp, strict=True)]
             dist = math.sqrt(sum(c * c for c in dx))
-            stepmm = w.speed * self.ex.period
+            stepmm = max(0.0, w.speed) * self.ex.period  # a speed <= 0 does not move
+            if stepmm <= 0.0:
+                return
             if dist > stepmm:
                 sp = (sp[0] + dx[0] * stepmm / dist, sp[1] + dx[1] * stepmm / dist,
                       sp[2] + dx[2] * stepmm / dist)
@@ -297,11 +393,16 @@ class NbsCell:
             self._targets(ctx, w.goal, w.goal_yaw)
 
     def _targets(self, ctx: LevelContext, p: tuple[float, float, float], yaw: float) -> None:
-        try:
-            q = ARM.inverse_down(p, yaw)
-        except UnreachableError as exc:
+        q = None
+        for y in (yaw, self.w.heading, self.w.cfg.home_yaw):  # wrist limits: the first that fits
+            try:
+                q = ARM.inverse_down(p, y)
+                break
+            except UnreachableError as exc:
+                err = exc
+        if q is None:
             if len(self.w.unreachable) < 10:
-                self.w.unreachable.append(f"t={ctx.now:.2f} s: {exc}")
+                self.w.unreachable.append(f"t={ctx.now:.2f} s: {err}")
             return
         if q != self.w.last_targets:
             for j, v in enumerate(q, start=1):
@@ -327,10 +428,11 @@ class NbsCell:
             elif order.call.name == "MOVE 5mm DIR":
                 goal = w.order_goal.get(order.serial)
                 spd = float(order.call.args[1]) if len(order.call.args) > 1 else 0.9  # type: ignore[arg-type]
-                allowance = 5.0 + 2.0 * 5.0 / max(spd, 0.1)
+                allowance = 5.0 + 2.0 * 5.0 / spd if spd > 0 else 10.0
         elapsed = now - w.order_start[order.serial] if order is not None else 0.0
         arrived = (goal is not None and w.tip is not None
                    and math.dist(goal, w.tip) <= ARRIVED_MM)
+        timeout = not arrived and elapsed > allowance
         flow = float(ctx.read("gas_flow") or 0.0)  # type: ignore[arg-type]
         bottle = float(ctx.read("gas_bottle") or 0.0)  # type: ignore[arg-type]
         volts = float(ctx.read("arc_volts") or 0.0)  # type: ignore[arg-type]
@@ -341,7 +443,8 @@ class NbsCell:
         aligned = isinstance(image, str) and analyse(image).pattern == "start"
         f = ctx.facts
         f.update({
-            "arrived": arrived, "not arrived": not arrived, "timeout": elapsed > allowance,
+            # level 0 reports one of three (tables/NOTES.md, H1 MOVE TO P row 4)
+            "arrived": arrived, "timeout": timeout, "not arrived": not arrived and not timeout,
             "arc on": arc, "arc off": not arc,
             "bottle full": bottle > 2.0, "bottle empty": bottle <= 2.0,
             "gas flowing": flow > 1.0, "gas not flowing": flow <= 1.0,
@@ -359,7 +462,7 @@ class NbsCell:
         if name == "GET THETA TO":
             p = _point(args[0], w)
             if p is not None:
-                w.goal, w.linear, w.goal_yaw, w.setpoint = p, False, w.yaw, None
+                w.goal, w.linear, w.goal_yaw, w.setpoint = p, False, w.heading, None
         elif name == "GET THETA DIR":
             base = w.tip or w.start
             u = _direction(w, args[0])
@@ -378,10 +481,11 @@ class NbsCell:
         elif name == "MOTORS ON":
             w.speed = float(args[0]) if args else 0.9  # type: ignore[arg-type]
             if not w.motors and not w.intruder:
+                # enable first: the drives overwrite targets written while they are disabled
+                self._write(ctx, "drives_enable", 1)
+                w.motors, w.last_targets = True, None
                 if w.goal is not None and not w.linear:
                     self._targets(ctx, w.goal, w.goal_yaw)
-                self._write(ctx, "drives_enable", 1)
-                w.motors = True
         elif name == "MOTORS OFF":
             if w.motors:
                 self._write(ctx, "drives_enable", 0)
