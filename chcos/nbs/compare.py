@@ -147,8 +147,7 @@ def print_side_by_side(chc: dict[str, Any], nbs: dict[str, Any], out: TextIO) ->
     ]
     levels = sorted(set(chc["steps_by_level"]) | set(nbs["steps_by_level"]))
     for lvl in levels:
-        rows.append((f"level {lvl} executions/s",
-                     lambda s, lvl=lvl: _rate(s, s["steps_by_level"].get(lvl, 0))))
+        rows.append((f"level {lvl} executions/s", _level_rate(lvl)))
     rows += [
         ("messages in all", lambda s: f"{s['messages_total']} ({_rate(s, s['messages_total'])})"),
         ("intruder -> safe", lambda s: _ms(s["latency_s"])),
@@ -174,6 +173,13 @@ def print_side_by_side(chc: dict[str, Any], nbs: dict[str, Any], out: TextIO) ->
     for s in (chc, nbs):
         if s.get("report"):
             print(f"  {s['hierarchy'].upper()} run as a picture: {s['report']}", file=out)
+
+
+def _level_rate(level: int) -> Callable[[dict[str, Any]], str]:
+    def rate(s: dict[str, Any]) -> str:
+        return _rate(s, s["steps_by_level"].get(level, 0))
+
+    return rate
 
 
 def _rate(s: dict[str, Any], n: int) -> str:

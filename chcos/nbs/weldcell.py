@@ -251,7 +251,7 @@ class NbsCell:
         """Run for at most ``seconds`` (in 1 s slices) or until the job ends; returns the time
         run."""
         kernel = self.system.kernel
-        t0 = kernel.clock.now()
+        t0: float = kernel.clock.now()
         while kernel.clock.now() - t0 < seconds - 1e-9 and self.outcome is None:
             step = min(1.0, seconds - (kernel.clock.now() - t0))
             end = kernel.clock.now() + step
@@ -260,7 +260,7 @@ class NbsCell:
                 self.step_job()
             if each_second is not None:
                 each_second(self)
-        return kernel.clock.now() - t0
+        return float(kernel.clock.now()) - t0
 
     def phase(self) -> str:
         """The job's command and H3's state (for the report)."""
@@ -507,10 +507,10 @@ class NbsCell:
                 w.valve = v
                 self._write(ctx, "gas_valve", v)
         elif name in ("SPEEDUP", "SLOWDOWN"):
-            v = max(0.0, min(250.0, float(args[0])))  # type: ignore[arg-type]
-            if v != w.wire:
-                w.wire = v
-                self._write(ctx, "wire_set", v)
+            feed = max(0.0, min(250.0, float(args[0])))  # type: ignore[arg-type]
+            if feed != w.wire:
+                w.wire = feed
+                self._write(ctx, "wire_set", feed)
         elif name == "MEMORIZE":
             w.memorized = args[0] if args else None
 
@@ -518,7 +518,7 @@ class NbsCell:
     def _g2(self, ctx: LevelContext) -> None:
         w = self.w
         volts = float(ctx.read("arc_volts") or 0.0)  # type: ignore[arg-type]
-        shorted = w.volts > 0 and volts < 1.0 and w.tip is not None and w.tip[2] < 2.0
+        shorted = w.volts > 0 and volts < 1.0
         if shorted and w.stuck_z is None and w.tip is not None:
             w.stuck_z = w.tip[2]
         if w.stuck_z is not None and w.tip is not None and w.tip[2] >= w.stuck_z + FREED_MM:
