@@ -33,16 +33,26 @@ class WriteLog:
     def __init__(self, cell: Any) -> None:
         self.model = cell.model
         self.cuts: list[float] = []
+        self.volts: list[tuple[float, float]] = []
         cell.system.devtab.on_write.append(self._write)
 
     def _write(self, device: str, value: Any) -> None:
-        if device == "volts_set" and value is not None and float(value) == 0.0:
-            self.cuts.append(float(self.model.t))
+        if device == "volts_set" and value is not None:
+            self.volts.append((float(self.model.t), float(value)))
+            if float(value) == 0.0:
+                self.cuts.append(float(self.model.t))
+
+    def powered(self, t: float) -> bool:
+        """True if the arc voltage set-point last written before ``t`` was above 0."""
+        before = [v for when, v in self.volts if when <= t]
+        return bool(before) and before[-1] > 0.0
 
 
 def tip_latencies(model: Any, log: WriteLog) -> list[float | None]:
-    """Seconds from each stuck tip (the model's ``froze`` event, or a ``tip-stuck`` fault that
-    fired stuck at once) to the next time the arc voltage was cut (None: never)."""
+    """Seconds from each stuck tip while the power source was on (the model's ``froze``
+    event, or a ``tip-stuck`` fault without precursor that fired with the voltage on) to the
+    next time the arc voltage was cut (None: never). A tip stuck with the power off needs no
+    reaction and is not counted."""
     out: list[float | None] = []
     for e in model.events:
         if e.fault.kind != "tip-stuck" or e.action not in ("froze", "fired"):
@@ -50,6 +60,8 @@ def tip_latencies(model: Any, log: WriteLog) -> list[float | None]:
         if e.action == "fired" and any(x.fault is e.fault and x.action in ("froze", "averted")
                                        for x in model.events):
             continue  # a precursor: the freeze (if any) is its own event
+        if not log.powered(e.t):
+            continue
         later = [c for c in log.cuts if c >= e.t - 1e-9]
         out.append(min(later) - e.t if later else None)
     return out

@@ -79,6 +79,8 @@ FREED_MM = 3.0
 """M2 says ``tip free`` once a stuck tip has risen this far above where it stuck."""
 WAIT_S = 0.5
 """M2's ``wait done``: seconds after H1's last ``move done``."""
+SETTLE_S = 0.05
+"""G2 trusts an arc-voltage reading this long after the set-point was last written."""
 UNSTICK_TIMEOUT_S = 20.0
 """M3's ``timeout`` for UNSTICK TIP."""
 GAP_OK_MM = (1.0, 6.0)
@@ -115,6 +117,7 @@ class _World:
     speed: float = 1.0
     motors: bool = False
     volts: float = 0.0
+    volts_at: float = 0.0
     valve: int = 0
     wire: float = 0.0
     memorized: object = None
@@ -493,7 +496,7 @@ class NbsCell:
             # MOTORS ON must write the targets again
             w.motors, w.setpoint, w.last_targets = False, None, None
         elif name == "INCR VOLTAGE":
-            w.volts = min(w.cfg.max_voltage, w.volts + VOLT_STEP)
+            w.volts, w.volts_at = min(w.cfg.max_voltage, w.volts + VOLT_STEP), ctx.now
             self._write(ctx, "volts_set", w.volts)
         elif name == "KEEP VOLTAGE":
             pass
@@ -518,7 +521,11 @@ class NbsCell:
     def _g2(self, ctx: LevelContext) -> None:
         w = self.w
         volts = float(ctx.read("arc_volts") or 0.0)  # type: ignore[arg-type]
-        shorted = w.volts > 0 and volts < 1.0
+        # a short: set-point on but the arc voltage ~0 in a reading taken after the set-point
+        # settled (a reading from before the last INCR VOLTAGE would look like a short)
+        seen_at = self.nbs.io.arrived("arc_volts")
+        shorted = (w.volts > 0 and volts < 1.0 and seen_at is not None
+                   and seen_at >= w.volts_at + SETTLE_S)
         if shorted and w.stuck_z is None and w.tip is not None:
             w.stuck_z = w.tip[2]
         if w.stuck_z is not None and w.tip is not None and w.tip[2] >= w.stuck_z + FREED_MM:
