@@ -29,8 +29,9 @@ module writes the ones the tables name, and nothing more:
   the safe values and blocks level-0 writes to those actuators.
 * **G2/M2**: ``gas on/off``, ``arc on/off`` (so TURN ON/OFF WELD can decide before H1
   answers, see tables/NOTES.md), ``tip stuck`` (the power source shorted: set-point on, arc
-  voltage ~0; latched until the tip has risen :data:`FREED_MM` above where it stuck), ``wait
-  done`` (M2's timer: :data:`WAIT_S` after H1's last ``move done``), value ``home``.
+  voltage ~0 in a reading taken :data:`SETTLE_S` after the set-point was written; latched
+  until the tip has risen :data:`FREED_MM` above where it stuck), ``wait done`` (M2's timer:
+  :data:`WAIT_S` after H1's last ``move done``), value ``home``.
 * **G3/M3**: from the linear image (5 mm ahead of the tip): ``pos(gapcentre)``, ``gapwidth
   OK``, ``at(gapend)`` (end marker); ``pos(nextcentre)`` (= ``pos(next gapcentre)``) is a gap
   centre in view not yet steered to: consumed by ``dir_to(pos)``, re-armed when H2 reports
@@ -159,6 +160,7 @@ class Fired:
     module: str
     row: Row
     facts: str
+    why: str = ""
 
     def describe(self) -> str:
         """One line: the table row and what G/M said when it fired."""
@@ -167,23 +169,48 @@ class Fired:
             r.lower.name + (f"({', '.join(a.text for a in r.lower.args)})" if r.lower.args else ""))
         return (f"t={self.t:7.2f} s {self.module} {r.command} row {r.index} (state "
                 f"{'-' if r.state is None else r.state} -> {r.next_state}, lower {lower}, up "
-                f"{r.up!r}); {self.facts}")
+                f"{r.up!r}) because no earlier row held ({self.why or 'none'}); {self.facts}")
 
 
 class _TracingMachine(Machine):
-    """A Machine that hands every fired row to ``on_row`` (the failure log)."""
+    """A Machine that hands every fired row to ``on_row`` (the failure log), with why the
+    earlier rows of the same command and state did not fire."""
 
-    def __init__(self, table: StateTable, on_row: Callable[[Row], None]) -> None:
+    def __init__(self, table: StateTable, on_row: Callable[[Row, str], None]) -> None:
         super().__init__(table)
         self.on_row = on_row
 
     def step(self, facts: Facts, report: str | None,
              values: Mapping[str, object] | None = None) -> Step:
         """As :meth:`Machine.step`, then report the row that fired."""
+        state, variables = self.state, dict(self.variables)
         out = super().step(facts, report, values)
         if out.row is not None:
-            self.on_row(out.row)
+            up = out.row.up or ""
+            why = ""
+            if up.endswith("fail") or up.endswith("notOK"):
+                why = self._why_not_earlier(out.row, state, facts, report, variables,
+                                            values or {})
+            self.on_row(out.row, why)
         return out
+
+    def _why_not_earlier(self, fired: Row, state: int, facts: Facts, report: str | None,
+                         variables: Mapping[str, object], values: Mapping[str, object]) -> str:
+        """'row k: <terms that did not hold>' for each earlier row of the command."""
+        parts: list[str] = []
+        for row in self.table.command(fired.command).rows:
+            if row is fired:
+                break
+            if row.state is not None and row.state != state:
+                continue
+            false: list[str] = []
+            for terms, sensory in ((row.sensory, True), (row.report, False)):
+                for term in terms:
+                    if not self.table._holds(row, (term,), facts, report, variables, values,
+                                             sensory=sensory):
+                        false.append(term.text)
+            parts.append(f"row {row.index} needs {' and '.join(false) or '(nothing)'}")
+        return "; ".join(parts)
 
 
 class NbsCell:
@@ -273,8 +300,8 @@ class NbsCell:
         name = self.job[-1][1].split()[0].lower()
         return f"{name}/H3 state {m.state}" if not m.idle else f"{name}/done"
 
-    def _row_logger(self, level: int) -> Callable[[Row], None]:
-        def log(row: Row) -> None:
+    def _row_logger(self, level: int) -> Callable[[Row, str], None]:
+        def log(row: Row, why: str) -> None:
             up = row.up or ""
             if not (up.endswith("fail") or up.endswith("notOK")):
                 return
@@ -286,7 +313,8 @@ class NbsCell:
                     if isinstance(v, float | int) and not isinstance(v, bool)}
             shown = ", ".join(f"{k}={v:.1f}" for k, v in sorted(vals.items()))
             self.failures.append(Fired(ctx.now, f"H{level}", row,
-                                       f"G{level}/M{level}: {shown}; true: {', '.join(true)}"))
+                                       f"G{level}/M{level}: {shown}; true: {', '.join(true)}",
+                                       why))
 
         return log
 
@@ -632,6 +660,9 @@ def diagnose(nc: NbsCell) -> list[str]:
     for i, h in enumerate(nc.h, start=1):
         m = h.machine
         cmd = m.command.name if m.command is not None else "-"
-        out.append(f"H{i} {cmd} state {m.state}, report {m.report!r}")
+        shown = ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}"
+                          for k, v in sorted(m.variables.items()))
+        out.append(f"H{i} {cmd} state {m.state}, report {m.report!r}"
+                   + (f", variables {shown}" if shown else ""))
     return out
 
