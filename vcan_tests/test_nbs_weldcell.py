@@ -32,6 +32,8 @@ def test_good_gap_direct_inspects_then_names_the_failing_row() -> None:
     first = s["failures"][0]
     assert re.search(r"H1 TURN ON ARC row 3 \(state 1 -> 0, lower CUT VOLTAGE, up 'arc fail'\)",
                      first), first
+    assert "because no earlier row held (row 1 needs arc off; row 2 needs temp >= threshold)" \
+        in first, first
     assert "arc on" in first.split("true:")[1]
     temp = float(re.search(r"temp=([0-9.]+)", first).group(1))  # type: ignore[union-attr]
     assert temp < 1450.0
