@@ -12,6 +12,7 @@ import pytest
 from chcos.nbs.weldcell import NBS_SCRIPT, NbsCell
 from chcos.weldrun import main as weld_main
 from chcos.weldrun import open_cell
+from vcan_tests.support_view import browser_page
 
 
 def test_good_gap_direct_inspects_then_names_the_failing_row() -> None:
@@ -77,3 +78,12 @@ def test_hierarchy_nbs_prints_both_side_by_side(tmp_path: Path,
     assert (tmp_path / "weld-report.html").is_file()
     assert (tmp_path / "weld-report-nbs.html").is_file()
     assert "NBS" in (tmp_path / "weld-report-nbs.html").read_text(encoding="utf-8")
+    # the NBS report is the same drawing as the CHC one, with NBS's phases and reflex
+    with browser_page() as page:
+        page.goto((tmp_path / "weld-report-nbs.html").as_uri())
+        for cls in ("temp-plot", "pos-plot", "standoff-plot"):
+            box = page.locator(f"svg.{cls}").bounding_box()
+            assert box is not None and box["width"] > 500 and box["height"] > 200, (cls, box)
+        assert page.locator("svg.pos-plot rect.phase").count() >= 2
+        handled = " ".join(page.locator("ul.handled li").all_inner_texts())
+        assert "G1 reflex: intruder -> safe values" in handled
