@@ -136,7 +136,6 @@ class _World:
     centre: tuple[float, float, float] | None = None
     width: float | None = None
     end_seen: bool = False
-    start_seen: bool = False
     armed: bool = True
     plan: tuple[int, int] = (0, 0)
     stuck_report_since: float | None = None
@@ -454,7 +453,7 @@ class NbsCell:
         if order is not None:
             w.order_start.setdefault(order.serial, now)
             if order.call.name in ("MOVE TO P", "APPROACH") and order.call.args:
-                goal = _point(order.call.args[0], w)
+                goal = _point(order.call.args[0])
                 allowance = 60.0
             elif order.call.name == "MOVE 5mm DIR":
                 goal = w.order_goal.get(order.serial)
@@ -491,7 +490,7 @@ class NbsCell:
         name, args = call.name, call.args
         order = self._order1()
         if name == "GET THETA TO":
-            p = _point(args[0], w)
+            p = _point(args[0])
             if p is not None:
                 w.goal, w.linear, w.goal_yaw, w.setpoint = p, False, w.heading, None
         elif name == "GET THETA DIR":
@@ -594,8 +593,6 @@ class NbsCell:
                 w.width = seen.width
         if bool(ctx.read("end_marker") or 0):
             w.end_seen = True
-            if seen.pattern == "start":
-                w.start_seen = True
         rep = ctx.mem.get(CommonMemory.report(2))
         if isinstance(rep, Report) and rep.text == "move done":
             w.armed = True
@@ -637,20 +634,19 @@ class NbsCell:
         the next-centre sighting (it is re-armed by H2's next ``move done``)."""
         w = self.w
         w.armed = False
-        p = _point(pos, w)
+        p = _point(pos)
         if p is None or w.tip is None:
             return 0.0
         a = math.atan2(p[1] - w.tip[1], p[0] - w.tip[0]) - w.heading
         return math.degrees(math.atan2(math.sin(a), math.cos(a)))
 
 
-def _point(value: object, w: _World) -> tuple[float, float, float] | None:
-    """A point argument of a level-0 command: an (x, y, z) tuple, or a symbolic target the
-    world model resolves (``gapstart``: the job's start until the marker is sighted)."""
+def _point(value: object) -> tuple[float, float, float] | None:
+    """A point argument of a level-0 command as (x, y, z) mm, or None when it names no point:
+    the symbolic target ``gapstart`` of FIND START OF GAP / APPROACH(t) is not a place to go
+    (APPROACH only checks ``aligned``; the spiral's MOVE 5mm DIR steps do the moving)."""
     if isinstance(value, tuple | list) and len(value) == 3:
         return (float(value[0]), float(value[1]), float(value[2]))
-    if isinstance(value, str) and value == "gapstart":
-        return None  # APPROACH only checks alignment; the search steps do the moving
     return None
 
 
