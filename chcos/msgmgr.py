@@ -94,6 +94,8 @@ class MessageManager:
         self.taps: list[tuple[TaskEntry, TapPort, dict[str, Link]]] = []
         self._files: dict[str, TextIO] = {}
         self.base_dir = Path.cwd()
+        #: where run state lives beside the map (learned world-model data): set by the System
+        self.state_dir = Path.cwd()
         self.comm: Comm | None = None
         self.local: set[int] | None = None  # machines hosted here (None: every machine)
         self._qseq = 0

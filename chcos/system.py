@@ -67,6 +67,9 @@ class System:
         self.base_dir = Path(base_dir) if base_dir is not None else Path.cwd()
         self.msgmgr.base_dir = self.base_dir
         self.map_path = Path(map_path) if map_path is not None else None
+        # run state (learned world-model data) goes beside the map, never into the sources
+        self.msgmgr.state_dir = (self.map_path.parent if self.map_path is not None
+                                 else self.base_dir)
         self.sysmgr = SystemManager(self)
         self._thread: threading.Thread | None = None
         self._started_machines: set[int] = set()

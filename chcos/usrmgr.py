@@ -521,9 +521,10 @@ class TaskContext:
 
     @property
     def state_dir(self) -> Path:
-        """Where this system keeps state beside its map (learned world-model data goes to
-        ``state_dir/learned``): the system's base directory."""
-        return Path(self._mm.base_dir)
+        """Where this system keeps run state beside its map (learned world-model data goes to
+        ``state_dir/learned``): the directory of its sysfile.map (the satellite's state
+        directory, ``chcos run``'s work directory), else its base directory."""
+        return Path(self._mm.state_dir)
 
     # ---- world model queries ----------------------------------------------------------------
     @types.coroutine

@@ -478,9 +478,15 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="where the run's picture goes (default: weld-report.html in --workdir, "
                          "else in the state directory: $CHCOS_STATE_DIR/weld or "
                          "~/.local/state/chcos/weld)")
+    ap.add_argument("--hierarchy", choices=("chc", "nbs"), default="chc",
+                    help="chc (default): the CHC-OS task hierarchy; nbs: run the job under CHC "
+                         "and then under the NBS baseline (Appendix 1's H1-H3, cyclic at 28 ms) "
+                         "on the same scenario and binding, and print both side by side")
     args = ap.parse_args(argv)
     if not (math.isfinite(args.duration) and args.duration > 0):
         ap.error(f"--duration {args.duration}: expected seconds > 0")
+    if args.hierarchy == "nbs":
+        return _main_nbs(ap, args)
     try:
         north = NorthOptions.from_args(args)
         if north.any and not args.real_time:
@@ -494,6 +500,22 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"chcos run: {exc}", file=sys.stderr)
         return 2
     return 0 if summary["outcome"] is not None else 1
+
+
+def _main_nbs(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    """``chcos run --hierarchy nbs``: CHC, then NBS, side by side (chcos.nbs.compare)."""
+    from chcos.nbs.compare import run_side_by_side
+
+    if args.record or NorthOptions.from_args(args).any:
+        ap.error("--hierarchy nbs: --record and north-side services are for the CHC job alone")
+    try:
+        both = run_side_by_side(args.binding, scenario=args.scenario, seed=args.seed,
+                                real_time=args.real_time, duration=args.duration,
+                                workdir=args.workdir, report_to=args.report)
+    except (ChcosError, ConfigError) as exc:
+        print(f"chcos run: {exc}", file=sys.stderr)
+        return 2
+    return 0 if all(s["outcome"] is not None for s in both.values()) else 1
 
 
 if __name__ == "__main__":
