@@ -319,6 +319,20 @@ def test_alarms_raised_cleared_and_acknowledged(served: tuple[System, Any]) -> N
         assert "guard door open" in ev.Message.Text and ev.Severity == 900
         alice.get_node(ev.NodeId).call_method(ack, ev.EventId, ua.LocalizedText("door shut"))
         seen(False, True, "chcos")
+        # a subscriber arriving later gets the alarms still retained by ConditionRefresh
+        system.devtab.fail("V1", "drive fault")
+        seen(True, False, "Devices.V1")
+        late = Collector()
+        lsub = anon.create_subscription(20, late)
+        lsub.subscribe_events(ua.ObjectIds.Server, evfilter=alarm_filter(anon))
+        anon.get_node(ua.ObjectIds.Server).call_method(
+            ua.NodeId(ua.ObjectIds.ConditionType_ConditionRefresh),
+            ua.Variant(lsub.subscription_id, ua.VariantType.UInt32))
+        assert late.wait(lambda: any(
+            getattr(e, "SourceNode", None) == ua.NodeId("Devices.V1", i) and e.ActiveState
+            for e in late.events))
+        assert not any(getattr(e, "SourceNode", None) == ua.NodeId("Devices.P1", i)
+                       for e in late.events)  # acknowledged and inactive: gone
     finally:
         alice.disconnect()
         anon.disconnect()

@@ -28,7 +28,8 @@ Address space (namespace ``urn:chcos``, string node ids):
   event with ActiveState, AckedState, Retain, Severity and Message. ``Acknowledge(EventId,
   Comment)`` (the standard AcknowledgeableConditionType method, called on the condition) needs
   a user whose role may ``invoke`` (operator, supervisor): anonymous sessions and observers get
-  BadUserAccessDenied, an outdated EventId BadEventIdUnknown.
+  BadUserAccessDenied, an outdated EventId BadEventIdUnknown. ``ConditionRefresh`` (asyncua's)
+  sends a new subscriber every retained alarm.
 
 Device values and health are copied from the tables on the server's own thread every ``period``
 seconds (0.05), ages and the task and link figures every 0.5 s (only what changed is written;
@@ -43,6 +44,7 @@ from __future__ import annotations
 
 import asyncio
 import contextvars
+import copy
 import logging
 import math
 import shlex
@@ -317,6 +319,8 @@ class OpcUaServer:
                                                           emitting_node=ua.ObjectIds.Server)
         server.link_method(server.get_node(ua.ObjectIds.AcknowledgeableConditionType_Acknowledge),
                            self._acknowledge)
+        iserver.bind_condition_methods = 100  # ConditionRefresh; Refresh events of severity 100
+        await iserver.setup_condition_methods()
         queue: asyncio.Queue[tuple[Any, ...]] = asyncio.Queue()
         self._queue = queue
         await self._refresh(force=True)
@@ -527,8 +531,9 @@ class OpcUaServer:
         await self._tell(a)
 
     async def _tell(self, a: Alarm, subscription_id: int | None = None) -> None:
-        """Send the alarm's current state as an OffNormalAlarmType event."""
-        ev = self._alarmgen.event
+        """Send the alarm's current state as an OffNormalAlarmType event. A fresh event object
+        each time: asyncua keeps the last retained one per condition for ConditionRefresh."""
+        ev = self._alarmgen.event = copy.copy(self._alarmgen.event)
         text = ua.LocalizedText
         ev.NodeId = ua.NodeId(f"Alarms.{a.key}", self._idx)
         ev.SourceNode = ua.NodeId(a.source, self._idx)
