@@ -271,7 +271,8 @@ def alarm_filter(c: Client) -> Any:
 def test_alarms_raised_cleared_and_acknowledged(served: tuple[System, Any]) -> None:
     """A sensor failure arrives at a subscriber of the Server object as an active alarm with
     the device as source, its recovery as inactive; an anonymous Acknowledge is refused, an
-    operator's is taken and ends the alarm; an e-stop is an alarm until acknowledged."""
+    operator's is taken and ends the alarm; an e-stop and an abnormal completion are alarms
+    until acknowledged; ConditionRefresh gives a late subscriber what is still retained."""
     system, o = served
     anon = client(o)
     alice = client(o, "alice")
@@ -319,6 +320,10 @@ def test_alarms_raised_cleared_and_acknowledged(served: tuple[System, Any]) -> N
         assert "guard door open" in ev.Message.Text and ev.Severity == 900
         alice.get_node(ev.NodeId).call_method(ack, ev.EventId, ua.LocalizedText("door shut"))
         seen(False, True, "chcos")
+        # an abnormal completion: its task is the source
+        root.call_method(f"{i}:Invoke", "X2", "", -1)
+        ev = seen(True, False, "Tasks.X2")
+        assert "X2 crashed on purpose" in ev.Message.Text and ev.Severity == 800
         # a subscriber arriving later gets the alarms still retained by ConditionRefresh
         system.devtab.fail("V1", "drive fault")
         seen(True, False, "Devices.V1")
