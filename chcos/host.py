@@ -143,7 +143,8 @@ class Host:
         """The system map. With ``machine`` as that satellite sees it; by default merged from
         every satellite up: each task and device as its own machine reports it, each link's
         ``sent`` from its source's machine and ``delivered``/``overwritten``/``status`` from its
-        destination's (a command link's status from its caller's mirror)."""
+        destination's (a command link's status from its caller's mirror). Each device also
+        gets ``age``: seconds since its value on its own machine's clock (None before one)."""
         up = self._up()
         views = {m: self._ask(m, {"op": "map"})["map"]
                  for m in ([machine] if machine is not None else up)}
@@ -179,6 +180,12 @@ class Host:
                         merged["status"] = dst_view["links"][i]["status"]
                 links.append(merged)
             doc["links"] = links
+        devices = []
+        for d in doc["devices"]:  # ages on the clock of the device's own machine
+            view = views.get(where.get(d["name"], -1), views[min(views)])
+            at = d.get("updated_at")
+            devices.append({**d, "age": None if at is None else max(0.0, view["time"] - at)})
+        doc["devices"] = devices
         doc["alive"] = up
         return doc
 

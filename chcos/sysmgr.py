@@ -520,6 +520,7 @@ class SystemManager:
             "bus": d.spec.bus, "status": d.status.value, "value": d.value,
             "readings": d.readings, "overwrites": d.overwrites, "units": d.spec.units,
             "commands": d.commands, "reason": d.reason, "since": d.since,
+            "updated_at": d.updated_at,
             "pending": d.pending, "write_errors": d.write_errors,
             "last_write_error": d.last_write_error,
         } for d in s.devtab]

@@ -242,3 +242,102 @@ def test_secure_endpoint_refuses_security_none(tmp_path: Path) -> None:
     finally:
         o.stop()
         s.shutdown()
+
+
+def alarm_filter(c: Client) -> Any:
+    """An event filter for OffNormalAlarmType conditions: python-opcua selects the type's
+    properties; the two-state flags, the comment and the ConditionId are added by hand."""
+    from opcua.common.events import get_filter_from_event_type
+
+    f = get_filter_from_event_type([c.get_node(ua.ObjectIds.OffNormalAlarmType)])
+    for var in ("ActiveState", "AckedState"):
+        op = ua.SimpleAttributeOperand()
+        op.TypeDefinitionId = ua.NodeId(ua.ObjectIds.AlarmConditionType)
+        op.BrowsePath = [ua.QualifiedName(var, 0), ua.QualifiedName("Id", 0)]
+        op.AttributeId = ua.AttributeIds.Value
+        f.SelectClauses.append(op)
+    op = ua.SimpleAttributeOperand()  # the last acknowledgement's comment (a variable)
+    op.TypeDefinitionId = ua.NodeId(ua.ObjectIds.ConditionType)
+    op.BrowsePath = [ua.QualifiedName("Comment", 0)]
+    op.AttributeId = ua.AttributeIds.Value
+    f.SelectClauses.append(op)
+    op = ua.SimpleAttributeOperand()  # the ConditionId: the condition node's NodeId
+    op.TypeDefinitionId = ua.NodeId(ua.ObjectIds.ConditionType)
+    op.AttributeId = ua.AttributeIds.NodeId
+    f.SelectClauses.append(op)
+    return f
+
+
+def test_alarms_raised_cleared_and_acknowledged(served: tuple[System, Any]) -> None:
+    """A sensor failure arrives at a subscriber of the Server object as an active alarm with
+    the device as source, its recovery as inactive; an anonymous Acknowledge is refused, an
+    operator's is taken and ends the alarm; an e-stop and an abnormal completion are alarms
+    until acknowledged; ConditionRefresh gives a late subscriber what is still retained."""
+    system, o = served
+    anon = client(o)
+    alice = client(o, "alice")
+    try:
+        i = ns(anon)
+        handler = Collector()
+        sub = anon.create_subscription(20, handler)
+        sub.subscribe_events(ua.ObjectIds.Server, evfilter=alarm_filter(anon))
+
+        def seen(active: bool, acked: bool, source: str) -> Any:
+            def pred() -> bool:
+                return any(e.ActiveState is active and e.AckedState is acked
+                           and e.SourceNode == ua.NodeId(source, i) for e in handler.events)
+            assert handler.wait(pred), [(e.SourceNode, e.ActiveState, e.AckedState)
+                                        for e in handler.events]
+            return [e for e in handler.events if e.ActiveState is active
+                    and e.AckedState is acked and e.SourceNode == ua.NodeId(source, i)][-1]
+
+        system.devtab.fail("P1", "wire broken")
+        ev = seen(True, False, "Devices.P1")
+        assert ev.Severity == 900 and ev.Retain is True
+        assert "wire broken" in ev.Message.Text
+        assert ev.NodeId == ua.NodeId("Alarms.Devices.P1", i)
+        system.devtab.recover("P1", "wire mended")
+        ev = seen(False, False, "Devices.P1")
+        assert ev.Retain is True  # inactive, not yet acknowledged: clients keep showing it
+        cond = anon.get_node(ev.NodeId)
+        ack = ua.NodeId(ua.ObjectIds.AcknowledgeableConditionType_Acknowledge)
+        with pytest.raises(ua.UaStatusCodeError, match="BadUserAccessDenied"):
+            cond.call_method(ack, ev.EventId, ua.LocalizedText("anonymous saw it"))
+        if isinstance(o, OpcUaProcess):
+            assert o.wait_refused(1, TIMEOUT)
+        assert o.refused[-1][:2] == ("anonymous", "acknowledge")
+        acond = alice.get_node(ev.NodeId)
+        with pytest.raises(ua.UaStatusCodeError, match="BadEventIdUnknown"):
+            acond.call_method(ack, b"no-such-event", ua.LocalizedText("stale id"))
+        acond.call_method(ack, ev.EventId, ua.LocalizedText("cable replaced"))
+        done = seen(False, True, "Devices.P1")
+        assert done.Retain is False and done.Comment.Text == "cable replaced"
+        assert done.ClientUserId == "alice"
+        # an e-stop: active until acknowledged
+        root = alice.get_node(f"ns={i};s=chcos")
+        root.call_method(f"{i}:EStop", "guard door open")
+        ev = seen(True, False, "chcos")
+        assert "guard door open" in ev.Message.Text and ev.Severity == 900
+        alice.get_node(ev.NodeId).call_method(ack, ev.EventId, ua.LocalizedText("door shut"))
+        seen(False, True, "chcos")
+        # an abnormal completion: its task is the source
+        root.call_method(f"{i}:Invoke", "X2", "", -1)
+        ev = seen(True, False, "Tasks.X2")
+        assert "X2 crashed on purpose" in ev.Message.Text and ev.Severity == 800
+        # a subscriber arriving later gets the alarms still retained by ConditionRefresh
+        system.devtab.fail("V1", "drive fault")
+        seen(True, False, "Devices.V1")
+        late = Collector()
+        lsub = anon.create_subscription(20, late)
+        lsub.subscribe_events(ua.ObjectIds.Server, evfilter=alarm_filter(anon))
+        anon.get_node(ua.ObjectIds.Server).call_method(
+            ua.NodeId(ua.ObjectIds.ConditionType_ConditionRefresh),
+            ua.Variant(lsub.subscription_id, ua.VariantType.UInt32))
+        assert late.wait(lambda: any(
+            getattr(e, "SourceNode", None) == ua.NodeId("Devices.V1", i) and e.ActiveState
+            for e in late.events))
+        assert not any(getattr(e, "SourceNode", None) == ua.NodeId("Devices.P1", i)
+                       for e in late.events)  # acknowledged and inactive: gone
+    finally:
+        alice.disconnect()
+        anon.disconnect()

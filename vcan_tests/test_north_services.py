@@ -278,3 +278,40 @@ def test_chcos_run_system_serves_metrics_and_view(tmp_path: Path) -> None:
         stop.set()
         th.join(timeout=120)
     assert "run" in result, result
+
+
+@pytest.mark.parametrize("host", ["192.0.2.1", "0.0.0.0", "::", "::ffff:127.0.0.1",
+                                  "example.invalid"])
+def test_off_loopback_refused_without_tls_or_allow_remote(tmp_path: Path, host: str) -> None:
+    """Every north service asked for an address off loopback (or a wildcard, or a name other
+    than localhost) without TLS - or, for Modbus, without --modbus-allow-remote - refuses to
+    start, naming what it needs; nothing is bound (the refusal comes before any socket), and a
+    service started before the refused one is stopped again."""
+    from chcos.north.services import start as start_north
+
+    devmap = DeviceMap((BusSpec("mem", "memory"),), (DeviceSpec("P1", "sensor", 0, "mem"),))
+    s = System(devmap, clock=VirtualClock(), base_dir=tmp_path)
+    try:
+        h = f"[{host}]" if ":" in host else host
+        for opts, match in ((NorthOptions(metrics=f"{h}:0"), "needs TLS"),
+                            (NorthOptions(view=f"{h}:0"), "needs TLS"),
+                            (NorthOptions(modbus_facade=f"{h}:0"), "no authentication"),
+                            (NorthOptions(opcua=f"opc.tcp://{h}:0/chcos/"), "certificate")):
+            with pytest.raises(NorthError, match=match):
+                start_north(s, opts)
+        # a loopback service started first is stopped again when a later one is refused
+        with pytest.raises(NorthError, match="needs TLS"):
+            start_north(s, NorthOptions(metrics="127.0.0.1:0", view=f"{h}:0"))
+        assert all(type(i).__name__ != "StepTimes" for i in s.kernel.instruments)
+        # the flag is parsed and passed on
+        ap = argparse.ArgumentParser()
+        add_north_arguments(ap)
+        opts = NorthOptions.from_args(ap.parse_args(["--modbus-facade", f"{h}:0",
+                                                     "--modbus-allow-remote"]))
+        assert opts.modbus_allow_remote
+        if host == "192.0.2.1":  # allowed, it gets past the refusal to the bind (no such
+            # address here: nothing listens, nothing is sent)
+            with pytest.raises(NorthError, match="cannot serve"):
+                start_north(s, opts)
+    finally:
+        s.shutdown()

@@ -1,6 +1,6 @@
 """The live view attached to a system on three satellite processes through the host's link
-(``chcos view --system``): the merged map, an operator's setpri reaching every satellite, and
-the event log made from successive maps."""
+(``chcos view --system``): the merged map with device ages and frozen tasks, an operator's
+setpri reaching every satellite, and the event log made from successive maps."""
 
 from __future__ import annotations
 
@@ -39,6 +39,8 @@ def test_view_attaches_to_three_satellites(tmp_path: Path) -> None:
             snap = get_json(v.url + "api/snapshot?svg=0&since=0")
             seen["tasks"] = {t["name"]: t["machine"] for t in snap["map"]["tasks"]}
             seen["kinds"] = [e["kind"] for e in snap["events"]]
+            seen["ages"] = snap["ages"]
+            seen["frozen"] = snap["map"]["frozen"]
             alice = login(v.url, "alice")
             seen["setpri"] = post_json(v.url + "api/command", {"line": "setpri -13 C1 B1"},
                                        alice)
@@ -58,6 +60,8 @@ def test_view_attaches_to_three_satellites(tmp_path: Path) -> None:
             c.host.execute(line)
         c.host.execute("invoke C1")
         c.wait_until(lambda d: task(d, "B1")["owner"] == "C1")
+        c.host.execute("suspend A2")
+        c.wait_until(lambda d: task(d, "A2")["frozen"])
         out = io.StringIO()
         assert view_main(["--system", str(tmp_path / "system.toml"), "--users", str(users)],
                          stop=stop, on_ready=on_ready, out=out) == 0, out.getvalue()
@@ -65,6 +69,13 @@ def test_view_attaches_to_three_satellites(tmp_path: Path) -> None:
         assert seen["tasks"] == {"A1": 0, "A2": 1, "A3": 2, "A4": 2, "B1": 0, "B2": 1, "C1": 2}
         assert set(seen["tasks"]) == set(FIG65_TASKS)
         assert seen["kinds"][0] == "attach"
+        # the satellites' device ages and frozen flags reach the view: S1..S3 are waveform
+        # generators, read continuously on machines 0 and 1
+        assert set(seen["ages"]) == {"S1", "S2", "S3", "M1", "M2"}
+        for name in ("S1", "S2", "S3"):
+            age = seen["ages"][name]
+            assert age is not None and 0.0 <= age < 30.0, (name, age)
+        assert seen["frozen"] == ["A2"]
         assert seen["setpri"] == (200, {"ok": True, "answer": "C1/B1 priority 13"})
         status, ans = seen["suspend"]
         assert status == 403 and "only setpri and invoke" in ans["error"]

@@ -19,7 +19,17 @@ Address space (namespace ``urn:chcos``, string node ids):
   (:mod:`chcos.north.auth`); a refused or failed command answers a Bad status
   (BadInvalidArgument: the system manager refused it; BadResourceUnavailable: busy);
 * events (BaseEventType, emitted by the ``chcos`` object): sensor failures and staleness,
-  e-stops and abnormal completions, with severity 700-900 and the cause in the message.
+  e-stops and abnormal completions, with severity 700-900 and the cause in the message;
+* alarms (OffNormalAlarmType conditions, emitted by the Server object, ConditionId
+  ``Alarms.<source>``): a device that fails or goes stale (Devtab's health listeners) raises an
+  active alarm with the device's node as SourceNode, cleared (ActiveState False) when the device
+  is healthy again; an e-stop (source: the ``chcos`` object) and an abnormal completion (source:
+  ``Tasks.<name>``) raise one that stays active until acknowledged. Every state change is an
+  event with ActiveState, AckedState, Retain, Severity and Message. ``Acknowledge(EventId,
+  Comment)`` (the standard AcknowledgeableConditionType method, called on the condition) needs
+  a user whose role may ``invoke`` (operator, supervisor): anonymous sessions and observers get
+  BadUserAccessDenied, an outdated EventId BadEventIdUnknown. ``ConditionRefresh`` (asyncua's)
+  sends a new subscriber every retained alarm.
 
 Device values and health are copied from the tables on the server's own thread every ``period``
 seconds (0.05), ages and the task and link figures every 0.5 s (only what changed is written;
@@ -34,12 +44,14 @@ from __future__ import annotations
 
 import asyncio
 import contextvars
+import copy
 import logging
 import math
 import shlex
 import socket
 import threading
 from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from typing import TYPE_CHECKING, Any
 from urllib.parse import urlparse
@@ -54,7 +66,7 @@ from chcos.errors import Busy, ChcosError
 from chcos.instrument import Instrument
 from chcos.link.config import is_loopback
 from chcos.north import NorthError
-from chcos.north.health import device_health
+from chcos.north.health import add_health_listener, device_health
 
 if TYPE_CHECKING:
     from asyncua.common.node import Node
@@ -71,6 +83,8 @@ NAMESPACE = "urn:chcos"
 CURRENT_USER: contextvars.ContextVar[User | None] = contextvars.ContextVar("chcos_opcua_user",
                                                                            default=None)
 EVENT_KINDS = {"device-failed": 900, "device-stale": 700, "estop": 900, "abnormal": 800}
+#: severity of the alarm raised by a device whose health became this status
+HEALTH_SEVERITY = {"failed": 900, "stale": 700}
 _WRITE = ua.NodeId(ua.ObjectIds.WriteRequest_Encoding_DefaultBinary)
 
 
@@ -139,7 +153,7 @@ def _status(direction: str, status: str, has_value: bool) -> ua.StatusCode:
 class _Events(Instrument):
     """Hands the kernel's notable events to the server's loop (never blocks the kernel)."""
 
-    def __init__(self, loop: asyncio.AbstractEventLoop, queue: asyncio.Queue[tuple[str, str]]
+    def __init__(self, loop: asyncio.AbstractEventLoop, queue: asyncio.Queue[tuple[Any, ...]]
                  ) -> None:
         self.loop = loop
         self.queue = queue
@@ -147,6 +161,28 @@ class _Events(Instrument):
     def event(self, kind: str, detail: str) -> None:
         if kind in EVENT_KINDS and not self.loop.is_closed():
             self.loop.call_soon_threadsafe(self.queue.put_nowait, (kind, detail))
+
+
+@dataclass
+class Alarm:
+    """One condition's state: ``key`` (``Devices.<name>``, ``Tasks.<name>`` or ``EStop``), its
+    source node id text, severity, message, active and acknowledged flags, the EventId of its
+    latest event and the comment and user of the last acknowledgement."""
+
+    key: str
+    source: str
+    severity: int
+    message: str
+    active: bool = True
+    acked: bool = False
+    event_id: bytes = b""
+    comment: str = ""
+    user: str = ""
+
+    @property
+    def retain(self) -> bool:
+        """A client must still show it: active or not yet acknowledged."""
+        return self.active or not self.acked
 
 
 class OpcUaServer:
@@ -185,6 +221,11 @@ class OpcUaServer:
         self._instrument: _Events | None = None
         self._nodes: dict[str, dict[str, Node]] = {}
         self._last: dict[str, Any] = {}
+        #: the alarms (conditions) by key, as last told to clients
+        self.alarms: dict[str, Alarm] = {}
+        self._queue: asyncio.Queue[tuple[Any, ...]] | None = None
+        #: listen to Devtab health here (False in the child process, which is told instead)
+        self._listen_health = True
 
     @property
     def endpoint(self) -> str:
@@ -272,12 +313,23 @@ class OpcUaServer:
         self._folders = {k: await root.add_folder(ua.NodeId(k, idx), self._qn(k))
                          for k in ("Devices", "Tasks", "Links")}
         await self._add_methods(root, idx)
+        self._alarm_folder = await root.add_folder(ua.NodeId("Alarms", idx), self._qn("Alarms"))
         evgen = await server.get_event_generator(emitting_node=root.nodeid)
-        queue: asyncio.Queue[tuple[str, str]] = asyncio.Queue()
+        self._alarmgen = await server.get_event_generator(ua.ObjectIds.OffNormalAlarmType,
+                                                          emitting_node=ua.ObjectIds.Server)
+        server.link_method(server.get_node(ua.ObjectIds.AcknowledgeableConditionType_Acknowledge),
+                           self._acknowledge)
+        iserver.bind_condition_methods = 100  # ConditionRefresh; Refresh events of severity 100
+        await iserver.setup_condition_methods()
+        queue: asyncio.Queue[tuple[Any, ...]] = asyncio.Queue()
+        self._queue = queue
         await self._refresh(force=True)
         async with server:
-            self._instrument = _Events(asyncio.get_running_loop(), queue)
+            loop = asyncio.get_running_loop()
+            self._instrument = _Events(loop, queue)
             self.system.kernel.add_instrument(self._instrument)
+            if self._listen_health:
+                add_health_listener(self.system.devtab, self._on_health)
             self._ready.set()
             refresher = asyncio.create_task(self._refresher())
             emitter = asyncio.create_task(self._emit(evgen, queue))
@@ -422,13 +474,117 @@ class OpcUaServer:
             except (RuntimeError, KeyError, AttributeError):  # a table changed under us
                 continue
 
-    async def _emit(self, evgen: Any, queue: asyncio.Queue[tuple[str, str]]) -> None:
+    async def _emit(self, evgen: Any, queue: asyncio.Queue[tuple[Any, ...]]) -> None:
         while True:
-            kind, detail = await queue.get()
-            evgen.event.Message = ua.LocalizedText(f"{kind}: {detail}")
-            evgen.event.Severity = EVENT_KINDS[kind]
-            evgen.event.SourceName = detail.split(":", 1)[0].strip()
-            await evgen.trigger()
+            item = await queue.get()
+            try:
+                if item[0] == "health":
+                    await self._health_alarm(*item[1:])
+                    continue
+                kind, detail = item
+                evgen.event.Message = ua.LocalizedText(f"{kind}: {detail}")
+                evgen.event.Severity = EVENT_KINDS[kind]
+                evgen.event.SourceName = detail.split(":", 1)[0].strip()
+                await evgen.trigger()
+                if kind == "estop":
+                    await self._raise("EStop", "chcos", 900, f"estop: {detail}")
+                elif kind == "abnormal":
+                    task = detail.split(":", 1)[0].strip()
+                    if f"Tasks.{task}" not in self._nodes:
+                        await self._refresh(ages=True)
+                    await self._raise(f"Tasks.{task}", f"Tasks.{task}", 800,
+                                      f"abnormal completion of {detail}")
+            except Exception:  # one bad event must not end the emitter
+                log.exception("opcua: cannot emit %r", item)
+
+    # ---- alarms (conditions) ----------------------------------------------------------------
+    def health_changed(self, device: str, healthy: bool, status: str, cause: str) -> None:
+        """A device's health changed (any thread): raise or clear its alarm."""
+        loop, q = self._loop, self._queue
+        if loop is not None and q is not None and not loop.is_closed():
+            loop.call_soon_threadsafe(q.put_nowait, ("health", device, healthy, status, cause))
+
+    def _on_health(self, device: str, healthy: bool, cause: str) -> None:
+        if self._stop is not None and self._stop.is_set():
+            return
+        e = self.system.devtab.get(device)
+        self.health_changed(device, healthy, device_health(e).status, cause)
+
+    async def _health_alarm(self, device: str, healthy: bool, status: str, cause: str) -> None:
+        key = f"Devices.{device}"
+        if healthy:
+            a = self.alarms.get(key)
+            if a is not None and a.active:
+                a.active = False
+                a.message = f"{device} {cause or 'healthy again'}"
+                await self._tell(a)
+        elif status in HEALTH_SEVERITY:
+            await self._raise(key, key, HEALTH_SEVERITY[status],
+                              f"{device} {status}" + (f": {cause}" if cause else ""))
+
+    async def _raise(self, key: str, source: str, severity: int, message: str) -> None:
+        """Raise (or raise again) the alarm ``key`` of source node ``source``."""
+        if key not in self.alarms:
+            await self._alarm_folder.add_object(ua.NodeId(f"Alarms.{key}", self._idx),
+                                                self._qn(key))
+        a = self.alarms[key] = Alarm(key, source, severity, message)
+        await self._tell(a)
+
+    async def _tell(self, a: Alarm, subscription_id: int | None = None) -> None:
+        """Send the alarm's current state as an OffNormalAlarmType event. A fresh event object
+        each time: asyncua keeps the last retained one per condition for ConditionRefresh."""
+        ev = self._alarmgen.event = copy.copy(self._alarmgen.event)
+        text = ua.LocalizedText
+        ev.NodeId = ua.NodeId(f"Alarms.{a.key}", self._idx)
+        ev.SourceNode = ua.NodeId(a.source, self._idx)
+        ev.SourceName = a.key.split(".", 1)[-1]
+        ev.ConditionName = a.key
+        ev.ConditionClassId = ua.NodeId(ua.ObjectIds.BaseConditionClassType)
+        ev.ConditionClassName = text("BaseConditionClass")
+        ev.Message = text(a.message)
+        ev.Severity = a.severity
+        ev.LastSeverity = a.severity
+        ev.Retain = a.retain
+        ev.Quality = ua.StatusCode()
+        ev.EnabledState = text("Enabled")
+        setattr(ev, "EnabledState/Id", True)
+        ev.ActiveState = text("Active" if a.active else "Inactive")
+        setattr(ev, "ActiveState/Id", a.active)
+        ev.AckedState = text("Acknowledged" if a.acked else "Unacknowledged")
+        setattr(ev, "AckedState/Id", a.acked)
+        ev.Comment = text(a.comment)
+        ev.ClientUserId = a.user if a.acked else ""
+        await self._alarmgen.trigger(subscription_id=subscription_id)
+        eid = ev.EventId
+        a.event_id = bytes(eid.Value if isinstance(eid, ua.Variant) else eid)
+        if not a.retain:
+            del self.alarms[a.key]
+
+    async def _acknowledge(self, parent: ua.NodeId, event_id: Any, comment: Any) -> Any:
+        """The Acknowledge method of a condition: operators and supervisors only."""
+        who, account = self._user()
+        if account is None or not account.may("invoke"):
+            self._refusal(who, "acknowledge", f"acknowledge: {who} may not acknowledge alarms "
+                          f"(role {account.role if account else 'anonymous'})")
+            return ua.StatusCode(ua.StatusCodes.BadUserAccessDenied)
+        key = str(parent.Identifier)
+        a = self.alarms.get(key[len("Alarms."):]) if key.startswith("Alarms.") else None
+        if a is None:
+            return ua.StatusCode(ua.StatusCodes.BadConditionBranchAlreadyAcked
+                                 if key.startswith("Alarms.") else ua.StatusCodes.BadNodeIdInvalid)
+        eid = event_id.Value if isinstance(event_id, ua.Variant) else event_id
+        if bytes(eid or b"") != a.event_id:
+            return ua.StatusCode(ua.StatusCodes.BadEventIdUnknown)
+        if a.acked:
+            return ua.StatusCode(ua.StatusCodes.BadConditionBranchAlreadyAcked)
+        c = comment.Value if isinstance(comment, ua.Variant) else comment
+        a.acked, a.user = True, who
+        a.comment = c.Text or "" if isinstance(c, ua.LocalizedText) else str(c or "")
+        if a.key in ("EStop",) or a.key.startswith("Tasks."):
+            a.active = False  # a latched alarm ends with its acknowledgement
+        log.info("opcua: alarm %s acknowledged by %s", a.key, who)
+        await self._tell(a)
+        return []
 
     # ---- methods ----------------------------------------------------------------------------
     def _user(self) -> tuple[str, Any]:

@@ -26,6 +26,7 @@ from chcos.devices import DeviceEntry, DeviceStatus
 from chcos.errors import Busy, ChcosError
 from chcos.instrument import Instrument
 from chcos.north import NorthError
+from chcos.north.health import add_health_listener, device_health
 from chcos.north.opcua import EVENT_KINDS, OpcUaServer, estop
 
 if TYPE_CHECKING:
@@ -118,6 +119,7 @@ class _ChildServer(OpcUaServer):
         self.lock = threading.Lock()
         self.ids = itertools.count(1)
         self.pending: dict[int, Future[str]] = {}
+        self._listen_health = False  # the parent tells health changes down the pipe
 
     def send(self, msg: tuple[Any, ...]) -> None:
         with self.lock:
@@ -177,6 +179,8 @@ def _child_main(conn: Connection, endpoint: str, specs: list[DeviceSpec], users:
             elif kind == "event":
                 for i in list(mirror.kernel.instruments):
                     i.event(msg[1], msg[2])
+            elif kind == "health":
+                server.health_changed(*msg[1:])
             elif kind == "answer":
                 server.answer(*msg[1:])
             elif kind == "stop":
@@ -186,7 +190,7 @@ def _child_main(conn: Connection, endpoint: str, specs: list[DeviceSpec], users:
 
 
 class _Events(Instrument):
-    def __init__(self, q: queue.SimpleQueue[tuple[str, str]]) -> None:
+    def __init__(self, q: queue.SimpleQueue[tuple[Any, ...]]) -> None:
         self.q = q
 
     def event(self, kind: str, detail: str) -> None:
@@ -217,7 +221,7 @@ class OpcUaProcess:
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
-        self._events: queue.SimpleQueue[tuple[str, str]] = queue.SimpleQueue()
+        self._events: queue.SimpleQueue[tuple[Any, ...]] = queue.SimpleQueue()
         self._instrument = _Events(self._events)
         self._pool = ThreadPoolExecutor(2, thread_name_prefix="chcos-opcua-call")
 
@@ -243,11 +247,19 @@ class OpcUaProcess:
             raise NorthError(f"opcua: cannot serve {self.endpoint}: {msg[1]}")
         self.endpoint = msg[1]
         self.system.kernel.add_instrument(self._instrument)
+        add_health_listener(self.system.devtab, self._on_health)
         for target, name in ((self._feed, "chcos-opcua-feed"), (self._read, "chcos-opcua-read")):
             th = threading.Thread(target=target, name=name, daemon=True)
             th.start()
             self._threads.append(th)
         return self
+
+    def _on_health(self, device: str, healthy: bool, cause: str) -> None:
+        """Devtab's health listener (kernel thread): queued for the feed, in order with the
+        kernel's events."""
+        if not self._stop.is_set():
+            status = device_health(self.system.devtab.get(device)).status
+            self._events.put(("health", device, healthy, status, cause))
 
     def _send(self, msg: tuple[Any, ...]) -> None:
         assert self._conn is not None
@@ -261,8 +273,8 @@ class OpcUaProcess:
                 return
             try:
                 while True:
-                    kind, detail = self._events.get_nowait()
-                    self._send(("event", kind, detail))
+                    item = self._events.get_nowait()
+                    self._send(item if item[0] == "health" else ("event", *item))
             except queue.Empty:
                 pass
             try:

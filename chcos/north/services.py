@@ -13,6 +13,8 @@ all. Flags (every address is loopback unless given; a service not named does not
 ``--north-tls-cert/--north-tls-key``  certificate and key (PEM): TLS for the metrics endpoint
                                  and the view, the OPC UA server certificate (Basic256Sha256);
                                  required for any address off loopback
+``--modbus-allow-remote``        let the Modbus facade bind off loopback (Modbus has neither
+                                 authentication nor TLS, so this is never implied)
 
 ``chcos north passwd`` reads a password (twice, from the terminal, or once from stdin) and prints
 the hash for a users file.
@@ -63,6 +65,9 @@ def add_north_arguments(parser: argparse.ArgumentParser) -> None:
                         "and OPC UA are read-only")
     g.add_argument("--north-tls-cert", metavar="PEM", help="TLS certificate (off loopback)")
     g.add_argument("--north-tls-key", metavar="PEM", help="TLS key (off loopback)")
+    g.add_argument("--modbus-allow-remote", action="store_true",
+                   help="let the Modbus facade bind an address off loopback (Modbus has no "
+                        "authentication or TLS)")
 
 
 @dataclass
@@ -76,6 +81,7 @@ class NorthOptions:
     users: Users | None = None
     tls_cert: str | None = None
     tls_key: str | None = None
+    modbus_allow_remote: bool = False
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> NorthOptions:
@@ -87,7 +93,8 @@ class NorthOptions:
 
             users = Users.from_file(args.north_users)
         return cls(args.metrics, args.modbus_facade, args.opcua, args.view, users,
-                   args.north_tls_cert, args.north_tls_key)
+                   args.north_tls_cert, args.north_tls_key,
+                   bool(getattr(args, "modbus_allow_remote", False)))
 
     @property
     def any(self) -> bool:
@@ -137,7 +144,8 @@ def start(system: System, options: NorthOptions) -> NorthHandle:
             from chcos.north.modbus_facade import ModbusFacade
 
             host, port = host_port(options.modbus_facade, "modbus-facade")
-            f = ModbusFacade(system, host, port).start()
+            f = ModbusFacade(system, host, port,
+                             allow_remote=options.modbus_allow_remote).start()
             h.services["modbus"] = f
             h.urls["modbus"] = f"modbus-tcp://{host}:{f.port}"
             h._stops.append(f.stop)

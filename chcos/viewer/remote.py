@@ -7,8 +7,10 @@ device and link as its own satellite reports it), commands go through ``Host.exe
 prepare/commit path as ``chcos host``), and the event log is made by comparing successive maps
 (installs, setpri, owners, abnormal completions, device status, satellites lost), since the
 satellites do not stream their kernel events to the host. Times are seconds since the view
-attached. Every call is a round trip over Zenoh, so the view's period should stay at 0.2 s or
-more for a remote system.
+attached; device ages are computed on each device's own satellite (its clock minus the value's
+time) and shown as update times on the view's clock; frozen tasks come from the tasks' flags.
+Every call is a round trip over Zenoh, so the view's period should stay at 0.2 s or more for a
+remote system.
 """
 
 from __future__ import annotations
@@ -62,8 +64,12 @@ class HostSystem:
         """The host's merged map, its time the view's clock; logs what changed since the last
         one. Raises LinkError if no satellite answers."""
         doc = self.host.map_doc()
-        doc["time"] = self.kernel.clock.now()
-        doc.setdefault("frozen", [])  # the satellites' maps do not say which are frozen
+        now = self.kernel.clock.now()
+        doc["time"] = now
+        for d in doc["devices"]:  # the satellite's age, as an update time on the view's clock
+            age = d.get("age")
+            d["updated_at"] = None if age is None else now - float(age)
+        doc["frozen"] = [t["name"] for t in doc["tasks"] if t.get("frozen")]
         with self._lock:
             self._diff(self._last, doc)
             self._last = doc
