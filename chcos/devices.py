@@ -12,6 +12,7 @@ shutdown. Devtab is the :class:`drivers.base.DriverHost` its drivers talk to.
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import logging
 import math
@@ -335,6 +336,11 @@ class Devtab:
         """Call ``fn(device, healthy, cause)`` on the kernel thread whenever a device's health
         changes: ``healthy`` False with the failure's cause, True with the event that ended it."""
         self._health_listeners.append(fn)
+
+    def remove_health_listener(self, fn: Callable[[str, bool, str], None]) -> None:
+        """Stop calling ``fn`` (added by :meth:`add_health_listener`; no error if it is not)."""
+        with contextlib.suppress(ValueError):
+            self._health_listeners.remove(fn)
 
     def every(self, period: float, fn: Callable[[], None]) -> None:
         """Run ``fn`` on the kernel thread every ``period`` seconds of kernel time."""

@@ -74,4 +74,10 @@ def add_health_listener(devtab: Devtab, fn: HealthListener) -> None:
     devtab.add_health_listener(fn)
 
 
-__all__ = ["BusStats", "Health", "add_health_listener", "bus_stats", "device_health"]
+def remove_health_listener(devtab: Devtab, fn: HealthListener) -> None:
+    """Undo :func:`add_health_listener` (no error if ``fn`` was not added)."""
+    devtab.remove_health_listener(fn)
+
+
+__all__ = ["BusStats", "Health", "add_health_listener", "bus_stats", "device_health",
+           "remove_health_listener"]

@@ -66,7 +66,7 @@ from chcos.errors import Busy, ChcosError
 from chcos.instrument import Instrument
 from chcos.link.config import is_loopback
 from chcos.north import NorthError
-from chcos.north.health import add_health_listener, device_health
+from chcos.north.health import add_health_listener, device_health, remove_health_listener
 
 if TYPE_CHECKING:
     from asyncua.common.node import Node
@@ -278,6 +278,8 @@ class OpcUaServer:
             self._ready.set()
             if self._instrument is not None:
                 self.system.kernel.remove_instrument(self._instrument)
+            if self._listen_health:
+                remove_health_listener(self.system.devtab, self._on_health)
             loop.run_until_complete(loop.shutdown_default_executor())
             loop.close()
 

@@ -26,7 +26,7 @@ from chcos.devices import DeviceEntry, DeviceStatus
 from chcos.errors import Busy, ChcosError
 from chcos.instrument import Instrument
 from chcos.north import NorthError
-from chcos.north.health import add_health_listener, device_health
+from chcos.north.health import add_health_listener, device_health, remove_health_listener
 from chcos.north.opcua import EVENT_KINDS, OpcUaServer, estop
 
 if TYPE_CHECKING:
@@ -327,6 +327,7 @@ class OpcUaProcess:
         if self._proc is None:
             return
         self.system.kernel.remove_instrument(self._instrument)
+        remove_health_listener(self.system.devtab, self._on_health)
         self._stop.set()
         with contextlib.suppress(OSError, ValueError):
             self._send(("stop",))
