@@ -124,6 +124,7 @@ class System:
                 raise type(exc)(f"{path}:{no}: {line.strip()}: {exc}") from exc
             if ans:
                 answers.append(ans)
+        self.call(self.sysmgr.flush_map)  # one map write for the script's last changes
         return answers
 
     def invoke(self, task: str, command: Any = None, priority: int | None = None) -> str:
@@ -137,8 +138,8 @@ class System:
         self.kernel.run(until)
 
     def run_for(self, seconds: float) -> None:
-        """Run for ``seconds`` of clock time from now."""
-        self.kernel.run(self.kernel.clock.now() + seconds)
+        """Run for ``seconds`` of clock time from now (see :meth:`run`)."""
+        self.run(self.kernel.clock.now() + seconds)
 
     def start(self) -> None:
         """Run the kernel on a background thread (for interactive use). Raises KernelError if
@@ -187,4 +188,5 @@ class System:
                      map_path=map_path)
         for line in sysmap.install_lines(doc):
             system.execute(line)
+        system.sysmgr.flush_map()
         return system
