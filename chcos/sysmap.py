@@ -21,6 +21,7 @@ from typing import Any
 from chcos.errors import ConfigError
 
 FORMAT = "chcos-sysfile.map/1"
+_ENCODER = json.JSONEncoder(default=str)  # one encoder for every record (C encoder, no indent)
 
 
 def write(path: str | Path, doc: dict[str, Any]) -> None:
@@ -44,14 +45,15 @@ def encode(doc: dict[str, Any]) -> str:
     """``doc`` as readable JSON: one top-level key per line, and a list of records (tasks,
     links, devices) one record per line. Uses the C encoder (``indent`` would select the
     pure-Python one, several times slower on a map of 10,000 tasks)."""
+    enc = _ENCODER.encode
     parts = []
     for key, value in doc.items():
-        name = json.dumps(key)
+        name = enc(key)
         if isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
-            rows = ",\n    ".join(json.dumps(v, default=str) for v in value)
+            rows = ",\n    ".join(map(enc, value))
             parts.append(f"  {name}: [\n    {rows}\n  ]")
         else:
-            parts.append(f"  {name}: {json.dumps(value, default=str)}")
+            parts.append(f"  {name}: {enc(value)}")
     return "{\n" + ",\n".join(parts) + "\n}\n"
 
 

@@ -134,8 +134,10 @@ class System:
     # ---- running ----------------------------------------------------------------------------
     def run(self, until: float | None = None) -> None:
         """Run the kernel on this thread until ``until`` (clock time) or until stopped; on a
-        virtual clock also until nothing more can happen."""
+        virtual clock also until nothing more can happen. Then writes the map's pending
+        changes (see :meth:`SystemManager.map_changed`)."""
         self.kernel.run(until)
+        self.sysmgr.flush_map()
 
     def run_for(self, seconds: float) -> None:
         """Run for ``seconds`` of clock time from now (see :meth:`run`)."""

@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import io
+import itertools
 import json
 import logging
 import math
@@ -34,11 +35,12 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+import cantools
+
 from chcos import devmap
 from chcos.clock import VirtualClock
 from chcos.system import System
 from chcos.usrmgr import TaskContext
-from drivers import can_raw
 
 CODE = "tools.bench_growth:idle"
 
@@ -93,16 +95,16 @@ def write_dbc_map(n: int, work: Path) -> Path:
 def _count_parses() -> tuple[list[int], Callable[[], None]]:
     """Count cantools DBC parses (the wrapped loader of drivers.can_raw)."""
     count = [0]
-    real = can_raw.cantools.database.load_file
+    real = cantools.database.load_file
 
     def counting(*a: Any, **k: Any) -> Any:
         count[0] += 1
         return real(*a, **k)
 
-    can_raw.cantools.database.load_file = counting
+    cantools.database.load_file = counting
 
     def undo() -> None:
-        can_raw.cantools.database.load_file = real
+        cantools.database.load_file = real
 
     return count, undo
 
@@ -152,7 +154,7 @@ def at(points: list[tuple[int, float]], n: int) -> float:
             return t
     (n1, t1), (n2, t2) = sorted(points, key=lambda p: abs(math.log(p[0] / n)))[:2]
     k = math.log(t2 / t1) / math.log(n2 / n1) if n1 != n2 else 1.0
-    return t1 * (n / n1) ** k
+    return float(t1 * (n / n1) ** k)
 
 
 BENCHES: list[tuple[str, Callable[[int, Path], tuple[float, dict[str, Any]]], int, float]] = [
@@ -188,7 +190,7 @@ def report(res: dict[str, Any]) -> list[str]:
     for name, r in res.items():
         pts = r["points"]
         steps = " ".join(f"{math.log(t2 / t1) / math.log(n2 / n1):.2f}"
-                         for (n1, t1), (n2, t2) in zip(pts, pts[1:], strict=False))
+                         for (n1, t1), (n2, t2) in itertools.pairwise(pts))
         curve = ", ".join(f"{n:,}: {t:.3f} s" for n, t in pts)
         extra = "; ".join(f"{k}={v}" for k, v in r["info"][-1].items() if k != "links")
         out.append(f"{name}: {curve}; growth exponent {r['slope']:.2f} (steps {steps})"
