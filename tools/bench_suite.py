@@ -14,7 +14,10 @@ Runs, in one process, side by side:
    real CAN driver: intruder frame -> exception task -> assassin -> every actuator at its safe
    value, beside a bare Python echo on the same bus;
 5. resident size over a soak at 10,000 frames/s;
-6. satellite scaling (1 vs 2 satellite processes) and cross-satellite latency.
+6. satellite scaling (1 vs 2 satellite processes) and cross-satellite latency;
+7. setup growth (tools/bench_growth.py): installs without and with sysfile.map, a device map of
+   N devices on one DBC bus loaded and checked, at N = 10², 10³ (quick) and 10⁴, with the growth
+   exponent (1.0 = linear).
 Real-time figures are best of N batches (the machine is shared); the pooled figures are in the
 JSON. Prints a table (figure, target, measured, met?), writes docs/perf/results.json and the
 latency plot docs/perf/latency.svg.
@@ -44,7 +47,7 @@ import can
 from chcos.bench import emergency, fig66
 from chcos.bench.stats import Summary, summarize
 from chcos.bench.svg import Series, write_ecdf_svg
-from tools import bench_core, bench_fullpath
+from tools import bench_core, bench_fullpath, bench_growth
 
 ROOT = Path(__file__).resolve().parent.parent
 THESIS_INTERRUPTS_PER_SATELLITE = 1150  # thesis 6.4: one MC68000 satellite, sensor+actuator
@@ -325,6 +328,18 @@ def main(argv: list[str] | None = None) -> int:
                  f"max {raw_lat['max'] / 1000:.3f} ms",
                  f"chcos/bare p50 {sat_lat['p50'] / raw_lat['p50']:.1f}x, "
                  f"p99 {sat_lat['p99'] / raw_lat['p99']:.1f}x"))
+
+    # 7. setup growth ---------------------------------------------------------------------------
+    G = step("setup growth", lambda: bench_growth.run([100, 1000] if q else [100, 1000, 10_000]))
+    res["growth"] = G
+    for name, g in G.items():
+        n_last, t_last = g["points"][-1]
+        measured = g["target_n"] in [n for n, _ in g["points"]]
+        rows.append((f"setup growth: {name}", f"{g['target_n']:,} in <= {g['target_s']:g} s, "
+                     "linear", f"{n_last:,}: {t_last:.3f} s; exponent {g['slope']:.2f}"
+                     + ("" if measured else f"; {g['target_n']:,} from the fit: "
+                                            f"{g['at_target']:.3f} s"),
+                     "yes" if g["met"] and g["slope"] < 1.3 else "NO"))
 
     # output -------------------------------------------------------------------------------------
     info["loadavg_end"] = os.getloadavg()[0]
