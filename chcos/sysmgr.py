@@ -558,8 +558,8 @@ class SystemManager:
         if self.sys.map_path is None:
             return
         t0 = self.map_clock()
-        self._map_dirty = False
         sysmap.write(self.sys.map_path, self.map_doc())
+        self._map_dirty = False   # only once written: a failed write is tried again
         self.map_writes += 1
         t1 = self.map_clock()
         self._map_next = t1 + max(MAP_MIN_GAP, MAP_COST_FACTOR * (t1 - t0))
@@ -587,9 +587,11 @@ class SystemManager:
             self.save_map()
 
     def _map_timed(self) -> None:
-        """The timer armed by :meth:`map_changed`, run on the kernel thread."""
+        """The timer armed by :meth:`map_changed`, run on the kernel thread: writes what
+        waits (or arms itself again if it fired a little early)."""
         self._map_timer = None
-        self._map_idle()
+        if self._map_dirty:
+            self.map_changed()
 
     def _map_idle(self) -> None:
         """Idle hook: write the map if a change waits and its time has come."""

@@ -6,6 +6,7 @@ links the table scan did, on the welding cell and figure 6.5."""
 from __future__ import annotations
 
 import shutil
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -15,7 +16,7 @@ import cantools
 import pytest
 
 from chcos import devmap, parsecache, sysmap
-from chcos.clock import VirtualClock
+from chcos.clock import RealClock, VirtualClock
 from chcos.errors import BusError
 from chcos.examples import fig65
 from chcos.fig65run import default_devmap
@@ -161,6 +162,26 @@ def test_a_burst_of_changes_is_written_when_its_time_comes(tmp_path: Path) -> No
         s.execute(f"install -m0 --code={M}:idle D")
         s.run_for(0.1)                                    # a run's end writes what waits
         assert [t["name"] for t in sysmap.read(mapfile)["tasks"]][-1] == "D"
+
+
+def test_a_running_system_writes_its_last_change_without_being_asked(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    written = threading.Event()
+    real = sysmap.write
+
+    def watch(path: str | Path, doc: dict[str, Any]) -> None:
+        real(path, doc)
+        if any(t["name"] == "B" for t in doc["tasks"]):
+            written.set()
+
+    monkeypatch.setattr(sysmap, "write", watch)
+    mapfile = tmp_path / "sysfile.map"
+    with System(clock=RealClock(), machines=[0], base_dir=tmp_path, map_path=mapfile) as s:
+        s.start()
+        s.execute(f"install -m0 --code={M}:idle A")
+        s.execute(f"install -m0 --code={M}:idle B")  # within the gap: left to the timer
+        assert written.wait(30), "the map never caught up with install B"
+        assert [t["name"] for t in sysmap.read(mapfile)["tasks"]] == ["A", "B"]
 
 
 # ---- the assassin index wires what the old table scan wired ------------------------------------
