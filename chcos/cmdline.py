@@ -298,12 +298,18 @@ def _priority_word(cmd: str, args: list[str]) -> tuple[int | None, list[str]]:
     return prio, rest
 
 
+# printable ASCII and shlex' whitespace, without quotes, backslash and '#' (see parse)
+_PLAIN = re.compile(r"[ \t\r\n!$-&(-\[\]-~]*")
+
+
 def parse(line: str | list[str]) -> Request | None:
     """Parse one host command line; None for a blank line or a comment.
 
     Raises CommandSyntaxError naming the command and the offending word.
     """
-    if isinstance(line, str):
+    if isinstance(line, str) and _PLAIN.fullmatch(line):
+        words = line.split()   # no quote, escape or comment: what shlex would give, 10x faster
+    elif isinstance(line, str):
         try:
             words = shlex.split(line, comments=True)
         except ValueError as exc:

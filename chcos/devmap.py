@@ -51,6 +51,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from chcos import parsecache
 from chcos.devspec import MAX_MACHINE, BusSpec, DeviceMap, DeviceSpec, Direction
 from chcos.errors import ConfigError, DriverNotAvailable
 from drivers.base import Driver
@@ -590,7 +591,8 @@ def check(paths: str | Path | Iterable[str | Path]) -> tuple[DeviceMap | None, l
             fe_by_file[d.file].add(f"{d.key}.bus",
                                    f"no bus named {_short(d.bus)}; expected one of: "
                                    f"{', '.join(seen_bus) or 'no buses declared'}")
-    classes, refused = _driver_checks(fe_by_file, list(seen_bus.values()), checkable)
+    with parsecache.scope():   # each DBC / EDS file parsed once, not once per device
+        classes, refused = _driver_checks(fe_by_file, list(seen_bus.values()), checkable)
     errors = [e for fe in fe_by_file.values() for e in fe.errors]
     valid = {id(d) for d in devices} - refused
     warnings = _warnings(fe_by_file, seen_bus, classes,

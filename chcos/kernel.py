@@ -26,6 +26,11 @@ from chcos.instrument import Instrument
 from chcos.tasks import TaskEntry, TaskState
 
 log = logging.getLogger("chcos.kernel")
+# enum members as module constants: a member lookup (TaskState.READY) costs a class-attribute
+# access per use, and the hot path of every message does several
+_READY = TaskState.READY
+_CURRENT = TaskState.CURRENT
+_SUSPENDED = TaskState.SUSPENDED
 
 #: Trap a task yields to give the processor back and stay ready.
 YIELD = object()
@@ -153,10 +158,10 @@ class Kernel:
         """Make ``t`` ready at priority ``prio`` (re-queues it if it already was)."""
         if t.frozen:
             t.frozen_ready = prio if t.frozen_ready is None else max(prio, t.frozen_ready)
-            t.state = TaskState.SUSPENDED
+            t.state = _SUSPENDED
             return
         t.prio = prio
-        t.state = TaskState.READY
+        t.state = _READY
         self._seq = seq = self._seq + 1
         t.stamp = seq
         heappush(self._ready, (-prio, seq, t))
@@ -409,7 +414,7 @@ class Kernel:
 
     def _step(self, t: TaskEntry) -> None:
         """Context switch: run ``t`` until its next trap (the thesis' ctxsw)."""
-        t.state = TaskState.CURRENT
+        t.state = _CURRENT
         self.current = t
         self._steps += 1
         t.steps += 1
@@ -419,7 +424,7 @@ class Kernel:
         coro = t.coro
         if coro is None:  # woken after its activation ended: nothing to run
             self.current = None
-            t.state = TaskState.SUSPENDED
+            t.state = _SUSPENDED
             return
         exc = t.throw_exc
         try:
@@ -443,7 +448,7 @@ class Kernel:
         else:
             self.current = None
             if trap is YIELD and not t.cancelling and not t.frozen:
-                t.state = TaskState.READY
+                t.state = _READY
                 self._seq = seq = self._seq + 1
                 t.stamp = seq
                 heappush(self._ready, (-t.prio, seq, t))

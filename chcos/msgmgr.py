@@ -32,6 +32,7 @@ if TYPE_CHECKING:
     from chcos.devices import Devtab
 
 log = logging.getLogger("chcos.msgmgr")
+_LINK_SUSPENDED = LinkStatus.SUSPENDED  # a module constant: read on every delivery
 
 EventSink = Callable[[str, str], None]
 _COMMAND = object()  # what wakes a task waiting (wait_any) for a command message
@@ -143,7 +144,7 @@ class MessageManager:
 
         False if the link is suspended. Raises QueueOverflow for a full queued link.
         """
-        if link.status is LinkStatus.SUSPENDED:
+        if link.status is _LINK_SUSPENDED:
             link.refused += 1
             return False
         if link.remote:

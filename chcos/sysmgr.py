@@ -6,14 +6,23 @@ the machine is loaded, every peer exists and is of the right kind (sensory input
 files, terminals or tasks; command outputs go to actuators, files or tasks), at most eight of each,
 and every link keeps the hierarchy: sensory links go to a strictly higher level, command links to a
 strictly lower one (levels follow from the links, or ``--level`` places a task higher). Then it
-enters the task, its links and ports, the exception taps and assassin links, and writes
-sysfile.map.
+enters the task, its links and ports, the exception taps and assassin links, and marks
+sysfile.map for writing.
+
+sysfile.map is written atomically after a change, at most every MAP_MIN_GAP seconds (and at
+least MAP_COST_FACTOR write-durations apart, so a burst of N installs costs O(N), not O(N²));
+the change still unwritten is written when the script ends, when the kernel goes idle or
+``run`` returns, on ``map`` and at shutdown, or by a timer MAP_MIN_GAP later. A crash can
+therefore lose the last fraction of a second of changes, never leave a map that does not
+rebuild a system: every map on disk is a whole one (temporary file, fsync, rename).
 """
 
 from __future__ import annotations
 
 import math
 import re
+import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -52,6 +61,8 @@ if TYPE_CHECKING:
     from chcos.system import System
 
 _NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_.-]*")
+MAP_MIN_GAP = 0.25      # seconds between two sysfile.map writes during a burst of changes
+MAP_COST_FACTOR = 10.0  # ... and at least this many times the last write's duration
 
 
 @dataclass(frozen=True)
@@ -83,8 +94,15 @@ class SystemManager:
         self.host_links: dict[str, Link] = {}
         self.terminals: dict[str, list[Link]] = {}
         self.on_change: list[Callable[[str, str], None]] = []
+        self._assassins: list[TaskEntry] = []   # in install order (see _exception_wiring)
+        self.map_clock: Callable[[], float] = time.monotonic  # paces the map writes
+        self.map_writes = 0
+        self._map_dirty = False
+        self._map_next = 0.0
+        self._map_timer: threading.Timer | None = None
         # a device's health (status, cause, since) is part of the map: rewrite it on a change
-        system.devtab.add_health_listener(lambda _d, _ok, _c: self.save_map())
+        system.devtab.add_health_listener(lambda _d, _ok, _c: self.map_changed())
+        system.kernel.add_idle_hook(self._map_idle)
 
     # ---- helpers ----------------------------------------------------------------------------
     def _path(self, name: str) -> Path:
@@ -106,7 +124,7 @@ class SystemManager:
 
     def _changed(self, kind: str, detail: str) -> None:
         self.sys.msgmgr.event(kind, detail)
-        self.save_map()
+        self.map_changed()
         for hook in self.on_change:
             hook(kind, detail)
 
@@ -298,15 +316,18 @@ class SystemManager:
         return link
 
     def _exception_wiring(self, t: TaskEntry) -> None:
+        """The implicit links of a new task: exception taps and assassin links, both ways. Only
+        exception and assassin tasks scan the table (they are linked to every lower task);
+        an ordinary task meets the indexes of exception tasks (``msgmgr.taps``) and assassins
+        (``self._assassins``), both in install order, so an install costs O(1) for them."""
         s = self.sys
-        others = [u for u in s.tsktab if u is not t]
         if t.role is Role.EXCEPTION:
             tap = TapPort()
             t.tap = tap
             links: dict[str, Link] = {}
             s.msgmgr.taps.append((t, tap, links))
-            for u in others:
-                if u.level < t.level:
+            for u in s.tsktab:
+                if u is not t and u.level < t.level:
                     links[u.name] = self._link(u.name, t.name, LinkType.SENSORY, TOP_PRIORITY,
                                                EndpointKind.TASK, EndpointKind.TASK, u.machine,
                                                t.machine, tap=True)
@@ -316,16 +337,19 @@ class SystemManager:
                                            EndpointKind.TASK, EndpointKind.TASK, t.machine,
                                            e.machine, tap=True)
         if t.role is Role.ASSASSIN:
-            for u in others:
-                if u.level < t.level and s.msgtab.get(t.name, u.name, LinkType.COMMAND) is None:
+            for u in s.tsktab:
+                if u is not t and u.level < t.level \
+                        and s.msgtab.get(t.name, u.name, LinkType.COMMAND) is None:
                     t.special_links[u.name] = self._link(
                         t.name, u.name, LinkType.COMMAND, TOP_PRIORITY, EndpointKind.TASK,
                         EndpointKind.TASK, t.machine, u.machine, tap=True)
-        for a in others:
-            if a.role is Role.ASSASSIN and a.level > t.level:
+        for a in self._assassins:
+            if a.level > t.level:
                 a.special_links[t.name] = self._link(
                     a.name, t.name, LinkType.COMMAND, TOP_PRIORITY, EndpointKind.TASK,
                     EndpointKind.TASK, a.machine, t.machine, tap=True)
+        if t.role is Role.ASSASSIN:
+            self._assassins.append(t)
 
     # ---- setpri, invoke and task operations -------------------------------------------------
     def setpri(self, src: str, dst: str, priority: int) -> Link:
@@ -403,7 +427,7 @@ class SystemManager:
                 and task in self.sys.devtab:
             self.sys.devtab.suspend(task) if op == "suspend" else self.sys.devtab.resume(task)
             mm.event(op, f"host {op} device {task}")
-            self.save_map()
+            self.map_changed()
             return f"{task}: {op}"
         try:
             t = self.sys.tsktab.get(task)
@@ -420,7 +444,7 @@ class SystemManager:
         else:
             mm.close(self.host_link(task))
         mm.event(op, f"host {op} {task}")
-        self.save_map()
+        self.map_changed()
         return f"{task}: {op}"
 
     def reset(self, task: str | None = None) -> str:
@@ -440,7 +464,7 @@ class SystemManager:
             todo = list(self.sys.tsktab)
         done = [t.name for t in todo if mm.is_local(t.machine) and t.frozen and mm.reset_task(t)]
         mm.event("reset", f"host reset: {', '.join(done) or 'nothing was suspended'}")
-        self.save_map()
+        self.map_changed()
         return f"reset: {', '.join(done) or 'nothing was suspended'}"
 
     def inject(self, name: str, value: Any) -> str:
@@ -530,6 +554,47 @@ class SystemManager:
                 "devices": devices, "buses": s.devtab.stats_doc()}
 
     def save_map(self) -> None:
-        """Write sysfile.map (atomically) if the system has a map path."""
-        if self.sys.map_path is not None:
-            sysmap.write(self.sys.map_path, self.map_doc())
+        """Write sysfile.map now (atomically) if the system has a map path. Raises OSError if
+        it cannot be written."""
+        if self.sys.map_path is None:
+            return
+        t0 = self.map_clock()
+        sysmap.write(self.sys.map_path, self.map_doc())
+        self._map_dirty = False   # only once written: a failed write is tried again
+        self.map_writes += 1
+        t1 = self.map_clock()
+        self._map_next = t1 + max(MAP_MIN_GAP, MAP_COST_FACTOR * (t1 - t0))
+
+    def map_changed(self) -> None:
+        """The tables changed: write sysfile.map now if the last write is long enough ago (see
+        the module doc), else leave it to :meth:`flush_map` (end of a script or run, an idle
+        kernel, a timer). Raises OSError if a write due now fails."""
+        if self.sys.map_path is None:
+            return
+        self._map_dirty = True
+        if self.map_clock() >= self._map_next:
+            self.save_map()
+        elif self._map_timer is None:
+            delay = max(0.0, self._map_next - self.map_clock())
+            timer = threading.Timer(delay, self.sys.kernel.interrupt, (self._map_timed,))
+            timer.daemon = True
+            self._map_timer = timer
+            timer.start()
+
+    def flush_map(self) -> None:
+        """Write sysfile.map if a change is not written yet. Raises OSError if it cannot be
+        written."""
+        if self._map_dirty:
+            self.save_map()
+
+    def _map_timed(self) -> None:
+        """The timer armed by :meth:`map_changed`, run on the kernel thread: writes what
+        waits (or arms itself again if it fired a little early)."""
+        self._map_timer = None
+        if self._map_dirty:
+            self.map_changed()
+
+    def _map_idle(self) -> None:
+        """Idle hook: write the map if a change waits and its time has come."""
+        if self._map_dirty and self.map_clock() >= self._map_next:
+            self.save_map()

@@ -127,6 +127,7 @@ class System:
                 raise type(exc)(f"{path}:{no}: {line.strip()}: {exc}") from exc
             if ans:
                 answers.append(ans)
+        self.call(self.sysmgr.flush_map)  # one map write for the script's last changes
         return answers
 
     def invoke(self, task: str, command: Any = None, priority: int | None = None) -> str:
@@ -136,12 +137,14 @@ class System:
     # ---- running ----------------------------------------------------------------------------
     def run(self, until: float | None = None) -> None:
         """Run the kernel on this thread until ``until`` (clock time) or until stopped; on a
-        virtual clock also until nothing more can happen."""
+        virtual clock also until nothing more can happen. Then writes the map's pending
+        changes (see :meth:`SystemManager.map_changed`)."""
         self.kernel.run(until)
+        self.sysmgr.flush_map()
 
     def run_for(self, seconds: float) -> None:
-        """Run for ``seconds`` of clock time from now."""
-        self.kernel.run(self.kernel.clock.now() + seconds)
+        """Run for ``seconds`` of clock time from now (see :meth:`run`)."""
+        self.run(self.kernel.clock.now() + seconds)
 
     def start(self) -> None:
         """Run the kernel on a background thread (for interactive use). Raises KernelError if
@@ -190,4 +193,5 @@ class System:
                      map_path=map_path)
         for line in sysmap.install_lines(doc):
             system.execute(line)
+        system.sysmgr.flush_map()
         return system

@@ -35,6 +35,7 @@ if TYPE_CHECKING:
 
 Port = int | str
 log = logging.getLogger("chcos.usrmgr")
+_WAITING = TaskState.WAITING  # a module constant: read on every blocking read
 
 
 @dataclass(frozen=True)
@@ -215,9 +216,9 @@ class TaskContext:
             t = self._t
             p.waiter = t
             t.wait_ports = p.single
-            t.state = TaskState.WAITING
+            t.state = _WAITING
             if self._k.h_blocked:
-                self._k.block(t, TaskState.WAITING)
+                self._k.block(t, _WAITING)
             if timeout is not None:
                 self._arm_timeout(timeout, p.link.name)
             yield BLOCK

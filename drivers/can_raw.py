@@ -56,6 +56,7 @@ import cantools
 from cantools.database.can import Message as DbcMessage
 from cantools.database.can import Signal as DbcSignal
 
+from chcos import parsecache
 from chcos.devspec import BusSpec, DeviceSpec
 from chcos.errors import BusError
 from drivers.base import DriverHost, not_finite
@@ -73,9 +74,11 @@ def _int(v: object) -> TypeGuard[int]:
 
 
 def load_dbc(path: str) -> Any:
-    """Load a DBC file with cantools; raises :class:`BusError` naming the file."""
+    """Load a DBC file with cantools (once per device-map load, see :mod:`chcos.parsecache`);
+    raises :class:`BusError` naming the file."""
     try:
-        return cantools.database.load_file(path, database_format="dbc", strict=True)
+        return parsecache.cached("dbc", path, None, lambda: cantools.database.load_file(
+            path, database_format="dbc", strict=True))
     except (OSError, cantools.database.errors.Error, ValueError) as exc:
         raise BusError(f"DBC file {path}: cannot be loaded: {exc}") from exc
 

@@ -49,6 +49,7 @@ import canopen
 from canopen.objectdictionary import BOOLEAN, FLOAT_TYPES, INTEGER_TYPES
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
+from chcos import parsecache
 from chcos.devspec import BusSpec, DeviceSpec
 from chcos.errors import BusError
 from drivers.base import Driver, DriverHost, not_finite
@@ -99,7 +100,8 @@ def load_od(bus: BusSpec, node_id: int, eds: str) -> Any:
     if not path.is_file():
         raise ValueError(f"EDS file {path} does not exist")
     try:
-        return canopen.import_od(str(path), node_id)
+        return parsecache.cached("eds", path, node_id,
+                                 lambda: canopen.import_od(str(path), node_id))
     except Exception as exc:  # canopen raises assorted types for a malformed EDS
         raise ValueError(f"canopen cannot read EDS {path}: {exc}") from exc
 
@@ -251,9 +253,10 @@ class CanopenDriver(Driver):
     def start(self) -> None:
         """Validate, open the CAN bus, bind devices to PDOs or SDO polling, start the I/O thread
         and put the nodes OPERATIONAL. Raises :class:`BusError` (invalid options included)."""
-        errs = self.check_bus(self.bus)
-        for dev in self.devices.values():
-            errs.extend(self.check_device(self.bus, dev))
+        with parsecache.scope():   # each EDS parsed once for the checks, not once per device
+            errs = self.check_bus(self.bus)
+            for dev in self.devices.values():
+                errs.extend(self.check_device(self.bus, dev))
         if errs:
             raise BusError(f"canopen bus {self.bus.name} ({self.bus.file}): " + "; ".join(errs))
         network: Any = canopen.Network()

@@ -14,7 +14,10 @@ Runs, in one process, side by side:
    real CAN driver: intruder frame -> exception task -> assassin -> every actuator at its safe
    value, beside a bare Python echo on the same bus;
 5. resident size over a soak at 10,000 frames/s;
-6. satellite scaling (1 vs 2 satellite processes) and cross-satellite latency.
+6. satellite scaling (1 vs 2 satellite processes) and cross-satellite latency;
+7. setup growth (tools/bench_growth.py): installs without and with sysfile.map, a device map of
+   N devices on one DBC bus loaded and checked, at N = 10², 10³ and 10⁴ (quick: 3·10³), with the
+   growth exponent (1.0 = linear), in a fresh interpreter.
 Real-time figures are best of N batches (the machine is shared); the pooled figures are in the
 JSON. Prints a table (figure, target, measured, met?), writes docs/perf/results.json and the
 latency plot docs/perf/latency.svg.
@@ -30,6 +33,7 @@ import json
 import logging
 import os
 import platform
+import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -325,6 +329,28 @@ def main(argv: list[str] | None = None) -> int:
                  f"max {raw_lat['max'] / 1000:.3f} ms",
                  f"chcos/bare p50 {sat_lat['p50'] / raw_lat['p50']:.1f}x, "
                  f"p99 {sat_lat['p99'] / raw_lat['p99']:.1f}x"))
+
+    # 7. setup growth ---------------------------------------------------------------------------
+    def growth() -> dict[str, Any]:  # a fresh interpreter: this one's heap would slow its GC
+        sizes = "100,1000,3000" if q else "100,1000,10000"
+        out = args.out / "growth.json"
+        args.out.mkdir(parents=True, exist_ok=True)
+        subprocess.run([sys.executable, str(ROOT / "tools" / "bench_growth.py"), "--sizes",
+                        sizes, "--json", str(out)], check=True, cwd=ROOT,
+                       stdout=subprocess.DEVNULL)
+        got: dict[str, Any] = json.loads(out.read_text(encoding="utf-8"))
+        return got
+
+    G = step("setup growth", growth)
+    res["growth"] = G
+    for name, g in G.items():
+        n_last, t_last = g["points"][-1]
+        measured = g["target_n"] in [n for n, _ in g["points"]]
+        rows.append((f"setup growth: {name}", f"{g['target_n']:,} in <= {g['target_s']:g} s, "
+                     "linear", f"{n_last:,}: {t_last:.3f} s; exponent {g['slope']:.2f}"
+                     + ("" if measured else f"; {g['target_n']:,} from the fit: "
+                                            f"{g['at_target']:.3f} s"),
+                     "yes" if g["met"] and g["slope"] < 1.3 else "NO"))
 
     # output -------------------------------------------------------------------------------------
     info["loadavg_end"] = os.getloadavg()[0]
