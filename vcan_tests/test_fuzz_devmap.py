@@ -275,10 +275,17 @@ def test_check_parses_each_dbc_and_eds_once(tmp_path: Path,
 
     loads: list[str] = []
     real_dbc, real_od = cantools.database.load_file, canopen.import_od
-    monkeypatch.setattr(cantools.database, "load_file",
-                        lambda p, **kw: loads.append("dbc") or real_dbc(p, **kw))
-    monkeypatch.setattr(canopen, "import_od",
-                        lambda p, n=None: loads.append("eds") or real_od(p, n))
+
+    def load_dbc(path: Any, **kw: Any) -> Any:
+        loads.append("dbc")
+        return real_dbc(path, **kw)
+
+    def import_od(path: Any, node_id: Any = None) -> Any:
+        loads.append("eds")
+        return real_od(path, node_id)
+
+    monkeypatch.setattr(cantools.database, "load_file", load_dbc)
+    monkeypatch.setattr(canopen, "import_od", import_od)
     dbc = _write(tmp_path, "once.dbc", _DBC)
     eds = Path(__file__).resolve().parent.parent / "busconfig" / "eds" / "servo_drive.eds"
     eds_copy = _write(tmp_path, "once.eds", eds.read_text())
