@@ -602,7 +602,6 @@ class _ModbusDriver(Driver):
                 self._health.fail(p.device, "exception", f"{self.kind} bus {self.bus.name} "
                                   f"{r.describe()} (device {p.device}): {what}")
             return
-        self._answer(r.unit)
         if resp.isError():
             code = int(getattr(resp, "exception_code", 0))
             for p in r.points:
@@ -613,7 +612,9 @@ class _ModbusDriver(Driver):
                                   f"{self.kind} bus {self.bus.name} {r.describe()} (device "
                                   f"{p.device}): exception code {code} "
                                   f"({EXCEPTION_TEXT.get(code, 'unknown')})")
+            self._answer(r.unit)       # after the new cause: no OK in between
             return
+        self._answer(r.unit)
         entries = resp.bits if r.table in ("coil", "discrete") else resp.registers
         for p in r.points:
             off = p.address - r.address
@@ -655,7 +656,6 @@ class _ModbusDriver(Driver):
             self._health.fail(p.device, "exception", f"{where} (device {p.device}): write not "
                                                      f"answered: {exc}")
             return
-        self._answer(p.unit)
         if resp.isError():
             code = int(getattr(resp, "exception_code", 0))
             text = (f"{where} (device {p.device}): write refused with exception code "
@@ -663,7 +663,9 @@ class _ModbusDriver(Driver):
             self.host.error(self.bus.name, f"exception-{code}", text, p.device)
             self.host.write_failed(p.device, value, text)
             self._health.fail(p.device, "exception", text)
+            self._answer(p.unit)       # after the new cause: no OK in between
             return
+        self._answer(p.unit)
         self.host.written(p.device, value)
         self._health.clear(p.device, "exception", f"{where}: write answered")
 
