@@ -145,6 +145,24 @@ def test_an_open_port_is_not_health_a_silent_slave_never_shows_ok(rig: Rig) -> N
     assert sorted(rig.host.recoveries) == ["level", "setpoint"]
 
 
+@pytest.mark.parametrize("rig", [[
+    make_device("out", "actuator", "rtu", key="device[0]", unit=UNIT, table="holding",
+                address=7),
+]], indirect=True)
+def test_an_actuator_only_line_is_probed(rig: Rig) -> None:
+    rig.poll(10)                                         # 1 s: the default probe period
+    assert rig.host.recoveries == ["out"]
+    assert rig.slave.wait(lambda s: s.answered == 1)
+    assert b"".join(rig.relay.requests)[:6] == bytes([UNIT, 3, 0, 7, 0, 1])   # read holding 7
+    rig.relay.damage("silence")                          # the slave stops answering
+    rig.poll(10)
+    assert "probe of unit 1 holding 7: no answer: no response (silence)" in \
+        rig.host.failed("out")[-1]
+    assert rig.host.writes == []                         # noticed without a write
+    rig.poll(10)                                         # answers again
+    assert rig.host.recoveries == ["out", "out"]
+
+
 @pytest.mark.parametrize("received, kind, text", [
     (b"", "timeout", "silence"),
     (bytes.fromhex("0103020007f987"), "crc", "fails its CRC (expected f986, got f987)"),
