@@ -304,7 +304,8 @@ def test_check_parses_each_dbc_and_eds_once(tmp_path: Path,
 
 def test_shipped_maps_still_check(tmp_path: Path) -> None:
     root = Path(__file__).resolve().parent.parent / "busconfig"
-    for name in ("fig65.toml", "weld_cell.toml", "weld_direct.toml"):
+    for name in ("fig65.toml", "weld_cell.toml", "weld_direct.toml", "examples/serial_cell.toml",
+                 "examples/bench.toml"):
         dmap, errors, warnings = check(root / name)
         assert dmap is not None and not errors, errors
         assert all("limits" not in w and "stale_after" not in w for w in warnings), warnings
