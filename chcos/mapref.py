@@ -77,7 +77,8 @@ _MODBUS_COMMON = (
     Key("reconnect_delay", "float s", "0.1", "first reconnect back-off; doubled after each "
         "failure"),
     Key("reconnect_delay_max", "float s", "5.0", "longest back-off"),
-    Key("poll_period", "float s", "0.1", "default polling period of the sensors"),
+    Key("poll_period", "float s", "0.1", "default polling period of the sensors; on a bus "
+        "with no sensor the liveness probe's period (default 1.0)"),
 )
 _MODBUS_ADDRESS = (
     Key("unit", "integer 0..255", "1", "unit (slave / device) id"),

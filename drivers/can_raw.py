@@ -43,6 +43,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import math
+import os
 import queue
 import socket
 import struct
@@ -81,6 +82,28 @@ def load_dbc(path: str) -> Any:
             path, database_format="dbc", strict=True))
     except (OSError, cantools.database.errors.Error, ValueError) as exc:
         raise BusError(f"DBC file {path}: cannot be loaded: {exc}") from exc
+
+
+@functools.lru_cache(maxsize=16)
+def _dbc_version(path: str, mtime_ns: int, size: int) -> Any:
+    return load_dbc(path)
+
+
+def checked_dbc(path: str) -> Any:
+    """:func:`load_dbc` for the map checks (``check_device``, ``encodable``): one parse per
+    version of the file (path, mtime, size), however many devices use it. The result is shared:
+    read it, never change it. Raises :class:`BusError` naming the file."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return load_dbc(path)
+    return _dbc_version(path, st.st_mtime_ns, st.st_size)
+
+
+def _int_range(length: int, signed: bool) -> tuple[int, int]:
+    if signed:
+        return -(1 << (length - 1)), (1 << (length - 1)) - 1
+    return 0, (1 << length) - 1
 
 
 def bus_config(options: Mapping[str, Any]) -> dict[str, Any]:
@@ -438,10 +461,36 @@ class CanDriver(ThreadedDriver):
         dbc = None
         if isinstance(bus.options.get("dbc"), str):
             try:
-                dbc = load_dbc(bus.options["dbc"])
+                dbc = checked_dbc(bus.options["dbc"])
             except BusError:
                 return []          # reported once, by check_bus
         return check_address(bus, device, dbc)
+
+    @classmethod
+    def encodable(cls, bus: BusSpec, device: DeviceSpec) -> tuple[float, float] | None:
+        """What the signal can carry: a raw address's integer range from its length and
+        signedness; a DBC signal's raw range (integer, or float32; None for float64) through
+        the DBC's scale and offset, within the DBC's minimum and maximum."""
+        a = device.address
+        if "message" not in a:
+            lo, hi = _int_range(int(a["length"]), bool(a.get("signed", False)))
+            return float(lo), float(hi)
+        sig = checked_dbc(str(bus.options["dbc"])).get_message_by_name(
+            a["message"]).get_signal_by_name(a["signal"])
+        if sig.is_float:
+            if sig.length != 32:
+                return None
+            rlo, rhi = -3.4028234663852886e38, 3.4028234663852886e38
+        else:
+            ilo, ihi = _int_range(sig.length, sig.is_signed)
+            rlo, rhi = float(ilo), float(ihi)
+        ends = sorted((rlo * sig.scale + sig.offset, rhi * sig.scale + sig.offset))
+        lo_, hi_ = ends
+        if sig.minimum is not None:
+            lo_ = max(lo_, float(sig.minimum))
+        if sig.maximum is not None:
+            hi_ = min(hi_, float(sig.maximum))
+        return lo_, hi_
 
     def start(self) -> None:
         """Open the python-can bus (and the record file), start reader and writer threads.

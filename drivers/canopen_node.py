@@ -47,6 +47,7 @@ from typing import Any, TypeGuard
 import can
 import canopen
 from canopen.objectdictionary import BOOLEAN, FLOAT_TYPES, INTEGER_TYPES
+from canopen.objectdictionary.datatypes import REAL32, SIGNED_TYPES
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from chcos import parsecache
@@ -104,6 +105,29 @@ def load_od(bus: BusSpec, node_id: int, eds: str) -> Any:
                                  lambda: canopen.import_od(str(path), node_id))
     except Exception as exc:  # canopen raises assorted types for a malformed EDS
         raise ValueError(f"canopen cannot read EDS {path}: {exc}") from exc
+
+
+@functools.lru_cache(maxsize=32)
+def _od_version(path: str, node_id: int, mtime_ns: int, size: int) -> Any:
+    try:
+        return canopen.import_od(path, node_id)
+    except Exception as exc:  # as in load_od
+        raise ValueError(f"canopen cannot read EDS {path}: {exc}") from exc
+
+
+def checked_od(bus: BusSpec, node_id: int, eds: str) -> Any:
+    """:func:`load_od` for the map checks (``check_device``, ``encodable``): one parse per node
+    and version of the EDS file (mtime, size), however many devices use it. The result is
+    shared: read it, never change it (a running node gets its own from :func:`load_od`).
+    Raises ``ValueError`` like :func:`load_od`."""
+    path = eds_path(bus, eds)
+    try:
+        st = path.stat()
+    except OSError:
+        return load_od(bus, node_id, eds)
+    if not path.is_file():
+        return load_od(bus, node_id, eds)
+    return _od_version(str(path), node_id, st.st_mtime_ns, st.st_size)
 
 
 @dataclass
@@ -234,7 +258,7 @@ class CanopenDriver(Driver):
             return errs
         eds = nodes[nid].get("eds")
         try:
-            od = load_od(bus, nid, eds) if isinstance(eds, str) else None
+            od = checked_od(bus, nid, eds) if isinstance(eds, str) else None
         except ValueError:
             return []  # reported by check_bus
         var = od.get_variable(index, sub) if od is not None else None
@@ -247,6 +271,26 @@ class CanopenDriver(Driver):
             errs.append(f"{k}: 0x{index:04X}:{sub:02X} is read-only; an actuator needs a writable "
                         f"object")
         return errs
+
+    @classmethod
+    def encodable(cls, bus: BusSpec, device: DeviceSpec) -> tuple[float, float] | None:
+        """The range of the object's data type in the node's EDS: 0..1 for BOOLEAN, the
+        INTEGERn/UNSIGNEDn ranges, the largest REAL32; None for REAL64 and other types."""
+        a = device.address
+        nodes = {n.get("id"): n for n in bus.options.get("nodes", []) if isinstance(n, Mapping)}
+        var = checked_od(bus, a["node"], str(nodes[a["node"]]["eds"])).get_variable(
+            a["index"], a.get("subindex", 0))
+        dt = var.data_type
+        if dt == BOOLEAN:
+            return 0.0, 1.0
+        if dt == REAL32:
+            return -3.4028234663852886e38, 3.4028234663852886e38
+        if dt not in INTEGER_TYPES:
+            return None
+        bits = 8 * var.STRUCT_TYPES[dt].size
+        if dt in SIGNED_TYPES:
+            return float(-(1 << (bits - 1))), float((1 << (bits - 1)) - 1)
+        return 0.0, float((1 << bits) - 1)
 
     # -- life cycle ---------------------------------------------------------------------------
 

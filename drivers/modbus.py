@@ -7,7 +7,8 @@ Bus options:
   ``socket://127.0.0.1:5020``), ``baudrate`` (19200), ``parity`` (``N``/``E``/``O``), ``stopbits``
   (1/2), ``bytesize`` (7/8).
 * both: ``timeout`` (s per request, 1.0), ``retries`` (1), ``reconnect_delay`` (s, 0.1; doubled
-  after each failed attempt up to ``reconnect_delay_max``, 5.0), ``poll_period`` (s, 0.1).
+  after each failed attempt up to ``reconnect_delay_max``, 5.0), ``poll_period`` (s, 0.1; on a
+  bus with no sensor: the period of the liveness probe, 1.0).
 
 Device address: ``{unit = 1, table = coil|discrete|holding|input, address, type, word_order =
 big|little, poll_period}``; ``type`` is ``bool`` for coils and discrete inputs (the default there)
@@ -21,7 +22,12 @@ in order on an asyncio loop in the driver's own thread; values are converted wit
 Failures: when the connection cannot be made or is lost, every device of the bus fails with the
 reason and the driver reconnects with backoff. A reconnect is not health: on ``modbus-tcp`` the
 devices recover only once a request is answered (a probe read right after the connect; a server
-that accepts connections but does not answer - frozen, SIGSTOPped - keeps them failed). An exception
+that accepts connections but does not answer - frozen, SIGSTOPped - keeps them failed); on
+``modbus-rtu`` an opened port fails the devices (cause ``link``) until a first request is
+answered, so a line whose slave is silent from the start never shows them OK. A bus with only
+actuators reads the first actuator's first entry every ``poll_period`` (default 1 s) as a
+liveness probe, so a dead server fails the devices without waiting for a write and its return
+is noticed (and the safe values written) without one. An exception
 response fails the devices of that request (code and meaning in the reason) until a later request
 for them succeeds. A request timeout counts as a lost link on ``modbus-tcp`` (the connection is
 closed and re-made), and on ``modbus-rtu`` fails only the devices of that request (one unit of the
@@ -68,6 +74,7 @@ WRITABLE = ("coil", "holding")
 READ_METHOD = {"coil": "read_coils", "discrete": "read_discrete_inputs",
                "holding": "read_holding_registers", "input": "read_input_registers"}
 ADDRESS_KEYS = ("unit", "table", "address", "type", "word_order", "poll_period")
+PROBE_PERIOD = 1.0   # s between liveness probes of an actuator-only bus without poll_period
 COMMON_OPTIONS = ("timeout", "retries", "reconnect_delay", "reconnect_delay_max", "poll_period")
 MAX_REGISTERS = 125     # per read request (Modbus application protocol, function 3/4)
 MAX_BITS = 2000         # per read request (function 1/2)
@@ -232,11 +239,12 @@ class _ModbusDriver(Driver):
         self._connected = False
         self._idle = threading.Condition()
         self._pending = 0
-        self._polls_queued: set[float] = set()
+        self._polls_queued: set[float | str] = set()
         self._plans: dict[float, list[ReadRequest]] = {}
         self._points: dict[str, Point] = {}
         self._first_attempt = threading.Event()
         self._answered = True      # a request was answered since the last (re)connect
+        self._units_answered: set[int] = set()   # RTU: the units that did, since then
         self._connects = 0
 
     # -- to be provided by the kinds ----------------------------------------------------------
@@ -297,6 +305,17 @@ class _ModbusDriver(Driver):
         self._first_attempt.wait(timeout + 2.0)
         for period in self._plans:
             self.host.every(period, functools.partial(self._request_poll, period))
+        if not self._plans and self._points:     # actuators only: nothing read would notice
+            self.host.every(float(self.bus.options.get("poll_period", PROBE_PERIOD)),
+                            self._request_probe)
+
+    def _request_probe(self) -> None:
+        """Enqueue one liveness probe of an actuator-only bus (at most one queued)."""
+        with self._idle:
+            if "probe" in self._polls_queued:
+                return
+            self._polls_queued.add("probe")
+        self._submit("probe", None, None)
 
     def stop(self) -> None:
         """Stop the I/O thread and close the connection. Idempotent; never raises."""
@@ -426,12 +445,27 @@ class _ModbusDriver(Driver):
         """Connected - not yet healthy: the link clears on the first answered request."""
         self._connected = True
         self._answered = False
-        if not self.timeout_is_link_loss:  # RTU: the port is open, units are judged by requests
-            self._answer()
+        self._units_answered = set()
+        if not self.timeout_is_link_loss:  # RTU: an open port is not a unit that answers
+            for name, p in self._points.items():
+                self._health.fail(name, "link", f"{self.kind} bus {self.bus.name}: "
+                                                f"{self._link()} is open, unit {p.unit} has not "
+                                                f"answered a request yet")
 
-    def _answer(self) -> None:
-        """A request was answered (with data or an exception): the link works."""
+    def _answer(self, unit: int | None = None) -> None:
+        """A request was answered (with data or an exception): the link works - on RTU for
+        the devices of the ``unit`` that answered (the others stay failed until theirs does)."""
         if self._answered:
+            return
+        if not self.timeout_is_link_loss and unit is not None:
+            if unit in self._units_answered:
+                return
+            self._units_answered.add(unit)
+            for name, p in self._points.items():
+                if p.unit == unit:
+                    self._health.clear(name, "link", f"{self.kind} bus {self.bus.name}: unit "
+                                                     f"{unit} on {self._link()} answered")
+            self._answered = self._units_answered >= {p.unit for p in self._points.values()}
             return
         self._answered = True
         for name in self.devices:
@@ -453,8 +487,32 @@ class _ModbusDriver(Driver):
                                                       f"no answer: {exc}")
             self._link_down(f"{self._link()} accepted the connection but sent no response: {exc}")
             return False
-        self._answer()
+        self._answer(p.unit)
         return True
+
+    async def _liveness(self) -> None:
+        """The periodic probe of an actuator-only bus: read the first actuator's first entry.
+        An answer (data or an exception) means the server is there; none is a lost link on
+        ``modbus-tcp`` (raises ConnectionException: reconnect, probe, recovery) and on
+        ``modbus-rtu`` fails the devices (cause ``link``) until a request is answered."""
+        p = next(iter(self._points.values()))
+        where = f"{self.kind} bus {self.bus.name} probe of unit {p.unit} {p.table} {p.address}"
+        self.host.stat(self.bus.name, "requests")
+        try:
+            await getattr(self._client, READ_METHOD[p.table])(p.address, count=1,
+                                                              device_id=p.unit)
+        except ModbusIOException as exc:
+            kind, what = self._unanswered(where)
+            self.host.error(self.bus.name, kind, f"{where}: {what}: {exc}")
+            if not self._client.connected or self.timeout_is_link_loss:
+                raise ConnectionException(f"no response to the probe: {exc}") from exc
+            self._answered = False
+            self._units_answered.discard(p.unit)
+            for name, q in self._points.items():
+                if q.unit == p.unit:
+                    self._health.fail(name, "link", f"{where}: no answer: {what}")
+            return
+        self._answer(p.unit)
 
     def _link_down(self, why: str) -> None:
         was = self._connected
@@ -486,6 +544,9 @@ class _ModbusDriver(Driver):
         elif op == "poll":
             with self._idle:
                 self._polls_queued.discard(what)
+        elif op == "probe":
+            with self._idle:
+                self._polls_queued.discard("probe")
         self._done()
 
     async def _serve(self) -> None:
@@ -518,6 +579,10 @@ class _ModbusDriver(Driver):
                 self._polls_queued.discard(what)
             for request in self._plans[what]:
                 await self._read(request)
+        elif op == "probe":
+            with self._idle:
+                self._polls_queued.discard("probe")
+            await self._liveness()
         else:
             await self._write(what, value)
 
@@ -537,7 +602,6 @@ class _ModbusDriver(Driver):
                 self._health.fail(p.device, "exception", f"{self.kind} bus {self.bus.name} "
                                   f"{r.describe()} (device {p.device}): {what}")
             return
-        self._answer()
         if resp.isError():
             code = int(getattr(resp, "exception_code", 0))
             for p in r.points:
@@ -548,7 +612,9 @@ class _ModbusDriver(Driver):
                                   f"{self.kind} bus {self.bus.name} {r.describe()} (device "
                                   f"{p.device}): exception code {code} "
                                   f"({EXCEPTION_TEXT.get(code, 'unknown')})")
+            self._answer(r.unit)       # after the new cause: no OK in between
             return
+        self._answer(r.unit)
         entries = resp.bits if r.table in ("coil", "discrete") else resp.registers
         for p in r.points:
             off = p.address - r.address
@@ -590,7 +656,6 @@ class _ModbusDriver(Driver):
             self._health.fail(p.device, "exception", f"{where} (device {p.device}): write not "
                                                      f"answered: {exc}")
             return
-        self._answer()
         if resp.isError():
             code = int(getattr(resp, "exception_code", 0))
             text = (f"{where} (device {p.device}): write refused with exception code "
@@ -598,7 +663,9 @@ class _ModbusDriver(Driver):
             self.host.error(self.bus.name, f"exception-{code}", text, p.device)
             self.host.write_failed(p.device, value, text)
             self._health.fail(p.device, "exception", text)
+            self._answer(p.unit)       # after the new cause: no OK in between
             return
+        self._answer(p.unit)
         self.host.written(p.device, value)
         self._health.clear(p.device, "exception", f"{where}: write answered")
 

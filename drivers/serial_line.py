@@ -399,6 +399,24 @@ class SerialDriver(ThreadedDriver):
             errs.append(f"{key}.prefix: expected hex bytes, got {a.get('prefix')!r}")
         return errs
 
+    @classmethod
+    def encodable(cls, bus: BusSpec, device: DeviceSpec) -> tuple[float, float] | None:
+        """The range of a binary actuator's struct code (0..1 for ``?``, the integer codes'
+        ranges, the largest float16/float32); None for a line actuator and for ``d``."""
+        if bus.options.get("protocol") != "binary":
+            return None
+        fmt = str(device.address.get("struct", ""))
+        code = fmt[-1:]
+        if code == "?":
+            return 0.0, 1.0
+        if code in _INT_CODES:
+            bits = 8 * _struct_of(fmt).size
+            if code.islower():
+                return float(-(1 << (bits - 1))), float((1 << (bits - 1)) - 1)
+            return 0.0, float((1 << bits) - 1)
+        top = {"e": 65504.0, "f": 3.4028234663852886e38}.get(code)
+        return None if top is None else (-top, top)
+
     def command(self, device: str, value: Any) -> bytes:
         """The bytes that set actuator ``device`` to ``value``; raises :class:`BusError`."""
         a = self.devices[device].address

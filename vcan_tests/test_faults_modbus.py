@@ -247,3 +247,51 @@ def test_shutdown_reports_each_safe_value_it_could_not_deliver(
         assert len(busy) == 6                           # 3 attempts for each of the two
     finally:
         s.shutdown()
+
+
+ACTUATORS_ONLY = """
+[[bus]]
+name = "mb"
+kind = "modbus-tcp"
+host = "127.0.0.1"
+port = {port}
+timeout = 0.3
+retries = 0
+reconnect_delay = 0.05
+reconnect_delay_max = 0.2
+poll_period = 0.2
+
+[[device]]
+name = "heater"
+direction = "actuator"
+bus = "mb"
+address = {{ table = "holding", address = {heater}, type = "uint16" }}
+limits = [0, 1000]
+safe_value = 7
+"""
+
+
+def test_an_actuator_only_bus_notices_a_dead_server_without_a_write(
+        tmp_path: Path, peer: ModbusPeer) -> None:
+    path = tmp_path / "mb.toml"
+    path.write_text(ACTUATORS_ONLY.format(port=peer.port, heater=HEATER), encoding="utf-8")
+    s = System([path], clock=VirtualClock(), machines=[0])
+    try:
+        s.devtab.write("heater", 300)
+        s.run_for(0.1)
+        assert peer.holding(HEATER) == 300
+        stats = s.devtab.bus_stats["mb"]
+        before = stats.counts["requests"]
+        assert run_until(s, lambda: stats.counts["requests"] >= before + 2)   # the probes
+        assert [w.address for w in peer.writes()] == [HEATER]                 # reads only
+        peer.kill()
+        assert run_until(s, lambda: status(s, "heater") == "failed")          # no write asked
+        assert "mb" in s.devtab.get("heater").reason
+        peer.start()
+        back = peer.started_at
+        assert run_until(s, lambda: status(s, "heater") == "OK")
+        assert run_until(s, lambda: bool(peer.writes(since=back)))
+        assert [(w.address, w.values) for w in peer.writes(since=back)][:1] == [(HEATER, [7])]
+        assert peer.holding(HEATER) == 7                                      # the safe value
+    finally:
+        s.shutdown()

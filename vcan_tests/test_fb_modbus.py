@@ -252,5 +252,8 @@ def test_rtu_unit_that_does_not_answer_fails_only_its_devices() -> None:
             assert driver.settle(WAIT)
         finally:
             driver.stop()
-    assert host.values("here") == [11] and host.failed("here") == []
-    assert "unit 4 holding 1..1 (device gone)" in host.failed("gone")[0]
+    assert host.values("here") == [11]
+    assert ["unit 3 has not answered a request yet" in r for r in host.failed("here")] == [True]
+    assert host.recoveries == ["here"], host.failures    # unit 4 never showed OK
+    assert "unit 4 has not answered a request yet" in host.failed("gone")[0]
+    assert "unit 4 holding 1..1 (device gone)" in host.failed("gone")[1]

@@ -185,9 +185,127 @@ def test_check_warns_about_legal_maps_that_misbehave(
     assert "device[3]" not in err               # 0..6553.5 is exactly what uint16 * 0.1 carries
 
 
+_DBC = """VERSION ""
+
+NS_ :
+
+BS_:
+
+BU_: GW
+
+BO_ 256 Cmd: 8 GW
+ SG_ Power : 0|8@1+ (0.5,0) [0|100] "%" GW
+ SG_ Speed : 8|16@1- (1,0) [0|0] "" GW
+ SG_ Gain : 32|32@1- (1,0) [0|0] "" GW
+
+SIG_VALTYPE_ 256 Gain : 1;
+"""
+
+
+def _actuator(name: str, bus: str, limits: str, address: str, extra: str = "") -> str:
+    return (f'[[device]]\nname = "{name}"\ndirection = "actuator"\nbus = "{bus}"\n'
+            f'limits = {limits}\nsafe_value = 0\n{extra}address = {address}\n')
+
+
+def test_check_warns_about_limits_beyond_can_canopen_and_serial_types(tmp_path: Path) -> None:
+    dbc = _write(tmp_path, "cell.dbc", _DBC)
+    eds = Path(__file__).resolve().parent.parent / "busconfig" / "eds" / "servo_drive.eds"
+    text = (
+        f'[[bus]]\nname = "c"\nkind = "can"\ninterface = "virtual"\nchannel = "x"\n'
+        f'dbc = "{dbc}"\n'
+        f'[[bus]]\nname = "o"\nkind = "canopen"\ninterface = "virtual"\nchannel = "y"\n'
+        f'nodes = [{{ id = 5, eds = "{eds}" }}]\n'
+        f'[[bus]]\nname = "s"\nkind = "serial"\nurl = "loop://"\nprotocol = "binary"\n'
+        f'sync = "AA"\nstruct = "<h"\nfields = ["a"]\n'
+        # raw CAN: 8 bits unsigned carry 0..255; signed 12 bits -2048..2047 with scale 0.5
+        + _actuator("RawOver", "c", "[0, 256]", "{ id = 0x10, start = 0, length = 8 }")
+        + _actuator("RawFit", "c", "[0, 255]", "{ id = 0x11, start = 0, length = 8 }")
+        + _actuator("RawSignedFit", "c", "[-1024, 1023.5]",
+                    "{ id = 0x12, start = 0, length = 12, signed = true }", "scale = 0.5\n")
+        + _actuator("RawSignedOver", "c", "[-1025, 0]",
+                    "{ id = 0x13, start = 0, length = 12, signed = true }", "scale = 0.5\n")
+        # DBC: Power 0..127.5 on the wire but the DBC allows 0..100; Speed int16; Gain float32
+        + _actuator("PowerOver", "c", "[0, 101]", '{ message = "Cmd", signal = "Power" }')
+        + _actuator("PowerFit", "c", "[0, 100]", '{ message = "Cmd", signal = "Power" }')
+        + _actuator("SpeedOver", "c", "[-40000, 0]", '{ message = "Cmd", signal = "Speed" }')
+        + _actuator("SpeedFit", "c", "[-32768, 32767]", '{ message = "Cmd", signal = "Speed" }')
+        + _actuator("GainFit", "c", "[-1e15, 1e15]", '{ message = "Cmd", signal = "Gain" }')
+        + _actuator("GainOver", "c", "[0, inf]", '{ message = "Cmd", signal = "Gain" }')
+        # CANopen: 0x6040 UNSIGNED16, 0x607A INTEGER32, 0x6081 UNSIGNED32 (scale 0.001)
+        + _actuator("CwOver", "o", "[0, 70000]", "{ node = 5, index = 0x6040 }")
+        + _actuator("CwFit", "o", "[0, 65535]", "{ node = 5, index = 0x6040 }")
+        + _actuator("TargetOver", "o", "[-3e9, 0]", "{ node = 5, index = 0x607A }")
+        + _actuator("TargetFit", "o", "[-2147483648, 2147483647]", "{ node = 5, index = 0x607A }")
+        + _actuator("VelOver", "o", "[-1, 10]", "{ node = 5, index = 0x6081 }",
+                    "scale = 0.001\n")
+        + _actuator("VelFit", "o", "[0, 4294967.295]", "{ node = 5, index = 0x6081 }",
+                    "scale = 0.001\n")
+        # serial binary: <b int8, <H uint16, <f float32 (only open limits exceed it), <? bool
+        + _actuator("ByteOver", "s", "[-129, 0]", '{ struct = "<b" }')
+        + _actuator("ByteFit", "s", "[-128, 127]", '{ struct = "<b" }')
+        + _actuator("WordOver", "s", "[0, 65536]", '{ struct = "<H" }')
+        + _actuator("WordFit", "s", "[0, 65535]", '{ struct = "<H" }')
+        + _actuator("FloatOver", "s", "[0, inf]", '{ struct = "<f" }')
+        + _actuator("FloatFit", "s", "[-1e15, 1e15]", '{ struct = "<f" }')
+        + _actuator("FlagOver", "s", "[0, 2]", '{ struct = "<?" }')
+        + _actuator("DoubleFit", "s", "[-inf, inf]", '{ struct = "<d" }'))
+    cell = _write(tmp_path, "cell.toml", text)
+    dmap, errors, warnings = check(cell)
+    assert dmap is not None and not errors, errors
+    names = [d.name for d in dmap.devices]
+    warned = {names[int(w.split("device[")[1].split("]")[0])] for w in warnings}
+    assert warned == {n for n in names if n.endswith("Over")}, warnings
+    assert all("reach outside what the address can carry" in w for w in warnings), warnings
+    by_name = {names[int(w.split("device[")[1].split("]")[0])]: w for w in warnings}
+    assert "[0, 255] after scale and offset" in by_name["RawOver"]
+    assert "[-1024, 1023.5] after" in by_name["RawSignedOver"]
+    assert "[0, 100] after" in by_name["PowerOver"]          # the DBC's own maximum counts
+    assert "[-32768, 32767] after" in by_name["SpeedOver"]
+    assert "[0, 65535] after" in by_name["CwOver"]
+    assert "[-2.14748e+09, 2.14748e+09] after" in by_name["TargetOver"]
+    assert "[0, 4.29497e+06] after" in by_name["VelOver"]
+    assert "[-128, 127] after" in by_name["ByteOver"]
+    assert "[0, 1] after" in by_name["FlagOver"]
+
+
+def test_check_parses_each_dbc_and_eds_once(tmp_path: Path,
+                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    import canopen
+    import cantools
+
+    loads: list[str] = []
+    real_dbc, real_od = cantools.database.load_file, canopen.import_od
+
+    def load_dbc(path: Any, **kw: Any) -> Any:
+        loads.append("dbc")
+        return real_dbc(path, **kw)
+
+    def import_od(path: Any, node_id: Any = None) -> Any:
+        loads.append("eds")
+        return real_od(path, node_id)
+
+    monkeypatch.setattr(cantools.database, "load_file", load_dbc)
+    monkeypatch.setattr(canopen, "import_od", import_od)
+    dbc = _write(tmp_path, "once.dbc", _DBC)
+    eds = Path(__file__).resolve().parent.parent / "busconfig" / "eds" / "servo_drive.eds"
+    eds_copy = _write(tmp_path, "once.eds", eds.read_text())
+    text = (f'[[bus]]\nname = "c"\nkind = "can"\ninterface = "virtual"\nchannel = "x"\n'
+            f'dbc = "{dbc}"\n'
+            f'[[bus]]\nname = "o"\nkind = "canopen"\ninterface = "virtual"\nchannel = "y"\n'
+            f'nodes = [{{ id = 5, eds = "{eds_copy}" }}]\n'
+            + "".join(_actuator(f"P{i}", "c", "[0, 100]", '{ message = "Cmd", signal = "Power" }')
+                      for i in range(5))
+            + "".join(_actuator(f"C{i}", "o", "[0, 100]", "{ node = 5, index = 0x6040 }")
+                      for i in range(5)))
+    dmap, errors, warnings = check(_write(tmp_path, "once.toml", text))
+    assert dmap is not None and not errors and not warnings, (errors, warnings)
+    assert loads.count("eds") <= 2 and loads.count("dbc") <= 2, loads   # bus check + devices
+
+
 def test_shipped_maps_still_check(tmp_path: Path) -> None:
     root = Path(__file__).resolve().parent.parent / "busconfig"
-    for name in ("fig65.toml", "weld_cell.toml", "weld_direct.toml"):
+    for name in ("fig65.toml", "weld_cell.toml", "weld_direct.toml", "examples/serial_cell.toml",
+                 "examples/bench.toml"):
         dmap, errors, warnings = check(root / name)
         assert dmap is not None and not errors, errors
         assert all("limits" not in w and "stale_after" not in w for w in warnings), warnings

@@ -89,7 +89,8 @@ def test_damaged_answers_are_bus_errors_by_class(rig: Rig) -> None:
     assert rig.relay.damaged == {"crc": 1, "junk": 1, "truncate": 1, "silence": 1}
     assert rig.driver.unanswered == {"crc": 1, "framing": 2, "timeout": 1}
     assert rig.host.error_kinds() == ["crc", "framing", "framing", "timeout"]
-    reasons = rig.host.failed("level")
+    opened, *reasons = rig.host.failed("level")
+    assert "is open, unit 1 has not answered a request yet" in opened    # until the first answer
     assert len(reasons) == 4
     assert "fails its CRC" in reasons[0]
     assert "bytes that are no answer: f700ee" in reasons[1]
@@ -119,13 +120,47 @@ def test_a_missing_unit_fails_only_its_own_devices(rig: Rig) -> None:
         rig.driver.write("out", 10 + i)
         assert rig.driver.settle(WAIT)
         assert rig.slave.wait(lambda s, v=10 + i: s.last_registers()[0][7:8] == [v])
-    assert rig.host.values("here") == [105] * 4 and rig.host.failed("here") == []
+    assert rig.host.values("here") == [105] * 4
+    assert [r for r in rig.host.failed("here") if "has not answered a request" not in r] == []
+    assert rig.host.recoveries.count("here") == 1 and rig.host.recoveries.count("out") == 1
     assert rig.host.values("gone") == []
-    assert rig.host.failed("gone") and "unit 2 input 5..5 (device gone): no response " \
-                                       "(silence)" in rig.host.failed("gone")[0]
+    opened, silent = rig.host.failed("gone")
+    assert "unit 2 has not answered a request yet" in opened
+    assert "unit 2 input 5..5 (device gone): no response (silence)" in silent
+    assert "gone" not in rig.host.recoveries             # never OK: its unit never answered
     assert rig.driver.unanswered == {"timeout": 4}
     assert rig.host.error_kinds() == ["timeout"] * 4
     assert rig.driver._client.connected                  # the port stayed open
+
+
+def test_an_open_port_is_not_health_a_silent_slave_never_shows_ok(rig: Rig) -> None:
+    rig.relay.damage(*["silence"] * 3)                   # the slave silent from the start
+    rig.poll(3)
+    for name in ("level", "setpoint"):
+        assert "is open, unit 1 has not answered a request yet" in rig.host.failed(name)[0], name
+    assert rig.host.recoveries == []                     # never OK while nobody answered
+    assert rig.driver.unanswered == {"timeout": 3} and rig.relay.damaged == {"silence": 3}
+    rig.poll(1)                                          # the slave answers: the link is up
+    assert rig.host.values("level") == [102]
+    assert sorted(rig.host.recoveries) == ["level", "setpoint"]
+
+
+@pytest.mark.parametrize("rig", [[
+    make_device("out", "actuator", "rtu", key="device[0]", unit=UNIT, table="holding",
+                address=7),
+]], indirect=True)
+def test_an_actuator_only_line_is_probed(rig: Rig) -> None:
+    rig.poll(10)                                         # 1 s: the default probe period
+    assert rig.host.recoveries == ["out"]
+    assert rig.slave.wait(lambda s: s.answered == 1)
+    assert b"".join(rig.relay.requests)[:6] == bytes([UNIT, 3, 0, 7, 0, 1])   # read holding 7
+    rig.relay.damage("silence")                          # the slave stops answering
+    rig.poll(10)
+    assert "probe of unit 1 holding 7: no answer: no response (silence)" in \
+        rig.host.failed("out")[-1]
+    assert rig.host.writes == []                         # noticed without a write
+    rig.poll(10)                                         # answers again
+    assert rig.host.recoveries == ["out", "out"]
 
 
 @pytest.mark.parametrize("received, kind, text", [
