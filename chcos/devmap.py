@@ -593,10 +593,10 @@ def check(paths: str | Path | Iterable[str | Path]) -> tuple[DeviceMap | None, l
                                    f"{', '.join(seen_bus) or 'no buses declared'}")
     with parsecache.scope():   # each DBC / EDS file parsed once, not once per device
         classes, refused = _driver_checks(fe_by_file, list(seen_bus.values()), checkable)
+        valid = {id(d) for d in devices} - refused
+        warnings = _warnings(fe_by_file, seen_bus, classes,
+                             [d for d in checkable if id(d) in valid], empty)
     errors = [e for fe in fe_by_file.values() for e in fe.errors]
-    valid = {id(d) for d in devices} - refused
-    warnings = _warnings(fe_by_file, seen_bus, classes,
-                         [d for d in checkable if id(d) in valid], empty)
     if errors:
         return None, errors, warnings
     return (DeviceMap(buses=tuple(buses), devices=tuple(devices), files=tuple(fe_by_file),

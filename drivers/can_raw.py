@@ -43,7 +43,6 @@ from __future__ import annotations
 import contextlib
 import functools
 import math
-import os
 import queue
 import socket
 import struct
@@ -84,20 +83,12 @@ def load_dbc(path: str) -> Any:
         raise BusError(f"DBC file {path}: cannot be loaded: {exc}") from exc
 
 
-@functools.lru_cache(maxsize=16)
-def _dbc_version(path: str, mtime_ns: int, size: int) -> Any:
-    return load_dbc(path)
-
-
 def checked_dbc(path: str) -> Any:
-    """:func:`load_dbc` for the map checks (``check_device``, ``encodable``): one parse per
-    version of the file (path, mtime, size), however many devices use it. The result is shared:
-    read it, never change it. Raises :class:`BusError` naming the file."""
-    try:
-        st = os.stat(path)
-    except OSError:
-        return load_dbc(path)
-    return _dbc_version(path, st.st_mtime_ns, st.st_size)
+    """:func:`load_dbc` for the map checks (``check_device``, ``encodable``): inside a
+    :func:`chcos.parsecache.scope` (``chcos check``, a device-map load) one parse per file,
+    however many devices use it. The result may be shared: read it, never change it. Raises
+    :class:`BusError` naming the file."""
+    return load_dbc(path)
 
 
 def _int_range(length: int, signed: bool) -> tuple[int, int]:

@@ -107,27 +107,12 @@ def load_od(bus: BusSpec, node_id: int, eds: str) -> Any:
         raise ValueError(f"canopen cannot read EDS {path}: {exc}") from exc
 
 
-@functools.lru_cache(maxsize=32)
-def _od_version(path: str, node_id: int, mtime_ns: int, size: int) -> Any:
-    try:
-        return canopen.import_od(path, node_id)
-    except Exception as exc:  # as in load_od
-        raise ValueError(f"canopen cannot read EDS {path}: {exc}") from exc
-
-
 def checked_od(bus: BusSpec, node_id: int, eds: str) -> Any:
-    """:func:`load_od` for the map checks (``check_device``, ``encodable``): one parse per node
-    and version of the EDS file (mtime, size), however many devices use it. The result is
-    shared: read it, never change it (a running node gets its own from :func:`load_od`).
+    """:func:`load_od` for the map checks (``check_device``, ``encodable``): inside a
+    :func:`chcos.parsecache.scope` one parse per node and file, however many devices use it.
+    The result may be shared: read it, never change it (a running node gets its own).
     Raises ``ValueError`` like :func:`load_od`."""
-    path = eds_path(bus, eds)
-    try:
-        st = path.stat()
-    except OSError:
-        return load_od(bus, node_id, eds)
-    if not path.is_file():
-        return load_od(bus, node_id, eds)
-    return _od_version(str(path), node_id, st.st_mtime_ns, st.st_size)
+    return load_od(bus, node_id, eds)
 
 
 @dataclass
