@@ -72,7 +72,10 @@ def test_cross_satellite_preemption(cluster: Cluster) -> None:
                  "setpri -2 LOW W", "setpri -20 HIGH W"):
         h.execute(line)
     h.execute("invoke LOW work=30")
-    cluster.wait_until(lambda d: task(d, "W")["owner"] == "LOW")
+    # LOW owns W and has had W's model's answer (the ask crosses two satellites) before HIGH
+    # takes W: else the answer may already name HIGH
+    cluster.wait_until(lambda d: task(d, "W")["owner"] == "LOW" and
+                       task(d, "LOW")["world"]["command"].get("W serves") == "LOW")
     h.execute("invoke HIGH work=0.5")
     doc = cluster.wait_until(lambda d: link(d, "HIGH", "W")["status"] == "normal completion"
                              and task(d, "W")["owner"] is None)
