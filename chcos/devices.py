@@ -138,8 +138,6 @@ class Devtab:
         msgmgr.devtab = self
         self._entries: dict[str, DeviceEntry] = {}
         self.drivers: list[Driver] = []
-        self.bus_errors: Counter[tuple[str, str]] = Counter()
-        self.last_bus_error: dict[str, str] = {}
         self.on_write: list[Callable[[str, Any], None]] = []
         #: Per bus: frames/requests, errors by class, reconnects (see :class:`BusStats`).
         self.bus_stats: dict[str, BusStats] = {}
@@ -332,6 +330,19 @@ class Devtab:
         with self._stats_lock:
             return {bus: st.as_dict() for bus, st in sorted(self.bus_stats.items())}
 
+    @property
+    def bus_errors(self) -> Counter[tuple[str, str]]:
+        """Errors by (bus, class), a copy derived from :attr:`bus_stats`."""
+        with self._stats_lock:
+            return Counter({(bus, kind): n for bus, st in self.bus_stats.items()
+                            for kind, n in st.errors.items() if n})
+
+    @property
+    def last_bus_error(self) -> dict[str, str]:
+        """The last error's text per bus (``"class: detail"``), derived from :attr:`bus_stats`."""
+        with self._stats_lock:
+            return {bus: st.last_error for bus, st in self.bus_stats.items() if st.last_error}
+
     def add_health_listener(self, fn: Callable[[str, bool, str], None]) -> None:
         """Call ``fn(device, healthy, cause)`` on the kernel thread whenever a device's health
         changes: ``healthy`` False with the failure's cause, True with the event that ended it."""
@@ -457,8 +468,6 @@ class Devtab:
     def _bus_error(self, bus: str, kind: str, detail: str, count: bool = True) -> None:
         if count:
             self._count(bus, kind, "", error=True)
-        self.bus_errors[(bus, kind)] += 1
-        self.last_bus_error[bus] = f"{kind}: {detail}"
         with self._stats_lock:
             st = self.bus_stats.get(bus)
             if st is not None:
