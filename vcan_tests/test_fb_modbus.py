@@ -221,7 +221,8 @@ def test_tcp_server_that_accepts_but_never_answers_is_a_lost_link() -> None:
         mute.bind(("127.0.0.1", 0))
         mute.listen(8)
         port = mute.getsockname()[1]
-        bus = tcp_bus(port, timeout=0.05)
+        # a long back-off: exactly one attempt before stop, however slow the machine
+        bus = tcp_bus(port, timeout=0.05, reconnect_delay=60.0, reconnect_delay_max=60.0)
         driver = ModbusTcpDriver(bus, [make_device("x", "sensor", "mb", table="input",
                                                    address=0)], host)
         driver.start()
