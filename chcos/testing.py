@@ -3,7 +3,7 @@
 Registered through the ``pytest11`` entry point, so any project with chcos installed gets the
 ``chcos_cell`` fixture. ``chcos_cell("system.toml")`` builds the system that file describes on
 virtual time against simulated slaves generated from its device maps
-(:mod:`chcos.sim.from_map`), runs its install script, and returns a :class:`TestCell` to drive
+(:mod:`chcos.apps.sim.from_map`), runs its install script, and returns a :class:`TestCell` to drive
 and read it; every cell is shut down (actuators at their safe values) when the test ends::
 
     def test_valve_opens(chcos_cell):
@@ -26,8 +26,8 @@ from typing import TYPE_CHECKING, Any
 import pytest
 
 if TYPE_CHECKING:  # the plugin loads in every pytest run: import chcos only when used
-    from chcos.cellrun import Cell
-    from chcos.tasks import TaskEntry
+    from chcos.cli.cellrun import Cell
+    from chcos.tables.tasks import TaskEntry
 
 
 class TestCell:
@@ -139,7 +139,7 @@ def chcos_cell(request: pytest.FixtureRequest,
     """Factory ``chcos_cell(system_file, outputs=True)`` -> :class:`TestCell`: the system on
     virtual time against simulated slaves; a relative path starts at the pytest root
     directory. Every cell is shut down at the end of the test."""
-    from chcos.cellrun import open_cell
+    from chcos.cli.cellrun import open_cell
 
     stack = ExitStack()
     built = [0]

@@ -1,6 +1,6 @@
 """base - the one abstract base every bus driver implements, and the host interface it talks to.
 
-A driver owns one bus (a :class:`chcos.devspec.BusSpec`) and the devices on it. All its bus I/O
+A driver owns one bus (a :class:`chcos.devices.spec.BusSpec`) and the devices on it. All its bus I/O
 runs outside the kernel thread (python-can notifier threads, an asyncio loop for pymodbus, a reader
 thread for serial); it reaches the kernel only through the thread-safe :class:`DriverHost` calls.
 """
@@ -12,7 +12,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from typing import Any, ClassVar, Protocol
 
-from chcos.devspec import BusSpec, DeviceSpec
+from chcos.devices.spec import BusSpec, DeviceSpec
 
 
 def not_finite(value: Any) -> str | None:

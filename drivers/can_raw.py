@@ -56,8 +56,8 @@ import cantools
 from cantools.database.can import Message as DbcMessage
 from cantools.database.can import Signal as DbcSignal
 
-from chcos import parsecache
-from chcos.devspec import BusSpec, DeviceSpec
+from chcos.devices import parsecache
+from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError
 from drivers.base import DriverHost, not_finite
 from drivers.recording import LOG_SUFFIXES, Recorder
@@ -74,7 +74,8 @@ def _int(v: object) -> TypeGuard[int]:
 
 
 def load_dbc(path: str) -> Any:
-    """Load a DBC file with cantools (once per device-map load, see :mod:`chcos.parsecache`);
+    """Load a DBC file with cantools (once per device-map load, see
+    :mod:`chcos.devices.parsecache`);
     raises :class:`BusError` naming the file."""
     try:
         return parsecache.cached("dbc", path, None, lambda: cantools.database.load_file(
@@ -85,7 +86,7 @@ def load_dbc(path: str) -> Any:
 
 def checked_dbc(path: str) -> Any:
     """:func:`load_dbc` for the map checks (``check_device``, ``encodable``): inside a
-    :func:`chcos.parsecache.scope` (``chcos check``, a device-map load) one parse per file,
+    :func:`chcos.devices.parsecache.scope` (``chcos check``, a device-map load) one parse per file,
     however many devices use it. The result may be shared: read it, never change it. Raises
     :class:`BusError` naming the file."""
     return load_dbc(path)

@@ -50,8 +50,8 @@ from canopen.objectdictionary import BOOLEAN, FLOAT_TYPES, INTEGER_TYPES
 from canopen.objectdictionary.datatypes import REAL32, SIGNED_TYPES
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
-from chcos import parsecache
-from chcos.devspec import BusSpec, DeviceSpec
+from chcos.devices import parsecache
+from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError
 from drivers.base import Driver, DriverHost, not_finite
 from drivers.can_raw import read_frames
@@ -109,7 +109,7 @@ def load_od(bus: BusSpec, node_id: int, eds: str) -> Any:
 
 def checked_od(bus: BusSpec, node_id: int, eds: str) -> Any:
     """:func:`load_od` for the map checks (``check_device``, ``encodable``): inside a
-    :func:`chcos.parsecache.scope` one parse per node and file, however many devices use it.
+    :func:`chcos.devices.parsecache.scope` one parse per node and file, however many devices use it.
     The result may be shared: read it, never change it (a running node gets its own).
     Raises ``ValueError`` like :func:`load_od`."""
     return load_od(bus, node_id, eds)

@@ -55,7 +55,7 @@ from pymodbus.client.mixin import ModbusClientMixin
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 from pymodbus.framer import FramerRTU, FramerType
 
-from chcos.devspec import BusSpec, DeviceSpec
+from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError
 from drivers.base import Driver, DriverHost
 from drivers.health import Health

@@ -49,7 +49,7 @@ from typing import Any
 
 import serial
 
-from chcos.devspec import BusSpec, DeviceSpec
+from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError
 from drivers.base import DriverHost, not_finite
 from drivers.threaded import ThreadedDriver

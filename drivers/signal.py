@@ -25,7 +25,7 @@ import random
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, TypeGuard
 
-from chcos.devspec import BusSpec, DeviceSpec
+from chcos.devices.spec import BusSpec, DeviceSpec
 from drivers.base import DriverHost
 from drivers.memory import MemoryDriver
 

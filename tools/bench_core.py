@@ -22,11 +22,11 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from chcos.clock import VirtualClock
-from chcos.devspec import DeviceMap
-from chcos.instrument import Instrument
-from chcos.system import System
-from chcos.usrmgr import TaskContext
+from chcos.devices.spec import DeviceMap
+from chcos.kernel.clock import VirtualClock
+from chcos.kernel.instrument import Instrument
+from chcos.system.embedded import System
+from chcos.user.context import TaskContext
 
 
 async def producer(ctx: TaskContext, n: int) -> None:

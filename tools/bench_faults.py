@@ -22,8 +22,8 @@ from typing import Any
 
 import can
 
-from chcos.clock import RealClock
-from chcos.system import System
+from chcos.kernel.clock import RealClock
+from chcos.system.embedded import System
 from vcan_tests.netutil import free_port, unique_channel
 from vcan_tests.support_faults import ModbusPeer
 
@@ -99,7 +99,7 @@ address = {{ table = "holding", address = 10, poll_period = 0.02 }}
 
 def canopen_bus(tmp: Path, runs: int) -> dict[str, list[float]]:
     """e-stop and heartbeat-back to safe value (SDO download), against canopen's LocalNode."""
-    from chcos.sim.canopen_slave import SERVO_EDS
+    from chcos.apps.sim.canopen_slave import SERVO_EDS
     from vcan_tests.test_faults_canopen import MAP, NODE, SPEED, Peer
 
     channel = unique_channel("bench")

@@ -32,8 +32,8 @@ from typing import Any
 import canopen
 from pymodbus.client import AsyncModbusTcpClient
 
-from chcos.devspec import BusSpec, DeviceSpec
-from chcos.sim.canopen_slave import SERVO_EDS, CanopenSlave
+from chcos.apps.sim.canopen_slave import SERVO_EDS, CanopenSlave
+from chcos.devices.spec import BusSpec, DeviceSpec
 from drivers.canopen_node import CanopenDriver
 from drivers.modbus import ModbusTcpDriver
 
@@ -181,7 +181,7 @@ class ModbusServerProcess:
         self.proc: subprocess.Popen[str] | None = None
 
     def __enter__(self) -> ModbusServerProcess:
-        code = f"from chcos.sim.modbus_server import main; main(['--port', '{self.port}'])"
+        code = f"from chcos.apps.sim.modbus_server import main; main(['--port', '{self.port}'])"
         self.proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,
                                      text=True)
         assert self.proc.stdout is not None

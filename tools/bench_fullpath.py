@@ -26,9 +26,9 @@ import can
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from chcos.clock import RealClock
-from chcos.system import System
-from chcos.usrmgr import TaskContext
+from chcos.kernel.clock import RealClock
+from chcos.system.embedded import System
+from chcos.user.context import TaskContext
 
 MAP = """
 [[bus]]

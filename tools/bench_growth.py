@@ -8,8 +8,8 @@ For sizes N = 10², 10³, 10⁴ (--sizes to change) it times, in one process:
 2. ``install+map``: the same with sysfile.map kept current (the map on disk at the end holds
    all N tasks; the number of map writes is printed);
 3. ``devmap load``: a device map of N sensors on one DBC-decoded CAN bus, loaded and validated
-   (``chcos.devmap.load``: TOML, checks, the DBC parsed — the parse count is printed);
-4. ``chcos check``: the same map through ``chcos check`` (``chcos.devmap.check_main``).
+   (``chcos.devices.devmap.load``: TOML, checks, the DBC parsed — the parse count is printed);
+4. ``chcos check``: the same map through ``chcos check`` (``chcos.devices.devmap.check_main``).
 Prints seconds per size, the growth exponent between successive sizes (1.0 = linear, 2.0 =
 quadratic) and a least-squares exponent over all sizes, beside the issue's targets (10,000
 installs ≤ 1 s, ≤ 2 s with the map; 1,000 devices ≤ 0.5 s; check of 5,000 devices ≤ 2 s — the
@@ -37,10 +37,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import cantools
 
-from chcos import devmap
-from chcos.clock import VirtualClock
-from chcos.system import System
-from chcos.usrmgr import TaskContext
+from chcos.devices import devmap
+from chcos.kernel.clock import VirtualClock
+from chcos.system.embedded import System
+from chcos.user.context import TaskContext
 
 CODE = "tools.bench_growth:idle"
 

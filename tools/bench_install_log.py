@@ -27,9 +27,9 @@ from typing import Any
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from chcos import sysfile  # noqa: E402
-from chcos.host import Host  # noqa: E402
-from chcos.usrmgr import TaskContext  # noqa: E402
+from chcos.satellites import sysfile  # noqa: E402
+from chcos.satellites.host import Host  # noqa: E402
+from chcos.user.context import TaskContext  # noqa: E402
 from vcan_tests.netutil import free_port  # noqa: E402
 
 
@@ -54,7 +54,7 @@ def run(tasks: int, machines: int, late: int) -> dict[str, Any]:
         started[m] = time.monotonic()
         log = open(tmp / f"sat{m}.log", "ab")  # noqa: SIM115 - the child keeps it
         procs[m] = subprocess.Popen(
-            [sys.executable, "-m", "chcos.cli", "satellite", "-m", str(m), "--system",
+            [sys.executable, "-m", "chcos.cli.main", "satellite", "-m", str(m), "--system",
              str(sf.path)], cwd=ROOT, env=env, stdout=log, stderr=log)
 
     early = list(range(machines - late))

@@ -25,7 +25,7 @@ import threading
 import time
 from pathlib import Path
 
-from chcos.link import LinkConfig, MessageKind, Transport
+from chcos.comm import LinkConfig, MessageKind, Transport
 
 REPO = Path(__file__).resolve().parent.parent
 PING = "bench/ping"

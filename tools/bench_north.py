@@ -26,12 +26,12 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from chcos.clock import RealClock
-from chcos.devspec import BusSpec, DeviceMap, DeviceSpec
+from chcos.devices.spec import BusSpec, DeviceMap, DeviceSpec
+from chcos.kernel.clock import RealClock
 from chcos.north.opcua import OpcUaServer
 from chcos.north.opcua_process import OpcUaProcess
-from chcos.system import System
-from chcos.usrmgr import TaskContext
+from chcos.system.embedded import System
+from chcos.user.context import TaskContext
 
 N = 8
 CLIENTS = """

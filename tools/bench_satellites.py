@@ -35,9 +35,9 @@ from typing import Any
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from chcos import sysfile  # noqa: E402
-from chcos.host import Host  # noqa: E402
-from chcos.usrmgr import TaskContext  # noqa: E402
+from chcos.satellites import sysfile  # noqa: E402
+from chcos.satellites.host import Host  # noqa: E402
+from chcos.user.context import TaskContext  # noqa: E402
 from vcan_tests.netutil import free_port  # noqa: E402
 
 
@@ -118,7 +118,7 @@ class Cluster:
         self.sf = sysfile.load(self.tmp / "system.toml")
         env = dict(os.environ, PYTHONPATH=str(ROOT))
         self.procs = [subprocess.Popen(
-            [sys.executable, "-m", "chcos.cli", "satellite", "-m", str(m), "--system",
+            [sys.executable, "-m", "chcos.cli.main", "satellite", "-m", str(m), "--system",
              str(self.sf.path)], cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL) for m in range(machines)]
         self.host = Host(self.sf, timeout=30.0)
@@ -200,8 +200,8 @@ def _raw_transport(port: int, peer: int, system: str | None, machine: int) -> An
     """A bare transport: chcos' plain-TCP configuration, or (``system``: a system file naming
     both ports) exactly what a satellite of that system uses: mutual TLS, user/password and a
     seal on every payload."""
-    from chcos.link.config import LinkConfig
-    from chcos.link.transport import Transport
+    from chcos.comm.config import LinkConfig
+    from chcos.comm.transport import Transport
 
     if system is None:
         return Transport(LinkConfig(port, (peer,)))
@@ -237,7 +237,7 @@ def _raw_receiver(port: int, peer: int, count: int, system: str | None = None) -
 
 def _raw_sender(port: int, peer: int, count: int, rate: int, system: str | None = None) -> None:
     """The bare-transport sender process: ``count`` stamps at ``rate`` per second."""
-    from chcos.link.codec import MessageKind
+    from chcos.comm.codec import MessageKind
 
     with _raw_transport(port, peer, system, 1) as t:
         up = threading.Event()

@@ -45,9 +45,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import can
 
-from chcos.bench import emergency, fig66
-from chcos.bench.stats import Summary, summarize
-from chcos.bench.svg import Series, write_ecdf_svg
+from chcos.apps.bench import emergency, fig66
+from chcos.apps.bench.stats import Summary, summarize
+from chcos.apps.bench.svg import Series, write_ecdf_svg
 from tools import bench_core, bench_fullpath
 
 ROOT = Path(__file__).resolve().parent.parent

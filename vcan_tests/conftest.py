@@ -12,9 +12,9 @@ from typing import Any
 
 import pytest
 
-from chcos.clock import VirtualClock
-from chcos.devspec import BusSpec, DeviceMap, DeviceSpec
-from chcos.system import System
+from chcos.devices.spec import BusSpec, DeviceMap, DeviceSpec
+from chcos.kernel.clock import VirtualClock
+from chcos.system.embedded import System
 
 MakeSystem = Callable[..., System]
 

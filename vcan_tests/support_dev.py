@@ -13,7 +13,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from chcos.devspec import BusSpec, DeviceSpec
+from chcos.devices.spec import BusSpec, DeviceSpec
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "busconfig" / "examples"
 CELL_DBC = EXAMPLES / "cell.dbc"

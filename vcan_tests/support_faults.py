@@ -15,7 +15,7 @@ from pathlib import Path
 
 from pyModbusTCP.client import ModbusClient
 
-from chcos.system import System
+from chcos.system.embedded import System
 
 ROOT = Path(__file__).resolve().parent.parent
 WAIT = 20.0   # generous wall-clock bound for anything that involves a peer process

@@ -121,8 +121,8 @@ class FakeHost:
 
 def make_device(name: str, direction: str, bus: str, key: str = "device[0]",
                 **address: Any) -> Any:
-    """A :class:`chcos.devspec.DeviceSpec` on ``bus`` with ``address``."""
-    from chcos.devspec import DeviceSpec
+    """A :class:`chcos.devices.spec.DeviceSpec` on ``bus`` with ``address``."""
+    from chcos.devices.spec import DeviceSpec
 
     return DeviceSpec(name=name, direction=direction, machine=0, bus=bus,  # type: ignore[arg-type]
                       address=address, key=key)

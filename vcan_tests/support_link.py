@@ -1,7 +1,7 @@
 """support_link - helpers for the link tests: a child satellite process and thread-safe collectors.
 
 Run as a child process: ``python -m vcan_tests.support_link --listen P --connect Q ...``. The
-child opens a :class:`chcos.link.Transport`, optionally serves a key with a fixed answer, echoes
+child opens a :class:`chcos.comm.Transport`, optionally serves a key with a fixed answer, echoes
 one key onto another, watches liveliness tokens (printing ``join``/``leave`` events) and
 announces a token, then prints one JSON line ``{"event": "ready", "zid": ..., "peers": [...]}``
 on stdout; with ``--fetch KEY TOKEN`` it then waits for TOKEN to join (it must
@@ -28,7 +28,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from chcos.link import (
+from chcos.comm import (
     LinkConfig,
     MessageKind,
     TlsSettings,
@@ -36,7 +36,7 @@ from chcos.link import (
     UsrPwdAuth,
     enable_zenoh_logging,
 )
-from chcos.link.config import DEFAULT_LEASE_MS
+from chcos.comm.config import DEFAULT_LEASE_MS
 
 REPO = Path(__file__).resolve().parent.parent
 WAIT = 10.0  # seconds: upper bound of any single wait in the link tests

@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 from typing import IO, Any
 
-from chcos.usrmgr import TaskContext
+from chcos.user.context import TaskContext
 
 ROOT = Path(__file__).resolve().parent.parent
 SUBNET = "10.19.0"
@@ -186,9 +186,9 @@ async def stopper(ctx: TaskContext, cmd: Any) -> None:
 
 def main() -> int:
     """The host driver: one JSON request per input line, one JSON answer per output line."""
-    from chcos import sysfile
     from chcos.errors import ChcosError
-    from chcos.host import Host
+    from chcos.satellites import sysfile
+    from chcos.satellites.host import Host
 
     sf = sysfile.load(sys.argv[1])
     with Host(sf, timeout=20.0, settle=5.0) as host:

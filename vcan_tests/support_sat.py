@@ -12,9 +12,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from chcos import sysfile
-from chcos.host import Host
-from chcos.usrmgr import TaskContext
+from chcos.satellites import sysfile
+from chcos.satellites.host import Host
+from chcos.user.context import TaskContext
 from vcan_tests.netutil import free_port
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -100,7 +100,7 @@ class Cluster:
         env = dict(os.environ, PYTHONPATH=str(ROOT))
         log = open(self.tmp / f"sat{machine}.log", "ab")  # noqa: SIM115 - the child keeps it
         self.procs[machine] = subprocess.Popen(
-            [sys.executable, "-m", "chcos.cli", "-v", "satellite", "-m", str(machine),
+            [sys.executable, "-m", "chcos.cli.main", "-v", "satellite", "-m", str(machine),
              "--system", str(self.sf.path)], cwd=ROOT, env=env, stdout=log, stderr=log,
             stdin=subprocess.DEVNULL)
 

@@ -12,14 +12,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from chcos.clock import Clock, VirtualClock
-from chcos.devspec import BusSpec, DeviceMap, DeviceSpec
-from chcos.examples import fig65
-from chcos.examples.fig65.common import condense
-from chcos.fig65run import default_devmap
+from chcos.apps import fig65
+from chcos.apps.fig65.common import condense
+from chcos.apps.fig65.runner import default_devmap
+from chcos.devices.spec import BusSpec, DeviceMap, DeviceSpec
+from chcos.kernel.clock import Clock, VirtualClock
 from chcos.north.auth import User, Users, hash_password
-from chcos.system import System
-from chcos.usrmgr import TaskContext
+from chcos.system.embedded import System
+from chcos.user.context import TaskContext
 from chcos.viewer.snapshot import EventLog
 
 CHROMIUM = Path("/usr/bin/chromium")

@@ -1,6 +1,7 @@
 """support_weldcell - run the welding job for the weldcell scenario tests and keep what it did.
 
-:func:`run_job` builds the cell (:func:`chcos.weldrun.open_cell`) on a binding, starts the job,
+:func:`run_job` builds the cell (:func:`chcos.apps.weld.runner.open_cell`) on a binding, starts the
+job,
 runs it on virtual time until it has an outcome (or a limit), and returns a :class:`JobRun`
 holding everything the tests check, captured *before* the shutdown writes its safe values.
 :func:`faulty_b4` is the test-only task that makes a task raise mid-weld.
@@ -12,9 +13,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from chcos.usrmgr import TaskContext
-from chcos.weld.tasks import B4
-from chcos.weldrun import Cell, open_cell
+from chcos.apps.weld.runner import Cell, open_cell
+from chcos.apps.weld.tasks import B4
+from chcos.user.context import TaskContext
 
 M = "vcan_tests.support_weldcell"
 FAIL_ON_WELD_MOVE = 150

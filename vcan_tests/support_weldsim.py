@@ -1,6 +1,7 @@
 """support_weldsim - a System on a VirtualClock attached to a WeldSim over real protocols.
 
-:func:`make_rig` binds a copy of ``busconfig/weld_cell.toml`` to fresh virtual CAN channels and
+:func:`make_rig` binds a copy of ``chcos/apps/weld/maps/weld_cell.toml`` to fresh virtual CAN
+channels and
 free loopback ports, builds the simulator (first: the drivers connect to it), boots machine 0,
 installs three trivial tasks (:func:`act`) whose inputs and outputs are every device of the cell,
 and attaches the simulator to the kernel. Tasks are commanded with :meth:`WeldRig.command`.
@@ -13,13 +14,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from chcos.clock import VirtualClock
-from chcos.devices import DeviceEntry
-from chcos.sim.weld import WeldSim, cell_devmap
-from chcos.system import System
-from chcos.usrmgr import TaskContext
-from chcos.weld.faults import Scenario
-from chcos.weld.model import CellConfig
+from chcos.apps.weld.faults import Scenario
+from chcos.apps.weld.model import CellConfig
+from chcos.apps.weld.plant import WeldSim, cell_devmap
+from chcos.devices.devtab import DeviceEntry
+from chcos.kernel.clock import VirtualClock
+from chcos.system.embedded import System
+from chcos.user.context import TaskContext
 from vcan_tests.netutil import free_port, unique_channel
 
 M = "vcan_tests.support_weldsim"

@@ -1,4 +1,4 @@
-"""The NBS executor run on a chcos System by chcos.nbs.adapter: the kernel clock drives its
+"""The NBS executor run on a chcos System by chcos.apps.nbs.adapter: the kernel clock drives its
 cycle (exact counts on virtual time) and the Devtab is its device I/O."""
 
 from __future__ import annotations
@@ -7,9 +7,9 @@ import math
 
 import pytest
 
+from chcos.apps.nbs.adapter import DevtabIO, KernelScheduler, attach
+from chcos.apps.nbs.executor import Level, LevelContext
 from chcos.errors import DeviceError, KernelError
-from chcos.nbs.adapter import DevtabIO, KernelScheduler, attach
-from chcos.nbs.executor import Level, LevelContext
 from vcan_tests.conftest import MakeSystem, memory_map
 
 

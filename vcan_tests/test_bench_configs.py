@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from chcos import devmap
+from chcos.devices import devmap
 from tools import bench_satellites
 
 

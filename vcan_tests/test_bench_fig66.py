@@ -9,10 +9,10 @@ from fractions import Fraction
 
 import pytest
 
-from chcos.bench import emergency, fig66
-from chcos.clock import VirtualClock
-from chcos.devspec import BusSpec, DeviceMap, DeviceSpec
+from chcos.apps.bench import emergency, fig66
+from chcos.devices.spec import BusSpec, DeviceMap, DeviceSpec
 from chcos.errors import ConfigError
+from chcos.kernel.clock import VirtualClock
 
 RATES = {s: Fraction(10) for s in fig66.INPUTS}
 

@@ -9,9 +9,9 @@ import xml.etree.ElementTree as ET
 
 import pytest
 
-from chcos.bench.fig66 import ReactionProbe
-from chcos.bench.stats import StatsError, ecdf, percentile, summarize
-from chcos.bench.svg import Series, ecdf_svg
+from chcos.apps.bench.fig66 import ReactionProbe
+from chcos.apps.bench.stats import StatsError, ecdf, percentile, summarize
+from chcos.apps.bench.svg import Series, ecdf_svg
 from chcos.errors import ChcosError
 
 

@@ -15,17 +15,17 @@ import canopen
 import cantools
 import pytest
 
-from chcos import devmap, parsecache, sysmap
-from chcos.clock import RealClock, VirtualClock
+from chcos.apps import fig65
+from chcos.apps.fig65.runner import default_devmap
+from chcos.apps.weld.runner import open_cell
+from chcos.devices import devmap, parsecache
 from chcos.errors import BusError
-from chcos.examples import fig65
-from chcos.fig65run import default_devmap
-from chcos.messages import TOP_PRIORITY, EndpointKind, LinkType, TapPort
-from chcos.sysmgr import SystemManager
-from chcos.system import System
-from chcos.tasks import Role, TaskEntry
-from chcos.usrmgr import TaskContext
-from chcos.weldrun import open_cell
+from chcos.kernel.clock import RealClock, VirtualClock
+from chcos.system.embedded import System, sysmap
+from chcos.system.manager import SystemManager
+from chcos.tables.messages import TOP_PRIORITY, EndpointKind, LinkType, TapPort
+from chcos.tables.tasks import Role, TaskEntry
+from chcos.user.context import TaskContext
 from drivers.can_raw import load_dbc
 
 M = "vcan_tests.test_core_growth"
@@ -95,7 +95,7 @@ def test_eds_files_are_parsed_once_per_node_per_load(monkeypatch: pytest.MonkeyP
         return real(path, node_id)
 
     monkeypatch.setattr(canopen, "import_od", counting)
-    dm = devmap.load(ROOT / "busconfig" / "weld_cell.toml")
+    dm = devmap.load(ROOT / "chcos" / "apps" / "weld" / "maps" / "weld_cell.toml")
     canopen_buses = [b for b in dm.buses if b.kind == "canopen"]
     nodes = sum(len(b.options["nodes"]) for b in canopen_buses)
     devices = [d for d in dm.devices if d.bus in {b.name for b in canopen_buses}]

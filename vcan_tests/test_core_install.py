@@ -9,14 +9,13 @@ from typing import Any
 
 import pytest
 
-from chcos import cmdline, sysmap
-from chcos.clock import VirtualClock
+from chcos.apps import fig65
 from chcos.errors import CommandSyntaxError, InstallError, MessageError
-from chcos.examples import fig65
-from chcos.messages import LinkType
-from chcos.system import System
-from chcos.usrmgr import TaskContext
-from chcos.worldmodel import WorldModel
+from chcos.kernel.clock import VirtualClock
+from chcos.system.embedded import System, cmdline, sysmap
+from chcos.tables.messages import LinkType
+from chcos.user.context import TaskContext
+from chcos.user.worldmodel import WorldModel
 from vcan_tests.conftest import MakeSystem, memory_map
 
 M = "vcan_tests.test_core_install"
@@ -72,7 +71,7 @@ async def assassin(ctx: TaskContext, cmd: dict[str, Any]) -> None:
 
 def _fig65(tmp_path: Path) -> System:
     shutil.copy(fig65.HERE / "testfile", tmp_path / "testfile")
-    return System([ROOT / "busconfig" / "fig65.toml"], clock=VirtualClock(),
+    return System([ROOT / "chcos" / "apps" / "fig65" / "fig65.toml"], clock=VirtualClock(),
                   task_path=[fig65.HERE], base_dir=tmp_path, map_path=tmp_path / "sysfile.map")
 
 

@@ -9,12 +9,12 @@ from typing import Any
 
 import pytest
 
-from chcos.clock import RealClock, VirtualClock
 from chcos.errors import KernelError
-from chcos.instrument import Counters, Instrument
-from chcos.kernel import BLOCK, YIELD, Kernel
-from chcos.sem import Semaphore
-from chcos.tasks import TaskEntry, TaskState
+from chcos.kernel.clock import RealClock, VirtualClock
+from chcos.kernel.instrument import Counters, Instrument
+from chcos.kernel.scheduler import BLOCK, YIELD, Kernel
+from chcos.kernel.sem import Semaphore
+from chcos.tables.tasks import TaskEntry, TaskState
 
 
 @types.coroutine

@@ -7,9 +7,9 @@ from typing import Any
 import pytest
 
 from chcos.errors import Busy, QueueOverflow, ReadTimeout, SensorFailure
-from chcos.messages import LinkStatus
-from chcos.tasks import TaskState
-from chcos.usrmgr import TaskContext
+from chcos.tables.messages import LinkStatus
+from chcos.tables.tasks import TaskState
+from chcos.user.context import TaskContext
 from vcan_tests.conftest import MakeSystem, memory_map
 
 M = "vcan_tests.test_core_messages"

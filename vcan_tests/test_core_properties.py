@@ -14,14 +14,14 @@ from typing import Any
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from chcos.clock import VirtualClock
-from chcos.devspec import DeviceMap
+from chcos.devices.spec import DeviceMap
 from chcos.errors import ReadTimeout
-from chcos.instrument import Instrument
-from chcos.messages import InPort
-from chcos.system import System
-from chcos.tasks import TaskEntry
-from chcos.usrmgr import TaskContext
+from chcos.kernel.clock import VirtualClock
+from chcos.kernel.instrument import Instrument
+from chcos.system.embedded import System
+from chcos.tables.messages import InPort
+from chcos.tables.tasks import TaskEntry
+from chcos.user.context import TaskContext
 
 M = "vcan_tests.test_core_properties"
 

@@ -10,15 +10,14 @@ from typing import Any
 
 import pytest
 
-from chcos import sysmap
-from chcos.clock import VirtualClock
-from chcos.cmdline import Install, parse
+from chcos.apps.weld.runner import SAFE_DEVICES, open_cell
 from chcos.errors import CommandSyntaxError, MessageError, ReadTimeout, SensorFailure
-from chcos.messages import LinkStatus
-from chcos.system import System
-from chcos.tasks import TaskState
-from chcos.usrmgr import Event, TaskContext
-from chcos.weldrun import SAFE_DEVICES, open_cell
+from chcos.kernel.clock import VirtualClock
+from chcos.system.cmdline import Install, parse
+from chcos.system.embedded import System, sysmap
+from chcos.tables.messages import LinkStatus
+from chcos.tables.tasks import TaskState
+from chcos.user.context import Event, TaskContext
 from vcan_tests.conftest import MakeSystem, memory_map
 
 M = "vcan_tests.test_core_semantics"
@@ -122,7 +121,7 @@ def _world(s: System, task: str) -> dict[str, Any]:
 
 
 def _events(s: System) -> list[tuple[str, str]]:
-    from chcos.instrument import Instrument
+    from chcos.kernel.instrument import Instrument
 
     got: list[tuple[str, str]] = []
 

@@ -7,7 +7,7 @@ from typing import Any
 
 import pytest
 
-from chcos.sim.can_device import CanDeviceSim
+from chcos.apps.sim.can_device import CanDeviceSim
 from drivers.base import Driver
 from drivers.can_raw import CanCodec, CanDriver
 from vcan_tests.netutil import unique_channel

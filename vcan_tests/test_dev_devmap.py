@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from chcos.devmap import check_main, load
+from chcos.devices.devmap import check_main, load
 from chcos.errors import ConfigError
 from vcan_tests.support_dev import CELL_DBC, EXAMPLES
 
@@ -22,7 +22,7 @@ def write(tmp: Path, name: str, text: str) -> Path:
 
 
 def test_fig65_loads_with_defaults_and_open_limits(tmp_path: Path) -> None:
-    dm = load(ROOT / "busconfig" / "fig65.toml")
+    dm = load(ROOT / "chcos" / "apps" / "fig65" / "fig65.toml")
     assert [d.name for d in dm.devices] == ["S1", "S2", "S3", "M1", "M2"]
     assert {d.name: d.machine for d in dm.devices} == {"S1": 0, "S2": 0, "S3": 1, "M1": 0,
                                                         "M2": 1}
@@ -139,7 +139,7 @@ def test_can_bus_takes_interface_and_channel_from_python_can_env(
 
 def test_check_main_prints_ok_or_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]
                                         ) -> None:
-    assert check_main([str(ROOT / "busconfig" / "fig65.toml"),
+    assert check_main([str(ROOT / "chcos" / "apps" / "fig65" / "fig65.toml"),
                        str(EXAMPLES / "bench.toml")]) == 0
     assert capsys.readouterr().out == "ok: 2 buses, 7 devices\n"
     bad = write(tmp_path, "bad.toml", MEM_BUS + '[[device]]\nname="A"\nbus="m"\n')

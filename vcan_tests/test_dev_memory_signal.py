@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from chcos.devmap import load
+from chcos.devices.devmap import load
 from chcos.errors import DeviceError
 from drivers.memory import MemoryDriver
 from drivers.registry import driver_class
@@ -70,7 +70,7 @@ def test_random_waveform_is_seeded_and_bounded() -> None:
 
 
 def test_fig65_runs_on_virtual_time() -> None:
-    dm = load(ROOT / "busconfig" / "fig65.toml")
+    dm = load(ROOT / "chcos" / "apps" / "fig65" / "fig65.toml")
     host = FakeHost()
     spec = dm.buses[0]
     drv = SignalDriver(spec, dm.devices_on(spec.name), host)

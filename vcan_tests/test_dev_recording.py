@@ -7,8 +7,8 @@ from pathlib import Path
 import can
 import pytest
 
+from chcos.apps.sim.can_device import CanDeviceSim
 from chcos.errors import BusError
-from chcos.sim.can_device import CanDeviceSim
 from drivers.can_raw import CanDriver
 from drivers.recording import BusRecording, Recorder, read_log, replay
 from vcan_tests.netutil import unique_channel

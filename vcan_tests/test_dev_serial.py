@@ -7,7 +7,7 @@ from typing import Any
 
 import pytest
 
-from chcos.sim.serial_device import PtySerialSim, SerialSim, TcpSerialSim
+from chcos.apps.sim.serial_device import PtySerialSim, SerialSim, TcpSerialSim
 from drivers.serial_line import BinaryFramer, LineFramer, SerialDriver, checksum
 from vcan_tests.support_dev import WAIT, FakeHost, bus, device
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from chcos.sim.cli import main
+from chcos.apps.sim.cli import main
 from drivers.can_raw import CanDriver
 from drivers.serial_line import SerialDriver
 from vcan_tests.netutil import free_port, unique_channel
@@ -67,17 +67,17 @@ def test_sim_serial_tcp_starts_on_command(capsys: pytest.CaptureFixture[str]) ->
 def test_delegated_simulators_get_their_argv(monkeypatch: pytest.MonkeyPatch,
                                              capsys: pytest.CaptureFixture[str]) -> None:
     seen: list[list[str]] = []
-    fake = types.ModuleType("chcos.sim.modbus_server")
+    fake = types.ModuleType("chcos.apps.sim.modbus_server")
     def fake_main(argv: list[str]) -> int:
         seen.append(argv)
         return 7
 
     fake.main = fake_main  # type: ignore[attr-defined]
-    monkeypatch.setitem(sys.modules, "chcos.sim.modbus_server", fake)
+    monkeypatch.setitem(sys.modules, "chcos.apps.sim.modbus_server", fake)
     assert main(["modbus", "--port", "5020"]) == 7 and seen == [["--port", "5020"]]
-    monkeypatch.setitem(sys.modules, "chcos.sim.weld", None)   # import fails
+    monkeypatch.setitem(sys.modules, "chcos.apps.weld.plant", None)   # import fails
     assert main(["weld"]) == 2
-    assert "chcos.sim.weld is not available" in capsys.readouterr().err
+    assert "chcos.apps.weld.plant is not available" in capsys.readouterr().err
 
 
 def test_usage_errors_exit_2(capsys: pytest.CaptureFixture[str]) -> None:

@@ -13,9 +13,9 @@ import can
 import canopen
 import pytest
 
-from chcos.clock import VirtualClock
-from chcos.sim.canopen_slave import SERVO_EDS
-from chcos.system import System
+from chcos.apps.sim.canopen_slave import SERVO_EDS
+from chcos.kernel.clock import VirtualClock
+from chcos.system.embedded import System
 from vcan_tests.netutil import unique_channel
 from vcan_tests.support_faults import run_until
 
@@ -186,7 +186,7 @@ def test_shutdown_puts_queued_writes_and_safe_values_on_the_wire(
 
 
 def test_driver_stop_runs_the_writes_queued_before_it(tmp_path: Path) -> None:
-    from chcos.devmap import load
+    from chcos.devices.devmap import load
     from drivers.canopen_node import CanopenDriver
     from vcan_tests.support_fb import FakeHost
 

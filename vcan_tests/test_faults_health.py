@@ -9,11 +9,11 @@ from pathlib import Path
 
 import pytest
 
-from chcos.clock import VirtualClock
-from chcos.devices import DeviceEntry, DeviceStatus
+from chcos.devices.devtab import DeviceEntry, DeviceStatus
 from chcos.errors import DeviceError
-from chcos.system import System
-from chcos.sysview import render_text
+from chcos.kernel.clock import VirtualClock
+from chcos.system.embedded import System
+from chcos.system.textview import render_text
 
 MAP = """
 [[bus]]

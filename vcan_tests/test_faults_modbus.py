@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from chcos.clock import VirtualClock
 from chcos.errors import DeviceError
-from chcos.system import System
+from chcos.kernel.clock import VirtualClock
+from chcos.system.embedded import System
 from vcan_tests.netutil import free_port
 from vcan_tests.support_faults import ModbusPeer, run_until
 
@@ -206,7 +206,7 @@ def test_busy_answers_fail_the_actuator_and_safe_values_still_reach_the_server(
         s.run_for(0.2)
         assert peer.holding(HEATER) == 300
         peer.set_busy(True)
-        with caplog.at_level(logging.WARNING, logger="chcos.devices.faults"):
+        with caplog.at_level(logging.WARNING, logger="chcos.devices.devtab.faults"):
             s.devtab.write("heater", 400)
             s.run_for(0.05)
         heater = s.devtab.get("heater")

@@ -9,9 +9,9 @@ from typing import Any
 import can
 import pytest
 
-from chcos.devspec import BusSpec
+from chcos.apps.sim.canopen_slave import SERVO_EDS, CanopenSlave
+from chcos.devices.spec import BusSpec
 from chcos.errors import BusError
-from chcos.sim.canopen_slave import SERVO_EDS, CanopenSlave
 from drivers.canopen_node import CanopenDriver
 from vcan_tests.netutil import unique_channel
 from vcan_tests.support_fb import WAIT, FakeHost, make_device

@@ -7,9 +7,9 @@ from typing import Any
 
 import pytest
 
-from chcos.devspec import BusSpec
+from chcos.apps.sim.canopen_slave import SERVO_EDS
+from chcos.devices.spec import BusSpec
 from chcos.errors import BusError
-from chcos.sim.canopen_slave import SERVO_EDS
 from drivers.base import Driver
 from drivers.canopen_node import CanopenDriver
 from drivers.modbus import ModbusRtuDriver, ModbusTcpDriver

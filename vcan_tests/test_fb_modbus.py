@@ -9,8 +9,8 @@ from typing import Any
 
 import pytest
 
-from chcos.devspec import BusSpec
-from chcos.sim.modbus_server import ModbusSimServer, RegisterStore
+from chcos.apps.sim.modbus_server import ModbusSimServer, RegisterStore
+from chcos.devices.spec import BusSpec
 from drivers.modbus import ModbusRtuDriver, ModbusTcpDriver, Point, plan_reads
 from vcan_tests.netutil import free_port
 from vcan_tests.support_fb import WAIT, FakeHost, make_device

@@ -9,10 +9,10 @@ from typing import Any
 import canopen
 import pytest
 
+from chcos.apps.sim import canopen_slave, modbus_server
+from chcos.apps.sim.canopen_slave import SERVO_EDS, CanopenSlave, ServoAxis
+from chcos.apps.sim.modbus_server import ModbusSimServer, RegisterStore
 from chcos.errors import BusError, ConfigError
-from chcos.sim import canopen_slave, modbus_server
-from chcos.sim.canopen_slave import SERVO_EDS, CanopenSlave, ServoAxis
-from chcos.sim.modbus_server import ModbusSimServer, RegisterStore
 from vcan_tests.netutil import free_port, unique_channel
 from vcan_tests.support_fb import WAIT
 

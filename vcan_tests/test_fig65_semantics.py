@@ -10,13 +10,13 @@ import shutil
 import threading
 from pathlib import Path
 
-from chcos.clock import RealClock, VirtualClock
-from chcos.examples import fig65
-from chcos.fig65run import default_devmap
-from chcos.instrument import Instrument
-from chcos.messages import Link, LinkStatus
-from chcos.system import System
-from chcos.tasks import TaskEntry
+from chcos.apps import fig65
+from chcos.apps.fig65.runner import default_devmap
+from chcos.kernel.clock import RealClock, VirtualClock
+from chcos.kernel.instrument import Instrument
+from chcos.system.embedded import System
+from chcos.tables.messages import Link, LinkStatus
+from chcos.tables.tasks import TaskEntry
 
 
 def _system(tmp_path: Path, *, real: bool = False, tty: str | None = None) -> System:

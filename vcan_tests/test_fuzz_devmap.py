@@ -17,10 +17,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from chcos.clock import VirtualClock
-from chcos.devmap import check, check_main, load
+from chcos.devices.devmap import check, check_main, load
 from chcos.errors import ConfigError
-from chcos.system import System
+from chcos.kernel.clock import VirtualClock
+from chcos.system.embedded import System
 
 FUZZ = settings(max_examples=120, deadline=None, derandomize=True,
                 suppress_health_check=[HealthCheck.function_scoped_fixture,
@@ -209,7 +209,8 @@ def _actuator(name: str, bus: str, limits: str, address: str, extra: str = "") -
 
 def test_check_warns_about_limits_beyond_can_canopen_and_serial_types(tmp_path: Path) -> None:
     dbc = _write(tmp_path, "cell.dbc", _DBC)
-    eds = Path(__file__).resolve().parent.parent / "busconfig" / "eds" / "servo_drive.eds"
+    eds = (Path(__file__).resolve().parent.parent / "chcos" / "apps" / "sim" / "eds"
+           / "servo_drive.eds")
     text = (
         f'[[bus]]\nname = "c"\nkind = "can"\ninterface = "virtual"\nchannel = "x"\n'
         f'dbc = "{dbc}"\n'
@@ -287,7 +288,8 @@ def test_check_parses_each_dbc_and_eds_once(tmp_path: Path,
     monkeypatch.setattr(cantools.database, "load_file", load_dbc)
     monkeypatch.setattr(canopen, "import_od", import_od)
     dbc = _write(tmp_path, "once.dbc", _DBC)
-    eds = Path(__file__).resolve().parent.parent / "busconfig" / "eds" / "servo_drive.eds"
+    eds = (Path(__file__).resolve().parent.parent / "chcos" / "apps" / "sim" / "eds"
+           / "servo_drive.eds")
     eds_copy = _write(tmp_path, "once.eds", eds.read_text())
     text = (f'[[bus]]\nname = "c"\nkind = "can"\ninterface = "virtual"\nchannel = "x"\n'
             f'dbc = "{dbc}"\n'
@@ -303,9 +305,10 @@ def test_check_parses_each_dbc_and_eds_once(tmp_path: Path,
 
 
 def test_shipped_maps_still_check(tmp_path: Path) -> None:
-    root = Path(__file__).resolve().parent.parent / "busconfig"
-    for name in ("fig65.toml", "weld_cell.toml", "weld_direct.toml", "examples/serial_cell.toml",
-                 "examples/bench.toml"):
+    root = Path(__file__).resolve().parent.parent
+    for name in ("chcos/apps/fig65/fig65.toml", "chcos/apps/weld/maps/weld_cell.toml",
+                 "chcos/apps/weld/maps/weld_direct.toml", "busconfig/examples/serial_cell.toml",
+                 "busconfig/examples/bench.toml"):
         dmap, errors, warnings = check(root / name)
         assert dmap is not None and not errors, errors
         assert all("limits" not in w and "stale_after" not in w for w in warnings), warnings

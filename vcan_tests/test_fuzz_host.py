@@ -19,10 +19,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from chcos import cmdline
-from chcos.cli import main as cli_main
+from chcos.cli.main import main as cli_main
 from chcos.errors import Busy, ChcosError, CommandSyntaxError, InstallError
-from chcos.usrmgr import TaskContext
+from chcos.system import cmdline
+from chcos.user.context import TaskContext
 from vcan_tests.conftest import MakeSystem, memory_map
 
 M = "vcan_tests.test_fuzz_host"

@@ -11,15 +11,15 @@ from pathlib import Path
 
 import pytest
 
-from chcos import cli
-from chcos.sim.from_map import free_port
+from chcos.apps.sim.from_map import free_port
+from chcos.cli import main as cli
 
 COMMANDS = ["run", "new", "import", "monitor", "check", "sim", "shell", "satellite", "host",
             "map", "view"]
 
 
 def _help(*args: str) -> str:
-    res = subprocess.run([sys.executable, "-m", "chcos.cli", *args, "--help"],
+    res = subprocess.run([sys.executable, "-m", "chcos.cli.main", *args, "--help"],
                          capture_output=True, text=True, timeout=60)
     assert res.returncode == 0, res.stderr
     return res.stdout
@@ -66,7 +66,7 @@ def test_shell_workdir_holds_the_map(tmp_path: Path) -> None:
     script = tmp_path / "s.chcos"
     script.write_text("install -m0 sysfile\n", encoding="utf-8")
     root = Path(__file__).resolve().parent.parent
-    assert cli.main(["shell", str(root / "busconfig" / "fig65.toml"), "--virtual",
+    assert cli.main(["shell", str(root / "chcos" / "apps" / "fig65" / "fig65.toml"), "--virtual",
                      "--script", str(script), "--workdir", str(tmp_path / "w")]) == 0
     assert (tmp_path / "w" / "sysfile.map").exists()
 
@@ -88,7 +88,7 @@ address = {{ table = "input", address = 0 }}
 """, encoding="utf-8")
     (tmp_path / "system.toml").write_text('[system]\nname = "w"\ndevmaps = ["d.toml"]\n',
                                           encoding="utf-8")
-    res = subprocess.run([sys.executable, "-m", "chcos.cli", "run", "system.toml",
+    res = subprocess.run([sys.executable, "-m", "chcos.cli.main", "run", "system.toml",
                           "--duration", "1"], cwd=tmp_path, capture_output=True, text=True,
                          timeout=60, env=dict(os.environ))
     assert res.returncode == 1, res.stdout  # unhealthy: the sensor never answered
@@ -97,10 +97,10 @@ address = {{ table = "input", address = 0 }}
 
 
 def test_the_readme_satellite_example_has_its_system_file() -> None:
-    from chcos import sysfile
+    from chcos.satellites import sysfile
 
     root = Path(__file__).resolve().parent.parent
-    sf = sysfile.load(root / "chcos" / "examples" / "fig65" / "system.toml")
+    sf = sysfile.load(root / "chcos" / "apps" / "fig65" / "system.toml")
     assert sorted(sf.satellites) == [0, 1, 2]
     assert [p.name for p in sf.install] == ["install.chcos"] and sf.install[0].exists()
     assert all(p.exists() for p in sf.devmaps)
@@ -113,7 +113,8 @@ def test_shell_run_on_real_time_and_times_since_start(
     root = Path(__file__).resolve().parent.parent
     script = tmp_path / "s.chcos"
     script.write_text("install -m0 sysfile\nrun 0.5\nmap\n", encoding="utf-8")
-    assert cli.main(["shell", str(root / "busconfig" / "fig65.toml"), "--script", str(script),
+    assert cli.main(["shell", str(root / "chcos" / "apps" / "fig65" / "fig65.toml"),
+                     "--script", str(script),
                      "--workdir", str(tmp_path / "w")]) == 0
     out = capsys.readouterr().out
     m = re.search(r"time (\d+\.\d+) s", out)

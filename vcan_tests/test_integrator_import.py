@@ -19,14 +19,14 @@ import cantools
 import pytest
 from pyModbusTCP.server import ModbusServer
 
-from chcos import cli
-from chcos.clock import VirtualClock
-from chcos.devmap import check_main
+from chcos.apps.sim.canopen_slave import CanopenSlave
+from chcos.apps.sim.from_map import free_port
+from chcos.cli import main as cli
+from chcos.devices.devmap import check_main
+from chcos.devices.importers.modbus_csv import import_modbus_csv
 from chcos.errors import ConfigError
-from chcos.importers.modbus_csv import import_modbus_csv
-from chcos.sim.canopen_slave import CanopenSlave
-from chcos.sim.from_map import free_port
-from chcos.system import System
+from chcos.kernel.clock import VirtualClock
+from chcos.system.embedded import System
 
 VENDOR = Path(__file__).resolve().parent / "vendor"
 _chan = itertools.count()

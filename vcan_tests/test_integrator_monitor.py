@@ -17,8 +17,9 @@ import can
 import pytest
 from pyModbusTCP.server import DataHandler, ModbusServer
 
-from chcos import cli, monitor
-from chcos.sim.from_map import free_port
+from chcos.apps.sim.from_map import free_port
+from chcos.cli import main as cli
+from chcos.cli import monitor
 
 VENDOR = Path(__file__).resolve().parent / "vendor"
 _chan = itertools.count()

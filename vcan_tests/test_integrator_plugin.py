@@ -8,7 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from chcos import cli, scaffold
+from chcos.cli import main as cli
+from chcos.cli import scaffold
 from chcos.errors import ConfigError, DeviceError, TaskError
 from chcos.testing import TestCell
 

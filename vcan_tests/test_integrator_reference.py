@@ -1,4 +1,5 @@
-"""The device-map reference (chcos/mapref.py, docs/device-map-reference.md) against the drivers
+"""The device-map reference (chcos/devices/mapref.py, docs/device-map-reference.md) against the
+drivers
 themselves: every key a driver's check accepts is listed, every listed key is accepted, and the
 committed page is what the generator writes now. The candidate keys are every identifier-like
 string in the drivers' source, so a driver that starts accepting a new key fails here."""
@@ -13,12 +14,12 @@ from typing import Any
 
 import pytest
 
-from chcos import devmap, mapref
-from chcos.devspec import BusSpec, DeviceSpec
+from chcos.devices import devmap, mapref
+from chcos.devices.spec import BusSpec, DeviceSpec
 from drivers.registry import driver_class
 
 ROOT = Path(__file__).resolve().parent.parent
-EDS = ROOT / "busconfig" / "eds" / "servo_drive.eds"
+EDS = ROOT / "chcos" / "apps" / "sim" / "eds" / "servo_drive.eds"
 DBC = ROOT / "busconfig" / "examples" / "cell.dbc"
 
 
@@ -121,4 +122,5 @@ def test_every_registered_kind_is_documented() -> None:
 
 def test_the_committed_page_is_current() -> None:
     page = (ROOT / "docs" / "device-map-reference.md").read_text(encoding="utf-8")
-    assert page == mapref.render(), "run: python -m chcos.mapref > docs/device-map-reference.md"
+    assert page == mapref.render(), \
+        "run: python -m chcos.devices.mapref > docs/device-map-reference.md"

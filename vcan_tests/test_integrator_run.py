@@ -18,12 +18,14 @@ from typing import Any
 import pytest
 from pyModbusTCP.server import DataHandler, ModbusServer
 
-from chcos import cellrun, cli, sysfile
+from chcos.apps.sim.from_map import free_port
+from chcos.cli import cellrun
+from chcos.cli import main as cli
 from chcos.errors import ConfigError
-from chcos.sim.from_map import free_port
+from chcos.satellites import sysfile
 
 ROOT = Path(__file__).resolve().parent.parent
-FIG65 = ROOT / "chcos" / "examples" / "fig65"
+FIG65 = ROOT / "chcos" / "apps" / "fig65"
 
 
 class CountingHandler(DataHandler):  # type: ignore[misc]
@@ -122,7 +124,8 @@ def test_fig65_as_a_system_file_on_virtual_time(tmp_path: Path) -> None:
     script.write_text((FIG65 / "install.chcos").read_text(encoding="utf-8") + "invoke C1\n",
                       encoding="utf-8")
     system = tmp_path / "system.toml"
-    system.write_text(f'[system]\nname = "fig65"\ndevmaps = ["{ROOT}/busconfig/fig65.toml"]\n'
+    system.write_text(f'[system]\nname = "fig65"\n'
+                      f'devmaps = ["{ROOT}/chcos/apps/fig65/fig65.toml"]\n'
                       f'task_path = ["{FIG65}"]\ninstall = "install.chcos"\n', encoding="utf-8")
     out = io.StringIO()
     result = cellrun.run(system, virtual=True, duration=3.0, out=out, workdir=tmp_path / "w")
@@ -180,7 +183,7 @@ def test_sigterm_stops_a_real_time_run_with_safe_values(
     server.data_bank.set_input_registers(0, [61])
     system = _modbus_cell(tmp_path, server.port)
     env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
-    proc = subprocess.Popen([sys.executable, "-m", "chcos.cli", "run", str(system),
+    proc = subprocess.Popen([sys.executable, "-m", "chcos.cli.main", "run", str(system),
                              "--outputs", "on"],
                             cwd=tmp_path, env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
@@ -222,7 +225,7 @@ def test_bad_system_file_names_file_and_key(tmp_path: Path,
 def test_welding_cell_still_behind_chcos_run(tmp_path: Path) -> None:
     for args in (["run", "weld", "--binding", "direct", "--duration", "3"],
                  ["run", "--binding", "direct", "--duration", "2"]):
-        res = subprocess.run([sys.executable, "-m", "chcos.cli", *args], cwd=tmp_path,
+        res = subprocess.run([sys.executable, "-m", "chcos.cli.main", *args], cwd=tmp_path,
                              capture_output=True, text=True, timeout=300)
         assert res.returncode in (0, 1), res.stderr  # 1: the duration limit came first
         assert "welding cell on the direct binding" in res.stdout and "summary" in res.stdout
@@ -230,8 +233,8 @@ def test_welding_cell_still_behind_chcos_run(tmp_path: Path) -> None:
 
 def test_the_welding_cell_is_a_system_file(tmp_path: Path) -> None:
     out = io.StringIO()
-    result = cellrun.run(ROOT / "chcos" / "weld" / "system.toml", virtual=True, duration=15.0,
-                         out=out, workdir=tmp_path)
+    result = cellrun.run(ROOT / "chcos" / "apps" / "weld" / "system.toml", virtual=True,
+                         duration=15.0, out=out, workdir=tmp_path)
     text = out.getvalue()
     assert result.healthy, text
     steps = {t["name"]: t["steps"] for t in result.snapshot["tasks"]}

@@ -1,4 +1,5 @@
-"""Simulated slaves generated from any device map (``chcos.sim.from_map``, ``chcos sim --from``):
+"""Simulated slaves generated from any device map (``chcos.apps.sim.from_map``, ``chcos sim
+--from``):
 CAN frames from an imported vendor DBC, a CANopen node from an imported vendor EDS, a Modbus
 server from a map; scripted values (constant, ramp, sine, square, CSV trace); faults; the
 standalone command serving a map's own address to ``chcos run``."""
@@ -17,9 +18,10 @@ from pathlib import Path
 
 import pytest
 
-from chcos import cellrun, cli, scaffold
+from chcos.apps.sim.from_map import csv_trace, free_port, parse_script
+from chcos.cli import cellrun, scaffold
+from chcos.cli import main as cli
 from chcos.errors import ConfigError
-from chcos.sim.from_map import csv_trace, free_port, parse_script
 
 VENDOR = Path(__file__).resolve().parent / "vendor"
 
@@ -190,8 +192,8 @@ address = { struct = "<h", prefix = "10" }
 
 
 def test_unsimulatable_serial_is_refused_naming_the_bus(tmp_path: Path) -> None:
-    from chcos.devmap import load
-    from chcos.sim.from_map import simulate
+    from chcos.apps.sim.from_map import simulate
+    from chcos.devices.devmap import load
 
     devmap = tmp_path / "serial.toml"
     devmap.write_text('[[bus]]\nname = "scale"\nkind = "serial"\nurl = "/dev/ttyUSB0"\n'
@@ -209,7 +211,7 @@ def test_sim_from_map_serves_the_maps_own_address(tmp_path: Path) -> None:
     port = free_port()
     scaffold.create(tmp_path / "cell", port=port)
     cell_dir = tmp_path / "cell"
-    sim = subprocess.Popen([sys.executable, "-m", "chcos.cli", "sim", "--from", "devices.toml",
+    sim = subprocess.Popen([sys.executable, "-m", "chcos.cli.main", "sim", "--from", "devices.toml",
                             "--value", "level=100"], cwd=cell_dir, stdout=subprocess.PIPE,
                            stderr=subprocess.STDOUT, text=True, env=dict(os.environ))
     lines: list[str] = []

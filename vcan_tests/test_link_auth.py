@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from chcos.link import LinkConfig, Transport, UsrPwdAuth
+from chcos.comm import LinkConfig, Transport, UsrPwdAuth
 from vcan_tests.netutil import free_port
 from vcan_tests.support_link import Child, Collector, child_args
 

@@ -6,8 +6,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from chcos.errors import LinkError
-from chcos.link.codec import (
+from chcos.comm.codec import (
     HEADER_SIZE,
     LinkMessage,
     MessageKind,
@@ -16,6 +15,7 @@ from chcos.link.codec import (
     encode,
     encode_value,
 )
+from chcos.errors import LinkError
 
 # A command B1 -> A1 on link 7 at priority 60, seq 3, stamped 1 s after the epoch, value {"move":5}
 COMMAND = LinkMessage(MessageKind.COMMAND, "B1", "A1", 7, 60, 3, 1_000_000_000, {"move": 5})

@@ -8,13 +8,13 @@ from typing import Any
 
 import pytest
 
-from chcos.errors import ConfigError
-from chcos.link.config import (
+from chcos.comm.config import (
     LinkConfig,
     TlsSettings,
     UsrPwdAuth,
     link_config_from_section,
 )
+from chcos.errors import ConfigError
 
 
 def test_defaults_are_safe() -> None:

@@ -12,8 +12,8 @@ import signal
 import time
 from pathlib import Path
 
-from chcos.link import LinkConfig, LinkMessage, MessageKind, Transport, decode
-from chcos.link.config import DEFAULT_LEASE_MS
+from chcos.comm import LinkConfig, LinkMessage, MessageKind, Transport, decode
+from chcos.comm.config import DEFAULT_LEASE_MS
 from vcan_tests.conftest import require
 from vcan_tests.netutil import free_port
 from vcan_tests.support_link import Child, Collector, child_args

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from chcos.link import LinkConfig, TlsSettings, Transport
+from chcos.comm import LinkConfig, TlsSettings, Transport
 from vcan_tests.conftest import require
 from vcan_tests.netutil import free_port
 from vcan_tests.support_link import Child, Collector, child_args

@@ -10,9 +10,9 @@ from collections.abc import Iterator
 import pytest
 import zenoh
 
+from chcos.comm import LinkConfig, LinkMessage, MessageKind, Transport, decode
+from chcos.comm.transport import congestion_for, is_express, zenoh_priority
 from chcos.errors import LinkError
-from chcos.link import LinkConfig, LinkMessage, MessageKind, Transport, decode
-from chcos.link.transport import congestion_for, is_express, zenoh_priority
 from vcan_tests.netutil import free_port
 from vcan_tests.support_link import WAIT, Collector
 

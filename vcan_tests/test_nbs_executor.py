@@ -6,8 +6,7 @@ import math
 
 import pytest
 
-from chcos.errors import KernelError
-from chcos.nbs.executor import (
+from chcos.apps.nbs.executor import (
     CommonMemory,
     DeviceIO,
     Level,
@@ -18,7 +17,8 @@ from chcos.nbs.executor import (
     TableH,
     VirtualScheduler,
 )
-from chcos.nbs.statetable import Call, load_builtin
+from chcos.apps.nbs.statetable import Call, load_builtin
+from chcos.errors import KernelError
 
 
 class Devices:

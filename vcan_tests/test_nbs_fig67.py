@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
+from chcos.apps.nbs.executor import VirtualScheduler
+from chcos.apps.nbs.fig67 import FAN_IN, SENSORS, main, run_fig67
 from chcos.errors import ConfigError, KernelError
-from chcos.nbs.executor import VirtualScheduler
-from chcos.nbs.fig67 import FAN_IN, SENSORS, main, run_fig67
 
 
 def test_28ms_cycle_for_10s_counts_every_fsm_every_cycle() -> None:

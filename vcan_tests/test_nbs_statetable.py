@@ -7,8 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from chcos.errors import ChcosError, ConfigError
-from chcos.nbs.statetable import (
+from chcos.apps.nbs.statetable import (
     BUILTIN_TABLES,
     Call,
     Expr,
@@ -20,6 +19,7 @@ from chcos.nbs.statetable import (
     load_table,
     parse_table,
 )
+from chcos.errors import ChcosError, ConfigError
 
 # Rows per command as transcribed from Appendix 1 (NOTES.md explains each repair).
 EXPECTED_ROWS = {

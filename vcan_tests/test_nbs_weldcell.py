@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from chcos.nbs.weldcell import NBS_SCRIPT, NbsCell
-from chcos.weldrun import main as weld_main
-from chcos.weldrun import open_cell
+from chcos.apps.nbs.weldcell import NBS_SCRIPT, NbsCell
+from chcos.apps.weld.runner import main as weld_main
+from chcos.apps.weld.runner import open_cell
 from vcan_tests.support_view import browser_page
 
 

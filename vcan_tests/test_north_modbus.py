@@ -20,11 +20,11 @@ from pyModbusTCP.constants import (
     EXP_SLAVE_DEVICE_FAILURE,
 )
 
-from chcos.clock import VirtualClock
-from chcos.devspec import BusSpec, DeviceMap, DeviceSpec
+from chcos.devices.spec import BusSpec, DeviceMap, DeviceSpec
+from chcos.kernel.clock import VirtualClock
 from chcos.north import NorthError
 from chcos.north.modbus_facade import ModbusFacade, RegisterMap
-from chcos.system import System
+from chcos.system.embedded import System
 
 ME = "vcan_tests.support_view"
 
@@ -137,7 +137,7 @@ def test_the_map_is_printed_and_only_loopback_by_default(tmp_path: Path) -> None
                  'limits = [0.0, 10.0]\nsafe_value = 0.0\nnorth_writable = true\n\n'
                  '[[device]]\nname = "V2"\ndirection = "actuator"\nbus = "mem"\n',
                  encoding="utf-8")
-    out = subprocess.run([sys.executable, "-m", "chcos.cli", "facade", "modbus", "--print-map",
+    out = subprocess.run([sys.executable, "-m", "chcos.cli.main", "facade", "modbus", "--print-map",
                           str(m)], capture_output=True, text=True, check=True).stdout
     lines = out.splitlines()
     assert lines[0].split() == ["table", "address", "count", "type", "device", "kind", "units",
@@ -149,7 +149,7 @@ def test_the_map_is_printed_and_only_loopback_by_default(tmp_path: Path) -> None
     bad = tmp_path / "bad.toml"
     bad.write_text(m.read_text().replace("north_writable = true", 'north_writable = "yes"')
                    .replace('units = "bar"\n', 'units = "bar"\nnorth_writable = true\n'))
-    r = subprocess.run([sys.executable, "-m", "chcos.cli", "facade", "modbus", "--print-map",
+    r = subprocess.run([sys.executable, "-m", "chcos.cli.main", "facade", "modbus", "--print-map",
                         str(bad)], capture_output=True, text=True)
     assert r.returncode == 1
     assert "north_writable: applies to actuators only" in r.stderr

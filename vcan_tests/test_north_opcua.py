@@ -13,12 +13,12 @@ from typing import Any
 import pytest
 from opcua import Client, ua
 
-from chcos.clock import RealClock
-from chcos.devspec import BusSpec, DeviceMap, DeviceSpec
+from chcos.devices.spec import BusSpec, DeviceMap, DeviceSpec
+from chcos.kernel.clock import RealClock
 from chcos.north import NorthError
 from chcos.north.opcua import OpcUaServer
 from chcos.north.opcua_process import OpcUaProcess
-from chcos.system import System
+from chcos.system.embedded import System
 from vcan_tests.support_view import PASSWORDS, viewer_users
 
 ME = "vcan_tests.support_view"

@@ -15,13 +15,13 @@ from typing import Any
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
-from chcos.clock import VirtualClock
-from chcos.devspec import BusSpec, DeviceMap, DeviceSpec
+from chcos.devices.spec import BusSpec, DeviceMap, DeviceSpec
 from chcos.errors import DeviceError
+from chcos.kernel.clock import VirtualClock
 from chcos.north import NorthError
 from chcos.north.metrics import serve as serve_metrics
 from chcos.north.services import NorthOptions, add_north_arguments, host_port
-from chcos.system import System
+from chcos.system.embedded import System
 from vcan_tests.support_view import get_json
 
 ME = "vcan_tests.support_view"
@@ -166,7 +166,7 @@ def test_chcos_run_serves_every_north_service(tmp_path: Path) -> None:
     from opcua import Client
     from pyModbusTCP.client import ModbusClient
 
-    from chcos.weldrun import run
+    from chcos.apps.weld.runner import run
 
     out = _Lines()
     opts = NorthOptions(metrics="127.0.0.1:0", modbus_facade="127.0.0.1:0",
@@ -243,10 +243,10 @@ def test_users_file_and_passwd(tmp_path: Path) -> None:
 def test_chcos_run_system_serves_metrics_and_view(tmp_path: Path) -> None:
     """``chcos run SYSTEM`` (any system file, here figure 6.5's) takes the same north-side
     flags: the view and the metrics attach to the running cell, and they refuse virtual time."""
-    from chcos.cellrun import run
+    from chcos.cli.cellrun import run
     from chcos.errors import ChcosError
 
-    system = Path(__file__).resolve().parent.parent / "chcos/examples/fig65/system.toml"
+    system = Path(__file__).resolve().parent.parent / "chcos/apps/fig65/system.toml"
     with pytest.raises(ChcosError, match="need real time"):
         run(system, virtual=True, duration=1.0, workdir=tmp_path,
             north=NorthOptions(metrics="127.0.0.1:0"))

@@ -9,11 +9,11 @@ from typing import Any
 
 import pytest
 
-from chcos.clock import VirtualClock
+from chcos.apps.sim.can_device import CanDeviceSim
 from chcos.errors import DeviceError, SensorFailure
-from chcos.sim.can_device import CanDeviceSim
-from chcos.system import System
-from chcos.usrmgr import TaskContext
+from chcos.kernel.clock import VirtualClock
+from chcos.system.embedded import System
+from chcos.user.context import TaskContext
 from vcan_tests.netutil import unique_channel
 
 M = "vcan_tests.test_path_can"

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from chcos.devspec import BusSpec
+from chcos.devices.spec import BusSpec
 from drivers.modbus import ModbusRtuDriver, classify_rtu_answer
 from vcan_tests.support_fb import WAIT, FakeHost, make_device
 from vcan_tests.support_rtu import FaultRelay, PtyPair, RtuSlave, build_slave

@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
+from chcos.apps import fig65
 from chcos.errors import InstallError, LinkError
-from chcos.examples import fig65
-from chcos.host import Host
+from chcos.satellites.host import Host
 from vcan_tests.support_sat import Cluster, device, link, task
 
 S = "vcan_tests.support_sat"
@@ -32,8 +32,8 @@ def test_figure_6_5_on_three_satellites(tmp_path: Path) -> None:
     (tmp_path / "system.toml").write_text(
         (tmp_path / "system.toml").read_text().replace(
             'devmaps = ["devices.toml"]',
-            f'devmaps = ["{root}/busconfig/fig65.toml"]\ntask_path = ["{fig65.HERE}"]'))
-    from chcos import sysfile
+            f'devmaps = ["{root}/chcos/apps/fig65/fig65.toml"]\ntask_path = ["{fig65.HERE}"]'))
+    from chcos.satellites import sysfile
 
     c.sf = sysfile.load(tmp_path / "system.toml")
     try:

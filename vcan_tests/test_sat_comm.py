@@ -13,14 +13,14 @@ from typing import Any
 
 import pytest
 
-from chcos.clock import VirtualClock
-from chcos.comm import CommManager
-from chcos.devmap import DeviceMap
+from chcos.comm.codec import MessageKind, decode_batch
+from chcos.comm.manager import CommManager
+from chcos.devices.devmap import DeviceMap
 from chcos.errors import MessageError, ReadTimeout
-from chcos.link.codec import MessageKind, decode_batch
-from chcos.system import System
-from chcos.usrmgr import TaskContext
-from chcos.worldmodel import WorldModel
+from chcos.kernel.clock import VirtualClock
+from chcos.system.embedded import System
+from chcos.user.context import TaskContext
+from chcos.user.worldmodel import WorldModel
 
 M = "vcan_tests.test_sat_comm"
 
@@ -100,7 +100,7 @@ class LoopNet:
 
 
 class LoopTransport:
-    """The part of :class:`chcos.link.transport.Transport` the communications manager uses."""
+    """The part of :class:`chcos.comm.transport.Transport` the communications manager uses."""
 
     def __init__(self, net: LoopNet) -> None:
         self.net = net

@@ -17,7 +17,7 @@ from typing import Any
 
 import pytest
 
-from chcos.examples import fig65
+from chcos.apps import fig65
 from vcan_tests.support_netns import Net, RemoteHost, missing, pki, tls_section
 from vcan_tests.support_sat import device, link, task
 
@@ -39,7 +39,7 @@ def _system(tmp: Path, name: str, tls: str, secret: Path, addresses: dict[str, s
                    for m in (0, 1, 2))
     path = tmp / f"{name}.toml"
     path.write_text(
-        f'[system]\nname = "fig65net"\ndevmaps = ["{ROOT}/busconfig/fig65.toml"]\n'
+        f'[system]\nname = "fig65net"\ndevmaps = ["{ROOT}/chcos/apps/fig65/fig65.toml"]\n'
         f'task_path = ["{fig65.HERE}"]\nbase_dir = "{tmp}"\nstate_dir = "{tmp}/state-{name}"\n'
         f'secret_file = "{secret}"\n\n{sats}\n[link]\nlease_ms = 1000\n{tls}')
     return path
@@ -64,7 +64,7 @@ def test_three_hosts_over_mutual_tls(tmp_path: Path) -> None:
         logs = [tmp_path / f"sat{m}.log" for m in (0, 1, 2)]
 
         def start(m: int) -> None:
-            procs[m] = net.popen(f"s{m}", ["-m", "chcos.cli", "-v", "satellite", "-m", str(m),
+            procs[m] = net.popen(f"s{m}", ["-m", "chcos.cli.main", "-v", "satellite", "-m", str(m),
                                            "--system", str(system)], logs[m])
 
         for m in (0, 1, 2):

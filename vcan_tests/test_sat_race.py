@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from chcos.host import Host, RaceLost
+from chcos.satellites.host import Host, RaceLost
 from vcan_tests.support_sat import Cluster
 
 S = "vcan_tests.support_sat"

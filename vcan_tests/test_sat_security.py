@@ -19,13 +19,13 @@ from pathlib import Path
 
 import pytest
 
-from chcos import sysfile
+from chcos.comm.codec import LinkMessage, MessageKind, encode, encode_batch
+from chcos.comm.secret import load_or_create
+from chcos.comm.transport import Transport
 from chcos.errors import ConfigError, InstallError, LinkError
-from chcos.host import Host
-from chcos.link.codec import LinkMessage, MessageKind, encode, encode_batch
-from chcos.link.secret import load_or_create
-from chcos.link.transport import Transport
-from chcos.satellite import Satellite
+from chcos.satellites import sysfile
+from chcos.satellites.host import Host
+from chcos.satellites.satellite import Satellite
 from drivers.memory import HISTORY_BYTES, ActuatorStore
 from vcan_tests.netutil import free_port
 from vcan_tests.support_sat import Cluster, device
@@ -109,7 +109,7 @@ def test_non_loopback_satellite_without_tls_is_refused_saying_what_to_add(tmp_pa
 
 def test_chcos_check_system_refuses_an_exposed_satellite(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from chcos.cli import main
+    from chcos.cli.main import main
 
     ok = _sysfile(tmp_path)
     assert main(["check", "--system", str(ok)]) == 0
@@ -319,7 +319,7 @@ def test_junk_is_counted_and_logged_once_per_cause(cluster: Cluster) -> None:
 def test_oversized_payloads_are_refused_at_the_link(tmp_path: Path) -> None:
     secret = load_or_create(tmp_path / "s.json", "t")
     port = free_port()
-    from chcos.link import LinkConfig
+    from chcos.comm import LinkConfig
 
     with Transport(LinkConfig(port), sealer=secret.sealer("satellite"),
                    max_bytes=1000) as small, \

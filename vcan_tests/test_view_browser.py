@@ -14,8 +14,8 @@ from typing import Any
 
 import pytest
 
-from chcos.clock import RealClock
-from chcos.system import System
+from chcos.kernel.clock import RealClock
+from chcos.system.embedded import System
 from chcos.viewer.server import Viewer, serve
 from vcan_tests.support_view import (
     DOCS,

@@ -11,8 +11,8 @@ from typing import Any
 
 import pytest
 
-from chcos import sysmap
-from chcos.sysview import render_text
+from chcos.system import sysmap
+from chcos.system.textview import render_text
 from chcos.viewer import ViewerError
 from chcos.viewer.cli import map_main
 from chcos.viewer.graph import (

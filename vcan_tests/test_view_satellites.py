@@ -10,8 +10,8 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from chcos import sysfile
-from chcos.examples import fig65
+from chcos.apps import fig65
+from chcos.satellites import sysfile
 from chcos.viewer.cli import view_main
 from chcos.viewer.server import Viewer
 from vcan_tests.support_sat import Cluster, link, task
@@ -25,7 +25,7 @@ def test_view_attaches_to_three_satellites(tmp_path: Path) -> None:
     (tmp_path / "system.toml").write_text(
         (tmp_path / "system.toml").read_text().replace(
             'devmaps = ["devices.toml"]',
-            f'devmaps = ["{root}/busconfig/fig65.toml"]\ntask_path = ["{fig65.HERE}"]'))
+            f'devmaps = ["{root}/chcos/apps/fig65/fig65.toml"]\ntask_path = ["{fig65.HERE}"]'))
     c.sf = sysfile.load(tmp_path / "system.toml")
     users = tmp_path / "users.toml"
     users.write_text("".join(

@@ -16,8 +16,8 @@ from typing import Any
 import pytest
 from aiohttp.test_utils import TestClient, TestServer
 
-from chcos.clock import RealClock, VirtualClock
-from chcos.system import System
+from chcos.kernel.clock import RealClock, VirtualClock
+from chcos.system.embedded import System
 from chcos.viewer.server import Viewer, serve
 from vcan_tests.support_view import PASSWORDS, fig65_system, viewer_users
 

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from chcos.clock import VirtualClock
-from chcos.system import System
+from chcos.kernel.clock import VirtualClock
+from chcos.system.embedded import System
 from chcos.viewer import ViewerError
 from chcos.viewer.cli import view_main
 from chcos.viewer.server import Viewer, serve

@@ -9,8 +9,8 @@ import io
 import json
 from pathlib import Path
 
-from chcos.weld.learning import forget, learning_curve
-from chcos.worldmodel import LearnedPattern, Store
+from chcos.apps.weld.learning import forget, learning_curve
+from chcos.user.worldmodel import LearnedPattern, Store
 
 
 def test_learned_recognizer_reacts_earlier_on_repeated_runs(tmp_path: Path) -> None:
@@ -42,9 +42,9 @@ def test_learned_recognizer_reacts_earlier_on_repeated_runs(tmp_path: Path) -> N
 def test_precursor_parameter_parses_round_trips_and_is_checked() -> None:
     import pytest
 
+    from chcos.apps.weld import parse_scenario
+    from chcos.apps.weld.model import WeldCell
     from chcos.errors import ConfigError
-    from chcos.weld import parse_scenario
-    from chcos.weld.model import WeldCell
 
     (fault,) = parse_scenario("tip-stuck(precursor=1500ms)@t=50s").faults
     assert fault.precursor == 1.5

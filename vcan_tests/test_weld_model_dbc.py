@@ -1,4 +1,5 @@
-"""busconfig/weld_cell.dbc: cantools loads it, ids fit beside CANopen, model readings encode."""
+"""chcos/apps/weld/maps/weld_cell.dbc: cantools loads it, ids fit beside CANopen, model readings
+encode."""
 
 from __future__ import annotations
 
@@ -7,9 +8,9 @@ from typing import Any
 import cantools
 import pytest
 
-from chcos.weld import DBC_PATH
-from chcos.weld.faults import SENSOR_NAMES, Fault, parse_scenario
-from chcos.weld.model import DBC_MESSAGE_SENSORS, WeldCell, dbc_signals
+from chcos.apps.weld import DBC_PATH
+from chcos.apps.weld.faults import SENSOR_NAMES, Fault, parse_scenario
+from chcos.apps.weld.model import DBC_MESSAGE_SENSORS, WeldCell, dbc_signals
 
 
 @pytest.fixture(scope="module")

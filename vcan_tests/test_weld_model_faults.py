@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from chcos.errors import ConfigError
-from chcos.weld.faults import (
+from chcos.apps.weld.faults import (
     AtSeam,
     AtTime,
     Fault,
@@ -16,7 +15,8 @@ from chcos.weld.faults import (
     parse_scenario_toml,
     scenario_from_table,
 )
-from chcos.weld.model import WeldCell
+from chcos.apps.weld.model import WeldCell
+from chcos.errors import ConfigError
 
 DT = 0.05
 

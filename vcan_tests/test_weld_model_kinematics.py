@@ -8,8 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from chcos.apps.weld.kinematics import Arm, UnreachableError, matmul, translation, wrap_angle
 from chcos.errors import ChcosError, ConfigError
-from chcos.weld.kinematics import Arm, UnreachableError, matmul, translation, wrap_angle
 
 ARM = Arm()
 

@@ -9,9 +9,9 @@ from typing import Any
 
 import pytest
 
+from chcos.apps.weld.kinematics import UnreachableError
+from chcos.apps.weld.model import CellConfig, Flaw, SimulationError, WeldCell
 from chcos.errors import ConfigError, DeviceError
-from chcos.weld.kinematics import UnreachableError
-from chcos.weld.model import CellConfig, Flaw, SimulationError, WeldCell
 
 DT = 0.02
 

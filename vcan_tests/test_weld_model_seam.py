@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from chcos.apps.weld.seam import Seam, SeamSpec
 from chcos.errors import ConfigError
-from chcos.weld.seam import Seam, SeamSpec
 
 SEAM = Seam()
 

@@ -8,7 +8,7 @@ import io
 import re
 from pathlib import Path
 
-from chcos.weldrun import run
+from chcos.apps.weld.runner import run
 from vcan_tests.support_view import browser_page
 
 

@@ -1,4 +1,4 @@
-"""The world-model facility (chcos.worldmodel): context along links, prediction and the error
+"""The world-model facility (chcos.user.worldmodel): context along links, prediction and the error
 vector, recognizers, learned responses persisted across runs, and plans."""
 
 from __future__ import annotations
@@ -10,10 +10,10 @@ from typing import Any
 
 import pytest
 
+from chcos.apps.weld.tasks.common import WeldTaskError
 from chcos.errors import ConfigError, MessageError
-from chcos.usrmgr import TaskContext
-from chcos.weld.tasks.common import WeldTaskError
-from chcos.worldmodel import (
+from chcos.user.context import TaskContext
+from chcos.user.worldmodel import (
     Experience,
     LearnedPattern,
     Plan,

@@ -9,15 +9,15 @@ from pathlib import Path
 
 import pytest
 
-from chcos.clock import VirtualClock
-from chcos.devspec import BusSpec, DeviceSpec
-from chcos.messages import LinkType
-from chcos.system import System
-from chcos.weld import Seam
-from chcos.weld.tasks import B1, D3
-from chcos.weld.tasks.common import Tracker, analyse, offset_mm
-from chcos.weldrun import _direct_map, main, open_cell, run
-from drivers.weld_direct import WeldDirectDriver
+from chcos.apps.weld import Seam
+from chcos.apps.weld.direct import WeldDirectDriver
+from chcos.apps.weld.runner import _direct_map, main, open_cell, run
+from chcos.apps.weld.tasks import B1, D3
+from chcos.apps.weld.tasks.common import Tracker, analyse, offset_mm
+from chcos.devices.spec import BusSpec, DeviceSpec
+from chcos.kernel.clock import VirtualClock
+from chcos.system.embedded import System
+from chcos.tables.messages import LinkType
 
 
 def booted(tmp_path: Path, scenario: str = "") -> System:

@@ -1,7 +1,8 @@
 """The welding cell's scenarios end to end: the appendix-2 hierarchy on the cell, virtual time.
 
 Each test runs the whole job (E2: inspect, weld, go home) with one fault scenario, on the direct
-binding and, parametrised, on the real buses (chcos.sim.weld; see support_weldcell.buses_or_skip).
+binding and, parametrised, on the real buses (chcos.apps.weld.plant; see
+support_weldcell.buses_or_skip).
 Figures come from the cell model (ground truth) and from the tasks' world models.
 """
 
@@ -12,7 +13,7 @@ from typing import Any
 
 import pytest
 
-from chcos.weldrun import Cell
+from chcos.apps.weld.runner import Cell
 from vcan_tests.support_weldcell import M, buses_or_skip, run_job
 
 BINDINGS = ["direct", "buses"]

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from chcos.sim.weld import NODE_IDS, format_line
-from chcos.weld.model import Readings
+from chcos.apps.weld.model import Readings
+from chcos.apps.weld.plant import NODE_IDS, format_line
 from vcan_tests.support_weldsim import QUIET, WeldRig, make_rig
 
 #: The tip 30 mm above the start of the gap, tool x along the seam (the linear sensor, 5 mm

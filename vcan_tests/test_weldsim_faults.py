@@ -9,7 +9,7 @@ from typing import Any
 
 import pytest
 
-from chcos.weld.faults import Fault
+from chcos.apps.weld.faults import Fault
 from vcan_tests.support_fb import WAIT
 from vcan_tests.support_weldsim import QUIET, SENSORS, WeldRig, make_rig
 

@@ -11,10 +11,9 @@ from pathlib import Path
 import can
 import pytest
 
-from chcos.devmap import check_main, load
-from chcos.errors import BusError, ConfigError
-from chcos.sim import weld
-from chcos.sim.weld import (
+from chcos.apps.weld import plant as weld
+from chcos.apps.weld.model import WeldCell
+from chcos.apps.weld.plant import (
     CELL_TOML,
     INPUT_REGISTERS,
     WeldSim,
@@ -22,7 +21,8 @@ from chcos.sim.weld import (
     format_line,
     load_scenario,
 )
-from chcos.weld.model import WeldCell
+from chcos.devices.devmap import check_main, load
+from chcos.errors import BusError, ConfigError
 from vcan_tests.netutil import free_port, unique_channel
 from vcan_tests.support_fb import WAIT
 from vcan_tests.support_weldsim import SENSORS, TASKS

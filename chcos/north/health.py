@@ -12,10 +12,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from chcos.devices import DeviceStatus
+from chcos.devices.devtab import DeviceStatus
 
 if TYPE_CHECKING:
-    from chcos.devices import DeviceEntry, Devtab
+    from chcos.devices.devtab import DeviceEntry, Devtab
 
 
 @dataclass(frozen=True)

@@ -43,16 +43,16 @@ from prometheus_client.core import (
 from prometheus_client.exposition import start_http_server
 from prometheus_client.registry import Collector
 
-from chcos.instrument import Instrument
-from chcos.link.config import is_loopback
+from chcos.comm.config import is_loopback
+from chcos.kernel.instrument import Instrument
 from chcos.north import NorthError
 from chcos.north.health import bus_stats, device_health
 
 if TYPE_CHECKING:
     from wsgiref.simple_server import WSGIServer
 
-    from chcos.system import System
-    from chcos.tasks import TaskEntry
+    from chcos.system.embedded import System
+    from chcos.tables.tasks import TaskEntry
 
 #: Histogram bucket upper bounds, seconds (the last, +Inf, is implicit).
 BUCKETS = (1e-5, 2.5e-5, 5e-5, 1e-4, 2.5e-4, 5e-4, 1e-3, 2.5e-3, 5e-3, 1e-2, 2.5e-2, 0.1)

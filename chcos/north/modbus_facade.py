@@ -45,15 +45,15 @@ from pymodbus.constants import ExcCodes
 from pymodbus.datastore import ModbusServerContext
 from pymodbus.server import ModbusTcpServer
 
-from chcos.devspec import DeviceMap, DeviceSpec
+from chcos.comm.config import is_loopback
+from chcos.devices.spec import DeviceMap, DeviceSpec
 from chcos.errors import ChcosError, DeviceError
-from chcos.link.config import is_loopback
 from chcos.north import NorthError
 from chcos.north.health import device_health
-from chcos.tasks import TaskState
+from chcos.tables.tasks import TaskState
 
 if TYPE_CHECKING:
-    from chcos.system import System
+    from chcos.system.embedded import System
 
 log = logging.getLogger("chcos.north.modbus")
 INPUT, DISCRETE, HOLDING = "input", "discrete", "holding"
@@ -308,8 +308,9 @@ class ModbusFacade:
 def load_devmap(paths: Sequence[str]) -> DeviceMap:
     """The device map of a system given as device-map TOML files, a system file (TOML with a
     ``[system]`` table) or a sysfile.map (JSON). Raises ConfigError naming the file."""
-    from chcos import sysfile, sysmap
-    from chcos.devmap import load
+    from chcos.devices.devmap import load
+    from chcos.satellites import sysfile
+    from chcos.system import sysmap
 
     files: list[str] = []
     for p in paths:

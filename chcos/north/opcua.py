@@ -62,9 +62,9 @@ from asyncua.server.internal_session import InternalSession
 from asyncua.server.server import Server
 from asyncua.server.user_managers import UserManager
 
+from chcos.comm.config import is_loopback
 from chcos.errors import Busy, ChcosError
-from chcos.instrument import Instrument
-from chcos.link.config import is_loopback
+from chcos.kernel.instrument import Instrument
 from chcos.north import NorthError
 from chcos.north.health import add_health_listener, device_health, remove_health_listener
 
@@ -72,7 +72,7 @@ if TYPE_CHECKING:
     from asyncua.common.node import Node
 
     from chcos.north.auth import Users
-    from chcos.system import System
+    from chcos.system.embedded import System
 
 #: asyncua's ua module, untyped here: its NewType-wrapped scalars (UInt32, Int16, String...)
 #: would need a cast at every call

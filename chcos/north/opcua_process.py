@@ -22,9 +22,9 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any
 
-from chcos.devices import DeviceEntry, DeviceStatus
+from chcos.devices.devtab import DeviceEntry, DeviceStatus
 from chcos.errors import Busy, ChcosError
-from chcos.instrument import Instrument
+from chcos.kernel.instrument import Instrument
 from chcos.north import NorthError
 from chcos.north.health import add_health_listener, device_health, remove_health_listener
 from chcos.north.opcua import EVENT_KINDS, OpcUaServer, estop
@@ -32,9 +32,9 @@ from chcos.north.opcua import EVENT_KINDS, OpcUaServer, estop
 if TYPE_CHECKING:
     from multiprocessing.connection import Connection
 
-    from chcos.devspec import DeviceSpec
+    from chcos.devices.spec import DeviceSpec
     from chcos.north.auth import Users
-    from chcos.system import System
+    from chcos.system.embedded import System
 
 log = logging.getLogger("chcos.north.opcua")
 START_TIMEOUT = 60.0

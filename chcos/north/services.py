@@ -1,7 +1,8 @@
 """services - start the north-side services of a running system from one set of options.
 
 ``chcos run`` (and any runner) calls :func:`add_north_arguments` on its argument parser and
-:func:`start` with the running :class:`~chcos.system.System`; :meth:`NorthHandle.stop` ends them
+:func:`start` with the running :class:`~chcos.system.embedded.System`; :meth:`NorthHandle.stop`
+ends them
 all. Flags (every address is loopback unless given; a service not named does not start):
 
 ``--metrics [HOST:PORT]``        Prometheus endpoint (default 127.0.0.1:9464)
@@ -33,7 +34,7 @@ from chcos.north import NorthError
 
 if TYPE_CHECKING:
     from chcos.north.auth import Users
-    from chcos.system import System
+    from chcos.system.embedded import System
 
 DEFAULTS = {"metrics": "127.0.0.1:9464", "modbus_facade": "127.0.0.1:5020",
             "opcua": "opc.tcp://127.0.0.1:4840/chcos/", "view": "127.0.0.1:8765"}

@@ -3,7 +3,8 @@
 Thesis section 6.3 asks for "a program in Unix which will read sysfile.map and output a real-time
 graphic representation of the hierarchy of tasks". :mod:`chcos.viewer.graph` lays the map out by
 level and draws it as SVG (without graphviz) or as graphviz dot; :mod:`chcos.viewer.snapshot`
-turns a running :class:`~chcos.system.System` into JSON snapshots with message rates and an event
+turns a running :class:`~chcos.system.embedded.System` into JSON snapshots with message rates and
+an event
 log; :mod:`chcos.viewer.server` serves them to a browser page (``chcos view``) and takes setpri and
 invoke commands back; :mod:`chcos.viewer.cli` holds ``chcos map`` and ``chcos view``.
 """

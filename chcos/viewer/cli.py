@@ -25,20 +25,20 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, TextIO, cast
 
-from chcos import sysmap
 from chcos.errors import ChcosError
+from chcos.system import sysmap
 from chcos.viewer import ViewerError
 from chcos.viewer.graph import render_dot, render_svg
 
 if TYPE_CHECKING:
-    from chcos.system import System
+    from chcos.system.embedded import System
     from chcos.viewer.server import Viewer
 
 
 def map_main(argv: Sequence[str], out: TextIO | None = None) -> int:
     """``chcos map``: print a sysfile.map as text, dot or SVG; returns the exit status (1 with
     a message on stderr if the map cannot be read)."""
-    from chcos.sysview import render_text
+    from chcos.system.textview import render_text
 
     out = out or sys.stdout
     p = argparse.ArgumentParser(prog="chcos map", description="Draw a sysfile.map: levels top "
@@ -71,12 +71,12 @@ def map_main(argv: Sequence[str], out: TextIO | None = None) -> int:
 def _build(args: argparse.Namespace) -> tuple[System, Path | None, list[str]]:
     """The system to view (on real time), the host script to run on it before it starts, and
     the tasks to invoke once it runs. Raises ChcosError if it cannot be built."""
-    from chcos.clock import RealClock
-    from chcos.system import System
+    from chcos.kernel.clock import RealClock
+    from chcos.system.embedded import System
 
     if args.example:
-        from chcos import fig65run
-        from chcos.examples import fig65
+        from chcos.apps import fig65
+        from chcos.apps.fig65 import runner as fig65run
 
         workdir = Path(args.workdir or "out/fig65")
         workdir.mkdir(parents=True, exist_ok=True)
@@ -98,7 +98,7 @@ def view_main(argv: Sequence[str], *, stop: threading.Event | None = None,
     passes, Ctrl-C, or ``stop`` is set; ``on_ready(viewer)`` is called once the page is up.
     Returns the exit status (1 with a message on stderr if the system or server cannot start).
     """
-    from chcos.sysview import render_text
+    from chcos.system.textview import render_text
     from chcos.viewer.server import Viewer
     from chcos.viewer.snapshot import EventLog, Snapshotter
 
@@ -182,8 +182,8 @@ def view_main(argv: Sequence[str], *, stop: threading.Event | None = None,
 def _view_remote(args: argparse.Namespace, stop: threading.Event | None,
                  on_ready: Callable[[Viewer], None] | None, out: TextIO) -> int:
     """``chcos view --system FILE``: serve the page of running satellites until stopped."""
-    from chcos import sysfile
-    from chcos.host import Host
+    from chcos.satellites import sysfile
+    from chcos.satellites.host import Host
     from chcos.viewer.remote import HostSystem
     from chcos.viewer.server import Viewer
     from chcos.viewer.snapshot import EventLog

@@ -8,8 +8,9 @@ drawn upwards and command links downwards, each coloured by type and labelled wi
 a :class:`Live` overlay adds message rates, overwrites, device ages and event marks. The same code
 draws ``chcos map --format svg`` and the live page of ``chcos view``.
 
-The input is the document of :meth:`chcos.sysmgr.SystemManager.map_doc` or a sysfile.map read
-with :func:`chcos.sysmap.read`; :func:`check_doc` raises ViewerError for anything else.
+The input is the document of :meth:`chcos.system.manager.SystemManager.map_doc` or a sysfile.map
+read
+with :func:`chcos.system.sysmap.read`; :func:`check_doc` raises ViewerError for anything else.
 """
 
 from __future__ import annotations

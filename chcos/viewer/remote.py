@@ -1,8 +1,10 @@
 """remote - a system on satellites seen through the host's authenticated link, for the viewer.
 
 :class:`HostSystem` gives :class:`~chcos.viewer.server.Viewer` what it reads of a local
-:class:`~chcos.system.System` — ``sysmgr.map_doc()``, ``execute(line)``, a clock and the event
-hook — from a :class:`chcos.host.Host` session: the map is the host's merged map (each task,
+:class:`~chcos.system.embedded.System` — ``sysmgr.map_doc()``, ``execute(line)``, a clock and the
+event
+hook — from a :class:`chcos.satellites.host.Host` session: the map is the host's merged map (each
+task,
 device and link as its own satellite reports it), commands go through ``Host.execute`` (the same
 prepare/commit path as ``chcos host``), and the event log is made by comparing successive maps
 (installs, setpri, owners, abnormal completions, device status, satellites lost), since the
@@ -18,11 +20,11 @@ from __future__ import annotations
 import threading
 from typing import TYPE_CHECKING, Any
 
-from chcos.clock import RealClock
-from chcos.instrument import Instrument
+from chcos.kernel.clock import RealClock
+from chcos.kernel.instrument import Instrument
 
 if TYPE_CHECKING:
-    from chcos.host import Host
+    from chcos.satellites.host import Host
 
 
 class _Kernel:

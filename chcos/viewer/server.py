@@ -50,15 +50,15 @@ import time
 from collections import OrderedDict
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from aiohttp import web
 
-from chcos import cmdline
+from chcos import resources
+from chcos.comm.config import is_loopback
 from chcos.errors import Busy, ChcosError
-from chcos.link.config import is_loopback
-from chcos.sysview import render_text
+from chcos.system import cmdline
+from chcos.system.textview import render_text
 from chcos.viewer import ViewerError
 from chcos.viewer.graph import Live, render_dot, render_svg
 from chcos.viewer.snapshot import (
@@ -72,10 +72,10 @@ from chcos.viewer.snapshot import (
 
 if TYPE_CHECKING:
     from chcos.north.auth import User, Users
-    from chcos.system import System
+    from chcos.system.embedded import System
 
 log = logging.getLogger("chcos.viewer")
-STATIC = Path(__file__).resolve().parent / "static"
+STATIC = resources.path("chcos.viewer", "static")
 #: Events a newly connected page receives from before it connected.
 HISTORY = 200
 #: The commands the page offers at all (a role may allow fewer).

@@ -1,9 +1,10 @@
 """snapshot - a running system as JSON-ready snapshots: the map, message rates, ages, events.
 
-:class:`EventLog` is an :class:`~chcos.instrument.Instrument` that overrides only ``event``: the
+:class:`EventLog` is an :class:`~chcos.kernel.instrument.Instrument` that overrides only ``event``:
+the
 kernel thread appends (kind, detail) with the clock time under a short lock, and readers copy
 what is newer than the sequence number they saw. :class:`Snapshotter` takes snapshots of a
-:class:`~chcos.system.System` for the viewer at the viewer's own rate.
+:class:`~chcos.system.embedded.System` for the viewer at the viewer's own rate.
 
 Reading the tables from another thread: a snapshot calls ``sysmgr.map_doc()`` on the viewer's
 thread while the kernel may be running on its own. We accept torn reads rather than stop the cell
@@ -21,13 +22,13 @@ from collections import deque
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from chcos.clock import Clock
-from chcos.instrument import Instrument
+from chcos.kernel.clock import Clock
+from chcos.kernel.instrument import Instrument
 from chcos.viewer import ViewerError
 from chcos.viewer.graph import Live, link_key, render_svg
 
 if TYPE_CHECKING:
-    from chcos.system import System
+    from chcos.system.embedded import System
 
 RETRIES = 5
 #: Message rates are averaged over at least this much clock time (seconds).

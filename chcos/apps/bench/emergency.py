@@ -1,0 +1,467 @@
+"""emergency - the emergency reaction under CAN load, and the memory soak, on real time.
+
+One process, real time, a python-can ``virtual`` bus and chcos' real CAN driver (kind ``can``):
+
+* four background sensors ``B0..B3`` (CAN ids 0x100..0x103) read by four level-1 driver tasks
+  ``D0..D3``; each task writes its actuator ``M0..M3`` (ids 0x200..0x203) and sends a sensory
+  message up on every fifth reading (the thesis' five-to-one fan-in);
+* a light curtain ``LC`` (id 0x050, interrupt priority 99) read by the guard task ``G``, which
+  reports every reading upward;
+* the exception task ``X`` (level 3) hears every sensory message of every lower task through its
+  tap at priority 99; on an intruder report it invokes the assassin ``K`` (level 2) on the
+  priority-99 link X/K; ``K`` suspends ``D0..D3`` and calls estop: every actuator is written its
+  safe value (0) through Devtab.write, and the driver puts the frames on the bus.
+
+A peer (one more python-can bus on the channel) sends the background traffic from a pacing
+thread at ``rate`` frames/s and, from the measuring thread, one intruder frame per trial at a
+seeded random moment; its listener thread drains the bus and notes when the safe-value frames
+appear on it. Per trial the measured times are (``time.perf_counter``, one process):
+
+* ``from_send``: peer's ``send()`` of the intruder frame -> the last safe value written in
+  Devtab (the Devtab ``on_write`` hook, on the kernel thread, during K's step);
+* ``from_driver``: the CAN driver handing the decoded intruder value to the Devtab (its reader
+  thread) -> the same last safe value;
+* ``on_wire``: peer's send -> the last safe-value frame received back by the peer.
+
+As a side-by-side baseline under the same load and noise, every trial is followed by one
+``raw_echo``: a frame sent on a second virtual channel to a bare Python thread that sends it
+straight back, timed from send to the echo's arrival at the measuring thread (two thread
+hand-offs, as many as ``from_send`` needs: bus -> driver thread -> kernel thread).
+
+:func:`run_soak` runs the same system at 10,000 frames/s without intruders and reads the resident
+size (VmRSS of /proc/self/status) after a warm-up and at the end.
+Errors: :class:`~chcos.errors.BusError` if the virtual bus cannot be opened, ConfigError for
+bad parameters.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import can
+
+from chcos.apps.fig65.common import FAN_IN
+from chcos.devices.spec import BusSpec, DeviceMap, DeviceSpec
+from chcos.errors import ConfigError
+from chcos.kernel.clock import Clock, RealClock
+from chcos.system.embedded import System
+from chcos.user.context import TaskContext
+
+__all__ = [
+    "ACTUATORS",
+    "BACKGROUND",
+    "EmergencyResult",
+    "SoakResult",
+    "TrafficGenerator",
+    "assassin",
+    "build",
+    "drive",
+    "guard",
+    "rss_kb",
+    "run_emergency",
+    "run_soak",
+    "watch",
+]
+
+BACKGROUND = ("B0", "B1", "B2", "B3")
+ACTUATORS = ("M0", "M1", "M2", "M3")
+LC_ID = 0x050
+_M = "chcos.apps.bench.emergency"
+
+
+# --------------------------------------------------------------------------- tasks
+
+
+async def drive(ctx: TaskContext, command: Any) -> None:
+    """D0..D3: read the background sensor; every fifth reading command the actuator (never
+    with its safe value 0) and report the reading upward."""
+    read, write, put = ctx.read, ctx.write, ctx.put
+    n = 0
+    while True:
+        v = await read(0)
+        n += 1
+        if n % FAN_IN == 0:
+            write(0, (v % 1000) + 1)
+            put(v)
+
+
+async def guard(ctx: TaskContext, command: Any) -> None:
+    """G: report every light-curtain reading upward: ``("intruder", v)`` for v != 0."""
+    read, put = ctx.read, ctx.put
+    while True:
+        v = await read(0)
+        put(("intruder", v) if v else ("clear", v))
+
+
+async def watch(ctx: TaskContext, command: Any) -> None:
+    """X, the exception task: on an intruder report from any lower task, invoke the assassin
+    at once (without waiting for it)."""
+    while True:
+        _src, value = await ctx.read_exception()
+        if isinstance(value, tuple) and value[0] == "intruder":
+            await ctx.invoke("K", value, wait=False)
+
+
+async def assassin(ctx: TaskContext, command: Any) -> int:
+    """K, the assassin: suspend the tasks named in its ``victims`` parameter, then e-stop
+    (every actuator to its safe value). Completes with how many actuators were written."""
+    for name in str(ctx.params.get("victims", "")).split(","):
+        if name:
+            ctx.suspend_task(name)
+    return ctx.estop(f"intruder {command!r}")
+
+
+# --------------------------------------------------------------------------- the system
+
+
+def devmap(channel: str) -> DeviceMap:
+    """The devices on one python-can virtual bus ``channel`` (raw 32-bit signals)."""
+    bus = BusSpec("can0", "can", {"interface": "virtual", "channel": channel, "poll": 0.05})
+
+    def addr(cid: int) -> dict[str, Any]:
+        return {"id": cid, "start": 0, "length": 32, "dlc": 4}
+
+    devs = [DeviceSpec(b, "sensor", 0, "can0", addr(0x100 + i)) for i, b in enumerate(BACKGROUND)]
+    devs.append(DeviceSpec("LC", "sensor", 0, "can0", addr(LC_ID), priority=99))
+    devs += [DeviceSpec(a, "actuator", 0, "can0", addr(0x200 + i), limits=(0.0, 4.0e9),
+                        safe_value=0.0) for i, a in enumerate(ACTUATORS)]
+    return DeviceMap((bus,), tuple(devs))
+
+
+def build(channel: str, *, devices: DeviceMap | None = None, clock: Clock | None = None
+          ) -> System:
+    """The system, installed and every task invoked (not started): on the virtual CAN
+    ``channel`` and real time, or on ``devices`` (same device names) and ``clock`` (tests use
+    memory devices on virtual time). Raises BusError if the bus cannot be opened, InstallError
+    if an install fails."""
+    s = System(devices if devices is not None else devmap(channel),
+               clock=clock if clock is not None else RealClock(), machines=[0],
+               base_dir=Path.cwd())
+    for i, (b, a) in enumerate(zip(BACKGROUND, ACTUATORS, strict=True)):
+        s.execute(f"install -m0i1o1 --code={_M}:drive D{i} {b} {a}")
+    s.execute(f"install -m0i1 --code={_M}:guard G LC")
+    victims = ",".join(f"D{i}" for i in range(len(BACKGROUND)))
+    s.execute(f"install -m0 --role=assassin --level=2 --param=victims={victims} "
+              f"--code={_M}:assassin K")
+    s.execute(f"install -m0o1 --role=exception --level=3 --code={_M}:watch X K")
+    s.execute("setpri -99 X K")
+    for t in ("X", "G", *(f"D{i}" for i in range(len(BACKGROUND)))):
+        s.invoke(t)
+    return s
+
+
+def rss_kb() -> int:
+    """This process' resident set size in kB (VmRSS of /proc/self/status); 0 if unknown."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1])
+    except OSError:
+        pass
+    return 0
+
+
+class TrafficGenerator:
+    """A thread sending ``rate`` frames/s round-robin to the background sensors on ``bus``
+    (paced on an absolute schedule, at most ``burst`` frames at a time), and a listener thread
+    draining the peer's receive queue (an unread python-can virtual bus queue grows without
+    bound) and calling ``on_frame(msg, t)`` for every frame. ``lock`` serialises sends with
+    other senders on the same bus. Raises ConfigError for a negative rate."""
+
+    def __init__(self, bus: can.BusABC, rate: float, lock: threading.Lock,
+                 on_frame: Callable[[can.Message, float], None] | None = None,
+                 burst: int = 20) -> None:
+        if not rate >= 0:
+            raise ConfigError(f"traffic rate must be >= 0 frames/s, got {rate!r}")
+        self.bus = bus
+        self.rate = rate
+        self.lock = lock
+        self.on_frame = on_frame
+        self.burst = burst
+        self.sent = 0
+        self.received = 0
+        self._stop = threading.Event()
+        self._threads = [threading.Thread(target=self._send_loop, name="bench-gen", daemon=True),
+                         threading.Thread(target=self._recv_loop, name="bench-rx", daemon=True)]
+
+    def start(self) -> None:
+        """Start both threads."""
+        for t in self._threads:
+            t.start()
+
+    def stop(self) -> None:
+        """Stop both threads and wait for them."""
+        self._stop.set()
+        for t in self._threads:
+            t.join(2.0)
+
+    def _send_loop(self) -> None:
+        t0 = time.perf_counter()
+        n_ids = len(BACKGROUND)
+        while not self._stop.is_set():
+            due = int((time.perf_counter() - t0) * self.rate) - self.sent
+            for _ in range(min(due, self.burst)):
+                k = self.sent
+                msg = can.Message(arbitration_id=0x100 + k % n_ids, is_extended_id=False,
+                                  data=(k + 1).to_bytes(4, "little"))
+                with self.lock:
+                    self.bus.send(msg)
+                self.sent += 1
+            self._stop.wait(0.0005)
+
+    def _recv_loop(self) -> None:
+        while not self._stop.is_set():
+            msg = self.bus.recv(0.05)
+            if msg is None:
+                continue
+            t = time.perf_counter()
+            self.received += 1
+            if self.on_frame is not None:
+                self.on_frame(msg, t)
+
+
+class _HostProbe:
+    """Stands between the CAN driver and the Devtab: stamps the hand-over of intruder values."""
+
+    def __init__(self, host: Any, on_lc: Callable[[float], None]) -> None:
+        self._host = host
+        self._on_lc = on_lc
+
+    def deliver(self, device: str, value: Any) -> None:
+        """Stamp a non-zero light-curtain value, then hand it on (driver thread)."""
+        if device == "LC" and value:
+            self._on_lc(time.perf_counter())
+        self._host.deliver(device, value)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._host, name)
+
+
+@dataclass
+class EmergencyResult:
+    """Per-trial times in seconds (see the module doc) and the run's conditions."""
+
+    from_send: list[float] = field(default_factory=list)
+    from_driver: list[float] = field(default_factory=list)
+    on_wire: list[float] = field(default_factory=list)
+    raw_echo: list[float] = field(default_factory=list)
+    trials: int = 0
+    failed: int = 0
+    background_sent: int = 0
+    background_seconds: float = 0.0
+    frames_received_by_driver: int = 0
+
+    @property
+    def background_rate(self) -> float:
+        """Background frames per second actually sent."""
+        return self.background_sent / self.background_seconds if self.background_seconds else 0.0
+
+
+class _Trial:
+    """The state of the trial being measured (written by three threads, read by one)."""
+
+    def __init__(self, n_safe: int) -> None:
+        self.n_safe = n_safe
+        self.armed = False
+        self.t_driver: float | None = None
+        self.writes: list[float] = []
+        self.wire: dict[int, float] = {}
+        self.done = threading.Event()
+        self.wire_done = threading.Event()
+
+    def arm(self) -> None:
+        self.t_driver = None
+        self.writes = []
+        self.wire = {}
+        self.done.clear()
+        self.wire_done.clear()
+        self.armed = True
+
+
+def _channel(tag: str) -> str:
+    return f"chcos-bench-{tag}-{os.getpid()}-{time.monotonic_ns()}"
+
+
+class _Echo:
+    """A bare Python thread on its own virtual channel sending every frame straight back."""
+
+    def __init__(self) -> None:
+        channel = _channel("echo")
+        self.near = can.Bus(interface="virtual", channel=channel)
+        self.far = can.Bus(interface="virtual", channel=channel)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="bench-echo", daemon=True)
+        self._thread.start()
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            msg = self.far.recv(0.05)
+            if msg is not None:
+                self.far.send(msg)
+
+    def ping(self, k: int) -> float | None:
+        """Seconds from send to the echo's arrival; None if it did not come back in 1 s."""
+        msg = can.Message(arbitration_id=0x7FF, is_extended_id=False,
+                          data=k.to_bytes(4, "little"))
+        t0 = time.perf_counter()
+        self.near.send(msg)
+        back = self.near.recv(1.0)
+        return time.perf_counter() - t0 if back is not None else None
+
+    def close(self) -> None:
+        """Stop the echo thread and close both buses."""
+        self._stop.set()
+        self._thread.join(2.0)
+        self.near.shutdown()
+        self.far.shutdown()
+
+
+def run_emergency(trials: int = 200, rate: float = 5000.0, *, seed: int = 7,
+                  gap: tuple[float, float] = (0.01, 0.03)) -> EmergencyResult:
+    """Run ``trials`` intruder trials under ``rate`` background frames/s, each followed by a
+    raw echo (see the module doc). Raises ConfigError for bad parameters, BusError if the bus
+    cannot be opened."""
+    if trials < 1 or not 0 < gap[0] <= gap[1]:
+        raise ConfigError(f"emergency: need trials >= 1 and 0 < gap, got {trials}, {gap}")
+    channel = _channel("emg")
+    s = build(channel)
+    n_safe = len(ACTUATORS)
+    trial = _Trial(n_safe)
+    k_entry = s.tsktab.get("K")
+    kernel = s.kernel
+    act_ids = {0x200 + i for i in range(n_safe)}
+
+    def on_write(device: str, value: Any) -> None:
+        if trial.armed and kernel.current is k_entry and value == 0.0:
+            trial.writes.append(time.perf_counter())
+            if len(trial.writes) == n_safe:
+                trial.done.set()
+
+    def on_frame(msg: can.Message, t: float) -> None:
+        if (trial.armed and msg.arbitration_id in act_ids
+                and int.from_bytes(msg.data[:4], "little") == 0):
+            trial.wire.setdefault(msg.arbitration_id, t)
+            if len(trial.wire) == n_safe:
+                trial.wire_done.set()
+
+    def on_lc(t: float) -> None:
+        if trial.armed and trial.t_driver is None:
+            trial.t_driver = t
+
+    s.devtab.on_write.append(on_write)
+    for drv in s.devtab.drivers:
+        drv.host = _HostProbe(drv.host, on_lc)
+    peer = can.Bus(interface="virtual", channel=channel)
+    lock = threading.Lock()
+    gen = TrafficGenerator(peer, rate, lock, on_frame)
+    rng = random.Random(seed)
+    res = EmergencyResult()
+    echo = _Echo()
+    s.start()
+    gen.start()
+    t_start = time.perf_counter()
+    try:
+        time.sleep(0.3)  # warm-up: traffic flowing, every task waiting on its input
+        for i in range(trials):
+            time.sleep(rng.uniform(*gap))
+            trial.arm()
+            frame = can.Message(arbitration_id=LC_ID, is_extended_id=False,
+                                data=(i + 1).to_bytes(4, "little"))
+            with lock:
+                t_send = time.perf_counter()
+                peer.send(frame)
+            ok = trial.done.wait(1.0) and trial.wire_done.wait(1.0)
+            trial.armed = False
+            res.trials += 1
+            if not ok or trial.t_driver is None:
+                res.failed += 1
+            else:
+                last = trial.writes[-1]
+                res.from_send.append(last - t_send)
+                res.from_driver.append(last - trial.t_driver)
+                res.on_wire.append(max(trial.wire.values()) - t_send)
+            for d in range(len(BACKGROUND)):
+                s.execute(f"resume D{d}")
+            time.sleep(rng.uniform(*gap))
+            raw = echo.ping(i)
+            if raw is not None:
+                res.raw_echo.append(raw)
+        res.background_seconds = time.perf_counter() - t_start
+        res.background_sent = gen.sent
+        res.frames_received_by_driver = sum(getattr(d, "received", 0) for d in s.devtab.drivers)
+        return res
+    finally:
+        gen.stop()
+        echo.close()
+        s.shutdown()
+        peer.shutdown()
+
+
+@dataclass
+class SoakResult:
+    """Resident size over a soak (kB) and what flowed meanwhile."""
+
+    seconds: float
+    rate: float
+    rss_start_kb: int
+    rss_end_kb: int
+    rss_max_kb: int
+    samples_kb: list[int]
+    frames_sent: int
+    frames_received_by_driver: int
+    readings: int
+
+    @property
+    def growth_kb(self) -> int:
+        """End minus start."""
+        return self.rss_end_kb - self.rss_start_kb
+
+    @property
+    def achieved_rate(self) -> float:
+        """Frames per second actually sent during the soak."""
+        return self.frames_sent / self.seconds if self.seconds else 0.0
+
+
+def run_soak(seconds: float = 60.0, rate: float = 10_000.0, *, warmup: float = 3.0
+             ) -> SoakResult:
+    """Run the emergency system at ``rate`` background frames/s for ``warmup`` + ``seconds``
+    and sample VmRSS once a second; start is read after the warm-up. Raises ConfigError for a
+    non-positive duration, BusError if the bus cannot be opened."""
+    if not seconds > 0 or warmup < 0:
+        raise ConfigError(f"soak: need seconds > 0 and warmup >= 0, got {seconds}, {warmup}")
+    channel = _channel("soak")
+    s = build(channel)
+    peer = can.Bus(interface="virtual", channel=channel)
+    gen = TrafficGenerator(peer, rate, threading.Lock())
+    s.start()
+    gen.start()
+    try:
+        time.sleep(warmup)
+        start_kb = rss_kb()
+        sent0 = gen.sent
+        recv0 = sum(getattr(d, "received", 0) for d in s.devtab.drivers)
+        read0 = sum(s.devtab.get(b).readings for b in BACKGROUND)
+        t0 = time.perf_counter()
+        samples = [start_kb]
+        while (left := t0 + seconds - time.perf_counter()) > 0:
+            time.sleep(min(1.0, left))
+            samples.append(rss_kb())
+        dt = time.perf_counter() - t0
+        end_kb = samples[-1]
+        return SoakResult(
+            seconds=dt, rate=rate, rss_start_kb=start_kb, rss_end_kb=end_kb,
+            rss_max_kb=max(samples), samples_kb=samples, frames_sent=gen.sent - sent0,
+            frames_received_by_driver=sum(getattr(d, "received", 0)
+                                          for d in s.devtab.drivers) - recv0,
+            readings=sum(s.devtab.get(b).readings for b in BACKGROUND) - read0)
+    finally:
+        gen.stop()
+        s.shutdown()
+        peer.shutdown()

@@ -1,0 +1,53 @@
+"""A1 - level 1: temperature of the arc (A1.s), compared with the band from its commander.
+
+Reads ``arc_temp`` (50 Hz), filters out spikes (median of three), compares the temperature with
+the band ``{"band": [low, high]}`` its commander gave (the thesis' "threshold from the C module")
+and sends ``{"temp", "cmp", "band"}`` upward, ``cmp`` being ``"below"``, ``"within"``,
+``"above"`` or None without a band. A sensor failure is sent up as ``{"fail": "arc_temp"}`` and
+the loop goes on waiting for the sensor. A command is taken at once (completed) and the loop runs
+on unowned.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from chcos.apps.weld.tasks.common import (
+    SpikeFilter,
+    as_dict,
+    await_recovery,
+    clear_failure,
+    report_failure,
+)
+from chcos.errors import SensorFailure
+from chcos.user.context import TaskContext
+
+
+def compare(temp: float, band: Any) -> str | None:
+    """Where ``temp`` lies against ``band`` ([low, high] degC): below, within, above, or None."""
+    if not isinstance(band, list | tuple) or len(band) != 2:
+        return None
+    lo, hi = float(band[0]), float(band[1])
+    return "below" if temp < lo else "above" if temp > hi else "within"
+
+
+async def main(ctx: TaskContext, command: Any) -> None:
+    """Filter, compare and report the arc temperature forever."""
+    cmd = as_dict(command)
+    wm = ctx.world
+    if "band" in cmd:
+        wm.command["band"] = cmd["band"]
+    ctx.complete({"band": wm.command.get("band")})
+    filt: SpikeFilter = wm.sensory.setdefault("filter", SpikeFilter())
+    while True:
+        try:
+            raw = await ctx.read("arc_temp")
+        except SensorFailure as exc:
+            report_failure(ctx, exc)
+            await await_recovery(ctx, exc)
+            continue
+        clear_failure(ctx, "arc_temp")
+        temp = filt.push(float(raw))
+        cmp = compare(temp, wm.command.get("band"))
+        wm.sensory["temp"] = temp
+        ctx.put({"temp": temp, "cmp": cmp, "band": wm.command.get("band")})

@@ -1,0 +1,49 @@
+"""A3 - level 1: turn the shielding gas on/off (A3.c); bottle full/empty and flow on/off (A3.s).
+
+Command ``{"gas": "on" | "off"}`` switches ``gas_valve`` and is completed at once. The loop reads
+the bottle pressure ``gas_bottle`` (20 Hz) and the flow ``gas_flow`` and sends ``{"bottle",
+"empty", "flow", "flow_ok", "valve"}`` upward: the bottle is empty below ``empty_bar`` (install
+parameter, default 5 bar), the flow is good from ``min_flow`` (default 8 L/min). A failed sensor
+is reported as ``{"fail": device}``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from chcos.apps.weld.tasks.common import (
+    as_dict,
+    await_recovery,
+    clear_failure,
+    latest,
+    report_failure,
+)
+from chcos.errors import SensorFailure
+from chcos.user.context import TaskContext
+
+
+async def main(ctx: TaskContext, command: Any) -> None:
+    """Switch and watch the gas."""
+    cmd = as_dict(command)
+    wm = ctx.world
+    if "gas" in cmd:
+        on = cmd["gas"] in ("on", 1, True)
+        wm.command["valve"] = on
+        ctx.write("gas_valve", 1.0 if on else 0.0)
+    ctx.complete({"valve": wm.command.get("valve", False)})
+    empty_bar = float(ctx.params.get("empty_bar", 5.0))
+    min_flow = float(ctx.params.get("min_flow", 8.0))
+    while True:
+        try:
+            bottle = float(await ctx.read("gas_bottle"))
+            flow = float(await latest(ctx, "gas_flow"))
+        except SensorFailure as exc:
+            report_failure(ctx, exc)
+            await await_recovery(ctx, exc)
+            continue
+        clear_failure(ctx, "gas_bottle")
+        clear_failure(ctx, "gas_flow")
+        msg = {"bottle": bottle, "empty": bottle < empty_bar, "flow": flow,
+               "flow_ok": flow >= min_flow, "valve": bool(wm.command.get("valve", False))}
+        wm.sensory.update(msg)
+        ctx.put(msg)

@@ -1,0 +1,73 @@
+"""A5 - level 1: advance/retard the electrode (wire) speed (A5.c); electrode speed (A5.s).
+
+Command ``{"speed": mm/s}`` sets the wire feed, ``{"step": mm/s}`` advances (positive) or
+retards (negative) it; either is completed at once. The loop reads ``wire_speed`` (20 Hz) and
+sends ``{"wire", "set"}`` upward; a failed sensor is reported as ``{"fail": "wire_speed"}``.
+
+When A5 is installed with the electrode supply ``wire_left`` (m of wire on the spool) among its
+inputs, each message also carries ``{"left": m, "empty": bool}`` (empty below ``empty_m``,
+default 0.05 m) and a failed supply sensor is reported as ``{"fail": "wire_left"}`` (and
+nothing else is sent until it reports again).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from chcos.apps.weld.tasks.common import (
+    as_dict,
+    await_recovery,
+    clear_failure,
+    latest,
+    param,
+    report_failure,
+)
+from chcos.errors import ReadTimeout, SensorFailure
+from chcos.user.context import TaskContext
+
+WIRE_MAX = 250.0
+
+
+async def main(ctx: TaskContext, command: Any) -> None:
+    """Set and report the electrode speed."""
+    cmd = as_dict(command)
+    wm = ctx.world
+    speed = float(wm.command.get("speed", 0.0))
+    if "speed" in cmd:
+        speed = float(cmd["speed"])
+    if "step" in cmd:
+        speed += float(cmd["step"])
+    if "speed" in cmd or "step" in cmd:
+        speed = max(0.0, min(WIRE_MAX, speed))
+        wm.command["speed"] = speed
+        ctx.write("wire_set", speed)
+    ctx.complete({"speed": speed})
+    supply = "wire_left" in ctx.inputs
+    empty_m = float(param(ctx, cmd, "empty_m", 0.05))
+    while True:
+        try:
+            wire = float(await ctx.read("wire_speed"))
+        except SensorFailure as exc:
+            report_failure(ctx, exc)
+            await await_recovery(ctx, exc)
+            continue
+        clear_failure(ctx, "wire_speed")
+        wm.sensory["wire"] = wire
+        msg: dict[str, Any] = {"wire": wire, "set": wm.command.get("speed", 0.0)}
+        if supply:
+            try:
+                left = float(await latest(ctx, "wire_left", timeout=0.3))
+            except SensorFailure as exc:
+                # the failure stays the newest message (the exception task sees it) until the
+                # supply reports again
+                report_failure(ctx, exc)
+                ctx.world.sensory.pop("last:wire_left", None)
+                await ctx.sleep(0.1)
+                continue
+            except ReadTimeout:
+                pass  # no supply reading yet
+            else:
+                clear_failure(ctx, "wire_left")
+                msg.update(left=left, empty=left < empty_m)
+                wm.sensory.update(left=left, empty=left < empty_m)
+        ctx.put(msg)

@@ -1,0 +1,131 @@
+"""B1 - level 2: turn the weld on/off (B1.c).
+
+``{"op": "on", "volts": V, "wire": mm/s}``: gas on (A3) and wait up to ``gas_wait`` s for the flow,
+then the wire feed (A5) and the voltage to its start-up value (A2); report ``{"weld": "on"}`` and
+stay active, watching the gas (A3.s) while the weld is on. ``{"op": "off"}``: voltage off, wire
+off, gas off, report ``{"weld": "off"}``, complete. If the gas fails (bottle empty or no flow for
+``gas_grace`` s) while on, the weld is turned off, ``{"weld": "fail", "reason"}`` is reported and
+the activation raises GasFailure (its owner sees an abnormal completion). Installed with A5
+among its inputs, B1 also watches the electrode supply (A5.s): when the spool is empty the weld
+is turned off the same way, reported as ``wire fail`` and WireFailure is raised. The world
+model answers ``welding`` (is the weld on), the context D3 asks for.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from chcos.apps.weld.tasks.common import GasFailure, WeldTaskError, WireFailure, as_dict, param
+from chcos.user.context import TaskContext
+from chcos.user.worldmodel import WorldModel
+
+COOLING_S = 15.0
+"""How long after the weld is off a hot arc region is still expected (s)."""
+
+
+class WeldModel(WorldModel):
+    """B1's world model: the weld state (off, starting, on, fail) and who asked for it."""
+
+    def answer(self, topic: str, *args: Any) -> Any:
+        """``welding``: True while the weld is starting or on. ``heat_expected <now>``: welding,
+        or turned off less than ``COOLING_S`` ago (the pool is still cooling)."""
+        welding = self.command.get("weld") in ("starting", "on")
+        if topic == "welding":
+            return welding
+        if topic == "heat_expected":
+            off_at = self.command.get("off_at")
+            now = float(args[0]) if args else 0.0
+            return welding or (off_at is not None and now - float(off_at) < COOLING_S)
+        return super().answer(topic, *args)
+
+
+async def _off(ctx: TaskContext) -> None:
+    if ctx.world.command.get("weld") in ("starting", "on", "fail"):
+        ctx.world.command["off_at"] = ctx.now
+    for port, cmd in (("A2", {"volts": 0.0}), ("A5", {"speed": 0.0}), ("A3", {"gas": "off"})):
+        done = await ctx.call(port, cmd)
+        if not done.ok:
+            raise WeldTaskError(f"B1: turning the weld off, {port} answered "
+                                f"{done.status.value}: {done.error}")
+
+
+async def _turn_off(ctx: TaskContext) -> str:
+    await _off(ctx)
+    ctx.world.command["weld"] = "off"
+    ctx.put({"weld": "off"})
+    return "off"
+
+
+async def main(ctx: TaskContext, command: Any) -> str:
+    """Turn the weld on (and watch the gas) or off. While on, a newer command from the owner
+    (a repeated topen, no new activation) is taken up at once: ``on`` runs the start-up again
+    (gas, wire, voltage: after C1 freed a stuck tip the voltage is off), anything else turns the
+    weld off and completes."""
+    cmd = as_dict(command)
+    while cmd.get("op", "off") == "on":
+        cmd = await _on(ctx, cmd)
+    return await _turn_off(ctx)
+
+
+async def _on(ctx: TaskContext, cmd: dict[str, Any]) -> dict[str, Any]:
+    """Start the weld and watch the gas until the owner's next command, which is returned."""
+    wm = ctx.world
+    volts = float(param(ctx, cmd, "volts", 24.0))
+    wire = float(param(ctx, cmd, "wire", 80.0))
+    gas_wait = float(param(ctx, cmd, "gas_wait", 1.0))
+    grace = float(param(ctx, cmd, "gas_grace", 0.15))
+    wm.command.update(weld="starting", volts=volts, wire=wire)
+    await ctx.call("A3", {"gas": "on"})
+    t0 = ctx.now
+    while True:
+        ev = await ctx.wait_any(["A3"], commands=True, timeout=gas_wait)
+        if ev.kind == "command":
+            return as_dict(ev.value)
+        gas = ev.value
+        if isinstance(gas, dict) and gas.get("flow_ok"):
+            break
+        if ctx.now - t0 > gas_wait:
+            await _fail(ctx, f"no gas flow {gas_wait} s after the valve opened "
+                             f"(bottle {_bar(gas)})")
+    await ctx.call("A5", {"speed": wire})
+    await ctx.call("A2", {"volts": volts})
+    wm.command["weld"] = "on"
+    ctx.put({"weld": "on"})
+    bad_since: float | None = None
+    watch = ["A3", "A5"] if "A5" in ctx.inputs else ["A3"]
+    while True:
+        ev = await ctx.wait_any(watch, commands=True)
+        if ev.kind == "command":
+            return as_dict(ev.value)
+        gas = ev.value
+        if ev.source == "A5":
+            if isinstance(gas, dict) and gas.get("empty"):
+                await _fail(ctx, f"electrode supply empty ({gas.get('left', 0.0):.2f} m of wire "
+                                 f"left)", "wire")
+            continue
+        if not isinstance(gas, dict) or "empty" not in gas:
+            continue
+        if gas["empty"] or not gas["flow_ok"]:
+            bad_since = ctx.now if bad_since is None else bad_since
+            if ctx.now - bad_since >= grace:
+                what = "bottle empty" if gas["empty"] else "no flow"
+                await _fail(ctx, f"{what} (bottle {_bar(gas)}, flow {gas['flow']:.1f} L/min)")
+        else:
+            bad_since = None
+
+
+async def _fail(ctx: TaskContext, why: str, what: str = "gas") -> None:
+    await _off(ctx)
+    ctx.world.command["weld"] = "fail"
+    reason = f"{what} fail: {why}"
+    ctx.world.command["reason"] = reason
+    ctx.put({"weld": "fail", "reason": reason})
+    error = WireFailure if what == "wire" else GasFailure
+    raise error(f"B1: {reason}; weld turned off")
+
+
+def _bar(gas: Any) -> str:
+    return f"{gas['bottle']:.1f} bar" if isinstance(gas, dict) and "bottle" in gas else "unknown"
+
+
+main.world_model = WeldModel  # type: ignore[attr-defined]

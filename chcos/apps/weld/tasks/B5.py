@@ -1,0 +1,86 @@
+"""B5 - level 2: approach target (B5.c); target sighted/not sighted (B5.s).
+
+Centres the tip over the start-of-gap marker with the linear sensor (A7): waits up to 0.5 s for a
+sighting, moves sideways by the marker's offset from the image centre, then creeps forward along
+the tool yaw until the marker leaves the sensor (which is 5 mm ahead of the tip, and the marker
+reaches 6 mm past the gap start), and backs off ``backoff`` mm so the tip stands at the gap
+start. Completes with ``{"at": pos, "yaw"}``. Raises TargetNotSighted if no marker is seen,
+MotionFailed if a move fails.
+
+B5.s decides from the present and the previous binary image whether the gap-start marker has
+been sighted (both show it: one stray image is not a sighting) and puts ``{"target": "sighted" |
+"not sighted" | "passed" | "centred", "marker", "at", "t"}`` upward.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from chcos.apps.weld.tasks.common import (
+    MotionFailed,
+    TargetNotSighted,
+    add,
+    as_dict,
+    latest,
+    left,
+    param,
+    sighted,
+)
+from chcos.errors import ReadTimeout
+from chcos.user.context import TaskContext
+
+
+async def _move(ctx: TaskContext, p: Any, yaw: float, speed: float) -> None:
+    done = await ctx.call("A4", {"op": "move", "p": p, "yaw": yaw, "speed": speed})
+    if not done.ok:
+        raise MotionFailed(f"B5: A4 {done.status.value}: {done.error}")
+
+
+async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
+    """Centre on the start marker."""
+    cmd = as_dict(command)
+    backoff = float(param(ctx, cmd, "backoff", 1.5))
+    seen: dict[str, Any] | None = None
+    previous: Any = None
+    t0 = ctx.now
+    while ctx.now - t0 < 0.5:
+        try:
+            msg = await ctx.read("A7", timeout=0.5)
+        except ReadTimeout:
+            break
+        if sighted(msg, "start") and sighted(previous, "start"):
+            seen = msg
+            if msg.get("marker") is not None:
+                break
+        previous = msg
+    if seen is None:
+        ctx.put({"target": "not sighted", "marker": None, "at": None, "t": ctx.now})
+        raise TargetNotSighted("B5: no start-of-gap marker under the linear sensor (two "
+                               "successive images)")
+    ctx.put({"target": "sighted", "marker": seen.get("marker"), "at": None, "t": ctx.now})
+    here = await latest(ctx, "A4")
+    yaw = float(cmd.get("yaw", here["yaw"]))
+    ctx.world.sensory["sighted"] = seen
+    off = seen.get("marker")
+    if off is None:
+        off = seen.get("centre") or 0.0
+    lx, ly = left(yaw)
+    await _move(ctx, add(here["pos"], (lx, ly, 0.0), float(off)), yaw, 10.0)
+    # creep forward until the marker leaves the sensor
+    here = await latest(ctx, "A4")
+    fwd = (math.cos(yaw), math.sin(yaw), 0.0)
+    await ctx.invoke("A4", {"op": "move", "p": add(here["pos"], fwd, 20.0), "yaw": yaw,
+                            "speed": 4.0})
+    while True:
+        msg = await ctx.read("A7", timeout=6.0)
+        if not sighted(msg, "start"):
+            break
+    here = await latest(ctx, "A4")
+    ctx.put({"target": "passed", "marker": None, "at": here["pos"], "t": ctx.now})
+    await _move(ctx, add(here["pos"], fwd, -backoff), yaw, 4.0)
+    here = await latest(ctx, "A4")
+    result = {"at": here["pos"], "yaw": yaw}
+    ctx.world.sensory["aligned"] = result
+    ctx.put({"target": "centred", "marker": None, "at": here["pos"], "t": ctx.now})
+    return result

@@ -1,0 +1,137 @@
+"""C1 - level 3: unstick tip (C1.c); tip stuck/free (C1.s).
+
+``{"op": "watch"}`` (the sensory part, run while D2 welds): reads the arc temperature (A1), the arc
+voltage and current (A2) and the tip position (A4). The tip is stuck when, with the voltage on,
+the arc voltage has collapsed (below 2 V) with a short-circuit current (over 200 A), or the tip
+has not moved for 0.5 s although a motion is commanded while the temperature falls. Reports
+``{"tip": "stuck" | "free", "since"}`` on every change.
+
+Besides these hard-coded tests C1 learns (thesis 5.4, App. 2 C1.s: temperature and position
+over time): when a short circuit shows the tip stuck, the arc voltage's trend over the half
+second before it is kept as an example (``chcos.user.worldmodel.LearnedPattern``, in
+``learned/C1-tip.json`` beside the system's map). On later runs, when the burning arc's voltage
+follows a learned trend, C1 reports ``{"tip": "sticking"}`` before the tip freezes (its
+commander can cut the wire feed), and ``{"tip": "free"}`` 1 s later. Every reaction is kept in
+the world model's ``reactions`` (``{"t", "kind": "learned" | "hard-coded"}``).
+
+``{"op": "idle"}`` stops watching. ``{"op": "unstick"}``: stop the motors and memorize the
+position (A6), turn the voltage off (A2), move the tip ``lift`` mm (default 10) straight up,
+90 degrees away from the gap (A4), and check that it moved. Completes with ``{"freed": true,
+"memorized": record, "lift"}``; raises TipStillStuck if the tip did not come free,
+MotionFailed if a lower task failed.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from chcos.apps.weld.tasks.common import (
+    MotionFailed,
+    TipStillStuck,
+    as_dict,
+    dist,
+    latest,
+    param,
+)
+from chcos.user.context import TaskContext
+from chcos.user.worldmodel import LearnedPattern, Store
+
+LEAD_S = 0.5
+"""How much history before a stuck tip is learned (s)."""
+
+
+async def main(ctx: TaskContext, command: Any) -> Any:
+    """Watch for a stuck tip, or free it."""
+    cmd = as_dict(command)
+    if cmd.get("op") == "unstick":
+        return await _unstick(ctx, float(param(ctx, cmd, "lift", 10.0)))
+    if cmd.get("op") == "idle":
+        return "idle"
+    await _watch(ctx)
+    return None
+
+
+async def _watch(ctx: TaskContext) -> None:
+    wm = ctx.world
+    ctx.complete("watching")
+    state = "free"
+    short_since: float | None = None
+    still_since: float | None = None
+    last_pos: Any = None
+    temps: list[float] = []
+    learned = LearnedPattern(["volts"], Store.beside(ctx.state_dir, f"{ctx.name}-tip"),
+                             lead=LEAD_S, guard=0.05, tolerance=0.5)
+    reactions: list[dict[str, Any]] = wm.sensory.setdefault("reactions", [])
+    sticking_until: float | None = None
+    last_set: float | None = None
+    while True:
+        port, msg = await ctx.read_any(["A1", "A2", "A4"])
+        src = ctx.inputs[port]
+        if not isinstance(msg, dict) or "fail" in msg:
+            continue
+        now = ctx.now
+        if src == "A2":
+            shorted = msg["set"] > 0.0 and msg["volts"] < 2.0 and msg["amps"] > 200.0
+            # the freeze: learn the trend that led to it
+            if shorted and short_since is None and state == "free" \
+                    and learned.learn(now) is not None:
+                wm.sensory["learned_examples"] = len(learned.examples)
+            short_since = (short_since if short_since is not None else now) if shorted else None
+            burning = msg["set"] > 0.0 and msg["volts"] > 2.0 and msg["amps"] > 50.0
+            if not burning or msg["set"] != last_set:
+                learned.history.clear()
+            last_set = msg["set"]
+            if burning and learned.push(now, {"volts": float(msg["volts"])}) \
+                    and state == "free":
+                state, sticking_until = "sticking", now + 1.0
+                reactions.append({"t": now, "kind": "learned"})
+                wm.sensory.update(tip=state, since=now)
+                ctx.put({"tip": state, "since": now})
+                learned.history.clear()
+                continue
+        elif src == "A1":
+            temps = [*temps[-24:], float(msg["temp"])]
+        elif src == "A4":
+            pos = msg["pos"]
+            if msg["moving"] and last_pos is not None and dist(pos, last_pos) < 0.01:
+                still_since = still_since if still_since is not None else now
+            else:
+                still_since = None
+            last_pos = pos
+        cooling = len(temps) >= 25 and temps[-1] < temps[0] - 30.0
+        stuck = ((short_since is not None and now - short_since >= 0.1)
+                 or (still_since is not None and now - still_since >= 0.5 and cooling))
+        if state == "sticking" and not stuck:
+            if sticking_until is not None and now < sticking_until:
+                continue
+            sticking_until = None
+        new = "stuck" if stuck else "free"
+        if new != state:
+            if new == "stuck" and state != "sticking":
+                reactions.append({"t": now, "kind": "hard-coded"})
+            state = new
+            wm.sensory.update(tip=state, since=now)
+            ctx.put({"tip": state, "since": now})
+
+
+async def _unstick(ctx: TaskContext, lift: float) -> dict[str, Any]:
+    wm = ctx.world
+    wm.command["unstick"] = "stopping"
+    mem = await ctx.call("A6", {"stop": True, "memorize": "stuck"})
+    if not mem.ok:
+        raise MotionFailed(f"C1: A6 could not stop/memorize: {mem.error}")
+    off = await ctx.call("A2", {"volts": 0.0})
+    if not off.ok:
+        raise MotionFailed(f"C1: A2 could not turn the voltage off: {off.error}")
+    record = await ctx.ask("A6", "position", "stuck")
+    p0 = record["pos"]
+    wm.command["unstick"] = "lifting"
+    up = await ctx.call("A4", {"op": "move", "p": [p0[0], p0[1], p0[2] + lift],
+                               "yaw": record["yaw"], "speed": 10.0})
+    here = await latest(ctx, "A4")
+    if not up.ok or here["pos"][2] - p0[2] < 0.8 * lift:
+        raise TipStillStuck(f"C1: tip still stuck at {p0} after the lift "
+                            f"({up.status.value} {up.error})")
+    wm.command["unstick"] = "freed"
+    wm.sensory.update(tip="free", since=ctx.now)
+    return {"freed": True, "memorized": record, "lift": lift}

@@ -1,0 +1,94 @@
+"""E2 - level 5: the job (started by the host with ``invoke E2``).
+
+Inspect the gap (D1); if the inspection is OK, weld it (D2) starting from the start D1 found;
+then go home (B3). Meanwhile it listens to the exception task D3: an alarm aborts the job at
+once (the assassin E1 has made the cell safe; E2 does not move it again). Command or install
+parameters: ``start`` [x, y] (probable start of the gap, mm), ``heading`` (rad), ``z`` (tip
+height, mm), ``home`` [x, y, z]; ``inspect_only`` skips the weld.
+
+Completes with ``{"outcome": "welded" | "inspection failed" | "inspection aborted" |
+"weld failed" | "aborted", "reason", "inspection", "weld", "home"}``; the phase and the
+outcome are in the world model (``phase``, ``outcome``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from chcos.apps.weld.tasks.common import as_dict, param
+from chcos.tables.messages import Completion
+from chcos.user.context import TaskContext
+from chcos.user.worldmodel import WorldModel
+
+
+class JobModel(WorldModel):
+    """E2's world model: the phase of the job and its outcome."""
+
+
+class Alarm(Exception):
+    """An alarm from D3 ended the job (internal to E2)."""
+
+    def __init__(self, alarm: dict[str, Any]) -> None:
+        super().__init__(f"{alarm['alarm']}: {alarm.get('detail', '')}")
+        self.alarm = alarm
+
+
+async def _run(ctx: TaskContext, port: str, command: dict[str, Any]) -> Completion:
+    """Invoke ``port`` and wait for its completion or an alarm from D3, whichever comes first
+    (no polling: E2 runs only on completions and alarms)."""
+    await ctx.invoke(port, command)
+    while True:
+        ev = await ctx.wait_any(["D3"], completions=[port])
+        if ev.kind == "completion":
+            done: Completion = ev.value
+            return done
+        msg = ev.value
+        if isinstance(msg, dict) and "alarm" in msg:
+            raise Alarm(msg)
+
+
+async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
+    """Run the job and report its outcome."""
+    cmd = as_dict(command)
+    wm = ctx.world
+    wm.command.pop("outcome", None)  # a new job: the last one's outcome is history
+    where = {"start": [float(v) for v in param(ctx, cmd, "start", [542.0, -164.0])],
+             "heading": float(param(ctx, cmd, "heading", math.pi / 2)),
+             "z": float(param(ctx, cmd, "z", 10.0))}
+    out: dict[str, Any] = {"outcome": "", "reason": "", "inspection": None, "weld": None,
+                           "home": None}
+    try:
+        wm.command["phase"] = "inspect"
+        done = await _run(ctx, "D1", dict(where))
+        out["inspection"] = done.result if done.ok else done.error
+        if not done.ok:
+            out.update(outcome="inspection aborted", reason=done.error)
+        elif done.result["inspection"] != "OK":
+            out.update(outcome="inspection failed", reason=done.result["reason"])
+        elif param(ctx, cmd, "inspect_only", False):
+            out.update(outcome="inspected")
+        else:
+            wm.command["phase"] = "weld"
+            start = done.result["start"]
+            weld = {**where, "start": [start[0] + 5.0 * math.cos(done.result["heading"]),
+                                       start[1] + 5.0 * math.sin(done.result["heading"])],
+                    "heading": done.result["heading"]}
+            done = await _run(ctx, "D2", weld)
+            out["weld"] = done.result if done.ok else done.error
+            if done.ok:
+                out.update(outcome="welded")
+            else:
+                out.update(outcome="weld failed", reason=done.error)
+        wm.command["phase"] = "home"
+        home = {"home": param(ctx, cmd, "home", [500.0, 0.0, 250.0])}
+        done = await _run(ctx, "B3", home)
+        out["home"] = done.result if done.ok else done.error
+    except Alarm as exc:
+        out.update(outcome="aborted", reason=str(exc))
+    wm.command.update(phase="finished", outcome=out)
+    ctx.put(out)
+    return out
+
+
+main.world_model = JobModel  # type: ignore[attr-defined]

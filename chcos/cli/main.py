@@ -1,0 +1,318 @@
+"""main - the ``chcos`` command: a thin dispatcher to each subcommand's own module.
+
+:data:`DESCRIPTION` is what ``chcos --help`` shows; each subcommand's parser and help live in its
+module (``chcos.cli.cellrun``, ``chcos.apps.weld.runner``, ``chcos.cli.scaffold``,
+``chcos.devices.importers``,
+``chcos.cli.monitor``, ``chcos.apps.sim``, ``chcos.devices.devmap``, ``chcos.viewer.cli``), except
+``shell``,
+``satellite`` and ``host``, which are here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
+
+from chcos.errors import ChcosError, CommandSyntaxError
+
+DESCRIPTION = """\
+chcos runs CHC-OS control hierarchies on real field buses (CAN, CANopen, Modbus, serial).
+
+Your own cell:
+  chcos new DIR                  create a cell project (system file, device map, task, tests)
+  chcos run SYSTEM               run a system file until Ctrl-C (--virtual, --outputs off, ...)
+  chcos monitor SYSTEM           commission a live bus: listen-only, mismatches flagged
+  chcos import eds|dbc|modbus F  write a device map from an EDS, a DBC or a register list
+  chcos check FILE...            validate device maps without opening a bus
+  chcos sim --from MAP           simulated slaves for every device of a map
+
+The thesis' systems:
+  chcos run [weld]               the arc-welding cell end to end (chcos run weld --help)
+  chcos run --example fig65      the figure 6.5 system
+
+Consoles and views:
+  chcos shell [MAP...]           host commands to an in-process system (script or stdin)
+  chcos satellite -m N --system SYSTEM   one machine of a multi-process system
+  chcos host --system SYSTEM [COMMAND]   host commands to running satellites
+  chcos map [sysfile.map]        draw the hierarchy (text, dot, svg)
+  chcos view                     live web page of a running system
+  chcos sim KIND                 one simulated device (can, serial, canopen, modbus, weld)
+
+'chcos COMMAND --help' describes each command. Warnings go to stderr; -v adds INFO messages.
+"""
+
+
+def _run_example(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(prog="chcos run --example fig65",
+                                 description="the thesis' figure 6.5 example system")
+    ap.add_argument("--duration", type=float, default=20.0, help="seconds of clock time")
+    ap.add_argument("--real-time", action="store_true", help="wall-clock time, not virtual")
+    ap.add_argument("--workdir", help="where the map, log and test file go (default out/fig65)")
+    ap.add_argument("--tty", help="a terminal for A4 instead of /dev/tty0, e.g. $(tty): lines "
+                                  "typed there reach C1 ('stop', 'shutdown'); implies --real-time")
+    args = ap.parse_args(argv)
+    from chcos.apps.fig65 import runner as fig65run
+
+    fig65run.run(args.duration, real_time=args.real_time or bool(args.tty),
+                 workdir=Path(args.workdir) if args.workdir else None, tty=args.tty)
+    return 0
+
+
+def _run_help() -> int:
+    """``chcos run --help``: the three forms of ``chcos run`` on one page."""
+    import contextlib
+    import io
+
+    from chcos.cli.cellrun import parser as cell_parser
+
+    print(cell_parser().format_help())
+    weld = io.StringIO()
+    with contextlib.redirect_stdout(weld), contextlib.suppress(SystemExit):
+        from chcos.apps.weld.runner import main as weld_main
+
+        weld_main(["--help"])
+    print(weld.getvalue())
+    print("usage: chcos run --example fig65 [--duration S] [--real-time] [--workdir DIR]\n\n"
+          "The thesis' figure 6.5 system (section 6.1.5) on virtual time: executions and "
+          "messages per second against the thesis' estimate.")
+    return 0
+
+
+def _shell(args: argparse.Namespace) -> int:
+    import threading
+
+    from chcos.cli.cellrun import SinceStartClock
+    from chcos.kernel.clock import VirtualClock
+    from chcos.system.embedded import System
+
+    clock = VirtualClock() if args.virtual else SinceStartClock()
+    base_dir, map_path = args.base_dir, args.map
+    if args.workdir:
+        Path(args.workdir).mkdir(parents=True, exist_ok=True)
+        base_dir = base_dir or args.workdir
+        map_path = map_path or str(Path(args.workdir) / "sysfile.map")
+    system = System(args.devmap, clock=clock, task_path=args.task_path or ["."],
+                    base_dir=base_dir or ".", map_path=map_path or "sysfile.map")
+    lines: Iterable[str] = (Path(args.script).read_text(encoding="utf-8").splitlines()
+                            if args.script else sys.stdin)
+    if not args.virtual:
+        system.start()
+    def execute(line: str) -> str:
+        words = line.split()
+        if words[:1] == ["run"]:
+            try:
+                seconds = float(words[1]) if len(words) == 2 else -1.0
+            except ValueError:
+                seconds = -1.0
+            if not 0 <= seconds <= 1e6:
+                raise CommandSyntaxError(f"run: expected 'run SECONDS' (0..1e6), got "
+                                         f"{line.strip()!r}")
+            if args.virtual:
+                system.run_for(seconds)
+            else:  # the kernel runs on its own thread: let it, then go on with the script
+                threading.Event().wait(seconds)
+            return ""
+        return system.execute(line)
+
+    try:
+        return _console(lines, execute)
+    finally:
+        system.shutdown()
+
+
+def _console(lines: Iterable[str], execute: Callable[[str], str]) -> int:
+    """Execute host command lines until ``quit``; errors are printed and make the status 1."""
+    status = 0
+    for line in lines:
+        if line.strip() in ("quit", "exit"):
+            break
+        try:
+            answer = execute(line)
+        except ChcosError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            status = 1
+            continue
+        if answer:
+            print(answer, flush=True)
+    return status
+
+
+def _satellite(args: argparse.Namespace) -> int:
+    """Run one satellite until SIGTERM or SIGINT, then stop it cleanly (actuators safe).
+
+    The stop signals are blocked in every thread (set before any is started, so Zenoh's and the
+    drivers' threads inherit the mask) and taken by ``sigwait`` in the main thread: a signal
+    that the kernel happened to deliver to another thread would otherwise leave a main thread
+    asleep in a lock wait that nothing interrupts."""
+    import signal
+
+    from chcos.comm.transport import enable_zenoh_logging
+    from chcos.satellites import sysfile
+    from chcos.satellites.satellite import Satellite
+
+    stops = {signal.SIGTERM, signal.SIGINT}
+    signal.pthread_sigmask(signal.SIG_BLOCK, stops)
+    enable_zenoh_logging("warn")  # Zenoh reports refused (unauthenticated) sessions
+    sf = sysfile.load(args.system)
+    with Satellite(sf, args.machine) as sat:
+        sat.start()
+        print(f"satellite {args.machine} of {sf.name} up ({len(sat.log)} log entries)",
+              flush=True)
+        signal.sigwait(stops)
+    return 0
+
+
+def _host(args: argparse.Namespace) -> int:
+    from chcos.satellites import sysfile
+    from chcos.satellites.host import Host
+
+    sf = sysfile.load(args.system)
+    with Host(sf) as host:
+        if args.wait:
+            host.wait_for(sorted(sf.satellites), timeout=args.wait)
+        lines: Iterable[str]
+        if args.command:
+            lines = [" ".join(args.command)]
+        elif args.script:
+            lines = Path(args.script).read_text(encoding="utf-8").splitlines()
+        else:
+            lines = sys.stdin
+        return _console(lines, host.execute)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``chcos`` console script; returns the exit status."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    # warnings are shown by default (a handler set by an embedding program or pytest is kept)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if argv[:2] == ["check", "--system"]:
+        from chcos.satellites.sysfile import check_main as check_system
+
+        return check_system(argv[2:])
+    if argv[:1] == ["check"]:
+        from chcos.devices.devmap import check_main
+
+        return check_main(argv[1:])
+    if argv[:1] == ["sim"] and argv[1:2] and argv[1].split("=")[0] == "--from":
+        from chcos.apps.sim.from_map import main as sim_from_main
+
+        return sim_from_main(argv[1:])
+    if argv[:1] == ["sim"]:
+        from chcos.apps.sim.cli import main as sim_main
+
+        return sim_main(argv[1:])
+    if argv[:1] == ["run"]:
+        rest = argv[1:]
+        if rest[:1] in (["-h"], ["--help"]):
+            return _run_help()
+        if rest[:2] == ["--example", "fig65"] or rest[:1] == ["--example=fig65"]:
+            return _run_example(rest[2:] if rest[:1] == ["--example"] else rest[1:])
+        if rest[:1] == ["weld"]:
+            rest = rest[1:]
+        elif rest and not rest[0].startswith("-"):
+            from chcos.cli.cellrun import main as cell_main
+
+            return cell_main(rest)
+        from chcos.apps.weld.runner import main as weld_main
+
+        return weld_main(rest)
+    if argv[:1] == ["import"]:
+        from chcos.devices.importers import main as import_main
+
+        return import_main(argv[1:])
+    if argv[:1] == ["monitor"]:
+        from chcos.cli.monitor import main as monitor_main
+
+        return monitor_main(argv[1:])
+    if argv[:1] == ["new"]:
+        from chcos.cli.scaffold import main as new_main
+
+        return new_main(argv[1:])
+    if argv[:1] == ["map"]:
+        from chcos.viewer.cli import map_main
+
+        return map_main(argv[1:])
+    if argv[:1] == ["view"]:
+        from chcos.viewer.cli import view_main
+
+        return view_main(argv[1:])
+    if argv[:1] == ["facade"]:
+        from chcos.north.modbus_facade import facade_main
+
+        return facade_main(argv[1:])
+    if argv[:1] == ["north"]:
+        from chcos.north.services import north_main
+
+        return north_main(argv[1:])
+    parser = argparse.ArgumentParser(prog="chcos", description=DESCRIPTION,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
+    sub = parser.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
+    sub.add_parser("run", help="run a system file, the welding cell or figure 6.5 "
+                               "(chcos run --help)")
+    p = sub.add_parser("shell", help="host console for an in-process system",
+                       description="Build a system from device maps in this process and carry "
+                                   "out host commands (install, setpri, invoke, suspend, "
+                                   "resume, close, inject, map) from --script or stdin, one per "
+                                   "line; 'quit' ends. 'run SECONDS' lets the system run that long "
+                                   "(on real time the kernel runs meanwhile anyway; with "
+                                   "--virtual only 'run' advances the clock). To run "
+                                   "a whole cell until Ctrl-C, use 'chcos run SYSTEM'.")
+    p.add_argument("devmap", nargs="*", metavar="MAP", help="device-map files")
+    p.add_argument("--script", help="read commands from this file instead of stdin")
+    p.add_argument("--task-path", action="append", metavar="DIR",
+                   help="directory where task code is found (repeatable; default .)")
+    p.add_argument("--workdir", metavar="DIR",
+                   help="where sysfile.map goes and relative file names start")
+    p.add_argument("--base-dir", metavar="DIR",
+                   help="relative file names in installs start here (default: --workdir or .)")
+    p.add_argument("--map", metavar="FILE",
+                   help="where sysfile.map is written (default: --workdir/sysfile.map or "
+                        "./sysfile.map)")
+    p.add_argument("--virtual", action="store_true",
+                   help="virtual time: only 'run SECONDS' advances it")
+    p.set_defaults(func=_shell)
+    p = sub.add_parser("satellite", help="run one machine of a multi-process system",
+                       description="Run machine N of the system file's satellites in this "
+                                   "process (its kernel, tasks and devices) until Ctrl-C or "
+                                   "SIGTERM; actuators go to their safe values on the way out.")
+    p.add_argument("-m", "--machine", type=int, required=True, metavar="N",
+                   help="the machine number (a [[satellite]] of the system file)")
+    p.add_argument("--system", required=True, metavar="SYSTEM", help="the system file (TOML)")
+    p.set_defaults(func=_satellite)
+    p = sub.add_parser("host", help="host commands to a running multi-process system",
+                       description="Connect to the satellites of a system file and carry out "
+                                   "host commands: one given on the command line, or every "
+                                   "line of --script, or stdin.")
+    p.add_argument("--system", required=True, metavar="SYSTEM", help="the system file (TOML)")
+    p.add_argument("--script", help="read commands from this file")
+    p.add_argument("--wait", type=float, default=0.0, metavar="S",
+                   help="first wait up to S seconds for every satellite to be up")
+    p.add_argument("command", nargs=argparse.REMAINDER, help="one command, e.g. setpri -9 A4 C1")
+    p.set_defaults(func=_host)
+    sub.add_parser("new", help="create a new cell project (chcos new DIR)")
+    sub.add_parser("import", help="device map from an EDS, a DBC or a Modbus register list "
+                                  "(chcos import eds|dbc|modbus FILE)")
+    sub.add_parser("monitor", help="commission a live bus listen-only (chcos monitor SYSTEM)")
+    sub.add_parser("check", help="validate device-map files (chcos check FILE...) or system "
+                                 "files (chcos check --system FILE...)")
+    sub.add_parser("sim", help="simulated devices (chcos sim KIND ..., chcos sim --from MAP)")
+    sub.add_parser("map", help="draw a sysfile.map (chcos map [MAP] --format text|dot|svg)")
+    sub.add_parser("view", help="live page of a running system (chcos view --example fig65)")
+    sub.add_parser("facade", help="north-side facades (chcos facade modbus --print-map FILE)")
+    sub.add_parser("north", help="north-side accounts (chcos north passwd: a password hash)")
+    args = parser.parse_args(argv)
+    if args.verbose:
+        logging.getLogger().setLevel(logging.INFO)
+    try:
+        return int(args.func(args))
+    except ChcosError as exc:
+        print(f"chcos: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,578 @@
+"""transport - one satellite's end of the chcos inter-satellite link, over one Zenoh session.
+
+:class:`Transport` offers what the communications manager needs and nothing else:
+
+* ``publish``/``send`` and ``subscribe``: messages to tasks on other satellites, carrying their
+  CHC-OS priority (0..99, higher is more urgent) mapped onto Zenoh's seven priorities, sent
+  *express* (not batched) from :data:`EXPRESS_FROM` up, and with congestion control chosen by the
+  message kind: sensory and status messages may be dropped under congestion (the newest value
+  supersedes them anyway), every other kind blocks the sender rather than be lost. Messages
+  sent from one transport in the same priority band arrive in the order sent; a message of a
+  higher band may overtake lower ones (that is what priorities are for);
+* ``request``/``serve``: request/reply over Zenoh queryables (e.g. a late joiner fetching the
+  message table, the host's install and map requests);
+* ``announce``/``watch``/``alive``: liveliness tokens, so satellites see each other appear and
+  die (a killed process's tokens vanish when its TCP links reset, or at the latest when its lease
+  expires).
+
+Readiness: connections are made in the background, so "my peer is up" is learnt from its
+liveliness token, never from ``Transport()`` returning. Declare a satellite's subscribers and
+servers *before* announcing its token: declarations from one session reach a peer in order, so a
+peer that has seen the token can publish to those subscribers and request from those servers at
+once (a request sent earlier fails fast with "no server answers this key").
+
+Threading: every callback (subscriber, server handler, liveliness watcher) runs on a thread
+owned by Zenoh, never on the caller's. A callback must be short and must not block: hand the
+data to your own queue (``queue.Queue.put_nowait``, ``loop.call_soon_threadsafe``) and return.
+An exception escaping a callback is logged on the ``chcos.comm`` logger and counted in
+:attr:`Transport.callback_errors`; it never stops the transport or later deliveries. A server
+handler's exception is also sent back to the requester, whose ``request`` raises LinkError.
+
+Authentication (:mod:`chcos.comm.secret`): a transport made with a :class:`Sealer` seals every
+payload it sends (publish, request, reply) with its role's key and opens every payload it
+receives; ``subscribe`` and ``serve`` take the ``roles`` they accept. A payload that is not
+sealed by a member of the system, sealed by a role not accepted there, or larger than
+``max_bytes`` never reaches the callback: it is counted by cause in :attr:`Transport.rejected`
+and logged at most once per cause per interval (no traceback), so junk cannot flood the log.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from typing import Any
+
+import zenoh
+
+from chcos.comm.codec import MAX_PRIORITY, LinkMessage, MessageKind, decode, encode
+from chcos.comm.config import LinkConfig
+from chcos.comm.secret import SEAL_BYTES, Sealer, Throttle
+from chcos.errors import LinkError
+
+log = logging.getLogger("chcos.comm")
+
+#: CHC-OS priority bands (lowest priority of the band, Zenoh priority), most urgent first.
+PRIORITY_BANDS: tuple[tuple[int, zenoh.Priority], ...] = (
+    (90, zenoh.Priority.REAL_TIME),
+    (75, zenoh.Priority.INTERACTIVE_HIGH),
+    (60, zenoh.Priority.INTERACTIVE_LOW),
+    (45, zenoh.Priority.DATA_HIGH),
+    (30, zenoh.Priority.DATA),
+    (15, zenoh.Priority.DATA_LOW),
+    (0, zenoh.Priority.BACKGROUND),
+)
+#: From this CHC-OS priority up, messages are sent express (never held back for batching).
+EXPRESS_FROM = 75
+#: Encoding of the error replies chcos servers send (Zenoh's own errors, e.g. timeouts, differ).
+SERVER_ERROR_ENCODING = "text/plain;chcos-server-error"
+#: Largest payload sent or accepted on the link by default (bytes, before the seal).
+MAX_MESSAGE_BYTES = 1024 * 1024
+#: Publishers kept declared (one per key and QoS); the least recently used beyond this is dropped.
+PUBLISHER_CACHE_SIZE = 256
+
+Callback = Callable[[str, bytes], object]
+Handler = Callable[[bytes], bytes]
+KeyCallback = Callable[[str], object]
+
+
+def _check_priority(priority: int) -> int:
+    if isinstance(priority, bool) or not isinstance(priority, int):
+        raise LinkError(f"priority: expected an integer 0..{MAX_PRIORITY}, got {priority!r}")
+    if not 0 <= priority <= MAX_PRIORITY:
+        raise LinkError(f"priority: expected 0..{MAX_PRIORITY}, got {priority}")
+    return priority
+
+
+def _band(priority: int) -> int:
+    _check_priority(priority)
+    return next(i for i, (low, _) in enumerate(PRIORITY_BANDS) if priority >= low)
+
+
+def zenoh_priority(priority: int) -> zenoh.Priority:
+    """The Zenoh priority for CHC-OS ``priority`` 0..99 (see :data:`PRIORITY_BANDS`).
+
+    Raises LinkError if ``priority`` is not an integer 0..99."""
+    return PRIORITY_BANDS[_band(priority)][1]
+
+
+def is_express(priority: int) -> bool:
+    """Whether messages of CHC-OS ``priority`` bypass batching. Raises LinkError like above."""
+    return _check_priority(priority) >= EXPRESS_FROM
+
+
+def congestion_for(kind: MessageKind) -> zenoh.CongestionControl:
+    """DROP for kinds a newer message supersedes (sensory, status), BLOCK for all others."""
+    return zenoh.CongestionControl.DROP if kind.droppable else zenoh.CongestionControl.BLOCK
+
+
+def _check_key(what: str, key: str, *, concrete: bool) -> str:
+    if not isinstance(key, str) or not key:
+        raise LinkError(f"{what}: expected a non-empty key string, got {key!r}")
+    if concrete and ("*" in key or "$" in key):
+        raise LinkError(f"{what}: expected a concrete key without wildcards, got {key!r}")
+    try:
+        zenoh.KeyExpr(key)
+    except zenoh.ZError as exc:
+        raise LinkError(f"{what}: {key!r} is not a valid Zenoh key expression: {exc}") from exc
+    return key
+
+
+class Subscription:
+    """A declared subscriber, server, token or watcher. ``close()`` (or leaving the ``with``
+    block) undeclares it; closing twice is harmless. The transport closes all of them on close."""
+
+    def __init__(self, transport: Transport, what: str, entity: Any) -> None:
+        self._transport = transport
+        self._entity = entity
+        self._closed = False
+        self.what = what
+
+    def close(self) -> None:
+        """Undeclare the Zenoh entity. Never raises."""
+        if self._closed:
+            return
+        self._closed = True
+        self._transport._forget(self)
+        try:
+            self._entity.undeclare()
+        except zenoh.ZError as exc:  # the session may already be closed
+            log.debug("undeclaring %s: %s", self.what, exc)
+
+    @property
+    def closed(self) -> bool:
+        """True once closed, by itself or by the transport."""
+        return self._closed
+
+    def __enter__(self) -> Subscription:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"Subscription({self.what!r}, closed={self._closed})"
+
+
+class Transport:
+    """One Zenoh session configured by a :class:`LinkConfig` (a context manager).
+
+    Raises LinkError when Zenoh cannot open the session (e.g. the listen port is taken); every
+    method raises LinkError on a closed transport, a bad key or priority, or a Zenoh failure.
+    """
+
+    def __init__(self, config: LinkConfig, *, sealer: Sealer | None = None,
+                 max_bytes: int = MAX_MESSAGE_BYTES) -> None:
+        self.config = config
+        self.sealer = sealer
+        self.max_bytes = max_bytes
+        self.rejected = Throttle(log)
+        self._lock = threading.Lock()
+        self._errors = 0
+        self._malformed = 0
+        self._closed = False
+        self._entities: dict[int, Subscription] = {}
+        # (key, priority band, express, block) -> zenoh.Publisher (zenoh.Priority is unhashable)
+        self._publishers: OrderedDict[tuple[str, int, bool, bool], Any] = OrderedDict()
+        try:
+            self._session = zenoh.open(config.to_zenoh())
+        except zenoh.ZError as exc:
+            raise LinkError(
+                f"link: cannot open the Zenoh session (listen {config.listen_endpoints}, "
+                f"connect {config.connect_endpoints}): {exc}"
+            ) from exc
+        log.info(
+            "link %s open: listen %s connect %s",
+            self.zid,
+            config.listen_endpoints,
+            config.connect_endpoints,
+        )
+
+    # -- life cycle --------------------------------------------------------------------------
+
+    def __enter__(self) -> Transport:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Undeclare everything and close the session; its tokens vanish for the others.
+        Closing twice is harmless."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            entities = list(self._entities.values())
+            publishers = list(self._publishers.values())
+            self._publishers.clear()
+        for entity in entities:
+            entity.close()
+        for publisher in publishers:
+            try:
+                publisher.undeclare()
+            except zenoh.ZError as exc:
+                log.debug("undeclaring a publisher: %s", exc)
+        zid = self.zid
+        self._session.close()  # type: ignore[no-untyped-call]  # stub lacks "-> None"
+        log.info("link %s closed", zid)
+
+    @property
+    def closed(self) -> bool:
+        """True once :meth:`close` ran."""
+        return self._closed
+
+    @property
+    def zid(self) -> str:
+        """This session's Zenoh id (hex)."""
+        return str(self._session.zid())
+
+    def peers(self) -> list[str]:
+        """Zenoh ids of the peers this session is connected to right now."""
+        self._check_open("peers")
+        return [str(z) for z in self._session.info.peers_zid()]
+
+    @property
+    def callback_errors(self) -> int:
+        """How many exceptions escaped user callbacks and handlers so far."""
+        return self._errors
+
+    def _check_open(self, what: str) -> None:
+        if self._closed:
+            raise LinkError(f"{what}: the link transport is closed")
+
+    def _register(self, what: str, entity: Any) -> Subscription:
+        sub = Subscription(self, what, entity)
+        with self._lock:
+            if self._closed:
+                closed = True
+            else:
+                closed = False
+                self._entities[id(sub)] = sub
+        if closed:
+            sub.close()
+            raise LinkError(f"{what}: the link transport is closed")
+        return sub
+
+    def _forget(self, sub: Subscription) -> None:
+        with self._lock:
+            self._entities.pop(id(sub), None)
+
+    def _failed(self, what: str) -> None:
+        with self._lock:
+            self._errors += 1
+        import sys
+
+        exc = sys.exc_info()[1]
+        self.rejected.note(f"link {what}: a callback raised (ignored)",
+                           f"{type(exc).__name__}: {exc} ({self._errors} so far)")
+
+    def _seal(self, key: str, payload: bytes) -> bytes:
+        if len(payload) > self.max_bytes:
+            raise LinkError(f"{key!r}: payload of {len(payload)} bytes is larger than the "
+                            f"link's limit of {self.max_bytes} bytes")
+        return payload if self.sealer is None else self.sealer.seal(key, payload)
+
+    def _open(self, what: str, key: str, data: bytes, roles: frozenset[str] | None
+              ) -> tuple[str, bytes] | None:
+        """(role, payload) of an accepted payload, or None (counted and logged by cause)."""
+        limit = self.max_bytes + (SEAL_BYTES if self.sealer is not None else 0)
+        if len(data) > limit:
+            self.rejected.note(f"link {what}: oversized payload dropped",
+                               f"{len(data)} bytes on {key}, limit {self.max_bytes}")
+            return None
+        if self.sealer is None:
+            return "", data
+        try:
+            role, payload = self.sealer.open(key, data)
+        except LinkError as exc:
+            self.rejected.note(f"link {what}: unauthenticated payload dropped", f"{key}: {exc}")
+            return None
+        if roles is not None and role not in roles:
+            self.rejected.note(f"link {what}: payload from a {role} refused",
+                               f"{key}: only {', '.join(sorted(roles))} may send here")
+            return None
+        return role, payload
+
+    # -- publish/subscribe -------------------------------------------------------------------
+
+    def _publisher(self, key: str, band: int, express: bool, block: bool) -> Any:
+        cache_key = (key, band, express, block)
+        evicted = None
+        with self._lock:
+            pub = self._publishers.get(cache_key)
+            if pub is not None:
+                self._publishers.move_to_end(cache_key)
+                return pub
+            _check_key("publish", key, concrete=True)
+            pub = self._session.declare_publisher(
+                key,
+                priority=PRIORITY_BANDS[band][1],
+                express=express,
+                congestion_control=(
+                    zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+                ),
+                reliability=zenoh.Reliability.RELIABLE,
+            )
+            self._publishers[cache_key] = pub
+            if len(self._publishers) > PUBLISHER_CACHE_SIZE:
+                _, evicted = self._publishers.popitem(last=False)
+        if evicted is not None:
+            evicted.undeclare()
+        return pub
+
+    def publish(
+        self,
+        key: str,
+        payload: bytes,
+        *,
+        priority: int,
+        kind: MessageKind,
+        express: bool | None = None,
+    ) -> None:
+        """Send ``payload`` to every subscriber of ``key`` (a concrete key, no wildcards).
+
+        ``priority`` 0..99 picks the Zenoh priority; ``express`` defaults to ``priority >=
+        EXPRESS_FROM``; ``kind`` picks congestion control (DROP for sensory/status, else BLOCK:
+        the call may then wait while the link to a slow peer is full). Raises LinkError on a
+        closed transport, a bad key or priority, or a Zenoh failure.
+        """
+        self._check_open("publish")
+        band = _band(priority)
+        if express is None:
+            express = priority >= EXPRESS_FROM
+        if not isinstance(payload, bytes | bytearray | memoryview):
+            raise LinkError(
+                f"publish {key!r}: expected bytes payload, got {type(payload).__name__}"
+            )
+        try:
+            block = not MessageKind(kind).droppable
+        except ValueError as exc:
+            raise LinkError(f"publish {key!r}: expected a MessageKind, got {kind!r}") from exc
+        try:
+            data = self._seal(key, bytes(payload))
+            pub = self._publisher(key, band, express, block)
+            pub.put(data)
+        except zenoh.ZError as exc:
+            raise LinkError(f"publish {key!r}: Zenoh refused: {exc}") from exc
+
+    def send(self, key: str, message: LinkMessage) -> None:
+        """Encode ``message`` (see :mod:`chcos.comm.codec`) and publish it on ``key`` with its
+        own priority and kind. Raises LinkError like :meth:`publish` and :func:`codec.encode`."""
+        self.publish(key, encode(message), priority=message.priority, kind=message.kind)
+
+    def subscribe(self, key_expr: str, callback: Callback,
+                  roles: frozenset[str] | None = None) -> Subscription:
+        """Call ``callback(key, payload)`` on a Zenoh thread for each message on a key matching
+        ``key_expr`` (wildcards allowed) that is sealed by one of ``roles`` (None: any member).
+        Hand the data off quickly; exceptions are logged and counted. Raises LinkError on a
+        closed transport or a bad key expression."""
+        self._check_open("subscribe")
+        _check_key("subscribe", key_expr, concrete=False)
+        what = f"subscriber {key_expr}"
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                key = str(sample.key_expr)
+                opened = self._open(what, key, sample.payload.to_bytes(), roles)
+                if opened is not None:
+                    callback(key, opened[1])
+            except Exception:
+                self._failed(what)
+
+        try:
+            entity = self._session.declare_subscriber(key_expr, on_sample)
+        except zenoh.ZError as exc:
+            raise LinkError(f"subscribe {key_expr!r}: Zenoh refused: {exc}") from exc
+        return self._register(what, entity)
+
+    def subscribe_messages(
+        self, key_expr: str, callback: Callable[[str, LinkMessage], object]
+    ) -> Subscription:
+        """Like :meth:`subscribe`, but decode each payload with :func:`codec.decode` first and
+        call ``callback(key, message)``. A payload that does not decode is logged and counted in
+        :attr:`malformed` and never reaches the callback. Raises LinkError like subscribe."""
+        what = f"message subscriber {key_expr}"
+
+        def on_payload(key: str, payload: bytes) -> None:
+            try:
+                message = decode(payload)
+            except LinkError as exc:
+                with self._lock:
+                    self._malformed += 1
+                self.rejected.note(f"link {what}: malformed message dropped", f"{key}: {exc}")
+                return
+            callback(key, message)
+
+        return self.subscribe(key_expr, on_payload)
+
+    @property
+    def malformed(self) -> int:
+        """How many received payloads failed to decode in :meth:`subscribe_messages`."""
+        return self._malformed
+
+    # -- request/reply -----------------------------------------------------------------------
+
+    def serve(self, key_expr: str, handler: Handler,
+              roles: frozenset[str] | None = None) -> Subscription:
+        """Answer requests on keys matching ``key_expr`` with ``handler(payload) -> bytes``, run
+        on a Zenoh thread; requests not sealed by one of ``roles`` (None: any member) are
+        answered with a refusal and never reach the handler. If the handler raises, the error
+        is logged, counted and sent back (the requester's :meth:`request` raises LinkError).
+        Raises LinkError on a closed transport or a bad key expression."""
+        self._check_open("serve")
+        _check_key("serve", key_expr, concrete=False)
+        what = f"server {key_expr}"
+
+        def on_query(query: zenoh.Query) -> None:
+            try:
+                payload = query.payload
+                key = str(query.key_expr)
+                opened = self._open(what, key, b"" if payload is None else payload.to_bytes(),
+                                    roles)
+                if opened is None:
+                    query.reply_err(b"refused: not authenticated or not authorised here",
+                                    encoding=SERVER_ERROR_ENCODING)
+                    return
+                try:
+                    result = handler(opened[1])
+                    if not isinstance(result, bytes | bytearray | memoryview):
+                        raise TypeError(f"handler returned {type(result).__name__}, expected bytes")
+                    answer = self._seal(key, bytes(result))
+                except Exception as exc:
+                    self._failed(what)
+                    query.reply_err(
+                        f"{what} failed: {type(exc).__name__}: {exc}".encode(),
+                        encoding=SERVER_ERROR_ENCODING,
+                    )
+                else:
+                    query.reply(query.key_expr, answer)
+            except zenoh.ZError:
+                log.warning("link %s: could not reply (requester gone?)", what, exc_info=True)
+            finally:
+                query.drop()  # type: ignore[no-untyped-call]  # stub lacks "-> None"
+
+        try:
+            entity = self._session.declare_queryable(key_expr, on_query)
+        except zenoh.ZError as exc:
+            raise LinkError(f"serve {key_expr!r}: Zenoh refused: {exc}") from exc
+        return self._register(what, entity)
+
+    def request(
+        self,
+        key: str,
+        payload: bytes = b"",
+        *,
+        timeout: float,
+        priority: int = 50,
+        roles: frozenset[str] | None = None,
+    ) -> bytes:
+        """Send ``payload`` to the server of ``key`` (concrete) and return its answer, which
+        must be sealed by one of ``roles`` (None: any member) when the transport seals.
+
+        Blocks the caller at most about ``timeout`` seconds. Raises LinkError when nobody serves
+        ``key``, when no answer came in time, or when the server's handler failed (its message
+        is included)."""
+        self._check_open("request")
+        _check_key("request", key, concrete=True)
+        if not timeout > 0:
+            raise LinkError(f"request {key!r}: expected a timeout > 0 seconds, got {timeout!r}")
+        start = time.monotonic()
+        try:
+            replies = self._session.get(
+                key,
+                payload=self._seal(key, bytes(payload)),
+                timeout=timeout,
+                target=zenoh.QueryTarget.BEST_MATCHING,
+                priority=zenoh_priority(priority),
+                express=is_express(priority),
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+            for reply in replies:
+                ok = reply.ok
+                if ok is not None:
+                    opened = self._open(f"request {key}", key, ok.payload.to_bytes(), roles)
+                    if opened is None:
+                        raise LinkError(f"request {key!r}: the answer is not authenticated")
+                    return opened[1]
+                err = reply.err
+                if err is None:  # pragma: no cover - a reply is either ok or err
+                    continue
+                text = err.payload.to_bytes().decode("utf-8", "replace")
+                if str(err.encoding) == SERVER_ERROR_ENCODING:
+                    raise LinkError(f"request {key!r}: the server failed: {text}")
+                zenoh_error = text
+                break
+            else:
+                zenoh_error = ""
+        except zenoh.ZError as exc:
+            raise LinkError(f"request {key!r}: Zenoh refused: {exc}") from exc
+        elapsed = time.monotonic() - start
+        if elapsed >= timeout * 0.9:
+            raise LinkError(f"request {key!r}: no answer within {timeout} s ({zenoh_error})")
+        if zenoh_error:
+            raise LinkError(f"request {key!r}: Zenoh reported: {zenoh_error}")
+        raise LinkError(f"request {key!r}: no server answers this key (after {elapsed:.3f} s)")
+
+    # -- liveliness --------------------------------------------------------------------------
+
+    def announce(self, token_key: str) -> Subscription:
+        """Declare a liveliness token on ``token_key`` (concrete): it lives as long as this
+        transport (or until the returned handle is closed). Raises LinkError on a closed
+        transport or a bad key."""
+        self._check_open("announce")
+        _check_key("announce", token_key, concrete=True)
+        try:
+            token = self._session.liveliness().declare_token(token_key)
+        except zenoh.ZError as exc:
+            raise LinkError(f"announce {token_key!r}: Zenoh refused: {exc}") from exc
+        return self._register(f"token {token_key}", token)
+
+    def watch(self, key_expr: str, on_join: KeyCallback, on_leave: KeyCallback) -> Subscription:
+        """Call ``on_join(key)`` for every token matching ``key_expr`` that exists now or
+        appears later, and ``on_leave(key)`` when one vanishes (its owner closed, died, or lost
+        its links). Callbacks run on a Zenoh thread; exceptions are logged and counted. Raises
+        LinkError on a closed transport or a bad key expression."""
+        self._check_open("watch")
+        _check_key("watch", key_expr, concrete=False)
+        what = f"watcher {key_expr}"
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                key = str(sample.key_expr)
+                if sample.kind == zenoh.SampleKind.PUT:
+                    on_join(key)
+                else:
+                    on_leave(key)
+            except Exception:
+                self._failed(what)
+
+        try:
+            entity = self._session.liveliness().declare_subscriber(
+                key_expr, on_sample, history=True
+            )
+        except zenoh.ZError as exc:
+            raise LinkError(f"watch {key_expr!r}: Zenoh refused: {exc}") from exc
+        return self._register(what, entity)
+
+    def alive(self, key_expr: str, *, timeout: float = 1.0) -> list[str]:
+        """The keys of the liveliness tokens matching ``key_expr`` right now (sorted), asking the
+        connected peers for at most ``timeout`` seconds. Raises LinkError like :meth:`watch`."""
+        self._check_open("alive")
+        _check_key("alive", key_expr, concrete=False)
+        try:
+            replies = self._session.liveliness().get(key_expr, timeout=timeout)
+            keys = {str(r.ok.key_expr) for r in replies if r.ok is not None}
+        except zenoh.ZError as exc:
+            raise LinkError(f"alive {key_expr!r}: Zenoh refused: {exc}") from exc
+        return sorted(keys)
+
+
+def enable_zenoh_logging(level: str = "warn") -> None:
+    """Turn on Zenoh's own log (connection refusals, authentication failures...) at ``level``
+    (a tracing filter: ``"warn"``, ``"warn,zenoh::net::runtime::orchestrator=debug"``...)
+    unless ``RUST_LOG`` says otherwise. Zenoh writes it to the process's standard output (file
+    descriptor 1, bypassing ``sys.stdout``). Process-wide; call once, early."""
+    zenoh.init_log_from_env_or(level)

@@ -1,0 +1,250 @@
+"""mapref - the device-map reference: every key of every bus kind, with type, default and meaning.
+
+:data:`REFERENCE` lists, per bus kind, the bus options and the device-address keys each driver's
+``check_bus``/``check_device`` accepts (``vcan_tests/test_integrator_reference.py`` probes the
+drivers and fails when one accepts a key missing here, or rejects one listed), and :data:`COMMON`
+the keys of every ``[[bus]]`` and ``[[device]]`` table (``chcos.devices.devmap``'s own lists).
+:func:`render` writes it as Markdown: ``python -m chcos.devices.mapref >
+docs/device-map-reference.md``
+(a test checks the committed file is current).
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Key:
+    """One key: its name, TOML type, default ("required" or "-" when there is none), meaning,
+    and for which variant of the kind it applies ("" for all)."""
+
+    name: str
+    type: str
+    default: str
+    meaning: str
+    variant: str = ""
+
+
+@dataclass(frozen=True)
+class Kind:
+    """One bus kind: what it is, its bus options, its device-address keys, an example."""
+
+    summary: str
+    options: tuple[Key, ...]
+    address: tuple[Key, ...]
+    example: str
+
+
+COMMON_BUS = (
+    Key("name", "string", "required", "unique across all files loaded together"),
+    Key("kind", "string", "required", "the bus kind (a `chcos.drivers` entry point): the "
+        "sections below"),
+)
+COMMON_DEVICE = (
+    Key("name", "string", "required", "unique across all files; letters, digits, `_ . -`, "
+        "starting with a letter or `_`"),
+    Key("direction", "string", "required", "`sensor` (input) or `actuator` (output)"),
+    Key("machine", "integer", "0", "the satellite the device belongs to"),
+    Key("bus", "string", "required", "a bus declared in any file of the set"),
+    Key("address", "inline table", "{}", "kind-specific: the address keys below"),
+    Key("priority", "integer 0..99", "8", "interrupt priority of the device's sensory link"),
+    Key("stale_after", "float s", "never", "sensors: seconds without data before the sensor is "
+        "stale and its readers get SensorFailure"),
+    Key("scale", "float", "1.0", "engineering value = raw x scale + offset (not 0)"),
+    Key("offset", "float", "0.0", "see scale"),
+    Key("limits", "[lo, hi]", "[-inf, inf]", "engineering units, inclusive: actuator commands "
+        "outside are refused (never clamped); `chcos monitor` flags sensor values outside"),
+    Key("safe_value", "float", "none", "actuators: written on e-stop, on abnormal completion "
+        "of the commanding task and on shutdown; within limits"),
+    Key("units", "string", '""', "shown with values"),
+    Key("round", "bool", "false", "actuators only: round the raw value to an integer for an "
+        "integer address (without it a value the address cannot carry exactly is refused)"),
+    Key("north_writable", "bool", "false", "actuators only: the north-side facades (Modbus "
+        "facade, OPC UA) may command it, within its limits and the owner rules"),
+)
+COMMON = {"bus": COMMON_BUS, "device": COMMON_DEVICE}
+
+_CAN_BUS = (
+    Key("interface", "string", "python-can config", "python-can interface (`socketcan`, "
+        "`virtual`, `pcan`...); left out: `CAN_INTERFACE` / can.conf"),
+    Key("channel", "string", "python-can config", "python-can channel (`can0`, `vcan0`...)"),
+    Key("bitrate", "integer", "-", "bit/s, where the interface sets it"),
+)
+_MODBUS_COMMON = (
+    Key("timeout", "float s", "1.0", "per request"),
+    Key("retries", "integer", "1", "retries per request"),
+    Key("reconnect_delay", "float s", "0.1", "first reconnect back-off; doubled after each "
+        "failure"),
+    Key("reconnect_delay_max", "float s", "5.0", "longest back-off"),
+    Key("poll_period", "float s", "0.1", "default polling period of the sensors; on a bus "
+        "with no sensor the liveness probe's period (default 1.0)"),
+)
+_MODBUS_ADDRESS = (
+    Key("unit", "integer 0..255", "1", "unit (slave / device) id"),
+    Key("table", "string", "required", "`coil`, `discrete`, `holding` or `input`; actuators "
+        "only `coil` or `holding`"),
+    Key("address", "integer", "required", "protocol address, 0-based (register 40001 is "
+        "`holding` 0)"),
+    Key("type", "string", "`bool` (bits), `uint16`", "`bool` for coils and discrete inputs; "
+        "`int16 uint16 int32 uint32 float32 float64` for registers"),
+    Key("word_order", "string", "`big`", "`big` (high word first, ABCD) or `little` (CDAB) "
+        "for 32/64-bit types"),
+    Key("poll_period", "float s", "the bus's", "this sensor's polling period"),
+)
+
+REFERENCE: dict[str, Kind] = {
+    "memory": Kind(
+        "values from the host (`inject`); actuator writes kept in memory (tests, demos)",
+        (Key("history", "integer", "100", "writes kept per actuator"),),
+        (),
+        '[[bus]]\nname = "bench"\nkind = "memory"\n\n[[device]]\nname = "M1"\n'
+        'direction = "actuator"\nbus = "bench"\nsafe_value = 0.0'),
+    "signal": Kind(
+        "waveform generators on the kernel clock (demos, load)",
+        (Key("history", "integer", "100", "writes kept per actuator"),),
+        (Key("waveform", "string", "required", "`sine`, `square`, `ramp`, `constant` or "
+             "`random`"),
+         Key("rate_hz", "float", "required", "samples per second"),
+         Key("amplitude", "float", "1.0", "peak deviation from center"),
+         Key("center", "float", "0.0", "mid value"),
+         Key("period", "float s", "1.0", "waveform period"),
+         Key("phase", "float", "0.0", "fraction of a period"),
+         Key("value", "float", "center", "the `constant` value"),
+         Key("seed", "integer", "0", "`random` seed")),
+        '[[device]]\nname = "S1"\ndirection = "sensor"\nbus = "demo"\n'
+        'address = { waveform = "sine", rate_hz = 10, amplitude = 50.0, center = 50.0, '
+        'period = 4.0 }'),
+    "can": Kind(
+        "raw CAN through python-can; signals from a DBC (cantools) or given raw",
+        (*_CAN_BUS,
+         Key("fd", "boolean", "false", "CAN FD"),
+         Key("dbc", "path", "-", "DBC file (relative to the map) for `{message, signal}` "
+             "addresses"),
+         Key("record", "path", "-", "record every frame (`.log` candump, `.asc`, `.blf`)"),
+         Key("poll", "float s", "0.005", "receive timeout on interfaces without a file "
+             "descriptor")),
+        (Key("message", "string", "required (DBC form)", "message name in the DBC", "DBC form"),
+         Key("signal", "string", "required (DBC form)", "signal name; the DBC's scale and "
+             "offset are applied by the driver", "DBC form"),
+         Key("id", "integer", "required (raw form)", "arbitration id", "raw form"),
+         Key("start", "integer 0..63", "required (raw form)", "start bit", "raw form"),
+         Key("length", "integer 1..64", "required (raw form)", "bit length", "raw form"),
+         Key("byte_order", "string", "`little_endian`", "or `big_endian`", "raw form"),
+         Key("signed", "boolean", "false", "two's complement", "raw form"),
+         Key("dlc", "integer 0..8", "8", "frame length", "raw form"),
+         Key("extended", "boolean", "false", "29-bit id", "raw form")),
+        '[[bus]]\nname = "cellcan"\nkind = "can"\ndbc = "cell.dbc"\n\n[[device]]\nname = "T1"\n'
+        'direction = "sensor"\nbus = "cellcan"\naddress = { message = "Temps", signal = "T1" }'),
+    "canopen": Kind(
+        "remote CANopen nodes (canopen): SDO, PDO from the EDS mapping, NMT, heartbeat, EMCY",
+        (*_CAN_BUS,
+         Key("nodes", "array of tables", "required", "`{id, eds, heartbeat_timeout, "
+             "nmt_start}` per node"),
+         Key("sync_period", "float s", "none", "produce SYNC at this period"),
+         Key("poll_period", "float s", "0.1", "default SDO polling period"),
+         Key("sdo_timeout", "float s", "0.3", "SDO response timeout"),
+         Key("poll", "float s", "0.005", "receive timeout on interfaces without a file "
+             "descriptor"),
+         Key("id", "integer 1..127", "required", "node id", "nodes[]"),
+         Key("eds", "path", "required", "the node's EDS (relative to the map)", "nodes[]"),
+         Key("heartbeat_timeout", "float s", "none", "a node silent longer fails its devices",
+             "nodes[]"),
+         Key("nmt_start", "boolean", "true", "put the node OPERATIONAL", "nodes[]")),
+        (Key("node", "integer", "required", "a node id of the bus"),
+         Key("index", "integer", "required", "object index (write it `0x6064`)"),
+         Key("subindex", "integer", "0", "sub-index"),
+         Key("poll_period", "float s", "the bus's", "SDO polling period (objects not in a "
+             "TPDO)")),
+        '[[bus]]\nname = "axis"\nkind = "canopen"\nnodes = [{ id = 5, eds = "drive.eds", '
+        'heartbeat_timeout = 0.3 }]\n\n[[device]]\nname = "position"\ndirection = "sensor"\n'
+        'bus = "axis"\naddress = { node = 5, index = 0x6064 }'),
+    "modbus-tcp": Kind(
+        "Modbus TCP client (pymodbus)",
+        (Key("host", "string", "required", "server address"),
+         Key("port", "integer", "502", "server TCP port"),
+         *_MODBUS_COMMON),
+        _MODBUS_ADDRESS,
+        '[[bus]]\nname = "plc"\nkind = "modbus-tcp"\nhost = "127.0.0.1"\nport = 5020\n\n'
+        '[[device]]\nname = "level"\ndirection = "sensor"\nbus = "plc"\n'
+        'address = { table = "input", address = 0 }'),
+    "modbus-rtu": Kind(
+        "Modbus RTU client on a serial line (pymodbus)",
+        (Key("port", "string", "required", "serial device or pyserial URL "
+             "(`socket://host:port`)"),
+         Key("baudrate", "integer", "19200", "bit/s"),
+         Key("parity", "string", "`N`", "`N`, `E` or `O`"),
+         Key("stopbits", "integer", "1", "1 or 2"),
+         Key("bytesize", "integer", "8", "7 or 8"),
+         *_MODBUS_COMMON),
+        _MODBUS_ADDRESS,
+        '[[bus]]\nname = "rtu"\nkind = "modbus-rtu"\nport = "/dev/ttyUSB0"\nbaudrate = 19200'),
+    "serial": Kind(
+        "a serial line (pyserial): a text line protocol (regex) or binary frames (struct)",
+        (Key("url", "string", "required", "device path or pyserial URL (`socket://`, `loop://`)"),
+         Key("baudrate", "integer", "9600", "bit/s"),
+         Key("protocol", "string", "required", "`line` or `binary`"),
+         Key("poll", "float s", "0.01", "read timeout on ports without a file descriptor"),
+         Key("reconnect_min", "float s", "0.05", "first reopen back-off"),
+         Key("reconnect_max", "float s", "2.0", "longest back-off"),
+         Key("pattern", "string", "required", "regular expression with named groups matching a "
+             "whole line", "line"),
+         Key("eol", "string", '`"\\n"`', "line end (a trailing `\\r` is stripped)", "line"),
+         Key("encoding", "string", "`ascii`", "text encoding", "line"),
+         Key("max_line", "integer", "1024", "longest line in bytes", "line"),
+         Key("sync", "string", "required", "hex sync bytes, e.g. `AA 55`", "binary"),
+         Key("struct", "string", "required", "`struct` format of the payload", "binary"),
+         Key("fields", "array of strings", "required", "one name per struct item, `_` to "
+             "ignore", "binary"),
+         Key("checksum", "string", "`none`", "`none`, `sum8` or `xor8`", "binary")),
+        (Key("group", "string", "required", "the pattern's named group", "line sensor"),
+         Key("type", "string", "`number`", "`number` or `text`", "line sensor"),
+         Key("field", "string", "required", "one of `fields`", "binary sensor"),
+         Key("format", "string", "required", "`str.format` with `{value}`, e.g. "
+             "`SET {value:.2f}`", "line actuator"),
+         Key("struct", "string", "required", "`struct` format of the value", "binary actuator"),
+         Key("prefix", "string", '""', "hex bytes before the value", "binary actuator")),
+        '[[bus]]\nname = "scale"\nkind = "serial"\nurl = "socket://127.0.0.1:7001"\n'
+        'protocol = "line"\npattern = "W=(?P<w>[-0-9.]+)"\n\n[[device]]\nname = "weight"\n'
+        'direction = "sensor"\nbus = "scale"\naddress = { group = "w" }'),
+    "weld-direct": Kind(
+        "the welding cell's model in-process (chcos' own demo binding)",
+        (Key("scenario", "string", '""', "fault scenario (`chcos.apps.weld.faults` syntax)"),
+         Key("seed", "integer", "0", "measurement-noise seed"),
+         Key("tick", "float s", "model default", "model step")),
+        (Key("signal", "string", "required", "a model signal (see `chcos/apps/weld/DEVICES.md`)"),),
+        '[[device]]\nname = "arc_temp"\ndirection = "sensor"\nbus = "cell"\n'
+        'address = { signal = "arc_temp" }'),
+}
+
+
+def _table(keys: tuple[Key, ...]) -> list[str]:
+    out = ["| key | type | default | meaning |", "|---|---|---|---|"]
+    for k in keys:
+        where = f" ({k.variant})" if k.variant else ""
+        out.append(f"| `{k.name}`{where} | {k.type} | {k.default} | {k.meaning} |")
+    return out
+
+
+def render() -> str:
+    """The reference as Markdown."""
+    out = ["# Device-map reference", "",
+           "Generated by `python -m chcos.devices.mapref` from `chcos/devices/mapref.py`; "
+           "`vcan_tests/test_integrator_reference.py` fails when a driver accepts a key this "
+           "page does not list. Device maps are TOML files of `[[bus]]` and `[[device]]` tables "
+           "(`busconfig/README.md`); `chcos check FILE...` validates them without opening a bus, "
+           "and `chcos import eds|dbc|modbus` writes them from vendor files.", "",
+           "## Every `[[bus]]`", "", *_table(COMMON_BUS), "",
+           "## Every `[[device]]`", "", *_table(COMMON_DEVICE), ""]
+    for name, kind in REFERENCE.items():
+        out += [f"## `{name}`", "", kind.summary + ".", "", "Bus options:", ""]
+        out += _table(kind.options) if kind.options else ["none"]
+        out += ["", "Device address:", ""]
+        out += _table(kind.address) if kind.address else ["none: `address` is left out"]
+        out += ["", "```toml", kind.example, "```", ""]
+    return "\n".join(out)
+
+
+if __name__ == "__main__":
+    sys.stdout.write(render())

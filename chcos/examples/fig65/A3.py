@@ -1,5 +1,0 @@
-"""A3 - the system's file sampler on 'testfile' (figure 6.5)."""
-
-from chcos.sysdrivers import file_sampler as main
-
-__all__ = ["main"]

@@ -1,5 +1,0 @@
-"""A4 - the system's terminal and log driver on /dev/tty0 and 'log' (figure 6.5)."""
-
-from chcos.sysdrivers import terminal_log as main
-
-__all__ = ["main"]

@@ -1,0 +1,493 @@
+"""scheduler - the priority scheduler that steps task coroutines, its timers, its interrupt queue.
+
+Tasks are ``async def`` coroutines stepped with ``send``/``throw`` (as trio and curio step theirs).
+A task gives the processor back only at an ``await`` of a chcos call; whenever several tasks are
+ready the one with the highest priority runs next, ties first come first served (the thesis'
+``resched``). Interrupts from device threads and the host arrive through a thread-safe queue that
+wakes the kernel; timers (the thesis' delta list, kept here as a heap of deadlines) drive sleeps,
+read timeouts and periodic device polls. Nothing busy-waits: an idle kernel blocks in its clock.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sysconfig
+import threading
+import traceback
+from collections import deque
+from collections.abc import Callable
+from heapq import heappop, heappush
+from typing import Any
+
+from chcos.errors import KernelError, Preempted
+from chcos.kernel.clock import Clock, RealClock
+from chcos.kernel.instrument import Instrument
+from chcos.tables.tasks import TaskEntry, TaskState
+
+log = logging.getLogger("chcos.kernel.scheduler")
+# enum members as module constants: a member lookup (TaskState.READY) costs a class-attribute
+# access per use, and the hot path of every message does several
+_READY = TaskState.READY
+_CURRENT = TaskState.CURRENT
+_SUSPENDED = TaskState.SUSPENDED
+
+#: Trap a task yields to give the processor back and stay ready.
+YIELD = object()
+#: Trap a task yields after it has recorded what it waits for.
+BLOCK = object()
+
+EndHandler = Callable[[TaskEntry, str, Any], None]
+
+
+
+_OS_DIR = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))   # chcos/
+_APPS_DIR = os.path.join(_OS_DIR, "apps") + os.sep
+_DRIVERS_DIR = os.path.join(os.path.dirname(_OS_DIR), "drivers") + os.sep
+_LIB_DIRS = tuple(os.path.abspath(p) for p in {sysconfig.get_path("stdlib"),
+                                               sysconfig.get_path("platstdlib"),
+                                               sysconfig.get_path("purelib"),
+                                               sysconfig.get_path("platlib")} if p)
+
+
+def _library_frame(filename: str) -> bool:
+    """True for a frame in chcos' own OS modules (not the applications under chcos/apps), the
+    drivers, the standard library or an installed package: not where a task's bug is."""
+    path = os.path.abspath(filename)
+    in_os = path.startswith(_OS_DIR + os.sep) and not path.startswith(_APPS_DIR)
+    return (in_os or path.startswith(_DRIVERS_DIR) or path.startswith(_LIB_DIRS)
+            or filename.startswith("<frozen "))
+
+
+def describe_error(exc: BaseException) -> str:
+    """The text of a task's abnormal completion: ``Type: message (file:line)``, the file and
+    line being the innermost frame of the task's own code that the exception passed through
+    (the innermost frame at all if none is the task's), e.g.
+    ``NameError: name 'vaule' is not defined (A1.py:12)``."""
+    text = f"{type(exc).__name__}: {exc}"
+    frames = traceback.extract_tb(exc.__traceback__) if exc.__traceback__ is not None else []
+    if not frames:
+        return text
+    own = [f for f in frames if not _library_frame(f.filename)]
+    where = (own or frames)[-1]
+    return f"{text} ({os.path.basename(where.filename)}:{where.lineno})"
+
+
+class Timer:
+    """A pending timer; :meth:`cancel` makes it a no-op. Created by :meth:`Kernel.call_at`."""
+
+    __slots__ = ("base", "callback", "cancelled", "count", "deadline", "period")
+
+    def __init__(self, deadline: float, callback: Callable[[], None], period: float | None) -> None:
+        self.deadline = deadline
+        self.base = deadline
+        self.count = 0
+        self.callback = callback
+        self.period = period
+        self.cancelled = False
+
+    def cancel(self) -> None:
+        """Stop the timer from firing (again)."""
+        self.cancelled = True
+
+
+class Kernel:
+    """One satellite's scheduler. Everything except :meth:`interrupt` and :meth:`stop` must be
+    called on the kernel thread (from tasks, timer callbacks or interrupt handlers)."""
+
+    def __init__(self, clock: Clock | None = None) -> None:
+        self.clock: Clock = clock if clock is not None else RealClock()
+        self.current: TaskEntry | None = None
+        self.instruments: tuple[Instrument, ...] = ()
+        # one tuple per hook, holding only the instruments that override it: an idle instrument
+        # costs nothing on the hot path
+        self.h_scheduled: tuple[Instrument, ...] = ()
+        self.h_before: tuple[Instrument, ...] = ()
+        self.h_after: tuple[Instrument, ...] = ()
+        self.h_blocked: tuple[Instrument, ...] = ()
+        self.h_sent: tuple[Instrument, ...] = ()
+        self.h_overwritten: tuple[Instrument, ...] = ()
+        self.h_delivered: tuple[Instrument, ...] = ()
+        self.h_event: tuple[Instrument, ...] = ()
+        self._ready: list[tuple[int, int, TaskEntry]] = []
+        self._seq = 0
+        self._timers: list[tuple[float, int, Timer]] = []
+        self._irq: deque[tuple[Callable[..., None], tuple[Any, ...]]] = deque()
+        self._wake = threading.Event()
+        self._idle = False
+        self._stop = False
+        self._running = False
+        self._thread: int | None = None
+        self._settlers: list[Callable[[float], bool]] = []
+        self._idle_hooks: list[Callable[[], None]] = []
+        self._steps = 0
+        self._on_end: EndHandler | None = None
+        self.irq_errors: list[str] = []
+
+    # ---- instruments ------------------------------------------------------------------------
+    def add_instrument(self, instrument: Instrument) -> None:
+        """Listen with ``instrument``; only the hooks it overrides are ever called."""
+        self.instruments = (*self.instruments, instrument)
+        self._rehook()
+
+    def remove_instrument(self, instrument: Instrument) -> None:
+        """Stop listening with ``instrument`` (no error if it was not installed)."""
+        self.instruments = tuple(i for i in self.instruments if i is not instrument)
+        self._rehook()
+
+    def _rehook(self) -> None:
+        def listening(hook: str) -> tuple[Instrument, ...]:
+            base = getattr(Instrument, hook)
+            return tuple(i for i in self.instruments
+                         if getattr(type(i), hook, base) is not base)
+
+        self.h_scheduled = listening("task_scheduled")
+        self.h_before = listening("before_step")
+        self.h_after = listening("after_step")
+        self.h_blocked = listening("task_blocked")
+        self.h_sent = listening("message_sent")
+        self.h_overwritten = listening("message_overwritten")
+        self.h_delivered = listening("message_delivered")
+        self.h_event = listening("event")
+
+    @property
+    def steps(self) -> int:
+        """Task executions (steps) so far, all tasks together."""
+        return self._steps
+
+    # ---- task manager primitives ------------------------------------------------------------
+    def ready(self, t: TaskEntry, prio: int) -> None:
+        """Make ``t`` ready at priority ``prio`` (re-queues it if it already was)."""
+        if t.frozen:
+            t.frozen_ready = prio if t.frozen_ready is None else max(prio, t.frozen_ready)
+            t.state = _SUSPENDED
+            return
+        t.prio = prio
+        t.state = _READY
+        self._seq = seq = self._seq + 1
+        t.stamp = seq
+        heappush(self._ready, (-prio, seq, t))
+        if self.h_scheduled:
+            for i in self.h_scheduled:
+                i.task_scheduled(t)
+
+    def wake(self, t: TaskEntry, prio: int, value: Any = None,
+             exc: BaseException | None = None) -> None:
+        """End ``t``'s wait (ports, timer, owner, semaphore) and ready it with ``value`` as the
+        result of its pending ``await`` (or ``exc`` thrown into it)."""
+        ports = t.wait_ports
+        if ports:
+            for p in ports:
+                if p.waiter is t:
+                    p.waiter = None
+            t.wait_ports = ()
+        if (t.timer is not None or t.wait_link is not None or t.wait_query is not None
+                or t.multi_wait):
+            self.unhook(t)
+        t.send_value = value
+        t.throw_exc = exc
+        self.ready(t, prio)
+
+    def unhook(self, t: TaskEntry) -> None:
+        """Forget whatever ``t`` was waiting for."""
+        for p in t.wait_ports:
+            if p.waiter is t:
+                p.waiter = None
+        t.wait_ports = ()
+        t.wait_link = None
+        t.wait_query = None
+        t.sleep_until = None
+        if t.multi_wait:
+            t.multi_wait = False
+            t.wait_links = ()
+            t.wait_commands = False
+            t.wake_filter = None
+            if t.wait_tap:
+                t.wait_tap = False
+                if t.tap is not None and t.tap.waiter is t:
+                    t.tap.waiter = None
+        if t.timer is not None:
+            t.timer.cancel()
+            t.timer = None
+
+    def block(self, t: TaskEntry, state: TaskState) -> None:
+        """Record that the current task ``t`` is about to wait in ``state``."""
+        t.state = state
+        if self.h_blocked:
+            for i in self.h_blocked:
+                i.task_blocked(t)
+
+    def suspend(self, t: TaskEntry) -> None:
+        """Freeze ``t`` where it is: it will not run until :meth:`resume`; wake-ups meanwhile are
+        kept. Raises KernelError when a task suspends itself (it would never resume)."""
+        if t is self.current:
+            raise KernelError(f"task {t.name} cannot suspend itself")
+        if t.frozen:
+            return
+        t.frozen = True
+        if t.state is TaskState.READY:
+            t.frozen_ready = t.prio
+            t.stamp = -1  # drop its heap entry
+        t.state = TaskState.SUSPENDED
+
+    def resume(self, t: TaskEntry) -> None:
+        """Undo :meth:`suspend`: a task that was woken meanwhile becomes ready again."""
+        if not t.frozen:
+            return
+        t.frozen = False
+        pending, t.frozen_ready = t.frozen_ready, None
+        if pending is not None:
+            self.ready(t, pending)
+        elif t.timer is not None:
+            t.state = TaskState.ASLEEP if t.sleep_until is not None else TaskState.WAITING
+        elif (t.wait_ports or t.wait_link is not None or t.wait_query is not None
+              or t.multi_wait):
+            t.state = TaskState.WAITING
+        else:
+            t.state = TaskState.SUSPENDED
+
+    def ready_priorities(self) -> list[int]:
+        """Priorities of the tasks now ready (for tests and monitors)."""
+        return sorted((-p for p, s, t in self._ready if t.stamp == s), reverse=True)
+
+    # ---- timers -----------------------------------------------------------------------------
+    def call_at(self, deadline: float, callback: Callable[[], None],
+                period: float | None = None) -> Timer:
+        """Run ``callback`` on the kernel thread at clock time ``deadline`` (and every ``period``
+        seconds after, drift-free, if given). Raises ValueError for a non-positive period."""
+        if period is not None and period <= 0:
+            raise ValueError(f"timer period must be positive, got {period}")
+        tm = Timer(deadline, callback, period)
+        self._seq += 1
+        heappush(self._timers, (deadline, self._seq, tm))
+        return tm
+
+    def call_later(self, delay: float, callback: Callable[[], None]) -> Timer:
+        """Run ``callback`` once, ``delay`` seconds from now."""
+        return self.call_at(self.clock.now() + delay, callback)
+
+    def every(self, period: float, callback: Callable[[], None]) -> Timer:
+        """Run ``callback`` every ``period`` seconds, the first time one period from now."""
+        return self.call_at(self.clock.now() + period, callback, period)
+
+    def _fire_timers(self, now: float) -> None:
+        timers = self._timers
+        while timers and timers[0][0] <= now:
+            _, _, tm = heappop(timers)
+            if tm.cancelled:
+                continue
+            if tm.period is not None:
+                tm.count += 1
+                # no accumulated rounding; whole nanoseconds so k * period lands on k * period
+                tm.deadline = round(tm.base + tm.count * tm.period, 9)
+                self._seq += 1
+                heappush(timers, (tm.deadline, self._seq, tm))
+            try:
+                tm.callback()
+            except Exception as exc:  # a failing timer callback must not stop the kernel
+                self._record_irq_error("timer", exc)
+
+    # ---- interrupts -------------------------------------------------------------------------
+    def interrupt(self, handler: Callable[..., None], *args: Any) -> None:
+        """Queue ``handler(*args)`` to run on the kernel thread between task steps.
+
+        Thread-safe: device threads and the host call it. Wakes an idle kernel.
+        """
+        self._irq.append((handler, args))
+        if self._idle:
+            self._wake.set()
+
+    def _drain_irq(self) -> None:
+        irq = self._irq
+        while irq:
+            handler, args = irq.popleft()
+            try:
+                handler(*args)
+            except Exception as exc:
+                self._record_irq_error(getattr(handler, "__qualname__", repr(handler)), exc)
+
+    def _record_irq_error(self, where: str, exc: Exception) -> None:
+        text = f"{where}: {type(exc).__name__}: {exc}"
+        log.error("interrupt handler failed: %s\n%s", text, traceback.format_exc())
+        self.irq_errors.append(text)
+        del self.irq_errors[:-100]
+
+    def add_settler(self, settle: Callable[[float], bool]) -> None:
+        """Register a driver's ``settle(timeout)``; called before virtual time jumps ahead so
+        that everything already on a bus is delivered first."""
+        self._settlers.append(settle)
+
+    def add_idle_hook(self, hook: Callable[[], None]) -> None:
+        """Call ``hook()`` on the kernel thread each time nothing is left to run, before the
+        kernel waits (the communications manager flushes its batches there)."""
+        self._idle_hooks.append(hook)
+
+    def set_end_handler(self, handler: EndHandler) -> None:
+        """Who is told when an activation ends: ``handler(task, how, value)`` with ``how`` one of
+        ``"return"``, ``"preempted"``, ``"error"``. The message manager installs itself here."""
+        self._on_end = handler
+
+    # ---- running ----------------------------------------------------------------------------
+    def stop(self) -> None:
+        """Ask :meth:`run` to return after the current step. Thread-safe."""
+        self._stop = True
+        self._wake.set()
+
+    @property
+    def running(self) -> bool:
+        """True while :meth:`run` is executing."""
+        return self._running
+
+    def on_kernel_thread(self) -> bool:
+        """True when called from the thread that is running :meth:`run`."""
+        return self._thread == threading.get_ident()
+
+    def run(self, until: float | None = None) -> None:
+        """Schedule tasks until :meth:`stop`, or until clock time ``until``.
+
+        On a virtual clock, returns as soon as nothing can happen any more (no ready task, no
+        timer, nothing from the drivers). Raises KernelError if already running.
+        """
+        if self._running:
+            raise KernelError("kernel is already running")
+        self._running = True
+        self._stop = False
+        self._thread = threading.get_ident()
+        clock = self.clock
+        ready = self._ready
+        timers = self._timers
+        try:
+            while not self._stop:
+                if self._irq:
+                    self._drain_irq()
+                if timers:
+                    now = clock.now()
+                    if timers[0][0] <= now and (until is None or timers[0][0] <= until):
+                        self._fire_timers(now if until is None else min(now, until))
+                if ready:
+                    _, seq, t = heappop(ready)
+                    if t.stamp == seq:
+                        self._step(t)
+                    continue
+                if not self._idle_wait(until):
+                    break
+        finally:
+            self._running = False
+            self._thread = None
+
+    def _idle_wait(self, until: float | None) -> bool:
+        """Nothing is ready: wait for the next event. False when :meth:`run` should return."""
+        if self._idle_hooks:
+            for hook in self._idle_hooks:
+                hook()
+            if self._ready or self._irq:
+                return True
+        clock = self.clock
+        while self._timers and self._timers[0][2].cancelled:
+            heappop(self._timers)
+        deadline = self._timers[0][0] if self._timers else None
+        if until is not None and (deadline is None or deadline > until):
+            deadline = until
+        if clock.virtual:
+            if self._settle():
+                return True
+            if deadline is None:
+                return False
+            if until is not None and clock.now() >= until:
+                return False
+            clock.idle(self._wake, deadline)
+            return True
+        if until is not None and clock.now() >= until:
+            return False
+        self._idle = True
+        try:
+            if not self._irq and not self._stop:
+                clock.idle(self._wake, deadline)
+        finally:
+            self._idle = False
+            self._wake.clear()
+        return True
+
+    def _settle(self) -> bool:
+        """Let every driver finish what is in flight; True if that produced work."""
+        for settle in self._settlers:
+            settle(5.0)
+        return bool(self._irq or self._ready)
+
+    def _step(self, t: TaskEntry) -> None:
+        """Context switch: run ``t`` until its next trap (the thesis' ctxsw)."""
+        t.state = _CURRENT
+        self.current = t
+        self._steps += 1
+        t.steps += 1
+        if self.h_before:
+            for i in self.h_before:
+                i.before_step(t)
+        coro = t.coro
+        if coro is None:  # woken after its activation ended: nothing to run
+            self.current = None
+            t.state = _SUSPENDED
+            return
+        exc = t.throw_exc
+        try:
+            if exc is None:
+                value = t.send_value
+                if value is not None:
+                    t.send_value = None
+                trap = coro.send(value)
+            else:
+                t.throw_exc = None
+                trap = coro.throw(exc)
+        except StopIteration as stop:
+            self.current = None
+            self._end(t, "preempted" if t.cancelling else "return", stop.value)
+        except Preempted as pre:
+            self.current = None
+            self._end(t, "preempted", pre)
+        except Exception as err:
+            self.current = None
+            self._end(t, "preempted" if t.cancelling else "error", err)
+        else:
+            self.current = None
+            if trap is YIELD and not t.cancelling and not t.frozen:
+                t.state = _READY
+                self._seq = seq = self._seq + 1
+                t.stamp = seq
+                heappush(self._ready, (-t.prio, seq, t))
+            elif trap is BLOCK and not t.cancelling:
+                pass
+            elif t.cancelling:  # it caught the cancellation and carried on: end it for good
+                coro.close()
+                self._end(t, "preempted", None)
+            elif trap is YIELD:
+                self.ready(t, t.prio)
+            else:
+                coro.close()
+                self._end(t, "error", KernelError(
+                    f"task {t.name} awaited something that is not a chcos call ({trap!r})"))
+        if self.h_after:
+            for i in self.h_after:
+                i.after_step(t)
+
+    def _end(self, t: TaskEntry, how: str, value: Any) -> None:
+        t.coro = None
+        t.cancelling = False
+        self.unhook(t)
+        if self._on_end is not None:
+            self._on_end(t, how, value)
+        else:
+            t.state = TaskState.SUSPENDED
+
+    def cancel(self, t: TaskEntry, reason: str) -> None:
+        """End ``t``'s current activation: :class:`Preempted` is thrown into it at its next step.
+        Does nothing if the task has no activation."""
+        if t.coro is None or t.cancelling:
+            return
+        t.cancelling = True
+        self.unhook(t)
+        t.throw_exc = Preempted(reason)
+        t.send_value = None
+        if t is not self.current:
+            frozen, t.frozen = t.frozen, False
+            self.ready(t, max(t.prio, t.base_prio))
+            t.frozen = frozen

@@ -1,0 +1,266 @@
+"""host - the development host (the thesis' Unix side): install, setpri, invoke over the link.
+
+``Host.execute("install -m1i1o1 A2 S3 M2")`` reaches a running multi-satellite system from another
+terminal, exactly as the thesis' shell script of section 6.3 does. Table changes are prepared on
+every live satellite (each checks them; the target machine also loads the task's code) and only
+then appended to the install log by the sequencer (the lowest-numbered live satellite, a
+compare-and-append at the log length every satellite prepared at) and committed everywhere else;
+a host that lost the race to another host prepares again at the new length (up to
+:data:`RACE_RETRIES` times, then InstallError). A refused install changes no satellite's tables.
+Runtime commands go to the satellite of the task or device concerned. Every request is sealed with
+the host role's key of the system secret (see :mod:`chcos.comm.secret`).
+"""
+
+from __future__ import annotations
+
+import json
+import random
+import threading
+import time
+from typing import Any
+
+from chcos.comm.config import UsrPwdAuth
+from chcos.comm.manager import machine_of
+from chcos.comm.secret import SystemSecret
+from chcos.comm.transport import Transport
+from chcos.errors import CommandSyntaxError, InstallError, LinkError
+from chcos.satellites.sysfile import SystemFile, link_config_for
+from chcos.system import cmdline
+from chcos.system.textview import render_text
+
+#: How often a host whose install lost the race to another host prepares it again.
+RACE_RETRIES = 50
+
+
+class RaceLost(InstallError):
+    """Another host changed the install log first; the install was not applied."""
+
+
+class Host:
+    """A host session on the system of ``sf``. ``auth`` (user, password) overrides the
+    credentials of the system file or secret (``("", "")``: none at all); ``secret`` overrides
+    the system's secret (tests: a process holding another secret). Raises ConfigError for a bad
+    system file or secret."""
+
+    def __init__(self, sf: SystemFile, *, auth: tuple[str, str] | None = None,
+                 timeout: float = 10.0, settle: float = 3.0,
+                 secret: SystemSecret | None = None) -> None:
+        secret = secret or sf.secret()
+        cfg = link_config_for(sf, None, secret)
+        if auth is not None:
+            from dataclasses import replace
+
+            cfg = replace(cfg, auth=UsrPwdAuth(*auth, None) if auth[0] else None)
+        self.sf = sf
+        self.timeout = timeout
+        self.settle = settle
+        self._settled = False
+        self.transport = Transport(cfg, sealer=secret.sealer("host"))
+        self.races_lost = 0
+        self._where: dict[str, int] = {}
+
+    def close(self) -> None:
+        """Leave the link."""
+        self.transport.close()
+
+    def __enter__(self) -> Host:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ---- who is there -----------------------------------------------------------------------
+    def alive(self) -> list[int]:
+        """The machines whose satellites are up now."""
+        keys = self.transport.alive(f"{self.sf.prefix}/alive/*", timeout=1.0)
+        return sorted(m for k in keys if (m := machine_of(k)) is not None)
+
+    def wait_for(self, machines: list[int], timeout: float = 20.0) -> list[int]:
+        """Wait until every machine in ``machines`` is up (its liveliness token is seen; no
+        polling); returns the machines up then. Raises LinkError naming the missing ones after
+        ``timeout`` seconds."""
+        want = set(machines)
+        up: set[int] = set()
+        lock = threading.Lock()
+        changed = threading.Event()
+
+        def seen(key: str, present: bool) -> None:
+            m = machine_of(key)
+            if m is not None:
+                with lock:
+                    (up.add if present else up.discard)(m)
+                changed.set()
+
+        deadline = time.monotonic() + timeout
+        with self.transport.watch(f"{self.sf.prefix}/alive/*", lambda k: seen(k, True),
+                                  lambda k: seen(k, False)):
+            while True:
+                changed.clear()
+                with lock:
+                    if want <= up:
+                        return sorted(up)
+                    missing = sorted(want - up)
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    break
+                changed.wait(remaining)
+        raise LinkError(f"satellite(s) {missing} of {self.sf.name} not up after {timeout} s")
+
+    # ---- requests ---------------------------------------------------------------------------
+    def _ask(self, machine: int, req: dict[str, Any]) -> dict[str, Any]:
+        raw = self.transport.request(f"{self.sf.prefix}/m/{machine}/ctl", json.dumps(req).encode(),
+                                     timeout=self.timeout, roles=frozenset({"satellite"}))
+        reply: dict[str, Any] = json.loads(raw)
+        if not reply.get("ok"):
+            kind = reply.get("type", "")
+            err = str(reply.get("error", "refused"))
+            if kind == "CommandSyntaxError":
+                raise CommandSyntaxError(err)
+            if kind == "LinkError":
+                raise LinkError(f"machine {machine}: {err}")
+            if kind == "RaceLost":
+                raise RaceLost(f"machine {machine}: {err}")
+            raise InstallError(f"machine {machine}: {err}")
+        return reply
+
+    def _up(self) -> list[int]:
+        """The machines up. A new session first waits (at most ``timeout``) to reach any, and
+        up to ``settle`` seconds more to reach every satellite of the system file."""
+        start = time.monotonic()
+        up = self.alive()
+        want = set(self.sf.satellites)
+        while time.monotonic() - start < self.timeout and (
+                not up or (not self._settled and set(up) != want
+                           and time.monotonic() - start < self.settle)):
+            up = self.alive()
+        self._settled = True
+        if not up:
+            raise LinkError(f"no satellite of {self.sf.name} is reachable (not started, or this "
+                            "host is not authenticated)")
+        return up
+
+    def map_doc(self, machine: int | None = None) -> dict[str, Any]:
+        """The system map. With ``machine`` as that satellite sees it; by default merged from
+        every satellite up: each task and device as its own machine reports it, each link's
+        ``sent`` from its source's machine and ``delivered``/``overwritten``/``status`` from its
+        destination's (a command link's status from its caller's mirror). Each device also
+        gets ``age``: seconds since its value on its own machine's clock (None before one)."""
+        up = self._up()
+        views = {m: self._ask(m, {"op": "map"})["map"]
+                 for m in ([machine] if machine is not None else up)}
+        doc: dict[str, Any] = dict(views[min(views)])
+        where = {t["name"]: t["machine"] for t in doc["tasks"]}
+        where.update({d["name"]: d["machine"] for d in doc["devices"]})
+        for t in doc["tasks"]:  # terminals and files belong to the machine of their task
+            for name in t["inputs"]:
+                where.setdefault(name, t["machine"])
+        self._where = where
+        if machine is None:
+            def own(kind: str, item: dict[str, Any]) -> dict[str, Any]:
+                view = views.get(where.get(item["name"], -1))
+                if view is None:
+                    return item
+                return next((x for x in view[kind] if x["name"] == item["name"]), item)
+
+            doc["tasks"] = [own("tasks", t) for t in doc["tasks"]]
+            doc["devices"] = [own("devices", d) for d in doc["devices"]]
+            links = []
+            for i, lk in enumerate(doc["links"]):
+                merged = dict(lk)
+                src_view = views.get(where.get(lk["src"], -1))
+                dst_view = views.get(where.get(lk["dst"], -1))
+                if src_view is not None:
+                    merged["sent"] = src_view["links"][i]["sent"]
+                    if lk["type"] == "command":
+                        merged["status"] = src_view["links"][i]["status"]
+                if dst_view is not None:
+                    for key in ("delivered", "overwritten"):
+                        merged[key] = dst_view["links"][i][key]
+                    if lk["type"] == "sensory":
+                        merged["status"] = dst_view["links"][i]["status"]
+                links.append(merged)
+            doc["links"] = links
+        devices = []
+        for d in doc["devices"]:  # ages on the clock of the device's own machine
+            view = views.get(where.get(d["name"], -1), views[min(views)])
+            at = d.get("updated_at")
+            devices.append({**d, "age": None if at is None else max(0.0, view["time"] - at)})
+        doc["devices"] = devices
+        doc["alive"] = up
+        return doc
+
+    def _change(self, line: str, target: int | None) -> str:
+        """Prepare ``line`` everywhere, have the sequencer append it to the install log at the
+        length everybody prepared at, commit it everywhere else; start again when another host
+        got there first. Returns the answer of the task's own satellite."""
+        for attempt in range(RACE_RETRIES):
+            up = self._up() if attempt == 0 else self.alive() or self._up()
+            leader = min(up)
+            order = sorted(up, key=lambda m: (m != target, m))
+            try:
+                seq = int(self._ask(leader, {"op": "head"})["length"])
+                for m in order:
+                    self._ask(m, {"op": "prepare", "line": line, "seq": seq, "leader": leader})
+                answers = {leader: self._ask(leader, {"op": "append", "line": line,
+                                                      "seq": seq})["answer"]}
+            except RaceLost:
+                self.races_lost += 1
+                self._sync_sequencer(up)
+                time.sleep(random.uniform(0.0, 0.02 * (attempt + 1)))  # back off, then retry
+                continue
+            for m in order:
+                if m != leader:
+                    answers[m] = self._ask(m, {"op": "commit", "line": line, "seq": seq,
+                                               "leader": leader})["answer"]
+            return str(answers.get(target if target in answers else leader))
+        raise RaceLost(f"{line!r} not applied: other hosts changed the install log first "
+                       f"{RACE_RETRIES} times in a row")
+
+    def _sync_sequencer(self, up: list[int]) -> None:
+        """If the sequencer holds fewer log entries than another satellite (it restarted alone
+        and reloaded an older map), have it fetch the missing ones from the longest log."""
+        try:
+            lengths = {m: int(self._ask(m, {"op": "head"})["length"]) for m in up}
+            longest = max(lengths, key=lambda m: (lengths[m], -m))
+            leader = min(up)
+            if lengths[leader] < lengths[longest]:
+                self._ask(leader, {"op": "sync", "source": longest, "need": lengths[longest]})
+        except (InstallError, LinkError):
+            pass  # the next attempt finds out again
+
+    def rejected(self, machine: int) -> dict[str, int]:
+        """How many payloads satellite ``machine`` refused so far, by cause."""
+        return dict(self._ask(machine, {"op": "map"})["rejected"])
+
+    def log_heads(self) -> dict[int, tuple[int, str]]:
+        """(length, SHA-256) of the install log of every satellite up."""
+        out = {}
+        for m in self._up():
+            head = self._ask(m, {"op": "head"})
+            out[m] = (int(head["length"]), str(head["hash"]))
+        return out
+
+    def execute(self, line: str) -> str:
+        """Carry out one host command line on the system; returns the answer. Raises
+        CommandSyntaxError, InstallError (nothing changed anywhere), LinkError."""
+        req = cmdline.parse(line)
+        if req is None:
+            return ""
+        if isinstance(req, cmdline.ShowMap):
+            return render_text(self.map_doc())
+        if isinstance(req, cmdline.Install | cmdline.SetPri | cmdline.ResetPri | cmdline.Boot):
+            return self._change(line, getattr(req, "machine", None))
+        up = self._up()
+        if isinstance(req, cmdline.TaskOp) and req.op == "reset" and not req.task:
+            return "; ".join(f"machine {m}: {self._ask(m, {'op': 'exec', 'line': line})['answer']}"
+                             for m in up)
+        name = (req.task if isinstance(req, cmdline.Invoke | cmdline.TaskOp)
+                else req.device if isinstance(req, cmdline.Inject) else "")
+        if name not in self._where:
+            self.map_doc()
+        machine = self._where.get(name)
+        if machine is None:
+            raise InstallError(f"no task or device named {name!r} in {self.sf.name}")
+        if machine not in up:
+            raise LinkError(f"{name} runs on machine {machine}, which is not up")
+        return str(self._ask(machine, {"op": "exec", "line": line})["answer"])

@@ -1,0 +1,483 @@
+"""satellite - one machine of a CHC-OS system, in its own process, on the Zenoh link.
+
+A satellite runs the kernel, tasks and devices of its machine and keeps a copy of the whole system
+tables, which every satellite builds from the same *install log*: the host's install, setpri and
+boot commands in the order they were committed (thesis 6: "every processor keeps the same
+message table, updated by broadcast at each install"). Each log entry is a plain host command
+line. A host command that changes the tables goes in three steps:
+
+1. ``prepare`` (every live satellite checks it against its tables at the log length the host
+   expects; nobody imports any code, the task's satellite only checks that its code reference
+   names a module on the Python path or a file inside the system's task path);
+2. ``append`` on the *sequencer*, the lowest-numbered live satellite: a compare-and-append that
+   applies the line as entry ``seq`` only if its log still has exactly ``seq`` entries; a host
+   that lost the race to another host is told so (:class:`RaceLost`) and starts again at the new
+   length;
+3. ``commit`` on every other live satellite: entry ``seq`` is applied in order (a satellite that
+   misses earlier entries first fetches them from the sequencer); a commit below the log length
+   compares the line with the entry held there and refuses a different one (the logs diverged).
+
+Code named by an install is imported only when the committed entry is applied on the task's own
+satellite; if it then fails to load, the task is still entered in the tables (so every satellite
+numbers its links alike) but raises when invoked, and the host is told why.
+
+A satellite that starts late or restarts fetches the log from a live member before it runs
+anything, checks that it is a list of install lines that extends its own, and applies each entry
+as an install would be; with nobody up it replays its own saved install log ``m<N>.log`` from
+the system's state directory (or, without one, its sysfile.map there). A satellite
+whose saved log is longer than its peers' and extends theirs replays its own (the host then
+brings the sequencer up to date); one whose saved log contradicts its peers' refuses to start,
+naming the first entry that differs. Runtime commands (invoke, suspend, resume, close, inject)
+go only to the satellite that runs the task or device.
+
+Control keys, under ``chcos/<system>``: ``m/<N>/ctl`` (host requests to machine N, JSON; only
+payloads sealed by the host role are accepted), ``log`` and ``m/<N>/log`` (the install log, to
+any member).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.machinery
+import json
+import logging
+import os
+import sys
+import threading
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from chcos.comm.manager import CommManager
+from chcos.comm.secret import Throttle
+from chcos.comm.transport import Subscription, Transport
+from chcos.errors import ChcosError, ConfigError, InstallError, LinkError, MessageError
+from chcos.kernel.clock import Clock, RealClock
+from chcos.satellites.sysfile import SystemFile, link_config_for
+from chcos.system import cmdline, sysmap
+from chcos.system.embedded import System
+from chcos.user.context import TaskContext
+
+log = logging.getLogger("chcos.satellites.satellite")
+
+MUTATING = (cmdline.Install, cmdline.SetPri, cmdline.ResetPri, cmdline.Boot)
+#: How long a starting satellite keeps asking for the install log before it concludes that it is
+#: alone (links to the other satellites are made in the background, within milliseconds).
+CATCH_UP_WAIT = 2.0
+#: Seconds between a change of the tables and the write of sysfile.map.
+MAP_DELAY = 1.0
+#: Longest install line accepted in a log.
+MAX_LINE = 4096
+HOST_ONLY = frozenset({"host"})
+MEMBERS = frozenset({"host", "satellite"})
+SATELLITES = frozenset({"satellite"})
+#: Stand-in code of a task whose own code failed to load after its install was committed.
+FAILED_CODE = "chcos.satellites.satellite:code_failed"
+_load_errors: dict[str, str] = {}
+
+
+class RaceLost(InstallError):
+    """Another host changed the install log first (or this satellite is not the sequencer):
+    prepare again at the new log length."""
+
+
+async def code_failed(ctx: TaskContext, cmd: Any) -> None:
+    """The code of a task whose own code failed to load on its satellite: raises why."""
+    raise InstallError(f"task {ctx.name}: {_load_errors.get(ctx.name, 'its code failed to load')}")
+
+
+def code_problem(ref: str, task_path: tuple[Path, ...]) -> str | None:
+    """Why the task code reference ``ref`` may not be loaded, or None; imports nothing.
+
+    A file reference (``dir/A1.py[:func]``, ``A1.py``) must resolve to an existing file inside
+    one of the ``task_path`` directories; a bare name (``A1``) is looked up there first; a
+    dotted module name must exist on the Python path (found without importing it)."""
+    target = ref.partition(":")[0]
+    dirs = [d.resolve() for d in task_path]
+    where = ", ".join(str(d) for d in dirs) or "no task path"
+    if target.endswith(".py") or "/" in target:
+        path = Path(target)
+        candidates = [path] if path.is_absolute() else [d / path for d in dirs]
+        for c in candidates:
+            c = c.resolve()
+            if any(c.is_relative_to(d) for d in dirs):
+                return None if c.is_file() else f"task code {ref}: no file {c}"
+        return (f"task code {ref}: {target} is outside the system's task path ({where}); "
+                "task code is loaded only from there or from modules on the Python path")
+    if "." not in target and any((d / f"{target}.py").is_file() for d in dirs):
+        return None
+    locations: list[str] | None = None
+    parts = target.split(".")
+    for i in range(len(parts)):
+        name = ".".join(parts[:i + 1])
+        mod = sys.modules.get(name)
+        if mod is not None:
+            locations = list(getattr(mod, "__path__", []) or [])
+            continue
+        try:
+            spec = importlib.machinery.PathFinder.find_spec(name, locations)
+        except (ImportError, ValueError) as exc:
+            return f"task code {ref}: no module {target} ({exc})"
+        if spec is None:
+            return (f"task code {ref}: no module {target} (looked in {where} and on the "
+                    "Python path)")
+        locations = list(spec.submodule_search_locations or [])
+    return None
+
+
+def parse_log(raw: bytes) -> list[str]:
+    """The install log in a peer's answer: a JSON list of install/setpri/boot lines. Raises
+    LinkError saying what is wrong with anything else."""
+    try:
+        entries = json.loads(raw)
+    except ValueError as exc:
+        raise LinkError(f"malformed install log from a peer: not JSON ({exc})") from exc
+    if not isinstance(entries, list):
+        raise LinkError(f"malformed install log from a peer: expected a list of install lines, "
+                        f"got {type(entries).__name__}")
+    for i, line in enumerate(entries):
+        if not isinstance(line, str) or len(line) > MAX_LINE:
+            raise LinkError(f"malformed install log from a peer: entry {i} is not an install "
+                            "line")
+        try:
+            req = cmdline.parse(line)
+        except ChcosError as exc:
+            raise LinkError(f"malformed install log from a peer: entry {i}: {exc}") from exc
+        if not isinstance(req, MUTATING):
+            raise LinkError(f"malformed install log from a peer: entry {i} ({line!r}) is not "
+                            "an install, setpri or boot")
+    return entries
+
+
+class Satellite:
+    """Machine ``machine`` of the system described by ``sf``. Raises ConfigError if the
+    system file has no such machine or its secret is unusable, LinkError if its port cannot be
+    opened."""
+
+    def __init__(self, sf: SystemFile, machine: int, *, clock: Clock | None = None) -> None:
+        if machine not in sf.satellites:
+            raise ConfigError(f"{sf.path}: no [[satellite]] with machine = {machine}")
+        self.sf = sf
+        self.machine = machine
+        secret = sf.secret()
+        sf.state_dir.mkdir(parents=True, exist_ok=True, mode=0o700)
+        self.system = System(sf.devmaps, clock=clock or RealClock(), task_path=sf.task_path,
+                             base_dir=sf.base_dir, map_path=None,
+                             local_machines={machine})
+        self.transport = Transport(link_config_for(sf, machine, secret),
+                                   sealer=secret.sealer("satellite"))
+        self.comm = CommManager(self.system, self.transport, sf.prefix, machine)
+        self.log: list[str] = []
+        self._lock = threading.RLock()
+        self._subs: list[Subscription] = []
+        self._stopping = threading.Event()
+        self.refused: list[str] = []
+        self.rejected = Throttle(log)
+        self._map_timer: threading.Timer | None = None
+
+    # ---- life -------------------------------------------------------------------------------
+    def start(self) -> None:
+        """Run the kernel, join the link, catch up with the install log, then serve the host."""
+        self.system.start()
+        self.comm.start()
+        self.catch_up()
+        p = self.sf.prefix
+        self._subs.append(self.transport.serve(f"{p}/m/{self.machine}/ctl", self._control,
+                                               roles=HOST_ONLY))
+        for key in (f"{p}/log", f"{p}/m/{self.machine}/log"):
+            self._subs.append(self.transport.serve(key, lambda _: self._log_bytes(),
+                                                   roles=MEMBERS))
+        self.comm.announce()
+        log.info("satellite %d of %s up, %d log entries", self.machine, self.sf.name,
+                 len(self.log))
+
+    def stop(self) -> None:
+        """Leave the link, write the map, stop the kernel, put actuators safe, stop the
+        drivers."""
+        self._stopping.set()
+        timer = self._map_timer
+        if timer is not None:
+            timer.cancel()
+            self.write_map()
+        for sub in reversed(self._subs):
+            sub.close()
+        self._subs.clear()
+        self.comm.stop()
+        self.system.shutdown()
+        self.transport.close()
+
+    def __enter__(self) -> Satellite:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def rejected_counts(self) -> dict[str, int]:
+        """How many payloads were refused or malformed so far, by cause (link, messages, host
+        requests, install logs)."""
+        out: dict[str, int] = {}
+        for t in (self.transport.rejected, self.comm.rejected, self.rejected):
+            out.update(t.counts)
+        return out
+
+    # ---- the install log ----------------------------------------------------------------------
+    def _log_bytes(self) -> bytes:
+        return json.dumps(list(self.log)).encode()  # a snapshot; no lock (peers may hold theirs)
+
+    def log_hash(self) -> str:
+        """SHA-256 of the install log (equal on satellites that hold the same log)."""
+        return hashlib.sha256("\n".join(self.log).encode()).hexdigest()
+
+    def catch_up(self, source: int | None = None, need: int = 0) -> int:
+        """Apply the log entries this satellite misses, fetched from satellite ``source`` (None:
+        any live one) until it holds at least ``need``; with none up at start, replay its own
+        sysfile.map. Returns how many entries were applied. Raises LinkError if the fetched log
+        does not extend this satellite's own (the logs diverged) or ``need`` entries could not
+        be had, InstallError if an entry cannot be applied."""
+        key = (f"{self.sf.prefix}/log" if source is None
+               else f"{self.sf.prefix}/m/{source}/log")
+        entries = None
+        deadline = time.monotonic() + CATCH_UP_WAIT
+        while True:  # links to peers come up in the background: give them a moment
+            try:
+                got = parse_log(self.transport.request(key, b"", timeout=1.5,
+                                                       roles=SATELLITES))
+                if len(got) >= need:
+                    entries = got
+                    break
+            except LinkError as exc:
+                if "malformed" in str(exc):
+                    self.rejected.note("install log refused", str(exc))
+            if time.monotonic() >= deadline or self._stopping.is_set():
+                break
+            self._stopping.wait(0.05)  # retry back-off
+        with self._lock:
+            start = not self.log
+            saved = self._saved_log() if start else None
+            if entries is None:
+                if need:
+                    raise LinkError(f"satellite {self.machine} needs log entry {need - 1} and "
+                                    f"could not fetch it from {key}")
+                path = self.sf.map_path(self.machine)
+                if saved:
+                    entries = saved
+                    log.info("no satellite answered: replaying %s", self.log_path)
+                elif start and path.exists():
+                    entries = sysmap.install_lines(sysmap.read(path))
+                    log.info("no satellite answered: reloading %s", path)
+                else:
+                    return 0
+            elif saved and len(saved) > len(entries) and saved[:len(entries)] == entries:
+                log.info("satellite %d holds %d log entries, its peers %d: replaying its own "
+                         "(the host brings the peers up to date)", self.machine, len(saved),
+                         len(entries))
+                entries = saved
+            held = saved or self.log
+            if entries[:len(held)] != held[:len(entries)]:
+                first = next(i for i, (a, b) in enumerate(zip(entries, held, strict=False))
+                             if a != b)
+                raise LinkError(f"satellite {self.machine}: the install log of {key} differs "
+                                f"from this satellite's at entry {first}: {entries[first]!r} "
+                                f"against {held[first]!r} (the logs diverged; move "
+                                f"{self.log_path} away to take the peers' log)")
+            n = 0
+            try:
+                for line in entries[len(self.log):]:
+                    self._apply(line, persist=False)
+                    n += 1
+            finally:
+                if start or n:
+                    self._save_log()
+            return n
+
+    def _map_changed(self) -> None:
+        """Write sysfile.map MAP_DELAY seconds after the first change not yet written (the
+        fsync'd install log is the durable record; the map is a view of it, so a burst of
+        installs costs one map write instead of one per install)."""
+        if self._map_timer is None and not self._stopping.is_set():
+            self._map_timer = threading.Timer(MAP_DELAY, self.write_map)
+            self._map_timer.daemon = True
+            self._map_timer.start()
+
+    def write_map(self) -> None:
+        """Write this satellite's sysfile.map now (in the system's state directory)."""
+        self._map_timer = None
+        try:
+            doc = self.system.call(self.system.sysmgr.map_doc)
+            sysmap.write(self.sf.map_path(self.machine), doc)
+        except (ChcosError, OSError) as exc:
+            log.error("satellite %d: cannot write %s: %s", self.machine,
+                      self.sf.map_path(self.machine), exc)
+
+    @property
+    def log_path(self) -> Path:
+        """Where this satellite keeps its install log (one JSON string per line)."""
+        return self.sf.state_dir / f"m{self.machine}.log"
+
+    def _saved_log(self) -> list[str]:
+        """The install log this satellite saved last time ([] if none). Raises LinkError if the
+        file is corrupt."""
+        try:
+            raw = self.log_path.read_text(encoding="utf-8")
+        except FileNotFoundError:
+            return []
+        try:
+            return parse_log(("[" + ",".join(raw.splitlines()) + "]").encode())
+        except LinkError as exc:
+            raise LinkError(f"{self.log_path}: {exc}") from exc
+
+    def _save_log(self) -> None:
+        """Write the whole install log (atomically, fsync'd)."""
+        tmp = self.log_path.with_name(f".{self.log_path.name}.tmp")
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write("".join(json.dumps(line) + "\n" for line in self.log))
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, self.log_path)
+
+    def _apply(self, line: str, persist: bool = True) -> str:
+        """Validate ``line`` as an install would be and apply it as the next log entry (appended
+        to the saved log if ``persist``). Raises InstallError (nothing applied) if it is not
+        valid here."""
+        req = cmdline.parse(line)
+        if not isinstance(req, MUTATING):
+            raise InstallError(f"log entry {len(self.log)} ({line!r}) is not an install, setpri "
+                               "or boot")
+        self.system.call(self._check, req)
+        try:
+            answer = self.system.execute(req)
+        except InstallError as exc:
+            if not (isinstance(req, cmdline.Install) and req.machine == self.machine):
+                raise
+            _load_errors[req.name] = str(exc)
+            log.error("satellite %d: %s", self.machine, exc)
+            self.system.execute(replace(req, code=FAILED_CODE))
+            answer = (f"{req.name} entered in the tables, but its code failed to load on machine "
+                      f"{self.machine}: {exc}")
+        self.log.append(line)
+        self._map_changed()
+        if persist:
+            with open(self.log_path, "a", encoding="utf-8") as f:
+                f.write(json.dumps(line) + "\n")
+                f.flush()
+                os.fsync(f.fileno())
+        return answer
+
+    # ---- host requests ----------------------------------------------------------------------
+    def _control(self, payload: bytes) -> bytes:
+        try:
+            req = json.loads(payload)
+            if not isinstance(req, dict):
+                raise TypeError(f"expected a JSON object, got {type(req).__name__}")
+            reply = self._serve(req)
+        except ChcosError as exc:
+            text = str(exc)
+            self.refused.append(text)
+            del self.refused[:-100]
+            log.log(logging.INFO if isinstance(exc, RaceLost) else logging.WARNING,
+                    "satellite %d refused a host request: %s", self.machine, text)
+            reply = {"ok": False, "error": text, "type": type(exc).__name__}
+        except (ValueError, KeyError, TypeError) as exc:
+            text = f"malformed host request: {type(exc).__name__}: {exc}"
+            self.rejected.note(f"satellite {self.machine}: malformed host request", text)
+            reply = {"ok": False, "error": text, "type": "LinkError"}
+        return json.dumps(reply, default=str).encode()
+
+    def _serve(self, req: dict[str, Any]) -> dict[str, Any]:
+        op = req["op"]
+        if op == "map":
+            doc = self.system.call(self.system.sysmgr.map_doc)
+            return {"ok": True, "map": doc, "alive": sorted(self.comm.alive),
+                    "rejected": self.rejected_counts()}
+        if op == "log":
+            return {"ok": True, "log": list(self.log)}
+        if op == "head":
+            with self._lock:
+                return {"ok": True, "length": len(self.log), "hash": self.log_hash()}
+        if op == "sync":  # the host found this satellite behind another: fetch what it misses
+            source, need = req["source"], req["need"]
+            if source not in self.sf.satellites or source == self.machine or isinstance(
+                    need, bool) or not isinstance(need, int):
+                raise TypeError("sync: expected another machine and a log length")
+            with self._lock:
+                return {"ok": True, "applied": self.catch_up(source, need=need)}
+        line = req.get("line", "")
+        if not isinstance(line, str) or len(line) > MAX_LINE:
+            raise TypeError("line: expected a command line string")
+        parsed = cmdline.parse(line)
+        if parsed is None:
+            return {"ok": True, "answer": ""}
+        if op == "exec":
+            if isinstance(parsed, MUTATING):
+                raise InstallError(f"{line!r} changes the tables: it must be prepared and "
+                                   "committed on every satellite")
+            return {"ok": True, "answer": self.system.execute(parsed)}
+        if not isinstance(parsed, MUTATING):
+            raise InstallError(f"{line!r} does not change the tables: send it with exec")
+        seq = req["seq"]
+        if isinstance(seq, bool) or not isinstance(seq, int) or seq < 0:
+            raise TypeError("seq: expected a log position >= 0")
+        leader = req.get("leader")
+        if leader is not None and (isinstance(leader, bool) or not isinstance(leader, int)
+                                   or leader not in self.sf.satellites):
+            raise TypeError("leader: expected a machine of the system")
+        with self._lock:
+            if seq > len(self.log) and op in ("prepare", "commit"):
+                self.catch_up(None if leader == self.machine else leader, need=seq)
+            if op == "prepare":
+                if seq != len(self.log):
+                    raise RaceLost(f"satellite {self.machine} has {len(self.log)} log entries, "
+                                   f"the host expected {seq}: another host changed the log")
+                self.system.call(self._check, parsed)
+                return {"ok": True, "seq": seq}
+            if op == "append":
+                sequencer = min(set(self.comm.alive))
+                if sequencer != self.machine:
+                    raise RaceLost(f"satellite {self.machine} is not the sequencer (machine "
+                                   f"{sequencer} is)")
+                if seq != len(self.log):
+                    raise RaceLost(f"log entry {seq} is taken: another host changed the log "
+                                   f"first (it has {len(self.log)} entries)")
+                return {"ok": True, "answer": self._apply(line), "seq": seq}
+            if op == "commit":
+                if seq < len(self.log):
+                    if self.log[seq] != line:
+                        raise InstallError(f"satellite {self.machine}: log entry {seq} is "
+                                           f"{self.log[seq]!r}, not {line!r} (the logs diverged)")
+                    return {"ok": True, "answer": "already applied", "seq": seq}
+                if seq != len(self.log):
+                    raise InstallError(f"satellite {self.machine} cannot apply log entry {seq}: "
+                                       f"it has {len(self.log)}")
+                return {"ok": True, "answer": self._apply(line), "seq": seq}
+        raise MessageError(f"unknown host request op {op!r}")
+
+    def _check(self, req: cmdline.Request) -> None:
+        """Validate a table-changing request against this satellite's tables (kernel thread)
+        without importing any code. Raises InstallError saying why it is refused."""
+        mgr = self.system.sysmgr
+        if isinstance(req, cmdline.Install):
+            problem = None
+            if req.machine == self.machine:
+                problem = code_problem(req.code or req.name, self.sf.task_path)
+            try:
+                mgr.check_install(replace(req, code=FAILED_CODE))
+            except InstallError as exc:
+                if problem is None:
+                    raise
+                raise InstallError(f"{exc}\n  - {problem}") from exc
+            if problem is not None:
+                raise InstallError(f"install {req.name} refused, tables unchanged:\n  - "
+                                   f"{problem}")
+        elif isinstance(req, cmdline.ResetPri):
+            try:
+                self.system.msgtab.find(req.src, req.dst)
+            except MessageError as exc:
+                raise InstallError(f"resetpri: {exc}") from exc
+        elif isinstance(req, cmdline.SetPri):
+            if not 0 <= req.priority <= 99:
+                raise InstallError(f"setpri: priority {req.priority} outside 0..99")
+            try:
+                self.system.msgtab.find(req.src, req.dst)
+            except MessageError as exc:
+                raise InstallError(f"setpri: {exc}") from exc

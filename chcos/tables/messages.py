@@ -1,0 +1,247 @@
+"""messages - the message table (Msgtab), its links, and the input ports that hold their messages.
+
+A link joins a source to a destination and is either *sensory* (upward: sensor, file or lower task
+to a higher task) or *command* (downward: task to lower task, actuator or file). Each has a priority
+0..99 and a status (Appendix 3). A sensory message waits in the destination's input port, where a
+newer message overwrites an unread older one ("yesterday's newspaper"); a link declared *queued*
+keeps a bounded FIFO instead and refuses a message when full.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections import deque
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+from chcos.errors import MessageError, QueueOverflow
+
+if TYPE_CHECKING:
+    from chcos.tables.tasks import TaskEntry
+
+#: Default link priorities: sensory links run their receivers above command links (thesis 5.2).
+DEFAULT_SENSORY_PRIORITY = 8
+DEFAULT_COMMAND_PRIORITY = 4
+#: The priority of exception taps and assassin links: above everything else.
+TOP_PRIORITY = 99
+PORTS = 8
+
+
+class LinkType(enum.Enum):
+    """Sensory messages only go up, command messages only go down."""
+
+    SENSORY = "sensory"
+    COMMAND = "command"
+
+
+class LinkStatus(enum.Enum):
+    """Msgtab status values (Appendix 3), as ``msgstat`` reports them."""
+
+    OK = "OK"
+    SUSPENDED = "suspended"
+    PREEMPTED = "pre-empted"
+    NORMAL = "normal completion"
+    ABNORMAL = "abnormal completion"
+
+
+class EndpointKind(enum.Enum):
+    """What a link end is."""
+
+    TASK = "task"
+    DEVICE = "device"
+    FILE = "file"
+    HOST = "host"
+
+
+@dataclass(frozen=True)
+class Completion:
+    """What ``done``/``call`` return: how a command message ended, and with what."""
+
+    status: LinkStatus
+    result: Any = None
+    error: str = ""
+
+    @property
+    def ok(self) -> bool:
+        """True for a normal completion."""
+        return self.status is LinkStatus.NORMAL
+
+
+@dataclass(eq=False, slots=True)
+class Link:
+    """One Msgtab entry."""
+
+    lid: int
+    src: str
+    dst: str
+    type: LinkType
+    priority: int
+    src_kind: EndpointKind
+    dst_kind: EndpointKind
+    src_machine: int = 0
+    dst_machine: int = 0
+    queued: int = 0  # 0: newest wins; n > 0: FIFO of at most n messages
+    tap: bool = False  # an implicit link: exception tap, assassin or host link
+    remote: bool = False  # the destination lives on another satellite
+    status: LinkStatus = LinkStatus.OK
+    port: InPort | TapPort | None = None  # where sensory messages to a task land
+    src_port: int = -1  # index in the source task's out_links (command links)
+    dst_port: int = -1  # index in the destination task's in_ports (sensory links)
+    # command-link state
+    pending: bool = False  # the caller waits for a reply (in the target's wait queue)
+    reported: bool = False  # a completion/pre-emption is there for ``done`` to pick up
+    result: Any = None
+    error: str = ""
+    # statistics
+    sent: int = 0
+    overwritten: int = 0
+    delivered: int = 0
+    refused: int = 0
+
+    @property
+    def name(self) -> str:
+        """``SRC/DST``, as the thesis writes links (``S1/A1``)."""
+        return f"{self.src}/{self.dst}"
+
+    def completion(self) -> Completion:
+        """The link's status as a :class:`Completion`."""
+        return Completion(self.status, self.result, self.error)
+
+    def __repr__(self) -> str:
+        return f"<link {self.name} {self.type.value} p{self.priority} {self.status.value}>"
+
+
+class InPort:
+    """One of a task's eight input ports: the newest unread message of its sensory link, or a
+    bounded FIFO for a queued link."""
+
+    __slots__ = ("device", "fifo", "fresh", "index", "link", "sent_at", "single", "value",
+                 "waiter")
+
+    def __init__(self, link: Link, index: int) -> None:
+        self.link = link
+        self.index = index
+        self.device = link.src_kind is EndpointKind.DEVICE
+        self.single = (self,)
+        self.value: Any = None
+        self.fresh = False
+        self.sent_at = 0.0
+        self.waiter: TaskEntry | None = None
+        self.fifo: deque[tuple[Any, float]] | None = deque() if link.queued else None
+
+    def store(self, value: Any, now: float) -> bool:
+        """Put a message in; True if it overwrote an unread one. Raises QueueOverflow when a
+        queued link is full (the message is refused, nothing is lost silently)."""
+        fifo = self.fifo
+        if fifo is not None:
+            if len(fifo) >= self.link.queued:
+                self.link.refused += 1
+                raise QueueOverflow(
+                    f"queued link {self.link.name} is full ({self.link.queued} messages unread)")
+            fifo.append((value, now))
+            self.fresh = True
+            return False
+        over = self.fresh
+        self.value = value
+        self.fresh = True
+        self.sent_at = now
+        return over
+
+    def take(self) -> tuple[Any, float]:
+        """Remove and return (message, time sent); raises MessageError if there is none."""
+        if not self.fresh:
+            raise MessageError(f"no message on {self.link.name}")
+        fifo = self.fifo
+        if fifo is not None:
+            item = fifo.popleft()
+            self.fresh = bool(fifo)
+            return item
+        self.fresh = False
+        value, self.value = self.value, None
+        return value, self.sent_at
+
+
+class TapPort:
+    """The exception task's tap: the newest unread message of each lower task, in arrival order."""
+
+    __slots__ = ("newest", "order", "waiter")
+
+    def __init__(self) -> None:
+        self.newest: dict[str, tuple[Any, float]] = {}
+        self.order: deque[str] = deque()
+        self.waiter: TaskEntry | None = None
+
+    @property
+    def fresh(self) -> bool:
+        """True when a message is unread."""
+        return bool(self.order)
+
+    def store_from(self, source: str, value: Any, now: float) -> bool:
+        """Keep ``value`` as ``source``'s newest message; True if it overwrote an unread one."""
+        over = source in self.newest
+        if not over:
+            self.order.append(source)
+        self.newest[source] = (value, now)
+        return over
+
+    def take(self) -> tuple[str, Any, float]:
+        """Remove and return the oldest unread (source, message, time sent)."""
+        src = self.order.popleft()
+        value, at = self.newest.pop(src)
+        return src, value, at
+
+    def take_from(self, source: str) -> tuple[str, Any, float]:
+        """Remove and return ``source``'s unread (source, message, time sent); raises KeyError
+        if there is none."""
+        value, at = self.newest.pop(source)
+        self.order.remove(source)
+        return source, value, at
+
+
+@dataclass
+class Msgtab:
+    """The message table: every link in the system, by id and by (source, destination, type)."""
+
+    links: list[Link] = field(default_factory=list)
+    _index: dict[tuple[str, str, LinkType], Link] = field(default_factory=dict)
+
+    def add(self, link: Link) -> None:
+        """Enter ``link``; raises MessageError if the same link exists."""
+        key = (link.src, link.dst, link.type)
+        if key in self._index:
+            raise MessageError(f"link {link.name} ({link.type.value}) already exists")
+        self.links.append(link)
+        self._index[key] = link
+
+    def next_lid(self) -> int:
+        """The id the next link will get."""
+        return len(self.links)
+
+    def find(self, src: str, dst: str, type: LinkType | None = None) -> Link:
+        """The link from ``src`` to ``dst`` (of ``type`` if given, else the only one).
+
+        Raises MessageError naming the pair if there is no such link, or if ``type`` is None and
+        both a sensory and a command link join them in that direction.
+        """
+        if type is not None:
+            link = self._index.get((src, dst, type))
+            if link is None:
+                raise MessageError(f"no {type.value} link {src}/{dst}")
+            return link
+        found = [lk for t in LinkType if (lk := self._index.get((src, dst, t))) is not None]
+        if not found:
+            raise MessageError(f"no link {src}/{dst}")
+        if len(found) > 1:
+            raise MessageError(f"{src}/{dst} names a sensory and a command link; give the type")
+        return found[0]
+
+    def get(self, src: str, dst: str, type: LinkType) -> Link | None:
+        """The link or None."""
+        return self._index.get((src, dst, type))
+
+    def __iter__(self) -> Iterator[Link]:
+        return iter(self.links)
+
+    def __len__(self) -> int:
+        return len(self.links)

@@ -1,0 +1,156 @@
+"""tasks - the task table (Tsktab): one entry per installed feedback loop, and its states.
+
+A task is installed once and never terminated (thesis 6 intro). Each *activation* of a task is one
+run of its ``async def`` body for one command (``topen``/``invoke`` with parameters); between
+activations the task is SUSPENDED. The entry keeps what Appendix 3's Tsktab lists: name, machine,
+status, owner message, priority and sleep time, plus the ports of its Usrtab.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Awaitable, Callable, Coroutine, Iterator
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+from chcos.errors import TaskError
+
+if TYPE_CHECKING:
+    from chcos.kernel.scheduler import Timer
+    from chcos.tables.messages import InPort, Link
+    from chcos.user.context import TaskContext
+    from chcos.user.worldmodel import WorldModel
+
+TaskFunc = Callable[..., Awaitable[Any]]
+
+
+class TaskState(enum.Enum):
+    """Tsktab status values (Appendix 3)."""
+
+    CURRENT = "current"
+    READY = "ready"
+    SUSPENDED = "suspended"
+    WAITING = "waiting"
+    ASLEEP = "asleep"
+
+
+class Role(enum.Enum):
+    """What kind of task an entry is: an ordinary loop, the sensory exception task that hears
+    every lower sensory message, an assassin that may seize or suspend any lower command task, or a
+    system driver provided by chcos (file sampler, terminal/log)."""
+
+    TASK = "task"
+    EXCEPTION = "exception"
+    ASSASSIN = "assassin"
+    SYSTEM = "system"
+
+
+@dataclass(eq=False, slots=True)
+class TaskEntry:
+    """One Tsktab row. Mutated only on the kernel thread."""
+
+    tid: int
+    name: str
+    machine: int
+    level: int
+    func: TaskFunc
+    code: str = ""
+    role: Role = Role.TASK
+    params: dict[str, Any] = field(default_factory=dict)  # install-time parameters
+    state: TaskState = TaskState.SUSPENDED
+    prio: int = 0
+    owner: Link | None = None
+    coro: Coroutine[Any, Any, Any] | None = None
+    command: Any = None  # parameters of the current activation
+    in_ports: list[InPort] = field(default_factory=list)
+    out_links: list[Link] = field(default_factory=list)
+    up_links: list[Link] = field(default_factory=list)
+    special_links: dict[str, Link] = field(default_factory=dict)  # assassin links by target
+    tap: Any = None  # the exception task's TapPort
+    waitq: list[tuple[int, Link, Any]] = field(default_factory=list)
+    ctx: TaskContext | None = None
+    world: WorldModel | None = None
+    # standing task and restart policy (install --standing --restart=... --backoff=...)
+    standing: bool = False
+    restart: str = "never"
+    backoff: float = 1.0
+    default_prio: int = 4  # the priority a released task goes back to (resetpri)
+    last_command: Any = None  # the command of the last activation (restarts reuse it)
+    waiting_devices: frozenset[str] = frozenset()  # on-recovery: devices that must be healthy
+    restart_timer: Timer | None = None
+    new_command: tuple[Any] | None = None  # a newer command from the owner, not yet taken
+    wait_commands: bool = False  # waiting (wait_any) for a command message
+    wait_links: tuple[Link, ...] = ()  # waiting (wait_any) for a completion on these links
+    wait_tap: bool = False  # waiting (wait_any) on the exception tap
+    wake_filter: Callable[[str, Any], bool] | None = None  # wait_any(when=...)
+    multi_wait: bool = False  # any of the four above is set
+    # scheduler bookkeeping
+    stamp: int = 0
+    send_value: Any = None
+    throw_exc: BaseException | None = None
+    frozen: bool = False
+    frozen_ready: int | None = None
+    cancelling: bool = False
+    next_command: tuple[Any, int, Link | None] | None = None
+    wait_ports: tuple[InPort, ...] = ()
+    wait_link: Link | None = None
+    wait_query: int | None = None  # the remote world-model query awaiting its answer
+    timer: Timer | None = None
+    sleep_until: float | None = None
+    # statistics
+    steps: int = 0
+    activations: int = 0
+    completions: int = 0
+    abnormal: int = 0
+    restarts: int = 0
+    last_error: str = ""
+
+    @property
+    def base_prio(self) -> int:
+        """The priority of the owning command message, or the task's default priority when
+        nobody owns it (a message wakes it at the higher of this and the link's priority)."""
+        return self.owner.priority if self.owner is not None else self.default_prio
+
+    def __repr__(self) -> str:
+        return f"<task {self.name} m{self.machine} L{self.level} {self.state.value} p{self.prio}>"
+
+
+class Tsktab:
+    """The task table: entries by name and by id, in install order."""
+
+    def __init__(self) -> None:
+        self._by_name: dict[str, TaskEntry] = {}
+        self._by_tid: list[TaskEntry] = []
+
+    def add(self, entry: TaskEntry) -> None:
+        """Enter a new task; raises TaskError if the name is taken (tasks are never removed)."""
+        if entry.name in self._by_name:
+            raise TaskError(f"task {entry.name} is already installed (tasks are never removed)")
+        self._by_name[entry.name] = entry
+        self._by_tid.append(entry)
+
+    def next_tid(self) -> int:
+        """The id the next entry will get."""
+        return len(self._by_tid)
+
+    def get(self, name: str) -> TaskEntry:
+        """The task called ``name``; raises TaskError naming it if there is none."""
+        try:
+            return self._by_name[name]
+        except KeyError:
+            raise TaskError(f"no task named {name!r}") from None
+
+    def by_tid(self, tid: int) -> TaskEntry:
+        """The task with id ``tid``; raises TaskError if there is none."""
+        if 0 <= tid < len(self._by_tid):
+            return self._by_tid[tid]
+        raise TaskError(f"no task with id {tid}")
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._by_name
+
+    def __iter__(self) -> Iterator[TaskEntry]:
+        return iter(self._by_tid)
+
+    def __len__(self) -> int:
+        return len(self._by_tid)
