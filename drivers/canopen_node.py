@@ -11,9 +11,9 @@ Bus options (``[[bus]] kind = "canopen"``):
   default SDO polling period; ``sdo_timeout`` (s, default 0.3) - SDO response timeout.
 * ``poll`` (s, default 0.005) - the receive timeout of the driver's reader on interfaces it cannot
   wait on without receiving; it bounds :meth:`CanopenDriver.settle` there. Not used on SocketCAN
-  or python-can's ``virtual`` interface (see :func:`drivers.can_raw.read_frames`).
+  or python-can's ``virtual`` interface (see :func:`drivers.canbus.read_frames`).
 
-Frames are received by the driver's own reader thread (:func:`drivers.can_raw.read_frames`), not
+Frames are received by the driver's own reader thread (:func:`drivers.canbus.read_frames`), not
 by canopen's notifier, and handed to canopen's listeners (SDO responses, PDOs, heartbeats, EMCY),
 so that :meth:`CanopenDriver.settle` can promise that every frame that arrived before it has been
 handled: virtual-time runs are deterministic on CANopen too.
@@ -41,7 +41,6 @@ import threading
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, TypeGuard
 
 import can
@@ -54,7 +53,14 @@ from chcos.devices import parsecache
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError
 from drivers.base import Driver, DriverHost, not_finite
-from drivers.can_raw import read_frames
+from drivers.canbus import read_frames
+from drivers.codecs.canopen import (
+    eds_path,
+    emcy_node,
+    heartbeat_node,
+    is_error_reset,
+    is_fatal_emcy,
+)
 from drivers.health import Health
 from drivers.threaded import ReaderThread
 
@@ -65,17 +71,10 @@ HEARTBEAT_SETTLE = 0.1
 """Bound (s) on handing over received frames before a heartbeat loss is declared (polling
 interfaces; on SocketCAN the drain is immediate)."""
 ADDRESS_KEYS = ("node", "index", "subindex", "poll_period")
-FATAL_EMCY_MASKS = ((0x2000, 0xF000), (0x3000, 0xF000), (0x4000, 0xF000), (0x5000, 0xFF00),
-                    (0x8000, 0xF000))
 DEFAULT_POLL = 0.1
 DEFAULT_SDO_TIMEOUT = 0.3
 #: The reader's default receive timeout on interfaces without a file descriptor.
 DEFAULT_RX_POLL = 0.005
-
-
-def is_fatal_emcy(code: int) -> bool:
-    """True for EMCY codes that fail the node's devices (see the module doc)."""
-    return any(code & mask == value for value, mask in FATAL_EMCY_MASKS)
 
 
 def _is_number(v: object) -> TypeGuard[int | float]:
@@ -84,14 +83,6 @@ def _is_number(v: object) -> TypeGuard[int | float]:
 
 def _is_int(v: object) -> TypeGuard[int]:
     return isinstance(v, int) and not isinstance(v, bool)
-
-
-def eds_path(bus: BusSpec, eds: str) -> Path:
-    """The EDS path ``eds`` of ``bus``: absolute as given, else relative to the bus's file."""
-    p = Path(eds).expanduser()
-    if p.is_absolute() or bus.file.startswith("<"):
-        return p
-    return Path(bus.file).resolve().parent / p
 
 
 def load_od(bus: BusSpec, node_id: int, eds: str) -> Any:
@@ -156,7 +147,6 @@ class CanopenDriver(Driver):
         self._pending = 0
         self._polls_queued: set[str] = set()
         self._thread: threading.Thread | None = None
-        self._running = False
         self._rx: ReaderThread | None = None
         self._bus_failed = False
 
@@ -389,19 +379,9 @@ class CanopenDriver(Driver):
 
     # -- kernel side --------------------------------------------------------------------------
 
-    def write(self, device: str, value: Any) -> None:
+    def _write(self, device: str, value: Any) -> None:
         """Queue ``value`` for actuator ``device`` (RPDO if mapped, else SDO download); never
-        blocks. An unknown device or a sensor is reported through ``host.error``."""
-        dev = self.devices.get(device)
-        if dev is None or dev.direction != "actuator":
-            self.host.error(self.bus.name, "unknown-device",
-                            f"write to {device!r}: not an actuator of canopen bus {self.bus.name}")
-            return
-        if not self._running:
-            self.host.error(self.bus.name, "stopped", f"write {value!r} to {device} dropped: "
-                                                      f"canopen bus {self.bus.name} is not running")
-            self.host.write_failed(device, value, f"canopen bus {self.bus.name} is not running")
-            return
+        blocks."""
         self._enqueue("write", device, value)
 
     def check_value(self, device: str, value: Any) -> str | None:
@@ -472,7 +452,7 @@ class CanopenDriver(Driver):
                         self._polls_queued.discard(name)
                     self._poll(self._bindings[name])
                 elif op == "write":
-                    self._write(self._bindings[name], arg)
+                    self._transfer(self._bindings[name], arg)
                 elif op == "nmt":
                     self._nodes[int(name)].node.nmt.state = "OPERATIONAL"
             except can.CanError as exc:
@@ -531,7 +511,7 @@ class CanopenDriver(Driver):
         self._health.clear(b.device.name, "sdo", f"SDO read of {self._where(b)} answered")
         self.host.deliver(b.device.name, value)
 
-    def _write(self, b: _Binding, value: Any) -> None:
+    def _transfer(self, b: _Binding, value: Any) -> None:
         try:
             raw = _coerce(b.od_var, value)
             data = b.od_var.encode_raw(raw)
@@ -616,7 +596,7 @@ class CanopenDriver(Driver):
         text = f"canopen node {nid} on bus {self.bus.name}: EMCY {entry} register " \
                f"0x{entry.register:02X}"
         self.host.error(self.bus.name, "emcy", text)
-        if entry.code & 0xFF00 == 0:
+        if is_error_reset(entry.code):
             for dev in state.devices:
                 self._health.clear(dev, "emcy", f"canopen node {nid}: error-reset EMCY")
         elif is_fatal_emcy(entry.code):
@@ -657,13 +637,14 @@ class _FrameCheck(can.Listener):
         cob = msg.arbitration_id
         if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
             return
-        if 0x701 <= cob <= 0x77F and not self._driver.knows_node(cob - 0x700):
+        hb, emcy = heartbeat_node(cob), emcy_node(cob)
+        if hb is not None and not self._driver.knows_node(hb):
             self._driver.report_frame("unknown-node",
-                                      f"heartbeat of node {cob - 0x700} (COB-ID 0x{cob:03X}), "
+                                      f"heartbeat of node {hb} (COB-ID 0x{cob:03X}), "
                                       f"which is not in the bus's nodes")
-        elif 0x81 <= cob <= 0xFF and self._driver.knows_node(cob - 0x80) and msg.dlc < 8:
+        elif emcy is not None and self._driver.knows_node(emcy) and msg.dlc < 8:
             self._driver.report_frame("malformed",
-                                      f"EMCY from node {cob - 0x80} with {msg.dlc} bytes, "
+                                      f"EMCY from node {emcy} with {msg.dlc} bytes, "
                                       f"expected 8")
 
     def stop(self) -> None:

@@ -43,163 +43,38 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import functools
-import math
 import threading
 from abc import abstractmethod
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
-from typing import Any, ClassVar, Literal, TypeGuard
+from typing import Any, ClassVar
 
 from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient
-from pymodbus.client.mixin import ModbusClientMixin
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
-from pymodbus.framer import FramerRTU, FramerType
+from pymodbus.framer import FramerType
 
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError
 from drivers.base import Driver, DriverHost
+from drivers.codecs.modbus import (
+    EXCEPTION_TEXT,
+    RAW_RANGE,
+    Point,
+    ReadRequest,
+    check_address,
+    classify_rtu_answer,
+    is_int,
+    is_number,
+    plan_reads,
+    point_of,
+    reading_of,
+    value_error,
+)
 from drivers.health import Health
 
-DT = ModbusClientMixin.DATATYPE
-REGISTER_TYPES: dict[str, Any] = {"int16": DT.INT16, "uint16": DT.UINT16, "int32": DT.INT32,
-                                  "uint32": DT.UINT32, "float32": DT.FLOAT32,
-                                  "float64": DT.FLOAT64}
-#: What each type can carry on the wire (float32: its largest finite value).
-RAW_RANGE: dict[str, tuple[float, float]] = {
-    "bool": (0, 1), "int16": (-2**15, 2**15 - 1), "uint16": (0, 2**16 - 1),
-    "int32": (-2**31, 2**31 - 1), "uint32": (0, 2**32 - 1),
-    "float32": (-3.4028234663852886e38, 3.4028234663852886e38)}
-TABLES = ("coil", "discrete", "holding", "input")
-WRITABLE = ("coil", "holding")
 READ_METHOD = {"coil": "read_coils", "discrete": "read_discrete_inputs",
                "holding": "read_holding_registers", "input": "read_input_registers"}
-ADDRESS_KEYS = ("unit", "table", "address", "type", "word_order", "poll_period")
 PROBE_PERIOD = 1.0   # s between liveness probes of an actuator-only bus without poll_period
 COMMON_OPTIONS = ("timeout", "retries", "reconnect_delay", "reconnect_delay_max", "poll_period")
-MAX_REGISTERS = 125     # per read request (Modbus application protocol, function 3/4)
-MAX_BITS = 2000         # per read request (function 1/2)
-EXCEPTION_TEXT = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",
-                  4: "server device failure", 5: "acknowledge", 6: "server device busy",
-                  8: "memory parity error", 10: "gateway path unavailable",
-                  11: "gateway target device failed to respond"}
-
-
-def _is_number(v: object) -> TypeGuard[int | float]:
-    return isinstance(v, int | float) and not isinstance(v, bool)
-
-
-def _is_int(v: object) -> TypeGuard[int]:
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
-@dataclass(frozen=True)
-class Point:
-    """One device's place in the Modbus data model."""
-
-    device: str
-    unit: int
-    table: str
-    address: int
-    type: str
-    word_order: Literal["big", "little"]
-
-    @property
-    def size(self) -> int:
-        """Entries it spans: 1 bit, or its register count."""
-        return 1 if self.type == "bool" else int(REGISTER_TYPES[self.type].value[1])
-
-    def decode(self, entries: Sequence[Any]) -> Any:
-        """The value from its own slice of a response's bits or registers."""
-        if self.type == "bool":
-            return bool(entries[0])
-        return ModbusClientMixin.convert_from_registers(list(entries), REGISTER_TYPES[self.type],
-                                                        self.word_order)
-
-
-@dataclass(frozen=True)
-class ReadRequest:
-    """One read of ``count`` entries of one unit and table, and the points it serves."""
-
-    unit: int
-    table: str
-    address: int
-    count: int
-    points: tuple[Point, ...]
-
-    def describe(self) -> str:
-        """``unit 1 holding 10..13`` - for failure reasons."""
-        return f"unit {self.unit} {self.table} {self.address}..{self.address + self.count - 1}"
-
-
-def plan_reads(points: Sequence[Point]) -> list[ReadRequest]:
-    """Group points into as few requests as possible: contiguous (or overlapping) addresses of the
-    same unit and table, within the protocol's per-request limit."""
-    out: list[ReadRequest] = []
-    cur: list[Point] = []
-    end = 0
-    for p in sorted(points, key=lambda p: (p.unit, p.table, p.address)):
-        limit = MAX_BITS if p.table in ("coil", "discrete") else MAX_REGISTERS
-        if cur and p.unit == cur[0].unit and p.table == cur[0].table and p.address <= end \
-                and max(end, p.address + p.size) - cur[0].address <= limit:
-            cur.append(p)
-            end = max(end, p.address + p.size)
-            continue
-        if cur:
-            out.append(ReadRequest(cur[0].unit, cur[0].table, cur[0].address,
-                                   end - cur[0].address, tuple(cur)))
-        cur, end = [p], p.address + p.size
-    if cur:
-        out.append(ReadRequest(cur[0].unit, cur[0].table, cur[0].address, end - cur[0].address,
-                               tuple(cur)))
-    return out
-
-
-def point_of(device: DeviceSpec) -> Point:
-    """The :class:`Point` of a validated device."""
-    a = device.address
-    table = str(a["table"])
-    default = "bool" if table in ("coil", "discrete") else "uint16"
-    order: Literal["big", "little"] = "little" if a.get("word_order") == "little" else "big"
-    return Point(device.name, int(a.get("unit", 1)), table, int(a["address"]),
-                 str(a.get("type", default)), order)
-
-
-def check_address(bus: BusSpec, device: DeviceSpec) -> list[str]:
-    """Errors of a Modbus device address (shared by both kinds)."""
-    k = f"{device.key}.address"
-    a = device.address
-    errs = [f"{k}.{key}: unknown key; valid keys: {', '.join(ADDRESS_KEYS)}"
-            for key in a if key not in ADDRESS_KEYS]
-    unit = a.get("unit", 1)
-    if not (_is_int(unit) and 0 <= unit <= 247):
-        errs.append(f"{k}.unit: expected a Modbus device id 0..247, got {unit!r}")
-    table = a.get("table")
-    if table not in TABLES:
-        errs.append(f"{k}.table: expected one of {', '.join(TABLES)}, got {table!r}")
-        return errs
-    if device.direction == "actuator" and table not in WRITABLE:
-        errs.append(f"{k}.table: {table} is read-only; an actuator needs coil or holding")
-    bits = table in ("coil", "discrete")
-    typ = a.get("type", "bool" if bits else "uint16")
-    typ = typ if isinstance(typ, str) else repr(typ)
-    size = 1
-    if bits and typ != "bool":
-        errs.append(f"{k}.type: a {table} holds one bit; expected \"bool\", got {typ!r}")
-    elif not bits and typ not in REGISTER_TYPES:
-        errs.append(f"{k}.type: expected one of {', '.join(REGISTER_TYPES)} for a {table} "
-                    f"register, got {typ!r}")
-    elif not bits:
-        size = int(REGISTER_TYPES[typ].value[1])
-    address = a.get("address")
-    if not (_is_int(address) and 0 <= address <= 0x10000 - size):
-        errs.append(f"{k}.address: expected an integer 0..{0x10000 - size} (a {typ} spans {size} "
-                    f"entr{'y' if size == 1 else 'ies'}), got {address!r}")
-    if a.get("word_order", "big") not in ("big", "little"):
-        errs.append(f"{k}.word_order: expected \"big\" or \"little\", got {a['word_order']!r}")
-    pp = a.get("poll_period")
-    if pp is not None and not (_is_number(pp) and pp > 0):
-        errs.append(f"{k}.poll_period: expected a number of seconds > 0, got {pp!r}")
-    return errs
 
 
 def check_common(bus: BusSpec, own: Sequence[str]) -> list[str]:
@@ -210,9 +85,9 @@ def check_common(bus: BusSpec, own: Sequence[str]) -> list[str]:
     errs = [f"{k}.{key}: unknown option for a {bus.kind} bus; valid options: {', '.join(valid)}"
             for key in o if key not in valid]
     for key in ("timeout", "reconnect_delay", "reconnect_delay_max", "poll_period"):
-        if key in o and not (_is_number(o[key]) and o[key] > 0):
+        if key in o and not (is_number(o[key]) and o[key] > 0):
             errs.append(f"{k}.{key}: expected a number of seconds > 0, got {o[key]!r}")
-    if "retries" in o and not (_is_int(o["retries"]) and o["retries"] >= 0):
+    if "retries" in o and not (is_int(o["retries"]) and o["retries"] >= 0):
         errs.append(f"{k}.retries: expected an integer >= 0, got {o['retries']!r}")
     return errs
 
@@ -301,6 +176,7 @@ class _ModbusDriver(Driver):
         self._thread = threading.Thread(target=self._loop.run_until_complete, args=(self._main(),),
                                         name=f"{self.kind}-{self.bus.name}", daemon=True)
         self._thread.start()
+        self._running = True
         timeout = float(self.bus.options.get("timeout", 1.0))
         self._first_attempt.wait(timeout + 2.0)
         for period in self._plans:
@@ -319,6 +195,7 @@ class _ModbusDriver(Driver):
 
     def stop(self) -> None:
         """Stop the I/O thread and close the connection. Idempotent; never raises."""
+        self._running = False
         loop, thread = self._loop, self._thread
         self._loop = self._thread = None
         if loop is not None and thread is not None:
@@ -345,22 +222,12 @@ class _ModbusDriver(Driver):
             return None
         return value_error(p.type, value)
 
-    def write(self, device: str, value: Any) -> None:
-        """Queue ``value`` for actuator ``device``; never blocks. An unknown device or a sensor is
-        reported through ``host.error``; a write that cannot be queued through
-        ``host.write_failed``."""
-        dev = self.devices.get(device)
-        if dev is None or dev.direction != "actuator":
-            self.host.error(self.bus.name, "unknown-device",
-                            f"write to {device!r}: not an actuator of {self.kind} bus "
-                            f"{self.bus.name}")
-            return
+    def _write(self, device: str, value: Any) -> None:
+        """Queue ``value`` for actuator ``device``; never blocks. A write that cannot be queued
+        (a concurrent stop) is reported like one while stopped."""
         if self._loop is None or not self._submit("write", self._points[device], value):
-            why = f"{self.kind} bus {self.bus.name} is not running"
-            self.host.error(self.bus.name, "stopped", f"write {value!r} to {device} dropped: "
-                                                      f"{why}", device)
-            self.host.write_failed(device, value, why)
-            return
+            self._refuse(device, value, "stopped", f"{self.kind} bus {self.bus.name} is not "
+                                                   f"running")
 
     def settle(self, timeout: float) -> bool:
         """Wait until no request is queued or in flight and every result is delivered."""
@@ -584,7 +451,7 @@ class _ModbusDriver(Driver):
                 self._polls_queued.discard("probe")
             await self._liveness()
         else:
-            await self._write(what, value)
+            await self._write_point(what, value)
 
     async def _read(self, r: ReadRequest) -> None:
         c = self._client
@@ -627,7 +494,7 @@ class _ModbusDriver(Driver):
             self._health.clear(p.device, "exception", f"{r.describe()} answered")
             self.host.deliver(p.device, value)
 
-    async def _write(self, p: Point, value: Any) -> None:
+    async def _write_point(self, p: Point, value: Any) -> None:
         c = self._client
         why = value_error(p.type, value)
         if why is not None:
@@ -638,8 +505,7 @@ class _ModbusDriver(Driver):
         if p.table == "coil":
             call = c.write_coil(p.address, bool(value), device_id=p.unit)
         else:
-            regs = ModbusClientMixin.convert_to_registers(_coerce(p.type, value),
-                                                          REGISTER_TYPES[p.type], p.word_order)
+            regs = p.encode(value)
             call = (c.write_register(p.address, regs[0], device_id=p.unit) if len(regs) == 1
                     else c.write_registers(p.address, regs, device_id=p.unit))
         where = f"{self.kind} bus {self.bus.name} unit {p.unit} {p.table} {p.address}"
@@ -670,90 +536,6 @@ class _ModbusDriver(Driver):
         self._health.clear(p.device, "exception", f"{where}: write answered")
 
 
-INT_RANGES = {"int16": (-2**15, 2**15 - 1), "uint16": (0, 2**16 - 1),
-              "int32": (-2**31, 2**31 - 1), "uint32": (0, 2**32 - 1)}
-FLOAT_MAX = {"float32": 3.4028234663852886e38, "float64": 1.7976931348623157e308}
-
-
-def value_error(type_: str, value: Any) -> str | None:
-    """Why ``value`` cannot be written to a point of ``type_`` exactly (None if it can)."""
-    if isinstance(value, bool):
-        value = int(value)
-    if not _is_number(value):
-        return f"expected a number for a {type_} address, got {value!r}"
-    if value != value or value in (float("inf"), float("-inf")):
-        return f"expected a finite number for a {type_} address, got {value!r}"
-    if type_ == "bool":
-        return None if value in (0, 1) else f"expected 0 or 1 for a coil, got {value!r}"
-    if type_ in FLOAT_MAX:
-        return (None if abs(value) <= FLOAT_MAX[type_] else
-                f"expected a {type_} value within +-{FLOAT_MAX[type_]:g}, got {value!r}")
-    lo, hi = INT_RANGES[type_]
-    if isinstance(value, float) and not value.is_integer():
-        return f"expected an integer for a {type_} register, got {value!r}"
-    if not lo <= value <= hi:
-        return f"expected a {type_} value {lo}..{hi}, got {value!r}"
-    return None
-
-
-def reading_of(p: Point, entries: Sequence[Any]) -> Any:
-    """The value of ``p`` from its slice of an answer. Raises ValueError (or pymodbus'
-    ModbusException, IndexError) if the entries are too few or a float is nan or infinite: such
-    a value is reported as malformed, never delivered."""
-    if len(entries) < p.size:
-        raise IndexError(f"{len(entries)} entries for a {p.type}, expected {p.size}")
-    value = p.decode(entries)
-    if isinstance(value, float) and not math.isfinite(value):
-        raise ValueError(f"{p.type} registers {list(entries)} hold {value}, not a finite number")
-    return value
-
-
-def _rtu_answer_size(head: bytes) -> int | None:
-    """The length of an RTU answer starting with ``head`` (unit, function...), None if it
-    cannot be told yet or the function is not one chcos asks."""
-    if len(head) < 2:
-        return None
-    fc = head[1]
-    if fc & 0x80:
-        return 5                                    # unit, fc|0x80, exception code, CRC
-    if fc in (1, 2, 3, 4):
-        return 3 + head[2] + 2 if len(head) >= 3 else None
-    if fc in (5, 6, 15, 16):
-        return 8
-    return None
-
-
-def classify_rtu_answer(request: bytes, received: bytes) -> tuple[str, str]:
-    """Why ``received`` is no valid answer to the RTU ``request``: ``("timeout", ...)`` for
-    silence, ``("crc", ...)`` for a whole frame of the right unit and function whose CRC is
-    wrong, ``("framing", ...)`` for a truncated answer or bytes that are no answer (junk)."""
-    if not received:
-        return "timeout", "no response (silence)"
-    unit, fc = (request[0], request[1]) if len(request) >= 2 else (-1, -1)
-    head = received
-    if head[0] == unit and (len(head) < 2 or head[1] & 0x7F == fc):
-        size = _rtu_answer_size(head)
-        if size is not None and len(head) >= size:
-            frame = head[:size]
-            crc = FramerRTU.compute_CRC(frame[:-2])
-            if crc.to_bytes(2, "big") != frame[-2:]:
-                return "crc", (f"answer {frame.hex()} fails its CRC (expected "
-                               f"{crc:04x}, got {frame[-2:].hex()})")
-        if size is None or len(head) < size:
-            return "framing", (f"truncated answer {head.hex()} ({len(head)} of "
-                               f"{size if size is not None else '?'} bytes)")
-    return "framing", f"{len(received)} bytes that are no answer: {received[:32].hex()}"
-
-
-def _coerce(type_: str, value: Any) -> int | float:
-    """``value`` as the Python number pymodbus packs for ``type_`` (integers are rounded)."""
-    if type_.startswith("float"):
-        return float(value)
-    if isinstance(value, float):
-        return round(value)  # raises OverflowError/ValueError for inf/nan
-    return int(value)
-
-
 class ModbusTcpDriver(_ModbusDriver):
     """``modbus-tcp``: a Modbus TCP server at ``host:port``."""
 
@@ -769,7 +551,7 @@ class ModbusTcpDriver(_ModbusDriver):
             errs.append(f"{bus.key}.host: expected a host name or address, got "
                         f"{o.get('host')!r}")
         port = o.get("port", 502)
-        if not (_is_int(port) and 1 <= port <= 65535):
+        if not (is_int(port) and 1 <= port <= 65535):
             errs.append(f"{bus.key}.port: expected a TCP port 1..65535, got {port!r}")
         return errs
 
@@ -798,7 +580,7 @@ class ModbusRtuDriver(_ModbusDriver):
         if not (isinstance(o.get("port"), str) and o["port"]):
             errs.append(f"{k}.port: expected a serial port (/dev/ttyUSB0, socket://host:port), "
                         f"got {o.get('port')!r}")
-        if not (_is_int(o.get("baudrate", 19200)) and o.get("baudrate", 19200) > 0):
+        if not (is_int(o.get("baudrate", 19200)) and o.get("baudrate", 19200) > 0):
             errs.append(f"{k}.baudrate: expected an integer > 0, got {o.get('baudrate')!r}")
         if o.get("parity", "N") not in ("N", "E", "O"):
             errs.append(f"{k}.parity: expected \"N\", \"E\" or \"O\", got {o.get('parity')!r}")

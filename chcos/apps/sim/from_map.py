@@ -210,7 +210,7 @@ class _Peer:
 
 class _ModbusPeer(_Peer):
     def __init__(self, bus: BusSpec, devices: tuple[DeviceSpec, ...], rewrite: bool) -> None:
-        from drivers.modbus import point_of
+        from drivers.codecs.modbus import point_of
 
         self.points = {d.name: point_of(d) for d in devices}
         pts = list(self.points.values())
@@ -285,7 +285,7 @@ class _CanPeer(_Peer):
     def __init__(self, bus: BusSpec, devices: tuple[DeviceSpec, ...], rewrite: bool) -> None:
         import can
 
-        from drivers.can_raw import CanCodec
+        from drivers.codecs.can import CanCodec
 
         flipped = [dataclasses.replace(d, direction="actuator" if d.direction == "sensor"
                                        else "sensor") for d in devices]
@@ -308,7 +308,7 @@ class _CanPeer(_Peer):
             cycle = None
             if "message" in d.address and "dbc" in bus.options:
                 if not dbc_msgs:
-                    from drivers.can_raw import load_dbc
+                    from drivers.codecs.can import load_dbc
 
                     dbc_msgs = {m.name: m for m in load_dbc(str(bus.options["dbc"])).messages}
                 cycle = dbc_msgs[d.address["message"]].cycle_time
@@ -324,7 +324,9 @@ class _CanPeer(_Peer):
     def _send(self, name: str) -> None:
         import can
 
-        msg = self.codec.encode(name, self.values.get(name, 0))
+        coded = self.codec.encode(name, self.values.get(name, 0))
+        msg = can.Message(arbitration_id=coded.arbitration_id, data=coded.data,
+                          is_extended_id=coded.is_extended_id)
         with contextlib.suppress(can.CanError):  # a full queue: the next cycle sends it again
             self.can.send(msg)
 
@@ -371,7 +373,7 @@ class _CanPeer(_Peer):
 class _CanopenPeer(_Peer):
     def __init__(self, bus: BusSpec, devices: tuple[DeviceSpec, ...], rewrite: bool) -> None:
         from chcos.apps.sim.canopen_slave import CanopenSlave
-        from drivers.canopen_node import eds_path
+        from drivers.codecs.canopen import eds_path
 
         self.args = _can_args(bus.options, rewrite, bus.name)
         options = dict(bus.options)
@@ -511,7 +513,7 @@ class _SerialPeer(_Peer):
         import string
         import struct
 
-        from drivers.serial_line import checksum, parse_hex
+        from drivers.codecs.serial import checksum, parse_hex
 
         o = bus.options
         url = str(o["url"])
