@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import queue
 import struct
 import threading
 import time
@@ -52,7 +51,7 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 from chcos.devices import parsecache
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError
-from drivers.base import Driver, DriverHost, not_finite
+from drivers.base import DriverHost, not_finite
 from drivers.canbus import read_frames
 from drivers.codecs.canopen import (
     eds_path,
@@ -62,6 +61,7 @@ from drivers.codecs.canopen import (
     is_fatal_emcy,
 )
 from drivers.health import Health
+from drivers.jobs import Job, WorkerJobDriver
 from drivers.threaded import ReaderThread
 
 BUS_OPTIONS = ("interface", "channel", "bitrate", "nodes", "sync_period", "poll_period",
@@ -127,12 +127,10 @@ class _NodeState:
     devices: list[str] = field(default_factory=list)
 
 
-class CanopenDriver(Driver):
+class CanopenDriver(WorkerJobDriver):
     """The ``canopen`` bus: see the module doc for options, addresses and failure handling."""
 
     kind = "canopen"
-    confirms_writes = True
-    numeric_only = True
 
     def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
         super().__init__(bus, devices, host)
@@ -142,12 +140,6 @@ class CanopenDriver(Driver):
         self._nodes: dict[int, _NodeState] = {}
         self._bindings: dict[str, _Binding] = {}
         self._pdo_sensors: dict[tuple[int, int, int], list[str]] = {}
-        self._jobs: queue.Queue[tuple[str, str, Any]] = queue.Queue()
-        self._idle = threading.Condition()
-        self._pending = 0
-        self._polls_queued: set[str] = set()
-        self._thread: threading.Thread | None = None
-        self._rx: ReaderThread | None = None
         self._bus_failed = False
 
     # -- validation ---------------------------------------------------------------------------
@@ -314,17 +306,15 @@ class CanopenDriver(Driver):
             state.node.emcy.add_callback(lambda entry, s=state: self._on_emcy(s, entry))
             state.last_heartbeat = time.monotonic()
         self._running = True
-        self._thread = threading.Thread(target=self._io_loop, name=f"canopen-{self.bus.name}",
-                                        daemon=True)
-        self._thread.start()
+        self._start_worker()
         for nid, state in self._nodes.items():
             if state.nmt_start:
-                self._enqueue("nmt", str(nid), None)
+                self._submit("nmt", str(nid))
         if "sync_period" in opts:
             network.sync.start(float(opts["sync_period"]))
         for name, b in self._bindings.items():
             if b.device.direction == "sensor" and b.pdo_var is None:
-                self.host.every(b.poll_period, functools.partial(self._enqueue_poll, name))
+                self.host.every(b.poll_period, functools.partial(self._submit_poll, name))
 
     def _bind_devices(self) -> None:
         default_poll = float(self.bus.options.get("poll_period", DEFAULT_POLL))
@@ -350,20 +340,8 @@ class CanopenDriver(Driver):
     def stop(self) -> None:
         """Put every queued write on the wire (safe values at shutdown), then stop SYNC, the I/O
         thread and the bus. Idempotent; never raises."""
-        if self._running:
-            self._running = False
-            self._jobs.put(("stop", "", None))   # after every queued job: they run first
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
-            self._thread = None
-        while True:    # the I/O thread did not get to these (stuck past the join timeout)
-            try:
-                op, name, arg = self._jobs.get_nowait()
-            except queue.Empty:
-                break
-            if op == "write":
-                self.host.write_failed(name, arg, f"canopen bus {self.bus.name} stopped before "
-                                                  f"the write was sent")
+        self._running = False
+        self._stop_worker()     # runs every job queued before: they go out first
         rx, self._rx = self._rx, None
         if rx is not None:
             rx.stop()
@@ -373,16 +351,8 @@ class CanopenDriver(Driver):
                 network.sync.stop()
             with contextlib.suppress(Exception):
                 network.disconnect()
-        with self._idle:
-            self._pending = 0
-            self._idle.notify_all()
 
     # -- kernel side --------------------------------------------------------------------------
-
-    def _write(self, device: str, value: Any) -> None:
-        """Queue ``value`` for actuator ``device`` (RPDO if mapped, else SDO download); never
-        blocks."""
-        self._enqueue("write", device, value)
 
     def check_value(self, device: str, value: Any) -> str | None:
         """Why ``value`` cannot be encoded for ``device``'s object (None if it can): not a
@@ -404,63 +374,27 @@ class CanopenDriver(Driver):
                     f"0x{b.index:04X}:{b.subindex:02X}: {exc}")
         return None
 
-    def settle(self, timeout: float) -> bool:
-        """Hand every frame that arrived before this call to canopen (PDOs to the host), then
-        wait until every queued SDO/write is done."""
-        deadline = time.monotonic() + timeout
-        rx = self._rx
-        if rx is not None and not rx.settle(timeout):
-            return False
-        with self._idle:
-            return self._idle.wait_for(lambda: self._pending == 0,
-                                       max(0.0, deadline - time.monotonic()))
-
     # -- I/O thread ---------------------------------------------------------------------------
 
-    def _enqueue(self, op: str, name: str, arg: Any) -> None:
-        if not self._running:
-            return
-        with self._idle:
-            self._pending += 1
-        self._jobs.put((op, name, arg))
+    def _tick(self) -> float:
+        """The worker's longest wait for a job: until the next heartbeat deadline."""
+        return self._watchdog()
 
-    def _enqueue_poll(self, device: str) -> None:
-        with self._idle:
-            if device in self._polls_queued:
-                return
-            self._polls_queued.add(device)
-        self._enqueue("poll", device, None)
-
-    def _done(self) -> None:
-        with self._idle:
-            self._pending = max(0, self._pending - 1)
-            if self._pending == 0:
-                self._idle.notify_all()
-
-    def _io_loop(self) -> None:
-        # ends on the "stop" job only, which stop() queues after every write already queued
-        while True:
-            try:
-                op, name, arg = self._jobs.get(timeout=self._watchdog())
-            except queue.Empty:
-                continue
-            if op == "stop":
-                break
-            try:
-                if op == "poll":
-                    with self._idle:
-                        self._polls_queued.discard(name)
-                    self._poll(self._bindings[name])
-                elif op == "write":
-                    self._transfer(self._bindings[name], arg)
-                elif op == "nmt":
-                    self._nodes[int(name)].node.nmt.state = "OPERATIONAL"
-            except can.CanError as exc:
-                self.host.error(self.bus.name, "can", f"{op} {name}: CAN send failed: {exc}")
-                if op == "write":
-                    self.host.write_failed(name, arg, f"CAN send failed: {exc}")
-            finally:
-                self._done()
+    def _run(self, job: Job) -> None:
+        """A poll (SDO upload), a write (RPDO or SDO download), or an NMT start of a node."""
+        op, name, arg = job
+        try:
+            if op == "poll":
+                self._poll_taken(name)
+                self._poll(self._bindings[name])
+            elif op == "write":
+                self._transfer(self._bindings[name], arg)
+            elif op == "nmt":
+                self._nodes[int(name)].node.nmt.state = "OPERATIONAL"
+        except can.CanError as exc:
+            self.host.error(self.bus.name, "can", f"{op} {name}: CAN send failed: {exc}")
+            if op == "write":
+                self.host.write_failed(name, arg, f"CAN send failed: {exc}")
 
     def _watchdog(self) -> float:
         """Fail the devices of nodes whose heartbeat is overdue; the time to the next deadline.
@@ -589,7 +523,7 @@ class CanopenDriver(Driver):
                 self._health.clear(dev, "heartbeat", f"canopen node {state.node.id}: heartbeat "
                                                      f"back")
         if state.nmt_start and nmt_state in (0, 127):  # boot-up or PRE-OPERATIONAL
-            self._enqueue("nmt", str(state.node.id), None)
+            self._submit("nmt", str(state.node.id))
 
     def _on_emcy(self, state: _NodeState, entry: Any) -> None:
         nid = state.node.id

@@ -41,7 +41,6 @@ Statistics (``host.stat``/``host.error``): ``requests``, ``reconnects``; errors 
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import functools
 import threading
 from abc import abstractmethod
@@ -54,7 +53,7 @@ from pymodbus.framer import FramerType
 
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError
-from drivers.base import Driver, DriverHost
+from drivers.base import DriverHost
 from drivers.codecs.modbus import (
     EXCEPTION_TEXT,
     RAW_RANGE,
@@ -70,6 +69,7 @@ from drivers.codecs.modbus import (
     value_error,
 )
 from drivers.health import Health
+from drivers.jobs import AsyncJobDriver, Job
 
 READ_METHOD = {"coil": "read_coils", "discrete": "read_discrete_inputs",
                "holding": "read_holding_registers", "input": "read_input_registers"}
@@ -92,13 +92,11 @@ def check_common(bus: BusSpec, own: Sequence[str]) -> list[str]:
     return errs
 
 
-class _ModbusDriver(Driver):
+class _ModbusDriver(AsyncJobDriver):
     """What both Modbus kinds share: polling, writes, link supervision; subclasses make the
     client and describe the link."""
 
     kind: ClassVar[str] = ""
-    confirms_writes = True
-    numeric_only = True
     #: A request timeout means the link is gone (TCP: the server or its connection hangs) rather
     #: than one unit not answering (RTU: the other units on the line may still answer).
     timeout_is_link_loss: ClassVar[bool] = False
@@ -106,15 +104,9 @@ class _ModbusDriver(Driver):
     def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
         super().__init__(bus, devices, host)
         self._health = Health(host)
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._thread: threading.Thread | None = None
-        self._jobs: asyncio.Queue[tuple[str, Any, Any]] | None = None
         self._stop_seen = False
         self._client: Any = None
         self._connected = False
-        self._idle = threading.Condition()
-        self._pending = 0
-        self._polls_queued: set[float | str] = set()
         self._plans: dict[float, list[ReadRequest]] = {}
         self._points: dict[str, Point] = {}
         self._first_attempt = threading.Event()
@@ -172,43 +164,20 @@ class _ModbusDriver(Driver):
                 period = float(dev.address.get("poll_period", default))
                 by_period.setdefault(period, []).append(self._points[dev.name])
         self._plans = {p: plan_reads(pts) for p, pts in by_period.items()}
-        self._loop = asyncio.new_event_loop()
-        self._thread = threading.Thread(target=self._loop.run_until_complete, args=(self._main(),),
-                                        name=f"{self.kind}-{self.bus.name}", daemon=True)
-        self._thread.start()
+        self._start_loop()
         self._running = True
         timeout = float(self.bus.options.get("timeout", 1.0))
         self._first_attempt.wait(timeout + 2.0)
         for period in self._plans:
-            self.host.every(period, functools.partial(self._request_poll, period))
+            self.host.every(period, functools.partial(self._submit_poll, period))
         if not self._plans and self._points:     # actuators only: nothing read would notice
             self.host.every(float(self.bus.options.get("poll_period", PROBE_PERIOD)),
-                            self._request_probe)
-
-    def _request_probe(self) -> None:
-        """Enqueue one liveness probe of an actuator-only bus (at most one queued)."""
-        with self._idle:
-            if "probe" in self._polls_queued:
-                return
-            self._polls_queued.add("probe")
-        self._submit("probe", None, None)
+                            functools.partial(self._submit_poll, "probe", "probe"))
 
     def stop(self) -> None:
         """Stop the I/O thread and close the connection. Idempotent; never raises."""
         self._running = False
-        loop, thread = self._loop, self._thread
-        self._loop = self._thread = None
-        if loop is not None and thread is not None:
-            jobs = self._jobs
-            if jobs is not None:
-                with contextlib.suppress(RuntimeError):
-                    loop.call_soon_threadsafe(jobs.put_nowait, ("stop", None, None))
-            thread.join(timeout=5.0)
-            with contextlib.suppress(Exception):
-                loop.close()
-        with self._idle:
-            self._pending = 0
-            self._idle.notify_all()
+        self._stop_loop()     # runs every job queued before: they go out first
 
     # -- kernel side --------------------------------------------------------------------------
 
@@ -222,48 +191,9 @@ class _ModbusDriver(Driver):
             return None
         return value_error(p.type, value)
 
-    def _write(self, device: str, value: Any) -> None:
-        """Queue ``value`` for actuator ``device``; never blocks. A write that cannot be queued
-        (a concurrent stop) is reported like one while stopped."""
-        if self._loop is None or not self._submit("write", self._points[device], value):
-            self._refuse(device, value, "stopped", f"{self.kind} bus {self.bus.name} is not "
-                                                   f"running")
-
-    def settle(self, timeout: float) -> bool:
-        """Wait until no request is queued or in flight and every result is delivered."""
-        with self._idle:
-            return self._idle.wait_for(lambda: self._pending == 0, timeout)
-
-    def _request_poll(self, period: float) -> None:
-        with self._idle:
-            if period in self._polls_queued:
-                return
-            self._polls_queued.add(period)
-        self._submit("poll", period, None)
-
-    def _submit(self, op: str, what: Any, value: Any) -> bool:
-        loop, jobs = self._loop, self._jobs
-        if loop is None or jobs is None:
-            return False
-        with self._idle:
-            self._pending += 1
-        try:
-            loop.call_soon_threadsafe(jobs.put_nowait, (op, what, value))
-        except RuntimeError:  # loop closed by a concurrent stop()
-            self._done()
-            return False
-        return True
-
-    def _done(self) -> None:
-        with self._idle:
-            self._pending = max(0, self._pending - 1)
-            if self._pending == 0:
-                self._idle.notify_all()
-
     # -- I/O thread ---------------------------------------------------------------------------
 
     async def _main(self) -> None:
-        self._jobs = asyncio.Queue()
         o = self.bus.options
         delay = first = float(o.get("reconnect_delay", 0.1))
         most = float(o.get("reconnect_delay_max", 5.0))
@@ -298,7 +228,6 @@ class _ModbusDriver(Driver):
 
     async def _backoff(self, delay: float) -> None:
         """Wait ``delay`` seconds (or until stop), completing jobs that arrive meanwhile."""
-        assert self._jobs is not None
         loop = asyncio.get_running_loop()
         deadline = loop.time() + delay
         while not self._stop_seen and (left := deadline - loop.time()) > 0:
@@ -393,11 +322,10 @@ class _ModbusDriver(Driver):
 
     def _drain(self) -> None:
         """Complete every queued job without I/O while the link is down."""
-        assert self._jobs is not None
         while not self._jobs.empty():
             self._finish_unsent(self._jobs.get_nowait())
 
-    def _finish_unsent(self, job: tuple[str, Any, Any]) -> None:
+    def _finish_unsent(self, job: Job) -> None:
         op, what, value = job
         if op == "stop":
             self._stop_seen = True
@@ -406,22 +334,19 @@ class _ModbusDriver(Driver):
             why = (f"{self.kind} bus {self.bus.name} is not connected to {self._link()}"
                    if not self._stop_seen else f"{self.kind} bus {self.bus.name} stopped")
             self.host.error(self.bus.name, "disconnected",
-                            f"write {value!r} to {what.device} dropped: {why}", what.device)
-            self.host.write_failed(what.device, value, why)
+                            f"write {value!r} to {what} dropped: {why}", what)
+            self.host.write_failed(what, value, why)
         elif op == "poll":
-            with self._idle:
-                self._polls_queued.discard(what)
+            self._poll_taken(what)
         elif op == "probe":
-            with self._idle:
-                self._polls_queued.discard("probe")
+            self._poll_taken("probe")
         self._done()
 
     async def _serve(self) -> None:
         """Run jobs in order until the link drops or stop() asks to end."""
-        assert self._jobs is not None
         while True:
             job = await self._jobs.get()
-            if job[0] == "stop":
+            if job.op == "stop":
                 self._stop_seen = True
                 return
             if not self._client.connected:
@@ -431,27 +356,25 @@ class _ModbusDriver(Driver):
             try:
                 await self._run(job)
             except ConnectionException as exc:
-                if job[0] == "write":
-                    self.host.write_failed(job[1].device, job[2], f"connection to "
+                if job.op == "write":
+                    self.host.write_failed(job.what, job.value, f"connection to "
                                                                   f"{self._link()} lost: {exc}")
                 self._link_down(f"connection to {self._link()} lost: {exc}")
                 return
             finally:
                 self._done()
 
-    async def _run(self, job: tuple[str, Any, Any]) -> None:
+    async def _run(self, job: Job) -> None:
         op, what, value = job
         if op == "poll":
-            with self._idle:
-                self._polls_queued.discard(what)
+            self._poll_taken(what)
             for request in self._plans[what]:
                 await self._read(request)
         elif op == "probe":
-            with self._idle:
-                self._polls_queued.discard("probe")
+            self._poll_taken("probe")
             await self._liveness()
         else:
-            await self._write_point(what, value)
+            await self._write_point(self._points[what], value)
 
     async def _read(self, r: ReadRequest) -> None:
         c = self._client
@@ -593,7 +516,7 @@ class ModbusRtuDriver(_ModbusDriver):
     def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
         super().__init__(bus, devices, host)
         self._tx = b""                  # the last request frame sent
-        self._rx = bytearray()          # every byte received since it was sent
+        self._rx_bytes = bytearray()    # every byte received since it was sent
         self._rx_buffer = b""           # pymodbus' receive buffer as last seen
         #: Requests that got no valid answer, by class: crc, framing (junk or a truncated
         #: answer), timeout (silence). Each is also reported through ``host.error``.
@@ -602,10 +525,10 @@ class ModbusRtuDriver(_ModbusDriver):
     def _trace(self, sending: bool, data: bytes) -> bytes:
         """pymodbus' packet hook (I/O thread): keeps the request and the bytes of its answer."""
         if sending:
-            self._tx, self._rx, self._rx_buffer = bytes(data), bytearray(), b""
+            self._tx, self._rx_bytes, self._rx_buffer = bytes(data), bytearray(), b""
         else:
             prev = self._rx_buffer
-            self._rx += data[len(prev):] if data.startswith(prev) else data
+            self._rx_bytes += data[len(prev):] if data.startswith(prev) else data
             self._rx_buffer = bytes(data)
         return data
 
@@ -613,7 +536,7 @@ class ModbusRtuDriver(_ModbusDriver):
         """Classify the bytes that came back for the last request (none: timeout; a frame of
         the right unit and function, long enough, failing its CRC: crc; anything else:
         framing) and count the class."""
-        kind, why = classify_rtu_answer(self._tx, bytes(self._rx))
+        kind, why = classify_rtu_answer(self._tx, bytes(self._rx_bytes))
         self.unanswered[kind] = self.unanswered.get(kind, 0) + 1
         return kind, why
 
