@@ -38,23 +38,29 @@ import functools
 import struct
 import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, TypeGuard
+from typing import Any
 
 import can
 import canopen
-from canopen.objectdictionary import BOOLEAN, FLOAT_TYPES, INTEGER_TYPES
-from canopen.objectdictionary.datatypes import REAL32, SIGNED_TYPES
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from chcos.devices import parsecache
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError
-from drivers.base import DriverHost, not_finite
+from drivers.base import DriverHost
 from drivers.canbus import read_frames
+from drivers.canopen_od import (
+    DEFAULT_POLL,
+    check_bus,
+    check_device,
+    coerce,
+    encodable,
+    load_od,
+    value_error,
+)
 from drivers.codecs.canopen import (
-    eds_path,
     emcy_node,
     heartbeat_node,
     is_error_reset,
@@ -64,46 +70,12 @@ from drivers.health import Health
 from drivers.jobs import Job, WorkerJobDriver
 from drivers.threaded import ReaderThread
 
-BUS_OPTIONS = ("interface", "channel", "bitrate", "nodes", "sync_period", "poll_period",
-               "sdo_timeout", "poll")
-NODE_KEYS = ("id", "eds", "heartbeat_timeout", "nmt_start")
 HEARTBEAT_SETTLE = 0.1
 """Bound (s) on handing over received frames before a heartbeat loss is declared (polling
 interfaces; on SocketCAN the drain is immediate)."""
-ADDRESS_KEYS = ("node", "index", "subindex", "poll_period")
-DEFAULT_POLL = 0.1
 DEFAULT_SDO_TIMEOUT = 0.3
 #: The reader's default receive timeout on interfaces without a file descriptor.
 DEFAULT_RX_POLL = 0.005
-
-
-def _is_number(v: object) -> TypeGuard[int | float]:
-    return isinstance(v, int | float) and not isinstance(v, bool)
-
-
-def _is_int(v: object) -> TypeGuard[int]:
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
-def load_od(bus: BusSpec, node_id: int, eds: str) -> Any:
-    """canopen's object dictionary of node ``node_id`` from ``eds``; raises ``ValueError`` naming
-    the file when canopen cannot read it."""
-    path = eds_path(bus, eds)
-    if not path.is_file():
-        raise ValueError(f"EDS file {path} does not exist")
-    try:
-        return parsecache.cached("eds", path, node_id,
-                                 lambda: canopen.import_od(str(path), node_id))
-    except Exception as exc:  # canopen raises assorted types for a malformed EDS
-        raise ValueError(f"canopen cannot read EDS {path}: {exc}") from exc
-
-
-def checked_od(bus: BusSpec, node_id: int, eds: str) -> Any:
-    """:func:`load_od` for the map checks (``check_device``, ``encodable``): inside a
-    :func:`chcos.devices.parsecache.scope` one parse per node and file, however many devices use it.
-    The result may be shared: read it, never change it (a running node gets its own).
-    Raises ``ValueError`` like :func:`load_od`."""
-    return load_od(bus, node_id, eds)
 
 
 @dataclass
@@ -142,122 +114,24 @@ class CanopenDriver(WorkerJobDriver):
         self._pdo_sensors: dict[tuple[int, int, int], list[str]] = {}
         self._bus_failed = False
 
-    # -- validation ---------------------------------------------------------------------------
+    # -- validation (drivers.canopen_od) -----------------------------------------------------
 
     @classmethod
     def check_bus(cls, bus: BusSpec) -> list[str]:
         """Errors of the bus options (unknown keys, types, node ids, unreadable EDS files)."""
-        errs: list[str] = []
-        k = bus.key
-        opts = bus.options
-        for key in opts:
-            if key not in BUS_OPTIONS:
-                errs.append(f"{k}.{key}: unknown option for a canopen bus; valid options: "
-                            f"{', '.join(BUS_OPTIONS)}")
-        for key in ("interface", "channel"):
-            if key in opts and (not isinstance(opts[key], str | int) or opts[key] == ""):
-                errs.append(f"{k}.{key}: expected a python-can {key} name, got {opts[key]!r}")
-        if "bitrate" in opts and not (_is_int(opts["bitrate"]) and opts["bitrate"] > 0):
-            errs.append(f"{k}.bitrate: expected an integer > 0 (bit/s), got {opts['bitrate']!r}")
-        if "poll" in opts and not (_is_number(opts["poll"]) and 0 < opts["poll"] <= 1):
-            errs.append(f"{k}.poll: expected seconds in (0, 1], got {opts['poll']!r}")
-        for key in ("sync_period", "poll_period", "sdo_timeout"):
-            if key in opts and not (_is_number(opts[key]) and opts[key] > 0):
-                errs.append(f"{k}.{key}: expected a number of seconds > 0, got {opts[key]!r}")
-        nodes = opts.get("nodes")
-        if not isinstance(nodes, list) or not nodes:
-            return [*errs, f"{k}.nodes: expected a non-empty array of {{id, eds}} tables, "
-                           f"got {nodes!r}"]
-        seen: set[int] = set()
-        for i, node in enumerate(nodes):
-            errs.extend(cls._check_node(bus, f"{k}.nodes[{i}]", node, seen))
-        return errs
-
-    @classmethod
-    def _check_node(cls, bus: BusSpec, k: str, node: object, seen: set[int]) -> list[str]:
-        if not isinstance(node, Mapping):
-            return [f"{k}: expected a table {{id, eds}}, got {node!r}"]
-        errs = [f"{k}.{key}: unknown key; valid keys: {', '.join(NODE_KEYS)}"
-                for key in node if key not in NODE_KEYS]
-        nid = node.get("id")
-        if not (_is_int(nid) and 1 <= nid <= 127):
-            errs.append(f"{k}.id: expected a CANopen node id 1..127, got {nid!r}")
-        elif nid in seen:
-            errs.append(f"{k}.id: node id {nid} appears twice on bus {bus.name}")
-        else:
-            seen.add(nid)
-        eds = node.get("eds")
-        if not isinstance(eds, str) or not eds:
-            errs.append(f"{k}.eds: expected the path of the node's EDS file, got {eds!r}")
-        elif _is_int(nid):
-            try:
-                load_od(bus, nid, eds)
-            except ValueError as exc:
-                errs.append(f"{k}.eds: expected a readable EDS file; {exc}")
-        hb = node.get("heartbeat_timeout")
-        if hb is not None and not (_is_number(hb) and hb > 0):
-            errs.append(f"{k}.heartbeat_timeout: expected a number of seconds > 0, got {hb!r}")
-        if "nmt_start" in node and not isinstance(node["nmt_start"], bool):
-            errs.append(f"{k}.nmt_start: expected true or false, got {node['nmt_start']!r}")
-        return errs
+        return check_bus(bus)
 
     @classmethod
     def check_device(cls, bus: BusSpec, device: DeviceSpec) -> list[str]:
         """Errors of a device address: keys, node on this bus, object present in the node's EDS,
         readable for a sensor and writable for an actuator."""
-        k = f"{device.key}.address"
-        a = device.address
-        errs = [f"{k}.{key}: unknown key; valid keys: {', '.join(ADDRESS_KEYS)}"
-                for key in a if key not in ADDRESS_KEYS]
-        nodes = {n.get("id"): n for n in bus.options.get("nodes", []) if isinstance(n, Mapping)}
-        nid, index, sub = a.get("node"), a.get("index"), a.get("subindex", 0)
-        if not _is_int(nid) or nid not in nodes:
-            errs.append(f"{k}.node: expected the id of a node of bus {bus.name} "
-                        f"({', '.join(str(n) for n in nodes) or 'none'}), got {nid!r}")
-        if not (_is_int(index) and 0 <= index <= 0xFFFF):
-            errs.append(f"{k}.index: expected an object index 0..0xFFFF, got {index!r}")
-        if not (_is_int(sub) and 0 <= sub <= 0xFF):
-            errs.append(f"{k}.subindex: expected a subindex 0..255, got {sub!r}")
-        pp = a.get("poll_period")
-        if pp is not None and not (_is_number(pp) and pp > 0):
-            errs.append(f"{k}.poll_period: expected a number of seconds > 0, got {pp!r}")
-        if errs or not _is_int(nid):
-            return errs
-        eds = nodes[nid].get("eds")
-        try:
-            od = checked_od(bus, nid, eds) if isinstance(eds, str) else None
-        except ValueError:
-            return []  # reported by check_bus
-        var = od.get_variable(index, sub) if od is not None else None
-        if od is not None and var is None:
-            errs.append(f"{k}: expected an object of node {nid}'s EDS, no 0x{index:04X}:{sub:02X}")
-        elif var is not None and device.direction == "sensor" and not var.readable:
-            errs.append(f"{k}: 0x{index:04X}:{sub:02X} is not readable; a sensor needs a readable "
-                        f"object")
-        elif var is not None and device.direction == "actuator" and not var.writable:
-            errs.append(f"{k}: 0x{index:04X}:{sub:02X} is read-only; an actuator needs a writable "
-                        f"object")
-        return errs
+        return check_device(bus, device)
 
     @classmethod
     def encodable(cls, bus: BusSpec, device: DeviceSpec) -> tuple[float, float] | None:
         """The range of the object's data type in the node's EDS: 0..1 for BOOLEAN, the
         INTEGERn/UNSIGNEDn ranges, the largest REAL32; None for REAL64 and other types."""
-        a = device.address
-        nodes = {n.get("id"): n for n in bus.options.get("nodes", []) if isinstance(n, Mapping)}
-        var = checked_od(bus, a["node"], str(nodes[a["node"]]["eds"])).get_variable(
-            a["index"], a.get("subindex", 0))
-        dt = var.data_type
-        if dt == BOOLEAN:
-            return 0.0, 1.0
-        if dt == REAL32:
-            return -3.4028234663852886e38, 3.4028234663852886e38
-        if dt not in INTEGER_TYPES:
-            return None
-        bits = 8 * var.STRUCT_TYPES[dt].size
-        if dt in SIGNED_TYPES:
-            return float(-(1 << (bits - 1))), float((1 << (bits - 1)) - 1)
-        return 0.0, float((1 << bits) - 1)
+        return encodable(bus, device)
 
     # -- life cycle ---------------------------------------------------------------------------
 
@@ -360,19 +234,7 @@ class CanopenDriver(WorkerJobDriver):
         b = self._bindings.get(device)
         if b is None:
             return None
-        if (why := not_finite(value)) is not None:
-            return why
-        if isinstance(value, bool):
-            value = int(value)
-        if (b.od_var.data_type in INTEGER_TYPES and isinstance(value, float)
-                and not value.is_integer()):
-            return f"expected an integer for object 0x{b.index:04X}:{b.subindex:02X}, got {value!r}"
-        try:
-            b.od_var.encode_raw(_coerce(b.od_var, value))
-        except (struct.error, TypeError, ValueError, OverflowError) as exc:
-            return (f"expected a value of data type {b.od_var.data_type:#x} for object "
-                    f"0x{b.index:04X}:{b.subindex:02X}: {exc}")
-        return None
+        return value_error(b.od_var, b.index, b.subindex, value)
 
     # -- I/O thread ---------------------------------------------------------------------------
 
@@ -447,7 +309,7 @@ class CanopenDriver(WorkerJobDriver):
 
     def _transfer(self, b: _Binding, value: Any) -> None:
         try:
-            raw = _coerce(b.od_var, value)
+            raw = coerce(b.od_var, value)
             data = b.od_var.encode_raw(raw)
         except (struct.error, TypeError, ValueError, OverflowError) as exc:
             text = (f"write {value!r} to {self._where(b)}: expected a value of data "
@@ -544,21 +406,6 @@ class CanopenDriver(WorkerJobDriver):
     def knows_node(self, node_id: int) -> bool:
         """True if ``node_id`` is one of this bus's nodes."""
         return node_id in self._nodes
-
-
-def _coerce(od_var: Any, value: Any) -> Any:
-    """``value`` as the Python type canopen encodes for ``od_var``'s data type."""
-    if od_var.data_type == BOOLEAN:
-        return bool(value)
-    if od_var.data_type in INTEGER_TYPES:
-        if isinstance(value, float):
-            if value != value or value in (float("inf"), float("-inf")):
-                raise ValueError("not a finite number")
-            return round(value)
-        return int(value)
-    if od_var.data_type in FLOAT_TYPES:
-        return float(value)
-    return value
 
 
 class _FrameCheck(can.Listener):

@@ -69,7 +69,7 @@ class PassiveCanopen:
         import can
 
         from chcos.devices.importers.eds import pdo_mappings
-        from drivers.canopen_node import load_od
+        from drivers.canopen_od import load_od
         from drivers.codecs.canopen import eds_path
 
         self.bus = bus
