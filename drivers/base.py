@@ -147,7 +147,8 @@ class Driver(ABC):
 
     @abstractmethod
     def start(self) -> None:
-        """Open the bus and start the I/O threads. Raises :class:`chcos.errors.BusError`."""
+        """Open the bus and start the I/O threads; set ``self._running`` once writes can be
+        taken. Raises :class:`chcos.errors.BusError`."""
 
     @final
     def write(self, device: str, value: Any) -> None:
@@ -197,7 +198,8 @@ class Driver(ABC):
 
     @abstractmethod
     def stop(self) -> None:
-        """Stop the I/O threads and close the bus. Idempotent; never raises."""
+        """Clear ``self._running`` (writes are refused from here on), stop the I/O threads and
+        close the bus. Idempotent; never raises."""
 
     @abstractmethod
     def settle(self, timeout: float) -> bool:
