@@ -44,13 +44,13 @@ import contextlib
 import functools
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, TypeGuard
+from typing import Any
 
 import can
 
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError
-from drivers.base import DriverHost
+from drivers.base import DriverHost, is_int
 from drivers.canbus import bus_config, bus_fileno, read_frames, socket_drops
 from drivers.codecs.can import (
     CanCodec,
@@ -63,10 +63,6 @@ from drivers.recording import LOG_SUFFIXES, Recorder
 from drivers.threaded import ThreadedDriver
 
 BUS_OPTIONS = ("interface", "channel", "bitrate", "fd", "dbc", "record", "poll")
-
-
-def _int(v: object) -> TypeGuard[int]:
-    return isinstance(v, int) and not isinstance(v, bool)
 
 
 class CanDriver(ThreadedDriver):
@@ -94,7 +90,7 @@ class CanDriver(ThreadedDriver):
         o = bus.options
         errs = [f"{bus.key}.{k}: unknown option for a can bus; valid options: "
                 f"{', '.join(BUS_OPTIONS)}" for k in o if k not in BUS_OPTIONS]
-        if "bitrate" in o and (not _int(o["bitrate"]) or o["bitrate"] <= 0):
+        if "bitrate" in o and (not is_int(o["bitrate"]) or o["bitrate"] <= 0):
             errs.append(f"{bus.key}.bitrate: expected bits per second > 0, got {o['bitrate']!r}")
         if "fd" in o and not isinstance(o["fd"], bool):
             errs.append(f"{bus.key}.fd: expected true or false, got {o['fd']!r}")

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import struct
 from collections.abc import Mapping
-from typing import Any, TypeGuard
+from typing import Any
 
 import canopen
 from canopen.objectdictionary import BOOLEAN, FLOAT_TYPES, INTEGER_TYPES
@@ -16,7 +16,7 @@ from canopen.objectdictionary.datatypes import REAL32, SIGNED_TYPES
 
 from chcos.devices import parsecache
 from chcos.devices.spec import BusSpec, DeviceSpec
-from drivers.base import not_finite
+from drivers.base import is_int, is_number, not_finite
 from drivers.codecs.canopen import eds_path
 
 BUS_OPTIONS = ("interface", "channel", "bitrate", "nodes", "sync_period", "poll_period",
@@ -24,14 +24,6 @@ BUS_OPTIONS = ("interface", "channel", "bitrate", "nodes", "sync_period", "poll_
 NODE_KEYS = ("id", "eds", "heartbeat_timeout", "nmt_start")
 ADDRESS_KEYS = ("node", "index", "subindex", "poll_period")
 DEFAULT_POLL = 0.1
-
-
-def _is_number(v: object) -> TypeGuard[int | float]:
-    return isinstance(v, int | float) and not isinstance(v, bool)
-
-
-def _is_int(v: object) -> TypeGuard[int]:
-    return isinstance(v, int) and not isinstance(v, bool)
 
 
 def load_od(bus: BusSpec, node_id: int, eds: str) -> Any:
@@ -67,12 +59,12 @@ def check_bus(bus: BusSpec) -> list[str]:
     for key in ("interface", "channel"):
         if key in opts and (not isinstance(opts[key], str | int) or opts[key] == ""):
             errs.append(f"{k}.{key}: expected a python-can {key} name, got {opts[key]!r}")
-    if "bitrate" in opts and not (_is_int(opts["bitrate"]) and opts["bitrate"] > 0):
+    if "bitrate" in opts and not (is_int(opts["bitrate"]) and opts["bitrate"] > 0):
         errs.append(f"{k}.bitrate: expected an integer > 0 (bit/s), got {opts['bitrate']!r}")
-    if "poll" in opts and not (_is_number(opts["poll"]) and 0 < opts["poll"] <= 1):
+    if "poll" in opts and not (is_number(opts["poll"]) and 0 < opts["poll"] <= 1):
         errs.append(f"{k}.poll: expected seconds in (0, 1], got {opts['poll']!r}")
     for key in ("sync_period", "poll_period", "sdo_timeout"):
-        if key in opts and not (_is_number(opts[key]) and opts[key] > 0):
+        if key in opts and not (is_number(opts[key]) and opts[key] > 0):
             errs.append(f"{k}.{key}: expected a number of seconds > 0, got {opts[key]!r}")
     nodes = opts.get("nodes")
     if not isinstance(nodes, list) or not nodes:
@@ -90,7 +82,7 @@ def check_node(bus: BusSpec, k: str, node: object, seen: set[int]) -> list[str]:
     errs = [f"{k}.{key}: unknown key; valid keys: {', '.join(NODE_KEYS)}"
             for key in node if key not in NODE_KEYS]
     nid = node.get("id")
-    if not (_is_int(nid) and 1 <= nid <= 127):
+    if not (is_int(nid) and 1 <= nid <= 127):
         errs.append(f"{k}.id: expected a CANopen node id 1..127, got {nid!r}")
     elif nid in seen:
         errs.append(f"{k}.id: node id {nid} appears twice on bus {bus.name}")
@@ -99,13 +91,13 @@ def check_node(bus: BusSpec, k: str, node: object, seen: set[int]) -> list[str]:
     eds = node.get("eds")
     if not isinstance(eds, str) or not eds:
         errs.append(f"{k}.eds: expected the path of the node's EDS file, got {eds!r}")
-    elif _is_int(nid):
+    elif is_int(nid):
         try:
             load_od(bus, nid, eds)
         except ValueError as exc:
             errs.append(f"{k}.eds: expected a readable EDS file; {exc}")
     hb = node.get("heartbeat_timeout")
-    if hb is not None and not (_is_number(hb) and hb > 0):
+    if hb is not None and not (is_number(hb) and hb > 0):
         errs.append(f"{k}.heartbeat_timeout: expected a number of seconds > 0, got {hb!r}")
     if "nmt_start" in node and not isinstance(node["nmt_start"], bool):
         errs.append(f"{k}.nmt_start: expected true or false, got {node['nmt_start']!r}")
@@ -120,17 +112,17 @@ def check_device(bus: BusSpec, device: DeviceSpec) -> list[str]:
             for key in a if key not in ADDRESS_KEYS]
     nodes = {n.get("id"): n for n in bus.options.get("nodes", []) if isinstance(n, Mapping)}
     nid, index, sub = a.get("node"), a.get("index"), a.get("subindex", 0)
-    if not _is_int(nid) or nid not in nodes:
+    if not is_int(nid) or nid not in nodes:
         errs.append(f"{k}.node: expected the id of a node of bus {bus.name} "
                     f"({', '.join(str(n) for n in nodes) or 'none'}), got {nid!r}")
-    if not (_is_int(index) and 0 <= index <= 0xFFFF):
+    if not (is_int(index) and 0 <= index <= 0xFFFF):
         errs.append(f"{k}.index: expected an object index 0..0xFFFF, got {index!r}")
-    if not (_is_int(sub) and 0 <= sub <= 0xFF):
+    if not (is_int(sub) and 0 <= sub <= 0xFF):
         errs.append(f"{k}.subindex: expected a subindex 0..255, got {sub!r}")
     pp = a.get("poll_period")
-    if pp is not None and not (_is_number(pp) and pp > 0):
+    if pp is not None and not (is_number(pp) and pp > 0):
         errs.append(f"{k}.poll_period: expected a number of seconds > 0, got {pp!r}")
-    if errs or not _is_int(nid):
+    if errs or not is_int(nid):
         return errs
     eds = nodes[nid].get("eds")
     try:

@@ -17,15 +17,13 @@ from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOEx
 
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError
-from drivers.base import DriverHost
+from drivers.base import DriverHost, is_int, is_number
 from drivers.codecs.modbus import (
     EXCEPTION_TEXT,
     RAW_RANGE,
     Point,
     ReadRequest,
     check_address,
-    is_int,
-    is_number,
     plan_reads,
     point_of,
     reading_of,

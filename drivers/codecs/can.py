@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol, TypeGuard
+from typing import Any, Protocol
 
 import cantools
 from cantools.database.can import Message as DbcMessage
@@ -18,15 +18,11 @@ from cantools.database.can import Signal as DbcSignal
 from chcos.devices import parsecache
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError
-from drivers.base import not_finite
+from drivers.base import is_int, not_finite
 
 DBC_KEYS = ("message", "signal")
 RAW_KEYS = ("id", "start", "length", "byte_order", "signed", "dlc", "extended")
 BYTE_ORDERS = ("little_endian", "big_endian")
-
-
-def _int(v: object) -> TypeGuard[int]:
-    return isinstance(v, int) and not isinstance(v, bool)
 
 
 def load_dbc(path: str) -> Any:
@@ -52,7 +48,6 @@ def int_range(length: int, signed: bool) -> tuple[int, int]:
     if signed:
         return -(1 << (length - 1)), (1 << (length - 1)) - 1
     return 0, (1 << length) - 1
-
 
 
 def _initial(sig: Any) -> float:
@@ -92,7 +87,6 @@ class CanFrame:
     def dlc(self) -> int:
         """The payload length."""
         return len(self.data)
-
 
 
 @dataclass
@@ -253,17 +247,17 @@ def check_address(bus: BusSpec, device: DeviceSpec, dbc: Any) -> list[str]:
     fid = a.get("id")
     if not isinstance(ext, bool):
         errs.append(f"{key}.extended: expected true or false, got {ext!r}")
-    if not _int(fid) or not 0 <= fid <= (0x1FFFFFFF if ext is True else 0x7FF):
+    if not is_int(fid) or not 0 <= fid <= (0x1FFFFFFF if ext is True else 0x7FF):
         errs.append(f"{key}.id: expected a CAN id 0..{'0x1FFFFFFF' if ext is True else '0x7FF'}"
                     f", got {fid!r}")
     dlc = a.get("dlc", 8)
-    if not _int(dlc) or not 0 < dlc <= 64:
+    if not is_int(dlc) or not 0 < dlc <= 64:
         errs.append(f"{key}.dlc: expected a frame length 1..64 bytes, got {dlc!r}")
         dlc = 8
     start, length = a.get("start"), a.get("length")
-    if not _int(start) or not 0 <= start < dlc * 8:
+    if not is_int(start) or not 0 <= start < dlc * 8:
         errs.append(f"{key}.start: expected a start bit 0..{dlc * 8 - 1}, got {start!r}")
-    if not _int(length) or not 1 <= length <= 64:
+    if not is_int(length) or not 1 <= length <= 64:
         errs.append(f"{key}.length: expected a bit length 1..64, got {length!r}")
     if a.get("byte_order", "little_endian") not in BYTE_ORDERS:
         errs.append(f"{key}.byte_order: expected one of {', '.join(BYTE_ORDERS)}, "

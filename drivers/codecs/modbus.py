@@ -15,9 +15,10 @@ import math
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Literal, TypeGuard
+from typing import Any, Literal
 
 from chcos.devices.spec import BusSpec, DeviceSpec
+from drivers.base import is_int, is_number
 
 #: Register types: the :mod:`struct` code of the value and its size in registers.
 REGISTER_TYPES: dict[str, tuple[str, int]] = {
@@ -37,16 +38,6 @@ EXCEPTION_TEXT = {1: "illegal function", 2: "illegal data address", 3: "illegal 
                   4: "server device failure", 5: "acknowledge", 6: "server device busy",
                   8: "memory parity error", 10: "gateway path unavailable",
                   11: "gateway target device failed to respond"}
-
-
-def is_number(v: object) -> TypeGuard[int | float]:
-    """An int or float that is no bool."""
-    return isinstance(v, int | float) and not isinstance(v, bool)
-
-
-def is_int(v: object) -> TypeGuard[int]:
-    """An int that is no bool."""
-    return isinstance(v, int) and not isinstance(v, bool)
 
 
 def to_registers(type_: str, value: int | float,
