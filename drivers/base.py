@@ -9,10 +9,22 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
+from collections import Counter
 from collections.abc import Callable, Sequence
-from typing import Any, ClassVar, Protocol
+from typing import Any, ClassVar, Protocol, TypeGuard, final
 
 from chcos.devices.spec import BusSpec, DeviceSpec
+from chcos.errors import DeviceError
+
+
+def is_int(v: object) -> TypeGuard[int]:
+    """An int that is no bool (``True`` is no node id, port or register address)."""
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def is_number(v: object) -> TypeGuard[int | float]:
+    """An int or float that is no bool."""
+    return isinstance(v, int | float) and not isinstance(v, bool)
 
 
 def not_finite(value: Any) -> str | None:
@@ -71,9 +83,13 @@ class DriverHost(Protocol):
 class Driver(ABC):
     """One bus and its devices.
 
-    Subclasses set :attr:`kind`, and implement :meth:`start`, :meth:`write`, :meth:`stop`
-    and :meth:`settle`. :meth:`check_bus` and :meth:`check_device` validate the kind-specific
-    options of a device map without touching any bus (used by ``chcos check``).
+    Subclasses set :attr:`kind`, and implement :meth:`start` (setting ``self._running`` once
+    the bus takes writes), :meth:`_write`, :meth:`stop` (clearing it) and :meth:`settle`.
+    :meth:`write` is a template method no driver overrides (a class that tries raises
+    ``TypeError`` when it is defined): it refuses a write to anything but an actuator of this
+    bus and a write while the driver is not running, counts the rest and only then calls the
+    driver's :meth:`_write`. :meth:`check_bus` and :meth:`check_device` validate the
+    kind-specific options of a device map without touching any bus (used by ``chcos check``).
     """
 
     kind: ClassVar[str] = ""
@@ -87,6 +103,23 @@ class Driver(ABC):
         self.bus = bus
         self.devices = {d.name: d for d in devices}
         self.host = host
+        #: True between :meth:`start` and :meth:`stop`: writes are taken (set by the driver).
+        self._running = False
+        #: Writes handed to :meth:`_write`, per actuator.
+        self.write_counts: Counter[str] = Counter()
+        #: Writes :meth:`write` refused, per reason (``unknown-device``, ``stopped``).
+        self.refused_writes: Counter[str] = Counter()
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if "write" in cls.__dict__:
+            raise TypeError(f"{cls.__module__}.{cls.__qualname__} overrides Driver.write, the "
+                            f"template that checks every write; implement _write instead")
+
+    @property
+    def running(self) -> bool:
+        """True while the driver takes writes (between :meth:`start` and :meth:`stop`)."""
+        return self._running
 
     @classmethod
     def check_bus(cls, bus: BusSpec) -> list[str]:
@@ -124,16 +157,59 @@ class Driver(ABC):
 
     @abstractmethod
     def start(self) -> None:
-        """Open the bus and start the I/O threads. Raises :class:`chcos.errors.BusError`."""
+        """Open the bus and start the I/O threads; set ``self._running`` once writes can be
+        taken. Raises :class:`chcos.errors.BusError`."""
+
+    @final
+    def write(self, device: str, value: Any) -> None:
+        """Send raw ``value`` to actuator ``device`` without blocking the caller.
+
+        The template of every driver: a ``device`` that is no actuator of this bus is reported
+        (``host.error`` kind ``unknown-device``), a write while the driver is not running too
+        (``host.error`` kind ``stopped`` and ``host.write_failed``); either is counted in
+        :attr:`refused_writes` and, on a driver that does not confirm writes (whose caller has
+        no other way to learn of it), raised as :class:`chcos.errors.DeviceError`. Any other
+        write is counted in :attr:`write_counts` and handed to :meth:`_write`."""
+        spec = self.devices.get(device)
+        if spec is None or spec.direction != "actuator":
+            actuators = [n for n, d in self.devices.items() if d.direction == "actuator"]
+            self._refuse(device, value, "unknown-device",
+                         f"write {value!r} to {device!r} on {self.kind} bus {self.bus.name}: "
+                         f"not an actuator of this bus; expected one of "
+                         f"{', '.join(actuators) or 'none'}")
+            return
+        if not self._running:
+            self._refuse(device, value, "stopped", f"{self.kind} bus {self.bus.name} is not "
+                                                   f"running")
+            return
+        self.write_counts[device] += 1
+        self._write(device, value)
+
+    def _refuse(self, device: str, value: Any, kind: str, reason: str) -> None:
+        """Report a write that does not reach :meth:`_write` (see :meth:`write`); also for a
+        driver's own :meth:`_write` when it finds the bus stopped under it (``kind`` stopped).
+        Raises :class:`DeviceError` on a driver that does not confirm writes."""
+        self.refused_writes[kind] += 1
+        if kind == "stopped":
+            self.host.error(self.bus.name, kind, f"write {value!r} to {device} dropped: {reason}",
+                            device)
+            self.host.write_failed(device, value, reason)
+        else:
+            self.host.error(self.bus.name, kind, reason)
+        if not self.confirms_writes:
+            raise DeviceError(reason)
 
     @abstractmethod
-    def write(self, device: str, value: Any) -> None:
-        """Send raw ``value`` to actuator ``device`` without blocking the caller (queue it to the
-        I/O thread). Failures are reported later through :meth:`DriverHost.fail`."""
+    def _write(self, device: str, value: Any) -> None:
+        """Send raw ``value`` to actuator ``device`` (an actuator of this bus, the driver
+        running: :meth:`write` checked both) without blocking the caller (queue it to the I/O
+        thread). A driver that confirms writes reports the outcome later through
+        :meth:`DriverHost.written` or :meth:`DriverHost.write_failed`."""
 
     @abstractmethod
     def stop(self) -> None:
-        """Stop the I/O threads and close the bus. Idempotent; never raises."""
+        """Clear ``self._running`` (writes are refused from here on), stop the I/O threads and
+        close the bus. Idempotent; never raises."""
 
     @abstractmethod
     def settle(self, timeout: float) -> bool:

@@ -11,9 +11,9 @@ Bus options (``[[bus]] kind = "canopen"``):
   default SDO polling period; ``sdo_timeout`` (s, default 0.3) - SDO response timeout.
 * ``poll`` (s, default 0.005) - the receive timeout of the driver's reader on interfaces it cannot
   wait on without receiving; it bounds :meth:`CanopenDriver.settle` there. Not used on SocketCAN
-  or python-can's ``virtual`` interface (see :func:`drivers.can_raw.read_frames`).
+  or python-can's ``virtual`` interface (see :func:`drivers.canbus.read_frames`).
 
-Frames are received by the driver's own reader thread (:func:`drivers.can_raw.read_frames`), not
+Frames are received by the driver's own reader thread (:func:`drivers.canbus.read_frames`), not
 by canopen's notifier, and handed to canopen's listeners (SDO responses, PDOs, heartbeats, EMCY),
 so that :meth:`CanopenDriver.settle` can promise that every frame that arrived before it has been
 handled: virtual-time runs are deterministic on CANopen too.
@@ -35,84 +35,47 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import queue
 import struct
 import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, TypeGuard
+from typing import Any
 
 import can
 import canopen
-from canopen.objectdictionary import BOOLEAN, FLOAT_TYPES, INTEGER_TYPES
-from canopen.objectdictionary.datatypes import REAL32, SIGNED_TYPES
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from chcos.devices import parsecache
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError
-from drivers.base import Driver, DriverHost, not_finite
-from drivers.can_raw import read_frames
+from drivers.base import DriverHost
+from drivers.canbus import read_frames
+from drivers.canopen_od import (
+    DEFAULT_POLL,
+    check_bus,
+    check_device,
+    coerce,
+    encodable,
+    load_od,
+    value_error,
+)
+from drivers.codecs.canopen import (
+    emcy_node,
+    heartbeat_node,
+    is_error_reset,
+    is_fatal_emcy,
+)
 from drivers.health import Health
+from drivers.jobs import Job, WorkerJobDriver
 from drivers.threaded import ReaderThread
 
-BUS_OPTIONS = ("interface", "channel", "bitrate", "nodes", "sync_period", "poll_period",
-               "sdo_timeout", "poll")
-NODE_KEYS = ("id", "eds", "heartbeat_timeout", "nmt_start")
 HEARTBEAT_SETTLE = 0.1
 """Bound (s) on handing over received frames before a heartbeat loss is declared (polling
 interfaces; on SocketCAN the drain is immediate)."""
-ADDRESS_KEYS = ("node", "index", "subindex", "poll_period")
-FATAL_EMCY_MASKS = ((0x2000, 0xF000), (0x3000, 0xF000), (0x4000, 0xF000), (0x5000, 0xFF00),
-                    (0x8000, 0xF000))
-DEFAULT_POLL = 0.1
 DEFAULT_SDO_TIMEOUT = 0.3
 #: The reader's default receive timeout on interfaces without a file descriptor.
 DEFAULT_RX_POLL = 0.005
-
-
-def is_fatal_emcy(code: int) -> bool:
-    """True for EMCY codes that fail the node's devices (see the module doc)."""
-    return any(code & mask == value for value, mask in FATAL_EMCY_MASKS)
-
-
-def _is_number(v: object) -> TypeGuard[int | float]:
-    return isinstance(v, int | float) and not isinstance(v, bool)
-
-
-def _is_int(v: object) -> TypeGuard[int]:
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
-def eds_path(bus: BusSpec, eds: str) -> Path:
-    """The EDS path ``eds`` of ``bus``: absolute as given, else relative to the bus's file."""
-    p = Path(eds).expanduser()
-    if p.is_absolute() or bus.file.startswith("<"):
-        return p
-    return Path(bus.file).resolve().parent / p
-
-
-def load_od(bus: BusSpec, node_id: int, eds: str) -> Any:
-    """canopen's object dictionary of node ``node_id`` from ``eds``; raises ``ValueError`` naming
-    the file when canopen cannot read it."""
-    path = eds_path(bus, eds)
-    if not path.is_file():
-        raise ValueError(f"EDS file {path} does not exist")
-    try:
-        return parsecache.cached("eds", path, node_id,
-                                 lambda: canopen.import_od(str(path), node_id))
-    except Exception as exc:  # canopen raises assorted types for a malformed EDS
-        raise ValueError(f"canopen cannot read EDS {path}: {exc}") from exc
-
-
-def checked_od(bus: BusSpec, node_id: int, eds: str) -> Any:
-    """:func:`load_od` for the map checks (``check_device``, ``encodable``): inside a
-    :func:`chcos.devices.parsecache.scope` one parse per node and file, however many devices use it.
-    The result may be shared: read it, never change it (a running node gets its own).
-    Raises ``ValueError`` like :func:`load_od`."""
-    return load_od(bus, node_id, eds)
 
 
 @dataclass
@@ -136,12 +99,10 @@ class _NodeState:
     devices: list[str] = field(default_factory=list)
 
 
-class CanopenDriver(Driver):
+class CanopenDriver(WorkerJobDriver):
     """The ``canopen`` bus: see the module doc for options, addresses and failure handling."""
 
     kind = "canopen"
-    confirms_writes = True
-    numeric_only = True
 
     def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
         super().__init__(bus, devices, host)
@@ -151,131 +112,26 @@ class CanopenDriver(Driver):
         self._nodes: dict[int, _NodeState] = {}
         self._bindings: dict[str, _Binding] = {}
         self._pdo_sensors: dict[tuple[int, int, int], list[str]] = {}
-        self._jobs: queue.Queue[tuple[str, str, Any]] = queue.Queue()
-        self._idle = threading.Condition()
-        self._pending = 0
-        self._polls_queued: set[str] = set()
-        self._thread: threading.Thread | None = None
-        self._running = False
-        self._rx: ReaderThread | None = None
         self._bus_failed = False
 
-    # -- validation ---------------------------------------------------------------------------
+    # -- validation (drivers.canopen_od) -----------------------------------------------------
 
     @classmethod
     def check_bus(cls, bus: BusSpec) -> list[str]:
         """Errors of the bus options (unknown keys, types, node ids, unreadable EDS files)."""
-        errs: list[str] = []
-        k = bus.key
-        opts = bus.options
-        for key in opts:
-            if key not in BUS_OPTIONS:
-                errs.append(f"{k}.{key}: unknown option for a canopen bus; valid options: "
-                            f"{', '.join(BUS_OPTIONS)}")
-        for key in ("interface", "channel"):
-            if key in opts and (not isinstance(opts[key], str | int) or opts[key] == ""):
-                errs.append(f"{k}.{key}: expected a python-can {key} name, got {opts[key]!r}")
-        if "bitrate" in opts and not (_is_int(opts["bitrate"]) and opts["bitrate"] > 0):
-            errs.append(f"{k}.bitrate: expected an integer > 0 (bit/s), got {opts['bitrate']!r}")
-        if "poll" in opts and not (_is_number(opts["poll"]) and 0 < opts["poll"] <= 1):
-            errs.append(f"{k}.poll: expected seconds in (0, 1], got {opts['poll']!r}")
-        for key in ("sync_period", "poll_period", "sdo_timeout"):
-            if key in opts and not (_is_number(opts[key]) and opts[key] > 0):
-                errs.append(f"{k}.{key}: expected a number of seconds > 0, got {opts[key]!r}")
-        nodes = opts.get("nodes")
-        if not isinstance(nodes, list) or not nodes:
-            return [*errs, f"{k}.nodes: expected a non-empty array of {{id, eds}} tables, "
-                           f"got {nodes!r}"]
-        seen: set[int] = set()
-        for i, node in enumerate(nodes):
-            errs.extend(cls._check_node(bus, f"{k}.nodes[{i}]", node, seen))
-        return errs
-
-    @classmethod
-    def _check_node(cls, bus: BusSpec, k: str, node: object, seen: set[int]) -> list[str]:
-        if not isinstance(node, Mapping):
-            return [f"{k}: expected a table {{id, eds}}, got {node!r}"]
-        errs = [f"{k}.{key}: unknown key; valid keys: {', '.join(NODE_KEYS)}"
-                for key in node if key not in NODE_KEYS]
-        nid = node.get("id")
-        if not (_is_int(nid) and 1 <= nid <= 127):
-            errs.append(f"{k}.id: expected a CANopen node id 1..127, got {nid!r}")
-        elif nid in seen:
-            errs.append(f"{k}.id: node id {nid} appears twice on bus {bus.name}")
-        else:
-            seen.add(nid)
-        eds = node.get("eds")
-        if not isinstance(eds, str) or not eds:
-            errs.append(f"{k}.eds: expected the path of the node's EDS file, got {eds!r}")
-        elif _is_int(nid):
-            try:
-                load_od(bus, nid, eds)
-            except ValueError as exc:
-                errs.append(f"{k}.eds: expected a readable EDS file; {exc}")
-        hb = node.get("heartbeat_timeout")
-        if hb is not None and not (_is_number(hb) and hb > 0):
-            errs.append(f"{k}.heartbeat_timeout: expected a number of seconds > 0, got {hb!r}")
-        if "nmt_start" in node and not isinstance(node["nmt_start"], bool):
-            errs.append(f"{k}.nmt_start: expected true or false, got {node['nmt_start']!r}")
-        return errs
+        return check_bus(bus)
 
     @classmethod
     def check_device(cls, bus: BusSpec, device: DeviceSpec) -> list[str]:
         """Errors of a device address: keys, node on this bus, object present in the node's EDS,
         readable for a sensor and writable for an actuator."""
-        k = f"{device.key}.address"
-        a = device.address
-        errs = [f"{k}.{key}: unknown key; valid keys: {', '.join(ADDRESS_KEYS)}"
-                for key in a if key not in ADDRESS_KEYS]
-        nodes = {n.get("id"): n for n in bus.options.get("nodes", []) if isinstance(n, Mapping)}
-        nid, index, sub = a.get("node"), a.get("index"), a.get("subindex", 0)
-        if not _is_int(nid) or nid not in nodes:
-            errs.append(f"{k}.node: expected the id of a node of bus {bus.name} "
-                        f"({', '.join(str(n) for n in nodes) or 'none'}), got {nid!r}")
-        if not (_is_int(index) and 0 <= index <= 0xFFFF):
-            errs.append(f"{k}.index: expected an object index 0..0xFFFF, got {index!r}")
-        if not (_is_int(sub) and 0 <= sub <= 0xFF):
-            errs.append(f"{k}.subindex: expected a subindex 0..255, got {sub!r}")
-        pp = a.get("poll_period")
-        if pp is not None and not (_is_number(pp) and pp > 0):
-            errs.append(f"{k}.poll_period: expected a number of seconds > 0, got {pp!r}")
-        if errs or not _is_int(nid):
-            return errs
-        eds = nodes[nid].get("eds")
-        try:
-            od = checked_od(bus, nid, eds) if isinstance(eds, str) else None
-        except ValueError:
-            return []  # reported by check_bus
-        var = od.get_variable(index, sub) if od is not None else None
-        if od is not None and var is None:
-            errs.append(f"{k}: expected an object of node {nid}'s EDS, no 0x{index:04X}:{sub:02X}")
-        elif var is not None and device.direction == "sensor" and not var.readable:
-            errs.append(f"{k}: 0x{index:04X}:{sub:02X} is not readable; a sensor needs a readable "
-                        f"object")
-        elif var is not None and device.direction == "actuator" and not var.writable:
-            errs.append(f"{k}: 0x{index:04X}:{sub:02X} is read-only; an actuator needs a writable "
-                        f"object")
-        return errs
+        return check_device(bus, device)
 
     @classmethod
     def encodable(cls, bus: BusSpec, device: DeviceSpec) -> tuple[float, float] | None:
         """The range of the object's data type in the node's EDS: 0..1 for BOOLEAN, the
         INTEGERn/UNSIGNEDn ranges, the largest REAL32; None for REAL64 and other types."""
-        a = device.address
-        nodes = {n.get("id"): n for n in bus.options.get("nodes", []) if isinstance(n, Mapping)}
-        var = checked_od(bus, a["node"], str(nodes[a["node"]]["eds"])).get_variable(
-            a["index"], a.get("subindex", 0))
-        dt = var.data_type
-        if dt == BOOLEAN:
-            return 0.0, 1.0
-        if dt == REAL32:
-            return -3.4028234663852886e38, 3.4028234663852886e38
-        if dt not in INTEGER_TYPES:
-            return None
-        bits = 8 * var.STRUCT_TYPES[dt].size
-        if dt in SIGNED_TYPES:
-            return float(-(1 << (bits - 1))), float((1 << (bits - 1)) - 1)
-        return 0.0, float((1 << bits) - 1)
+        return encodable(bus, device)
 
     # -- life cycle ---------------------------------------------------------------------------
 
@@ -324,17 +180,15 @@ class CanopenDriver(Driver):
             state.node.emcy.add_callback(lambda entry, s=state: self._on_emcy(s, entry))
             state.last_heartbeat = time.monotonic()
         self._running = True
-        self._thread = threading.Thread(target=self._io_loop, name=f"canopen-{self.bus.name}",
-                                        daemon=True)
-        self._thread.start()
+        self._start_worker()
         for nid, state in self._nodes.items():
             if state.nmt_start:
-                self._enqueue("nmt", str(nid), None)
+                self._submit("nmt", str(nid))
         if "sync_period" in opts:
             network.sync.start(float(opts["sync_period"]))
         for name, b in self._bindings.items():
             if b.device.direction == "sensor" and b.pdo_var is None:
-                self.host.every(b.poll_period, functools.partial(self._enqueue_poll, name))
+                self.host.every(b.poll_period, functools.partial(self._submit_poll, name))
 
     def _bind_devices(self) -> None:
         default_poll = float(self.bus.options.get("poll_period", DEFAULT_POLL))
@@ -360,20 +214,8 @@ class CanopenDriver(Driver):
     def stop(self) -> None:
         """Put every queued write on the wire (safe values at shutdown), then stop SYNC, the I/O
         thread and the bus. Idempotent; never raises."""
-        if self._running:
-            self._running = False
-            self._jobs.put(("stop", "", None))   # after every queued job: they run first
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
-            self._thread = None
-        while True:    # the I/O thread did not get to these (stuck past the join timeout)
-            try:
-                op, name, arg = self._jobs.get_nowait()
-            except queue.Empty:
-                break
-            if op == "write":
-                self.host.write_failed(name, arg, f"canopen bus {self.bus.name} stopped before "
-                                                  f"the write was sent")
+        self._running = False
+        self._stop_worker()     # runs every job queued before: they go out first
         rx, self._rx = self._rx, None
         if rx is not None:
             rx.stop()
@@ -383,26 +225,8 @@ class CanopenDriver(Driver):
                 network.sync.stop()
             with contextlib.suppress(Exception):
                 network.disconnect()
-        with self._idle:
-            self._pending = 0
-            self._idle.notify_all()
 
     # -- kernel side --------------------------------------------------------------------------
-
-    def write(self, device: str, value: Any) -> None:
-        """Queue ``value`` for actuator ``device`` (RPDO if mapped, else SDO download); never
-        blocks. An unknown device or a sensor is reported through ``host.error``."""
-        dev = self.devices.get(device)
-        if dev is None or dev.direction != "actuator":
-            self.host.error(self.bus.name, "unknown-device",
-                            f"write to {device!r}: not an actuator of canopen bus {self.bus.name}")
-            return
-        if not self._running:
-            self.host.error(self.bus.name, "stopped", f"write {value!r} to {device} dropped: "
-                                                      f"canopen bus {self.bus.name} is not running")
-            self.host.write_failed(device, value, f"canopen bus {self.bus.name} is not running")
-            return
-        self._enqueue("write", device, value)
 
     def check_value(self, device: str, value: Any) -> str | None:
         """Why ``value`` cannot be encoded for ``device``'s object (None if it can): not a
@@ -410,77 +234,29 @@ class CanopenDriver(Driver):
         b = self._bindings.get(device)
         if b is None:
             return None
-        if (why := not_finite(value)) is not None:
-            return why
-        if isinstance(value, bool):
-            value = int(value)
-        if (b.od_var.data_type in INTEGER_TYPES and isinstance(value, float)
-                and not value.is_integer()):
-            return f"expected an integer for object 0x{b.index:04X}:{b.subindex:02X}, got {value!r}"
-        try:
-            b.od_var.encode_raw(_coerce(b.od_var, value))
-        except (struct.error, TypeError, ValueError, OverflowError) as exc:
-            return (f"expected a value of data type {b.od_var.data_type:#x} for object "
-                    f"0x{b.index:04X}:{b.subindex:02X}: {exc}")
-        return None
-
-    def settle(self, timeout: float) -> bool:
-        """Hand every frame that arrived before this call to canopen (PDOs to the host), then
-        wait until every queued SDO/write is done."""
-        deadline = time.monotonic() + timeout
-        rx = self._rx
-        if rx is not None and not rx.settle(timeout):
-            return False
-        with self._idle:
-            return self._idle.wait_for(lambda: self._pending == 0,
-                                       max(0.0, deadline - time.monotonic()))
+        return value_error(b.od_var, b.index, b.subindex, value)
 
     # -- I/O thread ---------------------------------------------------------------------------
 
-    def _enqueue(self, op: str, name: str, arg: Any) -> None:
-        if not self._running:
-            return
-        with self._idle:
-            self._pending += 1
-        self._jobs.put((op, name, arg))
+    def _tick(self) -> float:
+        """The worker's longest wait for a job: until the next heartbeat deadline."""
+        return self._watchdog()
 
-    def _enqueue_poll(self, device: str) -> None:
-        with self._idle:
-            if device in self._polls_queued:
-                return
-            self._polls_queued.add(device)
-        self._enqueue("poll", device, None)
-
-    def _done(self) -> None:
-        with self._idle:
-            self._pending = max(0, self._pending - 1)
-            if self._pending == 0:
-                self._idle.notify_all()
-
-    def _io_loop(self) -> None:
-        # ends on the "stop" job only, which stop() queues after every write already queued
-        while True:
-            try:
-                op, name, arg = self._jobs.get(timeout=self._watchdog())
-            except queue.Empty:
-                continue
-            if op == "stop":
-                break
-            try:
-                if op == "poll":
-                    with self._idle:
-                        self._polls_queued.discard(name)
-                    self._poll(self._bindings[name])
-                elif op == "write":
-                    self._write(self._bindings[name], arg)
-                elif op == "nmt":
-                    self._nodes[int(name)].node.nmt.state = "OPERATIONAL"
-            except can.CanError as exc:
-                self.host.error(self.bus.name, "can", f"{op} {name}: CAN send failed: {exc}")
-                if op == "write":
-                    self.host.write_failed(name, arg, f"CAN send failed: {exc}")
-            finally:
-                self._done()
+    def _run(self, job: Job) -> None:
+        """A poll (SDO upload), a write (RPDO or SDO download), or an NMT start of a node."""
+        op, name, arg = job
+        try:
+            if op == "poll":
+                self._poll_taken(name)
+                self._poll(self._bindings[name])
+            elif op == "write":
+                self._transfer(self._bindings[name], arg)
+            elif op == "nmt":
+                self._nodes[int(name)].node.nmt.state = "OPERATIONAL"
+        except can.CanError as exc:
+            self.host.error(self.bus.name, "can", f"{op} {name}: CAN send failed: {exc}")
+            if op == "write":
+                self.host.write_failed(name, arg, f"CAN send failed: {exc}")
 
     def _watchdog(self) -> float:
         """Fail the devices of nodes whose heartbeat is overdue; the time to the next deadline.
@@ -531,9 +307,9 @@ class CanopenDriver(Driver):
         self._health.clear(b.device.name, "sdo", f"SDO read of {self._where(b)} answered")
         self.host.deliver(b.device.name, value)
 
-    def _write(self, b: _Binding, value: Any) -> None:
+    def _transfer(self, b: _Binding, value: Any) -> None:
         try:
-            raw = _coerce(b.od_var, value)
+            raw = coerce(b.od_var, value)
             data = b.od_var.encode_raw(raw)
         except (struct.error, TypeError, ValueError, OverflowError) as exc:
             text = (f"write {value!r} to {self._where(b)}: expected a value of data "
@@ -609,14 +385,14 @@ class CanopenDriver(Driver):
                 self._health.clear(dev, "heartbeat", f"canopen node {state.node.id}: heartbeat "
                                                      f"back")
         if state.nmt_start and nmt_state in (0, 127):  # boot-up or PRE-OPERATIONAL
-            self._enqueue("nmt", str(state.node.id), None)
+            self._submit("nmt", str(state.node.id))
 
     def _on_emcy(self, state: _NodeState, entry: Any) -> None:
         nid = state.node.id
         text = f"canopen node {nid} on bus {self.bus.name}: EMCY {entry} register " \
                f"0x{entry.register:02X}"
         self.host.error(self.bus.name, "emcy", text)
-        if entry.code & 0xFF00 == 0:
+        if is_error_reset(entry.code):
             for dev in state.devices:
                 self._health.clear(dev, "emcy", f"canopen node {nid}: error-reset EMCY")
         elif is_fatal_emcy(entry.code):
@@ -632,21 +408,6 @@ class CanopenDriver(Driver):
         return node_id in self._nodes
 
 
-def _coerce(od_var: Any, value: Any) -> Any:
-    """``value`` as the Python type canopen encodes for ``od_var``'s data type."""
-    if od_var.data_type == BOOLEAN:
-        return bool(value)
-    if od_var.data_type in INTEGER_TYPES:
-        if isinstance(value, float):
-            if value != value or value in (float("inf"), float("-inf")):
-                raise ValueError("not a finite number")
-            return round(value)
-        return int(value)
-    if od_var.data_type in FLOAT_TYPES:
-        return float(value)
-    return value
-
-
 class _FrameCheck(can.Listener):
     """Reports frames canopen would drop quietly: heartbeats of unknown nodes, short EMCYs."""
 
@@ -657,13 +418,14 @@ class _FrameCheck(can.Listener):
         cob = msg.arbitration_id
         if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
             return
-        if 0x701 <= cob <= 0x77F and not self._driver.knows_node(cob - 0x700):
+        hb, emcy = heartbeat_node(cob), emcy_node(cob)
+        if hb is not None and not self._driver.knows_node(hb):
             self._driver.report_frame("unknown-node",
-                                      f"heartbeat of node {cob - 0x700} (COB-ID 0x{cob:03X}), "
+                                      f"heartbeat of node {hb} (COB-ID 0x{cob:03X}), "
                                       f"which is not in the bus's nodes")
-        elif 0x81 <= cob <= 0xFF and self._driver.knows_node(cob - 0x80) and msg.dlc < 8:
+        elif emcy is not None and self._driver.knows_node(emcy) and msg.dlc < 8:
             self._driver.report_frame("malformed",
-                                      f"EMCY from node {cob - 0x80} with {msg.dlc} bytes, "
+                                      f"EMCY from node {emcy} with {msg.dlc} bytes, "
                                       f"expected 8")
 
     def stop(self) -> None:

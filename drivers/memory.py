@@ -115,7 +115,6 @@ class MemoryDriver(Driver):
         self.store = ActuatorStore(
             (d.name for d in devices if d.direction == "actuator"),
             int(bus.options.get("history", 100)))
-        self._running = False
 
     @classmethod
     def check_bus(cls, bus: BusSpec) -> list[str]:
@@ -140,8 +139,8 @@ class MemoryDriver(Driver):
         """Always quiet: nothing is ever in flight."""
         return True
 
-    def write(self, device: str, value: Any) -> None:
-        """Keep ``value`` as the last write of actuator ``device``; DeviceError if not one."""
+    def _write(self, device: str, value: Any) -> None:
+        """Keep ``value`` as the last write of actuator ``device``."""
         self.store.put(device, value)
 
     def inject(self, device: str, value: Any) -> None:

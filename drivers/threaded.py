@@ -151,7 +151,6 @@ class ThreadedDriver(Driver):
         self._cond = threading.Condition()
         self._outbox: deque[tuple[str, Any]] = deque()
         self._sending = False
-        self._running = False
         self._writer: threading.Thread | None = None
         self._rx = ReaderThread(self._read_loop, f"{self.kind}-{bus.name}-rx")
         self.error_counts: Counter[str] = Counter()
@@ -215,19 +214,17 @@ class ThreadedDriver(Driver):
             self.host.write_failed(device, value, f"{self.kind} bus {self.bus.name} stopped "
                                                   f"before the write was sent")
 
-    def write(self, device: str, value: Any) -> None:
+    def _write(self, device: str, value: Any) -> None:
         """Queue ``value`` for actuator ``device``; the writer thread sends it (the outcome
         arrives later as ``host.written``/``host.write_failed``). Never blocks."""
         with self._cond:
-            if not self._running:
-                refused = True
-            else:
-                refused = False
+            queued = self._running      # stop() may have come between write's check and here
+            if queued:
                 self._outbox.append((device, value))
                 self._cond.notify_all()
-        if refused:
-            self.host.write_failed(device, value, f"{self.kind} bus {self.bus.name} is not "
-                                                  f"running")
+        if not queued:
+            self._refuse(device, value, "stopped", f"{self.kind} bus {self.bus.name} is not "
+                                                   f"running")
 
     def settle(self, timeout: float) -> bool:
         """Hand the host every frame or line that arrived before this call and wait until no

@@ -93,7 +93,7 @@ def write_dbc_map(n: int, work: Path) -> Path:
 
 
 def _count_parses() -> tuple[list[int], Callable[[], None]]:
-    """Count cantools DBC parses (the wrapped loader of drivers.can_raw)."""
+    """Count cantools DBC parses (the wrapped loader of drivers.codecs.can)."""
     count = [0]
     real = cantools.database.load_file
 

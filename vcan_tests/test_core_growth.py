@@ -26,7 +26,7 @@ from chcos.system.manager import SystemManager
 from chcos.tables.messages import TOP_PRIORITY, EndpointKind, LinkType, TapPort
 from chcos.tables.tasks import Role, TaskEntry
 from chcos.user.context import TaskContext
-from drivers.can_raw import load_dbc
+from drivers.codecs.can import load_dbc
 
 M = "vcan_tests.test_core_growth"
 ROOT = Path(__file__).resolve().parent.parent

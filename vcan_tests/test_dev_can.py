@@ -9,7 +9,8 @@ import pytest
 
 from chcos.apps.sim.can_device import CanDeviceSim
 from drivers.base import Driver
-from drivers.can_raw import CanCodec, CanDriver
+from drivers.can_raw import CanDriver
+from drivers.codecs.can import CanCodec
 from vcan_tests.netutil import unique_channel
 from vcan_tests.support_dev import CELL_DBC, WAIT, FakeHost, bus, device
 

@@ -8,7 +8,8 @@ from typing import Any
 import pytest
 
 from chcos.apps.sim.serial_device import PtySerialSim, SerialSim, TcpSerialSim
-from drivers.serial_line import BinaryFramer, LineFramer, SerialDriver, checksum
+from drivers.codecs.serial import BinaryFramer, LineFramer, checksum
+from drivers.serial_line import SerialDriver
 from vcan_tests.support_dev import WAIT, FakeHost, bus, device
 
 PATTERN = r"W=(?P<w>-?\d+(\.\d+)?)( T=(?P<t>-?\w+))?"

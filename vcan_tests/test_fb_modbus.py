@@ -11,7 +11,8 @@ import pytest
 
 from chcos.apps.sim.modbus_server import ModbusSimServer, RegisterStore
 from chcos.devices.spec import BusSpec
-from drivers.modbus import ModbusRtuDriver, ModbusTcpDriver, Point, plan_reads
+from drivers.codecs.modbus import Point, plan_reads
+from drivers.modbus import ModbusRtuDriver, ModbusTcpDriver
 from vcan_tests.netutil import free_port
 from vcan_tests.support_fb import WAIT, FakeHost, make_device
 

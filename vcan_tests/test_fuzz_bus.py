@@ -16,8 +16,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pymodbus.exceptions import ModbusException
 
-from drivers.can_raw import CanCodec, CanDriver, socket_drops
-from drivers.modbus import REGISTER_TYPES, Point, classify_rtu_answer, reading_of
+from drivers.can_raw import CanDriver
+from drivers.canbus import socket_drops
+from drivers.codecs.can import CanCodec
+from drivers.codecs.modbus import REGISTER_TYPES, Point, classify_rtu_answer, reading_of
 from vcan_tests.conftest import require
 from vcan_tests.netutil import unique_channel
 from vcan_tests.support_dev import CELL_DBC, WAIT, FakeHost, bus, device

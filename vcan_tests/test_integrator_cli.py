@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from chcos.apps.sim.from_map import free_port
+from chcos.apps.sim.peers import free_port
 from chcos.cli import main as cli
 
 COMMANDS = ["run", "new", "import", "monitor", "check", "sim", "shell", "satellite", "host",

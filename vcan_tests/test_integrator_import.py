@@ -20,7 +20,7 @@ import pytest
 from pyModbusTCP.server import ModbusServer
 
 from chcos.apps.sim.canopen_slave import CanopenSlave
-from chcos.apps.sim.from_map import free_port
+from chcos.apps.sim.peers import free_port
 from chcos.cli import main as cli
 from chcos.devices.devmap import check_main
 from chcos.devices.importers.modbus_csv import import_modbus_csv

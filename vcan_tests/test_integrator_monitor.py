@@ -17,7 +17,7 @@ import can
 import pytest
 from pyModbusTCP.server import DataHandler, ModbusServer
 
-from chcos.apps.sim.from_map import free_port
+from chcos.apps.sim.peers import free_port
 from chcos.cli import main as cli
 from chcos.cli import monitor
 

@@ -105,10 +105,10 @@ def test_every_key_a_driver_accepts_is_in_the_reference(kind: str) -> None:
 
 
 def test_canopen_node_keys_and_common_keys() -> None:
-    from drivers import canopen_node
+    from drivers import canopen_od
 
     listed = {k.name for k in mapref.REFERENCE["canopen"].options if k.variant == "nodes[]"}
-    assert listed == set(canopen_node.NODE_KEYS)
+    assert listed == set(canopen_od.NODE_KEYS)
     assert [k.name for k in mapref.COMMON["bus"]] == list(devmap.BUS_KEYS)
     assert [k.name for k in mapref.COMMON["device"]] == list(devmap.DEVICE_KEYS)
 

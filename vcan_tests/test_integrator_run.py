@@ -18,7 +18,7 @@ from typing import Any
 import pytest
 from pyModbusTCP.server import DataHandler, ModbusServer
 
-from chcos.apps.sim.from_map import free_port
+from chcos.apps.sim.peers import free_port
 from chcos.cli import cellrun
 from chcos.cli import main as cli
 from chcos.errors import ConfigError

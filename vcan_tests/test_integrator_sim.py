@@ -18,7 +18,8 @@ from pathlib import Path
 
 import pytest
 
-from chcos.apps.sim.from_map import csv_trace, free_port, parse_script
+from chcos.apps.sim.peers import free_port
+from chcos.apps.sim.scripts import csv_trace, parse_script
 from chcos.cli import cellrun, scaffold
 from chcos.cli import main as cli
 from chcos.errors import ConfigError

@@ -17,7 +17,8 @@ from pathlib import Path
 import pytest
 
 from chcos.devices.spec import BusSpec
-from drivers.modbus import ModbusRtuDriver, classify_rtu_answer
+from drivers.codecs.modbus import classify_rtu_answer
+from drivers.modbus import ModbusRtuDriver
 from vcan_tests.support_fb import WAIT, FakeHost, make_device
 from vcan_tests.support_rtu import FaultRelay, PtyPair, RtuSlave, build_slave
 

@@ -19,7 +19,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.serial_line import BinaryFramer, LineFramer, SerialDriver, parse_number
+from drivers.codecs.serial import BinaryFramer, LineFramer, parse_number
+from drivers.serial_line import SerialDriver
 from vcan_tests.support_dev import WAIT, FakeHost, bus, device
 
 PATTERN = r"T=(?P<t>\S+)"

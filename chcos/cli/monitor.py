@@ -69,7 +69,8 @@ class PassiveCanopen:
         import can
 
         from chcos.devices.importers.eds import pdo_mappings
-        from drivers.canopen_node import eds_path, load_od
+        from drivers.canopen_od import load_od
+        from drivers.codecs.canopen import eds_path
 
         self.bus = bus
         self.devices = {d.name: d for d in devices}

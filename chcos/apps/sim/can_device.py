@@ -19,7 +19,7 @@ from typing import Any
 import can
 
 from chcos.errors import BusError
-from drivers.can_raw import load_dbc
+from drivers.codecs.can import load_dbc
 
 
 class CanDeviceSim:

@@ -21,7 +21,7 @@ from importlib import import_module
 from typing import Any
 
 from chcos.errors import BusError, ChcosError
-from drivers.serial_line import parse_hex
+from drivers.codecs.serial import parse_hex
 
 DELEGATED = {"canopen": "chcos.apps.sim.canopen_slave", "modbus": "chcos.apps.sim.modbus_server",
              "weld": "chcos.apps.weld.plant"}

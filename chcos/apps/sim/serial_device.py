@@ -22,7 +22,7 @@ from collections.abc import Callable, Sequence
 from typing import Self
 
 from chcos.errors import BusError
-from drivers.serial_line import checksum
+from drivers.codecs.serial import checksum
 
 
 class SerialSim(ABC):

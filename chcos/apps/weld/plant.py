@@ -81,7 +81,7 @@ from chcos.apps.weld.model import CellConfig, Readings, WeldCell, dbc_signals
 from chcos.apps.weld.seam import Seam
 from chcos.errors import BusError, ConfigError, DeviceError
 from chcos.kernel.scheduler import Kernel, Timer
-from drivers.can_raw import load_dbc
+from drivers.codecs.can import load_dbc
 
 BUSCONFIG = resources.path("chcos.apps.weld", "maps")
 #: The cell's device map (fixed default channels and ports).

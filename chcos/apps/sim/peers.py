@@ -1,0 +1,311 @@
+"""peers - the simulated peers of the bus kinds a device map can name (Modbus TCP/RTU, raw CAN,
+CANopen; serial is :mod:`chcos.apps.sim.serial_peer`): each answers one bus's devices on the
+real protocol, with the map's directions turned round (see :mod:`chcos.apps.sim.from_map`).
+The CAN peer codes frames with the driver's own pure codec (:mod:`drivers.codecs.can`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import itertools
+import os
+import re
+import socket
+import threading
+from typing import Any, Literal
+
+from chcos.apps.sim.modbus_server import ModbusSimServer, RegisterStore
+from chcos.devices.spec import BusSpec, DeviceSpec
+from chcos.errors import ConfigError
+
+LOOPBACK = ("127.0.0.1", "localhost", "::1")
+_channels = itertools.count()
+
+
+def free_port() -> int:
+    """A TCP port free on 127.0.0.1 right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+# ---- peers ------------------------------------------------------------------------------------
+class Peer:
+    """One bus's simulated peer."""
+
+    bus: BusSpec
+
+    def __init__(self, bus: BusSpec, devices: tuple[DeviceSpec, ...], rewrite: bool) -> None:
+        self.bus = bus
+
+    def set(self, device: DeviceSpec, raw: Any) -> None:
+        raise NotImplementedError
+
+    def get(self, device: DeviceSpec) -> Any:
+        raise NotImplementedError
+
+    def tick(self, now: float) -> None:
+        """Clock time ``now`` (seconds since the slaves started): send what is due."""
+
+    def silence(self) -> None:
+        raise NotImplementedError
+
+    def restore(self) -> None:
+        raise NotImplementedError
+
+    def describe(self) -> str:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+
+class ModbusPeer(Peer):
+    def __init__(self, bus: BusSpec, devices: tuple[DeviceSpec, ...], rewrite: bool) -> None:
+        from drivers.codecs.modbus import point_of
+
+        self.points = {d.name: point_of(d) for d in devices}
+        pts = list(self.points.values())
+        units = sorted({p.unit for p in pts}) or [1]
+        size = max([p.address + p.size for p in pts] + [16])
+        self.store = RegisterStore(units, size=size)
+        framer: Literal["tcp", "rtu"] = "tcp" if bus.kind == "modbus-tcp" else "rtu"
+        options = dict(bus.options)
+        if rewrite:
+            port = free_port()
+            if framer == "tcp":
+                options.update(host="127.0.0.1", port=port)
+            else:
+                options["port"] = f"socket://127.0.0.1:{port}"
+            host = "127.0.0.1"
+        elif framer == "tcp":
+            host, port = str(options["host"]), int(options.get("port", 502))
+            if host not in LOOPBACK:
+                raise ConfigError(f"{bus.file}: {bus.key} ({bus.name}): host {host!r}: a "
+                                  "simulated slave listens on loopback only (expected "
+                                  "127.0.0.1)")
+        else:
+            m = re.fullmatch(r"socket://(127\.0\.0\.1|localhost):(\d+)", str(options["port"]))
+            if not m:
+                raise ConfigError(f"{bus.file}: {bus.key} ({bus.name}): port "
+                                  f"{options['port']!r}: a simulated RTU slave needs "
+                                  "socket://127.0.0.1:PORT")
+            host, port = "127.0.0.1", int(m.group(2))
+        self.bus = dataclasses.replace(bus, options=options)
+        self.server = ModbusSimServer(self.store, port, host=host, framer=framer)
+        self.server.start()
+
+    def set(self, device: DeviceSpec, raw: Any) -> None:
+        p = self.points[device.name]
+        if p.type != "bool" and not p.type.startswith("float"):
+            raw = round(raw)
+        self.store.set_value(p.unit, p.table, p.address, raw, p.type, p.word_order)
+
+    def get(self, device: DeviceSpec) -> Any:
+        p = self.points[device.name]
+        return self.store.get_value(p.unit, p.table, p.address, p.type, p.word_order)
+
+    def silence(self) -> None:
+        self.server.stop()
+
+    def restore(self) -> None:
+        self.server.start()
+
+    def describe(self) -> str:
+        kind = "Modbus TCP" if self.server.framer == "tcp" else "Modbus RTU over TCP"
+        return f"{kind} server on {self.server.host}:{self.server.port}"
+
+    def close(self) -> None:
+        self.server.stop()
+
+
+def can_args(options: Any, rewrite: bool, tag: str) -> dict[str, Any]:
+    if rewrite:
+        return {"interface": "virtual",
+                "channel": f"chcos-sim-{tag}-{os.getpid()}-{next(_channels)}"}
+    args = {k: options[k] for k in ("interface", "channel", "bitrate") if k in options}
+    if "interface" not in args or "channel" not in args:
+        import can
+
+        cfg = can.util.load_config()
+        args.setdefault("interface", cfg.get("interface"))
+        args.setdefault("channel", cfg.get("channel"))
+    return args
+
+
+class CanPeer(Peer):
+    def __init__(self, bus: BusSpec, devices: tuple[DeviceSpec, ...], rewrite: bool) -> None:
+        import can
+
+        from drivers.codecs.can import CanCodec
+
+        flipped = [dataclasses.replace(d, direction="actuator" if d.direction == "sensor"
+                                       else "sensor") for d in devices]
+        self.codec = CanCodec(bus, flipped)
+        self.args = can_args(bus.options, rewrite, bus.name)
+        options = dict(bus.options)
+        if rewrite:
+            options.update(self.args)
+        self.bus = dataclasses.replace(bus, options=options)
+        self.sensors = [d for d in devices if d.direction == "sensor"]
+        self.actuators = {d.name: d for d in devices if d.direction == "actuator"}
+        self.values: dict[str, Any] = {}
+        self.muted = False
+        self.lock = threading.Lock()
+        self.received: dict[str, Any] = {}
+        self.can: Any = can.Bus(**self.args)
+        self.period: dict[str, float] = {}
+        dbc_msgs: dict[str, Any] = {}
+        for d in self.sensors:
+            cycle = None
+            if "message" in d.address and "dbc" in bus.options:
+                if not dbc_msgs:
+                    from drivers.codecs.can import load_dbc
+
+                    dbc_msgs = {m.name: m for m in load_dbc(str(bus.options["dbc"])).messages}
+                cycle = dbc_msgs[d.address["message"]].cycle_time
+            self.period[d.name] = (cycle or 100) / 1000.0
+        self.next_due: dict[str, float] = {d.name: 0.0 for d in self.sensors}
+
+    def set(self, device: DeviceSpec, raw: Any) -> None:
+        with self.lock:
+            self.values[device.name] = raw
+            if not self.muted:
+                self._send(device.name)
+
+    def _send(self, name: str) -> None:
+        import can
+
+        coded = self.codec.encode(name, self.values.get(name, 0))
+        msg = can.Message(arbitration_id=coded.arbitration_id, data=coded.data,
+                          is_extended_id=coded.is_extended_id)
+        with contextlib.suppress(can.CanError):  # a full queue: the next cycle sends it again
+            self.can.send(msg)
+
+    def get(self, device: DeviceSpec) -> Any:
+        with self.lock:
+            while True:
+                frame = self.can.recv(timeout=0)
+                if frame is None:
+                    break
+                status, vals = self.codec.decode(frame)
+                if status == "ok" and isinstance(vals, list):
+                    for dev, v in vals:
+                        self.received[dev] = v
+            return self.received.get(device.name)
+
+    def tick(self, now: float) -> None:
+        with self.lock:
+            if self.muted:
+                return
+            sent: set[int] = set()
+            for d in self.sensors:
+                if now + 1e-9 >= self.next_due[d.name]:
+                    self.next_due[d.name] = now + self.period[d.name]
+                    frame = self.codec.encode(d.name, self.values.get(d.name, 0))
+                    if frame.arbitration_id not in sent:  # one frame carries all its signals
+                        sent.add(frame.arbitration_id)
+                        self._send(d.name)
+
+    def silence(self) -> None:
+        with self.lock:
+            self.muted = True
+
+    def restore(self) -> None:
+        with self.lock:
+            self.muted = False
+
+    def describe(self) -> str:
+        return f"CAN node on {self.args.get('interface')} channel {self.args.get('channel')}"
+
+    def close(self) -> None:
+        self.can.shutdown()
+
+
+class CanopenPeer(Peer):
+    def __init__(self, bus: BusSpec, devices: tuple[DeviceSpec, ...], rewrite: bool) -> None:
+        from chcos.apps.sim.canopen_slave import CanopenSlave
+        from drivers.codecs.canopen import eds_path
+
+        self.args = can_args(bus.options, rewrite, bus.name)
+        options = dict(bus.options)
+        if rewrite:
+            options.update(self.args)
+        self.bus = dataclasses.replace(bus, options=options)
+        self.slaves: dict[int, Any] = {}
+        self.heartbeat: dict[int, float] = {}
+        self.muted = False
+        self.next_hb: dict[int, float] = {}
+        self.next_tpdo: dict[int, float] = {}
+        try:
+            for node in bus.options.get("nodes", []):
+                nid = int(node["id"])
+                slave = CanopenSlave(nid, eds_path(bus, str(node["eds"])),
+                                     channel=str(self.args["channel"]),
+                                     interface=str(self.args["interface"]), heartbeat_period=0.0)
+                slave.start()
+                self.slaves[nid] = slave
+                if node.get("heartbeat_timeout"):
+                    self.heartbeat[nid] = float(node["heartbeat_timeout"]) / 3
+                    self.next_hb[nid] = 0.0
+        except BaseException:
+            self.close()
+            raise
+
+    def _slave(self, device: DeviceSpec) -> tuple[Any, int, int]:
+        a = device.address
+        return self.slaves[int(a["node"])], int(a["index"]), int(a.get("subindex", 0))
+
+    def set(self, device: DeviceSpec, raw: Any) -> None:
+        slave, index, sub = self._slave(device)
+        var = slave._var(index, sub)  # the EDS's type decides how the value is coded
+        if getattr(var, "data_type", None) not in float_types():
+            raw = round(raw) if not isinstance(raw, bool) else raw
+        if self.muted:
+            with slave._lock:
+                slave._node.data_store.setdefault(index, {})[sub] = var.encode_raw(raw)
+            return
+        slave.set(index, sub, raw)
+
+    def get(self, device: DeviceSpec) -> Any:
+        slave, index, sub = self._slave(device)
+        return slave.get(index, sub)
+
+    def tick(self, now: float) -> None:
+        if self.muted:
+            return
+        for nid, period in self.heartbeat.items():
+            if now + 1e-9 >= self.next_hb[nid]:
+                self.next_hb[nid] = now + period
+                slave = self.slaves[nid]
+                state = {"OPERATIONAL": 0x05, "STOPPED": 0x04}.get(slave.nmt_state, 0x7F)
+                slave._network.send_message(0x700 + nid, bytes([state]))
+        for slave in self.slaves.values():  # TPDO event timers
+            period = slave._tpdo_event_period()
+            if period is None:
+                continue
+            if now + 1e-9 >= self.next_tpdo.get(slave.node_id, 0.0):
+                self.next_tpdo[slave.node_id] = now + period
+                for pdo_map in slave._node.tpdo.map.values():
+                    slave._transmit(pdo_map)
+
+    def silence(self) -> None:
+        self.muted = True
+
+    def restore(self) -> None:
+        self.muted = False
+
+    def describe(self) -> str:
+        return (f"CANopen node(s) {', '.join(str(n) for n in self.slaves)} on "
+                f"{self.args.get('interface')} channel {self.args.get('channel')}")
+
+    def close(self) -> None:
+        for slave in self.slaves.values():
+            slave.stop()
+
+
+def float_types() -> tuple[int, ...]:
+    from canopen.objectdictionary import FLOAT_TYPES
+
+    return tuple(FLOAT_TYPES)

@@ -1,0 +1,193 @@
+"""canopen_od - the object-dictionary side of the ``canopen`` driver: reading a node's EDS with
+the canopen library (once per map load, see :mod:`chcos.devices.parsecache`), the checks of the
+bus options and device addresses against it, the raw range of an object and the coercion and
+check of a value for its data type. No bus I/O; the driver is :mod:`drivers.canopen_node`.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Mapping
+from typing import Any
+
+import canopen
+from canopen.objectdictionary import BOOLEAN, FLOAT_TYPES, INTEGER_TYPES
+from canopen.objectdictionary.datatypes import REAL32, SIGNED_TYPES
+
+from chcos.devices import parsecache
+from chcos.devices.spec import BusSpec, DeviceSpec
+from drivers.base import is_int, is_number, not_finite
+from drivers.codecs.canopen import eds_path
+
+BUS_OPTIONS = ("interface", "channel", "bitrate", "nodes", "sync_period", "poll_period",
+               "sdo_timeout", "poll")
+NODE_KEYS = ("id", "eds", "heartbeat_timeout", "nmt_start")
+ADDRESS_KEYS = ("node", "index", "subindex", "poll_period")
+DEFAULT_POLL = 0.1
+
+
+def load_od(bus: BusSpec, node_id: int, eds: str) -> Any:
+    """canopen's object dictionary of node ``node_id`` from ``eds``; raises ``ValueError`` naming
+    the file when canopen cannot read it."""
+    path = eds_path(bus, eds)
+    if not path.is_file():
+        raise ValueError(f"EDS file {path} does not exist")
+    try:
+        return parsecache.cached("eds", path, node_id,
+                                 lambda: canopen.import_od(str(path), node_id))
+    except Exception as exc:  # canopen raises assorted types for a malformed EDS
+        raise ValueError(f"canopen cannot read EDS {path}: {exc}") from exc
+
+
+def checked_od(bus: BusSpec, node_id: int, eds: str) -> Any:
+    """:func:`load_od` for the map checks (``check_device``, ``encodable``): inside a
+    :func:`chcos.devices.parsecache.scope` one parse per node and file, however many devices use it.
+    The result may be shared: read it, never change it (a running node gets its own).
+    Raises ``ValueError`` like :func:`load_od`."""
+    return load_od(bus, node_id, eds)
+
+
+def check_bus(bus: BusSpec) -> list[str]:
+    """Errors of the bus options (unknown keys, types, node ids, unreadable EDS files)."""
+    errs: list[str] = []
+    k = bus.key
+    opts = bus.options
+    for key in opts:
+        if key not in BUS_OPTIONS:
+            errs.append(f"{k}.{key}: unknown option for a canopen bus; valid options: "
+                        f"{', '.join(BUS_OPTIONS)}")
+    for key in ("interface", "channel"):
+        if key in opts and (not isinstance(opts[key], str | int) or opts[key] == ""):
+            errs.append(f"{k}.{key}: expected a python-can {key} name, got {opts[key]!r}")
+    if "bitrate" in opts and not (is_int(opts["bitrate"]) and opts["bitrate"] > 0):
+        errs.append(f"{k}.bitrate: expected an integer > 0 (bit/s), got {opts['bitrate']!r}")
+    if "poll" in opts and not (is_number(opts["poll"]) and 0 < opts["poll"] <= 1):
+        errs.append(f"{k}.poll: expected seconds in (0, 1], got {opts['poll']!r}")
+    for key in ("sync_period", "poll_period", "sdo_timeout"):
+        if key in opts and not (is_number(opts[key]) and opts[key] > 0):
+            errs.append(f"{k}.{key}: expected a number of seconds > 0, got {opts[key]!r}")
+    nodes = opts.get("nodes")
+    if not isinstance(nodes, list) or not nodes:
+        return [*errs, f"{k}.nodes: expected a non-empty array of {{id, eds}} tables, "
+                       f"got {nodes!r}"]
+    seen: set[int] = set()
+    for i, node in enumerate(nodes):
+        errs.extend(check_node(bus, f"{k}.nodes[{i}]", node, seen))
+    return errs
+
+def check_node(bus: BusSpec, k: str, node: object, seen: set[int]) -> list[str]:
+    """Errors of entry ``k`` of the bus's ``nodes`` (``seen``: the ids so far)."""
+    if not isinstance(node, Mapping):
+        return [f"{k}: expected a table {{id, eds}}, got {node!r}"]
+    errs = [f"{k}.{key}: unknown key; valid keys: {', '.join(NODE_KEYS)}"
+            for key in node if key not in NODE_KEYS]
+    nid = node.get("id")
+    if not (is_int(nid) and 1 <= nid <= 127):
+        errs.append(f"{k}.id: expected a CANopen node id 1..127, got {nid!r}")
+    elif nid in seen:
+        errs.append(f"{k}.id: node id {nid} appears twice on bus {bus.name}")
+    else:
+        seen.add(nid)
+    eds = node.get("eds")
+    if not isinstance(eds, str) or not eds:
+        errs.append(f"{k}.eds: expected the path of the node's EDS file, got {eds!r}")
+    elif is_int(nid):
+        try:
+            load_od(bus, nid, eds)
+        except ValueError as exc:
+            errs.append(f"{k}.eds: expected a readable EDS file; {exc}")
+    hb = node.get("heartbeat_timeout")
+    if hb is not None and not (is_number(hb) and hb > 0):
+        errs.append(f"{k}.heartbeat_timeout: expected a number of seconds > 0, got {hb!r}")
+    if "nmt_start" in node and not isinstance(node["nmt_start"], bool):
+        errs.append(f"{k}.nmt_start: expected true or false, got {node['nmt_start']!r}")
+    return errs
+
+def check_device(bus: BusSpec, device: DeviceSpec) -> list[str]:
+    """Errors of a device address: keys, node on this bus, object present in the node's EDS,
+    readable for a sensor and writable for an actuator."""
+    k = f"{device.key}.address"
+    a = device.address
+    errs = [f"{k}.{key}: unknown key; valid keys: {', '.join(ADDRESS_KEYS)}"
+            for key in a if key not in ADDRESS_KEYS]
+    nodes = {n.get("id"): n for n in bus.options.get("nodes", []) if isinstance(n, Mapping)}
+    nid, index, sub = a.get("node"), a.get("index"), a.get("subindex", 0)
+    if not is_int(nid) or nid not in nodes:
+        errs.append(f"{k}.node: expected the id of a node of bus {bus.name} "
+                    f"({', '.join(str(n) for n in nodes) or 'none'}), got {nid!r}")
+    if not (is_int(index) and 0 <= index <= 0xFFFF):
+        errs.append(f"{k}.index: expected an object index 0..0xFFFF, got {index!r}")
+    if not (is_int(sub) and 0 <= sub <= 0xFF):
+        errs.append(f"{k}.subindex: expected a subindex 0..255, got {sub!r}")
+    pp = a.get("poll_period")
+    if pp is not None and not (is_number(pp) and pp > 0):
+        errs.append(f"{k}.poll_period: expected a number of seconds > 0, got {pp!r}")
+    if errs or not is_int(nid):
+        return errs
+    eds = nodes[nid].get("eds")
+    try:
+        od = checked_od(bus, nid, eds) if isinstance(eds, str) else None
+    except ValueError:
+        return []  # reported by check_bus
+    var = od.get_variable(index, sub) if od is not None else None
+    if od is not None and var is None:
+        errs.append(f"{k}: expected an object of node {nid}'s EDS, no 0x{index:04X}:{sub:02X}")
+    elif var is not None and device.direction == "sensor" and not var.readable:
+        errs.append(f"{k}: 0x{index:04X}:{sub:02X} is not readable; a sensor needs a readable "
+                    f"object")
+    elif var is not None and device.direction == "actuator" and not var.writable:
+        errs.append(f"{k}: 0x{index:04X}:{sub:02X} is read-only; an actuator needs a writable "
+                    f"object")
+    return errs
+
+def encodable(bus: BusSpec, device: DeviceSpec) -> tuple[float, float] | None:
+    """The range of the object's data type in the node's EDS: 0..1 for BOOLEAN, the
+    INTEGERn/UNSIGNEDn ranges, the largest REAL32; None for REAL64 and other types."""
+    a = device.address
+    nodes = {n.get("id"): n for n in bus.options.get("nodes", []) if isinstance(n, Mapping)}
+    var = checked_od(bus, a["node"], str(nodes[a["node"]]["eds"])).get_variable(
+        a["index"], a.get("subindex", 0))
+    dt = var.data_type
+    if dt == BOOLEAN:
+        return 0.0, 1.0
+    if dt == REAL32:
+        return -3.4028234663852886e38, 3.4028234663852886e38
+    if dt not in INTEGER_TYPES:
+        return None
+    bits = 8 * var.STRUCT_TYPES[dt].size
+    if dt in SIGNED_TYPES:
+        return float(-(1 << (bits - 1))), float((1 << (bits - 1)) - 1)
+    return 0.0, float((1 << bits) - 1)
+
+
+def coerce(od_var: Any, value: Any) -> Any:
+    """``value`` as the Python type canopen encodes for ``od_var``'s data type."""
+    if od_var.data_type == BOOLEAN:
+        return bool(value)
+    if od_var.data_type in INTEGER_TYPES:
+        if isinstance(value, float):
+            if value != value or value in (float("inf"), float("-inf")):
+                raise ValueError("not a finite number")
+            return round(value)
+        return int(value)
+    if od_var.data_type in FLOAT_TYPES:
+        return float(value)
+    return value
+
+
+def value_error(od_var: Any, index: int, subindex: int, value: Any) -> str | None:
+    """Why ``value`` cannot be encoded for object ``od_var`` (``index``:``subindex``), or None
+    if it can: not a finite number, a fraction for an integer object, outside the data type's
+    range."""
+    if (why := not_finite(value)) is not None:
+        return why
+    if isinstance(value, bool):
+        value = int(value)
+    if od_var.data_type in INTEGER_TYPES and isinstance(value, float) and not value.is_integer():
+        return f"expected an integer for object 0x{index:04X}:{subindex:02X}, got {value!r}"
+    try:
+        od_var.encode_raw(coerce(od_var, value))
+    except (struct.error, TypeError, ValueError, OverflowError) as exc:
+        return (f"expected a value of data type {od_var.data_type:#x} for object "
+                f"0x{index:04X}:{subindex:02X}: {exc}")
+    return None

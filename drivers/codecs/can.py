@@ -1,0 +1,267 @@
+"""can - the pure codec of the ``can`` bus: DBC loading, the mapping of devices onto DBC or raw
+signals, frame decoding and encoding, and the checks of a device address. No I/O (no python-can):
+frames are :class:`CanFrame` values or anything with the same attributes (a ``can.Message``).
+Used by the CAN driver (:mod:`drivers.can_raw`) and by the simulated CAN nodes.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import cantools
+from cantools.database.can import Message as DbcMessage
+from cantools.database.can import Signal as DbcSignal
+
+from chcos.devices import parsecache
+from chcos.devices.spec import BusSpec, DeviceSpec
+from chcos.errors import BusError
+from drivers.base import is_int, not_finite
+
+DBC_KEYS = ("message", "signal")
+RAW_KEYS = ("id", "start", "length", "byte_order", "signed", "dlc", "extended")
+BYTE_ORDERS = ("little_endian", "big_endian")
+
+
+def load_dbc(path: str) -> Any:
+    """Load a DBC file with cantools (once per device-map load, see
+    :mod:`chcos.devices.parsecache`);
+    raises :class:`BusError` naming the file."""
+    try:
+        return parsecache.cached("dbc", path, None, lambda: cantools.database.load_file(
+            path, database_format="dbc", strict=True))
+    except (OSError, cantools.database.errors.Error, ValueError) as exc:
+        raise BusError(f"DBC file {path}: cannot be loaded: {exc}") from exc
+
+
+def checked_dbc(path: str) -> Any:
+    """:func:`load_dbc` for the map checks (``check_device``, ``encodable``): inside a
+    :func:`chcos.devices.parsecache.scope` (``chcos check``, a device-map load) one parse per file,
+    however many devices use it. The result may be shared: read it, never change it. Raises
+    :class:`BusError` naming the file."""
+    return load_dbc(path)
+
+
+def int_range(length: int, signed: bool) -> tuple[int, int]:
+    if signed:
+        return -(1 << (length - 1)), (1 << (length - 1)) - 1
+    return 0, (1 << length) - 1
+
+
+def _initial(sig: Any) -> float:
+    init = sig.initial if sig.initial is not None else 0
+    if sig.minimum is not None and init < sig.minimum:
+        init = sig.minimum
+    if sig.maximum is not None and init > sig.maximum:
+        init = sig.maximum
+    return float(init)
+
+
+class FrameLike(Protocol):
+    """What the codec reads of a received frame (a ``can.Message`` has it)."""
+
+    arbitration_id: int
+    is_extended_id: bool
+    is_remote_frame: bool
+    dlc: int
+    data: Any
+
+
+@dataclass(frozen=True)
+class CanFrame:
+    """A data frame to send (or a received one): id, payload, extended id; the attribute
+    names are python-can's, so ``can.Message(**dataclasses.asdict(frame))`` builds it."""
+
+    arbitration_id: int
+    data: bytes
+    is_extended_id: bool = False
+
+    @property
+    def is_remote_frame(self) -> bool:
+        """A CanFrame is always a data frame."""
+        return False
+
+    @property
+    def dlc(self) -> int:
+        """The payload length."""
+        return len(self.data)
+
+
+@dataclass
+class _Frame:
+    """One message this driver codes: the cantools message and which device each signal is."""
+
+    message: Any
+    sensors: dict[str, str] = field(default_factory=dict)     # signal name -> device
+    actuators: dict[str, str] = field(default_factory=dict)   # signal name -> device
+    values: dict[str, float] = field(default_factory=dict)    # last written (actuator side)
+
+
+class CanCodec:
+    """Maps devices to DBC/raw signals; decodes received frames, encodes actuator frames.
+
+    Pure (no bus). Built from checked specs; raises :class:`BusError` if the DBC file is unusable.
+    """
+
+    def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec]) -> None:
+        dbc = load_dbc(str(bus.options["dbc"])) if "dbc" in bus.options else None
+        self._by_id: dict[tuple[int, bool], _Frame] = {}
+        self._by_device: dict[str, tuple[_Frame, str]] = {}
+        raw_groups: dict[int, list[DeviceSpec]] = {}
+        for d in devices:
+            if "message" in d.address:
+                if dbc is None:
+                    raise BusError(f"{d.file} {d.key}: a DBC address needs the bus option dbc")
+                msg = dbc.get_message_by_name(d.address["message"])
+                self._attach(msg, d, d.address["signal"])
+            else:
+                raw_groups.setdefault(int(d.address["id"]), []).append(d)
+        for fid, group in raw_groups.items():
+            a0 = group[0].address
+            sigs = [DbcSignal(d.name, int(d.address["start"]), int(d.address["length"]),
+                              byte_order=d.address.get("byte_order", "little_endian"),
+                              is_signed=bool(d.address.get("signed", False))) for d in group]
+            msg = DbcMessage(fid, f"raw_0x{fid:X}", int(a0.get("dlc", 8)), sigs,
+                             is_extended_frame=bool(a0.get("extended", False)), strict=False)
+            for d in group:
+                self._attach(msg, d, d.name)
+
+    def _attach(self, msg: Any, device: DeviceSpec, signal: str) -> None:
+        key = (msg.frame_id, bool(msg.is_extended_frame))
+        fr = self._by_id.get(key)
+        if fr is None:
+            fr = _Frame(msg, values={s.name: _initial(s) for s in msg.signals})
+            self._by_id[key] = fr
+        side = fr.sensors if device.direction == "sensor" else fr.actuators
+        side[signal] = device.name
+        self._by_device[device.name] = (fr, signal)
+
+    def decode(self, frame: FrameLike) -> tuple[str, list[tuple[str, Any]] | str]:
+        """Classify and decode ``frame``: ``("ok", [(device, value)...])``, ``("ignore", why)``,
+        or ``(error_kind, detail)`` with error_kind in remote-frame, unknown-id, wrong-length,
+        undecodable."""
+        if frame.is_remote_frame:
+            return "remote-frame", (f"remote frame (a data request) for id "
+                                    f"0x{frame.arbitration_id:X}, dlc {frame.dlc}: chcos does "
+                                    f"not answer remote requests")
+        fr = self._by_id.get((frame.arbitration_id, bool(frame.is_extended_id)))
+        if fr is None:
+            return "unknown-id", f"frame id 0x{frame.arbitration_id:X} is in no device's message"
+        if not fr.sensors:
+            return "ignore", "actuator message"
+        if len(frame.data) != fr.message.length:
+            return "wrong-length", (f"frame id 0x{frame.arbitration_id:X} ({fr.message.name}) "
+                                    f"has {len(frame.data)} bytes, expected {fr.message.length}")
+        try:
+            vals = fr.message.decode(bytes(frame.data), decode_choices=False)
+        except (cantools.database.DecodeError, ValueError, KeyError) as exc:
+            return "undecodable", f"frame id 0x{frame.arbitration_id:X}: {exc}"
+        out = [(dev, vals[sig]) for sig, dev in fr.sensors.items()]
+        for dev, v in out:
+            if isinstance(v, float) and not math.isfinite(v):
+                return "undecodable", (f"frame id 0x{frame.arbitration_id:X}: signal of {dev} "
+                                       f"is {v}, not a finite number")
+        return "ok", out
+
+    def check(self, device: str, value: Any) -> str | None:
+        """Why ``value`` cannot be encoded for actuator ``device`` (None if it can): not a
+        finite number, outside the signal's range or bit width, a fraction for a raw (non-DBC)
+        integer signal. Nothing is remembered."""
+        item = self._by_device.get(device)
+        if item is None:
+            return None
+        fr, sig = item
+        if (why := not_finite(value)) is not None:
+            return why
+        if isinstance(value, bool):
+            value = int(value)
+        signal = fr.message.get_signal_by_name(sig)
+        if (fr.message.name.startswith("raw_0x") and not signal.is_float
+                and isinstance(value, float) and not value.is_integer()):
+            return f"expected an integer for raw signal {sig} ({signal.length} bits), got {value!r}"
+        values = dict(fr.values)
+        values[sig] = value
+        try:
+            fr.message.encode(values, strict=True)
+            if fr.message.name.startswith("raw_0x"):
+                lo = -(1 << (signal.length - 1)) if signal.is_signed else 0
+                hi = ((1 << (signal.length - 1)) - 1 if signal.is_signed
+                      else (1 << signal.length) - 1)
+                if not signal.is_float and not lo <= value <= hi:
+                    return f"expected {lo}..{hi} for raw signal {sig}, got {value!r}"
+        except (cantools.database.EncodeError, ValueError, KeyError, OverflowError) as exc:
+            return f"cannot encode into {fr.message.name}: {exc}"
+        return None
+
+    def encode(self, device: str, value: Any) -> CanFrame:
+        """The frame that sets actuator ``device`` to ``value``, other signals unchanged.
+
+        Raises :class:`BusError` if ``device`` is unknown or the value cannot be encoded (outside
+        the DBC signal's range or bit width); the remembered values are then unchanged."""
+        try:
+            fr, sig = self._by_device[device]
+        except KeyError:
+            raise BusError(f"{device!r} is not a device of this CAN bus") from None
+        values = dict(fr.values)
+        values[sig] = value
+        try:
+            data = fr.message.encode(values, strict=True)
+        except (cantools.database.EncodeError, ValueError, KeyError, OverflowError) as exc:
+            raise BusError(f"cannot encode {device}={value!r} into {fr.message.name}: {exc}") \
+                from exc
+        fr.values = values
+        return CanFrame(fr.message.frame_id, bytes(data), bool(fr.message.is_extended_frame))
+
+
+def check_address(bus: BusSpec, device: DeviceSpec, dbc: Any) -> list[str]:
+    """Errors of one device address on a ``can`` bus (``dbc`` is the loaded DBC or None)."""
+    key = f"{device.key}.address"
+    a = device.address
+    if "message" in a or "signal" in a:
+        errs = [f"{key}.{k}: unknown key in a DBC address; valid keys: {', '.join(DBC_KEYS)}"
+                for k in a if k not in DBC_KEYS]
+        msg_name, sig_name = a.get("message"), a.get("signal")
+        if not isinstance(msg_name, str) or not isinstance(sig_name, str):
+            return [*errs, f"{key}: expected message and signal names (strings), "
+                           f"got {dict(a)!r}"]
+        if dbc is None:
+            return [*errs, f"{key}.message: a DBC address needs the bus option dbc "
+                           f"({bus.key}.dbc); or use the raw form {{id, start, length}}"]
+        try:
+            msg = dbc.get_message_by_name(msg_name)
+        except KeyError:
+            names = ", ".join(m.name for m in dbc.messages)
+            return [*errs, f"{key}.message: no message {msg_name!r} in {bus.options['dbc']}; "
+                           f"expected one of: {names}"]
+        if sig_name not in [s.name for s in msg.signals]:
+            return [*errs, f"{key}.signal: no signal {sig_name!r} in message {msg_name}; "
+                           f"expected one of: {', '.join(s.name for s in msg.signals)}"]
+        return errs
+    errs = [f"{key}.{k}: unknown key; valid keys: {', '.join(DBC_KEYS)} (DBC form) or "
+            f"{', '.join(RAW_KEYS)} (raw form)" for k in a if k not in RAW_KEYS]
+    if not a:
+        return [f"{key}: expected {{message, signal}} (DBC) or {{id, start, length}} (raw)"]
+    ext = a.get("extended", False)
+    fid = a.get("id")
+    if not isinstance(ext, bool):
+        errs.append(f"{key}.extended: expected true or false, got {ext!r}")
+    if not is_int(fid) or not 0 <= fid <= (0x1FFFFFFF if ext is True else 0x7FF):
+        errs.append(f"{key}.id: expected a CAN id 0..{'0x1FFFFFFF' if ext is True else '0x7FF'}"
+                    f", got {fid!r}")
+    dlc = a.get("dlc", 8)
+    if not is_int(dlc) or not 0 < dlc <= 64:
+        errs.append(f"{key}.dlc: expected a frame length 1..64 bytes, got {dlc!r}")
+        dlc = 8
+    start, length = a.get("start"), a.get("length")
+    if not is_int(start) or not 0 <= start < dlc * 8:
+        errs.append(f"{key}.start: expected a start bit 0..{dlc * 8 - 1}, got {start!r}")
+    if not is_int(length) or not 1 <= length <= 64:
+        errs.append(f"{key}.length: expected a bit length 1..64, got {length!r}")
+    if a.get("byte_order", "little_endian") not in BYTE_ORDERS:
+        errs.append(f"{key}.byte_order: expected one of {', '.join(BYTE_ORDERS)}, "
+                    f"got {a.get('byte_order')!r}")
+    if not isinstance(a.get("signed", False), bool):
+        errs.append(f"{key}.signed: expected true or false, got {a.get('signed')!r}")
+    return errs

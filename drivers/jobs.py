@@ -1,0 +1,240 @@
+"""jobs - the job-queue scaffolding of the request/response drivers (CANopen, Modbus).
+
+Their bus I/O runs as jobs, in order, on one I/O thread of the driver: a poll of some sensors, a
+write, a probe, an NMT command. The kernel side only enqueues (``host.every`` callbacks and
+:meth:`drivers.base.Driver.write` never block) and :meth:`JobDriver.settle` waits until every job
+handed over so far is done. :class:`JobDriver` keeps that count (``_pending`` under the
+``_idle`` condition), the set of polls already queued (a poll is queued at most once, however
+late the I/O thread is), the ``write`` job and the settle, including the settle of an optional
+:class:`drivers.threaded.ReaderThread` (``_rx``) whose frames the jobs wait for. Two transports:
+
+- :class:`WorkerJobDriver`: a plain worker thread taking jobs from a :class:`queue.Queue` (the
+  CANopen driver, whose library calls block); a subclass writes ``_run(job)`` and may override
+  ``_tick()`` (the longest wait for a job: its watchdog's period);
+- :class:`AsyncJobDriver`: an asyncio loop in the driver's thread with an :class:`asyncio.Queue`
+  (the Modbus drivers, on pymodbus's asyncio clients); a subclass writes the coroutine
+  ``_main()`` that takes the jobs (and connects, reconnects...).
+
+In both, :meth:`stop` queues a ``stop`` job behind every job already queued, so writes queued
+before the stop (the safe values at shutdown) still go out; a write the thread did not get to
+is reported failed. A job ends with ``_done()`` exactly once, whether it ran or not.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import queue
+import threading
+import time
+from abc import abstractmethod
+from collections.abc import Hashable, Sequence
+from typing import Any, NamedTuple
+
+from chcos.devices.spec import BusSpec, DeviceSpec
+from drivers.base import Driver, DriverHost
+from drivers.threaded import ReaderThread
+
+
+class Job(NamedTuple):
+    """One unit of bus I/O: ``op`` (``poll``, ``write``, ``probe``, ``nmt``, ``stop``...), what it
+    is about (a device, a poll group) and the value to write."""
+
+    op: str
+    what: Any = None
+    value: Any = None
+
+
+STOP = Job("stop")
+JOIN_TIMEOUT = 5.0   # s to wait for the I/O thread at stop
+
+
+class JobDriver(Driver):
+    """A driver whose bus I/O runs as jobs on its own thread (see the module doc). Subclasses
+    provide the transport (:meth:`_put`); :attr:`_rx` may hold the reader thread whose input a
+    settle must hand over first."""
+
+    confirms_writes = True
+    numeric_only = True
+
+    def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
+        super().__init__(bus, devices, host)
+        self._idle = threading.Condition()
+        self._pending = 0
+        self._polls_queued: set[Hashable] = set()
+        self._rx: ReaderThread | None = None
+
+    @abstractmethod
+    def _put(self, job: Job) -> bool:
+        """Hand ``job`` to the I/O thread; False if it cannot take it (not running)."""
+
+    def _submit(self, op: str, what: Any = None, value: Any = None) -> bool:
+        """Count and hand over one job; False (and not counted) if the thread cannot take it."""
+        with self._idle:
+            self._pending += 1
+        if not self._put(Job(op, what, value)):
+            self._done()
+            return False
+        return True
+
+    def _submit_poll(self, key: Hashable, op: str = "poll") -> None:
+        """Queue the poll ``key`` (job ``(op, key)``) unless it is queued already; the I/O
+        thread calls :meth:`_poll_taken` when it takes it."""
+        with self._idle:
+            if key in self._polls_queued:
+                return
+            self._polls_queued.add(key)
+        if not self._submit(op, key):
+            self._poll_taken(key)
+
+    def _poll_taken(self, key: Hashable) -> None:
+        """The poll ``key`` left the queue (run, or dropped): it may be queued again."""
+        with self._idle:
+            self._polls_queued.discard(key)
+
+    def _done(self) -> None:
+        """One job is finished (run or dropped); wakes :meth:`settle` at the last one."""
+        with self._idle:
+            self._pending = max(0, self._pending - 1)
+            if self._pending == 0:
+                self._idle.notify_all()
+
+    def _quiet(self) -> None:
+        """At stop: nothing is outstanding any more (wakes every settle)."""
+        with self._idle:
+            self._pending = 0
+            self._polls_queued.clear()
+            self._idle.notify_all()
+
+    def _write(self, device: str, value: Any) -> None:
+        """Queue a ``write`` job for actuator ``device``; never blocks. A write the thread
+        cannot take (a concurrent stop) is reported like one while stopped."""
+        if not self._submit("write", device, value):
+            self._refuse(device, value, "stopped", f"{self.kind} bus {self.bus.name} is not "
+                                                   f"running")
+
+    def settle(self, timeout: float) -> bool:
+        """Hand over every frame the reader (if any) already received, then wait until no job
+        is queued or running. True at once when stopped; False on timeout."""
+        deadline = time.monotonic() + timeout
+        rx = self._rx
+        if rx is not None and not rx.settle(timeout):
+            return False
+        with self._idle:
+            return self._idle.wait_for(lambda: self._pending == 0,
+                                       max(0.0, deadline - time.monotonic()))
+
+    def _unsent_write(self, job: Job) -> None:
+        """A write job dropped at stop, never run: reported failed."""
+        if job.op == "write":
+            self.host.write_failed(job.what, job.value, f"{self.kind} bus {self.bus.name} "
+                                                        f"stopped before the write was sent")
+
+
+class WorkerJobDriver(JobDriver):
+    """Jobs on a plain worker thread (see the module doc)."""
+
+    def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
+        super().__init__(bus, devices, host)
+        self._jobs: queue.Queue[Job] = queue.Queue()
+        self._worker: threading.Thread | None = None
+        self._taking = False
+
+    @abstractmethod
+    def _run(self, job: Job) -> None:
+        """Run one job on the worker thread (:meth:`_done` follows by itself)."""
+
+    def _tick(self) -> float:
+        """Seconds the worker waits for a job at most (then it calls this again)."""
+        return 0.5
+
+    def _put(self, job: Job) -> bool:
+        with self._idle:
+            if not self._taking:
+                return False
+            self._jobs.put(job)
+        return True
+
+    def _start_worker(self) -> None:
+        """Start the worker thread, ``<kind>-<bus>``."""
+        with self._idle:
+            self._taking = True
+        self._worker = threading.Thread(target=self._work, name=f"{self.kind}-{self.bus.name}",
+                                        daemon=True)
+        self._worker.start()
+
+    def _work(self) -> None:
+        while True:      # ends on the stop job only, queued behind every job already there
+            try:
+                job = self._jobs.get(timeout=self._tick())
+            except queue.Empty:
+                continue
+            if job.op == "stop":
+                return
+            try:
+                self._run(job)
+            finally:
+                self._done()
+
+    def _stop_worker(self) -> None:
+        """Run every queued job, end the worker, report the writes it did not get to."""
+        with self._idle:
+            was, self._taking = self._taking, False
+            if was:
+                self._jobs.put(STOP)
+        worker, self._worker = self._worker, None
+        if worker is not None and worker is not threading.current_thread():
+            worker.join(timeout=JOIN_TIMEOUT)
+        while True:    # the worker did not get to these (stuck past the join timeout)
+            try:
+                job = self._jobs.get_nowait()
+            except queue.Empty:
+                break
+            self._unsent_write(job)
+        self._quiet()
+
+
+class AsyncJobDriver(JobDriver):
+    """Jobs on an asyncio loop in the driver's own thread (see the module doc)."""
+
+    def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
+        super().__init__(bus, devices, host)
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._jobs: asyncio.Queue[Job] = asyncio.Queue()
+
+    @abstractmethod
+    async def _main(self) -> None:
+        """The I/O thread: take jobs from :attr:`_jobs` until the ``stop`` job."""
+
+    def _start_loop(self) -> None:
+        """Start the loop's thread, ``<kind>-<bus>``, running :meth:`_main`."""
+        self._jobs = asyncio.Queue()
+        self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self._loop.run_until_complete, args=(self._main(),),
+                                        name=f"{self.kind}-{self.bus.name}", daemon=True)
+        self._thread.start()
+
+    def _put(self, job: Job) -> bool:
+        loop = self._loop
+        if loop is None:
+            return False
+        try:
+            loop.call_soon_threadsafe(self._jobs.put_nowait, job)
+        except RuntimeError:  # loop closed by a concurrent stop()
+            return False
+        return True
+
+    def _stop_loop(self) -> None:
+        """Queue the stop job behind every job already queued, wait for the thread, close the
+        loop. Idempotent."""
+        loop, thread = self._loop, self._thread
+        self._loop = self._thread = None
+        if loop is not None and thread is not None:
+            with contextlib.suppress(RuntimeError):
+                loop.call_soon_threadsafe(self._jobs.put_nowait, STOP)
+            if thread is not threading.current_thread():
+                thread.join(timeout=JOIN_TIMEOUT)
+            with contextlib.suppress(Exception):
+                loop.close()
+        self._quiet()

@@ -1,0 +1,420 @@
+"""modbus_link - what the ``modbus-tcp`` and ``modbus-rtu`` drivers share: polling, writes and
+the supervision of the link, as jobs on an asyncio loop in the driver's own thread
+(:class:`drivers.jobs.AsyncJobDriver`) driving a pymodbus asyncio client. The kinds, their
+options and the failure rules are described in :mod:`drivers.modbus`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+import threading
+from abc import abstractmethod
+from collections.abc import Sequence
+from typing import Any, ClassVar
+
+from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
+
+from chcos.devices.spec import BusSpec, DeviceSpec
+from chcos.errors import BusError
+from drivers.base import DriverHost, is_int, is_number
+from drivers.codecs.modbus import (
+    EXCEPTION_TEXT,
+    RAW_RANGE,
+    Point,
+    ReadRequest,
+    check_address,
+    plan_reads,
+    point_of,
+    reading_of,
+    value_error,
+)
+from drivers.health import Health
+from drivers.jobs import AsyncJobDriver, Job
+
+READ_METHOD = {"coil": "read_coils", "discrete": "read_discrete_inputs",
+               "holding": "read_holding_registers", "input": "read_input_registers"}
+PROBE_PERIOD = 1.0   # s between liveness probes of an actuator-only bus without poll_period
+COMMON_OPTIONS = ("timeout", "retries", "reconnect_delay", "reconnect_delay_max", "poll_period")
+
+
+def check_common(bus: BusSpec, own: Sequence[str]) -> list[str]:
+    """Errors of the options both kinds share, and of keys neither knows."""
+    k = bus.key
+    o = bus.options
+    valid = (*own, *COMMON_OPTIONS)
+    errs = [f"{k}.{key}: unknown option for a {bus.kind} bus; valid options: {', '.join(valid)}"
+            for key in o if key not in valid]
+    for key in ("timeout", "reconnect_delay", "reconnect_delay_max", "poll_period"):
+        if key in o and not (is_number(o[key]) and o[key] > 0):
+            errs.append(f"{k}.{key}: expected a number of seconds > 0, got {o[key]!r}")
+    if "retries" in o and not (is_int(o["retries"]) and o["retries"] >= 0):
+        errs.append(f"{k}.retries: expected an integer >= 0, got {o['retries']!r}")
+    return errs
+
+
+class ModbusDriver(AsyncJobDriver):
+    """What both Modbus kinds share: polling, writes, link supervision; subclasses make the
+    client and describe the link."""
+
+    kind: ClassVar[str] = ""
+    #: A request timeout means the link is gone (TCP: the server or its connection hangs) rather
+    #: than one unit not answering (RTU: the other units on the line may still answer).
+    timeout_is_link_loss: ClassVar[bool] = False
+
+    def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
+        super().__init__(bus, devices, host)
+        self._health = Health(host)
+        self._stop_seen = False
+        self._client: Any = None
+        self._connected = False
+        self._plans: dict[float, list[ReadRequest]] = {}
+        self._points: dict[str, Point] = {}
+        self._first_attempt = threading.Event()
+        self._answered = True      # a request was answered since the last (re)connect
+        self._units_answered: set[int] = set()   # RTU: the units that did, since then
+        self._connects = 0
+
+    # -- to be provided by the kinds ----------------------------------------------------------
+
+    @abstractmethod
+    def _make_client(self) -> Any:
+        """A new pymodbus asyncio client for this bus (called on the I/O loop)."""
+
+    @abstractmethod
+    def _link(self) -> str:
+        """Where the bus goes (``host:port``, the serial port), for failure reasons."""
+
+    def _unanswered(self, request: str) -> tuple[str, str]:
+        """The error class (``timeout``, and for RTU also ``crc``/``framing``) and the reason
+        why the last request got no valid answer; the caller counts it as a bus error."""
+        return "timeout", "no response"
+
+    @classmethod
+    def check_device(cls, bus: BusSpec, device: DeviceSpec) -> list[str]:
+        """Errors of a device address: unit, table, address range for the type, word order."""
+        return check_address(bus, device)
+
+    @classmethod
+    def encodable(cls, bus: BusSpec, device: DeviceSpec) -> tuple[float, float] | None:
+        """The range of the address's type: 0..1 for a coil, the integer types' ranges, the
+        largest float32; None for float64."""
+        return RAW_RANGE.get(point_of(device).type)
+
+    @classmethod
+    def poll_period(cls, bus: BusSpec, device: DeviceSpec) -> float | None:
+        """The sensor's ``poll_period``, else the bus's, else 0.1 s."""
+        return float(device.address.get("poll_period", bus.options.get("poll_period", 0.1)))
+
+    # -- life cycle ---------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Validate, plan the polls, start the I/O thread and make the first connection attempt
+        (a refused connection fails the devices; it is not an error here). Raises
+        :class:`BusError` for invalid options."""
+        errs = self.check_bus(self.bus)
+        for dev in self.devices.values():
+            errs.extend(self.check_device(self.bus, dev))
+        if errs:
+            raise BusError(f"{self.kind} bus {self.bus.name} ({self.bus.file}): " + "; ".join(errs))
+        default = float(self.bus.options.get("poll_period", 0.1))
+        by_period: dict[float, list[Point]] = {}
+        for dev in self.devices.values():
+            self._points[dev.name] = point_of(dev)
+            if dev.direction == "sensor":
+                period = float(dev.address.get("poll_period", default))
+                by_period.setdefault(period, []).append(self._points[dev.name])
+        self._plans = {p: plan_reads(pts) for p, pts in by_period.items()}
+        self._start_loop()
+        self._running = True
+        timeout = float(self.bus.options.get("timeout", 1.0))
+        self._first_attempt.wait(timeout + 2.0)
+        for period in self._plans:
+            self.host.every(period, functools.partial(self._submit_poll, period))
+        if not self._plans and self._points:     # actuators only: nothing read would notice
+            self.host.every(float(self.bus.options.get("poll_period", PROBE_PERIOD)),
+                            functools.partial(self._submit_poll, "probe", "probe"))
+
+    def stop(self) -> None:
+        """Stop the I/O thread and close the connection. Idempotent; never raises."""
+        self._running = False
+        self._stop_loop()     # runs every job queued before: they go out first
+
+    # -- kernel side --------------------------------------------------------------------------
+
+    def check_value(self, device: str, value: Any) -> str | None:
+        """Why raw ``value`` does not fit the device's coil or register type (None if it does):
+        a coil takes 0/1, an integer type an integer within its range, a float type a finite
+        number within its range. Nothing is rounded here."""
+        p = self._points.get(device) or (point_of(self.devices[device])
+                                         if device in self.devices else None)
+        if p is None:
+            return None
+        return value_error(p.type, value)
+
+    # -- I/O thread ---------------------------------------------------------------------------
+
+    async def _main(self) -> None:
+        o = self.bus.options
+        delay = first = float(o.get("reconnect_delay", 0.1))
+        most = float(o.get("reconnect_delay_max", 5.0))
+        try:
+            self._client = self._make_client()
+            while not self._stop_seen:
+                ok = await self._client.connect()
+                if ok and self._client.connected:
+                    self._connects += 1
+                    if self._connects > 1:
+                        self.host.stat(self.bus.name, "reconnects")
+                    self._link_up()
+                    if self.timeout_is_link_loss and not await self._probe():
+                        self._first_attempt.set()
+                        await self._backoff(delay)
+                        delay = min(delay * 2, most)
+                        self._client.close()
+                        continue
+                    delay = first
+                    self._first_attempt.set()
+                    await self._serve()
+                else:
+                    self._link_down(f"cannot connect to {self._link()}")
+                    self._first_attempt.set()
+                    await self._backoff(delay)
+                    delay = min(delay * 2, most)
+                self._client.close()
+        finally:
+            self._first_attempt.set()
+            if self._client is not None:
+                self._client.close()
+
+    async def _backoff(self, delay: float) -> None:
+        """Wait ``delay`` seconds (or until stop), completing jobs that arrive meanwhile."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + delay
+        while not self._stop_seen and (left := deadline - loop.time()) > 0:
+            try:
+                job = await asyncio.wait_for(self._jobs.get(), left)
+            except TimeoutError:
+                return
+            self._finish_unsent(job)
+
+    def _link_up(self) -> None:
+        """Connected - not yet healthy: the link clears on the first answered request."""
+        self._connected = True
+        self._answered = False
+        self._units_answered = set()
+        if not self.timeout_is_link_loss:  # RTU: an open port is not a unit that answers
+            for name, p in self._points.items():
+                self._health.fail(name, "link", f"{self.kind} bus {self.bus.name}: "
+                                                f"{self._link()} is open, unit {p.unit} has not "
+                                                f"answered a request yet")
+
+    def _answer(self, unit: int | None = None) -> None:
+        """A request was answered (with data or an exception): the link works - on RTU for
+        the devices of the ``unit`` that answered (the others stay failed until theirs does)."""
+        if self._answered:
+            return
+        if not self.timeout_is_link_loss and unit is not None:
+            if unit in self._units_answered:
+                return
+            self._units_answered.add(unit)
+            for name, p in self._points.items():
+                if p.unit == unit:
+                    self._health.clear(name, "link", f"{self.kind} bus {self.bus.name}: unit "
+                                                     f"{unit} on {self._link()} answered")
+            self._answered = self._units_answered >= {p.unit for p in self._points.values()}
+            return
+        self._answered = True
+        for name in self.devices:
+            self._health.clear(name, "link", f"{self.kind} bus {self.bus.name}: a request to "
+                                             f"{self._link()} was answered")
+
+    async def _probe(self) -> bool:
+        """Right after a connect: read one entry of the first device; True if answered (the
+        link is up), False (link down, devices still failed) if not."""
+        p = next(iter(self._points.values()), None)
+        if p is None:
+            return True
+        self.host.stat(self.bus.name, "requests")
+        try:
+            await getattr(self._client, READ_METHOD[p.table])(p.address, count=1,
+                                                              device_id=p.unit)
+        except (ModbusException, OSError) as exc:
+            self.host.error(self.bus.name, "timeout", f"probe of {self._link()} after connect: "
+                                                      f"no answer: {exc}")
+            self._link_down(f"{self._link()} accepted the connection but sent no response: {exc}")
+            return False
+        self._answer(p.unit)
+        return True
+
+    async def _liveness(self) -> None:
+        """The periodic probe of an actuator-only bus: read the first actuator's first entry.
+        An answer (data or an exception) means the server is there; none is a lost link on
+        ``modbus-tcp`` (raises ConnectionException: reconnect, probe, recovery) and on
+        ``modbus-rtu`` fails the devices (cause ``link``) until a request is answered."""
+        p = next(iter(self._points.values()))
+        where = f"{self.kind} bus {self.bus.name} probe of unit {p.unit} {p.table} {p.address}"
+        self.host.stat(self.bus.name, "requests")
+        try:
+            await getattr(self._client, READ_METHOD[p.table])(p.address, count=1,
+                                                              device_id=p.unit)
+        except ModbusIOException as exc:
+            kind, what = self._unanswered(where)
+            self.host.error(self.bus.name, kind, f"{where}: {what}: {exc}")
+            if not self._client.connected or self.timeout_is_link_loss:
+                raise ConnectionException(f"no response to the probe: {exc}") from exc
+            self._answered = False
+            self._units_answered.discard(p.unit)
+            for name, q in self._points.items():
+                if q.unit == p.unit:
+                    self._health.fail(name, "link", f"{where}: no answer: {what}")
+            return
+        self._answer(p.unit)
+
+    def _link_down(self, why: str) -> None:
+        was = self._connected
+        self._connected = False
+        reason = f"{self.kind} bus {self.bus.name}: {why}"
+        for name in self.devices:
+            self._health.fail(name, "link", reason)
+        if was:
+            self.host.error(self.bus.name, "disconnected", reason)
+        self._drain()
+
+    def _drain(self) -> None:
+        """Complete every queued job without I/O while the link is down."""
+        while not self._jobs.empty():
+            self._finish_unsent(self._jobs.get_nowait())
+
+    def _finish_unsent(self, job: Job) -> None:
+        op, what, value = job
+        if op == "stop":
+            self._stop_seen = True
+            return
+        if op == "write":
+            why = (f"{self.kind} bus {self.bus.name} is not connected to {self._link()}"
+                   if not self._stop_seen else f"{self.kind} bus {self.bus.name} stopped")
+            self.host.error(self.bus.name, "disconnected",
+                            f"write {value!r} to {what} dropped: {why}", what)
+            self.host.write_failed(what, value, why)
+        elif op == "poll":
+            self._poll_taken(what)
+        elif op == "probe":
+            self._poll_taken("probe")
+        self._done()
+
+    async def _serve(self) -> None:
+        """Run jobs in order until the link drops or stop() asks to end."""
+        while True:
+            job = await self._jobs.get()
+            if job.op == "stop":
+                self._stop_seen = True
+                return
+            if not self._client.connected:
+                self._link_down(f"connection to {self._link()} lost")
+                self._finish_unsent(job)
+                return
+            try:
+                await self._run(job)
+            except ConnectionException as exc:
+                if job.op == "write":
+                    self.host.write_failed(job.what, job.value, f"connection to "
+                                                                  f"{self._link()} lost: {exc}")
+                self._link_down(f"connection to {self._link()} lost: {exc}")
+                return
+            finally:
+                self._done()
+
+    async def _run(self, job: Job) -> None:
+        op, what, value = job
+        if op == "poll":
+            self._poll_taken(what)
+            for request in self._plans[what]:
+                await self._read(request)
+        elif op == "probe":
+            self._poll_taken("probe")
+            await self._liveness()
+        else:
+            await self._write_point(self._points[what], value)
+
+    async def _read(self, r: ReadRequest) -> None:
+        c = self._client
+        self.host.stat(self.bus.name, "requests")
+        try:
+            resp = await getattr(c, READ_METHOD[r.table])(r.address, count=r.count,
+                                                          device_id=r.unit)
+        except ModbusIOException as exc:
+            kind, what = self._unanswered(r.describe())
+            for p in r.points:
+                self.host.error(self.bus.name, kind, f"{r.describe()}: {what}: {exc}", p.device)
+            if not c.connected or self.timeout_is_link_loss:
+                raise ConnectionException(f"no response: {exc}") from exc
+            for p in r.points:
+                self._health.fail(p.device, "exception", f"{self.kind} bus {self.bus.name} "
+                                  f"{r.describe()} (device {p.device}): {what}")
+            return
+        if resp.isError():
+            code = int(getattr(resp, "exception_code", 0))
+            for p in r.points:
+                self.host.error(self.bus.name, f"exception-{code}",
+                                f"{r.describe()}: exception code {code}", p.device)
+            for p in r.points:
+                self._health.fail(p.device, "exception",
+                                  f"{self.kind} bus {self.bus.name} {r.describe()} (device "
+                                  f"{p.device}): exception code {code} "
+                                  f"({EXCEPTION_TEXT.get(code, 'unknown')})")
+            self._answer(r.unit)       # after the new cause: no OK in between
+            return
+        self._answer(r.unit)
+        entries = resp.bits if r.table in ("coil", "discrete") else resp.registers
+        for p in r.points:
+            off = p.address - r.address
+            try:
+                value = reading_of(p, entries[off:off + p.size])
+            except (ModbusException, IndexError, ValueError) as exc:
+                self.host.error(self.bus.name, "malformed",
+                                f"{r.describe()} answer for {p.device}: {exc}")
+                continue
+            self._health.clear(p.device, "exception", f"{r.describe()} answered")
+            self.host.deliver(p.device, value)
+
+    async def _write_point(self, p: Point, value: Any) -> None:
+        c = self._client
+        why = value_error(p.type, value)
+        if why is not None:
+            self.host.error(self.bus.name, "range", f"write {value!r} to {p.device}: {why}",
+                            p.device)
+            self.host.write_failed(p.device, value, why)
+            return
+        if p.table == "coil":
+            call = c.write_coil(p.address, bool(value), device_id=p.unit)
+        else:
+            regs = p.encode(value)
+            call = (c.write_register(p.address, regs[0], device_id=p.unit) if len(regs) == 1
+                    else c.write_registers(p.address, regs, device_id=p.unit))
+        where = f"{self.kind} bus {self.bus.name} unit {p.unit} {p.table} {p.address}"
+        self.host.stat(self.bus.name, "requests", device=p.device)
+        try:
+            resp = await call
+        except ModbusIOException as exc:
+            kind, what = self._unanswered(where)
+            self.host.error(self.bus.name, kind, f"{where}: write not answered: {what}: {exc}",
+                            p.device)
+            if not c.connected or self.timeout_is_link_loss:
+                raise ConnectionException(f"no response: {exc}") from exc
+            self.host.write_failed(p.device, value, f"{where}: write not answered: {exc}")
+            self._health.fail(p.device, "exception", f"{where} (device {p.device}): write not "
+                                                     f"answered: {exc}")
+            return
+        if resp.isError():
+            code = int(getattr(resp, "exception_code", 0))
+            text = (f"{where} (device {p.device}): write refused with exception code "
+                    f"{code} ({EXCEPTION_TEXT.get(code, 'unknown')})")
+            self.host.error(self.bus.name, f"exception-{code}", text, p.device)
+            self.host.write_failed(p.device, value, text)
+            self._health.fail(p.device, "exception", text)
+            self._answer(p.unit)       # after the new cause: no OK in between
+            return
+        self._answer(p.unit)
+        self.host.written(p.device, value)
+        self._health.clear(p.device, "exception", f"{where}: write answered")
