@@ -12,6 +12,7 @@ dist-info) and ``drivers``, so the only chcos it can import is the wheel's; the 
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import site
 import subprocess
@@ -132,3 +133,12 @@ def test_installed_wheel_welds_the_seam_from_another_directory(wheel: Path,
     assert "job outcome: welded" in out, out[-3000:]
     assert "weld length 300 of 300 mm" in out, out[-3000:]
     assert (cwd / "weld-report.html").is_file()
+
+    # the buses binding's map (its DBC and EDS files resolved beside it) and figure 6.5's
+    # system (its map, install script and the file its sampler reads), from the wheel too
+    maps = Path(purelib, "chcos", "apps", "weld", "maps", "weld_cell.toml")
+    checked = run([str(venv / "bin" / "chcos"), "check", str(maps)], cwd=cwd, env=env)
+    assert checked.startswith("ok: "), checked
+    fig = run([str(venv / "bin" / "chcos"), "run", "--example", "fig65", "--duration", "5"],
+              cwd=cwd, env=env)
+    assert re.search(r"all tasks: [1-9]\d* executions", fig), fig[-2000:]
