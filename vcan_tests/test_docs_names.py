@@ -2,11 +2,12 @@
 exists under the layered layout (issue 14).
 
 Read: README.md, busconfig/README.md and docs/*.md. Checked: each ``python -m MODULE`` names a
-module that can be found; each ``python -c "..."`` compiles and its ``import``/``from ... import``
-lines resolve (the module is found, the imported names are its attributes); each path in
-backticks under the repository's top folders exists; each dotted ``chcos.``/``drivers.``/
-``tools.`` name in backticks is a module or an attribute of one. The commands themselves are run
-elsewhere (the tutorial's by test_integrator_tutorial, ``chcos run`` by test_packaging).
+module that can be found and starts (``--help``, from the checkout's root); each
+``python -c "..."`` compiles and its ``import``/``from ... import`` lines resolve (the module is
+found, the imported names are its attributes); each path in backticks under the repository's top
+folders exists; each dotted ``chcos.``/``drivers.``/``tools.`` name in backticks is a module or an
+attribute of one. The commands themselves are run elsewhere (the tutorial's by
+test_integrator_tutorial, ``chcos run`` by test_packaging).
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ import ast
 import importlib
 import importlib.util
 import re
+import subprocess
+import sys
 import warnings
 from pathlib import Path
 
@@ -68,6 +71,22 @@ def _resolve(dotted: str) -> bool:
 def test_python_m_modules_exist() -> None:
     bad = [f"{rel(d)}: python -m {m}" for d in DOCS for m in PY_M.findall(d.read_text())
            if not PLACEHOLDER.search(m) and importlib.util.find_spec(m.rstrip(".")) is None]
+    assert not bad, "\n".join(bad)
+
+
+@pytest.mark.slow
+def test_python_m_modules_run() -> None:
+    """Each documented ``python -m`` module starts from the checkout's root (``--help``)."""
+    names = sorted({m.rstrip(".") for d in DOCS for m in PY_M.findall(d.read_text())
+                    if not PLACEHOLDER.search(m)})
+    assert names
+    procs = {m: subprocess.Popen([sys.executable, "-m", m, "--help"], cwd=ROOT, text=True,
+                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE) for m in names}
+    bad = []
+    for m, proc in procs.items():
+        out, err = proc.communicate(timeout=120)
+        if proc.returncode != 0 or not out:
+            bad.append(f"python -m {m} --help exited {proc.returncode}: {err[-500:]}")
     assert not bad, "\n".join(bad)
 
 
