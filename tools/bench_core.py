@@ -7,7 +7,7 @@ Prints, measured side by side in one run on one core:
   and with an idle instrument installed (hooks present, doing nothing);
 - the time of a bare ``heapq`` push and pop of the same count, and the ratio per message.
 Targets (issue 2): >= 300,000 messages/s; <= 12x the heapq push+pop time per message.
-Usage: tools/bench_core.py [--messages N] [--repeat R] [--json FILE]
+Usage: python -m tools.bench_core [--messages N] [--repeat R] [--json FILE]
 """
 
 from __future__ import annotations
@@ -15,12 +15,9 @@ from __future__ import annotations
 import argparse
 import heapq
 import json
-import sys
 import time
 from pathlib import Path
 from typing import Any
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from chcos.devices.spec import DeviceMap
 from chcos.kernel.clock import VirtualClock

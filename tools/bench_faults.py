@@ -11,6 +11,8 @@ with ``time.monotonic`` on both sides (one machine). Needs the dev extras (pyMod
 from __future__ import annotations
 
 import argparse
+import itertools
+import os
 import socket
 import statistics
 import tempfile
@@ -22,11 +24,12 @@ from typing import Any
 
 import can
 
+from chcos.apps.sim.from_map import free_port
 from chcos.kernel.clock import RealClock
 from chcos.system.embedded import System
-from vcan_tests.netutil import free_port, unique_channel
-from vcan_tests.support_faults import ModbusPeer
+from tools.peers import CANOPEN_MAP, NODE, SPEED, CanopenPeer, ModbusPeer
 
+_CHANNELS = itertools.count()
 WAIT = 20.0
 
 
@@ -100,11 +103,10 @@ address = {{ table = "holding", address = 10, poll_period = 0.02 }}
 def canopen_bus(tmp: Path, runs: int) -> dict[str, list[float]]:
     """e-stop and heartbeat-back to safe value (SDO download), against canopen's LocalNode."""
     from chcos.apps.sim.canopen_slave import SERVO_EDS
-    from vcan_tests.test_faults_canopen import MAP, NODE, SPEED, Peer
 
-    channel = unique_channel("bench")
-    peer = Peer(channel)
-    s = _system(tmp, MAP.format(channel=channel, node=NODE, eds=SERVO_EDS))
+    channel = f"bench-{os.getpid()}-{next(_CHANNELS)}"
+    peer = CanopenPeer(channel)
+    s = _system(tmp, CANOPEN_MAP.format(channel=channel, node=NODE, eds=SERVO_EDS))
     out: dict[str, list[float]] = {"estop": [], "heartbeat back": []}
 
     def first_zero(t0: float) -> float | None:
@@ -140,7 +142,7 @@ def canopen_bus(tmp: Path, runs: int) -> dict[str, list[float]]:
 
 def can_raw(tmp: Path, runs: int) -> dict[str, list[float]]:
     """e-stop to the safe-value frame seen by another python-can bus on the channel."""
-    channel = unique_channel("bench")
+    channel = f"bench-{os.getpid()}-{next(_CHANNELS)}"
     rx = can.Bus(interface="virtual", channel=channel)
     seen: list[tuple[float, bytes]] = []
     stop = threading.Event()

@@ -7,7 +7,7 @@ sensor frames unanswered; chcos decodes each one (raw CAN addressing), the drive
 from a queued link (every frame matters here) and writes an actuator frame carrying the same
 value; the peer counts the answers. Pin it to one core with ``taskset -c 0``.
 Targets (issue 3): >= 20,000 loops/s and >= 0.25 of the raw virtual-bus rate.
-Usage: tools/bench_fullpath.py [--loops N] [--window W] [--json FILE]
+Usage: python -m tools.bench_fullpath [--loops N] [--window W] [--json FILE]
 """
 
 from __future__ import annotations
@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 import tempfile
 import threading
 import time
@@ -23,8 +22,6 @@ from pathlib import Path
 from typing import Any
 
 import can
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from chcos.kernel.clock import RealClock
 from chcos.system.embedded import System

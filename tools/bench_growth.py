@@ -14,7 +14,7 @@ Prints seconds per size, the growth exponent between successive sizes (1.0 = lin
 quadratic) and a least-squares exponent over all sizes, beside the issue's targets (10,000
 installs ≤ 1 s, ≤ 2 s with the map; 1,000 devices ≤ 0.5 s; check of 5,000 devices ≤ 2 s — the
 last two are measured at 10³ and interpolated at 5·10³ from the fit when not in --sizes).
-Usage: tools/bench_growth.py [--sizes 100,1000,10000] [--json FILE]
+Usage: python -m tools.bench_growth [--sizes 100,1000,10000] [--json FILE]
 """
 
 from __future__ import annotations
@@ -32,8 +32,6 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import cantools
 

@@ -7,7 +7,7 @@ late and catch up. Printed: the install rate, each late joiner's catch-up time (
 process to its liveliness token, which it declares only once it has applied the whole log), and
 the log length and SHA-256 of every satellite, which must all be equal (exit status 1 if not).
 
-Usage: tools/bench_install_log.py [--tasks N] [--machines M] [--late L] [--json FILE]
+Usage: python -m tools.bench_install_log [--tasks N] [--machines M] [--late L] [--json FILE]
 """
 
 from __future__ import annotations
@@ -25,12 +25,11 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
 
+from chcos.apps.sim.from_map import free_port  # noqa: E402
 from chcos.satellites import sysfile  # noqa: E402
 from chcos.satellites.host import Host  # noqa: E402
 from chcos.user.context import TaskContext  # noqa: E402
-from vcan_tests.netutil import free_port  # noqa: E402
 
 
 async def idle(ctx: TaskContext, cmd: Any) -> None:

@@ -9,7 +9,7 @@ as a driver does); each task ``T<i>`` reads its sensor and writes the value to i
 latency is from the feeder's ``perf_counter`` stamp (the value itself) to the actuator write
 (Devtab's ``on_write`` hook). Prints p50/p99/max per configuration and the notifications the
 clients received.
-Usage: tools/bench_north.py [--seconds S] [--batches N] [--rate HZ] [--json FILE]
+Usage: python -m tools.bench_north [--seconds S] [--batches N] [--rate HZ] [--json FILE]
 """
 
 from __future__ import annotations
@@ -23,8 +23,6 @@ import tempfile
 import time
 from pathlib import Path
 from typing import Any
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from chcos.devices.spec import BusSpec, DeviceMap, DeviceSpec
 from chcos.kernel.clock import RealClock

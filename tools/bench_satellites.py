@@ -16,7 +16,7 @@
    messages to its kernel): what chcos adds to the floor this machine gives today; and the same
    bare transport secured as satellites are (mutual TLS, user/password, a seal on every
    payload): what the security costs by itself.
-Usage: tools/bench_satellites.py [--seconds S] [--rate N] [--json FILE] [--latency-only]
+Usage: python -m tools.bench_satellites [--seconds S] [--rate N] [--json FILE] [--latency-only]
 """
 
 from __future__ import annotations
@@ -33,12 +33,11 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
 
+from chcos.apps.sim.from_map import free_port  # noqa: E402
 from chcos.satellites import sysfile  # noqa: E402
 from chcos.satellites.host import Host  # noqa: E402
 from chcos.user.context import TaskContext  # noqa: E402
-from vcan_tests.netutil import free_port  # noqa: E402
 
 
 async def driver(ctx: TaskContext, cmd: Any) -> None:

@@ -21,7 +21,7 @@ Runs, in one process, side by side:
 Real-time figures are best of N batches (the machine is shared); the pooled figures are in the
 JSON. Prints a table (figure, target, measured, met?), writes docs/perf/results.json and the
 latency plot docs/perf/latency.svg.
-Usage: tools/bench_suite.py [--quick] [--soak-seconds S] [--repeat N] [--out DIR] [--seed N]
+Usage: python -m tools.bench_suite [--quick] [--soak-seconds S] [--repeat N] [--out DIR] [--seed N]
                             [--verbose]
 """
 
@@ -40,8 +40,6 @@ from collections.abc import Callable, Iterator
 from fractions import Fraction
 from pathlib import Path
 from typing import Any
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import can
 
@@ -335,7 +333,7 @@ def main(argv: list[str] | None = None) -> int:
         sizes = "100,1000,3000" if q else "100,1000,10000"
         out = args.out / "growth.json"
         args.out.mkdir(parents=True, exist_ok=True)
-        subprocess.run([sys.executable, str(ROOT / "tools" / "bench_growth.py"), "--sizes",
+        subprocess.run([sys.executable, "-m", "tools.bench_growth", "--sizes",
                         sizes, "--json", str(out)], check=True, cwd=ROOT,
                        stdout=subprocess.DEVNULL)
         got: dict[str, Any] = json.loads(out.read_text(encoding="utf-8"))

@@ -7,107 +7,17 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
-import can
-import canopen
 import pytest
 
 from chcos.apps.sim.canopen_slave import SERVO_EDS
 from chcos.kernel.clock import VirtualClock
 from chcos.system.embedded import System
+from tools.peers import CANOPEN_MAP as MAP
+from tools.peers import NODE, SPEED
+from tools.peers import CanopenPeer as Peer
 from vcan_tests.netutil import unique_channel
 from vcan_tests.support_faults import run_until
-
-NODE = 5
-SPEED, TARGET, TEMP = 0x6081, 0x607A, 0x2000
-MAP = """
-[[bus]]
-name = "co"
-kind = "canopen"
-interface = "virtual"
-channel = "{channel}"
-sdo_timeout = 0.2
-nodes = [{{ id = {node}, eds = "{eds}", heartbeat_timeout = 0.15, nmt_start = false }}]
-
-[[device]]
-name = "speed"
-direction = "actuator"
-bus = "co"
-address = {{ node = {node}, index = 0x6081 }}
-limits = [0, 100000]
-safe_value = 0
-
-[[device]]
-name = "target"
-direction = "actuator"
-bus = "co"
-address = {{ node = {node}, index = 0x607A }}
-limits = [-100000, 100000]
-safe_value = 0
-
-[[device]]
-name = "temp"
-direction = "sensor"
-bus = "co"
-address = {{ node = {node}, index = 0x2000, poll_period = 0.1 }}
-"""
-
-
-class Candump(can.Listener):
-    """Every frame the peer's bus received, with time.monotonic() stamps."""
-
-    def __init__(self) -> None:
-        self.frames: list[tuple[float, int, bytes]] = []
-
-    def on_message_received(self, msg: can.Message) -> None:
-        self.frames.append((time.monotonic(), msg.arbitration_id, bytes(msg.data)))
-
-
-class Peer:
-    """canopen.LocalNode ``NODE`` with the servo EDS, heartbeat producer, EMCY producer."""
-
-    def __init__(self, channel: str) -> None:
-        self.od: Any = canopen.import_od(str(SERVO_EDS), NODE)
-        self.net: Any = canopen.Network()
-        self.net.NOTIFIER_CYCLE = 0.05
-        self.net.connect(interface="virtual", channel=channel)
-        self.node: Any = canopen.LocalNode(NODE, self.od)
-        self.net.add_node(self.node)
-        self.dump = Candump()
-        notifier: Any = self.net.notifier
-        notifier.add_listener(self.dump)
-        self.node.nmt.state = "OPERATIONAL"
-        self.beat()
-
-    def beat(self) -> None:
-        self.node.nmt.start_heartbeat(20)
-
-    def silence(self) -> None:
-        self.node.nmt.stop_heartbeat()
-
-    def value(self, index: int) -> int:
-        """The node's own object ``index``:0 (SDO downloads land here)."""
-        return int(self.od[index].decode_raw(self.node.get_data(index, 0)))
-
-    def sdo_writes(self, index: int, since: float = 0.0) -> list[int]:
-        """Values of expedited SDO downloads to ``index``:0 the node received since ``since``."""
-        out = []
-        for at, cob, data in self.dump.frames:
-            if (at >= since and cob == 0x600 + NODE and data[0] & 0xE0 == 0x20
-                    and int.from_bytes(data[1:3], "little") == index and data[3] == 0):
-                n = 4 - ((data[0] >> 2) & 3) if data[0] & 1 else 4
-                out.append(int.from_bytes(data[4:4 + n], "little", signed=True))
-        return out
-
-    def rpdo_values(self, since: float = 0.0) -> list[int]:
-        """Target positions in RPDO1 frames the node received since ``since``."""
-        return [int.from_bytes(d[:4], "little", signed=True) for at, cob, d in self.dump.frames
-                if at >= since and cob == 0x200 + NODE]
-
-    def close(self) -> None:
-        self.silence()
-        self.net.disconnect()
 
 
 @pytest.fixture

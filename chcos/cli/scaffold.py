@@ -66,10 +66,14 @@ Invoked with ``invoke fill setpoint=120`` (cm). Reads sensor ``level``, writes a
 (0..100 %), proportionally to how far the level is below the set-point.
 """
 
+from typing import Any
+
+from chcos.user.context import TaskContext
+
 GAIN = 2.0  # % of valve opening per cm below the set-point
 
 
-async def main(ctx, command):
+async def main(ctx: TaskContext, command: Any) -> None:
     setpoint = float((command or {{}}).get("setpoint", 100.0))
     while True:
         level = await ctx.read("level")          # waits for the next reading

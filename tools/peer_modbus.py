@@ -1,7 +1,8 @@
-"""peer_modbus - pyModbusTCP's server as an independent Modbus TCP peer for the fault tests.
+"""peer_modbus - pyModbusTCP's server as an independent Modbus TCP peer for the fault tests and
+benchmarks (started by :class:`tools.peers.ModbusPeer`).
 
 Run as a process (so a test can kill, SIGSTOP and restart it):
-``python -m vcan_tests.peer_modbus PORT LOGFILE [ADDR=VALUE ...]`` serves 127.0.0.1:PORT with
+``python -m tools.peer_modbus PORT LOGFILE [ADDR=VALUE ...]`` serves 127.0.0.1:PORT with
 holding registers and coils preset from ``ADDR=VALUE`` (``c3=1`` is coil 3), prints ``ready``
 once it listens, and appends one line per write request to LOGFILE:
 ``<time.monotonic()> <h|c> <address> <values> <ok|busy>``. While holding register 900 is non-zero
