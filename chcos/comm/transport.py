@@ -47,25 +47,26 @@ from typing import Any
 
 import zenoh
 
-from chcos.comm.codec import MAX_PRIORITY, LinkMessage, MessageKind, decode, encode
+from chcos.comm.codec import LinkMessage, MessageKind, decode, encode
 from chcos.comm.config import LinkConfig
+from chcos.comm.qos import (
+    EXPRESS_FROM,
+    PRIORITY_BANDS,
+    band_of,
+    check_key,
+    congestion_for,
+    is_express,
+    zenoh_priority,
+)
 from chcos.comm.secret import SEAL_BYTES, Sealer, Throttle
+from chcos.comm.subscription import Subscription
 from chcos.errors import LinkError
 
 log = logging.getLogger("chcos.comm")
 
-#: CHC-OS priority bands (lowest priority of the band, Zenoh priority), most urgent first.
-PRIORITY_BANDS: tuple[tuple[int, zenoh.Priority], ...] = (
-    (90, zenoh.Priority.REAL_TIME),
-    (75, zenoh.Priority.INTERACTIVE_HIGH),
-    (60, zenoh.Priority.INTERACTIVE_LOW),
-    (45, zenoh.Priority.DATA_HIGH),
-    (30, zenoh.Priority.DATA),
-    (15, zenoh.Priority.DATA_LOW),
-    (0, zenoh.Priority.BACKGROUND),
-)
-#: From this CHC-OS priority up, messages are sent express (never held back for batching).
-EXPRESS_FROM = 75
+__all__ = ["EXPRESS_FROM", "PRIORITY_BANDS", "Subscription", "Transport", "congestion_for",
+           "enable_zenoh_logging", "is_express", "zenoh_priority"]
+
 #: Encoding of the error replies chcos servers send (Zenoh's own errors, e.g. timeouts, differ).
 SERVER_ERROR_ENCODING = "text/plain;chcos-server-error"
 #: Largest payload sent or accepted on the link by default (bytes, before the seal).
@@ -76,84 +77,6 @@ PUBLISHER_CACHE_SIZE = 256
 Callback = Callable[[str, bytes], object]
 Handler = Callable[[bytes], bytes]
 KeyCallback = Callable[[str], object]
-
-
-def _check_priority(priority: int) -> int:
-    if isinstance(priority, bool) or not isinstance(priority, int):
-        raise LinkError(f"priority: expected an integer 0..{MAX_PRIORITY}, got {priority!r}")
-    if not 0 <= priority <= MAX_PRIORITY:
-        raise LinkError(f"priority: expected 0..{MAX_PRIORITY}, got {priority}")
-    return priority
-
-
-def _band(priority: int) -> int:
-    _check_priority(priority)
-    return next(i for i, (low, _) in enumerate(PRIORITY_BANDS) if priority >= low)
-
-
-def zenoh_priority(priority: int) -> zenoh.Priority:
-    """The Zenoh priority for CHC-OS ``priority`` 0..99 (see :data:`PRIORITY_BANDS`).
-
-    Raises LinkError if ``priority`` is not an integer 0..99."""
-    return PRIORITY_BANDS[_band(priority)][1]
-
-
-def is_express(priority: int) -> bool:
-    """Whether messages of CHC-OS ``priority`` bypass batching. Raises LinkError like above."""
-    return _check_priority(priority) >= EXPRESS_FROM
-
-
-def congestion_for(kind: MessageKind) -> zenoh.CongestionControl:
-    """DROP for kinds a newer message supersedes (sensory, status), BLOCK for all others."""
-    return zenoh.CongestionControl.DROP if kind.droppable else zenoh.CongestionControl.BLOCK
-
-
-def _check_key(what: str, key: str, *, concrete: bool) -> str:
-    if not isinstance(key, str) or not key:
-        raise LinkError(f"{what}: expected a non-empty key string, got {key!r}")
-    if concrete and ("*" in key or "$" in key):
-        raise LinkError(f"{what}: expected a concrete key without wildcards, got {key!r}")
-    try:
-        zenoh.KeyExpr(key)
-    except zenoh.ZError as exc:
-        raise LinkError(f"{what}: {key!r} is not a valid Zenoh key expression: {exc}") from exc
-    return key
-
-
-class Subscription:
-    """A declared subscriber, server, token or watcher. ``close()`` (or leaving the ``with``
-    block) undeclares it; closing twice is harmless. The transport closes all of them on close."""
-
-    def __init__(self, transport: Transport, what: str, entity: Any) -> None:
-        self._transport = transport
-        self._entity = entity
-        self._closed = False
-        self.what = what
-
-    def close(self) -> None:
-        """Undeclare the Zenoh entity. Never raises."""
-        if self._closed:
-            return
-        self._closed = True
-        self._transport._forget(self)
-        try:
-            self._entity.undeclare()
-        except zenoh.ZError as exc:  # the session may already be closed
-            log.debug("undeclaring %s: %s", self.what, exc)
-
-    @property
-    def closed(self) -> bool:
-        """True once closed, by itself or by the transport."""
-        return self._closed
-
-    def __enter__(self) -> Subscription:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    def __repr__(self) -> str:
-        return f"Subscription({self.what!r}, closed={self._closed})"
 
 
 class Transport:
@@ -244,7 +167,7 @@ class Transport:
             raise LinkError(f"{what}: the link transport is closed")
 
     def _register(self, what: str, entity: Any) -> Subscription:
-        sub = Subscription(self, what, entity)
+        sub = Subscription(self._forget, what, entity)
         with self._lock:
             if self._closed:
                 closed = True
@@ -306,7 +229,7 @@ class Transport:
             if pub is not None:
                 self._publishers.move_to_end(cache_key)
                 return pub
-            _check_key("publish", key, concrete=True)
+            check_key("publish", key, concrete=True)
             pub = self._session.declare_publisher(
                 key,
                 priority=PRIORITY_BANDS[band][1],
@@ -340,7 +263,7 @@ class Transport:
         closed transport, a bad key or priority, or a Zenoh failure.
         """
         self._check_open("publish")
-        band = _band(priority)
+        band = band_of(priority)
         if express is None:
             express = priority >= EXPRESS_FROM
         if not isinstance(payload, bytes | bytearray | memoryview):
@@ -370,7 +293,7 @@ class Transport:
         Hand the data off quickly; exceptions are logged and counted. Raises LinkError on a
         closed transport or a bad key expression."""
         self._check_open("subscribe")
-        _check_key("subscribe", key_expr, concrete=False)
+        check_key("subscribe", key_expr, concrete=False)
         what = f"subscriber {key_expr}"
 
         def on_sample(sample: zenoh.Sample) -> None:
@@ -423,7 +346,7 @@ class Transport:
         is logged, counted and sent back (the requester's :meth:`request` raises LinkError).
         Raises LinkError on a closed transport or a bad key expression."""
         self._check_open("serve")
-        _check_key("serve", key_expr, concrete=False)
+        check_key("serve", key_expr, concrete=False)
         what = f"server {key_expr}"
 
         def on_query(query: zenoh.Query) -> None:
@@ -476,7 +399,7 @@ class Transport:
         ``key``, when no answer came in time, or when the server's handler failed (its message
         is included)."""
         self._check_open("request")
-        _check_key("request", key, concrete=True)
+        check_key("request", key, concrete=True)
         if not timeout > 0:
             raise LinkError(f"request {key!r}: expected a timeout > 0 seconds, got {timeout!r}")
         start = time.monotonic()
@@ -523,7 +446,7 @@ class Transport:
         transport (or until the returned handle is closed). Raises LinkError on a closed
         transport or a bad key."""
         self._check_open("announce")
-        _check_key("announce", token_key, concrete=True)
+        check_key("announce", token_key, concrete=True)
         try:
             token = self._session.liveliness().declare_token(token_key)
         except zenoh.ZError as exc:
@@ -536,7 +459,7 @@ class Transport:
         its links). Callbacks run on a Zenoh thread; exceptions are logged and counted. Raises
         LinkError on a closed transport or a bad key expression."""
         self._check_open("watch")
-        _check_key("watch", key_expr, concrete=False)
+        check_key("watch", key_expr, concrete=False)
         what = f"watcher {key_expr}"
 
         def on_sample(sample: zenoh.Sample) -> None:
@@ -561,7 +484,7 @@ class Transport:
         """The keys of the liveliness tokens matching ``key_expr`` right now (sorted), asking the
         connected peers for at most ``timeout`` seconds. Raises LinkError like :meth:`watch`."""
         self._check_open("alive")
-        _check_key("alive", key_expr, concrete=False)
+        check_key("alive", key_expr, concrete=False)
         try:
             replies = self._session.liveliness().get(key_expr, timeout=timeout)
             keys = {str(r.ok.key_expr) for r in replies if r.ok is not None}
