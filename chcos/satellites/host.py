@@ -144,7 +144,8 @@ class Host:
         every satellite up: each task and device as its own machine reports it, each link's
         ``sent`` from its source's machine and ``delivered``/``overwritten``/``status`` from its
         destination's (a command link's status from its caller's mirror). Each device also
-        gets ``age``: seconds since its value on its own machine's clock (None before one)."""
+        gets ``age``: seconds since its value on its own machine's clock (None before one), and
+        ``errors`` lists what each satellite collected (``machine N: ...``)."""
         up = self._up()
         views = {m: self._ask(m, {"op": "map"})["map"]
                  for m in ([machine] if machine is not None else up)}
@@ -187,6 +188,9 @@ class Host:
             devices.append({**d, "age": None if at is None else max(0.0, view["time"] - at)})
         doc["devices"] = devices
         doc["alive"] = up
+        # each satellite's collected errors (System.check), named by machine
+        doc["errors"] = [f"machine {m}: {e}" for m, v in sorted(views.items())
+                         for e in v.get("errors", [])]
         return doc
 
     def _change(self, line: str, target: int | None) -> str:
