@@ -41,6 +41,7 @@ from chcos.comm.payloads import (
 from chcos.devices.devmap import DeviceMap
 from chcos.errors import ChcosError, LinkError, MessageError
 from chcos.kernel.clock import VirtualClock
+from chcos.satellites import control
 from chcos.system.embedded import System
 from chcos.system.textview import render_text
 from chcos.tables.messages import LinkStatus
@@ -206,3 +207,31 @@ def test_check_raises_a_failed_interrupt_handler(tmp_path: Path) -> None:
         with pytest.raises(ChcosError, match="division by zero"):
             s.check()
         assert any("ZeroDivisionError" in e for e in s.sysmgr.map_doc()["errors"])
+
+
+CONTROL: list[control.ControlRequest] = [
+    control.MapRequest(), control.LogRequest(), control.HeadRequest(),
+    control.SyncRequest(2, 14), control.ExecRequest("invoke D2 gap=1.5"),
+    control.ChangeRequest(control.Phase.PREPARE, "install -m1 A1 S1", 3, 0),
+    control.ChangeRequest(control.Phase.APPEND, "setpri -9 A4 C1", 4),
+    control.ChangeRequest(control.Phase.COMMIT, "install -m0 sysfile", 0, 1),
+]
+
+
+@pytest.mark.parametrize("req", CONTROL, ids=lambda r: type(r).__name__)
+def test_every_host_request_survives_the_wire_as_its_type(req: control.ControlRequest) -> None:
+    assert control.decode(control.encode(req)) == req
+
+
+@pytest.mark.parametrize(("raw", "expected"), [
+    (b"[1]", "expected a JSON object, got list"),
+    (b'{"op": "drop-tables"}', "op: expected one of map, log"),
+    (b'{"op": "sync", "source": true, "need": 3}', "source: expected a machine"),
+    (b'{"op": "prepare", "line": "install -m0 A", "seq": -1}', "seq: expected a log position"),
+    (b'{"op": "commit", "line": 7, "seq": 0}', "line: expected a command line string"),
+    (b'{"op": "append", "line": "x", "seq": 0, "leader": "0"}', "leader: expected a machine"),
+])
+def test_malformed_host_requests_are_refused_naming_the_key(raw: bytes, expected: str) -> None:
+    with pytest.raises(TypeError) as err:
+        control.decode(raw)
+    assert expected in str(err.value)

@@ -17,12 +17,11 @@ import sys
 from pathlib import Path
 
 from chcos.errors import ChcosError, LinkError
+from chcos.satellites.control import MAX_LINE
 from chcos.system import cmdline
 
 #: The requests an install log may hold: those that change the tables.
 MUTATING = (cmdline.Install, cmdline.SetPri, cmdline.ResetPri, cmdline.Boot)
-#: Longest install line accepted in a log.
-MAX_LINE = 4096
 
 
 def code_problem(ref: str, task_path: tuple[Path, ...]) -> str | None:

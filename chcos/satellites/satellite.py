@@ -51,8 +51,8 @@ from chcos.comm.secret import Throttle
 from chcos.comm.transport import Subscription, Transport
 from chcos.errors import ChcosError, ConfigError, InstallError, LinkError, MessageError
 from chcos.kernel.clock import Clock, RealClock
+from chcos.satellites import control
 from chcos.satellites.installlog import (
-    MAX_LINE,
     MUTATING,
     append_log,
     code_problem,
@@ -298,10 +298,7 @@ class Satellite:
     # ---- host requests ----------------------------------------------------------------------
     def _control(self, payload: bytes) -> bytes:
         try:
-            req = json.loads(payload)
-            if not isinstance(req, dict):
-                raise TypeError(f"expected a JSON object, got {type(req).__name__}")
-            reply = self._serve(req)
+            reply = self._serve(control.decode(payload))
         except ChcosError as exc:
             text = str(exc)
             self.refused.append(text)
@@ -315,54 +312,51 @@ class Satellite:
             reply = {"ok": False, "error": text, "type": "LinkError"}
         return json.dumps(reply, default=str).encode()
 
-    def _serve(self, req: dict[str, Any]) -> dict[str, Any]:
-        op = req["op"]
-        if op == "map":
+    def _serve(self, req: control.ControlRequest) -> dict[str, Any]:
+        """Answer one host request (see :mod:`chcos.satellites.control`). Raises ChcosError
+        (refused: the host is told why), TypeError (malformed)."""
+        if isinstance(req, control.MapRequest):
             doc = self.system.call(self.system.sysmgr.map_doc)
             return {"ok": True, "map": doc, "alive": sorted(self.comm.alive),
                     "rejected": self.rejected_counts()}
-        if op == "log":
+        if isinstance(req, control.LogRequest):
             return {"ok": True, "log": list(self.log)}
-        if op == "head":
+        if isinstance(req, control.HeadRequest):
             with self._lock:
                 return {"ok": True, "length": len(self.log), "hash": self.log_hash()}
-        if op == "sync":  # the host found this satellite behind another: fetch what it misses
-            source, need = req["source"], req["need"]
-            if source not in self.sf.satellites or source == self.machine or isinstance(
-                    need, bool) or not isinstance(need, int):
+        if isinstance(req, control.SyncRequest):  # the host found this one behind another
+            if req.source not in self.sf.satellites or req.source == self.machine:
                 raise TypeError("sync: expected another machine and a log length")
             with self._lock:
-                return {"ok": True, "applied": self.catch_up(source, need=need)}
-        line = req.get("line", "")
-        if not isinstance(line, str) or len(line) > MAX_LINE:
-            raise TypeError("line: expected a command line string")
-        parsed = cmdline.parse(line)
+                return {"ok": True, "applied": self.catch_up(req.source, need=req.need)}
+        parsed = cmdline.parse(req.line)
         if parsed is None:
             return {"ok": True, "answer": ""}
-        if op == "exec":
+        if isinstance(req, control.ExecRequest):
             if isinstance(parsed, MUTATING):
-                raise InstallError(f"{line!r} changes the tables: it must be prepared and "
+                raise InstallError(f"{req.line!r} changes the tables: it must be prepared and "
                                    "committed on every satellite")
             return {"ok": True, "answer": self.system.execute(parsed)}
         if not isinstance(parsed, MUTATING):
-            raise InstallError(f"{line!r} does not change the tables: send it with exec")
-        seq = req["seq"]
-        if isinstance(seq, bool) or not isinstance(seq, int) or seq < 0:
-            raise TypeError("seq: expected a log position >= 0")
-        leader = req.get("leader")
-        if leader is not None and (isinstance(leader, bool) or not isinstance(leader, int)
-                                   or leader not in self.sf.satellites):
+            raise InstallError(f"{req.line!r} does not change the tables: send it with exec")
+        if req.leader is not None and req.leader not in self.sf.satellites:
             raise TypeError("leader: expected a machine of the system")
+        return self._change(req, parsed)
+
+    def _change(self, req: control.ChangeRequest, parsed: cmdline.Request) -> dict[str, Any]:
+        """One step (prepare, append, commit) of a table change. Raises RaceLost when another
+        host changed the log first, InstallError when the line is refused here."""
+        seq, line, phase = req.seq, req.line, req.phase
         with self._lock:
-            if seq > len(self.log) and op in ("prepare", "commit"):
-                self.catch_up(None if leader == self.machine else leader, need=seq)
-            if op == "prepare":
+            if seq > len(self.log) and phase is not control.Phase.APPEND:
+                self.catch_up(None if req.leader == self.machine else req.leader, need=seq)
+            if phase is control.Phase.PREPARE:
                 if seq != len(self.log):
                     raise RaceLost(f"satellite {self.machine} has {len(self.log)} log entries, "
                                    f"the host expected {seq}: another host changed the log")
                 self.system.call(self._check, parsed)
                 return {"ok": True, "seq": seq}
-            if op == "append":
+            if phase is control.Phase.APPEND:
                 sequencer = min(set(self.comm.alive))
                 if sequencer != self.machine:
                     raise RaceLost(f"satellite {self.machine} is not the sequencer (machine "
@@ -371,17 +365,16 @@ class Satellite:
                     raise RaceLost(f"log entry {seq} is taken: another host changed the log "
                                    f"first (it has {len(self.log)} entries)")
                 return {"ok": True, "answer": self._apply(line), "seq": seq}
-            if op == "commit":
-                if seq < len(self.log):
-                    if self.log[seq] != line:
-                        raise InstallError(f"satellite {self.machine}: log entry {seq} is "
-                                           f"{self.log[seq]!r}, not {line!r} (the logs diverged)")
-                    return {"ok": True, "answer": "already applied", "seq": seq}
-                if seq != len(self.log):
-                    raise InstallError(f"satellite {self.machine} cannot apply log entry {seq}: "
-                                       f"it has {len(self.log)}")
-                return {"ok": True, "answer": self._apply(line), "seq": seq}
-        raise MessageError(f"unknown host request op {op!r}")
+            # COMMIT
+            if seq < len(self.log):
+                if self.log[seq] != line:
+                    raise InstallError(f"satellite {self.machine}: log entry {seq} is "
+                                       f"{self.log[seq]!r}, not {line!r} (the logs diverged)")
+                return {"ok": True, "answer": "already applied", "seq": seq}
+            if seq != len(self.log):
+                raise InstallError(f"satellite {self.machine} cannot apply log entry {seq}: "
+                                   f"it has {len(self.log)}")
+            return {"ok": True, "answer": self._apply(line), "seq": seq}
 
     def _check(self, req: cmdline.Request) -> None:
         """Validate a table-changing request against this satellite's tables (kernel thread)
