@@ -9,7 +9,8 @@ host address is given, and then only with TLS; :mod:`chcos.comm.tls` holds the T
 user/password settings, :mod:`chcos.comm.section` reads the ``[link]`` section of a system
 file), :mod:`chcos.comm.secret` is the per-system secret and the role seals on every payload,
 :mod:`chcos.comm.transport` is the :class:`Transport` the communications manager sits on
-(:mod:`chcos.comm.qos` maps priorities onto Zenoh's).
+(on a :mod:`chcos.comm.session`; :mod:`chcos.comm.qos` maps priorities onto Zenoh's,
+:mod:`chcos.comm.subscription` is the handle of what it declares).
 
 The names below are imported lazily, so that the layers above that need only the payloads or
 the codec do not load Zenoh.
