@@ -88,7 +88,7 @@ _PLAIN: dict[str, type[Any]] = {"map": MapRequest, "log": LogRequest, "head": He
 
 
 def encode(req: ControlRequest) -> bytes:
-    """The JSON bytes that carry ``req``."""
+    """The JSON bytes that carry ``req``. Raises TypeError if it is not a control request."""
     doc: dict[str, Any]
     if isinstance(req, SyncRequest):
         doc = {"op": "sync", "source": req.source, "need": req.need}
@@ -99,7 +99,10 @@ def encode(req: ControlRequest) -> bytes:
         if req.leader is not None:
             doc["leader"] = req.leader
     else:
-        doc = {"op": next(op for op, cls in _PLAIN.items() if isinstance(req, cls))}
+        op = next((op for op, cls in _PLAIN.items() if isinstance(req, cls)), None)
+        if op is None:
+            raise TypeError(f"expected a control request, got {type(req).__name__}")
+        doc = {"op": op}
     return json.dumps(doc).encode()
 
 
