@@ -22,7 +22,7 @@ from chcos.devices import devmap, parsecache
 from chcos.errors import BusError
 from chcos.kernel.clock import RealClock, VirtualClock
 from chcos.system.embedded import System, sysmap
-from chcos.system.manager import SystemManager
+from chcos.system.installer import Installer
 from chcos.tables.messages import TOP_PRIORITY, EndpointKind, LinkType, TapPort
 from chcos.tables.tasks import Role, TaskEntry
 from chcos.user.context import TaskContext
@@ -185,9 +185,9 @@ def test_a_running_system_writes_its_last_change_without_being_asked(
 
 
 # ---- the assassin index wires what the old table scan wired ------------------------------------
-def _scan_wiring(self: SystemManager, t: TaskEntry) -> None:
+def _scan_wiring(self: Installer, t: TaskEntry) -> None:
     """The implicit links as made before issue 21: every install scanned the whole table."""
-    s = self.sys
+    s = self
     others = [u for u in s.tsktab if u is not t]
     if t.role is Role.EXCEPTION:
         tap = TapPort()
@@ -196,23 +196,23 @@ def _scan_wiring(self: SystemManager, t: TaskEntry) -> None:
         s.msgmgr.taps.append((t, tap, links))
         for u in others:
             if u.level < t.level:
-                links[u.name] = self._link(u.name, t.name, LinkType.SENSORY, TOP_PRIORITY,
+                links[u.name] = self.link(u.name, t.name, LinkType.SENSORY, TOP_PRIORITY,
                                            EndpointKind.TASK, EndpointKind.TASK, u.machine,
                                            t.machine, tap=True)
     for e, _tap, elinks in s.msgmgr.taps:
         if e is not t and e.level > t.level:
-            elinks[t.name] = self._link(t.name, e.name, LinkType.SENSORY, TOP_PRIORITY,
+            elinks[t.name] = self.link(t.name, e.name, LinkType.SENSORY, TOP_PRIORITY,
                                         EndpointKind.TASK, EndpointKind.TASK, t.machine,
                                         e.machine, tap=True)
     if t.role is Role.ASSASSIN:
         for u in others:
             if u.level < t.level and s.msgtab.get(t.name, u.name, LinkType.COMMAND) is None:
-                t.special_links[u.name] = self._link(
+                t.special_links[u.name] = self.link(
                     t.name, u.name, LinkType.COMMAND, TOP_PRIORITY, EndpointKind.TASK,
                     EndpointKind.TASK, t.machine, u.machine, tap=True)
     for a in others:
         if a.role is Role.ASSASSIN and a.level > t.level:
-            a.special_links[t.name] = self._link(
+            a.special_links[t.name] = self.link(
                 a.name, t.name, LinkType.COMMAND, TOP_PRIORITY, EndpointKind.TASK,
                 EndpointKind.TASK, a.machine, t.machine, tap=True)
 
@@ -265,7 +265,7 @@ def test_the_assassin_index_wires_the_same_links_as_the_scan(
         build: Any, implicit: bool, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     now = build(tmp_path / "indexed")
     with monkeypatch.context() as mp:
-        mp.setattr(SystemManager, "_exception_wiring", _scan_wiring)
+        mp.setattr(Installer, "_exception_wiring", _scan_wiring)
         before = build(tmp_path / "scanned")
     assert any(lk[5] and lk[1] != "host" for lk in now[:-2]) == implicit, \
         "exception taps / assassin links not as the system's roles say"

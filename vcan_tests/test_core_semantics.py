@@ -11,6 +11,7 @@ from typing import Any
 import pytest
 
 from chcos.apps.weld.runner import SAFE_DEVICES, open_cell
+from chcos.comm.payloads import OpenAnswer
 from chcos.errors import CommandSyntaxError, MessageError, ReadTimeout, SensorFailure
 from chcos.kernel.clock import VirtualClock
 from chcos.system.cmdline import Install, parse
@@ -473,7 +474,7 @@ def test_tasks_owned_from_a_dead_satellite_are_released(make_system: MakeSystem)
     s.execute(f"install -m0o1 --code={M}:worker W M1")
     s.execute(f"install -m1o1 --code={M}:boss B W")
     link = s.msgtab.find("B", "W")
-    assert s.msgmgr.remote_open(link, "remote job", True) == "owner"
+    assert s.msgmgr.remote_open(link, "remote job", True) == OpenAnswer.owner()
     s.run_for(0.1)
     assert s.tsktab.get("W").owner is link
     s.msgmgr.satellite_lost(1)

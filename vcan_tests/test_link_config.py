@@ -8,12 +8,8 @@ from typing import Any
 
 import pytest
 
-from chcos.comm.config import (
-    LinkConfig,
-    TlsSettings,
-    UsrPwdAuth,
-    link_config_from_section,
-)
+from chcos.comm.config import LinkConfig, TlsSettings, UsrPwdAuth
+from chcos.comm.section import link_config_from_section
 from chcos.errors import ConfigError
 
 

@@ -11,7 +11,7 @@ import pytest
 import zenoh
 
 from chcos.comm import LinkConfig, LinkMessage, MessageKind, Transport, decode
-from chcos.comm.transport import congestion_for, is_express, zenoh_priority
+from chcos.comm.qos import congestion_for, is_express, zenoh_priority
 from chcos.errors import LinkError
 from vcan_tests.netutil import free_port
 from vcan_tests.support_link import WAIT, Collector

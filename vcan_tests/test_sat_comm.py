@@ -129,8 +129,10 @@ def pair(tmp_path: Path) -> Iterator[tuple[System, System, LoopNet, list[CommMan
     systems, comms = [], []
     for m in (0, 1):
         s = System(DeviceMap(), clock=VirtualClock(), machines=(0, 1), base_dir=tmp_path,
-                   map_path=tmp_path / f"sysfile{m}.map", local_machines={m})
-        c = CommManager(s, LoopTransport(net), "chcos/t", m)  # type: ignore[arg-type]
+                   map_path=tmp_path / f"sysfile{m}.map", local_machines={m},
+                   transport=LoopTransport(net), prefix="chcos/t")
+        assert s.comm is not None
+        c = s.comm
         c.start()
         systems.append(s)
         comms.append(c)

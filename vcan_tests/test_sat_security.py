@@ -24,6 +24,7 @@ from chcos.comm.secret import load_or_create
 from chcos.comm.transport import Transport
 from chcos.errors import ConfigError, InstallError, LinkError
 from chcos.satellites import sysfile
+from chcos.satellites.control import ChangeRequest, Phase
 from chcos.satellites.host import Host
 from chcos.satellites.satellite import Satellite
 from drivers.memory import HISTORY_BYTES, ActuatorStore
@@ -293,8 +294,8 @@ def test_install_code_outside_the_task_path_is_never_imported(cluster: Cluster,
         cluster.host.execute(f"install -m0 --code={evil}:main EVIL")
     # the same request sent as a bare prepare (no commit) by the host role
     with pytest.raises(InstallError, match="outside the system's task path"):
-        cluster.host._ask(0, {"op": "prepare", "line": f"install -m0 --code={evil}:main EVIL",
-                              "seq": 3})
+        cluster.host._ask(0, ChangeRequest(Phase.PREPARE,
+                                           f"install -m0 --code={evil}:main EVIL", 3))
     assert not marker.exists()
     assert "EVIL" not in [t["name"] for t in cluster.host.map_doc()["tasks"]]
 
@@ -401,11 +402,11 @@ def test_commit_below_the_log_length_compares_the_line(tmp_path: Path) -> None:
         with Host(sf, timeout=10.0) as host:
             host.wait_for([0])
             host.execute("install -m0 sysfile")
-            assert host._ask(0, {"op": "commit", "line": "install -m0 sysfile",
-                                 "seq": 0})["answer"] == "already applied"
+            assert host._ask(0, ChangeRequest(Phase.COMMIT, "install -m0 sysfile",
+                                              0))["answer"] == "already applied"
             with pytest.raises(InstallError, match="diverged"):
-                host._ask(0, {"op": "commit", "line": f"install -m0 --code={S}:worker W",
-                              "seq": 0})
+                host._ask(0, ChangeRequest(Phase.COMMIT, f"install -m0 --code={S}:worker W",
+                                           0))
             assert sat.log == ["install -m0 sysfile"]
 
 

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from chcos.satellites.control import LogRequest
 from vcan_tests.support_sat import Cluster, device, task
 
 S = "vcan_tests.support_sat"
@@ -34,7 +35,7 @@ def test_restarted_satellite_runs_its_standing_task_again(cluster: Cluster) -> N
     h.execute("inject S0 3")
     doc = cluster.wait_until(lambda d: device(d, "M0")["value"] == 3, machine=0)
     assert task(doc, "R0")["standing"] is True and task(doc, "R0")["restart"] == "on-recovery"
-    log = h._ask(1, {"op": "log"})["log"]
+    log = h._ask(1, LogRequest())["log"]
     assert any("--standing" in ln and "--restart=on-recovery" in ln for ln in log), log
     cluster.kill(0)
     cluster.start(0)

@@ -44,6 +44,8 @@ HEADER_SIZE = HEADER.size  # 32
 MAX_NAME_BYTES = 255
 MAX_PAYLOAD_BYTES = 16 * 1024 * 1024
 MAX_PRIORITY = 99
+#: From this CHC-OS priority up, messages are sent express (never held back for batching).
+EXPRESS_FROM = 75
 _U32 = 0xFFFFFFFF
 _U64 = 0xFFFFFFFFFFFFFFFF
 

@@ -60,47 +60,32 @@ Zenoh keys set by :meth:`LinkConfig.to_json` (and why):
 ``transport.link.tls.*``                     optional TLS certificates
 =========================================== ===============================================
 
-Authentication (Zenoh ``usrpwd``): a node presents ``user``/``password`` when it connects, and a
-node with a ``dictionary_file`` (lines ``user:password``) refuses incoming sessions whose
-credentials are not in it. In a mesh every node should have all three.
+Authentication (Zenoh ``usrpwd``) and TLS settings are in :mod:`chcos.comm.tls`; the ``[link]``
+section of a system file is read by :mod:`chcos.comm.section`.
 """
 
 from __future__ import annotations
 
 import ipaddress
 import json
-from collections.abc import Mapping
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import zenoh
 
+from chcos.comm.tls import TlsSettings, UsrPwdAuth
 from chcos.errors import ConfigError
+
+__all__ = ["LOOPBACK", "LinkConfig", "TlsSettings", "UsrPwdAuth", "check_host", "check_port",
+           "is_loopback"]
 
 LOOPBACK = "127.0.0.1"
 DEFAULT_LEASE_MS = 3000
 DEFAULT_RETRY_MS = 100
 MAX_RETRY_MS = 1000
 
-_SECTION_KEYS = frozenset(
-    {"listen", "connect", "lease_ms", "retry_ms", "auth", "tls", "listen_host", "connect_hosts"}
-)
-_AUTH_KEYS = frozenset({"user", "password", "dictionary_file"})
-_TLS_KEYS = frozenset(
-    {
-        "root_ca_certificate",
-        "listen_certificate",
-        "listen_private_key",
-        "connect_certificate",
-        "connect_private_key",
-        "enable_mtls",
-        "verify_name_on_connect",
-    }
-)
-
-
-def _check_port(where: str, value: object) -> int:
+def check_port(where: str, value: object) -> int:
+    """``value`` if it is a TCP port 1..65535. Raises ConfigError naming ``where``."""
     if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 65535:
         raise ConfigError(f"{where}: expected a TCP port number 1..65535, got {value!r}")
     return value
@@ -137,96 +122,6 @@ def check_host(where: str, value: object) -> str:
     return value
 
 
-def _check_file(where: str, value: object, base_dir: Path | None) -> Path:
-    if isinstance(value, Path):
-        path = value
-    elif isinstance(value, str) and value:
-        path = Path(value)
-    else:
-        raise ConfigError(f"{where}: expected a file path string, got {value!r}")
-    if not path.is_absolute() and base_dir is not None:
-        path = base_dir / path
-    if not path.is_file():
-        raise ConfigError(f"{where}: expected an existing file, {str(path)!r} is not one")
-    return path
-
-
-@dataclass(frozen=True)
-class UsrPwdAuth:
-    """Zenoh user/password authentication: the credentials this node presents when it connects,
-    and (optionally) the dictionary of ``user:password`` lines it accepts from others.
-
-    Raises ConfigError (from the constructor) on an empty user or password, a ``:`` in the user,
-    or a dictionary path that is not an existing file."""
-
-    user: str
-    password: str
-    dictionary_file: Path | None = None
-
-    def __post_init__(self) -> None:
-        if not isinstance(self.user, str) or not self.user or ":" in self.user:
-            raise ConfigError(
-                f"link.auth.user: expected a non-empty name without ':', got {self.user!r}"
-            )
-        if not isinstance(self.password, str) or not self.password:
-            raise ConfigError("link.auth.password: expected a non-empty string")
-        if self.dictionary_file is not None:
-            _check_file("link.auth.dictionary_file", self.dictionary_file, None)
-
-    def __repr__(self) -> str:  # never print the password
-        return (
-            f"UsrPwdAuth(user={self.user!r}, password='***', "
-            f"dictionary_file={self.dictionary_file!r})"
-        )
-
-
-@dataclass(frozen=True)
-class TlsSettings:
-    """TLS certificate paths (PEM). A listening node needs ``listen_certificate`` and
-    ``listen_private_key``; a connecting node checks the listener against
-    ``root_ca_certificate``. With ``enable_mtls`` the connecting node must also present
-    ``connect_certificate``/``connect_private_key``, which the listener checks against the CA.
-    ``verify_name_on_connect`` checks that the listener's certificate names 127.0.0.1.
-
-    Raises ConfigError (from the constructor) on a missing file or an incomplete pair."""
-
-    root_ca_certificate: Path
-    listen_certificate: Path | None = None
-    listen_private_key: Path | None = None
-    connect_certificate: Path | None = None
-    connect_private_key: Path | None = None
-    enable_mtls: bool = False
-    verify_name_on_connect: bool = True
-
-    def __post_init__(self) -> None:
-        _check_file("link.tls.root_ca_certificate", self.root_ca_certificate, None)
-        for name in (
-            "listen_certificate",
-            "listen_private_key",
-            "connect_certificate",
-            "connect_private_key",
-        ):
-            value = getattr(self, name)
-            if value is not None:
-                _check_file(f"link.tls.{name}", value, None)
-        if (self.listen_certificate is None) != (self.listen_private_key is None):
-            raise ConfigError(
-                "link.tls: expected listen_certificate and listen_private_key together"
-            )
-        if (self.connect_certificate is None) != (self.connect_private_key is None):
-            raise ConfigError(
-                "link.tls: expected connect_certificate and connect_private_key together"
-            )
-        if self.enable_mtls and self.connect_certificate is None:
-            raise ConfigError(
-                "link.tls.enable_mtls: expected connect_certificate and connect_private_key "
-                "when mutual TLS is on"
-            )
-        for name in ("enable_mtls", "verify_name_on_connect"):
-            if not isinstance(getattr(self, name), bool):
-                raise ConfigError(f"link.tls.{name}: expected true or false")
-
-
 @dataclass(frozen=True)
 class LinkConfig:
     """Where one satellite listens and whom it connects to, all on 127.0.0.1.
@@ -257,13 +152,13 @@ class LinkConfig:
         for i, host in enumerate(self.connect_hosts):
             check_host(f"link.connect_hosts[{i}]", host)
         if self.listen_port is not None:
-            _check_port("link.listen", self.listen_port)
+            check_port("link.listen", self.listen_port)
         if not isinstance(self.connect_ports, tuple):
             raise ConfigError(
                 f"link.connect: expected a tuple of ports, got {type(self.connect_ports).__name__}"
             )
         for i, port in enumerate(self.connect_ports):
-            _check_port(f"link.connect[{i}]", port)
+            check_port(f"link.connect[{i}]", port)
         pairs = self.connect_pairs
         if len(set(pairs)) != len(pairs):
             raise ConfigError(f"link.connect: expected distinct ports, got {self.connect_ports}")
@@ -411,102 +306,3 @@ class LinkConfig:
             return zenoh.Config.from_json5(json.dumps(self.to_json()))
         except zenoh.ZError as exc:
             raise ConfigError(f"link: Zenoh rejected the configuration: {exc}") from exc
-
-
-def _expect_mapping(where: str, value: object, allowed: frozenset[str]) -> Mapping[str, Any]:
-    if not isinstance(value, Mapping):
-        raise ConfigError(f"{where}: expected a table of keys, got {type(value).__name__}")
-    for key in value:
-        if key not in allowed:
-            raise ConfigError(
-                f"{where}.{key}: unknown key; expected one of {', '.join(sorted(allowed))}"
-            )
-    return value
-
-
-def link_config_from_section(
-    section: Mapping[str, Any], *, where: str = "link", base_dir: Path | None = None
-) -> LinkConfig:
-    """Build a :class:`LinkConfig` from the ``[link]`` section of a system file.
-
-    ``where`` prefixes error messages (e.g. ``"sysfile.toml: link"``); relative file paths are
-    resolved against ``base_dir``. Keys::
-
-        listen = 7447                 # this node's port on 127.0.0.1 (optional)
-        connect = [7448, 7449]        # the other peers' ports
-        listen_host = "10.0.0.2"      # optional: the address to listen on (default 127.0.0.1)
-        connect_hosts = ["10.0.0.3", "10.0.0.4"]  # optional: one address per connect port
-        lease_ms = 3000               # optional
-        retry_ms = 100                # optional
-        [link.auth]                   # optional: Zenoh usrpwd
-        user = "sat1"
-        password = "..."
-        dictionary_file = "users.txt" # lines user:password this node accepts
-        [link.tls]                    # optional: root_ca_certificate, listen_certificate,
-                                      # listen_private_key, connect_certificate,
-                                      # connect_private_key, enable_mtls, verify_name_on_connect
-
-    Raises ConfigError naming the key and what was expected; the section is rejected whole.
-    """
-    sec = _expect_mapping(where, section, _SECTION_KEYS)
-    listen = sec.get("listen")
-    listen_port = None if listen is None else _check_port(f"{where}.listen", listen)
-    connect = sec.get("connect", [])
-    if not isinstance(connect, list | tuple):
-        raise ConfigError(f"{where}.connect: expected a list of ports, got {connect!r}")
-    ports = tuple(_check_port(f"{where}.connect[{i}]", p) for i, p in enumerate(connect))
-    auth = None
-    if "auth" in sec:
-        a = _expect_mapping(f"{where}.auth", sec["auth"], _AUTH_KEYS)
-        for key in ("user", "password"):
-            if not isinstance(a.get(key), str) or not a[key]:
-                raise ConfigError(f"{where}.auth.{key}: expected a non-empty string")
-        dictionary = None
-        if "dictionary_file" in a:
-            dictionary = _check_file(
-                f"{where}.auth.dictionary_file", a["dictionary_file"], base_dir
-            )
-        auth = UsrPwdAuth(a["user"], a["password"], dictionary)
-    tls = None
-    if "tls" in sec:
-        t = _expect_mapping(f"{where}.tls", sec["tls"], _TLS_KEYS)
-        if "root_ca_certificate" not in t:
-            raise ConfigError(f"{where}.tls.root_ca_certificate: expected a CA certificate path")
-
-        def opt_file(key: str) -> Path | None:
-            return _check_file(f"{where}.tls.{key}", t[key], base_dir) if key in t else None
-
-        flags: dict[str, bool] = {}
-        for key, default in (("enable_mtls", False), ("verify_name_on_connect", True)):
-            value = t.get(key, default)
-            if not isinstance(value, bool):
-                raise ConfigError(f"{where}.tls.{key}: expected true or false, got {value!r}")
-            flags[key] = value
-        try:
-            tls = TlsSettings(
-                _check_file(f"{where}.tls.root_ca_certificate", t["root_ca_certificate"], base_dir),
-                listen_certificate=opt_file("listen_certificate"),
-                listen_private_key=opt_file("listen_private_key"),
-                connect_certificate=opt_file("connect_certificate"),
-                connect_private_key=opt_file("connect_private_key"),
-                enable_mtls=flags["enable_mtls"],
-                verify_name_on_connect=flags["verify_name_on_connect"],
-            )
-        except ConfigError as exc:
-            raise ConfigError(f"{where}: {exc}") from exc
-    kwargs: dict[str, Any] = {}
-    if "listen_host" in sec:
-        kwargs["listen_host"] = check_host(f"{where}.listen_host", sec["listen_host"])
-    if "connect_hosts" in sec:
-        hosts = sec["connect_hosts"]
-        if not isinstance(hosts, list | tuple):
-            raise ConfigError(f"{where}.connect_hosts: expected a list of addresses")
-        kwargs["connect_hosts"] = tuple(
-            check_host(f"{where}.connect_hosts[{i}]", h) for i, h in enumerate(hosts))
-    for key in ("lease_ms", "retry_ms"):
-        if key in sec:
-            kwargs[key] = sec[key]
-    try:
-        return LinkConfig(listen_port, ports, auth=auth, tls=tls, **kwargs)
-    except ConfigError as exc:
-        raise ConfigError(f"{where}: {exc}") from exc

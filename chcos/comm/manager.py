@@ -22,56 +22,54 @@ role are accepted on the message keys (a host cannot set device values, write ac
 statuses or e-stop through them). A malformed or refused message is counted by cause and logged
 at most once per cause per interval (:attr:`CommManager.rejected`); actuator values must match
 the actuator's type (a number where the safe value or limits are numbers) and be finite.
+
+Payloads are typed (:mod:`chcos.comm.payloads`), encoded and checked only at this boundary.
+The collaborators (kernel, tables, message manager, device table) are given at construction
+as the narrow protocols of :mod:`chcos.comm.ports`. What goes wrong on the link (a batch that
+could not be published, an incoming message refused) is collected in :attr:`CommManager.errors`
+and raised by :meth:`CommManager.check` (like canopen's ``Network.check()``).
 """
 
 from __future__ import annotations
 
 import logging
-import math
 import time
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-from chcos.comm.codec import LinkMessage, MessageKind, decode_batch, encode, encode_batch
+from chcos.comm.batching import Batches
+from chcos.comm.codec import EXPRESS_FROM, LinkMessage, MessageKind, decode_batch, encode
+from chcos.comm.payloads import (
+    KIND_OF,
+    ActuatorCommand,
+    CloseRequest,
+    DeviceStatus,
+    EmergencyStop,
+    OpenAnswer,
+    OpenReply,
+    OpenRequest,
+    Payload,
+    Query,
+    QueryAnswer,
+    QueryFailed,
+    Report,
+    check_actuator_value,
+    from_wire,
+    to_wire,
+)
+from chcos.comm.ports import Closable, Devices, Links, LinkTransport, Messages, Scheduler, Tasks
 from chcos.comm.secret import Throttle
-from chcos.comm.transport import EXPRESS_FROM, Subscription, Transport
 from chcos.errors import LinkError, MessageError
-from chcos.kernel.scheduler import Timer
 from chcos.tables.messages import TOP_PRIORITY, Link, LinkStatus
-
-if TYPE_CHECKING:
-    from chcos.system.embedded import System
-    from chcos.tables.tasks import TaskEntry
+from chcos.tables.tasks import TaskEntry
 
 log = logging.getLogger("chcos.comm.manager")
 
-#: A batch goes out when it holds this many messages, or BATCH_DELAY seconds after its first
-#: message; a batch of messages that must arrive (commands, completions, queued links) also as
-#: soon as the kernel goes idle. Newest-wins sensory messages wait for the delay on real time, so
-#: that newer values on the same link replace them on the way: a busy producer then costs one
-#: Zenoh put per BATCH_DELAY instead of one per message (a put that wakes Zenoh's sender costs
-#: tens of microseconds, as much as a task step), and the data is at most BATCH_DELAY older.
-BATCH_MAX = 64
-BATCH_DELAY = 0.001
 #: The roles that may send on the message keys.
 SATELLITES = frozenset({"satellite"})
-_STATUSES = ("OK", "failed", "suspended", "stale")
+#: How many collected errors are kept (the oldest are dropped; :attr:`error_count` counts all).
+ERRORS_KEPT = 100
 
-
-def check_actuator_value(device: str, safe: Any, limits: tuple[Any, Any], value: Any) -> None:
-    """Refuse an actuator command from the link whose type does not fit the actuator: a number
-    (int or float, finite; bool only where the safe value is a bool) where the safe value or a
-    limit is a number. Raises MessageError naming the device and the value."""
-    numeric = any(isinstance(x, int | float) and not isinstance(x, bool)
-                  for x in (safe, *limits))
-    if isinstance(safe, bool):
-        if not isinstance(value, bool):
-            raise MessageError(f"actuator {device}: expected true or false, got {value!r:.80}")
-    elif numeric:
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise MessageError(f"actuator {device}: expected a number, got "
-                               f"{type(value).__name__} {value!r:.80}")
-        if not math.isfinite(value):
-            raise MessageError(f"actuator {device}: expected a finite number, got {value!r}")
+__all__ = ["CommManager", "check_actuator_value", "machine_of"]
 
 
 def machine_of(token_key: str) -> int | None:
@@ -82,34 +80,69 @@ def machine_of(token_key: str) -> int | None:
 
 
 class CommManager:
-    """The link between one satellite (machine ``machine``) and all the others."""
+    """The link between one satellite (machine ``machine``) and all the others, on
+    ``transport``, under the key ``prefix``. The message manager learns of it from the
+    composition root (``msgmgr.comm``); the manager registers its idle hook with ``kernel``."""
 
-    def __init__(self, system: System, transport: Transport, prefix: str, machine: int) -> None:
-        self.sys = system
+    def __init__(self, *, kernel: Scheduler, tsktab: Tasks, msgtab: Links, msgmgr: Messages,
+                 devtab: Devices, transport: LinkTransport, prefix: str, machine: int) -> None:
+        self.kernel = kernel
+        self.tsktab = tsktab
+        self.msgtab = msgtab
+        self.msgmgr = msgmgr
+        self.devtab = devtab
         self.transport = transport
         self.prefix = prefix
         self.machine = machine
         self._seq: dict[int, int] = {}       # outgoing: last sequence number per link id
         self._seen: dict[int, int] = {}      # incoming: last sequence number per link id
-        self._uniq = 0
-        self._subs: list[Subscription] = []
+        self._subs: list[Closable] = []
         self.received = 0
         self.sent = 0
+        #: what went wrong on the link, newest last (at most ERRORS_KEPT); see :meth:`check`
         self.errors: list[str] = []
+        self.error_count = 0
         self.rejected = Throttle(log)
         self.alive: set[int] = {machine}
-        # messages below EXPRESS_FROM wait in a batch per (destination key, droppable,
-        # newest-wins) until it is sent (see BATCH_DELAY). A batch maps a link id (newest-wins
-        # sensory messages: a newer one replaces the waiting one) or a unique negative number
-        # (everything else) to the encoded message.
-        self._batches: dict[tuple[str, bool, bool], dict[int, bytes]] = {}
-        self._batch_prio: dict[tuple[str, bool, bool], int] = {}
-        self._flush_timer: Timer | None = None
-        self.batches_sent = 0
-        self.coalesced = 0
+        self.batches = Batches(kernel, transport, self._collect)
         self.superseded = 0
-        system.msgmgr.comm = self
-        system.kernel.add_idle_hook(self._on_idle)
+        kernel.add_idle_hook(self.batches.on_idle)
+
+    # ---- collected errors -------------------------------------------------------------------
+    def _collect(self, text: str) -> None:
+        self.errors.append(text)
+        del self.errors[:-ERRORS_KEPT]
+        self.error_count += 1
+
+    def check(self) -> None:
+        """Raise LinkError if this satellite collected link errors (batches that could not be
+        published, incoming messages refused): how many, and the last few. The errors stay
+        collected (the map shows them) until :meth:`clear_errors`."""
+        if not self.errors:
+            return
+        last = "\n  - ".join(self.errors[-5:])
+        raise LinkError(f"machine {self.machine}: {self.error_count} link error(s) collected; "
+                        f"the last:\n  - {last}")
+
+    def clear_errors(self) -> list[str]:
+        """Acknowledge the collected errors: returns them and forgets them."""
+        out, self.errors = self.errors, []
+        self.error_count = 0
+        return out
+
+    @property
+    def coalesced(self) -> int:
+        """Newest-wins messages replaced by a newer one before they left this satellite."""
+        return self.batches.coalesced
+
+    @property
+    def batches_sent(self) -> int:
+        """How many batches were published."""
+        return self.batches.sent
+
+    def flush(self) -> None:
+        """Send every waiting batch now (kernel thread)."""
+        self.batches.flush()
 
     # ---- keys -------------------------------------------------------------------------------
     def key(self, machine: int) -> str:
@@ -138,9 +171,13 @@ class CommManager:
         self._subs.clear()
 
     # ---- outgoing (kernel thread) -----------------------------------------------------------
-    def _send(self, machine: int | None, kind: MessageKind, src: str, dst: str, lid: int,
-              priority: int, value: Any, queued: bool = False,
-              newest_wins: bool = False) -> None:
+    def _send(self, machine: int | None, src: str, dst: str, lid: int, priority: int,
+              payload: Payload, *, queued: bool = False) -> None:
+        self._put(machine, KIND_OF[type(payload)], src, dst, lid, priority, to_wire(payload),
+                  queued=queued)
+
+    def _put(self, machine: int | None, kind: MessageKind, src: str, dst: str, lid: int,
+             priority: int, value: Any, queued: bool = False, newest_wins: bool = False) -> None:
         seq = self._seq.get(lid, 0) + 1
         self._seq[lid] = seq
         msg = LinkMessage(kind, src, dst, lid, priority, seq, time.time_ns(), value)
@@ -156,109 +193,52 @@ class CommManager:
         except LinkError as exc:
             raise MessageError(f"cannot send {kind.name.lower()} {src}->{dst} to machine "
                                f"{machine}: {exc}") from exc
-        slot = (key, drop, newest_wins)
-        batch = self._batches.get(slot)
-        if batch is None:
-            batch = self._batches[slot] = {}
-        if newest_wins:
-            if batch.pop(lid, None) is not None:
-                self.coalesced += 1
-            batch[lid] = data
-        else:
-            self._uniq -= 1
-            batch[self._uniq] = data
-        self._batch_prio[slot] = max(priority, self._batch_prio.get(slot, 0))
-        if len(batch) >= BATCH_MAX:
-            self._flush_slot(slot)
-        elif self._flush_timer is None:
-            self._flush_timer = self.sys.kernel.call_later(BATCH_DELAY, self.flush)
-
-    def _on_idle(self) -> None:
-        """Kernel idle hook: send the batches of messages that must arrive (commands, queued
-        links, completions) now; newest-wins sensory batches wait for the batch timer (real
-        time only), so that newer values on the same links replace them on the way."""
-        if not self._batches:
-            return
-        if self.sys.kernel.clock.virtual:
-            self.flush()
-            return
-        for slot in [sl for sl in self._batches if not sl[2]]:
-            self._flush_slot(slot)
-
-    def flush(self) -> None:
-        """Send every waiting batch (kernel thread; BATCH_DELAY after a batch was started, and
-        when the kernel goes idle on virtual time)."""
-        if self._flush_timer is not None:
-            self._flush_timer.cancel()
-            self._flush_timer = None
-        for slot in list(self._batches):
-            self._flush_slot(slot)
-
-    def _flush_slot(self, slot: tuple[str, bool, bool]) -> None:
-        batch = self._batches.pop(slot, None)
-        prio = self._batch_prio.pop(slot, 0)
-        if not batch:
-            return
-        key, drop, _newest = slot
-        kind = MessageKind.SENSORY if drop else MessageKind.COMMAND  # congestion: drop or block
-        try:
-            self.transport.publish(key, encode_batch(list(batch.values())), priority=prio,
-                                   kind=kind)
-        except LinkError as exc:
-            text = f"batch of {len(batch)} message(s) to {key} lost: {exc}"
-            log.error("%s", text)
-            self.errors.append(text)
-            return
-        self.batches_sent += 1
+        self.batches.add(key, drop, newest_wins, lid, data, priority)
 
     def sensory(self, link: Link, value: Any) -> None:
         """A sensory message to a task on another satellite."""
-        self._send(link.dst_machine, MessageKind.SENSORY, link.src, link.dst, link.lid,
-                   link.priority, value, queued=bool(link.queued),
-                   newest_wins=not link.queued and not link.tap)
+        self._put(link.dst_machine, MessageKind.SENSORY, link.src, link.dst, link.lid,
+                  link.priority, value, queued=bool(link.queued),
+                  newest_wins=not link.queued and not link.tap)
 
     def tap(self, link: Link, source: str, value: Any) -> None:
         """A tapped sensory message to an exception task on another satellite."""
-        self._send(link.dst_machine, MessageKind.SENSORY, source, link.dst, link.lid,
-                   link.priority, value)
+        self._put(link.dst_machine, MessageKind.SENSORY, source, link.dst, link.lid,
+                  link.priority, value)
 
     def open(self, link: Link, command: Any, wait: bool) -> None:
         """topen of a task on another satellite."""
-        self._send(link.dst_machine, MessageKind.COMMAND, link.src, link.dst, link.lid,
-                   link.priority, {"op": "open", "command": command, "wait": wait})
+        self._send(link.dst_machine, link.src, link.dst, link.lid, link.priority,
+                   OpenRequest(command, wait))
 
     def close(self, link: Link) -> None:
         """tclose of a task on another satellite."""
-        self._send(link.dst_machine, MessageKind.COMMAND, link.src, link.dst, link.lid,
-                   link.priority, {"op": "close"})
+        self._send(link.dst_machine, link.src, link.dst, link.lid, link.priority, CloseRequest())
 
     def report(self, link: Link) -> None:
         """A completion or pre-emption on ``link`` to its caller's satellite."""
         kind = (MessageKind.PREEMPTION if link.status is LinkStatus.PREEMPTED
                 else MessageKind.COMPLETION)
-        self._send(link.src_machine, kind, link.src, link.dst, link.lid, link.priority,
-                   {"status": link.status.value, "result": link.result, "error": link.error})
+        self._put(link.src_machine, kind, link.src, link.dst, link.lid, link.priority,
+                  to_wire(Report(link.status, link.result, link.error)))
 
     def granted(self, link: Link) -> None:
         """The caller of ``link`` (on another satellite) now owns the target."""
-        self._send(link.src_machine, MessageKind.REPLY, link.src, link.dst, link.lid,
-                   link.priority, {"op": "open", "answer": "owner"})
+        self._send(link.src_machine, link.src, link.dst, link.lid, link.priority,
+                   OpenReply(OpenAnswer.owner()))
 
     def actuator(self, device: str, machine: int, value: Any, source: str) -> None:
         """An actuator command to the device's satellite."""
-        self._send(machine, MessageKind.COMMAND, source, device, 0, TOP_PRIORITY - 1,
-                   {"op": "actuator", "device": device, "value": value})
+        self._send(machine, source, device, 0, TOP_PRIORITY - 1, ActuatorCommand(device, value))
 
     def device_status(self, device: str, status: str, reason: str) -> None:
         """A local device changed status: tell everybody."""
-        self._send(None, MessageKind.STATUS, "", device, 0, TOP_PRIORITY - 1,
-                   {"device": device, "status": status, "reason": reason,
-                    "from": self.machine})
+        self._send(None, "", device, 0, TOP_PRIORITY - 1,
+                   DeviceStatus(device, status, reason, self.machine))
 
     def estop(self, reason: str) -> None:
         """Emergency stop everywhere, at top priority, sent express."""
-        self._send(None, MessageKind.COMMAND, "", "", 0, TOP_PRIORITY,
-                   {"op": "estop", "reason": reason, "from": self.machine})
+        self._send(None, "", "", 0, TOP_PRIORITY, EmergencyStop(reason, self.machine))
 
     def is_up(self, machine: int) -> bool:
         """Whether satellite ``machine`` is on the link now (its liveliness token is seen)."""
@@ -268,8 +248,8 @@ class CommManager:
               args: list[Any]) -> None:
         """A world-model query of ``asker`` to ``peer`` on another satellite, at the priority
         ``asker`` runs at. Raises MessageError if it cannot be encoded."""
-        self._send(peer.machine, MessageKind.QUERY, asker.name, peer.name, link.lid, asker.prio,
-                   {"qid": qid, "topic": topic, "args": args})
+        self._send(peer.machine, asker.name, peer.name, link.lid, asker.prio,
+                   Query(qid, topic, args))
 
     # ---- incoming (Zenoh thread -> kernel thread) -------------------------------------------
     def _incoming(self, key: str, payload: bytes) -> None:
@@ -278,14 +258,14 @@ class CommManager:
         except LinkError as exc:
             self.rejected.note("incoming batch refused (malformed)", f"{key}: {exc}")
             return
-        self.sys.kernel.interrupt(self._handle_batch, msgs)
+        self.kernel.interrupt(self._handle_batch, msgs)
 
     def _handle_batch(self, msgs: list[LinkMessage]) -> None:
         for msg in msgs:
             self._handle(msg)
 
     def _link(self, msg: LinkMessage) -> Link:
-        links = self.sys.msgtab.links
+        links = self.msgtab.links
         if not 0 <= msg.link < len(links):
             raise MessageError(f"message from {msg.src} names link {msg.link}, which this "
                                f"satellite does not have (tables out of step?)")
@@ -300,77 +280,64 @@ class CommManager:
             text = f"{msg.kind.name} {msg.src}->{msg.dst}: {type(exc).__name__}: {exc}"
             self.rejected.note(f"incoming message refused ({msg.kind.name} "
                                f"{type(exc).__name__})", text)
-            self.errors.append(text)
-            del self.errors[:-100]
+            self._collect(text)
 
     def _dispatch(self, msg: LinkMessage) -> None:
-        s = self.sys
-        mm = s.msgmgr
-        v = msg.value
-        kind = msg.kind
-        if kind is MessageKind.STATUS:
-            if not (isinstance(v, dict) and isinstance(v.get("device"), str)
-                    and v.get("status") in _STATUSES and isinstance(v.get("reason"), str)):
-                raise MessageError(f"malformed status message {v!r:.120}")
-            if v.get("from") != self.machine:
-                s.devtab.set_status(v["device"], v["status"], v["reason"])
-            return
-        if kind is MessageKind.COMMAND and isinstance(v, dict) and v.get("op") == "estop":
-            if v.get("from") != self.machine:
-                mm.event("estop", f"from machine {v.get('from')}: {v.get('reason')}")
-                s.devtab.estop(str(v.get("reason")))
-            return
-        if kind is MessageKind.COMMAND and isinstance(v, dict) and v.get("op") == "actuator":
-            spec = s.devtab.get(str(v["device"])).spec
-            check_actuator_value(spec.name, spec.safe_value, spec.limits, v.get("value"))
-            s.devtab.write(v["device"], v["value"], source=msg.src)
-            return
-        link = self._link(msg)
-        if kind is MessageKind.SENSORY:
+        mm = self.msgmgr
+        if msg.kind is MessageKind.SENSORY:
+            link = self._link(msg)
             if link.tap:
-                tap = s.tsktab.get(link.dst).tap
-                mm.deliver_tap(link, tap, msg.src, v)
+                tap = self.tsktab.get(link.dst).tap
+                if tap is None:
+                    raise MessageError(f"task {link.dst} has no exception tap")
+                mm.deliver_tap(link, tap, msg.src, msg.value)
             else:
                 self._count_superseded(link, msg.seq)
-                mm.deliver(link, v)
-        elif kind is MessageKind.COMMAND:
-            if v["op"] == "open":
-                answer = mm.remote_open(link, v["command"], bool(v["wait"]))
-                self._send(link.src_machine, MessageKind.REPLY, link.src, link.dst, link.lid,
-                           link.priority, {"op": "open", "answer": answer})
-            elif v["op"] == "close":
-                mm.close(link)
-            else:
-                raise MessageError(f"unknown command op {v['op']!r}")
-        elif kind is MessageKind.QUERY:
-            self._answer(msg, link)
-        elif kind is MessageKind.REPLY and v.get("op") == "answer":
-            mm.ask_answered(int(v["qid"]), v.get("answer"), None)
-        elif kind is MessageKind.ERROR:
-            mm.ask_answered(int(v["qid"]), None, str(v["error"]))
-        elif kind is MessageKind.REPLY:
-            mm.open_answer(link, str(v["answer"]))
-        elif kind in (MessageKind.COMPLETION, MessageKind.PREEMPTION):
-            mm.remote_report(link, LinkStatus(v["status"]), v.get("result"), v.get("error", ""))
-        else:
-            raise MessageError(f"unexpected message kind {kind.name}")
+                mm.deliver(link, msg.value)
+            return
+        p = from_wire(msg.kind, msg.value)
+        if isinstance(p, DeviceStatus):
+            if p.origin != self.machine:
+                self.devtab.set_status(p.device, p.status, p.reason)
+        elif isinstance(p, EmergencyStop):
+            if p.origin != self.machine:
+                mm.event("estop", f"from machine {p.origin}: {p.reason}")
+                self.devtab.estop(p.reason)
+        elif isinstance(p, ActuatorCommand):
+            spec = self.devtab.get(p.device).spec
+            check_actuator_value(spec.name, spec.safe_value, spec.limits, p.value)
+            self.devtab.write(p.device, p.value, source=msg.src)
+        elif isinstance(p, OpenRequest):
+            link = self._link(msg)
+            self._send(link.src_machine, link.src, link.dst, link.lid, link.priority,
+                       OpenReply(mm.remote_open(link, p.command, p.wait)))
+        elif isinstance(p, CloseRequest):
+            mm.close(self._link(msg))
+        elif isinstance(p, Query):
+            self._answer(msg, self._link(msg), p)
+        elif isinstance(p, QueryAnswer):
+            self._link(msg)
+            mm.ask_answered(p.qid, p.answer, None)
+        elif isinstance(p, QueryFailed):
+            self._link(msg)
+            mm.ask_answered(p.qid, None, p.error)
+        elif isinstance(p, OpenReply):
+            mm.open_answer(self._link(msg), p.answer)
+        else:  # Report
+            mm.remote_report(self._link(msg), p.status, p.result, p.error)
 
-    def _answer(self, msg: LinkMessage, link: Link) -> None:
+    def _answer(self, msg: LinkMessage, link: Link, q: Query) -> None:
         """Answer a world-model query from another satellite with the local task's model, or
         tell the asker why not (an ERROR message, which raises MessageError in the asker)."""
-        v = msg.value
-        tsktab = self.sys.tsktab
-        asker = tsktab.get(msg.src)
-        qid = int(v["qid"])
+        asker = self.tsktab.get(msg.src)
         try:
-            answer = self.sys.msgmgr.world_answer(tsktab.get(msg.dst), str(v["topic"]),
-                                                  v.get("args") or [])
-            self._send(asker.machine, MessageKind.REPLY, msg.dst, msg.src, link.lid,
-                       msg.priority, {"op": "answer", "qid": qid, "answer": answer})
+            answer = self.msgmgr.world_answer(self.tsktab.get(msg.dst), q.topic, q.args)
+            self._send(asker.machine, msg.dst, msg.src, link.lid, msg.priority,
+                       QueryAnswer(q.qid, answer))
         except Exception as exc:
             why = str(exc) if isinstance(exc, MessageError) else f"{type(exc).__name__}: {exc}"
-            self._send(asker.machine, MessageKind.ERROR, msg.dst, msg.src, link.lid,
-                       msg.priority, {"qid": qid, "error": f"{msg.dst}'s world model: {why}"})
+            self._send(asker.machine, msg.dst, msg.src, link.lid, msg.priority,
+                       QueryFailed(q.qid, f"{msg.dst}'s world model: {why}"))
 
     def _count_superseded(self, link: Link, seq: int) -> None:
         """Count the messages of a newest-wins link that a newer one replaced before they left
@@ -388,25 +355,24 @@ class CommManager:
     def _joined(self, key: str) -> None:
         m = machine_of(key)
         if m is not None and m != self.machine:
-            self.sys.kernel.interrupt(self._on_join, m)
+            self.kernel.interrupt(self._on_join, m)
 
     def _left(self, key: str) -> None:
         m = machine_of(key)
         if m is not None and m != self.machine:
-            self.sys.kernel.interrupt(self._on_leave, m)
+            self.kernel.interrupt(self._on_leave, m)
 
     def _on_join(self, machine: int) -> None:
         self.alive.add(machine)
-        self.sys.msgmgr.event("satellite-up", f"machine {machine} joined")
-        for e in self.sys.devtab:
+        self.msgmgr.event("satellite-up", f"machine {machine} joined")
+        for e in self.devtab:
             if e.spec.machine == machine and e.status.value == "failed":
-                self.sys.devtab.set_status(e.name, "OK", "")
+                self.devtab.set_status(e.name, "OK", "")
 
     def _on_leave(self, machine: int) -> None:
         self.alive.discard(machine)
-        mm = self.sys.msgmgr
-        told = mm.satellite_lost(machine)
-        mm.event("satellite-down", f"machine {machine} died; {told} owner(s) told")
-        for e in self.sys.devtab:
+        told = self.msgmgr.satellite_lost(machine)
+        self.msgmgr.event("satellite-down", f"machine {machine} died; {told} owner(s) told")
+        for e in self.devtab:
             if e.spec.machine == machine:
-                self.sys.devtab.set_status(e.name, "failed", f"satellite {machine} died")
+                self.devtab.set_status(e.name, "failed", f"satellite {machine} died")

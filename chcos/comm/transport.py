@@ -39,289 +39,42 @@ and logged at most once per cause per interval (no traceback), so junk cannot fl
 from __future__ import annotations
 
 import logging
-import threading
 import time
-from collections import OrderedDict
 from collections.abc import Callable
-from typing import Any
 
 import zenoh
 
-from chcos.comm.codec import MAX_PRIORITY, LinkMessage, MessageKind, decode, encode
-from chcos.comm.config import LinkConfig
-from chcos.comm.secret import SEAL_BYTES, Sealer, Throttle
+from chcos.comm.codec import LinkMessage, MessageKind, decode, encode
+from chcos.comm.qos import (
+    EXPRESS_FROM,
+    PRIORITY_BANDS,
+    band_of,
+    check_key,
+    congestion_for,
+    is_express,
+    zenoh_priority,
+)
+from chcos.comm.session import SERVER_ERROR_ENCODING, Session
+from chcos.comm.subscription import Subscription
 from chcos.errors import LinkError
 
 log = logging.getLogger("chcos.comm")
 
-#: CHC-OS priority bands (lowest priority of the band, Zenoh priority), most urgent first.
-PRIORITY_BANDS: tuple[tuple[int, zenoh.Priority], ...] = (
-    (90, zenoh.Priority.REAL_TIME),
-    (75, zenoh.Priority.INTERACTIVE_HIGH),
-    (60, zenoh.Priority.INTERACTIVE_LOW),
-    (45, zenoh.Priority.DATA_HIGH),
-    (30, zenoh.Priority.DATA),
-    (15, zenoh.Priority.DATA_LOW),
-    (0, zenoh.Priority.BACKGROUND),
-)
-#: From this CHC-OS priority up, messages are sent express (never held back for batching).
-EXPRESS_FROM = 75
-#: Encoding of the error replies chcos servers send (Zenoh's own errors, e.g. timeouts, differ).
-SERVER_ERROR_ENCODING = "text/plain;chcos-server-error"
-#: Largest payload sent or accepted on the link by default (bytes, before the seal).
-MAX_MESSAGE_BYTES = 1024 * 1024
-#: Publishers kept declared (one per key and QoS); the least recently used beyond this is dropped.
-PUBLISHER_CACHE_SIZE = 256
+__all__ = ["EXPRESS_FROM", "PRIORITY_BANDS", "Subscription", "Transport", "congestion_for",
+           "enable_zenoh_logging", "is_express", "zenoh_priority"]
 
 Callback = Callable[[str, bytes], object]
 Handler = Callable[[bytes], bytes]
 KeyCallback = Callable[[str], object]
 
 
-def _check_priority(priority: int) -> int:
-    if isinstance(priority, bool) or not isinstance(priority, int):
-        raise LinkError(f"priority: expected an integer 0..{MAX_PRIORITY}, got {priority!r}")
-    if not 0 <= priority <= MAX_PRIORITY:
-        raise LinkError(f"priority: expected 0..{MAX_PRIORITY}, got {priority}")
-    return priority
-
-
-def _band(priority: int) -> int:
-    _check_priority(priority)
-    return next(i for i, (low, _) in enumerate(PRIORITY_BANDS) if priority >= low)
-
-
-def zenoh_priority(priority: int) -> zenoh.Priority:
-    """The Zenoh priority for CHC-OS ``priority`` 0..99 (see :data:`PRIORITY_BANDS`).
-
-    Raises LinkError if ``priority`` is not an integer 0..99."""
-    return PRIORITY_BANDS[_band(priority)][1]
-
-
-def is_express(priority: int) -> bool:
-    """Whether messages of CHC-OS ``priority`` bypass batching. Raises LinkError like above."""
-    return _check_priority(priority) >= EXPRESS_FROM
-
-
-def congestion_for(kind: MessageKind) -> zenoh.CongestionControl:
-    """DROP for kinds a newer message supersedes (sensory, status), BLOCK for all others."""
-    return zenoh.CongestionControl.DROP if kind.droppable else zenoh.CongestionControl.BLOCK
-
-
-def _check_key(what: str, key: str, *, concrete: bool) -> str:
-    if not isinstance(key, str) or not key:
-        raise LinkError(f"{what}: expected a non-empty key string, got {key!r}")
-    if concrete and ("*" in key or "$" in key):
-        raise LinkError(f"{what}: expected a concrete key without wildcards, got {key!r}")
-    try:
-        zenoh.KeyExpr(key)
-    except zenoh.ZError as exc:
-        raise LinkError(f"{what}: {key!r} is not a valid Zenoh key expression: {exc}") from exc
-    return key
-
-
-class Subscription:
-    """A declared subscriber, server, token or watcher. ``close()`` (or leaving the ``with``
-    block) undeclares it; closing twice is harmless. The transport closes all of them on close."""
-
-    def __init__(self, transport: Transport, what: str, entity: Any) -> None:
-        self._transport = transport
-        self._entity = entity
-        self._closed = False
-        self.what = what
-
-    def close(self) -> None:
-        """Undeclare the Zenoh entity. Never raises."""
-        if self._closed:
-            return
-        self._closed = True
-        self._transport._forget(self)
-        try:
-            self._entity.undeclare()
-        except zenoh.ZError as exc:  # the session may already be closed
-            log.debug("undeclaring %s: %s", self.what, exc)
-
-    @property
-    def closed(self) -> bool:
-        """True once closed, by itself or by the transport."""
-        return self._closed
-
-    def __enter__(self) -> Subscription:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    def __repr__(self) -> str:
-        return f"Subscription({self.what!r}, closed={self._closed})"
-
-
-class Transport:
-    """One Zenoh session configured by a :class:`LinkConfig` (a context manager).
+class Transport(Session):
+    """One Zenoh session configured by a :class:`LinkConfig` (a context manager), with the
+    operations of the module doc (the session itself is :class:`chcos.comm.session.Session`).
 
     Raises LinkError when Zenoh cannot open the session (e.g. the listen port is taken); every
     method raises LinkError on a closed transport, a bad key or priority, or a Zenoh failure.
     """
-
-    def __init__(self, config: LinkConfig, *, sealer: Sealer | None = None,
-                 max_bytes: int = MAX_MESSAGE_BYTES) -> None:
-        self.config = config
-        self.sealer = sealer
-        self.max_bytes = max_bytes
-        self.rejected = Throttle(log)
-        self._lock = threading.Lock()
-        self._errors = 0
-        self._malformed = 0
-        self._closed = False
-        self._entities: dict[int, Subscription] = {}
-        # (key, priority band, express, block) -> zenoh.Publisher (zenoh.Priority is unhashable)
-        self._publishers: OrderedDict[tuple[str, int, bool, bool], Any] = OrderedDict()
-        try:
-            self._session = zenoh.open(config.to_zenoh())
-        except zenoh.ZError as exc:
-            raise LinkError(
-                f"link: cannot open the Zenoh session (listen {config.listen_endpoints}, "
-                f"connect {config.connect_endpoints}): {exc}"
-            ) from exc
-        log.info(
-            "link %s open: listen %s connect %s",
-            self.zid,
-            config.listen_endpoints,
-            config.connect_endpoints,
-        )
-
-    # -- life cycle --------------------------------------------------------------------------
-
-    def __enter__(self) -> Transport:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    def close(self) -> None:
-        """Undeclare everything and close the session; its tokens vanish for the others.
-        Closing twice is harmless."""
-        with self._lock:
-            if self._closed:
-                return
-            self._closed = True
-            entities = list(self._entities.values())
-            publishers = list(self._publishers.values())
-            self._publishers.clear()
-        for entity in entities:
-            entity.close()
-        for publisher in publishers:
-            try:
-                publisher.undeclare()
-            except zenoh.ZError as exc:
-                log.debug("undeclaring a publisher: %s", exc)
-        zid = self.zid
-        self._session.close()  # type: ignore[no-untyped-call]  # stub lacks "-> None"
-        log.info("link %s closed", zid)
-
-    @property
-    def closed(self) -> bool:
-        """True once :meth:`close` ran."""
-        return self._closed
-
-    @property
-    def zid(self) -> str:
-        """This session's Zenoh id (hex)."""
-        return str(self._session.zid())
-
-    def peers(self) -> list[str]:
-        """Zenoh ids of the peers this session is connected to right now."""
-        self._check_open("peers")
-        return [str(z) for z in self._session.info.peers_zid()]
-
-    @property
-    def callback_errors(self) -> int:
-        """How many exceptions escaped user callbacks and handlers so far."""
-        return self._errors
-
-    def _check_open(self, what: str) -> None:
-        if self._closed:
-            raise LinkError(f"{what}: the link transport is closed")
-
-    def _register(self, what: str, entity: Any) -> Subscription:
-        sub = Subscription(self, what, entity)
-        with self._lock:
-            if self._closed:
-                closed = True
-            else:
-                closed = False
-                self._entities[id(sub)] = sub
-        if closed:
-            sub.close()
-            raise LinkError(f"{what}: the link transport is closed")
-        return sub
-
-    def _forget(self, sub: Subscription) -> None:
-        with self._lock:
-            self._entities.pop(id(sub), None)
-
-    def _failed(self, what: str) -> None:
-        with self._lock:
-            self._errors += 1
-        import sys
-
-        exc = sys.exc_info()[1]
-        self.rejected.note(f"link {what}: a callback raised (ignored)",
-                           f"{type(exc).__name__}: {exc} ({self._errors} so far)")
-
-    def _seal(self, key: str, payload: bytes) -> bytes:
-        if len(payload) > self.max_bytes:
-            raise LinkError(f"{key!r}: payload of {len(payload)} bytes is larger than the "
-                            f"link's limit of {self.max_bytes} bytes")
-        return payload if self.sealer is None else self.sealer.seal(key, payload)
-
-    def _open(self, what: str, key: str, data: bytes, roles: frozenset[str] | None
-              ) -> tuple[str, bytes] | None:
-        """(role, payload) of an accepted payload, or None (counted and logged by cause)."""
-        limit = self.max_bytes + (SEAL_BYTES if self.sealer is not None else 0)
-        if len(data) > limit:
-            self.rejected.note(f"link {what}: oversized payload dropped",
-                               f"{len(data)} bytes on {key}, limit {self.max_bytes}")
-            return None
-        if self.sealer is None:
-            return "", data
-        try:
-            role, payload = self.sealer.open(key, data)
-        except LinkError as exc:
-            self.rejected.note(f"link {what}: unauthenticated payload dropped", f"{key}: {exc}")
-            return None
-        if roles is not None and role not in roles:
-            self.rejected.note(f"link {what}: payload from a {role} refused",
-                               f"{key}: only {', '.join(sorted(roles))} may send here")
-            return None
-        return role, payload
-
-    # -- publish/subscribe -------------------------------------------------------------------
-
-    def _publisher(self, key: str, band: int, express: bool, block: bool) -> Any:
-        cache_key = (key, band, express, block)
-        evicted = None
-        with self._lock:
-            pub = self._publishers.get(cache_key)
-            if pub is not None:
-                self._publishers.move_to_end(cache_key)
-                return pub
-            _check_key("publish", key, concrete=True)
-            pub = self._session.declare_publisher(
-                key,
-                priority=PRIORITY_BANDS[band][1],
-                express=express,
-                congestion_control=(
-                    zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
-                ),
-                reliability=zenoh.Reliability.RELIABLE,
-            )
-            self._publishers[cache_key] = pub
-            if len(self._publishers) > PUBLISHER_CACHE_SIZE:
-                _, evicted = self._publishers.popitem(last=False)
-        if evicted is not None:
-            evicted.undeclare()
-        return pub
 
     def publish(
         self,
@@ -340,7 +93,7 @@ class Transport:
         closed transport, a bad key or priority, or a Zenoh failure.
         """
         self._check_open("publish")
-        band = _band(priority)
+        band = band_of(priority)
         if express is None:
             express = priority >= EXPRESS_FROM
         if not isinstance(payload, bytes | bytearray | memoryview):
@@ -370,7 +123,7 @@ class Transport:
         Hand the data off quickly; exceptions are logged and counted. Raises LinkError on a
         closed transport or a bad key expression."""
         self._check_open("subscribe")
-        _check_key("subscribe", key_expr, concrete=False)
+        check_key("subscribe", key_expr, concrete=False)
         what = f"subscriber {key_expr}"
 
         def on_sample(sample: zenoh.Sample) -> None:
@@ -423,7 +176,7 @@ class Transport:
         is logged, counted and sent back (the requester's :meth:`request` raises LinkError).
         Raises LinkError on a closed transport or a bad key expression."""
         self._check_open("serve")
-        _check_key("serve", key_expr, concrete=False)
+        check_key("serve", key_expr, concrete=False)
         what = f"server {key_expr}"
 
         def on_query(query: zenoh.Query) -> None:
@@ -476,7 +229,7 @@ class Transport:
         ``key``, when no answer came in time, or when the server's handler failed (its message
         is included)."""
         self._check_open("request")
-        _check_key("request", key, concrete=True)
+        check_key("request", key, concrete=True)
         if not timeout > 0:
             raise LinkError(f"request {key!r}: expected a timeout > 0 seconds, got {timeout!r}")
         start = time.monotonic()
@@ -523,7 +276,7 @@ class Transport:
         transport (or until the returned handle is closed). Raises LinkError on a closed
         transport or a bad key."""
         self._check_open("announce")
-        _check_key("announce", token_key, concrete=True)
+        check_key("announce", token_key, concrete=True)
         try:
             token = self._session.liveliness().declare_token(token_key)
         except zenoh.ZError as exc:
@@ -536,7 +289,7 @@ class Transport:
         its links). Callbacks run on a Zenoh thread; exceptions are logged and counted. Raises
         LinkError on a closed transport or a bad key expression."""
         self._check_open("watch")
-        _check_key("watch", key_expr, concrete=False)
+        check_key("watch", key_expr, concrete=False)
         what = f"watcher {key_expr}"
 
         def on_sample(sample: zenoh.Sample) -> None:
@@ -561,7 +314,7 @@ class Transport:
         """The keys of the liveliness tokens matching ``key_expr`` right now (sorted), asking the
         connected peers for at most ``timeout`` seconds. Raises LinkError like :meth:`watch`."""
         self._check_open("alive")
-        _check_key("alive", key_expr, concrete=False)
+        check_key("alive", key_expr, concrete=False)
         try:
             replies = self._session.liveliness().get(key_expr, timeout=timeout)
             keys = {str(r.ok.key_expr) for r in replies if r.ok is not None}

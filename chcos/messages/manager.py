@@ -14,6 +14,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol, TextIO
 
+from chcos.comm.payloads import OpenAnswer, OpenOutcome
 from chcos.errors import Busy, DeviceError, MessageError, QueueOverflow
 from chcos.kernel.scheduler import Kernel, describe_error
 from chcos.tables.messages import (
@@ -660,27 +661,28 @@ class MessageManager:
         return prio
 
     # ---- answers from other satellites (called by the communications manager) ---------------
-    def remote_open(self, link: Link, command: Any, wait: bool) -> str:
-        """Run an ``open`` that a task on another satellite asked for; returns ``"owner"``,
-        ``"queued"`` or ``"busy: <why>"`` for the caller's satellite."""
+    def remote_open(self, link: Link, command: Any, wait: bool) -> OpenAnswer:
+        """Run an ``open`` that a task on another satellite asked for; returns the answer for
+        the caller's satellite: owner, queued, or busy (with the reason)."""
         try:
-            return "owner" if self.open(link, command, wait=wait) else "queued"
+            owner = self.open(link, command, wait=wait)
+            return OpenAnswer.owner() if owner else OpenAnswer.queued()
         except Busy as exc:
-            return f"busy: {exc}"
+            return OpenAnswer.busy(str(exc))
 
-    def open_answer(self, link: Link, answer: str) -> None:
+    def open_answer(self, link: Link, answer: OpenAnswer) -> None:
         """The target's satellite answered this satellite's ``open`` on ``link``."""
         caller = self._caller(link)
-        if answer == "queued":
+        if answer.outcome is OpenOutcome.QUEUED:
             return
         link.pending = False
-        if answer == "owner":
+        if answer.outcome is OpenOutcome.OWNER:
             link.status = LinkStatus.OK
             if caller is not None and caller.wait_link is link:
                 self.kernel.wake(caller, caller.base_prio, True)
         else:
             if caller is not None and caller.wait_link is link:
-                self.kernel.wake(caller, caller.base_prio, exc=Busy(answer.removeprefix("busy: ")))
+                self.kernel.wake(caller, caller.base_prio, exc=Busy(answer.reason))
 
     def remote_report(self, link: Link, status: LinkStatus, result: Any, error: str) -> None:
         """The target's satellite reports a completion or pre-emption on ``link``."""

@@ -24,6 +24,16 @@ from chcos.comm.manager import machine_of
 from chcos.comm.secret import SystemSecret
 from chcos.comm.transport import Transport
 from chcos.errors import CommandSyntaxError, InstallError, LinkError
+from chcos.satellites import control
+from chcos.satellites.control import (
+    ChangeRequest,
+    ControlRequest,
+    ExecRequest,
+    HeadRequest,
+    MapRequest,
+    Phase,
+    SyncRequest,
+)
 from chcos.satellites.sysfile import SystemFile, link_config_for
 from chcos.system import cmdline
 from chcos.system.textview import render_text
@@ -107,8 +117,10 @@ class Host:
         raise LinkError(f"satellite(s) {missing} of {self.sf.name} not up after {timeout} s")
 
     # ---- requests ---------------------------------------------------------------------------
-    def _ask(self, machine: int, req: dict[str, Any]) -> dict[str, Any]:
-        raw = self.transport.request(f"{self.sf.prefix}/m/{machine}/ctl", json.dumps(req).encode(),
+    def _ask(self, machine: int, req: ControlRequest) -> dict[str, Any]:
+        """Send ``req`` to satellite ``machine`` and return its answer. Raises the refusal as
+        CommandSyntaxError, LinkError, RaceLost or InstallError naming the machine."""
+        raw = self.transport.request(f"{self.sf.prefix}/m/{machine}/ctl", control.encode(req),
                                      timeout=self.timeout, roles=frozenset({"satellite"}))
         reply: dict[str, Any] = json.loads(raw)
         if not reply.get("ok"):
@@ -144,9 +156,10 @@ class Host:
         every satellite up: each task and device as its own machine reports it, each link's
         ``sent`` from its source's machine and ``delivered``/``overwritten``/``status`` from its
         destination's (a command link's status from its caller's mirror). Each device also
-        gets ``age``: seconds since its value on its own machine's clock (None before one)."""
+        gets ``age``: seconds since its value on its own machine's clock (None before one), and
+        ``errors`` lists what each satellite collected (``machine N: ...``)."""
         up = self._up()
-        views = {m: self._ask(m, {"op": "map"})["map"]
+        views = {m: self._ask(m, MapRequest())["map"]
                  for m in ([machine] if machine is not None else up)}
         doc: dict[str, Any] = dict(views[min(views)])
         where = {t["name"]: t["machine"] for t in doc["tasks"]}
@@ -187,6 +200,9 @@ class Host:
             devices.append({**d, "age": None if at is None else max(0.0, view["time"] - at)})
         doc["devices"] = devices
         doc["alive"] = up
+        # each satellite's collected errors (System.check), named by machine
+        doc["errors"] = [f"machine {m}: {e}" for m, v in sorted(views.items())
+                         for e in v.get("errors", [])]
         return doc
 
     def _change(self, line: str, target: int | None) -> str:
@@ -198,11 +214,11 @@ class Host:
             leader = min(up)
             order = sorted(up, key=lambda m: (m != target, m))
             try:
-                seq = int(self._ask(leader, {"op": "head"})["length"])
+                seq = int(self._ask(leader, HeadRequest())["length"])
                 for m in order:
-                    self._ask(m, {"op": "prepare", "line": line, "seq": seq, "leader": leader})
-                answers = {leader: self._ask(leader, {"op": "append", "line": line,
-                                                      "seq": seq})["answer"]}
+                    self._ask(m, ChangeRequest(Phase.PREPARE, line, seq, leader))
+                answers = {leader: self._ask(leader, ChangeRequest(Phase.APPEND, line,
+                                                            seq))["answer"]}
             except RaceLost:
                 self.races_lost += 1
                 self._sync_sequencer(up)
@@ -210,8 +226,8 @@ class Host:
                 continue
             for m in order:
                 if m != leader:
-                    answers[m] = self._ask(m, {"op": "commit", "line": line, "seq": seq,
-                                               "leader": leader})["answer"]
+                    answers[m] = self._ask(m, ChangeRequest(Phase.COMMIT, line, seq,
+                                                             leader))["answer"]
             return str(answers.get(target if target in answers else leader))
         raise RaceLost(f"{line!r} not applied: other hosts changed the install log first "
                        f"{RACE_RETRIES} times in a row")
@@ -220,23 +236,23 @@ class Host:
         """If the sequencer holds fewer log entries than another satellite (it restarted alone
         and reloaded an older map), have it fetch the missing ones from the longest log."""
         try:
-            lengths = {m: int(self._ask(m, {"op": "head"})["length"]) for m in up}
+            lengths = {m: int(self._ask(m, HeadRequest())["length"]) for m in up}
             longest = max(lengths, key=lambda m: (lengths[m], -m))
             leader = min(up)
             if lengths[leader] < lengths[longest]:
-                self._ask(leader, {"op": "sync", "source": longest, "need": lengths[longest]})
+                self._ask(leader, SyncRequest(longest, lengths[longest]))
         except (InstallError, LinkError):
             pass  # the next attempt finds out again
 
     def rejected(self, machine: int) -> dict[str, int]:
         """How many payloads satellite ``machine`` refused so far, by cause."""
-        return dict(self._ask(machine, {"op": "map"})["rejected"])
+        return dict(self._ask(machine, MapRequest())["rejected"])
 
     def log_heads(self) -> dict[int, tuple[int, str]]:
         """(length, SHA-256) of the install log of every satellite up."""
         out = {}
         for m in self._up():
-            head = self._ask(m, {"op": "head"})
+            head = self._ask(m, HeadRequest())
             out[m] = (int(head["length"]), str(head["hash"]))
         return out
 
@@ -252,7 +268,7 @@ class Host:
             return self._change(line, getattr(req, "machine", None))
         up = self._up()
         if isinstance(req, cmdline.TaskOp) and req.op == "reset" and not req.task:
-            return "; ".join(f"machine {m}: {self._ask(m, {'op': 'exec', 'line': line})['answer']}"
+            return "; ".join(f"machine {m}: {self._ask(m, ExecRequest(line))['answer']}"
                              for m in up)
         name = (req.task if isinstance(req, cmdline.Invoke | cmdline.TaskOp)
                 else req.device if isinstance(req, cmdline.Inject) else "")
@@ -263,4 +279,4 @@ class Host:
             raise InstallError(f"no task or device named {name!r} in {self.sf.name}")
         if machine not in up:
             raise LinkError(f"{name} runs on machine {machine}, which is not up")
-        return str(self._ask(machine, {"op": "exec", "line": line})["answer"])
+        return str(self._ask(machine, ExecRequest(line))["answer"])

@@ -38,11 +38,8 @@ any member).
 from __future__ import annotations
 
 import hashlib
-import importlib.machinery
 import json
 import logging
-import os
-import sys
 import threading
 import time
 from dataclasses import replace
@@ -54,6 +51,15 @@ from chcos.comm.secret import Throttle
 from chcos.comm.transport import Subscription, Transport
 from chcos.errors import ChcosError, ConfigError, InstallError, LinkError, MessageError
 from chcos.kernel.clock import Clock, RealClock
+from chcos.satellites import control
+from chcos.satellites.installlog import (
+    MUTATING,
+    append_log,
+    code_problem,
+    parse_log,
+    read_log,
+    write_log,
+)
 from chcos.satellites.sysfile import SystemFile, link_config_for
 from chcos.system import cmdline, sysmap
 from chcos.system.embedded import System
@@ -61,14 +67,11 @@ from chcos.user.context import TaskContext
 
 log = logging.getLogger("chcos.satellites.satellite")
 
-MUTATING = (cmdline.Install, cmdline.SetPri, cmdline.ResetPri, cmdline.Boot)
 #: How long a starting satellite keeps asking for the install log before it concludes that it is
 #: alone (links to the other satellites are made in the background, within milliseconds).
 CATCH_UP_WAIT = 2.0
 #: Seconds between a change of the tables and the write of sysfile.map.
 MAP_DELAY = 1.0
-#: Longest install line accepted in a log.
-MAX_LINE = 4096
 HOST_ONLY = frozenset({"host"})
 MEMBERS = frozenset({"host", "satellite"})
 SATELLITES = frozenset({"satellite"})
@@ -87,69 +90,6 @@ async def code_failed(ctx: TaskContext, cmd: Any) -> None:
     raise InstallError(f"task {ctx.name}: {_load_errors.get(ctx.name, 'its code failed to load')}")
 
 
-def code_problem(ref: str, task_path: tuple[Path, ...]) -> str | None:
-    """Why the task code reference ``ref`` may not be loaded, or None; imports nothing.
-
-    A file reference (``dir/A1.py[:func]``, ``A1.py``) must resolve to an existing file inside
-    one of the ``task_path`` directories; a bare name (``A1``) is looked up there first; a
-    dotted module name must exist on the Python path (found without importing it)."""
-    target = ref.partition(":")[0]
-    dirs = [d.resolve() for d in task_path]
-    where = ", ".join(str(d) for d in dirs) or "no task path"
-    if target.endswith(".py") or "/" in target:
-        path = Path(target)
-        candidates = [path] if path.is_absolute() else [d / path for d in dirs]
-        for c in candidates:
-            c = c.resolve()
-            if any(c.is_relative_to(d) for d in dirs):
-                return None if c.is_file() else f"task code {ref}: no file {c}"
-        return (f"task code {ref}: {target} is outside the system's task path ({where}); "
-                "task code is loaded only from there or from modules on the Python path")
-    if "." not in target and any((d / f"{target}.py").is_file() for d in dirs):
-        return None
-    locations: list[str] | None = None
-    parts = target.split(".")
-    for i in range(len(parts)):
-        name = ".".join(parts[:i + 1])
-        mod = sys.modules.get(name)
-        if mod is not None:
-            locations = list(getattr(mod, "__path__", []) or [])
-            continue
-        try:
-            spec = importlib.machinery.PathFinder.find_spec(name, locations)
-        except (ImportError, ValueError) as exc:
-            return f"task code {ref}: no module {target} ({exc})"
-        if spec is None:
-            return (f"task code {ref}: no module {target} (looked in {where} and on the "
-                    "Python path)")
-        locations = list(spec.submodule_search_locations or [])
-    return None
-
-
-def parse_log(raw: bytes) -> list[str]:
-    """The install log in a peer's answer: a JSON list of install/setpri/boot lines. Raises
-    LinkError saying what is wrong with anything else."""
-    try:
-        entries = json.loads(raw)
-    except ValueError as exc:
-        raise LinkError(f"malformed install log from a peer: not JSON ({exc})") from exc
-    if not isinstance(entries, list):
-        raise LinkError(f"malformed install log from a peer: expected a list of install lines, "
-                        f"got {type(entries).__name__}")
-    for i, line in enumerate(entries):
-        if not isinstance(line, str) or len(line) > MAX_LINE:
-            raise LinkError(f"malformed install log from a peer: entry {i} is not an install "
-                            "line")
-        try:
-            req = cmdline.parse(line)
-        except ChcosError as exc:
-            raise LinkError(f"malformed install log from a peer: entry {i}: {exc}") from exc
-        if not isinstance(req, MUTATING):
-            raise LinkError(f"malformed install log from a peer: entry {i} ({line!r}) is not "
-                            "an install, setpri or boot")
-    return entries
-
-
 class Satellite:
     """Machine ``machine`` of the system described by ``sf``. Raises ConfigError if the
     system file has no such machine or its secret is unusable, LinkError if its port cannot be
@@ -162,12 +102,18 @@ class Satellite:
         self.machine = machine
         secret = sf.secret()
         sf.state_dir.mkdir(parents=True, exist_ok=True, mode=0o700)
-        self.system = System(sf.devmaps, clock=clock or RealClock(), task_path=sf.task_path,
-                             base_dir=sf.base_dir, map_path=None,
-                             local_machines={machine})
         self.transport = Transport(link_config_for(sf, machine, secret),
                                    sealer=secret.sealer("satellite"))
-        self.comm = CommManager(self.system, self.transport, sf.prefix, machine)
+        try:
+            self.system = System(sf.devmaps, clock=clock or RealClock(),
+                                 task_path=sf.task_path, base_dir=sf.base_dir, map_path=None,
+                                 local_machines={machine}, transport=self.transport,
+                                 prefix=sf.prefix)
+        except BaseException:
+            self.transport.close()
+            raise
+        assert self.system.comm is not None  # built by System for its link
+        self.comm: CommManager = self.system.comm
         self.log: list[str] = []
         self._lock = threading.RLock()
         self._subs: list[Subscription] = []
@@ -318,23 +264,11 @@ class Satellite:
     def _saved_log(self) -> list[str]:
         """The install log this satellite saved last time ([] if none). Raises LinkError if the
         file is corrupt."""
-        try:
-            raw = self.log_path.read_text(encoding="utf-8")
-        except FileNotFoundError:
-            return []
-        try:
-            return parse_log(("[" + ",".join(raw.splitlines()) + "]").encode())
-        except LinkError as exc:
-            raise LinkError(f"{self.log_path}: {exc}") from exc
+        return read_log(self.log_path)
 
     def _save_log(self) -> None:
         """Write the whole install log (atomically, fsync'd)."""
-        tmp = self.log_path.with_name(f".{self.log_path.name}.tmp")
-        with open(tmp, "w", encoding="utf-8") as f:
-            f.write("".join(json.dumps(line) + "\n" for line in self.log))
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, self.log_path)
+        write_log(self.log_path, self.log)
 
     def _apply(self, line: str, persist: bool = True) -> str:
         """Validate ``line`` as an install would be and apply it as the next log entry (appended
@@ -358,19 +292,13 @@ class Satellite:
         self.log.append(line)
         self._map_changed()
         if persist:
-            with open(self.log_path, "a", encoding="utf-8") as f:
-                f.write(json.dumps(line) + "\n")
-                f.flush()
-                os.fsync(f.fileno())
+            append_log(self.log_path, line)
         return answer
 
     # ---- host requests ----------------------------------------------------------------------
     def _control(self, payload: bytes) -> bytes:
         try:
-            req = json.loads(payload)
-            if not isinstance(req, dict):
-                raise TypeError(f"expected a JSON object, got {type(req).__name__}")
-            reply = self._serve(req)
+            reply = self._serve(control.decode(payload))
         except ChcosError as exc:
             text = str(exc)
             self.refused.append(text)
@@ -384,54 +312,51 @@ class Satellite:
             reply = {"ok": False, "error": text, "type": "LinkError"}
         return json.dumps(reply, default=str).encode()
 
-    def _serve(self, req: dict[str, Any]) -> dict[str, Any]:
-        op = req["op"]
-        if op == "map":
+    def _serve(self, req: control.ControlRequest) -> dict[str, Any]:
+        """Answer one host request (see :mod:`chcos.satellites.control`). Raises ChcosError
+        (refused: the host is told why), TypeError (malformed)."""
+        if isinstance(req, control.MapRequest):
             doc = self.system.call(self.system.sysmgr.map_doc)
             return {"ok": True, "map": doc, "alive": sorted(self.comm.alive),
                     "rejected": self.rejected_counts()}
-        if op == "log":
+        if isinstance(req, control.LogRequest):
             return {"ok": True, "log": list(self.log)}
-        if op == "head":
+        if isinstance(req, control.HeadRequest):
             with self._lock:
                 return {"ok": True, "length": len(self.log), "hash": self.log_hash()}
-        if op == "sync":  # the host found this satellite behind another: fetch what it misses
-            source, need = req["source"], req["need"]
-            if source not in self.sf.satellites or source == self.machine or isinstance(
-                    need, bool) or not isinstance(need, int):
+        if isinstance(req, control.SyncRequest):  # the host found this one behind another
+            if req.source not in self.sf.satellites or req.source == self.machine:
                 raise TypeError("sync: expected another machine and a log length")
             with self._lock:
-                return {"ok": True, "applied": self.catch_up(source, need=need)}
-        line = req.get("line", "")
-        if not isinstance(line, str) or len(line) > MAX_LINE:
-            raise TypeError("line: expected a command line string")
-        parsed = cmdline.parse(line)
+                return {"ok": True, "applied": self.catch_up(req.source, need=req.need)}
+        parsed = cmdline.parse(req.line)
         if parsed is None:
             return {"ok": True, "answer": ""}
-        if op == "exec":
+        if isinstance(req, control.ExecRequest):
             if isinstance(parsed, MUTATING):
-                raise InstallError(f"{line!r} changes the tables: it must be prepared and "
+                raise InstallError(f"{req.line!r} changes the tables: it must be prepared and "
                                    "committed on every satellite")
             return {"ok": True, "answer": self.system.execute(parsed)}
         if not isinstance(parsed, MUTATING):
-            raise InstallError(f"{line!r} does not change the tables: send it with exec")
-        seq = req["seq"]
-        if isinstance(seq, bool) or not isinstance(seq, int) or seq < 0:
-            raise TypeError("seq: expected a log position >= 0")
-        leader = req.get("leader")
-        if leader is not None and (isinstance(leader, bool) or not isinstance(leader, int)
-                                   or leader not in self.sf.satellites):
+            raise InstallError(f"{req.line!r} does not change the tables: send it with exec")
+        if req.leader is not None and req.leader not in self.sf.satellites:
             raise TypeError("leader: expected a machine of the system")
+        return self._change(req, parsed)
+
+    def _change(self, req: control.ChangeRequest, parsed: cmdline.Request) -> dict[str, Any]:
+        """One step (prepare, append, commit) of a table change. Raises RaceLost when another
+        host changed the log first, InstallError when the line is refused here."""
+        seq, line, phase = req.seq, req.line, req.phase
         with self._lock:
-            if seq > len(self.log) and op in ("prepare", "commit"):
-                self.catch_up(None if leader == self.machine else leader, need=seq)
-            if op == "prepare":
+            if seq > len(self.log) and phase is not control.Phase.APPEND:
+                self.catch_up(None if req.leader == self.machine else req.leader, need=seq)
+            if phase is control.Phase.PREPARE:
                 if seq != len(self.log):
                     raise RaceLost(f"satellite {self.machine} has {len(self.log)} log entries, "
                                    f"the host expected {seq}: another host changed the log")
                 self.system.call(self._check, parsed)
                 return {"ok": True, "seq": seq}
-            if op == "append":
+            if phase is control.Phase.APPEND:
                 sequencer = min(set(self.comm.alive))
                 if sequencer != self.machine:
                     raise RaceLost(f"satellite {self.machine} is not the sequencer (machine "
@@ -440,17 +365,16 @@ class Satellite:
                     raise RaceLost(f"log entry {seq} is taken: another host changed the log "
                                    f"first (it has {len(self.log)} entries)")
                 return {"ok": True, "answer": self._apply(line), "seq": seq}
-            if op == "commit":
-                if seq < len(self.log):
-                    if self.log[seq] != line:
-                        raise InstallError(f"satellite {self.machine}: log entry {seq} is "
-                                           f"{self.log[seq]!r}, not {line!r} (the logs diverged)")
-                    return {"ok": True, "answer": "already applied", "seq": seq}
-                if seq != len(self.log):
-                    raise InstallError(f"satellite {self.machine} cannot apply log entry {seq}: "
-                                       f"it has {len(self.log)}")
-                return {"ok": True, "answer": self._apply(line), "seq": seq}
-        raise MessageError(f"unknown host request op {op!r}")
+            # COMMIT
+            if seq < len(self.log):
+                if self.log[seq] != line:
+                    raise InstallError(f"satellite {self.machine}: log entry {seq} is "
+                                       f"{self.log[seq]!r}, not {line!r} (the logs diverged)")
+                return {"ok": True, "answer": "already applied", "seq": seq}
+            if seq != len(self.log):
+                raise InstallError(f"satellite {self.machine} cannot apply log entry {seq}: "
+                                   f"it has {len(self.log)}")
+            return {"ok": True, "answer": self._apply(line), "seq": seq}
 
     def _check(self, req: cmdline.Request) -> None:
         """Validate a table-changing request against this satellite's tables (kernel thread)

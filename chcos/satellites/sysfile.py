@@ -51,7 +51,6 @@ from __future__ import annotations
 
 import logging
 import os
-import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -63,9 +62,10 @@ from chcos.comm.config import (
     TlsSettings,
     UsrPwdAuth,
     check_host,
-    link_config_from_section,
 )
 from chcos.comm.secret import SystemSecret, load_or_create, loopback_pki
+from chcos.comm.section import link_config_from_section
+from chcos.common import load_toml
 from chcos.errors import ConfigError
 
 log = logging.getLogger("chcos.satellites.sysfile")
@@ -129,12 +129,7 @@ def load(path: str | Path) -> SystemFile:
     """Read and check a system file. Raises ConfigError naming the file, the key and what was
     expected."""
     path = Path(path).resolve()
-    try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read system file: {exc}") from exc
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+    doc = load_toml(path, "system file")
     base = path.parent
 
     def fail(key: str, what: str) -> ConfigError:

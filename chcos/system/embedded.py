@@ -1,9 +1,14 @@
 """embedded - one CHC-OS system in one process: the embedded default.
 
 A :class:`System` is a satellite's kernel and tables (Tsktab, Msgtab, Devtab), its message and
-system managers, and the device maps it was loaded from. Until satellites run in separate
-processes it hosts every machine; the host talks to it only through :meth:`System.execute`
-(command lines) so that the link between host and satellites can later go over the network.
+system managers, its communications manager when it is one satellite of several, and the device
+maps it was loaded from: the composition root, which builds every part through its constructor
+and hands each its collaborators. In one process it hosts every machine (the embedded default);
+:class:`chcos.satellites.satellite.Satellite` builds one for its machine with a link
+``transport``. The host talks to it only through :meth:`System.execute` (command lines).
+
+:meth:`System.check` raises what the system collected (interrupt handlers that failed, link
+errors); :meth:`System.collected_errors` lists them (the map's ``errors``).
 """
 
 from __future__ import annotations
@@ -15,6 +20,8 @@ from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
+from chcos.comm.manager import CommManager
+from chcos.comm.ports import LinkTransport
 from chcos.devices.devtab import Devtab
 from chcos.devices.spec import DeviceMap
 from chcos.errors import ChcosError, KernelError
@@ -23,8 +30,10 @@ from chcos.kernel.scheduler import Kernel
 from chcos.messages.manager import MessageManager
 from chcos.system import cmdline, sysmap
 from chcos.system.manager import SystemManager
+from chcos.system.ports import Setup
 from chcos.tables.messages import Msgtab
-from chcos.tables.tasks import Tsktab
+from chcos.tables.tasks import TaskEntry, Tsktab
+from chcos.user.context import TaskContext
 
 log = logging.getLogger("chcos.system.embedded")
 T = TypeVar("T")
@@ -38,15 +47,18 @@ class System:
     ``task_path`` lists directories where bare task names (``A1``) are found; ``base_dir``
     resolves relative file names in installs; ``map_path`` is where sysfile.map is written;
     ``local_machines`` are the machines this process runs (None: all of them, the embedded
-    default; a satellite runs one and reaches the others through :mod:`chcos.comm.manager`).
-    Raises ConfigError for invalid device maps, BusError if a driver cannot start.
+    default; a satellite runs one and reaches the others through :mod:`chcos.comm.manager`);
+    ``transport`` is that satellite's link (then ``local_machines`` is its one machine), on
+    which it uses the keys under ``prefix``. Raises ConfigError for invalid device maps,
+    BusError if a driver cannot start, KernelError for a transport without one local machine.
     """
 
     def __init__(self, devmaps: Sequence[str | Path] | DeviceMap = (), *,
                  clock: Clock | None = None, machines: Iterable[int] = (),
                  task_path: Sequence[str | Path] = (), base_dir: str | Path | None = None,
                  map_path: str | Path | None = None,
-                 local_machines: Iterable[int] | None = None) -> None:
+                 local_machines: Iterable[int] | None = None,
+                 transport: LinkTransport | None = None, prefix: str = "chcos") -> None:
         self.kernel = Kernel(clock)
         self.tsktab = Tsktab()
         self.msgtab = Msgtab()
@@ -70,11 +82,53 @@ class System:
         # run state (learned world-model data) goes beside the map, never into the sources
         self.msgmgr.state_dir = (self.map_path.parent if self.map_path is not None
                                  else self.base_dir)
-        self.sysmgr = SystemManager(self)
+        # ---- the system and communications managers (issue 14: built here, with what they use)
+        self.comm: CommManager | None = None
+        if transport is not None:
+            if self.msgmgr.local is None or len(self.msgmgr.local) != 1:
+                raise KernelError("a System on a link runs exactly one machine: give "
+                                  "local_machines={N}")
+            (machine,) = self.msgmgr.local
+            self.comm = CommManager(kernel=self.kernel, tsktab=self.tsktab, msgtab=self.msgtab,
+                                    msgmgr=self.msgmgr, devtab=self.devtab, transport=transport,
+                                    prefix=prefix, machine=machine)
+            self.msgmgr.comm = self.comm
+        setup = Setup(task_path=self.task_path, base_dir=self.base_dir, map_path=self.map_path,
+                      devmaps=list(self.devmap.files), start_drivers=self.start_drivers,
+                      context=self._context, errors=self.collected_errors)
+        self.sysmgr = SystemManager(kernel=self.kernel, tsktab=self.tsktab, msgtab=self.msgtab,
+                                    msgmgr=self.msgmgr, devtab=self.devtab, setup=setup)
         self._thread: threading.Thread | None = None
         self._started_machines: set[int] = set()
         for m in machines:
             self.sysmgr.boot(m)
+
+    def _context(self, task: TaskEntry) -> TaskContext:
+        """The user context (thesis 6.1.2's user layer) of a newly installed task."""
+        return TaskContext(task, self.kernel, self.msgmgr)
+
+    # ---- collected errors -------------------------------------------------------------------
+    def collected_errors(self) -> list[str]:
+        """What this system collected and nobody raised yet, oldest first: interrupt handlers
+        that failed (the kernel's) and link errors (the communications manager's)."""
+        out = [f"kernel: {e}" for e in self.kernel.irq_errors]
+        if self.comm is not None:
+            out += [f"link: {e}" for e in self.comm.errors]
+        return out
+
+    def check(self) -> None:
+        """Raise what the system collected, like canopen's ``Network.check()``: the kernel's
+        (KernelError: interrupt handlers that failed), then the link's (LinkError: batches
+        that could not be published, incoming messages refused). Nothing collected: returns."""
+        kernel_check = getattr(self.kernel, "check", None)  # Kernel.check (issue 14, core)
+        if callable(kernel_check):
+            kernel_check()
+        elif self.kernel.irq_errors:
+            last = "\n  - ".join(self.kernel.irq_errors[-5:])
+            raise KernelError(f"{len(self.kernel.irq_errors)} interrupt handler(s) failed; "
+                              f"the last:\n  - {last}")
+        if self.comm is not None:
+            self.comm.check()
 
     # ---- devices ----------------------------------------------------------------------------
     def start_drivers(self, machines: Iterable[int]) -> None:

@@ -4,8 +4,10 @@ A readable JSON document: the loaded machines and device maps, every task in ins
 its code, links, parameters and options (standing, restart policy, back-off), every link with its
 type and current priority, every device; beside them the runtime fields (status, owner, counters),
 which are as current as the last time the map was written (soon after every table change or
-host task operation — at most every quarter second during a burst, see :mod:`chcos.system.manager` —
-and at ``map``, the end of a script or run, shutdown). One task, link or device per line. It
+host task operation — at most every quarter second during a burst, see
+:mod:`chcos.system.mapfile` — and at ``map``, the end of a script or run, shutdown), and
+``errors``: what the system collected and :meth:`chcos.system.embedded.System.check` raises
+(failed interrupt handlers, link errors), oldest first. One task, link or device per line. It
 is written atomically (temporary file, fsync, rename), so a crash never leaves half a map, and
 :func:`replay` rebuilds a restarted system from it (installs in order, then priorities).
 """

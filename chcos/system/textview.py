@@ -87,4 +87,8 @@ def render_text(doc: dict[str, Any], rates: Mapping[str, float] | None = None,
                 out.append(f"      ^ {lk['src']}/{lk['dst']:<10} sensory p{lk['priority']} "
                            f"sent {lk.get('sent', 0)} overwritten {lk.get('overwritten', 0)}"
                            f"{_rate(lk, rates)}")
+    collected = doc.get("errors") or []
+    if collected:
+        out.append(f"collected errors ({len(collected)}; System.check raises them)")
+        out.extend(f"  {e}" for e in collected)
     return "\n".join(out)

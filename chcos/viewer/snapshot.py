@@ -211,7 +211,8 @@ class Snapshotter:
 def stream_state(snap: dict[str, Any]) -> dict[str, Any]:
     """What the live page keeps of a snapshot from :meth:`Snapshotter.take`: tasks, links and
     devices keyed by name (so a change is a small merge patch, see :func:`merge_diff`), with
-    rates, ages and frozen flags folded in. ``svg`` is carried over if the snapshot has one."""
+    rates, ages and frozen flags folded in, and ``errors``, what the system collected (see
+    ``System.check``). ``svg`` is carried over if the snapshot has one."""
     doc = snap["map"]
     frozen = set(doc.get("frozen", ()))
     tasks = {t["name"]: {"level": t["level"], "machine": t["machine"], "status": t["status"],
@@ -239,7 +240,8 @@ def stream_state(snap: dict[str, Any]) -> dict[str, Any]:
     state: dict[str, Any] = {"seq": snap["seq"], "time": round(snap["time"], 3),
                              "machines": doc["machines"], "tasks": tasks, "links": links,
                              "devices": devices, "marks": snap["marks"],
-                             "last_event": snap["last_event"]}
+                             "last_event": snap["last_event"],
+                             "errors": list(doc.get("errors", []))}
     if "svg" in snap:
         state["svg"] = snap["svg"]
     if "error" in snap:

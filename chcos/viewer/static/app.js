@@ -98,6 +98,10 @@ function nn(v) { return v === undefined ? null : v; }
 function render(snap, events) {
   $("clock").textContent = snap.time.toFixed(2);
   $("snap-error").textContent = snap.error || "";
+  const collected = snap.errors || [];  // what the system collected (System.check raises it)
+  $("collected-errors").textContent = collected.length
+    ? collected.length + " collected error(s), last: " + collected[collected.length - 1] : "";
+  $("collected-errors").title = collected.join("\n");
   if (snap.svg !== undefined && snap.svg !== lastSvg) {
     $("graph").innerHTML = snap.svg;
     lastSvg = snap.svg;

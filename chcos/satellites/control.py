@@ -1,0 +1,146 @@
+"""control - the typed requests a host sends a satellite on its control key, and their wire form.
+
+A host (:mod:`chcos.satellites.host`) asks satellite N on ``chcos/<system>/m/<N>/ctl`` with one
+of the requests below; :func:`encode` makes the JSON object that travels (``{"op": ...}``),
+:func:`decode` checks what a satellite received and turns it back into its type, so the
+satellite (:mod:`chcos.satellites.satellite`) dispatches on types, never on strings. The
+answer is a JSON object ``{"ok": true, ...}`` or ``{"ok": false, "error": text, "type": the
+exception's class name}``.
+
+=============== ====================================== =========================================
+op              request                                answer
+=============== ====================================== =========================================
+``map``         :class:`MapRequest`                    ``map``, ``alive``, ``rejected``
+``log``         :class:`LogRequest`                    ``log``: the install log
+``head``        :class:`HeadRequest`                   ``length``, ``hash`` of the install log
+``sync``        :class:`SyncRequest` (source, need)    ``applied``: entries fetched and applied
+``exec``        :class:`ExecRequest` (line)            ``answer``: a runtime command's answer
+``prepare``     :class:`ChangeRequest` (PREPARE)       ``seq``: checked at this log length
+``append``      :class:`ChangeRequest` (APPEND)        ``answer``, ``seq``: applied as entry seq
+``commit``      :class:`ChangeRequest` (COMMIT)        ``answer``, ``seq``
+=============== ====================================== =========================================
+"""
+
+from __future__ import annotations
+
+import enum
+import json
+from dataclasses import dataclass
+from typing import Any
+
+#: Longest command line accepted in a request (and in an install log).
+MAX_LINE = 4096
+
+
+class Phase(enum.Enum):
+    """The step of a table change (see :mod:`chcos.satellites.satellite`)."""
+
+    PREPARE = "prepare"   # every live satellite checks the line at log length ``seq``
+    APPEND = "append"     # the sequencer applies it as entry ``seq`` (compare-and-append)
+    COMMIT = "commit"     # every other satellite applies entry ``seq``
+
+
+@dataclass(frozen=True)
+class MapRequest:
+    """This satellite's view of the system map, who is alive, what it refused."""
+
+
+@dataclass(frozen=True)
+class LogRequest:
+    """The install log."""
+
+
+@dataclass(frozen=True)
+class HeadRequest:
+    """The install log's length and hash."""
+
+
+@dataclass(frozen=True)
+class SyncRequest:
+    """Fetch the log entries this satellite misses from satellite ``source``, up to ``need``."""
+
+    source: int
+    need: int
+
+
+@dataclass(frozen=True)
+class ExecRequest:
+    """Run a command that does not change the tables (invoke, suspend, inject...)."""
+
+    line: str
+
+
+@dataclass(frozen=True)
+class ChangeRequest:
+    """One step of a table change: ``line`` at log position ``seq``; ``leader`` is the
+    sequencer the host chose (None: any live satellite)."""
+
+    phase: Phase
+    line: str
+    seq: int
+    leader: int | None = None
+
+
+ControlRequest = (MapRequest | LogRequest | HeadRequest | SyncRequest | ExecRequest
+                  | ChangeRequest)
+
+_PLAIN: dict[str, type[Any]] = {"map": MapRequest, "log": LogRequest, "head": HeadRequest}
+
+
+def encode(req: ControlRequest) -> bytes:
+    """The JSON bytes that carry ``req``. Raises TypeError if it is not a control request."""
+    doc: dict[str, Any]
+    if isinstance(req, SyncRequest):
+        doc = {"op": "sync", "source": req.source, "need": req.need}
+    elif isinstance(req, ExecRequest):
+        doc = {"op": "exec", "line": req.line}
+    elif isinstance(req, ChangeRequest):
+        doc = {"op": req.phase.value, "line": req.line, "seq": req.seq}
+        if req.leader is not None:
+            doc["leader"] = req.leader
+    else:
+        op = next((op for op, cls in _PLAIN.items() if isinstance(req, cls)), None)
+        if op is None:
+            raise TypeError(f"expected a control request, got {type(req).__name__}")
+        doc = {"op": op}
+    return json.dumps(doc).encode()
+
+
+def _int(doc: dict[str, Any], key: str, what: str, *, optional: bool = False) -> Any:
+    value = doc.get(key)
+    if value is None and optional:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise TypeError(f"{key}: expected {what}, got {value!r:.40}")
+    return value
+
+
+def _line(doc: dict[str, Any]) -> str:
+    line = doc.get("line", "")
+    if not isinstance(line, str) or len(line) > MAX_LINE:
+        raise TypeError(f"line: expected a command line string of at most {MAX_LINE} "
+                        "characters")
+    return line
+
+
+def decode(payload: bytes) -> ControlRequest:
+    """The request in ``payload``. Raises ValueError (not JSON) or TypeError naming the key and
+    what was expected (not an object, unknown op, a bad field)."""
+    doc = json.loads(payload)
+    if not isinstance(doc, dict):
+        raise TypeError(f"expected a JSON object, got {type(doc).__name__}")
+    op = doc.get("op")
+    if isinstance(op, str) and op in _PLAIN:
+        plain: ControlRequest = _PLAIN[op]()
+        return plain
+    if op == "sync":
+        return SyncRequest(_int(doc, "source", "a machine"), _int(doc, "need", "a log length"))
+    if op == "exec":
+        return ExecRequest(_line(doc))
+    try:
+        phase = Phase(op)
+    except ValueError:
+        raise TypeError(f"op: expected one of map, log, head, sync, exec, prepare, append, "
+                        f"commit, got {op!r:.40}") from None
+    return ChangeRequest(phase, _line(doc), _int(doc, "seq", "a log position >= 0"),
+                         _int(doc, "leader", "a machine", optional=True))
