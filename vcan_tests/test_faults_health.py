@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from chcos.devices.devtab import DeviceEntry, DeviceStatus
+from chcos.devices.entry import DeviceEntry, DeviceStatus
 from chcos.errors import DeviceError
 from chcos.kernel.clock import VirtualClock
 from chcos.system.embedded import System

@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING, Any
 from chcos.comm.codec import LinkMessage, MessageKind, decode_batch, encode, encode_batch
 from chcos.comm.secret import Throttle
 from chcos.comm.transport import EXPRESS_FROM, Subscription, Transport
+from chcos.devices.entry import DeviceStatus
 from chcos.errors import LinkError, MessageError
 from chcos.kernel.scheduler import Timer
 from chcos.tables.messages import TOP_PRIORITY, Link, LinkStatus
@@ -54,7 +55,7 @@ BATCH_MAX = 64
 BATCH_DELAY = 0.001
 #: The roles that may send on the message keys.
 SATELLITES = frozenset({"satellite"})
-_STATUSES = ("OK", "failed", "suspended", "stale")
+_STATUSES = tuple(st.value for st in DeviceStatus)
 
 
 def check_actuator_value(device: str, safe: Any, limits: tuple[Any, Any], value: Any) -> None:
@@ -108,7 +109,9 @@ class CommManager:
         self.batches_sent = 0
         self.coalesced = 0
         self.superseded = 0
+        # until the satellite's composition root passes this manager to System(comm=...)
         system.msgmgr.comm = self
+        system.devtab.remote = self
         system.kernel.add_idle_hook(self._on_idle)
 
     # ---- keys -------------------------------------------------------------------------------
@@ -249,10 +252,10 @@ class CommManager:
         self._send(machine, MessageKind.COMMAND, source, device, 0, TOP_PRIORITY - 1,
                    {"op": "actuator", "device": device, "value": value})
 
-    def device_status(self, device: str, status: str, reason: str) -> None:
+    def device_status(self, device: str, status: DeviceStatus, reason: str) -> None:
         """A local device changed status: tell everybody."""
         self._send(None, MessageKind.STATUS, "", device, 0, TOP_PRIORITY - 1,
-                   {"device": device, "status": status, "reason": reason,
+                   {"device": device, "status": status.value, "reason": reason,
                     "from": self.machine})
 
     def estop(self, reason: str) -> None:
@@ -313,7 +316,7 @@ class CommManager:
                     and v.get("status") in _STATUSES and isinstance(v.get("reason"), str)):
                 raise MessageError(f"malformed status message {v!r:.120}")
             if v.get("from") != self.machine:
-                s.devtab.set_status(v["device"], v["status"], v["reason"])
+                s.devtab.set_status(v["device"], DeviceStatus(v["status"]), v["reason"])
             return
         if kind is MessageKind.COMMAND and isinstance(v, dict) and v.get("op") == "estop":
             if v.get("from") != self.machine:
@@ -329,6 +332,8 @@ class CommManager:
         if kind is MessageKind.SENSORY:
             if link.tap:
                 tap = s.tsktab.get(link.dst).tap
+                if tap is None:
+                    raise MessageError(f"tapped message for {link.dst}, not an exception task")
                 mm.deliver_tap(link, tap, msg.src, v)
             else:
                 self._count_superseded(link, msg.seq)
@@ -399,8 +404,8 @@ class CommManager:
         self.alive.add(machine)
         self.sys.msgmgr.event("satellite-up", f"machine {machine} joined")
         for e in self.sys.devtab:
-            if e.spec.machine == machine and e.status.value == "failed":
-                self.sys.devtab.set_status(e.name, "OK", "")
+            if e.spec.machine == machine and e.status is DeviceStatus.FAILED:
+                self.sys.devtab.set_status(e.name, DeviceStatus.OK, "")
 
     def _on_leave(self, machine: int) -> None:
         self.alive.discard(machine)
@@ -409,4 +414,5 @@ class CommManager:
         mm.event("satellite-down", f"machine {machine} died; {told} owner(s) told")
         for e in self.sys.devtab:
             if e.spec.machine == machine:
-                self.sys.devtab.set_status(e.name, "failed", f"satellite {machine} died")
+                self.sys.devtab.set_status(e.name, DeviceStatus.FAILED,
+                                           f"satellite {machine} died")

@@ -57,6 +57,7 @@ from chcos.kernel.clock import Clock, RealClock
 from chcos.satellites.sysfile import SystemFile, link_config_for
 from chcos.system import cmdline, sysmap
 from chcos.system.embedded import System
+from chcos.tables.messages import PRIORITIES, PRIORITY_TEXT
 from chcos.user.context import TaskContext
 
 log = logging.getLogger("chcos.satellites.satellite")
@@ -475,8 +476,8 @@ class Satellite:
             except MessageError as exc:
                 raise InstallError(f"resetpri: {exc}") from exc
         elif isinstance(req, cmdline.SetPri):
-            if not 0 <= req.priority <= 99:
-                raise InstallError(f"setpri: priority {req.priority} outside 0..99")
+            if req.priority not in PRIORITIES:
+                raise InstallError(f"setpri: priority {req.priority} outside {PRIORITY_TEXT}")
             try:
                 self.system.msgtab.find(req.src, req.dst)
             except MessageError as exc:

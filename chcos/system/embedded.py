@@ -20,7 +20,7 @@ from chcos.devices.spec import DeviceMap
 from chcos.errors import ChcosError, KernelError
 from chcos.kernel.clock import Clock, VirtualClock
 from chcos.kernel.scheduler import Kernel
-from chcos.messages.manager import MessageManager
+from chcos.messages.manager import Comm, MessageManager
 from chcos.system import cmdline, sysmap
 from chcos.system.manager import SystemManager
 from chcos.tables.messages import Msgtab
@@ -38,7 +38,8 @@ class System:
     ``task_path`` lists directories where bare task names (``A1``) are found; ``base_dir``
     resolves relative file names in installs; ``map_path`` is where sysfile.map is written;
     ``local_machines`` are the machines this process runs (None: all of them, the embedded
-    default; a satellite runs one and reaches the others through :mod:`chcos.comm.manager`).
+    default; a satellite runs one and reaches the others through :mod:`chcos.comm.manager`);
+    ``comm`` builds that link on the system's kernel (None: a one-process system).
     Raises ConfigError for invalid device maps, BusError if a driver cannot start.
     """
 
@@ -46,14 +47,15 @@ class System:
                  clock: Clock | None = None, machines: Iterable[int] = (),
                  task_path: Sequence[str | Path] = (), base_dir: str | Path | None = None,
                  map_path: str | Path | None = None,
-                 local_machines: Iterable[int] | None = None) -> None:
+                 local_machines: Iterable[int] | None = None,
+                 comm: Callable[[Kernel], Comm] | None = None) -> None:
+        # the composition root: every part gets its collaborators through its constructor
+        local = set(local_machines) if local_machines is not None else None
         self.kernel = Kernel(clock)
         self.tsktab = Tsktab()
         self.msgtab = Msgtab()
-        self.msgmgr = MessageManager(self.kernel, self.tsktab, self.msgtab)
-        self.msgmgr.local = set(local_machines) if local_machines is not None else None
-        self.devtab = Devtab(self.kernel, self.msgmgr)
-        self.devtab.add_health_listener(self.msgmgr.device_health)
+        link = comm(self.kernel) if comm is not None else None
+        self.devtab = Devtab(self.kernel, local=local, remote=link)
         if isinstance(devmaps, DeviceMap):
             self.devmap = devmaps
         elif devmaps:
@@ -65,11 +67,15 @@ class System:
         self.devtab.load(self.devmap)
         self.task_path = [Path(p) for p in task_path]
         self.base_dir = Path(base_dir) if base_dir is not None else Path.cwd()
-        self.msgmgr.base_dir = self.base_dir
         self.map_path = Path(map_path) if map_path is not None else None
         # run state (learned world-model data) goes beside the map, never into the sources
-        self.msgmgr.state_dir = (self.map_path.parent if self.map_path is not None
-                                 else self.base_dir)
+        self.msgmgr = MessageManager(
+            self.kernel, self.tsktab, self.msgtab, self.devtab, link, local=local,
+            base_dir=self.base_dir,
+            state_dir=self.map_path.parent if self.map_path is not None else self.base_dir)
+        self.kernel.set_end_handler(self.msgmgr.activation_ended)
+        self.devtab.listen(self.msgmgr)  # readings fan out over the links leaving the devices
+        self.devtab.add_health_listener(self.msgmgr.device_health)
         self.sysmgr = SystemManager(self)
         self._thread: threading.Thread | None = None
         self._started_machines: set[int] = set()

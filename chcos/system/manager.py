@@ -46,6 +46,8 @@ from chcos.tables.messages import (
     DEFAULT_COMMAND_PRIORITY,
     DEFAULT_SENSORY_PRIORITY,
     PORTS,
+    PRIORITIES,
+    PRIORITY_TEXT,
     TOP_PRIORITY,
     EndpointKind,
     InPort,
@@ -288,7 +290,7 @@ class SystemManager:
             if p.kind is EndpointKind.TASK:
                 s.tsktab.get(p.name).up_links.append(link)
             elif p.kind is EndpointKind.DEVICE:
-                s.devtab.get(p.name).links.append(link)
+                s.msgmgr.add_device_link(link)
             elif p.direction == "terminal":
                 self.terminals.setdefault(p.name, []).append(link)
         for j, p in enumerate(outs):
@@ -355,8 +357,8 @@ class SystemManager:
     def setpri(self, src: str, dst: str, priority: int) -> Link:
         """Set the priority of link ``src``/``dst`` now. Raises InstallError for an unknown link
         or a priority outside 0..99."""
-        if not 0 <= priority <= 99:
-            raise InstallError(f"setpri {src} {dst}: priority {priority} outside 0..99")
+        if priority not in PRIORITIES:
+            raise InstallError(f"setpri {src} {dst}: priority {priority} outside {PRIORITY_TEXT}")
         try:
             link = self.sys.msgtab.find(src, dst)
         except MessageError as exc:
@@ -402,8 +404,8 @@ class SystemManager:
         link = self.host_link(task)
         old = link.priority
         if priority is not None:
-            if not 0 <= priority <= 99:
-                raise InstallError(f"invoke {task}: priority {priority} outside 0..99")
+            if priority not in PRIORITIES:
+                raise InstallError(f"invoke {task}: priority {priority} outside {PRIORITY_TEXT}")
             link.priority = priority
         try:
             self.sys.msgmgr.open(link, command, wait=False)

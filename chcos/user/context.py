@@ -21,12 +21,14 @@ import types
 from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from chcos.errors import MessageError, ReadTimeout, SensorFailure
 from chcos.kernel.scheduler import BLOCK, YIELD, Kernel
 from chcos.messages.manager import MessageManager
+from chcos.messages.waits import forget
 from chcos.tables.messages import (
+    PRIORITIES,
     Completion,
     EndpointKind,
     InPort,
@@ -36,10 +38,7 @@ from chcos.tables.messages import (
     TapPort,
 )
 from chcos.tables.tasks import TaskEntry, TaskState
-
-if TYPE_CHECKING:
-    from chcos.devices.devtab import Devtab
-    from chcos.user.worldmodel import WorldModel
+from chcos.user.worldmodel import WorldModel
 
 Port = int | str
 log = logging.getLogger("chcos.user.context")
@@ -123,7 +122,8 @@ class TaskContext:
     def world(self) -> WorldModel:
         """This task's world model."""
         wm = self._t.world
-        assert wm is not None
+        if not isinstance(wm, WorldModel):
+            raise MessageError(f"task {self._t.name} has no world model")
         return wm
 
     @property
@@ -188,9 +188,7 @@ class TaskContext:
     def _check_source(self, p: InPort) -> None:
         link = p.link
         if link.src_kind is EndpointKind.DEVICE:
-            devtab: Devtab | None = self._mm.devtab
-            if devtab is not None:
-                devtab.check_readable(link.src)
+            self._mm.devices.check_readable(link.src)
 
     def _take(self, p: InPort) -> Any:
         value, at = p.take()
@@ -224,6 +222,7 @@ class TaskContext:
             t = self._t
             p.waiter = t
             t.wait_ports = p.single
+            t.unwait = forget
             t.state = _WAITING
             if self._k.h_blocked:
                 self._k.block(t, _WAITING)
@@ -257,6 +256,7 @@ class TaskContext:
         for p in chosen:
             p.waiter = t
         t.wait_ports = tuple(chosen)
+        t.unwait = forget
         self._k.block(t, TaskState.WAITING)
         self._arm_timeout(timeout, ", ".join(p.link.name for p in chosen))
         got: InPort = yield BLOCK
@@ -317,6 +317,7 @@ class TaskContext:
             t.wait_commands = commands
             t.wake_filter = when
             t.multi_wait = True
+            t.unwait = forget
             self._k.block(t, TaskState.WAITING)
             if deadline is not None:
                 self._arm_timeout(max(0.0, deadline - self._k.clock.now()), "wait_any")
@@ -327,10 +328,9 @@ class TaskContext:
                 index = next((p.index for p in ins if p.link.src == exc.device), -1)
                 return Event("failure", exc.device, exc.reason, index)
             finally:
-                if t.multi_wait:
-                    timer, t.timer = t.timer, None
-                    self._k.unhook(t)
-                    t.timer = timer
+                if t.multi_wait:  # woken by a message, the timer (the deadline) stays
+                    t.unwait = None
+                    forget(t)
 
     def _happened(self, ins: tuple[InPort, ...], links: tuple[Link, ...], tap: Any,
                   commands: bool, when: Callable[[str, Any], bool] | None) -> Event | None:
@@ -419,11 +419,11 @@ class TaskContext:
         resetpri), up to the priority this task runs at now: a task that a high-priority command
         made urgent may pass that urgency down (thesis 6.1.5: C1's priority-9 command makes B1
         take every A-level task). Raises MessageError for a priority above that or outside
-        0..99."""
+        0..99 (:data:`chcos.tables.messages.PRIORITIES`)."""
         link = self._task_link(port)
         if priority is not None:
             cap = max(self._t.prio, self._t.base_prio)
-            if not 0 <= priority <= min(99, cap):
+            if priority not in PRIORITIES or priority > cap:
                 raise MessageError(f"task {self._t.name} runs at priority {cap}: it cannot "
                                    f"invoke {link.dst} at priority {priority}")
             link.priority = max(link.priority, priority)
@@ -431,6 +431,7 @@ class TaskContext:
             return
         t = self._t
         t.wait_link = link
+        t.unwait = forget
         self._k.block(t, TaskState.WAITING)
         try:
             yield BLOCK
@@ -452,6 +453,7 @@ class TaskContext:
         t = self._t
         while link.pending:  # still queued for the target: first become its owner
             t.wait_link = link
+            t.unwait = forget
             self._k.block(t, TaskState.WAITING)
             yield BLOCK
         report = self._mm.done_now(link)
@@ -463,6 +465,7 @@ class TaskContext:
             raise MessageError(f"no command outstanding on {link.name} (status "
                                f"{link.status.value})")
         t.wait_link = link
+        t.unwait = forget
         self._k.block(t, TaskState.WAITING)
         result: Completion = yield BLOCK
         return result
@@ -575,6 +578,7 @@ class TaskContext:
         if not tap.fresh:
             t = self._t
             tap.waiter = t
+            t.unwait = forget
             self._k.block(t, TaskState.WAITING)
             self._arm_timeout(timeout, "the exception tap")
             try:
@@ -586,13 +590,8 @@ class TaskContext:
 
     def estop(self, reason: str) -> int:
         """Emergency stop: every actuator with a safe value gets it, at once. Returns how many
-        were written. Raises MessageError if no device table is attached."""
-        if self._mm.devtab is None:
-            raise MessageError("no device table to stop")
-        self._mm.event("estop", f"{self._t.name}: {reason}")
-        if self._mm.comm is not None:
-            self._mm.comm.estop(reason)
-        return self._mm.devtab.estop(reason)
+        were written here (every other satellite is told to do the same)."""
+        return self._mm.estop(self._t.name, reason)
 
     def suspend_task(self, name: str) -> None:
         """Freeze task ``name`` where it is (assassin only; any lower command task).
