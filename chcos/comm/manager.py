@@ -109,8 +109,7 @@ class CommManager:
         self.batches_sent = 0
         self.coalesced = 0
         self.superseded = 0
-        # until the satellite's composition root passes this manager to System(comm=...)
-        system.msgmgr.comm = self
+        system.msgmgr.comm = self      # the link replaces the one-process NoComm
         system.devtab.remote = self
         system.kernel.add_idle_hook(self._on_idle)
 

@@ -56,6 +56,8 @@ class Devtab(DeviceHealth, BusCounters):
                  remote: RemoteDevices | None = None) -> None:
         self.kernel = kernel
         self._local = frozenset(local) if local is not None else None
+        #: the devices of other satellites; a composition root that builds the link after this
+        #: table puts it here before the kernel runs
         self.remote = remote
         self._listener: DeviceListener | None = None
         self._entries: dict[str, DeviceEntry] = {}

@@ -37,6 +37,8 @@ class Delivery:
         self.tsktab = tsktab
         self.msgtab = msgtab
         self.devices = devices
+        #: the link to the other satellites; a composition root that builds it after this
+        #: manager (it needs the manager for what comes in) puts it here before the kernel runs
         self.comm: Comm = comm if comm is not None else NoComm()
         #: machines hosted here (None: every machine, a one-process system)
         self.local: frozenset[int] | None = frozenset(local) if local is not None else None

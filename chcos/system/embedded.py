@@ -20,7 +20,7 @@ from chcos.devices.spec import DeviceMap
 from chcos.errors import ChcosError, KernelError
 from chcos.kernel.clock import Clock, VirtualClock
 from chcos.kernel.scheduler import Kernel
-from chcos.messages.manager import Comm, MessageManager
+from chcos.messages.manager import MessageManager
 from chcos.system import cmdline, sysmap
 from chcos.system.manager import SystemManager
 from chcos.tables.messages import Msgtab
@@ -38,8 +38,7 @@ class System:
     ``task_path`` lists directories where bare task names (``A1``) are found; ``base_dir``
     resolves relative file names in installs; ``map_path`` is where sysfile.map is written;
     ``local_machines`` are the machines this process runs (None: all of them, the embedded
-    default; a satellite runs one and reaches the others through :mod:`chcos.comm.manager`);
-    ``comm`` builds that link on the system's kernel (None: a one-process system).
+    default; a satellite runs one and reaches the others through :mod:`chcos.comm.manager`).
     Raises ConfigError for invalid device maps, BusError if a driver cannot start.
     """
 
@@ -47,15 +46,13 @@ class System:
                  clock: Clock | None = None, machines: Iterable[int] = (),
                  task_path: Sequence[str | Path] = (), base_dir: str | Path | None = None,
                  map_path: str | Path | None = None,
-                 local_machines: Iterable[int] | None = None,
-                 comm: Callable[[Kernel], Comm] | None = None) -> None:
+                 local_machines: Iterable[int] | None = None) -> None:
         # the composition root: every part gets its collaborators through its constructor
         local = set(local_machines) if local_machines is not None else None
         self.kernel = Kernel(clock)
         self.tsktab = Tsktab()
         self.msgtab = Msgtab()
-        link = comm(self.kernel) if comm is not None else None
-        self.devtab = Devtab(self.kernel, local=local, remote=link)
+        self.devtab = Devtab(self.kernel, local=local)
         if isinstance(devmaps, DeviceMap):
             self.devmap = devmaps
         elif devmaps:
@@ -70,7 +67,7 @@ class System:
         self.map_path = Path(map_path) if map_path is not None else None
         # run state (learned world-model data) goes beside the map, never into the sources
         self.msgmgr = MessageManager(
-            self.kernel, self.tsktab, self.msgtab, self.devtab, link, local=local,
+            self.kernel, self.tsktab, self.msgtab, self.devtab, local=local,
             base_dir=self.base_dir,
             state_dir=self.map_path.parent if self.map_path is not None else self.base_dir)
         self.kernel.set_end_handler(self.msgmgr.activation_ended)
@@ -81,6 +78,13 @@ class System:
         self._started_machines: set[int] = set()
         for m in machines:
             self.sysmgr.boot(m)
+
+    # ---- collected errors -------------------------------------------------------------------
+    def check(self) -> None:
+        """Raise what the system collected and nobody raised yet, like canopen's
+        ``Network.check()``: the kernel's failed interrupt handlers and timer callbacks
+        (HandlerError, see :meth:`Kernel.check`). Nothing collected: returns."""
+        self.kernel.check()
 
     # ---- devices ----------------------------------------------------------------------------
     def start_drivers(self, machines: Iterable[int]) -> None:
