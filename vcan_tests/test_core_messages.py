@@ -306,7 +306,7 @@ def test_one_priority_range_everywhere(make_system: MakeSystem, line: str) -> No
     s.execute(f"install -m0 --code={M}:producer R")
     with pytest.raises(ChcosError, match=r"0\.\.99"):
         s.execute(line)
-    assert PRIORITIES == range(0, 100) and TOP_PRIORITY == 99
+    assert range(0, 100) == PRIORITIES and TOP_PRIORITY == 99
 
 
 async def _raise_to(ctx: TaskContext, cmd: dict[str, Any]) -> None:
