@@ -31,20 +31,18 @@ from chcos.devices.entry import (
 )
 from chcos.devices.health import DeviceHealth, HealthListener, faults, log
 from chcos.devices.spec import DeviceMap
+from chcos.devices.writes import WriteTracking
 from chcos.errors import BusError, DeviceError
 from chcos.kernel.scheduler import Kernel
 
 if TYPE_CHECKING:
     from drivers.base import Driver
 
-#: Attempts per safe value (e-stop, abnormal completion, shutdown, recovery) before it is
-#: reported undelivered.
-SAFE_ATTEMPTS = 3
 #: Seconds each driver gets at shutdown to put the safe values on the wire.
 SHUTDOWN_FLUSH = 5.0
 
 
-class Devtab(DeviceHealth, BusCounters):
+class Devtab(DeviceHealth, BusCounters, WriteTracking):
     """The device table of one satellite, and the host of its drivers.
 
     ``local`` are the machines whose devices this process drives (None: all of them);
@@ -191,38 +189,6 @@ class Devtab(DeviceHealth, BusCounters):
         driver thread)."""
         self.kernel.interrupt(self._driver_health, device, "", reason or "recovered")
 
-    def written(self, device: str, value: Any) -> None:
-        """The oldest outstanding write of ``device`` is on the wire (from a driver thread)."""
-        with self._wlock:
-            q = self._inflight.get(device)
-            w = q.popleft() if q else None
-        if w is None:
-            return
-        w.done = True
-        self.kernel.interrupt(self._write_done, w)
-
-    def write_failed(self, device: str, value: Any, reason: str) -> None:
-        """The oldest outstanding write of ``device`` did not reach the wire (from a driver
-        thread). A safe value is tried again (SAFE_ATTEMPTS in all) unless a newer write is
-        queued; then it is reported undelivered."""
-        with self._wlock:
-            q = self._inflight.get(device)
-            w = q.popleft() if q else None
-            retry = (w is not None and bool(w.safe) and w.attempts < SAFE_ATTEMPTS and not q)
-            if w is not None and retry:
-                w.attempts += 1
-                w.reason = reason
-                self._inflight.setdefault(device, deque()).append(w)
-        if w is None:
-            return
-        e = self._entries.get(device)
-        if retry and e is not None and e.driver is not None:
-            e.driver.write(device, w.raw)
-            return
-        w.done = False
-        w.reason = reason
-        self.kernel.interrupt(self._write_done, w)
-
     def every(self, period: float, fn: Callable[[], None]) -> None:
         """Run ``fn`` on the kernel thread every ``period`` seconds of kernel time."""
         self.kernel.every(period, fn)
@@ -265,31 +231,6 @@ class Devtab(DeviceHealth, BusCounters):
                 and self.is_local(e.spec.machine)):
             # back: the safe value before any command; it stays until the owner commands again
             self._safe(device, "recovery")
-
-    def _write_done(self, w: Write) -> None:
-        """A confirmed or failed write, on the kernel thread: the shown value, the events."""
-        e = self._entries.get(w.device)
-        if e is None:
-            return
-        with self._wlock:
-            left = len(self._inflight.get(w.device, ()))
-        e.pending_count = left
-        if left == 0:
-            e.pending = None
-        if w.done:
-            e.value = w.value
-            e.updated_at = self.kernel.clock.now()
-            return
-        e.write_errors += 1
-        e.last_write_error = w.reason
-        what = f"safe value ({w.safe})" if w.safe else "command"
-        text = f"{w.device}: {what} {w.value!r} not written: {w.reason}"
-        self.kernel.event("write-failed", text)
-        if w.safe:
-            self.safe_failures.append((w.device, w.reason))
-            faults.error("%s", text)
-        else:
-            faults.warning("%s", text)
 
     # ---- task side --------------------------------------------------------------------------
     def write(self, device: str, value: Any, source: str = "host") -> None:

@@ -15,7 +15,6 @@ from __future__ import annotations
 import enum
 import logging
 import threading
-import traceback
 from collections import deque
 from collections.abc import Callable
 from heapq import heappop, heappush
@@ -24,7 +23,10 @@ from typing import Any
 from chcos.errors import HandlerError, KernelError, Preempted
 from chcos.kernel.clock import Clock, RealClock
 from chcos.kernel.instrument import Hooks
+from chcos.kernel.timers import KEEP_ERRORS, Timer, Timers
 from chcos.tables.tasks import TaskEntry, TaskState
+
+__all__ = ["BLOCK", "YIELD", "End", "EndHandler", "Kernel", "Timer"]  # Timer: what call_at returns
 
 log = logging.getLogger("chcos.kernel.scheduler")
 # enum members as module constants: a member lookup (TaskState.READY) costs a class-attribute
@@ -48,29 +50,7 @@ class End(enum.Enum):
 
 
 EndHandler = Callable[[TaskEntry, End, Any], None]
-#: How many collected handler errors the kernel keeps.
-KEEP_ERRORS = 100
-
-
-class Timer:
-    """A pending timer; :meth:`cancel` makes it a no-op. Created by :meth:`Kernel.call_at`."""
-
-    __slots__ = ("base", "callback", "cancelled", "count", "deadline", "period")
-
-    def __init__(self, deadline: float, callback: Callable[[], None], period: float | None) -> None:
-        self.deadline = deadline
-        self.base = deadline
-        self.count = 0
-        self.callback = callback
-        self.period = period
-        self.cancelled = False
-
-    def cancel(self) -> None:
-        """Stop the timer from firing (again)."""
-        self.cancelled = True
-
-
-class Kernel(Hooks):
+class Kernel(Hooks, Timers):
     """One satellite's scheduler. Everything except :meth:`interrupt` and :meth:`stop` must be
     called on the kernel thread (from tasks, timer callbacks or interrupt handlers).
 
@@ -97,7 +77,7 @@ class Kernel(Hooks):
         self._on_end: EndHandler | None = None
         #: text of every failed interrupt handler and timer callback (the newest KEEP_ERRORS)
         self.irq_errors: list[str] = []
-        self._unchecked: deque[HandlerError] = deque(maxlen=KEEP_ERRORS)
+        self._unchecked: deque[HandlerError] = deque(maxlen=KEEP_ERRORS)  # see check()
 
     @property
     def steps(self) -> int:
@@ -186,43 +166,6 @@ class Kernel(Hooks):
         """Priorities of the tasks now ready (for tests and monitors)."""
         return sorted((-p for p, s, t in self._ready if t.stamp == s), reverse=True)
 
-    # ---- timers -----------------------------------------------------------------------------
-    def call_at(self, deadline: float, callback: Callable[[], None],
-                period: float | None = None) -> Timer:
-        """Run ``callback`` on the kernel thread at clock time ``deadline`` (and every ``period``
-        seconds after, drift-free, if given). Raises ValueError for a non-positive period."""
-        if period is not None and period <= 0:
-            raise ValueError(f"timer period must be positive, got {period}")
-        tm = Timer(deadline, callback, period)
-        self._seq += 1
-        heappush(self._timers, (deadline, self._seq, tm))
-        return tm
-
-    def call_later(self, delay: float, callback: Callable[[], None]) -> Timer:
-        """Run ``callback`` once, ``delay`` seconds from now."""
-        return self.call_at(self.clock.now() + delay, callback)
-
-    def every(self, period: float, callback: Callable[[], None]) -> Timer:
-        """Run ``callback`` every ``period`` seconds, the first time one period from now."""
-        return self.call_at(self.clock.now() + period, callback, period)
-
-    def _fire_timers(self, now: float) -> None:
-        timers = self._timers
-        while timers and timers[0][0] <= now:
-            _, _, tm = heappop(timers)
-            if tm.cancelled:
-                continue
-            if tm.period is not None:
-                tm.count += 1
-                # no accumulated rounding; whole nanoseconds so k * period lands on k * period
-                tm.deadline = round(tm.base + tm.count * tm.period, 9)
-                self._seq += 1
-                heappush(timers, (tm.deadline, self._seq, tm))
-            try:
-                tm.callback()
-            except Exception as exc:  # a failing timer callback must not stop the kernel
-                self._record_irq_error("timer", exc)
-
     # ---- interrupts -------------------------------------------------------------------------
     def interrupt(self, handler: Callable[..., None], *args: Any) -> None:
         """Queue ``handler(*args)`` to run on the kernel thread between task steps.
@@ -241,30 +184,6 @@ class Kernel(Hooks):
                 handler(*args)
             except Exception as exc:
                 self._record_irq_error(getattr(handler, "__qualname__", repr(handler)), exc)
-
-    def _record_irq_error(self, where: str, exc: Exception) -> None:
-        text = f"{where}: {type(exc).__name__}: {exc}"
-        log.error("interrupt handler failed: %s\n%s", text, traceback.format_exc())
-        self.irq_errors.append(text)
-        del self.irq_errors[:-KEEP_ERRORS]
-        err = HandlerError(f"{where} failed on the kernel thread: {type(exc).__name__}: {exc}")
-        err.__cause__ = exc
-        self._unchecked.append(err)
-
-    def check(self) -> None:
-        """Raise the oldest error collected on the kernel thread and not raised yet: a
-        :class:`HandlerError` naming the interrupt handler or timer callback that failed, its
-        exception chained as the cause, with how many more are waiting. Each collected error
-        is raised once (the texts stay in :attr:`irq_errors`). Thread-safe; returns quietly
-        when nothing failed."""
-        try:
-            err = self._unchecked.popleft()
-        except IndexError:
-            return
-        more = len(self._unchecked)
-        if more:
-            err.add_note(f"{more} more handler error(s) collected; check() again")
-        raise err
 
     def add_settler(self, settle: Callable[[float], bool]) -> None:
         """Register a driver's ``settle(timeout)``; called before virtual time jumps ahead so
