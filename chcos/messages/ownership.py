@@ -339,6 +339,7 @@ class Ownership(Delivery):
         self.release_subordinates(t, why)
         t.frozen = False
         t.frozen_ready = None
+        t.frozen_state = None
         t.cancelling = False
         t.next_command = t.new_command = None
         t.send_value = t.throw_exc = None
