@@ -7,9 +7,11 @@ from typing import Any
 import pytest
 
 from chcos.devices.entry import DeviceStatus
+from chcos.devices.spec import DeviceMap, DeviceSpec
 from chcos.errors import (
     Busy,
     ChcosError,
+    DeviceError,
     HandlerError,
     MessageError,
     QueueOverflow,
@@ -360,3 +362,44 @@ def test_one_process_system_refuses_a_link_to_another_machine() -> None:
     with pytest.raises(MessageError, match="actuator command to M1 for machine 2: this system "
                                            "has no link"):
         nc.actuator("M1", 2, 1.0, "A1")
+
+
+def test_devtab_knows_devices_not_links() -> None:
+    """Devtab alone (no message manager): readings and sensor failures go to its one listener,
+    which answers whether an unread message was overwritten; an actuator of a machine this
+    process does not drive is refused without a link."""
+    from chcos.devices.devtab import Devtab
+    from chcos.kernel.clock import VirtualClock
+    from chcos.kernel.scheduler import Kernel
+
+    heard: list[tuple[str, str, Any]] = []
+
+    class Listener:
+        def reading(self, device: str, value: Any) -> bool:
+            heard.append(("reading", device, value))
+            return len(heard) > 1          # the second reading overwrote an unread one
+
+        def sensor_failed(self, device: str, failure: SensorFailure) -> None:
+            heard.append(("failed", device, failure.reason))
+
+    k = Kernel(VirtualClock())
+    dt = Devtab(k, local=[0])
+    dm = memory_map(["S1"], ["M1"])
+    far = DeviceMap(dm.buses, (*dm.devices, DeviceSpec("M9", "actuator", 1, "mem",
+                                                       safe_value=0.0)))
+    dt.load(far)
+    dt.inject("S1", 1.0)
+    k.run()
+    assert dt.get("S1").value == 1.0 and heard == []   # nobody listens: the buffer still works
+    dt.listen(Listener())
+    dt.inject("S1", 2.0)
+    dt.inject("S1", 3.0)
+    dt.fail("S1", "wire cut")
+    k.run()
+    assert heard == [("reading", "S1", 2.0), ("reading", "S1", 3.0),
+                     ("failed", "S1", "wire cut")]
+    assert dt.get("S1").overwrites == 1
+    assert not dt.healthy("S1") and dt.healthy("M1")
+    with pytest.raises(DeviceError, match="M9 is on machine 1, which this process does not "
+                                          "drive, and no link leads there"):
+        dt.write("M9", 1.0)
