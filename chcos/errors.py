@@ -15,6 +15,12 @@ class KernelError(ChcosError):
     """The kernel was misused: a task stepped outside the kernel, a bad trap, a stopped kernel."""
 
 
+class HandlerError(KernelError):
+    """An interrupt handler or a timer callback failed on the kernel thread. The kernel logged it
+    and kept running; :meth:`chcos.kernel.scheduler.Kernel.check` raises it (the failure chained
+    as the cause) so that it is not only collected."""
+
+
 class TaskError(ChcosError):
     """A task-manager call failed: unknown task id, illegal state change."""
 

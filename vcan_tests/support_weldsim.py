@@ -17,7 +17,7 @@ from typing import Any
 from chcos.apps.weld.faults import Scenario
 from chcos.apps.weld.model import CellConfig
 from chcos.apps.weld.plant import WeldSim, cell_devmap
-from chcos.devices.devtab import DeviceEntry
+from chcos.devices.entry import DeviceEntry
 from chcos.kernel.clock import VirtualClock
 from chcos.system.embedded import System
 from chcos.user.context import TaskContext

@@ -9,10 +9,10 @@ from typing import Any
 
 import pytest
 
-from chcos.errors import KernelError
+from chcos.errors import HandlerError, KernelError
 from chcos.kernel.clock import RealClock, VirtualClock
 from chcos.kernel.instrument import Counters, Instrument
-from chcos.kernel.scheduler import BLOCK, YIELD, Kernel
+from chcos.kernel.scheduler import BLOCK, YIELD, End, Kernel
 from chcos.kernel.sem import Semaphore
 from chcos.tables.tasks import TaskEntry, TaskState
 
@@ -203,7 +203,7 @@ def test_instruments_see_steps_and_only_when_installed() -> None:
 
 def test_foreign_await_is_an_error_of_that_task_only() -> None:
     k = Kernel(VirtualClock())
-    ended: list[tuple[str, str]] = []
+    ended: list[tuple[str, End]] = []
     k.set_end_handler(lambda t, how, v: ended.append((t.name, how)))
 
     @types.coroutine
@@ -219,7 +219,7 @@ def test_foreign_await_is_an_error_of_that_task_only() -> None:
     spawn(k, "bad", bad(), 5)
     spawn(k, "good", good(), 5)
     k.run()
-    assert ("bad", "error") in ended and ("good", "return") in ended
+    assert ("bad", End.ERROR) in ended and ("good", End.RETURN) in ended
 
 
 class PriorityChecker(Instrument):
@@ -249,3 +249,116 @@ def test_priority_checker_instrument_on_mixed_load() -> None:
         spawn(k, f"w{i}", worker(5, 0.1 * (i + 1)), i * 10)
     k.run()
     assert chk.violations == 0
+
+
+# ---- collected errors surface (issue 14) ------------------------------------------------------
+def test_check_raises_each_collected_handler_error_once_naming_the_handler() -> None:
+    k = Kernel(VirtualClock())
+
+    def bad_timer() -> None:
+        raise RuntimeError("boom")
+
+    def bad_irq(x: int) -> None:
+        raise ValueError(f"bad value {x}")
+
+    k.check()  # nothing collected: quiet
+    k.call_later(0.1, bad_timer)
+    k.interrupt(bad_irq, 7)
+    k.run()
+    with pytest.raises(HandlerError) as first:
+        k.check()
+    assert "bad_irq failed on the kernel thread: ValueError: bad value 7" in str(first.value)
+    assert isinstance(first.value.__cause__, ValueError)
+    assert any("1 more handler error" in n for n in first.value.__notes__)
+    with pytest.raises(HandlerError, match="timer failed on the kernel thread: RuntimeError: "
+                                           "boom") as second:
+        k.check()
+    assert isinstance(second.value.__cause__, RuntimeError)
+    k.check()  # each raised once
+    assert len(k.irq_errors) == 2  # the texts stay
+
+
+class _Broken(Instrument):
+    def __init__(self, hook: str) -> None:
+        self.hook = hook
+        self.calls = 0
+
+    def before_step(self, task: TaskEntry) -> None:
+        self.calls += 1
+        if self.hook == "before_step":
+            raise RuntimeError("instrument bug")
+
+    def event(self, kind: str, detail: str) -> None:
+        self.calls += 1
+        if self.hook == "event":
+            raise RuntimeError("instrument bug")
+
+
+def test_failing_instrument_is_removed_and_logged_and_the_kernel_runs_on(
+        caplog: pytest.LogCaptureFixture) -> None:
+    k = Kernel(VirtualClock())
+    broken = _Broken("before_step")
+    counters = Counters()
+    k.add_instrument(broken)
+    k.add_instrument(counters)
+    order: list[str] = []
+
+    async def body(name: str) -> None:
+        order.append(name)
+        await checkpoint()
+        order.append(name + "'")
+
+    a = spawn(k, "a", body("a"), 5)
+    b = spawn(k, "b", body("b"), 4)
+    with caplog.at_level("ERROR", logger="chcos.kernel.instrument"):
+        k.run()
+    assert order == ["a", "a'", "b", "b'"]          # every task ran to its end
+    assert a.state is not TaskState.CURRENT and b.state is not TaskState.CURRENT
+    assert k.current is None
+    assert broken.calls == 1                          # removed after its first failure
+    assert broken not in k.instruments and counters in k.instruments
+    assert counters.steps == {"a": 2, "b": 2}         # the others still heard every step
+    assert [(i, h) for i, h, _ in k.dropped_instruments] == [(broken, "before_step")]
+    assert "instrument bug" in caplog.text and "removed" in caplog.text
+
+
+def test_failing_event_instrument_does_not_break_the_caller() -> None:
+    k = Kernel(VirtualClock())
+    broken = _Broken("event")
+    counters = Counters()
+    k.add_instrument(broken)
+    k.add_instrument(counters)
+    k.event("install", "A1")
+    k.event("install", "A2")
+    assert counters.events == [("install", "A1"), ("install", "A2")]
+    assert broken.calls == 1 and broken not in k.instruments
+
+
+def test_wake_ends_a_wait_through_the_unwait_its_layer_left() -> None:
+    """The kernel knows timers, not ports or links: whoever blocks a task leaves ``unwait``."""
+    k = Kernel(VirtualClock())
+    undone: list[str] = []
+    t: TaskEntry | None = None
+
+    @types.coroutine
+    def wait_for_something() -> Generator[Any, Any, Any]:
+        me = k.current
+        assert me is not None
+        me.unwait = lambda task: undone.append(task.name)
+        k.block(me, TaskState.WAITING)
+        return (yield BLOCK)
+
+    got: list[Any] = []
+
+    async def body() -> None:
+        got.append(await wait_for_something())
+
+    t = spawn(k, "w", body(), 3)
+    k.run()
+    assert t.state is TaskState.WAITING and undone == []
+    k.suspend(t)
+    k.resume(t)
+    assert t.state is TaskState.WAITING  # back to what it waited for
+    k.wake(t, 3, "value")
+    k.run()
+    assert undone == ["w"] and got == ["value"] and t.unwait is None

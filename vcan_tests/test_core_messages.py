@@ -6,8 +6,19 @@ from typing import Any
 
 import pytest
 
-from chcos.errors import Busy, QueueOverflow, ReadTimeout, SensorFailure
-from chcos.tables.messages import LinkStatus
+from chcos.devices.entry import DeviceStatus
+from chcos.devices.spec import DeviceMap, DeviceSpec
+from chcos.errors import (
+    Busy,
+    ChcosError,
+    DeviceError,
+    HandlerError,
+    MessageError,
+    QueueOverflow,
+    ReadTimeout,
+    SensorFailure,
+)
+from chcos.tables.messages import PRIORITIES, TOP_PRIORITY, LinkStatus
 from chcos.tables.tasks import TaskState
 from chcos.user.context import TaskContext
 from vcan_tests.conftest import MakeSystem, memory_map
@@ -266,3 +277,129 @@ def test_host_invoke_close_and_msgstat(make_system: MakeSystem) -> None:
     assert s.tsktab.get("W").owner is None
     assert s.tsktab.get("W").state is TaskState.SUSPENDED
     assert ("done", "host") not in log
+
+
+# ---- collected errors surface, one priority range, typed device status (issue 14) -------------
+def test_a_reading_refused_by_a_full_queued_link_surfaces_in_system_check(
+        make_system: MakeSystem) -> None:
+    """The reading interrupt that hit a full queued link is not only collected: check() raises
+    it, naming the handler and chaining the QueueOverflow; the kernel ran on meanwhile."""
+    s = make_system(memory_map(["S1"]))
+    s.execute(f"install -m0i1 --queue=S1=1 --code={M}:reader R S1")
+    s.check()
+    s.devtab.inject("S1", 1.0)
+    s.devtab.inject("S1", 2.0)   # nobody read the first: the queue of one is full
+    s.run_for(0.1)
+    with pytest.raises(HandlerError) as err:
+        s.check()
+    assert "Devtab._reading failed on the kernel thread: QueueOverflow: queued link S1/R is " \
+           "full" in str(err.value)
+    assert isinstance(err.value.__cause__, QueueOverflow)
+    s.check()   # raised once
+    log: list[Any] = []
+    s.invoke("R", {"log": log})
+    s.run_for(0.1)
+    assert log == [1.0]
+
+
+@pytest.mark.parametrize("line", ["setpri -100 host R", "invoke -p 100 R", "invoke -p -1 R"])
+def test_one_priority_range_everywhere(make_system: MakeSystem, line: str) -> None:
+    s = make_system()
+    s.execute(f"install -m0 --code={M}:producer R")
+    with pytest.raises(ChcosError, match=r"0\.\.99"):
+        s.execute(line)
+    assert range(0, 100) == PRIORITIES and TOP_PRIORITY == 99
+
+
+async def _raise_to(ctx: TaskContext, cmd: dict[str, Any]) -> None:
+    try:
+        await ctx.invoke(0, {"values": []}, priority=cmd["prio"])
+    except MessageError as exc:
+        cmd["log"].append(str(exc))
+
+
+def test_a_task_cannot_invoke_outside_the_priority_range(make_system: MakeSystem) -> None:
+    s = make_system()
+    s.execute(f"install -m0 --code={M}:producer P")
+    s.execute(f"install -m0o1 --code={M}:_raise_to C P")
+    log: list[Any] = []
+    s.invoke("C", {"prio": 100, "log": log}, priority=99)
+    s.run_for(0.1)
+    assert log and "cannot invoke P at priority 100" in log[0]
+
+
+def test_device_status_is_typed_and_keeps_its_wire_text(make_system: MakeSystem) -> None:
+    """Devtab hands the link a DeviceStatus (not a string); the text on maps and the link is
+    the enum's value, as before."""
+    told: list[tuple[str, DeviceStatus, str]] = []
+
+    class Link:
+        def actuator(self, device: str, machine: int, value: Any, source: str) -> None:
+            raise AssertionError("no remote actuator here")
+
+        def device_status(self, device: str, status: DeviceStatus, reason: str) -> None:
+            told.append((device, status, reason))
+
+    s = make_system(memory_map(["S1"], ["M1"]))
+    s.devtab.remote = Link()
+    s.devtab.fail("S1", "wire cut")
+    s.devtab.suspend("M1")
+    s.run_for(0.1)
+    assert told == [("M1", DeviceStatus.SUSPENDED, "suspended by the host"),
+                    ("S1", DeviceStatus.FAILED, "wire cut")]
+    assert [st.value for _, st, _ in told] == ["suspended", "failed"]
+    assert {st.value for st in DeviceStatus} == {"OK", "failed", "suspended", "stale"}
+
+
+def test_one_process_system_refuses_a_link_to_another_machine() -> None:
+    """NoComm: a one-process system has nobody else to tell and refuses remote traffic."""
+    from chcos.messages.protocols import NoComm
+
+    nc = NoComm()
+    assert nc.is_up(1) is False
+    nc.estop("test")
+    nc.device_status("S1", DeviceStatus.FAILED, "x")
+    with pytest.raises(MessageError, match="actuator command to M1 for machine 2: this system "
+                                           "has no link"):
+        nc.actuator("M1", 2, 1.0, "A1")
+
+
+def test_devtab_knows_devices_not_links() -> None:
+    """Devtab alone (no message manager): readings and sensor failures go to its one listener,
+    which answers whether an unread message was overwritten; an actuator of a machine this
+    process does not drive is refused without a link."""
+    from chcos.devices.devtab import Devtab
+    from chcos.kernel.clock import VirtualClock
+    from chcos.kernel.scheduler import Kernel
+
+    heard: list[tuple[str, str, Any]] = []
+
+    class Listener:
+        def reading(self, device: str, value: Any) -> bool:
+            heard.append(("reading", device, value))
+            return len(heard) > 1          # the second reading overwrote an unread one
+
+        def sensor_failed(self, device: str, failure: SensorFailure) -> None:
+            heard.append(("failed", device, failure.reason))
+
+    k = Kernel(VirtualClock())
+    dt = Devtab(k, local=[0])
+    dm = memory_map(["S1"], ["M1"])
+    far = DeviceMap(dm.buses, (*dm.devices, DeviceSpec("M9", "actuator", 1, "mem",
+                                                       safe_value=0.0)))
+    dt.load(far)
+    dt.inject("S1", 1.0)
+    k.run()
+    assert dt.get("S1").value == 1.0 and heard == []   # nobody listens: the buffer still works
+    dt.listen(Listener())
+    dt.inject("S1", 2.0)
+    dt.inject("S1", 3.0)
+    dt.fail("S1", "wire cut")
+    k.run()
+    assert heard == [("reading", "S1", 2.0), ("reading", "S1", 3.0),
+                     ("failed", "S1", "wire cut")]
+    assert dt.get("S1").overwrites == 1
+    assert not dt.healthy("S1") and dt.healthy("M1")
+    with pytest.raises(DeviceError, match="M9 is on machine 1, which this process does not "
+                                          "drive, and no link leads there"):
+        dt.write("M9", 1.0)

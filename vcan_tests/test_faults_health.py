@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from chcos.devices.devtab import DeviceEntry, DeviceStatus
+from chcos.devices.entry import DeviceEntry, DeviceStatus
 from chcos.errors import DeviceError
 from chcos.kernel.clock import VirtualClock
 from chcos.system.embedded import System
@@ -92,7 +92,7 @@ def test_safe_values_reach_failed_and_suspended_actuators(system: System) -> Non
         dt.write("M", 8)
     assert dt.estop("test") == 1
     assert dt.get("M").value == 1
-    dt.set_status("M", "suspended", "by the host")
+    dt.set_status("M", DeviceStatus.SUSPENDED, "by the host")
     with pytest.raises(DeviceError, match="suspended"):
         dt.write("M", 8)
     assert dt.stop_drivers() == []

@@ -24,7 +24,6 @@ from chcos.comm.payloads import (
     KIND_OF,
     ActuatorCommand,
     CloseRequest,
-    DeviceStatus,
     EmergencyStop,
     OpenAnswer,
     OpenOutcome,
@@ -35,6 +34,7 @@ from chcos.comm.payloads import (
     QueryAnswer,
     QueryFailed,
     Report,
+    StatusChange,
     from_wire,
     to_wire,
 )
@@ -54,7 +54,7 @@ PAYLOADS: list[Payload] = [
     ActuatorCommand("M1", -2.5), ActuatorCommand("valve", True),
     EmergencyStop("door open", 2), OpenReply(OpenAnswer.owner()),
     OpenReply(OpenAnswer.queued()), OpenReply(OpenAnswer.busy("W is held by host at 90")),
-    DeviceStatus("S1", "failed", "no answer", 1), Query(7, "ahead", [1.0, "x"]),
+    StatusChange("S1", "failed", "no answer", 1), Query(7, "ahead", [1.0, "x"]),
     QueryAnswer(7, {"centre": 12.5}), QueryFailed(7, "W's world model: no such topic"),
 ]
 

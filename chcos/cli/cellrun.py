@@ -31,7 +31,7 @@ from typing import Any, TextIO
 
 from chcos.apps.sim.from_map import SimSlaves, simulate
 from chcos.devices.devmap import load
-from chcos.devices.devtab import DeviceEntry, DeviceStatus
+from chcos.devices.entry import DeviceEntry, DeviceStatus
 from chcos.errors import ChcosError
 from chcos.kernel.clock import Clock, RealClock, VirtualClock
 from chcos.kernel.instrument import Counters

@@ -35,7 +35,7 @@ from types import FrameType
 from typing import Any, TextIO
 
 from chcos.devices.devmap import load
-from chcos.devices.devtab import DeviceStatus
+from chcos.devices.entry import DeviceStatus
 from chcos.devices.spec import BusSpec, DeviceMap, DeviceSpec
 from chcos.errors import BusError, ChcosError
 from chcos.satellites import sysfile

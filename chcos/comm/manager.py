@@ -42,7 +42,6 @@ from chcos.comm.payloads import (
     KIND_OF,
     ActuatorCommand,
     CloseRequest,
-    DeviceStatus,
     EmergencyStop,
     OpenAnswer,
     OpenReply,
@@ -52,12 +51,14 @@ from chcos.comm.payloads import (
     QueryAnswer,
     QueryFailed,
     Report,
+    StatusChange,
     check_actuator_value,
     from_wire,
     to_wire,
 )
 from chcos.comm.ports import Closable, Devices, Links, LinkTransport, Messages, Scheduler, Tasks
 from chcos.comm.secret import Throttle
+from chcos.devices.entry import DeviceStatus
 from chcos.errors import LinkError, MessageError
 from chcos.tables.messages import TOP_PRIORITY, Link, LinkStatus
 from chcos.tables.tasks import TaskEntry
@@ -231,10 +232,10 @@ class CommManager:
         """An actuator command to the device's satellite."""
         self._send(machine, source, device, 0, TOP_PRIORITY - 1, ActuatorCommand(device, value))
 
-    def device_status(self, device: str, status: str, reason: str) -> None:
+    def device_status(self, device: str, status: DeviceStatus, reason: str) -> None:
         """A local device changed status: tell everybody."""
         self._send(None, "", device, 0, TOP_PRIORITY - 1,
-                   DeviceStatus(device, status, reason, self.machine))
+                   StatusChange(device, status.value, reason, self.machine))
 
     def estop(self, reason: str) -> None:
         """Emergency stop everywhere, at top priority, sent express."""
@@ -296,9 +297,9 @@ class CommManager:
                 mm.deliver(link, msg.value)
             return
         p = from_wire(msg.kind, msg.value)
-        if isinstance(p, DeviceStatus):
+        if isinstance(p, StatusChange):
             if p.origin != self.machine:
-                self.devtab.set_status(p.device, p.status, p.reason)
+                self.devtab.set_status(p.device, DeviceStatus(p.status), p.reason)
         elif isinstance(p, EmergencyStop):
             if p.origin != self.machine:
                 mm.event("estop", f"from machine {p.origin}: {p.reason}")
@@ -366,8 +367,8 @@ class CommManager:
         self.alive.add(machine)
         self.msgmgr.event("satellite-up", f"machine {machine} joined")
         for e in self.devtab:
-            if e.spec.machine == machine and e.status.value == "failed":
-                self.devtab.set_status(e.name, "OK", "")
+            if e.spec.machine == machine and e.status is DeviceStatus.FAILED:
+                self.devtab.set_status(e.name, DeviceStatus.OK, "")
 
     def _on_leave(self, machine: int) -> None:
         self.alive.discard(machine)
@@ -375,4 +376,5 @@ class CommManager:
         self.msgmgr.event("satellite-down", f"machine {machine} died; {told} owner(s) told")
         for e in self.devtab:
             if e.spec.machine == machine:
-                self.devtab.set_status(e.name, "failed", f"satellite {machine} died")
+                self.devtab.set_status(e.name, DeviceStatus.FAILED,
+                                       f"satellite {machine} died")

@@ -12,7 +12,7 @@ The wire form is JSON objects with an ``op`` key, as before::
               {"op": "estop", "reason": str, "from": int}        EmergencyStop
     REPLY     {"op": "open", "answer": "owner"|"queued"|"busy", "reason": str}  OpenReply
               {"op": "answer", "qid": int, "answer": ...}        QueryAnswer
-    STATUS    {"device": str, "status": str, "reason": str, "from": int}  DeviceStatus
+    STATUS    {"device": str, "status": str, "reason": str, "from": int}  StatusChange
     COMPLETION/PREEMPTION {"status": str, "result": ..., "error": str}  Report
     QUERY     {"qid": int, "topic": str, "args": [...]}          Query
     ERROR     {"qid": int, "error": str}                         QueryFailed
@@ -31,11 +31,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from chcos.comm.codec import MessageKind
+from chcos.devices.entry import DeviceStatus
 from chcos.errors import MessageError
 from chcos.tables.messages import LinkStatus
 
 #: The device statuses a STATUS message may carry.
-DEVICE_STATUSES = ("OK", "failed", "suspended", "stale")
+DEVICE_STATUSES = tuple(st.value for st in DeviceStatus)  # the texts Devtab statuses carry
 
 
 class OpenOutcome(enum.Enum):
@@ -106,7 +107,7 @@ class OpenReply:
 
 
 @dataclass(frozen=True)
-class DeviceStatus:
+class StatusChange:
     """A device of machine ``origin`` changed status (one of :data:`DEVICE_STATUSES`)."""
 
     device: str
@@ -150,14 +151,14 @@ class QueryFailed:
 
 
 Payload = (OpenRequest | CloseRequest | ActuatorCommand | EmergencyStop | OpenReply
-           | DeviceStatus | Report | Query | QueryAnswer | QueryFailed)
+           | StatusChange | Report | Query | QueryAnswer | QueryFailed)
 
 #: The message kind each payload type travels as.
 KIND_OF: dict[type[Any], MessageKind] = {
     OpenRequest: MessageKind.COMMAND, CloseRequest: MessageKind.COMMAND,
     ActuatorCommand: MessageKind.COMMAND, EmergencyStop: MessageKind.COMMAND,
     OpenReply: MessageKind.REPLY, QueryAnswer: MessageKind.REPLY,
-    DeviceStatus: MessageKind.STATUS, Query: MessageKind.QUERY, QueryFailed: MessageKind.ERROR,
+    StatusChange: MessageKind.STATUS, Query: MessageKind.QUERY, QueryFailed: MessageKind.ERROR,
 }
 
 
@@ -175,7 +176,7 @@ def to_wire(p: Payload) -> dict[str, Any]:
         return {"op": "open", "answer": p.answer.outcome.value, "reason": p.answer.reason}
     if isinstance(p, QueryAnswer):
         return {"op": "answer", "qid": p.qid, "answer": p.answer}
-    if isinstance(p, DeviceStatus):
+    if isinstance(p, StatusChange):
         return {"device": p.device, "status": p.status, "reason": p.reason, "from": p.origin}
     if isinstance(p, Report):
         return {"status": p.status.value, "result": p.result, "error": p.error}
@@ -228,7 +229,7 @@ def from_wire(kind: MessageKind, value: Any) -> Payload:
         if status not in DEVICE_STATUSES:
             raise MessageError(f"STATUS message: 'status': expected one of "
                                f"{', '.join(DEVICE_STATUSES)}, got {status!r:.40}")
-        return DeviceStatus(_get(kind, v, "device", str, "a device name"), status,
+        return StatusChange(_get(kind, v, "device", str, "a device name"), status,
                             _get(kind, v, "reason", str, "a text"),
                             _get(kind, v, "from", int, "a machine"))
     if kind in (MessageKind.COMPLETION, MessageKind.PREEMPTION):

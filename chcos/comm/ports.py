@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator, Sequence
 from typing import TYPE_CHECKING, Any, Protocol
 
+from chcos.devices.entry import DeviceStatus
 from chcos.kernel.clock import Clock
 from chcos.kernel.scheduler import Timer
 from chcos.tables.messages import Link, LinkStatus, TapPort
@@ -18,7 +19,7 @@ from chcos.tables.tasks import TaskEntry
 
 if TYPE_CHECKING:
     from chcos.comm.payloads import OpenAnswer
-    from chcos.devices.devtab import DeviceEntry
+    from chcos.devices.entry import DeviceEntry
 
 
 class Scheduler(Protocol):
@@ -99,7 +100,7 @@ class Devices(Protocol):
         """Every device entry."""
         ...
 
-    def set_status(self, device: str, status: str, reason: str) -> None:
+    def set_status(self, device: str, status: DeviceStatus, reason: str) -> None:
         """Another satellite reports the status of one of its devices."""
 
     def estop(self, reason: str) -> int:

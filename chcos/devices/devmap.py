@@ -54,6 +54,7 @@ from typing import Any
 from chcos.devices import parsecache
 from chcos.devices.spec import MAX_MACHINE, BusSpec, DeviceMap, DeviceSpec, Direction
 from chcos.errors import ConfigError, DriverNotAvailable
+from chcos.tables.messages import PRIORITIES, PRIORITY_TEXT
 from drivers.base import Driver
 from drivers.registry import driver_class
 
@@ -310,8 +311,8 @@ def _parse_device(fe: _FileErrors, i: int, table: Any, base: Path) -> _Parsed:
     else:
         address_ok = _check_values(fe, f"{key}.address", address)
     priority = table.get("priority", 8)
-    if not isinstance(priority, int) or isinstance(priority, bool) or not 0 <= priority <= 99:
-        fe.add(f"{key}.priority", f"expected an integer 0..99, got {_short(priority)}")
+    if not isinstance(priority, int) or isinstance(priority, bool) or priority not in PRIORITIES:
+        fe.add(f"{key}.priority", f"expected an integer {PRIORITY_TEXT}, got {_short(priority)}")
         priority = 8
     stale: float | None = None
     if "stale_after" in table:

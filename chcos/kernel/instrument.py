@@ -2,18 +2,22 @@
 
 The kernel calls an instrument only when one is installed (one truth test on the hot path
 otherwise). Subclass :class:`Instrument` and override what you need; every hook is a no-op here.
+An instrument whose hook raises is removed and the error logged (as trio does with its
+instruments): the kernel and the other instruments carry on, and no task is left half-stepped.
 :class:`Counters` counts task executions and messages per task, link and level;
 :class:`Latency` keeps message latency samples (send to delivery) for percentiles.
 """
 
 from __future__ import annotations
 
+import logging
 from collections import Counter
-from typing import TYPE_CHECKING
+from typing import Any
 
-if TYPE_CHECKING:
-    from chcos.tables.messages import Link
-    from chcos.tables.tasks import TaskEntry
+from chcos.tables.messages import Link
+from chcos.tables.tasks import TaskEntry
+
+log = logging.getLogger("chcos.kernel.instrument")
 
 
 class Instrument:
@@ -98,3 +102,74 @@ class Latency(Instrument):
         s = sorted(self.samples)
         i = min(len(s) - 1, max(0, round(q / 100 * (len(s) - 1))))
         return s[i]
+
+
+#: The hooks of :class:`Instrument`, each with the attribute of :class:`Hooks` that lists the
+#: instruments overriding it.
+HOOKS = {"task_scheduled": "h_scheduled", "before_step": "h_before", "after_step": "h_after",
+         "task_blocked": "h_blocked", "message_sent": "h_sent",
+         "message_overwritten": "h_overwritten", "message_delivered": "h_delivered",
+         "event": "h_event"}
+
+
+class Hooks:
+    """The installed instruments of a kernel, one tuple per hook holding only the instruments
+    that override it: an idle instrument costs nothing on the hot path. Callers test the tuple
+    (``if kernel.h_sent:``) and then call :meth:`notify`, which removes and logs an instrument
+    whose hook raises (the others still hear of the event)."""
+
+    def __init__(self) -> None:
+        self.instruments: tuple[Instrument, ...] = ()
+        self.h_scheduled: tuple[Instrument, ...] = ()
+        self.h_before: tuple[Instrument, ...] = ()
+        self.h_after: tuple[Instrument, ...] = ()
+        self.h_blocked: tuple[Instrument, ...] = ()
+        self.h_sent: tuple[Instrument, ...] = ()
+        self.h_overwritten: tuple[Instrument, ...] = ()
+        self.h_delivered: tuple[Instrument, ...] = ()
+        self.h_event: tuple[Instrument, ...] = ()
+        #: (instrument, hook, error text) of every instrument removed because a hook raised
+        self.dropped_instruments: list[tuple[Instrument, str, str]] = []
+
+    def add_instrument(self, instrument: Instrument) -> None:
+        """Listen with ``instrument``; only the hooks it overrides are ever called."""
+        self.instruments = (*self.instruments, instrument)
+        self._rehook()
+
+    def remove_instrument(self, instrument: Instrument) -> None:
+        """Stop listening with ``instrument`` (no error if it was not installed)."""
+        self.instruments = tuple(i for i in self.instruments if i is not instrument)
+        self._rehook()
+
+    def _rehook(self) -> None:
+        for hook, attr in HOOKS.items():
+            base = getattr(Instrument, hook)
+            setattr(self, attr, tuple(i for i in self.instruments
+                                      if getattr(type(i), hook, base) is not base))
+
+    def notify(self, hooks: tuple[Instrument, ...], hook: str, *args: Any) -> None:
+        """Call ``hook(*args)`` on each of ``hooks`` (one of the ``h_*`` tuples). An instrument
+        that raises is removed and logged; the others are still called."""
+        for i in hooks:
+            try:
+                getattr(i, hook)(*args)
+            except Exception as exc:
+                self._drop(i, hook, exc)
+
+    def _drop(self, instrument: Instrument, hook: str, exc: Exception) -> None:
+        text = f"{type(exc).__name__}: {exc}"
+        log.error("instrument %r raised in %s and has been removed: %s", instrument, hook, text,
+                  exc_info=exc)
+        self.dropped_instruments.append((instrument, hook, text))
+        del self.dropped_instruments[:-100]
+        self.remove_instrument(instrument)
+
+    def event(self, kind: str, detail: str) -> None:
+        """Report a system event (install, setpri, pre-emption, abnormal completion, device
+        failure, estop...) to the instruments and the log."""
+        log_events.info("%s: %s", kind, detail)
+        if self.h_event:
+            self.notify(self.h_event, "event", kind, detail)
+
+
+log_events = logging.getLogger("chcos.events")

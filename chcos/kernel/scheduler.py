@@ -6,24 +6,27 @@ ready the one with the highest priority runs next, ties first come first served 
 ``resched``). Interrupts from device threads and the host arrive through a thread-safe queue that
 wakes the kernel; timers (the thesis' delta list, kept here as a heap of deadlines) drive sleeps,
 read timeouts and periodic device polls. Nothing busy-waits: an idle kernel blocks in its clock.
+A failing interrupt handler or timer callback does not stop the kernel: it is logged and
+collected, and :meth:`Kernel.check` raises it.
 """
 
 from __future__ import annotations
 
+import enum
 import logging
-import os
-import sysconfig
 import threading
-import traceback
 from collections import deque
 from collections.abc import Callable
 from heapq import heappop, heappush
 from typing import Any
 
-from chcos.errors import KernelError, Preempted
+from chcos.errors import HandlerError, KernelError, Preempted
 from chcos.kernel.clock import Clock, RealClock
-from chcos.kernel.instrument import Instrument
+from chcos.kernel.instrument import Hooks
+from chcos.kernel.timers import KEEP_ERRORS, Timer, Timers
 from chcos.tables.tasks import TaskEntry, TaskState
+
+__all__ = ["BLOCK", "YIELD", "End", "EndHandler", "Kernel", "Timer"]  # Timer: what call_at returns
 
 log = logging.getLogger("chcos.kernel.scheduler")
 # enum members as module constants: a member lookup (TaskState.READY) costs a class-attribute
@@ -37,78 +40,28 @@ YIELD = object()
 #: Trap a task yields after it has recorded what it waits for.
 BLOCK = object()
 
-EndHandler = Callable[[TaskEntry, str, Any], None]
+
+class End(enum.Enum):
+    """How an activation ended, as the kernel tells its end handler."""
+
+    RETURN = "return"        # the task function returned (its value is the result)
+    PREEMPTED = "preempted"  # cancelled: Preempted was thrown into it, or it was released
+    ERROR = "error"          # it raised (the exception is the value)
 
 
-
-_OS_DIR = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))   # chcos/
-_APPS_DIR = os.path.join(_OS_DIR, "apps") + os.sep
-_DRIVERS_DIR = os.path.join(os.path.dirname(_OS_DIR), "drivers") + os.sep
-_LIB_DIRS = tuple(os.path.abspath(p) for p in {sysconfig.get_path("stdlib"),
-                                               sysconfig.get_path("platstdlib"),
-                                               sysconfig.get_path("purelib"),
-                                               sysconfig.get_path("platlib")} if p)
-
-
-def _library_frame(filename: str) -> bool:
-    """True for a frame in chcos' own OS modules (not the applications under chcos/apps), the
-    drivers, the standard library or an installed package: not where a task's bug is."""
-    path = os.path.abspath(filename)
-    in_os = path.startswith(_OS_DIR + os.sep) and not path.startswith(_APPS_DIR)
-    return (in_os or path.startswith(_DRIVERS_DIR) or path.startswith(_LIB_DIRS)
-            or filename.startswith("<frozen "))
-
-
-def describe_error(exc: BaseException) -> str:
-    """The text of a task's abnormal completion: ``Type: message (file:line)``, the file and
-    line being the innermost frame of the task's own code that the exception passed through
-    (the innermost frame at all if none is the task's), e.g.
-    ``NameError: name 'vaule' is not defined (A1.py:12)``."""
-    text = f"{type(exc).__name__}: {exc}"
-    frames = traceback.extract_tb(exc.__traceback__) if exc.__traceback__ is not None else []
-    if not frames:
-        return text
-    own = [f for f in frames if not _library_frame(f.filename)]
-    where = (own or frames)[-1]
-    return f"{text} ({os.path.basename(where.filename)}:{where.lineno})"
-
-
-class Timer:
-    """A pending timer; :meth:`cancel` makes it a no-op. Created by :meth:`Kernel.call_at`."""
-
-    __slots__ = ("base", "callback", "cancelled", "count", "deadline", "period")
-
-    def __init__(self, deadline: float, callback: Callable[[], None], period: float | None) -> None:
-        self.deadline = deadline
-        self.base = deadline
-        self.count = 0
-        self.callback = callback
-        self.period = period
-        self.cancelled = False
-
-    def cancel(self) -> None:
-        """Stop the timer from firing (again)."""
-        self.cancelled = True
-
-
-class Kernel:
+EndHandler = Callable[[TaskEntry, End, Any], None]
+class Kernel(Hooks, Timers):
     """One satellite's scheduler. Everything except :meth:`interrupt` and :meth:`stop` must be
-    called on the kernel thread (from tasks, timer callbacks or interrupt handlers)."""
+    called on the kernel thread (from tasks, timer callbacks or interrupt handlers).
+
+    The kernel knows tasks, priorities, timers and sleeps; what else a task waits for (ports,
+    links, queries) belongs to the layer that blocked it, which leaves ``task.unwait`` to undo
+    it when the task is woken or cancelled. Instruments: see :class:`Hooks`."""
 
     def __init__(self, clock: Clock | None = None) -> None:
+        super().__init__()
         self.clock: Clock = clock if clock is not None else RealClock()
         self.current: TaskEntry | None = None
-        self.instruments: tuple[Instrument, ...] = ()
-        # one tuple per hook, holding only the instruments that override it: an idle instrument
-        # costs nothing on the hot path
-        self.h_scheduled: tuple[Instrument, ...] = ()
-        self.h_before: tuple[Instrument, ...] = ()
-        self.h_after: tuple[Instrument, ...] = ()
-        self.h_blocked: tuple[Instrument, ...] = ()
-        self.h_sent: tuple[Instrument, ...] = ()
-        self.h_overwritten: tuple[Instrument, ...] = ()
-        self.h_delivered: tuple[Instrument, ...] = ()
-        self.h_event: tuple[Instrument, ...] = ()
         self._ready: list[tuple[int, int, TaskEntry]] = []
         self._seq = 0
         self._timers: list[tuple[float, int, Timer]] = []
@@ -122,33 +75,9 @@ class Kernel:
         self._idle_hooks: list[Callable[[], None]] = []
         self._steps = 0
         self._on_end: EndHandler | None = None
+        #: text of every failed interrupt handler and timer callback (the newest KEEP_ERRORS)
         self.irq_errors: list[str] = []
-
-    # ---- instruments ------------------------------------------------------------------------
-    def add_instrument(self, instrument: Instrument) -> None:
-        """Listen with ``instrument``; only the hooks it overrides are ever called."""
-        self.instruments = (*self.instruments, instrument)
-        self._rehook()
-
-    def remove_instrument(self, instrument: Instrument) -> None:
-        """Stop listening with ``instrument`` (no error if it was not installed)."""
-        self.instruments = tuple(i for i in self.instruments if i is not instrument)
-        self._rehook()
-
-    def _rehook(self) -> None:
-        def listening(hook: str) -> tuple[Instrument, ...]:
-            base = getattr(Instrument, hook)
-            return tuple(i for i in self.instruments
-                         if getattr(type(i), hook, base) is not base)
-
-        self.h_scheduled = listening("task_scheduled")
-        self.h_before = listening("before_step")
-        self.h_after = listening("after_step")
-        self.h_blocked = listening("task_blocked")
-        self.h_sent = listening("message_sent")
-        self.h_overwritten = listening("message_overwritten")
-        self.h_delivered = listening("message_delivered")
-        self.h_event = listening("event")
+        self._unchecked: deque[HandlerError] = deque(maxlen=KEEP_ERRORS)  # see check()
 
     @property
     def steps(self) -> int:
@@ -168,44 +97,32 @@ class Kernel:
         t.stamp = seq
         heappush(self._ready, (-prio, seq, t))
         if self.h_scheduled:
-            for i in self.h_scheduled:
-                i.task_scheduled(t)
+            self.notify(self.h_scheduled, "task_scheduled", t)
 
     def wake(self, t: TaskEntry, prio: int, value: Any = None,
              exc: BaseException | None = None) -> None:
-        """End ``t``'s wait (ports, timer, owner, semaphore) and ready it with ``value`` as the
-        result of its pending ``await`` (or ``exc`` thrown into it)."""
-        ports = t.wait_ports
-        if ports:
-            for p in ports:
-                if p.waiter is t:
-                    p.waiter = None
-            t.wait_ports = ()
-        if (t.timer is not None or t.wait_link is not None or t.wait_query is not None
-                or t.multi_wait):
-            self.unhook(t)
+        """End ``t``'s wait (its timer, and whatever its ``unwait`` undoes) and ready it with
+        ``value`` as the result of its pending ``await`` (or ``exc`` thrown into it)."""
+        unwait = t.unwait
+        if unwait is not None:
+            t.unwait = None
+            unwait(t)
+        if t.timer is not None:
+            t.timer.cancel()
+            t.timer = None
+            t.sleep_until = None
         t.send_value = value
         t.throw_exc = exc
         self.ready(t, prio)
 
     def unhook(self, t: TaskEntry) -> None:
-        """Forget whatever ``t`` was waiting for."""
-        for p in t.wait_ports:
-            if p.waiter is t:
-                p.waiter = None
-        t.wait_ports = ()
-        t.wait_link = None
-        t.wait_query = None
+        """Forget whatever ``t`` was waiting for: its timer or sleep, and what the layer that
+        blocked it registered in ``t.unwait``."""
+        unwait = t.unwait
+        if unwait is not None:
+            t.unwait = None
+            unwait(t)
         t.sleep_until = None
-        if t.multi_wait:
-            t.multi_wait = False
-            t.wait_links = ()
-            t.wait_commands = False
-            t.wake_filter = None
-            if t.wait_tap:
-                t.wait_tap = False
-                if t.tap is not None and t.tap.waiter is t:
-                    t.tap.waiter = None
         if t.timer is not None:
             t.timer.cancel()
             t.timer = None
@@ -214,8 +131,7 @@ class Kernel:
         """Record that the current task ``t`` is about to wait in ``state``."""
         t.state = state
         if self.h_blocked:
-            for i in self.h_blocked:
-                i.task_blocked(t)
+            self.notify(self.h_blocked, "task_blocked", t)
 
     def suspend(self, t: TaskEntry) -> None:
         """Freeze ``t`` where it is: it will not run until :meth:`resume`; wake-ups meanwhile are
@@ -228,6 +144,8 @@ class Kernel:
         if t.state is TaskState.READY:
             t.frozen_ready = t.prio
             t.stamp = -1  # drop its heap entry
+        else:
+            t.frozen_state = t.state  # what it waits in, for resume
         t.state = TaskState.SUSPENDED
 
     def resume(self, t: TaskEntry) -> None:
@@ -236,56 +154,17 @@ class Kernel:
             return
         t.frozen = False
         pending, t.frozen_ready = t.frozen_ready, None
+        state, t.frozen_state = t.frozen_state, None
         if pending is not None:
             self.ready(t, pending)
-        elif t.timer is not None:
-            t.state = TaskState.ASLEEP if t.sleep_until is not None else TaskState.WAITING
-        elif (t.wait_ports or t.wait_link is not None or t.wait_query is not None
-              or t.multi_wait):
-            t.state = TaskState.WAITING
+        elif t.coro is not None and state is not None:
+            t.state = state  # still waiting for what it waited for when it was frozen
         else:
             t.state = TaskState.SUSPENDED
 
     def ready_priorities(self) -> list[int]:
         """Priorities of the tasks now ready (for tests and monitors)."""
         return sorted((-p for p, s, t in self._ready if t.stamp == s), reverse=True)
-
-    # ---- timers -----------------------------------------------------------------------------
-    def call_at(self, deadline: float, callback: Callable[[], None],
-                period: float | None = None) -> Timer:
-        """Run ``callback`` on the kernel thread at clock time ``deadline`` (and every ``period``
-        seconds after, drift-free, if given). Raises ValueError for a non-positive period."""
-        if period is not None and period <= 0:
-            raise ValueError(f"timer period must be positive, got {period}")
-        tm = Timer(deadline, callback, period)
-        self._seq += 1
-        heappush(self._timers, (deadline, self._seq, tm))
-        return tm
-
-    def call_later(self, delay: float, callback: Callable[[], None]) -> Timer:
-        """Run ``callback`` once, ``delay`` seconds from now."""
-        return self.call_at(self.clock.now() + delay, callback)
-
-    def every(self, period: float, callback: Callable[[], None]) -> Timer:
-        """Run ``callback`` every ``period`` seconds, the first time one period from now."""
-        return self.call_at(self.clock.now() + period, callback, period)
-
-    def _fire_timers(self, now: float) -> None:
-        timers = self._timers
-        while timers and timers[0][0] <= now:
-            _, _, tm = heappop(timers)
-            if tm.cancelled:
-                continue
-            if tm.period is not None:
-                tm.count += 1
-                # no accumulated rounding; whole nanoseconds so k * period lands on k * period
-                tm.deadline = round(tm.base + tm.count * tm.period, 9)
-                self._seq += 1
-                heappush(timers, (tm.deadline, self._seq, tm))
-            try:
-                tm.callback()
-            except Exception as exc:  # a failing timer callback must not stop the kernel
-                self._record_irq_error("timer", exc)
 
     # ---- interrupts -------------------------------------------------------------------------
     def interrupt(self, handler: Callable[..., None], *args: Any) -> None:
@@ -306,12 +185,6 @@ class Kernel:
             except Exception as exc:
                 self._record_irq_error(getattr(handler, "__qualname__", repr(handler)), exc)
 
-    def _record_irq_error(self, where: str, exc: Exception) -> None:
-        text = f"{where}: {type(exc).__name__}: {exc}"
-        log.error("interrupt handler failed: %s\n%s", text, traceback.format_exc())
-        self.irq_errors.append(text)
-        del self.irq_errors[:-100]
-
     def add_settler(self, settle: Callable[[float], bool]) -> None:
         """Register a driver's ``settle(timeout)``; called before virtual time jumps ahead so
         that everything already on a bus is delivered first."""
@@ -323,8 +196,8 @@ class Kernel:
         self._idle_hooks.append(hook)
 
     def set_end_handler(self, handler: EndHandler) -> None:
-        """Who is told when an activation ends: ``handler(task, how, value)`` with ``how`` one of
-        ``"return"``, ``"preempted"``, ``"error"``. The message manager installs itself here."""
+        """Who is told when an activation ends: ``handler(task, how, value)`` with ``how`` an
+        :class:`End`. The system connects the message manager here."""
         self._on_end = handler
 
     # ---- running ----------------------------------------------------------------------------
@@ -421,8 +294,7 @@ class Kernel:
         self._steps += 1
         t.steps += 1
         if self.h_before:
-            for i in self.h_before:
-                i.before_step(t)
+            self.notify(self.h_before, "before_step", t)
         coro = t.coro
         if coro is None:  # woken after its activation ended: nothing to run
             self.current = None
@@ -440,13 +312,13 @@ class Kernel:
                 trap = coro.throw(exc)
         except StopIteration as stop:
             self.current = None
-            self._end(t, "preempted" if t.cancelling else "return", stop.value)
+            self._end(t, End.PREEMPTED if t.cancelling else End.RETURN, stop.value)
         except Preempted as pre:
             self.current = None
-            self._end(t, "preempted", pre)
+            self._end(t, End.PREEMPTED, pre)
         except Exception as err:
             self.current = None
-            self._end(t, "preempted" if t.cancelling else "error", err)
+            self._end(t, End.PREEMPTED if t.cancelling else End.ERROR, err)
         else:
             self.current = None
             if trap is YIELD and not t.cancelling and not t.frozen:
@@ -458,18 +330,17 @@ class Kernel:
                 pass
             elif t.cancelling:  # it caught the cancellation and carried on: end it for good
                 coro.close()
-                self._end(t, "preempted", None)
+                self._end(t, End.PREEMPTED, None)
             elif trap is YIELD:
                 self.ready(t, t.prio)
             else:
                 coro.close()
-                self._end(t, "error", KernelError(
+                self._end(t, End.ERROR, KernelError(
                     f"task {t.name} awaited something that is not a chcos call ({trap!r})"))
         if self.h_after:
-            for i in self.h_after:
-                i.after_step(t)
+            self.notify(self.h_after, "after_step", t)
 
-    def _end(self, t: TaskEntry, how: str, value: Any) -> None:
+    def _end(self, t: TaskEntry, how: End, value: Any) -> None:
         t.coro = None
         t.cancelling = False
         self.unhook(t)
@@ -491,3 +362,5 @@ class Kernel:
             frozen, t.frozen = t.frozen, False
             self.ready(t, max(t.prio, t.base_prio))
             t.frozen = frozen
+            if frozen:  # it runs to its end although frozen; resume finds it ready
+                t.frozen_state = _READY

@@ -12,10 +12,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from chcos.devices.devtab import DeviceStatus
+from chcos.devices.entry import DeviceStatus
 
 if TYPE_CHECKING:
-    from chcos.devices.devtab import DeviceEntry, Devtab
+    from chcos.devices.devtab import Devtab
+    from chcos.devices.entry import DeviceEntry
 
 
 @dataclass(frozen=True)

@@ -93,11 +93,7 @@ def estop(system: System, who: str, reason: str) -> str:
     every local actuator with a safe value gets it (on the kernel thread). Returns the answer
     text."""
     def on_kernel() -> int:
-        mm = system.msgmgr
-        mm.event("estop", f"{who}: {reason}")
-        if mm.comm is not None:
-            mm.comm.estop(reason)
-        return system.devtab.estop(reason)
+        return system.msgmgr.estop(who, reason)
 
     n = system.call(on_kernel)
     return f"estop: {n} actuator(s) at safe values"

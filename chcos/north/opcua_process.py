@@ -22,7 +22,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any
 
-from chcos.devices.devtab import DeviceEntry, DeviceStatus
+from chcos.devices.entry import DeviceEntry, DeviceStatus
 from chcos.errors import Busy, ChcosError
 from chcos.kernel.instrument import Instrument
 from chcos.north import NorthError

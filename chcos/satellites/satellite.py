@@ -63,6 +63,7 @@ from chcos.satellites.installlog import (
 from chcos.satellites.sysfile import SystemFile, link_config_for
 from chcos.system import cmdline, sysmap
 from chcos.system.embedded import System
+from chcos.tables.messages import PRIORITIES, PRIORITY_TEXT
 from chcos.user.context import TaskContext
 
 log = logging.getLogger("chcos.satellites.satellite")
@@ -399,8 +400,8 @@ class Satellite:
             except MessageError as exc:
                 raise InstallError(f"resetpri: {exc}") from exc
         elif isinstance(req, cmdline.SetPri):
-            if not 0 <= req.priority <= 99:
-                raise InstallError(f"setpri: priority {req.priority} outside 0..99")
+            if req.priority not in PRIORITIES:
+                raise InstallError(f"setpri: priority {req.priority} outside {PRIORITY_TEXT}")
             try:
                 self.system.msgtab.find(req.src, req.dst)
             except MessageError as exc:

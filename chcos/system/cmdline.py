@@ -21,6 +21,7 @@ from typing import Any
 
 from chcos.devices.spec import MAX_MACHINE
 from chcos.errors import CommandSyntaxError
+from chcos.tables.messages import PRIORITIES
 
 _COMBINED = re.compile(r"^-(?:m(\d+))?(?:i(\d+))?(?:o(\d+))?(s)?$")
 _PRIO = re.compile(r"^-(\d+)$")
@@ -288,11 +289,11 @@ def _priority_word(cmd: str, args: list[str]) -> tuple[int | None, list[str]]:
     for word in it:
         m = _PRIO.match(word)
         if m:
-            prio = _int(cmd, m.group(1), "priority", 0, 99)
+            prio = _int(cmd, m.group(1), "priority", PRIORITIES[0], PRIORITIES[-1])
         elif word in ("-p", "--priority"):
-            prio = _int(cmd, next(it, ""), "priority", 0, 99)
+            prio = _int(cmd, next(it, ""), "priority", PRIORITIES[0], PRIORITIES[-1])
         elif word.startswith("--priority="):
-            prio = _int(cmd, word.split("=", 1)[1], "priority", 0, 99)
+            prio = _int(cmd, word.split("=", 1)[1], "priority", PRIORITIES[0], PRIORITIES[-1])
         else:
             rest.append(word)
     return prio, rest

@@ -59,13 +59,12 @@ class System:
                  map_path: str | Path | None = None,
                  local_machines: Iterable[int] | None = None,
                  transport: LinkTransport | None = None, prefix: str = "chcos") -> None:
+        # the composition root: every part gets its collaborators through its constructor
+        local = set(local_machines) if local_machines is not None else None
         self.kernel = Kernel(clock)
         self.tsktab = Tsktab()
         self.msgtab = Msgtab()
-        self.msgmgr = MessageManager(self.kernel, self.tsktab, self.msgtab)
-        self.msgmgr.local = set(local_machines) if local_machines is not None else None
-        self.devtab = Devtab(self.kernel, self.msgmgr)
-        self.devtab.add_health_listener(self.msgmgr.device_health)
+        self.devtab = Devtab(self.kernel, local=local)
         if isinstance(devmaps, DeviceMap):
             self.devmap = devmaps
         elif devmaps:
@@ -77,11 +76,15 @@ class System:
         self.devtab.load(self.devmap)
         self.task_path = [Path(p) for p in task_path]
         self.base_dir = Path(base_dir) if base_dir is not None else Path.cwd()
-        self.msgmgr.base_dir = self.base_dir
         self.map_path = Path(map_path) if map_path is not None else None
         # run state (learned world-model data) goes beside the map, never into the sources
-        self.msgmgr.state_dir = (self.map_path.parent if self.map_path is not None
-                                 else self.base_dir)
+        self.msgmgr = MessageManager(
+            self.kernel, self.tsktab, self.msgtab, self.devtab, local=local,
+            base_dir=self.base_dir,
+            state_dir=self.map_path.parent if self.map_path is not None else self.base_dir)
+        self.kernel.set_end_handler(self.msgmgr.activation_ended)
+        self.devtab.listen(self.msgmgr)  # readings fan out over the links leaving the devices
+        self.devtab.add_health_listener(self.msgmgr.device_health)
         # ---- the system and communications managers (issue 14: built here, with what they use)
         self.comm: CommManager | None = None
         if transport is not None:
@@ -92,7 +95,8 @@ class System:
             self.comm = CommManager(kernel=self.kernel, tsktab=self.tsktab, msgtab=self.msgtab,
                                     msgmgr=self.msgmgr, devtab=self.devtab, transport=transport,
                                     prefix=prefix, machine=machine)
-            self.msgmgr.comm = self.comm
+            self.msgmgr.comm = self.comm    # the link replaces the one-process NoComm
+            self.devtab.remote = self.comm  # actuators of other machines go over the link
         setup = Setup(task_path=self.task_path, base_dir=self.base_dir, map_path=self.map_path,
                       devmaps=list(self.devmap.files), start_drivers=self.start_drivers,
                       context=self._context, errors=self.collected_errors)
@@ -118,15 +122,10 @@ class System:
 
     def check(self) -> None:
         """Raise what the system collected, like canopen's ``Network.check()``: the kernel's
-        (KernelError: interrupt handlers that failed), then the link's (LinkError: batches
+        (HandlerError, a KernelError: interrupt handlers and timer callbacks that failed, see
+        :meth:`Kernel.check`), then the link's (LinkError: batches
         that could not be published, incoming messages refused). Nothing collected: returns."""
-        kernel_check = getattr(self.kernel, "check", None)  # Kernel.check (issue 14, core)
-        if callable(kernel_check):
-            kernel_check()
-        elif self.kernel.irq_errors:
-            last = "\n  - ".join(self.kernel.irq_errors[-5:])
-            raise KernelError(f"{len(self.kernel.irq_errors)} interrupt handler(s) failed; "
-                              f"the last:\n  - {last}")
+        self.kernel.check()
         if self.comm is not None:
             self.comm.check()
 

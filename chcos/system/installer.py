@@ -208,7 +208,7 @@ class Installer:
             if p.kind is EndpointKind.TASK:
                 self.tsktab.get(p.name).up_links.append(link)
             elif p.kind is EndpointKind.DEVICE:
-                self.devtab.get(p.name).links.append(link)
+                self.msgmgr.add_device_link(link)
             elif p.direction == "terminal":
                 self.terminals.setdefault(p.name, []).append(link)
         for j, p in enumerate(outs):

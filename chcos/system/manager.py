@@ -34,6 +34,8 @@ from chcos.system.ports import Devices, Messages, Scheduler, Setup
 from chcos.tables.messages import (
     DEFAULT_COMMAND_PRIORITY,
     DEFAULT_SENSORY_PRIORITY,
+    PRIORITIES,
+    PRIORITY_TEXT,
     TOP_PRIORITY,
     EndpointKind,
     Link,
@@ -151,8 +153,8 @@ class SystemManager:
     def setpri(self, src: str, dst: str, priority: int) -> Link:
         """Set the priority of link ``src``/``dst`` now. Raises InstallError for an unknown link
         or a priority outside 0..99."""
-        if not 0 <= priority <= 99:
-            raise InstallError(f"setpri {src} {dst}: priority {priority} outside 0..99")
+        if priority not in PRIORITIES:
+            raise InstallError(f"setpri {src} {dst}: priority {priority} outside {PRIORITY_TEXT}")
         try:
             link = self.msgtab.find(src, dst)
         except MessageError as exc:
@@ -184,8 +186,8 @@ class SystemManager:
         link = self.host_link(task)
         old = link.priority
         if priority is not None:
-            if not 0 <= priority <= 99:
-                raise InstallError(f"invoke {task}: priority {priority} outside 0..99")
+            if priority not in PRIORITIES:
+                raise InstallError(f"invoke {task}: priority {priority} outside {PRIORITY_TEXT}")
             link.priority = priority
         try:
             self.msgmgr.open(link, command, wait=False)

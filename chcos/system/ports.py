@@ -19,7 +19,7 @@ from chcos.tables.messages import Link, TapPort
 from chcos.tables.tasks import TaskEntry
 
 if TYPE_CHECKING:
-    from chcos.devices.devtab import DeviceEntry
+    from chcos.devices.entry import DeviceEntry
     from chcos.user.context import TaskContext
 
 
@@ -60,6 +60,10 @@ class Messages(Protocol):
 
     def close(self, link: Link) -> None:
         """tclose on ``link``."""
+
+    def add_device_link(self, link: Link) -> None:
+        """Fan the readings of ``link``'s source device out over ``link`` from now on."""
+        ...
 
     def deliver(self, link: Link, value: Any) -> bool:
         """Put ``value`` into ``link``'s destination port."""

@@ -13,18 +13,20 @@ import enum
 from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from chcos.errors import MessageError, QueueOverflow
 
-if TYPE_CHECKING:
-    from chcos.tables.tasks import TaskEntry
-
+#: Every priority a link, a task or a device's interrupt may have (thesis: 0..99); checked as
+#: ``p in PRIORITIES`` wherever a priority comes in.
+PRIORITIES = range(0, 100)
+#: The range as messages write it.
+PRIORITY_TEXT = f"{PRIORITIES[0]}..{PRIORITIES[-1]}"
 #: Default link priorities: sensory links run their receivers above command links (thesis 5.2).
 DEFAULT_SENSORY_PRIORITY = 8
 DEFAULT_COMMAND_PRIORITY = 4
 #: The priority of exception taps and assassin links: above everything else.
-TOP_PRIORITY = 99
+TOP_PRIORITY = PRIORITIES[-1]
 PORTS = 8
 
 
@@ -127,7 +129,9 @@ class InPort:
         self.value: Any = None
         self.fresh = False
         self.sent_at = 0.0
-        self.waiter: TaskEntry | None = None
+        # the TaskEntry waiting for a message here (chcos.tables.tasks imports this module, so
+        # the type is not named: the task table sits on the message table, not beside it)
+        self.waiter: Any = None
         self.fifo: deque[tuple[Any, float]] | None = deque() if link.queued else None
 
     def store(self, value: Any, now: float) -> bool:
@@ -170,7 +174,7 @@ class TapPort:
     def __init__(self) -> None:
         self.newest: dict[str, tuple[Any, float]] = {}
         self.order: deque[str] = deque()
-        self.waiter: TaskEntry | None = None
+        self.waiter: Any = None  # the exception task's TaskEntry while it waits (see InPort)
 
     @property
     def fresh(self) -> bool:

@@ -11,17 +11,36 @@ from __future__ import annotations
 import enum
 from collections.abc import Awaitable, Callable, Coroutine, Iterator
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 from chcos.errors import TaskError
-
-if TYPE_CHECKING:
-    from chcos.kernel.scheduler import Timer
-    from chcos.tables.messages import InPort, Link
-    from chcos.user.context import TaskContext
-    from chcos.user.worldmodel import WorldModel
+from chcos.tables.messages import InPort, Link, TapPort
 
 TaskFunc = Callable[..., Awaitable[Any]]
+
+
+class Cancellable(Protocol):
+    """A pending timer as the table keeps it (a :class:`chcos.kernel.scheduler.Timer`; the
+    kernel sits above the tables, so it is not named here)."""
+
+    def cancel(self) -> None:
+        """Stop the timer from firing."""
+
+
+class Model(Protocol):
+    """What the tables and the managers ask of a task's world model (a
+    :class:`chcos.user.worldmodel.WorldModel`; the user layer sits above the tables)."""
+
+    def answer(self, topic: str, *args: Any) -> Any:
+        """The model's answer to a query about ``topic``."""
+
+    def snapshot(self) -> dict[str, dict[str, Any]]:
+        """The model's contents as plain data."""
+
+
+#: What the kernel calls to end a wait: ``unwait(task)`` forgets whatever the layer that
+#: blocked ``task`` registered (ports, links, queries); set by that layer when it blocks it.
+Unwait = Callable[["TaskEntry"], None]
 
 
 class TaskState(enum.Enum):
@@ -66,10 +85,11 @@ class TaskEntry:
     out_links: list[Link] = field(default_factory=list)
     up_links: list[Link] = field(default_factory=list)
     special_links: dict[str, Link] = field(default_factory=dict)  # assassin links by target
-    tap: Any = None  # the exception task's TapPort
+    tap: TapPort | None = None  # the exception task's tap
     waitq: list[tuple[int, Link, Any]] = field(default_factory=list)
-    ctx: TaskContext | None = None
-    world: WorldModel | None = None
+    #: the handle the task function gets (a chcos.user.context.TaskContext, from the layer above)
+    ctx: object = None
+    world: Model | None = None
     # standing task and restart policy (install --standing --restart=... --backoff=...)
     standing: bool = False
     restart: str = "never"
@@ -77,7 +97,7 @@ class TaskEntry:
     default_prio: int = 4  # the priority a released task goes back to (resetpri)
     last_command: Any = None  # the command of the last activation (restarts reuse it)
     waiting_devices: frozenset[str] = frozenset()  # on-recovery: devices that must be healthy
-    restart_timer: Timer | None = None
+    restart_timer: Cancellable | None = None
     new_command: tuple[Any] | None = None  # a newer command from the owner, not yet taken
     wait_commands: bool = False  # waiting (wait_any) for a command message
     wait_links: tuple[Link, ...] = ()  # waiting (wait_any) for a completion on these links
@@ -95,8 +115,10 @@ class TaskEntry:
     wait_ports: tuple[InPort, ...] = ()
     wait_link: Link | None = None
     wait_query: int | None = None  # the remote world-model query awaiting its answer
-    timer: Timer | None = None
+    timer: Cancellable | None = None
     sleep_until: float | None = None
+    unwait: Unwait | None = None  # how to end the current wait (see Unwait)
+    frozen_state: TaskState | None = None  # the state a suspended task goes back to
     # statistics
     steps: int = 0
     activations: int = 0

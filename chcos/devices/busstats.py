@@ -1,0 +1,92 @@
+"""busstats - the bus counters of the device table: frames, requests, reconnects and errors by
+class, per bus and per device, counted from the drivers' threads under one lock and read by the
+map, the viewer and metrics."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Any
+
+from chcos.kernel.scheduler import Kernel
+
+log = logging.getLogger("chcos.devices.devtab")
+
+
+@dataclass
+class BusStats:
+    """Counters of one bus, read by the map, the viewer and metrics.
+
+    ``counts``: ``frames`` (received/sent), ``requests`` (Modbus/SDO), ``reconnects``, ``lost``
+    (frames the OS dropped); ``errors``: by class (``timeout``, ``exception-6``,
+    ``wrong-length``, ``crc``, ``overrun``, ``disconnected``...); ``devices``: the same keys per
+    device (errors as ``error:<class>``); ``last_error``: the last error's text."""
+
+    counts: Counter[str] = field(default_factory=Counter)
+    errors: Counter[str] = field(default_factory=Counter)
+    devices: dict[str, Counter[str]] = field(default_factory=dict)
+    last_error: str = ""
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain JSON-able form."""
+        return {"counts": dict(self.counts), "errors": dict(self.errors),
+                "devices": {d: dict(c) for d, c in self.devices.items()},
+                "last_error": self.last_error}
+
+
+class BusCounters:
+    """Bus statistics for :class:`chcos.devices.devtab.Devtab` (its base class)."""
+
+    kernel: Kernel
+    bus_stats: dict[str, BusStats]
+    _stats_lock: threading.Lock
+
+    def error(self, bus: str, kind: str, detail: str, device: str = "") -> None:
+        """Count a bus-level error of class ``kind`` (from a driver thread)."""
+        self._count(bus, kind, device, error=True)
+        self.kernel.interrupt(self._bus_error, bus, kind, detail, False)
+
+    def stat(self, bus: str, key: str, n: int = 1, device: str = "") -> None:
+        """Add ``n`` to bus counter ``key`` (from any thread; see :class:`BusStats`)."""
+        self._count(bus, key, device, n=n)
+
+    def stats_doc(self) -> dict[str, Any]:
+        """The bus statistics as plain data, per bus (see :class:`BusStats`)."""
+        with self._stats_lock:
+            return {bus: st.as_dict() for bus, st in sorted(self.bus_stats.items())}
+
+    @property
+    def bus_errors(self) -> Counter[tuple[str, str]]:
+        """Errors by (bus, class), a copy derived from :attr:`bus_stats`."""
+        with self._stats_lock:
+            return Counter({(bus, kind): n for bus, st in self.bus_stats.items()
+                            for kind, n in st.errors.items() if n})
+
+    @property
+    def last_bus_error(self) -> dict[str, str]:
+        """The last error's text per bus (``"class: detail"``), derived from :attr:`bus_stats`."""
+        with self._stats_lock:
+            return {bus: st.last_error for bus, st in self.bus_stats.items() if st.last_error}
+
+    def _count(self, bus: str, key: str, device: str, n: int = 1, error: bool = False) -> None:
+        with self._stats_lock:
+            st = self.bus_stats.get(bus)
+            if st is None:
+                st = self.bus_stats[bus] = BusStats()
+            (st.errors if error else st.counts)[key] += n
+            if device:
+                dc = st.devices.get(device)
+                if dc is None:
+                    dc = st.devices[device] = Counter()
+                dc[f"error:{key}" if error else key] += n
+
+    def _bus_error(self, bus: str, kind: str, detail: str, count: bool = True) -> None:
+        if count:
+            self._count(bus, kind, "", error=True)
+        with self._stats_lock:
+            st = self.bus_stats.get(bus)
+            if st is not None:
+                st.last_error = f"{kind}: {detail}"
+        log.warning("bus %s: %s: %s", bus, kind, detail)

@@ -1,0 +1,101 @@
+"""entry - what the device table holds: a device's status, its Devtab row, the writes in
+flight, the bus counters, and the two narrow protocols by which Devtab talks upward (the
+listener that fans readings out over links, the link to the devices of other satellites).
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Protocol
+
+from chcos.devices.spec import DeviceSpec
+from chcos.errors import SensorFailure
+from chcos.tables.tasks import Cancellable
+
+if TYPE_CHECKING:
+    from drivers.base import Driver
+
+
+class DeviceStatus(enum.Enum):
+    """Devtab status values; the value is the text maps, the viewer and the link carry."""
+
+    OK = "OK"
+    SUSPENDED = "suspended"
+    FAILED = "failed"
+    STALE = "stale"
+
+
+@dataclass(eq=False)
+class DeviceEntry:
+    """One Devtab row: the spec, the status and the last-value buffer."""
+
+    spec: DeviceSpec
+    status: DeviceStatus = DeviceStatus.OK
+    reason: str = ""
+    value: Any = None  # last reading (engineering units) or last command
+    updated_at: float | None = None
+    readings: int = 0
+    overwrites: int = 0
+    dropped: int = 0
+    commands: int = 0
+    rejected: int = 0
+    driver: Driver | None = None
+    stale_timer: Cancellable | None = None
+    failure: str = ""          # the driver-reported failure ("" none); cleared only by the driver
+    stale: bool = False        # no fresh data for stale_after; cleared only by fresh data
+    since: float | None = None  # kernel time of the last status change
+    rx_at: float | None = None  # driver receive time of the last reading
+    pending: Any = None        # a command handed to the driver, not yet on the wire
+    pending_count: int = 0
+    write_errors: int = 0
+    last_write_error: str = ""
+
+    @property
+    def name(self) -> str:
+        """The device's name."""
+        return self.spec.name
+
+    @property
+    def is_sensor(self) -> bool:
+        """True for an input device."""
+        return self.spec.direction == "sensor"
+
+
+def scalable(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+@dataclass(eq=False)
+class Write:
+    """One write handed to a driver that confirms writes, until it is confirmed or failed."""
+
+    device: str
+    value: Any           # engineering units (what the map shows once written)
+    raw: Any             # what the driver got
+    safe: str = ""       # why a safe value ("shutdown", "recovery"...); "" for a command
+    attempts: int = 1
+    done: bool | None = None    # None pending, True on the wire, False failed
+    reason: str = ""
+
+
+class DeviceListener(Protocol):
+    """Who hears of a device's readings and failures to pass them on (the message manager, which
+    owns the links leaving devices). Called on the kernel thread."""
+
+    def reading(self, device: str, value: Any) -> bool:
+        """A new reading of sensor ``device`` (engineering units); True if it overwrote a
+        message a reader had not read yet."""
+
+    def sensor_failed(self, device: str, failure: SensorFailure) -> None:
+        """Sensor ``device`` failed or went stale: wake whoever waits for it with ``failure``."""
+
+
+class RemoteDevices(Protocol):
+    """The devices of other satellites, as Devtab reaches them (the communications manager)."""
+
+    def actuator(self, device: str, machine: int, value: Any, source: str) -> None:
+        """Carry an actuator command to the device's satellite."""
+
+    def device_status(self, device: str, status: DeviceStatus, reason: str) -> None:
+        """Tell every satellite that a local device changed status."""

@@ -1,0 +1,154 @@
+"""health - the health half of the device table: status (OK, FAILED, STALE, SUSPENDED) from
+what the drivers report and from staleness, the host's suspend/resume, and who is told.
+
+A device is FAILED while its driver reports a failure (cleared only by the driver), STALE while
+a sensor has had no fresh data for ``stale_after`` seconds (cleared only by fresh data), and
+SUSPENDED while the host holds it; every change is an event, a WARNING on the faults logger,
+a call to each health listener, and for a local device a status message to the other
+satellites. A sensor that fails or goes stale wakes its readers with a SensorFailure.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from collections.abc import Callable
+
+from chcos.devices.entry import DeviceEntry, DeviceListener, DeviceStatus, RemoteDevices
+from chcos.errors import DeviceError, SensorFailure
+from chcos.kernel.scheduler import Kernel
+
+log = logging.getLogger("chcos.devices.devtab")
+#: Faults a user must see whatever the log level (failed and refused writes, undelivered safe
+#: values, health changes): WARNING records of this logger pass a root logger set to ERROR.
+faults = logging.getLogger("chcos.devices.devtab.faults")
+faults.setLevel(logging.WARNING)
+
+HealthListener = Callable[[str, bool, str], None]
+
+
+class DeviceHealth:
+    """Device status for :class:`chcos.devices.devtab.Devtab` (its base class)."""
+
+    kernel: Kernel
+    remote: RemoteDevices | None
+    _entries: dict[str, DeviceEntry]
+    _listener: DeviceListener | None
+    _health_listeners: list[HealthListener]
+    _rx_stamp: dict[str, float]
+    _local: frozenset[int] | None
+
+    def get(self, name: str) -> DeviceEntry:
+        """The entry called ``name``; raises DeviceError naming it if there is none."""
+        try:
+            return self._entries[name]
+        except KeyError:
+            raise DeviceError(f"no device named {name!r} in Devtab") from None
+
+    def is_local(self, machine: int) -> bool:
+        """True if ``machine``'s devices are driven by this process."""
+        return self._local is None or machine in self._local
+
+    def suspend(self, device: str) -> None:
+        """Host ``suspend`` of a device: SUSPENDED (readings dropped, commands refused) until
+        :meth:`resume`. Raises DeviceError for an unknown device."""
+        self.get(device)
+        self._set_status(device, DeviceStatus.SUSPENDED, "suspended by the host")
+
+    def resume(self, device: str) -> None:
+        """Undo :meth:`suspend`: the device takes the status its health gives (a failure its
+        driver reported meanwhile, staleness, else OK); one that is not suspended is left as
+        it is. Raises DeviceError for an unknown device."""
+        e = self.get(device)
+        if e.status is DeviceStatus.SUSPENDED:
+            status, reason = self._health_status(e)
+            self._set_status(device, status, reason, ended="resumed by the host")
+
+    def healthy(self, device: str) -> bool:
+        """Whether ``device`` delivers (neither failed nor stale). Raises DeviceError for an
+        unknown device."""
+        return self.get(device).status not in (DeviceStatus.FAILED, DeviceStatus.STALE)
+
+    def check_readable(self, device: str) -> None:
+        """Raise SensorFailure if sensor ``device`` is failed or stale."""
+        e = self.get(device)
+        if e.status in (DeviceStatus.FAILED, DeviceStatus.STALE):
+            raise SensorFailure(device, e.reason or e.status.value)
+
+    def set_status(self, device: str, status: DeviceStatus, reason: str) -> None:
+        """Another satellite reports the status of one of its devices (or that it died)."""
+        self._set_status(device, status, reason, tell=False)
+
+    def add_health_listener(self, fn: HealthListener) -> None:
+        """Call ``fn(device, healthy, cause)`` on the kernel thread whenever a device's health
+        changes: ``healthy`` False with the failure's cause, True with the event that ended it."""
+        self._health_listeners.append(fn)
+
+    def remove_health_listener(self, fn: HealthListener) -> None:
+        """Stop calling ``fn`` (added by :meth:`add_health_listener`; no error if it is not)."""
+        with contextlib.suppress(ValueError):
+            self._health_listeners.remove(fn)
+
+    @staticmethod
+    def _health_status(e: DeviceEntry) -> tuple[DeviceStatus, str]:
+        """The status ``e``'s health gives, with its reason: a driver failure first, then
+        staleness, else OK."""
+        if e.failure:
+            return DeviceStatus.FAILED, e.failure
+        if e.stale:
+            return DeviceStatus.STALE, f"no data for {e.spec.stale_after} s (stale_after)"
+        return DeviceStatus.OK, ""
+
+    def _refresh(self, e: DeviceEntry, ended: str) -> None:
+        """Set ``e``'s status from its health (unless the host suspended it)."""
+        if e.status is DeviceStatus.SUSPENDED:
+            return
+        status, reason = self._health_status(e)
+        if status is e.status:
+            e.reason = reason
+            return
+        self._set_status(e.name, status, reason, ended=ended)
+
+    def _set_status(self, device: str, status: DeviceStatus, reason: str,
+                    tell: bool = True, ended: str = "") -> None:
+        e = self._entries.get(device)
+        if e is None or e.status is status:
+            return
+        old = e.status
+        e.status = status
+        e.reason = reason
+        e.since = self.kernel.clock.now()
+        if tell and self.remote is not None and self.is_local(e.spec.machine):
+            self.remote.device_status(device, status, reason)
+        cause = reason if status is not DeviceStatus.OK else (ended or f"was {old.value}")
+        self.kernel.event(f"device-{status.name.lower()}",
+                          f"{device}: {cause}" if cause else device)
+        if status is not DeviceStatus.SUSPENDED and old is not DeviceStatus.SUSPENDED:
+            faults.warning("device %s %s at t=%.6f: %s", device, status.value, e.since, cause)
+        for fn in list(self._health_listeners):
+            try:
+                fn(device, status is DeviceStatus.OK, cause)
+            except Exception:  # a listener must not break the device manager
+                log.exception("health listener failed for %s", device)
+        if status in (DeviceStatus.FAILED, DeviceStatus.STALE) and self._listener is not None:
+            self._listener.sensor_failed(device, SensorFailure(device, reason or status.value))
+
+    def _arm_stale(self, e: DeviceEntry, since: float) -> None:
+        limit = e.spec.stale_after
+        assert limit is not None
+
+        def check() -> None:
+            e.stale_timer = None
+            # the driver's receive time: a reading received but not yet handled is late, not
+            # missing (the stamp is set in the driver's thread before the interrupt is queued)
+            last = max(since, e.rx_at if e.rx_at is not None else since,
+                       self._rx_stamp.get(e.name, since))
+            due = last + limit
+            if self.kernel.clock.now() >= due:
+                if not e.stale:
+                    e.stale = True
+                    self._refresh(e, "")
+                due = self.kernel.clock.now() + limit
+            e.stale_timer = self.kernel.call_at(due, check)
+
+        e.stale_timer = self.kernel.call_at(since + limit, check)

@@ -1,0 +1,248 @@
+"""delivery - the message manager's sensory side: messages up links into input ports and
+exception taps, readings of devices onto the links leaving them, commands to actuators and
+files (tputc, putc).
+
+A sensory message readies the receiver at the link's priority (thesis 6.1.2); a newer message
+overwrites an unread one, a queued link keeps a bounded FIFO and refuses a message when full.
+:class:`Delivery` is the base of :class:`chcos.messages.manager.MessageManager`.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any, TextIO
+
+from chcos.errors import MessageError, QueueOverflow, SensorFailure
+from chcos.kernel.scheduler import Kernel
+from chcos.messages.protocols import Comm, Devices, NoComm
+from chcos.tables.messages import EndpointKind, InPort, Link, LinkStatus, Msgtab, TapPort
+from chcos.tables.tasks import TaskEntry, Tsktab
+
+log = logging.getLogger("chcos.messages.manager")
+_LINK_SUSPENDED = LinkStatus.SUSPENDED  # a module constant: read on every delivery
+
+
+class Delivery:
+    """Message transfer for one satellite's tables: see the module doc. ``devices`` is the
+    device table, ``comm`` the link to the other satellites (None: a one-process system),
+    ``local`` the machines this process hosts (None: all), ``base_dir`` where relative file
+    names are resolved, ``state_dir`` where run state lives (default: ``base_dir``)."""
+
+    def __init__(self, kernel: Kernel, tsktab: Tsktab, msgtab: Msgtab, devices: Devices,
+                 comm: Comm | None = None, *, local: Iterable[int] | None = None,
+                 base_dir: str | Path | None = None, state_dir: str | Path | None = None) -> None:
+        self.kernel = kernel
+        self.tsktab = tsktab
+        self.msgtab = msgtab
+        self.devices = devices
+        #: the link to the other satellites; a composition root that builds it after this
+        #: manager (it needs the manager for what comes in) puts it here before the kernel runs
+        self.comm: Comm = comm if comm is not None else NoComm()
+        #: machines hosted here (None: every machine, a one-process system)
+        self.local: frozenset[int] | None = frozenset(local) if local is not None else None
+        #: where relative file names of installs are resolved
+        self.base_dir = Path(base_dir) if base_dir is not None else Path.cwd()
+        #: where run state lives beside the map (learned world-model data)
+        self.state_dir = Path(state_dir) if state_dir is not None else self.base_dir
+        self.taps: list[tuple[TaskEntry, TapPort, dict[str, Link]]] = []
+        self._files: dict[str, TextIO] = {}
+        self._device_links: dict[str, list[Link]] = {}
+
+    def is_local(self, machine: int) -> bool:
+        """True if ``machine`` runs in this process."""
+        return self.local is None or machine in self.local
+
+    def _remote_task(self, t: TaskEntry | None) -> bool:
+        return t is not None and self.local is not None and t.machine not in self.local
+
+    def event(self, kind: str, detail: str) -> None:
+        """Report a system event to the instruments and the log (see :meth:`Kernel.event`)."""
+        self.kernel.event(kind, detail)
+
+    # ---- sensory messages (tputc) -----------------------------------------------------------
+    def put(self, t: TaskEntry, value: Any) -> int:
+        """Send ``value`` from ``t`` up every sensory link leaving it (and into exception taps).
+
+        Never blocks. Returns how many links took it. Raises QueueOverflow (after delivering to
+        every other link) if a queued link was full.
+        """
+        n = 0
+        overflow: QueueOverflow | None = None
+        for link in t.up_links:
+            try:
+                if self.deliver(link, value):
+                    n += 1
+            except QueueOverflow as exc:
+                overflow = exc
+        if self.taps:
+            self._tap(t, value)
+        if overflow is not None:
+            raise overflow
+        return n
+
+    def deliver(self, link: Link, value: Any) -> bool:
+        """Put ``value`` into ``link``'s destination port and ready a receiver waiting on it.
+
+        False if the link is suspended. Raises QueueOverflow for a full queued link.
+        """
+        if link.status is _LINK_SUSPENDED:
+            link.refused += 1
+            return False
+        if link.remote:
+            link.sent += 1
+            self.comm.sensory(link, value)
+            return True
+        port = link.port
+        if not isinstance(port, InPort):
+            raise MessageError(f"sensory link {link.name} has no input port")
+        kernel = self.kernel
+        if port.fifo is None and not kernel.h_delivered:  # the hot path: newest wins
+            if port.fresh:
+                link.overwritten += 1
+                if kernel.h_overwritten:
+                    kernel.notify(kernel.h_overwritten, "message_overwritten", link)
+            port.value = value
+            port.fresh = True
+        elif port.store(value, kernel.clock.now()):
+            link.overwritten += 1
+            if kernel.h_overwritten:
+                kernel.notify(kernel.h_overwritten, "message_overwritten", link)
+        link.sent += 1
+        if kernel.h_sent:
+            kernel.notify(kernel.h_sent, "message_sent", link)
+        w = port.waiter
+        if w is not None and (w.wake_filter is None or self._wanted(w, link.src, value)):
+            base = w.base_prio
+            kernel.wake(w, base if base > link.priority else link.priority, port)
+        return True
+
+    @staticmethod
+    def _wanted(w: TaskEntry, source: str, value: Any) -> bool:
+        """Whether ``w``'s ``wait_any(when=...)`` filter lets this message wake it (a filter
+        that raises lets it through: a failure is never masked)."""
+        f = w.wake_filter
+        try:
+            return f is None or bool(f(source, value))
+        except Exception:
+            log.exception("wake filter of %s failed on a message from %s", w.name, source)
+            return True
+
+    def _tap(self, t: TaskEntry, value: Any) -> None:
+        for _exc_task, tap, links in self.taps:
+            link = links.get(t.name)
+            if link is None or link.status is LinkStatus.SUSPENDED:
+                continue
+            if link.remote:
+                link.sent += 1
+                self.comm.tap(link, t.name, value)
+                continue
+            self.deliver_tap(link, tap, t.name, value)
+
+    def deliver_tap(self, link: Link, tap: TapPort, source: str, value: Any) -> None:
+        """Put ``source``'s message into an exception task's tap and ready the task."""
+        kernel = self.kernel
+        if tap.store_from(source, value, kernel.clock.now()):
+            link.overwritten += 1
+        link.sent += 1
+        w = tap.waiter
+        if w is not None and (w.wake_filter is None or self._wanted(w, source, value)):
+            tap.waiter = None
+            kernel.wake(w, max(w.base_prio, link.priority), tap)
+
+    def taken(self, link: Link, sent_at: float) -> None:
+        """Count a delivery on ``link`` (the receiver read it) and feed latency instruments."""
+        link.delivered += 1
+        kernel = self.kernel
+        if kernel.h_delivered:
+            kernel.notify(kernel.h_delivered, "message_delivered", link,
+                          kernel.clock.now() - sent_at)
+
+    # ---- devices: readings up their links, e-stop -------------------------------------------
+    def add_device_link(self, link: Link) -> None:
+        """Route the readings of device ``link.src`` into sensory link ``link`` (at install)."""
+        self._device_links.setdefault(link.src, []).append(link)
+
+    def device_links(self, device: str) -> list[Link]:
+        """The sensory links leaving ``device``, in install order."""
+        return list(self._device_links.get(device, ()))
+
+    def reading(self, device: str, value: Any) -> bool:
+        """Devtab listener: a new reading of sensor ``device`` goes up every sensory link
+        leaving it, readying the tasks waiting for it. True if it overwrote an unread message.
+        Raises QueueOverflow (after delivering to every other link) if a queued link was full."""
+        over = False
+        overflow: QueueOverflow | None = None
+        deliver = self.deliver
+        for link in self._device_links.get(device, ()):
+            port = link.port
+            if isinstance(port, InPort) and port.fresh:
+                over = True
+            try:
+                deliver(link, value)
+            except QueueOverflow as exc:
+                overflow = exc
+        if overflow is not None:
+            raise overflow
+        return over
+
+    def sensor_failed(self, device: str, failure: SensorFailure) -> None:
+        """Devtab listener: sensor ``device`` failed or went stale; every task waiting on one of
+        its links gets ``failure`` thrown in."""
+        kernel = self.kernel
+        for link in self._device_links.get(device, ()):
+            port = link.port
+            if isinstance(port, InPort) and port.waiter is not None:
+                w = port.waiter
+                kernel.wake(w, max(w.base_prio, link.priority), exc=failure)
+
+    def estop(self, by: str, reason: str) -> int:
+        """Emergency stop by ``by``: every other satellite is told, every local actuator with a
+        safe value gets it at once. Returns how many were written here."""
+        self.event("estop", f"{by}: {reason}")
+        self.comm.estop(reason)
+        return self.devices.estop(reason)
+
+    # ---- command output to actuators and files (putc) ---------------------------------------
+    def write(self, t: TaskEntry, link: Link, value: Any) -> None:
+        """Send ``value`` down command link ``link`` to an actuator or a file, without blocking.
+
+        Raises MessageError if the link leads to a task (use open), DeviceError if the actuator
+        refuses the value (outside its limits, failed device).
+        """
+        if link.status is LinkStatus.SUSPENDED:
+            link.refused += 1
+            raise MessageError(f"link {link.name} is suspended")
+        if link.dst_kind is EndpointKind.DEVICE:
+            self.devices.write(link.dst, value, source=t.name)
+        elif link.dst_kind is EndpointKind.FILE:
+            self.write_file(link.dst, value)
+        else:
+            raise MessageError(
+                f"{link.name} is a command link to task {link.dst}: invoke it, do not write to it")
+        link.sent += 1
+        link.delivered += 1
+
+    def resolve_path(self, name: str) -> Path:
+        """A file endpoint's path: relative names are relative to the system's base directory."""
+        p = Path(name)
+        return p if p.is_absolute() else self.base_dir / p
+
+    def write_file(self, path: str, value: Any) -> None:
+        """Append ``value`` as one line to the file at ``path`` (kept open, line-buffered)."""
+        fh = self._files.get(path)
+        if fh is None:
+            try:
+                fh = open(self.resolve_path(path), "a", buffering=1,  # noqa: SIM115 - kept open
+                          encoding="utf-8")
+            except OSError as exc:
+                raise MessageError(f"cannot open output file {path}: {exc}") from exc
+            self._files[path] = fh
+        fh.write(f"{value}\n")
+
+    def close_files(self) -> None:
+        """Close every output file."""
+        for fh in self._files.values():
+            fh.close()
+        self._files.clear()

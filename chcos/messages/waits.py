@@ -1,0 +1,31 @@
+"""waits - what a task waiting on the message layer waits for, and how that wait ends.
+
+A task blocked in ``read``, ``read_any``, ``wait_any``, ``invoke``/``done``, ``ask`` or
+``read_exception`` records in its Tsktab entry the ports, links, tap or query it waits on, and
+leaves :func:`forget` as its ``unwait``: the kernel calls it when it wakes or cancels the task,
+without knowing what any of those are.
+"""
+
+from __future__ import annotations
+
+from chcos.tables.tasks import TaskEntry
+
+
+def forget(t: TaskEntry) -> None:
+    """End every message-layer wait of ``t``: no port or tap names it as its waiter any more,
+    and it waits for no link, command or query (an :data:`chcos.tables.tasks.Unwait`)."""
+    for p in t.wait_ports:
+        if p.waiter is t:
+            p.waiter = None
+    t.wait_ports = ()
+    t.wait_link = None
+    t.wait_query = None
+    if t.multi_wait:
+        t.multi_wait = False
+        t.wait_links = ()
+        t.wait_commands = False
+        t.wake_filter = None
+        t.wait_tap = False
+    tap = t.tap
+    if tap is not None and tap.waiter is t:
+        tap.waiter = None
