@@ -1,7 +1,7 @@
 """weldcell - Appendix 1's NBS hierarchy (H1..H3 with their G and M modules) on the welding cell.
 
 The NBS baseline runs the SAME simulated welding hardware as the CHC job: the cell is opened with
-:func:`chcos.apps.weld.runner.open_cell` on either binding (``direct`` or ``buses``) with a script
+:func:`chcos.apps.weld.cell.open_cell` on either binding (``direct`` or ``buses``) with a script
 that
 installs no CHC task (``chcos/apps/nbs/weld.chcos``), and :func:`chcos.apps.nbs.adapter.attach`
 cycles the
@@ -45,11 +45,11 @@ module writes the ones the tables name, and nothing more:
 
 The job (level 4, the operator) gives H3 ``INSPECT GAP`` and, once it is done without ``gap
 notOK``, ``WELD GAP``. :func:`run_nbs` runs it and returns the same summary keys as the CHC
-run (``chcos.apps.weld.runner.Cell.summary``) plus the NBS figures; :func:`diagnose` names the
+run (``chcos.apps.weld.cell.Cell.summary``) plus the NBS figures; :func:`diagnose` names the
 table row
 the job is stuck in when it does not finish.
 
-Errors: ChcosError from the cell's set-up (as :func:`chcos.apps.weld.runner.open_cell`),
+Errors: ChcosError from the cell's set-up (as :func:`chcos.apps.weld.cell.open_cell`),
 KernelError when
 an NBS cycle fails (a StateTableError inside it is named).
 """
@@ -220,7 +220,7 @@ class _TracingMachine(Machine):
 class NbsCell:
     """The NBS hierarchy bound to a running cell's System (see the module doc).
 
-    ``cell`` is a :class:`chcos.apps.weld.runner.Cell` opened with :data:`NBS_SCRIPT`.
+    ``cell`` is a :class:`chcos.apps.weld.cell.Cell` opened with :data:`NBS_SCRIPT`.
     """
 
     def __init__(self, cell: Any, period: float = 0.028) -> None:
@@ -324,7 +324,7 @@ class NbsCell:
 
     # ---- the report -------------------------------------------------------------------------
     def summary(self) -> dict[str, Any]:
-        """The run's figures under the keys of :meth:`chcos.apps.weld.runner.Cell.summary` (so
+        """The run's figures under the keys of :meth:`chcos.apps.weld.cell.Cell.summary` (so
         :func:`chcos.apps.weld.report.write_report` draws it), plus ``hierarchy``, ``executions``
         per module, ``failures`` (rows that reported a failure up, with what G/M said) and
         ``standing`` (where each H machine stands at the end)."""
