@@ -27,12 +27,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple, TextIO, cast
 
 from chcos.errors import ChcosError
+from chcos.kernel.clock import Clock
 from chcos.system import sysmap
 from chcos.viewer import ViewerError
 from chcos.viewer.graph import render_dot, render_svg
 
 if TYPE_CHECKING:
-    from chcos.kernel.clock import Clock
     from chcos.system.embedded import System
     from chcos.viewer.server import Viewer
 

@@ -7,7 +7,7 @@ Builds the System on one of two bindings of the same device table
   (:mod:`chcos.apps.weld.direct`);
 * ``buses`` - the real-bus simulator :class:`chcos.apps.weld.plant.WeldSim` on virtual CAN
   (CANopen servos and raw-CAN sensors), Modbus TCP and a serial line, with the device map that
-  :func:`chcos.apps.weld.plant.cell_devmap` writes for it;
+  :func:`chcos.apps.weld.simmap.cell_devmap` writes for it;
 
 installs the hierarchy with the thesis-syntax script ``chcos/apps/weld/install.chcos`` and hands
 the running cell (:class:`Cell`: drive the job, inject faults, the run's figures) to the command
@@ -286,7 +286,8 @@ def open_cell(binding: str = "direct", *, scenario: str = "", seed: int = 0,
                             base_dir=work, map_path=work / "sysfile.map")
         else:
             try:
-                from chcos.apps.weld.plant import WeldSim, cell_devmap
+                from chcos.apps.weld.plant import WeldSim
+                from chcos.apps.weld.simmap import cell_devmap
             except ImportError as exc:
                 raise WeldRunError("the real-bus simulator chcos.apps.weld.plant is not available: "
                                   f"{exc}") from exc
