@@ -5,7 +5,7 @@ map, flagging mismatches; it never writes:
 
 * ``modbus-tcp``/``modbus-rtu``: the driver polls the sensors and reads the actuators' coils and
   holding registers back (read requests only); nothing is written (every write, the safe values
-  at the end included, stops at :class:`chcos.cli.cellrun.OutputsOff`);
+  at the end included, stops at :class:`chcos.cli.cellsystem.OutputsOff`);
 * ``can``: the driver only receives: sensors' frames, and the actuators' frames when another node
   sends them; frames of ids no device uses and frames of the wrong length are counted and flagged;
 * ``canopen``: no NMT, no SDO, no SYNC - a passive listener (:class:`PassiveCanopen`) decodes the
@@ -202,7 +202,7 @@ class Monitor:
     """Every bus of a system file, listen-only (see the module doc). Close with :meth:`close`."""
 
     def __init__(self, system_file: str | Path, *, grace: float = 2.0) -> None:
-        from chcos.cli.cellrun import CellSystem, SinceStartClock
+        from chcos.cli.cellsystem import CellSystem, SinceStartClock
 
         self.sf = sysfile.load(system_file)
         self.grace = grace
