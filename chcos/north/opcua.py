@@ -49,7 +49,6 @@ import logging
 import math
 import shlex
 import socket
-import threading
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
@@ -67,6 +66,7 @@ from chcos.errors import Busy, ChcosError
 from chcos.kernel.instrument import Instrument
 from chcos.north import NorthError
 from chcos.north.health import add_health_listener, device_health, remove_health_listener
+from chcos.north.loopthread import LoopThread
 
 if TYPE_CHECKING:
     from asyncua.common.node import Node
@@ -213,11 +213,7 @@ class OpcUaServer:
         #: seconds between refreshes of ages, task and link figures
         self.slow_period = 0.5
         self.refused: list[tuple[str, str, str]] = []
-        self._thread: threading.Thread | None = None
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._stop: asyncio.Event | None = None
-        self._ready = threading.Event()
-        self._error: BaseException | None = None
+        self._service = LoopThread("chcos-opcua")
         self._instrument: _Events | None = None
         self._nodes: dict[str, dict[str, Node]] = {}
         self._last: dict[str, Any] = {}
@@ -240,23 +236,15 @@ class OpcUaServer:
             with socket.socket(socket.AF_INET6 if ":" in self.host else socket.AF_INET) as s:
                 s.bind((self.host, 0))
                 self.port = int(s.getsockname()[1])
-        self._thread = threading.Thread(target=self._main, name="chcos-opcua", daemon=True)
-        self._thread.start()
-        self._ready.wait()
-        if self._error is not None:
-            self._thread.join(timeout=10)
-            raise NorthError(f"opcua: cannot serve {self.endpoint}: {self._error}") \
-                from self._error
+        try:
+            self._service.start(self._serve)
+        except Exception as exc:
+            raise NorthError(f"opcua: cannot serve {self.endpoint}: {exc}") from exc
         return self
 
     def stop(self) -> None:
         """Stop serving and join the thread (no error if not running)."""
-        loop, stop = self._loop, self._stop
-        if self._thread is None or loop is None or stop is None or loop.is_closed():
-            return
-        loop.call_soon_threadsafe(stop.set)
-        self._thread.join(timeout=15)
-        self._thread = None
+        self._service.stop(timeout=15)
 
     def __enter__(self) -> OpcUaServer:
         return self
@@ -264,27 +252,18 @@ class OpcUaServer:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
-    def _main(self) -> None:
-        loop = asyncio.new_event_loop()
-        self._loop = loop
+    async def _serve(self, service: LoopThread) -> None:
+        """The server's life on its loop: build the address space, serve until stopped; the
+        kernel and Devtab hooks are removed whatever happens."""
         try:
-            loop.run_until_complete(self._serve())
-        except BaseException as exc:
-            if not self._ready.is_set():
-                self._error = exc
-            else:
-                log.exception("opcua server failed")
+            await self._serve_until_stopped(service)
         finally:
-            self._ready.set()
             if self._instrument is not None:
                 self.system.kernel.remove_instrument(self._instrument)
             if self._listen_health:
                 remove_health_listener(self.system.devtab, self._on_health)
-            loop.run_until_complete(loop.shutdown_default_executor())
-            loop.close()
 
-    async def _serve(self) -> None:
-        self._stop = asyncio.Event()
+    async def _serve_until_stopped(self, service: LoopThread) -> None:
         server = Server(user_manager=_UserManager(self.users))
         await server.init()
         iserver = server.iserver
@@ -332,10 +311,10 @@ class OpcUaServer:
             self.system.kernel.add_instrument(self._instrument)
             if self._listen_health:
                 add_health_listener(self.system.devtab, self._on_health)
-            self._ready.set()
+            service.ready()
             refresher = asyncio.create_task(self._refresher())
             emitter = asyncio.create_task(self._emit(evgen, queue))
-            await self._stop.wait()
+            await service.stopped()
             refresher.cancel()
             emitter.cancel()
 
@@ -502,12 +481,12 @@ class OpcUaServer:
     # ---- alarms (conditions) ----------------------------------------------------------------
     def health_changed(self, device: str, healthy: bool, status: str, cause: str) -> None:
         """A device's health changed (any thread): raise or clear its alarm."""
-        loop, q = self._loop, self._queue
-        if loop is not None and q is not None and not loop.is_closed():
-            loop.call_soon_threadsafe(q.put_nowait, ("health", device, healthy, status, cause))
+        q = self._queue
+        if q is not None:
+            self._service.call(q.put_nowait, ("health", device, healthy, status, cause))
 
     def _on_health(self, device: str, healthy: bool, cause: str) -> None:
-        if self._stop is not None and self._stop.is_set():
+        if self._service.stopping:
             return
         e = self.system.devtab.get(device)
         self.health_changed(device, healthy, device_health(e).status, cause)

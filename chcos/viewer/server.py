@@ -57,6 +57,7 @@ from aiohttp import web
 from chcos import resources
 from chcos.comm.config import is_loopback
 from chcos.errors import Busy, ChcosError
+from chcos.north.loopthread import LoopThread
 from chcos.system import cmdline
 from chcos.system.textview import render_text
 from chcos.viewer import ViewerError
@@ -151,11 +152,7 @@ class Viewer:
         self.snapshots = Snapshotter(system, events, implicit)
         self.events = self.snapshots.events
         self.implicit = implicit
-        self._thread: threading.Thread | None = None
-        self._ready = threading.Event()
-        self._error: BaseException | None = None
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._stop_evt: asyncio.Event | None = None
+        self._service = LoopThread("chcos-viewer")
         self._tick: asyncio.Condition | None = None
         # the newest state and the patch from the one before it (shared by every stream)
         self._state: dict[str, Any] | None = None
@@ -199,51 +196,23 @@ class Viewer:
     def start(self) -> Viewer:
         """Start serving on a background thread; returns self. Raises ViewerError if the
         address cannot be bound or the viewer already runs."""
-        if self._thread is not None:
+        if self._service.running:
             raise ViewerError("viewer already started")
-        self._thread = threading.Thread(target=self._main, name="chcos-viewer", daemon=True)
-        self._thread.start()
-        self._ready.wait()
-        if self._error is not None:
-            self._thread.join(timeout=10)
-            self._thread = None
-            raise ViewerError(f"cannot serve on {self.host}:{self.port}: "
-                              f"{self._error}") from self._error
+        try:
+            self._service.start(self._serve)
+        except Exception as exc:
+            raise ViewerError(f"cannot serve on {self.host}:{self.port}: {exc}") from exc
         return self
 
     def stop(self) -> None:
         """Close every stream, stop the server and join its thread (no error if not started)."""
-        loop, evt = self._loop, self._stop_evt
-        if self._thread is None or loop is None or evt is None:
-            return
-        if not loop.is_closed():
-            loop.call_soon_threadsafe(evt.set)
-        self._thread.join(timeout=10)
-        self._thread = None
+        self._service.stop(timeout=10)
 
     def __enter__(self) -> Viewer:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
-
-    def _main(self) -> None:
-        loop = asyncio.new_event_loop()
-        self._loop = loop
-        runner: web.AppRunner | None = None
-        try:
-            try:
-                runner = loop.run_until_complete(self._start())
-            except BaseException as exc:  # reported to start()
-                self._error = exc
-                return
-            finally:
-                self._ready.set()
-            assert self._stop_evt is not None
-            loop.run_until_complete(self._serve_until_stopped(runner))
-        finally:
-            loop.run_until_complete(loop.shutdown_default_executor())
-            loop.close()
 
     def app(self) -> web.Application:
         """The aiohttp application (routes and the Host/Origin guard); also for test clients."""
@@ -261,8 +230,20 @@ class Viewer:
         app.router.add_post("/api/command", self._command)
         return app
 
+    async def _serve(self, service: LoopThread) -> None:
+        """The server's life on its loop: bind, serve until stopped, close every stream."""
+        runner = await self._start()
+        service.ready()
+        assert self._tick is not None
+        ticker = asyncio.create_task(self._ticker())
+        await service.stopped()
+        self._stopping = True
+        ticker.cancel()
+        async with self._tick:
+            self._tick.notify_all()
+        await runner.cleanup()
+
     async def _start(self) -> web.AppRunner:
-        self._stop_evt = asyncio.Event()
         self._tick = asyncio.Condition()
         runner = web.AppRunner(self.app(), access_log=None, shutdown_timeout=1.0)
         await runner.setup()
@@ -274,16 +255,6 @@ class Viewer:
             raise
         self.port = int(runner.addresses[0][1])
         return runner
-
-    async def _serve_until_stopped(self, runner: web.AppRunner) -> None:
-        assert self._stop_evt is not None and self._tick is not None
-        ticker = asyncio.create_task(self._ticker())
-        await self._stop_evt.wait()
-        self._stopping = True
-        ticker.cancel()
-        async with self._tick:
-            self._tick.notify_all()
-        await runner.cleanup()
 
     # ---- the state the streams send ---------------------------------------------------------
     def _render(self, snap: dict[str, Any]) -> str:
