@@ -14,7 +14,7 @@ from typing import Any
 
 import pytest
 
-from chcos.devices import devmap, mapref
+from chcos.devices import mapparse, mapref
 from chcos.devices.spec import BusSpec, DeviceSpec
 from drivers.registry import driver_class
 
@@ -109,8 +109,8 @@ def test_canopen_node_keys_and_common_keys() -> None:
 
     listed = {k.name for k in mapref.REFERENCE["canopen"].options if k.variant == "nodes[]"}
     assert listed == set(canopen_node.NODE_KEYS)
-    assert [k.name for k in mapref.COMMON["bus"]] == list(devmap.BUS_KEYS)
-    assert [k.name for k in mapref.COMMON["device"]] == list(devmap.DEVICE_KEYS)
+    assert [k.name for k in mapref.COMMON["bus"]] == list(mapparse.BUS_KEYS)
+    assert [k.name for k in mapref.COMMON["device"]] == list(mapparse.DEVICE_KEYS)
 
 
 def test_every_registered_kind_is_documented() -> None:
