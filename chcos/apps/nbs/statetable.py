@@ -37,6 +37,14 @@ the NBS executor every 28 ms or by an ordinary CHC task when a message arrives.
 
 Errors: :class:`~chcos.errors.ConfigError` for a table file that cannot be used (names the file,
 the command and the row); :class:`StateTableError` for a failure while running a table.
+
+Why one module of this size (about 850 lines, over the project's ~400): it is the transcription
+of Appendix 1's state-table notation as a whole - the row grammar, the term and expression
+subset, the table parser with its checks (coverage of earlier rows, arities across levels) and
+the matching rules above are one contract, and every rule of the parser is a rule the
+interpreter relies on. Split in two, the grammar and its meaning would have to be read side by
+side in two files; kept together, the module docstring above is the whole specification and
+the code below it implements it in the same order.
 """
 
 from __future__ import annotations
