@@ -23,10 +23,11 @@ def is_number(value: Any) -> TypeGuard[int | float]:
 
 
 def free_port(host: str = "127.0.0.1") -> int:
-    """A TCP port on ``host`` (loopback by default) that was free a moment ago: bind to port 0
-    and read the port back. Another process may take it before the caller binds it; use it for
-    simulators, tests and benchmarks, not where the race matters. Raises OSError if ``host``
-    cannot be bound."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+    """A TCP port on ``host`` (loopback by default; an IPv6 address works too) that was free a
+    moment ago: bind to port 0 and read the port back. Another process may take it before the
+    caller binds it; use it for simulators, tests and benchmarks, not where the race matters.
+    Raises OSError if ``host`` cannot be bound."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as sock:
         sock.bind((host, 0))
         return int(sock.getsockname()[1])

@@ -38,6 +38,7 @@ from chcos.devices.devmap import load
 from chcos.devices.devtab import DeviceStatus
 from chcos.devices.spec import BusSpec, DeviceMap, DeviceSpec
 from chcos.errors import BusError, ChcosError
+from chcos.helpers import is_number
 from chcos.satellites import sysfile
 
 _FIXED_IDS = {0x000: "NMT", 0x080: "SYNC", 0x100: "TIME"}
@@ -271,7 +272,7 @@ class Monitor:
                     else:
                         state = "not seen (no master wrote it)"
             lo, hi = d.limits
-            if isinstance(value, int | float) and not isinstance(value, bool) and \
+            if is_number(value) and \
                     ((lo is not None and value < lo) or (hi is not None and value > hi)):
                 flags.append(f"value {value:g} outside limits [{lo}, {hi}]")
             out.append({"name": d.name, "bus": d.bus, "kind": kind, "direction": d.direction,

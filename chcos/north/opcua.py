@@ -46,7 +46,6 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
-import socket
 from datetime import UTC, datetime, timedelta
 from typing import TYPE_CHECKING, Any
 from urllib.parse import urlparse
@@ -57,6 +56,7 @@ from asyncua.server.internal_session import InternalSession
 from asyncua.server.server import Server
 
 from chcos.comm.config import is_loopback
+from chcos.helpers import free_port
 from chcos.kernel.instrument import Instrument
 from chcos.north import NorthError
 from chcos.north.health import add_health_listener, device_health, remove_health_listener
@@ -152,9 +152,10 @@ class OpcUaServer(AlarmsMixin):
     def start(self) -> OpcUaServer:
         """Build the address space and serve; returns self. Raises NorthError if it cannot."""
         if self.port == 0:
-            with socket.socket(socket.AF_INET6 if ":" in self.host else socket.AF_INET) as s:
-                s.bind((self.host, 0))
-                self.port = int(s.getsockname()[1])
+            try:
+                self.port = free_port(self.host)
+            except OSError as exc:
+                raise NorthError(f"opcua: cannot serve {self.endpoint}: {exc}") from exc
         try:
             self._service.start(self._serve)
         except Exception as exc:

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 from chcos.errors import ConfigError, MessageError
+from chcos.helpers import is_number
 
 DOING = "doing"
 """The query topic every :class:`WorldModel` answers with what its task is doing (a copy of its
@@ -81,7 +82,7 @@ def components(v: Value, what: str = "value") -> dict[str, float]:
     try:
         if isinstance(v, Mapping):
             return {str(k): float(x) for k, x in v.items()}
-        if isinstance(v, (int, float)) and not isinstance(v, bool):
+        if is_number(v):
             return {"": float(v)}
         if isinstance(v, Sequence) and not isinstance(v, str):
             return {str(i): float(x) for i, x in enumerate(v)}

@@ -59,6 +59,7 @@ from pathlib import Path
 from typing import Any
 
 from chcos.errors import ChcosError, ConfigError
+from chcos.helpers import is_int
 
 __all__ = [
     "BUILTIN_TABLES",
@@ -543,7 +544,7 @@ def _condition(cell: object, what: str) -> tuple[Term, ...]:
 def _state(cell: object, what: str, *, wildcard: bool) -> int | None:
     if wildcard and cell == DONT_CARE:
         return None
-    if isinstance(cell, bool) or not isinstance(cell, int) or cell < 0:
+    if not is_int(cell) or cell < 0:
         allowed = "an integer >= 0 or '-'" if wildcard else "an integer >= 0"
         raise ValueError(f"{what} {cell!r} is not {allowed}")
     return cell
@@ -598,7 +599,7 @@ def parse_table(text: str, path: str) -> StateTable:
     if not isinstance(module, str) or not module:
         raise ConfigError(f"{path}: 'module' must be a non-empty string such as \"H1\"")
     level = doc.get("level")
-    if isinstance(level, bool) or not isinstance(level, int) or level < 1:
+    if not is_int(level) or level < 1:
         raise ConfigError(f"{path}: 'level' must be an integer >= 1, got {level!r}")
 
     lower_commands: dict[str, tuple[Param, ...]] = {}
