@@ -13,8 +13,9 @@ import pytest
 
 from chcos.apps.weld import plant as weld
 from chcos.apps.weld import simmap
+from chcos.apps.weld.faults import load_scenario
 from chcos.apps.weld.model import WeldCell
-from chcos.apps.weld.plant import WeldSim, load_scenario
+from chcos.apps.weld.plant import WeldSim
 from chcos.apps.weld.simmap import CELL_TOML, cell_devmap
 from chcos.apps.weld.slaves import INPUT_REGISTERS, WELD_DBC, WELD_EDS, format_line
 from chcos.devices.devmap import check_main, load

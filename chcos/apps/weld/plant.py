@@ -63,8 +63,9 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 from chcos.apps.sim.modbus_server import ModbusSimServer
-from chcos.apps.weld.faults import Fault, Scenario, parse_fault, parse_scenario, parse_scenario_toml
-from chcos.apps.weld.model import CellConfig, Readings, WeldCell, dbc_signals
+from chcos.apps.weld.faults import Fault, Scenario, load_scenario, parse_fault
+from chcos.apps.weld.lineserver import LineServer
+from chcos.apps.weld.model import CellConfig, WeldCell, dbc_signals
 from chcos.apps.weld.seam import Seam
 from chcos.apps.weld.simmap import (
     DEFAULT_CANOPEN_CHANNEL,
@@ -74,22 +75,15 @@ from chcos.apps.weld.simmap import (
 )
 from chcos.apps.weld.slaves import (
     CAN_MESSAGES,
-    COIL_DRIVES_ENABLE,
-    COIL_GAS_VALVE,
     HEARTBEAT_PERIOD,
-    HR_VOLTS_SET,
-    HR_WIRE_SET,
-    INPUT_REGISTERS,
     NODE_IDS,
     POSITION_SCALE,
     SERVO_PERIOD,
-    SETPOINT_SCALE,
     UNIT,
     WELD_DBC,
-    LineServer,
+    PowerSource,
     SensorFrames,
     ServoDrives,
-    WeldRegisterStore,
     format_line,
 )
 from chcos.errors import BusError, ConfigError, DeviceError
@@ -107,27 +101,11 @@ and serial instants exist only in slots where something is due."""
 # --- the simulator -----------------------------------------------------------------------------
 
 
-def load_scenario(scenario: Scenario | str | Path | None) -> Scenario:
-    """A scenario from a :class:`Scenario`, a scenario string (``"tip-stuck@s=120mm"``), or a
-    TOML file (a :class:`Path`, or a string ending in ``.toml``). Raises ConfigError."""
-    if scenario is None:
-        return Scenario()
-    if isinstance(scenario, Scenario):
-        return scenario
-    if isinstance(scenario, Path) or scenario.strip().endswith(".toml"):
-        path = Path(scenario)
-        try:
-            text = path.read_text(encoding="utf-8")
-        except OSError as exc:
-            raise ConfigError(f"scenario file {path}: cannot be read: {exc}") from exc
-        return parse_scenario_toml(text, str(path))
-    return parse_scenario(scenario)
-
-
 class WeldSim:
     """The simulated welding cell on CANopen, raw CAN, Modbus TCP and a serial line (see the
     module doc). ``tick`` is the physics step (s, 0 < tick <= 0.01); ``seed`` the noise seed;
-    ``scenario`` faults to inject (see :func:`load_scenario`); ``config``/``seam`` the model's.
+    ``scenario`` faults to inject (see :func:`chcos.apps.weld.faults.load_scenario`);
+    ``config``/``seam`` the model's.
 
     Everything is opened at construction: build the simulator before the System whose drivers
     connect to it. Raises :class:`ConfigError` (bad arguments, scenario, EDS or DBC) and
@@ -178,11 +156,8 @@ class WeldSim:
         self._slot = 0
         self._settler_due = False
         self._later: Callable[[float, Callable[[], None]], None] = lambda _delay, fn: fn()
-        self._drives_enabled = False
-        self._gas_open = False
-        self._volts_raw = 0
-        self._wire_raw = 0
-        self.store = WeldRegisterStore()
+        self.power = PowerSource()
+        self.store = self.power.store
         self.servo: ServoDrives | None = None
         self.sensors: SensorFrames | None = None
         self.modbus: ModbusSimServer | None = None
@@ -197,7 +172,7 @@ class WeldSim:
         except BaseException:
             self.close()
             raise
-        self._publish_registers(self.model.readings())
+        self.power.publish(self.model.readings())
 
     # -- running ------------------------------------------------------------------------------
 
@@ -294,7 +269,7 @@ class WeldSim:
     def drives_enabled(self) -> bool:
         """The state of the safe-torque-off relay as the simulator applied it last."""
         with self._lock:
-            return self._drives_enabled
+            return self.power.drives_enabled
 
     @property
     def sim_time(self) -> float:
@@ -314,9 +289,9 @@ class WeldSim:
         while self._steps < n:
             model.step(self.tick)
             self._steps += 1
-        self._apply_power()
+        self.power.apply(self.model, self._refused)
         for nid, counts in targets:
-            if not self._drives_enabled:
+            if not self.power.drives_enabled:
                 self.stats["target-ignored-disabled"] += 1
                 continue
             try:
@@ -330,38 +305,9 @@ class WeldSim:
         self.errors.append(text)
         del self.errors[:-50]
 
-    def _apply_power(self) -> None:
-        store, model = self.store, self.model
-        coils = store.read(UNIT, "coil", 0, 2)
-        volts = store.read(UNIT, "holding", HR_VOLTS_SET)[0]
-        wire = store.read(UNIT, "holding", HR_WIRE_SET)[0]
-        drives, gas = bool(coils[COIL_DRIVES_ENABLE]), bool(coils[COIL_GAS_VALVE])
-        if drives != self._drives_enabled:
-            self._drives_enabled = drives
-            if not drives:  # safe torque off: hold every joint where it is
-                model.set_joint_targets(model.joints)
-        if gas != self._gas_open:
-            self._gas_open = gas
-            model.set_gas_valve(gas)
-        if volts != self._volts_raw:
-            self._volts_raw = volts
-            try:
-                model.set_voltage(volts * SETPOINT_SCALE)
-            except DeviceError as exc:
-                self._refused("volts", f"holding {HR_VOLTS_SET} = {volts}: {exc}")
-        if wire != self._wire_raw:
-            self._wire_raw = wire
-            try:
-                model.set_wire_speed(wire * SETPOINT_SCALE)
-            except DeviceError as exc:
-                self._refused("wire", f"holding {HR_WIRE_SET} = {wire}: {exc}")
-
     def _sync_heartbeats(self) -> None:
-        if self.servo is None:
-            return
-        ok = self.model.readings().servo_ok
-        for j, nid in enumerate(NODE_IDS):
-            self.servo.heartbeat(nid, ok[j])
+        if self.servo is not None:
+            self.servo.sync_heartbeats(self.model.readings().servo_ok)
 
     def _on_servo(self) -> None:
         """Every 10 ms slot: TPDO1 of every live, OPERATIONAL drive and the power source's
@@ -381,21 +327,11 @@ class WeldSim:
                 if f"joint{j + 1}" in r.silent or not self.servo.operational[nid]:
                     continue
                 self.servo.send_tpdo(nid, round(r.joints[j] / POSITION_SCALE))
-            self._publish_registers(r)
+            self.power.publish(r)
             if self.sensors is not None and self.sensors.due(slot, dbc_signals(r, 0)):
                 self._later(PHASES["can"] - PHASES["servo"], functools.partial(self._on_can, slot))
             if slot % LINE_SLOTS == 0:
                 self._later(PHASES["line"] - PHASES["servo"], self._on_line)
-
-    def _publish_registers(self, r: Readings) -> None:
-        silent: set[int] = set()
-        for name, (address, scale) in INPUT_REGISTERS.items():
-            if name in r.silent:
-                silent.add(address)
-                continue
-            raw = round(float(getattr(r, name)) / scale)
-            self.store.write(UNIT, "input", address, [max(0, min(0xFFFF, raw))])
-        self.store.silent_inputs = frozenset(silent)
 
     def _on_can(self, slot: int) -> None:
         """The raw-CAN messages due or changed in ``slot``."""

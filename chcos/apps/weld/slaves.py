@@ -9,16 +9,16 @@ Each class is one side of one bus of ``chcos/apps/weld/maps/weld_cell.toml`` (th
 * :class:`SensorFrames` - **raw CAN**: the DBC-coded messages of
   ``chcos/apps/weld/maps/weld_cell.dbc`` (:data:`CAN_MESSAGES`), each at its cycle time or on
   change;
-* :class:`WeldRegisterStore` - **Modbus TCP**, unit :data:`UNIT`: the power source and the cell
-  I/O (:data:`INPUT_REGISTERS`, holding registers :data:`HR_VOLTS_SET` / :data:`HR_WIRE_SET`,
-  coils :data:`COIL_DRIVES_ENABLE` / :data:`COIL_GAS_VALVE`); a silent sensor answers
-  exception 11;
-* :class:`LineServer` - **serial**: the linear light sensor's lines (:data:`LINE_FORMAT`,
-  :func:`format_line`) to the clients of a TCP server, opened by the serial driver as
+* :class:`PowerSource` (its :class:`WeldRegisterStore`) - **Modbus TCP**, unit :data:`UNIT`: the
+  power source and the cell I/O (:data:`INPUT_REGISTERS`, holding registers
+  :data:`HR_VOLTS_SET` / :data:`HR_WIRE_SET`, coils :data:`COIL_DRIVES_ENABLE` /
+  :data:`COIL_GAS_VALVE`); a silent sensor answers exception 11;
+* **serial**: the linear light sensor's lines (:data:`LINE_FORMAT`, :func:`format_line`) to the
+  clients of a :class:`chcos.apps.weld.lineserver.LineServer`, opened by the serial driver as
   ``socket://127.0.0.1:port``.
 
-They know nothing of the model or of time: :class:`chcos.apps.weld.plant.WeldSim` steps the model
-and tells them what to send. Errors: :class:`chcos.errors.BusError` when a channel cannot be
+They know nothing of time: :class:`chcos.apps.weld.plant.WeldSim` steps the model and tells them
+what to send. Errors: :class:`chcos.errors.BusError` when a channel cannot be
 opened or a port bound, :class:`chcos.errors.ConfigError` for an unreadable EDS or a message
 the DBC lacks.
 """
@@ -26,11 +26,8 @@ the DBC lacks.
 from __future__ import annotations
 
 import contextlib
-import select
-import socket
 import struct
-import threading
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -40,8 +37,8 @@ from pymodbus.constants import ExcCodes
 
 from chcos import resources
 from chcos.apps.sim.modbus_server import RegisterStore
-from chcos.apps.weld.model import Readings
-from chcos.errors import BusError, ConfigError
+from chcos.apps.weld.model import Readings, WeldCell
+from chcos.errors import BusError, ConfigError, DeviceError
 
 BUSCONFIG = resources.path("chcos.apps.weld", "maps")
 #: The EDS of the joint servo drives.
@@ -116,87 +113,58 @@ class WeldRegisterStore(RegisterStore):
         return super().mirror(unit, function_code, start, address, count, image, values)
 
 
-# --- the linear sensor's line server -----------------------------------------------------------
+class PowerSource:
+    """The power source and the cell I/O as the model sees them through :attr:`store`: the
+    coils and holding registers the controller writes are applied to the model when they
+    change (:meth:`apply`), the model's readings are shown in the input registers
+    (:meth:`publish`; a silent sensor's register answers exception 11)."""
 
+    def __init__(self) -> None:
+        self.store = WeldRegisterStore()
+        self.drives_enabled = False
+        self.gas_open = False
+        self.volts_raw = 0
+        self.wire_raw = 0
 
-class LineServer:
-    """A TCP server on ``host:port`` writing text lines to every connected client (the far end of
-    pyserial's ``socket://`` URL). Connections are accepted, and closed peers dropped, when a
-    line is sent, on the sender's thread. Raises :class:`BusError` if the port cannot be bound."""
-
-    def __init__(self, port: int, host: str = "127.0.0.1") -> None:
-        self.host = host
-        self.port = port
-        listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        try:
-            listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            listener.bind((host, port))
-            listener.listen(4)
-            listener.setblocking(False)
-        except OSError as exc:
-            listener.close()
-            raise BusError(_where("serial", f"cannot listen on {host}:{port}: {exc}")) from exc
-        self._listener = listener
-        self._clients: list[socket.socket] = []
-        self._lock = threading.Lock()
-        self.lines_sent = 0
-        self.connects = 0
-
-    @property
-    def url(self) -> str:
-        """The pyserial URL a driver opens."""
-        return f"socket://{self.host}:{self.port}"
-
-    @property
-    def clients(self) -> int:
-        """Connected clients (as of the last line sent)."""
-        with self._lock:
-            return len(self._clients)
-
-    def _accept(self) -> None:
-        while True:
+    def apply(self, model: WeldCell, refused: Callable[[str, str], None]) -> None:
+        """Apply what changed in the coils and holding registers to ``model``; a set-point the
+        model refuses is reported as ``refused(kind, text)``. Dropping ``drives_enable`` holds
+        every joint where it is (safe torque off)."""
+        store = self.store
+        coils = store.read(UNIT, "coil", 0, 2)
+        volts = store.read(UNIT, "holding", HR_VOLTS_SET)[0]
+        wire = store.read(UNIT, "holding", HR_WIRE_SET)[0]
+        drives, gas = bool(coils[COIL_DRIVES_ENABLE]), bool(coils[COIL_GAS_VALVE])
+        if drives != self.drives_enabled:
+            self.drives_enabled = drives
+            if not drives:
+                model.set_joint_targets(model.joints)
+        if gas != self.gas_open:
+            self.gas_open = gas
+            model.set_gas_valve(gas)
+        if volts != self.volts_raw:
+            self.volts_raw = volts
             try:
-                conn, _ = self._listener.accept()
-            except OSError:  # BlockingIOError: nobody waiting
-                return
-            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            conn.settimeout(1.0)
-            self._clients.append(conn)
-            self.connects += 1
+                model.set_voltage(volts * SETPOINT_SCALE)
+            except DeviceError as exc:
+                refused("volts", f"holding {HR_VOLTS_SET} = {volts}: {exc}")
+        if wire != self.wire_raw:
+            self.wire_raw = wire
+            try:
+                model.set_wire_speed(wire * SETPOINT_SCALE)
+            except DeviceError as exc:
+                refused("wire", f"holding {HR_WIRE_SET} = {wire}: {exc}")
 
-    def send_line(self, text: str) -> None:
-        """Write ``text`` + newline to every client; never raises (a broken client is dropped)."""
-        data = (text + "\n").encode("ascii")
-        with self._lock:
-            self._accept()
-            for conn in list(self._clients):
-                try:  # discard anything the client wrote; readable with b"" is a closed peer
-                    while select.select([conn], [], [], 0)[0]:
-                        if not conn.recv(4096):
-                            raise ConnectionResetError("peer closed")
-                except (OSError, ValueError):
-                    self._drop(conn)
-                    continue
-                try:
-                    conn.sendall(data)
-                except OSError:
-                    self._drop(conn)
-            self.lines_sent += 1
-
-    def _drop(self, conn: socket.socket) -> None:
-        self._clients.remove(conn)
-        with contextlib.suppress(OSError):
-            conn.close()
-
-    def close(self) -> None:
-        """Close the listener and every client. Idempotent."""
-        with self._lock:
-            for conn in self._clients:
-                with contextlib.suppress(OSError):
-                    conn.close()
-            self._clients.clear()
-            with contextlib.suppress(OSError):
-                self._listener.close()
+    def publish(self, r: Readings) -> None:
+        """Show readings ``r`` in the input registers (:data:`INPUT_REGISTERS`)."""
+        silent: set[int] = set()
+        for name, (address, scale) in INPUT_REGISTERS.items():
+            if name in r.silent:
+                silent.add(address)
+                continue
+            raw = round(float(getattr(r, name)) / scale)
+            self.store.write(UNIT, "input", address, [max(0, min(0xFFFF, raw))])
+        self.store.silent_inputs = frozenset(silent)
 
 
 # --- the servo drives --------------------------------------------------------------------------
@@ -305,6 +273,11 @@ class ServoDrives:
             nmt.start_heartbeat(self._hb_ms)
         else:
             nmt.stop_heartbeat()
+
+    def sync_heartbeats(self, ok: Sequence[bool]) -> None:
+        """Joint ``j``'s drive beats while ``ok[j]`` (a servo timeout silences it)."""
+        for j, nid in enumerate(NODE_IDS):
+            self.heartbeat(nid, ok[j])
 
     def close(self) -> None:
         """Stop the heartbeats and close both handles. Never raises."""
