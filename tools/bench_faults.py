@@ -24,7 +24,7 @@ from typing import Any
 
 import can
 
-from chcos.apps.sim.from_map import free_port
+from chcos.helpers import free_port
 from chcos.kernel.clock import RealClock
 from chcos.system.embedded import System
 from tools.peers import CANOPEN_MAP, NODE, SPEED, CanopenPeer, ModbusPeer

@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import functools
-import socket
 import subprocess
 import sys
 import threading
@@ -34,6 +33,7 @@ from pymodbus.client import AsyncModbusTcpClient
 
 from chcos.apps.sim.canopen_slave import SERVO_EDS, CanopenSlave
 from chcos.devices.spec import BusSpec, DeviceSpec
+from chcos.helpers import free_port
 from drivers.canopen_node import CanopenDriver
 from drivers.modbus import ModbusTcpDriver
 
@@ -85,13 +85,6 @@ class CountingHost:
     def wait_delivered(self, n: int, timeout: float) -> bool:
         with self.cond:
             return self.cond.wait_for(lambda: self.delivered >= n, timeout)
-
-
-def free_port() -> int:
-    """A loopback TCP port that was free a moment ago."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def best_of(repeat: int, library: Callable[[], float],

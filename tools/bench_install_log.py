@@ -26,7 +26,7 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 
-from chcos.apps.sim.from_map import free_port  # noqa: E402
+from chcos.helpers import free_port  # noqa: E402
 from chcos.satellites import sysfile  # noqa: E402
 from chcos.satellites.host import Host  # noqa: E402
 from chcos.user.context import TaskContext  # noqa: E402

@@ -1,6 +1,6 @@
 """support_weldcell - run the welding job for the weldcell scenario tests and keep what it did.
 
-:func:`run_job` builds the cell (:func:`chcos.apps.weld.runner.open_cell`) on a binding, starts the
+:func:`run_job` builds the cell (:func:`chcos.apps.weld.cell.open_cell`) on a binding, starts the
 job,
 runs it on virtual time until it has an outcome (or a limit), and returns a :class:`JobRun`
 holding everything the tests check, captured *before* the shutdown writes its safe values.
@@ -13,7 +13,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from chcos.apps.weld.runner import Cell, open_cell
+from chcos.apps.weld.cell import Cell, open_cell
 from chcos.apps.weld.tasks import B4
 from chcos.user.context import TaskContext
 

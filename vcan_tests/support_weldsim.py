@@ -16,7 +16,8 @@ from typing import Any
 
 from chcos.apps.weld.faults import Scenario
 from chcos.apps.weld.model import CellConfig
-from chcos.apps.weld.plant import WeldSim, cell_devmap
+from chcos.apps.weld.plant import WeldSim
+from chcos.apps.weld.simmap import cell_devmap
 from chcos.devices.entry import DeviceEntry
 from chcos.kernel.clock import VirtualClock
 from chcos.system.embedded import System

@@ -9,7 +9,7 @@ import xml.etree.ElementTree as ET
 
 import pytest
 
-from chcos.apps.bench.fig66 import ReactionProbe
+from chcos.apps.bench.load import ReactionProbe
 from chcos.apps.bench.stats import StatsError, ecdf, percentile, summarize
 from chcos.apps.bench.svg import Series, ecdf_svg
 from chcos.errors import ChcosError

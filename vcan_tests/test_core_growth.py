@@ -17,7 +17,7 @@ import pytest
 
 from chcos.apps import fig65
 from chcos.apps.fig65.runner import default_devmap
-from chcos.apps.weld.runner import open_cell
+from chcos.apps.weld.cell import open_cell
 from chcos.devices import devmap, parsecache
 from chcos.errors import BusError
 from chcos.kernel.clock import RealClock, VirtualClock

@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from chcos.apps.weld.runner import SAFE_DEVICES, open_cell
+from chcos.apps.weld.cell import SAFE_DEVICES, open_cell
 from chcos.comm.payloads import OpenAnswer
 from chcos.errors import CommandSyntaxError, MessageError, ReadTimeout, SensorFailure
 from chcos.kernel.clock import VirtualClock

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from chcos.apps.sim.peers import free_port
 from chcos.cli import main as cli
+from chcos.helpers import free_port
 
 COMMANDS = ["run", "new", "import", "monitor", "check", "sim", "shell", "satellite", "host",
             "map", "view"]

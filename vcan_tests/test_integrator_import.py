@@ -20,11 +20,11 @@ import pytest
 from pyModbusTCP.server import ModbusServer
 
 from chcos.apps.sim.canopen_slave import CanopenSlave
-from chcos.apps.sim.peers import free_port
 from chcos.cli import main as cli
 from chcos.devices.devmap import check_main
 from chcos.devices.importers.modbus_csv import import_modbus_csv
 from chcos.errors import ConfigError
+from chcos.helpers import free_port
 from chcos.kernel.clock import VirtualClock
 from chcos.system.embedded import System
 

@@ -17,9 +17,9 @@ import can
 import pytest
 from pyModbusTCP.server import DataHandler, ModbusServer
 
-from chcos.apps.sim.peers import free_port
 from chcos.cli import main as cli
 from chcos.cli import monitor
+from chcos.helpers import free_port
 
 VENDOR = Path(__file__).resolve().parent / "vendor"
 _chan = itertools.count()

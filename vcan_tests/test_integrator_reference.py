@@ -14,8 +14,9 @@ from typing import Any
 
 import pytest
 
-from chcos.devices import devmap, mapref
+from chcos.devices import mapparse, mapref
 from chcos.devices.spec import BusSpec, DeviceSpec
+from drivers import canopen_od
 from drivers.registry import driver_class
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -105,12 +106,11 @@ def test_every_key_a_driver_accepts_is_in_the_reference(kind: str) -> None:
 
 
 def test_canopen_node_keys_and_common_keys() -> None:
-    from drivers import canopen_od
 
     listed = {k.name for k in mapref.REFERENCE["canopen"].options if k.variant == "nodes[]"}
     assert listed == set(canopen_od.NODE_KEYS)
-    assert [k.name for k in mapref.COMMON["bus"]] == list(devmap.BUS_KEYS)
-    assert [k.name for k in mapref.COMMON["device"]] == list(devmap.DEVICE_KEYS)
+    assert [k.name for k in mapref.COMMON["bus"]] == list(mapparse.BUS_KEYS)
+    assert [k.name for k in mapref.COMMON["device"]] == list(mapparse.DEVICE_KEYS)
 
 
 def test_every_registered_kind_is_documented() -> None:

@@ -18,10 +18,10 @@ from typing import Any
 import pytest
 from pyModbusTCP.server import DataHandler, ModbusServer
 
-from chcos.apps.sim.peers import free_port
 from chcos.cli import cellrun
 from chcos.cli import main as cli
 from chcos.errors import ConfigError
+from chcos.helpers import free_port
 from chcos.satellites import sysfile
 
 ROOT = Path(__file__).resolve().parent.parent

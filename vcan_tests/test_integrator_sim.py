@@ -18,11 +18,11 @@ from pathlib import Path
 
 import pytest
 
-from chcos.apps.sim.peers import free_port
 from chcos.apps.sim.scripts import csv_trace, parse_script
 from chcos.cli import cellrun, scaffold
 from chcos.cli import main as cli
 from chcos.errors import ConfigError
+from chcos.helpers import free_port
 
 VENDOR = Path(__file__).resolve().parent / "vendor"
 

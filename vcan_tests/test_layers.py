@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parent.parent
 #: rank of each OS layer, bottom first; a module may import its own layer or lower ones.
 LAYERS: dict[str, int] = {
     "chcos.errors": 0, "chcos.resources": 0, "chcos.tables": 1, "chcos.kernel": 2,
-    "chcos.common": 0,
+    "chcos.helpers": 0,
     "chcos.devices": 3, "drivers": 3, "chcos.comm": 4, "chcos.messages": 5, "chcos.user": 6,
     "chcos.system": 7, "chcos.satellites": 8, "chcos.north": 9, "chcos.viewer": 9,
     "chcos.cli": 10, "chcos.testing": 10,

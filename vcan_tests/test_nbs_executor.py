@@ -15,8 +15,8 @@ from chcos.apps.nbs.executor import (
     NbsExecutor,
     Order,
     TableH,
-    VirtualScheduler,
 )
+from chcos.apps.nbs.scheduling import VirtualScheduler
 from chcos.apps.nbs.statetable import Call, load_builtin
 from chcos.errors import KernelError
 

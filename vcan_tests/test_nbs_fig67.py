@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from chcos.apps.nbs.executor import VirtualScheduler
 from chcos.apps.nbs.fig67 import FAN_IN, SENSORS, main, run_fig67
+from chcos.apps.nbs.scheduling import VirtualScheduler
 from chcos.errors import ConfigError, KernelError
 
 

@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 
 from chcos.apps.nbs.weldcell import NBS_SCRIPT, NbsCell
+from chcos.apps.weld.cell import open_cell
 from chcos.apps.weld.runner import main as weld_main
-from chcos.apps.weld.runner import open_cell
 from vcan_tests.support_view import browser_page
 
 

@@ -15,16 +15,8 @@ from chcos.system import sysmap
 from chcos.system.textview import render_text
 from chcos.viewer import ViewerError
 from chcos.viewer.cli import map_main
-from chcos.viewer.graph import (
-    COMMAND_COLOR,
-    SENSORY_COLOR,
-    Live,
-    check_doc,
-    layout,
-    link_key,
-    render_dot,
-    render_svg,
-)
+from chcos.viewer.graph import COMMAND_COLOR, SENSORY_COLOR, Live, render_dot, render_svg
+from chcos.viewer.layout import check_doc, layout, link_key
 from vcan_tests.support_view import FIG65_TASKS, fig65_system
 
 SVG = "{http://www.w3.org/2000/svg}"

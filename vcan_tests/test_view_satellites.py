@@ -11,8 +11,8 @@ from pathlib import Path
 from typing import Any
 
 from chcos.apps import fig65
+from chcos.cli.view import view_main
 from chcos.satellites import sysfile
-from chcos.viewer.cli import view_main
 from chcos.viewer.server import Viewer
 from vcan_tests.support_sat import Cluster, link, task
 from vcan_tests.support_view import FIG65_TASKS, ROLES, get_json, login, post_json, viewer_users

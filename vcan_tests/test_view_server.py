@@ -12,10 +12,10 @@ from pathlib import Path
 
 import pytest
 
+from chcos.cli.view import view_main
 from chcos.kernel.clock import VirtualClock
 from chcos.system.embedded import System
 from chcos.viewer import ViewerError
-from chcos.viewer.cli import view_main
 from chcos.viewer.server import Viewer, serve
 from chcos.viewer.snapshot import EventLog, Snapshotter, event_marks
 from vcan_tests.support_view import (

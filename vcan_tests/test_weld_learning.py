@@ -10,7 +10,7 @@ import json
 from pathlib import Path
 
 from chcos.apps.weld.learning import forget, learning_curve
-from chcos.user.worldmodel import LearnedPattern, Store
+from chcos.user.knowledge import LearnedPattern, Store
 
 
 def test_learned_recognizer_reacts_earlier_on_repeated_runs(tmp_path: Path) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from chcos.apps.weld.runner import Cell, open_cell
+from chcos.apps.weld.cell import Cell, open_cell
 
 
 def _run_until(cell: Cell, task: str, phase: str, travelled: float, limit: float = 120.0) -> None:

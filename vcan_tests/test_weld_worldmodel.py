@@ -1,5 +1,5 @@
-"""The world-model facility (chcos.user.worldmodel): context along links, prediction and the error
-vector, recognizers, learned responses persisted across runs, and plans."""
+"""The world-model facility (chcos.user.worldmodel, .knowledge, .plans): context along links,
+prediction and the error vector, recognizers, learned responses persisted across runs, and plans."""
 
 from __future__ import annotations
 
@@ -13,17 +13,9 @@ import pytest
 from chcos.apps.weld.tasks.common import WeldTaskError
 from chcos.errors import ConfigError, MessageError
 from chcos.user.context import TaskContext
-from chcos.user.worldmodel import (
-    Experience,
-    LearnedPattern,
-    Plan,
-    Plans,
-    PlansExhausted,
-    Recognizer,
-    Store,
-    WorldModel,
-    context,
-)
+from chcos.user.knowledge import Experience, LearnedPattern, Recognizer, Store
+from chcos.user.plans import Plan, Plans, PlansExhausted
+from chcos.user.worldmodel import WorldModel, context
 from vcan_tests.conftest import MakeSystem
 
 M = "vcan_tests.test_weld_worldmodel"

@@ -10,8 +10,9 @@ from pathlib import Path
 import pytest
 
 from chcos.apps.weld import Seam
+from chcos.apps.weld.cell import _direct_map, open_cell
 from chcos.apps.weld.direct import WeldDirectDriver
-from chcos.apps.weld.runner import _direct_map, main, open_cell, run
+from chcos.apps.weld.runner import main, run
 from chcos.apps.weld.tasks import B1, D3
 from chcos.apps.weld.tasks.common import Tracker, analyse, offset_mm
 from chcos.devices.spec import BusSpec, DeviceSpec

@@ -13,7 +13,7 @@ from typing import Any
 
 import pytest
 
-from chcos.apps.weld.runner import Cell
+from chcos.apps.weld.cell import Cell
 from vcan_tests.support_weldcell import M, buses_or_skip, run_job
 
 BINDINGS = ["direct", "buses"]

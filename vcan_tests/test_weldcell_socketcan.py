@@ -23,7 +23,7 @@ from pathlib import Path
 
 import pytest
 
-from chcos.apps.weld.runner import open_cell
+from chcos.apps.weld.cell import open_cell
 from vcan_tests.conftest import opt_in, require
 from vcan_tests.uml import (
     BACKGROUND,

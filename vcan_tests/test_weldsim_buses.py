@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from chcos.apps.weld.model import Readings
-from chcos.apps.weld.plant import NODE_IDS, format_line
+from chcos.apps.weld.slaves import NODE_IDS, format_line
 from vcan_tests.support_weldsim import QUIET, WeldRig, make_rig
 
 #: The tip 30 mm above the start of the gap, tool x along the seam (the linear sensor, 5 mm

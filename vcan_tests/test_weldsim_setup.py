@@ -12,15 +12,12 @@ import can
 import pytest
 
 from chcos.apps.weld import plant as weld
+from chcos.apps.weld import simmap
+from chcos.apps.weld.faults import load_scenario
 from chcos.apps.weld.model import WeldCell
-from chcos.apps.weld.plant import (
-    CELL_TOML,
-    INPUT_REGISTERS,
-    WeldSim,
-    cell_devmap,
-    format_line,
-    load_scenario,
-)
+from chcos.apps.weld.plant import WeldSim
+from chcos.apps.weld.simmap import CELL_TOML, cell_devmap
+from chcos.apps.weld.slaves import INPUT_REGISTERS, WELD_DBC, WELD_EDS, format_line
 from chcos.devices.devmap import check_main, load
 from chcos.errors import BusError, ConfigError
 from vcan_tests.netutil import free_port, unique_channel
@@ -69,8 +66,8 @@ def test_cell_devmap_rebinds_channels_ports_and_paths(tmp_path: Path) -> None:
     assert (opts["servo"]["channel"], opts["sensors"]["channel"]) == ("vcan0", "vcan1")
     assert opts["power"]["port"] == 2502
     assert opts["seam"]["url"] == "socket://127.0.0.1:2503"
-    assert Path(opts["sensors"]["dbc"]) == weld.WELD_DBC
-    assert {Path(n["eds"]) for n in opts["servo"]["nodes"]} == {weld.WELD_EDS}
+    assert Path(opts["sensors"]["dbc"]) == WELD_DBC
+    assert {Path(n["eds"]) for n in opts["servo"]["nodes"]} == {WELD_EDS}
     # the same devices as the original, only the binding differs
     assert [d.name for d in m.devices] == [d.name for d in load([CELL_TOML]).devices]
 
@@ -93,7 +90,7 @@ def test_cell_devmap_names_a_template_line_that_is_missing(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     broken = tmp_path / "weld_cell.toml"
     broken.write_text(CELL_TOML.read_text().replace("port = 15020", "port = 1502"))
-    monkeypatch.setattr(weld, "CELL_TOML", broken)
+    monkeypatch.setattr(simmap, "CELL_TOML", broken)
     with pytest.raises(ConfigError, match=r"weld_cell.toml: expected 1 line\(s\) with "
                                           r"'port = 15020' to rebind, found 0"):
         cell_devmap(tmp_path / "out", canopen_channel="a", sensor_channel="b", modbus_port=1,

@@ -236,7 +236,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         return map_main(argv[1:])
     if argv[:1] == ["view"]:
-        from chcos.viewer.cli import view_main
+        from chcos.cli.view import view_main
 
         return view_main(argv[1:])
     if argv[:1] == ["facade"]:

@@ -5,7 +5,7 @@ map, flagging mismatches; it never writes:
 
 * ``modbus-tcp``/``modbus-rtu``: the driver polls the sensors and reads the actuators' coils and
   holding registers back (read requests only); nothing is written (every write, the safe values
-  at the end included, stops at :class:`chcos.cli.cellrun.OutputsOff`);
+  at the end included, stops at :class:`chcos.cli.cellsystem.OutputsOff`);
 * ``can``: the driver only receives: sensors' frames, and the actuators' frames when another node
   sends them; frames of ids no device uses and frames of the wrong length are counted and flagged;
 * ``canopen``: no NMT, no SDO, no SYNC - a passive listener (:class:`PassiveCanopen`) decodes the
@@ -38,6 +38,7 @@ from chcos.devices.devmap import load
 from chcos.devices.entry import DeviceStatus
 from chcos.devices.spec import BusSpec, DeviceMap, DeviceSpec
 from chcos.errors import BusError, ChcosError
+from chcos.helpers import is_number
 from chcos.satellites import sysfile
 
 _FIXED_IDS = {0x000: "NMT", 0x080: "SYNC", 0x100: "TIME"}
@@ -203,7 +204,7 @@ class Monitor:
     """Every bus of a system file, listen-only (see the module doc). Close with :meth:`close`."""
 
     def __init__(self, system_file: str | Path, *, grace: float = 2.0) -> None:
-        from chcos.cli.cellrun import CellSystem, SinceStartClock
+        from chcos.cli.cellsystem import CellSystem, SinceStartClock
 
         self.sf = sysfile.load(system_file)
         self.grace = grace
@@ -272,7 +273,7 @@ class Monitor:
                     else:
                         state = "not seen (no master wrote it)"
             lo, hi = d.limits
-            if isinstance(value, int | float) and not isinstance(value, bool) and \
+            if is_number(value) and \
                     ((lo is not None and value < lo) or (hi is not None and value > hi)):
                 flags.append(f"value {value:g} outside limits [{lo}, {hi}]")
             out.append({"name": d.name, "bus": d.bus, "kind": kind, "direction": d.direction,

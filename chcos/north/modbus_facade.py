@@ -36,7 +36,6 @@ import asyncio
 import logging
 import math
 import struct
-import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -50,6 +49,7 @@ from chcos.devices.spec import DeviceMap, DeviceSpec
 from chcos.errors import ChcosError, DeviceError
 from chcos.north import NorthError
 from chcos.north.health import device_health
+from chcos.north.loopthread import LoopThread
 from chcos.tables.tasks import TaskState
 
 if TYPE_CHECKING:
@@ -246,57 +246,34 @@ class ModbusFacade:
         self.port = port
         self.map = RegisterMap(system.devmap)
         self.refusals: list[tuple[int, str]] = []
-        self._loop: asyncio.AbstractEventLoop | None = None
         self._server: ModbusTcpServer | None = None
-        self._thread: threading.Thread | None = None
-        self._ready = threading.Event()
-        self._error: BaseException | None = None
+        self._service = LoopThread("chcos-modbus-facade")
 
     def start(self) -> ModbusFacade:
         """Start serving; returns self. Raises NorthError if the address cannot be bound."""
-        self._thread = threading.Thread(target=self._main, name="chcos-modbus-facade",
-                                        daemon=True)
-        self._thread.start()
-        self._ready.wait()
-        if self._error is not None:
-            self._thread.join(timeout=10)
+        try:
+            self._service.start(self._serve)
+        except Exception as exc:
             raise NorthError(f"modbus facade: cannot serve on {self.host}:{self.port}: "
-                             f"{self._error}") from self._error
+                             f"{exc}") from exc
         return self
 
-    def _main(self) -> None:
-        loop = asyncio.new_event_loop()
-        self._loop = loop
-        try:
-            try:
-                loop.run_until_complete(self._listen())
-            except BaseException as exc:
-                self._error = exc
-                return
-            finally:
-                self._ready.set()
-            assert self._server is not None
-            loop.run_until_complete(self._server.serving)
-        finally:
-            loop.run_until_complete(loop.shutdown_default_executor())
-            loop.close()
-
-    async def _listen(self) -> None:
+    async def _serve(self, service: LoopThread) -> None:
+        """The server's life on its loop: bind, serve until stopped, shut down."""
         server = ModbusTcpServer(_Context(self), address=(self.host, self.port))
         await server.serve_forever(background=True)
         self._server = server
-        assert server.transport is not None
-        self.port = int(server.transport.sockets[0].getsockname()[1])  # type: ignore[attr-defined]
+        try:
+            assert server.transport is not None
+            self.port = int(server.transport.sockets[0].getsockname()[1])  # type: ignore[attr-defined]
+            service.ready()
+            await service.stopped()
+        finally:
+            await server.shutdown()  # type: ignore[no-untyped-call]
 
     def stop(self) -> None:
         """Stop serving and join the thread (no error if not running)."""
-        loop, server = self._loop, self._server
-        if self._thread is None or loop is None or server is None or loop.is_closed():
-            return
-        done = server.shutdown()  # type: ignore[no-untyped-call]
-        asyncio.run_coroutine_threadsafe(done, loop).result(timeout=10)
-        self._thread.join(timeout=10)
-        self._thread = None
+        self._service.stop(timeout=10)
 
     def __enter__(self) -> ModbusFacade:
         return self

@@ -35,38 +35,34 @@ Device values and health are copied from the tables on the server's own thread e
 seconds (0.05), ages and the task and link figures every 0.5 s (only what changed is written;
 subscriptions see it at their next publishing interval); the kernel only pays for the event hook
 (and shares the interpreter: ``tools/bench_north.py`` measures what the server costs the control
-loops). Anonymous sessions may read and subscribe; username/password
-sessions get their role. The endpoint is loopback by default; any other address needs a
-certificate and private key and then offers only Basic256Sha256 Sign&Encrypt.
+loops). Anonymous sessions may read and subscribe; username/password sessions get their role
+(:mod:`chcos.north.opcua_methods`: sessions, rules and the methods; the alarms are
+:mod:`chcos.north.opcua_alarms`). The endpoint is loopback by default; any other address needs
+a certificate and private key and then offers only Basic256Sha256 Sign&Encrypt.
 """
 
 from __future__ import annotations
 
 import asyncio
-import contextvars
-import copy
 import logging
 import math
-import shlex
-import socket
-import threading
-from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from typing import TYPE_CHECKING, Any
 from urllib.parse import urlparse
 
 from asyncua import ua as _ua
-from asyncua.crypto.permission_rules import USER_TYPES, PermissionRuleset, User, UserRole
+from asyncua.crypto.permission_rules import User, UserRole
 from asyncua.server.internal_session import InternalSession
 from asyncua.server.server import Server
-from asyncua.server.user_managers import UserManager
 
 from chcos.comm.config import is_loopback
-from chcos.errors import Busy, ChcosError
+from chcos.helpers import free_port
 from chcos.kernel.instrument import Instrument
 from chcos.north import NorthError
 from chcos.north.health import add_health_listener, device_health, remove_health_listener
+from chcos.north.loopthread import LoopThread
+from chcos.north.opcua_alarms import Alarm, AlarmsMixin
+from chcos.north.opcua_methods import CURRENT_USER, Logins, Rules, Session
 
 if TYPE_CHECKING:
     from asyncua.common.node import Node
@@ -79,58 +75,7 @@ if TYPE_CHECKING:
 ua: Any = _ua
 log = logging.getLogger("chcos.north.opcua")
 NAMESPACE = "urn:chcos"
-#: The user of the OPC UA session whose method call is running.
-CURRENT_USER: contextvars.ContextVar[User | None] = contextvars.ContextVar("chcos_opcua_user",
-                                                                           default=None)
 EVENT_KINDS = {"device-failed": 900, "device-stale": 700, "estop": 900, "abnormal": 800}
-#: severity of the alarm raised by a device whose health became this status
-HEALTH_SEVERITY = {"failed": 900, "stale": 700}
-_WRITE = ua.NodeId(ua.ObjectIds.WriteRequest_Encoding_DefaultBinary)
-
-
-def estop(system: System, who: str, reason: str) -> str:
-    """An emergency stop from the north: logged as ``estop``, told to the other satellites,
-    every local actuator with a safe value gets it (on the kernel thread). Returns the answer
-    text."""
-    def on_kernel() -> int:
-        return system.msgmgr.estop(who, reason)
-
-    n = system.call(on_kernel)
-    return f"estop: {n} actuator(s) at safe values"
-
-
-class _Rules(PermissionRuleset):
-    """Everyone may read, browse, subscribe and call; nobody writes attributes or changes the
-    address space (methods check roles themselves)."""
-
-    def __init__(self) -> None:
-        self._allowed = {ua.NodeId(i) for i in USER_TYPES} - {_WRITE}
-
-    def check_validity(self, user: Any, action_type_id: Any, body: Any) -> bool:
-        return action_type_id in self._allowed
-
-
-class _UserManager(UserManager):
-    def __init__(self, users: Users | None) -> None:
-        self.users = users
-
-    def get_user(self, iserver: Any, username: str | None = None, password: str | None = None,
-                 certificate: Any = None) -> User | None:
-        if not username and not certificate:
-            return User(role=UserRole.Anonymous)
-        if self.users is None or not username:
-            return None
-        u = self.users.check(username, password or "")
-        return None if u is None else User(role=UserRole.User, name=u.name)
-
-
-class _Session(InternalSession):
-    async def call(self, params: list[ua.CallMethodRequest]) -> list[ua.CallMethodResult]:
-        token = CURRENT_USER.set(self.user)
-        try:
-            return await super().call(params)
-        finally:
-            CURRENT_USER.reset(token)
 
 
 def _status(direction: str, status: str, has_value: bool) -> ua.StatusCode:
@@ -159,29 +104,7 @@ class _Events(Instrument):
             self.loop.call_soon_threadsafe(self.queue.put_nowait, (kind, detail))
 
 
-@dataclass
-class Alarm:
-    """One condition's state: ``key`` (``Devices.<name>``, ``Tasks.<name>`` or ``EStop``), its
-    source node id text, severity, message, active and acknowledged flags, the EventId of its
-    latest event and the comment and user of the last acknowledgement."""
-
-    key: str
-    source: str
-    severity: int
-    message: str
-    active: bool = True
-    acked: bool = False
-    event_id: bytes = b""
-    comment: str = ""
-    user: str = ""
-
-    @property
-    def retain(self) -> bool:
-        """A client must still show it: active or not yet acknowledged."""
-        return self.active or not self.acked
-
-
-class OpcUaServer:
+class OpcUaServer(AlarmsMixin):
     """The OPC UA server of ``system`` at ``endpoint`` (port 0: a free one), served from a
     background thread. ``users`` may log in (None: everyone is anonymous, read-only).
     ``certificate``/``private_key`` (PEM or DER paths) are required off loopback, where only
@@ -209,11 +132,7 @@ class OpcUaServer:
         #: seconds between refreshes of ages, task and link figures
         self.slow_period = 0.5
         self.refused: list[tuple[str, str, str]] = []
-        self._thread: threading.Thread | None = None
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._stop: asyncio.Event | None = None
-        self._ready = threading.Event()
-        self._error: BaseException | None = None
+        self._service = LoopThread("chcos-opcua")
         self._instrument: _Events | None = None
         self._nodes: dict[str, dict[str, Node]] = {}
         self._last: dict[str, Any] = {}
@@ -233,26 +152,19 @@ class OpcUaServer:
     def start(self) -> OpcUaServer:
         """Build the address space and serve; returns self. Raises NorthError if it cannot."""
         if self.port == 0:
-            with socket.socket(socket.AF_INET6 if ":" in self.host else socket.AF_INET) as s:
-                s.bind((self.host, 0))
-                self.port = int(s.getsockname()[1])
-        self._thread = threading.Thread(target=self._main, name="chcos-opcua", daemon=True)
-        self._thread.start()
-        self._ready.wait()
-        if self._error is not None:
-            self._thread.join(timeout=10)
-            raise NorthError(f"opcua: cannot serve {self.endpoint}: {self._error}") \
-                from self._error
+            try:
+                self.port = free_port(self.host)
+            except OSError as exc:
+                raise NorthError(f"opcua: cannot serve {self.endpoint}: {exc}") from exc
+        try:
+            self._service.start(self._serve)
+        except Exception as exc:
+            raise NorthError(f"opcua: cannot serve {self.endpoint}: {exc}") from exc
         return self
 
     def stop(self) -> None:
         """Stop serving and join the thread (no error if not running)."""
-        loop, stop = self._loop, self._stop
-        if self._thread is None or loop is None or stop is None or loop.is_closed():
-            return
-        loop.call_soon_threadsafe(stop.set)
-        self._thread.join(timeout=15)
-        self._thread = None
+        self._service.stop(timeout=15)
 
     def __enter__(self) -> OpcUaServer:
         return self
@@ -260,34 +172,25 @@ class OpcUaServer:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
-    def _main(self) -> None:
-        loop = asyncio.new_event_loop()
-        self._loop = loop
+    async def _serve(self, service: LoopThread) -> None:
+        """The server's life on its loop: build the address space, serve until stopped; the
+        kernel and Devtab hooks are removed whatever happens."""
         try:
-            loop.run_until_complete(self._serve())
-        except BaseException as exc:
-            if not self._ready.is_set():
-                self._error = exc
-            else:
-                log.exception("opcua server failed")
+            await self._serve_until_stopped(service)
         finally:
-            self._ready.set()
             if self._instrument is not None:
                 self.system.kernel.remove_instrument(self._instrument)
             if self._listen_health:
                 remove_health_listener(self.system.devtab, self._on_health)
-            loop.run_until_complete(loop.shutdown_default_executor())
-            loop.close()
 
-    async def _serve(self) -> None:
-        self._stop = asyncio.Event()
-        server = Server(user_manager=_UserManager(self.users))
+    async def _serve_until_stopped(self, service: LoopThread) -> None:
+        server = Server(user_manager=Logins(self.users))
         await server.init()
         iserver = server.iserver
 
         def create_session(name: str, user: User = User(role=UserRole.Anonymous),  # noqa: B008
                            external: bool = False) -> InternalSession:
-            return _Session(iserver, iserver.aspace, iserver.subscription_service, name,
+            return Session(iserver, iserver.aspace, iserver.subscription_service, name,
                             user=user, external=external)
 
         iserver.create_session = create_session  # type: ignore[method-assign]
@@ -300,7 +203,7 @@ class OpcUaServer:
             policies.append(ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt)
         if not self.secure:
             policies.insert(0, ua.SecurityPolicyType.NoSecurity)
-        server.set_security_policy(policies, permission_ruleset=_Rules())  # type: ignore[arg-type]
+        server.set_security_policy(policies, permission_ruleset=Rules())  # type: ignore[arg-type]
         tokens: list[type] = [ua.AnonymousIdentityToken]
         if self.users is not None:
             tokens.append(ua.UserNameIdentityToken)
@@ -328,10 +231,10 @@ class OpcUaServer:
             self.system.kernel.add_instrument(self._instrument)
             if self._listen_health:
                 add_health_listener(self.system.devtab, self._on_health)
-            self._ready.set()
+            service.ready()
             refresher = asyncio.create_task(self._refresher())
             emitter = asyncio.create_task(self._emit(evgen, queue))
-            await self._stop.wait()
+            await service.stopped()
             refresher.cancel()
             emitter.cancel()
 
@@ -498,175 +401,14 @@ class OpcUaServer:
     # ---- alarms (conditions) ----------------------------------------------------------------
     def health_changed(self, device: str, healthy: bool, status: str, cause: str) -> None:
         """A device's health changed (any thread): raise or clear its alarm."""
-        loop, q = self._loop, self._queue
-        if loop is not None and q is not None and not loop.is_closed():
-            loop.call_soon_threadsafe(q.put_nowait, ("health", device, healthy, status, cause))
+        q = self._queue
+        if q is not None:
+            self._service.call(q.put_nowait, ("health", device, healthy, status, cause))
 
     def _on_health(self, device: str, healthy: bool, cause: str) -> None:
-        if self._stop is not None and self._stop.is_set():
+        if self._service.stopping:
             return
         e = self.system.devtab.get(device)
         self.health_changed(device, healthy, device_health(e).status, cause)
-
-    async def _health_alarm(self, device: str, healthy: bool, status: str, cause: str) -> None:
-        key = f"Devices.{device}"
-        if healthy:
-            a = self.alarms.get(key)
-            if a is not None and a.active:
-                a.active = False
-                a.message = f"{device} {cause or 'healthy again'}"
-                await self._tell(a)
-        elif status in HEALTH_SEVERITY:
-            await self._raise(key, key, HEALTH_SEVERITY[status],
-                              f"{device} {status}" + (f": {cause}" if cause else ""))
-
-    async def _raise(self, key: str, source: str, severity: int, message: str) -> None:
-        """Raise (or raise again) the alarm ``key`` of source node ``source``."""
-        if key not in self.alarms:
-            await self._alarm_folder.add_object(ua.NodeId(f"Alarms.{key}", self._idx),
-                                                self._qn(key))
-        a = self.alarms[key] = Alarm(key, source, severity, message)
-        await self._tell(a)
-
-    async def _tell(self, a: Alarm, subscription_id: int | None = None) -> None:
-        """Send the alarm's current state as an OffNormalAlarmType event. A fresh event object
-        each time: asyncua keeps the last retained one per condition for ConditionRefresh."""
-        ev = self._alarmgen.event = copy.copy(self._alarmgen.event)
-        text = ua.LocalizedText
-        ev.NodeId = ua.NodeId(f"Alarms.{a.key}", self._idx)
-        ev.SourceNode = ua.NodeId(a.source, self._idx)
-        ev.SourceName = a.key.split(".", 1)[-1]
-        ev.ConditionName = a.key
-        ev.ConditionClassId = ua.NodeId(ua.ObjectIds.BaseConditionClassType)
-        ev.ConditionClassName = text("BaseConditionClass")
-        ev.Message = text(a.message)
-        ev.Severity = a.severity
-        ev.LastSeverity = a.severity
-        ev.Retain = a.retain
-        ev.Quality = ua.StatusCode()
-        ev.EnabledState = text("Enabled")
-        setattr(ev, "EnabledState/Id", True)
-        ev.ActiveState = text("Active" if a.active else "Inactive")
-        setattr(ev, "ActiveState/Id", a.active)
-        ev.AckedState = text("Acknowledged" if a.acked else "Unacknowledged")
-        setattr(ev, "AckedState/Id", a.acked)
-        ev.Comment = text(a.comment)
-        ev.ClientUserId = a.user if a.acked else ""
-        await self._alarmgen.trigger(subscription_id=subscription_id)
-        eid = ev.EventId
-        a.event_id = bytes(eid.Value if isinstance(eid, ua.Variant) else eid)
-        if not a.retain:
-            del self.alarms[a.key]
-
-    async def _acknowledge(self, parent: ua.NodeId, event_id: Any, comment: Any) -> Any:
-        """The Acknowledge method of a condition: operators and supervisors only."""
-        who, account = self._user()
-        if account is None or not account.may("invoke"):
-            self._refusal(who, "acknowledge", f"acknowledge: {who} may not acknowledge alarms "
-                          f"(role {account.role if account else 'anonymous'})")
-            return ua.StatusCode(ua.StatusCodes.BadUserAccessDenied)
-        key = str(parent.Identifier)
-        a = self.alarms.get(key[len("Alarms."):]) if key.startswith("Alarms.") else None
-        if a is None:
-            return ua.StatusCode(ua.StatusCodes.BadConditionBranchAlreadyAcked
-                                 if key.startswith("Alarms.") else ua.StatusCodes.BadNodeIdInvalid)
-        eid = event_id.Value if isinstance(event_id, ua.Variant) else event_id
-        if bytes(eid or b"") != a.event_id:
-            return ua.StatusCode(ua.StatusCodes.BadEventIdUnknown)
-        if a.acked:
-            return ua.StatusCode(ua.StatusCodes.BadConditionBranchAlreadyAcked)
-        c = comment.Value if isinstance(comment, ua.Variant) else comment
-        a.acked, a.user = True, who
-        a.comment = c.Text or "" if isinstance(c, ua.LocalizedText) else str(c or "")
-        if a.key in ("EStop",) or a.key.startswith("Tasks."):
-            a.active = False  # a latched alarm ends with its acknowledgement
-        log.info("opcua: alarm %s acknowledged by %s", a.key, who)
-        await self._tell(a)
-        return []
-
-    # ---- methods ----------------------------------------------------------------------------
-    def _user(self) -> tuple[str, Any]:
-        u = CURRENT_USER.get()
-        name = u.name if u is not None and u.name else ""
-        account = self.users.users.get(name) if self.users is not None and name else None
-        return name or "anonymous", account
-
-    def _method(self, command: str, build: Callable[..., str | Callable[[str], str]]
-                ) -> Callable[..., Awaitable[Any]]:
-        async def call(parent: ua.NodeId, *args: ua.Variant) -> Any:
-            who, account = self._user()
-            if account is None or not account.may(command):
-                reason = (f"{command}: {who} may not issue it (role "
-                          f"{account.role if account else 'anonymous'})")
-                self._refusal(who, command, reason)
-                log.warning("opcua: %s", reason)
-                return ua.StatusCode(ua.StatusCodes.BadUserAccessDenied)
-            values = [a.Value if isinstance(a, ua.Variant) else a for a in args]
-            loop = asyncio.get_running_loop()
-            try:
-                what = build(*values)
-                if isinstance(what, str):
-                    answer = await loop.run_in_executor(None, self._execute, what)
-                else:
-                    answer = await loop.run_in_executor(None, what, who)
-            except Busy as exc:
-                self._refusal(who, command, str(exc))
-                return ua.StatusCode(ua.StatusCodes.BadResourceUnavailable)
-            except (ChcosError, ValueError, TypeError) as exc:
-                self._refusal(who, command, str(exc))
-                log.warning("opcua: %s by %s refused: %s", command, who, exc)
-                return ua.StatusCode(ua.StatusCodes.BadInvalidArgument)
-            log.info("opcua: %s by %s: %s", command, who, answer)
-            return [ua.Variant(str(answer), ua.VariantType.String)]
-
-        return call
-
-    def _refusal(self, who: str, command: str, reason: str) -> None:
-        """Remember a refused method call."""
-        self.refused.append((who, command, reason))
-
-    def _execute(self, line: str) -> str:
-        """Run one host command line on the system (raises ChcosError)."""
-        return self.system.execute(line)
-
-    def _do_estop(self, who: str, reason: str) -> str:
-        """Every actuator to its safe value, on the kernel thread; the answer text."""
-        return estop(self.system, f"opcua {who}", reason)
-
-    def _estop(self, reason: str) -> Callable[[str], str]:
-        def run(who: str) -> str:
-            return self._do_estop(who, reason)
-
-        return run
-
-    async def _add_methods(self, root: Node, idx: int) -> None:
-        S, I32 = ua.VariantType.String, ua.VariantType.Int32
-
-        def arg(name: str, vt: ua.VariantType) -> ua.Argument:
-            a = ua.Argument()
-            a.Name = name
-            a.DataType = ua.NodeId(vt.value)
-            a.ValueRank = -1
-            return a
-
-        out = [arg("Answer", S)]
-        q = shlex.quote
-
-        def invoke(task: str, args: str = "", prio: int = -1) -> str:
-            return (f"invoke {'-' + str(prio) + ' ' if prio >= 0 else ''}{q(task)} "
-                    f"{args}").strip()
-
-        for name, command, build, inputs in (
-                ("Invoke", "invoke", invoke,
-                 [arg("Task", S), arg("Args", S), arg("Priority", I32)]),
-                ("SetPri", "setpri",
-                 lambda src, dst, prio: f"setpri -{int(prio)} {q(src)} {q(dst)}",
-                 [arg("Src", S), arg("Dst", S), arg("Priority", I32)]),
-                ("Suspend", "suspend", lambda task: f"suspend {q(task)}", [arg("Task", S)]),
-                ("Resume", "resume", lambda task: f"resume {q(task)}", [arg("Task", S)]),
-                ("EStop", "estop", self._estop, [arg("Reason", S)])):
-            await root.add_method(ua.NodeId(f"chcos.{name}", idx), self._qn(name),
-                                  self._method(command, build), inputs, out)
-
 
 __all__ = ["CURRENT_USER", "NAMESPACE", "OpcUaServer"]

@@ -27,7 +27,8 @@ from chcos.errors import Busy, ChcosError
 from chcos.kernel.instrument import Instrument
 from chcos.north import NorthError
 from chcos.north.health import add_health_listener, device_health, remove_health_listener
-from chcos.north.opcua import EVENT_KINDS, OpcUaServer, estop
+from chcos.north.opcua import EVENT_KINDS, OpcUaServer
+from chcos.north.opcua_methods import estop
 
 if TYPE_CHECKING:
     from multiprocessing.connection import Connection

@@ -65,8 +65,8 @@ from chcos.comm.config import (
 )
 from chcos.comm.secret import SystemSecret, load_or_create, loopback_pki
 from chcos.comm.section import link_config_from_section
-from chcos.common import load_toml
 from chcos.errors import ConfigError
+from chcos.helpers import load_toml
 
 log = logging.getLogger("chcos.satellites.sysfile")
 

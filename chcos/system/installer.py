@@ -18,8 +18,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from chcos.common import NAME_PATTERN
 from chcos.errors import InstallError, TaskError
+from chcos.helpers import NAME_PATTERN
 from chcos.system.cmdline import Install
 from chcos.system.loader import resolve
 from chcos.system.ports import Devices, Messages, Setup

@@ -26,7 +26,7 @@ def render_text(doc: dict[str, Any], rates: Mapping[str, float] | None = None,
                 implicit: bool = False) -> str:
     """The hierarchy as lines of text (highest level first), each task with its links, then
     devices, files and terminals. ``rates`` (messages per second by
-    :func:`chcos.viewer.graph.link_key`) adds a rate to every link; ``implicit`` also lists
+    :func:`chcos.viewer.layout.link_key`) adds a rate to every link; ``implicit`` also lists
     implicit links (exception taps, assassin and host links)."""
     out: list[str] = []
     by_level: dict[int, list[dict[str, Any]]] = defaultdict(list)

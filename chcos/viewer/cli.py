@@ -3,9 +3,11 @@
 ``chcos map [MAP] [--format text|dot|svg] [-o FILE] [--implicit]``
     reads a sysfile.map (default ./sysfile.map) and prints the hierarchy, levels top to bottom.
 
-``chcos view [MAP | --example fig65] [--port 0] [--invoke TASK]... [--duration S] [--terminal]
+``chcos view [MAP | --example NAME] [--port 0] [--invoke TASK]... [--duration S] [--terminal]
 [--users FILE]``
-    rebuilds the system from MAP (or builds the figure 6.5 example), runs it on real time, and
+    rebuilds the system from MAP (or builds a named example the caller supplies, see
+    :data:`ExampleBuilder`; ``chcos view --example fig65`` is :mod:`chcos.cli.view`), runs it on
+    real time, and
     serves the live page on 127.0.0.1 (port 0: a free one); prints the URL. Read-only unless
     ``--users`` names a users file (operator credentials). ``--terminal`` also
     redraws the hierarchy as text, with message rates, once a second.
@@ -18,14 +20,14 @@
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, TextIO, cast
+from typing import TYPE_CHECKING, NamedTuple, TextIO, cast
 
 from chcos.errors import ChcosError
+from chcos.kernel.clock import Clock
 from chcos.system import sysmap
 from chcos.viewer import ViewerError
 from chcos.viewer.graph import render_dot, render_svg
@@ -68,22 +70,34 @@ def map_main(argv: Sequence[str], out: TextIO | None = None) -> int:
     return 0
 
 
-def _build(args: argparse.Namespace) -> tuple[System, Path | None, list[str]]:
+class Example(NamedTuple):
+    """A system to view by name (``chcos view --example NAME``): the built system (not yet
+    started), the host script to run on it before it starts (or None), the tasks to invoke once
+    it runs."""
+
+    system: System
+    script: Path | None
+    invokes: list[str]
+
+
+ExampleBuilder = Callable[[Clock, Path], Example]
+"""Builds an :class:`Example` on a clock with its files in a work directory; raises ChcosError
+if it cannot. The command line (:mod:`chcos.cli.view`) supplies the applications' builders: the
+viewer itself knows no application."""
+
+
+def _build(args: argparse.Namespace, examples: Mapping[str, ExampleBuilder]
+           ) -> tuple[System, Path | None, list[str]]:
     """The system to view (on real time), the host script to run on it before it starts, and
     the tasks to invoke once it runs. Raises ChcosError if it cannot be built."""
     from chcos.kernel.clock import RealClock
     from chcos.system.embedded import System
 
     if args.example:
-        from chcos.apps import fig65
-        from chcos.apps.fig65 import runner as fig65run
-
-        workdir = Path(args.workdir or "out/fig65")
+        workdir = Path(args.workdir or f"out/{args.example}")
         workdir.mkdir(parents=True, exist_ok=True)
-        shutil.copy(fig65.HERE / "testfile", workdir / "testfile")
-        system = System([fig65run.default_devmap()], clock=RealClock(), task_path=[fig65.HERE],
-                        base_dir=workdir, map_path=workdir / "sysfile.map")
-        return system, fig65.SCRIPT, list(args.invoke or ["C1"])
+        ex = examples[args.example](RealClock(), workdir)
+        return ex.system, ex.script, list(args.invoke or ex.invokes)
     path = Path(args.map or "sysfile.map")
     system = System.from_map(path, clock=RealClock(),
                              map_path=Path(args.workdir) / "sysfile.map" if args.workdir
@@ -91,13 +105,14 @@ def _build(args: argparse.Namespace) -> tuple[System, Path | None, list[str]]:
     return system, None, list(args.invoke or [])
 
 
-def view_main(argv: Sequence[str], *, stop: threading.Event | None = None,
+def view_main(argv: Sequence[str], *, examples: Mapping[str, ExampleBuilder] | None = None,
+              stop: threading.Event | None = None,
               on_ready: Callable[[Viewer], None] | None = None, out: TextIO | None = None
               ) -> int:
     """``chcos view``: run a system on real time and serve its live page until ``--duration``
     passes, Ctrl-C, or ``stop`` is set; ``on_ready(viewer)`` is called once the page is up.
-    Returns the exit status (1 with a message on stderr if the system or server cannot start).
-    """
+    ``examples`` are the systems ``--example NAME`` may build. Returns the exit status (1 with a
+    message on stderr if the system or server cannot start)."""
     from chcos.system.textview import render_text
     from chcos.viewer.server import Viewer
     from chcos.viewer.snapshot import EventLog, Snapshotter
@@ -106,7 +121,10 @@ def view_main(argv: Sequence[str], *, stop: threading.Event | None = None,
     p = argparse.ArgumentParser(prog="chcos view", description="Serve the live hierarchy of a "
                                 "running system on a web page (and the terminal).")
     p.add_argument("map", nargs="?", help="sysfile.map to rebuild the system from")
-    p.add_argument("--example", choices=("fig65",), help="view the thesis' figure 6.5 system")
+    examples = dict(examples or {})
+    p.add_argument("--example", choices=sorted(examples),
+                   help="view a named example system (" + (", ".join(sorted(examples)) or "none")
+                        + ")")
     p.add_argument("--system", metavar="FILE",
                    help="attach to the running satellites of this system file through the "
                         "host's (authenticated) link instead of running a system here")
@@ -133,7 +151,7 @@ def view_main(argv: Sequence[str], *, stop: threading.Event | None = None,
     system: System | None = None
     viewer: Viewer | None = None
     try:
-        system, script, invokes = _build(args)
+        system, script, invokes = _build(args, examples)
         events = EventLog(system.kernel.clock)
         system.kernel.add_instrument(events)
         if script is not None:
@@ -223,4 +241,4 @@ def _view_remote(args: argparse.Namespace, stop: threading.Event | None,
     return 0
 
 
-__all__ = ["ViewerError", "map_main", "view_main"]
+__all__ = ["Example", "ExampleBuilder", "ViewerError", "map_main", "view_main"]

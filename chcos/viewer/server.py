@@ -24,11 +24,9 @@ Routes (on 127.0.0.1 unless told otherwise):
 
 Security. Every request's ``Host`` must be this server's own address (``127.0.0.1:PORT``, or
 ``localhost:PORT`` on loopback) and an ``Origin``, when sent, the same: a page from another site,
-also one reached through DNS rebinding, can neither read nor command. The viewer is read-only
-unless it is given ``users`` (an operator credential, :class:`chcos.north.auth.Users`);
-commands then need a logged-in session (cookie) *and* its token in a header, as JSON: a
-cross-site form or ``text/plain`` POST is refused (CSRF). The page offers setpri and invoke only,
-and only to a role that may issue them (operator, supervisor).
+also one reached through DNS rebinding, can neither read nor command. Logins and commands
+(read-only without ``users``; session cookie and token; setpri and invoke only) are
+:mod:`chcos.viewer.commands`.
 
 The cell is never slowed by the page: snapshots are taken on the viewer's thread at the viewer's
 rate, only while a page is connected, by reading the tables (torn reads accepted, see
@@ -40,26 +38,22 @@ reading is dropped once its stream has not drained for ``stall_timeout`` seconds
 from __future__ import annotations
 
 import asyncio
-import hmac
 import json
 import logging
-import secrets
 import ssl
 import threading
 import time
-from collections import OrderedDict
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from aiohttp import web
 
 from chcos import resources
 from chcos.comm.config import is_loopback
-from chcos.errors import Busy, ChcosError
-from chcos.system import cmdline
+from chcos.north.loopthread import LoopThread
 from chcos.system.textview import render_text
 from chcos.viewer import ViewerError
+from chcos.viewer.commands import PageCommands
 from chcos.viewer.graph import Live, render_dot, render_svg
 from chcos.viewer.snapshot import (
     SAME,
@@ -71,52 +65,15 @@ from chcos.viewer.snapshot import (
 )
 
 if TYPE_CHECKING:
-    from chcos.north.auth import User, Users
+    from chcos.north.auth import Users
     from chcos.system.embedded import System
 
 log = logging.getLogger("chcos.viewer")
 STATIC = resources.path("chcos.viewer", "static")
 #: Events a newly connected page receives from before it connected.
 HISTORY = 200
-#: The commands the page offers at all (a role may allow fewer).
-PAGE_COMMANDS = ("setpri", "invoke")
-COOKIE = "chcos_session"
-TOKEN_HEADER = "X-CHCOS-Token"
-#: Sessions kept at once (the oldest is ended beyond this).
-MAX_SESSIONS = 64
-
-
 def _dumps(obj: Any) -> str:
     return json.dumps(obj, default=str, separators=(",", ":"))
-
-
-def command_name(req: cmdline.Request) -> str:
-    """The host command a parsed request is (``setpri``, ``invoke``, ``suspend``...)."""
-    if isinstance(req, cmdline.SetPri):
-        return "setpri"
-    if isinstance(req, cmdline.Invoke):
-        return "invoke"
-    if isinstance(req, cmdline.TaskOp):
-        return req.op
-    if isinstance(req, cmdline.Inject):
-        return "inject"
-    if isinstance(req, cmdline.ShowMap):
-        return "map"
-    return "install"
-
-
-def allowed(req: cmdline.Request) -> bool:
-    """True for the host commands the page may issue at all: setpri and invoke."""
-    return command_name(req) in PAGE_COMMANDS
-
-
-@dataclass
-class Session:
-    """One logged-in browser: its user and the token its commands must carry."""
-
-    user: User
-    token: str
-    started: float
 
 
 class Viewer:
@@ -151,18 +108,14 @@ class Viewer:
         self.snapshots = Snapshotter(system, events, implicit)
         self.events = self.snapshots.events
         self.implicit = implicit
-        self._thread: threading.Thread | None = None
-        self._ready = threading.Event()
-        self._error: BaseException | None = None
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._stop_evt: asyncio.Event | None = None
+        self._service = LoopThread("chcos-viewer")
         self._tick: asyncio.Condition | None = None
         # the newest state and the patch from the one before it (shared by every stream)
         self._state: dict[str, Any] | None = None
         self._patch: Any = SAME
         self._prev: dict[str, Any] | None = None
         self._svg: tuple[Any, float, str] | None = None  # (structure, when, svg)
-        self._sessions: OrderedDict[str, Session] = OrderedDict()
+        self.commands = PageCommands(system, users, secure=ssl_context is not None)
         self._clients = 0
         self._count = threading.Condition()
         self.dropped = 0
@@ -172,7 +125,7 @@ class Viewer:
     @property
     def read_only(self) -> bool:
         """True when nobody can log in: the page only shows."""
-        return self.users is None
+        return self.commands.read_only
 
     @property
     def url(self) -> str:
@@ -199,51 +152,23 @@ class Viewer:
     def start(self) -> Viewer:
         """Start serving on a background thread; returns self. Raises ViewerError if the
         address cannot be bound or the viewer already runs."""
-        if self._thread is not None:
+        if self._service.running:
             raise ViewerError("viewer already started")
-        self._thread = threading.Thread(target=self._main, name="chcos-viewer", daemon=True)
-        self._thread.start()
-        self._ready.wait()
-        if self._error is not None:
-            self._thread.join(timeout=10)
-            self._thread = None
-            raise ViewerError(f"cannot serve on {self.host}:{self.port}: "
-                              f"{self._error}") from self._error
+        try:
+            self._service.start(self._serve)
+        except Exception as exc:
+            raise ViewerError(f"cannot serve on {self.host}:{self.port}: {exc}") from exc
         return self
 
     def stop(self) -> None:
         """Close every stream, stop the server and join its thread (no error if not started)."""
-        loop, evt = self._loop, self._stop_evt
-        if self._thread is None or loop is None or evt is None:
-            return
-        if not loop.is_closed():
-            loop.call_soon_threadsafe(evt.set)
-        self._thread.join(timeout=10)
-        self._thread = None
+        self._service.stop(timeout=10)
 
     def __enter__(self) -> Viewer:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
-
-    def _main(self) -> None:
-        loop = asyncio.new_event_loop()
-        self._loop = loop
-        runner: web.AppRunner | None = None
-        try:
-            try:
-                runner = loop.run_until_complete(self._start())
-            except BaseException as exc:  # reported to start()
-                self._error = exc
-                return
-            finally:
-                self._ready.set()
-            assert self._stop_evt is not None
-            loop.run_until_complete(self._serve_until_stopped(runner))
-        finally:
-            loop.run_until_complete(loop.shutdown_default_executor())
-            loop.close()
 
     def app(self) -> web.Application:
         """The aiohttp application (routes and the Host/Origin guard); also for test clients."""
@@ -255,14 +180,26 @@ class Viewer:
         app.router.add_get("/api/map.svg", self._map_svg)
         app.router.add_get("/api/map.dot", self._map_dot)
         app.router.add_get("/api/map.txt", self._map_txt)
-        app.router.add_get("/api/session", self._session)
-        app.router.add_post("/api/login", self._login)
-        app.router.add_post("/api/logout", self._logout)
-        app.router.add_post("/api/command", self._command)
+        app.router.add_get("/api/session", self.commands.session)
+        app.router.add_post("/api/login", self.commands.login)
+        app.router.add_post("/api/logout", self.commands.logout)
+        app.router.add_post("/api/command", self.commands.command)
         return app
 
+    async def _serve(self, service: LoopThread) -> None:
+        """The server's life on its loop: bind, serve until stopped, close every stream."""
+        runner = await self._start()
+        service.ready()
+        assert self._tick is not None
+        ticker = asyncio.create_task(self._ticker())
+        await service.stopped()
+        self._stopping = True
+        ticker.cancel()
+        async with self._tick:
+            self._tick.notify_all()
+        await runner.cleanup()
+
     async def _start(self) -> web.AppRunner:
-        self._stop_evt = asyncio.Event()
         self._tick = asyncio.Condition()
         runner = web.AppRunner(self.app(), access_log=None, shutdown_timeout=1.0)
         await runner.setup()
@@ -274,16 +211,6 @@ class Viewer:
             raise
         self.port = int(runner.addresses[0][1])
         return runner
-
-    async def _serve_until_stopped(self, runner: web.AppRunner) -> None:
-        assert self._stop_evt is not None and self._tick is not None
-        ticker = asyncio.create_task(self._ticker())
-        await self._stop_evt.wait()
-        self._stopping = True
-        ticker.cancel()
-        async with self._tick:
-            self._tick.notify_all()
-        await runner.cleanup()
 
     # ---- the state the streams send ---------------------------------------------------------
     def _render(self, snap: dict[str, Any]) -> str:
@@ -426,122 +353,6 @@ class Viewer:
         finally:
             self._set_clients(-1)
         return resp
-
-    # ---- sessions ---------------------------------------------------------------------------
-    def _session_of(self, request: web.Request) -> Session | None:
-        sid = request.cookies.get(COOKIE)
-        return None if sid is None else self._sessions.get(sid)
-
-    async def _session(self, request: web.Request) -> web.Response:
-        s = self._session_of(request)
-        if s is None:
-            return web.json_response({"user": None, "read_only": self.read_only})
-        return web.json_response(self._session_json(s))
-
-    def _session_json(self, s: Session) -> dict[str, Any]:
-        from chcos.north.auth import ROLE_COMMANDS
-
-        return {"user": s.user.name, "role": s.user.role, "token": s.token,
-                "read_only": self.read_only,
-                "commands": [c for c in PAGE_COMMANDS if c in ROLE_COMMANDS[s.user.role]]}
-
-    @staticmethod
-    def _json_only(request: web.Request) -> web.Response | None:
-        if request.content_type != "application/json":
-            return web.json_response(
-                {"ok": False, "error": f"Content-Type {request.content_type!r}: expected "
-                                       "application/json (forms and text/plain are refused)"},
-                status=415)
-        return None
-
-    async def _login(self, request: web.Request) -> web.Response:
-        if self.users is None:
-            return web.json_response({"ok": False, "error": "this viewer is read-only: it was "
-                                      "started without operator credentials"}, status=403)
-        bad = self._json_only(request)
-        if bad is not None:
-            return bad
-        try:
-            body = await request.json()
-            name, password = body["user"], body["password"]
-            if not isinstance(name, str) or not isinstance(password, str):
-                raise TypeError("user and password must be strings")
-        except (ValueError, KeyError, TypeError) as exc:
-            return web.json_response({"ok": False, "error": 'expected JSON {"user": ..., '
-                                      f'"password": ...}}: {exc}'}, status=400)
-        loop = asyncio.get_running_loop()
-        user = await loop.run_in_executor(None, self.users.check, name, password)
-        if user is None:
-            return web.json_response({"ok": False, "error": "unknown user or wrong password"},
-                                     status=401)
-        sid, token = secrets.token_urlsafe(32), secrets.token_urlsafe(32)
-        self._sessions[sid] = s = Session(user, token, time.monotonic())
-        while len(self._sessions) > MAX_SESSIONS:
-            self._sessions.popitem(last=False)
-        resp = web.json_response({"ok": True, **self._session_json(s)})
-        resp.set_cookie(COOKIE, sid, httponly=True, samesite="Strict", path="/",
-                        secure=self.ssl_context is not None)
-        return resp
-
-    async def _logout(self, request: web.Request) -> web.Response:
-        sid = request.cookies.get(COOKIE)
-        if sid is not None:
-            self._sessions.pop(sid, None)
-        resp = web.json_response({"ok": True})
-        resp.del_cookie(COOKIE, path="/")
-        return resp
-
-    async def _command(self, request: web.Request) -> web.Response:
-        def refuse(status: int, error: str) -> web.Response:
-            return web.json_response({"ok": False, "error": error}, status=status)
-
-        if self.users is None:
-            return refuse(403, "this viewer is read-only: it was started without operator "
-                               "credentials")
-        bad = self._json_only(request)
-        if bad is not None:
-            return bad
-        session = self._session_of(request)
-        if session is None:
-            return refuse(401, "not logged in: log in as an operator first")
-        token = request.headers.get(TOKEN_HEADER, "")
-        if not hmac.compare_digest(token.encode(), session.token.encode()):
-            return refuse(403, f"missing or wrong {TOKEN_HEADER} header for this session")
-        try:
-            body = await request.json()
-            line = body["line"]
-            if not isinstance(line, str):
-                raise TypeError("line must be a string")
-        except (ValueError, KeyError, TypeError) as exc:
-            return refuse(400, f'expected JSON {{"line": "setpri -9 C1 B1"}}: {exc}')
-        try:
-            req = cmdline.parse(line)
-        except (ChcosError, ValueError) as exc:
-            return refuse(400, str(exc))
-        if req is None:
-            return refuse(400, "empty command line")
-        name = command_name(req)
-        if not allowed(req):
-            return refuse(403, f"{name}: only {' and '.join(PAGE_COMMANDS)} may be issued "
-                               "from the viewer")
-        if not session.user.may(name):
-            return refuse(403, f"{name}: role {session.user.role!r} of {session.user.name} "
-                               "may not issue it")
-        loop = asyncio.get_running_loop()
-        try:
-            answer = await loop.run_in_executor(None, self.system.execute, line)
-        except Busy as exc:
-            return refuse(409, str(exc))
-        except ChcosError as exc:
-            return refuse(400, str(exc))
-        except TimeoutError:
-            return refuse(503, f"{line}: the kernel did not answer in time")
-        except Exception as exc:  # a refused command never answers 500
-            log.exception("viewer command %r failed", line)
-            return refuse(422, f"{line}: {type(exc).__name__}: {exc}")
-        log.info("viewer: %s (%s) ran %r", session.user.name, session.user.role, line)
-        return web.json_response({"ok": True, "answer": answer})
-
 
 def serve(system: System, host: str = "127.0.0.1", port: int = 0, *, period: float = 0.1,
           events: EventLog | None = None, users: Users | None = None,

@@ -25,7 +25,8 @@ from typing import TYPE_CHECKING, Any
 from chcos.kernel.clock import Clock
 from chcos.kernel.instrument import Instrument
 from chcos.viewer import ViewerError
-from chcos.viewer.graph import Live, link_key, render_svg
+from chcos.viewer.graph import Live, render_svg
+from chcos.viewer.layout import link_key
 
 if TYPE_CHECKING:
     from chcos.system.embedded import System
@@ -174,7 +175,7 @@ class Snapshotter:
     def take(self, events_since: int | None = None, svg: bool = True) -> dict[str, Any]:
         """One snapshot: ``seq``, ``time`` (seconds since the system started), ``map`` (the map
         document, its ``time`` also since start), ``rates`` (messages per second by
-        :func:`~chcos.viewer.graph.link_key`), ``ages`` (seconds since each device's last
+        :func:`~chcos.viewer.layout.link_key`), ``ages`` (seconds since each device's last
         value), ``marks`` (latest notable event per name), ``events`` (those
         numbered above ``events_since``; none if it is None), ``last_event`` and ``svg`` (the
         drawing, unless ``svg`` is false). Raises ViewerError if the tables cannot be read."""

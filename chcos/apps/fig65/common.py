@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from chcos.helpers import is_number
 from chcos.user.context import TaskContext
 
 FAN_IN = 5  # five inputs at level n make one output at level n+1 (thesis 6.4)
@@ -48,6 +49,6 @@ async def condense(ctx: TaskContext, actuator: str | None = None, gain: float = 
 
 
 def _number(value: Any) -> float | None:
-    if isinstance(value, int | float) and not isinstance(value, bool):
+    if is_number(value):
         return float(value)
     return None

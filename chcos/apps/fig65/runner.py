@@ -27,18 +27,24 @@ def default_devmap() -> Path:
     return resources.path("chcos.apps.fig65", "fig65.toml")
 
 
+def build(clock: Clock, workdir: Path) -> System:
+    """The figure 6.5 system on ``clock`` (booted, nothing installed), its map, log and the test
+    file task A3 samples in ``workdir`` (created). Raises ChcosError if it cannot be built."""
+    workdir.mkdir(parents=True, exist_ok=True)
+    shutil.copy(fig65.HERE / "testfile", workdir / "testfile")
+    return System([default_devmap()], clock=clock, task_path=[fig65.HERE], base_dir=workdir,
+                  map_path=workdir / "sysfile.map")
+
+
 def run(duration: float = 20.0, *, real_time: bool = False, workdir: Path | None = None,
         out: TextIO = sys.stdout, tty: str | None = None) -> dict[str, float]:
     """Run the example for ``duration`` seconds of clock time; returns the summary figures.
     ``tty`` names a real terminal A4 reads instead of /dev/tty0 (lines typed there reach C1).
     Raises ChcosError if the system cannot be built."""
     workdir = workdir or Path("out") / "fig65"
-    workdir.mkdir(parents=True, exist_ok=True)
-    shutil.copy(fig65.HERE / "testfile", workdir / "testfile")
     clock: Clock = RealClock() if real_time else VirtualClock()
     counters = Counters()
-    with System([default_devmap()], clock=clock, task_path=[fig65.HERE], base_dir=workdir,
-                map_path=workdir / "sysfile.map") as s:
+    with build(clock, workdir) as s:
         s.kernel.add_instrument(counters)
         for line in fig65.SCRIPT.read_text(encoding="utf-8").splitlines():
             answer = s.execute(line.replace("/dev/tty0", tty) if tty else line)

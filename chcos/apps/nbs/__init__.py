@@ -19,12 +19,10 @@ from chcos.apps.nbs.executor import (
     NbsExecutor,
     Order,
     Report,
-    RunnableScheduler,
     Sample,
-    Scheduler,
     TableH,
-    VirtualScheduler,
 )
+from chcos.apps.nbs.scheduling import RunnableScheduler, Scheduler, VirtualScheduler
 from chcos.apps.nbs.statetable import (
     BUILTIN_TABLES,
     Call,

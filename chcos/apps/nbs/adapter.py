@@ -1,7 +1,7 @@
 """adapter - run an NBS executor on a chcos System: same kernel clock, same Devtab, same load.
 
 The NBS baseline (:mod:`chcos.apps.nbs.executor`) needs a
-:class:`~chcos.apps.nbs.executor.Scheduler` and a
+:class:`~chcos.apps.nbs.scheduling.Scheduler` and a
 :class:`~chcos.apps.nbs.executor.DeviceIO`. Here both come from a chcos
 :class:`~chcos.system.embedded.System`,
 so NBS and CHC are compared on identical devices, drivers and load:
@@ -38,7 +38,7 @@ _EPSILON = 1e-9  # the executor's own tolerance for "due at" (float rounding of 
 
 
 class KernelScheduler:
-    """The NBS :class:`~chcos.apps.nbs.executor.RunnableScheduler` on a chcos kernel.
+    """The NBS :class:`~chcos.apps.nbs.scheduling.RunnableScheduler` on a chcos kernel.
 
     Callbacks armed with :meth:`every` run as kernel timers. An exception in one stops the
     kernel and is raised again by :meth:`run_until` as KernelError (the kernel itself would only
@@ -74,7 +74,7 @@ class KernelScheduler:
     def run_until(self, when: float) -> int:
         """Run the kernel on this thread until clock time ``when`` (on a virtual clock also
         until nothing more can happen); return how many callbacks armed here ran meanwhile.
-        As with :class:`~chcos.apps.nbs.executor.VirtualScheduler`, a timer due within 1 ns after
+        As with :class:`~chcos.apps.nbs.scheduling.VirtualScheduler`, a timer due within 1 ns after
         ``when`` counts as due (``k * period`` rounds). Raises KernelError if the kernel already
         runs or a callback failed."""
         before = self.fired

@@ -1,7 +1,7 @@
 """compare - the welding job under CHC and under NBS, one after the other, side by side.
 
 ``chcos run --hierarchy nbs`` lands here (:func:`run_side_by_side`): the CHC job
-(:func:`chcos.apps.weld.runner.open_cell` with the standard install script, ``invoke E2``) and then
+(:func:`chcos.apps.weld.cell.open_cell` with the standard install script, ``invoke E2``) and then
 the
 NBS job (:class:`chcos.apps.nbs.weldcell.NbsCell`, Appendix 1's H1..H3 cycled every 28 ms) run the
 same scenario on the same binding and seed, each on a fresh cell on virtual time (or real time).
@@ -12,7 +12,7 @@ and to a stuck tip (the electrode freezing to the plate to the arc voltage being
 length and the share of the seam welded in the temperature band; under it, for NBS, the table
 rows that reported a failure and where each H machine stands.
 
-Errors: ChcosError as :func:`chcos.apps.weld.runner.open_cell` raises them; KernelError when an NBS
+Errors: ChcosError as :func:`chcos.apps.weld.cell.open_cell` raises them; KernelError when an NBS
 cycle
 fails.
 """
@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from chcos.apps.nbs.weldcell import NBS_SCRIPT, NbsCell
+from chcos.apps.weld.cell import open_cell
 
 __all__ = ["WriteLog", "print_side_by_side", "run_side_by_side", "tip_latencies"]
 
@@ -71,8 +72,6 @@ def tip_latencies(model: Any, log: WriteLog) -> list[float | None]:
 
 def _run_chc(binding: str, scenario: str, seed: int, real_time: bool, duration: float,
              workdir: Path, report: Path, out: TextIO) -> dict[str, Any]:
-    from chcos.apps.weld.runner import open_cell
-
     with open_cell(binding, scenario=scenario, seed=seed, real_time=real_time,
                    workdir=workdir / "chc") as cell:
         log = WriteLog(cell)
@@ -88,8 +87,6 @@ def _run_chc(binding: str, scenario: str, seed: int, real_time: bool, duration: 
 
 def _run_nbs(binding: str, scenario: str, seed: int, real_time: bool, duration: float,
              workdir: Path, report: Path, out: TextIO) -> dict[str, Any]:
-    from chcos.apps.weld.runner import open_cell
-
     with open_cell(binding, scenario=scenario, seed=seed, real_time=real_time,
                    workdir=workdir / "nbs", script=NBS_SCRIPT) as cell:
         log = WriteLog(cell)

@@ -30,19 +30,16 @@ from dataclasses import dataclass
 
 from chcos.apps.nbs.executor import (
     DEFAULT_PERIOD,
-    Cancellable,
     CommonMemory,
     DeviceIO,
     Latency,
     Level,
     LevelContext,
     NbsExecutor,
-    RunnableScheduler,
     Sample,
-    Scheduler,
     TableH,
-    VirtualScheduler,
 )
+from chcos.apps.nbs.scheduling import Cancellable, RunnableScheduler, Scheduler, VirtualScheduler
 from chcos.apps.nbs.statetable import load_builtin
 from chcos.errors import ConfigError
 

@@ -11,23 +11,16 @@ import dataclasses
 import itertools
 import os
 import re
-import socket
 import threading
 from typing import Any, Literal
 
 from chcos.apps.sim.modbus_server import ModbusSimServer, RegisterStore
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import ConfigError
+from chcos.helpers import free_port
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 _channels = itertools.count()
-
-
-def free_port() -> int:
-    """A TCP port free on 127.0.0.1 right now."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 # ---- peers ------------------------------------------------------------------------------------

@@ -14,9 +14,10 @@ import socket
 import threading
 from typing import Any
 
-from chcos.apps.sim.peers import Peer, free_port
+from chcos.apps.sim.peers import Peer
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import ConfigError
+from chcos.helpers import free_port
 
 
 def _sre() -> Any:

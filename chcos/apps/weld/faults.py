@@ -42,6 +42,7 @@ import re
 import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Literal, get_args
 
 from chcos.errors import ConfigError
@@ -386,3 +387,20 @@ def parse_scenario_toml(text: str, source: str = "<toml>") -> Scenario:
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{source}: invalid TOML: {exc}") from exc
     return scenario_from_table(table, source)
+
+
+def load_scenario(scenario: Scenario | str | Path | None) -> Scenario:
+    """A scenario from a :class:`Scenario`, a scenario string (``"tip-stuck@s=120mm"``), or a
+    TOML file (a :class:`Path`, or a string ending in ``.toml``). Raises ConfigError."""
+    if scenario is None:
+        return Scenario()
+    if isinstance(scenario, Scenario):
+        return scenario
+    if isinstance(scenario, Path) or scenario.strip().endswith(".toml"):
+        path = Path(scenario)
+        try:
+            text = path.read_text(encoding="utf-8")
+        except OSError as exc:
+            raise ConfigError(f"scenario file {path}: cannot be read: {exc}") from exc
+        return parse_scenario_toml(text, str(path))
+    return parse_scenario(scenario)

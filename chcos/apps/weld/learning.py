@@ -7,7 +7,7 @@ run. For each run it reports when the precursor began (the fault fired), when th
 and how (``hard-coded``: C1 saw the short circuit of a frozen tip; ``learned``: C1 recognized
 the trend it learned and D2 cut the wire feed), the time from one to the other, whether the tip
 froze and how much was welded. ``python -m chcos.apps.weld.learning [--runs N] [--reset]`` prints
-the table. Raises ChcosError (from :func:`chcos.apps.weld.runner.open_cell`) if the cell cannot be
+the table. Raises ChcosError (from :func:`chcos.apps.weld.cell.open_cell`) if the cell cannot be
 built.
 """
 
@@ -34,7 +34,7 @@ def forget(workdir: str | Path) -> None:
 def one_run(workdir: Path, scenario: str, binding: str = "direct",
             limit: float = 200.0) -> dict[str, Any]:
     """One job in ``workdir``; returns the row of the learning curve."""
-    from chcos.apps.weld.runner import open_cell
+    from chcos.apps.weld.cell import open_cell
 
     with open_cell(binding, scenario=scenario, workdir=workdir) as cell:
         cell.start_job()

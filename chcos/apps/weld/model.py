@@ -24,6 +24,15 @@ Physics, in short (all constants in :class:`CellConfig`):
 * an open gas valve drains the bottle (ideal gas, fixed volume) at the regulated flow, which
   falls off when the bottle pressure drops below the regulator pressure;
 * the wire feeder ramps towards its set speed and unwinds the spool.
+
+Why one module of this size (about 820 lines, over the project's ~400): it is one physical
+model stepped as a whole - every quantity above is coupled to the others within one
+:meth:`WeldCell.step` (the arm's pose sets the stand-off, which sets the arc, which sets the
+temperature and the weld record; the gas and wire state feed back into the arc), and the
+constants of :class:`CellConfig` are tuned against each other. Cut into files by subsystem, one
+step would have to be read across all of them; the seam geometry, the kinematics and the fault
+scenarios, which are not coupled that way, already live apart (:mod:`chcos.apps.weld.seam`,
+:mod:`chcos.apps.weld.kinematics`, :mod:`chcos.apps.weld.faults`).
 """
 
 from __future__ import annotations

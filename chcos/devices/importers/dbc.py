@@ -14,7 +14,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from chcos.devices.importers import MapDraft, limits
+from chcos.devices.importers.draft import MapDraft, limits
 from chcos.errors import ConfigError
 
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from chcos.devices.importers import Hex, MapDraft, limits
+from chcos.devices.importers.draft import Hex, MapDraft, limits
 from chcos.errors import ConfigError
 
 ACCESS_SENSOR = ("ro", "const", "rw", "rwr")

@@ -37,7 +37,7 @@ import re
 from pathlib import Path
 from typing import Any
 
-from chcos.devices.importers import MapDraft, limits
+from chcos.devices.importers.draft import MapDraft, limits
 from chcos.errors import ConfigError
 
 COLUMNS = {

@@ -8,7 +8,7 @@ has not moved for 0.5 s although a motion is commanded while the temperature fal
 
 Besides these hard-coded tests C1 learns (thesis 5.4, App. 2 C1.s: temperature and position
 over time): when a short circuit shows the tip stuck, the arc voltage's trend over the half
-second before it is kept as an example (``chcos.user.worldmodel.LearnedPattern``, in
+second before it is kept as an example (``chcos.user.knowledge.LearnedPattern``, in
 ``learned/C1-tip.json`` beside the system's map). On later runs, when the burning arc's voltage
 follows a learned trend, C1 reports ``{"tip": "sticking"}`` before the tip freezes (its
 commander can cut the wire feed), and ``{"tip": "free"}`` 1 s later. Every reaction is kept in
@@ -34,7 +34,7 @@ from chcos.apps.weld.tasks.common import (
     param,
 )
 from chcos.user.context import TaskContext
-from chcos.user.worldmodel import LearnedPattern, Store
+from chcos.user.knowledge import LearnedPattern, Store
 
 LEAD_S = 0.5
 """How much history before a stuck tip is learned (s)."""

@@ -2,7 +2,7 @@
 
 Puts the linear sensor over the probable start ``start`` ([x, y] mm) with the tool looking along
 ``heading`` (rad) at height ``z`` (mm), then, unless the start marker is already sighted (A7),
-searches for it with its world model's plans (``chcos.user.worldmodel.Plans``): first a spiral
+searches for it with its world model's plans (``chcos.user.plans.Plans``): first a spiral
 (pitch ``pitch`` mm, out to ``radius`` mm, at ``speed`` mm/s), and if that finds nothing a wider
 raster (lines along the heading ``raster_length`` mm long, ``raster_step`` mm apart, out to
 ``raster_radius`` mm to either side). The plans' outcomes are learned across runs (beside the
@@ -30,7 +30,8 @@ from chcos.apps.weld.tasks.common import (
     sighted,
 )
 from chcos.user.context import TaskContext
-from chcos.user.worldmodel import Experience, Plan, Plans, PlansExhausted, Store
+from chcos.user.knowledge import Experience, Store
+from chcos.user.plans import Plan, Plans, PlansExhausted
 
 
 def spiral(cx: float, cy: float, pitch: float, radius: float, step: float = 2.0) -> list[
