@@ -83,7 +83,7 @@ def test_reports_survive_the_wire(kind: MessageKind) -> None:
     (MessageKind.REPLY, {"op": "open", "answer": "maybe"}, "expected owner, queued or busy"),
     (MessageKind.REPLY, {"op": "answer", "qid": "7"}, "'qid': expected a query id"),
     (MessageKind.STATUS, {"device": "S1", "status": "broken", "reason": "", "from": 0},
-     "'status': expected one of OK, failed"),
+     "'status': expected one of OK, suspended, failed, stale"),
     (MessageKind.COMPLETION, {"status": "done"}, "'status': expected a link status"),
     (MessageKind.QUERY, {"qid": 1, "topic": "t", "args": "x"}, "'args': expected a list"),
     (MessageKind.ERROR, {"qid": 1}, "'error': expected a text"),

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from chcos.devices.spec import MAX_MACHINE, BusSpec, DeviceSpec, Direction
-from chcos.helpers import is_int, is_number
+from chcos.helpers import NAME_PATTERN, is_int, is_number
 from chcos.tables.messages import PRIORITIES, PRIORITY_TEXT
 
 BUS_KEYS = ("name", "kind")
@@ -38,7 +38,6 @@ MAX_SCALE = 1e12         # scale within [1/MAX_SCALE, MAX_SCALE] in magnitude; |
 STALE_RANGE = (1e-4, 3.2e7)    # seconds: stale_after
 SECONDS_RANGE = (1e-4, 1e6)    # seconds: any *_period, *timeout, *_delay, *_delay_max, tick option
 RATE_RANGE = (1e-6, 1e5)       # per second: any rate_hz option (the satellite bench: 5e4)
-_NAME_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_.\-]*")
 
 
 @dataclass
@@ -112,7 +111,7 @@ def _name(fe: FileErrors, key: str, table: Mapping[str, Any]) -> str | None:
     if v is None:
         fe.add(f"{key}.name", "missing; expected a name (letters, digits, _ . -)")
         return None
-    if not isinstance(v, str) or not _NAME_RE.fullmatch(v) or len(v) > MAX_NAME:
+    if not isinstance(v, str) or not NAME_PATTERN.fullmatch(v) or len(v) > MAX_NAME:
         fe.add(f"{key}.name", f"expected a name of letters, digits, _ . - starting with a letter "
                               f"or _, at most {MAX_NAME} characters, got {short(v)}")
         return None

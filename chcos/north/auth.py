@@ -17,13 +17,13 @@ from __future__ import annotations
 import hashlib
 import hmac
 import secrets
-import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from chcos.errors import ConfigError
+from chcos.helpers import load_toml
 
 ROLE_COMMANDS: Mapping[str, frozenset[str]] = {
     "observer": frozenset(),
@@ -77,12 +77,7 @@ class Users:
     def from_file(cls, path: str | Path) -> Users:
         """Load a users file; raises ConfigError naming the file, the key and what was
         expected."""
-        p = Path(path)
-        try:
-            doc = tomllib.loads(p.read_text(encoding="utf-8"))
-        except (OSError, tomllib.TOMLDecodeError) as exc:
-            raise ConfigError(f"{p}: cannot read users file: {exc}") from exc
-        return cls.from_dict(doc, str(p))
+        return cls.from_dict(load_toml(path, "users file"), str(path))
 
     @classmethod
     def from_dict(cls, doc: Mapping[str, Any], source: str = "<users>") -> Users:
