@@ -60,23 +60,45 @@ def test_record_then_replay_round_trip(tmp_path: Path, suffix: str) -> None:
         drv.stop()
 
 
-def test_realtime_replay_keeps_gaps_and_can_be_stopped(tmp_path: Path) -> None:
+class _VirtualTime:
+    """Stands in for the ``time`` module of python-can's player: a clock that moves only when
+    the player sleeps, so the recorded gaps are checked exactly, whatever the machine's load."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+        self.sleeps: list[float] = []
+
+    def perf_counter(self) -> float:
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.sleeps.append(seconds)
+        self.now += seconds
+
+
+def test_realtime_replay_keeps_gaps_and_can_be_stopped(tmp_path: Path,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    import threading
+
+    import can.io.player
+
     path = tmp_path / "gaps.log"
     rec = Recorder(path)
     for i, ts in enumerate((100.0, 100.02, 100.04)):
         rec.on_message_received(can.Message(timestamp=ts, arbitration_id=0x101,
                                             data=bytes([i, 0, 0, 0])))
     rec.stop()
+    clock = _VirtualTime()
+    monkeypatch.setattr(can.io.player, "time", clock)
     channel = unique_channel("rt")
     with can.Bus(interface="virtual", channel=channel) as player, \
             can.Bus(interface="virtual", channel=channel) as listener:
         assert replay(path, player, realtime=True) == 3
         got = [listener.recv(WAIT) for _ in range(3)]
         assert [m.data[0] for m in got if m is not None] == [0, 1, 2]
-        assert got[2] is not None and got[0] is not None
-        # 40 ms recorded; back to back would take well under 1 ms (generous margin for jitter)
-        assert got[2].timestamp - got[0].timestamp >= 0.02
-        import threading
+        # the recorded 20 ms gaps are kept (the first frame goes at once)
+        assert clock.sleeps == pytest.approx([0.02, 0.02], abs=1e-6)
+        assert replay(path, player) == 3 and clock.sleeps == pytest.approx([0.02, 0.02])
         stop = threading.Event()
         stop.set()
         assert replay(path, player, stop=stop) == 0
