@@ -54,6 +54,22 @@ class Peer:
         raise NotImplementedError
 
 
+class Mutable:
+    """A peer that goes silent on request and speaks again: its ``muted`` flag, under its
+    ``lock`` (the peer's sending thread reads both)."""
+
+    muted: bool
+    lock: threading.Lock
+
+    def silence(self) -> None:
+        with self.lock:
+            self.muted = True
+
+    def restore(self) -> None:
+        with self.lock:
+            self.muted = False
+
+
 class ModbusPeer(Peer):
     def __init__(self, bus: BusSpec, devices: tuple[DeviceSpec, ...], rewrite: bool) -> None:
         from drivers.codecs.modbus import point_of
@@ -127,7 +143,7 @@ def can_args(options: Any, rewrite: bool, tag: str) -> dict[str, Any]:
     return args
 
 
-class CanPeer(Peer):
+class CanPeer(Mutable, Peer):
     def __init__(self, bus: BusSpec, devices: tuple[DeviceSpec, ...], rewrite: bool) -> None:
         import can
 
@@ -200,14 +216,6 @@ class CanPeer(Peer):
                     if frame.arbitration_id not in sent:  # one frame carries all its signals
                         sent.add(frame.arbitration_id)
                         self._send(d.name)
-
-    def silence(self) -> None:
-        with self.lock:
-            self.muted = True
-
-    def restore(self) -> None:
-        with self.lock:
-            self.muted = False
 
     def describe(self) -> str:
         return f"CAN node on {self.args.get('interface')} channel {self.args.get('channel')}"

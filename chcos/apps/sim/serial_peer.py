@@ -14,7 +14,7 @@ import socket
 import threading
 from typing import Any
 
-from chcos.apps.sim.peers import Peer
+from chcos.apps.sim.peers import Mutable, Peer
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import ConfigError
 from chcos.helpers import free_port
@@ -72,7 +72,7 @@ def _class_char(items: Any) -> str:
     return "a"
 
 
-class SerialPeer(Peer):
+class SerialPeer(Mutable, Peer):
     """A TCP serial server (the driver's ``socket://`` URL) speaking the bus's framing: sensor
     lines generated from the ``pattern`` (the named groups filled with the values) or binary
     frames (sync + struct + checksum); actuator commands parsed back."""
@@ -230,14 +230,6 @@ class SerialPeer(Peer):
             if now + 1e-9 >= self.next_due:
                 self.next_due = now + 0.1
                 self._send()
-
-    def silence(self) -> None:
-        with self.lock:
-            self.muted = True
-
-    def restore(self) -> None:
-        with self.lock:
-            self.muted = False
 
     def describe(self) -> str:
         return f"serial peer ({self.proto}) on {self.bus.options['url']}"
