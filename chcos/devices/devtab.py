@@ -261,22 +261,22 @@ class Devtab(DeviceHealth, BusCounters, WriteTracking):
         numeric = spec.round or (e.driver is not None and e.driver.numeric_only)
         if isinstance(value, bool):
             value = int(value)
-        if numeric and not scalable(value):
+        num = scalable(value)
+        if numeric and not num:
             e.rejected += 1
             raise DeviceError(f"command {value!r} from {source} to {device}: expected a number "
                               f"({spec.units or 'engineering units'})")
-        if scalable(value) and not math.isfinite(value):
+        if num and not math.isfinite(value):
             e.rejected += 1
             raise DeviceError(f"command {value!r} from {source} to {device}: expected a finite "
                               f"number")
         lo, hi = spec.limits
-        if scalable(value) and ((lo is not None and value < lo) or
-                                 (hi is not None and value > hi)):
+        if num and ((lo is not None and value < lo) or (hi is not None and value > hi)):
             e.rejected += 1
             raise DeviceError(
                 f"command {value!r} {spec.units} from {source} to {device} is outside its limits "
                 f"[{'-inf' if lo is None else lo}, {'inf' if hi is None else hi}]")
-        raw = (value - spec.offset) / spec.scale if scalable(value) else value
+        raw = (value - spec.offset) / spec.scale if num else value
         if scalable(raw):
             if not math.isfinite(raw):
                 e.rejected += 1

@@ -62,8 +62,12 @@ class DeviceEntry:
         return self.spec.direction == "sensor"
 
 
+_NUMBERS = (int, float)  # a tuple: ``int | float`` would build a union on every call
+
+
 def scalable(value: Any) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool)
+    """True for an int or float that is not a bool (what scale and offset apply to)."""
+    return isinstance(value, _NUMBERS) and not isinstance(value, bool)
 
 
 @dataclass(eq=False)

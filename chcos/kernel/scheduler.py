@@ -113,7 +113,15 @@ class Kernel(Hooks, Timers):
             t.sleep_until = None
         t.send_value = value
         t.throw_exc = exc
-        self.ready(t, prio)
+        if t.frozen or self.h_scheduled:
+            self.ready(t, prio)
+            return
+        # ready(t, prio) inlined: one call less on every message that wakes a reader
+        t.prio = prio
+        t.state = _READY
+        self._seq = seq = self._seq + 1
+        t.stamp = seq
+        heappush(self._ready, (-prio, seq, t))
 
     def unhook(self, t: TaskEntry) -> None:
         """Forget whatever ``t`` was waiting for: its timer or sleep, and what the layer that
@@ -229,9 +237,11 @@ class Kernel(Hooks, Timers):
         clock = self.clock
         ready = self._ready
         timers = self._timers
+        irq = self._irq
+        step = self._step
         try:
             while not self._stop:
-                if self._irq:
+                if irq:
                     self._drain_irq()
                 if timers:
                     now = clock.now()
@@ -239,8 +249,40 @@ class Kernel(Hooks, Timers):
                         self._fire_timers(now if until is None else min(now, until))
                 if ready:
                     _, seq, t = heappop(ready)
-                    if t.stamp == seq:
-                        self._step(t)
+                    if t.stamp != seq:
+                        continue
+                    coro = t.coro
+                    if (coro is None or t.throw_exc is not None or self.h_before
+                            or self.h_after):
+                        step(t)
+                        continue
+                    # _step(t) inlined for the common step (a value sent in, no instrument):
+                    # one call less per step; anything unusual goes to the same helpers
+                    t.state = _CURRENT
+                    self.current = t
+                    self._steps += 1
+                    t.steps += 1
+                    value = t.send_value
+                    if value is not None:
+                        t.send_value = None
+                    try:
+                        trap = coro.send(value)
+                    except Exception as err:
+                        self.current = None
+                        self._raised(t, err)
+                    else:
+                        self.current = None
+                        if trap is BLOCK and not t.cancelling:
+                            pass
+                        elif trap is YIELD and not t.cancelling and not t.frozen:
+                            t.state = _READY
+                            self._seq = seq = self._seq + 1
+                            t.stamp = seq
+                            heappush(ready, (-t.prio, seq, t))
+                        else:
+                            self._odd_trap(t, coro, trap)
+                    if self.h_after:  # an instrument the step itself installed
+                        self.notify(self.h_after, "after_step", t)
                     continue
                 if not self._idle_wait(until):
                     break
@@ -310,35 +352,44 @@ class Kernel(Hooks, Timers):
             else:
                 t.throw_exc = None
                 trap = coro.throw(exc)
-        except StopIteration as stop:
-            self.current = None
-            self._end(t, End.PREEMPTED if t.cancelling else End.RETURN, stop.value)
-        except Preempted as pre:
-            self.current = None
-            self._end(t, End.PREEMPTED, pre)
         except Exception as err:
             self.current = None
-            self._end(t, End.PREEMPTED if t.cancelling else End.ERROR, err)
+            self._raised(t, err)
         else:
             self.current = None
-            if trap is YIELD and not t.cancelling and not t.frozen:
+            if trap is BLOCK and not t.cancelling:
+                pass
+            elif trap is YIELD and not t.cancelling and not t.frozen:
                 t.state = _READY
                 self._seq = seq = self._seq + 1
                 t.stamp = seq
                 heappush(self._ready, (-t.prio, seq, t))
-            elif trap is BLOCK and not t.cancelling:
-                pass
-            elif t.cancelling:  # it caught the cancellation and carried on: end it for good
-                coro.close()
-                self._end(t, End.PREEMPTED, None)
-            elif trap is YIELD:
-                self.ready(t, t.prio)
             else:
-                coro.close()
-                self._end(t, End.ERROR, KernelError(
-                    f"task {t.name} awaited something that is not a chcos call ({trap!r})"))
+                self._odd_trap(t, coro, trap)
         if self.h_after:
             self.notify(self.h_after, "after_step", t)
+
+    def _raised(self, t: TaskEntry, err: Exception) -> None:
+        """``t``'s step raised ``err``: its activation ended (returned, pre-empted, failed)."""
+        if isinstance(err, StopIteration):
+            self._end(t, End.PREEMPTED if t.cancelling else End.RETURN, err.value)
+        elif isinstance(err, Preempted):
+            self._end(t, End.PREEMPTED, err)
+        else:
+            self._end(t, End.PREEMPTED if t.cancelling else End.ERROR, err)
+
+    def _odd_trap(self, t: TaskEntry, coro: Any, trap: Any) -> None:
+        """``t``'s step ended in something other than a plain block or yield: a cancelled task
+        that carried on, a frozen task's yield, or an await of something not a chcos call."""
+        if t.cancelling:  # it caught the cancellation and carried on: end it for good
+            coro.close()
+            self._end(t, End.PREEMPTED, None)
+        elif trap is YIELD:
+            self.ready(t, t.prio)
+        else:
+            coro.close()
+            self._end(t, End.ERROR, KernelError(
+                f"task {t.name} awaited something that is not a chcos call ({trap!r})"))
 
     def _end(self, t: TaskEntry, how: End, value: Any) -> None:
         t.coro = None

@@ -29,3 +29,13 @@ def forget(t: TaskEntry) -> None:
     tap = t.tap
     if tap is not None and tap.waiter is t:
         tap.waiter = None
+
+
+def forget_port(t: TaskEntry) -> None:
+    """End ``t``'s wait on the one input port of a ``read`` or a one-port ``read_any`` (the only
+    waits that set it as ``unwait``; :func:`forget` does the same and more): that port no longer
+    names it."""
+    for p in t.wait_ports:
+        if p.waiter is t:
+            p.waiter = None
+    t.wait_ports = ()

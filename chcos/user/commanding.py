@@ -28,7 +28,12 @@ class Commanding(TaskHandle):
     def put(self, value: Any) -> int:
         """Send ``value`` upward to every task that reads this one; never blocks. Returns how
         many links took it. Raises QueueOverflow if a queued link was full."""
-        return self._mm.put(self._t, value)
+        t = self._t
+        links = t.up_links
+        mm = self._mm
+        if len(links) == 1 and not mm.taps:  # MessageManager.put's own fast path, one call less
+            return 1 if mm.deliver(links[0], value) else 0
+        return mm.put(t, value)
 
     def write(self, port: Port, value: Any) -> None:
         """Command actuator (or output file) on ``port`` with ``value``; never blocks.

@@ -15,7 +15,7 @@ from typing import Any
 
 from chcos.errors import MessageError, ReadTimeout, SensorFailure
 from chcos.kernel.scheduler import BLOCK
-from chcos.messages.waits import forget
+from chcos.messages.waits import forget, forget_port
 from chcos.tables.messages import EndpointKind, InPort, Link, LinkStatus, TapPort
 from chcos.tables.tasks import TaskState
 from chcos.user.ports import Port, TaskHandle
@@ -90,7 +90,7 @@ class Reading(TaskHandle):
             t = self._t
             p.waiter = t
             t.wait_ports = p.single
-            t.unwait = forget
+            t.unwait = forget_port
             t.state = _WAITING
             if self._k.h_blocked:
                 self._k.block(t, _WAITING)
@@ -111,24 +111,41 @@ class Reading(TaskHandle):
         """(port index, message) from whichever of ``ports`` (default: all inputs) has one; if
         several do, the highest-priority link first, then the lowest port. Waits if none has.
         Raises as :meth:`read`."""
-        chosen = [self._in(p) for p in ports] if ports is not None else list(self._t.in_ports)
-        if not chosen:
-            raise MessageError(f"task {self._t.name} has no input ports to read")
-        fresh = [p for p in chosen if p.fresh]
-        if fresh:
-            best = max(fresh, key=lambda p: (p.link.priority, -p.index))
-            return best.index, self._take(best)
-        for p in chosen:
-            self._check_source(p)
         t = self._t
-        for p in chosen:
-            p.waiter = t
-        t.wait_ports = tuple(chosen)
-        t.unwait = forget
-        self._k.block(t, TaskState.WAITING)
-        self._arm_timeout(timeout, ", ".join(p.link.name for p in chosen))
-        got: InPort = yield BLOCK
-        return got.index, self._take(got)
+        chosen = t.in_ports if ports is None else [self._in(p) for p in ports]
+        if not chosen:
+            raise MessageError(f"task {t.name} has no input ports to read")
+        best: InPort | None = None
+        for p in chosen:  # the highest link priority, then the lowest port
+            if p.fresh and (best is None or p.link.priority > best.link.priority
+                            or (p.link.priority == best.link.priority and p.index < best.index)):
+                best = p
+        if best is None:
+            for p in chosen:
+                if p.device:
+                    self._check_source(p)
+            for p in chosen:
+                p.waiter = t
+            if len(chosen) == 1:  # as a plain read: the message ends the wait itself
+                t.wait_ports = chosen[0].single
+                t.unwait = forget_port
+            else:
+                t.wait_ports = tuple(chosen)
+                t.unwait = forget
+            t.state = _WAITING
+            if self._k.h_blocked:
+                self._k.block(t, _WAITING)
+            if timeout is not None:
+                self._arm_timeout(timeout, ", ".join(p.link.name for p in chosen))
+            best = yield BLOCK
+            assert best is not None
+        if best.fifo is None and not self._k.h_delivered:  # the hot path, as in read
+            value = best.value
+            best.value = None
+            best.fresh = False
+            best.link.delivered += 1
+            return best.index, value
+        return best.index, self._take(best)
 
     def poll(self, port: Port = 0, default: Any = None) -> Any:
         """The newest message on ``port`` if there is one, else ``default`` (never waits).

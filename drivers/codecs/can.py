@@ -97,6 +97,42 @@ class _Frame:
     sensors: dict[str, str] = field(default_factory=dict)     # signal name -> device
     actuators: dict[str, str] = field(default_factory=dict)   # signal name -> device
     values: dict[str, float] = field(default_factory=dict)    # last written (actuator side)
+    #: a raw message whose signals are all whole little-endian bytes: (signal, first byte,
+    #: bytes, signed) each, coded with int.from_bytes / to_bytes instead of cantools
+    #: (the same values, without cantools' per-frame work); None for every other message
+    whole_bytes: tuple[tuple[str, int, int, bool], ...] | None = None
+
+
+def _whole_bytes(msg: Any) -> tuple[tuple[str, int, int, bool], ...] | None:
+    """The whole-byte plan of a raw message (see :attr:`_Frame.whole_bytes`), or None."""
+    plan = []
+    for sig in msg.signals:
+        if (sig.byte_order != "little_endian" or sig.is_float or sig.start % 8
+                or sig.length % 8 or sig.scale != 1 or sig.offset != 0
+                or sig.start // 8 + sig.length // 8 > msg.length):
+            return None
+        plan.append((sig.name, sig.start // 8, sig.length // 8, bool(sig.is_signed)))
+    return tuple(plan)
+
+
+def _encode_whole(plan: tuple[tuple[str, int, int, bool], ...], values: dict[str, Any],
+                  length: int) -> bytes | None:
+    """``values`` packed by a whole-byte plan; None when one of them is not an integer that
+    fits (cantools then encodes, and explains what does not fit)."""
+    data = bytearray(length)
+    for sig, o, n, sg in plan:
+        v = values[sig]
+        if isinstance(v, float):
+            if not v.is_integer():
+                return None
+            v = int(v)
+        elif not isinstance(v, int):
+            return None
+        try:
+            data[o:o + n] = int(v).to_bytes(n, "little", signed=sg)
+        except OverflowError:
+            return None
+    return bytes(data)
 
 
 class CanCodec:
@@ -127,6 +163,14 @@ class CanCodec:
                              is_extended_frame=bool(a0.get("extended", False)), strict=False)
             for d in group:
                 self._attach(msg, d, d.name)
+            self._by_id[(fid, bool(a0.get("extended", False)))].whole_bytes = _whole_bytes(msg)
+        #: raw (non-DBC) integer actuator -> the range its signal carries: check() accepts a
+        #: value inside it without a trial encode (a value outside still gets cantools' reason)
+        self._raw_ranges: dict[str, tuple[int, int]] = {}
+        for d in devices:
+            if "message" not in d.address and d.direction != "sensor":
+                self._raw_ranges[d.name] = int_range(int(d.address["length"]),
+                                                     bool(d.address.get("signed", False)))
 
     def _attach(self, msg: Any, device: DeviceSpec, signal: str) -> None:
         key = (msg.frame_id, bool(msg.is_extended_frame))
@@ -154,6 +198,11 @@ class CanCodec:
         if len(frame.data) != fr.message.length:
             return "wrong-length", (f"frame id 0x{frame.arbitration_id:X} ({fr.message.name}) "
                                     f"has {len(frame.data)} bytes, expected {fr.message.length}")
+        plan = fr.whole_bytes
+        if plan is not None:  # raw whole-byte signals: the ints cantools would give
+            data = frame.data
+            return "ok", [(dev, int.from_bytes(data[o:o + n], "little", signed=sg))
+                          for sig, o, n, sg in plan if (dev := fr.sensors.get(sig)) is not None]
         try:
             vals = fr.message.decode(bytes(frame.data), decode_choices=False)
         except (cantools.database.DecodeError, ValueError, KeyError) as exc:
@@ -177,6 +226,10 @@ class CanCodec:
             return why
         if isinstance(value, bool):
             value = int(value)
+        accept = self._raw_ranges.get(device)
+        if accept is not None and accept[0] <= value <= accept[1] and (
+                not isinstance(value, float) or value.is_integer()):
+            return None  # a raw integer signal: its range is all the encoder checks
         signal = fr.message.get_signal_by_name(sig)
         if (fr.message.name.startswith("raw_0x") and not signal.is_float
                 and isinstance(value, float) and not value.is_integer()):
@@ -206,6 +259,10 @@ class CanCodec:
             raise BusError(f"{device!r} is not a device of this CAN bus") from None
         values = dict(fr.values)
         values[sig] = value
+        plan = fr.whole_bytes
+        if plan is not None and (fast := _encode_whole(plan, values, fr.message.length)):
+            fr.values = values
+            return CanFrame(fr.message.frame_id, fast, bool(fr.message.is_extended_frame))
         try:
             data = fr.message.encode(values, strict=True)
         except (cantools.database.EncodeError, ValueError, KeyError, OverflowError) as exc:
