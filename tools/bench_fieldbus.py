@@ -28,14 +28,14 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import canopen
 from pymodbus.client import AsyncModbusTcpClient
 
 from chcos.apps.sim.canopen_slave import SERVO_EDS, CanopenSlave
-from chcos.errors import SensorFailure
 from chcos.devices.spec import BusSpec, DeviceSpec
+from chcos.errors import SensorFailure
 from chcos.helpers import free_port
 from chcos.kernel.clock import RealClock
 from chcos.system.embedded import System
@@ -205,7 +205,7 @@ class _Count:
     target = 0
     taken = 0
     done = threading.Event()
-    failures: list[str] = []
+    failures: ClassVar[list[str]] = []
 
 
 async def reader(ctx: TaskContext, cmd: Any) -> None:
