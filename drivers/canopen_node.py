@@ -304,7 +304,8 @@ class CanopenDriver(WorkerJobDriver):
         except (SdoCommunicationError, struct.error) as exc:
             self._health.fail(b.device.name, "sdo", f"SDO read of {self._where(b)} failed: {exc}")
             return
-        self._health.clear(b.device.name, "sdo", f"SDO read of {self._where(b)} answered")
+        if self._health.has_causes(b.device.name):
+            self._health.clear(b.device.name, "sdo", f"SDO read of {self._where(b)} answered")
         self.host.deliver(b.device.name, value)
 
     def _transfer(self, b: _Binding, value: Any) -> None:

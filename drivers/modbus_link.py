@@ -449,7 +449,8 @@ class ModbusDriver(AsyncJobDriver):
                 self.host.error(self.bus.name, "malformed",
                                 f"{r.describe()} answer for {p.device}: {exc}")
                 continue
-            self._health.clear(p.device, "exception", f"{r.describe()} answered")
+            if self._health.has_causes(p.device):
+                self._health.clear(p.device, "exception", f"{r.describe()} answered")
             self.host.deliver(p.device, value)
 
     async def _write_point(self, p: Point, value: Any) -> None:
