@@ -112,6 +112,7 @@ class CanopenDriver(WorkerJobDriver):
         self._nodes: dict[int, _NodeState] = {}
         self._bindings: dict[str, _Binding] = {}
         self._pdo_sensors: dict[tuple[int, int, int], list[str]] = {}
+        self._poll_groups: dict[float, list[_Binding]] = {}   # SDO-polled sensors by period
         self._bus_failed = False
 
     # -- validation (drivers.canopen_od) -----------------------------------------------------
@@ -186,9 +187,16 @@ class CanopenDriver(WorkerJobDriver):
                 self._submit("nmt", str(nid))
         if "sync_period" in opts:
             network.sync.start(float(opts["sync_period"]))
-        for name, b in self._bindings.items():
+        groups: dict[float, list[_Binding]] = {}
+        for b in self._bindings.values():
             if b.device.direction == "sensor" and b.pdo_var is None:
-                self.host.every(b.poll_period, functools.partial(self._submit_poll, name))
+                groups.setdefault(b.poll_period, []).append(b)
+        # one timer and one job per poll period (not per object): the objects of a period are
+        # uploaded one after the other in one job, as the single SDO channel of a node would
+        # anyway; each reports its own failure
+        self._poll_groups = groups
+        for period in groups:
+            self.host.every(period, functools.partial(self._submit_poll, period))
 
     def _bind_devices(self) -> None:
         default_poll = float(self.bus.options.get("poll_period", DEFAULT_POLL))
@@ -248,7 +256,12 @@ class CanopenDriver(WorkerJobDriver):
         try:
             if op == "poll":
                 self._poll_taken(name)
-                self._poll(self._bindings[name])
+                for b in self._poll_groups[name]:
+                    try:
+                        self._poll(b)
+                    except can.CanError as exc:   # this object's request; the next go out
+                        self.host.error(self.bus.name, "can", f"poll {b.device.name}: CAN send "
+                                                              f"failed: {exc}")
             elif op == "write":
                 self._transfer(self._bindings[name], arg)
             elif op == "nmt":
