@@ -18,8 +18,10 @@ big|little, poll_period}``; ``type`` is ``bool`` for coils and discrete inputs (
 and one of ``int16 uint16 int32 uint32 float32 float64`` for registers (default ``uint16``).
 Sensors are polled every ``poll_period`` of the kernel clock (the ``host.every`` callback only
 enqueues); each poll groups the contiguous addresses of one unit and table into one request.
-Actuators (coils and holding registers) are written without blocking the caller. All requests run
-in order on an asyncio loop in the driver's own thread; values are converted with pymodbus's
+Actuators (coils and holding registers) are written without blocking the caller. Jobs (a poll, a
+write, a probe) run in order on an asyncio loop in the driver's own thread; within a poll of several
+requests on ``modbus-tcp`` with ``connections`` > 1 the requests are outstanding at once, spread
+over the connections; values are converted with pymodbus's
 ``convert_from_registers``/``convert_to_registers``.
 
 Failures: when the connection cannot be made or is lost, every device of the bus fails with the
