@@ -21,7 +21,8 @@ handled: virtual-time runs are deterministic on CANopen too.
 Device address: ``{node, index, subindex = 0, poll_period}``. A sensor whose object is mapped in an
 enabled TPDO of the node's EDS is delivered from the PDO callback; any other sensor is read by SDO
 every ``poll_period`` (the ``host.every`` callback only enqueues; the SDOs run on the driver's I/O
-thread, the sensors of one period in turn in one job). An actuator write goes in the RPDO that maps the object, else by SDO download.
+thread, the sensors of one period in turn in one job). An actuator write goes in the RPDO that
+maps the object, else by SDO download.
 
 Failures: a node whose heartbeat is missing longer than its ``heartbeat_timeout`` fails all its
 devices until a heartbeat returns. Every EMCY is reported through ``host.error(bus, "emcy", ...)``;
