@@ -20,8 +20,9 @@ handled: virtual-time runs are deterministic on CANopen too.
 
 Device address: ``{node, index, subindex = 0, poll_period}``. A sensor whose object is mapped in an
 enabled TPDO of the node's EDS is delivered from the PDO callback; any other sensor is read by SDO
-every ``poll_period`` (the ``host.every`` callback only enqueues; the SDO runs on the driver's I/O
-thread). An actuator write goes in the RPDO that maps the object, else by SDO download.
+every ``poll_period`` (the ``host.every`` callback only enqueues; the SDOs run on the driver's I/O
+thread, the sensors of one period in turn in one job). An actuator write goes in the RPDO that
+maps the object, else by SDO download.
 
 Failures: a node whose heartbeat is missing longer than its ``heartbeat_timeout`` fails all its
 devices until a heartbeat returns. Every EMCY is reported through ``host.error(bus, "emcy", ...)``;
@@ -112,6 +113,7 @@ class CanopenDriver(WorkerJobDriver):
         self._nodes: dict[int, _NodeState] = {}
         self._bindings: dict[str, _Binding] = {}
         self._pdo_sensors: dict[tuple[int, int, int], list[str]] = {}
+        self._poll_groups: dict[float, list[_Binding]] = {}   # SDO-polled sensors by period
         self._bus_failed = False
 
     # -- validation (drivers.canopen_od) -----------------------------------------------------
@@ -186,9 +188,16 @@ class CanopenDriver(WorkerJobDriver):
                 self._submit("nmt", str(nid))
         if "sync_period" in opts:
             network.sync.start(float(opts["sync_period"]))
-        for name, b in self._bindings.items():
+        groups: dict[float, list[_Binding]] = {}
+        for b in self._bindings.values():
             if b.device.direction == "sensor" and b.pdo_var is None:
-                self.host.every(b.poll_period, functools.partial(self._submit_poll, name))
+                groups.setdefault(b.poll_period, []).append(b)
+        # one timer and one job per poll period (not per object): the objects of a period are
+        # uploaded one after the other in one job, as the single SDO channel of a node would
+        # anyway; each reports its own failure
+        self._poll_groups = groups
+        for period in groups:
+            self.host.every(period, functools.partial(self._submit_poll, period))
 
     def _bind_devices(self) -> None:
         default_poll = float(self.bus.options.get("poll_period", DEFAULT_POLL))
@@ -248,7 +257,12 @@ class CanopenDriver(WorkerJobDriver):
         try:
             if op == "poll":
                 self._poll_taken(name)
-                self._poll(self._bindings[name])
+                for b in self._poll_groups[name]:
+                    try:
+                        self._poll(b)
+                    except can.CanError as exc:   # this object's request; the next go out
+                        self.host.error(self.bus.name, "can", f"poll {b.device.name}: CAN send "
+                                                              f"failed: {exc}")
             elif op == "write":
                 self._transfer(self._bindings[name], arg)
             elif op == "nmt":
@@ -304,7 +318,8 @@ class CanopenDriver(WorkerJobDriver):
         except (SdoCommunicationError, struct.error) as exc:
             self._health.fail(b.device.name, "sdo", f"SDO read of {self._where(b)} failed: {exc}")
             return
-        self._health.clear(b.device.name, "sdo", f"SDO read of {self._where(b)} answered")
+        if self._health.has_causes(b.device.name):
+            self._health.clear(b.device.name, "sdo", f"SDO read of {self._where(b)} answered")
         self.host.deliver(b.device.name, value)
 
     def _transfer(self, b: _Binding, value: Any) -> None:

@@ -41,6 +41,11 @@ class Health:
         if recovered:
             self._host.recover(device, why or f"{cause} failure ended")
 
+    def has_causes(self, device: str) -> bool:
+        """True while ``device`` has any failure cause, without the lock (a glance for the hot
+        path: a healthy device skips building the recovery reason; :meth:`clear` decides)."""
+        return bool(self._causes.get(device))
+
     def failed(self, device: str) -> bool:
         """True while ``device`` has any failure cause."""
         with self._lock:

@@ -2,7 +2,10 @@
 
 Bus options:
 
-* ``modbus-tcp``: ``host`` (required), ``port`` (default 502).
+* ``modbus-tcp``: ``host`` (required), ``port`` (default 502), ``connections`` (1..16, default 1):
+  how many TCP connections a poll of several requests may spread them over, all outstanding at
+  once (pymodbus' client has one request in flight per connection; a server that takes fewer
+  connections is polled over those it takes).
 * ``modbus-rtu``: ``port`` (required: a serial device, or a pyserial URL such as
   ``socket://127.0.0.1:5020``), ``baudrate`` (19200), ``parity`` (``N``/``E``/``O``), ``stopbits``
   (1/2), ``bytesize`` (7/8).
@@ -15,8 +18,10 @@ big|little, poll_period}``; ``type`` is ``bool`` for coils and discrete inputs (
 and one of ``int16 uint16 int32 uint32 float32 float64`` for registers (default ``uint16``).
 Sensors are polled every ``poll_period`` of the kernel clock (the ``host.every`` callback only
 enqueues); each poll groups the contiguous addresses of one unit and table into one request.
-Actuators (coils and holding registers) are written without blocking the caller. All requests run
-in order on an asyncio loop in the driver's own thread; values are converted with pymodbus's
+Actuators (coils and holding registers) are written without blocking the caller. Jobs (a poll, a
+write, a probe) run in order on an asyncio loop in the driver's own thread; within a poll of several
+requests on ``modbus-tcp`` with ``connections`` > 1 the requests are outstanding at once, spread
+over the connections; values are converted with pymodbus's
 ``convert_from_registers``/``convert_to_registers``.
 
 Failures: when the connection cannot be made or is lost, every device of the bus fails with the
@@ -53,7 +58,7 @@ from pymodbus.framer import FramerType
 from chcos.devices.spec import BusSpec, DeviceSpec
 from drivers.base import DriverHost, is_int
 from drivers.codecs.modbus import classify_rtu_answer
-from drivers.modbus_link import ModbusDriver, check_common
+from drivers.modbus_link import MAX_CONNECTIONS, ModbusDriver, check_common
 
 
 class ModbusTcpDriver(ModbusDriver):
@@ -65,7 +70,7 @@ class ModbusTcpDriver(ModbusDriver):
     @classmethod
     def check_bus(cls, bus: BusSpec) -> list[str]:
         """Errors of ``host``, ``port`` and the common options."""
-        errs = check_common(bus, ("host", "port"))
+        errs = check_common(bus, ("host", "port", "connections"))
         o: Mapping[str, Any] = bus.options
         if not (isinstance(o.get("host"), str) and o["host"]):
             errs.append(f"{bus.key}.host: expected a host name or address, got "
@@ -73,7 +78,14 @@ class ModbusTcpDriver(ModbusDriver):
         port = o.get("port", 502)
         if not (is_int(port) and 1 <= port <= 65535):
             errs.append(f"{bus.key}.port: expected a TCP port 1..65535, got {port!r}")
+        n = o.get("connections", 1)
+        if not (is_int(n) and 1 <= n <= MAX_CONNECTIONS):
+            errs.append(f"{bus.key}.connections: expected an integer 1..{MAX_CONNECTIONS} (TCP "
+                        f"connections a poll may use at once), got {n!r}")
         return errs
+
+    def _connections(self) -> int:
+        return int(self.bus.options.get("connections", 1))
 
     def _make_client(self) -> Any:
         o = self.bus.options

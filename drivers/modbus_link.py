@@ -36,6 +36,7 @@ READ_METHOD = {"coil": "read_coils", "discrete": "read_discrete_inputs",
                "holding": "read_holding_registers", "input": "read_input_registers"}
 PROBE_PERIOD = 1.0   # s between liveness probes of an actuator-only bus without poll_period
 COMMON_OPTIONS = ("timeout", "retries", "reconnect_delay", "reconnect_delay_max", "poll_period")
+MAX_CONNECTIONS = 16   # the most connections a modbus-tcp bus may open for parallel polls
 
 
 def check_common(bus: BusSpec, own: Sequence[str]) -> list[str]:
@@ -74,6 +75,10 @@ class ModbusDriver(AsyncJobDriver):
         self._answered = True      # a request was answered since the last (re)connect
         self._units_answered: set[int] = set()   # RTU: the units that did, since then
         self._connects = 0
+        #: modbus-tcp with ``connections`` > 1: the extra clients a poll of several requests
+        #: spreads them over (opened after the main connection answered, closed with it).
+        self._lanes: list[Any] = []
+        self._lanes_tried = False
 
     # -- to be provided by the kinds ----------------------------------------------------------
 
@@ -84,6 +89,11 @@ class ModbusDriver(AsyncJobDriver):
     @abstractmethod
     def _link(self) -> str:
         """Where the bus goes (``host:port``, the serial port), for failure reasons."""
+
+    def _connections(self) -> int:
+        """How many connections a poll may use at once (``modbus-tcp``'s ``connections``; a
+        serial line has one)."""
+        return 1
 
     def _unanswered(self, request: str) -> tuple[str, str]:
         """The error class (``timeout``, and for RTU also ``crc``/``framing``) and the reason
@@ -171,7 +181,7 @@ class ModbusDriver(AsyncJobDriver):
                         self._first_attempt.set()
                         await self._backoff(delay)
                         delay = min(delay * 2, most)
-                        self._client.close()
+                        self._close()
                         continue
                     delay = first
                     self._first_attempt.set()
@@ -181,11 +191,76 @@ class ModbusDriver(AsyncJobDriver):
                     self._first_attempt.set()
                     await self._backoff(delay)
                     delay = min(delay * 2, most)
-                self._client.close()
+                self._close()
         finally:
             self._first_attempt.set()
             if self._client is not None:
-                self._client.close()
+                self._close()
+
+    def _close(self) -> None:
+        """Close the main connection and every extra one of the parallel polls."""
+        lanes, self._lanes, self._lanes_tried = self._lanes, [], False
+        for lane in lanes:
+            lane.close()
+        self._client.close()
+
+    async def _open_lanes(self) -> list[Any]:
+        """The clients a poll spreads its requests over: the main one, plus (once per
+        connection, ``connections`` > 1) the extra connections that could be made. A server that
+        refuses them (many devices accept only a few connections) is polled over fewer; that is
+        counted (``host.error`` kind ``connections``), not a failure of any device: a connection
+        is used only once it answered a read (many servers accept a connection and then close
+        it, or never answer on it)."""
+        want = self._connections()
+        if want > 1 and not self._lanes_tried:
+            self._lanes_tried = True
+            for _ in range(want - 1):
+                lane = self._make_client()
+                ok = await self._lane_answers(lane)
+                if not ok:
+                    lane.close()
+                    self.host.error(self.bus.name, "connections",
+                                    f"{self.kind} bus {self.bus.name}: {self._link()} took "
+                                    f"{1 + len(self._lanes)} of {want} connections; polls use "
+                                    f"those")
+                    break
+                self._lanes.append(lane)
+        return [self._client, *self._lanes]
+
+    async def _lane_answers(self, lane: Any) -> bool:
+        """Connect the extra client ``lane`` and read one entry of the first device on it;
+        True if that was answered (data or an exception answer)."""
+        p = next(iter(self._points.values()))
+        try:
+            if not (await lane.connect() and lane.connected):
+                return False
+            self.host.stat(self.bus.name, "requests")
+            await getattr(lane, READ_METHOD[p.table])(p.address, count=1, device_id=p.unit)
+        except (ModbusException, OSError):
+            return False
+        return bool(lane.connected)
+
+    async def _poll(self, plan: Sequence[ReadRequest]) -> None:
+        """Run the requests of one poll: in order on one connection, or - several requests and
+        ``connections`` > 1 - spread over the connections, all of them outstanding at once (each
+        connection runs its share in order; pymodbus' client has one request in flight per
+        connection). Every request reports its own failures; a lost connection ends the poll
+        with :class:`ConnectionException` once every request is answered or failed."""
+        clients = await self._open_lanes() if len(plan) > 1 else [self._client]
+        if len(clients) == 1:
+            for request in plan:
+                await self._read(request)
+            return
+        n = min(len(clients), len(plan))
+
+        async def share(i: int) -> None:
+            for request in plan[i::n]:
+                await self._read(request, clients[i])
+
+        results = await asyncio.gather(*(share(i) for i in range(n)), return_exceptions=True)
+        for res in results:
+            if isinstance(res, BaseException):
+                raise res
 
     async def _backoff(self, delay: float) -> None:
         """Wait ``delay`` seconds (or until stop), completing jobs that arrive meanwhile."""
@@ -329,16 +404,15 @@ class ModbusDriver(AsyncJobDriver):
         op, what, value = job
         if op == "poll":
             self._poll_taken(what)
-            for request in self._plans[what]:
-                await self._read(request)
+            await self._poll(self._plans[what])
         elif op == "probe":
             self._poll_taken("probe")
             await self._liveness()
         else:
             await self._write_point(self._points[what], value)
 
-    async def _read(self, r: ReadRequest) -> None:
-        c = self._client
+    async def _read(self, r: ReadRequest, client: Any = None) -> None:
+        c = self._client if client is None else client
         self.host.stat(self.bus.name, "requests")
         try:
             resp = await getattr(c, READ_METHOD[r.table])(r.address, count=r.count,
@@ -375,7 +449,8 @@ class ModbusDriver(AsyncJobDriver):
                 self.host.error(self.bus.name, "malformed",
                                 f"{r.describe()} answer for {p.device}: {exc}")
                 continue
-            self._health.clear(p.device, "exception", f"{r.describe()} answered")
+            if self._health.has_causes(p.device):
+                self._health.clear(p.device, "exception", f"{r.describe()} answered")
             self.host.deliver(p.device, value)
 
     async def _write_point(self, p: Point, value: Any) -> None:

@@ -164,6 +164,9 @@ REFERENCE: dict[str, Kind] = {
         "Modbus TCP client (pymodbus)",
         (Key("host", "string", "required", "server address"),
          Key("port", "integer", "502", "server TCP port"),
+         Key("connections", "integer 1..16", "1", "TCP connections a poll of several "
+             "requests spreads them over, all outstanding at once (a server taking fewer is "
+             "polled over those)"),
          *_MODBUS_COMMON),
         _MODBUS_ADDRESS,
         '[[bus]]\nname = "plc"\nkind = "modbus-tcp"\nhost = "127.0.0.1"\nport = 5020\n\n'
