@@ -366,8 +366,9 @@ def main(argv: list[str] | None = None) -> int:
         n = sr["machines"]
         target = {1: "-", 2: ">= 1.8x of 1 (2 cores)", 3: "reported (bounded by the cores)"}[n]
         per = ", ".join(f"{v:,.0f}" for v in sr["per_satellite"])
-        rows.append((f"satellite scaling, {n} CPU-bound process(es), interrupts/s", target,
-                     f"{sr['total']:,.0f} total ({per} per satellite) = {sr['ratio']:.2f}x",
+        got = (f"not measured ({sr['error'].splitlines()[0]})" if sr.get("error") else
+               f"{sr['total']:,.0f} total ({per} per satellite) = {sr['ratio']:.2f}x")
+        rows.append((f"satellite scaling, {n} CPU-bound process(es), interrupts/s", target, got,
                      f"model {sr['model_total']:,} = {sr['model_ratio']:.2f}x" +
                      ("" if n != 2 else (" - yes" if sr["ratio"] >= 1.8 else " - NO"))))
     sat_lat = sat["latency_us"]
