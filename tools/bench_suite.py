@@ -127,7 +127,7 @@ def step(name: str, fn: Callable[[], Any]) -> Any:
 def main(argv: list[str] | None = None) -> int:
     doc = __doc__ or "bench_suite"
     ap = argparse.ArgumentParser(description=doc.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="CI-sized run (about 30 s)")
+    ap.add_argument("--quick", action="store_true", help="CI-sized run (about 2.5 minutes)")
     ap.add_argument("--soak-seconds", type=float, default=None,
                     help="length of the memory soak (default 60, 5 with --quick)")
     ap.add_argument("--repeat", type=int, default=None,
