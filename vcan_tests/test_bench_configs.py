@@ -10,7 +10,8 @@ from tools import bench_satellites
 
 
 def test_satellite_bench_map_passes_check(tmp_path: Path) -> None:
-    devices = "".join(bench_satellites.DEVICE.format(m=m) for m in range(2))
+    devices = "".join(bench_satellites.DEVICE.format(m=m, hz=bench_satellites.SAMPLE_HZ)
+                      for m in range(2))
     path = tmp_path / "devices.toml"
     path.write_text(bench_satellites.DEVMAP.format(devices=devices))
     loaded = devmap.load([path])
