@@ -13,7 +13,6 @@ chcos.errors).
 from __future__ import annotations
 
 import re
-import socket
 import tomllib
 from pathlib import Path
 from typing import Any, TypeGuard
@@ -37,6 +36,8 @@ def free_port(host: str = "127.0.0.1") -> int:
     moment ago: bind to port 0 and read the port back. Another process may take it before the
     caller binds it; use it for simulators, tests and benchmarks, not where the race matters.
     Raises OSError if ``host`` cannot be bound."""
+    import socket  # here, not at the top: the pure codecs import this module, without I/O
+
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     with socket.socket(family, socket.SOCK_STREAM) as sock:
         sock.bind((host, 0))

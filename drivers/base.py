@@ -11,20 +11,10 @@ import math
 from abc import ABC, abstractmethod
 from collections import Counter
 from collections.abc import Callable, Sequence
-from typing import Any, ClassVar, Protocol, TypeGuard, final
+from typing import Any, ClassVar, Protocol, final
 
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import DeviceError
-
-
-def is_int(v: object) -> TypeGuard[int]:
-    """An int that is no bool (``True`` is no node id, port or register address)."""
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
-def is_number(v: object) -> TypeGuard[int | float]:
-    """An int or float that is no bool."""
-    return isinstance(v, int | float) and not isinstance(v, bool)
 
 
 def not_finite(value: Any) -> str | None:

@@ -50,7 +50,8 @@ import can
 
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError
-from drivers.base import DriverHost, is_int
+from chcos.helpers import is_int
+from drivers.base import DriverHost
 from drivers.canbus import bus_config, bus_fileno, read_frames, socket_drops
 from drivers.codecs.can import (
     CanCodec,

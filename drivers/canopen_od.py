@@ -16,7 +16,8 @@ from canopen.objectdictionary.datatypes import REAL32, SIGNED_TYPES
 
 from chcos.devices import parsecache
 from chcos.devices.spec import BusSpec, DeviceSpec
-from drivers.base import is_int, is_number, not_finite
+from chcos.helpers import is_int, is_number
+from drivers.base import not_finite
 from drivers.codecs.canopen import eds_path
 
 BUS_OPTIONS = ("interface", "channel", "bitrate", "nodes", "sync_period", "poll_period",

@@ -56,7 +56,8 @@ from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient
 from pymodbus.framer import FramerType
 
 from chcos.devices.spec import BusSpec, DeviceSpec
-from drivers.base import DriverHost, is_int
+from chcos.helpers import is_int
+from drivers.base import DriverHost
 from drivers.codecs.modbus import classify_rtu_answer
 from drivers.modbus_link import MAX_CONNECTIONS, ModbusDriver, check_common
 

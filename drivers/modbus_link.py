@@ -17,7 +17,8 @@ from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOEx
 
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError
-from drivers.base import DriverHost, is_int, is_number
+from chcos.helpers import is_int, is_number
+from drivers.base import DriverHost
 from drivers.codecs.modbus import (
     EXCEPTION_TEXT,
     RAW_RANGE,

@@ -33,6 +33,7 @@ from typing import Any
 from chcos.comm.codec import MessageKind
 from chcos.devices.entry import DeviceStatus
 from chcos.errors import MessageError
+from chcos.helpers import is_number
 from chcos.tables.messages import LinkStatus
 
 #: The device statuses a STATUS message may carry.
@@ -255,8 +256,7 @@ def check_actuator_value(device: str, safe: Any, limits: tuple[Any, Any], value:
     """Refuse an actuator command from the link whose type does not fit the actuator: a number
     (int or float, finite; bool only where the safe value is a bool) where the safe value or a
     limit is a number. Raises MessageError naming the device and the value."""
-    numeric = any(isinstance(x, int | float) and not isinstance(x, bool)
-                  for x in (safe, *limits))
+    numeric = any(is_number(x) for x in (safe, *limits))
     if isinstance(safe, bool):
         if not isinstance(value, bool):
             raise MessageError(f"actuator {device}: expected true or false, got {value!r:.80}")

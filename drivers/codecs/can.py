@@ -18,7 +18,8 @@ from cantools.database.can import Signal as DbcSignal
 from chcos.devices import parsecache
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError
-from drivers.base import is_int, not_finite
+from chcos.helpers import is_int
+from drivers.base import not_finite
 
 DBC_KEYS = ("message", "signal")
 RAW_KEYS = ("id", "start", "length", "byte_order", "signed", "dlc", "extended")

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 from chcos.devices.spec import BusSpec, DeviceSpec
-from drivers.base import is_int, is_number
+from chcos.helpers import is_int, is_number
 
 #: Register types: the :mod:`struct` code of the value and its size in registers.
 REGISTER_TYPES: dict[str, tuple[str, int]] = {

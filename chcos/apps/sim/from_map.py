@@ -53,6 +53,7 @@ from chcos.apps.sim.scripts import Script, parse_script
 from chcos.apps.sim.serial_peer import SerialPeer
 from chcos.devices.spec import BusSpec, DeviceMap, DeviceSpec
 from chcos.errors import ConfigError, DeviceError
+from chcos.helpers import is_number
 
 IN_PROCESS = ("memory", "signal", "weld-direct")
 """Bus kinds that need no simulated peer."""
@@ -98,7 +99,7 @@ class SimSlaves:
         ConfigError if the raw value does not fit the register or signal."""
         peer, spec = self._peer(device)
         raw = value
-        if isinstance(value, int | float) and not isinstance(value, bool):
+        if is_number(value):
             raw = (value - spec.offset) / spec.scale
         peer.set(spec, raw)
 
