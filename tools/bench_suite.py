@@ -46,7 +46,8 @@ from typing import Any
 import can
 
 from chcos.apps.bench.svg import Series, write_ecdf_svg
-from tools.suite_sections import ROOT, SECTIONS, Row, SuiteRun
+from tools.suite_common import ROOT, Row, SuiteRun
+from tools.suite_sections import SECTIONS
 
 BEGIN = "<!-- bench_suite table: begin (python -m tools.bench_suite --update-readme) -->"
 END = "<!-- bench_suite table: end -->"

@@ -8,7 +8,8 @@ from pathlib import Path
 import pytest
 
 from tools import bench_suite
-from tools.suite_sections import ROOT, SuiteRun, cycle_model, spread
+from tools.suite_common import ROOT, SuiteRun, spread
+from tools.suite_sections import cycle_model
 
 
 def test_spread_is_min_median_max() -> None:
