@@ -49,6 +49,23 @@ def _system(tmp: Path, text: str) -> System:
     return s
 
 
+def _estops(s: System, device: str, command: int, runs: int,
+            first_safe: Callable[[float], float | None]) -> list[float]:
+    """``runs`` times: write ``command`` to ``device`` and wait until it is shown, then
+    ``Devtab.estop`` and wait until the peer saw the safe value; the seconds from the estop to
+    ``first_safe(t0)``, the peer's time of the first safe value at or after ``t0`` (None: not
+    yet)."""
+    out = []
+    for _ in range(runs):
+        s.call(s.devtab.write, device, command)
+        _wait(lambda: s.devtab.get(device).value == command, "command")
+        t0 = time.monotonic()
+        s.call(s.devtab.estop, "bench")
+        _wait(lambda t0: first_safe(t0) is not None, "safe value", t0)
+        out.append((first_safe(t0) or 0.0) - t0)
+    return out
+
+
 def modbus(tmp: Path, runs: int) -> dict[str, list[float]]:
     """e-stop and server-restart to safe value, against pyModbusTCP's server."""
     peer = ModbusPeer(free_port(), tmp / "peer.log", {"100": 555})
@@ -76,14 +93,12 @@ bus = "mb"
 address = {{ table = "holding", address = 10, poll_period = 0.02 }}
 """)
     out: dict[str, list[float]] = {"estop": [], "server back": []}
+
+    def first_zero(t0: float) -> float | None:
+        return next((w.at for w in peer.writes(t0) if w.values == [0]), None)
+
     try:
-        for _ in range(runs):
-            s.call(s.devtab.write, "heater", 300)
-            _wait(lambda: s.devtab.get("heater").value == 300, "command")
-            t0 = time.monotonic()
-            s.call(s.devtab.estop, "bench")
-            _wait(lambda t0: any(w.values == [0] for w in peer.writes(t0)), "safe value", t0)
-            out["estop"].append(next(w.at for w in peer.writes(t0) if w.values == [0]) - t0)
+        out["estop"] = _estops(s, "heater", 300, runs, first_zero)
         for _ in range(max(1, runs // 4)):
             s.call(s.devtab.write, "heater", 300)
             _wait(lambda: s.devtab.get("heater").value == 300, "command")
@@ -91,9 +106,8 @@ address = {{ table = "holding", address = 10, poll_period = 0.02 }}
             _wait(lambda: s.devtab.get("heater").status.value == "failed", "failure")
             peer.start()
             t0 = peer.started_at
-            _wait(lambda t0: any(w.values == [0] for w in peer.writes(t0)), "safe value", t0)
-            out["server back"].append(next(w.at for w in peer.writes(t0)
-                                           if w.values == [0]) - t0)
+            _wait(lambda t0: first_zero(t0) is not None, "safe value", t0)
+            out["server back"].append((first_zero(t0) or 0.0) - t0)
     finally:
         s.shutdown()
         peer.kill()
@@ -118,13 +132,7 @@ def canopen_bus(tmp: Path, runs: int) -> dict[str, list[float]]:
         return None
 
     try:
-        for _ in range(runs):
-            s.call(s.devtab.write, "speed", 5000)
-            _wait(lambda: s.devtab.get("speed").value == 5000, "command")
-            t0 = time.monotonic()
-            s.call(s.devtab.estop, "bench")
-            _wait(lambda t0: first_zero(t0) is not None, "safe value", t0)
-            out["estop"].append((first_zero(t0) or 0.0) - t0)
+        out["estop"] = _estops(s, "speed", 5000, runs, first_zero)
         for _ in range(max(1, runs // 4)):
             s.call(s.devtab.write, "speed", 5000)
             _wait(lambda: s.devtab.get("speed").value == 5000, "command")
@@ -168,15 +176,10 @@ bus = "c"
 address = {{ id = 0x300, start = 0, length = 16, dlc = 2 }}
 safe_value = 0
 """)
-    out: dict[str, list[float]] = {"estop": []}
+    out: dict[str, list[float]] = {}
     try:
-        for _ in range(runs):
-            s.call(s.devtab.write, "drive", 77)
-            _wait(lambda: s.devtab.get("drive").value == 77, "command")
-            t0 = time.monotonic()
-            s.call(s.devtab.estop, "bench")
-            _wait(lambda t0: any(a >= t0 and d == b"\0\0" for a, d in seen), "safe frame", t0)
-            out["estop"].append(next(a for a, d in seen if a >= t0 and d == b"\0\0") - t0)
+        out["estop"] = _estops(s, "drive", 77, runs, lambda t0: next(
+            (a for a, d in list(seen) if a >= t0 and d == b"\0\0"), None))
     finally:
         s.shutdown()
         stop.set()
@@ -227,15 +230,10 @@ bus = "ser"
 address = {{ format = "SET {{value:.0f}}" }}
 safe_value = 0
 """)
-    out: dict[str, list[float]] = {"estop": []}
+    out: dict[str, list[float]] = {}
     try:
-        for _ in range(runs):
-            s.call(s.devtab.write, "out", 5)
-            _wait(lambda: s.devtab.get("out").value == 5, "command")
-            t0 = time.monotonic()
-            s.call(s.devtab.estop, "bench")
-            _wait(lambda t0: any(a >= t0 and ln == "SET 0" for a, ln in lines), "safe line", t0)
-            out["estop"].append(next(a for a, ln in lines if a >= t0 and ln == "SET 0") - t0)
+        out["estop"] = _estops(s, "out", 5, runs, lambda t0: next(
+            (a for a, ln in list(lines) if a >= t0 and ln == "SET 0"), None))
     finally:
         s.shutdown()
         stop.set()
