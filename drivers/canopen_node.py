@@ -50,7 +50,7 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 from chcos.devices import parsecache
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError
-from drivers.base import DriverHost
+from drivers.base import DriverHost, deliver_all
 from drivers.canbus import read_frames
 from drivers.canopen_od import (
     DEFAULT_POLL,
@@ -257,12 +257,16 @@ class CanopenDriver(WorkerJobDriver):
         try:
             if op == "poll":
                 self._poll_taken(name)
-                for b in self._poll_groups[name]:
-                    try:
-                        self._poll(b)
-                    except can.CanError as exc:   # this object's request; the next go out
-                        self.host.error(self.bus.name, "can", f"poll {b.device.name}: CAN send "
-                                                              f"failed: {exc}")
+                batch: list[tuple[str, Any]] = []
+                try:
+                    for b in self._poll_groups[name]:
+                        try:
+                            self._poll(b, batch)
+                        except can.CanError as exc:   # this object's request; the next go out
+                            self.host.error(self.bus.name, "can", f"poll {b.device.name}: CAN "
+                                                                  f"send failed: {exc}")
+                finally:   # the poll's readings as one interrupt
+                    deliver_all(self.host, batch)
             elif op == "write":
                 self._transfer(self._bindings[name], arg)
             elif op == "nmt":
@@ -307,7 +311,9 @@ class CanopenDriver(WorkerJobDriver):
     def _where(self, b: _Binding) -> str:
         return f"canopen node {b.node} 0x{b.index:04X}:{b.subindex:02X} (device {b.device.name})"
 
-    def _poll(self, b: _Binding) -> None:
+    def _poll(self, b: _Binding, batch: list[tuple[str, Any]]) -> None:
+        """SDO-read ``b``'s object: the reading goes to ``batch`` (delivered at the end of the
+        poll), a failure to the host at once."""
         node = self._nodes[b.node].node
         try:
             data = node.sdo.upload(b.index, b.subindex)
@@ -320,7 +326,7 @@ class CanopenDriver(WorkerJobDriver):
             return
         if self._health.has_causes(b.device.name):
             self._health.clear(b.device.name, "sdo", f"SDO read of {self._where(b)} answered")
-        self.host.deliver(b.device.name, value)
+        batch.append((b.device.name, value))
 
     def _transfer(self, b: _Binding, value: Any) -> None:
         try:
@@ -387,9 +393,9 @@ class CanopenDriver(WorkerJobDriver):
                             f"{pdo_map.name} from canopen node {nid}: {len(pdo_map.data)} "
                             f"bytes, expected {(pdo_map.length + 7) // 8}")
             return
-        for var in pdo_map.map:
-            for dev in self._pdo_sensors.get((nid, var.index, var.subindex), ()):
-                self.host.deliver(dev, var.raw)
+        deliver_all(self.host, [(dev, var.raw) for var in pdo_map.map
+                                for dev in self._pdo_sensors.get((nid, var.index, var.subindex),
+                                                                 ())])
 
     def _on_heartbeat(self, state: _NodeState, nmt_state: int) -> None:
         with self._hb_lock:

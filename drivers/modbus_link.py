@@ -18,7 +18,7 @@ from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOEx
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError
 from chcos.helpers import is_int, is_number
-from drivers.base import DriverHost
+from drivers.base import DriverHost, deliver_all
 from drivers.codecs.modbus import (
     EXCEPTION_TEXT,
     RAW_RANGE,
@@ -247,21 +247,26 @@ class ModbusDriver(AsyncJobDriver):
         connection runs its share in order; pymodbus' client has one request in flight per
         connection). Every request reports its own failures; a lost connection ends the poll
         with :class:`ConnectionException` once every request is answered or failed."""
-        clients = await self._open_lanes() if len(plan) > 1 else [self._client]
-        if len(clients) == 1:
-            for request in plan:
-                await self._read(request)
-            return
-        n = min(len(clients), len(plan))
+        batch: list[tuple[str, Any]] = []
+        try:
+            clients = await self._open_lanes() if len(plan) > 1 else [self._client]
+            if len(clients) == 1:
+                for request in plan:
+                    await self._read(request, self._client, batch)
+                return
+            n = min(len(clients), len(plan))
 
-        async def share(i: int) -> None:
-            for request in plan[i::n]:
-                await self._read(request, clients[i])
+            async def share(i: int) -> None:
+                for request in plan[i::n]:
+                    await self._read(request, clients[i], batch)
 
-        results = await asyncio.gather(*(share(i) for i in range(n)), return_exceptions=True)
-        for res in results:
-            if isinstance(res, BaseException):
-                raise res
+            results = await asyncio.gather(*(share(i) for i in range(n)),
+                                           return_exceptions=True)
+            for res in results:
+                if isinstance(res, BaseException):
+                    raise res
+        finally:   # the poll's readings as one interrupt, before a lost link fails them
+            deliver_all(self.host, batch)
 
     async def _backoff(self, delay: float) -> None:
         """Wait ``delay`` seconds (or until stop), completing jobs that arrive meanwhile."""
@@ -412,8 +417,9 @@ class ModbusDriver(AsyncJobDriver):
         else:
             await self._write_point(self._points[what], value)
 
-    async def _read(self, r: ReadRequest, client: Any = None) -> None:
-        c = self._client if client is None else client
+    async def _read(self, r: ReadRequest, c: Any, batch: list[tuple[str, Any]]) -> None:
+        """Run one read request on client ``c``; its readings go to ``batch`` (delivered at the
+        end of the poll), its failures to the host at once."""
         self.host.stat(self.bus.name, "requests")
         try:
             resp = await getattr(c, READ_METHOD[r.table])(r.address, count=r.count,
@@ -452,7 +458,7 @@ class ModbusDriver(AsyncJobDriver):
                 continue
             if self._health.has_causes(p.device):
                 self._health.clear(p.device, "exception", f"{r.describe()} answered")
-            self.host.deliver(p.device, value)
+            batch.append((p.device, value))
 
     async def _write_point(self, p: Point, value: Any) -> None:
         c = self._client
