@@ -16,7 +16,10 @@ load disturbs far less.
 * CANopen: canopen's own ``sdo.upload`` back to back from the simulated servo drive on python-can's
   ``virtual`` bus (the baseline), vs :class:`drivers.canopen_node.CanopenDriver` SDO-polling the
   same objects for a counting host that ticks every sensor due and waits in ``settle`` each cycle,
-  as the kernel does before it moves its clock (target >= 0.9 with K objects).
+  as the kernel does before it moves its clock (target >= 0.9 with K objects); and with K objects
+  chcos end to end, as for Modbus (a System on the real clock with a ``canopen`` device map, the
+  kernel polling, the driver's worker and reader threads, a task taking every reading from
+  queued links; target >= 0.9).
 
 With 1 sensor per tick a driver-only figure is bounded by the two thread hand-offs a tick costs
 (kernel -> I/O thread -> kernel). Exit status 0 when every target is met, 1 otherwise.
