@@ -70,6 +70,21 @@ class DriverHost(Protocol):
         """The kernel clock's current time in seconds."""
 
 
+def deliver_all(host: DriverHost, readings: Sequence[tuple[str, Any]]) -> None:
+    """Hand ``readings`` - ``(device, raw value)`` pairs taken together, such as one poll's - to
+    ``host``: as one interrupt through the host's ``deliver_many(readings)`` where it has one
+    (:class:`chcos.devices.devtab.Devtab` does: one kernel wake-up per poll instead of one per
+    reading), else one :meth:`DriverHost.deliver` each, in order."""
+    if not readings:
+        return
+    many = getattr(host, "deliver_many", None)
+    if many is not None:
+        many(readings)
+        return
+    for device, value in readings:
+        host.deliver(device, value)
+
+
 class Driver(ABC):
     """One bus and its devices.
 

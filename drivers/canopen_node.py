@@ -30,6 +30,10 @@ EMCY codes of the classes current (2xxx), voltage (3xxx), temperature (4xxx), de
 and monitoring (8xxx) are fatal: they fail the node's devices until an error-reset EMCY (code 0000).
 An SDO abort or timeout fails that device (with the abort code text) until its next good transfer.
 Short PDO and EMCY frames, and heartbeats of nodes not in ``nodes``, are ``host.error`` reports.
+
+This module holds the life cycle, the SDO polls (a poll's readings go to the host as one
+interrupt) and the writes; the receive side (frames, TPDOs, the heartbeat watchdog, EMCY) and the
+driver's state are :mod:`drivers.canopen_events`, the object dictionary :mod:`drivers.canopen_od`.
 """
 
 from __future__ import annotations
@@ -37,10 +41,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import struct
-import threading
 import time
-from collections.abc import Sequence
-from dataclasses import dataclass, field
 from typing import Any
 
 import can
@@ -50,8 +51,9 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 from chcos.devices import parsecache
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError
-from drivers.base import DriverHost
+from drivers.base import deliver_all
 from drivers.canbus import read_frames
+from drivers.canopen_events import Binding, CanopenEvents, FrameCheck, NodeState
 from drivers.canopen_od import (
     DEFAULT_POLL,
     check_bus,
@@ -61,60 +63,18 @@ from drivers.canopen_od import (
     load_od,
     value_error,
 )
-from drivers.codecs.canopen import (
-    emcy_node,
-    heartbeat_node,
-    is_error_reset,
-    is_fatal_emcy,
-)
-from drivers.health import Health
-from drivers.jobs import Job, WorkerJobDriver
+from drivers.jobs import Job
 from drivers.threaded import ReaderThread
 
-HEARTBEAT_SETTLE = 0.1
-"""Bound (s) on handing over received frames before a heartbeat loss is declared (polling
-interfaces; on SocketCAN the drain is immediate)."""
 DEFAULT_SDO_TIMEOUT = 0.3
 #: The reader's default receive timeout on interfaces without a file descriptor.
 DEFAULT_RX_POLL = 0.005
 
 
-@dataclass
-class _Binding:
-    device: DeviceSpec
-    node: int
-    index: int
-    subindex: int
-    od_var: Any
-    pdo_var: Any = None        # TPDO variable (sensor) or RPDO variable (actuator), or None
-    poll_period: float = DEFAULT_POLL
-
-
-@dataclass
-class _NodeState:
-    node: Any
-    heartbeat_timeout: float | None
-    nmt_start: bool
-    last_heartbeat: float = field(default_factory=time.monotonic)
-    lost: bool = False
-    devices: list[str] = field(default_factory=list)
-
-
-class CanopenDriver(WorkerJobDriver):
+class CanopenDriver(CanopenEvents):
     """The ``canopen`` bus: see the module doc for options, addresses and failure handling."""
 
     kind = "canopen"
-
-    def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
-        super().__init__(bus, devices, host)
-        self._health = Health(host)
-        self._hb_lock = threading.Lock()      # guards _NodeState.last_heartbeat and .lost
-        self._network: Any = None
-        self._nodes: dict[int, _NodeState] = {}
-        self._bindings: dict[str, _Binding] = {}
-        self._pdo_sensors: dict[tuple[int, int, int], list[str]] = {}
-        self._poll_groups: dict[float, list[_Binding]] = {}   # SDO-polled sensors by period
-        self._bus_failed = False
 
     # -- validation (drivers.canopen_od) -----------------------------------------------------
 
@@ -147,7 +107,7 @@ class CanopenDriver(WorkerJobDriver):
         if errs:
             raise BusError(f"canopen bus {self.bus.name} ({self.bus.file}): " + "; ".join(errs))
         network: Any = canopen.Network()
-        network.listeners.append(_FrameCheck(self))
+        network.listeners.append(FrameCheck(self))
         opts = self.bus.options
         for ncfg in opts["nodes"]:
             nid = int(ncfg["id"])
@@ -155,7 +115,7 @@ class CanopenDriver(WorkerJobDriver):
             node.sdo.RESPONSE_TIMEOUT = float(opts.get("sdo_timeout", DEFAULT_SDO_TIMEOUT))
             network.add_node(node)
             hb = ncfg.get("heartbeat_timeout")
-            self._nodes[nid] = _NodeState(node, float(hb) if hb is not None else None,
+            self._nodes[nid] = NodeState(node, float(hb) if hb is not None else None,
                                           bool(ncfg.get("nmt_start", True)))
         self._network = network
         self._bind_devices()
@@ -188,7 +148,7 @@ class CanopenDriver(WorkerJobDriver):
                 self._submit("nmt", str(nid))
         if "sync_period" in opts:
             network.sync.start(float(opts["sync_period"]))
-        groups: dict[float, list[_Binding]] = {}
+        groups: dict[float, list[Binding]] = {}
         for b in self._bindings.values():
             if b.device.direction == "sensor" and b.pdo_var is None:
                 groups.setdefault(b.poll_period, []).append(b)
@@ -213,7 +173,7 @@ class CanopenDriver(WorkerJobDriver):
             maps = node.tpdo.map if dev.direction == "sensor" else node.rpdo.map
             pdo_var = next((v for m in maps.values() if m.enabled for v in m.map
                             if v.index == index and v.subindex == sub), None)
-            self._bindings[dev.name] = _Binding(
+            self._bindings[dev.name] = Binding(
                 dev, nid, index, sub, node.object_dictionary.get_variable(index, sub), pdo_var,
                 float(a.get("poll_period", default_poll)))
             self._nodes[nid].devices.append(dev.name)
@@ -247,22 +207,22 @@ class CanopenDriver(WorkerJobDriver):
 
     # -- I/O thread ---------------------------------------------------------------------------
 
-    def _tick(self) -> float:
-        """The worker's longest wait for a job: until the next heartbeat deadline."""
-        return self._watchdog()
-
     def _run(self, job: Job) -> None:
         """A poll (SDO upload), a write (RPDO or SDO download), or an NMT start of a node."""
         op, name, arg = job
         try:
             if op == "poll":
                 self._poll_taken(name)
-                for b in self._poll_groups[name]:
-                    try:
-                        self._poll(b)
-                    except can.CanError as exc:   # this object's request; the next go out
-                        self.host.error(self.bus.name, "can", f"poll {b.device.name}: CAN send "
-                                                              f"failed: {exc}")
+                batch: list[tuple[str, Any]] = []
+                try:
+                    for b in self._poll_groups[name]:
+                        try:
+                            self._poll(b, batch)
+                        except can.CanError as exc:   # this object's request; the next go out
+                            self.host.error(self.bus.name, "can", f"poll {b.device.name}: CAN "
+                                                                  f"send failed: {exc}")
+                finally:   # the poll's readings as one interrupt
+                    deliver_all(self.host, batch)
             elif op == "write":
                 self._transfer(self._bindings[name], arg)
             elif op == "nmt":
@@ -272,42 +232,12 @@ class CanopenDriver(WorkerJobDriver):
             if op == "write":
                 self.host.write_failed(name, arg, f"CAN send failed: {exc}")
 
-    def _watchdog(self) -> float:
-        """Fail the devices of nodes whose heartbeat is overdue; the time to the next deadline.
-        Before it declares a node lost it has the reader hand over every frame the operating
-        system already holds: after this process was stalled (a loaded machine, a virtual one)
-        the I/O thread may wake before the reader, and a heartbeat waiting in the socket is not a
-        missing one."""
-        now = time.monotonic()
-        with self._hb_lock:
-            overdue = any(s.heartbeat_timeout is not None and not s.lost
-                          and now - s.last_heartbeat > s.heartbeat_timeout
-                          for s in self._nodes.values())
-        rx = self._rx
-        if overdue and rx is not None:
-            # a late heartbeat is not a dead node: first hand over every frame the OS already
-            # received (this thread or the reader may simply have been starved of CPU)
-            rx.settle(HEARTBEAT_SETTLE)
-        wait = 0.5
-        for nid, s in self._nodes.items():
-            with self._hb_lock:
-                if s.heartbeat_timeout is None or s.lost:
-                    continue
-                late = now - s.last_heartbeat
-                s.lost = late > s.heartbeat_timeout
-            if s.lost:
-                reason = (f"canopen node {nid} on bus {self.bus.name}: no heartbeat for more than "
-                          f"heartbeat_timeout {s.heartbeat_timeout} s")
-                for dev in s.devices:
-                    self._health.fail(dev, "heartbeat", reason)
-            else:
-                wait = min(wait, s.heartbeat_timeout - late + 0.001)
-        return wait
-
-    def _where(self, b: _Binding) -> str:
+    def _where(self, b: Binding) -> str:
         return f"canopen node {b.node} 0x{b.index:04X}:{b.subindex:02X} (device {b.device.name})"
 
-    def _poll(self, b: _Binding) -> None:
+    def _poll(self, b: Binding, batch: list[tuple[str, Any]]) -> None:
+        """SDO-read ``b``'s object: the reading goes to ``batch`` (delivered at the end of the
+        poll), a failure to the host at once."""
         node = self._nodes[b.node].node
         try:
             data = node.sdo.upload(b.index, b.subindex)
@@ -320,9 +250,9 @@ class CanopenDriver(WorkerJobDriver):
             return
         if self._health.has_causes(b.device.name):
             self._health.clear(b.device.name, "sdo", f"SDO read of {self._where(b)} answered")
-        self.host.deliver(b.device.name, value)
+        batch.append((b.device.name, value))
 
-    def _transfer(self, b: _Binding, value: Any) -> None:
+    def _transfer(self, b: Binding, value: Any) -> None:
         try:
             raw = coerce(b.od_var, value)
             data = b.od_var.encode_raw(raw)
@@ -357,91 +287,3 @@ class CanopenDriver(WorkerJobDriver):
         self.host.written(name, value)
         self._health.clear(name, "sdo", f"SDO write to {self._where(b)} answered")
 
-    # -- reader thread ------------------------------------------------------------------------
-
-    def _on_frame(self, frame: can.Message) -> None:
-        """A received frame to canopen's listeners (what its notifier would do)."""
-        self._bus_failed = False     # a receive error is reported again after a good frame
-        self.host.stat(self.bus.name, "frames")
-        network = self._network
-        if network is None:
-            return
-        for listener in network.listeners:
-            try:
-                listener.on_message_received(frame)
-            except Exception as exc:  # the reader must survive any canopen/host surprise
-                self.host.error(self.bus.name, "internal", f"frame handling failed: {exc!r}")
-
-    def _on_bus_error(self, reason: str) -> None:
-        if not self._bus_failed:
-            self._bus_failed = True
-            self.host.error(self.bus.name, "bus-error",
-                            f"canopen bus {self.bus.name}: receive failed: {reason}")
-
-    def _on_tpdo(self, pdo_map: Any) -> None:
-        """A TPDO arrived (reader thread, or settle's drain: both under the reader's lock, so
-        settle never returns while one is being delivered)."""
-        nid = pdo_map.pdo_node.node.id
-        if len(pdo_map.data) * 8 < pdo_map.length:
-            self.host.error(self.bus.name, "malformed",
-                            f"{pdo_map.name} from canopen node {nid}: {len(pdo_map.data)} "
-                            f"bytes, expected {(pdo_map.length + 7) // 8}")
-            return
-        for var in pdo_map.map:
-            for dev in self._pdo_sensors.get((nid, var.index, var.subindex), ()):
-                self.host.deliver(dev, var.raw)
-
-    def _on_heartbeat(self, state: _NodeState, nmt_state: int) -> None:
-        with self._hb_lock:
-            state.last_heartbeat = time.monotonic()
-            was_lost, state.lost = state.lost, False
-        if was_lost:
-            for dev in state.devices:
-                self._health.clear(dev, "heartbeat", f"canopen node {state.node.id}: heartbeat "
-                                                     f"back")
-        if state.nmt_start and nmt_state in (0, 127):  # boot-up or PRE-OPERATIONAL
-            self._submit("nmt", str(state.node.id))
-
-    def _on_emcy(self, state: _NodeState, entry: Any) -> None:
-        nid = state.node.id
-        text = f"canopen node {nid} on bus {self.bus.name}: EMCY {entry} register " \
-               f"0x{entry.register:02X}"
-        self.host.error(self.bus.name, "emcy", text)
-        if is_error_reset(entry.code):
-            for dev in state.devices:
-                self._health.clear(dev, "emcy", f"canopen node {nid}: error-reset EMCY")
-        elif is_fatal_emcy(entry.code):
-            for dev in state.devices:
-                self._health.fail(dev, "emcy", text)
-
-    def report_frame(self, kind: str, detail: str) -> None:
-        """A frame-level problem seen by the bus listener (see :class:`_FrameCheck`)."""
-        self.host.error(self.bus.name, kind, detail)
-
-    def knows_node(self, node_id: int) -> bool:
-        """True if ``node_id`` is one of this bus's nodes."""
-        return node_id in self._nodes
-
-
-class _FrameCheck(can.Listener):
-    """Reports frames canopen would drop quietly: heartbeats of unknown nodes, short EMCYs."""
-
-    def __init__(self, driver: CanopenDriver) -> None:
-        self._driver = driver
-
-    def on_message_received(self, msg: can.Message) -> None:
-        cob = msg.arbitration_id
-        if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
-            return
-        hb, emcy = heartbeat_node(cob), emcy_node(cob)
-        if hb is not None and not self._driver.knows_node(hb):
-            self._driver.report_frame("unknown-node",
-                                      f"heartbeat of node {hb} (COB-ID 0x{cob:03X}), "
-                                      f"which is not in the bus's nodes")
-        elif emcy is not None and self._driver.knows_node(emcy) and msg.dlc < 8:
-            self._driver.report_frame("malformed",
-                                      f"EMCY from node {emcy} with {msg.dlc} bytes, "
-                                      f"expected 8")
-
-    def stop(self) -> None:
-        """Nothing to release."""

@@ -80,6 +80,8 @@ class JobDriver(Driver):
     def _submit_poll(self, key: Hashable, op: str = "poll") -> None:
         """Queue the poll ``key`` (job ``(op, key)``) unless it is queued already; the I/O
         thread calls :meth:`_poll_taken` when it takes it."""
+        if key in self._polls_queued:   # the kernel's timer fires while the poll waits (or
+            return                      # catches up): no lock (a racing take only defers it)
         with self._idle:
             if key in self._polls_queued:
                 return

@@ -43,8 +43,10 @@ Statistics (``host.stat``/``host.error``): ``requests``, ``reconnects``; errors 
 ``exception-<code>``, ``disconnected``, ``malformed``.
 
 This module holds the two kinds; what they share (polling, writes, link supervision) is
-:class:`drivers.modbus_link.ModbusDriver`, the pure data model (read planning, register packing,
-value checks, RTU answer classification) :mod:`drivers.codecs.modbus`.
+:class:`drivers.modbus_link.ModbusDriver` (life cycle, jobs, link supervision) on
+:class:`drivers.modbus_requests.ModbusRequests` (the reads and writes; a poll's readings go to the
+host as one interrupt), the pure data model (read planning, register packing, value checks, RTU
+answer classification) :mod:`drivers.codecs.modbus`.
 """
 
 from __future__ import annotations

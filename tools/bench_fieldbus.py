@@ -16,7 +16,10 @@ load disturbs far less.
 * CANopen: canopen's own ``sdo.upload`` back to back from the simulated servo drive on python-can's
   ``virtual`` bus (the baseline), vs :class:`drivers.canopen_node.CanopenDriver` SDO-polling the
   same objects for a counting host that ticks every sensor due and waits in ``settle`` each cycle,
-  as the kernel does before it moves its clock (target >= 0.9 with K objects).
+  as the kernel does before it moves its clock (target >= 0.9 with K objects); and with K objects
+  chcos end to end, as for Modbus (a System on the real clock with a ``canopen`` device map, the
+  kernel polling, the driver's worker and reader threads, a task taking every reading from
+  queued links; target >= 0.9).
 
 With 1 sensor per tick a driver-only figure is bounded by the two thread hand-offs a tick costs
 (kernel -> I/O thread -> kernel). Exit status 0 when every target is met, 1 otherwise.
@@ -236,50 +239,59 @@ async def reader(ctx: TaskContext, cmd: Any) -> None:
             _Count.done.set()
 
 
-def modbus_chcos(port: int, sensors: int, cycles: int, connections: int = 1,
-                 period: float = 0.0005) -> float:
-    """Readings per second a chcos task takes end to end: a System on the real clock with a
-    ``modbus-tcp`` device map of ``sensors`` holding registers (one request each), the kernel
-    polling them every ``period`` s (a poll is queued at most once, so the driver runs back to
-    back), the driver thread reading them (over ``connections`` TCP connections) and delivering
-    into the kernel, the task taking every reading from queued links."""
-    addresses = MODBUS_ADDRESSES[:sensors]
+def end_to_end(devmap: str, names: Sequence[str], cycles: int, what: str) -> Figure:
+    """Readings per second a chcos task takes end to end from the sensors ``names`` of the
+    device map ``devmap`` (TOML text): a System on the real clock, the kernel polling them, the
+    driver's threads reading them and delivering into the kernel, the task taking every reading
+    from queued links, ``cycles`` readings of each."""
     # the task runs in tools.bench_fieldbus as chcos imports it, which is not this module when
     # it runs as ``python -m tools.bench_fieldbus`` (then this is __main__)
     count: Any = importlib.import_module("tools.bench_fieldbus")._Count
     tmp = Path(tempfile.mkdtemp(prefix="bench-fieldbus-"))
-    (tmp / "plc.toml").write_text(
-        MODBUS_MAP.format(port=port, period=period,
-                          connections=f"connections = {connections}" if connections > 1 else "")
-        + "".join(MODBUS_SENSOR.format(a=a) for a in addresses))
-    warm = 2 * sensors
+    (tmp / "bench.toml").write_text(devmap)
+    warm = 2 * len(names)
     count.taken, count.target, count.done = 0, warm, threading.Event()
     count.failures = []
-    system = System([tmp / "plc.toml"], clock=RealClock(), machines=[0], base_dir=tmp)
-    queues = " ".join(f"--queue=r{a}=4096" for a in addresses)
-    names = " ".join(f"r{a}" for a in addresses)
-    system.execute(f"install -m0i{sensors} {queues} --code=tools.bench_fieldbus:reader R "
-                   f"{names}")
+    system = System([tmp / "bench.toml"], clock=RealClock(), machines=[0], base_dir=tmp)
+    queues = " ".join(f"--queue={name}=4096" for name in names)
+    system.execute(f"install -m0i{len(names)} {queues} --code=tools.bench_fieldbus:reader R "
+                   f"{' '.join(names)}")
     system.invoke("R")
     runner = threading.Thread(target=system.start, daemon=True)
     try:
         runner.start()
         if not count.done.wait(10.0):
-            raise RuntimeError("modbus end-to-end bench: no readings within 10 s")
+            raise RuntimeError(f"{what} end-to-end bench: no readings within 10 s; sensor "
+                               f"failures: {count.failures[:3]}")
         done = count.done = threading.Event()
-        count.target = warm + cycles * sensors
+        count.target = warm + cycles * len(names)
         c0, t0 = time.process_time(), time.perf_counter()
         if not done.wait(120.0):
-            raise RuntimeError(f"modbus end-to-end bench: {count.taken} of {count.target} "
+            raise RuntimeError(f"{what} end-to-end bench: {count.taken} of {count.target} "
                                f"readings in 120 s; sensor failures: {count.failures[:3]}")
         dt, cpu = time.perf_counter() - t0, time.process_time() - c0
     finally:
         system.shutdown()
         runner.join(10.0)
     if count.failures:
-        raise RuntimeError(f"modbus end-to-end bench ({connections} connection(s)): "
-                           f"{len(count.failures)} sensor failures, first: {count.failures[0]}")
-    return figure(cycles * sensors, dt, cpu)
+        raise RuntimeError(f"{what} end-to-end bench: {len(count.failures)} sensor failures, "
+                           f"first: {count.failures[0]}")
+    return figure(cycles * len(names), dt, cpu)
+
+
+def modbus_chcos(port: int, sensors: int, cycles: int, connections: int = 1,
+                 period: float = 0.0005) -> float:
+    """Readings per second a chcos task takes end to end (:func:`end_to_end`) from a
+    ``modbus-tcp`` device map of ``sensors`` holding registers (one request each), polled every
+    ``period`` s (a poll is queued at most once, so the driver runs back to back) over
+    ``connections`` TCP connections."""
+    addresses = MODBUS_ADDRESSES[:sensors]
+    devmap = (MODBUS_MAP.format(port=port, period=period,
+                                connections=(f"connections = {connections}" if connections > 1
+                                             else ""))
+              + "".join(MODBUS_SENSOR.format(a=a) for a in addresses))
+    return end_to_end(devmap, [f"r{a}" for a in addresses], cycles,
+                      f"modbus ({connections} connection(s))")
 
 
 def modbus_parallel_library(port: int, sensors: int, cycles: int, connections: int) -> float:
@@ -369,6 +381,34 @@ def canopen_driver(channel: str, sensors: int, cycles: int) -> float:
     return drive(CanopenDriver(bus, devs, host), host, cycles)
 
 
+CANOPEN_MAP = """
+[[bus]]
+name = "drive"
+kind = "canopen"
+interface = "virtual"
+channel = "{channel}"
+poll_period = {period}
+nodes = [{{ id = 5, eds = "{eds}", nmt_start = false }}]
+"""
+CANOPEN_SENSOR = """
+[[device]]
+name = "o{index:04X}"
+direction = "sensor"
+bus = "drive"
+address = {{ node = 5, index = {index} }}
+"""
+
+
+def canopen_chcos(channel: str, sensors: int, cycles: int, period: float = 0.0005) -> float:
+    """SDO readings per second a chcos task takes end to end (:func:`end_to_end`) from a
+    ``canopen`` device map of ``sensors`` objects of the simulated drive, polled every
+    ``period`` s (back to back, as :func:`modbus_chcos`)."""
+    objects = SDO_OBJECTS[:sensors]
+    devmap = (CANOPEN_MAP.format(channel=channel, period=period, eds=SERVO_EDS.as_posix())
+              + "".join(CANOPEN_SENSOR.format(index=i) for i in objects))
+    return end_to_end(devmap, [f"o{i:04X}" for i in objects], cycles, "canopen")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run both benchmarks and print the figures; 0 if every ratio of a full bus (``--sensors``
     per tick) meets the target."""
@@ -421,14 +461,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     with CanopenSlave(5, channel=channel, heartbeat_period=0):
         for k in (n, 1):
             cycles = args.reads // k
-            co = best_each(args.repeat, [
-                functools.partial(canopen_library, channel, k, cycles),
-                functools.partial(canopen_driver, channel, k, cycles)])
+            runs = [functools.partial(canopen_library, channel, k, cycles),
+                    functools.partial(canopen_driver, channel, k, cycles)]
+            if k == n:
+                runs.append(functools.partial(canopen_chcos, channel, k, cycles))
+            co = best_each(args.repeat, runs)
+            rows = [("canopen alone: sdo.upload back to back (baseline)", co[0], None),
+                    ("chcos driver only: counting host, tick + settle per cycle, own reader "
+                     "thread", co[1], args.target if k == n else None)]
+            if k == n:
+                rows.append(("chcos end to end: kernel on the real clock, driver threads, task "
+                             "taking every reading", co[2], args.target))
             sections.append((f"canopen SDO upload, {k} object(s) per tick, simulated drive "
-                             f"(canopen LocalNode) in this process, python-can virtual bus", [
-                ("canopen alone: sdo.upload back to back (baseline)", co[0], None),
-                ("chcos driver: counting host, tick + settle per cycle, own reader thread",
-                 co[1], args.target if k == n else None)]))
+                             f"(canopen LocalNode) in this process, python-can virtual bus",
+                             rows))
 
     ok = True
     print(f"best of {args.repeat} rounds; ratio = reads/s over the section's baseline; CPU = "

@@ -17,7 +17,7 @@ import logging
 import math
 import threading
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import TYPE_CHECKING, Any
 
 from chcos.devices.busstats import BusCounters, BusStats
@@ -179,6 +179,17 @@ class Devtab(DeviceHealth, BusCounters, WriteTracking):
 
     inject = deliver  # the host's and the tests' way to feed a sensor
 
+    def deliver_many(self, readings: Sequence[tuple[str, Any]]) -> None:
+        """New raw readings taken together (one poll of a driver: ``(device, value)`` pairs, in
+        order) as one interrupt, so the kernel wakes once per poll; each is handled as
+        :meth:`deliver` would, all stamped with this call's time (see
+        :func:`drivers.base.deliver_all`)."""
+        at = self.kernel.clock.now()
+        stamp = self._rx_stamp
+        for device, _ in readings:
+            stamp[device] = at
+        self.kernel.interrupt(self._readings, tuple(readings), at)
+
     def fail(self, device: str, reason: str) -> None:
         """The driver reports ``device`` failed (from a driver thread); it stays failed until
         the driver reports the end of it (:meth:`recover`), whatever readings arrive."""
@@ -218,6 +229,19 @@ class Devtab(DeviceHealth, BusCounters, WriteTracking):
             self._refresh(e, "fresh data")
         if self._listener is not None and self._listener.reading(device, value):
             e.overwrites += 1
+
+    def _readings(self, readings: Sequence[tuple[str, Any]], at: float) -> None:
+        """The interrupt of :meth:`deliver_many`: each reading in turn; one that raises does not
+        keep the others from their buffers (the first error is raised after the last, for the
+        kernel to record)."""
+        first: Exception | None = None
+        for device, raw in readings:
+            try:
+                self._reading(device, raw, at)
+            except Exception as exc:
+                first = first or exc
+        if first is not None:
+            raise first
 
     def _driver_health(self, device: str, failure: str, ended: str = "") -> None:
         e = self._entries.get(device)
