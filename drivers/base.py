@@ -66,6 +66,10 @@ class DriverHost(Protocol):
         real). ``fn`` must not block: it hands work to the driver's own I/O thread. Call only from
         :meth:`Driver.start`."""
 
+    def at(self, when: float, fn: Callable[[], None]) -> None:
+        """Run ``fn`` once on the kernel thread at kernel-clock time ``when`` (at once if that
+        time has passed). Thread-safe: a driver's I/O thread arms its next poll with it."""
+
     def now(self) -> float:
         """The kernel clock's current time in seconds."""
 

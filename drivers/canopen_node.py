@@ -20,7 +20,8 @@ handled: virtual-time runs are deterministic on CANopen too.
 
 Device address: ``{node, index, subindex = 0, poll_period}``. A sensor whose object is mapped in an
 enabled TPDO of the node's EDS is delivered from the PDO callback; any other sensor is read by SDO
-every ``poll_period`` (the ``host.every`` callback only enqueues; the SDOs run on the driver's I/O
+every ``poll_period``, paced by the polls as in :mod:`drivers.jobs` (the kernel timer only
+enqueues; the SDOs run on the driver's I/O
 thread, the sensors of one period in turn in one job). An actuator write goes in the RPDO that
 maps the object, else by SDO download.
 
@@ -39,7 +40,6 @@ driver's state are :mod:`drivers.canopen_events`, the object dictionary :mod:`dr
 from __future__ import annotations
 
 import contextlib
-import functools
 import struct
 import time
 from typing import Any
@@ -157,7 +157,7 @@ class CanopenDriver(CanopenEvents):
         # anyway; each reports its own failure
         self._poll_groups = groups
         for period in groups:
-            self.host.every(period, functools.partial(self._submit_poll, period))
+            self._poll_every(period, period)
 
     def _bind_devices(self) -> None:
         default_poll = float(self.bus.options.get("poll_period", DEFAULT_POLL))

@@ -1,12 +1,20 @@
 """jobs - the job-queue scaffolding of the request/response drivers (CANopen, Modbus).
 
 Their bus I/O runs as jobs, in order, on one I/O thread of the driver: a poll of some sensors, a
-write, a probe, an NMT command. The kernel side only enqueues (``host.every`` callbacks and
+write, a probe, an NMT command. The kernel side only enqueues (kernel timer callbacks and
 :meth:`drivers.base.Driver.write` never block) and :meth:`JobDriver.settle` waits until every job
 handed over so far is done. :class:`JobDriver` keeps that count (``_pending`` under the
 ``_idle`` condition), the set of polls already queued (a poll is queued at most once, however
 late the I/O thread is), the ``write`` job and the settle, including the settle of an optional
-:class:`drivers.threaded.ReaderThread` (``_rx``) whose frames the jobs wait for. Two transports:
+:class:`drivers.threaded.ReaderThread` (``_rx``) whose frames the jobs wait for.
+
+Polls are paced by the polls themselves (:meth:`JobDriver._poll_every`), as a field-bus master
+paces its cycle: each poll is due one period after the previous one was due, armed with
+``host.at`` when the I/O thread takes the previous one. A bus slower than the period is polled
+back to back: a successor already due when its predecessor is taken is queued at once by the I/O
+thread (counted ``polls-late`` in the bus statistics), so the kernel is not woken for polls at
+all then, where a periodic timer would wake it every period while a slow poll is in flight. On a
+virtual clock the polls fall exactly on the period's grid. Two transports:
 
 - :class:`WorkerJobDriver`: a plain worker thread taking jobs from a :class:`queue.Queue` (the
   CANopen driver, whose library calls block); a subclass writes ``_run(job)`` and may override
@@ -24,6 +32,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import queue
 import threading
 import time
@@ -62,6 +71,9 @@ class JobDriver(Driver):
         self._idle = threading.Condition()
         self._pending = 0
         self._polls_queued: set[Hashable] = set()
+        #: paced polls: key -> (period, job op); key -> when the queued poll was due
+        self._poll_plan: dict[Hashable, tuple[float, str]] = {}
+        self._poll_due_at: dict[Hashable, float] = {}
         self._rx: ReaderThread | None = None
 
     @abstractmethod
@@ -89,10 +101,39 @@ class JobDriver(Driver):
         if not self._submit(op, key):
             self._poll_taken(key)
 
+    def _poll_every(self, key: Hashable, period: float, op: str = "poll") -> None:
+        """Poll ``key`` (job ``(op, key)``) every ``period`` seconds of the kernel clock, the
+        first one period from now, paced by the polls (see the module doc). Call from start."""
+        self._poll_plan[key] = (period, op)
+        self._arm_poll(key, round(self.host.now() + period, 9))
+
+    def _arm_poll(self, key: Hashable, due: float) -> None:
+        self.host.at(due, functools.partial(self._poll_is_due, key, due))
+
+    def _poll_is_due(self, key: Hashable, due: float) -> None:
+        """Queue the poll ``key`` due at ``due`` (the kernel thread at that time, or the I/O
+        thread for a late successor); taking it arms the next one."""
+        with self._idle:
+            self._poll_due_at[key] = due
+        self._submit_poll(key, self._poll_plan[key][1])
+
     def _poll_taken(self, key: Hashable) -> None:
-        """The poll ``key`` left the queue (run, or dropped): it may be queued again."""
+        """The poll ``key`` left the queue (run, or dropped): it may be queued again. A paced
+        poll's successor is armed here, one period after this one was due; if that has passed
+        already (counted ``polls-late``) it is queued at once, behind this one, without a
+        round trip through the kernel. Nothing once the driver stops."""
         with self._idle:
             self._polls_queued.discard(key)
+            due = self._poll_due_at.pop(key, None)
+        if due is None or not self._running:
+            return
+        nxt = round(due + self._poll_plan[key][0], 9)
+        now = self.host.now()
+        if nxt > now:
+            self._arm_poll(key, nxt)
+            return
+        self.host.stat(self.bus.name, "polls-late")
+        self._poll_is_due(key, now)
 
     def _done(self) -> None:
         """One job is finished (run or dropped); wakes :meth:`settle` at the last one."""

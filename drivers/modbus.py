@@ -16,8 +16,10 @@ Bus options:
 Device address: ``{unit = 1, table = coil|discrete|holding|input, address, type, word_order =
 big|little, poll_period}``; ``type`` is ``bool`` for coils and discrete inputs (the default there)
 and one of ``int16 uint16 int32 uint32 float32 float64`` for registers (default ``uint16``).
-Sensors are polled every ``poll_period`` of the kernel clock (the ``host.every`` callback only
-enqueues); each poll groups the contiguous addresses of one unit and table into one request.
+Sensors are polled every ``poll_period`` of the kernel clock, paced by the polls (a bus slower
+than the period is polled back to back, counted ``polls-late``; see :mod:`drivers.jobs`; the
+kernel timer only enqueues); each poll groups the contiguous addresses of one unit and table into
+one request.
 Actuators (coils and holding registers) are written without blocking the caller. Jobs (a poll, a
 write, a probe) run in order on an asyncio loop in the driver's own thread; within a poll of several
 requests on ``modbus-tcp`` with ``connections`` > 1 the requests are outstanding at once, spread

@@ -9,7 +9,6 @@ reconnect with backoff, failing and recovering the devices). The requests themse
 from __future__ import annotations
 
 import asyncio
-import functools
 from collections.abc import Sequence
 from typing import Any
 
@@ -94,10 +93,10 @@ class ModbusDriver(ModbusRequests):
         timeout = float(self.bus.options.get("timeout", 1.0))
         self._first_attempt.wait(timeout + 2.0)
         for period in self._plans:
-            self.host.every(period, functools.partial(self._submit_poll, period))
+            self._poll_every(period, period)
         if not self._plans and self._points:     # actuators only: nothing read would notice
-            self.host.every(float(self.bus.options.get("poll_period", PROBE_PERIOD)),
-                            functools.partial(self._submit_poll, "probe", "probe"))
+            self._poll_every("probe", float(self.bus.options.get("poll_period", PROBE_PERIOD)),
+                             "probe")
 
     def stop(self) -> None:
         """Stop the I/O thread and close the connection. Idempotent; never raises."""

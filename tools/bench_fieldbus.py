@@ -57,13 +57,15 @@ TARGET = 0.9   # canopen driver / canopen alone (issue 21)
 
 
 class CountingHost:
-    """A DriverHost that counts deliveries and lets the benchmark run the ``every`` callbacks."""
+    """A DriverHost that counts deliveries and lets the benchmark run the ``every`` and ``at``
+    callbacks."""
 
     def __init__(self) -> None:
         self.cond = threading.Condition()
         self.delivered = 0
         self.failures: list[str] = []
         self.callbacks: list[Callable[[], None]] = []
+        self.once: list[Callable[[], None]] = []
 
     def deliver(self, device: str, value: Any) -> None:
         with self.cond:
@@ -91,11 +93,19 @@ class CountingHost:
     def every(self, period: float, fn: Callable[[], None]) -> None:
         self.callbacks.append(fn)
 
+    def at(self, when: float, fn: Callable[[], None]) -> None:
+        """A paced poll armed: run at the next tick, whatever ``when`` says (the benchmark
+        ticks as fast as the driver settles)."""
+        with self.cond:
+            self.once.append(fn)
+
     def now(self) -> float:
         return time.monotonic()
 
     def tick(self) -> None:
-        for fn in self.callbacks:
+        with self.cond:
+            once, self.once = self.once, []
+        for fn in [*self.callbacks, *once]:
             fn()
 
     def wait_delivered(self, n: int, timeout: float) -> bool:

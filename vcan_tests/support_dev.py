@@ -71,6 +71,9 @@ class FakeHost:
     def every(self, period: float, fn: Callable[[], None]) -> None:
         self.timers.append([period, self.clock + period, fn])
 
+    def at(self, when: float, fn: Callable[[], None]) -> None:
+        self.timers.append([None, when, fn])
+
     def now(self) -> float:
         return self.clock
 
@@ -82,8 +85,11 @@ class FakeHost:
             if t[1] > end + 1e-12:
                 break
             self.clock = t[1]
+            if t[0] is None:                 # at(): once
+                self.timers.remove(t)
+            else:
+                t[1] += t[0]
             t[2]()
-            t[1] += t[0]
         self.clock = end
 
     def values(self, device: str) -> list[Any]:

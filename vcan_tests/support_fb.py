@@ -17,9 +17,10 @@ WAIT = 5.0  # seconds a test waits for an expected event before it fails
 
 @dataclass
 class Periodic:
-    """One ``every()`` registration and when it is next due on the virtual clock."""
+    """One ``every()`` registration (or, with period None, one ``at()``) and when it is next
+    due on the virtual clock."""
 
-    period: float
+    period: float | None
     fn: Callable[[], None]
     due: float = 0.0
 
@@ -78,6 +79,10 @@ class FakeHost:
         with self.cond:
             self.periodics.append(Periodic(period, fn, self.clock + period))
 
+    def at(self, when: float, fn: Callable[[], None]) -> None:
+        with self.cond:
+            self.periodics.append(Periodic(None, fn, when))
+
     def now(self) -> float:
         with self.cond:
             return self.clock
@@ -89,11 +94,15 @@ class FakeHost:
         callback that fell due, on the calling thread; returns how many ran."""
         with self.cond:
             if dt is None:
-                dt = min((p.period for p in self.periodics), default=0.0)
+                dt = min((p.period if p.period is not None else max(0.0, p.due - self.clock)
+                          for p in self.periodics), default=0.0)
             self.clock += dt
             due = [p for p in self.periodics if p.due <= self.clock + 1e-9]
             for p in due:
-                p.due = self.clock + p.period
+                if p.period is None:
+                    self.periodics.remove(p)
+                else:
+                    p.due = self.clock + p.period
         for p in due:
             p.fn()
         return len(due)

@@ -92,16 +92,23 @@ def test_servo_physics_reaches_target_on_virtual_time(rig: Rig) -> None:
 
 
 def test_sdo_polled_sensor_on_host_ticks(rig: Rig) -> None:
-    periods = sorted(p.period for p in rig.host.periodics)
-    assert periods == [0.1, 0.5]              # vel (bus default) and temp; pos rides the TPDO
+    # one poll armed per period, one period from start: vel (bus default) and temp; pos rides
+    # the TPDO
+    assert sorted(p.due for p in rig.host.periodics) == [0.1, 0.5]
     rig.slave.set(0x606C, 0, 4321)
     rig.host.tick(0.1)
     assert rig.driver.settle(WAIT)
     assert rig.host.values("vel") == [4321]
     assert rig.host.values("temp") == []      # not due yet
+    assert sorted(p.due for p in rig.host.periodics) == [0.2, 0.5]  # taking it armed the next
     rig.host.tick(0.4)
     assert rig.driver.settle(WAIT)
     assert rig.host.values("temp") == [25]
+    # vel, due at 0.2, was taken at 0.5: its successor (due at 0.3) went at once, behind it,
+    # and the one after that is armed a period later; temp stays on its grid
+    assert rig.host.stats.get("polls-late") == 1
+    assert rig.host.values("vel") == [4321, 4321, 4321]
+    assert sorted(p.due for p in rig.host.periodics) == [0.6, 1.0]
 
 
 def test_actuator_writes_by_rpdo_and_by_sdo(rig: Rig) -> None:

@@ -204,6 +204,18 @@ class Devtab(DeviceHealth, BusCounters, WriteTracking):
         """Run ``fn`` on the kernel thread every ``period`` seconds of kernel time."""
         self.kernel.every(period, fn)
 
+    def at(self, when: float, fn: Callable[[], None]) -> None:
+        """Run ``fn`` once on the kernel thread at kernel time ``when`` (at once if past); from
+        any other thread through the interrupt queue, so the timer heap is only touched by the
+        kernel thread."""
+        if self.kernel.on_kernel_thread():
+            self.kernel.call_at(when, fn)
+        else:
+            self.kernel.interrupt(self._arm, when, fn)
+
+    def _arm(self, when: float, fn: Callable[[], None]) -> None:
+        self.kernel.call_at(when, fn)
+
     def now(self) -> float:
         """The kernel clock's time."""
         return self.kernel.clock.now()
