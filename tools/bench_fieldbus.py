@@ -1,7 +1,7 @@
 """bench_fieldbus - the field-bus drivers' read rates against the libraries' own, side by side.
 
 Run: ``.venv/bin/python -m tools.bench_fieldbus [--reads N] [--sensors K] [--repeat R]
-[--connections C]``. Every figure is labelled with what it includes; each section's first row is
+[--connections C] [--json FILE]``. Every figure is labelled with what it includes; each section's first row is
 its baseline, measured in the same run, and every ratio is against it. Each figure is the best of
 ``--repeat`` rounds that run the section's programs in turn (load from other processes only ever
 slows a run down); beside the rate, this process's CPU time per read (all threads), which such
@@ -31,6 +31,7 @@ import argparse
 import asyncio
 import functools
 import importlib
+import json
 import subprocess
 import sys
 import tempfile
@@ -434,6 +435,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="connections of the parallel Modbus poll")
     parser.add_argument("--modbus-target", type=float, default=0.95,
                         help="chcos end to end / asyncio + pymodbus, 1 connection")
+    parser.add_argument("--json", help="also write the sections to this file (bench_suite)")
     args = parser.parse_args(argv)
     n = args.sensors
     lanes = args.connections
@@ -499,6 +501,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                                              f"{'met' if ratio >= target else 'NOT met'}")
             ok = ok and (target is None or ratio >= target)
             print(f"  {label:86} {value:8.0f} {ratio:6.2f} {cpu:7.0f}{met}")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"repeat": args.repeat, "sections": [
+            {"title": title, "rows": [{"label": label, "rate": value, "cpu_us": cpu,
+                                       "ratio": value / figs[0][1][0], "target": target}
+                                      for label, (value, cpu), target in figs]}
+            for title, figs in sections]}, indent=2) + "\n", encoding="utf-8")
     return 0 if ok else 1
 
 
