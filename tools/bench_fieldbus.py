@@ -1,8 +1,9 @@
 """bench_fieldbus - the field-bus drivers' read rates against the libraries' own, side by side.
 
 Run: ``.venv/bin/python -m tools.bench_fieldbus [--reads N] [--sensors K] [--repeat R]
-[--connections C] [--json FILE]``. Every figure is labelled with what it includes; each section's first row is
-its baseline, measured in the same run, and every ratio is against it. Each figure is the best of
+[--connections C] [--json FILE]``. Every figure is labelled with what it includes; each
+section's first row is its baseline, measured in the same run, and every ratio is against it.
+Each figure is the best of
 ``--repeat`` rounds that run the section's programs in turn (load from other processes only ever
 slows a run down); beside the rate, this process's CPU time per read (all threads), which such
 load disturbs far less.
