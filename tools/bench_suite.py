@@ -118,8 +118,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--verbose", action="store_true",
                     help="keep chcos' warnings (one 'estop' line per emergency trial)")
     args = ap.parse_args(argv)
+    chcos_log = logging.getLogger("chcos")
+    level = chcos_log.level
     if not args.verbose:  # the estop warning is logged after the measured safe-value writes
-        logging.getLogger("chcos").setLevel(logging.ERROR)
+        chcos_log.setLevel(logging.ERROR)
+    try:
+        return _run(args)
+    finally:
+        chcos_log.setLevel(level)
+
+
+def _run(args: argparse.Namespace) -> int:
     q = args.quick
     run = SuiteRun(quick=q, reps=args.repeat or (2 if q else 3), seed=args.seed, out=args.out,
                    soak_s=args.soak_seconds or (5.0 if q else 60.0),
