@@ -143,6 +143,28 @@ def test_writes_queued_behind_a_busy_writer_keep_their_order(rig: Any) -> None:
     assert host.writes == [("A", v, "") for v in (1, 2, 3, 4)]
 
 
+@pytest.mark.parametrize("full", [False, True])
+def test_the_writer_waits_while_the_fast_path_holds_the_send(rig: Any, full: bool) -> None:
+    """A write queued by another thread meanwhile goes after the fast path's frame, also when
+    that frame falls back to the writer (it goes to the front of the queue)."""
+    drv, host, gate, peer = rig
+    gate.full = full
+    early: list[bool] = []
+
+    def meanwhile() -> None:       # another thread writes while write 1 is in send()
+        gate.on_inline = None
+        t = threading.Thread(target=drv.write, args=("A", 2))
+        t.start()
+        t.join(WAIT)
+        early.append(gate.waiting.wait(0.2))   # the writer must not start sending it now
+
+    gate.on_inline = meanwhile
+    drv.write("A", 1)
+    assert early == [False]
+    assert received(peer, 2) == [value_data(1), value_data(2)]
+    assert drv.settle(WAIT) and host.writes == [("A", 1, ""), ("A", 2, "")]
+
+
 def test_a_full_bus_hands_the_write_to_the_writer_and_reports_no_failure(rig: Any) -> None:
     drv, host, gate, peer = rig
     gate.full = True
