@@ -22,7 +22,11 @@ appear on it. Per trial the measured times are (``time.perf_counter``, one proce
   Devtab (the Devtab ``on_write`` hook, on the kernel thread, during K's step);
 * ``from_driver``: the CAN driver handing the decoded intruder value to the Devtab (its reader
   thread) -> the same last safe value;
-* ``on_wire``: peer's send -> the last safe-value frame received back by the peer.
+* ``on_wire``: peer's send -> the last safe-value frame received back by the peer (its listener
+  thread, in this process: includes that thread's own wake-up, GIL hand-off included);
+* ``stamped``: peer's send -> the bus's own time stamp of the last safe-value frame (python-can
+  ``virtual`` stamps a frame with ``time.time()`` in the sender's ``send()``; both ends read on
+  ``time.time()``): when the frame went on the bus, without the peer's receive delay.
 
 As a side-by-side baseline under the same load and noise, every trial is followed by one
 ``raw_echo``: a frame sent on a second virtual channel to a bare Python thread that sends it
@@ -107,6 +111,7 @@ class EmergencyResult:
     from_send: list[float] = field(default_factory=list)
     from_driver: list[float] = field(default_factory=list)
     on_wire: list[float] = field(default_factory=list)
+    stamped: list[float] = field(default_factory=list)
     raw_echo: list[float] = field(default_factory=list)
     trials: int = 0
     failed: int = 0
@@ -138,6 +143,7 @@ class _Trial:
         self.t_driver: float | None = None
         self.writes: list[float] = []
         self.wire: dict[int, float] = {}
+        self.stamps: dict[int, float] = {}
         self.done = threading.Event()
         self.wire_done = threading.Event()
 
@@ -145,6 +151,7 @@ class _Trial:
         self.t_driver = None
         self.writes = []
         self.wire = {}
+        self.stamps = {}
         self.done.clear()
         self.wire_done.clear()
         self.armed = True
@@ -209,6 +216,7 @@ def run_emergency(trials: int = 200, rate: float = 5000.0, *, seed: int = 7,
         if (trial.armed and msg.arbitration_id in act_ids
                 and int.from_bytes(msg.data[:4], "little") == 0):
             trial.wire.setdefault(msg.arbitration_id, t)
+            trial.stamps.setdefault(msg.arbitration_id, msg.timestamp)
             if len(trial.wire) == n_safe:
                 trial.wire_done.set()
 
@@ -238,6 +246,7 @@ def run_emergency(trials: int = 200, rate: float = 5000.0, *, seed: int = 7,
                                 data=(i + 1).to_bytes(4, "little"))
             with lock:
                 t_send = time.perf_counter()
+                t_wall = time.time()
                 peer.send(frame)
             ok = trial.done.wait(1.0) and trial.wire_done.wait(1.0)
             trial.armed = False
@@ -249,6 +258,7 @@ def run_emergency(trials: int = 200, rate: float = 5000.0, *, seed: int = 7,
                 res.from_send.append(last - t_send)
                 res.from_driver.append(last - trial.t_driver)
                 res.on_wire.append(max(trial.wire.values()) - t_send)
+                res.stamped.append(max(trial.stamps.values()) - t_wall)
             for d in range(len(BACKGROUND)):
                 s.execute(f"resume D{d}")
             time.sleep(rng.uniform(*gap))
@@ -294,6 +304,8 @@ def main(argv: list[str] | None = None) -> int:
           f"{r.background_rate:,.0f} background frames/s; machine {r.load_text()}")
     print(f"  peer send -> last safe value on the wire: {_p50_p99(r.on_wire)} (target p99 "
           f"< 0.5 ms on a quiet machine)")
+    print(f"  ... by the bus's time stamp of the frame : {_p50_p99(r.stamped)} (without "
+          f"the peer's receive delay)")
     print(f"  peer send -> last safe value in Devtab  : {_p50_p99(r.from_send)}")
     print(f"  bare Python echo on the bus (baseline)  : {_p50_p99(r.raw_echo)}")
     return 0
