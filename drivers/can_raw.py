@@ -96,6 +96,8 @@ class CanDriver(ThreadedDriver):
         self._write_failed: set[str] = set()
         self.received = 0
         self.sent = 0
+        #: of :attr:`sent`, the frames sent on the fast path (in the caller's thread)
+        self.sent_inline = 0
 
     @classmethod
     def check_bus(cls, bus: BusSpec) -> list[str]:
@@ -279,6 +281,7 @@ class CanDriver(ThreadedDriver):
             bus.send(frame, timeout=0)
         except (can.CanError, OSError):
             return False
+        self.sent_inline += 1
         self._sent(device, value, frame)
         return True
 

@@ -119,7 +119,7 @@ def test_a_write_is_sent_and_confirmed_in_the_callers_thread(rig: Any) -> None:
     assert host.writes == [("A", 7, "")]
     assert gate.sends == [(threading.current_thread().name, 0, value_data(7), True)]
     assert received(peer, 1) == [value_data(7)]
-    assert drv.sent == 1 and not drv.error_counts
+    assert drv.sent == drv.sent_inline == 1 and not drv.error_counts
 
 
 def test_writes_queued_behind_a_busy_writer_keep_their_order(rig: Any) -> None:
@@ -176,6 +176,7 @@ def test_a_full_bus_hands_the_write_to_the_writer_and_reports_no_failure(rig: An
     assert [(w, t, ok) for w, t, _d, ok in gate.sends] == [
         (threading.current_thread().name, 0, False), ("can-b-tx", 0.5, True)]
     assert not drv.error_counts and host.errors == [] and host.failures == []
+    assert (drv.sent, drv.sent_inline) == (1, 0)
 
 
 def test_stop_reports_queued_writes_failed_once_each(rig: Any) -> None:
