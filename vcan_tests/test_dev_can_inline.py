@@ -68,13 +68,23 @@ def value_data(v: int) -> bytes:
     return v.to_bytes(2, "little")
 
 
+@pytest.fixture(params=["virtual", pytest.param("socketcan", marks=pytest.mark.socketcan)])
+def can_iface(request: pytest.FixtureRequest) -> tuple[str, str]:
+    """(interface, channel): a fresh virtual channel, or the SocketCAN channel UML provides."""
+    if request.param == "virtual":
+        return "virtual", unique_channel("inline")
+    from vcan_tests import uml
+
+    return "socketcan", uml.can_channel("socketcan")
+
+
 @pytest.fixture
-def rig() -> Iterator[tuple[CanDriver, FakeHost, GateBus, can.BusABC]]:
-    channel = unique_channel("inline")
+def rig(can_iface: tuple[str, str]) -> Iterator[tuple[CanDriver, FakeHost, GateBus, can.BusABC]]:
+    interface, channel = can_iface
     host = FakeHost()
-    drv = CanDriver(bus("can", interface="virtual", channel=channel),
+    peer = can.Bus(interface=interface, channel=channel)
+    drv = CanDriver(bus("can", interface=interface, channel=channel),
                     [device("A", "actuator", id=A_ID, start=0, length=16, dlc=2)], host)
-    peer = can.Bus(interface="virtual", channel=channel)
     drv.start()
     assert drv._bus is not None
     gate = GateBus(drv._bus)
