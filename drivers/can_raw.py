@@ -36,8 +36,9 @@ the DBC initial value (0 if none, clipped into the signal's range), and sent. On
 :data:`INLINE_INTERFACES` (``virtual``, ``socketcan``), without ``record``, a write that finds
 nothing queued is sent at once in the caller's thread (the kernel thread) with ``timeout=0``; if
 the bus cannot take it right now (transmit buffer full, ENOBUFS) or anything is queued or being
-sent, it goes to the writer thread, which waits up to :data:`SEND_TIMEOUT` (0.5 s) for room. Other
-interfaces, and buses that record, always use the writer thread. Encoding or send
+sent, it goes to the writer thread, which waits up to :data:`SEND_TIMEOUT` (0.5 s) for room
+(and tries again every millisecond while SocketCAN reports ENOBUFS, on which python-can does
+not wait). Other interfaces, and buses that record, always use the writer thread. Encoding or send
 failures are reported with ``host.fail(device, ...)``; the next successful write of that actuator
 reports ``host.recover(device)``. Bus errors are also counted in ``CanDriver.error_counts``.
 """
@@ -45,7 +46,9 @@ reports ``host.recover(device)``. Bus errors are also counted in ``CanDriver.err
 from __future__ import annotations
 
 import contextlib
+import errno
 import functools
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -76,6 +79,8 @@ INLINE_INTERFACES = frozenset({"virtual", "socketcan"})
 
 #: Seconds the writer thread waits for room in the transmit buffer before a send fails.
 SEND_TIMEOUT = 0.5
+#: Seconds between the writer thread's tries while the interface reports ENOBUFS.
+ENOBUFS_RETRY = 0.001
 
 
 class CanDriver(ThreadedDriver):
@@ -291,7 +296,7 @@ class CanDriver(ThreadedDriver):
         if frame is None:
             return
         try:
-            self._bus.send(frame, timeout=SEND_TIMEOUT)
+            self._send_waiting(self._bus, frame)
         except (can.CanError, OSError) as exc:
             reason = f"CAN send on bus {self.bus.name!r} failed: {exc}"
             self._error("send", reason)
@@ -300,6 +305,24 @@ class CanDriver(ThreadedDriver):
             self.host.fail(device, reason)
             return
         self._sent(device, value, frame)
+
+    def _send_waiting(self, bus: can.BusABC, frame: can.Message) -> None:
+        """Send ``frame``, waiting up to SEND_TIMEOUT for room (writer thread): python-can
+        waits for a writable socket but gives up at once on ENOBUFS (the interface's transmit
+        queue full, which SocketCAN reports instead of blocking), so that is tried again every
+        millisecond until the deadline or :meth:`stop`. Raises what the last try raised."""
+        deadline = time.monotonic() + SEND_TIMEOUT
+        while True:
+            try:
+                bus.send(frame, timeout=max(0.0, deadline - time.monotonic()))
+                return
+            except can.CanOperationError as exc:
+                if exc.error_code != errno.ENOBUFS or time.monotonic() >= deadline:
+                    raise
+            with self._cond:
+                if self._cond.wait_for(lambda: not self._running, ENOBUFS_RETRY):
+                    raise can.CanOperationError(f"bus {self.bus.name!r} stopped while its "
+                                                f"transmit queue was full", errno.ENOBUFS)
 
     def _sent(self, device: str, value: Any, frame: can.Message) -> None:
         """``frame`` is on the wire: count, confirm, recover, record."""

@@ -5,6 +5,7 @@ stop() with writes queued; outcomes confirmed on the kernel thread applied in or
 
 from __future__ import annotations
 
+import errno
 import threading
 from collections import deque
 from collections.abc import Iterator
@@ -36,6 +37,7 @@ class GateBus:
         self.real = real
         self.full = False
         self.fail_writer = 0
+        self.enobufs = 0
         self.gate = threading.Event()
         self.gate.set()
         self.waiting = threading.Event()
@@ -53,6 +55,11 @@ class GateBus:
         else:
             self.waiting.set()
             assert self.gate.wait(WAIT)
+            if self.enobufs > 0:       # SocketCAN's full interface queue; python-can gives up
+                self.enobufs -= 1
+                self.sends.append((who, timeout, bytes(msg.data), False))
+                raise can.CanOperationError("Failed to transmit: No buffer space available",
+                                            errno.ENOBUFS)
             if self.fail_writer > 0:
                 self.fail_writer -= 1
                 self.sends.append((who, timeout, bytes(msg.data), False))
@@ -147,9 +154,9 @@ def test_writes_queued_behind_a_busy_writer_keep_their_order(rig: Any) -> None:
     drv.write("A", 4)                  # nothing queued now: the fast path again
     assert received(peer, 4) == [value_data(v) for v in (1, 2, 3, 4)]
     me, tx = threading.current_thread().name, "can-b-tx"
-    assert [(w, t, d) for w, t, d, ok in gate.sends if ok] == [
-        (tx, 0.5, value_data(1)), (tx, 0.5, value_data(2)), (tx, 0.5, value_data(3)),
-        (me, 0, value_data(4))]
+    assert [(w, t > 0, d) for w, t, d, ok in gate.sends if ok] == [   # t > 0: it waits
+        (tx, True, value_data(1)), (tx, True, value_data(2)), (tx, True, value_data(3)),
+        (me, False, value_data(4))]
     assert host.writes == [("A", v, "") for v in (1, 2, 3, 4)]
 
 
@@ -183,10 +190,22 @@ def test_a_full_bus_hands_the_write_to_the_writer_and_reports_no_failure(rig: An
     assert host.wait(lambda h: h.writes)
     assert drv.settle(WAIT)
     assert host.writes == [("A", 300, "")]
-    assert [(w, t, ok) for w, t, _d, ok in gate.sends] == [
-        (threading.current_thread().name, 0, False), ("can-b-tx", 0.5, True)]
+    assert [(w, t > 0, ok) for w, t, _d, ok in gate.sends] == [
+        (threading.current_thread().name, False, False), ("can-b-tx", True, True)]
     assert not drv.error_counts and host.errors == [] and host.failures == []
     assert (drv.sent, drv.sent_inline) == (1, 0)
+
+
+def test_the_writer_waits_out_enobufs_instead_of_failing(rig: Any) -> None:
+    drv, host, gate, peer = rig
+    gate.full = True
+    gate.enobufs = 3
+    drv.write("A", 9)
+    assert received(peer, 1) == [value_data(9)]
+    assert drv.settle(WAIT)
+    assert host.writes == [("A", 9, "")] and host.failures == [] and not drv.error_counts
+    assert [(w, ok) for w, _t, _d, ok in gate.sends] == [
+        (threading.current_thread().name, False), *[("can-b-tx", False)] * 3, ("can-b-tx", True)]
 
 
 def test_stop_reports_queued_writes_failed_once_each(rig: Any) -> None:
