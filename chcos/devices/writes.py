@@ -61,12 +61,12 @@ class WriteTracking:
     def _queued_done(self, w: Write) -> None:
         """A queued outcome reaches the kernel thread: uncount it, apply it."""
         with self._wlock:
-            assert self._queued is not None
-            n = self._queued.get(w.device, 0) - 1
-            if n > 0:
-                self._queued[w.device] = n
-            else:
-                self._queued.pop(w.device, None)
+            if self._queued is not None:
+                n = self._queued.get(w.device, 0) - 1
+                if n > 0:
+                    self._queued[w.device] = n
+                else:
+                    self._queued.pop(w.device, None)
         self._write_done(w)
 
     def write_failed(self, device: str, value: Any, reason: str) -> None:
@@ -89,6 +89,9 @@ class WriteTracking:
         if retry and e is not None and e.driver is not None:
             e.driver.write(device, w.raw)
             return
+        if retry:      # no driver to try again with: reported failed after all
+            with self._wlock:
+                self._queue_outcome(device)
         w.done = False
         w.reason = reason
         self.kernel.interrupt(self._queued_done, w)
