@@ -30,10 +30,15 @@ the wrong length ``"wrong-length"``, one cantools cannot decode ``"undecodable"`
 On SocketCAN, frames the kernel dropped because the socket's receive buffer was full are
 ``"overrun"`` with the number lost (the socket's drop count, read with ``SO_MEMINFO``, the count
 ``SO_RXQ_OVFL`` reports), also summed in ``CanDriver.overrun_lost``; python-can's ``virtual``
-interface has no such buffer and never overruns. Actuator writes are queued to a writer thread
-(the caller never blocks); it
-encodes the whole message, keeping the other signals at their last written value or else the
-DBC initial value (0 if none, clipped into the signal's range), and sends it. Encoding or send
+interface has no such buffer and never overruns. Actuator writes never block the caller: each
+is encoded as the whole message, keeping the other signals at their last written value or else
+the DBC initial value (0 if none, clipped into the signal's range), and sent. On the interfaces of
+:data:`INLINE_INTERFACES` (``virtual``, ``socketcan``), without ``record``, a write that finds
+nothing queued is sent at once in the caller's thread (the kernel thread) with ``timeout=0``; if
+the bus cannot take it right now (transmit buffer full, ENOBUFS) or anything is queued or being
+sent, it goes to the writer thread, which waits up to :data:`SEND_TIMEOUT` (0.5 s) for room
+(and tries again every millisecond while SocketCAN reports ENOBUFS, on which python-can does
+not wait). Other interfaces, and buses that record, always use the writer thread. Encoding or send
 failures are reported with ``host.fail(device, ...)``; the next successful write of that actuator
 reports ``host.recover(device)``. Bus errors are also counted in ``CanDriver.error_counts``.
 """
@@ -41,7 +46,9 @@ reports ``host.recover(device)``. Bus errors are also counted in ``CanDriver.err
 from __future__ import annotations
 
 import contextlib
+import errno
 import functools
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -65,6 +72,16 @@ from drivers.threaded import ThreadedDriver
 
 BUS_OPTIONS = ("interface", "channel", "bitrate", "fd", "dbc", "record", "poll")
 
+#: Interfaces whose ``send(frame, timeout=0)`` never blocks (python-can 4: ``virtual`` puts into
+#: unbounded queues, ``socketcan`` selects with a zero timeout, then sends once); their writes
+#: take the fast path (sent on the kernel thread). Every other interface keeps the writer thread.
+INLINE_INTERFACES = frozenset({"virtual", "socketcan"})
+
+#: Seconds the writer thread waits for room in the transmit buffer before a send fails.
+SEND_TIMEOUT = 0.5
+#: Seconds between the writer thread's tries while the interface reports ENOBUFS.
+ENOBUFS_RETRY = 0.001
+
 
 class CanDriver(ThreadedDriver):
     """Driver for kind ``can`` (see the module docstring for options, addresses and threads)."""
@@ -84,6 +101,8 @@ class CanDriver(ThreadedDriver):
         self._write_failed: set[str] = set()
         self.received = 0
         self.sent = 0
+        #: of :attr:`sent`, the frames sent on the fast path (in the caller's thread)
+        self.sent_inline = 0
 
     @classmethod
     def check_bus(cls, bus: BusSpec) -> list[str]:
@@ -179,6 +198,8 @@ class CanDriver(ThreadedDriver):
             except BusError:
                 self._bus.shutdown()
                 raise
+        # no file I/O on the kernel thread: a recording bus sends from its writer thread
+        self._inline = cfg.get("interface") in INLINE_INTERFACES and self._recorder is None
         self._start_threads()
 
     def stop(self) -> None:
@@ -238,18 +259,44 @@ class CanDriver(ThreadedDriver):
         """Why ``value`` cannot be encoded for ``device`` (see :meth:`CanCodec.check`)."""
         return self.codec.check(device, value)
 
-    def _send(self, device: str, value: Any) -> None:
-        assert self._bus is not None
+    def _frame(self, device: str, value: Any) -> can.Message | None:
+        """The frame carrying ``value`` for ``device``; None if the value does not fit (then
+        refused and reported: the device is fine)."""
         try:
             coded = self.codec.encode(device, value)
-        except BusError as exc:    # a value that does not fit: refused, the device is fine
+        except BusError as exc:
             self._error("range", str(exc))
             self.host.write_failed(device, value, str(exc))
-            return
-        frame = can.Message(arbitration_id=coded.arbitration_id, data=coded.data,
-                            is_extended_id=coded.is_extended_id)
+            return None
+        return can.Message(arbitration_id=coded.arbitration_id, data=coded.data,
+                           is_extended_id=coded.is_extended_id)
+
+    def _send_now(self, device: str, value: Any) -> bool:
+        """Fast path (the kernel thread, see drivers.threaded): send with ``timeout=0``, which
+        :data:`INLINE_INTERFACES` honour without blocking; any error there (a full transmit
+        buffer, ENOBUFS, the bus closing) leaves the frame to the writer thread, which tries
+        again with the usual timeout and reports what still fails."""
+        bus = self._bus
+        if bus is None:
+            return False
+        frame = self._frame(device, value)
+        if frame is None:
+            return True
         try:
-            self._bus.send(frame, timeout=0.5)
+            bus.send(frame, timeout=0)
+        except (can.CanError, OSError):
+            return False
+        self.sent_inline += 1
+        self._sent(device, value, frame)
+        return True
+
+    def _send(self, device: str, value: Any) -> None:
+        assert self._bus is not None
+        frame = self._frame(device, value)
+        if frame is None:
+            return
+        try:
+            self._send_waiting(self._bus, frame)
         except (can.CanError, OSError) as exc:
             reason = f"CAN send on bus {self.bus.name!r} failed: {exc}"
             self._error("send", reason)
@@ -257,6 +304,28 @@ class CanDriver(ThreadedDriver):
             self._write_failed.add(device)
             self.host.fail(device, reason)
             return
+        self._sent(device, value, frame)
+
+    def _send_waiting(self, bus: can.BusABC, frame: can.Message) -> None:
+        """Send ``frame``, waiting up to SEND_TIMEOUT for room (writer thread): python-can
+        waits for a writable socket but gives up at once on ENOBUFS (the interface's transmit
+        queue full, which SocketCAN reports instead of blocking), so that is tried again every
+        millisecond until the deadline or :meth:`stop`. Raises what the last try raised."""
+        deadline = time.monotonic() + SEND_TIMEOUT
+        while True:
+            try:
+                bus.send(frame, timeout=max(0.0, deadline - time.monotonic()))
+                return
+            except can.CanOperationError as exc:
+                if exc.error_code != errno.ENOBUFS or time.monotonic() >= deadline:
+                    raise
+            with self._cond:
+                if self._cond.wait_for(lambda: not self._running, ENOBUFS_RETRY):
+                    raise can.CanOperationError(f"bus {self.bus.name!r} stopped while its "
+                                                f"transmit queue was full", errno.ENOBUFS)
+
+    def _sent(self, device: str, value: Any, frame: can.Message) -> None:
+        """``frame`` is on the wire: count, confirm, recover, record."""
         self.sent += 1
         self.host.stat(self.bus.name, "frames-sent", device=device)
         self.host.written(device, value)

@@ -20,6 +20,14 @@ hold commands back (a serial port not open yet). The base queues writes without 
 caller, runs the writer thread, starts and stops both threads, counts bus errors, and its
 :meth:`ThreadedDriver.settle` settles the reader, then waits until the writer has sent every
 queued command.
+
+The fast path: a subclass whose link can take a command without waiting sets ``_inline`` and
+writes ``_send_now``. A write that finds nothing queued and nothing being sent then claims the
+send (``_sending``, under ``_cond``, exactly as the writer thread does, so order is kept) and is
+put on the wire in the caller's thread (the kernel thread) without waiting; when the link cannot
+take it at once (``_send_now`` returns False: a full transmit buffer), the write goes to the
+front of the queue and the writer thread sends it with the usual timeout. Either way every write
+is reported exactly once and in order through ``host.written``/``host.write_failed``.
 """
 
 from __future__ import annotations
@@ -151,6 +159,8 @@ class ThreadedDriver(Driver):
         self._cond = threading.Condition()
         self._outbox: deque[tuple[str, Any]] = deque()
         self._sending = False
+        #: whether writes may take the fast path (see the module doc); set by a subclass
+        self._inline = False
         self._writer: threading.Thread | None = None
         self._rx = ReaderThread(self._read_loop, f"{self.kind}-{bus.name}-rx")
         self.error_counts: Counter[str] = Counter()
@@ -162,6 +172,13 @@ class ThreadedDriver(Driver):
         """Put one command on the wire (writer thread); report failures to the host."""
         raise NotImplementedError
 
+    def _send_now(self, device: str, value: Any) -> bool:
+        """Fast path (caller's thread, the send claimed): put one command on the wire without
+        waiting and report it as ``_send`` does (True), or leave it untouched and unreported for
+        the writer thread (False: the link cannot take it right now). Only called when
+        ``_inline`` is set; the default hands every command to the writer."""
+        return False
+
     def _can_send(self) -> bool:
         """Whether a taken command may go now (checked under ``_cond``); default always."""
         return True
@@ -169,7 +186,8 @@ class ThreadedDriver(Driver):
     def _write_loop(self) -> None:
         while True:
             with self._cond:
-                self._cond.wait_for(lambda: bool(self._outbox) or not self._running)
+                self._cond.wait_for(lambda: (bool(self._outbox) and not self._sending)
+                                    or not self._running)
                 if not self._running:
                     return
                 device, value = self._outbox.popleft()
@@ -215,16 +233,38 @@ class ThreadedDriver(Driver):
                                                   f"before the write was sent")
 
     def _write(self, device: str, value: Any) -> None:
-        """Queue ``value`` for actuator ``device``; the writer thread sends it (the outcome
-        arrives later as ``host.written``/``host.write_failed``). Never blocks."""
+        """Send ``value`` to actuator ``device`` on the fast path when nothing is queued or being
+        sent and the link takes it at once (see the module doc), else queue it for the writer
+        thread; the outcome arrives as ``host.written``/``host.write_failed`` (on the fast path
+        before this returns). Never blocks."""
         with self._cond:
-            queued = self._running      # stop() may have come between write's check and here
-            if queued:
+            running = self._running     # stop() may have come between write's check and here
+            inline = (running and self._inline and not self._outbox and not self._sending
+                      and self._can_send())
+            if inline:
+                self._sending = True    # claimed: the writer thread waits, order is kept
+            elif running:
                 self._outbox.append((device, value))
                 self._cond.notify_all()
-        if not queued:
+        if not running:
             self._refuse(device, value, "stopped", f"{self.kind} bus {self.bus.name} is not "
                                                    f"running")
+            return
+        if not inline:
+            return
+        sent = True     # an unexpected exception propagates; the command is not sent twice
+        try:
+            sent = self._send_now(device, value)
+        finally:
+            with self._cond:
+                self._sending = False
+                lost = not sent and not self._running
+                if not sent and not lost:
+                    self._outbox.appendleft((device, value))    # before any queued meanwhile
+                self._cond.notify_all()
+        if lost:
+            self.host.write_failed(device, value, f"{self.kind} bus {self.bus.name} stopped "
+                                                  f"before the write was sent")
 
     def settle(self, timeout: float) -> bool:
         """Hand the host every frame or line that arrived before this call and wait until no

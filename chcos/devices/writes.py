@@ -1,7 +1,12 @@
 """writes - actuator writes in flight: a driver that confirms its writes reports each one on the
 wire or failed (from its own thread); a failed safe value is tried again, SAFE_ATTEMPTS in all,
 unless a newer write is queued; what is finally not written is an event, a fault logged and,
-for a safe value, an entry of ``safe_failures``."""
+for a safe value, an entry of ``safe_failures``.
+
+An outcome reported from a driver thread reaches the kernel thread through ``kernel.interrupt``;
+one reported on the kernel thread itself (a driver's fast path sends during the writing task's
+step) is applied at once, unless an earlier outcome of the same device is still queued there
+(then it queues behind it, so outcomes are applied in order)."""
 
 from __future__ import annotations
 
@@ -26,16 +31,43 @@ class WriteTracking:
     _entries: dict[str, DeviceEntry]
     _wlock: threading.Lock
     _inflight: dict[str, deque[Write]]
+    #: per device, outcomes queued to the kernel thread and not yet applied (under ``_wlock``)
+    _queued: dict[str, int] | None = None
 
     def written(self, device: str, value: Any) -> None:
-        """The oldest outstanding write of ``device`` is on the wire (from a driver thread)."""
+        """The oldest outstanding write of ``device`` is on the wire (from any thread; on the
+        kernel thread applied at once, see the module doc)."""
         with self._wlock:
             q = self._inflight.get(device)
             w = q.popleft() if q else None
-        if w is None:
-            return
-        w.done = True
-        self.kernel.interrupt(self._write_done, w)
+            if w is None:
+                return
+            w.done = True
+            now = self.kernel.on_kernel_thread() and not (self._queued and
+                                                          self._queued.get(device))
+            if not now:
+                self._queue_outcome(device)
+        if now:
+            self._write_done(w)
+        else:
+            self.kernel.interrupt(self._queued_done, w)
+
+    def _queue_outcome(self, device: str) -> None:
+        """Count one outcome of ``device`` queued to the kernel thread (under ``_wlock``)."""
+        if self._queued is None:
+            self._queued = {}
+        self._queued[device] = self._queued.get(device, 0) + 1
+
+    def _queued_done(self, w: Write) -> None:
+        """A queued outcome reaches the kernel thread: uncount it, apply it."""
+        with self._wlock:
+            if self._queued is not None:
+                n = self._queued.get(w.device, 0) - 1
+                if n > 0:
+                    self._queued[w.device] = n
+                else:
+                    self._queued.pop(w.device, None)
+        self._write_done(w)
 
     def write_failed(self, device: str, value: Any, reason: str) -> None:
         """The oldest outstanding write of ``device`` did not reach the wire (from a driver
@@ -49,15 +81,20 @@ class WriteTracking:
                 w.attempts += 1
                 w.reason = reason
                 self._inflight.setdefault(device, deque()).append(w)
+            elif w is not None:
+                self._queue_outcome(device)
         if w is None:
             return
         e = self._entries.get(device)
         if retry and e is not None and e.driver is not None:
             e.driver.write(device, w.raw)
             return
+        if retry:      # no driver to try again with: reported failed after all
+            with self._wlock:
+                self._queue_outcome(device)
         w.done = False
         w.reason = reason
-        self.kernel.interrupt(self._write_done, w)
+        self.kernel.interrupt(self._queued_done, w)
 
     def _write_done(self, w: Write) -> None:
         """A confirmed or failed write, on the kernel thread: the shown value, the events."""

@@ -1,0 +1,350 @@
+"""The raw CAN driver's fast path (issue 21): a write that finds nothing queued is sent in the
+caller's thread with ``timeout=0``; a bus that cannot take it at once hands it to the writer
+thread, in order, and it still reaches a python-can peer; safe values after such a fallback;
+stop() with writes queued; outcomes confirmed on the kernel thread applied in order."""
+
+from __future__ import annotations
+
+import errno
+import threading
+from collections import deque
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import can
+import pytest
+
+from chcos.devices.entry import Write
+from chcos.kernel.clock import VirtualClock
+from chcos.system.embedded import System
+from chcos.user.context import TaskContext
+from drivers.can_raw import INLINE_INTERFACES, CanDriver
+from vcan_tests.netutil import unique_channel
+from vcan_tests.support_dev import WAIT, FakeHost, bus, device
+
+M = "vcan_tests.test_dev_can_inline"
+A_ID = 0x201
+
+
+class GateBus:
+    """A python-can bus in front of a real one: ``full`` makes a send with timeout 0 raise
+    "Transmit buffer full" (as SocketCAN does); a send with a timeout (the writer thread's)
+    waits for ``gate`` and first fails ``fail_writer`` times; every send is noted (thread,
+    timeout, data) and ``on_inline`` runs inside a timeout-0 send."""
+
+    def __init__(self, real: can.BusABC) -> None:
+        self.real = real
+        self.full = False
+        self.fail_writer = 0
+        self.enobufs = 0
+        self.gate = threading.Event()
+        self.gate.set()
+        self.waiting = threading.Event()
+        self.sends: list[tuple[str, float | None, bytes, bool]] = []   # (thread, timeout, data, ok)
+        self.on_inline: Any = None
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        who = threading.current_thread().name
+        if timeout == 0:
+            if self.on_inline is not None:
+                self.on_inline()
+            if self.full:
+                self.sends.append((who, timeout, bytes(msg.data), False))
+                raise can.CanOperationError("Transmit buffer full")
+        else:
+            self.waiting.set()
+            assert self.gate.wait(WAIT)
+            if self.enobufs > 0:       # SocketCAN's full interface queue; python-can gives up
+                self.enobufs -= 1
+                self.sends.append((who, timeout, bytes(msg.data), False))
+                raise can.CanOperationError("Failed to transmit: No buffer space available",
+                                            errno.ENOBUFS)
+            if self.fail_writer > 0:
+                self.fail_writer -= 1
+                self.sends.append((who, timeout, bytes(msg.data), False))
+                raise can.CanOperationError("Failed to transmit: No buffer space available")
+        self.sends.append((who, timeout, bytes(msg.data), True))
+        self.real.send(msg, timeout)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.real, name)
+
+
+def value_data(v: int) -> bytes:
+    return v.to_bytes(2, "little")
+
+
+@pytest.fixture(params=["virtual", pytest.param("socketcan", marks=pytest.mark.socketcan)])
+def can_iface(request: pytest.FixtureRequest) -> tuple[str, str]:
+    """(interface, channel): a fresh virtual channel, or the SocketCAN channel UML provides."""
+    if request.param == "virtual":
+        return "virtual", unique_channel("inline")
+    from vcan_tests import uml
+
+    return "socketcan", uml.can_channel("socketcan")
+
+
+@pytest.fixture
+def rig(can_iface: tuple[str, str]) -> Iterator[tuple[CanDriver, FakeHost, GateBus, can.BusABC]]:
+    interface, channel = can_iface
+    host = FakeHost()
+    peer = can.Bus(interface=interface, channel=channel)
+    drv = CanDriver(bus("can", interface=interface, channel=channel),
+                    [device("A", "actuator", id=A_ID, start=0, length=16, dlc=2)], host)
+    drv.start()
+    assert drv._bus is not None
+    gate = GateBus(drv._bus)
+    drv._bus = gate
+    try:
+        yield drv, host, gate, peer
+    finally:
+        gate.gate.set()
+        drv.stop()
+        peer.shutdown()
+
+
+def received(peer: can.BusABC, n: int) -> list[bytes]:
+    """The data of the next ``n`` frames the peer receives (each within WAIT)."""
+    out = []
+    for _ in range(n):
+        msg = peer.recv(WAIT)
+        assert msg is not None, f"peer received {out} and then nothing"
+        assert msg.arbitration_id == A_ID
+        out.append(bytes(msg.data))
+    return out
+
+
+def test_fast_path_is_the_documented_set_and_a_record_bus_keeps_the_writer(
+        tmp_path: Path) -> None:
+    assert {"virtual", "socketcan"} == INLINE_INTERFACES
+    drv = CanDriver(bus("can", interface="virtual", channel=unique_channel("rec"),
+                        record=str(tmp_path / "s.log")),
+                    [device("A", "actuator", id=A_ID, start=0, length=16, dlc=2)], FakeHost())
+    drv.start()
+    try:
+        assert drv._inline is False
+    finally:
+        drv.stop()
+
+
+def test_a_write_is_sent_and_confirmed_in_the_callers_thread(rig: Any) -> None:
+    drv, host, gate, peer = rig
+    assert drv._inline
+    drv.write("A", 7)
+    # confirmed before write() returned, by this thread, without waiting
+    assert host.writes == [("A", 7, "")]
+    assert gate.sends == [(threading.current_thread().name, 0, value_data(7), True)]
+    assert received(peer, 1) == [value_data(7)]
+    assert drv.sent == drv.sent_inline == 1 and not drv.error_counts
+
+
+def test_writes_queued_behind_a_busy_writer_keep_their_order(rig: Any) -> None:
+    drv, host, gate, peer = rig
+    gate.full = True
+    gate.gate.clear()
+    drv.write("A", 1)                  # bus full: to the writer, which waits at the gate
+    assert gate.waiting.wait(WAIT)
+    gate.full = False                  # the bus has room again, but the writer is sending
+    drv.write("A", 2)
+    drv.write("A", 3)
+    assert host.writes == []           # queued, not sent here out of order
+    gate.gate.set()
+    assert drv.settle(WAIT)
+    drv.write("A", 4)                  # nothing queued now: the fast path again
+    assert received(peer, 4) == [value_data(v) for v in (1, 2, 3, 4)]
+    me, tx = threading.current_thread().name, "can-b-tx"
+    assert [(w, t > 0, d) for w, t, d, ok in gate.sends if ok] == [   # t > 0: it waits
+        (tx, True, value_data(1)), (tx, True, value_data(2)), (tx, True, value_data(3)),
+        (me, False, value_data(4))]
+    assert host.writes == [("A", v, "") for v in (1, 2, 3, 4)]
+
+
+@pytest.mark.parametrize("full", [False, True])
+def test_the_writer_waits_while_the_fast_path_holds_the_send(rig: Any, full: bool) -> None:
+    """A write queued by another thread meanwhile goes after the fast path's frame, also when
+    that frame falls back to the writer (it goes to the front of the queue)."""
+    drv, host, gate, peer = rig
+    gate.full = full
+    early: list[bool] = []
+
+    def meanwhile() -> None:       # another thread writes while write 1 is in send()
+        gate.on_inline = None
+        t = threading.Thread(target=drv.write, args=("A", 2))
+        t.start()
+        t.join(WAIT)
+        early.append(gate.waiting.wait(0.2))   # the writer must not start sending it now
+
+    gate.on_inline = meanwhile
+    drv.write("A", 1)
+    assert early == [False]
+    assert received(peer, 2) == [value_data(1), value_data(2)]
+    assert drv.settle(WAIT) and host.writes == [("A", 1, ""), ("A", 2, "")]
+
+
+def test_a_full_bus_hands_the_write_to_the_writer_and_reports_no_failure(rig: Any) -> None:
+    drv, host, gate, peer = rig
+    gate.full = True
+    drv.write("A", 300)
+    assert received(peer, 1) == [value_data(300)]
+    assert host.wait(lambda h: h.writes)
+    assert drv.settle(WAIT)
+    assert host.writes == [("A", 300, "")]
+    assert [(w, t > 0, ok) for w, t, _d, ok in gate.sends] == [
+        (threading.current_thread().name, False, False), ("can-b-tx", True, True)]
+    assert not drv.error_counts and host.errors == [] and host.failures == []
+    assert (drv.sent, drv.sent_inline) == (1, 0)
+
+
+def test_the_writer_waits_out_enobufs_instead_of_failing(rig: Any) -> None:
+    drv, host, gate, peer = rig
+    gate.full = True
+    gate.enobufs = 3
+    drv.write("A", 9)
+    assert received(peer, 1) == [value_data(9)]
+    assert drv.settle(WAIT)
+    assert host.writes == [("A", 9, "")] and host.failures == [] and not drv.error_counts
+    assert [(w, ok) for w, _t, _d, ok in gate.sends] == [
+        (threading.current_thread().name, False), *[("can-b-tx", False)] * 3, ("can-b-tx", True)]
+
+
+def test_stop_reports_queued_writes_failed_once_each(rig: Any) -> None:
+    drv, host, gate, _peer = rig
+    gate.full = True
+    gate.gate.clear()
+    drv.write("A", 1)
+    assert gate.waiting.wait(WAIT)
+    drv.write("A", 2)
+    drv.write("A", 3)
+    stopper = threading.Thread(target=drv.stop)
+    stopper.start()
+    with drv._cond:
+        assert drv._cond.wait_for(lambda: not drv._running, WAIT)
+    gate.gate.set()                    # the frame being sent goes out; the queue does not
+    stopper.join(WAIT)
+    assert [(d, v, r == "") for d, v, r in host.writes] == [
+        ("A", 1, True), ("A", 2, False), ("A", 3, False)]
+    assert all("stopped before the write was sent" in r for _d, _v, r in host.writes[1:])
+
+
+def test_a_fallback_after_stop_is_reported_failed_not_lost(rig: Any) -> None:
+    drv, host, gate, _peer = rig
+    gate.full = True
+    gate.on_inline = drv.stop          # stop() runs to its end while the frame is in send()
+    drv.write("A", 5)
+    assert host.writes == [("A", 5, "can bus b stopped before the write was sent")]
+
+
+DBC = """VERSION ""
+NS_ :
+BS_:
+BU_: Node Chcos
+BO_ 512 Heater: 2 Chcos
+ SG_ Power : 0|16@1+ (0.1,0) [0|100] "%" Node
+"""
+
+
+def cellmap(tmp: Path, channel: str) -> Path:
+    (tmp / "cell.dbc").write_text(DBC)
+    path = tmp / "cell.toml"
+    path.write_text(f"""
+[[bus]]
+name = "can0"
+kind = "can"
+interface = "virtual"
+channel = "{channel}"
+dbc = "cell.dbc"
+
+[[device]]
+name = "H1"
+direction = "actuator"
+bus = "can0"
+address = {{ message = "Heater", signal = "Power" }}
+safe_value = 0
+units = "%"
+""")
+    return path
+
+
+async def heat(ctx: TaskContext, cmd: dict[str, Any]) -> None:
+    """Writes H1 and notes what the device table shows right after each write."""
+    for v in cmd["values"]:
+        ctx.write("H1", v)
+        e = cmd["devtab"].get("H1")
+        cmd["seen"].append((e.value, e.pending))
+
+
+@pytest.fixture
+def cell(tmp_path: Path) -> Iterator[tuple[System, GateBus, can.BusABC]]:
+    channel = unique_channel("inlsys")
+    mapfile = cellmap(tmp_path, channel)
+    peer = can.Bus(interface="virtual", channel=channel)
+    s = System([mapfile], clock=VirtualClock(), machines=[0], base_dir=tmp_path)
+    drv = s.devtab.drivers[0]
+    assert isinstance(drv, CanDriver) and drv._bus is not None
+    gate = GateBus(drv._bus)
+    drv._bus = gate
+    s.execute(f"install -m0o1 --code={M}:heat HT H1")
+    try:
+        yield s, gate, peer
+    finally:
+        gate.gate.set()
+        s.shutdown()
+        peer.shutdown()
+
+
+def power(peer: can.BusABC) -> float:
+    msg = peer.recv(WAIT)
+    assert msg is not None and msg.arbitration_id == 512
+    return int.from_bytes(msg.data[:2], "little") * 0.1
+
+
+def test_a_kernel_thread_write_is_shown_written_before_the_task_goes_on(cell: Any) -> None:
+    s, gate, peer = cell
+    seen: list[Any] = []
+    s.invoke("HT", {"values": [40.0, 50.0], "devtab": s.devtab, "seen": seen})
+    s.run_for(0.01)
+    assert seen == [(40.0, None), (50.0, None)]     # no interrupt round trip in between
+    assert [power(peer), power(peer)] == [pytest.approx(40.0), pytest.approx(50.0)]
+    assert [(t, ok) for _w, t, _d, ok in gate.sends] == [(0, True), (0, True)]
+
+
+def test_a_safe_value_after_a_fallback_is_retried_until_it_is_on_the_wire(cell: Any) -> None:
+    s, gate, peer = cell
+    drv = s.devtab.drivers[0]
+    gate.full = True           # the fast path cannot take it ...
+    gate.fail_writer = 2       # ... and the writer thread's first two attempts fail
+    assert s.devtab.estop("test") == 1
+    s.run_for(0.05)
+    assert drv.settle(WAIT)
+    s.run_for(0.05)
+    assert power(peer) == 0.0
+    e = s.devtab.get("H1")
+    assert e.value == 0 and e.pending is None and s.devtab.safe_failures == []
+    # the fast path's try, the writer's two failures and its success; then the device's
+    # recovery writes its safe value once more (the same way: full bus, writer thread)
+    assert [(w, ok) for w, _t, d, ok in gate.sends if d == b"\0\0"] == [
+        ("MainThread", False), ("can-can0-tx", False), ("can-can0-tx", False),
+        ("can-can0-tx", True), ("MainThread", False), ("can-can0-tx", True)]
+    assert drv.error_counts["send"] == 2
+
+
+def test_an_outcome_on_the_kernel_thread_waits_behind_one_still_queued(cell: Any) -> None:
+    s, _gate, _peer = cell
+    dt = s.devtab
+    log: list[Any] = []
+
+    def step() -> None:        # on the kernel thread, between task steps
+        w1, w2 = Write("H1", 10.0, 100, ""), Write("H1", 20.0, 200, "")
+        with dt._wlock:
+            dt._inflight.setdefault("H1", deque()).extend([w1, w2])
+        t = threading.Thread(target=dt.written, args=("H1", 100))
+        t.start()
+        t.join(WAIT)           # w1's outcome is queued to the kernel thread
+        dt.written("H1", 200)  # w2's must not overtake it
+        log.append(dt.get("H1").value)
+
+    s.kernel.interrupt(step)
+    s.run_for(0.01)
+    assert log == [None]       # neither applied inside the step
+    assert dt.get("H1").value == 20.0 and dt.get("H1").pending is None
