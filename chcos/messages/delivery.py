@@ -11,18 +11,19 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterable
+from heapq import heappush
 from pathlib import Path
 from typing import Any, TextIO
 
 from chcos.errors import MessageError, QueueOverflow, SensorFailure
 from chcos.kernel.scheduler import Kernel
 from chcos.messages.protocols import Comm, Devices, NoComm
-from chcos.messages.waits import forget_port
 from chcos.tables.messages import EndpointKind, InPort, Link, LinkStatus, Msgtab, TapPort
-from chcos.tables.tasks import TaskEntry, Tsktab
+from chcos.tables.tasks import TaskEntry, TaskState, Tsktab
 
 log = logging.getLogger("chcos.messages.manager")
 _LINK_SUSPENDED = LinkStatus.SUSPENDED  # a module constant: read on every delivery
+_READY = TaskState.READY
 
 
 class Delivery:
@@ -117,14 +118,28 @@ class Delivery:
         if kernel.h_sent:
             kernel.notify(kernel.h_sent, "message_sent", link)
         w = port.waiter
-        if w is not None and (w.wake_filter is None or self._wanted(w, link.src, value)):
-            owner = w.owner  # w.base_prio, inlined
-            base = owner.priority if owner is not None else w.default_prio
-            if w.unwait is forget_port:  # a plain read of this port: end its wait here
+        if w is None:
+            return True
+        owner = w.owner  # w.base_prio, inlined
+        base = owner.priority if owner is not None else w.default_prio
+        prio = base if base > link.priority else link.priority
+        if w.unwait is port.unwait:  # a plain read of this port: end its wait here
+            port.waiter = None
+            if w.timer is None and not w.frozen and not kernel.h_scheduled:
+                # kernel.wake(w, prio, port) inlined for the common wake-up (no read timeout,
+                # not suspended, no instrument): a call and half its work less per message
                 w.unwait = None
-                port.waiter = None
-                w.wait_ports = ()
-            kernel.wake(w, base if base > link.priority else link.priority, port)
+                w.send_value = port
+                w.prio = prio
+                w.state = _READY
+                kernel.ready_seq = seq = kernel.ready_seq + 1
+                w.stamp = seq
+                heappush(kernel.ready_heap, (-prio, seq, w))
+                return True
+            w.unwait = None
+            kernel.wake(w, prio, port)
+        elif w.wake_filter is None or self._wanted(w, link.src, value):
+            kernel.wake(w, prio, port)
         return True
 
     @staticmethod
