@@ -96,13 +96,12 @@ class Reading(TaskHandle):
             p.waiter = t
             t.unwait = p.unwait  # the port's own: a delivery to it ends this wait itself
             t.state = _WAITING
-            k = self._k
-            if k.h_blocked:
-                k.block(t, _WAITING)
+            if self._k.h_blocked:
+                self._k.block(t, _WAITING)
             if timeout is not None:
                 self._arm_timeout(timeout, p.link.name)
             yield BLOCK
-        if p.fifo is None and not self._k.h_delivered:  # the hot path
+        if not self._k.h_delivered and p.fifo is None:  # the hot path
             value = p.value
             p.value = None
             p.fresh = False
