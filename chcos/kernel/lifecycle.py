@@ -42,9 +42,7 @@ class Lifecycle:
 
     current: TaskEntry | None
     _on_end: EndHandler | None
-
-    def ready(self, t: TaskEntry, prio: int) -> None:  # pragma: no cover - the kernel's
-        raise NotImplementedError
+    ready: Callable[[TaskEntry, int], None]  # the kernel's: make a task ready at a priority
 
     def set_end_handler(self, handler: EndHandler) -> None:
         """Who is told when an activation ends: ``handler(task, how, value)`` with ``how`` an
