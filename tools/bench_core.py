@@ -11,7 +11,9 @@ Prints, measured side by side in one run on one core:
   ``send``, a ``heapq`` ready queue, a one-slot newest-wins port, a waiter woken by the put) -
   the floor for a pure-Python priority kernel; and on asyncio with a ``Queue`` and with an
   ``Event`` plus a slot (the consumer awaits, the producer yields with ``sleep(0)``);
-- the time of a bare ``heapq`` push and pop of the same count, and the ratio per message.
+- the time of a bare ``heapq`` push and pop of the same count, and the ratio per message;
+- the bytecode instructions each message costs in chcos and in the minimal kernel (counted with
+  an opcode tracer over 2,000 messages: a figure the machine's load cannot move).
 Targets (issue 2, issue 21): >= 300,000 messages/s; <= 12x the heapq push+pop time per message;
 <= 1.5x the minimal heap kernel; >= 2x asyncio Queue / Event.
 Usage: python -m tools.bench_core [--messages N] [--repeat R] [--json FILE]
@@ -24,6 +26,7 @@ import asyncio
 import heapq
 import json
 import statistics
+import sys
 import time
 import types
 from pathlib import Path
@@ -75,9 +78,11 @@ async def consumer_any(ctx: TaskContext, box: list[int]) -> None:
             return
 
 
-def run_chcos(n: int, instrument: bool, any_port: bool = False) -> tuple[float, int]:
+def run_chcos(n: int, instrument: bool, any_port: bool = False,
+              measure: Any = None) -> tuple[float, int]:
     """Seconds to move ``n`` messages, and how many the consumer received (``any_port``: the
-    consumer reads with ``read_any``)."""
+    consumer reads with ``read_any``; ``measure(run)``, if given, runs the exchange instead of
+    timing it)."""
     s = System(DeviceMap(), clock=VirtualClock(), machines=[0], base_dir=Path("."))
     if instrument:
         s.kernel.add_instrument(Instrument())
@@ -88,6 +93,9 @@ def run_chcos(n: int, instrument: bool, any_port: bool = False) -> tuple[float, 
     s.invoke("C", box, priority=50)
     s.run()  # C now waits for its first message
     s.invoke("P", n, priority=10)
+    if measure is not None:
+        measure(s.run)
+        return 0.0, box[1]
     t0 = _now()
     s.run()
     dt = _now() - t0
@@ -167,9 +175,10 @@ class _MinKernel:
                 push(ready, (-t.prio, self.seq, t))
 
 
-def run_minimal(n: int) -> tuple[float, int]:
+def run_minimal(n: int, measure: Any = None) -> tuple[float, int]:
     """Seconds for the minimal heap kernel to move ``n`` messages producer -> consumer (the
-    consumer at the higher priority), and how many the consumer received."""
+    consumer at the higher priority), and how many the consumer received (``measure`` as in
+    :func:`run_chcos`)."""
     k = _MinKernel()
     port = _MinPort()
     box: list[int] = []
@@ -195,9 +204,39 @@ def run_minimal(n: int) -> tuple[float, int]:
     k.wake(c)
     k.run()  # C now waits for its first message
     k.wake(_MinTask(prod(), 10))
+    if measure is not None:
+        measure(k.run)
+        return 0.0, box[0]
     t0 = _now()
     k.run()
     return _now() - t0, box[0]
+
+
+def count_instructions(runner: Any, n: int = 2000) -> float:
+    """Bytecode instructions per message of ``runner(n, measure=...)`` (:func:`run_chcos` or
+    :func:`run_minimal`), counted by an opcode tracer over the exchange only: every instruction
+    executed in Python code, the kernel's, the tasks' and the baseline's alike (C code, such as
+    ``heapq``, counts as the one call instruction that enters it)."""
+    count = 0
+
+    def tracer(frame: types.FrameType, event: str, arg: Any) -> Any:
+        nonlocal count
+        frame.f_trace_opcodes = True
+        frame.f_trace_lines = False
+        if event == "opcode":
+            count += 1
+        return tracer
+
+    def measure(run: Any) -> None:
+        sys.settrace(tracer)
+        try:
+            run()
+        finally:
+            sys.settrace(None)
+
+    _dt, got = runner(n, measure=measure)
+    assert got == n, f"delivered {got} of {n}"
+    return count / n
 
 
 def run_asyncio_queue(n: int) -> tuple[float, int]:
@@ -341,6 +380,10 @@ def main() -> int:
     print(f"asyncio Event / chcos (speed-up)   : {_mmm(vs_e)}x  (target >= 2x: "
           f"{'met' if statistics.median(vs_e) >= 2 else 'MISSED'})")
     print(f"chcos read_any / read              : {_mmm(any_ratio)}x")
+    ops_c = count_instructions(lambda k, measure: run_chcos(k, False, measure=measure))
+    ops_m = count_instructions(run_minimal)
+    print(f"bytecode instructions per message  : chcos {ops_c:.0f}, minimal heap kernel "
+          f"{ops_m:.0f}: {ops_c / ops_m:.2f}x (counted, not timed: the load cannot move it)")
     print(f"chcos / heapq push N pop N         : {ratio:.1f}x (idle instrument {ratio_i:.1f}x); "
           f"/ one push+pop pair on a tiny heap: {_mmm(per_run['heapq_pairs'])}x")
     print(f"targets: >= 300,000 msg/s ({'met' if min(rate, rate_i) >= 300_000 else 'MISSED'}); "
@@ -356,6 +399,8 @@ def main() -> int:
                                                "speedup_vs_asyncio_queue": vs_q,
                                                "speedup_vs_asyncio_event": vs_e,
                                                "read_any_over_read": any_ratio,
+                                               "instructions_per_msg": {"chcos": ops_c,
+                                                                        "minimal": ops_m},
                                                "us_per_msg": us}))
     return 0
 

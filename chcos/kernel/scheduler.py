@@ -12,7 +12,6 @@ collected, and :meth:`Kernel.check` raises it.
 
 from __future__ import annotations
 
-import enum
 import logging
 import threading
 from collections import deque
@@ -20,9 +19,10 @@ from collections.abc import Callable
 from heapq import heappop, heappush
 from typing import Any
 
-from chcos.errors import HandlerError, KernelError, Preempted
+from chcos.errors import HandlerError, KernelError
 from chcos.kernel.clock import Clock, RealClock
 from chcos.kernel.instrument import Hooks
+from chcos.kernel.lifecycle import BLOCK, YIELD, End, EndHandler, Lifecycle
 from chcos.kernel.timers import KEEP_ERRORS, Timer, Timers
 from chcos.tables.tasks import TaskEntry, TaskState
 
@@ -35,35 +35,32 @@ _READY = TaskState.READY
 _CURRENT = TaskState.CURRENT
 _SUSPENDED = TaskState.SUSPENDED
 
-#: Trap a task yields to give the processor back and stay ready.
-YIELD = object()
-#: Trap a task yields after it has recorded what it waits for.
-BLOCK = object()
 
 
-class End(enum.Enum):
-    """How an activation ended, as the kernel tells its end handler."""
-
-    RETURN = "return"        # the task function returned (its value is the result)
-    PREEMPTED = "preempted"  # cancelled: Preempted was thrown into it, or it was released
-    ERROR = "error"          # it raised (the exception is the value)
+def _nothing() -> None:
+    """The interrupt :meth:`Kernel.stop` queues: the run loop looks at its stop flag only
+    after draining interrupts, so a stop must leave one there."""
 
 
-EndHandler = Callable[[TaskEntry, End, Any], None]
-class Kernel(Hooks, Timers):
+class Kernel(Lifecycle, Hooks, Timers):
     """One satellite's scheduler. Everything except :meth:`interrupt` and :meth:`stop` must be
     called on the kernel thread (from tasks, timer callbacks or interrupt handlers).
 
     The kernel knows tasks, priorities, timers and sleeps; what else a task waits for (ports,
     links, queries) belongs to the layer that blocked it, which leaves ``task.unwait`` to undo
-    it when the task is woken or cancelled. Instruments: see :class:`Hooks`."""
+    it when the task is woken or cancelled. Instruments: see :class:`Hooks`; suspend, resume,
+    cancel and how activations end: see :class:`Lifecycle`; timers: see :class:`Timers`."""
 
     def __init__(self, clock: Clock | None = None) -> None:
         super().__init__()
         self.clock: Clock = clock if clock is not None else RealClock()
         self.current: TaskEntry | None = None
-        self._ready: list[tuple[int, int, TaskEntry]] = []
-        self._seq = 0
+        #: the ready queue, a heap of (-priority, sequence, task); an entry whose sequence is
+        #: not its task's ``stamp`` any more is stale and skipped. Public for the message layer,
+        #: which inlines a wake-up (see :meth:`wake`) on every delivery to a waiting reader.
+        self.ready_heap: list[tuple[int, int, TaskEntry]] = []
+        #: the sequence number of the newest ready-queue or timer entry (ties: first come first)
+        self.ready_seq = 0
         self._timers: list[tuple[float, int, Timer]] = []
         self._irq: deque[tuple[Callable[..., None], tuple[Any, ...]]] = deque()
         self._wake = threading.Event()
@@ -74,6 +71,7 @@ class Kernel(Hooks, Timers):
         self._settlers: list[Callable[[float], bool]] = []
         self._idle_hooks: list[Callable[[], None]] = []
         self._steps = 0
+        self._h_step = False  # an instrument hears of steps (h_before or h_after)
         self._on_end: EndHandler | None = None
         #: text of every failed interrupt handler and timer callback (the newest KEEP_ERRORS)
         self.irq_errors: list[str] = []
@@ -84,6 +82,16 @@ class Kernel(Hooks, Timers):
         """Task executions (steps) so far, all tasks together."""
         return self._steps
 
+    def stats(self) -> dict[str, int]:
+        """What the kernel has done and holds now, for monitors: task steps, ready tasks,
+        pending timers, periods that periodic timers skipped because the kernel came back too
+        late for them (see :mod:`chcos.kernel.timers`), failed handlers and timer callbacks."""
+        return {"steps": self._steps,
+                "ready": sum(1 for _p, s, t in self.ready_heap if t.stamp == s),
+                "timers": sum(1 for _d, _s, tm in self._timers if not tm.cancelled),
+                "skipped_periods": self.skipped_periods,
+                "handler_errors": len(self.irq_errors)}
+
     # ---- task manager primitives ------------------------------------------------------------
     def ready(self, t: TaskEntry, prio: int) -> None:
         """Make ``t`` ready at priority ``prio`` (re-queues it if it already was)."""
@@ -93,9 +101,9 @@ class Kernel(Hooks, Timers):
             return
         t.prio = prio
         t.state = _READY
-        self._seq = seq = self._seq + 1
+        self.ready_seq = seq = self.ready_seq + 1
         t.stamp = seq
-        heappush(self._ready, (-prio, seq, t))
+        heappush(self.ready_heap, (-prio, seq, t))
         if self.h_scheduled:
             self.notify(self.h_scheduled, "task_scheduled", t)
 
@@ -119,21 +127,9 @@ class Kernel(Hooks, Timers):
         # ready(t, prio) inlined: one call less on every message that wakes a reader
         t.prio = prio
         t.state = _READY
-        self._seq = seq = self._seq + 1
+        self.ready_seq = seq = self.ready_seq + 1
         t.stamp = seq
-        heappush(self._ready, (-prio, seq, t))
-
-    def unhook(self, t: TaskEntry) -> None:
-        """Forget whatever ``t`` was waiting for: its timer or sleep, and what the layer that
-        blocked it registered in ``t.unwait``."""
-        unwait = t.unwait
-        if unwait is not None:
-            t.unwait = None
-            unwait(t)
-        t.sleep_until = None
-        if t.timer is not None:
-            t.timer.cancel()
-            t.timer = None
+        heappush(self.ready_heap, (-prio, seq, t))
 
     def block(self, t: TaskEntry, state: TaskState) -> None:
         """Record that the current task ``t`` is about to wait in ``state``."""
@@ -141,38 +137,9 @@ class Kernel(Hooks, Timers):
         if self.h_blocked:
             self.notify(self.h_blocked, "task_blocked", t)
 
-    def suspend(self, t: TaskEntry) -> None:
-        """Freeze ``t`` where it is: it will not run until :meth:`resume`; wake-ups meanwhile are
-        kept. Raises KernelError when a task suspends itself (it would never resume)."""
-        if t is self.current:
-            raise KernelError(f"task {t.name} cannot suspend itself")
-        if t.frozen:
-            return
-        t.frozen = True
-        if t.state is TaskState.READY:
-            t.frozen_ready = t.prio
-            t.stamp = -1  # drop its heap entry
-        else:
-            t.frozen_state = t.state  # what it waits in, for resume
-        t.state = TaskState.SUSPENDED
-
-    def resume(self, t: TaskEntry) -> None:
-        """Undo :meth:`suspend`: a task that was woken meanwhile becomes ready again."""
-        if not t.frozen:
-            return
-        t.frozen = False
-        pending, t.frozen_ready = t.frozen_ready, None
-        state, t.frozen_state = t.frozen_state, None
-        if pending is not None:
-            self.ready(t, pending)
-        elif t.coro is not None and state is not None:
-            t.state = state  # still waiting for what it waited for when it was frozen
-        else:
-            t.state = TaskState.SUSPENDED
-
     def ready_priorities(self) -> list[int]:
         """Priorities of the tasks now ready (for tests and monitors)."""
-        return sorted((-p for p, s, t in self._ready if t.stamp == s), reverse=True)
+        return sorted((-p for p, s, t in self.ready_heap if t.stamp == s), reverse=True)
 
     # ---- interrupts -------------------------------------------------------------------------
     def interrupt(self, handler: Callable[..., None], *args: Any) -> None:
@@ -203,15 +170,11 @@ class Kernel(Hooks, Timers):
         kernel waits (the communications manager flushes its batches there)."""
         self._idle_hooks.append(hook)
 
-    def set_end_handler(self, handler: EndHandler) -> None:
-        """Who is told when an activation ends: ``handler(task, how, value)`` with ``how`` an
-        :class:`End`. The system connects the message manager here."""
-        self._on_end = handler
-
     # ---- running ----------------------------------------------------------------------------
     def stop(self) -> None:
         """Ask :meth:`run` to return after the current step. Thread-safe."""
         self._stop = True
+        self._irq.append((_nothing, ()))
         self._wake.set()
 
     @property
@@ -235,14 +198,16 @@ class Kernel(Hooks, Timers):
         self._stop = False
         self._thread = threading.get_ident()
         clock = self.clock
-        ready = self._ready
+        ready = self.ready_heap
         timers = self._timers
         irq = self._irq
         step = self._step
         try:
-            while not self._stop:
-                if irq:
+            while True:
+                if irq:  # interrupts, and stop(), which queues one
                     self._drain_irq()
+                    if self._stop:
+                        break
                 if timers:
                     now = clock.now()
                     if timers[0][0] <= now and (until is None or timers[0][0] <= until):
@@ -252,37 +217,37 @@ class Kernel(Hooks, Timers):
                     if t.stamp != seq:
                         continue
                     coro = t.coro
-                    if (coro is None or t.throw_exc is not None or self.h_before
-                            or self.h_after):
+                    if coro is None or t.throw_exc is not None or self._h_step:
                         step(t)
                         continue
                     # _step(t) inlined for the common step (a value sent in, no instrument):
-                    # one call less per step; anything unusual goes to the same helpers
+                    # one call less per step; anything unusual goes to the same helpers. An
+                    # instrument the step installs hears of its end through an interrupt
+                    # (see _rehook).
                     t.state = _CURRENT
                     self.current = t
                     self._steps += 1
                     t.steps += 1
                     value = t.send_value
-                    if value is not None:
-                        t.send_value = None
+                    t.send_value = None
                     try:
                         trap = coro.send(value)
                     except Exception as err:
                         self.current = None
                         self._raised(t, err)
+                        continue
+                    self.current = None
+                    if t.cancelling:
+                        self._odd_trap(t, coro, trap)
+                    elif trap is BLOCK:
+                        pass
+                    elif trap is YIELD and not t.frozen:
+                        t.state = _READY
+                        self.ready_seq = seq = self.ready_seq + 1
+                        t.stamp = seq
+                        heappush(ready, (-t.prio, seq, t))
                     else:
-                        self.current = None
-                        if trap is BLOCK and not t.cancelling:
-                            pass
-                        elif trap is YIELD and not t.cancelling and not t.frozen:
-                            t.state = _READY
-                            self._seq = seq = self._seq + 1
-                            t.stamp = seq
-                            heappush(ready, (-t.prio, seq, t))
-                        else:
-                            self._odd_trap(t, coro, trap)
-                    if self.h_after:  # an instrument the step itself installed
-                        self.notify(self.h_after, "after_step", t)
+                        self._odd_trap(t, coro, trap)
                     continue
                 if not self._idle_wait(until):
                     break
@@ -295,7 +260,7 @@ class Kernel(Hooks, Timers):
         if self._idle_hooks:
             for hook in self._idle_hooks:
                 hook()
-            if self._ready or self._irq:
+            if self.ready_heap or self._irq:
                 return True
         clock = self.clock
         while self._timers and self._timers[0][2].cancelled:
@@ -327,7 +292,7 @@ class Kernel(Hooks, Timers):
         """Let every driver finish what is in flight; True if that produced work."""
         for settle in self._settlers:
             settle(5.0)
-        return bool(self._irq or self._ready)
+        return bool(self._irq or self.ready_heap)
 
     def _step(self, t: TaskEntry) -> None:
         """Context switch: run ``t`` until its next trap (the thesis' ctxsw)."""
@@ -335,6 +300,7 @@ class Kernel(Hooks, Timers):
         self.current = t
         self._steps += 1
         t.steps += 1
+        after = self.h_after  # one installed during the step is told through _rehook
         if self.h_before:
             self.notify(self.h_before, "before_step", t)
         coro = t.coro
@@ -361,57 +327,25 @@ class Kernel(Hooks, Timers):
                 pass
             elif trap is YIELD and not t.cancelling and not t.frozen:
                 t.state = _READY
-                self._seq = seq = self._seq + 1
+                self.ready_seq = seq = self.ready_seq + 1
                 t.stamp = seq
-                heappush(self._ready, (-t.prio, seq, t))
+                heappush(self.ready_heap, (-t.prio, seq, t))
             else:
                 self._odd_trap(t, coro, trap)
-        if self.h_after:
+        if after and self.h_after:
             self.notify(self.h_after, "after_step", t)
 
-    def _raised(self, t: TaskEntry, err: Exception) -> None:
-        """``t``'s step raised ``err``: its activation ended (returned, pre-empted, failed)."""
-        if isinstance(err, StopIteration):
-            self._end(t, End.PREEMPTED if t.cancelling else End.RETURN, err.value)
-        elif isinstance(err, Preempted):
-            self._end(t, End.PREEMPTED, err)
-        else:
-            self._end(t, End.PREEMPTED if t.cancelling else End.ERROR, err)
+    def _rehook(self) -> None:
+        """Instruments changed: recompute the hook tuples and the run loop's one step flag. An
+        instrument with ``after_step`` installed by a step that began without one is told of
+        that step's end by an interrupt, which runs right after the step."""
+        had_after = bool(self.h_after)
+        super()._rehook()
+        self._h_step = bool(self.h_before or self.h_after)
+        t = self.current
+        if t is not None and self.h_after and not had_after:
+            self._irq.append((self._after_late, (t,)))
 
-    def _odd_trap(self, t: TaskEntry, coro: Any, trap: Any) -> None:
-        """``t``'s step ended in something other than a plain block or yield: a cancelled task
-        that carried on, a frozen task's yield, or an await of something not a chcos call."""
-        if t.cancelling:  # it caught the cancellation and carried on: end it for good
-            coro.close()
-            self._end(t, End.PREEMPTED, None)
-        elif trap is YIELD:
-            self.ready(t, t.prio)
-        else:
-            coro.close()
-            self._end(t, End.ERROR, KernelError(
-                f"task {t.name} awaited something that is not a chcos call ({trap!r})"))
-
-    def _end(self, t: TaskEntry, how: End, value: Any) -> None:
-        t.coro = None
-        t.cancelling = False
-        self.unhook(t)
-        if self._on_end is not None:
-            self._on_end(t, how, value)
-        else:
-            t.state = TaskState.SUSPENDED
-
-    def cancel(self, t: TaskEntry, reason: str) -> None:
-        """End ``t``'s current activation: :class:`Preempted` is thrown into it at its next step.
-        Does nothing if the task has no activation."""
-        if t.coro is None or t.cancelling:
-            return
-        t.cancelling = True
-        self.unhook(t)
-        t.throw_exc = Preempted(reason)
-        t.send_value = None
-        if t is not self.current:
-            frozen, t.frozen = t.frozen, False
-            self.ready(t, max(t.prio, t.base_prio))
-            t.frozen = frozen
-            if frozen:  # it runs to its end although frozen; resume finds it ready
-                t.frozen_state = _READY
+    def _after_late(self, t: TaskEntry) -> None:
+        if self.h_after:
+            self.notify(self.h_after, "after_step", t)

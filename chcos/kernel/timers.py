@@ -1,6 +1,14 @@
 """timers - the kernel's timers (the thesis' delta list, kept as a heap of deadlines) and the
 errors it collects from the callbacks it runs: a timer callback or interrupt handler that raises
-is logged and kept, and :meth:`Timers.check` raises it later."""
+is logged and kept, and :meth:`Timers.check` raises it later.
+
+A periodic timer is drift-free: its k-th deadline is ``first + k * period``. When the kernel
+comes back late (a long step, a stalled machine) and several of its deadlines have passed, it
+fires once, not once per missed period: the periods it missed are skipped and counted
+(:attr:`Timer.skipped`, :attr:`Timers.skipped_periods`), and its next deadline is the first
+period boundary after now - as an RTOS' periodic task or ``trio``'s and ``asyncio``'s
+schedulers do, so that a 20 kHz poll after a stall does not run hundreds of times back to back,
+starving the tasks and control requests behind it."""
 
 from __future__ import annotations
 
@@ -23,7 +31,7 @@ KEEP_ERRORS = 100
 class Timer:
     """A pending timer; :meth:`cancel` makes it a no-op. Created by :meth:`Kernel.call_at`."""
 
-    __slots__ = ("base", "callback", "cancelled", "count", "deadline", "period")
+    __slots__ = ("base", "callback", "cancelled", "count", "deadline", "period", "skipped")
 
     def __init__(self, deadline: float, callback: Callable[[], None], period: float | None) -> None:
         self.deadline = deadline
@@ -32,6 +40,8 @@ class Timer:
         self.callback = callback
         self.period = period
         self.cancelled = False
+        #: periods of a periodic timer that passed without a call (see the module doc)
+        self.skipped = 0
 
     def cancel(self) -> None:
         """Stop the timer from firing (again)."""
@@ -42,7 +52,9 @@ class Timers:
     """Timers and collected errors for :class:`chcos.kernel.scheduler.Kernel` (its base)."""
 
     clock: Clock
-    _seq: int
+    ready_seq: int
+    #: periods that periodic timers skipped because the kernel came back too late for them
+    skipped_periods: int = 0
     _timers: list[tuple[float, int, Timer]]
     irq_errors: list[str]
     _unchecked: deque[HandlerError]
@@ -54,8 +66,8 @@ class Timers:
         if period is not None and period <= 0:
             raise ValueError(f"timer period must be positive, got {period}")
         tm = Timer(deadline, callback, period)
-        self._seq += 1
-        heappush(self._timers, (deadline, self._seq, tm))
+        self.ready_seq += 1
+        heappush(self._timers, (deadline, self.ready_seq, tm))
         return tm
 
     def call_later(self, delay: float, callback: Callable[[], None]) -> Timer:
@@ -73,15 +85,34 @@ class Timers:
             if tm.cancelled:
                 continue
             if tm.period is not None:
-                tm.count += 1
-                # no accumulated rounding; whole nanoseconds so k * period lands on k * period
-                tm.deadline = round(tm.base + tm.count * tm.period, 9)
-                self._seq += 1
-                heappush(timers, (tm.deadline, self._seq, tm))
+                self._next_period(tm, now)
+                self.ready_seq += 1
+                heappush(timers, (tm.deadline, self.ready_seq, tm))
             try:
                 tm.callback()
             except Exception as exc:  # a failing timer callback must not stop the kernel
                 self._record_irq_error("timer", exc)
+
+    def _next_period(self, tm: Timer, now: float) -> None:
+        """Move periodic ``tm``, due now, to its next deadline: the first period boundary after
+        ``now``; the boundaries in between are skipped and counted."""
+        period = tm.period
+        assert period is not None
+        base = tm.base
+        count = tm.count + 1
+        # no accumulated rounding; whole nanoseconds so k * period lands on k * period
+        deadline = round(base + count * period, 9)
+        if deadline <= now:  # late by at least one more period: skip to the first one ahead
+            late = count
+            count = max(count, int((now - base) / period))
+            while round(base + count * period, 9) <= now:
+                count += 1
+            deadline = round(base + count * period, 9)
+            missed = count - late
+            tm.skipped += missed
+            self.skipped_periods += missed
+        tm.count = count
+        tm.deadline = deadline
 
     def _record_irq_error(self, where: str, exc: Exception) -> None:
         text = f"{where}: {type(exc).__name__}: {exc}"

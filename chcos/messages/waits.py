@@ -3,7 +3,9 @@
 A task blocked in ``read``, ``read_any``, ``wait_any``, ``invoke``/``done``, ``ask`` or
 ``read_exception`` records in its Tsktab entry the ports, links, tap or query it waits on, and
 leaves :func:`forget` as its ``unwait``: the kernel calls it when it wakes or cancels the task,
-without knowing what any of those are.
+without knowing what any of those are. A plain ``read`` of one port leaves that port's own
+``unwait`` instead (:attr:`chcos.tables.messages.InPort.unwait`), which a delivery to the port
+recognises and ends without a call.
 """
 
 from __future__ import annotations
@@ -29,13 +31,3 @@ def forget(t: TaskEntry) -> None:
     tap = t.tap
     if tap is not None and tap.waiter is t:
         tap.waiter = None
-
-
-def forget_port(t: TaskEntry) -> None:
-    """End ``t``'s wait on the one input port of a ``read`` or a one-port ``read_any`` (the only
-    waits that set it as ``unwait``; :func:`forget` does the same and more): that port no longer
-    names it."""
-    for p in t.wait_ports:
-        if p.waiter is t:
-            p.waiter = None
-    t.wait_ports = ()

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import enum
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -118,8 +118,8 @@ class InPort:
     """One of a task's eight input ports: the newest unread message of its sensory link, or a
     bounded FIFO for a queued link."""
 
-    __slots__ = ("device", "fifo", "fresh", "index", "link", "sent_at", "single", "value",
-                 "waiter")
+    __slots__ = ("device", "fifo", "fresh", "index", "link", "sent_at", "single", "unwait",
+                 "value", "waiter")
 
     def __init__(self, link: Link, index: int) -> None:
         self.link = link
@@ -133,6 +133,14 @@ class InPort:
         # the type is not named: the task table sits on the message table, not beside it)
         self.waiter: Any = None
         self.fifo: deque[tuple[Any, float]] | None = deque() if link.queued else None
+        #: the ``unwait`` of a task whose only wait is this port (a ``read``): it stops naming
+        #: the task as its waiter. One object per port, so that a delivery recognises a plain
+        #: read of its own port by identity (``w.unwait is port.unwait``) and ends it itself.
+        self.unwait: Callable[[Any], None] = self._forget
+
+    def _forget(self, t: Any) -> None:
+        if self.waiter is t:
+            self.waiter = None
 
     def store(self, value: Any, now: float) -> bool:
         """Put a message in; True if it overwrote an unread one. Raises QueueOverflow when a

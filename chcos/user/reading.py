@@ -15,7 +15,7 @@ from typing import Any
 
 from chcos.errors import MessageError, ReadTimeout, SensorFailure
 from chcos.kernel.scheduler import BLOCK
-from chcos.messages.waits import forget, forget_port
+from chcos.messages.waits import forget
 from chcos.tables.messages import EndpointKind, InPort, Link, LinkStatus, TapPort
 from chcos.tables.tasks import TaskState
 from chcos.user.ports import Port, TaskHandle
@@ -82,22 +82,26 @@ class Reading(TaskHandle):
         Raises MessageError for a bad port, SensorFailure if the source is a failed or stale
         sensor (also while waiting), ReadTimeout after ``timeout`` seconds without a message.
         """
-        ports = self._t.in_ports
-        p = ports[port] if port.__class__ is int and 0 <= port < len(ports) else self._in(port)
+        t = self._t
+        if port.__class__ is int and port >= 0:
+            try:
+                p = t.in_ports[port]
+            except IndexError:
+                p = self._in(port)  # raises the MessageError naming the port
+        else:
+            p = self._in(port)
         if not p.fresh:
             if p.device:
                 self._check_source(p)
-            t = self._t
             p.waiter = t
-            t.wait_ports = p.single
-            t.unwait = forget_port
+            t.unwait = p.unwait  # the port's own: a delivery to it ends this wait itself
             t.state = _WAITING
             if self._k.h_blocked:
                 self._k.block(t, _WAITING)
             if timeout is not None:
                 self._arm_timeout(timeout, p.link.name)
             yield BLOCK
-        if p.fifo is None and not self._k.h_delivered:  # the hot path
+        if not self._k.h_delivered and p.fifo is None:  # the hot path
             value = p.value
             p.value = None
             p.fresh = False
@@ -127,8 +131,7 @@ class Reading(TaskHandle):
             for p in chosen:
                 p.waiter = t
             if len(chosen) == 1:  # as a plain read: the message ends the wait itself
-                t.wait_ports = chosen[0].single
-                t.unwait = forget_port
+                t.unwait = chosen[0].unwait
             else:
                 t.wait_ports = tuple(chosen)
                 t.unwait = forget
