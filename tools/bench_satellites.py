@@ -102,9 +102,9 @@ bus = "load"
 """
 
 
-SAMPLE_HZ = 20_000  # each satellite's sensor: about twice what one satellite serves here
-# (50 kHz starves a CPU-bound satellite's control requests when 3 share 2 cores: the kernel
-# timer catches up every missed sample period)
+SAMPLE_HZ = 20_000  # each satellite's sensor: about twice what one satellite serves here, so
+# the satellite is CPU-bound; a late sample timer fires once and skips the periods it missed
+# (chcos.kernel.timers), so sampling faster only adds skipped periods, not work
 
 
 class Cluster:
