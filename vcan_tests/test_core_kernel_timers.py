@@ -185,3 +185,20 @@ def test_after_step_instrument_installed_by_a_step_hears_that_step_once(
     k.run()
     # the installing step, the installer's last step, then o's two steps: each heard once
     assert inst.seen == ["i", "i", "o", "o"]
+
+
+def test_the_system_map_and_its_text_view_show_the_kernel_stats() -> None:
+    from pathlib import Path
+
+    from chcos.devices.spec import DeviceMap
+    from chcos.system.embedded import System
+    from chcos.system.textview import render_text
+
+    clock = VirtualClock()
+    s = System(DeviceMap(), clock=clock, machines=[0], base_dir=Path("."))
+    s.kernel.every(0.001, lambda: None)
+    s.kernel.call_at(0.0025, lambda: clock.advance(0.0057))
+    s.kernel.run(until=0.012)
+    doc = s.sysmgr.map_doc()
+    assert doc["kernel"]["skipped_periods"] == 5
+    assert "5 timer periods skipped (late)" in render_text(doc)

@@ -336,7 +336,7 @@ class SystemManager:
                 "task_path": [str(p) for p in self.setup.task_path],
                 "time": self.kernel.clock.now(), "tasks": tasks, "links": links,
                 "devices": devices, "buses": self.devtab.stats_doc(),
-                "errors": self.setup.errors()}
+                "kernel": self.kernel.stats(), "errors": self.setup.errors()}
 
     # ---- the map file (see chcos.system.mapfile) --------------------------------------------
     @property

@@ -34,6 +34,10 @@ class Scheduler(Protocol):
     def interrupt(self, handler: Callable[..., None], *args: Any) -> None:
         """Run ``handler(*args)`` on the kernel thread (callable from any thread)."""
 
+    def stats(self) -> dict[str, int]:
+        """Steps, ready tasks, timers, skipped timer periods, handler errors (for the map)."""
+        ...
+
 
 class Messages(Protocol):
     """The message manager, as the system manager drives it."""

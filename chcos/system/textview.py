@@ -75,6 +75,11 @@ def render_text(doc: dict[str, Any], rates: Mapping[str, float] | None = None,
         errors = " ".join(f"{k} {v}" for k, v in sorted(st.get("errors", {}).items()))
         out.append(f"  bus {bus}: {counts or 'no traffic'}"
                    f"{'; errors: ' + errors if errors else ''}")
+    k = doc.get("kernel")
+    if k:
+        out.append(f"  kernel: {k.get('steps', 0)} steps, {k.get('ready', 0)} ready, "
+                   f"{k.get('timers', 0)} timers, {k.get('skipped_periods', 0)} timer periods "
+                   f"skipped (late), {k.get('handler_errors', 0)} handler errors")
     known = {t["name"] for t in doc["tasks"]} | {d["name"] for d in devs}
     others = sorted({lk["src"] for lk in doc["links"] if lk["src"] not in known}
                     - {"host"})
