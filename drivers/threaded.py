@@ -114,6 +114,8 @@ class ReaderThread:
         receivable now, without blocking; run under ``lock``), or polling again (None)."""
         with self.lock:
             self._drain = drain
+        with self._cond:
+            self._cond.notify_all()
 
     def set_offline(self, offline: bool) -> None:
         """Loop: the link is down (True: nothing can arrive, so :meth:`settle` returns at once
@@ -142,8 +144,14 @@ class ReaderThread:
             if not self.running or self._offline:
                 return True
             gen = self._idle_gen
-            return self._cond.wait_for(
-                lambda: not self.running or self._offline or self._idle_gen > gen + 1, timeout)
+            quiet = self._cond.wait_for(
+                lambda: (not self.running or self._offline or self._idle_gen > gen + 1
+                         or self._drain is not None), timeout)
+        if quiet and self._drain is not None:  # the link opened meanwhile: drain it here
+            with self.lock:
+                if self._drain is not None:
+                    self._drain()
+        return quiet
 
 
 class ThreadedDriver(Driver):

@@ -182,3 +182,49 @@ def test_check_device_rejects_bad_actuator_formats() -> None:
     bspec = bus("serial", url="loop://", protocol="binary", sync="AA", struct="<h", fields=["a"])
     assert SerialDriver.check_device(bspec, device("A", "actuator", struct="<hh")) == [
         "device[0].address.struct: expected a format of exactly one item"]
+
+
+def test_settle_before_the_port_opens_waits_for_it_and_hands_over_waiting_input() -> None:
+    """The kernel settles drivers before virtual time moves; a settle that comes before the
+    reader has opened the port waits for the open (not for its whole timeout) and drains what
+    the peer had already sent, so a virtual-time run never races the reader thread."""
+    import socket
+    import threading
+
+    from drivers.threaded import ReaderThread
+
+    go = threading.Event()
+    drained: list[str] = []
+
+    rx: ReaderThread
+
+    def loop() -> None:
+        go.wait(WAIT)
+        rx.set_drain(lambda: drained.append("x"))
+        while rx.running:
+            rx.pause(1.0)
+
+    rx = ReaderThread(loop, "settle-before-open")
+    rx.start()
+    try:
+        opener = threading.Thread(target=go.set)
+        opener.start()                  # the open may come before or during settle: same result
+        assert rx.settle(WAIT)
+        assert drained                  # the drain ran once the link opened
+        opener.join()
+    finally:
+        rx.stop()
+    # and the simulated serial peer accepts on the thread that ticks: data set after the driver
+    # connected reaches it with no accept thread in between
+    from chcos.apps.sim.serial_peer import SerialPeer
+    peer = SerialPeer(bus("serial", url="socket://127.0.0.1:0", protocol="line",
+                          pattern=r"W=(?P<w>\d+)"),
+                      (device("W", "sensor", group="w"),), rewrite=True)
+    try:
+        port = int(str(peer.bus.options["url"]).rsplit(":", 1)[1])
+        with socket.create_connection(("127.0.0.1", port), timeout=WAIT) as c:
+            peer.tick(0.0)              # accepts the waiting connection, then sends
+            c.settimeout(WAIT)
+            assert c.recv(64) == b"W=0\n"
+    finally:
+        peer.close()

@@ -131,23 +131,22 @@ class SerialPeer(Mutable, Peer):
         self.buf = b""
         self.conn: socket.socket | None = None
         self.server = socket.create_server(("127.0.0.1", port))
-        self.server.settimeout(0.1)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._accept, name=f"sim-serial-{bus.name}",
-                                        daemon=True)
-        self._thread.start()
+        self.server.setblocking(False)
 
     def _accept(self) -> None:
-        while not self._stop.is_set():
+        """Take the newest waiting connection, if any (under ``lock``). Accepting here, on the
+        thread that ticks or asks, rather than on a thread of its own, makes a virtual-time run
+        deterministic: once the driver has connected (the kernel settles the driver before
+        virtual time moves), the next tick sends to it."""
+        while True:
             try:
                 conn, _ = self.server.accept()
-            except (TimeoutError, OSError):
-                continue
-            with self.lock:
-                if self.conn is not None:
-                    self.conn.close()
-                conn.setblocking(False)
-                self.conn = conn
+            except (BlockingIOError, OSError):
+                return
+            if self.conn is not None:
+                self.conn.close()
+            conn.setblocking(False)
+            self.conn = conn
 
     def _line(self, check: bool = False) -> bytes:
         groups = {}
@@ -178,6 +177,7 @@ class SerialPeer(Mutable, Peer):
         return self.sync + payload + self._checksum(self.check, payload)
 
     def _send(self) -> None:
+        self._accept()
         if self.conn is None or self.muted or not self.sensors:
             return
         data = self._line() if self.proto == "line" else self._frame()
@@ -191,6 +191,7 @@ class SerialPeer(Mutable, Peer):
 
     def get(self, device: DeviceSpec) -> Any:
         with self.lock:
+            self._accept()
             if self.conn is not None:
                 with contextlib.suppress(BlockingIOError, OSError):
                     while chunk := self.conn.recv(4096):
@@ -235,8 +236,6 @@ class SerialPeer(Mutable, Peer):
         return f"serial peer ({self.proto}) on {self.bus.options['url']}"
 
     def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=5)
         with self.lock:
             if self.conn is not None:
                 self.conn.close()
