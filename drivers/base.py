@@ -194,6 +194,16 @@ class Driver(ABC):
         self.write_counts[device] += 1
         self._write(device, value)
 
+    def write_now(self, device: str, value: Any) -> bool:
+        """Put raw ``value`` for actuator ``device`` on the wire now, in the caller's thread and
+        without blocking, confirmed by the answer: True if it is on the wire (counted in
+        :attr:`write_counts`, and *not* reported through ``host.written``), False if this
+        driver cannot do that right now (nothing done, nothing counted or reported: the caller
+        then uses :meth:`write`). Devtab calls it on the kernel thread for a value
+        :meth:`check_value` accepted and only when no earlier write of ``device`` is
+        outstanding, so order is kept. Never raises for a bus problem. The default: False."""
+        return False
+
     def _refuse(self, device: str, value: Any, kind: str, reason: str) -> None:
         """Report a write that does not reach :meth:`_write` (see :meth:`write`); also for a
         driver's own :meth:`_write` when it finds the bus stopped under it (``kind`` stopped).

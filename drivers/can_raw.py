@@ -259,19 +259,20 @@ class CanDriver(ThreadedDriver):
         """Why ``value`` cannot be encoded for ``device`` (see :meth:`CanCodec.check`)."""
         return self.codec.check(device, value)
 
-    def _frame(self, device: str, value: Any) -> can.Message | None:
+    def _frame(self, device: str, value: Any, report: bool = True) -> can.Message | None:
         """The frame carrying ``value`` for ``device``; None if the value does not fit (then
-        refused and reported: the device is fine)."""
+        refused and, with ``report``, reported: the device is fine)."""
         try:
             coded = self.codec.encode(device, value)
         except BusError as exc:
-            self._error("range", str(exc))
-            self.host.write_failed(device, value, str(exc))
+            if report:
+                self._error("range", str(exc))
+                self.host.write_failed(device, value, str(exc))
             return None
         return can.Message(arbitration_id=coded.arbitration_id, data=coded.data,
                            is_extended_id=coded.is_extended_id)
 
-    def _send_now(self, device: str, value: Any) -> bool:
+    def _send_now(self, device: str, value: Any, report: bool = True) -> bool:
         """Fast path (the kernel thread, see drivers.threaded): send with ``timeout=0``, which
         :data:`INLINE_INTERFACES` honour without blocking; any error there (a full transmit
         buffer, ENOBUFS, the bus closing) leaves the frame to the writer thread, which tries
@@ -279,15 +280,15 @@ class CanDriver(ThreadedDriver):
         bus = self._bus
         if bus is None:
             return False
-        frame = self._frame(device, value)
+        frame = self._frame(device, value, report)
         if frame is None:
-            return True
+            return report
         try:
             bus.send(frame, timeout=0)
         except (can.CanError, OSError):
             return False
         self.sent_inline += 1
-        self._sent(device, value, frame)
+        self._sent(device, value, frame, report)
         return True
 
     def _send(self, device: str, value: Any) -> None:
@@ -324,11 +325,12 @@ class CanDriver(ThreadedDriver):
                     raise can.CanOperationError(f"bus {self.bus.name!r} stopped while its "
                                                 f"transmit queue was full", errno.ENOBUFS)
 
-    def _sent(self, device: str, value: Any, frame: can.Message) -> None:
-        """``frame`` is on the wire: count, confirm, recover, record."""
+    def _sent(self, device: str, value: Any, frame: can.Message, report: bool = True) -> None:
+        """``frame`` is on the wire: count, confirm (``report``), recover, record."""
         self.sent += 1
         self.host.stat(self.bus.name, "frames-sent", device=device)
-        self.host.written(device, value)
+        if report:
+            self.host.written(device, value)
         if device in self._write_failed:
             self._write_failed.discard(device)
             self.host.recover(device, "a frame was sent")

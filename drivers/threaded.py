@@ -164,7 +164,13 @@ class ThreadedDriver(Driver):
 
     def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
         super().__init__(bus, devices, host)
-        self._cond = threading.Condition()
+        #: one lock under two conditions: ``_cond`` for whoever waits on the driver's state
+        #: (settle, a port opening, stop), ``_work`` for the writer thread alone, notified only
+        #: when it has a command to take or must stop, so a write on the fast path does not wake
+        #: it (a thread switch per frame on one core)
+        self._lock = threading.RLock()
+        self._cond = threading.Condition(self._lock)
+        self._work = threading.Condition(self._lock)
         self._outbox: deque[tuple[str, Any]] = deque()
         self._sending = False
         #: whether writes may take the fast path (see the module doc); set by a subclass
@@ -180,11 +186,13 @@ class ThreadedDriver(Driver):
         """Put one command on the wire (writer thread); report failures to the host."""
         raise NotImplementedError
 
-    def _send_now(self, device: str, value: Any) -> bool:
+    def _send_now(self, device: str, value: Any, report: bool = True) -> bool:
         """Fast path (caller's thread, the send claimed): put one command on the wire without
         waiting and report it as ``_send`` does (True), or leave it untouched and unreported for
-        the writer thread (False: the link cannot take it right now). Only called when
-        ``_inline`` is set; the default hands every command to the writer."""
+        the writer thread (False: the link cannot take it right now). With ``report`` False
+        (:meth:`write_now`) True means on the wire, reported to nobody, and a value that cannot
+        be encoded is left untouched too (False). Only called when ``_inline`` is set; the
+        default hands every command to the writer."""
         return False
 
     def _can_send(self) -> bool:
@@ -193,8 +201,8 @@ class ThreadedDriver(Driver):
 
     def _write_loop(self) -> None:
         while True:
-            with self._cond:
-                self._cond.wait_for(lambda: (bool(self._outbox) and not self._sending)
+            with self._lock:
+                self._work.wait_for(lambda: (bool(self._outbox) and not self._sending)
                                     or not self._running)
                 if not self._running:
                     return
@@ -207,7 +215,7 @@ class ThreadedDriver(Driver):
             try:
                 self._send(device, value)
             finally:
-                with self._cond:
+                with self._lock:
                     self._sending = False
                     self._cond.notify_all()
 
@@ -226,9 +234,10 @@ class ThreadedDriver(Driver):
 
     def _stop_threads(self) -> None:
         """Tell both threads to end and wait for them (a thread never waits for itself)."""
-        with self._cond:
+        with self._lock:
             self._running = False
             self._cond.notify_all()
+            self._work.notify_all()
         self._rx.stop()
         t, self._writer = self._writer, None
         if t is not None and t is not threading.current_thread():
@@ -245,7 +254,7 @@ class ThreadedDriver(Driver):
         sent and the link takes it at once (see the module doc), else queue it for the writer
         thread; the outcome arrives as ``host.written``/``host.write_failed`` (on the fast path
         before this returns). Never blocks."""
-        with self._cond:
+        with self._lock:
             running = self._running     # stop() may have come between write's check and here
             inline = (running and self._inline and not self._outbox and not self._sending
                       and self._can_send())
@@ -253,7 +262,7 @@ class ThreadedDriver(Driver):
                 self._sending = True    # claimed: the writer thread waits, order is kept
             elif running:
                 self._outbox.append((device, value))
-                self._cond.notify_all()
+                self._work.notify()
         if not running:
             self._refuse(device, value, "stopped", f"{self.kind} bus {self.bus.name} is not "
                                                    f"running")
@@ -264,15 +273,43 @@ class ThreadedDriver(Driver):
         try:
             sent = self._send_now(device, value)
         finally:
-            with self._cond:
-                self._sending = False
+            with self._lock:
                 lost = not sent and not self._running
                 if not sent and not lost:
                     self._outbox.appendleft((device, value))    # before any queued meanwhile
-                self._cond.notify_all()
+                self._claim_ends()
         if lost:
             self.host.write_failed(device, value, f"{self.kind} bus {self.bus.name} stopped "
                                                   f"before the write was sent")
+
+    def write_now(self, device: str, value: Any) -> bool:
+        """The fast path without a confirmation to the host (see :meth:`Driver.write_now`):
+        taken only when nothing is queued or being sent and the link takes the frame at once."""
+        if not self._inline:
+            return False
+        lock = self._lock
+        with lock:
+            if (not self._running or self._outbox or self._sending or not self._can_send()
+                    or device not in self.devices):
+                return False
+            self._sending = True        # claimed: the writer thread waits, order is kept
+        sent = False
+        try:
+            sent = self._send_now(device, value, report=False)
+        finally:
+            with lock:
+                self._claim_ends()
+        if sent:
+            self.write_counts[device] += 1
+        return sent
+
+    def _claim_ends(self) -> None:
+        """A fast-path send is over (under ``_lock``): the writer is woken only if commands
+        were queued meanwhile; whoever waits on the driver's state (settle) always."""
+        self._sending = False
+        if self._outbox:
+            self._work.notify()
+        self._cond.notify_all()
 
     def settle(self, timeout: float) -> bool:
         """Hand the host every frame or line that arrived before this call and wait until no

@@ -223,14 +223,18 @@ class CanCodec:
         if item is None:
             return None
         fr, sig = item
+        accept = self._raw_ranges.get(device)
+        kind = type(value)
+        if accept is not None and (kind is int or (kind is float and value.is_integer())) \
+                and accept[0] <= value <= accept[1]:
+            return None  # a raw integer signal: its range is all the encoder checks
         if (why := not_finite(value)) is not None:
             return why
         if isinstance(value, bool):
             value = int(value)
-        accept = self._raw_ranges.get(device)
         if accept is not None and accept[0] <= value <= accept[1] and (
                 not isinstance(value, float) or value.is_integer()):
-            return None  # a raw integer signal: its range is all the encoder checks
+            return None
         signal = fr.message.get_signal_by_name(sig)
         if (fr.message.name.startswith("raw_0x") and not signal.is_float
                 and isinstance(value, float) and not value.is_integer()):
