@@ -173,6 +173,7 @@ class ThreadedDriver(Driver):
         self._work = threading.Condition(self._lock)
         self._outbox: deque[tuple[str, Any]] = deque()
         self._sending = False
+        self._settling = 0      # callers waiting in settle() (under _lock)
         #: whether writes may take the fast path (see the module doc); set by a subclass
         self._inline = False
         self._writer: threading.Thread | None = None
@@ -305,11 +306,12 @@ class ThreadedDriver(Driver):
 
     def _claim_ends(self) -> None:
         """A fast-path send is over (under ``_lock``): the writer is woken only if commands
-        were queued meanwhile; whoever waits on the driver's state (settle) always."""
+        were queued meanwhile, settle() if anyone waits in it."""
         self._sending = False
         if self._outbox:
             self._work.notify()
-        self._cond.notify_all()
+        if self._settling:
+            self._cond.notify_all()
 
     def settle(self, timeout: float) -> bool:
         """Hand the host every frame or line that arrived before this call and wait until no
@@ -319,6 +321,10 @@ class ThreadedDriver(Driver):
         if not self._rx.settle(timeout):
             return False
         with self._cond:
-            return self._cond.wait_for(
-                lambda: not self._running or (not self._outbox and not self._sending),
-                max(0.0, deadline - time.monotonic()))
+            self._settling += 1
+            try:
+                return self._cond.wait_for(
+                    lambda: not self._running or (not self._outbox and not self._sending),
+                    max(0.0, deadline - time.monotonic()))
+            finally:
+                self._settling -= 1

@@ -348,3 +348,71 @@ def test_an_outcome_on_the_kernel_thread_waits_behind_one_still_queued(cell: Any
     s.run_for(0.01)
     assert log == [None]       # neither applied inside the step
     assert dt.get("H1").value == 20.0 and dt.get("H1").pending is None
+
+
+def test_write_now_is_confirmed_by_its_answer_and_reports_nothing(rig: Any) -> None:
+    """Driver.write_now: True = on the wire (counted, not reported through host.written);
+    False = nothing done (a value the frame cannot carry, a full bus, a stopped driver), so the
+    caller's ordinary write reports it."""
+    drv, host, gate, peer = rig
+    assert drv.write_now("A", 5) is True
+    assert received(peer, 1) == [value_data(5)]
+    assert host.writes == [] and drv.write_counts["A"] == 1 and drv.sent_inline == 1
+    assert drv.write_now("A", 70_000) is False          # 16 bits cannot carry it
+    gate.full = True
+    assert drv.write_now("A", 6) is False               # the bus cannot take it at once
+    assert drv.write_counts["A"] == 1 and host.writes == [] and host.errors == []
+    assert drv.write_now("B", 1) is False               # not a device of this bus
+    drv.stop()
+    gate.full = False
+    assert drv.write_now("A", 7) is False
+    assert peer.recv(0.05) is None and drv.sent == 1
+
+
+def test_a_task_write_goes_out_untracked_and_queues_behind_an_outstanding_one(
+        cell: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Devtab's synchronous path: a task's write with nothing of the device outstanding is on
+    the wire when write() returns, shown at once, with no Write to confirm; a write while an
+    earlier one is still queued (a full bus) takes the tracked path behind it, in order."""
+    s, gate, peer = cell
+    dt = s.devtab
+    confirmed: list[tuple[str, Any]] = []
+    real = dt.written
+    monkeypatch.setattr(dt, "written", lambda d, v: (confirmed.append((d, v)), real(d, v)))
+    seen: list[Any] = []
+    s.invoke("HT", {"values": [40.0, 50.0], "devtab": dt, "seen": seen})
+    s.run_for(0.01)
+    assert seen == [(40.0, None), (50.0, None)] and confirmed == []
+    assert [power(peer), power(peer)] == [pytest.approx(40.0), pytest.approx(50.0)]
+    drv = dt.drivers[0]
+    assert drv.write_counts["H1"] == 2 and dt.get("H1").commands == 2
+
+    log: list[Any] = []
+
+    def step() -> None:        # on the kernel thread, between task steps
+        gate.full = True       # write 60 falls back to the writer thread ...
+        dt.write("H1", 60.0)
+        assert drv.settle(WAIT)     # ... which sends it; its outcome is queued to this thread
+        gate.full = False      # the bus has room and the driver nothing queued, yet write 70
+        dt.write("H1", 70.0)   # must not overtake 60's outcome: it takes the tracked path
+        log.append((dt.get("H1").value, dt.get("H1").pending))
+
+    s.kernel.interrupt(step)
+    s.run_for(0.01)
+    assert log == [(50.0, 70.0)]
+    assert [power(peer), power(peer)] == [pytest.approx(60.0), pytest.approx(70.0)]
+    assert [v for _d, v in confirmed] == [60.0, 70.0]   # both tracked and confirmed, in order
+    assert dt.get("H1").value == 70.0 and dt.get("H1").pending is None
+
+
+def test_a_safe_value_is_always_tracked(cell: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Safe values keep the tracked path (their retries need it), also on a bus with room."""
+    s, _gate, peer = cell
+    dt = s.devtab
+    confirmed: list[Any] = []
+    real = dt.written
+    monkeypatch.setattr(dt, "written", lambda d, v: (confirmed.append(v), real(d, v)))
+    s.kernel.interrupt(lambda: dt.estop("test"))
+    s.run_for(0.01)
+    assert power(peer) == 0.0 and confirmed == [0]
+    assert dt.get("H1").value == 0 and dt.get("H1").pending is None
