@@ -75,14 +75,17 @@ def socket_drops(sock: Any) -> int | None:
 
 def read_frames(rx: ReaderThread, bus: can.BusABC, poll: float,
                 on_frame: Callable[[can.Message], None], on_error: Callable[[str], None],
-                after_drain: Callable[[], None] | None = None) -> None:
+                after_drain: Callable[[], None] | None = None,
+                end_batch: Callable[[], None] | None = None) -> None:
     """The read loop of a CAN driver's :class:`ReaderThread`: every frame received goes to
     ``on_frame`` (which must not raise), a receive error to ``on_error`` (then a pause of 0.1 s).
     Where it can wait for a frame without taking it (SocketCAN's file descriptor, the
     ``virtual`` interface's queue) it drains without blocking under the reader's lock, and the
     reader's settle drains itself; elsewhere it receives with timeout ``poll`` and reports empty
     receives (see :mod:`drivers.threaded`). ``after_drain`` runs after each batch drained (the
-    CAN driver reads the socket's drop count there)."""
+    CAN driver reads the socket's drop count there). ``end_batch`` runs after the frames
+    taken together - each drain, the settle's too, or each frame where the loop polls - so that
+    ``on_frame`` may collect what it hands on and hand it on there, once per batch."""
     wait = _readiness(rx, bus)
     if wait is None:
         while rx.running:
@@ -96,21 +99,27 @@ def read_frames(rx: ReaderThread, bus: can.BusABC, poll: float,
                 rx.idle()
             else:
                 on_frame(frame)
+                if end_batch is not None:
+                    end_batch()
         return
 
     def drain(limit: int = 0) -> bool:
         n = 0
-        while limit <= 0 or n < limit:
-            try:
-                frame = bus.recv(0)
-            except (can.CanError, OSError) as exc:
-                on_error(str(exc))
-                return False
-            if frame is None:
-                break
-            n += 1
-            on_frame(frame)
-        return True
+        try:
+            while limit <= 0 or n < limit:
+                try:
+                    frame = bus.recv(0)
+                except (can.CanError, OSError) as exc:
+                    on_error(str(exc))
+                    return False
+                if frame is None:
+                    break
+                n += 1
+                on_frame(frame)
+            return True
+        finally:
+            if end_batch is not None and n:
+                end_batch()
 
     rx.set_drain(drain)
     while rx.running:

@@ -132,3 +132,38 @@ def test_canopen_sdo_poll_delivers_its_objects_as_one_batch() -> None:
     assert len(host.batches) == 1
     assert host.batches[0] == [("vel", -321), ("temp", 45), ("speed", 1500)]
     assert host.failures == []
+
+
+def test_raw_can_frames_received_together_reach_the_host_as_one_batch_in_order() -> None:
+    """The raw CAN driver hands the frames one drain takes (up to 64) to the host as one
+    batch, in the order a python-can peer sent them, and counts them once; an undecodable
+    frame among them is reported as it is met and does not hold the others back."""
+    import can
+
+    from drivers.can_raw import CanDriver
+
+    channel = unique_channel("canbatch")
+    host = BatchHost()
+    bus = BusSpec(name="c0", kind="can", key="bus[0]",
+                  options={"interface": "virtual", "channel": channel})
+    devices = [make_device("s1", "sensor", "c0", id=0x101, start=0, length=16, dlc=2),
+               make_device("s2", "sensor", "c0", key="device[1]", id=0x102, start=0,
+                           length=8, dlc=1)]
+    driver = CanDriver(bus, devices, host)
+    peer = can.Bus(interface="virtual", channel=channel)
+    driver.start()
+    try:
+        with driver._rx.lock:          # the reader cannot drain while the peer sends
+            for v in (1, 2, 3):
+                peer.send(can.Message(arbitration_id=0x101, data=v.to_bytes(2, "little"),
+                                      is_extended_id=False))
+            peer.send(can.Message(arbitration_id=0x102, data=b"\x01\x02",   # wrong length
+                                  is_extended_id=False))
+            peer.send(can.Message(arbitration_id=0x102, data=b"\x07", is_extended_id=False))
+        assert driver.settle(WAIT)     # one drain takes all five
+    finally:
+        driver.stop()
+        peer.shutdown()
+    assert host.batches == [[("s1", 1), ("s1", 2), ("s1", 3), ("s2", 7)]]
+    assert host.stats.get("frames") == 5 and driver.received == 5
+    assert [e[1] for e in host.errors] == ["wrong-length"]
