@@ -25,7 +25,9 @@ virtual clock the polls fall exactly on the period's grid. Two transports:
 
 In both, :meth:`stop` queues a ``stop`` job behind every job already queued, so writes queued
 before the stop (the safe values at shutdown) still go out; a write the thread did not get to
-is reported failed. A job ends with ``_done()`` exactly once, whether it ran or not.
+is reported failed. A job ends with ``_done()`` exactly once, whether it ran or not. A
+:meth:`JobDriver.flush` (shutdown) arms late successors through the host instead of queuing them,
+so a bus polled back to back does not hold it until its timeout.
 """
 
 from __future__ import annotations
