@@ -263,14 +263,13 @@ class CanDriver(ThreadedDriver):
         """The frame carrying ``value`` for ``device``; None if the value does not fit (then
         refused and, with ``report``, reported: the device is fine)."""
         try:
-            coded = self.codec.encode(device, value)
+            fid, data, ext = self.codec.encode_raw(device, value)
         except BusError as exc:
             if report:
                 self._error("range", str(exc))
                 self.host.write_failed(device, value, str(exc))
             return None
-        return can.Message(arbitration_id=coded.arbitration_id, data=coded.data,
-                           is_extended_id=coded.is_extended_id)
+        return can.Message(arbitration_id=fid, data=data, is_extended_id=ext)
 
     def _send_now(self, device: str, value: Any, report: bool = True) -> bool:
         """Fast path (the kernel thread, see drivers.threaded): send with ``timeout=0``, which

@@ -101,10 +101,15 @@ class Reading(TaskHandle):
             if timeout is not None:
                 self._arm_timeout(timeout, p.link.name)
             yield BLOCK
-        if not self._k.h_delivered and p.fifo is None:  # the hot path
-            value = p.value
-            p.value = None
-            p.fresh = False
+        if not self._k.h_delivered:  # the hot path (InPort.take and MessageManager.taken)
+            fifo = p.fifo
+            if fifo is None:
+                value = p.value
+                p.value = None
+                p.fresh = False
+            else:
+                value = fifo.popleft()[0]
+                p.fresh = bool(fifo)
             p.link.delivered += 1
             return value
         return self._take(p)

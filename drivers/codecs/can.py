@@ -102,6 +102,10 @@ class _Frame:
     #: bytes, signed) each, coded with int.from_bytes / to_bytes instead of cantools
     #: (the same values, without cantools' per-frame work); None for every other message
     whole_bytes: tuple[tuple[str, int, int, bool], ...] | None = None
+    #: for a whole-byte message: each signal's (first byte, bytes, signed), and the payload of
+    #: :attr:`values` (None until known): a write replaces its signal's bytes in it
+    slots: dict[str, tuple[int, int, bool]] = field(default_factory=dict)
+    data: bytes | None = None
 
 
 def _whole_bytes(msg: Any) -> tuple[tuple[str, int, int, bool], ...] | None:
@@ -164,7 +168,11 @@ class CanCodec:
                              is_extended_frame=bool(a0.get("extended", False)), strict=False)
             for d in group:
                 self._attach(msg, d, d.name)
-            self._by_id[(fid, bool(a0.get("extended", False)))].whole_bytes = _whole_bytes(msg)
+            fr = self._by_id[(fid, bool(a0.get("extended", False)))]
+            fr.whole_bytes = _whole_bytes(msg)
+            if fr.whole_bytes is not None:
+                fr.slots = {sig: (o, n, sg) for sig, o, n, sg in fr.whole_bytes}
+                fr.data = _encode_whole(fr.whole_bytes, fr.values, msg.length)
         #: raw (non-DBC) integer actuator -> the range its signal carries: check() accepts a
         #: value inside it without a trial encode (a value outside still gets cantools' reason)
         self._raw_ranges: dict[str, tuple[int, int]] = {}
@@ -258,23 +266,43 @@ class CanCodec:
 
         Raises :class:`BusError` if ``device`` is unknown or the value cannot be encoded (outside
         the DBC signal's range or bit width); the remembered values are then unchanged."""
+        return CanFrame(*self.encode_raw(device, value))
+
+    def encode_raw(self, device: str, value: Any) -> tuple[int, bytes, bool]:
+        """:meth:`encode`'s frame as ``(id, payload, extended)``, without building a
+        :class:`CanFrame` (the driver's send path). Raises as :meth:`encode`."""
         try:
             fr, sig = self._by_device[device]
         except KeyError:
             raise BusError(f"{device!r} is not a device of this CAN bus") from None
+        old = fr.data
+        if old is not None:     # a whole-byte message: replace the signal's bytes
+            kind = type(value)
+            if kind is int or (kind is float and value.is_integer()):
+                o, n, sg = fr.slots[sig]
+                try:
+                    part = int(value).to_bytes(n, "little", signed=sg)
+                except OverflowError:
+                    pass        # cantools explains below
+                else:
+                    fr.data = data = old[:o] + part + old[o + n:]
+                    fr.values[sig] = value
+                    return fr.message.frame_id, data, bool(fr.message.is_extended_frame)
         values = dict(fr.values)
         values[sig] = value
         plan = fr.whole_bytes
         if plan is not None and (fast := _encode_whole(plan, values, fr.message.length)):
-            fr.values = values
-            return CanFrame(fr.message.frame_id, fast, bool(fr.message.is_extended_frame))
+            fr.values, fr.data = values, fast
+            return fr.message.frame_id, fast, bool(fr.message.is_extended_frame)
         try:
-            data = fr.message.encode(values, strict=True)
+            data = bytes(fr.message.encode(values, strict=True))
         except (cantools.database.EncodeError, ValueError, KeyError, OverflowError) as exc:
             raise BusError(f"cannot encode {device}={value!r} into {fr.message.name}: {exc}") \
                 from exc
         fr.values = values
-        return CanFrame(fr.message.frame_id, bytes(data), bool(fr.message.is_extended_frame))
+        if plan is not None:
+            fr.data = data
+        return fr.message.frame_id, data, bool(fr.message.is_extended_frame)
 
 
 def check_address(bus: BusSpec, device: DeviceSpec, dbc: Any) -> list[str]:
