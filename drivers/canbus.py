@@ -9,6 +9,7 @@ import functools
 import queue
 import socket
 import struct
+from collections import deque
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -50,11 +51,24 @@ def _readiness(rx: ReaderThread, bus: can.BusABC) -> Callable[[float], bool] | N
         return functools.partial(rx.wait_readable, fd)
     q = getattr(bus, "queue", None)
     if isinstance(q, queue.Queue):
+        items, cond = q.queue, q.not_empty   # the queue's deque and its own condition
+
         def wait(timeout: float) -> bool:
-            with q.not_empty:   # the queue's own condition; q.queue is its deque
-                return q.not_empty.wait_for(lambda: len(q.queue) > 0, timeout)
+            if items:
+                return True
+            with cond:
+                if not items:
+                    cond.wait(timeout)
+                return bool(items)
         return wait
     return None
+
+
+def _queued(bus: can.BusABC) -> deque[can.Message] | None:
+    """The frames python-can's ``virtual`` interface holds for ``bus`` (its receive queue's
+    deque: a glance tells whether a receive would find one), or None for other interfaces."""
+    q = getattr(bus, "queue", None)
+    return q.queue if isinstance(q, queue.Queue) else None
 
 
 SO_MEMINFO = 55          # Linux <asm-generic/socket.h>: the socket's memory info, u32[9]
@@ -103,10 +117,14 @@ def read_frames(rx: ReaderThread, bus: can.BusABC, poll: float,
                     end_batch()
         return
 
+    items = _queued(bus)
+
     def drain(limit: int = 0) -> bool:
         n = 0
         try:
             while limit <= 0 or n < limit:
+                if items is not None and not items:   # nothing queued: spare the empty
+                    break                             # receive (python-can raises Empty)
                 try:
                     frame = bus.recv(0)
                 except (can.CanError, OSError) as exc:

@@ -71,12 +71,39 @@ class CanopenEvents(WorkerJobDriver):
         self._pdo_sensors: dict[tuple[int, int, int], list[str]] = {}
         self._poll_groups: dict[float, list[Binding]] = {}   # SDO-polled sensors by period
         self._bus_failed = False
+        #: whether any node has heartbeat supervision (set at start; the watchdog's fast exit)
+        self._watched = False
+        #: frames handed to canopen's listeners, written by whoever receives (the reader, or a
+        #: settle's drain: one at a time, under the reader's lock); of which reported to the
+        #: host as ``frames`` (:meth:`_tell_frames`, under ``_told_lock``)
+        self._frames_in = 0
+        self._frames_told = 0
+        self._told_lock = threading.Lock()
 
     # -- I/O thread: the heartbeat watchdog -------------------------------------------------
 
     def _tick(self) -> float:
-        """The worker's longest wait for a job: until the next heartbeat deadline."""
-        return self._watchdog()
+        """The worker's longest wait for a job: until the next heartbeat deadline. Before each
+        job and at least every 0.5 s: the frames received meanwhile go to the bus statistics."""
+        self._tell_frames()
+        return self._watchdog() if self._watched else 0.5
+
+    def _tell_frames(self) -> None:
+        """Count the frames received since the last call in the host's ``frames`` statistic,
+        as one addition (one per frame would cost the reader a locked call per frame)."""
+        with self._told_lock:
+            n = self._frames_in
+            new, self._frames_told = n - self._frames_told, n
+        if new:
+            self.host.stat(self.bus.name, "frames", new)
+
+    def settle(self, timeout: float) -> bool:
+        """As :meth:`drivers.jobs.JobDriver.settle`; the frames handed over are counted in the
+        bus statistics before it returns."""
+        try:
+            return super().settle(timeout)
+        finally:
+            self._tell_frames()
 
     def _watchdog(self) -> float:
         """Fail the devices of nodes whose heartbeat is overdue; the time to the next deadline.
@@ -115,7 +142,7 @@ class CanopenEvents(WorkerJobDriver):
     def _on_frame(self, frame: can.Message) -> None:
         """A received frame to canopen's listeners (what its notifier would do)."""
         self._bus_failed = False     # a receive error is reported again after a good frame
-        self.host.stat(self.bus.name, "frames")
+        self._frames_in += 1         # to the statistics in _tell_frames
         network = self._network
         if network is None:
             return
@@ -184,6 +211,8 @@ class FrameCheck(can.Listener):
 
     def on_message_received(self, msg: can.Message) -> None:
         cob = msg.arbitration_id
+        if cob > 0x77F or 0xFF < cob < 0x701 or cob < 0x81:
+            return   # neither a heartbeat nor an EMCY COB-ID: most frames (SDO, PDO) end here
         if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
             return
         hb, emcy = heartbeat_node(cob), emcy_node(cob)

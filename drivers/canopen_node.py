@@ -118,6 +118,7 @@ class CanopenDriver(CanopenEvents):
             self._nodes[nid] = NodeState(node, float(hb) if hb is not None else None,
                                           bool(ncfg.get("nmt_start", True)))
         self._network = network
+        self._watched = any(s.heartbeat_timeout is not None for s in self._nodes.values())
         self._bind_devices()
         config = {k: opts[k] for k in ("interface", "channel", "bitrate") if k in opts}
         try:
@@ -188,6 +189,7 @@ class CanopenDriver(CanopenEvents):
         rx, self._rx = self._rx, None
         if rx is not None:
             rx.stop()
+        self._tell_frames()
         network, self._network = self._network, None
         if network is not None:
             with contextlib.suppress(Exception):

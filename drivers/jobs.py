@@ -25,7 +25,9 @@ virtual clock the polls fall exactly on the period's grid. Two transports:
 
 In both, :meth:`stop` queues a ``stop`` job behind every job already queued, so writes queued
 before the stop (the safe values at shutdown) still go out; a write the thread did not get to
-is reported failed. A job ends with ``_done()`` exactly once, whether it ran or not.
+is reported failed. A job ends with ``_done()`` exactly once, whether it ran or not. A
+:meth:`JobDriver.flush` (shutdown) arms late successors through the host instead of queuing them,
+so a bus polled back to back does not hold it until its timeout.
 """
 
 from __future__ import annotations
@@ -75,6 +77,8 @@ class JobDriver(Driver):
         self._poll_plan: dict[Hashable, tuple[float, str]] = {}
         self._poll_due_at: dict[Hashable, float] = {}
         self._rx: ReaderThread | None = None
+        #: flushes under way: late successors are armed through the host, not queued at once
+        self._flushing = 0
 
     @abstractmethod
     def _put(self, job: Job) -> bool:
@@ -129,7 +133,7 @@ class JobDriver(Driver):
             return
         nxt = round(due + self._poll_plan[key][0], 9)
         now = self.host.now()
-        if nxt > now:
+        if nxt > now or self._flushing:
             self._arm_poll(key, nxt)
             return
         self.host.stat(self.bus.name, "polls-late")
@@ -155,6 +159,19 @@ class JobDriver(Driver):
         if not self._submit("write", device, value):
             self._refuse(device, value, "stopped", f"{self.kind} bus {self.bus.name} is not "
                                                    f"running")
+
+    def flush(self, timeout: float) -> bool:
+        """Wait until every job handed over so far (the writes among them) is done, as
+        :meth:`settle`. Meanwhile a poll's late successor is armed through the host instead of
+        queued at once, so a bus polled back to back does not keep the flush waiting until its
+        timeout (at shutdown the kernel no longer runs what is armed)."""
+        with self._idle:
+            self._flushing += 1
+        try:
+            return self.settle(timeout)
+        finally:
+            with self._idle:
+                self._flushing -= 1
 
     def settle(self, timeout: float) -> bool:
         """Hand over every frame the reader (if any) already received, then wait until no job

@@ -278,3 +278,36 @@ def test_bus_from_python_can_environment_config(monkeypatch: pytest.MonkeyPatch)
             assert host.wait_for(lambda h: h.values("pos") == [8])
         finally:
             driver.stop()
+
+
+def test_frames_received_are_counted_by_the_time_settle_returns(
+        can_link: tuple[str, str]) -> None:
+    # the reader counts frames without a host call each; every settle hands the count over, so
+    # the bus statistics are exact whenever the kernel looks (before virtual time moves)
+    interface, channel = can_link
+    seen = can.Bus(interface=interface, channel=channel)       # an independent observer
+    slave = CanopenSlave(NODE, channel=channel, interface=interface, heartbeat_period=0)
+    slave.start()
+    host = FakeHost()
+    driver = CanopenDriver(bus_spec(interface, channel, nmt_start=False),
+                           [make_device("vel", "sensor", "co", node=NODE, index=0x606C)], host)
+    driver.start()
+    try:
+        while seen.recv(0) is not None:                       # the boot-up, before the driver
+            pass
+        for n in (1, 2, 3):
+            host.tick(0.1)
+            assert driver.settle(WAIT)
+            assert host.stats.get("frames") == n
+        slave.send_emcy(0x1000)               # a frame no job waits for: the settle counts it
+        assert driver.settle(WAIT)
+        assert host.stats.get("frames") == 4
+        ids = []
+        while (msg := seen.recv(0)) is not None:
+            ids.append(msg.arbitration_id)
+        assert ids.count(0x580 + NODE) == 3 and ids.count(0x80 + NODE) == 1
+        assert len(host.values("vel")) == 3
+    finally:
+        driver.stop()
+        slave.stop()
+        seen.shutdown()

@@ -113,3 +113,43 @@ def test_devtab_at_from_another_thread_runs_on_the_kernel_thread_at_its_time() -
     s.devtab.at(2.0, note)                             # not the kernel thread either
     s.run()
     assert seen == [(2.0, True), (5.0, True)]
+
+
+class SlowBusDriver(StallDriver):
+    """Every poll takes two periods of the host's clock (a bus slower than its poll period,
+    so each successor is already due when its predecessor is taken: polled back to back); a
+    write is recorded and confirmed."""
+
+    def __init__(self, host: FakeHost, period: float) -> None:
+        super().__init__(host, period)
+        self.devices["a"] = make_device("a", "actuator", "b")
+        self.sent: list[Any] = []
+
+    def _run(self, job: Job) -> None:
+        if job.op == "write":
+            self.sent.append(job.value)
+            self.host.written(job.what, job.value)
+            return
+        with self.host.cond:
+            self.host.clock += 2 * self.period
+        super()._run(job)
+
+
+def test_a_flush_is_not_held_up_by_polls_back_to_back() -> None:
+    host = FakeHost()
+    driver = SlowBusDriver(host, 0.1)
+    driver.start()
+    try:
+        assert host.tick(0.1) == 1               # the first poll: from here on back to back
+        assert host.wait_for(lambda h: h.stats.get("polls-late", 0) >= 3)
+        driver.write("a", 7)                     # queued behind a poll
+        assert driver.flush(WAIT)                # not held until its timeout by the polls
+        assert host.writes == [("a", 7, "")] and driver.sent == [7]
+        # meanwhile the late successor was armed through the host, not queued at once
+        assert len(host.periodics) == 1 and host.periodics[0].due <= host.now()
+        assert driver._jobs.qsize() == 0
+        n = len(driver.taken)
+        assert host.tick(0.0) == 1               # the host runs it: back to back again
+        assert host.wait_for(lambda h: len(driver.taken) >= n + 3)
+    finally:
+        driver.stop()
