@@ -37,7 +37,9 @@ class SuiteRun:
 
 
 def spread(xs: Sequence[float], fmt: str = "{:.2f}") -> str:
-    """``min / median / max`` of ``xs`` (one value printed alone)."""
+    """``min / median / max`` of ``xs`` (one value printed alone, none as ``no data``)."""
+    if not xs:
+        return "no data"
     if len(xs) == 1:
         return fmt.format(xs[0])
     return " / ".join(fmt.format(v) for v in (min(xs), statistics.median(xs), max(xs)))

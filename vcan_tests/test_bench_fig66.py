@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 from fractions import Fraction
+from typing import Any
 
 import pytest
 
@@ -103,3 +104,27 @@ def test_emergency_chain_reaches_every_safe_value_on_virtual_time() -> None:
         assert s.devtab.get("M0").value == 0.0
     finally:
         s.shutdown()
+
+
+def test_emergency_probe_stamps_an_intruder_value_in_a_batch_too() -> None:
+    """The emergency benchmark's probe between driver and Devtab sees the intruder value
+    whether the driver hands readings over one by one or as a batch (the CAN driver's drains),
+    and passes both on unchanged."""
+    got: list[Any] = []
+    stamps: list[float] = []
+
+    class Host:
+        def deliver(self, device: str, value: Any) -> None:
+            got.append(("one", device, value))
+
+        def deliver_many(self, readings: Any) -> None:
+            got.append(("many", list(readings)))
+
+    probe = emergency._HostProbe(Host(), stamps.append)
+    probe.deliver_many([("D0", 5), ("LC", 0)])
+    assert stamps == []
+    probe.deliver_many([("D0", 6), ("LC", 1)])
+    probe.deliver("LC", 2)
+    assert len(stamps) == 2
+    assert got == [("many", [("D0", 5), ("LC", 0)]), ("many", [("D0", 6), ("LC", 1)]),
+                   ("one", "LC", 2)]

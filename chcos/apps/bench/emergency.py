@@ -46,7 +46,7 @@ import os
 import random
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -99,6 +99,13 @@ class _HostProbe:
         if device == "LC" and value:
             self._on_lc(time.perf_counter())
         self._host.deliver(device, value)
+
+    def deliver_many(self, readings: Sequence[tuple[str, Any]]) -> None:
+        """The same for a batch of readings (the CAN driver hands a drain's frames over as
+        one): stamped if an intruder value is among them, then handed on as one batch."""
+        if any(device == "LC" and value for device, value in readings):
+            self._on_lc(time.perf_counter())
+        self._host.deliver_many(readings)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._host, name)
