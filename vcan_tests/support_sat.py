@@ -7,11 +7,13 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from chcos.comm.manager import machine_of
 from chcos.satellites import sysfile
 from chcos.satellites.host import Host
 from chcos.user.context import TaskContext
@@ -104,11 +106,28 @@ class Cluster:
              "--system", str(self.sf.path)], cwd=ROOT, env=env, stdout=log, stderr=log,
             stdin=subprocess.DEVNULL)
 
-    def kill(self, machine: int) -> None:
-        """kill -9 satellite ``machine``."""
+    def kill(self, machine: int, timeout: float = 20.0) -> None:
+        """kill -9 satellite ``machine``; with a host session, also wait until the host no
+        longer sees its liveliness token (a dead process's token outlives it until Zenoh
+        notices the closed link: a restart right after would otherwise find the old token, and
+        ``wait_for`` would answer before the new satellite serves). Raises AssertionError if
+        the token is still there after ``timeout`` seconds."""
         p = self.procs.pop(machine)
         p.send_signal(signal.SIGKILL)
         p.wait(10)
+        if self._host is None:
+            return
+        host = self._host
+        gone = threading.Event()
+
+        def left(key: str) -> None:
+            if machine_of(key) == machine:
+                gone.set()
+
+        with host.transport.watch(f"{self.sf.prefix}/alive/*", lambda key: None, left):
+            if machine not in host.alive():
+                return
+            assert gone.wait(timeout), f"satellite {machine} still seen {timeout} s after kill -9"
 
     @property
     def host(self) -> Host:
