@@ -260,7 +260,8 @@ class CanDriver(ThreadedDriver):
             self._error(status, str(result))
 
     def _end_batch(self) -> None:
-        """The frames received together are handled (reader thread, under the reader's lock):
+        """The frames received together are handled (on the reader thread, or under the
+        reader's lock by a settle that drains itself):
         their count goes to the bus statistics and their readings to the host as one
         interrupt, in the order received (the kernel handles every queued interrupt before the
         next task step anyway, so this changes nothing a task can see, and costs one wake-up
