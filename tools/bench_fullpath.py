@@ -12,6 +12,9 @@ integrator would write without chcos: asyncio, ``can.Notifier`` with an ``AsyncB
 decoding and encoding with cantools (and, second, with ``int.from_bytes`` instead of cantools),
 sending straight from the coroutine; chcos' CAN driver sends from the task's thread as well (its
 fast path; it prints how many frames took it). Pin it to one core with ``taskset -c 0``.
+Beside the timed figures it counts the bytecode instructions each program executes per loop, in
+every thread, by where the code lives (:func:`count_instructions`): a figure the machine's noise
+does not move, which shows how much of a loop is chcos' own code and how much python-can's.
 Targets (issue 3, issue 21): >= 20,000 loops/s, >= 0.25 (issue 21: >= 0.33) of the raw
 virtual-bus rate, >= 1.0x the asyncio + can.Notifier + cantools program.
 Usage: python -m tools.bench_fullpath [--loops N] [--window W] [--repeat R] [--json FILE]
@@ -25,9 +28,13 @@ import contextlib
 import json
 import os
 import statistics
+import sys
 import tempfile
 import threading
 import time
+import types
+from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -74,11 +81,13 @@ def raw_rate(n: int, channel: str) -> float:
     a = can.Bus(interface="virtual", channel=channel)
     b = can.Bus(interface="virtual", channel=channel)
     msg = can.Message(arbitration_id=0x101, data=b"\x00\x00\x00\x01", is_extended_id=False)
+    _counting[0] = True
     t0 = time.perf_counter()
     for _ in range(n):
         a.send(msg)
         b.recv(1.0)
     dt = time.perf_counter() - t0
+    _counting[0] = False
     a.shutdown()
     b.shutdown()
     return n / dt
@@ -86,6 +95,8 @@ def raw_rate(n: int, channel: str) -> float:
 
 #: CPU seconds of this process per loop of the last run (peer included), from _peer_loops
 last_cpu: list[float] = [0.0]
+#: True from the peer's first frame to its last answer: what :func:`count_instructions` counts
+_counting: list[bool] = [False]
 
 
 def _peer_loops(n: int, window: int, channel: str) -> float:
@@ -111,6 +122,7 @@ def _peer_loops(n: int, window: int, channel: str) -> float:
 
     listener = threading.Thread(target=listen, daemon=True)
     listener.start()
+    _counting[0] = True
     t0 = time.perf_counter()
     c0 = time.process_time()
     while sent < n:
@@ -120,6 +132,7 @@ def _peer_loops(n: int, window: int, channel: str) -> float:
         sent += 1
     done.wait(60)
     dt = time.perf_counter() - t0
+    _counting[0] = False
     last_cpu[0] = (time.process_time() - c0) / n
     peer.shutdown()
     if answered != n:
@@ -200,6 +213,80 @@ def handwritten(n: int, window: int, channel: str, use_cantools: bool = True) ->
         th.join(10)
 
 
+#: where an executed bytecode instruction's code lives, by path fragment, first match wins:
+#: chcos' own code, the python-can and cantools packages, and the standard library's modules
+#: python-can's virtual bus runs (its deepcopy per receiver, its queue, their locks)
+_PLACES = (("/chcos/", "chcos"), ("/drivers/", "chcos"), ("bench_fullpath", "bench"),
+           ("/cantools/", "cantools"), ("/can/", "python-can"), ("/asyncio/", "asyncio"),
+           ("/copy.py", "python-can"), ("/copyreg.py", "python-can"), ("/queue.py", "python-can"))
+
+
+def count_instructions(run: Callable[[int], float], n: int = 2000) -> dict[str, float]:
+    """Bytecode instructions per loop of ``run(n)`` (:func:`full_path` or a :func:`handwritten`
+    program, with a fixed window; per frame for :func:`raw_rate`), every thread of this process
+    counted by an opcode tracer from the peer's first frame to its last answer (not the set-up),
+    by where the code lives: ``chcos`` (chcos and its drivers), ``python-can`` (the package and
+    the standard-library copy/queue code its virtual bus runs), ``cantools``, ``asyncio``,
+    ``bench`` (the peer and the hand-written program's own lines) and ``other`` (threading,
+    logging...). C code counts as the one call instruction that enters it. Deterministic, unlike
+    a timed figure, up to how frames happen to batch; the tracer makes the run ~50x slower."""
+    counts: Counter[str] = Counter()
+    where: dict[str, str] = {}
+
+    def place(filename: str) -> str:
+        for frag, name in _PLACES:
+            if frag in filename:
+                return name
+        return "other"
+
+    def tracer(frame: types.FrameType, event: str, arg: Any) -> Any:
+        frame.f_trace_opcodes = True
+        frame.f_trace_lines = False
+        if event == "opcode" and _counting[0]:
+            f = frame.f_code.co_filename
+            key = where.get(f)
+            if key is None:
+                key = where[f] = place(f)
+            counts[key] += 1
+        return tracer
+
+    threading.settrace(tracer)
+    sys.settrace(tracer)
+    try:
+        run(n)
+    finally:
+        sys.settrace(None)
+        threading.settrace(None)
+    return {k: v / n for k, v in counts.items()}
+
+
+def instruction_profile(window: int = 64, n: int = 2000) -> dict[str, dict[str, float]]:
+    """:func:`count_instructions` of the raw bus (per frame), chcos' full path and the
+    hand-written asyncio + cantools program (per loop), ``n`` each; a channel of their own."""
+    tag = f"ops-{os.getpid()}"
+    return {"raw": count_instructions(lambda k: raw_rate(k, f"{tag}-raw"), n),
+            "chcos": count_instructions(lambda k: full_path(k, window, f"{tag}-path"), n),
+            "asyncio_cantools": count_instructions(
+                lambda k: handwritten(k, window, f"{tag}-hand"), n)}
+
+
+def instruction_text(ops: dict[str, dict[str, float]]) -> str:
+    """The lines :func:`main` prints for an :func:`instruction_profile`: each program's total
+    and where it goes, and the count ratios that mirror the timed ones."""
+    tot = {k: sum(v.values()) for k, v in ops.items()}
+
+    def parts(k: str) -> str:
+        return ", ".join(f"{name} {v:,.0f}" for name, v in
+                         sorted(ops[k].items(), key=lambda kv: -kv[1]) if v >= 1)
+
+    return (f"bytecode instructions (counted, every thread, peer included): raw bus "
+            f"{tot['raw']:,.0f} per frame ({parts('raw')}); chcos {tot['chcos']:,.0f} per loop "
+            f"({parts('chcos')}); asyncio + cantools program {tot['asyncio_cantools']:,.0f} per "
+            f"loop ({parts('asyncio_cantools')}); by count chcos/raw "
+            f"{tot['raw'] / tot['chcos']:.2f} (ceiling 0.5), chcos/program "
+            f"{tot['asyncio_cantools'] / tot['chcos']:.2f}")
+
+
 def _mmm(xs: list[float]) -> str:
     """min / median / max of per-run figures."""
     return f"{min(xs):,.2f} / {statistics.median(xs):,.2f} / {max(xs):,.2f}"
@@ -257,12 +344,15 @@ def main() -> int:
           f">= 1.0x the hand-written asyncio + cantools program "
           f"({'met' if med(vs_hand) >= 1.0 else 'MISSED'}) (medians); by CPU time per loop "
           f"chcos is {_mmm(cpu_ratio)}x as fast as the asyncio + cantools program")
+    ops = instruction_profile(args.window)
+    print(instruction_text(ops))
     if args.json:
         Path(args.json).write_text(json.dumps({"raw_frames_per_s": raw, "loops_per_s": path,
                                                "ratio": path / raw, "runs": runs,
                                                "ratio_to_handwritten": vs_hand,
                                                "ratio_to_handwritten_no_cantools": vs_bytes,
-                                               "cpu_us_per_loop": cpu}))
+                                               "cpu_us_per_loop": cpu,
+                                               "instructions_per_loop": ops}))
     return 0
 
 

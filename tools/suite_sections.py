@@ -143,6 +143,7 @@ def full_path(run: SuiteRun) -> None:
             raw.append(bench_fullpath.raw_rate(loops, f"suite-raw-{tag}"))
             path.append(bench_fullpath.full_path(loops, 64, f"suite-path-{tag}"))
             hand.append(bench_fullpath.handwritten(loops, 64, f"suite-hand-{tag}"))
+        ops = bench_fullpath.instruction_profile(64, 500 if run.quick else 2000)
         for _ in range(run.reps):  # interleaved: each batch's ratio is taken within the batch
             for key, any_port in (("read", False), ("read_any", True)):
                 dt, got = bench_core.run_chcos(msgs, False, any_port)
@@ -164,7 +165,9 @@ def full_path(run: SuiteRun) -> None:
         ratio("asyncio_event", "read")
     run.res["fullpath"] = {"core": core, "loops": loops, "raw_frames_per_s": raw,
                            "loops_per_s": path, "handwritten_loops_per_s": hand,
-                           "ratio_to_raw": to_raw, "ratio_to_handwritten": to_hand}
+                           "ratio_to_raw": to_raw, "ratio_to_handwritten": to_hand,
+                           "instructions": ops}
+    ops_tot = {k: sum(v.values()) for k, v in ops.items()}
     run.res["core"] = {"messages": msgs, "seconds_per_message": t,
                        "ratio_to_minimal": per_min, "asyncio_queue_speedup": q_speed,
                        "asyncio_event_speedup": e_speed}
@@ -180,6 +183,13 @@ def full_path(run: SuiteRun) -> None:
         ("  asyncio + can.Notifier + cantools program, same peer and window (loops/s)",
          ">= 1.0x", f"{spread(hand, '{:,.0f}')}; chcos/program {spread(to_hand)}",
          yes(med(to_hand) >= 1.0)),
+        ("  bytecode instructions, counted in every thread (peer included; C code counts as "
+         "its call): raw bus per frame, chcos and the program per loop", "-",
+         f"raw {ops_tot['raw']:,.0f}; chcos {ops_tot['chcos']:,.0f} (own code "
+         f"{ops['chcos'].get('chcos', 0):,.0f}, python-can {ops['chcos'].get('python-can', 0):,.0f}"
+         f"); program {ops_tot['asyncio_cantools']:,.0f}; by count chcos/raw "
+         f"{ops_tot['raw'] / ops_tot['chcos']:.2f}, chcos/program "
+         f"{ops_tot['asyncio_cantools'] / ops_tot['chcos']:.2f}", "-"),
         ("  vs thesis, 1 MC68000 satellite (sensor + actuator interrupts/s)",
          "1150 interrupts/s (estimate)", f"{interrupts:,.0f} (median)",
          f"{interrupts / THESIS_INTERRUPTS_PER_SATELLITE:.0f}x"),

@@ -67,3 +67,26 @@ def test_only_one_section_writes_the_files(tmp_path: Path) -> None:
                              str(tmp_path)]) == 0
     assert "6.4 cycle model computed" in (tmp_path / "table.md").read_text(encoding="utf-8")
     assert (tmp_path / "results.json").exists()
+
+
+def test_instruction_counts_split_each_program_by_where_its_code_lives() -> None:
+    """The full-path benchmark's counted figure: every thread is traced (chcos' reader and
+    kernel threads, the peer's listener), only the exchange counts (not the set-up), and the
+    same run counted twice gives (nearly) the same figure."""
+    from tools import bench_fullpath as fp
+
+    raw = [fp.count_instructions(lambda k, i=i: fp.raw_rate(k, f"ops-test-raw-{i}"), 200)
+           for i in range(2)]
+    # the same up to one-off work (a first call's lazy set-up): within 1 %
+    assert abs(sum(raw[0].values()) - sum(raw[1].values())) <= 0.01 * sum(raw[1].values())
+    assert raw[0]["python-can"] == raw[1]["python-can"]
+    assert raw[0]["python-can"] > 300 and "chcos" not in raw[0]
+    path = fp.count_instructions(lambda k: fp.full_path(k, 8, "ops-test-path"), 200)
+    # chcos' own code runs on its reader and kernel threads: counted only if they are traced
+    assert path["chcos"] > 300
+    assert path["python-can"] > 2 * raw[0]["python-can"] * 0.8   # two frames per loop
+    # the set-up (System, install, start) is left out: a few thousand instructions per loop
+    # if it were counted at 200 loops
+    assert sum(path.values()) < 6 * sum(raw[0].values())
+    text = fp.instruction_text({"raw": raw[0], "chcos": path, "asyncio_cantools": path})
+    assert "chcos/program 1.00" in text
