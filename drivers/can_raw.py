@@ -236,7 +236,8 @@ class CanDriver(ThreadedDriver):
                                f"receive buffer overflowed (kernel drop count {drops})")
 
     def _receive(self, frame: can.Message) -> None:
-        self._bus_up()
+        if self._failed:
+            self._bus_up()
         try:
             self._handle(frame)
         except Exception as exc:  # the reader must survive any host/codec surprise
@@ -285,10 +286,15 @@ class CanDriver(ThreadedDriver):
             fid, data, ext = self.codec.encode_raw(device, value)
         except BusError as exc:
             if report:
-                self._error("range", str(exc))
-                self.host.write_failed(device, value, str(exc))
+                self._unencodable(device, value, exc)
             return None
         return can.Message(arbitration_id=fid, data=data, is_extended_id=ext)
+
+    def _unencodable(self, device: str, value: Any, exc: BusError) -> None:
+        """``value`` does not fit ``device``'s signal: counted (``range``) and the write
+        reported failed (the device is fine)."""
+        self._error("range", str(exc))
+        self.host.write_failed(device, value, str(exc))
 
     def _send_now(self, device: str, value: Any, report: bool = True) -> bool:
         """Fast path (the kernel thread, see drivers.threaded): send with ``timeout=0``, which
@@ -298,9 +304,13 @@ class CanDriver(ThreadedDriver):
         bus = self._bus
         if bus is None:
             return False
-        frame = self._frame(device, value, report)
-        if frame is None:
+        try:     # self._frame(device, value, report), inlined: once per frame sent
+            fid, data, ext = self.codec.encode_raw(device, value)
+        except BusError as exc:
+            if report:
+                self._unencodable(device, value, exc)
             return report
+        frame = can.Message(arbitration_id=fid, data=data, is_extended_id=ext)
         try:
             bus.send(frame, timeout=0)
         except (can.CanError, OSError):

@@ -40,6 +40,9 @@ if TYPE_CHECKING:
 
 #: Seconds each driver gets at shutdown to put the safe values on the wire.
 SHUTDOWN_FLUSH = 5.0
+# module constants: read on every reading and every command
+_FAILED = DeviceStatus.FAILED
+_SUSPENDED = DeviceStatus.SUSPENDED
 
 
 class Devtab(CommandChecks, BusCounters, WriteTracking):
@@ -226,11 +229,13 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         if e is None:
             self._bus_error("?", "unknown-device", f"reading for unknown device {device!r}")
             return
-        if e.status is DeviceStatus.SUSPENDED:
+        if e.status is _SUSPENDED:
             e.dropped += 1
             return
         spec = e.spec
-        value = raw * spec.scale + spec.offset if scalable(raw) else raw
+        kind = type(raw)   # int and float first: scalable() for the rest (bool is not scaled)
+        value = (raw * spec.scale + spec.offset if kind is int or kind is float or scalable(raw)
+                 else raw)
         now = self.kernel.clock.now()
         e.value = value
         e.updated_at = now
@@ -279,10 +284,11 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         address type's range). The device shows the value once the driver has put it on the wire
         (``pending`` until then); a write that fails later is a WARNING event (``write-failed``).
         """
-        e = self.get(device)
-        if e.is_sensor:
+        e = self._entries.get(device) or self.get(device)   # get() names a missing one
+        if e.spec.direction == "sensor":
             raise DeviceError(f"{device} is a sensor: {source} cannot write to it")
-        if e.status in (DeviceStatus.FAILED, DeviceStatus.SUSPENDED):
+        status = e.status
+        if status is _FAILED or status is _SUSPENDED:
             e.rejected += 1
             raise DeviceError(f"actuator {device} is {e.status.value} ({e.reason}): "
                               f"command {value!r} from {source} refused")
@@ -293,12 +299,13 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
               safe: str = "") -> Write | None:
         """Hand a checked write to the driver (or the device's satellite); the Write to watch
         if the driver confirms writes."""
-        device = e.name
         spec = e.spec
+        device = spec.name
         e.updated_at = self.kernel.clock.now()
         e.commands += 1
         w: Write | None = None
-        if not self.is_local(spec.machine):
+        local = self._local
+        if local is not None and spec.machine not in local:   # not self.is_local(...)
             if self.remote is None:
                 raise DeviceError(f"actuator {device} is on machine {spec.machine}, which this "
                                   f"process does not drive, and no link leads there")

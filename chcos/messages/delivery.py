@@ -23,6 +23,7 @@ from chcos.tables.tasks import TaskEntry, TaskState, Tsktab
 
 log = logging.getLogger("chcos.messages.manager")
 _LINK_SUSPENDED = LinkStatus.SUSPENDED  # a module constant: read on every delivery
+_TO_DEVICE = EndpointKind.DEVICE         # ... and on every command a task writes
 _READY = TaskState.READY
 
 
@@ -129,7 +130,11 @@ class Delivery:
                 heappush(kernel.ready_heap, (-prio, seq, w))
                 return True
         else:
-            if port.store(value, kernel.clock.now()):
+            fifo = port.fifo
+            if fifo is not None and not kernel.h_msg and len(fifo) < link.queued:
+                fifo.append((value, kernel.clock.now()))  # a queued link with room, no
+                port.fresh = True                         # instrument: port.store inlined
+            elif port.store(value, kernel.clock.now()):
                 link.overwritten += 1
                 if kernel.h_overwritten:
                     kernel.notify(kernel.h_overwritten, "message_overwritten", link)
@@ -243,10 +248,10 @@ class Delivery:
         Raises MessageError if the link leads to a task (use open), DeviceError if the actuator
         refuses the value (outside its limits, failed device).
         """
-        if link.status is LinkStatus.SUSPENDED:
+        if link.status is _LINK_SUSPENDED:
             link.refused += 1
             raise MessageError(f"link {link.name} is suspended")
-        if link.dst_kind is EndpointKind.DEVICE:
+        if link.dst_kind is _TO_DEVICE:
             self.devices.write(link.dst, value, source=t.name)
         elif link.dst_kind is EndpointKind.FILE:
             self.write_file(link.dst, value)

@@ -39,7 +39,8 @@ class Commanding(TaskHandle):
         """Command actuator (or output file) on ``port`` with ``value``; never blocks.
         Raises DeviceError if the actuator refuses it (outside limits, failed), MessageError if
         the port leads to a task."""
-        self._mm.write(self._t, self._out(port), value)
+        link = self._out_named.get(port) if isinstance(port, str) else None
+        self._mm.write(self._t, link or self._out(port), value)
 
     # ---- command messages (topen, tclose, teotsk, msgstat) ----------------------------------
     @types.coroutine

@@ -24,6 +24,10 @@ class TaskHandle:
         self._t = task
         self._k = kernel
         self._mm = msgmgr
+        #: ports found by name: a task's ports are only ever appended (at its install), so the
+        #: first one with a name stays the first; read and write look here before they scan
+        self._in_named: dict[str, InPort] = {}
+        self._out_named: dict[str, Link] = {}
 
     def take_command(self) -> Any:
         """The owner's newest command to this running activation (it becomes :attr:`command`).
@@ -54,6 +58,7 @@ class TaskHandle:
                                f"(it has {len(ports)}: {', '.join(self.inputs) or 'none'})")
         for p in ports:
             if p.link.src == port:
+                self._in_named[port] = p
                 return p
         raise MessageError(f"task {self._t.name} has no input from {port!r} "
                            f"(inputs: {', '.join(self.inputs) or 'none'})")
@@ -67,6 +72,7 @@ class TaskHandle:
                                f"(it has {len(links)}: {', '.join(self.outputs) or 'none'})")
         for lk in links:
             if lk.dst == port:
+                self._out_named[port] = lk
                 return lk
         special = self._t.special_links.get(port)
         if special is not None:

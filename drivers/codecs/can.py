@@ -106,6 +106,18 @@ class _Frame:
     #: :attr:`values` (None until known): a write replaces its signal's bytes in it
     slots: dict[str, tuple[int, int, bool]] = field(default_factory=dict)
     data: bytes | None = None
+    #: for a whole-byte message with sensors: (device, first byte, bytes, signed) of each
+    #: sensor signal, in the message's signal order (what decode reads, nothing looked up)
+    reads: tuple[tuple[str, int, int, bool], ...] | None = None
+    #: the message's length, id and frame format, read once (cantools' are properties)
+    length: int = 0
+    frame_id: int = 0
+    extended: bool = False
+
+    def __post_init__(self) -> None:
+        self.length = int(self.message.length)
+        self.frame_id = int(self.message.frame_id)
+        self.extended = bool(self.message.is_extended_frame)
 
 
 def _whole_bytes(msg: Any) -> tuple[tuple[str, int, int, bool], ...] | None:
@@ -173,6 +185,8 @@ class CanCodec:
             if fr.whole_bytes is not None:
                 fr.slots = {sig: (o, n, sg) for sig, o, n, sg in fr.whole_bytes}
                 fr.data = _encode_whole(fr.whole_bytes, fr.values, msg.length)
+                fr.reads = tuple((dev, o, n, sg) for sig, o, n, sg in fr.whole_bytes
+                                 if (dev := fr.sensors.get(sig)) is not None) or None
         #: raw (non-DBC) integer actuator -> the range its signal carries: check() accepts a
         #: value inside it without a trial encode (a value outside still gets cantools' reason)
         self._raw_ranges: dict[str, tuple[int, int]] = {}
@@ -204,14 +218,14 @@ class CanCodec:
             return "unknown-id", f"frame id 0x{frame.arbitration_id:X} is in no device's message"
         if not fr.sensors:
             return "ignore", "actuator message"
-        if len(frame.data) != fr.message.length:
+        data = frame.data
+        if len(data) != fr.length:
             return "wrong-length", (f"frame id 0x{frame.arbitration_id:X} ({fr.message.name}) "
-                                    f"has {len(frame.data)} bytes, expected {fr.message.length}")
-        plan = fr.whole_bytes
-        if plan is not None:  # raw whole-byte signals: the ints cantools would give
-            data = frame.data
+                                    f"has {len(data)} bytes, expected {fr.length}")
+        reads = fr.reads
+        if reads is not None:  # raw whole-byte signals: the ints cantools would give
             return "ok", [(dev, int.from_bytes(data[o:o + n], "little", signed=sg))
-                          for sig, o, n, sg in plan if (dev := fr.sensors.get(sig)) is not None]
+                          for dev, o, n, sg in reads]
         try:
             vals = fr.message.decode(bytes(frame.data), decode_choices=False)
         except (cantools.database.DecodeError, ValueError, KeyError) as exc:
@@ -227,15 +241,16 @@ class CanCodec:
         """Why ``value`` cannot be encoded for actuator ``device`` (None if it can): not a
         finite number, outside the signal's range or bit width, a fraction for a raw (non-DBC)
         integer signal. Nothing is remembered."""
+        accept = self._raw_ranges.get(device)
+        if accept is not None:
+            kind = type(value)
+            if (kind is int or (kind is float and value.is_integer())) \
+                    and accept[0] <= value <= accept[1]:
+                return None  # a raw integer signal: its range is all the encoder checks
         item = self._by_device.get(device)
         if item is None:
             return None
         fr, sig = item
-        accept = self._raw_ranges.get(device)
-        kind = type(value)
-        if accept is not None and (kind is int or (kind is float and value.is_integer())) \
-                and accept[0] <= value <= accept[1]:
-            return None  # a raw integer signal: its range is all the encoder checks
         if (why := not_finite(value)) is not None:
             return why
         if isinstance(value, bool):
@@ -287,13 +302,13 @@ class CanCodec:
                 else:
                     fr.data = data = old[:o] + part + old[o + n:]
                     fr.values[sig] = value
-                    return fr.message.frame_id, data, bool(fr.message.is_extended_frame)
+                    return fr.frame_id, data, fr.extended
         values = dict(fr.values)
         values[sig] = value
         plan = fr.whole_bytes
-        if plan is not None and (fast := _encode_whole(plan, values, fr.message.length)):
+        if plan is not None and (fast := _encode_whole(plan, values, fr.length)):
             fr.values, fr.data = values, fast
-            return fr.message.frame_id, fast, bool(fr.message.is_extended_frame)
+            return fr.frame_id, fast, fr.extended
         try:
             data = bytes(fr.message.encode(values, strict=True))
         except (cantools.database.EncodeError, ValueError, KeyError, OverflowError) as exc:
@@ -302,7 +317,7 @@ class CanCodec:
         fr.values = values
         if plan is not None:
             fr.data = data
-        return fr.message.frame_id, data, bool(fr.message.is_extended_frame)
+        return fr.frame_id, data, fr.extended
 
 
 def check_address(bus: BusSpec, device: DeviceSpec, dbc: Any) -> list[str]:
