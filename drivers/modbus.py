@@ -1,4 +1,4 @@
-"""modbus - the ``modbus-tcp`` and ``modbus-rtu`` bus drivers, on pymodbus's asyncio client.
+"""modbus - the ``modbus-tcp`` and ``modbus-rtu`` bus drivers, on pymodbus' synchronous clients.
 
 Bus options:
 
@@ -21,10 +21,12 @@ than the period is polled back to back, counted ``polls-late``; see :mod:`driver
 kernel timer only enqueues); each poll groups the contiguous addresses of one unit and table into
 one request.
 Actuators (coils and holding registers) are written without blocking the caller. Jobs (a poll, a
-write, a probe) run in order on an asyncio loop in the driver's own thread; within a poll of several
-requests on ``modbus-tcp`` with ``connections`` > 1 the requests are outstanding at once, spread
-over the connections; values are converted with pymodbus's
-``convert_from_registers``/``convert_to_registers``.
+write, a probe) run in order on the driver's own worker thread, on pymodbus' synchronous client
+(``ModbusTcpClient``/``ModbusSerialClient``); within a poll of several requests on ``modbus-tcp``
+with ``connections`` > 1 the requests are outstanding at once, spread over the connections, each
+extra connection's share on a thread of its own (a pool of the driver); values are packed and
+unpacked by :mod:`drivers.codecs.modbus` as pymodbus'
+``convert_from_registers``/``convert_to_registers`` do.
 
 Failures: when the connection cannot be made or is lost, every device of the bus fails with the
 reason and the driver reconnects with backoff. A reconnect is not health: on ``modbus-tcp`` the
@@ -56,7 +58,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient
+from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.framer import FramerType
 
 from chcos.devices.spec import BusSpec, DeviceSpec
@@ -94,10 +96,9 @@ class ModbusTcpDriver(ModbusDriver):
 
     def _make_client(self) -> Any:
         o = self.bus.options
-        return AsyncModbusTcpClient(str(o["host"]), port=int(o.get("port", 502)),
-                                    timeout=float(o.get("timeout", 1.0)),
-                                    retries=int(o.get("retries", 1)), reconnect_delay=0,
-                                    name=self.bus.name)
+        return ModbusTcpClient(str(o["host"]), port=int(o.get("port", 502)),
+                               timeout=float(o.get("timeout", 1.0)),
+                               retries=int(o.get("retries", 1)), name=self.bus.name)
 
     def _link(self) -> str:
         return f"{self.bus.options['host']}:{self.bus.options.get('port', 502)}"
@@ -137,7 +138,9 @@ class ModbusRtuDriver(ModbusDriver):
         self.unanswered: dict[str, int] = {}
 
     def _trace(self, sending: bool, data: bytes) -> bytes:
-        """pymodbus' packet hook (I/O thread): keeps the request and the bytes of its answer."""
+        """pymodbus' packet hook (worker thread): keeps the request and the bytes of its answer.
+        The synchronous client calls it with each request frame sent (``sending``) and, after
+        every chunk received, with its receive buffer (the bytes not yet taken as a frame)."""
         if sending:
             self._tx, self._rx_bytes, self._rx_buffer = bytes(data), bytearray(), b""
         else:
@@ -156,15 +159,14 @@ class ModbusRtuDriver(ModbusDriver):
 
     def _make_client(self) -> Any:
         o = self.bus.options
-        return AsyncModbusSerialClient(str(o["port"]), framer=FramerType.RTU,
-                                       trace_packet=self._trace,
-                                       baudrate=int(o.get("baudrate", 19200)),
-                                       parity=str(o.get("parity", "N")),
-                                       stopbits=int(o.get("stopbits", 1)),
-                                       bytesize=int(o.get("bytesize", 8)),
-                                       timeout=float(o.get("timeout", 1.0)),
-                                       retries=int(o.get("retries", 1)), reconnect_delay=0,
-                                       name=self.bus.name)
+        return ModbusSerialClient(str(o["port"]), framer=FramerType.RTU,
+                                  trace_packet=self._trace,
+                                  baudrate=int(o.get("baudrate", 19200)),
+                                  parity=str(o.get("parity", "N")),
+                                  stopbits=int(o.get("stopbits", 1)),
+                                  bytesize=int(o.get("bytesize", 8)),
+                                  timeout=float(o.get("timeout", 1.0)),
+                                  retries=int(o.get("retries", 1)), name=self.bus.name)
 
     def _link(self) -> str:
         return str(self.bus.options["port"])
