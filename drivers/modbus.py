@@ -55,10 +55,15 @@ answer classification) :mod:`drivers.codecs.modbus`.
 
 from __future__ import annotations
 
+import fcntl
+import select
+import struct
+import termios
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+from pymodbus.exceptions import ConnectionException
 from pymodbus.framer import FramerType
 
 from chcos.devices.spec import BusSpec, DeviceSpec
@@ -66,6 +71,33 @@ from chcos.helpers import is_int
 from drivers.base import DriverHost
 from drivers.codecs.modbus import classify_rtu_answer
 from drivers.modbus_link import MAX_CONNECTIONS, ModbusDriver, check_common
+
+
+class SocketSerialClient(ModbusSerialClient):
+    """pymodbus' synchronous serial client for a pyserial ``socket://`` port (RTU through a
+    serial server on TCP). On such a port pyserial's ``in_waiting`` tells only whether something
+    can be read (0 or 1), so pymodbus' serial receive, which waits for that count to settle,
+    would take an answer one byte per poll interval (1 ms or more each). This receive waits
+    (up to the timeout) until the socket can be read and takes every byte it holds, as
+    pymodbus' TCP client does; pymodbus' framer gathers the frame from the chunks as before."""
+
+    def recv(self, size: int | None) -> bytes:
+        """The bytes the port holds once it can be read; ``b""`` after ``timeout`` s of silence.
+        Raises ConnectionException (and closes) when the peer closed or the socket failed."""
+        port = self.socket
+        if size is not None or port is None:
+            return super().recv(size)
+        try:
+            fd = port.fileno()
+            if not select.select([fd], [], [], self.comm_params.timeout_connect)[0]:
+                return b""
+            waiting = struct.unpack("i", fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"))[0]
+            # readable with nothing to read: the peer closed (pyserial raises for that)
+            return bytes(port.read(max(waiting, 1)))
+        except (OSError, ValueError):
+            self.socket = None                  # as pymodbus' close(): the port is gone
+            port.close()
+            raise ConnectionException(str(self)) from None
 
 
 class ModbusTcpDriver(ModbusDriver):
@@ -159,14 +191,13 @@ class ModbusRtuDriver(ModbusDriver):
 
     def _make_client(self) -> Any:
         o = self.bus.options
-        return ModbusSerialClient(str(o["port"]), framer=FramerType.RTU,
-                                  trace_packet=self._trace,
-                                  baudrate=int(o.get("baudrate", 19200)),
-                                  parity=str(o.get("parity", "N")),
-                                  stopbits=int(o.get("stopbits", 1)),
-                                  bytesize=int(o.get("bytesize", 8)),
-                                  timeout=float(o.get("timeout", 1.0)),
-                                  retries=int(o.get("retries", 1)), name=self.bus.name)
+        port = str(o["port"])
+        client = SocketSerialClient if port.startswith("socket://") else ModbusSerialClient
+        return client(port, framer=FramerType.RTU, trace_packet=self._trace,
+                      baudrate=int(o.get("baudrate", 19200)), parity=str(o.get("parity", "N")),
+                      stopbits=int(o.get("stopbits", 1)), bytesize=int(o.get("bytesize", 8)),
+                      timeout=float(o.get("timeout", 1.0)), retries=int(o.get("retries", 1)),
+                      name=self.bus.name)
 
     def _link(self) -> str:
         return str(self.bus.options["port"])
