@@ -1,7 +1,7 @@
 """base - the one abstract base every bus driver implements, and the host interface it talks to.
 
 A driver owns one bus (a :class:`chcos.devices.spec.BusSpec`) and the devices on it. All its bus I/O
-runs outside the kernel thread (python-can notifier threads, an asyncio loop for pymodbus, a reader
+runs outside the kernel thread (python-can notifier threads, a worker thread for pymodbus, a reader
 thread for serial); it reaches the kernel only through the thread-safe :class:`DriverHost` calls.
 """
 

@@ -14,26 +14,21 @@ paces its cycle: each poll is due one period after the previous one was due, arm
 back to back: a successor already due when its predecessor is taken is queued at once by the I/O
 thread (counted ``polls-late`` in the bus statistics), so the kernel is not woken for polls at
 all then, where a periodic timer would wake it every period while a slow poll is in flight. On a
-virtual clock the polls fall exactly on the period's grid. Two transports:
+virtual clock the polls fall exactly on the period's grid. The transport is
+:class:`WorkerJobDriver`: a plain worker thread taking jobs from a :class:`queue.Queue` (the
+CANopen and Modbus drivers, whose library calls block); a subclass writes ``_run(job)`` and may
+override ``_tick()`` (the longest wait for a job: its watchdog's period), or replace the worker's
+loop ``_work()`` by its own that takes the jobs (the Modbus drivers: connect, serve, reconnect).
 
-- :class:`WorkerJobDriver`: a plain worker thread taking jobs from a :class:`queue.Queue` (the
-  CANopen driver, whose library calls block); a subclass writes ``_run(job)`` and may override
-  ``_tick()`` (the longest wait for a job: its watchdog's period);
-- :class:`AsyncJobDriver`: an asyncio loop in the driver's thread with an :class:`asyncio.Queue`
-  (the Modbus drivers, on pymodbus's asyncio clients); a subclass writes the coroutine
-  ``_main()`` that takes the jobs (and connects, reconnects...).
-
-In both, :meth:`stop` queues a ``stop`` job behind every job already queued, so writes queued
-before the stop (the safe values at shutdown) still go out; a write the thread did not get to
-is reported failed. A job ends with ``_done()`` exactly once, whether it ran or not. A
+:meth:`WorkerJobDriver._stop_worker` queues a ``stop`` job behind every job already queued, so
+writes queued before the stop (the safe values at shutdown) still go out; a write the thread did
+not get to is reported failed. A job ends with ``_done()`` exactly once, whether it ran or not. A
 :meth:`JobDriver.flush` (shutdown) arms late successors through the host instead of queuing them,
 so a bus polled back to back does not hold it until its timeout.
 """
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
 import functools
 import queue
 import threading
@@ -251,50 +246,4 @@ class WorkerJobDriver(JobDriver):
             except queue.Empty:
                 break
             self._unsent_write(job)
-        self._quiet()
-
-
-class AsyncJobDriver(JobDriver):
-    """Jobs on an asyncio loop in the driver's own thread (see the module doc)."""
-
-    def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
-        super().__init__(bus, devices, host)
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._thread: threading.Thread | None = None
-        self._jobs: asyncio.Queue[Job] = asyncio.Queue()
-
-    @abstractmethod
-    async def _main(self) -> None:
-        """The I/O thread: take jobs from :attr:`_jobs` until the ``stop`` job."""
-
-    def _start_loop(self) -> None:
-        """Start the loop's thread, ``<kind>-<bus>``, running :meth:`_main`."""
-        self._jobs = asyncio.Queue()
-        self._loop = asyncio.new_event_loop()
-        self._thread = threading.Thread(target=self._loop.run_until_complete, args=(self._main(),),
-                                        name=f"{self.kind}-{self.bus.name}", daemon=True)
-        self._thread.start()
-
-    def _put(self, job: Job) -> bool:
-        loop = self._loop
-        if loop is None:
-            return False
-        try:
-            loop.call_soon_threadsafe(self._jobs.put_nowait, job)
-        except RuntimeError:  # loop closed by a concurrent stop()
-            return False
-        return True
-
-    def _stop_loop(self) -> None:
-        """Queue the stop job behind every job already queued, wait for the thread, close the
-        loop. Idempotent."""
-        loop, thread = self._loop, self._thread
-        self._loop = self._thread = None
-        if loop is not None and thread is not None:
-            with contextlib.suppress(RuntimeError):
-                loop.call_soon_threadsafe(self._jobs.put_nowait, STOP)
-            if thread is not threading.current_thread():
-                thread.join(timeout=JOIN_TIMEOUT)
-            with contextlib.suppress(Exception):
-                loop.close()
         self._quiet()

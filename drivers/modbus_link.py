@@ -1,14 +1,15 @@
 """modbus_link - what the ``modbus-tcp`` and ``modbus-rtu`` drivers share: the options both take,
-the life cycle, the jobs (polls, writes, probes) on an asyncio loop in the driver's own thread
-(:class:`drivers.jobs.AsyncJobDriver`) and the supervision of the link (connect, probe,
-reconnect with backoff, failing and recovering the devices). The requests themselves are
-:mod:`drivers.modbus_requests`; the kinds, their options and the failure rules are described in
-:mod:`drivers.modbus`.
+the life cycle, the jobs (polls, writes, probes) on the driver's worker thread
+(:class:`drivers.jobs.WorkerJobDriver`, pymodbus' synchronous clients) and the supervision of
+the link (connect, probe, reconnect with backoff, failing and recovering the devices). The
+requests themselves are :mod:`drivers.modbus_requests`; the kinds, their options and the failure
+rules are described in :mod:`drivers.modbus`.
 """
 
 from __future__ import annotations
 
-import asyncio
+import queue
+import time
 from collections.abc import Sequence
 from typing import Any
 
@@ -26,7 +27,7 @@ from drivers.codecs.modbus import (
     value_error,
 )
 from drivers.jobs import Job
-from drivers.modbus_requests import READ_METHOD, ModbusRequests
+from drivers.modbus_requests import READ_CALL, ModbusRequests
 
 PROBE_PERIOD = 1.0   # s between liveness probes of an actuator-only bus without poll_period
 COMMON_OPTIONS = ("timeout", "retries", "reconnect_delay", "reconnect_delay_max", "poll_period")
@@ -88,7 +89,7 @@ class ModbusDriver(ModbusRequests):
                 period = float(dev.address.get("poll_period", default))
                 by_period.setdefault(period, []).append(self._points[dev.name])
         self._plans = {p: plan_reads(pts) for p, pts in by_period.items()}
-        self._start_loop()
+        self._start_worker()
         self._running = True
         timeout = float(self.bus.options.get("timeout", 1.0))
         self._first_attempt.wait(timeout + 2.0)
@@ -101,7 +102,8 @@ class ModbusDriver(ModbusRequests):
     def stop(self) -> None:
         """Stop the I/O thread and close the connection. Idempotent; never raises."""
         self._running = False
-        self._stop_loop()     # runs every job queued before: they go out first
+        self._stop_worker()   # runs every job queued before: they go out first
+        self._end_lanes()
 
     # -- kernel side --------------------------------------------------------------------------
 
@@ -117,32 +119,34 @@ class ModbusDriver(ModbusRequests):
 
     # -- I/O thread ---------------------------------------------------------------------------
 
-    async def _main(self) -> None:
+    def _work(self) -> None:
+        """The worker thread: connect, probe, serve the jobs; reconnect with backoff when the
+        link drops; end at the stop job."""
         o = self.bus.options
         delay = first = float(o.get("reconnect_delay", 0.1))
         most = float(o.get("reconnect_delay_max", 5.0))
         try:
             self._client = self._make_client()
             while not self._stop_seen:
-                ok = await self._client.connect()
+                ok = self._client.connect()
                 if ok and self._client.connected:
                     self._connects += 1
                     if self._connects > 1:
                         self.host.stat(self.bus.name, "reconnects")
                     self._link_up()
-                    if self.timeout_is_link_loss and not await self._probe():
+                    if self.timeout_is_link_loss and not self._probe():
                         self._first_attempt.set()
-                        await self._backoff(delay)
+                        self._backoff(delay)
                         delay = min(delay * 2, most)
                         self._close()
                         continue
                     delay = first
                     self._first_attempt.set()
-                    await self._serve()
+                    self._serve()
                 else:
                     self._link_down(f"cannot connect to {self._link()}")
                     self._first_attempt.set()
-                    await self._backoff(delay)
+                    self._backoff(delay)
                     delay = min(delay * 2, most)
                 self._close()
         finally:
@@ -157,14 +161,13 @@ class ModbusDriver(ModbusRequests):
             lane.close()
         self._client.close()
 
-    async def _backoff(self, delay: float) -> None:
+    def _backoff(self, delay: float) -> None:
         """Wait ``delay`` seconds (or until stop), completing jobs that arrive meanwhile."""
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + delay
-        while not self._stop_seen and (left := deadline - loop.time()) > 0:
+        deadline = time.monotonic() + delay
+        while not self._stop_seen and (left := deadline - time.monotonic()) > 0:
             try:
-                job = await asyncio.wait_for(self._jobs.get(), left)
-            except TimeoutError:
+                job = self._jobs.get(timeout=left)
+            except queue.Empty:
                 return
             self._finish_unsent(job)
 
@@ -199,7 +202,7 @@ class ModbusDriver(ModbusRequests):
             self._health.clear(name, "link", f"{self.kind} bus {self.bus.name}: a request to "
                                              f"{self._link()} was answered")
 
-    async def _probe(self) -> bool:
+    def _probe(self) -> bool:
         """Right after a connect: read one entry of the first device; True if answered (the
         link is up), False (link down, devices still failed) if not."""
         p = next(iter(self._points.values()), None)
@@ -207,8 +210,7 @@ class ModbusDriver(ModbusRequests):
             return True
         self.host.stat(self.bus.name, "requests")
         try:
-            await getattr(self._client, READ_METHOD[p.table])(p.address, count=1,
-                                                              device_id=p.unit)
+            READ_CALL[p.table](self._client, p.address, count=1, device_id=p.unit)
         except (ModbusException, OSError) as exc:
             self.host.error(self.bus.name, "timeout", f"probe of {self._link()} after connect: "
                                                       f"no answer: {exc}")
@@ -217,7 +219,7 @@ class ModbusDriver(ModbusRequests):
         self._answer(p.unit)
         return True
 
-    async def _liveness(self) -> None:
+    def _liveness(self) -> None:
         """The periodic probe of an actuator-only bus: read the first actuator's first entry.
         An answer (data or an exception) means the server is there; none is a lost link on
         ``modbus-tcp`` (raises ConnectionException: reconnect, probe, recovery) and on
@@ -226,8 +228,7 @@ class ModbusDriver(ModbusRequests):
         where = f"{self.kind} bus {self.bus.name} probe of unit {p.unit} {p.table} {p.address}"
         self.host.stat(self.bus.name, "requests")
         try:
-            await getattr(self._client, READ_METHOD[p.table])(p.address, count=1,
-                                                              device_id=p.unit)
+            READ_CALL[p.table](self._client, p.address, count=1, device_id=p.unit)
         except ModbusIOException as exc:
             kind, what = self._unanswered(where)
             self.host.error(self.bus.name, kind, f"{where}: {what}: {exc}")
@@ -273,10 +274,16 @@ class ModbusDriver(ModbusRequests):
             self._poll_taken("probe")
         self._done()
 
-    async def _serve(self) -> None:
+    def _serve(self) -> None:
         """Run jobs in order until the link drops or stop() asks to end."""
         while True:
-            job = await self._jobs.get()
+            try:
+                job = self._jobs.get(timeout=self._tick())
+            except queue.Empty:
+                if not self._taking and self._jobs.empty():   # a stop that gave up waiting
+                    self._stop_seen = True                     # took the stop job itself
+                    return
+                continue
             if job.op == "stop":
                 self._stop_seen = True
                 return
@@ -285,8 +292,8 @@ class ModbusDriver(ModbusRequests):
                 self._finish_unsent(job)
                 return
             try:
-                await self._run(job)
-            except ConnectionException as exc:
+                self._run(job)
+            except (ConnectionException, OSError) as exc:
                 if job.op == "write":
                     self.host.write_failed(job.what, job.value, f"connection to "
                                                                   f"{self._link()} lost: {exc}")
@@ -295,13 +302,13 @@ class ModbusDriver(ModbusRequests):
             finally:
                 self._done()
 
-    async def _run(self, job: Job) -> None:
+    def _run(self, job: Job) -> None:
         op, what, value = job
         if op == "poll":
             self._poll_taken(what)
-            await self._poll(self._plans[what])
+            self._poll(self._plans[what])
         elif op == "probe":
             self._poll_taken("probe")
-            await self._liveness()
+            self._liveness()
         else:
-            await self._write_point(self._points[what], value)
+            self._write_point(self._points[what], value)

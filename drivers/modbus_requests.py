@@ -1,19 +1,26 @@
 """modbus_requests - the requests of the Modbus drivers: a poll's reads (in order on one
 connection, or spread over several connections all outstanding at once) and a write, each on a
-pymodbus asyncio client, with what its answer means for the devices (readings, exception answers,
-no answer). :class:`ModbusRequests` holds the drivers' state and these requests; the life cycle,
-the jobs and the supervision of the link are :class:`drivers.modbus_link.ModbusDriver`, the kinds
-and the failure rules :mod:`drivers.modbus`.
+pymodbus synchronous client, with what its answer means for the devices (readings, exception
+answers, no answer). :class:`ModbusRequests` holds the drivers' state and these requests; the life
+cycle, the jobs and the supervision of the link are :class:`drivers.modbus_link.ModbusDriver`, the
+kinds and the failure rules :mod:`drivers.modbus`.
+
+Threads: the requests run on the driver's worker thread (:class:`drivers.jobs.WorkerJobDriver`);
+a parallel poll (``connections`` > 1) runs the shares of the extra connections on a thread pool
+of the driver, one thread per extra connection, while the worker runs the main connection's
+share. What an answer means (statistics, failures, health, readings) is handled under one lock,
+so the shares' answers are taken one at a time, as they come.
 """
 
 from __future__ import annotations
 
-import asyncio
 import threading
 from abc import abstractmethod
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, ClassVar
 
+from pymodbus.client.mixin import ModbusClientMixin
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 
 from chcos.devices.spec import BusSpec, DeviceSpec
@@ -26,13 +33,16 @@ from drivers.codecs.modbus import (
     value_error,
 )
 from drivers.health import Health
-from drivers.jobs import AsyncJobDriver
+from drivers.jobs import WorkerJobDriver
 
 READ_METHOD = {"coil": "read_coils", "discrete": "read_discrete_inputs",
                "holding": "read_holding_registers", "input": "read_input_registers"}
+#: The read function of each table, called with the client first (no bound method per request).
+READ_CALL: dict[str, Callable[..., Any]] = {
+    table: getattr(ModbusClientMixin, name) for table, name in READ_METHOD.items()}
 
 
-class ModbusRequests(AsyncJobDriver):
+class ModbusRequests(WorkerJobDriver):
     """The state of a Modbus driver and its requests (see the module doc); the link's
     supervision (:meth:`_answer`) and the client and link of the kind are the subclasses'."""
 
@@ -57,12 +67,18 @@ class ModbusRequests(AsyncJobDriver):
         #: spreads them over (opened after the main connection answered, closed with it).
         self._lanes: list[Any] = []
         self._lanes_tried = False
+        #: the threads of the extra connections (made at the first parallel poll, ended at stop)
+        self._pool: ThreadPoolExecutor | None = None
+        #: held while an answer is taken (statistics, failures, health, readings): the shares of
+        #: a parallel poll run on several threads
+        self._lock = threading.Lock()
 
     # -- to be provided by the kinds ----------------------------------------------------------
 
     @abstractmethod
     def _make_client(self) -> Any:
-        """A new pymodbus asyncio client for this bus (called on the I/O loop)."""
+        """A new pymodbus synchronous client for this bus, not connected (called on the worker
+        thread)."""
 
     @abstractmethod
     def _link(self) -> str:
@@ -85,7 +101,7 @@ class ModbusRequests(AsyncJobDriver):
 
     # -- requests (I/O thread) ----------------------------------------------------------------
 
-    async def _open_lanes(self) -> list[Any]:
+    def _open_lanes(self) -> list[Any]:
         """The clients a poll spreads its requests over: the main one, plus (once per
         connection, ``connections`` > 1) the extra connections that could be made. A server that
         refuses them (many devices accept only a few connections) is polled over fewer; that is
@@ -97,8 +113,7 @@ class ModbusRequests(AsyncJobDriver):
             self._lanes_tried = True
             for _ in range(want - 1):
                 lane = self._make_client()
-                ok = await self._lane_answers(lane)
-                if not ok:
+                if not self._lane_answers(lane):
                     lane.close()
                     self.host.error(self.bus.name, "connections",
                                     f"{self.kind} bus {self.bus.name}: {self._link()} took "
@@ -108,63 +123,98 @@ class ModbusRequests(AsyncJobDriver):
                 self._lanes.append(lane)
         return [self._client, *self._lanes]
 
-    async def _lane_answers(self, lane: Any) -> bool:
+    def _lane_answers(self, lane: Any) -> bool:
         """Connect the extra client ``lane`` and read one entry of the first device on it;
         True if that was answered (data or an exception answer)."""
         p = next(iter(self._points.values()))
         try:
-            if not (await lane.connect() and lane.connected):
+            if not (lane.connect() and lane.connected):
                 return False
             self.host.stat(self.bus.name, "requests")
-            await getattr(lane, READ_METHOD[p.table])(p.address, count=1, device_id=p.unit)
+            READ_CALL[p.table](lane, p.address, count=1, device_id=p.unit)
         except (ModbusException, OSError):
             return False
         return bool(lane.connected)
 
-    async def _poll(self, plan: Sequence[ReadRequest]) -> None:
+    def _lane_pool(self) -> ThreadPoolExecutor:
+        """The driver's threads for the extra connections' shares, one per extra connection."""
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(max_workers=self._connections() - 1,
+                                            thread_name_prefix=f"{self.kind}-{self.bus.name}-lane")
+        return self._pool
+
+    def _end_lanes(self) -> None:
+        """At stop: end the threads of the extra connections (a share still running - a request
+        past the join timeout - ends by its own timeout)."""
+        pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=True)
+
+    def _poll(self, plan: Sequence[ReadRequest]) -> None:
         """Run the requests of one poll: in order on one connection, or - several requests and
         ``connections`` > 1 - spread over the connections, all of them outstanding at once (each
-        connection runs its share in order; pymodbus' client has one request in flight per
-        connection). Every request reports its own failures; a lost connection ends the poll
-        with :class:`ConnectionException` once every request is answered or failed."""
+        connection runs its share in order on its own thread; a pymodbus client has one request
+        in flight). Every request reports its own failures; a lost connection ends the poll
+        with :class:`ConnectionException` (or the :class:`OSError` the socket raised) once every
+        request is answered or failed."""
         batch: list[tuple[str, Any]] = []
         try:
-            clients = await self._open_lanes() if len(plan) > 1 else [self._client]
+            clients = self._open_lanes() if len(plan) > 1 else [self._client]
             if len(clients) == 1:
+                c = self._client
                 for request in plan:
-                    await self._read(request, self._client, batch)
+                    self._read(request, c, batch)
                 return
             n = min(len(clients), len(plan))
-
-            async def share(i: int) -> None:
-                for request in plan[i::n]:
-                    await self._read(request, clients[i], batch)
-
-            results = await asyncio.gather(*(share(i) for i in range(n)),
-                                           return_exceptions=True)
-            for res in results:
-                if isinstance(res, BaseException):
-                    raise res
+            pool = self._lane_pool()
+            futures: list[Future[None]] = [
+                pool.submit(self._share, plan[i::n], clients[i], batch) for i in range(1, n)]
+            errors: list[BaseException] = []
+            try:
+                self._share(plan[0::n], clients[0], batch)
+            except (ModbusException, OSError) as exc:
+                errors.append(exc)
+            for f in futures:
+                err = f.exception()    # waits: every request has its timeout
+                if err is not None:
+                    errors.append(err)
+            if errors:
+                raise errors[0]
         finally:   # the poll's readings as one interrupt, before a lost link fails them
             deliver_all(self.host, batch)
 
-    async def _read(self, r: ReadRequest, c: Any, batch: list[tuple[str, Any]]) -> None:
+    def _share(self, requests: Sequence[ReadRequest], c: Any,
+               batch: list[tuple[str, Any]]) -> None:
+        """One connection's share of a parallel poll, in order (a lane thread, or the worker)."""
+        for request in requests:
+            self._read(request, c, batch)
+
+    def _read(self, r: ReadRequest, c: Any, batch: list[tuple[str, Any]]) -> None:
         """Run one read request on client ``c``; its readings go to ``batch`` (delivered at the
-        end of the poll), its failures to the host at once."""
-        self.host.stat(self.bus.name, "requests")
+        end of the poll), its failures to the host at once. Raises ConnectionException when
+        the link is lost (TCP: also when the server does not answer)."""
+        with self._lock:
+            self.host.stat(self.bus.name, "requests")
         try:
-            resp = await getattr(c, READ_METHOD[r.table])(r.address, count=r.count,
-                                                          device_id=r.unit)
+            resp = READ_CALL[r.table](c, r.address, count=r.count, device_id=r.unit)
         except ModbusIOException as exc:
-            kind, what = self._unanswered(r.describe())
-            for p in r.points:
-                self.host.error(self.bus.name, kind, f"{r.describe()}: {what}: {exc}", p.device)
-            if not c.connected or self.timeout_is_link_loss:
-                raise ConnectionException(f"no response: {exc}") from exc
-            for p in r.points:
-                self._health.fail(p.device, "exception", f"{self.kind} bus {self.bus.name} "
-                                  f"{r.describe()} (device {p.device}): {what}")
+            with self._lock:
+                self._read_unanswered(r, c, exc)
             return
+        with self._lock:
+            self._read_answered(r, resp, batch)
+
+    def _read_unanswered(self, r: ReadRequest, c: Any, exc: ModbusIOException) -> None:
+        kind, what = self._unanswered(r.describe())
+        for p in r.points:
+            self.host.error(self.bus.name, kind, f"{r.describe()}: {what}: {exc}", p.device)
+        if not c.connected or self.timeout_is_link_loss:
+            raise ConnectionException(f"no response: {exc}") from exc
+        for p in r.points:
+            self._health.fail(p.device, "exception", f"{self.kind} bus {self.bus.name} "
+                              f"{r.describe()} (device {p.device}): {what}")
+
+    def _read_answered(self, r: ReadRequest, resp: Any, batch: list[tuple[str, Any]]) -> None:
         if resp.isError():
             code = int(getattr(resp, "exception_code", 0))
             for p in r.points:
@@ -177,12 +227,14 @@ class ModbusRequests(AsyncJobDriver):
                                   f"({EXCEPTION_TEXT.get(code, 'unknown')})")
             self._answer(r.unit)       # after the new cause: no OK in between
             return
-        self._answer(r.unit)
+        if not self._answered:
+            self._answer(r.unit)
         entries = resp.bits if r.table in ("coil", "discrete") else resp.registers
         for p in r.points:
             off = p.address - r.address
-            try:
-                value = reading_of(p, entries[off:off + p.size])
+            try:        # a point that is the whole answer takes it as it is (no copy)
+                value = reading_of(p, entries if off == 0 and len(entries) == p.size else
+                                   entries[off:off + p.size])
             except (ModbusException, IndexError, ValueError) as exc:
                 self.host.error(self.bus.name, "malformed",
                                 f"{r.describe()} answer for {p.device}: {exc}")
@@ -191,7 +243,7 @@ class ModbusRequests(AsyncJobDriver):
                 self._health.clear(p.device, "exception", f"{r.describe()} answered")
             batch.append((p.device, value))
 
-    async def _write_point(self, p: Point, value: Any) -> None:
+    def _write_point(self, p: Point, value: Any) -> None:
         c = self._client
         why = value_error(p.type, value)
         if why is not None:
@@ -199,16 +251,15 @@ class ModbusRequests(AsyncJobDriver):
                             p.device)
             self.host.write_failed(p.device, value, why)
             return
-        if p.table == "coil":
-            call = c.write_coil(p.address, bool(value), device_id=p.unit)
-        else:
-            regs = p.encode(value)
-            call = (c.write_register(p.address, regs[0], device_id=p.unit) if len(regs) == 1
-                    else c.write_registers(p.address, regs, device_id=p.unit))
         where = f"{self.kind} bus {self.bus.name} unit {p.unit} {p.table} {p.address}"
         self.host.stat(self.bus.name, "requests", device=p.device)
         try:
-            resp = await call
+            if p.table == "coil":
+                resp = c.write_coil(p.address, bool(value), device_id=p.unit)
+            else:
+                regs = p.encode(value)
+                resp = (c.write_register(p.address, regs[0], device_id=p.unit) if len(regs) == 1
+                        else c.write_registers(p.address, regs, device_id=p.unit))
         except ModbusIOException as exc:
             kind, what = self._unanswered(where)
             self.host.error(self.bus.name, kind, f"{where}: write not answered: {what}: {exc}",

@@ -74,6 +74,7 @@ class FakeHost:
     def stat(self, bus: str, key: str, n: int = 1, device: str = "") -> None:
         with self.cond:
             self.stats[key] = self.stats.get(key, 0) + n
+            self.cond.notify_all()
 
     def every(self, period: float, fn: Callable[[], None]) -> None:
         with self.cond:

@@ -6,17 +6,22 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
+from chcos.devices.spec import BusSpec
 from chcos.errors import DeviceError
 from chcos.kernel.clock import VirtualClock
 from chcos.system.embedded import System
+from drivers.jobs import JOIN_TIMEOUT
+from drivers.modbus import ModbusTcpDriver
 from vcan_tests.netutil import free_port
 from vcan_tests.support_faults import ModbusPeer, run_until
+from vcan_tests.support_fb import FakeHost, make_device
 
 HEATER, VALVE, TEMP = 100, 0, 10
 MAP = """
@@ -295,3 +300,40 @@ def test_an_actuator_only_bus_notices_a_dead_server_without_a_write(
         assert peer.holding(HEATER) == 7                                      # the safe value
     finally:
         s.shutdown()
+
+
+def test_stop_while_a_request_hangs_returns_after_its_timeout_and_reports_unsent_writes(
+        peer: ModbusPeer) -> None:
+    """A server that stops answering with a write in flight (SIGSTOP): stop() returns once that
+    request has timed out - not only when it gives up waiting for the worker thread - every
+    write queued behind it is reported failed, none of those reaches the server, and the
+    driver's threads have ended."""
+    bus = BusSpec(name="hang", kind="modbus-tcp",
+                  options={"host": "127.0.0.1", "port": peer.port, "timeout": 0.5,
+                           "retries": 0, "reconnect_delay": 0.05})
+    host = FakeHost()
+    driver = ModbusTcpDriver(bus, [make_device("heater", "actuator", "hang", table="holding",
+                                               address=HEATER, type="uint16")], host)
+    driver.start()
+    try:
+        driver.write("heater", 300)
+        assert host.wait_for(lambda h: ("heater", 300, "") in h.writes)
+        peer.freeze()
+        try:
+            for value in (301, 302, 303):      # 301 hangs, 302 and 303 wait behind it
+                driver.write("heater", value)
+            t0 = time.monotonic()
+            driver.stop()
+            took = time.monotonic() - t0
+        finally:
+            peer.thaw()
+    finally:
+        driver.stop()
+    assert took < JOIN_TIMEOUT, f"stop() took {took:.2f} s: it waited for the join timeout"
+    failed = {v: why for d, v, why in host.writes if why}
+    assert sorted(failed) == [301, 302, 303], host.writes
+    assert "not connected" in failed[302] and "not connected" in failed[303], failed
+    assert host.error_kinds().count("timeout") == 1          # the write in flight
+    assert not [t.name for t in threading.enumerate() if t.name.startswith("modbus-tcp-hang")]
+    assert peer.holding(HEATER) in (300, 301)   # 301 may still be taken from the socket buffer
+    assert not [w for w in peer.writes() if w.address == HEATER and w.values in ([302], [303])]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import socket
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -259,3 +260,83 @@ def test_rtu_unit_that_does_not_answer_fails_only_its_devices() -> None:
     assert host.recoveries == ["here"], host.failures    # unit 4 never showed OK
     assert "unit 4 has not answered a request yet" in host.failed("gone")[0]
     assert "unit 4 holding 1..1 (device gone)" in host.failed("gone")[1]
+
+
+class ScriptedRtuPeer:
+    """An RTU slave behind a TCP port (what ``socket://`` reaches): it answers each request with
+    the next step of its script - ``good`` (unit 3, one register holding 11, its CRC from
+    pymodbus' framer), ``crc`` (the same frame with its CRC flipped), ``junk`` or ``close``
+    (closes the connection) - then ``good`` for ever. It records every request it received."""
+
+    def __init__(self, script: list[str]) -> None:
+        self.script = list(script)
+        self.requests: list[bytes] = []
+        self.server = socket.create_server(("127.0.0.1", 0))
+        self.port = self.server.getsockname()[1]
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+        self.thread.start()
+
+    @staticmethod
+    def answer(step: str) -> bytes:
+        from pymodbus.framer.rtu import FramerRTU
+
+        body = bytes([3, 3, 2, 0, 11])
+        frame = body + FramerRTU.compute_CRC(body).to_bytes(2, "big")
+        if step == "crc":
+            return frame[:-1] + bytes([frame[-1] ^ 0xFF])
+        return b"\x55\xaa\x00\x17\x42" if step == "junk" else frame
+
+    def _serve(self) -> None:
+        while True:
+            try:
+                conn, _ = self.server.accept()
+            except OSError:
+                return
+            with conn:
+                while data := conn.recv(256):
+                    self.requests.append(data)
+                    step = self.script.pop(0) if self.script else "good"
+                    if step == "close":
+                        break
+                    conn.sendall(self.answer(step))
+
+    def close(self) -> None:
+        self.server.close()
+
+
+def test_rtu_over_socket_classifies_bad_answers_and_a_lost_connection() -> None:
+    """RTU through a serial server on TCP (``socket://``), against a scripted slave: the answer's
+    bytes reach the classification (crc, framing), a closed connection is a lost link (the
+    device fails, the port is re-opened), and good answers recover the device."""
+    peer = ScriptedRtuPeer(["good", "crc", "junk", "close"])
+    bus = BusSpec(name="rtu", kind="modbus-rtu", key="bus[2]",
+                  options={"port": f"socket://127.0.0.1:{peer.port}", "timeout": 0.2,
+                           "retries": 0, "reconnect_delay": 0.02})
+    host = FakeHost()
+    driver = ModbusRtuDriver(bus, [make_device("lvl", "sensor", "rtu", unit=3, table="holding",
+                                               address=1)], host)
+    driver.start()
+    try:
+        for _ in range(3):                    # good, crc, junk
+            host.tick(0.1)
+            assert driver.settle(WAIT)
+        assert host.values("lvl") == [11]
+        assert driver.unanswered == {"crc": 1, "framing": 1}
+        assert [k for k in host.error_kinds() if k in ("crc", "framing")] == ["crc", "framing"]
+        assert "fails its CRC" in host.failed("lvl")[-1]            # still failed after junk
+        assert any(k == "framing" and "55aa001742" in detail for _, k, detail in host.errors)
+        host.tick(0.1)                        # the slave's side closes
+        assert driver.settle(WAIT)
+        assert host.wait_for(lambda h: any("lost" in why for why in h.failed("lvl")))
+        assert "disconnected" in host.error_kinds()
+        assert host.wait_for(lambda h: h.stats.get("reconnects", 0) == 1)
+        host.tick(0.1)                        # re-opened: answered again
+        assert driver.settle(WAIT)
+        assert host.values("lvl") == [11, 11]
+        assert host.recoveries[-1] == "lvl"
+    finally:
+        driver.stop()
+        peer.close()
+    request = bytes([3, 3, 0, 1, 0, 1])       # unit 3, read holding 1, count 1, then its CRC
+    assert all(r.startswith(request) and len(r) == 8 for r in peer.requests), peer.requests
+    assert len(peer.requests) == 5

@@ -72,12 +72,13 @@ def test_shell_workdir_holds_the_map(tmp_path: Path) -> None:
 
 
 def test_warnings_are_shown_by_default(tmp_path: Path) -> None:
+    port = free_port()
     (tmp_path / "d.toml").write_text(f"""
 [[bus]]
 name = "plc"
 kind = "modbus-tcp"
 host = "127.0.0.1"
-port = {free_port()}
+port = {port}
 timeout = 0.2
 
 [[device]]
@@ -92,7 +93,10 @@ address = {{ table = "input", address = 0 }}
                           "--duration", "1"], cwd=tmp_path, capture_output=True, text=True,
                          timeout=60, env=dict(os.environ))
     assert res.returncode == 1, res.stdout  # unhealthy: the sensor never answered
-    assert "WARNING pymodbus.logging: Failed to connect" in res.stderr, res.stderr
+    # the library's own log (pymodbus' synchronous client) and chcos' warnings, both shown
+    assert f"ERROR pymodbus.logging: Connection to (127.0.0.1, {port}) failed" in res.stderr, \
+        res.stderr
+    assert f"cannot connect to 127.0.0.1:{port}" in res.stderr, res.stderr
     assert "sensor level never delivered a value" in res.stdout or "level is failed" in res.stdout
 
 

@@ -33,7 +33,8 @@ REFUSED = 4
 class BarrierServer:
     """A Modbus TCP server (function 3 only) on 127.0.0.1 in its own thread. Until
     :meth:`arm` it answers at once; armed with ``n``, it holds requests until ``n`` are held,
-    then answers them all. It closes every connection beyond ``max_connections``."""
+    then answers them all. It closes every connection beyond ``max_connections`` and never
+    answers a read of the register ``silent``."""
 
     port: int
     max_connections: int = 16
@@ -41,6 +42,7 @@ class BarrierServer:
     most_outstanding: int = 0
     connections: int = 0
     barrier: int = 0
+    silent: int | None = None
     loop: asyncio.AbstractEventLoop = field(default_factory=asyncio.new_event_loop)
     thread: threading.Thread | None = None
     ready: threading.Event = field(default_factory=threading.Event)
@@ -93,6 +95,8 @@ class BarrierServer:
                 pdu = await reader.readexactly(length - 1)
                 assert pdu[0] == 3, f"the test server reads holding registers only: {pdu!r}"
                 address, count = struct.unpack(">HH", pdu[1:5])
+                if address == self.silent:
+                    continue
                 if not self.barrier:
                     self._answer(writer, head, address, count)
                     continue
@@ -155,6 +159,34 @@ def test_poll_sends_its_requests_at_once_and_reports_each_failure(parallel: Rig)
     assert "exception-2" in parallel.host.error_kinds()
     assert "timeout" not in parallel.host.error_kinds()
     assert "connections" not in parallel.host.error_kinds()
+
+
+def test_a_request_not_answered_ends_the_poll_after_the_others_were_answered(
+        parallel: Rig) -> None:
+    """One connection of a parallel poll gets no answer (TCP: the link is lost): the requests on
+    the other connections are answered and delivered, each failure is reported for its own
+    request, then every device fails with the lost link, and the reconnect recovers them."""
+    rig = parallel
+    rig.host.tick(0.1)                     # lanes opened and probed
+    assert rig.driver.settle(WAIT)
+    before = {d: len(rig.host.values(d)) for d in ("r0", "r2")}
+    mark = len(rig.host.errors)
+    rig.server.silent = 6
+    rig.host.tick(0.1)
+    assert rig.driver.settle(WAIT)
+    assert {d: len(rig.host.values(d)) for d in ("r0", "r2")} == {"r0": before["r0"] + 1,
+                                                                    "r2": before["r2"] + 1}
+    poll = [(k, detail) for _, k, detail in rig.host.errors[mark:]
+            if k in ("timeout", "exception-2")]   # each request reports its own failure
+    assert sorted(k for k, _ in poll) == ["exception-2", "timeout"], poll
+    assert "unit 1 holding 6..6" in dict(poll)["timeout"]
+    names = {f"r{a}" for a in ADDRESSES}
+    assert rig.host.wait_for(lambda h: {d for d, why in h.failures if "lost" in why} == names)
+    rig.server.silent = None
+    assert rig.host.wait_for(lambda h: {"r0", "r2", "r6"} <= set(h.recoveries))
+    rig.host.tick(0.1)
+    assert rig.driver.settle(WAIT)
+    assert rig.host.values("r6")[-1] == 61
 
 
 def test_a_server_taking_fewer_connections_is_polled_over_those() -> None:

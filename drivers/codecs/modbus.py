@@ -11,6 +11,7 @@ significant word first (``word_order = "big"``) or last (``"little"``), as pymod
 
 from __future__ import annotations
 
+import functools
 import math
 import struct
 from collections.abc import Sequence
@@ -24,6 +25,9 @@ from chcos.helpers import is_int, is_number
 REGISTER_TYPES: dict[str, tuple[str, int]] = {
     "int16": ("h", 1), "uint16": ("H", 1), "int32": ("i", 2), "uint32": ("I", 2),
     "float32": ("f", 2), "float64": ("d", 4)}
+#: The packed value of each register type, and the registers' words (big-endian 16-bit) by count.
+VALUE_STRUCT = {t: struct.Struct(f">{code}") for t, (code, _) in REGISTER_TYPES.items()}
+WORDS_STRUCT = {n: struct.Struct(f">{n}H") for n in (1, 2, 4)}
 #: What each type can carry on the wire (float32: its largest finite value).
 RAW_RANGE: dict[str, tuple[float, float]] = {
     "bool": (0, 1), "int16": (-2**15, 2**15 - 1), "uint16": (0, 2**16 - 1),
@@ -54,15 +58,15 @@ def from_registers(type_: str, registers: Sequence[int],
                    word_order: Literal["big", "little"] = "big") -> int | float:
     """The value of ``type_`` in ``registers`` (exactly its size). Raises ValueError if their
     number is not the type's size or a register is not 0..0xFFFF."""
-    code, size = REGISTER_TYPES[type_]
+    size = REGISTER_TYPES[type_][1]
     if len(registers) != size:
         raise ValueError(f"{len(registers)} registers for a {type_}, expected {size}")
-    regs = list(registers)[::-1] if word_order == "little" else list(registers)
     try:
-        raw = b"".join(int(r).to_bytes(2, "big") for r in regs)
-    except OverflowError as exc:
+        raw = WORDS_STRUCT[size].pack(*(registers[::-1] if word_order == "little" and size > 1
+                                        else registers))
+    except struct.error as exc:
         raise ValueError(f"registers {list(registers)} are not 16-bit words: {exc}") from None
-    value: int | float = struct.unpack(f">{code}", raw)[0]
+    value: int | float = VALUE_STRUCT[type_].unpack(raw)[0]
     return value
 
 
@@ -88,7 +92,7 @@ class Point:
     type: str
     word_order: Literal["big", "little"]
 
-    @property
+    @functools.cached_property
     def size(self) -> int:
         """Entries it spans: 1 bit, or its register count."""
         return 1 if self.type == "bool" else REGISTER_TYPES[self.type][1]
