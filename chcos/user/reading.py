@@ -125,10 +125,12 @@ class Reading(TaskHandle):
         if not chosen:
             raise MessageError(f"task {t.name} has no input ports to read")
         best: InPort | None = None
+        top = -1          # best's link priority (priorities are 0..99)
         for p in chosen:  # the highest link priority, then the lowest port
-            if p.fresh and (best is None or p.link.priority > best.link.priority
-                            or (p.link.priority == best.link.priority and p.index < best.index)):
-                best = p
+            if p.fresh:
+                prio = p.link.priority
+                if prio > top or (prio == top and p.index < best.index):  # type: ignore[union-attr]
+                    best, top = p, prio
         if best is None:
             for p in chosen:
                 if p.device:
@@ -147,10 +149,15 @@ class Reading(TaskHandle):
                 self._arm_timeout(timeout, ", ".join(p.link.name for p in chosen))
             best = yield BLOCK
             assert best is not None
-        if best.fifo is None and not self._k.h_delivered:  # the hot path, as in read
-            value = best.value
-            best.value = None
-            best.fresh = False
+        if not self._k.h_delivered:  # the hot path, as in read
+            fifo = best.fifo
+            if fifo is None:
+                value = best.value
+                best.value = None
+                best.fresh = False
+            else:
+                value = fifo.popleft()[0]
+                best.fresh = bool(fifo)
             best.link.delivered += 1
             return best.index, value
         return best.index, self._take(best)
