@@ -200,10 +200,11 @@ class ModbusRtuDriver(ModbusDriver):
     def _make_client(self) -> Any:
         o = self.bus.options
         return SerialClient(str(o["port"]), framer=FramerType.RTU, trace_packet=self._trace,
-                      baudrate=int(o.get("baudrate", 19200)), parity=str(o.get("parity", "N")),
-                      stopbits=int(o.get("stopbits", 1)), bytesize=int(o.get("bytesize", 8)),
-                      timeout=float(o.get("timeout", 1.0)), retries=int(o.get("retries", 1)),
-                      name=self.bus.name)
+                            baudrate=int(o.get("baudrate", 19200)),
+                            parity=str(o.get("parity", "N")), stopbits=int(o.get("stopbits", 1)),
+                            bytesize=int(o.get("bytesize", 8)),
+                            timeout=float(o.get("timeout", 1.0)),
+                            retries=int(o.get("retries", 1)), name=self.bus.name)
 
     def _link(self) -> str:
         return str(self.bus.options["port"])

@@ -298,12 +298,8 @@ class ThreadedDriver(Driver):
         try:
             sent = self._send_now(device, value, report=False)
         finally:
-            with lock:     # self._claim_ends(), inlined: once per frame sent
-                self._sending = False
-                if self._outbox:
-                    self._work.notify()
-                if self._settling:
-                    self._cond.notify_all()
+            with lock:
+                self._claim_ends()
         if sent:
             self.write_counts[device] += 1
         return sent

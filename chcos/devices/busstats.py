@@ -50,16 +50,7 @@ class BusCounters:
 
     def stat(self, bus: str, key: str, n: int = 1, device: str = "") -> None:
         """Add ``n`` to bus counter ``key`` (from any thread; see :class:`BusStats`)."""
-        with self._stats_lock:     # _count(bus, key, device, n), inlined: once per frame sent
-            st = self.bus_stats.get(bus)
-            if st is None:
-                st = self.bus_stats[bus] = BusStats()
-            st.counts[key] += n
-            if device:
-                dc = st.devices.get(device)
-                if dc is None:
-                    dc = st.devices[device] = Counter()
-                dc[key] += n
+        self._count(bus, key, device, n=n)
 
     def stats_doc(self) -> dict[str, Any]:
         """The bus statistics as plain data, per bus (see :class:`BusStats`)."""
