@@ -159,6 +159,14 @@ class Driver(ABC):
         can. Called by Devtab before :meth:`write`; must not block."""
         return None
 
+    def accepts(self, device: str) -> tuple[float, float, bool] | None:
+        """Raw values :meth:`check_value` accepts for actuator ``device`` without being asked,
+        as ``(lo, hi, integral)``: every value in ``lo..hi`` (integers only if ``integral``)
+        passes it; outside, Devtab asks :meth:`check_value`, which explains. None (the
+        default): ask for every value. Read once per device while the driver runs, so the
+        answer must not change; a driver whose check depends on state returns None."""
+        return None
+
     def flush(self, timeout: float) -> bool:
         """Block until every write queued so far has been put on the wire or reported failed;
         True if done within ``timeout``. Called at shutdown before :meth:`stop`."""

@@ -103,6 +103,8 @@ class CanDriver(ThreadedDriver):
         self.sent = 0
         #: of :attr:`sent`, the frames sent on the fast path (in the caller's thread)
         self.sent_inline = 0
+        #: the fast path's frame per actuator (see _send_now)
+        self._outgoing: dict[str, can.Message] = {}
         # the batch being received (reader thread, see _end_batch)
         self._batch: list[tuple[str, Any]] = []
         self._batch_frames = 0
@@ -279,6 +281,10 @@ class CanDriver(ThreadedDriver):
         """Why ``value`` cannot be encoded for ``device`` (see :meth:`CanCodec.check`)."""
         return self.codec.check(device, value)
 
+    def accepts(self, device: str) -> tuple[float, float, bool] | None:
+        """A raw integer signal's range (see :meth:`CanCodec.accepts`)."""
+        return self.codec.accepts(device)
+
     def _frame(self, device: str, value: Any, report: bool = True) -> can.Message | None:
         """The frame carrying ``value`` for ``device``; None if the value does not fit (then
         refused and, with ``report``, reported: the device is fine)."""
@@ -310,7 +316,15 @@ class CanDriver(ThreadedDriver):
             if report:
                 self._unencodable(device, value, exc)
             return report
-        frame = can.Message(arbitration_id=fid, data=data, is_extended_id=ext)
+        # one frame object per actuator, its payload replaced: the fast path's interfaces
+        # take the frame's content during send (python-can's virtual bus copies it for every
+        # receiver, SocketCAN packs it), and only one fast-path send runs at a time
+        frame = self._outgoing.get(device)
+        if frame is None:
+            frame = self._outgoing[device] = can.Message(arbitration_id=fid, data=data,
+                                                         is_extended_id=ext)
+        else:
+            frame.data = bytearray(data)
         try:
             bus.send(frame, timeout=0)
         except (can.CanError, OSError):

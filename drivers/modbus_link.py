@@ -21,6 +21,7 @@ from chcos.helpers import is_int, is_number
 from drivers.codecs.modbus import (
     RAW_RANGE,
     Point,
+    accepted,
     check_address,
     plan_reads,
     point_of,
@@ -111,11 +112,18 @@ class ModbusDriver(ModbusRequests):
         """Why raw ``value`` does not fit the device's coil or register type (None if it does):
         a coil takes 0/1, an integer type an integer within its range, a float type a finite
         number within its range. Nothing is rounded here."""
-        p = self._points.get(device) or (point_of(self.devices[device])
-                                         if device in self.devices else None)
-        if p is None:
-            return None
-        return value_error(p.type, value)
+        p = self._point(device)
+        return None if p is None else value_error(p.type, value)
+
+    def accepts(self, device: str) -> tuple[float, float, bool] | None:
+        """What the device's coil or register type holds (see :func:`accepted`)."""
+        p = self._point(device)
+        return None if p is None else accepted(p.type)
+
+    def _point(self, device: str) -> Point | None:
+        """``device``'s point (None for a device not on this bus)."""
+        return self._points.get(device) or (point_of(self.devices[device])
+                                            if device in self.devices else None)
 
     # -- I/O thread ---------------------------------------------------------------------------
 

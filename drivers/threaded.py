@@ -285,24 +285,20 @@ class ThreadedDriver(Driver):
 
     def write_now(self, device: str, value: Any) -> bool:
         """The fast path without a confirmation to the host (see :meth:`Driver.write_now`):
-        taken only when nothing is queued or being sent and the link takes the frame at once."""
+        taken only when nothing is queued or being sent and the link takes the frame at once.
+        The send holds ``_lock`` instead of claiming it: ``_send_now`` never waits, and with
+        ``report`` False the host calls it makes (statistics, a recovery interrupt) take no lock
+        of a driver's, so nobody waits long and the writer thread and settle() find the driver
+        as they left it."""
         if not self._inline:
             return False
-        lock = self._lock
-        with lock:
+        with self._lock:
             if (not self._running or self._outbox or self._sending or not self._can_send()
-                    or device not in self.devices):
+                    or device not in self.devices
+                    or not self._send_now(device, value, report=False)):
                 return False
-            self._sending = True        # claimed: the writer thread waits, order is kept
-        sent = False
-        try:
-            sent = self._send_now(device, value, report=False)
-        finally:
-            with lock:
-                self._claim_ends()
-        if sent:
-            self.write_counts[device] += 1
-        return sent
+        self.write_counts[device] += 1
+        return True
 
     def _claim_ends(self) -> None:
         """A fast-path send is over (under ``_lock``): the writer is woken only if commands

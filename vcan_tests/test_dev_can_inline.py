@@ -19,6 +19,7 @@ from chcos.devices.entry import Write
 from chcos.kernel.clock import VirtualClock
 from chcos.system.embedded import System
 from chcos.user.context import TaskContext
+from drivers.base import Driver
 from drivers.can_raw import INLINE_INTERFACES, CanDriver
 from vcan_tests.netutil import unique_channel
 from vcan_tests.support_dev import WAIT, FakeHost, bus, device
@@ -416,3 +417,164 @@ def test_a_safe_value_is_always_tracked(cell: Any, monkeypatch: pytest.MonkeyPat
     s.run_for(0.01)
     assert power(peer) == 0.0 and confirmed == [0]
     assert dt.get("H1").value == 0 and dt.get("H1").pending is None
+
+
+def test_frames_already_on_the_wire_never_change(rig: Any) -> None:
+    """The fast path sends one frame object per actuator with its payload replaced: what a
+    receiver got stays what was sent, write after write."""
+    drv, _host, _gate, peer = rig
+    got = []
+    for v in (5, 6, 7):
+        assert drv.write_now("A", v) is True
+        msg = peer.recv(WAIT)
+        assert msg is not None
+        got.append(msg)
+    assert [bytes(m.data) for m in got] == [value_data(v) for v in (5, 6, 7)]
+    assert all(m.dlc == 2 and m.arbitration_id == A_ID for m in got)
+    assert drv.sent_inline == 3
+
+
+RAW_MAP = """
+[[bus]]
+name = "can0"
+kind = "can"
+interface = "virtual"
+channel = "{channel}"
+
+[[device]]
+name = "A"
+direction = "actuator"
+bus = "can0"
+address = {{ id = 0x201, start = 0, length = 16, dlc = 2 }}
+
+[[device]]
+name = "L"
+direction = "actuator"
+bus = "can0"
+address = {{ id = 0x202, start = 0, length = 16, dlc = 2 }}
+limits = [10, 1000]
+
+[[device]]
+name = "D"
+direction = "actuator"
+bus = "can0"
+address = {{ id = 0x203, start = 0, length = 16, dlc = 2 }}
+scale = 0.5
+"""
+
+
+@pytest.fixture
+def raw_cell(tmp_path: Path) -> Iterator[tuple[System, can.BusABC]]:
+    channel = unique_channel("plain")
+    (tmp_path / "raw.toml").write_text(RAW_MAP.format(channel=channel))
+    peer = can.Bus(interface="virtual", channel=channel)
+    s = System([tmp_path / "raw.toml"], clock=VirtualClock(), machines=[0], base_dir=tmp_path)
+    try:
+        yield s, peer
+    finally:
+        s.shutdown()
+        peer.shutdown()
+
+
+def test_a_plain_command_the_driver_accepts_is_not_checked_twice(
+        raw_cell: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Devtab checks a plain number against the limits and the range the driver accepts
+    (Driver.accepts) without asking check_value; anything else is asked and refused with the
+    rule, and no frame goes out."""
+    from chcos.errors import DeviceError
+
+    s, peer = raw_cell
+    dt = s.devtab
+    drv = dt.drivers[0]
+    asked: list[tuple[str, Any]] = []
+    real = drv.check_value
+    monkeypatch.setattr(drv, "check_value",
+                        lambda d, v: (asked.append((d, v)), real(d, v))[1])
+    assert drv.accepts("A") == (0.0, 65535.0, True)
+    for v in (0, 65535, 7.0):
+        dt.write("A", v)
+    assert asked == []
+    refused = {70_000: "expected 0..65535 for raw signal A", -1: "expected 0..65535",
+               3.5: "expected an integer for raw signal A",
+               float("nan"): "finite", float("inf"): "finite", 10 ** 400: "finite"}
+    for v, why in refused.items():
+        with pytest.raises(DeviceError, match=why):
+            dt.write("A", v)
+    assert [v for _d, v in asked] == [70_000.0, -1.0, 3.5]    # nan, inf, 10**400: by Devtab
+    with pytest.raises(DeviceError, match="outside its limits"):
+        dt.write("L", 1001)
+    with pytest.raises(DeviceError, match="outside its limits"):
+        dt.write("L", 9)
+    dt.write("L", 1000)
+    dt.write("D", 21)              # scaled: raw 42, the whole check (check_value asked)
+    assert asked[-1] == ("D", 42.0)
+    frames = [peer.recv(WAIT) for _ in range(5)]
+    assert [(m.arbitration_id, int.from_bytes(m.data, "little")) for m in frames if m] == [
+        (0x201, 0), (0x201, 65535), (0x201, 7), (0x202, 1000), (0x203, 42)]
+    assert peer.recv(0.05) is None
+    assert dt.get("A").rejected == len(refused) and dt.get("L").rejected == 2
+
+
+class Strict(Driver):
+    """A stand-in driver that takes 0..100 only (and no fast-path range: every value asked)."""
+
+    kind = "strict"
+
+    def start(self) -> None:
+        self._running = True
+
+    def stop(self) -> None:
+        self._running = False
+
+    def check_value(self, device: str, value: Any) -> str | None:
+        return None if 0 <= value <= 100 else f"expected 0..100, got {value!r}"
+
+    def _write(self, device: str, value: Any) -> None:
+        self.sent.append((device, value))
+
+    def settle(self, timeout: float) -> bool:
+        return True
+
+    def __init__(self, *args: Any) -> None:
+        super().__init__(*args)
+        self.sent: list[tuple[str, Any]] = []
+
+
+def test_the_plain_check_follows_the_devices_driver(raw_cell: Any) -> None:
+    """The plain check is kept per driver: a device given another driver is checked by that
+    one's rules from the next command on."""
+    from chcos.errors import DeviceError
+
+    s, peer = raw_cell
+    dt = s.devtab
+    e = dt.get("A")
+    dt.write("A", 300)
+    assert e.plain is not None and e.plain[0] is e.driver
+    assert e.driver is not None
+    strict = Strict(e.driver.bus, list(e.driver.devices.values()), dt)
+    strict.start()
+    e.driver = strict
+    with pytest.raises(DeviceError, match=r"expected 0\.\.100"):
+        dt.write("A", 300)
+    dt.write("A", 40)
+    assert e.plain[0] is strict and strict.sent == [("A", 40.0)]
+    msg = peer.recv(WAIT)
+    assert msg is not None and bytes(msg.data) == value_data(300)
+    assert peer.recv(0.05) is None
+
+
+def test_with_outputs_off_a_command_is_refused_as_with_outputs_on(raw_cell: Any) -> None:
+    """cellrun's outputs switch (OutputsOff) logs instead of sending, and checks with the
+    wrapped driver's rules: what the bus would refuse is refused while commissioning too."""
+    from chcos.cli.cellsystem import OutputsOff
+    from chcos.errors import DeviceError
+
+    s, peer = raw_cell
+    e = s.devtab.get("A")
+    assert e.driver is not None
+    logged: list[tuple[str, Any]] = []
+    e.driver = OutputsOff(e.driver, lambda d, v: logged.append((d, v)))
+    with pytest.raises(DeviceError, match=r"expected 0\.\.65535 for raw signal A"):
+        s.devtab.write("A", 70_000)
+    s.devtab.write("A", 40)
+    assert logged == [("A", 40.0)] and peer.recv(0.05) is None

@@ -12,7 +12,7 @@ import pytest
 
 from chcos.apps.sim.modbus_server import ModbusSimServer, RegisterStore
 from chcos.devices.spec import BusSpec
-from drivers.codecs.modbus import Point, plan_reads
+from drivers.codecs.modbus import Point, accepted, plan_reads, value_error
 from drivers.modbus import ModbusRtuDriver, ModbusTcpDriver
 from vcan_tests.netutil import free_port
 from vcan_tests.support_fb import WAIT, FakeHost, make_device
@@ -95,7 +95,24 @@ def test_writes_reach_the_datastore(rig: Rig) -> None:
     assert [(d, r) for d, _, r in rig.host.writes] == [("valve", ""), ("sp", ""), ("sp16", "")]
 
 
+@pytest.mark.parametrize("type_", ["bool", "int16", "uint16", "int32", "uint32", "float32",
+                                   "float64"])
+def test_what_the_driver_accepts_unasked_is_what_its_check_accepts(type_: str) -> None:
+    """Driver.accepts (Devtab's check without asking check_value) is exactly value_error's
+    range: its ends pass, a step beyond them and a fraction of an integer type do not."""
+    lo, hi, integral = accepted(type_)
+    assert value_error(type_, lo) is None and value_error(type_, hi) is None
+    beyond = (lo - 1, hi + 1) if integral else (lo * 1.001, hi * 1.001)
+    assert all(value_error(type_, v) is not None for v in beyond)
+    if integral:
+        assert value_error(type_, lo + 0.5) is not None
+    else:
+        assert value_error(type_, 0.5) is None
+
+
 def test_fractions_are_never_rounded_silently(rig: Rig) -> None:
+    assert rig.driver.accepts("sp16") == (-32768.0, 32767.0, True)
+    assert rig.driver.accepts("nope") is None
     assert rig.driver.check_value("sp16", -7.6) is not None
     assert rig.driver.check_value("sp16", -8.0) is None
     rig.driver.write("sp16", -7.6)             # an int16 register cannot carry it

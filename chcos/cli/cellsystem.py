@@ -70,6 +70,15 @@ class OutputsOff(Driver):
     def start(self) -> None:
         """Nothing to open: the wrapped driver is already running."""
 
+    def check_value(self, device: str, value: Any) -> str | None:
+        """The wrapped driver's check: with outputs off a command is refused as it would be
+        with them on."""
+        return self.inner.check_value(device, value)
+
+    def accepts(self, device: str) -> tuple[float, float, bool] | None:
+        """The wrapped driver's (see :meth:`check_value`)."""
+        return self.inner.accepts(device)
+
     def _write(self, device: str, value: Any) -> None:
         """Log the write instead of sending it."""
         self._log(device, value)

@@ -45,12 +45,23 @@ class BusCounters:
 
     def error(self, bus: str, kind: str, detail: str, device: str = "") -> None:
         """Count a bus-level error of class ``kind`` (from a driver thread)."""
-        self._count(bus, kind, device, error=True)
+        self.stat(bus, kind, device=device, error=True)
         self.kernel.interrupt(self._bus_error, bus, kind, detail, False)
 
-    def stat(self, bus: str, key: str, n: int = 1, device: str = "") -> None:
-        """Add ``n`` to bus counter ``key`` (from any thread; see :class:`BusStats`)."""
-        self._count(bus, key, device, n=n)
+    def stat(self, bus: str, key: str, n: int = 1, device: str = "", error: bool = False
+             ) -> None:
+        """Add ``n`` to bus counter ``key`` (from any thread; see :class:`BusStats`), or with
+        ``error`` to error class ``key`` (a device's as ``error:<key>``)."""
+        with self._stats_lock:
+            st = self.bus_stats.get(bus)
+            if st is None:
+                st = self.bus_stats[bus] = BusStats()
+            (st.errors if error else st.counts)[key] += n
+            if device:
+                dc = st.devices.get(device)
+                if dc is None:
+                    dc = st.devices[device] = Counter()
+                dc[f"error:{key}" if error else key] += n
 
     def stats_doc(self) -> dict[str, Any]:
         """The bus statistics as plain data, per bus (see :class:`BusStats`)."""
@@ -70,21 +81,9 @@ class BusCounters:
         with self._stats_lock:
             return {bus: st.last_error for bus, st in self.bus_stats.items() if st.last_error}
 
-    def _count(self, bus: str, key: str, device: str, n: int = 1, error: bool = False) -> None:
-        with self._stats_lock:
-            st = self.bus_stats.get(bus)
-            if st is None:
-                st = self.bus_stats[bus] = BusStats()
-            (st.errors if error else st.counts)[key] += n
-            if device:
-                dc = st.devices.get(device)
-                if dc is None:
-                    dc = st.devices[device] = Counter()
-                dc[f"error:{key}" if error else key] += n
-
     def _bus_error(self, bus: str, kind: str, detail: str, count: bool = True) -> None:
         if count:
-            self._count(bus, kind, "", error=True)
+            self.stat(bus, kind, error=True)
         with self._stats_lock:
             st = self.bus_stats.get(bus)
             if st is not None:

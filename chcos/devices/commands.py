@@ -14,6 +14,8 @@ from chcos.errors import DeviceError
 
 #: An integer command beyond this magnitude has no float (refused as not finite).
 _BIG = int(sys.float_info.max)
+#: The largest finite float: the bounds of an unlimited device's plain range (see _plain).
+_FMAX = sys.float_info.max
 
 
 class CommandChecks(DeviceHealth):
@@ -21,21 +23,47 @@ class CommandChecks(DeviceHealth):
 
     def _check_command(self, e: DeviceEntry, value: Any, source: str) -> Any:
         """The raw value for ``value``; raises DeviceError (counted as rejected) if refused."""
-        spec = e.spec
         kind = type(value)
-        if (kind is float or kind is int) and spec.scale == 1 and spec.offset == 0 \
-                and not spec.round:
-            # the common case, the same rules in fewer steps: a plain finite number inside the
-            # limits, raw = value (as a float, as (value - 0) / 1 gives), the driver's check
-            lo, hi = spec.limits
-            raw = float(value) if kind is float or -_BIG <= value <= _BIG else math.inf
-            if raw - raw == 0 and (lo is None or value >= lo) and (hi is None or value <= hi):
-                drv = e.driver
-                local = self._local   # self.is_local(spec.machine), inlined
-                if drv is None or (local is not None and spec.machine not in local) \
-                        or drv.check_value(spec.name, raw) is None:
+        if kind is int or kind is float:
+            # the common case, the same rules in fewer steps: a plain number inside what the
+            # limits and the driver accept (see _plain), raw = value as a float (as
+            # (value - 0) / 1 gives); everything else, and every refusal, is _check_any's
+            p = e.plain
+            if p is None or p[0] is not e.driver:
+                p = self._plain(e)
+            if p[1] <= value <= p[2] and (kind is int or not p[3] or value.is_integer()):
+                raw = float(value)
+                ask = p[4]
+                if ask is None or ask(e.spec.name, raw) is None:
                     return raw
         return self._check_any(e, value, source)
+
+    def _plain(self, e: DeviceEntry) -> tuple[Any, float, float, bool, Any]:
+        """How :meth:`_check_command` checks a plain number (an int or float, not a bool) for
+        ``e`` with its current driver, kept in ``e.plain``: ``(driver, lo, hi, integral,
+        ask)``. A value in ``lo..hi`` (integers only if ``integral``) is inside the device's
+        limits, finite, and accepted by the driver without asking (:meth:`Driver.accepts
+        <drivers.base.Driver.accepts>`), or else after ``ask`` (its ``check_value``) agrees.
+        A device with scale, offset or ``round`` gets an empty range: :meth:`_check_any`."""
+        spec, drv = e.spec, e.driver
+        p: tuple[Any, float, float, bool, Any]
+        if spec.scale != 1 or spec.offset != 0 or spec.round:
+            p = (drv, 1.0, 0.0, False, None)
+        else:
+            lo_, hi_ = spec.limits
+            lo = -_FMAX if lo_ is None else max(float(lo_), -_FMAX)
+            hi = _FMAX if hi_ is None else min(float(hi_), _FMAX)
+            integral = False
+            ask = None
+            if drv is not None and self.is_local(spec.machine):
+                acc = drv.accepts(spec.name)
+                if acc is None:
+                    ask = drv.check_value
+                else:
+                    lo, hi, integral = max(lo, acc[0]), min(hi, acc[1]), acc[2]
+            p = (drv, lo, hi, integral, ask)
+        e.plain = p
+        return p
 
     def _check_any(self, e: DeviceEntry, value: Any, source: str) -> Any:
         """:meth:`_check_command` for every value (the refusals and their reasons)."""

@@ -50,6 +50,9 @@ class DeviceEntry:
     pending_count: int = 0
     write_errors: int = 0
     last_write_error: str = ""
+    #: how a plain numeric command is checked, made by Devtab for the device's current driver
+    #: (see ``CommandChecks._plain``): (driver, lo, hi, integral, ask)
+    plain: tuple[Any, float, float, bool, Any] | None = None
 
     @property
     def name(self) -> str:

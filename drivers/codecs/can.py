@@ -109,6 +109,9 @@ class _Frame:
     #: for a whole-byte message with sensors: (device, first byte, bytes, signed) of each
     #: sensor signal, in the message's signal order (what decode reads, nothing looked up)
     reads: tuple[tuple[str, int, int, bool], ...] | None = None
+    #: the one sensor signal of a whole-byte message that has one: (device, first byte, bytes,
+    #: signed, whether it is the whole payload); decode then builds no list comprehension
+    read1: tuple[str, int, int, bool, bool] | None = None
     #: the message's length, id and frame format, read once (cantools' are properties)
     length: int = 0
     frame_id: int = 0
@@ -161,7 +164,9 @@ class CanCodec:
     def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec]) -> None:
         dbc = load_dbc(str(bus.options["dbc"])) if "dbc" in bus.options else None
         self._by_id: dict[tuple[int, bool], _Frame] = {}
-        self._by_device: dict[str, tuple[_Frame, str]] = {}
+        #: device -> its message, signal name, and in a whole-byte message its slot (first
+        #: byte, bytes, signed, whether it is the whole payload), else None
+        self._by_device: dict[str, tuple[_Frame, str, tuple[int, int, bool, bool] | None]] = {}
         raw_groups: dict[int, list[DeviceSpec]] = {}
         for d in devices:
             if "message" in d.address:
@@ -187,6 +192,14 @@ class CanCodec:
                 fr.data = _encode_whole(fr.whole_bytes, fr.values, msg.length)
                 fr.reads = tuple((dev, o, n, sg) for sig, o, n, sg in fr.whole_bytes
                                  if (dev := fr.sensors.get(sig)) is not None) or None
+                if fr.reads is not None and len(fr.reads) == 1:
+                    dev, o, n, sg = fr.reads[0]
+                    fr.read1 = (dev, o, n, sg, o == 0 and n == fr.length)
+                if fr.data is not None:
+                    for d in group:
+                        o, n, sg = fr.slots[d.name]
+                        whole = o == 0 and n == fr.length
+                        self._by_device[d.name] = (fr, d.name, (o, n, sg, whole))
         #: raw (non-DBC) integer actuator -> the range its signal carries: check() accepts a
         #: value inside it without a trial encode (a value outside still gets cantools' reason)
         self._raw_ranges: dict[str, tuple[int, int]] = {}
@@ -203,7 +216,7 @@ class CanCodec:
             self._by_id[key] = fr
         side = fr.sensors if device.direction == "sensor" else fr.actuators
         side[signal] = device.name
-        self._by_device[device.name] = (fr, signal)
+        self._by_device[device.name] = (fr, signal, None)
 
     def decode(self, frame: FrameLike) -> tuple[str, list[tuple[str, Any]] | str]:
         """Classify and decode ``frame``: ``("ok", [(device, value)...])``, ``("ignore", why)``,
@@ -213,7 +226,8 @@ class CanCodec:
             return "remote-frame", (f"remote frame (a data request) for id "
                                     f"0x{frame.arbitration_id:X}, dlc {frame.dlc}: chcos does "
                                     f"not answer remote requests")
-        fr = self._by_id.get((frame.arbitration_id, bool(frame.is_extended_id)))
+        # (id, True) and (id, 1) are the same key: python-can's flag needs no bool()
+        fr = self._by_id.get((frame.arbitration_id, frame.is_extended_id))
         if fr is None:
             return "unknown-id", f"frame id 0x{frame.arbitration_id:X} is in no device's message"
         if not fr.sensors:
@@ -222,6 +236,11 @@ class CanCodec:
         if len(data) != fr.length:
             return "wrong-length", (f"frame id 0x{frame.arbitration_id:X} ({fr.message.name}) "
                                     f"has {len(data)} bytes, expected {fr.length}")
+        one = fr.read1
+        if one is not None:    # one raw whole-byte sensor signal: the int cantools would give
+            dev, o, n, sg, whole = one
+            return "ok", [(dev, int.from_bytes(data if whole else data[o:o + n], "little",
+                                               signed=sg))]
         reads = fr.reads
         if reads is not None:  # raw whole-byte signals: the ints cantools would give
             return "ok", [(dev, int.from_bytes(data[o:o + n], "little", signed=sg))
@@ -237,6 +256,13 @@ class CanCodec:
                                        f"is {v}, not a finite number")
         return "ok", out
 
+    def accepts(self, device: str) -> tuple[float, float, bool] | None:
+        """What :meth:`check` accepts for ``device`` without a trial encode: a raw (non-DBC)
+        integer actuator's range, integers only; None for a DBC signal (scale, offset, its
+        minimum and maximum: :meth:`check` decides)."""
+        accept = self._raw_ranges.get(device)
+        return None if accept is None else (float(accept[0]), float(accept[1]), True)
+
     def check(self, device: str, value: Any) -> str | None:
         """Why ``value`` cannot be encoded for actuator ``device`` (None if it can): not a
         finite number, outside the signal's range or bit width, a fraction for a raw (non-DBC)
@@ -250,28 +276,23 @@ class CanCodec:
         item = self._by_device.get(device)
         if item is None:
             return None
-        fr, sig = item
+        fr, sig, _ = item
         if (why := not_finite(value)) is not None:
             return why
         if isinstance(value, bool):
             value = int(value)
-        if accept is not None and accept[0] <= value <= accept[1] and (
-                not isinstance(value, float) or value.is_integer()):
+        if accept is not None:     # a raw signal: an unscaled integer of its bit width
+            bits = fr.message.get_signal_by_name(sig).length
+            if isinstance(value, float) and not value.is_integer():
+                return f"expected an integer for raw signal {sig} ({bits} bits), got {value!r}"
+            if not accept[0] <= value <= accept[1]:
+                return (f"expected {accept[0]}..{accept[1]} for raw signal {sig} ({bits} bits), "
+                        f"got {value!r}")
             return None
-        signal = fr.message.get_signal_by_name(sig)
-        if (fr.message.name.startswith("raw_0x") and not signal.is_float
-                and isinstance(value, float) and not value.is_integer()):
-            return f"expected an integer for raw signal {sig} ({signal.length} bits), got {value!r}"
         values = dict(fr.values)
         values[sig] = value
         try:
             fr.message.encode(values, strict=True)
-            if fr.message.name.startswith("raw_0x"):
-                lo = -(1 << (signal.length - 1)) if signal.is_signed else 0
-                hi = ((1 << (signal.length - 1)) - 1 if signal.is_signed
-                      else (1 << signal.length) - 1)
-                if not signal.is_float and not lo <= value <= hi:
-                    return f"expected {lo}..{hi} for raw signal {sig}, got {value!r}"
         except (cantools.database.EncodeError, ValueError, KeyError, OverflowError) as exc:
             return f"cannot encode into {fr.message.name}: {exc}"
         return None
@@ -287,20 +308,25 @@ class CanCodec:
         """:meth:`encode`'s frame as ``(id, payload, extended)``, without building a
         :class:`CanFrame` (the driver's send path). Raises as :meth:`encode`."""
         try:
-            fr, sig = self._by_device[device]
+            fr, sig, slot = self._by_device[device]
         except KeyError:
             raise BusError(f"{device!r} is not a device of this CAN bus") from None
-        old = fr.data
-        if old is not None:     # a whole-byte message: replace the signal's bytes
+        if slot is not None:    # a whole-byte message: replace the signal's bytes
             kind = type(value)
             if kind is int or (kind is float and value.is_integer()):
-                o, n, sg = fr.slots[sig]
+                o, n, sg, whole = slot
                 try:
                     part = int(value).to_bytes(n, "little", signed=sg)
                 except OverflowError:
                     pass        # cantools explains below
                 else:
-                    fr.data = data = old[:o] + part + old[o + n:]
+                    if whole:
+                        data = part
+                    else:
+                        old = fr.data
+                        assert old is not None    # a slot is only given with a payload
+                        data = old[:o] + part + old[o + n:]
+                    fr.data = data
                     fr.values[sig] = value
                     return fr.frame_id, data, fr.extended
         values = dict(fr.values)

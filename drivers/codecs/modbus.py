@@ -201,6 +201,18 @@ INT_RANGES = {"int16": (-2**15, 2**15 - 1), "uint16": (0, 2**16 - 1),
 FLOAT_MAX = {"float32": 3.4028234663852886e38, "float64": 1.7976931348623157e308}
 
 
+def accepted(type_: str) -> tuple[float, float, bool]:
+    """The values :func:`value_error` accepts for a point of ``type_``, as ``(lo, hi,
+    integral)``: 0..1 for a coil, the range of an integer type (integers only), +-the largest
+    finite value of a float type."""
+    if type_ == "bool":
+        return 0.0, 1.0, True
+    if type_ in FLOAT_MAX:
+        return -FLOAT_MAX[type_], FLOAT_MAX[type_], False
+    lo, hi = INT_RANGES[type_]
+    return float(lo), float(hi), True
+
+
 def value_error(type_: str, value: Any) -> str | None:
     """Why ``value`` cannot be written to a point of ``type_`` exactly (None if it can)."""
     if isinstance(value, bool):
