@@ -107,7 +107,7 @@ class CanDriver(ThreadedDriver):
         self._outgoing: dict[str, can.Message] = {}
         # the batch being received (reader thread, see _end_batch)
         self._batch: list[tuple[str, Any]] = []
-        self._batch_frames = 0
+        self._counted = 0       # of :attr:`received`, the frames in the bus statistics
 
     @classmethod
     def check_bus(cls, bus: BusSpec) -> list[str]:
@@ -249,7 +249,6 @@ class CanDriver(ThreadedDriver):
         """One received frame (reader thread): counted, recorded, decoded; its readings join
         the batch :meth:`_end_batch` hands over."""
         self.received += 1
-        self._batch_frames += 1
         if self._recorder is not None:
             self._recorder.on_message_received(frame)
         if frame.is_error_frame:
@@ -270,9 +269,10 @@ class CanDriver(ThreadedDriver):
         next task step anyway, so this changes nothing a task can see, and costs one wake-up
         and one counter update per batch instead of per frame). Errors are reported as they
         are met, not held back."""
-        if self._batch_frames:
-            self.host.stat(self.bus.name, "frames", self._batch_frames)
-            self._batch_frames = 0
+        n = self.received - self._counted
+        if n:
+            self._counted = self.received
+            self.host.stat(self.bus.name, "frames", n)
         if self._batch:
             batch, self._batch = self._batch, []
             deliver_all(self.host, batch)

@@ -403,3 +403,20 @@ def test_devtab_knows_devices_not_links() -> None:
     with pytest.raises(DeviceError, match="M9 is on machine 1, which this process does not "
                                           "drive, and no link leads there"):
         dt.write("M9", 1.0)
+
+
+def test_a_reading_kept_by_a_queued_link_is_no_overwrite(make_system: MakeSystem) -> None:
+    """Devtab's ``overwrites`` counts readings that replaced an unread one on a newest-wins
+    link; a queued link keeps each behind the unread ones, so nothing is counted there."""
+    s = make_system(memory_map(["S1", "S2"]))
+    s.execute(f"install -m0i1 --queue=S1=8 --code={M}:reader Q S1")
+    s.execute(f"install -m0i1 --code={M}:reader N S2")
+    for v in (1.0, 2.0, 3.0):
+        s.devtab.inject("S1", v)
+        s.devtab.inject("S2", v)
+    s.run_for(0.1)
+    assert s.devtab.get("S1").overwrites == 0 and s.devtab.get("S2").overwrites == 2
+    log: list[Any] = []
+    s.invoke("Q", {"log": log})
+    s.run_for(0.1)
+    assert log == [1.0, 2.0, 3.0]

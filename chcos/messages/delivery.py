@@ -207,14 +207,16 @@ class Delivery:
 
     def reading(self, device: str, value: Any) -> bool:
         """Devtab listener: a new reading of sensor ``device`` goes up every sensory link
-        leaving it, readying the tasks waiting for it. True if it overwrote an unread message.
-        Raises QueueOverflow (after delivering to every other link) if a queued link was full."""
+        leaving it, readying the tasks waiting for it. True if it overwrote an unread message
+        (on a newest-wins link: a queued link keeps it behind the unread ones, and refuses it
+        when full). Raises QueueOverflow (after delivering to every other link) if a queued
+        link was full."""
         over = False
         overflow: QueueOverflow | None = None
         deliver = self.deliver
         for link in self._device_links.get(device, ()):
             port = link.port
-            if isinstance(port, InPort) and port.fresh:
+            if isinstance(port, InPort) and port.fresh and port.fifo is None:
                 over = True
             try:
                 deliver(link, value)

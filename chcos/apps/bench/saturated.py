@@ -159,9 +159,9 @@ class SaturatedResult:
     def unaccounted(self) -> dict[str, int]:
         """Every balance that must be zero when nothing is lost without a count (name ->
         difference); unread readings (at most one per sensor) are allowed in ``in-tasks``."""
-        # newest-wins: a reading is consumed, overwritten unread, or the one still unread; a
-        # queued link's Devtab "overwrites" counts readings queued behind an unread one (kept)
-        unread = self.readings - self.consumed - (0 if self.queue else self.overwritten)
+        # a reading is consumed, overwritten unread (newest-wins only: a queued link keeps
+        # it), or still unread
+        unread = self.readings - self.consumed - self.overwritten
         return {
             "in-bus": self.sent - self.received_by_driver,
             "in-devtab": self.received_by_driver - self.readings - self.dropped - self.bus_errors,
@@ -340,9 +340,9 @@ def report(r: SaturatedResult) -> str:
         f"the {r.warmup:.1f} s warm-up and the drain",
         f"  in : sent {r.sent:,}, driver received {r.received_by_driver:,}, readings "
         f"{r.readings:,}, dropped {r.dropped:,}, bus errors {r.bus_errors:,}; tasks consumed "
-        f"{r.consumed:,}, " + (f"queued behind an unread one {r.overwritten:,} (sensor links "
-                                f"queued, {r.queue} each)" if r.queue else
-                                f"overwritten unread {r.overwritten:,} (newest-wins)"),
+        f"{r.consumed:,}, overwritten unread {r.overwritten:,} "
+        + (f"(sensor links queued, {r.queue} each: they keep every reading)" if r.queue else
+           "(newest-wins)"),
         f"  out: asked {r.requests:,}, written by tasks {r.answers_written:,}, sent "
         f"{r.answers_sent:,}, write errors {r.answer_write_errors:,}, received by the peer "
         f"{r.answers_received:,}, unanswered {r.unanswered:,}",
