@@ -130,6 +130,7 @@ class Lifecycle:
 
     def _end(self, t: TaskEntry, how: End, value: Any) -> None:
         t.coro = None
+        t.send_value = None   # a next activation's first step sends None
         t.cancelling = False
         self.unhook(t)
         if self._on_end is not None:

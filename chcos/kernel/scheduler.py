@@ -70,7 +70,9 @@ class Kernel(Lifecycle, Hooks, Timers):
         self._thread: int | None = None
         self._settlers: list[Callable[[float], bool]] = []
         self._idle_hooks: list[Callable[[], None]] = []
-        self._steps = 0
+        #: every task this kernel has made ready (a dict as an ordered set): :attr:`steps`
+        #: sums their step counts, so a step counts once, on its task, and nowhere else
+        self._tasks: dict[TaskEntry, None] = {}
         self._h_step = False  # an instrument hears of steps (h_before or h_after)
         self._on_end: EndHandler | None = None
         #: text of every failed interrupt handler and timer callback (the newest KEEP_ERRORS)
@@ -80,13 +82,13 @@ class Kernel(Lifecycle, Hooks, Timers):
     @property
     def steps(self) -> int:
         """Task executions (steps) so far, all tasks together."""
-        return self._steps
+        return sum(t.steps for t in self._tasks)
 
     def stats(self) -> dict[str, int]:
         """What the kernel has done and holds now, for monitors: task steps, ready tasks,
         pending timers, periods that periodic timers skipped because the kernel came back too
         late for them (see :mod:`chcos.kernel.timers`), failed handlers and timer callbacks."""
-        return {"steps": self._steps,
+        return {"steps": self.steps,
                 "ready": sum(1 for _p, s, t in self.ready_heap if t.stamp == s),
                 "timers": sum(1 for _d, _s, tm in self._timers if not tm.cancelled),
                 "skipped_periods": self.skipped_periods,
@@ -95,6 +97,7 @@ class Kernel(Lifecycle, Hooks, Timers):
     # ---- task manager primitives ------------------------------------------------------------
     def ready(self, t: TaskEntry, prio: int) -> None:
         """Make ``t`` ready at priority ``prio`` (re-queues it if it already was)."""
+        self._tasks[t] = None    # every task is made ready here before its first step
         if t.frozen:
             t.frozen_ready = prio if t.frozen_ready is None else max(prio, t.frozen_ready)
             t.state = _SUSPENDED
@@ -205,12 +208,14 @@ class Kernel(Lifecycle, Hooks, Timers):
         try:
             while True:
                 if irq:  # interrupts, and stop(), which queues one
+                    self.current = None     # no task runs (see below)
                     self._drain_irq()
                     if self._stop:
                         break
                 if timers:
                     now = clock.now()
                     if timers[0][0] <= now and (until is None or timers[0][0] <= until):
+                        self.current = None
                         self._fire_timers(now if until is None else min(now, until))
                 if ready:
                     _, seq, t = heappop(ready)
@@ -224,20 +229,22 @@ class Kernel(Lifecycle, Hooks, Timers):
                     # one call less per step; anything unusual goes to the same helpers. An
                     # instrument the step installs hears of its end through an interrupt
                     # (see _rehook).
+                    # After the step ``current`` stays set until something other than a step
+                    # runs on this thread (interrupts, timers, the idle wait: each clears it
+                    # first), and ``send_value`` stays until the next wake-up sets it (a yield
+                    # ignores what is sent in; an activation's end clears it): two stores less
+                    # per step.
                     t.state = _CURRENT
                     self.current = t
-                    self._steps += 1
                     t.steps += 1
-                    value = t.send_value
-                    t.send_value = None
                     try:
-                        trap = coro.send(value)
+                        trap = coro.send(t.send_value)
                     except Exception as err:
                         self.current = None
                         self._raised(t, err)
                         continue
-                    self.current = None
                     if t.cancelling:
+                        self.current = None
                         self._odd_trap(t, coro, trap)
                     elif trap is BLOCK:
                         pass
@@ -247,11 +254,14 @@ class Kernel(Lifecycle, Hooks, Timers):
                         t.stamp = seq
                         heappush(ready, (-t.prio, seq, t))
                     else:
+                        self.current = None
                         self._odd_trap(t, coro, trap)
                     continue
+                self.current = None
                 if not self._idle_wait(until):
                     break
         finally:
+            self.current = None
             self._running = False
             self._thread = None
 
@@ -298,7 +308,7 @@ class Kernel(Lifecycle, Hooks, Timers):
         """Context switch: run ``t`` until its next trap (the thesis' ctxsw)."""
         t.state = _CURRENT
         self.current = t
-        self._steps += 1
+        self._tasks[t] = None
         t.steps += 1
         after = self.h_after  # one installed during the step is told through _rehook
         if self.h_before:
