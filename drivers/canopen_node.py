@@ -56,6 +56,7 @@ from drivers.canbus import read_frames
 from drivers.canopen_events import Binding, CanopenEvents, FrameCheck, NodeState
 from drivers.canopen_od import (
     DEFAULT_POLL,
+    accepted,
     check_bus,
     check_device,
     coerce,
@@ -206,6 +207,11 @@ class CanopenDriver(CanopenEvents):
         if b is None:
             return None
         return value_error(b.od_var, b.index, b.subindex, value)
+
+    def accepts(self, device: str) -> tuple[float, float, bool] | None:
+        """The object's data type range (see :func:`drivers.canopen_od.accepted`)."""
+        b = self._bindings.get(device)
+        return None if b is None else accepted(b.od_var)
 
     # -- I/O thread ---------------------------------------------------------------------------
 

@@ -148,17 +148,25 @@ def encodable(bus: BusSpec, device: DeviceSpec) -> tuple[float, float] | None:
     nodes = {n.get("id"): n for n in bus.options.get("nodes", []) if isinstance(n, Mapping)}
     var = checked_od(bus, a["node"], str(nodes[a["node"]]["eds"])).get_variable(
         a["index"], a.get("subindex", 0))
-    dt = var.data_type
+    got = accepted(var)
+    return None if got is None else (got[0], got[1])
+
+
+def accepted(od_var: Any) -> tuple[float, float, bool] | None:
+    """The values of ``od_var``'s data type as ``(lo, hi, integral)``: 0..1 for BOOLEAN, the
+    INTEGERn/UNSIGNEDn ranges (integers only), the largest REAL32; None for REAL64 and other
+    types. Each of them :func:`value_error` accepts."""
+    dt = od_var.data_type
     if dt == BOOLEAN:
-        return 0.0, 1.0
+        return 0.0, 1.0, True
     if dt == REAL32:
-        return -3.4028234663852886e38, 3.4028234663852886e38
+        return -3.4028234663852886e38, 3.4028234663852886e38, False
     if dt not in INTEGER_TYPES:
         return None
-    bits = 8 * var.STRUCT_TYPES[dt].size
+    bits = 8 * od_var.STRUCT_TYPES[dt].size
     if dt in SIGNED_TYPES:
-        return float(-(1 << (bits - 1))), float((1 << (bits - 1)) - 1)
-    return 0.0, float((1 << bits) - 1)
+        return float(-(1 << (bits - 1))), float((1 << (bits - 1)) - 1), True
+    return 0.0, float((1 << bits) - 1), True
 
 
 def coerce(od_var: Any, value: Any) -> Any:

@@ -129,6 +129,24 @@ def test_write_out_of_range_and_to_unknown_device_are_reported(rig: Rig) -> None
     assert rig.slave.get(0x6081) == 10000     # unchanged
 
 
+def test_what_the_driver_accepts_unasked_its_check_accepts(rig: Rig) -> None:
+    """CanopenDriver.accepts (Devtab's check without asking check_value) is the object's data
+    type range: its ends pass check_value, a step beyond them and a fraction do not."""
+    drv = rig.driver
+    assert drv.accepts("speed") == (0.0, 4294967295.0, True)        # UNSIGNED32
+    lo, hi, integral = drv.accepts("target")                         # INTEGER32
+    assert (lo, hi, integral) == (-2147483648.0, 2147483647.0, True)
+    for dev in ("speed", "target"):
+        acc = drv.accepts(dev)
+        assert acc is not None
+        lo, hi, _ = acc
+        assert drv.check_value(dev, lo) is None and drv.check_value(dev, hi) is None
+        assert drv.check_value(dev, lo - 1) is not None
+        assert drv.check_value(dev, hi + 1) is not None
+        assert drv.check_value(dev, lo + 0.5) is not None
+    assert drv.accepts("nope") is None
+
+
 def test_heartbeat_loss_fails_node_devices_and_recovers(rig: Rig) -> None:
     rig.slave.stop_heartbeat()
     names = {d.name for d in DEVICES}
