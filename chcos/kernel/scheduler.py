@@ -308,7 +308,6 @@ class Kernel(Lifecycle, Hooks, Timers):
         """Context switch: run ``t`` until its next trap (the thesis' ctxsw)."""
         t.state = _CURRENT
         self.current = t
-        self._tasks[t] = None
         t.steps += 1
         after = self.h_after  # one installed during the step is told through _rehook
         if self.h_before:

@@ -102,9 +102,8 @@ class _Frame:
     #: bytes, signed) each, coded with int.from_bytes / to_bytes instead of cantools
     #: (the same values, without cantools' per-frame work); None for every other message
     whole_bytes: tuple[tuple[str, int, int, bool], ...] | None = None
-    #: for a whole-byte message: each signal's (first byte, bytes, signed), and the payload of
-    #: :attr:`values` (None until known): a write replaces its signal's bytes in it
-    slots: dict[str, tuple[int, int, bool]] = field(default_factory=dict)
+    #: for a whole-byte message: the payload of :attr:`values` (None until known); a write
+    #: replaces its signal's bytes in it (each device's slot is in ``CanCodec._by_device``)
     data: bytes | None = None
     #: for a whole-byte message with sensors: (device, first byte, bytes, signed) of each
     #: sensor signal, in the message's signal order (what decode reads, nothing looked up)
@@ -188,20 +187,17 @@ class CanCodec:
             fr = self._by_id[(fid, bool(a0.get("extended", False)))]
             fr.whole_bytes = _whole_bytes(msg)
             if fr.whole_bytes is not None:
-                fr.slots = {sig: (o, n, sg) for sig, o, n, sg in fr.whole_bytes}
                 fr.data = _encode_whole(fr.whole_bytes, fr.values, msg.length)
                 fr.reads = tuple((dev, o, n, sg) for sig, o, n, sg in fr.whole_bytes
                                  if (dev := fr.sensors.get(sig)) is not None) or None
                 if fr.reads is not None and len(fr.reads) == 1:
                     dev, o, n, sg = fr.reads[0]
                     fr.read1 = (dev, o, n, sg, o == 0 and n == fr.length)
-                if fr.data is not None:
-                    for d in group:
-                        o, n, sg = fr.slots[d.name]
-                        whole = o == 0 and n == fr.length
-                        self._by_device[d.name] = (fr, d.name, (o, n, sg, whole))
-        #: raw (non-DBC) integer actuator -> the range its signal carries: check() accepts a
-        #: value inside it without a trial encode (a value outside still gets cantools' reason)
+                if fr.data is not None:   # signals are named after their devices here
+                    for sig, o, n, sg in fr.whole_bytes:
+                        self._by_device[sig] = (fr, sig, (o, n, sg, o == 0 and n == fr.length))
+        #: raw (non-DBC) integer actuator -> the range its signal carries: all check() asks
+        #: of a value besides being an integer (no trial encode); also what accepts() gives
         self._raw_ranges: dict[str, tuple[int, int]] = {}
         for d in devices:
             if "message" not in d.address and d.direction != "sensor":
@@ -267,12 +263,6 @@ class CanCodec:
         """Why ``value`` cannot be encoded for actuator ``device`` (None if it can): not a
         finite number, outside the signal's range or bit width, a fraction for a raw (non-DBC)
         integer signal. Nothing is remembered."""
-        accept = self._raw_ranges.get(device)
-        if accept is not None:
-            kind = type(value)
-            if (kind is int or (kind is float and value.is_integer())) \
-                    and accept[0] <= value <= accept[1]:
-                return None  # a raw integer signal: its range is all the encoder checks
         item = self._by_device.get(device)
         if item is None:
             return None
@@ -281,6 +271,7 @@ class CanCodec:
             return why
         if isinstance(value, bool):
             value = int(value)
+        accept = self._raw_ranges.get(device)
         if accept is not None:     # a raw signal: an unscaled integer of its bit width
             bits = fr.message.get_signal_by_name(sig).length
             if isinstance(value, float) and not value.is_integer():
