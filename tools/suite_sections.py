@@ -222,7 +222,7 @@ def field_buses(run: SuiteRun) -> None:
         for r in range(run.reps):
             out = Path(tmp) / f"fieldbus-{r}.json"
             subprocess.run([sys.executable, "-m", "tools.bench_fieldbus", "--repeat",
-                            "1" if run.quick else "2", "--json", str(out)],
+                            "1" if run.quick else "3", "--json", str(out)],
                            check=False, cwd=ROOT, stdout=subprocess.DEVNULL)
             runs.append(json.loads(out.read_text(encoding="utf-8")))
     run.res["fieldbus"] = runs

@@ -10,8 +10,9 @@ the system (tasks, device map, install) is :mod:`chcos.apps.bench.emergency_syst
   reports every reading upward;
 * the exception task ``X`` (level 3) hears every sensory message of every lower task through its
   tap at priority 99; on an intruder report it invokes the assassin ``K`` (level 2) on the
-  priority-99 link X/K; ``K`` suspends ``D0..D3`` and calls estop: every actuator is written its
-  safe value (0) through Devtab.write, and the driver puts the frames on the bus.
+  priority-99 link X/K; ``K`` calls estop: every actuator is written its safe value (0) through
+  Devtab.write, and the driver puts the frames on the bus (on K's step, by its fast path, when
+  nothing of that actuator is outstanding); then K suspends ``D0..D3``.
 
 A peer (one more python-can bus on the channel) sends the background traffic from a pacing
 thread at ``rate`` frames/s and, from the measuring thread, one intruder frame per trial at a

@@ -62,12 +62,15 @@ async def watch(ctx: TaskContext, command: Any) -> None:
 
 
 async def assassin(ctx: TaskContext, command: Any) -> int:
-    """K, the assassin: suspend the tasks named in its ``victims`` parameter, then e-stop
-    (every actuator to its safe value). Completes with how many actuators were written."""
+    """K, the assassin: e-stop (every actuator to its safe value), then suspend the tasks named
+    in its ``victims`` parameter, as the welding cell's assassin does: the safe values go out
+    first, and no victim can run in between (K's step is not interrupted). Completes with how
+    many actuators were written."""
+    written = ctx.estop(f"intruder {command!r}")
     for name in str(ctx.params.get("victims", "")).split(","):
         if name:
             ctx.suspend_task(name)
-    return ctx.estop(f"intruder {command!r}")
+    return written
 
 
 # --------------------------------------------------------------------------- the system
