@@ -187,11 +187,14 @@ def coerce(od_var: Any, value: Any) -> Any:
 def value_error(od_var: Any, index: int, subindex: int, value: Any) -> str | None:
     """Why ``value`` cannot be encoded for object ``od_var`` (``index``:``subindex``), or None
     if it can: not a finite number, a fraction for an integer object, outside the data type's
-    range."""
+    range (0 or 1, False or True for a BOOLEAN)."""
     if (why := not_finite(value)) is not None:
         return why
     if isinstance(value, bool):
         value = int(value)
+    if od_var.data_type == BOOLEAN:     # canopen would write bool(value): 7 would go as true
+        return None if value in (0, 1) else (
+            f"expected 0 or 1 for BOOLEAN object 0x{index:04X}:{subindex:02X}, got {value!r}")
     if od_var.data_type in INTEGER_TYPES and isinstance(value, float) and not value.is_integer():
         return f"expected an integer for object 0x{index:04X}:{subindex:02X}, got {value!r}"
     try:

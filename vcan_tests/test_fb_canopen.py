@@ -147,6 +147,26 @@ def test_what_the_driver_accepts_unasked_its_check_accepts(rig: Rig) -> None:
     assert drv.accepts("nope") is None
 
 
+def test_a_boolean_object_takes_0_and_1_only() -> None:
+    """A BOOLEAN object: canopen would write bool(value), so 7 would reach the node as true;
+    the check refuses anything but 0, 1, False and True, naming the object, and agrees with
+    the range Devtab compares first (accepted)."""
+    from canopen.objectdictionary import BOOLEAN, ODVariable
+
+    from drivers.canopen_od import accepted, value_error
+
+    var = ODVariable("enable", 0x2100, 0)
+    var.data_type = BOOLEAN
+    assert accepted(var) == (0.0, 1.0, True)
+    for ok in (0, 1, 0.0, 1.0, False, True):
+        assert value_error(var, 0x2100, 0, ok) is None, ok
+        assert var.encode_raw(bool(ok)) == bytes([int(ok)])
+    for bad in (7, 2, -1, 0.5):
+        why = value_error(var, 0x2100, 0, bad)
+        assert why == f"expected 0 or 1 for BOOLEAN object 0x2100:00, got {bad!r}"
+    assert "finite" in str(value_error(var, 0x2100, 0, float("nan")))
+
+
 def test_heartbeat_loss_fails_node_devices_and_recovers(rig: Rig) -> None:
     rig.slave.stop_heartbeat()
     names = {d.name for d in DEVICES}
