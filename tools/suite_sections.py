@@ -132,17 +132,21 @@ def reaction(run: SuiteRun) -> None:
 def full_path(run: SuiteRun) -> None:
     """3. Full path frame -> task -> frame on one core beside the raw bus and the hand-written
     asyncio program; task-to-task messages beside the minimal heap kernel, asyncio and heapq."""
-    loops = 5000 if run.quick else 20_000
+    loops = 5000 if run.quick else 40_000
     msgs = 50_000 if run.quick else 300_000
-    raw, path, hand = [], [], []
+    pairs = 5 if run.quick else bench_fullpath.PAIRS
+    raw, path, hand, to_raw, to_hand = [], [], [], [], []
     core_t: dict[str, list[float]] = {k: [] for k in (
         "read", "read_any", "minimal", "asyncio_queue", "asyncio_event", "heapq")}
     with one_core() as core:
         for r in range(run.reps):
             tag = f"{os.getpid()}-{r}"
-            raw.append(bench_fullpath.raw_rate(loops, f"suite-raw-{tag}"))
-            path.append(bench_fullpath.full_path(loops, 64, f"suite-path-{tag}"))
-            hand.append(bench_fullpath.handwritten(loops, 64, f"suite-hand-{tag}"))
+            b = bench_fullpath.paired_batch(loops, 64, pairs, f"suite-{tag}")
+            raw.append(b.rate("raw"))
+            path.append(b.rate("chcos"))
+            hand.append(b.rate("asyncio_cantools"))
+            to_raw.append(b.ratio("chcos", "raw"))
+            to_hand.append(b.ratio("chcos", "asyncio_cantools"))
         ops = bench_fullpath.instruction_profile(64, 500 if run.quick else 2000)
         per_min: list[float] = []
         for _ in range(run.reps):  # interleaved: each batch's ratio is taken within the batch
@@ -157,8 +161,6 @@ def full_path(run: SuiteRun) -> None:
             core_t["asyncio_queue"].append(bench_core.run_asyncio_queue(msgs)[0] / msgs)
             core_t["asyncio_event"].append(bench_core.run_asyncio_event(msgs)[0] / msgs)
             core_t["heapq"].append(bench_core.run_heapq(msgs) / msgs)
-    to_raw = [p / r for p, r in zip(path, raw, strict=True)]
-    to_hand = [p / h for p, h in zip(path, hand, strict=True)]
     t = core_t
 
     def ratio(a: str, b: str) -> list[float]:
@@ -177,7 +179,9 @@ def full_path(run: SuiteRun) -> None:
     interrupts = 2 * med(path)
     run.rows += [
         ("full path frame -> task -> frame, one core (python-can virtual bus; chcos = reader "
-         "thread, decode, kernel, driver task, write, send; loops/s)", ">= 20,000 loops/s",
+         "thread, decode, kernel, driver task, write, send; loops/s; each batch "
+         f"{pairs} alternating rounds of raw bus, chcos and program, its rates and ratios "
+         "the rounds' medians)", ">= 20,000 loops/s",
          spread(path, "{:,.0f}"), yes(med(path) >= 20_000)),
         ("  raw python-can virtual send+recv, one thread, same batches (frames/s)",
          ">= 0.33 of raw (ceiling 0.5)", f"{spread(raw, '{:,.0f}')}; chcos/raw "

@@ -90,3 +90,21 @@ def test_instruction_counts_split_each_program_by_where_its_code_lives() -> None
     assert sum(path.values()) < 6 * sum(raw[0].values())
     text = fp.instruction_text({"raw": raw[0], "chcos": path, "asyncio_cantools": path})
     assert "chcos/program 1.00" in text
+
+
+def test_a_full_path_batch_takes_its_ratios_round_by_round() -> None:
+    """paired_batch runs every program once per round, and a ratio is the median of the
+    rounds' own ratios (not the ratio of the medians); chcos answered every frame it got."""
+    import statistics
+
+    from tools import bench_fullpath as fp
+
+    b = fp.paired_batch(90, window=8, pairs=3, tag=f"pair-test-{id(fp)}",
+                        programs=fp.PROGRAMS)
+    assert {p: len(r) for p, r in b.rates.items()} == {p: 3 for p in fp.PROGRAMS}
+    assert set(b.cpu) == set(fp.PROGRAMS) - {"raw"} and all(len(c) == 3 for c in b.cpu.values())
+    assert all(r > 0 for rates in b.rates.values() for r in rates)
+    rounds = [c / r for c, r in zip(b.rates["chcos"], b.rates["raw"], strict=True)]
+    assert b.ratio("chcos", "raw") == statistics.median(rounds)
+    assert b.rate("asyncio_bytes") == statistics.median(b.rates["asyncio_bytes"])
+    assert b.sent[0] == 90 and 0 <= b.sent[1] <= 90
