@@ -118,6 +118,10 @@ class Driver(ABC):
         self.write_counts: Counter[str] = Counter()
         #: Writes :meth:`write` refused, per reason (``unknown-device``, ``stopped``).
         self.refused_writes: Counter[str] = Counter()
+        #: Frames put on the wire for each actuator, counted by the driver itself (one thread
+        #: at a time: its sender) instead of a :meth:`DriverHost.stat` call per frame; the bus
+        #: statistics read it as ``frames-sent`` (see :attr:`Devtab.bus_stats`).
+        self.sent_frames: Counter[str] = Counter()
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)

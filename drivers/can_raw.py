@@ -100,9 +100,8 @@ class CanDriver(ThreadedDriver):
         self._recorder: Recorder | None = None
         self._write_failed: set[str] = set()
         self.received = 0
-        self.sent = 0
-        #: of :attr:`sent`, the frames sent on the fast path (in the caller's thread)
-        self.sent_inline = 0
+        #: of :attr:`sent`, the frames the writer thread sent (the rest: the fast path)
+        self.sent_queued = 0
         #: the fast path's frame per actuator (see _send_now)
         self._outgoing: dict[str, can.Message] = {}
         # the batch being received (reader thread, see _end_batch)
@@ -329,7 +328,6 @@ class CanDriver(ThreadedDriver):
             bus.send(frame, timeout=0)
         except (can.CanError, OSError):
             return False
-        self.sent_inline += 1
         self._sent(device, value, frame, report)
         return True
 
@@ -347,6 +345,7 @@ class CanDriver(ThreadedDriver):
             self._write_failed.add(device)
             self.host.fail(device, reason)
             return
+        self.sent_queued += 1
         self._sent(device, value, frame)
 
     def _send_waiting(self, bus: can.BusABC, frame: can.Message) -> None:
@@ -368,9 +367,9 @@ class CanDriver(ThreadedDriver):
                                                 f"transmit queue was full", errno.ENOBUFS)
 
     def _sent(self, device: str, value: Any, frame: can.Message, report: bool = True) -> None:
-        """``frame`` is on the wire: count, confirm (``report``), recover, record."""
-        self.sent += 1
-        self.host.stat(self.bus.name, "frames-sent", device=device)
+        """``frame`` is on the wire: count (:attr:`sent_frames`, pulled into the bus statistics:
+        no lock or host call per frame), confirm (``report``), recover, record."""
+        self.sent_frames[device] += 1
         if report:
             self.host.written(device, value)
         if device in self._write_failed:
@@ -379,6 +378,16 @@ class CanDriver(ThreadedDriver):
         if self._recorder is not None:
             frame.is_rx = False
             self._recorder.on_message_received(frame)
+
+    @property
+    def sent(self) -> int:
+        """Frames sent, all actuators together."""
+        return sum(self.sent_frames.values())
+
+    @property
+    def sent_inline(self) -> int:
+        """Of :attr:`sent`, the frames sent on the fast path (in the caller's thread)."""
+        return self.sent - self.sent_queued
 
     def _bus_down(self, reason: str) -> None:
         if not self._failed:

@@ -274,7 +274,7 @@ class CanopenDriver(CanopenEvents):
         if b.pdo_var is not None:
             b.pdo_var.set_data(data)
             b.pdo_var.pdo_parent.transmit()
-            self.host.stat(self.bus.name, "frames-sent", device=name)
+            self.sent_frames[name] += 1
             self.host.written(name, value)
             return
         self.host.stat(self.bus.name, "requests", device=name)

@@ -310,6 +310,31 @@ def test_a_kernel_thread_write_is_shown_written_before_the_task_goes_on(cell: An
     assert [(t, ok) for _w, t, _d, ok in gate.sends] == [(0, True), (0, True)]
 
 
+def test_frames_sent_are_counted_by_the_driver_and_kept_after_it_stops(cell: Any) -> None:
+    """The CAN driver counts the frames it sends itself (fast path and writer thread alike);
+    the bus statistics pull them in as frames-sent, per device and in all, equal to what the
+    peer received, and keep them once the driver has stopped (the shutdown's safe value too)."""
+    s, gate, peer = cell
+    drv = s.devtab.drivers[0]
+    s.invoke("HT", {"values": [40.0, 50.0], "devtab": s.devtab, "seen": []})
+    s.run_for(0.01)
+    gate.full = True                       # the next one goes by the writer thread
+    assert s.devtab.estop("test") == 1
+    assert drv.settle(WAIT)
+    s.run_for(0.01)
+    got = [power(peer) for _ in range(3)]
+    assert got == [pytest.approx(40.0), pytest.approx(50.0), 0.0]
+    assert (drv.sent, drv.sent_inline, drv.sent_queued) == (3, 2, 1)
+    st = s.devtab.bus_stats["can0"]
+    assert st.counts["frames-sent"] == 3 and st.devices["H1"]["frames-sent"] == 3
+    assert s.devtab.stats_doc()["can0"]["devices"]["H1"]["frames-sent"] == 3
+    gate.full = False
+    s.devtab.stop_drivers()               # writes the safe value once more, then stops
+    assert power(peer) == 0.0
+    assert not s.devtab.drivers and s.devtab.bus_stats["can0"].counts["frames-sent"] == 4
+    assert s.devtab.bus_stats["can0"].devices["H1"]["frames-sent"] == 4
+
+
 def test_a_safe_value_after_a_fallback_is_retried_until_it_is_on_the_wire(cell: Any) -> None:
     s, gate, peer = cell
     drv = s.devtab.drivers[0]

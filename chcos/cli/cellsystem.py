@@ -64,6 +64,7 @@ class OutputsOff(Driver):
     def __init__(self, inner: Driver, log: Callable[[str, Any], None]) -> None:
         super().__init__(inner.bus, list(inner.devices.values()), inner.host)
         self.inner = inner
+        self.sent_frames = inner.sent_frames    # what the wrapped driver still sends itself
         self._log = log
         self._running = True        # stands in for a driver that is already running
 

@@ -1,6 +1,7 @@
 """busstats - the bus counters of the device table: frames, requests, reconnects and errors by
-class, per bus and per device, counted from the drivers' threads under one lock and read by the
-map, the viewer and metrics."""
+class, per bus and per device, counted from the drivers' threads under one lock (or, for frames
+sent, by each driver itself and pulled in when they are read) and read by the map, the viewer
+and metrics."""
 
 from __future__ import annotations
 
@@ -8,9 +9,12 @@ import logging
 import threading
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from chcos.kernel.scheduler import Kernel
+
+if TYPE_CHECKING:
+    from drivers.base import Driver
 
 log = logging.getLogger("chcos.devices.devtab")
 
@@ -29,6 +33,19 @@ class BusStats:
     devices: dict[str, Counter[str]] = field(default_factory=dict)
     last_error: str = ""
 
+    def copy(self) -> BusStats:
+        """An independent copy (counters and per-device counters copied)."""
+        return BusStats(Counter(self.counts), Counter(self.errors),
+                        {d: Counter(c) for d, c in self.devices.items()}, self.last_error)
+
+    def add_sent(self, sent: dict[str, int]) -> None:
+        """Add a driver's frames sent per device (see :attr:`drivers.base.Driver.sent_frames`)
+        as ``frames-sent``, per device and in all."""
+        for device, n in sent.items():
+            if n:
+                self.counts["frames-sent"] += n
+                self.devices.setdefault(device, Counter())["frames-sent"] += n
+
     def as_dict(self) -> dict[str, Any]:
         """Plain JSON-able form."""
         return {"counts": dict(self.counts), "errors": dict(self.errors),
@@ -40,8 +57,30 @@ class BusCounters:
     """Bus statistics for :class:`chcos.devices.devtab.Devtab` (its base class)."""
 
     kernel: Kernel
-    bus_stats: dict[str, BusStats]
+    drivers: list[Driver]
+    #: what the drivers count through :meth:`stat`, per bus (under ``_stats_lock``)
+    _bus_stats: dict[str, BusStats]
     _stats_lock: threading.Lock
+
+    @property
+    def bus_stats(self) -> dict[str, BusStats]:
+        """Per bus: frames/requests, errors by class, reconnects (see :class:`BusStats`); a
+        snapshot, with the frames each running driver counted itself (``frames-sent``)."""
+        with self._stats_lock:
+            out = {bus: st.copy() for bus, st in self._bus_stats.items()}
+        for drv in list(self.drivers):
+            sent = dict(drv.sent_frames)    # one C-level copy: the sender may be counting
+            if sent:
+                out.setdefault(drv.bus.name, BusStats()).add_sent(sent)
+        return out
+
+    def _keep_sent(self, drv: Driver) -> None:
+        """A driver stops: its own frame counts move into the stored statistics."""
+        sent = dict(drv.sent_frames)
+        drv.sent_frames.clear()
+        if sent:
+            with self._stats_lock:
+                self._bus_stats.setdefault(drv.bus.name, BusStats()).add_sent(sent)
 
     def error(self, bus: str, kind: str, detail: str, device: str = "") -> None:
         """Count a bus-level error of class ``kind`` (from a driver thread)."""
@@ -53,9 +92,9 @@ class BusCounters:
         """Add ``n`` to bus counter ``key`` (from any thread; see :class:`BusStats`), or with
         ``error`` to error class ``key`` (a device's as ``error:<key>``)."""
         with self._stats_lock:
-            st = self.bus_stats.get(bus)
+            st = self._bus_stats.get(bus)
             if st is None:
-                st = self.bus_stats[bus] = BusStats()
+                st = self._bus_stats[bus] = BusStats()
             (st.errors if error else st.counts)[key] += n
             if device:
                 dc = st.devices.get(device)
@@ -65,27 +104,26 @@ class BusCounters:
 
     def stats_doc(self) -> dict[str, Any]:
         """The bus statistics as plain data, per bus (see :class:`BusStats`)."""
-        with self._stats_lock:
-            return {bus: st.as_dict() for bus, st in sorted(self.bus_stats.items())}
+        return {bus: st.as_dict() for bus, st in sorted(self.bus_stats.items())}
 
     @property
     def bus_errors(self) -> Counter[tuple[str, str]]:
         """Errors by (bus, class), a copy derived from :attr:`bus_stats`."""
         with self._stats_lock:
-            return Counter({(bus, kind): n for bus, st in self.bus_stats.items()
+            return Counter({(bus, kind): n for bus, st in self._bus_stats.items()
                             for kind, n in st.errors.items() if n})
 
     @property
     def last_bus_error(self) -> dict[str, str]:
         """The last error's text per bus (``"class: detail"``), derived from :attr:`bus_stats`."""
         with self._stats_lock:
-            return {bus: st.last_error for bus, st in self.bus_stats.items() if st.last_error}
+            return {bus: st.last_error for bus, st in self._bus_stats.items() if st.last_error}
 
     def _bus_error(self, bus: str, kind: str, detail: str, count: bool = True) -> None:
         if count:
             self.stat(bus, kind, error=True)
         with self._stats_lock:
-            st = self.bus_stats.get(bus)
+            st = self._bus_stats.get(bus)
             if st is not None:
                 st.last_error = f"{kind}: {detail}"
         log.warning("bus %s: %s: %s", bus, kind, detail)

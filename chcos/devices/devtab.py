@@ -64,8 +64,9 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         self._entries: dict[str, DeviceEntry] = {}
         self.drivers: list[Driver] = []
         self.on_write: list[Callable[[str, Any], None]] = []
-        #: Per bus: frames/requests, errors by class, reconnects (see :class:`BusStats`).
-        self.bus_stats: dict[str, BusStats] = {}
+        # per bus, what the drivers count through stat() (bus_stats adds what they count
+        # themselves)
+        self._bus_stats: dict[str, BusStats] = {}
         self._stats_lock = threading.Lock()
         #: (device, reason) of every safe value that could not be put on the wire, oldest first.
         self.safe_failures: list[tuple[str, str]] = []
@@ -169,6 +170,7 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
                 drv.stop()
             except Exception:
                 log.exception("driver %s failed to stop", drv.bus.name)
+            self._keep_sent(drv)
         self.drivers.clear()
         return undelivered
 
