@@ -237,28 +237,26 @@ class CanDriver(ThreadedDriver):
                                f"receive buffer overflowed (kernel drop count {drops})")
 
     def _receive(self, frame: can.Message) -> None:
+        """One received frame (reader thread): counted, recorded, decoded; its readings join
+        the batch :meth:`_end_batch` hands over. Never raises: what fails is an ``internal``
+        error."""
         if self._failed:
             self._bus_up()
         try:
-            self._handle(frame)
+            self.received += 1
+            if self._recorder is not None:
+                self._recorder.on_message_received(frame)
+            if frame.is_error_frame:
+                self._error("error-frame", "CAN error frame received")
+                return
+            status, result = self.codec.decode(frame)
+            if status == "ok":
+                assert isinstance(result, list)
+                self._batch += result
+            elif status != "ignore":
+                self._error(status, str(result))
         except Exception as exc:  # the reader must survive any host/codec surprise
             self._error("internal", f"frame handling failed: {exc!r}")
-
-    def _handle(self, frame: can.Message) -> None:
-        """One received frame (reader thread): counted, recorded, decoded; its readings join
-        the batch :meth:`_end_batch` hands over."""
-        self.received += 1
-        if self._recorder is not None:
-            self._recorder.on_message_received(frame)
-        if frame.is_error_frame:
-            self._error("error-frame", "CAN error frame received")
-            return
-        status, result = self.codec.decode(frame)
-        if status == "ok":
-            assert isinstance(result, list)
-            self._batch += result
-        elif status != "ignore":
-            self._error(status, str(result))
 
     def _end_batch(self) -> None:
         """The frames received together are handled (on the reader thread, or under the

@@ -39,7 +39,7 @@ import threading
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, ClassVar
 
 from chcos.devices.spec import BusSpec, DeviceSpec
 from drivers.base import Driver, DriverHost
@@ -161,6 +161,13 @@ class ThreadedDriver(Driver):
 
     confirms_writes = True
     numeric_only = True
+    #: True for a class that overrides :meth:`_can_send` (set for each subclass): the fast
+    #: path asks it only then (otherwise a command may always go: a call less per frame)
+    _gated: ClassVar[bool] = False
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        cls._gated = cls._can_send is not ThreadedDriver._can_send
 
     def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
         super().__init__(bus, devices, host)
@@ -258,7 +265,7 @@ class ThreadedDriver(Driver):
         with self._lock:
             running = self._running     # stop() may have come between write's check and here
             inline = (running and self._inline and not self._outbox and not self._sending
-                      and self._can_send())
+                      and (not self._gated or self._can_send()))
             if inline:
                 self._sending = True    # claimed: the writer thread waits, order is kept
             elif running:
@@ -293,8 +300,8 @@ class ThreadedDriver(Driver):
         if not self._inline:
             return False
         with self._lock:
-            if (not self._running or self._outbox or self._sending or not self._can_send()
-                    or device not in self.devices
+            if (not self._running or self._outbox or self._sending
+                    or (self._gated and not self._can_send()) or device not in self.devices
                     or not self._send_now(device, value, report=False)):
                 return False
         self.write_counts[device] += 1

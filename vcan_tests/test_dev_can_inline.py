@@ -310,6 +310,37 @@ def test_a_kernel_thread_write_is_shown_written_before_the_task_goes_on(cell: An
     assert [(t, ok) for _w, t, _d, ok in gate.sends] == [(0, True), (0, True)]
 
 
+def test_an_outcome_is_counted_queued_before_its_write_leaves_the_in_flight_queue(
+        cell: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Devtab's fast path asks without a lock whether anything of the device is in flight or
+    has an outcome queued: a driver thread ending a write (on the wire or failed) counts the
+    queued outcome first, so at the moment it does the write is still in flight - no thread
+    switch in between can show the device free too early."""
+    s, gate, peer = cell
+    dt = s.devtab
+    seen: list[tuple[str, bool]] = []
+    count = type(dt)._queue_outcome
+
+    def probe(self: Any, device: str) -> None:
+        # the state just before the outcome is counted: the write must still be in flight
+        seen.append((threading.current_thread().name, bool(self._inflight.get(device))))
+        count(self, device)
+
+    monkeypatch.setattr(type(dt), "_queue_outcome", probe)
+    gate.full = True                # both fast paths refuse: the writer thread sends
+    gate.fail_writer = 1            # ... and fails the first command once
+    s.invoke("HT", {"values": [40.0, 50.0], "devtab": dt, "seen": []})
+    s.run_for(0.01)
+    assert dt.drivers[0].settle(WAIT)
+    s.run_for(0.01)
+    # 40 failed; 50 written; the device, failed by the send error, recovers with that frame
+    # and gets its safe value first thing (Devtab's recovery), written too
+    assert [power(peer), power(peer)] == [pytest.approx(50.0), 0.0]
+    assert seen == [("can-can0-tx", True)] * 3
+    e = dt.get("H1")
+    assert e.value == 0 and e.pending is None and e.write_errors == 1
+
+
 def test_frames_sent_are_counted_by_the_driver_and_kept_after_it_stops(cell: Any) -> None:
     """The CAN driver counts the frames it sends itself (fast path and writer thread alike);
     the bus statistics pull them in as frames-sent, per device and in all, equal to what the

@@ -17,6 +17,7 @@ import logging
 import threading
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from threading import get_ident
 from typing import TYPE_CHECKING, Any
 
 from chcos.devices.busstats import BusCounters, BusStats
@@ -180,7 +181,7 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         the driver got it: staleness is judged from that, not from when the kernel handles it."""
         at = self.kernel.clock.now()
         self._rx_stamp[device] = at
-        self.kernel.interrupt(self._reading, device, value, at)
+        self.kernel.interrupt(self._readings, ((device, value),), at)
 
     inject = deliver  # the host's and the tests' way to feed a sensor
 
@@ -226,7 +227,9 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         return self.kernel.clock.now()
 
     # ---- interrupt handlers (kernel thread) -------------------------------------------------
-    def _reading(self, device: str, raw: Any, at: float | None = None) -> None:
+    def _reading(self, device: str, raw: Any, at: float, now: float) -> None:
+        """One reading on the kernel thread (see :meth:`_readings`): got by the driver at
+        ``at``, handled at kernel time ``now``."""
         e = self._entries.get(device)
         if e is None:
             self._bus_error("?", "unknown-device", f"reading for unknown device {device!r}")
@@ -238,10 +241,9 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         kind = type(raw)   # int and float first: scalable() for the rest (bool is not scaled)
         value = (raw * spec.scale + spec.offset if kind is int or kind is float or scalable(raw)
                  else raw)
-        now = self.kernel.clock.now()
         e.value = value
         e.updated_at = now
-        e.rx_at = now if at is None else at
+        e.rx_at = at
         e.readings += 1
         if e.stale:  # fresh data ends staleness, and nothing else (a driver failure stays)
             e.stale = False
@@ -250,13 +252,15 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
             e.overwrites += 1
 
     def _readings(self, readings: Sequence[tuple[str, Any]], at: float) -> None:
-        """The interrupt of :meth:`deliver_many`: each reading in turn; one that raises does not
-        keep the others from their buffers (the first error is raised after the last, for the
-        kernel to record)."""
+        """The interrupt of :meth:`deliver_many` and :meth:`deliver`: each reading in turn, all
+        handled at the same kernel time; one that raises does not keep the others from their
+        buffers (the first error is raised after the last, for the kernel to record)."""
         first: Exception | None = None
+        now = self.kernel.clock.now()
+        reading = self._reading
         for device, raw in readings:
             try:
-                self._reading(device, raw, at)
+                reading(device, raw, at, now)
             except Exception as exc:
                 first = first or exc
         if first is not None:
@@ -340,11 +344,11 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         an outcome on its way here (so the shown value and the order stay those of the wire).
         True if ``raw`` is on the wire; then nothing is tracked."""
         assert e.driver is not None
-        if not self.kernel.on_kernel_thread():
+        if self.kernel.thread_ident != get_ident():     # not on_kernel_thread(): a call less
             return False
-        with self._wlock:
-            if self._inflight.get(device) or (self._queued and self._queued.get(device)):
-                return False
+        # no lock: the other threads keep the order that makes this safe (chcos.devices.writes)
+        if self._inflight.get(device) or (self._queued and self._queued.get(device)):
+            return False
         return e.driver.write_now(device, raw)
 
     def safe_values(self, devices: Iterable[str], why: str = "abnormal completion") -> int:

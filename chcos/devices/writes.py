@@ -6,7 +6,14 @@ for a safe value, an entry of ``safe_failures``.
 An outcome reported from a driver thread reaches the kernel thread through ``kernel.interrupt``;
 one reported on the kernel thread itself (a driver's fast path sends during the writing task's
 step) is applied at once, unless an earlier outcome of the same device is still queued there
-(then it queues behind it, so outcomes are applied in order)."""
+(then it queues behind it, so outcomes are applied in order).
+
+Devtab's fast path (:meth:`Devtab._write_now`, kernel thread) asks without the lock whether
+anything of a device is in flight or has an outcome queued. Only the kernel thread adds to the
+in-flight queues and takes queued outcomes off; another thread that ends a write counts its
+queued outcome *before* it takes the write off the in-flight queue, and a safe value tried again
+never leaves it. So whenever a thread switch falls between the two, the check still sees one of
+them."""
 
 from __future__ import annotations
 
@@ -39,14 +46,14 @@ class WriteTracking:
         kernel thread applied at once, see the module doc)."""
         with self._wlock:
             q = self._inflight.get(device)
-            w = q.popleft() if q else None
-            if w is None:
+            if not q:
                 return
-            w.done = True
             now = self.kernel.on_kernel_thread() and not (self._queued and
                                                           self._queued.get(device))
             if not now:
-                self._queue_outcome(device)
+                self._queue_outcome(device)     # first (see the module doc)
+            w = q.popleft()
+            w.done = True
         if now:
             self._write_done(w)
         else:
@@ -75,23 +82,22 @@ class WriteTracking:
         queued; then it is reported undelivered."""
         with self._wlock:
             q = self._inflight.get(device)
-            w = q.popleft() if q else None
-            retry = (w is not None and bool(w.safe) and w.attempts < SAFE_ATTEMPTS and not q)
-            if w is not None and retry:
+            if not q:
+                return
+            w = q[0]
+            e = self._entries.get(device)
+            driver = e.driver if e is not None else None
+            retry = (bool(w.safe) and w.attempts < SAFE_ATTEMPTS and len(q) == 1
+                     and driver is not None)
+            if retry:       # stays in flight, first: tried again below
                 w.attempts += 1
                 w.reason = reason
-                self._inflight.setdefault(device, deque()).append(w)
-            elif w is not None:
-                self._queue_outcome(device)
-        if w is None:
+            else:
+                self._queue_outcome(device)     # first (see the module doc)
+                q.popleft()
+        if driver is not None and retry:
+            driver.write(device, w.raw)
             return
-        e = self._entries.get(device)
-        if retry and e is not None and e.driver is not None:
-            e.driver.write(device, w.raw)
-            return
-        if retry:      # no driver to try again with: reported failed after all
-            with self._wlock:
-                self._queue_outcome(device)
         w.done = False
         w.reason = reason
         self.kernel.interrupt(self._queued_done, w)

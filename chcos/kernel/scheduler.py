@@ -67,7 +67,8 @@ class Kernel(Lifecycle, Hooks, Timers):
         self._idle = False
         self._stop = False
         self._running = False
-        self._thread: int | None = None
+        #: the ident of the thread running :meth:`run`, None when it is not running
+        self.thread_ident: int | None = None
         self._settlers: list[Callable[[float], bool]] = []
         self._idle_hooks: list[Callable[[], None]] = []
         #: every task this kernel has made ready (a dict as an ordered set): :attr:`steps`
@@ -187,7 +188,7 @@ class Kernel(Lifecycle, Hooks, Timers):
 
     def on_kernel_thread(self) -> bool:
         """True when called from the thread that is running :meth:`run`."""
-        return self._thread == threading.get_ident()
+        return self.thread_ident == threading.get_ident()
 
     def run(self, until: float | None = None) -> None:
         """Schedule tasks until :meth:`stop`, or until clock time ``until``.
@@ -199,7 +200,7 @@ class Kernel(Lifecycle, Hooks, Timers):
             raise KernelError("kernel is already running")
         self._running = True
         self._stop = False
-        self._thread = threading.get_ident()
+        self.thread_ident = threading.get_ident()
         clock = self.clock
         ready = self.ready_heap
         timers = self._timers
@@ -263,7 +264,7 @@ class Kernel(Lifecycle, Hooks, Timers):
         finally:
             self.current = None
             self._running = False
-            self._thread = None
+            self.thread_ident = None
 
     def _idle_wait(self, until: float | None) -> bool:
         """Nothing is ready: wait for the next event. False when :meth:`run` should return."""

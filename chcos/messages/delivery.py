@@ -216,8 +216,8 @@ class Delivery:
         deliver = self.deliver
         for link in self._device_links.get(device, ()):
             port = link.port
-            if isinstance(port, InPort) and port.fresh and port.fifo is None:
-                over = True
+            if port.__class__ is InPort and port.fifo is None and port.fresh:  # a queued link
+                over = True                                     # keeps it: no overwrite
             try:
                 deliver(link, value)
             except QueueOverflow as exc:
