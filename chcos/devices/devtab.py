@@ -238,7 +238,7 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
             e.dropped += 1
             return
         spec = e.spec
-        kind = type(raw)   # int and float first: scalable() for the rest (bool is not scaled)
+        kind = raw.__class__  # int and float first: scalable() for the rest (bool is not scaled)
         value = (raw * spec.scale + spec.offset if kind is int or kind is float or scalable(raw)
                  else raw)
         e.value = value

@@ -39,7 +39,7 @@ class Commanding(TaskHandle):
         """Command actuator (or output file) on ``port`` with ``value``; never blocks.
         Raises DeviceError if the actuator refuses it (outside limits, failed), MessageError if
         the port leads to a task."""
-        link = self._out_named.get(port) if isinstance(port, str) else None
+        link = self._out_named.get(port) if port.__class__ is str else None  # (no call)
         self._mm.write(self._t, link or self._out(port), value)
 
     # ---- command messages (topen, tclose, teotsk, msgstat) ----------------------------------

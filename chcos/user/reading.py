@@ -89,7 +89,7 @@ class Reading(TaskHandle):
             except IndexError:
                 p = self._in(port)  # raises the MessageError naming the port
         else:
-            p = (self._in_named.get(port) if isinstance(port, str) else None) or self._in(port)
+            p = (self._in_named.get(port) if port.__class__ is str else None) or self._in(port)
         if not p.fresh:
             if p.device:
                 self._check_source(p)
