@@ -292,7 +292,7 @@ def test_a_reading_refused_by_a_full_queued_link_surfaces_in_system_check(
     s.run_for(0.1)
     with pytest.raises(HandlerError) as err:
         s.check()
-    assert "Devtab._reading failed on the kernel thread: QueueOverflow: queued link S1/R is " \
+    assert "Devtab._readings failed on the kernel thread: QueueOverflow: queued link S1/R is " \
            "full" in str(err.value)
     assert isinstance(err.value.__cause__, QueueOverflow)
     s.check()   # raised once
