@@ -216,8 +216,9 @@ class Delivery:
         deliver = self.deliver
         for link in self._device_links.get(device, ()):
             port = link.port
-            if port.__class__ is InPort and port.fifo is None and port.fresh:  # a queued link
-                over = True                                     # keeps it: no overwrite
+            # an unread message on a newest-wins port is overwritten (a queued link keeps it)
+            if port.__class__ is InPort and port.fifo is None and port.fresh:
+                over = True
             try:
                 deliver(link, value)
             except QueueOverflow as exc:
