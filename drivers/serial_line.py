@@ -365,6 +365,13 @@ class SerialDriver(ThreadedDriver):
                 port.flush()
             except (serial.SerialException, OSError) as exc:
                 raise BusError(f"write to {self.bus.options['url']} failed: {exc}") from exc
+            except (TypeError, AttributeError) as exc:
+                if port.is_open:    # not the port closing under the write: a real bug
+                    raise
+                # the reader closed the port (link lost) during the write: pyserial's socket://
+                # then fails with a TypeError instead of an OSError
+                raise BusError(f"write to {self.bus.options['url']} failed: the port was closed "
+                               f"during the write") from exc
         except BusError as exc:
             with self._cond:
                 self._write_failed.add(device)

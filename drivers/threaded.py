@@ -222,6 +222,11 @@ class ThreadedDriver(Driver):
                     return
             try:
                 self._send(device, value)
+            except Exception as exc:    # a driver bug must not end the writer thread (later
+                # writes would wait in the outbox forever): this write is reported failed
+                reason = f"{self.kind} bus {self.bus.name}: sending failed: {exc!r}"
+                self._error("internal", reason)
+                self.host.write_failed(device, value, reason)
             finally:
                 with self._lock:
                     self._sending = False

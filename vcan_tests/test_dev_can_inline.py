@@ -38,6 +38,7 @@ class GateBus:
         self.real = real
         self.full = False
         self.fail_writer = 0
+        self.crash_writer = 0      # the writer's next sends raise what no driver expects
         self.enobufs = 0
         self.gate = threading.Event()
         self.gate.set()
@@ -61,6 +62,10 @@ class GateBus:
                 self.sends.append((who, timeout, bytes(msg.data), False))
                 raise can.CanOperationError("Failed to transmit: No buffer space available",
                                             errno.ENOBUFS)
+            if self.crash_writer > 0:
+                self.crash_writer -= 1
+                self.sends.append((who, timeout, bytes(msg.data), False))
+                raise RuntimeError("a bug under the driver")
             if self.fail_writer > 0:
                 self.fail_writer -= 1
                 self.sends.append((who, timeout, bytes(msg.data), False))
@@ -195,6 +200,22 @@ def test_a_full_bus_hands_the_write_to_the_writer_and_reports_no_failure(rig: An
         (threading.current_thread().name, False, False), ("can-b-tx", True, True)]
     assert not drv.error_counts and host.errors == [] and host.failures == []
     assert (drv.sent, drv.sent_inline) == (1, 0)
+
+
+def test_an_unexpected_error_fails_that_write_and_the_writer_goes_on(rig: Any) -> None:
+    """Something no driver expects raised under the writer thread's send: that write is
+    reported failed (and counted as an internal error), and the writer thread lives on - the
+    next write is sent, not left waiting in the outbox."""
+    drv, host, gate, peer = rig
+    gate.full = True
+    gate.crash_writer = 1
+    drv.write("A", 11)
+    assert host.wait(lambda h: h.writes)
+    assert host.writes[0][:2] == ("A", 11) and "a bug under the driver" in host.writes[0][2]
+    assert drv.error_counts["internal"] == 1
+    drv.write("A", 12)
+    assert received(peer, 1) == [value_data(12)]
+    assert drv.settle(WAIT) and host.writes[1:] == [("A", 12, "")]
 
 
 def test_the_writer_waits_out_enobufs_instead_of_failing(rig: Any) -> None:

@@ -228,3 +228,35 @@ def test_settle_before_the_port_opens_waits_for_it_and_hands_over_waiting_input(
             assert c.recv(64) == b"W=0\n"
     finally:
         peer.close()
+
+
+class _ClosingPort:
+    """A port whose write fails the way pyserial's socket:// does when the reader closes it
+    during the write (a TypeError from select on the socket that is gone)."""
+
+    def __init__(self, is_open: bool) -> None:
+        self.is_open = is_open
+
+    def write(self, data: bytes) -> int:
+        raise TypeError("argument must be an int, or have a fileno() method.")
+
+    def flush(self) -> None:
+        pass
+
+
+def test_a_port_closed_during_a_write_fails_that_write_and_the_actuator() -> None:
+    """The reader closes the port (link lost) while the writer thread writes: the write is
+    reported failed and the actuator failed, as for any write error. The same TypeError from
+    a port that is still open is a bug and is not dressed up as a bus error (the writer thread
+    reports it as an internal error instead)."""
+    host = FakeHost()
+    spec = bus("serial", url="socket://127.0.0.1:9", protocol="line", pattern=PATTERN)
+    drv = SerialDriver(spec, [device("Tare", "actuator", i=1, format="TARE {value}")], host)
+    drv._port = _ClosingPort(is_open=False)
+    drv._send("Tare", 1)
+    assert host.writes == [("Tare", 1, "write to socket://127.0.0.1:9 failed: the port was "
+                                       "closed during the write")]
+    assert host.failures == [("Tare", host.writes[0][2])]
+    drv._port = _ClosingPort(is_open=True)
+    with pytest.raises(TypeError):
+        drv._send("Tare", 2)
