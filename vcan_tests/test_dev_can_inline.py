@@ -384,6 +384,7 @@ def test_frames_sent_are_counted_by_the_driver_and_kept_after_it_stops(cell: Any
     s.devtab.stop_drivers()               # writes the safe value once more, then stops
     assert power(peer) == 0.0
     assert not s.devtab.drivers and s.devtab.bus_stats["can0"].counts["frames-sent"] == 4
+    assert (drv.sent, drv.sent_inline, drv.sent_queued) == (4, 3, 1)   # its own, unchanged
     assert s.devtab.bus_stats["can0"].devices["H1"]["frames-sent"] == 4
 
 

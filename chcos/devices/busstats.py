@@ -75,9 +75,9 @@ class BusCounters:
         return out
 
     def _keep_sent(self, drv: Driver) -> None:
-        """A driver stops: its own frame counts move into the stored statistics."""
+        """A driver stops and leaves :attr:`drivers`: its own frame counts are copied into the
+        stored statistics (the driver keeps its own; a restart makes new drivers)."""
         sent = dict(drv.sent_frames)
-        drv.sent_frames.clear()
         if sent:
             with self._stats_lock:
                 self._bus_stats.setdefault(drv.bus.name, BusStats()).add_sent(sent)
