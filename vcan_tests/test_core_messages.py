@@ -128,6 +128,31 @@ def test_newest_message_overwrites_unread_one(make_system: MakeSystem) -> None:
     assert (link.sent, link.overwritten, link.delivered) == (4, 1, 3)
 
 
+def test_unread_messages_dropped_by_a_wipe_are_counted_not_delivered(
+        make_system: MakeSystem) -> None:
+    s = make_system()
+    s.execute(f"install -m0 --code={M}:producer P")
+    s.execute(f"install -m0i1 --code={M}:reader R P")
+    s.execute(f"install -m0 --code={M}:producer Q")
+    s.execute(f"install -m0i1 --queue=Q=4 --code={M}:reader F Q")
+    log: list[Any] = []
+    flog: list[Any] = []
+    s.invoke("R", {"log": log, "slow": 1.0})
+    s.invoke("F", {"log": flog, "slow": 1.0})
+    s.run_for(0.01)
+    s.invoke("P", {"values": [1, 2, 3], "gap": 0.4})  # R takes 1; 3 overwrites 2 (R sleeps)
+    s.invoke("Q", {"values": [7, 8, 9], "gap": 0.4})  # F takes 7; 8 and 9 wait in the queue
+    s.run_for(0.9)
+    for name in ("R", "F"):
+        s.msgmgr.wipe(s.tsktab.get(name), "reloaded")
+    s.run_for(2.0)
+    assert (log, flog) == ([1], [7])
+    p, q = s.msgtab.find("P", "R"), s.msgtab.find("Q", "F")
+    assert (p.sent, p.overwritten, p.delivered, p.discarded) == (3, 1, 1, 1)
+    assert (q.sent, q.overwritten, q.delivered, q.discarded) == (3, 0, 1, 2)
+    assert not p.port.fresh and not q.port.fresh  # type: ignore[union-attr]
+
+
 def test_queued_link_keeps_fifo_and_refuses_overflow(make_system: MakeSystem) -> None:
     s = make_system()
     s.execute(f"install -m0 --code={M}:queued_producer P")

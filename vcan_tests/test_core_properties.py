@@ -2,7 +2,8 @@
 
 1. Whenever a task is stepped, no ready task has a higher priority.
 2. No message sent to a task is lost except by overwrite: for every link,
-   sent == delivered + overwritten + (1 if a message is still unread).
+   sent == delivered + overwritten + (1 if a message is still unread), where sent is what the
+   sender's ``put`` says the link took and delivered what the receiver's reads returned.
 """
 
 from __future__ import annotations
@@ -37,12 +38,16 @@ async def scripted(ctx: TaskContext, cmd: dict[str, Any]) -> None:
         elif op == "yield":
             await ctx.checkpoint()
         elif op == "put":
-            ctx.put(ctx.now)
+            cmd["put"] += ctx.put(ctx.now)
         elif op == "read" and ctx.inputs:
             with contextlib.suppress(ReadTimeout):
                 await ctx.read_any(timeout=arg or 0.02)
-        elif op == "poll" and ctx.inputs:
-            ctx.poll(0)
+                cmd["read"] += 1
+        elif op == "poll" and ctx.inputs and ctx.poll(0, _NOTHING) is not _NOTHING:
+            cmd["read"] += 1
+
+
+_NOTHING = object()
 
 
 class Checker(Instrument):
@@ -71,12 +76,15 @@ def test_scheduler_invariants(programs: list[list[Op]], prios: list[int]) -> Non
         else:
             s.execute(f"install -m0i1 --code={M}:scripted {name} {names[i - 1]}")
             s.execute(f"setpri -{prios[i]} {names[i - 1]} {name}")
+    cmds = [{"ops": program, "put": 0, "read": 0} for program in programs]
     for i, name in enumerate(names):
-        s.invoke(name, {"ops": programs[i]}, priority=prios[(i + 3) % len(prios)])
+        s.invoke(name, cmds[i], priority=prios[(i + 3) % len(prios)])
     s.run_for(30.0)
     assert chk.violations == []
-    for link in s.msgtab:
+    for i, name in enumerate(names[1:], start=1):
+        link = s.msgtab.find(names[i - 1], name)
         port = link.port
-        if isinstance(port, InPort):
-            unread = 1 if port.fresh else 0
-            assert link.sent == link.delivered + link.overwritten + unread, link
+        assert isinstance(port, InPort)
+        unread = 1 if port.fresh else 0
+        assert (link.sent, link.delivered) == (cmds[i - 1]["put"], cmds[i]["read"]), link
+        assert link.sent == link.delivered + link.overwritten + unread, link

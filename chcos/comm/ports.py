@@ -55,8 +55,8 @@ class Links(Protocol):
 class Messages(Protocol):
     """The message manager, as far as messages from other satellites reach it."""
 
-    def deliver(self, link: Link, value: Any) -> bool:
-        """Put a sensory value into ``link``'s destination port."""
+    def deliver(self, link: Link, value: Any) -> int:
+        """Put a sensory value into ``link``'s destination port; 1 if taken, 0 if suspended."""
         ...
 
     def deliver_tap(self, link: Link, tap: TapPort, source: str, value: Any) -> None:

@@ -98,6 +98,7 @@ class Lifecycle:
         t.cancelling = True
         self.unhook(t)
         t.throw_exc = Preempted(reason)
+        t.plain = None
         t.send_value = None
         if t is not self.current:
             frozen, t.frozen = t.frozen, False
@@ -129,7 +130,7 @@ class Lifecycle:
                 f"task {t.name} awaited something that is not a chcos call ({trap!r})"))
 
     def _end(self, t: TaskEntry, how: End, value: Any) -> None:
-        t.coro = None
+        t.coro = t.plain = None
         t.send_value = None   # a next activation's first step sends None
         t.cancelling = False
         self.unhook(t)

@@ -125,6 +125,7 @@ class Kernel(Lifecycle, Hooks, Timers):
             t.sleep_until = None
         t.send_value = value
         t.throw_exc = exc
+        t.plain = t.coro if exc is None and not self._h_step else None
         if t.frozen or self.h_scheduled:
             self.ready(t, prio)
             return
@@ -222,8 +223,8 @@ class Kernel(Lifecycle, Hooks, Timers):
                     _, seq, t = heappop(ready)
                     if t.stamp != seq:
                         continue
-                    coro = t.coro
-                    if coro is None or t.throw_exc is not None or self._h_step:
+                    coro = t.plain  # None: no activation, an exception to throw, an instrument
+                    if coro is None:
                         step(t)
                         continue
                     # _step(t) inlined for the common step (a value sent in, no instrument):
@@ -244,12 +245,14 @@ class Kernel(Lifecycle, Hooks, Timers):
                         self.current = None
                         self._raised(t, err)
                         continue
+                    # not frozen: a task cannot suspend itself, and a frozen one runs only to
+                    # be cancelled (Lifecycle.cancel), which the first test catches
                     if t.cancelling:
                         self.current = None
                         self._odd_trap(t, coro, trap)
                     elif trap is BLOCK:
                         pass
-                    elif trap is YIELD and not t.frozen:
+                    elif trap is YIELD:
                         t.state = _READY
                         self.ready_seq = seq = self.ready_seq + 1
                         t.stamp = seq
@@ -342,8 +345,14 @@ class Kernel(Lifecycle, Hooks, Timers):
                 heappush(self.ready_heap, (-t.prio, seq, t))
             else:
                 self._odd_trap(t, coro, trap)
+        self.refresh_step(t)
         if after and self.h_after:
             self.notify(self.h_after, "after_step", t)
+
+    def refresh_step(self, t: TaskEntry) -> None:
+        """Recompute ``t.plain`` after its coroutine, its pending exception or the step
+        instruments changed: the coroutine when the next step is a plain send, else None."""
+        t.plain = t.coro if t.throw_exc is None and not self._h_step else None
 
     def _rehook(self) -> None:
         """Instruments changed: recompute the hook tuples and the run loop's one step flag. An
@@ -352,6 +361,8 @@ class Kernel(Lifecycle, Hooks, Timers):
         had_after = bool(self.h_after)
         super()._rehook()
         self._h_step = bool(self.h_before or self.h_after)
+        for task in self._tasks:
+            self.refresh_step(task)
         t = self.current
         if t is not None and self.h_after and not had_after:
             self._irq.append((self._after_late, (t,)))

@@ -18,11 +18,10 @@ from typing import Any, TextIO
 from chcos.errors import MessageError, QueueOverflow, SensorFailure
 from chcos.kernel.scheduler import Kernel
 from chcos.messages.protocols import Comm, Devices, NoComm
-from chcos.tables.messages import EndpointKind, InPort, Link, LinkStatus, Msgtab, TapPort
+from chcos.tables.messages import EndpointKind, InPort, Link, Msgtab, TapPort
 from chcos.tables.tasks import TaskEntry, TaskState, Tsktab
 
 log = logging.getLogger("chcos.messages.manager")
-_LINK_SUSPENDED = LinkStatus.SUSPENDED  # a module constant: read on every delivery
 _TO_DEVICE = EndpointKind.DEVICE         # ... and on every command a task writes
 _READY = TaskState.READY
 
@@ -71,9 +70,9 @@ class Delivery:
         Never blocks. Returns how many links took it. Raises QueueOverflow (after delivering to
         every other link) if a queued link was full.
         """
+        if t.up_one is not None and not self.taps:  # the common case: one reader, no tap
+            return self.deliver(t.up_one, value)
         links = t.up_links
-        if len(links) == 1 and not self.taps:  # the common case: one reader, no tap
-            return 1 if self.deliver(links[0], value) else 0
         n = 0
         overflow: QueueOverflow | None = None
         for link in links:
@@ -88,72 +87,88 @@ class Delivery:
             raise overflow
         return n
 
-    def deliver(self, link: Link, value: Any) -> bool:
+    def deliver(self, link: Link, value: Any) -> int:
         """Put ``value`` into ``link``'s destination port and ready a receiver waiting on it.
 
-        False if the link is suspended. Raises QueueOverflow for a full queued link.
+        1 if the link took it, 0 if it is suspended (a count: :meth:`put` returns it). Raises
+        QueueOverflow for a full queued link, MessageError for a link without an input port.
         """
-        if link.status is _LINK_SUSPENDED:
+        kernel = self.kernel
+        if kernel.h_msg:  # an instrument hears of messages
+            return self._deliver_other(link, value)
+        port = link.direct
+        if port is None:  # not a local newest-wins port
+            port = link.queue
+            if port is None or len(port.fifo) >= link.queued:  # type: ignore[arg-type]
+                return self._deliver_other(link, value)
+            # a local queued port with room, no instrument: InPort.store inlined
+            port.fifo.append((value, kernel.clock.now()))  # type: ignore[union-attr]
+        else:  # the hot path: a local newest-wins port, not suspended, no instrument
+            if port.fresh:
+                link.overwritten += 1
+            port.value = value
+        port.fresh = True
+        link.sent += 1
+        w = port.waiter
+        if w is None:
+            return 1
+        base = w.prio_src.priority  # w.base_prio, inlined
+        prio = base if base > link.priority else link.priority
+        if w.unwait is port.unwait and not w.frozen:
+            # a plain read of this port (without a timeout: a timed one leaves forget as its
+            # unwait), not suspended: end its wait and ready it here (kernel.wake(w, prio,
+            # port) inlined: a call and half its work less per message)
+            port.waiter = None
+            w.unwait = None     # nothing sent in: the plain waits know their port
+            w.prio = prio
+            w.state = _READY
+            kernel.ready_seq = seq = kernel.ready_seq + 1
+            w.stamp = seq
+            heappush(kernel.ready_heap, (-prio, seq, w))
+            return 1
+        return self._wake_reader(w, prio, link, port, value)
+
+    def _deliver_other(self, link: Link, value: Any) -> int:
+        """:meth:`deliver` off its hot path: a suspended or remote link, a queued one, or an
+        instrument that hears of messages."""
+        if link.suspended:
             link.refused += 1
-            return False
+            return 0
         if link.remote:
             link.sent += 1
             self.comm.sensory(link, value)
-            return True
+            return 1
         port = link.port
         if port.__class__ is not InPort:  # not isinstance or type(): no call per message
             raise MessageError(f"sensory link {link.name} has no input port")
         kernel = self.kernel
-        if port.fifo is None and not kernel.h_msg:  # the hot path: newest wins, no instrument
-            if port.fresh:
-                link.overwritten += 1
-            port.value = value
-            port.fresh = True
-            link.sent += 1
-            w = port.waiter
-            if w is None:
-                return True
-            owner = w.owner  # w.base_prio, inlined
-            base = owner.priority if owner is not None else w.default_prio
-            prio = base if base > link.priority else link.priority
-            if w.unwait is port.unwait and w.timer is None and not w.frozen:
-                # a plain read of this port, no read timeout, not suspended: end its wait and
-                # ready it here (kernel.wake(w, prio, port) inlined: a call and half its work
-                # less per message)
-                port.waiter = None
-                w.unwait = None
-                w.send_value = port
-                w.prio = prio
-                w.state = _READY
-                kernel.ready_seq = seq = kernel.ready_seq + 1
-                w.stamp = seq
-                heappush(kernel.ready_heap, (-prio, seq, w))
-                return True
-        else:
-            fifo = port.fifo
-            if fifo is not None and not kernel.h_msg and len(fifo) < link.queued:
-                fifo.append((value, kernel.clock.now()))  # a queued link with room, no
-                port.fresh = True                         # instrument: port.store inlined
-            elif port.store(value, kernel.clock.now()):
-                link.overwritten += 1
-                if kernel.h_overwritten:
-                    kernel.notify(kernel.h_overwritten, "message_overwritten", link)
-            link.sent += 1
-            if kernel.h_sent:
-                kernel.notify(kernel.h_sent, "message_sent", link)
-            w = port.waiter
-            if w is None:
-                return True
-            owner = w.owner
-            base = owner.priority if owner is not None else w.default_prio
-            prio = base if base > link.priority else link.priority
+        fifo = port.fifo
+        if fifo is not None and not kernel.h_msg and len(fifo) < link.queued:
+            fifo.append((value, kernel.clock.now()))  # a queued link with room, no
+            port.fresh = True                         # instrument: port.store inlined
+        elif port.store(value, kernel.clock.now()):
+            link.overwritten += 1
+            if kernel.h_overwritten:
+                kernel.notify(kernel.h_overwritten, "message_overwritten", link)
+        link.sent += 1
+        if kernel.h_sent:
+            kernel.notify(kernel.h_sent, "message_sent", link)
+        w = port.waiter
+        if w is None:
+            return 1
+        return self._wake_reader(w, max(w.base_prio, link.priority), link, port, value)
+
+    def _wake_reader(self, w: TaskEntry, prio: int, link: Link, port: InPort,
+                     value: Any) -> int:
+        """Ready ``w``, which waits on ``port``, at ``prio`` (unless its ``wait_any``
+        filter turns the message from ``link`` down); 1, the message was taken."""
         if w.unwait is port.unwait:  # a plain read of this port: end its wait here
             port.waiter = None
             w.unwait = None
-            kernel.wake(w, prio, port)
+            self.kernel.wake(w, prio, port)
         elif w.wake_filter is None or self._wanted(w, link.src, value):
-            kernel.wake(w, prio, port)
-        return True
+            self.kernel.wake(w, prio, port)
+        return 1
 
     @staticmethod
     def _wanted(w: TaskEntry, source: str, value: Any) -> bool:
@@ -169,7 +184,7 @@ class Delivery:
     def _tap(self, t: TaskEntry, value: Any) -> None:
         for _exc_task, tap, links in self.taps:
             link = links.get(t.name)
-            if link is None or link.status is LinkStatus.SUSPENDED:
+            if link is None or link.suspended:
                 continue
             if link.remote:
                 link.sent += 1
@@ -189,8 +204,8 @@ class Delivery:
             kernel.wake(w, max(w.base_prio, link.priority), tap)
 
     def taken(self, link: Link, sent_at: float) -> None:
-        """Count a delivery on ``link`` (the receiver read it) and feed latency instruments."""
-        link.delivered += 1
+        """The receiver read a message of ``link`` (an input port's: Link.delivered counts it
+        by itself): feed the latency instruments."""
         kernel = self.kernel
         if kernel.h_delivered:
             kernel.notify(kernel.h_delivered, "message_delivered", link,
@@ -215,9 +230,10 @@ class Delivery:
         overflow: QueueOverflow | None = None
         deliver = self.deliver
         for link in self._device_links.get(device, ()):
-            port = link.port
-            # an unread message on a newest-wins port is overwritten (a queued link keeps it)
-            if port.__class__ is InPort and port.fifo is None and port.fresh:
+            port = link.direct
+            # an unread message on a newest-wins port is overwritten (a queued link keeps it,
+            # a suspended one refuses the new one)
+            if port is not None and port.fresh:
                 over = True
             try:
                 deliver(link, value)
@@ -251,7 +267,7 @@ class Delivery:
         Raises MessageError if the link leads to a task (use open), DeviceError if the actuator
         refuses the value (outside its limits, failed device).
         """
-        if link.status is _LINK_SUSPENDED:
+        if link.suspended:
             link.refused += 1
             raise MessageError(f"link {link.name} is suspended")
         if link.dst_kind is _TO_DEVICE:
@@ -261,8 +277,7 @@ class Delivery:
         else:
             raise MessageError(
                 f"{link.name} is a command link to task {link.dst}: invoke it, do not write to it")
-        link.sent += 1
-        link.delivered += 1
+        link.sent += 1  # and delivered (Link.delivered: sent, on a link to an actuator or file)
 
     def resolve_path(self, name: str) -> Path:
         """A file endpoint's path: relative names are relative to the system's base directory."""

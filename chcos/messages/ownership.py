@@ -128,6 +128,7 @@ class Ownership(Delivery):
                 f"task {target.name}: {target.code or 'its function'} is not an async def"))
             return
         target.coro = coro  # type: ignore[assignment]
+        self.kernel.refresh_step(target)
         self.kernel.ready(target, prio)
 
     def _release(self, t: TaskEntry) -> None:
@@ -199,7 +200,7 @@ class Ownership(Delivery):
         """Kernel end handler: ``t``'s activation ended ``how`` with ``value`` (its result, or
         the exception). Reports to the owner, releases what it owned, puts its actuators safe
         after an error or a release, starts the next command or a standing task's own loop."""
-        t.coro = None
+        t.coro = t.plain = None
         t.new_command = None
         self.release_subordinates(t, f"{t.name} ended ({how.value})")
         if how is End.RETURN:
@@ -328,7 +329,7 @@ class Ownership(Delivery):
             self._report(link, LinkStatus.PREEMPTED, error=why)
         t.owner = None
         t.waitq.clear()
-        coro, t.coro = t.coro, None
+        coro, t.coro, t.plain = t.coro, None, None
         self.kernel.unhook(t)
         t.stamp = -1  # drop any ready-heap entry
         if coro is not None:
@@ -347,11 +348,14 @@ class Ownership(Delivery):
         if t.restart_timer is not None:
             t.restart_timer.cancel()
             t.restart_timer = None
-        for p in t.in_ports:
+        for p in t.in_ports:  # unread messages are dropped, and counted so
+            if p.fifo is not None:
+                p.link.discarded += len(p.fifo)
+                p.fifo.clear()
+            elif p.fresh:
+                p.link.discarded += 1
             p.fresh = False
             p.value = None
-            if p.fifo is not None:
-                p.fifo.clear()
         if isinstance(t.tap, TapPort):
             t.tap.newest.clear()
             t.tap.order.clear()

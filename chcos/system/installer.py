@@ -204,9 +204,10 @@ class Installer:
             link.dst_port = i
             port = InPort(link, i)
             link.port = port
+            link.refresh()
             t.in_ports.append(port)
             if p.kind is EndpointKind.TASK:
-                self.tsktab.get(p.name).up_links.append(link)
+                self.tsktab.get(p.name).add_up_link(link)
             elif p.kind is EndpointKind.DEVICE:
                 self.msgmgr.add_device_link(link)
             elif p.direction == "terminal":

@@ -69,8 +69,8 @@ class Messages(Protocol):
         """Fan the readings of ``link``'s source device out over ``link`` from now on."""
         ...
 
-    def deliver(self, link: Link, value: Any) -> bool:
-        """Put ``value`` into ``link``'s destination port."""
+    def deliver(self, link: Link, value: Any) -> int:
+        """Put ``value`` into ``link``'s destination port; 1 if taken, 0 if suspended."""
         ...
 
     def wipe(self, t: TaskEntry, why: str) -> None:

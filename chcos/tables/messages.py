@@ -85,9 +85,9 @@ class Link:
     dst_machine: int = 0
     queued: int = 0  # 0: newest wins; n > 0: FIFO of at most n messages
     tap: bool = False  # an implicit link: exception tap, assassin or host link
-    remote: bool = False  # the destination lives on another satellite
-    status: LinkStatus = LinkStatus.OK
-    port: InPort | TapPort | None = None  # where sensory messages to a task land
+    remote: bool = False  # the destination lives on another satellite (set at install)
+    _status: LinkStatus = LinkStatus.OK  # see :attr:`status`
+    port: InPort | TapPort | None = None  # where sensory messages to a task land (install)
     src_port: int = -1  # index in the source task's out_links (command links)
     dst_port: int = -1  # index in the destination task's in_ports (sensory links)
     # command-link state
@@ -95,11 +95,58 @@ class Link:
     reported: bool = False  # a completion/pre-emption is there for ``done`` to pick up
     result: Any = None
     error: str = ""
-    # statistics
+    # statistics (sent = delivered + overwritten + unread + discarded on the destination's
+    # satellite; refused messages were never taken)
     sent: int = 0
     overwritten: int = 0
-    delivered: int = 0
     refused: int = 0
+    discarded: int = 0  # unread messages dropped when the receiving task was reset
+    #: ``port`` while a message can be stored straight into it (a local newest-wins input
+    #: port, the link not suspended), else None: the delivery's one test for its hot path;
+    #: ``queue`` the same for a queued port. Kept by :meth:`refresh`, which the :attr:`status`
+    #: setter calls; whoever sets ``port`` or ``remote`` calls it too (the installer, once)
+    direct: InPort | None = None
+    queue: InPort | None = None
+    suspended: bool = False  # status is SUSPENDED (a plain attribute for the hot paths)
+
+    @property
+    def status(self) -> LinkStatus:
+        """OK, SUSPENDED, or how the last command message on the link ended."""
+        return self._status
+
+    @status.setter
+    def status(self, status: LinkStatus) -> None:
+        self._status = status
+        self.suspended = status is LinkStatus.SUSPENDED
+        self.refresh()
+
+    @property
+    def delivered(self) -> int:
+        """Messages the receiver has taken: on a sensory link into a local input port, what
+        was sent and neither overwritten, discarded nor is still unread (the reads count
+        nothing: a store per message less); on a command link to an actuator or a file, what
+        was sent (written at once); 0 on any other link here (the task's own satellite counts
+        a remote link's)."""
+        port = self.port
+        if port.__class__ is InPort and not self.remote:
+            fifo = port.fifo
+            unread = len(fifo) if fifo is not None else 1 if port.fresh else 0
+            # max: a reader on another thread may see sent before the unread message it made
+            return max(0, self.sent - self.overwritten - self.discarded - unread)
+        if self.dst_kind is EndpointKind.DEVICE or self.dst_kind is EndpointKind.FILE:
+            return self.sent
+        return 0
+
+    def refresh(self) -> None:
+        """Recompute :attr:`direct` and :attr:`queue` from the port, ``remote`` and the status."""
+        port = self.port
+        self.direct = self.queue = None
+        if (port.__class__ is InPort and not self.remote
+                and self._status is not LinkStatus.SUSPENDED):
+            if port.fifo is None:
+                self.direct = port
+            else:
+                self.queue = port
 
     @property
     def name(self) -> str:
@@ -133,9 +180,10 @@ class InPort:
         # the type is not named: the task table sits on the message table, not beside it)
         self.waiter: Any = None
         self.fifo: deque[tuple[Any, float]] | None = deque() if link.queued else None
-        #: the ``unwait`` of a task whose only wait is this port (a ``read``): it stops naming
-        #: the task as its waiter. One object per port, so that a delivery recognises a plain
-        #: read of its own port by identity (``w.unwait is port.unwait``) and ends it itself.
+        #: the ``unwait`` of a task whose only wait is this port (a ``read`` without a timeout):
+        #: it stops naming the task as its waiter. One object per port, so that a delivery
+        #: recognises a plain read of its own port by identity (``w.unwait is port.unwait``)
+        #: and ends it itself.
         self.unwait: Callable[[Any], None] = self._forget
 
     def _forget(self, t: Any) -> None:

@@ -64,6 +64,16 @@ class Role(enum.Enum):
     SYSTEM = "system"
 
 
+class DefaultPriority:
+    """A task's default priority where an owning link's priority would be (see
+    :attr:`TaskEntry.prio_src`)."""
+
+    __slots__ = ("priority",)
+
+    def __init__(self, priority: int) -> None:
+        self.priority = priority
+
+
 @dataclass(eq=False, slots=True)
 class TaskEntry:
     """One Tsktab row. Mutated only on the kernel thread."""
@@ -78,12 +88,17 @@ class TaskEntry:
     params: dict[str, Any] = field(default_factory=dict)  # install-time parameters
     state: TaskState = TaskState.SUSPENDED
     prio: int = 0
-    owner: Link | None = None
+    _owner: Link | None = None  # see :attr:`owner`
     coro: Coroutine[Any, Any, Any] | None = None
+    #: ``coro`` while its next step is a plain ``send`` (no exception to throw into it, no
+    #: instrument hearing of steps), else None: the run loop's one test for its fast step. The
+    #: kernel keeps it (Kernel.refresh_step); whoever ends an activation clears it with ``coro``
+    plain: Coroutine[Any, Any, Any] | None = None
     command: Any = None  # parameters of the current activation
     in_ports: list[InPort] = field(default_factory=list)
     out_links: list[Link] = field(default_factory=list)
-    up_links: list[Link] = field(default_factory=list)
+    up_links: list[Link] = field(default_factory=list)  # add with add_up_link
+    up_one: Link | None = None  # the only one of up_links (None: none, or several)
     special_links: dict[str, Link] = field(default_factory=dict)  # assassin links by target
     tap: TapPort | None = None  # the exception task's tap
     waitq: list[tuple[int, Link, Any]] = field(default_factory=list)
@@ -94,7 +109,7 @@ class TaskEntry:
     standing: bool = False
     restart: str = "never"
     backoff: float = 1.0
-    default_prio: int = 4  # the priority a released task goes back to (resetpri)
+    _default_prio: int = 4  # see :attr:`default_prio`
     last_command: Any = None  # the command of the last activation (restarts reuse it)
     waiting_devices: frozenset[str] = frozenset()  # on-recovery: devices that must be healthy
     restart_timer: Cancellable | None = None
@@ -127,11 +142,46 @@ class TaskEntry:
     restarts: int = 0
     last_error: str = ""
 
+    #: where :attr:`base_prio` comes from: the owning link, or the holder of the default
+    #: priority when nobody owns the task (kept by the two setters below; a delivery reads
+    #: ``prio_src.priority``, one attribute instead of a test and two)
+    prio_src: Link | DefaultPriority = field(init=False, repr=False)
+    _default: DefaultPriority = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self._default = DefaultPriority(self._default_prio)
+        self.prio_src = self._owner if self._owner is not None else self._default
+
+    @property
+    def owner(self) -> Link | None:
+        """The command link whose message the task is carrying out (None: nobody owns it)."""
+        return self._owner
+
+    @owner.setter
+    def owner(self, link: Link | None) -> None:
+        self._owner = link
+        self.prio_src = link if link is not None else self._default
+
+    @property
+    def default_prio(self) -> int:
+        """The priority a released task goes back to (resetpri)."""
+        return self._default_prio
+
+    @default_prio.setter
+    def default_prio(self, prio: int) -> None:
+        self._default_prio = self._default.priority = prio
+
     @property
     def base_prio(self) -> int:
         """The priority of the owning command message, or the task's default priority when
         nobody owns it (a message wakes it at the higher of this and the link's priority)."""
-        return self.owner.priority if self.owner is not None else self.default_prio
+        return self.prio_src.priority
+
+    def add_up_link(self, link: Link) -> None:
+        """A sensory link leaving this task (at install): appended to ``up_links``, and kept
+        in ``up_one`` while it is the only one (the senders' hot path tests that)."""
+        self.up_links.append(link)
+        self.up_one = link if len(self.up_links) == 1 else None
 
     def __repr__(self) -> str:
         return f"<task {self.name} m{self.machine} L{self.level} {self.state.value} p{self.prio}>"

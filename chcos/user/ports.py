@@ -27,6 +27,8 @@ class TaskHandle:
         #: ports found by name: a task's ports are only ever appended (at its install), so the
         #: first one with a name stays the first; read and write look here before they scan
         self._in_named: dict[str, InPort] = {}
+        #: ports found by index (read's hot path: a dict, so a negative index misses too)
+        self._in_index: dict[int, InPort] = {}
         self._out_named: dict[str, Link] = {}
 
     def take_command(self) -> Any:

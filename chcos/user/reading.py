@@ -83,22 +83,28 @@ class Reading(TaskHandle):
         sensor (also while waiting), ReadTimeout after ``timeout`` seconds without a message.
         """
         t = self._t
-        if port.__class__ is int and port >= 0:
+        if port.__class__ is int:
             try:
-                p = t.in_ports[port]
-            except IndexError:
-                p = self._in(port)  # raises the MessageError naming the port
+                p = self._in_index[port]
+            except KeyError:  # the first read of it, or no such port (MessageError naming it)
+                p = self._in_index[port] = self._in(port)
         else:
-            p = (self._in_named.get(port) if port.__class__ is str else None) or self._in(port)
+            try:
+                p = self._in_named[port]  # type: ignore[index]  # str keys: another type misses
+            except (KeyError, TypeError):
+                p = self._in(port)  # finds and keeps a name, or raises naming the port
         if not p.fresh:
             if p.device:
                 self._check_source(p)
             p.waiter = t
-            t.unwait = p.unwait  # the port's own: a delivery to it ends this wait itself
             t.state = _WAITING
             if self._k.h_blocked:
                 self._k.block(t, _WAITING)
-            if timeout is not None:
+            if timeout is None:  # the port's own unwait: a delivery to it ends this wait itself
+                t.unwait = p.unwait
+            else:  # a timed wait ends through forget, which a delivery calls too
+                t.wait_ports = p.single
+                t.unwait = forget
                 self._arm_timeout(timeout, p.link.name)
             yield BLOCK
         if not self._k.h_delivered:  # the hot path (InPort.take and MessageManager.taken)
@@ -110,8 +116,7 @@ class Reading(TaskHandle):
             else:
                 value = fifo.popleft()[0]
                 p.fresh = bool(fifo)
-            p.link.delivered += 1
-            return value
+            return value  # counted by Link.delivered
         return self._take(p)
 
     @types.coroutine
@@ -137,7 +142,7 @@ class Reading(TaskHandle):
                     self._check_source(p)
             for p in chosen:
                 p.waiter = t
-            if len(chosen) == 1:  # as a plain read: the message ends the wait itself
+            if len(chosen) == 1 and timeout is None:  # as a plain read (see read)
                 t.unwait = chosen[0].unwait
             else:
                 t.wait_ports = tuple(chosen)
@@ -147,7 +152,8 @@ class Reading(TaskHandle):
                 self._k.block(t, _WAITING)
             if timeout is not None:
                 self._arm_timeout(timeout, ", ".join(p.link.name for p in chosen))
-            best = yield BLOCK
+            woke = yield BLOCK  # the port that woke it (a plain wait's own wakes send nothing)
+            best = chosen[0] if len(chosen) == 1 else woke
             assert best is not None
         if not self._k.h_delivered:  # the hot path, as in read
             fifo = best.fifo
@@ -158,7 +164,6 @@ class Reading(TaskHandle):
             else:
                 value = fifo.popleft()[0]
                 best.fresh = bool(fifo)
-            best.link.delivered += 1
             return best.index, value
         return best.index, self._take(best)
 
