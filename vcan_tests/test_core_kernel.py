@@ -188,6 +188,27 @@ def test_suspend_keeps_wakeups_until_resume() -> None:
     assert woke == [3.0]
 
 
+def test_a_requeued_or_suspended_ready_task_is_queued_once_in_its_new_place() -> None:
+    k = Kernel(VirtualClock())
+    order: list[str] = []
+
+    async def body(name: str) -> None:
+        order.append(name)
+
+    a, b, c = (spawn(k, n, body(n), 5) for n in "abc")
+    k.ready(a, 7)   # re-queued higher: first
+    k.ready(b, 5)   # re-queued at the same priority: behind c now
+    k.suspend(c)    # out of the queue until resumed
+    assert k.ready_priorities() == [7, 5] and k.stats()["ready"] == 2
+    k.run()
+    assert order == ["a", "b"] and (a.steps, b.steps, c.steps) == (1, 1, 0)
+    k.resume(c)
+    assert k.ready_priorities() == [5]
+    k.run()
+    assert order == ["a", "b", "c"] and k.stats()["ready"] == 0
+    assert k.steps == 3
+
+
 def test_instruments_see_steps_and_only_when_installed() -> None:
     k = Kernel(VirtualClock())
     c = Counters()

@@ -21,7 +21,7 @@ from chcos.kernel.clock import VirtualClock
 from chcos.kernel.instrument import Instrument
 from chcos.system.embedded import System
 from chcos.tables.messages import InPort
-from chcos.tables.tasks import TaskEntry
+from chcos.tables.tasks import TaskEntry, TaskState
 from chcos.user.context import TaskContext
 
 M = "vcan_tests.test_core_properties"
@@ -59,6 +59,10 @@ class Checker(Instrument):
         ready = self.s.kernel.ready_priorities()
         if ready and ready[0] > task.prio:
             self.violations.append(f"{task.name} p{task.prio} ran while p{ready[0]} ready")
+        queued = [t for _p, _s, t in self.s.kernel.ready_heap]  # once each, and only READY
+        if len({id(t) for t in queued}) != len(queued) or any(
+                t.state is not TaskState.READY for t in queued):
+            self.violations.append(f"ready queue {[(t.name, t.state.value) for t in queued]}")
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])

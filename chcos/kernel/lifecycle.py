@@ -43,6 +43,7 @@ class Lifecycle:
     current: TaskEntry | None
     _on_end: EndHandler | None
     ready: Callable[[TaskEntry, int], None]  # the kernel's: make a task ready at a priority
+    unready: Callable[[TaskEntry], None]  # the kernel's: take a task out of the ready queue
 
     def set_end_handler(self, handler: EndHandler) -> None:
         """Who is told when an activation ends: ``handler(task, how, value)`` with ``how`` an
@@ -71,7 +72,7 @@ class Lifecycle:
         t.frozen = True
         if t.state is TaskState.READY:
             t.frozen_ready = t.prio
-            t.stamp = -1  # drop its heap entry
+            self.unready(t)
         else:
             t.frozen_state = t.state  # what it waits in, for resume
         t.state = TaskState.SUSPENDED

@@ -16,7 +16,7 @@ import logging
 import threading
 from collections import deque
 from collections.abc import Callable
-from heapq import heappop, heappush
+from heapq import heapify, heappop, heappush
 from typing import Any
 
 from chcos.errors import HandlerError, KernelError
@@ -55,9 +55,11 @@ class Kernel(Lifecycle, Hooks, Timers):
         super().__init__()
         self.clock: Clock = clock if clock is not None else RealClock()
         self.current: TaskEntry | None = None
-        #: the ready queue, a heap of (-priority, sequence, task); an entry whose sequence is
-        #: not its task's ``stamp`` any more is stale and skipped. Public for the message layer,
-        #: which inlines a wake-up (see :meth:`wake`) on every delivery to a waiting reader.
+        #: the ready queue, a heap of (-priority, sequence, task): one entry for each READY
+        #: task and nothing else (a re-queue, a suspension or a wipe takes the entry out:
+        #: :meth:`unready`, so a step needs no test for a stale one). Public for the message
+        #: layer, which inlines a wake-up (see :meth:`wake`) on every delivery to a waiting
+        #: reader.
         self.ready_heap: list[tuple[int, int, TaskEntry]] = []
         #: the sequence number of the newest ready-queue or timer entry (ties: first come first)
         self.ready_seq = 0
@@ -90,7 +92,7 @@ class Kernel(Lifecycle, Hooks, Timers):
         pending timers, periods that periodic timers skipped because the kernel came back too
         late for them (see :mod:`chcos.kernel.timers`), failed handlers and timer callbacks."""
         return {"steps": self.steps,
-                "ready": sum(1 for _p, s, t in self.ready_heap if t.stamp == s),
+                "ready": len(self.ready_heap),
                 "timers": sum(1 for _d, _s, tm in self._timers if not tm.cancelled),
                 "skipped_periods": self.skipped_periods,
                 "handler_errors": len(self.irq_errors)}
@@ -103,10 +105,11 @@ class Kernel(Lifecycle, Hooks, Timers):
             t.frozen_ready = prio if t.frozen_ready is None else max(prio, t.frozen_ready)
             t.state = _SUSPENDED
             return
+        if t.state is _READY:  # queued already: now at prio, behind the others there
+            self.unready(t)
         t.prio = prio
         t.state = _READY
         self.ready_seq = seq = self.ready_seq + 1
-        t.stamp = seq
         heappush(self.ready_heap, (-prio, seq, t))
         if self.h_scheduled:
             self.notify(self.h_scheduled, "task_scheduled", t)
@@ -126,15 +129,26 @@ class Kernel(Lifecycle, Hooks, Timers):
         t.send_value = value
         t.throw_exc = exc
         t.plain = t.coro if exc is None and not self._h_step else None
-        if t.frozen or self.h_scheduled:
+        if t.frozen or self.h_scheduled or t.state is _READY:
             self.ready(t, prio)
             return
         # ready(t, prio) inlined: one call less on every message that wakes a reader
         t.prio = prio
         t.state = _READY
         self.ready_seq = seq = self.ready_seq + 1
-        t.stamp = seq
         heappush(self.ready_heap, (-prio, seq, t))
+
+    def unready(self, t: TaskEntry) -> None:
+        """Take ``t``'s entry out of the ready queue, if it has one (a linear search: for the
+        rare re-queue, suspension or wipe of a ready task, so that a step needs no test)."""
+        heap = self.ready_heap
+        for i, entry in enumerate(heap):
+            if entry[2] is t:
+                last = heap.pop()
+                if i < len(heap):
+                    heap[i] = last
+                    heapify(heap)
+                return
 
     def block(self, t: TaskEntry, state: TaskState) -> None:
         """Record that the current task ``t`` is about to wait in ``state``."""
@@ -144,7 +158,7 @@ class Kernel(Lifecycle, Hooks, Timers):
 
     def ready_priorities(self) -> list[int]:
         """Priorities of the tasks now ready (for tests and monitors)."""
-        return sorted((-p for p, s, t in self.ready_heap if t.stamp == s), reverse=True)
+        return sorted((-p for p, _s, _t in self.ready_heap), reverse=True)
 
     # ---- interrupts -------------------------------------------------------------------------
     def interrupt(self, handler: Callable[..., None], *args: Any) -> None:
@@ -220,9 +234,7 @@ class Kernel(Lifecycle, Hooks, Timers):
                         self.current = None
                         self._fire_timers(now if until is None else min(now, until))
                 if ready:
-                    _, seq, t = heappop(ready)
-                    if t.stamp != seq:
-                        continue
+                    t = heappop(ready)[2]
                     coro = t.plain  # None: no activation, an exception to throw, an instrument
                     if coro is None:
                         step(t)
@@ -255,7 +267,6 @@ class Kernel(Lifecycle, Hooks, Timers):
                     elif trap is YIELD:
                         t.state = _READY
                         self.ready_seq = seq = self.ready_seq + 1
-                        t.stamp = seq
                         heappush(ready, (-t.prio, seq, t))
                     else:
                         self.current = None
@@ -341,7 +352,6 @@ class Kernel(Lifecycle, Hooks, Timers):
             elif trap is YIELD and not t.cancelling and not t.frozen:
                 t.state = _READY
                 self.ready_seq = seq = self.ready_seq + 1
-                t.stamp = seq
                 heappush(self.ready_heap, (-t.prio, seq, t))
             else:
                 self._odd_trap(t, coro, trap)

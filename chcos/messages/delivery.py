@@ -123,7 +123,6 @@ class Delivery:
             w.prio = prio
             w.state = _READY
             kernel.ready_seq = seq = kernel.ready_seq + 1
-            w.stamp = seq
             heappush(kernel.ready_heap, (-prio, seq, w))
             return 1
         return self._wake_reader(w, prio, link, port, value)

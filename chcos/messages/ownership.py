@@ -331,7 +331,7 @@ class Ownership(Delivery):
         t.waitq.clear()
         coro, t.coro, t.plain = t.coro, None, None
         self.kernel.unhook(t)
-        t.stamp = -1  # drop any ready-heap entry
+        self.kernel.unready(t)  # no ready-queue entry is left behind
         if coro is not None:
             try:
                 coro.close()

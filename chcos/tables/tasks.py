@@ -120,7 +120,6 @@ class TaskEntry:
     wake_filter: Callable[[str, Any], bool] | None = None  # wait_any(when=...)
     multi_wait: bool = False  # any of the four above is set
     # scheduler bookkeeping
-    stamp: int = 0
     send_value: Any = None
     throw_exc: BaseException | None = None
     frozen: bool = False
