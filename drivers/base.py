@@ -216,6 +216,12 @@ class Driver(ABC):
         outstanding, so order is kept. Never raises for a bus problem. The default: False."""
         return False
 
+    def write_now_many(self, writes: Sequence[tuple[str, Any]]) -> list[bool]:
+        """:meth:`write_now` for several actuators of this bus at once, in order: which of
+        them are on the wire. Devtab's emergency stop puts every safe value out this way before
+        it does any bookkeeping. The default asks :meth:`write_now` for each."""
+        return [self.write_now(device, value) for device, value in writes]
+
     def _refuse(self, device: str, value: Any, kind: str, reason: str) -> None:
         """Report a write that does not reach :meth:`_write` (see :meth:`write`); also for a
         driver's own :meth:`_write` when it finds the bus stopped under it (``kind`` stopped).

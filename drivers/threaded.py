@@ -312,6 +312,22 @@ class ThreadedDriver(Driver):
         self.write_counts[device] += 1
         return True
 
+    def write_now_many(self, writes: Sequence[tuple[str, Any]]) -> list[bool]:
+        """:meth:`write_now` for several actuators under one hold of ``_lock`` (an emergency
+        stop's safe values, back to back): each as :meth:`write_now` would, in order."""
+        if not self._inline:
+            return [False] * len(writes)
+        with self._lock:
+            free = (self._running and not self._outbox and not self._sending
+                    and (not self._gated or self._can_send()))
+            sent = [free and device in self.devices
+                    and self._send_now(device, value, report=False)
+                    for device, value in writes]
+        for (device, _value), ok in zip(writes, sent, strict=True):
+            if ok:
+                self.write_counts[device] += 1
+        return sent
+
     def _claim_ends(self) -> None:
         """A fast-path send is over (under ``_lock``): the writer is woken only if commands
         were queued meanwhile, settle() if anyone waits in it."""

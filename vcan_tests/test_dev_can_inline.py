@@ -484,17 +484,44 @@ def test_a_task_write_goes_out_untracked_and_queues_behind_an_outstanding_one(
     assert dt.get("H1").value == 70.0 and dt.get("H1").pending is None
 
 
-def test_a_safe_value_is_always_tracked(cell: Any, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Safe values keep the tracked path (their retries need it), also on a bus with room."""
-    s, _gate, peer = cell
+def test_an_estop_on_the_kernel_thread_puts_the_safe_values_out_first(
+        cell: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """On the kernel thread an emergency stop sends every safe value it can back to back, one
+    call per driver (Driver.write_now_many), confirmed by the send itself: nothing is tracked,
+    and the bookkeeping (value, hooks) comes after the frame."""
+    s, gate, peer = cell
     dt = s.devtab
+    drv = dt.drivers[0]
     confirmed: list[Any] = []
     real = dt.written
     monkeypatch.setattr(dt, "written", lambda d, v: (confirmed.append(v), real(d, v)))
+    hooked: list[Any] = []
+    dt.on_write.append(lambda d, v: hooked.append((d, v, len(gate.sends))))
     s.kernel.interrupt(lambda: dt.estop("test"))
     s.run_for(0.01)
-    assert power(peer) == 0.0 and confirmed == [0]
-    assert dt.get("H1").value == 0 and dt.get("H1").pending is None
+    assert power(peer) == 0.0 and confirmed == []
+    assert hooked == [("H1", 0, 1)]         # told after its frame was sent
+    e = dt.get("H1")
+    assert e.value == 0 and e.pending is None and e.commands == 1
+    assert drv.sent_inline == 1 and drv.write_counts["H1"] == 1
+    assert [(w, t, ok) for w, t, _d, ok in gate.sends] == [("MainThread", 0, True)]
+
+
+def test_a_safe_value_the_burst_cannot_send_is_tracked_and_retried(cell: Any) -> None:
+    s, gate, peer = cell
+    drv = s.devtab.drivers[0]
+    gate.full = True           # the burst cannot send it, nor the tracked write's own fast try
+    gate.fail_writer = 1       # and the writer thread's first attempt fails: tried again
+    s.kernel.interrupt(lambda: s.devtab.estop("test"))
+    s.run_for(0.05)
+    assert drv.settle(WAIT)
+    s.run_for(0.05)
+    assert power(peer) == 0.0
+    e = s.devtab.get("H1")
+    assert e.value == 0 and e.pending is None and s.devtab.safe_failures == []
+    assert [(w, ok) for w, _t, d, ok in gate.sends if d == b"\0\0"][:4] == [
+        ("MainThread", False), ("MainThread", False), ("can-can0-tx", False),
+        ("can-can0-tx", True)]
 
 
 def test_frames_already_on_the_wire_never_change(rig: Any) -> None:

@@ -370,12 +370,49 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         return n
 
     def _safe_all(self, reason: str) -> list[tuple[str, Write | str | None]]:
-        out: list[tuple[str, Write | str | None]] = []
-        for e in self._entries.values():
-            if (not e.is_sensor and e.spec.safe_value is not None
-                    and self.is_local(e.spec.machine)):
-                out.append((e.name, self._safe_write(e, reason)))
-        return out
+        """Every local actuator's safe value: first all those the drivers can put on the wire
+        at once (:meth:`_safe_burst`), then the others one by one, tracked and tried again as
+        any safe value. (name, None) for one on the wire, (name, Write) for one to watch,
+        (name, reason) for one that could not be handed over."""
+        todo = [e for e in self._entries.values()
+                if not e.is_sensor and e.spec.safe_value is not None
+                and self.is_local(e.spec.machine)]
+        done = self._safe_burst(todo)
+        return [(e.name, None if e.name in done else self._safe_write(e, reason)) for e in todo]
+
+    def _safe_burst(self, entries: list[DeviceEntry]) -> set[str]:
+        """On the kernel thread, put the safe values of ``entries`` that nothing of theirs is
+        outstanding for on the wire back to back, one call per driver
+        (:meth:`drivers.base.Driver.write_now_many`), before any bookkeeping: an emergency
+        stop's last safe frame leaves as early as it can. Returns the names written; the rest
+        (a value the check refuses, a driver that cannot send now) are left to the tracked
+        path, which reports them."""
+        if self.kernel.thread_ident != get_ident():
+            return set()
+        groups: dict[Driver, list[tuple[DeviceEntry, Any]]] = {}
+        for e in entries:
+            drv = e.driver
+            name = e.name
+            if (drv is None or not drv.confirms_writes or self._inflight.get(name)
+                    or (self._queued and self._queued.get(name))):
+                continue
+            try:
+                raw = self._check_command(e, e.spec.safe_value, "safe-value")
+            except Exception:   # the tracked path checks it again and reports it
+                continue
+            groups.setdefault(drv, []).append((e, raw))
+        written: list[DeviceEntry] = []
+        for drv, items in groups.items():
+            sent = drv.write_now_many([(e.name, raw) for e, raw in items])
+            written += [e for (e, _raw), ok in zip(items, sent, strict=True) if ok]
+        now = self.kernel.clock.now()
+        for e in written:   # as Devtab.write's fast path: on the wire, confirmed, not tracked
+            e.updated_at = now
+            e.commands += 1
+            e.value = e.spec.safe_value
+            for hook in self.on_write:
+                hook(e.name, e.value)
+        return {e.name for e in written}
 
     def _safe(self, device: str, why: str = "abnormal completion") -> bool:
         e = self.get(device)
