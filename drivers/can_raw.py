@@ -313,15 +313,17 @@ class CanDriver(ThreadedDriver):
             if report:
                 self._unencodable(device, value, exc)
             return report
-        # one frame object per actuator, its payload replaced: the fast path's interfaces
-        # take the frame's content during send (python-can's virtual bus copies it for every
-        # receiver, SocketCAN packs it), and only one fast-path send runs at a time
+        # one frame object per actuator, its payload replaced by the codec's (immutable) bytes:
+        # the fast path's interfaces take the frame's content during send, and only one
+        # fast-path send runs at a time. python-can's virtual bus deep-copies the frame for
+        # every receiver - a bytes payload is copied as the same object, a bytearray by a
+        # copyreg round trip of ~300 bytecode instructions - and its Message() gives each copy
+        # a bytearray again; SocketCAN packs bytes(data), which takes bytes as they are
         frame = self._outgoing.get(device)
         if frame is None:
             frame = self._outgoing[device] = can.Message(arbitration_id=fid, data=data,
                                                          is_extended_id=ext)
-        else:
-            frame.data = bytearray(data)
+        frame.data = data  # type: ignore[assignment]  # private frame: see above
         try:
             bus.send(frame, timeout=0)
         except (can.CanError, OSError):
