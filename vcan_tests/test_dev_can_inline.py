@@ -526,7 +526,7 @@ def test_a_safe_value_the_burst_cannot_send_is_tracked_and_retried(cell: Any) ->
 
 def test_frames_already_on_the_wire_never_change(rig: Any) -> None:
     """The fast path sends one frame object per actuator with its payload replaced: what a
-    receiver got stays what was sent, write after write."""
+    receiver got stays what was sent, write after write, as python-can's own bytearray."""
     drv, _host, _gate, peer = rig
     got = []
     for v in (5, 6, 7):
@@ -536,6 +536,9 @@ def test_frames_already_on_the_wire_never_change(rig: Any) -> None:
         got.append(msg)
     assert [bytes(m.data) for m in got] == [value_data(v) for v in (5, 6, 7)]
     assert all(m.dlc == 2 and m.arbitration_id == A_ID for m in got)
+    # the driver's own frame carries immutable bytes; a receiver gets python-can's bytearray
+    assert all(type(m.data) is bytearray for m in got)
+    assert type(drv._outgoing["A"].data) is bytes
     assert drv.sent_inline == 3
 
 
