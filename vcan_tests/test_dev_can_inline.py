@@ -388,21 +388,30 @@ def test_frames_sent_are_counted_by_the_driver_and_kept_after_it_stops(cell: Any
     assert s.devtab.bus_stats["can0"].devices["H1"]["frames-sent"] == 4
 
 
-def test_a_safe_value_after_a_fallback_is_retried_until_it_is_on_the_wire(cell: Any) -> None:
+@pytest.mark.parametrize("on_kernel", [False, True], ids=["caller", "kernel-thread"])
+def test_a_safe_value_after_a_fallback_is_retried_until_it_is_on_the_wire(
+        cell: Any, on_kernel: bool) -> None:
+    """From the caller's thread the estop's tracked write tries the fast path first; on the
+    kernel thread the burst (Driver.write_now_many) tries before it. Either way a value that
+    cannot go at once is tracked and retried by the writer thread."""
     s, gate, peer = cell
     drv = s.devtab.drivers[0]
     gate.full = True           # the fast path cannot take it ...
     gate.fail_writer = 2       # ... and the writer thread's first two attempts fail
-    assert s.devtab.estop("test") == 1
+    if on_kernel:
+        s.kernel.interrupt(lambda: s.devtab.estop("test"))
+    else:
+        assert s.devtab.estop("test") == 1
     s.run_for(0.05)
     assert drv.settle(WAIT)
     s.run_for(0.05)
     assert power(peer) == 0.0
     e = s.devtab.get("H1")
     assert e.value == 0 and e.pending is None and s.devtab.safe_failures == []
-    # the fast path's try, the writer's two failures and its success; then the device's
-    # recovery writes its safe value once more (the same way: full bus, writer thread)
+    # (the burst's try,) the fast path's try, the writer's two failures and its success; then
+    # the device's recovery writes its safe value once more (the same way: full bus, writer)
     assert [(w, ok) for w, _t, d, ok in gate.sends if d == b"\0\0"] == [
+        ("MainThread", False)] * on_kernel + [
         ("MainThread", False), ("can-can0-tx", False), ("can-can0-tx", False),
         ("can-can0-tx", True), ("MainThread", False), ("can-can0-tx", True)]
     assert drv.error_counts["send"] == 2
@@ -505,23 +514,6 @@ def test_an_estop_on_the_kernel_thread_puts_the_safe_values_out_first(
     assert e.value == 0 and e.pending is None and e.commands == 1
     assert drv.sent_inline == 1 and drv.write_counts["H1"] == 1
     assert [(w, t, ok) for w, t, _d, ok in gate.sends] == [("MainThread", 0, True)]
-
-
-def test_a_safe_value_the_burst_cannot_send_is_tracked_and_retried(cell: Any) -> None:
-    s, gate, peer = cell
-    drv = s.devtab.drivers[0]
-    gate.full = True           # the burst cannot send it, nor the tracked write's own fast try
-    gate.fail_writer = 1       # and the writer thread's first attempt fails: tried again
-    s.kernel.interrupt(lambda: s.devtab.estop("test"))
-    s.run_for(0.05)
-    assert drv.settle(WAIT)
-    s.run_for(0.05)
-    assert power(peer) == 0.0
-    e = s.devtab.get("H1")
-    assert e.value == 0 and e.pending is None and s.devtab.safe_failures == []
-    assert [(w, ok) for w, _t, d, ok in gate.sends if d == b"\0\0"][:4] == [
-        ("MainThread", False), ("MainThread", False), ("can-can0-tx", False),
-        ("can-can0-tx", True)]
 
 
 def test_frames_already_on_the_wire_never_change(rig: Any) -> None:
