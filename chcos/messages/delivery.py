@@ -128,8 +128,9 @@ class Delivery:
         return self._wake_reader(w, prio, link, port, value)
 
     def _deliver_other(self, link: Link, value: Any) -> int:
-        """:meth:`deliver` off its hot path: a suspended or remote link, a queued one, or an
-        instrument that hears of messages."""
+        """:meth:`deliver` off its hot path: a suspended or remote link, a full queued one, or
+        an instrument that hears of messages (a queued link with room and no instrument is the
+        hot path's)."""
         if link.suspended:
             link.refused += 1
             return 0
@@ -141,11 +142,7 @@ class Delivery:
         if port.__class__ is not InPort:  # not isinstance or type(): no call per message
             raise MessageError(f"sensory link {link.name} has no input port")
         kernel = self.kernel
-        fifo = port.fifo
-        if fifo is not None and not kernel.h_msg and len(fifo) < link.queued:
-            fifo.append((value, kernel.clock.now()))  # a queued link with room, no
-            port.fresh = True                         # instrument: port.store inlined
-        elif port.store(value, kernel.clock.now()):
+        if port.store(value, kernel.clock.now()):
             link.overwritten += 1
             if kernel.h_overwritten:
                 kernel.notify(kernel.h_overwritten, "message_overwritten", link)

@@ -109,7 +109,6 @@ class TaskEntry:
     standing: bool = False
     restart: str = "never"
     backoff: float = 1.0
-    _default_prio: int = 4  # see :attr:`default_prio`
     last_command: Any = None  # the command of the last activation (restarts reuse it)
     waiting_devices: frozenset[str] = frozenset()  # on-recovery: devices that must be healthy
     restart_timer: Cancellable | None = None
@@ -148,7 +147,7 @@ class TaskEntry:
     _default: DefaultPriority = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        self._default = DefaultPriority(self._default_prio)
+        self._default = DefaultPriority(4)  # until the installer sets default_prio
         self.prio_src = self._owner if self._owner is not None else self._default
 
     @property
@@ -164,11 +163,11 @@ class TaskEntry:
     @property
     def default_prio(self) -> int:
         """The priority a released task goes back to (resetpri)."""
-        return self._default_prio
+        return self._default.priority
 
     @default_prio.setter
     def default_prio(self, prio: int) -> None:
-        self._default_prio = self._default.priority = prio
+        self._default.priority = prio
 
     @property
     def base_prio(self) -> int:
