@@ -11,6 +11,7 @@ from chcos.devices.spec import DeviceMap
 from chcos.errors import ReadTimeout
 from chcos.kernel.clock import VirtualClock
 from chcos.kernel.instrument import Counters, Instrument
+from chcos.kernel.lifecycle import FrozenUnwait
 from chcos.system.embedded import System
 from chcos.tables.messages import Link
 from chcos.tables.tasks import TaskEntry, TaskState
@@ -58,6 +59,26 @@ def test_suspended_reader_keeps_the_newest_message_until_resumed(tmp_path: Path)
     assert log == [2]
     assert c.state.value == "waiting"  # (mypy narrowed c.state to SUSPENDED above)
     assert link.delivered == 1
+
+
+def test_reader_suspended_and_resumed_in_its_wait_is_woken_on_the_hot_path(
+        tmp_path: Path) -> None:
+    """suspend() swaps a waiting reader's unwait for a FrozenUnwait (so a delivery's hot path,
+    which tells a plain read by its unwait, leaves it alone); resume() gives the read its own
+    back, so the next message readies it on the hot path again."""
+    log: list[Any] = []
+    s, c, link = _system(tmp_path, {"log": log})
+    s.run()
+    port = link.port
+    assert c.unwait is port.unwait  # a plain read of the port
+    s.kernel.suspend(c)
+    assert isinstance(c.unwait, FrozenUnwait) and c.unwait is not port.unwait
+    s.kernel.resume(c)
+    assert c.unwait is port.unwait and c.state.value == "waiting"
+    s.msgmgr.deliver(link, 7)
+    assert c.state is TaskState.READY and c.unwait is None and port.waiter is None
+    s.run()
+    assert log == [7]
 
 
 def test_message_before_the_read_timeout_cancels_that_timeout(tmp_path: Path) -> None:

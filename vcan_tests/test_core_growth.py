@@ -199,11 +199,13 @@ def _scan_wiring(self: Installer, t: TaskEntry) -> None:
                 links[u.name] = self.link(u.name, t.name, LinkType.SENSORY, TOP_PRIORITY,
                                            EndpointKind.TASK, EndpointKind.TASK, u.machine,
                                            t.machine, tap=True)
+                u.mark_tapped()
     for e, _tap, elinks in s.msgmgr.taps:
         if e is not t and e.level > t.level:
             elinks[t.name] = self.link(t.name, e.name, LinkType.SENSORY, TOP_PRIORITY,
                                         EndpointKind.TASK, EndpointKind.TASK, t.machine,
                                         e.machine, tap=True)
+            t.mark_tapped()
     if t.role is Role.ASSASSIN:
         for u in others:
             if u.level < t.level and s.msgtab.get(t.name, u.name, LinkType.COMMAND) is None:
@@ -222,7 +224,8 @@ def _links(s: System) -> list[Any]:
             lk.dst_machine) for lk in s.msgtab]
     special = sorted((t.name, sorted(t.special_links)) for t in s.tsktab)
     taps = [(e.name, sorted(links)) for e, _tap, links in s.msgmgr.taps]
-    return [*out, special, taps]
+    tapped = [(t.name, t.tapped, t.up_one is not None) for t in s.tsktab]
+    return [*out, special, taps, tapped]
 
 
 def _fig65(tmp_path: Path) -> list[Any]:
@@ -267,6 +270,7 @@ def test_the_assassin_index_wires_the_same_links_as_the_scan(
     with monkeypatch.context() as mp:
         mp.setattr(Installer, "_exception_wiring", _scan_wiring)
         before = build(tmp_path / "scanned")
-    assert any(lk[5] and lk[1] != "host" for lk in now[:-2]) == implicit, \
+    assert any(lk[5] and lk[1] != "host" for lk in now[:-3]) == implicit, \
         "exception taps / assassin links not as the system's roles say"
+    assert any(tapped for _n, tapped, _one in now[-1]) == implicit
     assert now == before

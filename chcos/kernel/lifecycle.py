@@ -15,7 +15,7 @@ from typing import Any
 from chcos.errors import KernelError, Preempted
 from chcos.tables.tasks import TaskEntry, TaskState
 
-__all__ = ["BLOCK", "YIELD", "End", "EndHandler", "Lifecycle"]
+__all__ = ["BLOCK", "YIELD", "End", "EndHandler", "FrozenUnwait", "Lifecycle"]
 
 #: Trap a task yields to give the processor back and stay ready.
 YIELD = object()
@@ -34,6 +34,23 @@ class End(enum.Enum):
 
 
 EndHandler = Callable[[TaskEntry, End, Any], None]
+
+
+class FrozenUnwait:
+    """The ``unwait`` of a task suspended in a wait: it ends that wait as the task's own did.
+
+    A delivery tells a plain read of its port by identity (``w.unwait is port.unwait``) and
+    then readies the reader itself; while the reader is frozen, this stand-in fails that test,
+    so the delivery takes the general path, which keeps the wake-up for :meth:`Lifecycle.resume`.
+    (The hot path so tests no freeze.)"""
+
+    __slots__ = ("inner",)
+
+    def __init__(self, inner: Callable[[TaskEntry], None]) -> None:
+        self.inner = inner
+
+    def __call__(self, t: TaskEntry) -> None:
+        self.inner(t)
 
 
 class Lifecycle:
@@ -75,6 +92,8 @@ class Lifecycle:
             self.unready(t)
         else:
             t.frozen_state = t.state  # what it waits in, for resume
+            if t.unwait is not None:
+                t.unwait = FrozenUnwait(t.unwait)
         t.state = TaskState.SUSPENDED
 
     def resume(self, t: TaskEntry) -> None:
@@ -82,6 +101,9 @@ class Lifecycle:
         if not t.frozen:
             return
         t.frozen = False
+        unwait = t.unwait
+        if unwait.__class__ is FrozenUnwait:  # still in the wait it was frozen in
+            t.unwait = unwait.inner
         pending, t.frozen_ready = t.frozen_ready, None
         state, t.frozen_state = t.frozen_state, None
         if pending is not None:

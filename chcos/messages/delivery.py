@@ -70,7 +70,7 @@ class Delivery:
         Never blocks. Returns how many links took it. Raises QueueOverflow (after delivering to
         every other link) if a queued link was full.
         """
-        if t.up_one is not None and not self.taps:  # the common case: one reader, no tap
+        if t.up_one is not None:  # the common case: one reader, no exception task taps t
             return self.deliver(t.up_one, value)
         links = t.up_links
         n = 0
@@ -81,7 +81,7 @@ class Delivery:
                     n += 1
             except QueueOverflow as exc:
                 overflow = exc
-        if self.taps:
+        if t.tapped:
             self._tap(t, value)
         if overflow is not None:
             raise overflow
@@ -114,10 +114,10 @@ class Delivery:
             return 1
         base = w.prio_src.priority  # w.base_prio, inlined
         prio = base if base > link.priority else link.priority
-        if w.unwait is port.unwait and not w.frozen:
+        if w.unwait is port.unwait:
             # a plain read of this port (without a timeout: a timed one leaves forget as its
-            # unwait), not suspended: end its wait and ready it here (kernel.wake(w, prio,
-            # port) inlined: a call and half its work less per message)
+            # unwait; a suspended reader's is a FrozenUnwait): end its wait and ready it here
+            # (kernel.wake(w, prio, port) inlined: a call and half its work less per message)
             port.waiter = None
             w.unwait = None     # nothing sent in: the plain waits know their port
             w.prio = prio

@@ -251,11 +251,13 @@ class Installer:
                     links[u.name] = self.link(u.name, t.name, LinkType.SENSORY, TOP_PRIORITY,
                                                EndpointKind.TASK, EndpointKind.TASK, u.machine,
                                                t.machine, tap=True)
+                    u.mark_tapped()
         for e, _tap, links in self.msgmgr.taps:
             if e is not t and e.level > t.level:
                 links[t.name] = self.link(t.name, e.name, LinkType.SENSORY, TOP_PRIORITY,
                                            EndpointKind.TASK, EndpointKind.TASK, t.machine,
                                            e.machine, tap=True)
+                t.mark_tapped()
         if t.role is Role.ASSASSIN:
             for u in self.tsktab:
                 if u is not t and u.level < t.level \

@@ -98,7 +98,10 @@ class TaskEntry:
     in_ports: list[InPort] = field(default_factory=list)
     out_links: list[Link] = field(default_factory=list)
     up_links: list[Link] = field(default_factory=list)  # add with add_up_link
-    up_one: Link | None = None  # the only one of up_links (None: none, or several)
+    #: the only one of up_links while no exception task taps this task (None: none, several,
+    #: or tapped): a sender's hot path delivers to it alone. Kept by add_up_link and mark_tapped
+    up_one: Link | None = None
+    tapped: bool = False  # an exception task's tap link leaves this task (see mark_tapped)
     special_links: dict[str, Link] = field(default_factory=dict)  # assassin links by target
     tap: TapPort | None = None  # the exception task's tap
     waitq: list[tuple[int, Link, Any]] = field(default_factory=list)
@@ -177,9 +180,18 @@ class TaskEntry:
 
     def add_up_link(self, link: Link) -> None:
         """A sensory link leaving this task (at install): appended to ``up_links``, and kept
-        in ``up_one`` while it is the only one (the senders' hot path tests that)."""
+        in ``up_one`` while it is the only one and no tap listens (the senders' hot path)."""
         self.up_links.append(link)
-        self.up_one = link if len(self.up_links) == 1 else None
+        self._refresh_up()
+
+    def mark_tapped(self) -> None:
+        """An exception task's tap link now leaves this task (at install): its messages must
+        go through the taps, so the senders' hot path (``up_one``) is off for it."""
+        self.tapped = True
+        self._refresh_up()
+
+    def _refresh_up(self) -> None:
+        self.up_one = self.up_links[0] if len(self.up_links) == 1 and not self.tapped else None
 
     def __repr__(self) -> str:
         return f"<task {self.name} m{self.machine} L{self.level} {self.state.value} p{self.prio}>"

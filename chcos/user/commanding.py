@@ -28,11 +28,10 @@ class Commanding(TaskHandle):
     def put(self, value: Any) -> int:
         """Send ``value`` upward to every task that reads this one; never blocks. Returns how
         many links took it. Raises QueueOverflow if a queued link was full."""
-        link = self._t.up_one
-        mm = self._mm
-        if link is not None and not mm.taps:  # MessageManager.put's own fast path, a call less
-            return mm.deliver(link, value)
-        return mm.put(self._t, value)
+        link = self._t.up_one  # None when several links or a tap take it
+        if link is not None:  # MessageManager.put's own fast path, a call less
+            return self._mm.deliver(link, value)
+        return self._mm.put(self._t, value)
 
     def write(self, port: Port, value: Any) -> None:
         """Command actuator (or output file) on ``port`` with ``value``; never blocks.
