@@ -78,11 +78,13 @@ class Cluster:
     """Satellite processes of one system on free loopback ports, and a host to drive them."""
 
     def __init__(self, tmp: Path, machines: tuple[int, ...] = (0, 1, 2),
-                 auth: bool = False) -> None:
+                 auth: bool = False, cpus: dict[int, list[int]] | None = None) -> None:
         self.tmp = tmp
         (tmp / "devices.toml").write_text(DEVMAP)
         name = f"t{os.getpid()}{free_port()}"
+        pins = cpus or {}
         sats = "\n".join(f"[[satellite]]\nmachine = {m}\nport = {free_port()}\n"
+                         + (f"cpus = {pins[m]}\n" if m in pins else "")
                          for m in machines)
         link = ""
         if auth:

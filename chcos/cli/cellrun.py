@@ -136,19 +136,27 @@ class RunResult:
 def run(system_file: str | Path, *, virtual: bool = False, duration: float | None = None,
         outputs: bool = True, workdir: str | Path | None = None, period: float = 1.0,
         out: TextIO | None = None, stop: threading.Event | None = None,
-        north: NorthOptions | None = None) -> RunResult:
+        north: NorthOptions | None = None, pin: bool = False) -> RunResult:
     """The ``chcos run SYSTEM`` job: build, run until ``stop`` is set (SIGINT/SIGTERM in the
     command), or ``duration`` seconds of clock time, printing progress every ``period``; then
     safe values and the summary. ``north`` names the north-side services (OPC UA, Modbus
-    facade, metrics, the live view) to serve while it runs; they need real time. Raises
-    ChcosError if the system or a service cannot be set up."""
+    facade, metrics, the live view) to serve while it runs; they need real time. ``pin``: the
+    process (the command's own) is pinned first to the CPUs of ``system.cpus``, if any. Raises
+    ChcosError if the system or a service cannot be set up (ConfigError for CPUs this process
+    may not use)."""
     from chcos.north.services import start as start_north
+    from chcos.satellites import sysfile
+    from chcos.system.affinity import pin_process
 
     if north is not None and north.any and virtual:
         raise ChcosError("north-side services (--opcua, --modbus-facade, --metrics, --view) "
                          "need real time: leave out --virtual")
     stop = stop or threading.Event()
     out = out or sys.stdout
+    cpus = sysfile.load(system_file).cpus if pin else None
+    if cpus is not None:  # before the drivers' threads start (they inherit it)
+        pin_process(cpus, f"{Path(system_file).resolve()}: system.cpus")
+        print(f"pinned to CPU(s) {', '.join(map(str, sorted(cpus)))} (system.cpus)", file=out)
     with open_cell(system_file, virtual=virtual, outputs=outputs, workdir=workdir) as cell:
         s = cell.system
         print(f"system {cell.sf.name}: {len(s.devtab)} devices, {len(s.tsktab)} tasks, "
@@ -244,7 +252,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         result = run(args.system, virtual=args.virtual, duration=args.duration,
                      outputs=args.outputs == "on" or (args.outputs is None and args.virtual),
-                     workdir=args.workdir, stop=stop, north=NorthOptions.from_args(args))
+                     workdir=args.workdir, stop=stop, north=NorthOptions.from_args(args),
+                     pin=True)
     except ChcosError as exc:
         print(f"chcos run: {exc}", file=sys.stderr)
         return 2

@@ -152,11 +152,15 @@ def _satellite(args: argparse.Namespace) -> int:
     from chcos.comm.transport import enable_zenoh_logging
     from chcos.satellites import sysfile
     from chcos.satellites.satellite import Satellite
+    from chcos.system.affinity import pin_process
 
     stops = {signal.SIGTERM, signal.SIGINT}
     signal.pthread_sigmask(signal.SIG_BLOCK, stops)
     enable_zenoh_logging("warn")  # Zenoh reports refused (unauthenticated) sessions
     sf = sysfile.load(args.system)
+    cpus = sf.satellite_cpus.get(args.machine)
+    if cpus is not None:  # before Zenoh's and the drivers' threads start (they inherit it)
+        pin_process(cpus, f"{sf.path}: [[satellite]] machine {args.machine}: cpus")
     with Satellite(sf, args.machine) as sat:
         sat.start()
         print(f"satellite {args.machine} of {sf.name} up ({len(sat.log)} log entries)",

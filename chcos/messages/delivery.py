@@ -251,10 +251,12 @@ class Delivery:
 
     def estop(self, by: str, reason: str) -> int:
         """Emergency stop by ``by``: every other satellite is told, every local actuator with a
-        safe value gets it at once. Returns how many were written here."""
-        self.event("estop", f"{by}: {reason}")
+        safe value gets it at once; then the event is reported (instruments, log). Returns how
+        many were written here."""
         self.comm.estop(reason)
-        return self.devices.estop(reason)
+        n = self.devices.estop(reason)
+        self.event("estop", f"{by}: {reason}")
+        return n
 
     # ---- command output to actuators and files (putc) ---------------------------------------
     def write(self, t: TaskEntry, link: Link, value: Any) -> None:

@@ -11,11 +11,13 @@ satellites with the loopback port each listens on::
     install = "install.chcos"              # optional: host script(s) ``chcos run`` executes
     state_dir = "/var/lib/chcos"           # optional: run state goes to <state_dir>/<name>/
     secret_file = "fig65.secret"           # optional: default <state_dir>/<name>/secret.json
+    cpus = [1]                             # optional: ``chcos run`` pins its process to these
 
     [[satellite]]
     machine = 0
     port = 17447
     host = "127.0.0.1"                     # optional: its address (IPv4, IPv6 or a name)
+    cpus = [0]                             # optional: the satellite pins its process to these
 
     [link]                                 # optional: lease_ms, retry_ms, auth, tls
     [link.auth]                            # Zenoh user/password; a node with a dictionary_file
@@ -67,13 +69,14 @@ from chcos.comm.secret import SystemSecret, load_or_create, loopback_pki
 from chcos.comm.section import link_config_from_section
 from chcos.errors import ConfigError
 from chcos.helpers import load_toml
+from chcos.system.affinity import parse_cpus
 
 log = logging.getLogger("chcos.satellites.sysfile")
 
 _TOP = {"system", "satellite", "link"}
 _SYSTEM = {"name", "devmaps", "task_path", "base_dir", "state_dir", "secret_file",
-           "install"}
-_SAT = {"machine", "port", "host"}
+           "install", "cpus"}
+_SAT = {"machine", "port", "host", "cpus"}
 
 
 def default_state_base() -> Path:
@@ -100,6 +103,10 @@ class SystemFile:
     state_base: Path | None = None
     secret_file: Path | None = None
     install: tuple[Path, ...] = ()  # host scripts ``chcos run`` executes (system.install)
+    #: the CPUs ``chcos run`` pins its process to (system.cpus; None: not pinned)
+    cpus: frozenset[int] | None = None
+    #: machine -> the CPUs that satellite pins its process to ([[satellite]] cpus)
+    satellite_cpus: dict[int, frozenset[int]] = field(default_factory=dict)
 
     @property
     def prefix(self) -> str:
@@ -168,6 +175,7 @@ def load(path: str | Path) -> SystemFile:
 
     sats: dict[int, int] = {}
     hosts: dict[int, str] = {}
+    cpus_of: dict[int, frozenset[int]] = {}
     entries = doc.get("satellite", [])
     if not isinstance(entries, list):
         raise fail("satellite", "expected [[satellite]] tables")
@@ -177,7 +185,7 @@ def load(path: str | Path) -> SystemFile:
             raise fail(where, "expected a table")
         for key in sat:
             if key not in _SAT:
-                raise fail(f"{where}.{key}", "unknown key, expected machine, port and host")
+                raise fail(f"{where}.{key}", "unknown key, expected machine, port, host and cpus")
         m, port = sat.get("machine"), sat.get("port")
         if not isinstance(m, int) or isinstance(m, bool) or m < 0:
             raise fail(f"{where}.machine", "expected a machine number >= 0")
@@ -194,6 +202,9 @@ def load(path: str | Path) -> SystemFile:
             raise fail(f"{where}.port", f"port {port} used twice")
         sats[m] = port
         hosts[m] = host
+        sat_cpus = parse_cpus(sat.get("cpus"), f"{path}: {where}.cpus")
+        if sat_cpus is not None:
+            cpus_of[m] = sat_cpus
     link = doc.get("link", {})
     if not isinstance(link, dict) or {"listen", "connect", "listen_host",
                                       "connect_hosts"} & set(link):
@@ -213,7 +224,8 @@ def load(path: str | Path) -> SystemFile:
         raise fail("system.install", "expected the path of a host script, or a list of them")
     sf = SystemFile(path, name, paths("devmaps"), paths("task_path"), (base / base_dir).resolve(),
                     sats, link, hosts, opt_dir("state_dir"), opt_dir("secret_file"),
-                    tuple((base / p).resolve() for p in install))
+                    tuple((base / p).resolve() for p in install),
+                    parse_cpus(sys_sec.get("cpus"), f"{path}: system.cpus"), cpus_of)
     # a single-process system (no [[satellite]]) opens no link; else check the [link] section
     # and what each node exposes now
     for m in ([None, *sats] if sats else []):

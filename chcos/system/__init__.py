@@ -8,5 +8,6 @@ composition root of one satellite.
 writes, :mod:`~chcos.system.ports` names what TSK0 needs of the layers below;
 :mod:`~chcos.system.cmdline` parses host commands, :mod:`~chcos.system.sysmap` reads and writes
 the map, :mod:`~chcos.system.textview` renders it as text, :mod:`~chcos.system.loader` finds task
-code, :mod:`~chcos.system.provided` holds tasks A3/A4.
+code, :mod:`~chcos.system.provided` holds tasks A3/A4; :mod:`~chcos.system.affinity` pins a
+process to the CPUs its system file names.
 """

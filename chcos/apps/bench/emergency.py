@@ -47,7 +47,7 @@ import os
 import random
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -71,6 +71,7 @@ from chcos.apps.bench.emergency_system import (
     watch,
 )
 from chcos.errors import ConfigError
+from chcos.system.affinity import pin_process
 
 __all__ = [
     "ACTUATORS",
@@ -130,6 +131,8 @@ class EmergencyResult:
     #: the figure holds on a quiet machine, so it is always printed beside it
     load: tuple[float, float, float] = (0.0, 0.0, 0.0)
     cpus: int = 0
+    #: the CPUs the process was pinned to for the run (empty: not pinned)
+    cpus_pinned: tuple[int, ...] = ()
 
     def load_text(self) -> str:
         """The machine's load as printed beside the figures."""
@@ -200,12 +203,28 @@ class _Echo:
 
 
 def run_emergency(trials: int = 200, rate: float = 5000.0, *, seed: int = 7,
-                  gap: tuple[float, float] = (0.01, 0.03)) -> EmergencyResult:
+                  gap: tuple[float, float] = (0.01, 0.03),
+                  cpus: Iterable[int] | None = None) -> EmergencyResult:
     """Run ``trials`` intruder trials under ``rate`` background frames/s, each followed by a
-    raw echo (see the module doc). Raises ConfigError for bad parameters, BusError if the bus
-    cannot be opened."""
+    raw echo (see the module doc). ``cpus``: the whole process (system, peer and echo alike) is
+    pinned to these CPUs for the run, as ``system.cpus`` pins ``chcos run``, and given its
+    former CPUs back after. Raises ConfigError for bad parameters or CPUs this process may not
+    use, BusError if the bus cannot be opened."""
     if trials < 1 or not 0 < gap[0] <= gap[1]:
         raise ConfigError(f"emergency: need trials >= 1 and 0 < gap, got {trials}, {gap}")
+    if cpus is None:
+        return _run_emergency(trials, rate, seed, gap)
+    former = pin_process(cpus, "emergency benchmark: cpus")
+    try:
+        res = _run_emergency(trials, rate, seed, gap)
+    finally:
+        pin_process(former, "emergency benchmark: the former CPUs")
+    res.cpus_pinned = tuple(sorted(cpus))
+    return res
+
+
+def _run_emergency(trials: int, rate: float, seed: int,
+                   gap: tuple[float, float]) -> EmergencyResult:
     channel = channel_name("emg")
     s = build(channel)
     n_safe = len(ACTUATORS)
@@ -297,19 +316,23 @@ def _p50_p99(xs: list[float]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m chcos.apps.bench.emergency [--trials N] [--rate R]``: one run, the p50 and
-    p99 of each measured time with the machine's load beside them."""
+    """``python -m chcos.apps.bench.emergency [--trials N] [--rate R] [--cpus 1]``: one run,
+    the p50 and p99 of each measured time with the machine's load beside them."""
     import argparse
     import logging
 
     ap = argparse.ArgumentParser(description="emergency reaction p99 under CAN load")
     ap.add_argument("--trials", type=int, default=200)
     ap.add_argument("--rate", type=float, default=5000.0, help="background frames/s")
+    ap.add_argument("--cpus", type=lambda v: [int(c) for c in v.split(",")], default=None,
+                    help="pin the process to these CPUs for the run (e.g. 1, or 0,1)")
     args = ap.parse_args(argv)
     logging.getLogger("chcos").setLevel(logging.ERROR)  # one estop warning per trial
-    r = run_emergency(args.trials, args.rate)
+    r = run_emergency(args.trials, args.rate, cpus=args.cpus)
+    pinned = (f", pinned to CPU(s) {', '.join(map(str, r.cpus_pinned))}" if r.cpus_pinned
+              else "")
     print(f"emergency reaction, {r.trials} trials ({r.failed} failed) under "
-          f"{r.background_rate:,.0f} background frames/s; machine {r.load_text()}")
+          f"{r.background_rate:,.0f} background frames/s; machine {r.load_text()}{pinned}")
     print(f"  peer send -> last safe value on the wire: {_p50_p99(r.on_wire)} (target p99 "
           f"< 0.5 ms on a quiet machine)")
     print(f"  ... by the bus's time stamp of the frame : {_p50_p99(r.stamped)} (without "
