@@ -182,6 +182,32 @@ def test_read_any_prefers_higher_priority_link(make_system: MakeSystem) -> None:
     assert log == [("S2", 2.0), ("S1", 1.0)]
 
 
+def test_read_any_follows_a_setpri_made_while_it_runs(make_system: MakeSystem) -> None:
+    """read_any keeps its ports in priority order between calls; a live setpri of any link
+    reorders them for the next call (and for an equal priority the lower port comes first)."""
+    s = make_system(memory_map(["S1", "S2", "S3"]))
+    s.execute(f"install -m0i3 --code={M}:reader_any R S1 S2 S3")
+    log: list[Any] = []
+    s.invoke("R", {"log": log})
+    s.run_for(0.1)
+
+    def burst() -> list[Any]:
+        del log[:]
+        for i, name in enumerate(("S1", "S2", "S3")):
+            s.devtab.inject(name, float(i + 1))
+        s.run_for(0.1)
+        return [src for src, _v in log]
+
+    assert burst() == ["S1", "S2", "S3"]  # all alike: the lowest port first
+    s.execute("setpri -30 S3 R")
+    assert burst() == ["S3", "S1", "S2"]
+    s.execute("setpri -40 S2 R")
+    assert burst() == ["S2", "S3", "S1"]
+    s.execute("resetpri S2 R")
+    s.execute("resetpri S3 R")
+    assert burst() == ["S1", "S2", "S3"]
+
+
 def test_read_timeout_on_virtual_time(make_system: MakeSystem) -> None:
     s = make_system(memory_map(["S1"]))
     s.execute(f"install -m0i1 --code={M}:reader_timeout R S1")

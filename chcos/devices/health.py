@@ -18,6 +18,9 @@ from chcos.devices.entry import DeviceEntry, DeviceListener, DeviceStatus, Remot
 from chcos.errors import DeviceError, SensorFailure
 from chcos.kernel.scheduler import Kernel
 
+#: the states a sensor cannot be read in (a module constant: no enum lookups per read)
+_UNREADABLE = (DeviceStatus.FAILED, DeviceStatus.STALE)
+
 log = logging.getLogger("chcos.devices.devtab")
 #: Faults a user must see whatever the log level (failed and refused writes, undelivered safe
 #: values, health changes): WARNING records of this logger pass a root logger set to ERROR.
@@ -72,7 +75,7 @@ class DeviceHealth:
     def check_readable(self, device: str) -> None:
         """Raise SensorFailure if sensor ``device`` is failed or stale."""
         e = self.get(device)
-        if e.status in (DeviceStatus.FAILED, DeviceStatus.STALE):
+        if e.status in _UNREADABLE:
             raise SensorFailure(device, e.reason or e.status.value)
 
     def set_status(self, device: str, status: DeviceStatus, reason: str) -> None:

@@ -378,7 +378,7 @@ class Ownership(Delivery):
     # ---- status (msgstat) and priorities ----------------------------------------------------
     def setpri(self, link: Link, prio: int) -> None:
         """Change ``link``'s priority now; a ready task it owns is re-queued at the new one."""
-        link.priority = prio
+        link.set_priority(prio)
         if link.dst_kind is EndpointKind.TASK and link.dst in self.tsktab:
             target = self.tsktab.get(link.dst)
             if target.owner is link and target.state is TaskState.READY:

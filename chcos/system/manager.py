@@ -188,11 +188,11 @@ class SystemManager:
         if priority is not None:
             if priority not in PRIORITIES:
                 raise InstallError(f"invoke {task}: priority {priority} outside {PRIORITY_TEXT}")
-            link.priority = priority
+            link.set_priority(priority)
         try:
             self.msgmgr.open(link, command, wait=False)
         except BaseException:
-            link.priority = old        # a refused invoke changes nothing, its priority neither
+            link.set_priority(old)     # a refused invoke changes nothing, its priority neither
             raise
         args = (" " + " ".join(f"{k}={v}" for k, v in command.items())
                 if isinstance(command, dict) else "" if command is None else f" {command!r}")

@@ -13,7 +13,7 @@ import enum
 from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 from chcos.errors import MessageError, QueueOverflow
 
@@ -108,6 +108,15 @@ class Link:
     direct: InPort | None = None
     queue: InPort | None = None
     suspended: bool = False  # status is SUSPENDED (a plain attribute for the hot paths)
+    #: counts every priority change of any link (:meth:`set_priority`): an order of links by
+    #: priority kept with the count it was made at is current while the count is the same
+    epoch: ClassVar[int] = 0
+
+    def set_priority(self, priority: int) -> None:
+        """Change the link's priority (setpri, resetpri, an invoke at a priority): every kept
+        order of links by priority is stale from now (:attr:`epoch`)."""
+        self.priority = priority
+        Link.epoch += 1
 
     @property
     def status(self) -> LinkStatus:

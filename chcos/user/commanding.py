@@ -59,7 +59,7 @@ class Commanding(TaskHandle):
             if priority not in PRIORITIES or priority > cap:
                 raise MessageError(f"task {self._t.name} runs at priority {cap}: it cannot "
                                    f"invoke {link.dst} at priority {priority}")
-            link.priority = max(link.priority, priority)
+            link.set_priority(max(link.priority, priority))
         if self._mm.open(link, command, wait=wait):
             return
         t = self._t

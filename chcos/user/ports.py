@@ -30,6 +30,10 @@ class TaskHandle:
         #: ports found by index (read's hot path: a dict, so a negative index misses too)
         self._in_index: dict[int, InPort] = {}
         self._out_named: dict[str, Link] = {}
+        #: the input ports in read_any's order (highest link priority, then lowest port), and
+        #: the :attr:`Link.epoch` it was made at (read_any makes it again after any setpri)
+        self._any_order: tuple[InPort, ...] = ()
+        self._any_epoch = -1
 
     def take_command(self) -> Any:
         """The owner's newest command to this running activation (it becomes :attr:`command`).

@@ -24,6 +24,11 @@ log = logging.getLogger("chcos.user.context")
 _WAITING = TaskState.WAITING  # a module constant: read on every blocking read
 
 
+def _by_priority(p: InPort) -> tuple[int, int]:
+    """read_any's order: the highest link priority first, then the lowest port."""
+    return (-p.link.priority, p.index)
+
+
 @dataclass(frozen=True)
 class Event:
     """What :meth:`TaskContext.wait_any` returns: what happened first.
@@ -129,20 +134,27 @@ class Reading(TaskHandle):
         several do, the highest-priority link first, then the lowest port. Waits if none has.
         Raises as :meth:`read`."""
         t = self._t
-        chosen = t.in_ports if ports is None else [self._in(p) for p in ports]
-        if not chosen:
-            raise MessageError(f"task {t.name} has no input ports to read")
+        if ports is None:  # every input, in the order kept between calls
+            chosen: Sequence[InPort] = t.in_ports
+            order = self._any_order
+            if self._any_epoch != Link.epoch:  # a setpri since (the ports are made at install)
+                order = self._any_order = tuple(sorted(chosen, key=_by_priority))
+                self._any_epoch = Link.epoch
+        else:
+            chosen = [self._in(p) for p in ports]
+            order = tuple(sorted(chosen, key=_by_priority))
         best: InPort | None = None
-        top = -1          # best's link priority (priorities are 0..99)
-        for p in chosen:  # the highest link priority, then the lowest port
+        for p in order:  # the highest link priority, then the lowest port
             if p.fresh:
-                prio = p.link.priority
-                if prio > top or (prio == top and p.index < best.index):  # type: ignore[union-attr]
-                    best, top = p, prio
+                best = p
+                break
         if best is None:
+            if not chosen:
+                raise MessageError(f"task {t.name} has no input ports to read")
+            check = self._mm.devices.check_readable
             for p in chosen:
-                if p.device:
-                    self._check_source(p)
+                if p.device:  # its link comes from a sensor
+                    check(p.link.src)
             for p in chosen:
                 p.waiter = t
             if len(chosen) == 1 and timeout is None:  # as a plain read (see read)
@@ -155,8 +167,16 @@ class Reading(TaskHandle):
                 self._k.block(t, _WAITING)
             if timeout is not None:
                 self._arm_timeout(timeout, ", ".join(p.link.name for p in chosen))
-            woke = yield BLOCK  # the port that woke it (a plain wait's own wakes send nothing)
-            best = chosen[0] if len(chosen) == 1 else woke
+            epoch = Link.epoch
+            yield BLOCK
+            # woken by the first message; others may have come before this step: the best
+            # of what is there now, in the order of the priorities now
+            if Link.epoch != epoch:
+                order = tuple(sorted(chosen, key=_by_priority))
+            for p in order:
+                if p.fresh:
+                    best = p
+                    break
             assert best is not None
         if not self._k.h_delivered:  # the hot path, as in read
             fifo = best.fifo
