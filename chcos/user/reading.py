@@ -151,13 +151,13 @@ class Reading(TaskHandle):
         if best is None:
             if not chosen:
                 raise MessageError(f"task {t.name} has no input ports to read")
-            check = self._mm.devices.check_readable
             for p in chosen:
                 if p.device:  # its link comes from a sensor
-                    check(p.link.src)
+                    self._mm.devices.check_readable(p.link.src)
             for p in chosen:
                 p.waiter = t
-            if len(chosen) == 1 and timeout is None:  # as a plain read (see read)
+            single = len(chosen) == 1
+            if single and timeout is None:  # as a plain read (see read)
                 t.unwait = chosen[0].unwait
             else:
                 t.wait_ports = tuple(chosen)
@@ -169,14 +169,16 @@ class Reading(TaskHandle):
                 self._arm_timeout(timeout, ", ".join(p.link.name for p in chosen))
             epoch = Link.epoch
             yield BLOCK
-            # woken by the first message; others may have come before this step: the best
-            # of what is there now, in the order of the priorities now
-            if Link.epoch != epoch:
-                order = tuple(sorted(chosen, key=_by_priority))
-            for p in order:
-                if p.fresh:
-                    best = p
-                    break
+            if single:
+                best = chosen[0]
+            else:  # woken by the first message; others may have come before this step: the
+                # best of what is there now, in the order of the priorities now
+                if Link.epoch != epoch:
+                    order = tuple(sorted(chosen, key=_by_priority))
+                for p in order:
+                    if p.fresh:
+                        best = p
+                        break
             assert best is not None
         if not self._k.h_delivered:  # the hot path, as in read
             fifo = best.fifo
