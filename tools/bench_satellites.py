@@ -15,8 +15,10 @@
    count; the receiver's Zenoh callback hands each stamp to a second thread, as a satellite hands
    messages to its kernel): what chcos adds to the floor this machine gives today; and the same
    bare transport secured as satellites are (mutual TLS, user/password, a seal on every
-   payload): what the security costs by itself.
+   payload): what the security costs by itself. With ``--pin`` each satellite (and each bare
+   process) runs on a CPU of its own (``[[satellite]] cpus``), as a cell would deploy them.
 Usage: python -m tools.bench_satellites [--seconds S] [--rate N] [--json FILE] [--latency-only]
+[--pin]
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ ROOT = Path(__file__).resolve().parent.parent
 from chcos.helpers import free_port  # noqa: E402
 from chcos.satellites import sysfile  # noqa: E402
 from chcos.satellites.host import Host  # noqa: E402
+from chcos.system.affinity import pin_process  # noqa: E402
 from chcos.user.context import TaskContext  # noqa: E402
 
 
@@ -107,15 +110,25 @@ SAMPLE_HZ = 20_000  # each satellite's sensor: about twice what one satellite se
 # (chcos.kernel.timers), so sampling faster only adds skipped periods, not work
 
 
-class Cluster:
-    """Satellite processes for one measurement."""
+def cpu_of(machine: int) -> int:
+    """The CPU a pinned satellite ``machine`` (or bare-transport process) gets: one of its own
+    while there are CPUs enough (``[[satellite]] cpus``, as a cell would deploy them)."""
+    cpus = sorted(os.sched_getaffinity(0))
+    return cpus[machine % len(cpus)]
 
-    def __init__(self, machines: int, load: bool = True, sample_hz: int = SAMPLE_HZ) -> None:
+
+class Cluster:
+    """Satellite processes for one measurement (``pin``: each on a CPU of its own, see
+    :func:`cpu_of`)."""
+
+    def __init__(self, machines: int, load: bool = True, sample_hz: int = SAMPLE_HZ,
+                 pin: bool = False) -> None:
         self.tmp = Path(tempfile.mkdtemp(prefix="chcos-bench-sat-"))
         devices = "".join(DEVICE.format(m=m, hz=sample_hz) for m in range(max(machines, 2))
                           if load)
         (self.tmp / "devices.toml").write_text(DEVMAP.format(devices=devices))
         sats = "".join(f"[[satellite]]\nmachine = {m}\nport = {free_port()}\n"
+                       + (f"cpus = [{cpu_of(m)}]\n" if pin else "")
                        for m in range(machines))
         (self.tmp / "system.toml").write_text(
             f'[system]\nname = "bench{os.getpid()}x{machines}"\ndevmaps = ["devices.toml"]\n'
@@ -181,9 +194,10 @@ def scaling_detail(machines: int, seconds: float, sample_hz: int = SAMPLE_HZ) ->
         c.close()
 
 
-def latency(rate: int, seconds: float) -> dict[str, float]:
-    """Cross-satellite sensory message latency at ``rate`` messages/s."""
-    c = Cluster(2, load=False)
+def latency(rate: int, seconds: float, pin: bool = False) -> dict[str, float]:
+    """Cross-satellite sensory message latency at ``rate`` messages/s (``pin``: each satellite
+    on a CPU of its own)."""
+    c = Cluster(2, load=False, pin=pin)
     try:
         h = c.host
         count = int(rate * seconds)
@@ -275,9 +289,11 @@ def _raw_sender(port: int, peer: int, count: int, rate: int, system: str | None 
         pace.wait(1.0)  # let the last messages leave before the session closes
 
 
-def raw_latency(rate: int, seconds: float, secure: bool = False) -> dict[str, float]:
+def raw_latency(rate: int, seconds: float, secure: bool = False,
+                pin: bool = False) -> dict[str, float]:
     """The bare transport's latency at ``rate`` messages/s (see the module docstring); with
-    ``secure`` configured as the satellites are (mutual TLS, user/password, seals)."""
+    ``secure`` configured as the satellites are (mutual TLS, user/password, seals); ``pin``:
+    each of the two processes on a CPU of its own, as pinned satellites."""
     count = int(rate * seconds)
     rx_port, tx_port = free_port(), free_port()
     env = dict(os.environ, PYTHONPATH=str(ROOT))
@@ -292,10 +308,14 @@ def raw_latency(rate: int, seconds: float, secure: bool = False) -> dict[str, fl
         extra = ["--raw-system", str(tmp / "system.toml")]
         sf = sysfile.load(tmp / "system.toml")
         sysfile.link_config_for(sf, 0, sf.secret())  # make the secret and certificates once
+    def on(machine: int) -> list[str]:
+        return ["--raw-cpu", str(cpu_of(machine))] if pin else []
+
     rx = subprocess.Popen([*me, "--raw", "rx", str(rx_port), str(tx_port), str(count), "0",
-                           *extra], cwd=ROOT, env=env, stdout=subprocess.PIPE, text=True)
+                           *extra, *on(0)], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                          text=True)
     tx = subprocess.Popen([*me, "--raw", "tx", str(tx_port), str(rx_port), str(count),
-                           str(rate), *extra], cwd=ROOT, env=env)
+                           str(rate), *extra, *on(1)], cwd=ROOT, env=env)
     try:
         out, _ = rx.communicate(timeout=seconds * 3 + 60)
         tx.wait(30)
@@ -369,8 +389,14 @@ def main() -> int:
     ap.add_argument("--raw", nargs=5, metavar=("ROLE", "PORT", "PEER", "COUNT", "RATE"),
                     help=argparse.SUPPRESS)  # internal: one bare-transport process
     ap.add_argument("--raw-system", help=argparse.SUPPRESS)  # internal: secured as satellites
+    ap.add_argument("--raw-cpu", type=int, help=argparse.SUPPRESS)  # internal: pinned
+    ap.add_argument("--pin", action="store_true",
+                    help="latency part: each satellite (and bare-transport process) pinned to "
+                         "a CPU of its own ([[satellite]] cpus)")
     args = ap.parse_args()
     if args.raw:
+        if args.raw_cpu is not None:  # before the transport's threads start
+            pin_process([args.raw_cpu], "--raw-cpu")
         role, port, peer, count, rate = args.raw
         if role == "rx":
             _raw_receiver(int(port), int(peer), int(count), args.raw_system)
@@ -386,8 +412,8 @@ def main() -> int:
             if args.json:
                 Path(args.json).write_text(json.dumps(res))
             return 0
-    lat = res["latency_us"] = latency(args.rate, args.seconds)
-    raw = res["raw_latency_us"] = raw_latency(args.rate, args.seconds)
+    lat = res["latency_us"] = latency(args.rate, args.seconds, pin=args.pin)
+    raw = res["raw_latency_us"] = raw_latency(args.rate, args.seconds, pin=args.pin)
     print(f"cross-satellite latency at {args.rate}/s over {lat['n']:.0f} messages: "
           f"p50 {lat['p50']:.0f} us, p99 {lat['p99']:.0f} us, max {lat['max']:.0f} us "
           f"(target p99 < 1000 us)")

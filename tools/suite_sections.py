@@ -358,11 +358,16 @@ def satellites(run: SuiteRun) -> None:
     tables = [scaling_table(seconds) for _ in range(run.reps)]
     lats: list[dict[str, float]] = []
     raws: list[dict[str, float]] = []
+    lats_free: list[dict[str, float]] = []
+    raws_free: list[dict[str, float]] = []
     for _ in range(run.reps):   # side by side, batch by batch: the transport's own tail moves
-        lats.append(latency(5000, seconds))
-        raws.append(raw_latency(5000, seconds))
+        lats.append(latency(5000, seconds, pin=True))
+        raws.append(raw_latency(5000, seconds, pin=True))
+        lats_free.append(latency(5000, seconds))
+        raws_free.append(raw_latency(5000, seconds))
     run.res["satellite_scaling"] = {"tables": tables, "latency_us": lats,
-                                    "raw_latency_us": raws}
+                                    "raw_latency_us": raws, "latency_us_not_pinned": lats_free,
+                                    "raw_latency_us_not_pinned": raws_free}
     for i, n in enumerate((1, 2, 3)):
         rows = [t["rows"][i] for t in tables]
         ok = [r for r in rows if not r.get("error")]
@@ -382,15 +387,25 @@ def satellites(run: SuiteRun) -> None:
         return spread([b[key] / 1000 for b in batches], "{:.3f}")
 
     p99 = med([b["p99"] for b in lats])
+
+    def vs(a: list[dict[str, float]], b: list[dict[str, float]]) -> str:
+        return "chcos/bare p99 " + spread([x["p99"] / y["p99"] for x, y in zip(a, b, strict=True)],
+                                          "{:.1f}") + "x"
+
     run.rows.append((f"cross-satellite latency at 5,000 msg/s (queued link, every message; "
-                     f"{run.reps} batches)", "p99 < 1 ms",
+                     f"{run.reps} batches; each satellite pinned to a CPU of its own, "
+                     f"[[satellite]] cpus)", "p99 < 1 ms",
                      f"p50 {ms(lats, 'p50')}; p99 {ms(lats, 'p99')}; max {ms(lats, 'max')} ms",
                      yes(p99 < 1000)))
-    run.rows.append(("  bare transport (Zenoh + one thread hand-off), same batches", "baseline",
+    run.rows.append(("  bare transport (Zenoh + one thread hand-off), same batches, pinned alike",
+                     "baseline",
                      f"p50 {ms(raws, 'p50')}; p99 {ms(raws, 'p99')}; max {ms(raws, 'max')} ms",
-                     "chcos/bare p99 " + spread([a["p99"] / b["p99"]
-                                                 for a, b in zip(lats, raws, strict=True)],
-                                                "{:.1f}") + "x"))
+                     vs(lats, raws)))
+    run.rows.append(("  the same, not pinned (a run beside each of the above): chcos; the bare "
+                     "transport", "-",
+                     f"p50 {ms(lats_free, 'p50')}; p99 {ms(lats_free, 'p99')} ms; bare p50 "
+                     f"{ms(raws_free, 'p50')}; p99 {ms(raws_free, 'p99')} ms",
+                     vs(lats_free, raws_free)))
 
 
 def growth(run: SuiteRun) -> None:
