@@ -325,7 +325,7 @@ class CanDriver(ThreadedDriver):
                                                          is_extended_id=ext)
         frame.data = data  # type: ignore[assignment]  # private frame: see above
         try:
-            bus.send(frame, timeout=0)
+            bus.send(frame, 0)  # (timeout 0, positional: no keyword binding per frame)
         except (can.CanError, OSError):
             return False
         self._sent(device, value, frame, report)

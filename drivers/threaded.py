@@ -307,7 +307,7 @@ class ThreadedDriver(Driver):
         with self._lock:
             if (not self._running or self._outbox or self._sending
                     or (self._gated and not self._can_send()) or device not in self.devices
-                    or not self._send_now(device, value, report=False)):
+                    or not self._send_now(device, value, False)):
                 return False
         self.write_counts[device] += 1
         return True
@@ -321,7 +321,7 @@ class ThreadedDriver(Driver):
             free = (self._running and not self._outbox and not self._sending
                     and (not self._gated or self._can_send()))
             sent = [free and device in self.devices
-                    and self._send_now(device, value, report=False)
+                    and self._send_now(device, value, False)
                     for device, value in writes]
         for (device, _value), ok in zip(writes, sent, strict=True):
             if ok:
