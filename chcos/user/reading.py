@@ -29,6 +29,19 @@ def _by_priority(p: InPort) -> tuple[int, int]:
     return (-p.link.priority, p.index)
 
 
+def _best(ports: Sequence[InPort]) -> InPort | None:
+    """The port read_any takes of ``ports`` now (see :func:`_by_priority`), None if none has a
+    message: one pass over the ports, by the links' priorities as they are now."""
+    best: InPort | None = None
+    top = -1  # best's link priority (priorities are 0..99)
+    for p in ports:
+        if p.fresh:
+            prio = p.link.priority
+            if prio > top or (prio == top and p.index < best.index):  # type: ignore[union-attr]
+                best, top = p, prio
+    return best
+
+
 @dataclass(frozen=True)
 class Event:
     """What :meth:`TaskContext.wait_any` returns: what happened first.
@@ -134,20 +147,20 @@ class Reading(TaskHandle):
         several do, the highest-priority link first, then the lowest port. Waits if none has.
         Raises as :meth:`read`."""
         t = self._t
-        if ports is None:  # every input, in the order kept between calls
+        best: InPort | None = None
+        if ports is None:  # every input, in the order kept between calls: the first there
             chosen: Sequence[InPort] = t.in_ports
             order = self._any_order
             if self._any_epoch != Link.epoch:  # a setpri since (the ports are made at install)
                 order = self._any_order = tuple(sorted(chosen, key=_by_priority))
                 self._any_epoch = Link.epoch
+            for p in order:
+                if p.fresh:
+                    best = p
+                    break
         else:
             chosen = [self._in(p) for p in ports]
-            order = tuple(sorted(chosen, key=_by_priority))
-        best: InPort | None = None
-        for p in order:  # the highest link priority, then the lowest port
-            if p.fresh:
-                best = p
-                break
+            best = _best(chosen)
         if best is None:
             if not chosen:
                 raise MessageError(f"task {t.name} has no input ports to read")
@@ -167,18 +180,10 @@ class Reading(TaskHandle):
                 self._k.block(t, _WAITING)
             if timeout is not None:
                 self._arm_timeout(timeout, ", ".join(p.link.name for p in chosen))
-            epoch = Link.epoch
             yield BLOCK
-            if single:
-                best = chosen[0]
-            else:  # woken by the first message; others may have come before this step: the
-                # best of what is there now, in the order of the priorities now
-                if Link.epoch != epoch:
-                    order = tuple(sorted(chosen, key=_by_priority))
-                for p in order:
-                    if p.fresh:
-                        best = p
-                        break
+            # woken by the first message; others may have come before this step: the best of
+            # what is there now, by the priorities now
+            best = chosen[0] if single else _best(chosen)
             assert best is not None
         if not self._k.h_delivered:  # the hot path, as in read
             fifo = best.fifo
