@@ -373,7 +373,13 @@ def satellites(run: SuiteRun) -> None:
         ok = [r for r in rows if not r.get("error")]
         target = {1: "-", 2: ">= 1.8x of 1 (2 cores)", 3: "reported (bounded by the cores)"}[n]
         got = (f"{spread([r['total'] for r in ok], '{:,.0f}')}/s = "
-               f"{spread([r['ratio'] for r in ok])}x of 1" if ok else "not measured")
+               f"{spread([r['ratio'] for r in ok])}x of 1; CPU per process "
+               f"{spread([c for r in ok for c in r['cpu']])} cores" if ok else "not measured")
+        tops = [r for r in ok if r.get("ceiling") and not r["ceiling"].get("error")]
+        if tops:
+            got += (f"; the machine's ceiling (as many unlinked) "
+                    f"{spread([r['ceiling_ratio'] for r in tops])}x, linked/unlinked "
+                    f"{spread([r['total'] / r['ceiling']['total'] for r in tops])}")
         if len(ok) < len(rows):
             got += f"; {len(rows) - len(ok)} of {len(rows)} not set up ({rows[0].get('error')})"
         model = rows[0]

@@ -185,6 +185,44 @@ def test_newest_wins_is_kept_across_the_link(
     assert comms[1].superseded == 9
 
 
+def test_newest_wins_numbers_are_encoded_only_when_their_batch_leaves(
+        pair: tuple[System, System, LoopNet, list[CommManager]]) -> None:
+    """A flood of numbers on a newest-wins link costs one encoding per batch: the values wait
+    unencoded and only the one that leaves is encoded, with its own sequence number and time
+    stamp. What could fail to encode (NaN, an object) is encoded in the put and fails there."""
+    m0, _m1, net, comms = pair
+    c = comms[0]
+    link = m0.msgtab.find("P", "R")
+    encoded: list[tuple[Any, ...]] = []
+    later = c.batches.encode_later
+    assert later is not None
+
+    def counting(fields: Any) -> bytes:
+        encoded.append(fields)
+        return later(fields)
+
+    c.batches.encode_later = counting
+    for v in (1.5, 2, True, -4.25):
+        c.sensory(link, v)
+    with pytest.raises(MessageError, match=r"cannot send sensory P->R.*expected JSON data"):
+        c.sensory(link, float("nan"))
+    with pytest.raises(MessageError, match=r"cannot send sensory P->R.*expected JSON data"):
+        c.sensory(link, object())
+    assert encoded == []                    # nothing encoded while the values wait
+    c.flush()
+    assert len(encoded) == 1
+    (msg,) = [m for _k, p, _kind in net.held for m in decode_batch(p)]
+    assert (msg.src, msg.dst, msg.link, msg.value, msg.seq) == ("P", "R", link.lid, -4.25, 4)
+    net.held.clear()
+    c.sensory(link, 7.0)                    # a deferred number, then a structure encoded at once
+    c.sensory(link, {"x": [1, 2]})          # in its put: the newest wins either way
+    c.flush()
+    assert len(encoded) == 1
+    # the puts that failed took no sequence number: no gap for the receiver to count
+    assert [(m.value, m.seq) for _k, p, _kind in net.held for m in decode_batch(p)] == [
+        ({"x": [1, 2]}, 6)]
+
+
 def test_a_restarted_sender_does_not_count_as_a_gap(
         pair: tuple[System, System, LoopNet, list[CommManager]]) -> None:
     m0, m1, net, comms = pair

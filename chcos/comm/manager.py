@@ -33,6 +33,7 @@ and raised by :meth:`CommManager.check` (like canopen's ``Network.check()``).
 from __future__ import annotations
 
 import logging
+import math
 import time
 from typing import Any
 
@@ -105,7 +106,8 @@ class CommManager:
         self.error_count = 0
         self.rejected = Throttle(log)
         self.alive: set[int] = {machine}
-        self.batches = Batches(kernel, transport, self._collect)
+        self.batches = Batches(kernel, transport, self._collect, self._encode_newest)
+        self._keys: dict[int | None, str] = {}   # destination machine -> its message key
         self.superseded = 0
         kernel.add_idle_hook(self.batches.on_idle)
 
@@ -180,13 +182,13 @@ class CommManager:
     def _put(self, machine: int | None, kind: MessageKind, src: str, dst: str, lid: int,
              priority: int, value: Any, queued: bool = False, newest_wins: bool = False) -> None:
         seq = self._seq.get(lid, 0) + 1
-        self._seq[lid] = seq
         msg = LinkMessage(kind, src, dst, lid, priority, seq, time.time_ns(), value)
         key = f"{self.prefix}/all/msg" if machine is None else self.key(machine)
         drop = kind.droppable and not queued      # a queued link's messages must all arrive
         try:
             data = encode(msg)
-            self.sent += 1
+            self._seq[lid] = seq   # a message that cannot be sent takes no number: the
+            self.sent += 1         # receiver would count it as sent and overwritten
             if priority >= EXPRESS_FROM:  # urgent: out at once, on its own
                 self.transport.publish(key, data, priority=priority,
                                        kind=MessageKind.SENSORY if drop else MessageKind.COMMAND)
@@ -197,10 +199,39 @@ class CommManager:
         self.batches.add(key, drop, newest_wins, lid, data, priority)
 
     def sensory(self, link: Link, value: Any) -> None:
-        """A sensory message to a task on another satellite."""
-        self._put(link.dst_machine, MessageKind.SENSORY, link.src, link.dst, link.lid,
-                  link.priority, value, queued=bool(link.queued),
-                  newest_wins=not link.queued and not link.tap)
+        """A sensory message to a task on another satellite.
+
+        A number on a newest-wins link below EXPRESS_FROM (the common case, and the one that
+        comes in floods) waits in its batch unencoded: most are replaced by a newer one before
+        the batch leaves, and only the one that leaves is encoded
+        (:meth:`_encode_newest`). A number cannot fail to encode (a float must be finite);
+        anything else is encoded now, so that what cannot be sent fails in the sender's put."""
+        t = type(value)
+        if (link.queued or link.tap or link.priority >= EXPRESS_FROM
+                or not (t is int or t is bool or (t is float and math.isfinite(value)))):
+            self._put(link.dst_machine, MessageKind.SENSORY, link.src, link.dst, link.lid,
+                      link.priority, value, queued=bool(link.queued),
+                      newest_wins=not link.queued and not link.tap)
+            return
+        lid = link.lid
+        seq = self._seq.get(lid, 0) + 1
+        self._seq[lid] = seq
+        self.sent += 1
+        machine = link.dst_machine
+        key = self._keys.get(machine)
+        if key is None:
+            key = self._keys[machine] = (f"{self.prefix}/all/msg" if machine is None
+                                         else self.key(machine))
+        self.batches.add(key, True, True, lid,
+                         (link.src, link.dst, lid, link.priority, seq, time.time_ns(), value),
+                         link.priority)
+
+    @staticmethod
+    def _encode_newest(fields: tuple[Any, ...]) -> bytes:
+        """The wire bytes of a sensory message :meth:`sensory` left unencoded (``fields``:
+        source, destination, link id, priority, sequence number, time stamp, value). Raises
+        LinkError like :func:`chcos.comm.codec.encode`."""
+        return encode(LinkMessage(MessageKind.SENSORY, *fields))
 
     def tap(self, link: Link, source: str, value: Any) -> None:
         """A tapped sensory message to an exception task on another satellite."""
