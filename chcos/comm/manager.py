@@ -152,6 +152,13 @@ class CommManager:
         """The message key of ``machine``."""
         return f"{self.prefix}/m/{machine}/msg"
 
+    def _key_of(self, machine: int | None) -> str:
+        """The key a message to ``machine`` goes to (None: the broadcast key), kept in
+        ``_keys`` for the next message."""
+        key = self._keys[machine] = (f"{self.prefix}/all/msg" if machine is None
+                                     else self.key(machine))
+        return key
+
     def start(self) -> None:
         """Subscribe to this machine's messages and the broadcasts and watch the other
         satellites come and go. Raises LinkError if Zenoh refuses."""
@@ -183,11 +190,11 @@ class CommManager:
              priority: int, value: Any, queued: bool = False, newest_wins: bool = False) -> None:
         seq = self._seq.get(lid, 0) + 1
         msg = LinkMessage(kind, src, dst, lid, priority, seq, time.time_ns(), value)
-        key = f"{self.prefix}/all/msg" if machine is None else self.key(machine)
+        key = self._keys.get(machine) or self._key_of(machine)
         drop = kind.droppable and not queued      # a queued link's messages must all arrive
         try:
             data = encode(msg)
-            self._seq[lid] = seq   # a message that cannot be sent takes no number: the
+            self._seq[lid] = seq   # a message that cannot be encoded takes no number: the
             self.sent += 1         # receiver would count it as sent and overwritten
             if priority >= EXPRESS_FROM:  # urgent: out at once, on its own
                 self.transport.publish(key, data, priority=priority,
@@ -218,11 +225,7 @@ class CommManager:
         self._seq[lid] = seq
         self.sent += 1
         machine = link.dst_machine
-        key = self._keys.get(machine)
-        if key is None:
-            key = self._keys[machine] = (f"{self.prefix}/all/msg" if machine is None
-                                         else self.key(machine))
-        self.batches.add(key, True, True, lid,
+        self.batches.add(self._keys.get(machine) or self._key_of(machine), True, True, lid,
                          (link.src, link.dst, lid, link.priority, seq, time.time_ns(), value),
                          link.priority)
 
