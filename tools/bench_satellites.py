@@ -209,12 +209,13 @@ def scaling_detail(machines: int, seconds: float, sample_hz: int = SAMPLE_HZ,
         t0 = time.monotonic()
         threading.Event().wait(seconds)  # the measuring window: the host stays idle
         cpu1 = [cpu_seconds(p.pid) for p in c.procs]
-        dt = time.monotonic() - t0
-        last, r1 = counts()
+        dt_cpu = time.monotonic() - t0
+        last, r1 = counts()   # a snapshot taken during the request, like the first one:
+        dt = time.monotonic() - t0  # the request's time counts on both ends alike
         per = [(b - a) / dt for a, b in zip(first, last, strict=True)]
         return {"machines": machines, "per_satellite": per, "total": sum(per),
                 "readings": (r1 - r0) / dt, "seconds": dt, "solo": solo,
-                "cpu": [(b - a) / dt for a, b in zip(cpu0, cpu1, strict=True)]}
+                "cpu": [(b - a) / dt_cpu for a, b in zip(cpu0, cpu1, strict=True)]}
     finally:
         c.close()
 
