@@ -10,13 +10,17 @@ message (a put that wakes Zenoh's sender costs tens of microseconds, as much as 
 and the data is at most BATCH_DELAY older. On virtual time everything goes out when the kernel
 goes idle.
 
-A saturated kernel (one that did not go idle once during a whole batch delay) sends its
-newest-wins batches every :data:`BUSY_BATCH_DELAY` instead, until it goes idle again. Each put
-hands Python's GIL to whatever thread waits for it (the link's receiving thread among them)
-and costs the kernel a thread wake-up to get it back, on this satellite and, for the batch
-received, on the peer's: at a put per millisecond a saturated pair of satellites spent half
-their time on these hand-overs (tools/bench_satellites). Messages that must arrive keep
-BATCH_DELAY.
+A saturated kernel (one that spent less than :data:`BUSY_IDLE_SHARE` of a whole batch delay
+idle) sends its newest-wins batches every :data:`BUSY_BATCH_DELAY` instead, and while it stays
+saturated the delay doubles with each batch up to :data:`BUSY_BATCH_DELAY_MAX`, until it idles
+longer again. A kernel waiting now and then for a timer due within microseconds (a sensor
+sampled faster than it is served) is as saturated as one that never waits. Why: every batch
+wakes several threads on both satellites (Zenoh's sender, its receiver, the thread that hands
+the batch to the peer's kernel), each of which takes the CPU, and Python's GIL, from a kernel
+that has no time to spare; the peer's thread waits for the GIL and forces a switch. At a put
+per millisecond a saturated pair of satellites spent half their time on these hand-overs, at
+one per 5 ms about a sixth, at one per 20 ms about a tenth (tools/bench_satellites). Messages
+that must arrive keep BATCH_DELAY; messages at EXPRESS_FROM and above are never batched.
 """
 
 from __future__ import annotations
@@ -34,10 +38,16 @@ log = logging.getLogger("chcos.comm.manager")
 
 BATCH_MAX = 64
 BATCH_DELAY = 0.001
-#: the newest-wins batch delay of a saturated kernel (see the module doc): as long as the
-#: interpreter's switch interval (sys.getswitchinterval), the longest a thread waiting for the
-#: GIL of a busy process waits anyway
+#: the newest-wins batch delay of a kernel found saturated (see the module doc): as long as
+#: the interpreter's switch interval (sys.getswitchinterval), the longest a thread waiting for
+#: the GIL of a busy process waits anyway
 BUSY_BATCH_DELAY = 0.005
+#: the longest it grows to while the kernel stays saturated: the oldest a newest-wins value
+#: from a saturated satellite gets on the link
+BUSY_BATCH_DELAY_MAX = 0.02
+#: a kernel idle for less than this share of a batch delay (the wake-up included) is busy; one
+#: that has been idle longer than this share of BATCH_DELAY since is not busy any more
+BUSY_IDLE_SHARE = 0.25
 
 #: (destination key, droppable, newest wins)
 Slot = tuple[str, bool, bool]
@@ -62,8 +72,11 @@ class Batches:
         self._uniq = 0
         self._timer: Timer | None = None
         self._timer_long = False  # the armed timer is a busy kernel's (BUSY_BATCH_DELAY)
-        self._idled = True        # the kernel went idle since the timer was armed
-        #: the kernel did not go idle during the last batch delay (see the module doc)
+        self._armed_at = 0.0      # when the timer was armed, and the kernel's idle time then
+        self._armed_idle = 0.0
+        self._idle_mark = 0.0     # the kernel's idle time when the last timer fired
+        self._busy_delay = BUSY_BATCH_DELAY   # the next long timer's delay
+        #: the kernel was saturated during the last batch delay (see the module doc)
         self.busy = False
         self.sent = 0
         self.coalesced = 0
@@ -88,6 +101,10 @@ class Batches:
         if len(batch) >= BATCH_MAX:
             self._flush_slot(slot)
         elif self._timer is None:
+            if self.busy and (self.kernel.idle_time - self._idle_mark
+                              >= BATCH_DELAY * BUSY_IDLE_SHARE):
+                self.busy = False  # it has been idle for a while since the last batch left
+                self._busy_delay = BUSY_BATCH_DELAY
             self._arm(newest_wins and self.busy)
         elif self._timer_long and not newest_wins:  # must arrive: not after a busy delay
             self._timer.cancel()
@@ -95,22 +112,28 @@ class Batches:
 
     def _arm(self, long: bool) -> None:
         self._timer_long = long
-        self._idled = False
-        self._timer = self.kernel.call_later(BUSY_BATCH_DELAY if long else BATCH_DELAY,
+        self._armed_at = self.kernel.clock.now()
+        self._armed_idle = self.kernel.idle_time
+        self._timer = self.kernel.call_later(self._busy_delay if long else BATCH_DELAY,
                                              self._on_timer)
 
     def _on_timer(self) -> None:
-        """The batch delay is over: send everything; a kernel that did not go idle meanwhile
-        is busy (its next newest-wins batches wait BUSY_BATCH_DELAY)."""
+        """The batch delay is over: send everything. A kernel that was idle for less than
+        BUSY_IDLE_SHARE of it is busy: its next newest-wins batches wait BUSY_BATCH_DELAY, or
+        twice the last busy delay (up to BUSY_BATCH_DELAY_MAX) if this one was busy too."""
         self._timer = None
-        self.busy = not self._idled
+        idle = self._idle_mark = self.kernel.idle_time
+        span = self.kernel.clock.now() - self._armed_at
+        self.busy = idle - self._armed_idle < span * BUSY_IDLE_SHARE
+        if not self.busy:
+            self._busy_delay = BUSY_BATCH_DELAY
+        elif self._timer_long:
+            self._busy_delay = min(self._busy_delay * 2, BUSY_BATCH_DELAY_MAX)
         self.flush()
 
     def on_idle(self) -> None:
         """Kernel idle hook: send the batches of messages that must arrive now; newest-wins
         sensory batches wait for the batch timer (real time only)."""
-        self._idled = True
-        self.busy = False
         if not self._batches:
             return
         if self.kernel.clock.virtual:

@@ -26,6 +26,8 @@ class Scheduler(Protocol):
     """The kernel: its clock, timers, interrupts and idle hooks (all on the kernel thread)."""
 
     clock: Clock
+    #: seconds spent idle on real time so far (see chcos.kernel.scheduler.Kernel.idle_time)
+    idle_time: float
 
     def add_idle_hook(self, hook: Callable[[], None]) -> None:
         """Call ``hook()`` each time the kernel goes idle."""

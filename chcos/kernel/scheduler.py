@@ -67,6 +67,9 @@ class Kernel(Lifecycle, Hooks, Timers):
         self._irq: deque[tuple[Callable[..., None], tuple[Any, ...]]] = deque()
         self._wake = threading.Event()
         self._idle = False
+        #: seconds this kernel spent in its idle waits on real time (the wake-up included),
+        #: so far: a reader compares two readings to see how saturated it was in between
+        self.idle_time = 0.0
         self._stop = False
         self._running = False
         #: the ident of the thread running :meth:`run`, None when it is not running
@@ -305,12 +308,14 @@ class Kernel(Lifecycle, Hooks, Timers):
         if until is not None and clock.now() >= until:
             return False
         self._idle = True
+        began = clock.now()
         try:
             if not self._irq and not self._stop:
                 clock.idle(self._wake, deadline)
         finally:
             self._idle = False
             self._wake.clear()
+            self.idle_time += clock.now() - began
         return True
 
     def _settle(self) -> bool:
