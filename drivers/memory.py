@@ -24,11 +24,17 @@ MAX_HISTORY = 1_000_000  # writes kept per actuator
 HISTORY_BYTES = 1024 * 1024
 
 
+_NUMBER = (int, float)          # bool too (a subclass of int)
+_TEXT = (str, bytes, bytearray)
+
+
 def _size(value: Any) -> int:
-    if isinstance(value, str | bytes | bytearray):
-        return len(value)
-    if isinstance(value, int | float | bool) or value is None:
+    """What ``value`` counts against HISTORY_BYTES (tuples, not ``X | Y`` unions: this runs on
+    every write, and a union is built anew at each call)."""
+    if isinstance(value, _NUMBER) or value is None:
         return 8
+    if isinstance(value, _TEXT):
+        return len(value)
     return len(repr(value))
 
 
@@ -57,6 +63,7 @@ class ActuatorStore:
         self._hist: dict[str, deque[Any]] = {a: deque(maxlen=history) for a in actuators}
         self._sizes: dict[str, deque[int]] = {a: deque(maxlen=history) for a in self._hist}
         self._count: dict[str, int] = dict.fromkeys(self._hist, 0)
+        self._bytes: dict[str, int] = dict.fromkeys(self._hist, 0)  # sum of each _sizes deque
 
     def put(self, device: str, value: Any) -> None:
         """Record a write; raises :class:`DeviceError` if ``device`` is not one of the actuators."""
@@ -65,12 +72,16 @@ class ActuatorStore:
                 raise DeviceError(f"write to {device!r}: not an actuator of this bus; expected one "
                                   f"of {', '.join(self._hist) or 'none'}")
             hist, sizes = self._hist[device], self._sizes[device]
+            size = _size(value)
+            total = self._bytes[device] + size
+            if len(sizes) == sizes.maxlen:     # the append drops the oldest
+                total -= sizes[0]
             hist.append(value)
-            sizes.append(_size(value))
-            total = sum(sizes)
+            sizes.append(size)
             while len(hist) > 1 and total > HISTORY_BYTES:
                 hist.popleft()
                 total -= sizes.popleft()
+            self._bytes[device] = total
             self._count[device] += 1
             self._cond.notify_all()
 

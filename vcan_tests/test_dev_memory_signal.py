@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import math
+import random
+from collections import deque
 from pathlib import Path
 
 import pytest
 
 from chcos.devices.devmap import load
 from chcos.errors import DeviceError
-from drivers.memory import MemoryDriver
+from drivers.memory import HISTORY_BYTES, ActuatorStore, MemoryDriver, _size
 from drivers.registry import driver_class
 from drivers.signal import SignalDriver, make_waveform
 from vcan_tests.support_dev import FakeHost, bus, device
@@ -98,3 +100,22 @@ def test_signal_check_device() -> None:
         "period, phase, value, seed",
         "device[0].address.rate_hz: expected samples per second > 0, got 0",
         "device[0].address.period: expected seconds > 0, got -1"]
+
+
+def test_memory_history_keeps_what_a_recount_would_keep() -> None:
+    """The kept history (bounded by count and by HISTORY_BYTES, with a running byte total)
+    against a model that recounts every kept value's size after each write: random sizes
+    around the byte bound, a small count bound, numbers and strings mixed."""
+    rng = random.Random(7)
+    store = ActuatorStore(["M"], history=4)
+    model: deque[object] = deque(maxlen=4)
+    for i in range(2000):
+        value: object = (i if rng.random() < 0.3
+                         else "x" * rng.choice([1, 100, HISTORY_BYTES // 3, HISTORY_BYTES // 2,
+                                                HISTORY_BYTES + 1]))
+        model.append(value)
+        while len(model) > 1 and sum(_size(v) for v in model) > HISTORY_BYTES:
+            model.popleft()
+        store.put("M", value)
+        assert store.history("M") == list(model), i
+    assert store.count("M") == 2000

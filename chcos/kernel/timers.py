@@ -100,14 +100,16 @@ class Timers:
         assert period is not None
         base = tm.base
         count = tm.count + 1
-        # no accumulated rounding; whole nanoseconds so k * period lands on k * period
-        deadline = round(base + count * period, 9)
+        # no accumulated rounding; whole nanoseconds so k * period lands on k * period (an
+        # integer round: round(x, 9) would go through decimal text, several times slower)
+        deadline = round((base + count * period) * 1e9) / 1e9
         if deadline <= now:  # late by at least one more period: skip to the first one ahead
             late = count
             count = max(count, int((now - base) / period))
-            while round(base + count * period, 9) <= now:
+            deadline = round((base + count * period) * 1e9) / 1e9
+            while deadline <= now:
                 count += 1
-            deadline = round(base + count * period, 9)
+                deadline = round((base + count * period) * 1e9) / 1e9
             missed = count - late
             tm.skipped += missed
             self.skipped_periods += missed
