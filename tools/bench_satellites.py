@@ -2,16 +2,17 @@
 """bench_satellites - one CHC-OS system on 1 and 2 satellite processes, over Zenoh on loopback.
 
 1. Scaling, after the thesis' table (1150 / 2100 / 3075 interrupts/s for 1 / 2 / 3 satellites):
-   every satellite runs the same load, a sensor sampled flat out (a ``signal`` device at its
-   highest rate, far above what one core can serve, so that the kernel never goes idle; each
-   satellite process's CPU use over the window is printed to show it), its driver task writing
-   an actuator for every reading and sending every fifth upward to a level-2 task that reads the
-   driver tasks of *every* satellite (so with 2 satellites half of its inputs cross the link, as
-   in the thesis' estimate). Measured: total sensor-to-actuator loops/s with 1, 2 and 3
-   satellite processes; target 2-satellite total >= 1.8x the single one (the thesis estimated
-   1.83x). Beside it, the machine's own ceiling in the same run: the same satellites with
-   nothing crossing the link (each level-2 task reads its own satellite's driver task only),
-   which is what these cores give N busy Python processes today.
+   every satellite runs the same load, two sensors sampled flat out (``signal`` devices at the
+   highest rate a map allows, together far above what one core can serve, so that the kernel
+   never goes idle; each satellite process's CPU use over the window is printed to show it),
+   each read by its own driver task writing an actuator for every reading and sending every
+   fifth upward to a level-2 task that reads the driver tasks of *every* satellite (so with 2
+   satellites half of its inputs cross the link, as in the thesis' estimate). Measured: total
+   sensor-to-actuator loops/s with 1, 2 and 3 satellite processes; target 2-satellite total
+   >= 1.8x the single one (the thesis estimated 1.83x). Beside it, the machine's own ceiling
+   in the same run: the same satellites with nothing crossing the link (each level-2 task
+   reads its own satellite's driver tasks only), which is what these cores give N busy Python
+   processes today.
 2. Cross-satellite message latency: a task on machine 0 sends 5,000 sensory messages/s to a task
    on machine 1 over a queued link (so every message counts), each stamped with the wall clock;
    p50/p99 of arrival minus stamp (target p99 < 1 ms). Measured in the same run, side by side:
@@ -95,25 +96,28 @@ kind = "signal"
 """
 DEVICE = """
 [[device]]
-name = "S{m}"
+name = "S{m}{lane}"
 direction = "sensor"
 machine = {m}
 bus = "load"
 address = {{ waveform = "ramp", rate_hz = {hz}, amplitude = 10.0, center = 10.0 }}
 
 [[device]]
-name = "M{m}"
+name = "M{m}{lane}"
 direction = "actuator"
 machine = {m}
 bus = "load"
 """
 
 
-SAMPLE_HZ = 100_000  # each satellite's sensor: the signal bus's highest rate, several times
-# what one satellite serves, so that its kernel never waits for the next sample (at 20 kHz it
-# did: a sleep of 50 us takes ~100 us here, and one satellite used half a core). A late sample
-# timer fires once and skips the periods it missed (chcos.kernel.timers), so sampling faster
-# only adds skipped periods, not work
+SAMPLE_HZ = 100_000  # each sensor: the highest rate a device map allows (mapparse.RATE_RANGE)
+#: the sensor-to-actuator lanes of a satellite (suffixes of S, M and A): two sensors at
+#: SAMPLE_HZ, several times what one satellite serves, so that its kernel never waits for the
+#: next sample (at 20 kHz it did: a sleep of 50 us takes ~100 us here, and one satellite used
+#: half a core; with one sensor at 100 kHz, once a reading cost ~11 us, it again waited now and
+#: then). A late sample timer fires once and skips the periods it missed (chcos.kernel.timers),
+#: so sampling faster only adds skipped periods, not work
+LANES = ("", "b")
 
 
 def cpu_of(machine: int) -> int:
@@ -130,8 +134,8 @@ class Cluster:
     def __init__(self, machines: int, load: bool = True, sample_hz: int = SAMPLE_HZ,
                  pin: bool = False) -> None:
         self.tmp = Path(tempfile.mkdtemp(prefix="chcos-bench-sat-"))
-        devices = "".join(DEVICE.format(m=m, hz=sample_hz) for m in range(max(machines, 2))
-                          if load)
+        devices = "".join(DEVICE.format(m=m, lane=lane, hz=sample_hz)
+                          for m in range(max(machines, 2)) for lane in LANES if load)
         (self.tmp / "devices.toml").write_text(DEVMAP.format(devices=devices))
         sats = "".join(f"[[satellite]]\nmachine = {m}\nport = {free_port()}\n"
                        + (f"cpus = [{cpu_of(m)}]\n" if pin else "")
@@ -179,7 +183,7 @@ def scaling_detail(machines: int, seconds: float, sample_hz: int = SAMPLE_HZ,
     actuator) with ``machines`` satellite processes: ``per_satellite`` (list), ``total``,
     ``readings`` (sensor readings/s delivered, overwritten ones included) and ``cpu`` (each
     satellite process's CPU use over the window, in cores: ~1.0 when CPU-bound). ``solo``:
-    each level-2 task reads only its own satellite's driver task, so nothing crosses the link
+    each level-2 task reads only its own satellite's driver tasks, so nothing crosses the link
     (the machine's ceiling for the same processes). Raises LinkError or InstallError when a
     satellite is too busy to answer its control requests in time."""
     c = Cluster(machines, sample_hz=sample_hz)
@@ -188,21 +192,29 @@ def scaling_detail(machines: int, seconds: float, sample_hz: int = SAMPLE_HZ,
         for m in range(machines):
             h.execute(f"install -m{m} sysfile")
         for m in range(machines):
-            h.execute(f"install -m{m}i1o1 --code=tools.bench_satellites:driver A{m} S{m} M{m}")
-        ins = " ".join(f"A{m}" for m in range(machines))
+            for lane in LANES:
+                h.execute(f"install -m{m}i1o1 --code=tools.bench_satellites:driver A{m}{lane} "
+                          f"S{m}{lane} M{m}{lane}")
+
+        def drivers(ms: range) -> list[str]:
+            return [f"A{m}{lane}" for m in ms for lane in LANES]
+
         for m in range(machines):
-            reads = f"i1 --code=tools.bench_satellites:collector B{m} A{m}" if solo else \
-                f"i{machines} --code=tools.bench_satellites:collector B{m} {ins}"
-            h.execute(f"install -m{m}{reads}")
+            ins = drivers(range(m, m + 1) if solo else range(machines))
+            h.execute(f"install -m{m}i{len(ins)} --code=tools.bench_satellites:collector B{m} "
+                      f"{' '.join(ins)}")
         for m in range(machines):
             h.execute(f"invoke B{m}")
-            h.execute(f"invoke A{m}")
+            for a in drivers(range(m, m + 1)):
+                h.execute(f"invoke {a}")
 
         def counts() -> tuple[list[int], int]:
             doc = h.map_doc()
             by = {d["name"]: d for d in doc["devices"]}
-            return ([int(by[f"M{m}"]["commands"]) for m in range(machines)],
-                    sum(int(by[f"S{m}"]["readings"]) for m in range(machines)))
+            return ([sum(int(by[f"M{m}{lane}"]["commands"]) for lane in LANES)
+                     for m in range(machines)],
+                    sum(int(by[f"S{m}{lane}"]["readings"]) for m in range(machines)
+                        for lane in LANES))
 
         first, r0 = counts()
         cpu0 = [cpu_seconds(p.pid) for p in c.procs]

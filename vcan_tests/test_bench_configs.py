@@ -10,9 +10,11 @@ from tools import bench_satellites
 
 
 def test_satellite_bench_map_passes_check(tmp_path: Path) -> None:
-    devices = "".join(bench_satellites.DEVICE.format(m=m, hz=bench_satellites.SAMPLE_HZ)
-                      for m in range(2))
+    devices = "".join(bench_satellites.DEVICE.format(m=m, lane=lane,
+                                                     hz=bench_satellites.SAMPLE_HZ)
+                      for m in range(2) for lane in bench_satellites.LANES)
     path = tmp_path / "devices.toml"
     path.write_text(bench_satellites.DEVMAP.format(devices=devices))
     loaded = devmap.load([path])
-    assert {d.name for d in loaded.devices} == {"S0", "M0", "S1", "M1"}
+    assert {d.name for d in loaded.devices} == {"S0", "M0", "S1", "M1", "S0b", "M0b", "S1b",
+                                                "M1b"}
