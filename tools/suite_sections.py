@@ -380,6 +380,10 @@ def satellites(run: SuiteRun) -> None:
             got += (f"; the machine's ceiling (as many unlinked) "
                     f"{spread([r['ceiling_ratio'] for r in tops])}x, linked/unlinked "
                     f"{spread([r['total'] / r['ceiling']['total'] for r in tops])}")
+        if n == 1 and any(r.get("runs") for r in ok):
+            got += ("; each batch's baseline the mean of a run before and one after the "
+                    "others (" + "; ".join(" and ".join(f"{v:,.0f}" for v in r["runs"])
+                                            for r in ok if r.get("runs")) + ")")
         if len(ok) < len(rows):
             got += f"; {len(rows) - len(ok)} of {len(rows)} not set up ({rows[0].get('error')})"
         model = rows[0]
