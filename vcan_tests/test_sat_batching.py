@@ -178,6 +178,23 @@ def test_a_kernel_saturated_for_long_sends_ever_less_often_up_to_the_longest_del
     assert delays == [BATCH_DELAY, BUSY_BATCH_DELAY, BUSY_BATCH_DELAY * 2]
 
 
+def test_on_virtual_time_going_idle_sends_everything_and_ends_the_saturation(
+        batches: tuple[Batches, _Kernel, _Link]) -> None:
+    """Virtual time: the idle waits take no time (idle_time stays 0), so going idle itself
+    ends a saturation, and everything waiting leaves then."""
+    b, k, link = batches
+    k.clock.virtual = True
+    b.add("m/1", True, True, 1, _msg(1, 1.0), 10)
+    k.fire()                                      # never idle: busy
+    b.add("m/1", True, True, 1, _msg(1, 2.0), 10)
+    assert b.busy and k.armed() == [BUSY_BATCH_DELAY]
+    b.on_idle()
+    assert not b.busy and k.armed() == [] and [v for _t, _k, v, _kd in link.sent] == [[1.0],
+                                                                                      [2.0]]
+    b.add("m/1", True, True, 1, _msg(1, 3.0), 10)
+    assert k.armed() == [BATCH_DELAY]
+
+
 def test_the_kernel_counts_its_idle_waits_on_real_time() -> None:
     """Kernel.idle_time, which the batches read: the time its idle waits took on a real-time
     clock (here one driven by hand: each idle wait moves it to the deadline), not the time it

@@ -19,8 +19,10 @@ wakes several threads on both satellites (Zenoh's sender, its receiver, the thre
 the batch to the peer's kernel), each of which takes the CPU, and Python's GIL, from a kernel
 that has no time to spare; the peer's thread waits for the GIL and forces a switch. At a put
 per millisecond a saturated pair of satellites spent half their time on these hand-overs, at
-one per 5 ms about a sixth, at one per 20 ms about a tenth (tools/bench_satellites). Messages
-that must arrive keep BATCH_DELAY; messages at EXPRESS_FROM and above are never batched.
+one per 5 ms about a sixth (tools/bench_satellites; the README's performance notes give what
+is left). Messages that must arrive keep BATCH_DELAY; messages at EXPRESS_FROM and above are
+never batched. On virtual time, where the kernel's idle waits take no time, going idle ends
+the saturation.
 """
 
 from __future__ import annotations
@@ -137,6 +139,8 @@ class Batches:
         if not self._batches:
             return
         if self.kernel.clock.virtual:
+            self.busy = False   # (idle_time counts real time only)
+            self._busy_delay = BUSY_BATCH_DELAY
             self.flush()
             return
         for slot in [sl for sl in self._batches if not sl[2]]:
