@@ -44,6 +44,22 @@ def free_port(host: str = "127.0.0.1") -> int:
         return int(sock.getsockname()[1])
 
 
+def free_ports(count: int, host: str = "127.0.0.1") -> list[int]:
+    """``count`` distinct TCP ports on ``host`` that were free a moment ago (as
+    :func:`free_port`, but all bound at once, so that two of them cannot be the same port, as
+    two calls of free_port can be). Raises OSError if ``host`` cannot be bound."""
+    import socket
+    from contextlib import ExitStack
+
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with ExitStack() as stack:
+        socks = [stack.enter_context(socket.socket(family, socket.SOCK_STREAM))
+                 for _ in range(count)]
+        for sock in socks:
+            sock.bind((host, 0))
+        return [int(sock.getsockname()[1]) for sock in socks]
+
+
 #: A task or device name: ``[A-Za-z_][A-Za-z0-9_.-]*`` (use ``fullmatch``).
 NAME_PATTERN = re.compile(r"[A-Za-z_][A-Za-z0-9_.-]*")
 

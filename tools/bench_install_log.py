@@ -26,7 +26,7 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 
-from chcos.helpers import free_port  # noqa: E402
+from chcos.helpers import free_ports  # noqa: E402
 from chcos.satellites import sysfile  # noqa: E402
 from chcos.satellites.host import Host  # noqa: E402
 from chcos.user.context import TaskContext  # noqa: E402
@@ -40,7 +40,8 @@ async def idle(ctx: TaskContext, cmd: Any) -> None:
 def run(tasks: int, machines: int, late: int) -> dict[str, Any]:
     """Install ``tasks`` tasks on ``machines`` machines, ``late`` of which start afterwards."""
     tmp = Path(tempfile.mkdtemp(prefix="chcos-bench-log-"))
-    sats = "".join(f"[[satellite]]\nmachine = {m}\nport = {free_port()}\n"
+    ports = free_ports(machines)
+    sats = "".join(f"[[satellite]]\nmachine = {m}\nport = {ports[m]}\n"
                    for m in range(machines))
     (tmp / "system.toml").write_text(
         f'[system]\nname = "benchlog{os.getpid()}"\nstate_dir = "state"\n\n{sats}')

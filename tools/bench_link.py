@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import os
 import queue
-import socket
 import struct
 import subprocess
 import sys
@@ -26,6 +25,7 @@ import time
 from pathlib import Path
 
 from chcos.comm import LinkConfig, MessageKind, Transport
+from chcos.helpers import free_ports
 
 REPO = Path(__file__).resolve().parent.parent
 PING = "bench/ping"
@@ -34,12 +34,6 @@ BULK = "bench/bulk"
 COUNT = "bench/count"
 ALIVE = "bench/alive/echo"
 STAMP = struct.Struct(">QQ")  # sequence number, send time (perf_counter_ns of the sender)
-
-
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def echo_main(listen: int, connect: int) -> int:
@@ -177,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     if a.echo is not None:
         return echo_main(*a.echo)
-    me, child_port = _free_port(), _free_port()
+    me, child_port = free_ports(2)
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")])
     with Transport(LinkConfig(me, (child_port,))) as link:

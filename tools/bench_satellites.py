@@ -41,7 +41,7 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 
-from chcos.helpers import free_port  # noqa: E402
+from chcos.helpers import free_ports  # noqa: E402
 from chcos.satellites import sysfile  # noqa: E402
 from chcos.satellites.host import Host  # noqa: E402
 from chcos.system.affinity import pin_process  # noqa: E402
@@ -137,7 +137,8 @@ class Cluster:
         devices = "".join(DEVICE.format(m=m, lane=lane, hz=sample_hz)
                           for m in range(max(machines, 2)) for lane in LANES if load)
         (self.tmp / "devices.toml").write_text(DEVMAP.format(devices=devices))
-        sats = "".join(f"[[satellite]]\nmachine = {m}\nport = {free_port()}\n"
+        ports = free_ports(machines)
+        sats = "".join(f"[[satellite]]\nmachine = {m}\nport = {ports[m]}\n"
                        + (f"cpus = [{cpu_of(m)}]\n" if pin else "")
                        for m in range(machines))
         (self.tmp / "system.toml").write_text(
@@ -333,7 +334,7 @@ def raw_latency(rate: int, seconds: float, secure: bool = False,
     ``secure`` configured as the satellites are (mutual TLS, user/password, seals); ``pin``:
     each of the two processes on a CPU of its own, as pinned satellites."""
     count = int(rate * seconds)
-    rx_port, tx_port = free_port(), free_port()
+    rx_port, tx_port = free_ports(2)
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     me = [sys.executable, str(Path(__file__).resolve())]
     extra: list[str] = []

@@ -187,19 +187,20 @@ def test_newest_wins_is_kept_across_the_link(
 
 def test_newest_wins_numbers_are_encoded_only_when_their_batch_leaves(
         pair: tuple[System, System, LoopNet, list[CommManager]]) -> None:
-    """A flood of numbers on a newest-wins link costs one encoding per batch: the values wait
-    unencoded and only the one that leaves is encoded, with its own sequence number and time
-    stamp. What could fail to encode (NaN, an object) is encoded in the put and fails there."""
+    """A flood on a newest-wins link costs one encoding per batch: the newest message waits
+    unencoded in the link's slot and only the one that leaves is encoded, with the sequence
+    number of the last message it replaced and its own time stamp. What could fail to encode
+    (NaN, an object) is checked in the put and fails there, taking no sequence number."""
     m0, _m1, net, comms = pair
     c = comms[0]
     link = m0.msgtab.find("P", "R")
-    encoded: list[tuple[Any, ...]] = []
+    encoded: list[Any] = []
     later = c.batches.encode_later
     assert later is not None
 
-    def counting(fields: Any) -> bytes:
-        encoded.append(fields)
-        return later(fields)
+    def counting(item: Any) -> bytes | None:
+        encoded.append(item)
+        return later(item)
 
     c.batches.encode_later = counting
     for v in (1.5, 2, True, -4.25):
@@ -209,18 +210,119 @@ def test_newest_wins_numbers_are_encoded_only_when_their_batch_leaves(
     with pytest.raises(MessageError, match=r"cannot send sensory P->R.*expected JSON data"):
         c.sensory(link, object())
     assert encoded == []                    # nothing encoded while the values wait
+    assert link.out is not None and link.out.value == -4.25 and link.direct is link.out
     c.flush()
-    assert len(encoded) == 1
+    assert len(encoded) == 1 and link.direct is None
     (msg,) = [m for _k, p, _kind in net.held for m in decode_batch(p)]
     assert (msg.src, msg.dst, msg.link, msg.value, msg.seq) == ("P", "R", link.lid, -4.25, 4)
     net.held.clear()
-    c.sensory(link, 7.0)                    # a deferred number, then a structure encoded at once
-    c.sensory(link, {"x": [1, 2]})          # in its put: the newest wins either way
+    c.sensory(link, 7.0)                    # a number, then a structure (checked in its put):
+    c.sensory(link, {"x": [1, 2]})          # the newest wins either way
     c.flush()
-    assert len(encoded) == 1
+    assert len(encoded) == 2
     # the puts that failed took no sequence number: no gap for the receiver to count
     assert [(m.value, m.seq) for _k, p, _kind in net.held for m in decode_batch(p)] == [
         ({"x": [1, 2]}, 6)]
+    assert c.coalesced == 4 and c.sent == 6
+
+
+def test_newer_messages_replace_the_waiting_one_on_the_hot_path(
+        pair: tuple[System, System, LoopNet, list[CommManager]]) -> None:
+    """While a message of a remote newest-wins link waits in its batch, the message manager
+    stores newer ones straight into its slot, as into a local port: the communications
+    manager hears of the first only. The sender's copy of the link counts the replaced ones
+    as overwritten, the receiver's counts them from the gap in the sequence numbers."""
+    m0, m1, net, comms = pair
+    c = comms[0]
+    calls: list[Any] = []
+    sensory = c.sensory
+
+    def counting(link: Any, value: Any) -> None:
+        if link.dst == "R":   # (Q's queued link carries every message: each comes here)
+            calls.append(value)
+        sensory(link, value)
+
+    c.sensory = counting  # type: ignore[method-assign]
+    m0.execute("invoke P values=[0]")       # the receiver's first: gaps count after it
+    _step(m0)
+    net.deliver()
+    _step(m1)
+    m0.execute("invoke P values=[1,2,3,4,5]")
+    _step(m0)
+    assert calls == [0, 1]
+    sender = m0.msgtab.find("P", "R")
+    assert (sender.sent, sender.overwritten) == (6, 4)
+    newest = [m for _k, p, kind in net.held if kind is MessageKind.SENSORY
+              for m in decode_batch(p)]
+    assert [(m.value, m.seq) for m in newest] == [(5, 6)]
+    net.deliver()
+    _step(m1)
+    r = m1.tsktab.get("R")
+    assert r.world is not None and r.world.sensory["got"] == [0, 5]
+    link = m1.msgtab.find("P", "R")
+    assert (link.sent, link.overwritten, link.delivered) == (6, 4, 2)
+
+
+def test_a_value_stored_on_the_hot_path_that_cannot_be_sent_is_collected(
+        pair: tuple[System, System, LoopNet, list[CommManager]]) -> None:
+    """A newer message stored into a waiting slot skips the put's check: if it cannot be
+    encoded when its batch leaves, the link error is logged and collected (check() raises it)
+    and nothing goes out for that link, its sequence numbers unused."""
+    m0, _m1, net, comms = pair
+    c = comms[0]
+    link = m0.msgtab.find("P", "R")
+    m0.msgmgr.deliver(link, 1.0)            # waits in its batch: the hot path is on
+    assert link.direct is link.out
+    m0.msgmgr.deliver(link, float("inf"))   # stored unchecked
+    c.flush()
+    assert [m for _k, p, _kind in net.held for m in decode_batch(p)] == []
+    assert c.errors and "sensory P->R to machine 1: 2 message(s) not sent" in c.errors[-1]
+    with pytest.raises(Exception, match="link error"):
+        c.check()
+    c.clear_errors()
+    m0.msgmgr.deliver(link, 2.0)
+    c.flush()
+    assert [(m.value, m.seq) for _k, p, _kind in net.held for m in decode_batch(p)] == [(2.0, 1)]
+
+
+def test_a_message_waiting_when_its_link_turns_express_is_replaced_not_sent_late(
+        pair: tuple[System, System, LoopNet, list[CommManager]]) -> None:
+    """setpri to an express priority while a message waits: the next message goes out at once
+    and the waiting one is taken out of its batch (it would arrive after the newer one);
+    the receiver counts it as overwritten."""
+    m0, m1, net, comms = pair
+    link = m0.msgtab.find("P", "R")
+    m0.msgmgr.deliver(link, 0.5)            # the receiver's first: gaps count after it
+    comms[0].flush()
+    net.deliver()
+    _step(m1)
+    m0.msgmgr.deliver(link, 1.0)
+    for s in (m0, m1):
+        s.execute("setpri -80 P R")
+    assert link.direct is None              # the hot path ends with the priority change
+    m0.msgmgr.deliver(link, 2.0)
+    comms[0].flush()
+    sent = [(m.value, m.seq, m.priority) for _k, p, _kind in net.held for m in decode_batch(p)]
+    assert sent == [(2.0, 3, 80)]
+    assert comms[0].coalesced == 1
+    net.deliver()
+    _step(m1)
+    other = m1.msgtab.find("P", "R")
+    assert (other.sent, other.overwritten) == (3, 1)
+    r = m1.tsktab.get("R")
+    assert r.world is not None and r.world.sensory["got"] == [0.5, 2.0]
+
+
+def test_a_suspended_remote_link_refuses_even_while_a_message_waits(
+        pair: tuple[System, System, LoopNet, list[CommManager]]) -> None:
+    m0, _m1, net, comms = pair
+    link = m0.msgtab.find("P", "R")
+    m0.msgmgr.deliver(link, 1.0)
+    from chcos.tables.messages import LinkStatus
+    link.status = LinkStatus.SUSPENDED
+    assert m0.msgmgr.deliver(link, 2.0) == 0 and link.refused == 1
+    comms[0].flush()
+    assert [m.value for _k, p, _kind in net.held for m in decode_batch(p)] == [1.0]
 
 
 def test_a_restarted_sender_does_not_count_as_a_gap(

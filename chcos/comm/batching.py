@@ -61,14 +61,15 @@ class Batches:
 
     def __init__(self, kernel: Scheduler, transport: LinkTransport,
                  on_error: Callable[[str], None],
-                 encode_later: Callable[[Any], bytes] | None = None) -> None:
+                 encode_later: Callable[[Any], bytes | None] | None = None) -> None:
         self.kernel = kernel
         self.transport = transport
         self.on_error = on_error
         self.encode_later = encode_later
         # a batch maps a link id (newest-wins sensory messages: a newer one replaces the
         # waiting one) or a unique negative number (everything else) to the encoded message,
-        # or to what ``encode_later`` encodes when the batch leaves
+        # or to what ``encode_later`` encodes when the batch leaves (None from it: nothing to
+        # send, its caller has said why)
         self._batches: dict[Slot, dict[int, Any]] = {}
         self._prio: dict[Slot, int] = {}
         self._uniq = 0
@@ -111,6 +112,12 @@ class Batches:
         elif self._timer_long and not newest_wins:  # must arrive: not after a busy delay
             self._timer.cancel()
             self._arm(False)
+
+    def withdraw(self, key: str, lid: int) -> Any:
+        """Take link ``lid``'s waiting newest-wins message out of its batch to ``key`` (what
+        :meth:`add` was given; None if there is none)."""
+        batch = self._batches.get((key, True, True))
+        return None if batch is None else batch.pop(lid, None)
 
     def _arm(self, long: bool) -> None:
         self._timer_long = long
@@ -162,9 +169,14 @@ class Batches:
         key, drop, _newest = slot
         kind = MessageKind.SENSORY if drop else MessageKind.COMMAND  # congestion: drop or block
         later = self.encode_later
+        items: list[bytes] = []
+        for d in batch.values():
+            data = d if type(d) is bytes or later is None else later(d)
+            if data is not None:
+                items.append(data)
+        if not items:
+            return
         try:
-            items = [d if type(d) is bytes or later is None else later(d)
-                     for d in batch.values()]
             self.transport.publish(key, encode_batch(items), priority=prio, kind=kind)
         except LinkError as exc:
             text = f"batch of {len(batch)} message(s) to {key} lost: {exc}"

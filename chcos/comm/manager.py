@@ -61,7 +61,7 @@ from chcos.comm.ports import Closable, Devices, Links, LinkTransport, Messages, 
 from chcos.comm.secret import Throttle
 from chcos.devices.entry import DeviceStatus
 from chcos.errors import LinkError, MessageError
-from chcos.tables.messages import TOP_PRIORITY, Link, LinkStatus
+from chcos.tables.messages import TOP_PRIORITY, Link, LinkStatus, OutSlot
 from chcos.tables.tasks import TaskEntry
 
 log = logging.getLogger("chcos.comm.manager")
@@ -106,7 +106,7 @@ class CommManager:
         self.error_count = 0
         self.rejected = Throttle(log)
         self.alive: set[int] = {machine}
-        self.batches = Batches(kernel, transport, self._collect, self._encode_newest)
+        self.batches = Batches(kernel, transport, self._collect, self._leave)
         self._keys: dict[int | None, str] = {}   # destination machine -> its message key
         self.superseded = 0
         kernel.add_idle_hook(self.batches.on_idle)
@@ -208,33 +208,91 @@ class CommManager:
     def sensory(self, link: Link, value: Any) -> None:
         """A sensory message to a task on another satellite.
 
-        A number on a newest-wins link below EXPRESS_FROM (the common case, and the one that
-        comes in floods) waits in its batch unencoded: most are replaced by a newer one before
-        the batch leaves, and only the one that leaves is encoded
-        (:meth:`_encode_newest`). A number cannot fail to encode (a float must be finite);
-        anything else is encoded now, so that what cannot be sent fails in the sender's put."""
-        t = type(value)
-        if (link.queued or link.tap or link.priority >= EXPRESS_FROM
-                or not (t is int or t is bool or (t is float and math.isfinite(value)))):
+        On a newest-wins link below EXPRESS_FROM (the common case, and the one that comes in
+        floods) the message waits in its batch, unencoded, in the link's :class:`OutSlot`; the
+        link's ``direct`` names the slot while it waits, so the message manager stores newer
+        messages straight into it, as into a local input port (counting each one replaced as
+        overwritten on this satellite's copy of the link), and only the one that leaves is
+        encoded (:meth:`_leave`). What is not a number is encoded here too, so that what
+        cannot be sent fails in the sender's put (a number cannot fail: a float must be
+        finite); a newer message stored on the hot path while one waits is checked when the
+        batch leaves instead (a failure is logged and collected, see :meth:`check`). Raises
+        MessageError for a message that cannot be encoded."""
+        if link.queued or link.tap or link.priority >= EXPRESS_FROM:
+            slot = link.out
+            if slot is not None and slot.fresh:  # an express priority came while one waited:
+                self._withdraw(link, slot)       # this newer message replaces it
             self._put(link.dst_machine, MessageKind.SENSORY, link.src, link.dst, link.lid,
                       link.priority, value, queued=bool(link.queued),
                       newest_wins=not link.queued and not link.tap)
             return
-        lid = link.lid
-        seq = self._seq.get(lid, 0) + 1
-        self._seq[lid] = seq
-        self.sent += 1
-        machine = link.dst_machine
-        self.batches.add(self._keys.get(machine) or self._key_of(machine), True, True, lid,
-                         (link.src, link.dst, lid, link.priority, seq, time.time_ns(), value),
-                         link.priority)
+        t = type(value)
+        if not (t is int or t is bool or (t is float and math.isfinite(value))):
+            try:
+                encode(LinkMessage(MessageKind.SENSORY, link.src, link.dst, link.lid,
+                                   link.priority, 0, 0, value))
+            except LinkError as exc:
+                raise MessageError(f"cannot send sensory {link.src}->{link.dst} to machine "
+                                   f"{link.dst_machine}: {exc}") from exc
+        slot = link.out
+        if slot is None:
+            slot = link.out = OutSlot()
+        if slot.fresh:
+            link.overwritten += 1   # as the hot path counts it (see _leave)
+        else:
+            slot.fresh = True
+            slot.over0 = link.overwritten
+            machine = link.dst_machine
+            self.batches.add(self._keys.get(machine) or self._key_of(machine), True, True,
+                             link.lid, link, link.priority)
+        slot.value = value
+        if not link.suspended:
+            link.direct = slot
 
-    @staticmethod
-    def _encode_newest(fields: tuple[Any, ...]) -> bytes:
-        """The wire bytes of a sensory message :meth:`sensory` left unencoded (``fields``:
-        source, destination, link id, priority, sequence number, time stamp, value). Raises
-        LinkError like :func:`chcos.comm.codec.encode`."""
-        return encode(LinkMessage(MessageKind.SENSORY, *fields))
+    def _taken(self, link: Link, slot: OutSlot) -> int:
+        """Empty ``link``'s waiting slot: how many messages it took (the one waiting and those
+        it replaced). The link's hot path ends with it: the next message decides again."""
+        n = 1 + link.overwritten - slot.over0
+        slot.fresh = False
+        slot.value = None
+        if link.direct is slot:
+            link.direct = None
+        self.sent += n
+        self.batches.coalesced += n - 1
+        return n
+
+    def _withdraw(self, link: Link, slot: OutSlot) -> None:
+        """Take a waiting message out of its batch: a newer one on the same link goes express.
+        Its sequence numbers are used up, so that the receiver counts it as overwritten."""
+        self.batches.withdraw(self._keys.get(link.dst_machine) or self._key_of(link.dst_machine),
+                              link.lid)
+        n = self._taken(link, slot)
+        self.batches.coalesced += 1
+        self._seq[link.lid] = self._seq.get(link.lid, 0) + n
+
+    def _leave(self, link: Link) -> bytes | None:
+        """The wire bytes of the message waiting in ``link``'s slot as its batch leaves, with
+        the sequence number of the newest message it replaced (the receiver counts the gap as
+        overwritten) and the time it leaves; None if it cannot be encoded (a value stored on
+        the hot path: logged and collected, the messages dropped without a number)."""
+        slot = link.out
+        if slot is None or not slot.fresh:
+            return None
+        value = slot.value
+        n = self._taken(link, slot)
+        lid = link.lid
+        seq = self._seq.get(lid, 0) + n
+        try:
+            data = encode(LinkMessage(MessageKind.SENSORY, link.src, link.dst, lid,
+                                      link.priority, seq, time.time_ns(), value))
+        except LinkError as exc:
+            text = (f"sensory {link.src}->{link.dst} to machine {link.dst_machine}: {n} "
+                    f"message(s) not sent: {exc}")
+            log.error("%s", text)
+            self._collect(text)
+            return None
+        self._seq[lid] = seq
+        return data
 
     def tap(self, link: Link, source: str, value: Any) -> None:
         """A tapped sensory message to an exception task on another satellite."""

@@ -125,7 +125,8 @@ class Delivery:
             kernel.ready_seq = seq = kernel.ready_seq + 1
             heappush(kernel.ready_heap, (-prio, seq, w))
             return 1
-        return self._wake_reader(w, prio, link, port, value)
+        # (an OutSlot has no waiter: only an InPort gets here)
+        return self._wake_reader(w, prio, link, port, value)  # type: ignore[arg-type]
 
     def _deliver_other(self, link: Link, value: Any) -> int:
         """:meth:`deliver` off its hot path: a suspended or remote link, a full queued one, or

@@ -105,8 +105,12 @@ class Link:
     #: port, the link not suspended), else None: the delivery's one test for its hot path;
     #: ``queue`` the same for a queued port. Kept by :meth:`refresh`, which the :attr:`status`
     #: setter calls; whoever sets ``port`` or ``remote`` calls it too (the installer, once)
-    direct: InPort | None = None
+    direct: InPort | OutSlot | None = None
     queue: InPort | None = None
+    #: a remote newest-wins link's message waiting to leave in a batch (the communications
+    #: manager's; while one waits, ``direct`` is it, so that a newer message replaces it on the
+    #: delivery's hot path, as in a local input port)
+    out: OutSlot | None = None
     suspended: bool = False  # status is SUSPENDED (a plain attribute for the hot paths)
     #: counts every priority change of any link (:meth:`set_priority`): an order of links by
     #: priority kept with the count it was made at is current while the count is the same
@@ -117,6 +121,8 @@ class Link:
         order of links by priority is stale from now (:attr:`epoch`)."""
         self.priority = priority
         Link.epoch += 1
+        if self.remote:  # an express priority is not batched: the next message decides again
+            self.direct = None
 
     @property
     def status(self) -> LinkStatus:
@@ -229,6 +235,25 @@ class InPort:
         self.fresh = False
         value, self.value = self.value, None
         return value, self.sent_at
+
+
+class OutSlot:
+    """A remote newest-wins link's message waiting in an outgoing batch (see
+    :mod:`chcos.comm.manager`). While it waits the link's ``direct`` names it, and a delivery
+    stores a newer message into it as into a local input port (counting the one it replaces
+    as overwritten on this satellite's copy of the link); the batch takes ``value`` when it
+    leaves. ``waiter`` is always None: nobody reads it on this satellite."""
+
+    __slots__ = ("fresh", "over0", "unwait", "value", "waiter")
+
+    def __init__(self) -> None:
+        self.waiter: Any = None
+        self.unwait: Any = None
+        self.value: Any = None
+        #: a message waits (the link's batch holds this slot)
+        self.fresh = False
+        #: the link's ``overwritten`` when this message started waiting
+        self.over0 = 0
 
 
 class TapPort:

@@ -35,7 +35,7 @@ from chcos.apps.weld.tasks import HERE as TASK_PATH
 from chcos.apps.weld.tasks import SCRIPT
 from chcos.devices.devmap import load
 from chcos.errors import ChcosError
-from chcos.helpers import free_port
+from chcos.helpers import free_ports
 from chcos.kernel.clock import Clock, RealClock, VirtualClock
 from chcos.kernel.instrument import Counters, Instrument
 from chcos.system.embedded import System
@@ -293,7 +293,7 @@ def open_cell(binding: str = "direct", *, scenario: str = "", seed: int = 0,
                                   f"{exc}") from exc
             n = next(_channels)
             chans = channels or (f"weld-co-{os.getpid()}-{n}", f"weld-can-{os.getpid()}-{n}")
-            ports = free_port(), free_port()
+            ports = free_ports(2)
             mapfile = cell_devmap(work, canopen_channel=chans[0], sensor_channel=chans[1],
                                   modbus_port=ports[0], serial_port=ports[1],
                                   interface=interface)
