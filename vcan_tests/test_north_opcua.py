@@ -132,6 +132,25 @@ def test_devices_tasks_links_and_a_subscription(served: tuple[System, Any]) -> N
         c.disconnect()
 
 
+@pytest.mark.parametrize("kind", [OpcUaProcess, OpcUaServer])
+def test_tasks_and_links_are_there_as_soon_as_it_serves(tmp_path: Path, kind: Any) -> None:
+    """What was installed before the server started is in its address space when start()
+    returns, not only after its first refresh (a refresh period longer than the test: none
+    happens meanwhile)."""
+    s = cell(tmp_path)
+    o = kind(s, "opc.tcp://127.0.0.1:0/chcos/", period=30.0).start()
+    c = client(o)
+    try:
+        i = ns(c)
+        assert c.get_node(f"ns={i};s=Tasks.T1.Level").get_value() == 1
+        assert c.get_node(f"ns={i};s=Tasks.X2.Level").get_value() == 2
+        assert c.get_node(f"ns={i};s=Links.P1/T1.Status").get_value() == "OK"
+    finally:
+        c.disconnect()
+        o.stop()
+        s.shutdown()
+
+
 def test_anonymous_estop_refused_operator_obeyed(served: tuple[System, Any]) -> None:
     system, o = served
     system.call(system.devtab.write, "V1", 42.0)

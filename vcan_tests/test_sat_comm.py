@@ -271,11 +271,13 @@ def test_a_value_stored_on_the_hot_path_that_cannot_be_sent_is_collected(
     m0, _m1, net, comms = pair
     c = comms[0]
     link = m0.msgtab.find("P", "R")
+    sent = c.sent
     m0.msgmgr.deliver(link, 1.0)            # waits in its batch: the hot path is on
     assert link.direct is link.out
     m0.msgmgr.deliver(link, float("inf"))   # stored unchecked
     c.flush()
     assert [m for _k, p, _kind in net.held for m in decode_batch(p)] == []
+    assert c.sent == sent and link.direct is None
     assert c.errors and "sensory P->R to machine 1: 2 message(s) not sent" in c.errors[-1]
     with pytest.raises(Exception, match="link error"):
         c.check()

@@ -100,6 +100,8 @@ class CommManager:
         self._seen: dict[int, int] = {}      # incoming: last sequence number per link id
         self._subs: list[Closable] = []
         self.received = 0
+        #: messages handed to the link that were sent or replaced on the way (not those that
+        #: could not be encoded)
         self.sent = 0
         #: what went wrong on the link, newest last (at most ERRORS_KEPT); see :meth:`check`
         self.errors: list[str] = []
@@ -249,7 +251,8 @@ class CommManager:
         if not link.suspended:
             link.direct = slot
 
-    def _taken(self, link: Link, slot: OutSlot) -> int:
+    @staticmethod
+    def _taken(link: Link, slot: OutSlot) -> int:
         """Empty ``link``'s waiting slot: how many messages it took (the one waiting and those
         it replaced). The link's hot path ends with it: the next message decides again."""
         n = 1 + link.overwritten - slot.over0
@@ -257,8 +260,6 @@ class CommManager:
         slot.value = None
         if link.direct is slot:
             link.direct = None
-        self.sent += n
-        self.batches.coalesced += n - 1
         return n
 
     def _withdraw(self, link: Link, slot: OutSlot) -> None:
@@ -267,7 +268,8 @@ class CommManager:
         self.batches.withdraw(self._keys.get(link.dst_machine) or self._key_of(link.dst_machine),
                               link.lid)
         n = self._taken(link, slot)
-        self.batches.coalesced += 1
+        self.sent += n
+        self.batches.coalesced += n
         self._seq[link.lid] = self._seq.get(link.lid, 0) + n
 
     def _leave(self, link: Link) -> bytes | None:
@@ -292,6 +294,8 @@ class CommManager:
             self._collect(text)
             return None
         self._seq[lid] = seq
+        self.sent += n
+        self.batches.coalesced += n - 1
         return data
 
     def tap(self, link: Link, source: str, value: Any) -> None:

@@ -161,6 +161,14 @@ def _child_main(conn: Connection, endpoint: str, specs: list[DeviceSpec], users:
     logging.basicConfig(level=logging.ERROR, format="%(levelname)s %(name)s: %(message)s")
     mirror = Mirror(specs)
     try:
+        # the parent's first snapshot (tasks and links too) before the address space is built:
+        # a client connecting once the server says it is ready finds every task and link there
+        first = conn.recv()
+    except (EOFError, OSError):
+        return
+    if first[0] == "snap":
+        mirror.update(first[1])
+    try:
         server = _ChildServer(mirror, endpoint, conn, users=users, certificate=certificate,
                               private_key=private_key, period=period)
         server.start()
