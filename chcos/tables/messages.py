@@ -102,7 +102,8 @@ class Link:
     refused: int = 0
     discarded: int = 0  # unread messages dropped when the receiving task was reset
     #: ``port`` while a message can be stored straight into it (a local newest-wins input
-    #: port, the link not suspended), else None: the delivery's one test for its hot path;
+    #: port, the link not suspended; on a remote newest-wins link, :attr:`out` while a message
+    #: waits in it), else None: the delivery's one test for its hot path;
     #: ``queue`` the same for a queued port. Kept by :meth:`refresh`, which the :attr:`status`
     #: setter calls; whoever sets ``port`` or ``remote`` calls it too (the installer, once)
     direct: InPort | OutSlot | None = None
