@@ -36,19 +36,14 @@ def free_port(host: str = "127.0.0.1") -> int:
     moment ago: bind to port 0 and read the port back. Another process may take it before the
     caller binds it; use it for simulators, tests and benchmarks, not where the race matters.
     Raises OSError if ``host`` cannot be bound."""
-    import socket  # here, not at the top: the pure codecs import this module, without I/O
-
-    family = socket.AF_INET6 if ":" in host else socket.AF_INET
-    with socket.socket(family, socket.SOCK_STREAM) as sock:
-        sock.bind((host, 0))
-        return int(sock.getsockname()[1])
+    return free_ports(1, host)[0]
 
 
 def free_ports(count: int, host: str = "127.0.0.1") -> list[int]:
     """``count`` distinct TCP ports on ``host`` that were free a moment ago (as
     :func:`free_port`, but all bound at once, so that two of them cannot be the same port, as
     two calls of free_port can be). Raises OSError if ``host`` cannot be bound."""
-    import socket
+    import socket  # here, not at the top: the pure codecs import this module, without I/O
     from contextlib import ExitStack
 
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
