@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from chcos.devices.spec import DeviceMap
-from chcos.errors import ReadTimeout
+from chcos.errors import MessageError, ReadTimeout
 from chcos.kernel.clock import VirtualClock
 from chcos.kernel.instrument import Counters, Instrument
 from chcos.kernel.lifecycle import FrozenUnwait
@@ -120,3 +120,118 @@ def test_instruments_hear_the_messages_and_the_wake_up(tmp_path: Path) -> None:
     s.msgmgr.deliver(link, 3)  # the hot path again
     s.run()
     assert log == [2, 3] and (link.sent, link.overwritten, link.delivered) == (3, 1, 2)
+
+
+class _Blocked(Instrument):
+    def __init__(self) -> None:
+        self.seen: list[tuple[str, str]] = []
+
+    def task_blocked(self, task: TaskEntry) -> None:
+        self.seen.append((task.name, task.state.value))
+
+
+async def sleeper(ctx: TaskContext, cmd: Any) -> None:
+    await ctx.sleep(1.0)
+    await ctx.read(0)
+
+
+async def boss(ctx: TaskContext, cmd: Any) -> None:
+    await ctx.invoke(0, "go")
+    await ctx.done(0)
+
+
+def test_an_instrument_hears_every_block_once_with_the_state_it_waits_in(
+        tmp_path: Path) -> None:
+    """The kernel tells ``task_blocked`` when a step ends in a wait: a sleep, a read, an
+    invoke's completion (the reads no longer tell it themselves)."""
+    s = System(DeviceMap(), clock=VirtualClock(), machines=[0], base_dir=tmp_path)
+    s.execute(f"install -m0 --code={M}:idle P")
+    s.execute(f"install -m0i1 --code={M}:sleeper C P")
+    s.execute(f"install -m0o1 --code={M}:boss B C")
+    blocked = _Blocked()
+    s.kernel.add_instrument(blocked)
+    s.invoke("B", None, priority=20)
+    s.run(until=0.5)
+    # B invoked C (owning it at once) and waits for its completion; C sleeps
+    assert blocked.seen == [("B", "waiting"), ("C", "asleep")]
+    s.run(until=2.0)
+    assert blocked.seen[2:] == [("C", "waiting")]  # C's read
+    s.msgmgr.deliver(s.tsktab.get("C").in_ports[0].link, 1)
+    s.run(until=3.0)
+    assert len(blocked.seen) == 3  # C returned, B's done() returned: nobody waits again
+    s.kernel.remove_instrument(blocked)
+    assert s.tsktab.get("C").plain is None  # (ended) and the steps are plain again:
+    assert s.kernel._h_step is False
+
+
+def test_an_instrument_hears_links_installed_after_it_and_queued_links(tmp_path: Path) -> None:
+    """While an instrument hears of messages no link has a hot path (Link.hooked), the links
+    installed meanwhile included; the queued link's reads take theirs through InPort.take."""
+    s = System(DeviceMap(), clock=VirtualClock(), machines=[0], base_dir=tmp_path)
+    counters = Counters()
+    s.kernel.add_instrument(counters)
+    s.execute(f"install -m0 --code={M}:idle P")
+    s.execute(f"install -m0 --code={M}:idle Q")
+    s.execute(f"install -m0i2 --queue=Q=4 --code={M}:reader2 C P Q")
+    c = s.tsktab.get("C")
+    newest, queued = c.in_ports[0].link, c.in_ports[1].link
+    assert newest.hooked and newest.direct is None and not newest.port.plain
+    assert queued.hooked and queued.queue is None and not queued.port.plain
+    log: list[Any] = []
+    s.invoke("C", {"log": log}, priority=20)
+    s.run(until=0.0)
+    for v in (1, 2):
+        s.msgmgr.deliver(newest, v)
+        s.msgmgr.deliver(queued, -v)
+    s.run()
+    assert log == [2, -1, -2]
+    assert counters.sent[newest.name] == 2 and counters.overwritten[newest.name] == 1
+    assert counters.delivered[newest.name] == 1 and counters.delivered[queued.name] == 2
+    s.kernel.remove_instrument(counters)
+    assert not newest.hooked and newest.direct is newest.port and newest.port.plain
+    assert queued.queue is queued.port and not queued.port.plain  # a FIFO: take() always
+    s.msgmgr.deliver(queued, -3)
+    s.msgmgr.deliver(newest, 3)
+    s.run()
+    assert log == [2, -1, -2, 3, -3]
+    assert (newest.sent, newest.delivered, queued.sent, queued.delivered) == (3, 2, 3, 3)
+
+
+async def reader2(ctx: TaskContext, cmd: dict[str, Any]) -> None:
+    while True:
+        cmd["log"].append(await ctx.read(0))
+        while ctx.pending(1):
+            cmd["log"].append(await ctx.read("Q"))
+
+
+async def port_reader(ctx: TaskContext, cmd: dict[str, Any]) -> None:
+    for port in cmd["ports"]:
+        try:
+            cmd["log"].append(await ctx.read(port))
+        except MessageError as exc:
+            cmd["log"].append(str(exc))
+
+
+def test_read_finds_a_port_by_index_or_name_and_names_a_bad_one(tmp_path: Path) -> None:
+    """read's one dict lookup: an index or a source name, or anything equal to an index (as
+    a dict finds it: True is 1, whether or not port 1 was read before); a bad index, an
+    unknown name or an unhashable port is a MessageError naming it."""
+    s = System(DeviceMap(), clock=VirtualClock(), machines=[0], base_dir=tmp_path)
+    s.execute(f"install -m0 --code={M}:idle P")
+    s.execute(f"install -m0 --code={M}:idle Q")
+    s.execute(f"install -m0i2 --code={M}:port_reader C P Q")
+    c = s.tsktab.get("C")
+    p, q = c.in_ports[0].link, c.in_ports[1].link
+    log: list[Any] = []
+    ports: list[Any] = [True, 1.0, "P", 0, -1, 2, "X", [0], 1]
+    s.invoke("C", {"log": log, "ports": ports}, priority=20)
+    for _ in ports:  # a message on both before each read
+        s.msgmgr.deliver(p, "p")
+        s.msgmgr.deliver(q, "q")
+        s.run()
+    assert log[:4] == ["q", "q", "p", "p"]
+    assert log[4] == "task C has no input port -1 (it has 2: P, Q)"
+    assert log[5] == "task C has no input port 2 (it has 2: P, Q)"
+    assert log[6] == "task C has no input from 'X' (inputs: P, Q)"
+    assert log[7] == "task C has no input port [0] (it has 2: P, Q)"
+    assert log[8] == "q"

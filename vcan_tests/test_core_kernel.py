@@ -383,3 +383,52 @@ def test_wake_ends_a_wait_through_the_unwait_its_layer_left() -> None:
     k.wake(t, 3, "value")
     k.run()
     assert undone == ["w"] and got == ["value"] and t.unwait is None
+
+
+@pytest.mark.parametrize("then", ["block", "yield", "return", "raise"])
+def test_a_task_cancelled_in_its_own_step_ends_preempted_after_it(then: str) -> None:
+    """A cancellation of the running task (Lifecycle.cancel with it current) ends its
+    activation as soon as the step is over, however the step ended; an interrupt that came
+    during the step (here, one waking it) runs after that end and cannot carry it on."""
+    k = Kernel(VirtualClock())
+    ends: list[tuple[str, End, str]] = []
+    k.set_end_handler(lambda t, how, v: ends.append((t.name, how, type(v).__name__)))
+    trail: list[str] = []
+
+    async def body() -> None:
+        t = k.current
+        assert t is not None
+        await checkpoint()  # (the first step is never a plain one: the second is)
+        assert t.plain is t.coro is not None
+        k.interrupt(lambda: k.wake(t, 5, "woken"))  # queued before the cancellation
+        k.cancel(t, "by itself")
+        try:
+            if then == "block":
+                k.block(t, TaskState.WAITING)
+                await _block()
+            elif then == "yield":
+                await checkpoint()
+            elif then == "raise":
+                raise ValueError("after its cancellation")
+            trail.append("carried on")
+        finally:
+            trail.append("finally")
+
+    t = spawn(k, "T", body(), 5)
+    other = spawn(k, "U", _count(trail), 1)  # a lower task: runs once T is out of the way
+    k.run()
+    assert ends[0][:2] == ("T", End.PREEMPTED)
+    assert ends[0][2] == {"block": "NoneType", "yield": "NoneType", "return": "NoneType",
+                          "raise": "ValueError"}[then]
+    assert trail == (["carried on"] if then == "return" else []) + ["finally", "U"]
+    assert t.coro is None and not t.cancelling and other.coro is None
+    assert t.state is TaskState.SUSPENDED  # (the wake-up found no activation to run)
+
+
+@types.coroutine
+def _block() -> Generator[Any, Any, None]:
+    yield BLOCK
+
+
+async def _count(trail: list[str]) -> None:
+    trail.append("U")

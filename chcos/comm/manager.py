@@ -248,7 +248,7 @@ class CommManager:
             self.batches.add(self._keys.get(machine) or self._key_of(machine), True, True,
                              link.lid, link, link.priority)
         slot.value = value
-        if not link.suspended:
+        if not link.suspended and not link.hooked:  # (an instrument hears of every message)
             link.direct = slot
 
     @staticmethod

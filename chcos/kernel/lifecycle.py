@@ -9,6 +9,7 @@ tells the layer above through its end handler (:data:`EndHandler`, with an :clas
 from __future__ import annotations
 
 import enum
+from collections import deque
 from collections.abc import Callable
 from typing import Any
 
@@ -59,6 +60,7 @@ class Lifecycle:
 
     current: TaskEntry | None
     _on_end: EndHandler | None
+    _irq: deque[tuple[Callable[..., None], tuple[Any, ...]]]  # the kernel's interrupt queue
     ready: Callable[[TaskEntry, int], None]  # the kernel's: make a task ready at a priority
     unready: Callable[[TaskEntry], None]  # the kernel's: take a task out of the ready queue
 
@@ -129,6 +131,18 @@ class Lifecycle:
             t.frozen = frozen
             if frozen:  # it runs to its end although frozen; resume finds it ready
                 t.frozen_state = _READY
+        else:  # cancelled in its own step, which the run loop's plain step does not test
+            # for: this interrupt, first in line, ends the activation right after the step
+            self._irq.appendleft((self._cancelled_in_step, (t, t.coro)))
+
+    def _cancelled_in_step(self, t: TaskEntry, coro: Any) -> None:
+        """``t`` was cancelled during its own step (which has ended now): end the activation
+        there, whether the step ended in a wait or a yield, unless it ended it itself."""
+        if t.coro is not coro or not t.cancelling:  # it returned or raised (see _raised)
+            return
+        if t.state is _READY:  # it yielded
+            self.unready(t)
+        self._odd_trap(t, coro, None)
 
     def _raised(self, t: TaskEntry, err: Exception) -> None:
         """``t``'s step raised ``err``: its activation ended (returned, pre-empted, failed)."""

@@ -79,7 +79,10 @@ class Kernel(Lifecycle, Hooks, Timers):
         #: every task this kernel has made ready (a dict as an ordered set): :attr:`steps`
         #: sums their step counts, so a step counts once, on its task, and nowhere else
         self._tasks: dict[TaskEntry, None] = {}
-        self._h_step = False  # an instrument hears of steps (h_before or h_after)
+        #: an instrument hears of steps or blocks (h_before, h_after, h_blocked): every step
+        #: is then :meth:`_step`'s, which tells them
+        self._h_step = False
+        self._instruments_listeners: list[Callable[[], None]] = []
         self._on_end: EndHandler | None = None
         #: text of every failed interrupt handler and timer callback (the newest KEEP_ERRORS)
         self.irq_errors: list[str] = []
@@ -154,10 +157,9 @@ class Kernel(Lifecycle, Hooks, Timers):
                 return
 
     def block(self, t: TaskEntry, state: TaskState) -> None:
-        """Record that the current task ``t`` is about to wait in ``state``."""
+        """Record that the current task ``t`` is about to wait in ``state`` (instruments hear
+        of it when its step ends in the block: see :meth:`_step`)."""
         t.state = state
-        if self.h_blocked:
-            self.notify(self.h_blocked, "task_blocked", t)
 
     def ready_priorities(self) -> list[int]:
         """Priorities of the tasks now ready (for tests and monitors)."""
@@ -186,6 +188,11 @@ class Kernel(Lifecycle, Hooks, Timers):
         """Register a driver's ``settle(timeout)``; called before virtual time jumps ahead so
         that everything already on a bus is delivered first."""
         self._settlers.append(settle)
+
+    def add_instruments_listener(self, listener: Callable[[], None]) -> None:
+        """Call ``listener()`` each time the instruments change (after the ``h_*`` tuples are
+        recomputed): the message layer turns its hot paths off while one hears of messages."""
+        self._instruments_listeners.append(listener)
 
     def add_idle_hook(self, hook: Callable[[], None]) -> None:
         """Call ``hook()`` on the kernel thread each time nothing is left to run, before the
@@ -224,6 +231,9 @@ class Kernel(Lifecycle, Hooks, Timers):
         timers = self._timers
         irq = self._irq
         step = self._step
+        # the step's globals as locals (a local is the cheapest load there is)
+        block, yld, current, ready_state = BLOCK, YIELD, _CURRENT, _READY
+        pop, push = heappop, heappush
         try:
             while True:
                 if irq:  # interrupts, and stop(), which queues one
@@ -237,7 +247,7 @@ class Kernel(Lifecycle, Hooks, Timers):
                         self.current = None
                         self._fire_timers(now if until is None else min(now, until))
                 if ready:
-                    t = heappop(ready)[2]
+                    t = pop(ready)[2]
                     coro = t.plain  # None: no activation, an exception to throw, an instrument
                     if coro is None:
                         step(t)
@@ -251,7 +261,7 @@ class Kernel(Lifecycle, Hooks, Timers):
                     # first), and ``send_value`` stays until the next wake-up sets it (a yield
                     # ignores what is sent in; an activation's end clears it): two stores less
                     # per step.
-                    t.state = _CURRENT
+                    t.state = current
                     self.current = t
                     t.steps += 1
                     try:
@@ -260,20 +270,18 @@ class Kernel(Lifecycle, Hooks, Timers):
                         self.current = None
                         self._raised(t, err)
                         continue
-                    # not frozen: a task cannot suspend itself, and a frozen one runs only to
-                    # be cancelled (Lifecycle.cancel), which the first test catches
-                    if t.cancelling:
-                        self.current = None
-                        self._odd_trap(t, coro, trap)
-                    elif trap is BLOCK:
-                        pass
-                    elif trap is YIELD:
-                        t.state = _READY
+                    # neither frozen nor cancelled: a frozen or cancelled task steps through
+                    # _step (Lifecycle.cancel clears its plain), and a cancellation during
+                    # the step ends it through an interrupt (Lifecycle._cancelled_in_step)
+                    if trap is block:
+                        continue
+                    if trap is yld:
+                        t.state = ready_state
                         self.ready_seq = seq = self.ready_seq + 1
-                        heappush(ready, (-t.prio, seq, t))
-                    else:
-                        self.current = None
-                        self._odd_trap(t, coro, trap)
+                        push(ready, (-t.prio, seq, t))
+                        continue
+                    self.current = None
+                    self._odd_trap(t, coro, trap)
                     continue
                 self.current = None
                 if not self._idle_wait(until):
@@ -353,7 +361,8 @@ class Kernel(Lifecycle, Hooks, Timers):
         else:
             self.current = None
             if trap is BLOCK and not t.cancelling:
-                pass
+                if self.h_blocked:
+                    self.notify(self.h_blocked, "task_blocked", t)
             elif trap is YIELD and not t.cancelling and not t.frozen:
                 t.state = _READY
                 self.ready_seq = seq = self.ready_seq + 1
@@ -375,9 +384,11 @@ class Kernel(Lifecycle, Hooks, Timers):
         that step's end by an interrupt, which runs right after the step."""
         had_after = bool(self.h_after)
         super()._rehook()
-        self._h_step = bool(self.h_before or self.h_after)
+        self._h_step = bool(self.h_before or self.h_after or self.h_blocked)
         for task in self._tasks:
             self.refresh_step(task)
+        for listener in self._instruments_listeners:
+            listener()
         t = self.current
         if t is not None and self.h_after and not had_after:
             self._irq.append((self._after_late, (t,)))

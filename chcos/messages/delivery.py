@@ -51,6 +51,22 @@ class Delivery:
         self.taps: list[tuple[TaskEntry, TapPort, dict[str, Link]]] = []
         self._files: dict[str, TextIO] = {}
         self._device_links: dict[str, list[Link]] = {}
+        kernel.add_instruments_listener(self._instruments_changed)
+
+    @property
+    def hooked(self) -> bool:
+        """An instrument hears of messages now: a link made now starts without its hot paths
+        (:attr:`Link.hooked`); :meth:`_instruments_changed` keeps every link's from then on."""
+        return self.kernel.h_msg
+
+    def _instruments_changed(self) -> None:
+        """The kernel's instruments changed: every link's hot paths follow whether one hears
+        of messages now (:attr:`Link.hooked`)."""
+        hooked = self.kernel.h_msg
+        for link in self.msgtab:
+            if link.hooked != hooked:
+                link.hooked = hooked
+                link.refresh()
 
     def is_local(self, machine: int) -> bool:
         """True if ``machine`` runs in this process."""
@@ -93,16 +109,13 @@ class Delivery:
         1 if the link took it, 0 if it is suspended (a count: :meth:`put` returns it). Raises
         QueueOverflow for a full queued link, MessageError for a link without an input port.
         """
-        kernel = self.kernel
-        if kernel.h_msg:  # an instrument hears of messages
-            return self._deliver_other(link, value)
-        port = link.direct
+        port = link.direct  # None while an instrument hears of messages (Link.hooked)
         if port is None:  # not a local newest-wins port
             port = link.queue
             if port is None or len(port.fifo) >= link.queued:  # type: ignore[arg-type]
                 return self._deliver_other(link, value)
             # a local queued port with room, no instrument: InPort.store inlined
-            port.fifo.append((value, kernel.clock.now()))  # type: ignore[union-attr]
+            port.fifo.append((value, self.kernel.clock.now()))  # type: ignore[union-attr]
         else:  # the hot path: a local newest-wins port, not suspended, no instrument
             if port.fresh:
                 link.overwritten += 1
@@ -120,6 +133,7 @@ class Delivery:
             # (kernel.wake(w, prio, port) inlined: a call and half its work less per message)
             port.waiter = None
             w.unwait = None     # nothing sent in: the plain waits know their port
+            kernel = self.kernel
             w.prio = prio
             w.state = _READY
             kernel.ready_seq = seq = kernel.ready_seq + 1
@@ -130,8 +144,8 @@ class Delivery:
 
     def _deliver_other(self, link: Link, value: Any) -> int:
         """:meth:`deliver` off its hot path: a suspended or remote link, a full queued one, or
-        an instrument that hears of messages (a queued link with room and no instrument is the
-        hot path's)."""
+        any link while an instrument hears of messages (:attr:`Link.hooked`; a queued link
+        with room and no instrument is the hot path's)."""
         if link.suspended:
             link.refused += 1
             return 0
@@ -227,15 +241,15 @@ class Delivery:
         overflow: QueueOverflow | None = None
         deliver = self.deliver
         for link in self._device_links.get(device, ()):
-            port = link.direct
             # an unread message on a newest-wins port is overwritten (a queued link keeps it,
-            # a suspended one refuses the new one)
-            if port is not None and port.fresh:
-                over = True
+            # a suspended one refuses the new one): the link counts it
+            before = link.overwritten
             try:
                 deliver(link, value)
             except QueueOverflow as exc:
                 overflow = exc
+            if link.overwritten != before:
+                over = True
         if overflow is not None:
             raise overflow
         return over

@@ -233,6 +233,7 @@ class Installer:
         mt = self.msgtab
         link = Link(mt.next_lid(), src, dst, type, prio, sk, dk, sm, dm, queued=queued, tap=tap)
         link.remote = dm >= 0 and not self.msgmgr.is_local(dm)
+        link.hooked = self.msgmgr.hooked  # (the message manager keeps it from now on)
         mt.add(link)
         return link
 

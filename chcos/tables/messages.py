@@ -113,6 +113,11 @@ class Link:
     #: delivery's hot path, as in a local input port)
     out: OutSlot | None = None
     suspended: bool = False  # status is SUSPENDED (a plain attribute for the hot paths)
+    #: an instrument of this satellite's kernel hears of messages (sent, overwritten,
+    #: delivered, tasks made ready): no hot path then, neither the delivery's (``direct``,
+    #: ``queue``) nor the read's (the port's ``plain``). Kept by the message manager when
+    #: instruments change and by the installer for a new link; :meth:`refresh` applies it
+    hooked: bool = False
     #: counts every priority change of any link (:meth:`set_priority`): an order of links by
     #: priority kept with the count it was made at is current while the count is the same
     epoch: ClassVar[int] = 0
@@ -154,11 +159,14 @@ class Link:
         return 0
 
     def refresh(self) -> None:
-        """Recompute :attr:`direct` and :attr:`queue` from the port, ``remote`` and the status."""
+        """Recompute :attr:`direct`, :attr:`queue` and the port's ``plain`` from the port,
+        ``remote``, :attr:`hooked` and the status."""
         port = self.port
         self.direct = self.queue = None
-        if (port.__class__ is InPort and not self.remote
-                and self._status is not LinkStatus.SUSPENDED):
+        if port.__class__ is not InPort:
+            return
+        port.plain = port.fifo is None and not self.hooked
+        if not self.remote and not self.hooked and self._status is not LinkStatus.SUSPENDED:
             if port.fifo is None:
                 self.direct = port
             else:
@@ -181,8 +189,8 @@ class InPort:
     """One of a task's eight input ports: the newest unread message of its sensory link, or a
     bounded FIFO for a queued link."""
 
-    __slots__ = ("device", "fifo", "fresh", "index", "link", "sent_at", "single", "unwait",
-                 "value", "waiter")
+    __slots__ = ("device", "fifo", "fresh", "index", "link", "plain", "sent_at", "single",
+                 "unwait", "value", "waiter")
 
     def __init__(self, link: Link, index: int) -> None:
         self.link = link
@@ -196,6 +204,9 @@ class InPort:
         # the type is not named: the task table sits on the message table, not beside it)
         self.waiter: Any = None
         self.fifo: deque[tuple[Any, float]] | None = deque() if link.queued else None
+        #: a read takes the message here itself (a newest-wins port, no instrument hearing of
+        #: messages: kept by :meth:`Link.refresh`); else through :meth:`take`
+        self.plain = self.fifo is None and not link.hooked
         #: the ``unwait`` of a task whose only wait is this port (a ``read`` without a timeout):
         #: it stops naming the task as its waiter. One object per port, so that a delivery
         #: recognises a plain read of its own port by identity (``w.unwait is port.unwait``)

@@ -24,11 +24,11 @@ class TaskHandle:
         self._t = task
         self._k = kernel
         self._mm = msgmgr
-        #: ports found by name: a task's ports are only ever appended (at its install), so the
-        #: first one with a name stays the first; read and write look here before they scan
-        self._in_named: dict[str, InPort] = {}
-        #: ports found by index (read's hot path: a dict, so a negative index misses too)
-        self._in_index: dict[int, InPort] = {}
+        #: input ports found so far, by index and by source name (read's hot path, one lookup:
+        #: a dict, so a negative index misses, and so does anything unhashable). A task's
+        #: ports are only ever appended (at its install), so what is found stays right. A key
+        #: equal to one here finds it too, as in any dict (True is port 1)
+        self._in_found: dict[int | str, InPort] = {}
         self._out_named: dict[str, Link] = {}
         #: the input ports in read_any's order (highest link priority, then lowest port), and
         #: the :attr:`Link.epoch` it was made at (read_any makes it again after any setpri)
@@ -57,14 +57,16 @@ class TaskHandle:
 
     def _in(self, port: Port) -> InPort:
         ports = self._t.in_ports
-        if isinstance(port, int):
-            if 0 <= port < len(ports):
-                return ports[port]
+        if not isinstance(port, str):
+            # an index, or anything equal to one (True, 1.0), as read's dict finds it
+            if port in range(len(ports)):
+                p = self._in_found[port] = ports[int(port)]
+                return p
             raise MessageError(f"task {self._t.name} has no input port {port} "
                                f"(it has {len(ports)}: {', '.join(self.inputs) or 'none'})")
         for p in ports:
             if p.link.src == port:
-                self._in_named[port] = p
+                self._in_found[port] = p
                 return p
         raise MessageError(f"task {self._t.name} has no input from {port!r} "
                            f"(inputs: {', '.join(self.inputs) or 'none'})")

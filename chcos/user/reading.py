@@ -104,39 +104,26 @@ class Reading(TaskHandle):
         sensor (also while waiting), ReadTimeout after ``timeout`` seconds without a message.
         """
         t = self._t
-        if port.__class__ is int:
-            try:
-                p = self._in_index[port]
-            except KeyError:  # the first read of it, or no such port (MessageError naming it)
-                p = self._in_index[port] = self._in(port)
-        else:
-            try:
-                p = self._in_named[port]  # type: ignore[index]  # str keys: another type misses
-            except (KeyError, TypeError):
-                p = self._in(port)  # finds and keeps a name, or raises naming the port
+        try:
+            p = self._in_found[port]
+        except (KeyError, TypeError):  # the first read of it, or no such port
+            p = self._in(port)  # finds and keeps it, or raises naming the port
         if not p.fresh:
             if p.device:
                 self._check_source(p)
             p.waiter = t
-            t.state = _WAITING
-            if self._k.h_blocked:
-                self._k.block(t, _WAITING)
-            if timeout is None:  # the port's own unwait: a delivery to it ends this wait itself
-                t.unwait = p.unwait
-            else:  # a timed wait ends through forget, which a delivery calls too
+            t.state = _WAITING  # (an instrument hears of the block from the kernel)
+            if timeout is not None:  # a timed wait ends through forget, which a delivery calls
                 t.wait_ports = p.single
                 t.unwait = forget
                 self._arm_timeout(timeout, p.link.name)
+            else:  # the port's own unwait: a delivery to it ends this wait itself
+                t.unwait = p.unwait
             yield BLOCK
-        if not self._k.h_delivered:  # the hot path (InPort.take and MessageManager.taken)
-            fifo = p.fifo
-            if fifo is None:
-                value = p.value
-                p.value = None
-                p.fresh = False
-            else:
-                value = fifo.popleft()[0]
-                p.fresh = bool(fifo)
+        if p.plain:  # the hot path: InPort.take of a newest-wins port, no instrument to tell
+            value = p.value
+            p.value = None
+            p.fresh = False
             return value  # counted by Link.delivered
         return self._take(p)
 
@@ -176,8 +163,6 @@ class Reading(TaskHandle):
                 t.wait_ports = tuple(chosen)
                 t.unwait = forget
             t.state = _WAITING
-            if self._k.h_blocked:
-                self._k.block(t, _WAITING)
             if timeout is not None:
                 self._arm_timeout(timeout, ", ".join(p.link.name for p in chosen))
             yield BLOCK
@@ -185,15 +170,10 @@ class Reading(TaskHandle):
             # what is there now, by the priorities now
             best = chosen[0] if single else _best(chosen)
             assert best is not None
-        if not self._k.h_delivered:  # the hot path, as in read
-            fifo = best.fifo
-            if fifo is None:
-                value = best.value
-                best.value = None
-                best.fresh = False
-            else:
-                value = fifo.popleft()[0]
-                best.fresh = bool(fifo)
+        if best.plain:  # the hot path, as in read
+            value = best.value
+            best.value = None
+            best.fresh = False
             return best.index, value
         return best.index, self._take(best)
 
