@@ -3,6 +3,7 @@ instruments installed during a step, all on the virtual clock."""
 
 from __future__ import annotations
 
+import random
 import types
 from collections.abc import Coroutine, Generator
 from typing import Any
@@ -202,3 +203,30 @@ def test_the_system_map_and_its_text_view_show_the_kernel_stats() -> None:
     doc = s.sysmgr.map_doc()
     assert doc["kernel"]["skipped_periods"] == 5
     assert "5 timer periods skipped (late)" in render_text(doc)
+
+
+def test_a_late_periodic_timer_moves_to_the_first_boundary_after_now() -> None:
+    """Kernel._fire_timers on many late firings (seeded): the next deadline is the first
+    period boundary after the firing time (or the one after it, when the firing time is
+    within a nanosecond of a boundary), never one before; every boundary in between is
+    counted as skipped, and the timer fires once per firing."""
+    rng = random.Random(21)
+    for _ in range(2000):
+        k = Kernel(VirtualClock())
+        period = rng.choice([1e-5, 1e-3, 0.1, 1 / 3, 0.7, 2.5]) * rng.uniform(0.5, 2.0)
+        fired: list[float] = []
+        tm = k.call_at(rng.uniform(0.0, 5.0), lambda: fired.append(now), period)
+        base = tm.base
+        now = base + period * rng.uniform(0.0, 50.0)
+        if rng.random() < 0.2:  # right on a boundary, or within a hair of one
+            now = base + period * rng.randrange(1, 50) + rng.choice([0.0, 1e-12, -1e-12])
+        k._fire_timers(now)
+        assert fired == [now]
+        c = tm.count
+
+        def at(n: int) -> float:
+            return round((base + n * period) * 1e9) / 1e9
+
+        assert tm.deadline == at(c) > now
+        assert c == 1 or at(c - 1) <= now + 1e-9  # not a boundary too far
+        assert tm.skipped == k.skipped_periods == c - 1

@@ -16,7 +16,7 @@ import logging
 import traceback
 from collections import deque
 from collections.abc import Callable
-from heapq import heappop, heappush
+from heapq import heappop, heappush, heapreplace
 
 from chcos.errors import HandlerError
 from chcos.kernel.clock import Clock
@@ -80,41 +80,53 @@ class Timers:
 
     def _fire_timers(self, now: float) -> None:
         timers = self._timers
-        while timers and timers[0][0] <= now:
-            _, _, tm = heappop(timers)
+        while timers:
+            entry = timers[0]
+            if entry[0] > now:
+                return
+            tm = entry[2]
             if tm.cancelled:
+                heappop(timers)
                 continue
-            if tm.period is not None:
-                self._next_period(tm, now)
-                self.ready_seq += 1
-                heappush(timers, (tm.deadline, self.ready_seq, tm))
+            period = tm.period
+            if period is not None:  # re-armed in place: one sift of the heap instead of two
+                count = tm.count + 1
+                # drift-free, whole nanoseconds (see _skip)
+                deadline = round((tm.base + count * period) * 1e9) / 1e9
+                if deadline <= now:  # late by at least one more period
+                    count, deadline = self._skip(tm, count, now)
+                tm.count = count
+                tm.deadline = deadline
+                self.ready_seq = seq = self.ready_seq + 1
+                heapreplace(timers, (deadline, seq, tm))
+            else:
+                heappop(timers)
             try:
                 tm.callback()
             except Exception as exc:  # a failing timer callback must not stop the kernel
                 self._record_irq_error("timer", exc)
 
-    def _next_period(self, tm: Timer, now: float) -> None:
-        """Move periodic ``tm``, due now, to its next deadline: the first period boundary after
-        ``now``; the boundaries in between are skipped and counted."""
+    def _skip(self, tm: Timer, count: int, now: float) -> tuple[int, float]:
+        """Periodic ``tm``'s ``count``-th deadline has passed too: (count, deadline) of the
+        first period boundary after ``now``; the boundaries in between are skipped and
+        counted. Deadlines are ``base + count * period`` in whole nanoseconds: no accumulated
+        rounding, and k * period lands on k * period (an integer round: round(x, 9) would go
+        through decimal text, several times slower)."""
         period = tm.period
         assert period is not None
         base = tm.base
-        count = tm.count + 1
-        # no accumulated rounding; whole nanoseconds so k * period lands on k * period (an
-        # integer round: round(x, 9) would go through decimal text, several times slower)
+        late = count
+        # the first boundary after now (a quotient within a hair of a whole number may land
+        # on the boundary at now, or within a nanosecond of it: the one after, then)
+        count = int((now - base) / period) + 1
         deadline = round((base + count * period) * 1e9) / 1e9
-        if deadline <= now:  # late by at least one more period: skip to the first one ahead
-            late = count
-            count = max(count, int((now - base) / period))
+        while deadline <= now:
+            count += 1
             deadline = round((base + count * period) * 1e9) / 1e9
-            while deadline <= now:
-                count += 1
-                deadline = round((base + count * period) * 1e9) / 1e9
-            missed = count - late
-            tm.skipped += missed
-            self.skipped_periods += missed
-        tm.count = count
-        tm.deadline = deadline
+        missed = count - late
+        tm.skipped += missed
+        self.skipped_periods += missed
+        return count, deadline
 
     def _record_irq_error(self, where: str, exc: Exception) -> None:
         text = f"{where}: {type(exc).__name__}: {exc}"
