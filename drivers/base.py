@@ -33,6 +33,11 @@ class DriverHost(Protocol):
         """A new reading of sensor ``device`` (decoded by the bus codec, before the device's own
         scale/offset). Lands in the device's last-value buffer as an interrupt."""
 
+    def deliver_now(self, device: str, value: Any) -> None:
+        """As :meth:`deliver`, for a reading taken on the kernel thread in a callback of
+        :meth:`every` or :meth:`at`: handled at once instead of through the interrupt queue
+        (called anywhere else, it is :meth:`deliver`)."""
+
     def fail(self, device: str, reason: str) -> None:
         """Device ``device`` failed (heartbeat lost, bus error, timeout); ``reason`` says why."""
 

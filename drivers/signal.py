@@ -110,7 +110,7 @@ class SignalDriver(MemoryDriver):
         def sample() -> None:
             if self._running:
                 self.samples += 1
-                self.host.deliver(name, wave(self.host.now()))
+                self.host.deliver_now(name, wave(self.host.now()))  # (a kernel timer's)
         return sample
 
     def stop(self) -> None:

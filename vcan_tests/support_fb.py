@@ -46,6 +46,8 @@ class FakeHost:
             self.delivered.append((device, value))
             self.cond.notify_all()
 
+    deliver_now = deliver  # (no kernel thread here: the same)
+
     def fail(self, device: str, reason: str) -> None:
         with self.cond:
             self.failures.append((device, reason))

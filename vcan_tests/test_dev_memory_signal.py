@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import random
+import threading
 from collections import deque
 from pathlib import Path
 
@@ -11,6 +12,9 @@ import pytest
 
 from chcos.devices.devmap import load
 from chcos.errors import DeviceError
+from chcos.kernel.clock import VirtualClock
+from chcos.system.embedded import System
+from chcos.tables.tasks import TaskEntry
 from drivers.memory import HISTORY_BYTES, ActuatorStore, MemoryDriver, _size
 from drivers.registry import driver_class
 from drivers.signal import SignalDriver, make_waveform
@@ -119,3 +123,46 @@ def test_memory_history_keeps_what_a_recount_would_keep() -> None:
         store.put("M", value)
         assert store.history("M") == list(model), i
     assert store.count("M") == 2000
+
+
+def test_a_reading_on_the_kernel_thread_is_handled_at_once_and_elsewhere_as_an_interrupt(
+        tmp_path: Path) -> None:
+    """Devtab.deliver_now (the signal driver's samplers use it): in a timer callback on the
+    kernel thread the reading is in the device's buffer before the call returns; in a task's
+    step, or from another thread, it is an interrupt, handled after the step (or when the
+    kernel next runs), as Devtab.deliver."""
+    s = System(load(ROOT / "chcos" / "apps" / "fig65" / "fig65.toml"), clock=VirtualClock(),
+               base_dir=tmp_path)
+    s.start_drivers([1])  # (S3's machine): samples at 0.1, 0.2...
+    dt, k = s.devtab, s.kernel
+    seen: list[tuple[str, float, int]] = []
+
+    def note(where: str) -> None:
+        e = dt.get("S3")
+        seen.append((where, e.value, e.readings))
+
+    def in_timer() -> None:
+        dt.deliver_now("S3", 5.0)
+        note("timer")
+
+    async def in_step() -> None:
+        dt.deliver_now("S3", 6.0)
+        note("step")
+
+    k.call_at(0.05, in_timer)  # between two samples of the 10 Hz signals
+    s.run(until=0.06)
+    assert seen == [("timer", 5.0 * dt.get("S3").spec.scale + dt.get("S3").spec.offset, 1)]
+    t = TaskEntry(tid=99, name="X", machine=0, level=1, func=lambda *a: None)  # type: ignore
+    t.coro = in_step()
+    k.ready(t, 50)
+    s.run(until=0.07)
+    assert seen[1] == ("step", seen[0][1], 1) and dt.get("S3").readings == 2  # after the step
+    other = threading.Thread(target=dt.deliver_now, args=("S3", 7.0))
+    other.start()
+    other.join()
+    assert dt.get("S3").readings == 2
+    s.run(until=0.08)
+    assert dt.get("S3").readings == 3
+    s.run(until=1.0)
+    assert dt.get("S3").readings == 3 + 10  # and the driver's own samples: 10 in a second
+    assert dt.stop_drivers() == []

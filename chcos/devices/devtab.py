@@ -185,6 +185,19 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
 
     inject = deliver  # the host's and the tests' way to feed a sensor
 
+    def deliver_now(self, device: str, value: Any) -> None:
+        """A new raw reading of sensor ``device`` taken on the kernel thread between task
+        steps (a driver's timer callback, see :meth:`every`): handled at once, as its
+        interrupt would be when the kernel next looked, without the round trip through the
+        interrupt queue. Anywhere else (another thread, a task's step) it is :meth:`deliver`."""
+        kernel = self.kernel
+        if kernel.current is not None or not kernel.on_kernel_thread():
+            self.deliver(device, value)
+            return
+        at = kernel.clock.now()
+        self._rx_stamp[device] = at
+        self._reading(device, value, at, at)
+
     def deliver_many(self, readings: Sequence[tuple[str, Any]]) -> None:
         """New raw readings taken together (one poll of a driver: ``(device, value)`` pairs, in
         order) as one interrupt, so the kernel wakes once per poll; each is handled as

@@ -102,6 +102,12 @@ class _HostProbe:
             self._on_lc(time.perf_counter())
         self._host.deliver(device, value)
 
+    def deliver_now(self, device: str, value: Any) -> None:
+        """As :meth:`deliver`, for a reading taken on the kernel thread."""
+        if device == "LC" and value:
+            self._on_lc(time.perf_counter())
+        self._host.deliver_now(device, value)
+
     def deliver_many(self, readings: Sequence[tuple[str, Any]]) -> None:
         """The same for a batch of readings (the CAN driver hands a drain's frames over as
         one): stamped if an intruder value is among them, then handed on as one batch."""
