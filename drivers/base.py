@@ -36,7 +36,8 @@ class DriverHost(Protocol):
     def deliver_now(self, device: str, value: Any) -> None:
         """As :meth:`deliver`, for a reading taken on the kernel thread in a callback of
         :meth:`every` or :meth:`at`: handled at once instead of through the interrupt queue
-        (called anywhere else, it is :meth:`deliver`)."""
+        (called anywhere else, it is :meth:`deliver`). It overtakes what waits in the
+        interrupt queue: a driver that also calls :meth:`fail` uses :meth:`deliver`."""
 
     def fail(self, device: str, reason: str) -> None:
         """Device ``device`` failed (heartbeat lost, bus error, timeout); ``reason`` says why."""

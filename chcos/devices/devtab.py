@@ -189,7 +189,10 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         """A new raw reading of sensor ``device`` taken on the kernel thread between task
         steps (a driver's timer callback, see :meth:`every`): handled at once, as its
         interrupt would be when the kernel next looked, without the round trip through the
-        interrupt queue. Anywhere else (another thread, a task's step) it is :meth:`deliver`."""
+        interrupt queue. Anywhere else (another thread, a task's step) it is :meth:`deliver`.
+        It is handled before whatever still waits in the interrupt queue: a driver that also
+        reports failures (:meth:`fail`, an interrupt) uses :meth:`deliver`, which keeps the
+        order."""
         kernel = self.kernel
         if kernel.current is not None or not kernel.on_kernel_thread():
             self.deliver(device, value)
