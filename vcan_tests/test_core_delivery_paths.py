@@ -176,7 +176,7 @@ def test_an_instrument_hears_links_installed_after_it_and_queued_links(tmp_path:
     c = s.tsktab.get("C")
     newest, queued = c.in_ports[0].link, c.in_ports[1].link
     assert newest.hooked and newest.direct is None and not newest.port.plain
-    assert queued.hooked and queued.queue is None and not queued.port.plain
+    assert queued.hooked and queued.queue is None and not queued.port.fifo_plain
     log: list[Any] = []
     s.invoke("C", {"log": log}, priority=20)
     s.run(until=0.0)
@@ -189,7 +189,7 @@ def test_an_instrument_hears_links_installed_after_it_and_queued_links(tmp_path:
     assert counters.delivered[newest.name] == 1 and counters.delivered[queued.name] == 2
     s.kernel.remove_instrument(counters)
     assert not newest.hooked and newest.direct is newest.port and newest.port.plain
-    assert queued.queue is queued.port and not queued.port.plain  # a FIFO: take() always
+    assert queued.queue is queued.port and queued.port.fifo_plain and not queued.port.plain
     s.msgmgr.deliver(queued, -3)
     s.msgmgr.deliver(newest, 3)
     s.run()

@@ -166,6 +166,7 @@ class Link:
         if port.__class__ is not InPort:
             return
         port.plain = port.fifo is None and not self.hooked
+        port.fifo_plain = port.fifo is not None and not self.hooked
         if not self.remote and not self.hooked and self._status is not LinkStatus.SUSPENDED:
             if port.fifo is None:
                 self.direct = port
@@ -189,8 +190,8 @@ class InPort:
     """One of a task's eight input ports: the newest unread message of its sensory link, or a
     bounded FIFO for a queued link."""
 
-    __slots__ = ("device", "fifo", "fresh", "index", "link", "plain", "sent_at", "single",
-                 "unwait", "value", "waiter")
+    __slots__ = ("device", "fifo", "fifo_plain", "fresh", "index", "link", "plain", "sent_at",
+                 "single", "unwait", "value", "waiter")
 
     def __init__(self, link: Link, index: int) -> None:
         self.link = link
@@ -204,9 +205,11 @@ class InPort:
         # the type is not named: the task table sits on the message table, not beside it)
         self.waiter: Any = None
         self.fifo: deque[tuple[Any, float]] | None = deque() if link.queued else None
-        #: a read takes the message here itself (a newest-wins port, no instrument hearing of
-        #: messages: kept by :meth:`Link.refresh`); else through :meth:`take`
+        #: a read takes the message here itself (a newest-wins port; ``fifo_plain`` a queued
+        #: one), no instrument hearing of messages: kept by :meth:`Link.refresh`; else through
+        #: :meth:`take`
         self.plain = self.fifo is None and not link.hooked
+        self.fifo_plain = self.fifo is not None and not link.hooked
         #: the ``unwait`` of a task whose only wait is this port (a ``read`` without a timeout):
         #: it stops naming the task as its waiter. One object per port, so that a delivery
         #: recognises a plain read of its own port by identity (``w.unwait is port.unwait``)

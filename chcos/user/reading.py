@@ -125,6 +125,11 @@ class Reading(TaskHandle):
             p.value = None
             p.fresh = False
             return value  # counted by Link.delivered
+        if p.fifo_plain:  # the same for a queued port
+            fifo = p.fifo
+            value = fifo.popleft()[0]  # type: ignore[union-attr]
+            p.fresh = bool(fifo)
+            return value
         return self._take(p)
 
     @types.coroutine
@@ -170,10 +175,15 @@ class Reading(TaskHandle):
             # what is there now, by the priorities now
             best = chosen[0] if single else _best(chosen)
             assert best is not None
-        if best.plain:  # the hot path, as in read
+        if best.plain:  # the hot paths, as in read
             value = best.value
             best.value = None
             best.fresh = False
+            return best.index, value
+        if best.fifo_plain:
+            fifo = best.fifo
+            value = fifo.popleft()[0]  # type: ignore[union-attr]
+            best.fresh = bool(fifo)
             return best.index, value
         return best.index, self._take(best)
 
