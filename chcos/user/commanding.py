@@ -30,7 +30,7 @@ class Commanding(TaskHandle):
         many links took it. Raises QueueOverflow if a queued link was full."""
         link = self._t.up_one  # None when several links or a tap take it
         if link is not None:  # MessageManager.put's own fast path, a call less
-            return self._mm.deliver(link, value)
+            return self._deliver(link, value)
         return self._mm.put(self._t, value)
 
     def write(self, port: Port, value: Any) -> None:
