@@ -129,7 +129,8 @@ class Hooks:
         self.h_delivered: tuple[Instrument, ...] = ()
         self.h_event: tuple[Instrument, ...] = ()
         #: True when an instrument hears of messages or of tasks made ready (h_sent,
-        #: h_overwritten, h_delivered or h_scheduled): one test on a delivery's hot path
+        #: h_overwritten, h_delivered or h_scheduled): the message layer then takes every
+        #: link off its hot paths (Link.hooked), so that none of them tests this
         self.h_msg = False
         #: (instrument, hook, error text) of every instrument removed because a hook raised
         self.dropped_instruments: list[tuple[Instrument, str, str]] = []
