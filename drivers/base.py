@@ -151,6 +151,14 @@ class Driver(ABC):
         return []
 
     @classmethod
+    def check_devices(cls, bus: BusSpec, devices: Sequence[DeviceSpec]) -> list[
+            tuple[DeviceSpec, str]]:
+        """Errors between the devices of ``bus`` (each address valid by itself): one device's
+        address naming another that is not there. Each as ``(device, "<key path>: <what was
+        expected>")``, the path as in :meth:`check_device`; [] if none."""
+        return []
+
+    @classmethod
     def encodable(cls, bus: BusSpec, device: DeviceSpec) -> tuple[float, float] | None:
         """The raw values a valid ``device``'s address can carry on the wire, as (lo, hi), or
         None where the driver does not know or the type is unbounded. ``chcos check`` warns when

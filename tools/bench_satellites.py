@@ -2,17 +2,24 @@
 """bench_satellites - one CHC-OS system on 1 and 2 satellite processes, over Zenoh on loopback.
 
 1. Scaling, after the thesis' table (1150 / 2100 / 3075 interrupts/s for 1 / 2 / 3 satellites):
-   every satellite runs the same load, two sensors sampled flat out (``signal`` devices at the
-   highest rate a map allows, together far above what one core can serve, so that the kernel
-   never goes idle; each satellite process's CPU use over the window is printed to show it),
-   each read by its own driver task writing an actuator for every reading and sending every
-   fifth upward to a level-2 task that reads the driver tasks of *every* satellite (so with 2
-   satellites half of its inputs cross the link, as in the thesis' estimate). Measured: total
-   sensor-to-actuator loops/s with 1, 2 and 3 satellite processes; target 2-satellite total
-   >= 1.8x the single one (the thesis estimated 1.83x). Beside it, the machine's own ceiling
-   in the same run: the same satellites with nothing crossing the link (each level-2 task
-   reads its own satellite's driver tasks only), which is what these cores give N busy Python
-   processes today.
+   every satellite runs the same load, two closed sensor-to-actuator loops, each a driver task
+   that reads its sensor, writes the reading to its actuator, and sends every fifth reading
+   upward to a level-2 task that reads the driver tasks of *every* satellite (so with 2
+   satellites half of its inputs cross the link, as in the thesis' estimate). The sensors are
+   ``echo`` devices of a ``signal`` bus: each write to the actuator comes back at once as the
+   sensor's next reading, an interrupt through the kernel's queue, so each loop runs as fast
+   as its satellite serves it and every reading is served: the thesis' model counts
+   interrupts served, and a satellite's kernel never waits (each satellite process's CPU use
+   over the window is printed to show it, and readings per interrupt served: 1.00 when none
+   is lost). Measured: total loops/s with 1, 2 and 3 satellite processes; target 2-satellite
+   total >= 1.8x the single one (the thesis estimated 1.83x). Beside it, the machine's own
+   ceiling in the same run: the same satellites with nothing crossing the link (each level-2
+   task reads its own satellite's driver tasks only), which is what these cores give N busy
+   Python processes today. ``--load sampled`` runs the load of earlier stops instead: sensors
+   sampled on the kernel's timers at ``--sample-hz`` (default 100 kHz, the most a map allows),
+   whose readings come whether or not the last one was served; there one satellite alone is
+   held back by its two sensors' 200,000 readings/s (it serves ~90 % of them, and spends the
+   rest of its time on readings overwritten unread), which flatters the ratios.
 2. Cross-satellite message latency: a task on machine 0 sends 5,000 sensory messages/s to a task
    on machine 1 over a queued link (so every message counts), each stamped with the wall clock;
    p50/p99 of arrival minus stamp (target p99 < 1 ms). Measured in the same run, side by side:
@@ -23,7 +30,7 @@
    payload): what the security costs by itself. With ``--pin`` each satellite (and each bare
    process) runs on a CPU of its own (``[[satellite]] cpus``), as a cell would deploy them.
 Usage: python -m tools.bench_satellites [--seconds S] [--rate N] [--json FILE] [--latency-only]
-[--pin]
+[--scaling-only] [--load echo|sampled] [--sample-hz N] [--pin]
 """
 
 from __future__ import annotations
@@ -100,7 +107,7 @@ name = "S{m}{lane}"
 direction = "sensor"
 machine = {m}
 bus = "load"
-address = {{ waveform = "ramp", rate_hz = {hz}, amplitude = 10.0, center = 10.0 }}
+address = {address}
 
 [[device]]
 name = "M{m}{lane}"
@@ -110,14 +117,28 @@ bus = "load"
 """
 
 
-SAMPLE_HZ = 100_000  # each sensor: the highest rate a device map allows (mapparse.RATE_RANGE)
-#: the sensor-to-actuator lanes of a satellite (suffixes of S, M and A): two sensors at
-#: SAMPLE_HZ, several times what one satellite serves, so that its kernel never waits for the
-#: next sample (at 20 kHz it did: a sleep of 50 us takes ~100 us here, and one satellite used
-#: half a core; with one sensor at 100 kHz, once a reading cost ~11 us, it again waited now and
-#: then). A late sample timer fires once and skips the periods it missed (chcos.kernel.timers),
-#: so sampling faster only adds skipped periods, not work
+#: the load's sensor addresses (see the module doc): ``echo`` reads its actuator back (each
+#: write at once; every 1/hz the held value too, which starts the loop), ``sampled`` is a ramp
+#: on the kernel's timers at hz (a late timer fires once and skips the periods it missed)
+LOADS = {
+    "echo": 'waveform = "echo", actuator = "M{m}{lane}", rate_hz = {hz}, value = 1.0',
+    "sampled": 'waveform = "ramp", rate_hz = {hz}, amplitude = 10.0, center = 10.0',
+}
+#: each load's default sample rate: an echo's held value 100 times a second (a restart, not
+#: the load), a sampled sensor at the highest rate a device map allows (mapparse.RATE_RANGE)
+SAMPLE_HZ = {"echo": 100, "sampled": 100_000}
+#: the sensor-to-actuator lanes of a satellite (suffixes of S, M and A)
 LANES = ("", "b")
+
+
+def device_map(machines: int, kind: str = "echo", sample_hz: int | None = None) -> str:
+    """The device map of ``machines`` satellites' lanes under load ``kind`` (a key of
+    :data:`LOADS`; ``sample_hz`` default :data:`SAMPLE_HZ`), as TOML text."""
+    hz = SAMPLE_HZ[kind] if sample_hz is None else sample_hz
+    return DEVMAP.format(devices="".join(
+        DEVICE.format(m=m, lane=lane,
+                      address="{ " + LOADS[kind].format(m=m, lane=lane, hz=hz) + " }")
+        for m in range(machines) for lane in LANES))
 
 
 def cpu_of(machine: int) -> int:
@@ -131,12 +152,11 @@ class Cluster:
     """Satellite processes for one measurement (``pin``: each on a CPU of its own, see
     :func:`cpu_of`)."""
 
-    def __init__(self, machines: int, load: bool = True, sample_hz: int = SAMPLE_HZ,
-                 pin: bool = False) -> None:
+    def __init__(self, machines: int, load: bool = True, kind: str = "echo",
+                 sample_hz: int | None = None, pin: bool = False) -> None:
         self.tmp = Path(tempfile.mkdtemp(prefix="chcos-bench-sat-"))
-        devices = "".join(DEVICE.format(m=m, lane=lane, hz=sample_hz)
-                          for m in range(max(machines, 2)) for lane in LANES if load)
-        (self.tmp / "devices.toml").write_text(DEVMAP.format(devices=devices))
+        (self.tmp / "devices.toml").write_text(
+            device_map(max(machines, 2) if load else 0, kind, sample_hz))
         ports = free_ports(machines)
         sats = "".join(f"[[satellite]]\nmachine = {m}\nport = {ports[m]}\n"
                        + (f"cpus = [{cpu_of(m)}]\n" if pin else "")
@@ -178,7 +198,8 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / _TICK
 
 
-def scaling_detail(machines: int, seconds: float, sample_hz: int = SAMPLE_HZ,
+def scaling_detail(machines: int, seconds: float, kind: str = "echo",
+                   sample_hz: int | None = None,
                    solo: bool = False) -> dict[str, Any]:
     """Served interrupts/s (a sensor reading handled by its driver task, which writes the
     actuator) with ``machines`` satellite processes: ``per_satellite`` (list), ``total``,
@@ -187,7 +208,7 @@ def scaling_detail(machines: int, seconds: float, sample_hz: int = SAMPLE_HZ,
     each level-2 task reads only its own satellite's driver tasks, so nothing crosses the link
     (the machine's ceiling for the same processes). Raises LinkError or InstallError when a
     satellite is too busy to answer its control requests in time."""
-    c = Cluster(machines, sample_hz=sample_hz)
+    c = Cluster(machines, kind=kind, sample_hz=sample_hz)
     try:
         h = c.host
         for m in range(machines):
@@ -368,7 +389,7 @@ def raw_latency(rate: int, seconds: float, secure: bool = False,
 
 
 def scaling_table(seconds: float, configs: tuple[int, ...] = (1, 2, 3),
-                  sample_hz: int = SAMPLE_HZ) -> dict[str, Any]:
+                  kind: str = "echo", sample_hz: int | None = None) -> dict[str, Any]:
     """:func:`scaling_detail` for each number of satellites in ``configs`` (1 first, measured
     again after the others: its ``total`` is the mean of the two, ``runs`` both), with the
     ratios to 1 satellite beside the thesis' model (:mod:`chcos.apps.bench.model64`). A
@@ -381,7 +402,7 @@ def scaling_table(seconds: float, configs: tuple[int, ...] = (1, 2, 3),
 
     def measure(n: int, solo: bool) -> dict[str, Any]:
         try:
-            r = scaling_detail(n, seconds, sample_hz, solo=solo)
+            r = scaling_detail(n, seconds, kind, sample_hz, solo=solo)
         except ChcosError as exc:
             r = {"machines": n, "per_satellite": [], "total": float("nan"), "cpu": [],
                  "readings": float("nan"), "error": f"{type(exc).__name__}: {exc}"}
@@ -414,13 +435,17 @@ def scaling_table(seconds: float, configs: tuple[int, ...] = (1, 2, 3),
         m = model.get(r["machines"])
         r["model_total"] = m.total if m else None
         r["model_ratio"] = m.ratio_to_one if m else None
-    return {"rows": rows, "cores": len(os.sched_getaffinity(0)), "seconds": seconds}
+    return {"rows": rows, "cores": len(os.sched_getaffinity(0)), "seconds": seconds,
+            "load": kind}
 
 
 def scaling_report(t: dict[str, Any]) -> str:
     """The scaling table as text: measured per satellite, total, ratio; the model's beside."""
-    lines = [f"satellite scaling, CPU-bound (each satellite's two signal sensors sampled far above "
-             f"what it can serve), {t['seconds']:g} s each, {t['cores']} cores allowed:",
+    load = ("two closed loops per satellite, each reading the echo of its last write"
+            if t.get("load", "echo") == "echo" else
+            "two sensors per satellite sampled on the kernel's timers, served or not")
+    lines = [f"satellite scaling, CPU-bound ({load}), {t['seconds']:g} s each, {t['cores']} "
+             f"cores allowed:",
              f"  {'sats':>4} {'per satellite, interrupts/s':>34} {'total':>9} {'x of 1':>7}"
              f"   model: total  x of 1"]
     for r in t["rows"]:
@@ -437,7 +462,8 @@ def scaling_report(t: dict[str, Any]) -> str:
                          f"{' and '.join(f'{v:,.0f}' for v in r['runs'])}/s (the baseline: "
                          f"their mean)")
         lines.append(f"       CPU per satellite process: "
-                     f"{' '.join(f'{c:.2f}' for c in r['cpu'])} cores")
+                     f"{' '.join(f'{c:.2f}' for c in r['cpu'])} cores; readings per "
+                     f"interrupt served {r['readings'] / r['total']:.2f}")
         top = r.get("ceiling")
         if top and not top.get("error"):
             lines.append(f"       unlinked (the machine's ceiling): {top['total']:,.0f} = "
@@ -457,8 +483,11 @@ def main() -> int:
                     help="only the latency part (chcos and the bare transport)")
     ap.add_argument("--scaling-only", action="store_true",
                     help="only the 1/2/3-satellite scaling beside the thesis' model")
-    ap.add_argument("--sample-hz", type=int, default=SAMPLE_HZ,
-                    help="each satellite's sensor sample rate for the scaling part")
+    ap.add_argument("--load", choices=sorted(LOADS), default="echo",
+                    help="the scaling part's sensors (see the module doc; default echo)")
+    ap.add_argument("--sample-hz", type=int,
+                    help="the scaling part's sensor sample rate (default: echo 100, sampled "
+                         "100000)")
     ap.add_argument("--raw", nargs=5, metavar=("ROLE", "PORT", "PEER", "COUNT", "RATE"),
                     help=argparse.SUPPRESS)  # internal: one bare-transport process
     ap.add_argument("--raw-system", help=argparse.SUPPRESS)  # internal: secured as satellites
@@ -479,7 +508,7 @@ def main() -> int:
     res: dict[str, Any] = {}
     print(f"cores: {os.cpu_count()}")
     if args.scaling_only or not args.latency_only:
-        res["scaling"] = scaling_table(args.seconds, sample_hz=args.sample_hz)
+        res["scaling"] = scaling_table(args.seconds, kind=args.load, sample_hz=args.sample_hz)
         print(scaling_report(res["scaling"]))
         if args.scaling_only:
             if args.json:

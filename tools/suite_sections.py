@@ -390,8 +390,9 @@ def satellites(run: SuiteRun) -> None:
         verdict = f"model {model['model_total']:,} = {model['model_ratio']:.2f}x"
         if n == 2:
             verdict += " - " + yes(bool(ok) and med([r["ratio"] for r in ok]) >= 1.8)
-        run.rows.append((f"satellite scaling, {n} CPU-bound satellite process(es): sensor "
-                         f"reading -> driver task -> actuator, interrupts/s ({run.reps} runs)",
+        run.rows.append((f"satellite scaling, {n} CPU-bound satellite process(es), two closed "
+                         f"loops each: sensor reading -> driver task -> actuator -> its echo, "
+                         f"the next reading; interrupts/s ({run.reps} runs)",
                          target, got, verdict))
     def ms(batches: list[dict[str, float]], key: str) -> str:
         return spread([b[key] / 1000 for b in batches], "{:.3f}")

@@ -7,6 +7,7 @@ import random
 import threading
 from collections import deque
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -101,7 +102,7 @@ def test_signal_check_device() -> None:
         "S", "sensor", waveform="sine", rate_hz=0, period=-1, colour=1))
     assert errs == [
         "device[0].address.colour: unknown key; valid keys: waveform, rate_hz, amplitude, center, "
-        "period, phase, value, seed",
+        "period, phase, value, seed, actuator",
         "device[0].address.rate_hz: expected samples per second > 0, got 0",
         "device[0].address.period: expected seconds > 0, got -1"]
 
@@ -166,3 +167,116 @@ def test_a_reading_on_the_kernel_thread_is_handled_at_once_and_elsewhere_as_an_i
     s.run(until=1.0)
     assert dt.get("S3").readings == 3 + 10  # and the driver's own samples: 10 in a second
     assert dt.stop_drivers() == []
+
+
+ECHO_MAP = """
+[[bus]]
+name = "plant"
+kind = "signal"
+
+[[device]]
+name = "S"
+direction = "sensor"
+bus = "plant"
+address = {{ waveform = "echo", actuator = "{actuator}", rate_hz = 10, value = 1.0 }}
+
+[[device]]
+name = "M"
+direction = "actuator"
+machine = {machine}
+bus = "plant"
+safe_value = 0.0
+
+[[device]]
+name = "T"
+direction = "sensor"
+bus = "plant"
+address = {{ waveform = "constant", rate_hz = 10 }}
+"""
+
+
+def test_echo_sensor_reads_its_actuator_back_at_once_and_every_sample() -> None:
+    host = FakeHost()
+    drv = SignalDriver(bus("signal"), [
+        device("S", "sensor", waveform="echo", actuator="M", rate_hz=10, value=1.5),
+        device("M", "actuator", i=1), device("N", "actuator", i=2)], host)
+    drv.start()
+    host.advance(0.1)
+    assert host.delivered == [("S", 1.5)]          # before any write: ``value``
+    drv.write("M", 3.0)
+    drv.write("N", 9.0)                            # not echoed
+    assert host.delivered[1:] == [("S", 3.0)]      # at once, before any sample
+    host.advance(0.2)
+    assert host.delivered[2:] == [("S", 3.0), ("S", 3.0)]   # the samples hold it
+    assert drv.store.last("M") == 3.0 and drv.store.last("N") == 9.0
+    drv.stop()
+    with pytest.raises(DeviceError, match="not running"):
+        drv.write("M", 4.0)
+    assert host.values("S") == [1.5, 3.0, 3.0, 3.0]   # a refused write echoes nothing
+    with pytest.raises(ValueError, match="no waveform of time"):
+        make_waveform({"waveform": "echo"})
+
+
+def test_echo_address_check() -> None:
+    b = bus("signal")
+    assert SignalDriver.check_device(b, device(
+        "S", "sensor", waveform="echo", rate_hz=5, actuator="M", value=2.0)) == []
+    assert SignalDriver.check_device(b, device(
+        "S", "sensor", waveform="echo", rate_hz=5, amplitude=1.0)) == [
+        "device[0].address.amplitude: not for an echo sensor; it takes waveform, rate_hz, "
+        "value, actuator",
+        "device[0].address.actuator: expected the name of an actuator of bus 'b' on machine 0, "
+        "got None"]
+    assert SignalDriver.check_device(b, device(
+        "S", "sensor", waveform="sine", rate_hz=5, actuator="M")) == [
+        "device[0].address.actuator: only for waveform \"echo\", not 'sine'"]
+
+
+@pytest.mark.parametrize(("actuator", "machine", "error"), [
+    ("M9", 0, "device[0].address.actuator: expected an actuator of bus 'plant' on machine 0 "
+              "(M), got 'M9'"),
+    ("T", 0, "device[0].address.actuator: expected an actuator of bus 'plant' on machine 0 "
+             "(M), got 'T'"),                      # a sensor
+    ("M", 1, "device[0].address.actuator: expected an actuator of bus 'plant' on machine 0 "
+             "(it has none), got 'M'"),            # another machine's
+])
+def test_an_echo_of_no_actuator_of_its_own_rejects_the_map(
+        tmp_path: Path, actuator: str, machine: int, error: str) -> None:
+    from chcos.devices.devmap import check
+
+    path = tmp_path / "plant.toml"
+    path.write_text(ECHO_MAP.format(actuator=actuator, machine=machine))
+    dmap, errors, _ = check(path)
+    assert dmap is None and len(errors) == 1
+    assert str(path) in errors[0] and error in errors[0]
+
+
+async def echo_loop(ctx: Any, cmd: dict[str, Any]) -> None:
+    """Reads its sensor, answers each reading with the reading + 1, ``cmd["n"]`` times."""
+    log = cmd["log"]
+    for _ in range(int(cmd["n"])):
+        v = await ctx.read(0)
+        log.append((ctx.now, v))
+        ctx.write(0, v + 1.0)
+    await ctx.sleep(1e9)
+
+
+def test_echo_runs_a_loop_flat_out_every_reading_served(tmp_path: Path) -> None:
+    """A task that answers each reading of an echo sensor with a write: the first sample
+    starts it and every write is read back at once (no time passes on the virtual clock),
+    through the interrupt queue, none overwritten unread; the samples after hold the last
+    write."""
+    path = tmp_path / "plant.toml"
+    path.write_text(ECHO_MAP.format(actuator="M", machine=0))
+    s = System(load(path), clock=VirtualClock(), base_dir=tmp_path)
+    s.execute("install -m0 sysfile")
+    s.execute("install -m0i1o1 --code=vcan_tests.test_dev_memory_signal:echo_loop A S M")
+    log: list[tuple[float, float]] = []
+    s.invoke("A", {"log": log, "n": 50}, priority=20)
+    s.run(until=0.15)
+    assert log == [(pytest.approx(0.1), float(v)) for v in range(1, 51)]
+    e = s.devtab.get("S")
+    assert e.readings == 51 and e.overwrites == 0 and e.value == 51.0  # the last, unread
+    s.run(until=0.25)
+    assert s.devtab.get("S").readings == 52 and s.devtab.get("S").value == 51.0
+    assert s.devtab.stop_drivers() == []

@@ -45,9 +45,9 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from chcos.devices import parsecache
 from chcos.devices.mapparse import FileErrors, read_file, short
@@ -56,8 +56,10 @@ from chcos.errors import ConfigError, DriverNotAvailable
 from drivers.base import Driver
 from drivers.registry import driver_class
 
+T = TypeVar("T")
 
-def _guarded(fe: FileErrors, key: str, fn: Any, *args: Any) -> list[str]:
+
+def _guarded(fe: FileErrors, key: str, fn: Callable[..., Iterable[T]], *args: Any) -> list[T]:
     """``fn(*args)`` (a driver's check), its failure recorded as an error of ``key`` rather than
     raised: a driver that cannot check a value must not end ``chcos check`` in a traceback."""
     try:
@@ -71,9 +73,10 @@ def _guarded(fe: FileErrors, key: str, fn: Any, *args: Any) -> list[str]:
 def _driver_checks(fe_by_file: Mapping[str, FileErrors], buses: Sequence[BusSpec],
                    devices: Sequence[DeviceSpec]) -> tuple[dict[str, type[Driver] | None],
                                                            set[int]]:
-    """Run each bus kind's check_bus / check_device; normalise their key paths. Returns the
-    driver class of each bus (None where the kind has no usable driver or the bus is invalid)
-    and the ids of the devices whose address the driver refused."""
+    """Run each bus kind's check_bus / check_device, then its check_devices over the devices
+    of each bus that passed; normalise their key paths. Returns the driver class of each bus
+    (None where the kind has no usable driver or the bus is invalid) and the ids of the
+    devices whose address the driver refused."""
     classes: dict[str, type[Driver] | None] = {}
     refused: set[int] = set()
     for b in buses:
@@ -101,6 +104,16 @@ def _driver_checks(fe_by_file: Mapping[str, FileErrors], buses: Sequence[BusSpec
         for msg in _guarded(fe, f"{d.key}.address", cls.check_device, bus, d):
             fe.add(*_split(msg, d.key, "address."))
         if len(fe.errors) != before:
+            refused.add(id(d))
+    on_bus: dict[str, list[DeviceSpec]] = {}
+    for d in devices:
+        if classes.get(d.bus) is not None and id(d) not in refused:
+            on_bus.setdefault(d.bus, []).append(d)
+    for name, ds in on_bus.items():
+        bus, cls = by_name[name], classes[name]
+        assert cls is not None
+        for d, msg in _guarded(fe_by_file[bus.file], bus.key, cls.check_devices, bus, ds):
+            fe_by_file[d.file].add(*_split(msg, d.key, "address."))
             refused.add(id(d))
     return classes, refused
 

@@ -104,14 +104,18 @@ REFERENCE: dict[str, Kind] = {
     "signal": Kind(
         "waveform generators on the kernel clock (demos, load)",
         (Key("history", "integer", "100", "writes kept per actuator"),),
-        (Key("waveform", "string", "required", "`sine`, `square`, `ramp`, `constant` or "
-             "`random`"),
+        (Key("waveform", "string", "required", "`sine`, `square`, `ramp`, `constant`, "
+             "`random` or `echo` (reads `actuator` back: each write at once, as an interrupt, "
+             "and every sample the last one)"),
          Key("rate_hz", "float", "required", "samples per second"),
+         Key("actuator", "string", "required for `echo`", "the actuator an `echo` sensor reads "
+             "back (same bus, same machine)"),
          Key("amplitude", "float", "1.0", "peak deviation from center"),
          Key("center", "float", "0.0", "mid value"),
          Key("period", "float s", "1.0", "waveform period"),
          Key("phase", "float", "0.0", "fraction of a period"),
-         Key("value", "float", "center", "the `constant` value"),
+         Key("value", "float", "center", "the `constant` value; an `echo` sensor's reading "
+             "before the first write (default 0.0)"),
          Key("seed", "integer", "0", "`random` seed")),
         '[[device]]\nname = "S1"\ndirection = "sensor"\nbus = "demo"\n'
         'address = { waveform = "sine", rate_hz = 10, amplitude = 50.0, center = 50.0, '
