@@ -280,3 +280,18 @@ def test_echo_runs_a_loop_flat_out_every_reading_served(tmp_path: Path) -> None:
     s.run(until=0.25)
     assert s.devtab.get("S").readings == 52 and s.devtab.get("S").value == 51.0
     assert s.devtab.stop_drivers() == []
+
+
+def test_a_check_between_devices_that_raises_is_an_error_naming_the_bus(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from chcos.devices.devmap import check
+
+    def broken(cls: type, bus: Any, devices: Any) -> list[Any]:
+        raise KeyError("x")
+
+    monkeypatch.setattr(SignalDriver, "check_devices", classmethod(broken))
+    path = tmp_path / "plant.toml"
+    path.write_text(ECHO_MAP.format(actuator="M", machine=0))
+    dmap, errors, _ = check(path)
+    assert dmap is None and len(errors) == 1
+    assert f"{path}" in errors[0] and "bus[0]" in errors[0] and "could not be checked" in errors[0]
