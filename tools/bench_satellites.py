@@ -18,8 +18,9 @@
    Python processes today. ``--load sampled`` runs the load of earlier stops instead: sensors
    sampled on the kernel's timers at ``--sample-hz`` (default 100 kHz, the most a map allows),
    whose readings come whether or not the last one was served; there one satellite alone is
-   held back by its two sensors' 200,000 readings/s (it serves ~90 % of them, and spends the
-   rest of its time on readings overwritten unread), which flatters the ratios.
+   held back by its two sensors' 200,000 readings/s (it serves ~90 % of them, and spends part
+   of its time on the rest, overwritten unread), and a satellite slowed by anything, the link
+   among them, overwrites more: the ratios measure that waste as much as the serving.
 2. Cross-satellite message latency: a task on machine 0 sends 5,000 sensory messages/s to a task
    on machine 1 over a queued link (so every message counts), each stamped with the wall clock;
    p50/p99 of arrival minus stamp (target p99 < 1 ms). Measured in the same run, side by side:
