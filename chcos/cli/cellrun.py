@@ -80,11 +80,11 @@ def problems(cell: Cell, snap: dict[str, Any]) -> list[str]:
                          f"{t['error']}")
     for bus, err in snap["bus_errors"].items():
         found.append(f"bus {bus}: {err}")
-    for e in cell.system.devtab:
-        safe = e.spec.safe_value
-        if not e.is_sensor and e.driver is not None and safe is not None \
-                and cell.safe_written.get(e.name) != safe:
-            found.append(f"actuator {e.name}: safe value {safe} not written at the end")
+    for o in cell.system.devtab.safe_outcomes.values():
+        if not o.written:
+            units = cell.system.devtab.get(o.device).spec.units
+            found.append(f"actuator {o.device}: safe value {_value(o.value, units)} NOT "
+                         f"written at the end: {o.reason}")
     return found
 
 
@@ -104,14 +104,22 @@ def report(cell: Cell, snap: dict[str, Any], found: list[str], out: TextIO) -> N
         print(f"  task     {t['name']:<16} {t['steps']} executions, {t['completions']} "
               f"completions, {t['abnormal']} abnormal", file=out)
     print(f"  messages: {snap['messages']} ({snap['messages'] / secs:.0f}/s)", file=out)
+    outcomes = cell.system.devtab.safe_outcomes
     for e in cell.system.devtab:
-        if not e.is_sensor and e.spec.safe_value is not None:
-            done = e.name in cell.safe_written
-            how = "written" if done else "NOT written"
-            if done and not cell.system.outputs:
-                how += " (logged, not sent: outputs off)"
-            print(f"  safe value {e.name} = {_value(e.spec.safe_value, e.spec.units)}: {how}",
-                  file=out)
+        if e.is_sensor or e.spec.safe_value is None:
+            continue
+        o = outcomes.get(e.name)
+        if o is None:
+            how = ("left to the satellite that drives it" if e.driver is None
+                   else "NOT written: never issued")
+        elif not o.written:
+            how = f"NOT written: {o.reason}"
+        elif not cell.system.outputs:
+            how = "written (logged, not sent: outputs off)"
+        else:
+            how = "written" if o.attempts == 1 else f"written (attempt {o.attempts})"
+        print(f"  safe value {e.name} = {_value(e.spec.safe_value, e.spec.units)}: {how}",
+              file=out)
     if not cell.system.outputs:
         print(f"  actuator writes logged, not sent: {len(cell.outputs_log)}", file=out)
     if found:

@@ -126,7 +126,6 @@ class Cell:
     start: float = 0.0
     answers: list[str] = field(default_factory=list)
     outputs_log: list[tuple[float, str, Any]] = field(default_factory=list)
-    safe_written: dict[str, Any] = field(default_factory=dict)
     closed: bool = False
 
     def now(self) -> float:
@@ -165,21 +164,18 @@ class Cell:
                 "bus_error_count": sum(self.system.devtab.bus_errors.values())}
 
     def close(self) -> None:
-        """Stop the kernel, put every actuator at its safe value (recorded in
-        :attr:`safe_written`), stop the drivers and the simulated slaves. Idempotent."""
+        """Stop the kernel, put every actuator at its safe value (what each driver confirmed is
+        in the device table's ``safe_outcomes``), stop the drivers and the simulated slaves.
+        Idempotent."""
         if self.closed:
             return
         self.closed = True
         self.system.stop()
-        self.system.devtab.on_write.append(self._safe_write)
         try:
             self.system.shutdown()
         finally:
             if self.slaves is not None:
                 self.slaves.close()
-
-    def _safe_write(self, device: str, value: Any) -> None:
-        self.safe_written[device] = value
 
 
 def _boot_lines(sf: sysfile.SystemFile, machines: Iterable[int]) -> list[str]:

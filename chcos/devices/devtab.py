@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from threading import get_ident
@@ -27,6 +28,7 @@ from chcos.devices.entry import (
     DeviceListener,
     DeviceStatus,
     RemoteDevices,
+    SafeOutcome,
     Write,
     scalable,
 )
@@ -39,8 +41,11 @@ from chcos.kernel.scheduler import Kernel
 if TYPE_CHECKING:
     from drivers.base import Driver
 
-#: Seconds each driver gets at shutdown to put the safe values on the wire.
+#: Seconds the drivers get at shutdown, in all, to put the safe values on the wire (a safe value
+#: reported failed is re-issued until it is confirmed or this window ends).
 SHUTDOWN_FLUSH = 5.0
+#: Seconds between two issues of a safe value reported failed at shutdown.
+SHUTDOWN_RETRY_PAUSE = 0.1
 # module constants: read on every reading and every command
 _FAILED = DeviceStatus.FAILED
 _SUSPENDED = DeviceStatus.SUSPENDED
@@ -71,6 +76,11 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         self._stats_lock = threading.Lock()
         #: (device, reason) of every safe value that could not be put on the wire, oldest first.
         self.safe_failures: list[tuple[str, str]] = []
+        #: what became of each local actuator's safe value at the last shutdown
+        #: (:meth:`stop_drivers`): confirmed by its driver, or not and why
+        self.safe_outcomes: dict[str, SafeOutcome] = {}
+        #: seconds :meth:`stop_drivers` keeps trying to put the safe values on the wire
+        self.shutdown_window = SHUTDOWN_FLUSH
         self._health_listeners: list[HealthListener] = []
         self._wlock = threading.Lock()
         self._inflight: dict[str, deque[Write]] = {}
@@ -135,33 +145,26 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
                 self._arm_stale(e, self.kernel.clock.now())
 
     def stop_drivers(self) -> list[tuple[str, str]]:
-        """Write safe values (whatever state the actuators are in), let every driver put them on
-        the wire (up to SHUTDOWN_FLUSH s each), then stop every driver. Never raises; returns
-        (device, reason) of every safe value that was not delivered (also logged). Without
-        running drivers (none started, or already stopped) there is nothing to do."""
+        """Write safe values (whatever state the actuators are in), keep putting the ones not
+        confirmed on the wire for up to :attr:`shutdown_window` seconds in all (a peer that
+        comes back within it gets its safe value), then stop every driver. Never raises;
+        returns (device, reason) of every safe value that was not confirmed (also logged, and
+        in :attr:`safe_outcomes`). Without running drivers (none started, or already stopped)
+        there is nothing to do."""
         undelivered: list[tuple[str, str]] = []
         if not self.drivers:
             return undelivered
         try:
-            issued = self._safe_all("shutdown")
-            for drv in self.drivers:
-                try:
-                    drv.flush(SHUTDOWN_FLUSH)
-                except Exception:
-                    log.exception("driver %s failed to flush", drv.bus.name)
-            for name, w in issued:
-                if isinstance(w, str):
-                    undelivered.append((name, w))
-                elif w is not None and not w.done:
-                    undelivered.append((name, w.reason or f"not confirmed on the wire within "
-                                                          f"{SHUTDOWN_FLUSH} s"))
+            outcomes = self._shutdown_safe_values(time.monotonic() + self.shutdown_window)
+            self.safe_outcomes = {o.device: o for o in outcomes}
+            undelivered = [(o.device, o.reason) for o in outcomes if not o.written]
             for name, why in undelivered:
                 if (name, why) not in self.safe_failures:
                     self.safe_failures.append((name, why))
                 faults.error("safe value for %s not delivered at shutdown: %s", name, why)
             lvl = logging.INFO if not undelivered else logging.ERROR
             faults.log(lvl, "estop (shutdown): %d of %d actuator(s) at safe values%s",
-                       len(issued) - len(undelivered), len(issued),
+                       len(outcomes) - len(undelivered), len(outcomes),
                        "" if not undelivered else "; not delivered: " + ", ".join(
                            f"{d} ({why})" for d, why in undelivered))
         except Exception:  # shutdown must go on
@@ -174,6 +177,52 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
             self._keep_sent(drv)
         self.drivers.clear()
         return undelivered
+
+    def _shutdown_safe_values(self, deadline: float) -> list[SafeOutcome]:
+        """Every local actuator's safe value, issued and then re-issued while it is reported
+        failed, a pause of :data:`SHUTDOWN_RETRY_PAUSE` apart, until it is confirmed or the
+        ``deadline`` (``time.monotonic()``) passes; what became of each. Only what a driver
+        confirmed counts as written (a driver that does not confirm writes counts as written
+        once it took the value); a value the device's checks refuse is not tried again."""
+        issued = dict(self._safe_all("shutdown"))
+        attempts = dict.fromkeys(issued, 1)
+        while True:
+            self._flush_drivers(deadline)
+            again = [name for name, w in issued.items()
+                     if isinstance(w, Write) and w.done is False]
+            if not again or time.monotonic() + SHUTDOWN_RETRY_PAUSE >= deadline:
+                break
+            time.sleep(SHUTDOWN_RETRY_PAUSE)  # let the peer come back (a reconnect, a reboot)
+            for name in again:
+                issued[name] = self._safe_write(self._entries[name], "shutdown")
+                attempts[name] += 1
+        return [self._safe_outcome(name, w, attempts[name]) for name, w in issued.items()]
+
+    def _flush_drivers(self, deadline: float) -> None:
+        """Let every driver put what it was handed on the wire, until ``deadline`` at most."""
+        for drv in self.drivers:
+            try:
+                drv.flush(max(0.0, deadline - time.monotonic()))
+            except Exception:
+                log.exception("driver %s failed to flush", drv.bus.name)
+
+    def _safe_outcome(self, name: str, w: Write | str | None, attempts: int) -> SafeOutcome:
+        """What became of ``name``'s safe value given its last write ``w`` (see
+        :meth:`_safe_all`)."""
+        value = self._entries[name].spec.safe_value
+        match w:
+            case None:
+                return SafeOutcome(name, value, True, attempts=attempts)
+            case str():
+                return SafeOutcome(name, value, False, w, attempts)
+            case Write(done=True):
+                return SafeOutcome(name, value, True, attempts=attempts)
+            case Write(done=False):
+                return SafeOutcome(name, value, False, w.reason or "refused", attempts)
+            case _:
+                return SafeOutcome(name, value, False,
+                                   f"not confirmed on the wire within {self.shutdown_window} s",
+                                   attempts)
 
     # ---- DriverHost (thread-safe: everything goes through the interrupt queue) -------------
     def deliver(self, device: str, value: Any) -> None:

@@ -86,6 +86,19 @@ class Write:
     reason: str = ""
 
 
+@dataclass(frozen=True)
+class SafeOutcome:
+    """What became of one actuator's safe value at shutdown: ``written`` only when the driver
+    confirmed it on the wire (or, for a driver that does not confirm writes, took it);
+    otherwise ``reason`` says why not. ``attempts``: how many times it was issued."""
+
+    device: str
+    value: Any
+    written: bool
+    reason: str = ""
+    attempts: int = 1
+
+
 class DeviceListener(Protocol):
     """Who hears of a device's readings and failures to pass them on (the message manager, which
     owns the links leaving devices). Called on the kernel thread."""
