@@ -28,6 +28,7 @@ from chcos.devices.entry import (
     DeviceListener,
     DeviceStatus,
     RemoteDevices,
+    SafeIssue,
     SafeOutcome,
     Write,
     scalable,
@@ -184,19 +185,19 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         ``deadline`` (``time.monotonic()``) passes; what became of each. Only what a driver
         confirmed counts as written (a driver that does not confirm writes counts as written
         once it took the value); a value the device's checks refuse is not tried again."""
-        issued = dict(self._safe_all("shutdown"))
+        issued = {i.device: i for i in self._safe_all("shutdown")}
         attempts = dict.fromkeys(issued, 1)
         while True:
             self._flush_drivers(deadline)
-            again = [name for name, w in issued.items()
-                     if isinstance(w, Write) and w.done is False]
+            again = [name for name, i in issued.items()
+                     if i.write is not None and i.write.done is False]
             if not again or time.monotonic() + SHUTDOWN_RETRY_PAUSE >= deadline:
                 break
             time.sleep(SHUTDOWN_RETRY_PAUSE)  # let the peer come back (a reconnect, a reboot)
             for name in again:
                 issued[name] = self._safe_write(self._entries[name], "shutdown")
                 attempts[name] += 1
-        return [self._safe_outcome(name, w, attempts[name]) for name, w in issued.items()]
+        return [self._safe_outcome(i, attempts[name]) for name, i in issued.items()]
 
     def _flush_drivers(self, deadline: float) -> None:
         """Let every driver put what it was handed on the wire, until ``deadline`` at most."""
@@ -206,19 +207,17 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
             except Exception:
                 log.exception("driver %s failed to flush", drv.bus.name)
 
-    def _safe_outcome(self, name: str, w: Write | str | None, attempts: int) -> SafeOutcome:
-        """What became of ``name``'s safe value given its last write ``w`` (see
-        :meth:`_safe_all`)."""
+    def _safe_outcome(self, issue: SafeIssue, attempts: int) -> SafeOutcome:
+        """What became of a safe value, from its last issue (see :meth:`_safe_all`)."""
+        name = issue.device
         value = self._entries[name].spec.safe_value
-        match w:
-            case None:
+        match issue:
+            case SafeIssue(refused=str(why)) if why:
+                return SafeOutcome(name, value, False, why, attempts)
+            case SafeIssue(write=None) | SafeIssue(write=Write(done=True)):
                 return SafeOutcome(name, value, True, attempts=attempts)
-            case str():
-                return SafeOutcome(name, value, False, w, attempts)
-            case Write(done=True):
-                return SafeOutcome(name, value, True, attempts=attempts)
-            case Write(done=False):
-                return SafeOutcome(name, value, False, w.reason or "refused", attempts)
+            case SafeIssue(write=Write(done=False, reason=why)):
+                return SafeOutcome(name, value, False, why or "refused", attempts)
             case _:
                 return SafeOutcome(name, value, False,
                                    f"not confirmed on the wire within {self.shutdown_window} s",
@@ -392,7 +391,6 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
             with self._wlock:
                 q = self._inflight.setdefault(device, deque())
                 q.append(w)
-                e.pending_count = len(q)
             e.pending = value
             e.driver.write(device, raw)
         else:
@@ -429,21 +427,21 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         and added to :attr:`safe_failures`. Other satellites are told by the caller (see
         TaskContext.estop)."""
         issued = self._safe_all(reason)
-        n = sum(1 for _, w in issued if not isinstance(w, str))
+        n = sum(1 for i in issued if i.handed_over)
         log.log(logging.INFO if reason == "shutdown" else logging.WARNING,
                 "estop (%s): %d safe value(s) sent", reason, n)
         return n
 
-    def _safe_all(self, reason: str) -> list[tuple[str, Write | str | None]]:
+    def _safe_all(self, reason: str) -> list[SafeIssue]:
         """Every local actuator's safe value: first all those the drivers can put on the wire
         at once (:meth:`_safe_burst`), then the others one by one, tracked and tried again as
-        any safe value. (name, None) for one on the wire, (name, Write) for one to watch,
-        (name, reason) for one that could not be handed over."""
+        any safe value; one :class:`SafeIssue` each."""
         todo = [e for e in self._entries.values()
                 if not e.is_sensor and e.spec.safe_value is not None
                 and self.is_local(e.spec.machine)]
         done = self._safe_burst(todo)
-        return [(e.name, None if e.name in done else self._safe_write(e, reason)) for e in todo]
+        return [SafeIssue(e.name) if e.name in done else self._safe_write(e, reason)
+                for e in todo]
 
     def _safe_burst(self, entries: list[DeviceEntry]) -> set[str]:
         """On the kernel thread, put the safe values of ``entries`` that nothing of theirs is
@@ -483,10 +481,10 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         e = self.get(device)
         if e.spec.safe_value is None or e.is_sensor:
             return False
-        return not isinstance(self._safe_write(e, why), str)
+        return self._safe_write(e, why).handed_over
 
-    def _safe_write(self, e: DeviceEntry, why: str) -> Write | str | None:
-        """Put ``e``'s safe value out whatever its status: the Write to watch (None if the
+    def _safe_write(self, e: DeviceEntry, why: str) -> SafeIssue:
+        """Put ``e``'s safe value out whatever its status: with the Write to watch (none if the
         driver does not confirm writes), or the reason it could not even be handed over."""
         safe = e.spec.safe_value
         assert safe is not None
@@ -498,5 +496,5 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
             self.safe_failures.append((e.name, str(exc)))
             faults.error("%s", text)
             self.kernel.event("write-failed", text)
-            return str(exc)
-        return w
+            return SafeIssue(e.name, refused=str(exc))
+        return SafeIssue(e.name, w)

@@ -11,7 +11,6 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 from chcos.devices.spec import DeviceSpec
 from chcos.errors import SensorFailure
-from chcos.tables.tasks import Cancellable
 
 if TYPE_CHECKING:
     from drivers.base import Driver
@@ -41,13 +40,11 @@ class DeviceEntry:
     commands: int = 0
     rejected: int = 0
     driver: Driver | None = None
-    stale_timer: Cancellable | None = None
     failure: str = ""          # the driver-reported failure ("" none); cleared only by the driver
     stale: bool = False        # no fresh data for stale_after; cleared only by fresh data
     since: float | None = None  # kernel time of the last status change
     rx_at: float | None = None  # driver receive time of the last reading
     pending: Any = None        # a command handed to the driver, not yet on the wire
-    pending_count: int = 0
     write_errors: int = 0
     last_write_error: str = ""
     #: how a plain numeric command is checked, made by Devtab for the device's current driver
@@ -84,6 +81,22 @@ class Write:
     attempts: int = 1
     done: bool | None = None    # None pending, True on the wire, False failed
     reason: str = ""
+
+
+@dataclass(frozen=True)
+class SafeIssue:
+    """One safe value handed out (e-stop, shutdown...): on the wire at once (``write`` None and
+    nothing ``refused``), tracked until its driver confirms or fails it (``write``), or refused
+    before it reached a driver (``refused`` says why: the device's checks, no driver)."""
+
+    device: str
+    write: Write | None = None
+    refused: str = ""
+
+    @property
+    def handed_over(self) -> bool:
+        """True unless it was refused before reaching a driver."""
+        return not self.refused
 
 
 @dataclass(frozen=True)

@@ -141,7 +141,6 @@ class DeviceHealth:
         assert limit is not None
 
         def check() -> None:
-            e.stale_timer = None
             # the driver's receive time: a reading received but not yet handled is late, not
             # missing (the stamp is set in the driver's thread before the interrupt is queued)
             last = max(since, e.rx_at if e.rx_at is not None else since,
@@ -152,6 +151,6 @@ class DeviceHealth:
                     e.stale = True
                     self._refresh(e, "")
                 due = self.kernel.clock.now() + limit
-            e.stale_timer = self.kernel.call_at(due, check)
+            self.kernel.call_at(due, check)
 
-        e.stale_timer = self.kernel.call_at(since + limit, check)
+        self.kernel.call_at(since + limit, check)

@@ -109,7 +109,6 @@ class WriteTracking:
             return
         with self._wlock:
             left = len(self._inflight.get(w.device, ()))
-        e.pending_count = left
         if left == 0:
             e.pending = None
         if w.done:
