@@ -74,8 +74,11 @@ class Cia402Host:
         self.network.disconnect()
 
     def start_node(self) -> None:
-        """NMT start; returns when the drive's first TPDOs arrived."""
+        """NMT start; returns when the drive's TPDOs show what it publishes."""
         self.network.send_message(0x000, bytes([0x01, self.node_id]))
+        # an SDO answer comes from the thread that applied the NMT frame sent before it
+        self.node.sdo.upload(int(Obj.STATUSWORD), 0)
+        self.drive.step(0.2)          # the drive's self test and TPDO event timers
         self.settle()
 
     # -- receiving -----------------------------------------------------------------------------
@@ -173,3 +176,105 @@ class Cia402Host:
     def op_results(self, op: Op) -> list[Result]:
         """The results of ``op`` so far."""
         return [r for r in self.results if r.op is op]
+
+
+# -- EDS files of CiA 402 drives ----------------------------------------------------------------
+
+#: (index, name, data type, access, default or None) of a one-axis CiA 402 drive
+DRIVE_OBJECTS: tuple[tuple[int, str, int, str, int | None], ...] = (
+    (0x603F, "Error code", 0x0006, "ro", 0),
+    (0x6040, "Controlword", 0x0006, "rw", 0),
+    (0x6041, "Statusword", 0x0006, "ro", 0),
+    (0x605A, "Quick stop option code", 0x0003, "rw", 2),
+    (0x6060, "Modes of operation", 0x0002, "rw", 0),
+    (0x6061, "Modes of operation display", 0x0002, "ro", 0),
+    (0x6064, "Position actual value", 0x0004, "ro", 0),
+    (0x6065, "Following error window", 0x0007, "rw", 5000),
+    (0x606C, "Velocity actual value", 0x0004, "ro", 0),
+    (0x607A, "Target position", 0x0004, "rw", 0),
+    (0x6081, "Profile velocity", 0x0007, "rw", 10000),
+    (0x6085, "Quick stop deceleration", 0x0007, "rw", 50000),
+    (0x60FF, "Target velocity", 0x0004, "rw", 0),
+)
+#: every RPDO carries the controlword, as vendor drives map them
+VENDOR_RPDOS = ((0x6040,), (0x6040, 0x6060), (0x6040, 0x607A), (0x6040, 0x60FF))
+VENDOR_TPDOS = ((0x6041, 0x6061, 0x603F), (0x6064, 0x606C))
+SIZES = {0x0002: 8, 0x0003: 16, 0x0004: 32, 0x0005: 8, 0x0006: 16, 0x0007: 32}
+
+
+def drive_eds(*, name: str = "CiA 402 drive", rpdos: tuple[tuple[int, ...], ...] = VENDOR_RPDOS,
+              tpdos: tuple[tuple[int, ...], ...] = VENDOR_TPDOS, transmission: int = 255,
+              event_timer: int = 100, defaults: bool = True,
+              extra: tuple[tuple[int, str, int, str, int | None], ...] = (),
+              without: tuple[int, ...] = ()) -> str:
+    """The text of an EDS for a one-axis CiA 402 drive: the objects of :data:`DRIVE_OBJECTS`
+    (plus ``extra``), the RPDOs/TPDOs given, TPDOs of ``transmission`` type with
+    ``event_timer`` ms; ``defaults=False`` leaves the application objects without DefaultValue,
+    as some vendor files do; ``without`` leaves objects out."""
+    objects = tuple(o for o in DRIVE_OBJECTS + extra if o[0] not in without)
+    kinds = {i: (n, t, a, d) for i, n, t, a, d in objects}
+    sections: list[str] = []
+
+    def var(key: str, pname: str, dtype: int, access: str, default: object | None,
+            mapping: int = 0) -> None:
+        lines = [f"[{key}]", f"ParameterName={pname}", "ObjectType=0x7",
+                 f"DataType=0x{dtype:04X}", f"AccessType={access}"]
+        if default is not None:
+            lines.append(f"DefaultValue={default}")
+        lines.append(f"PDOMapping={mapping}")
+        sections.append("\n".join(lines))
+
+    def record(index: int, pname: str, subs: list[tuple[str, int, str, object]]) -> None:
+        sections.append(f"[{index:04X}]\nParameterName={pname}\nObjectType=0x9\n"
+                        f"SubNumber={len(subs)}")
+        for n, (sname, dtype, access, default) in enumerate(subs):
+            var(f"{index:04X}sub{n}", sname, dtype, access, default)
+
+    var("1000", "Device type", 0x0007, "ro", "0x00020192")
+    var("1001", "Error register", 0x0005, "ro", 0)
+    var("1017", "Producer heartbeat time", 0x0006, "rw", 0)
+    record(0x1018, "Identity object", [("Highest sub-index supported", 0x0005, "ro", 2),
+                                       ("Vendor-ID", 0x0007, "ro", "0x000000AB"),
+                                       ("Product code", 0x0007, "ro", "0x00000402")])
+    pdo_indices = []
+    for n, mapped in enumerate(rpdos):
+        record(0x1400 + n, f"RPDO{n + 1} communication parameter",
+               [("Highest sub-index supported", 0x0005, "ro", 2),
+                ("COB-ID used by RPDO", 0x0007, "rw", f"$NODEID+0x{0x200 + 0x100 * n:X}"),
+                ("Transmission type", 0x0005, "rw", 255)])
+        record(0x1600 + n, f"RPDO{n + 1} mapping parameter",
+               [("Number of mapped objects", 0x0005, "rw", len(mapped))]
+               + [(f"Mapped object {k + 1}", 0x0007, "rw",
+                   f"0x{i:04X}00{SIZES[kinds[i][1]]:02X}") for k, i in enumerate(mapped)])
+        pdo_indices += [0x1400 + n, 0x1600 + n]
+    for n, mapped in enumerate(tpdos):
+        record(0x1800 + n, f"TPDO{n + 1} communication parameter",
+               [("Highest sub-index supported", 0x0005, "ro", 5),
+                ("COB-ID used by TPDO", 0x0007, "rw", f"$NODEID+0x{0x180 + 0x100 * n:X}"),
+                ("Transmission type", 0x0005, "rw", transmission),
+                ("Inhibit time", 0x0006, "rw", 0),
+                ("Compatibility entry", 0x0005, "rw", 0),
+                ("Event timer", 0x0006, "rw", event_timer)])
+        record(0x1A00 + n, f"TPDO{n + 1} mapping parameter",
+               [("Number of mapped objects", 0x0005, "rw", len(mapped))]
+               + [(f"Mapped object {k + 1}", 0x0007, "rw",
+                   f"0x{i:04X}00{SIZES[kinds[i][1]]:02X}") for k, i in enumerate(mapped)])
+        pdo_indices += [0x1800 + n, 0x1A00 + n]
+    for index, pname, dtype, access, default in objects:
+        var(f"{index:04X}", pname, dtype, access, default if defaults else None, 1)
+    optional = [0x1017] + pdo_indices + [i for i, *_ in objects if i < 0x2000 or i >= 0x6000]
+    manufacturer = [i for i, *_ in objects if 0x2000 <= i < 0x6000]
+    head = [
+        "[FileInfo]", f"FileName={name.replace(' ', '_')}.eds", "FileVersion=1",
+        "FileRevision=1", "EDSVersion=4.0", f"Description={name}",
+        "", "[DeviceInfo]", "VendorName=Example Motion", "VendorNumber=0x000000AB",
+        f"ProductName={name}", "ProductNumber=0x00000402", "RevisionNumber=0x00010000",
+        "BaudRate_500=1", "BaudRate_1000=1", "SimpleBootUpSlave=1", "Granularity=8",
+        f"NrOfRXPDO={len(rpdos)}", f"NrOfTXPDO={len(tpdos)}", "LSS_Supported=0",
+        "", "[MandatoryObjects]", "SupportedObjects=3", "1=0x1000", "2=0x1001", "3=0x1018",
+        "", "[OptionalObjects]", f"SupportedObjects={len(optional)}",
+        *[f"{k + 1}=0x{i:04X}" for k, i in enumerate(optional)],
+        "", "[ManufacturerObjects]", f"SupportedObjects={len(manufacturer)}",
+        *[f"{k + 1}=0x{i:04X}" for k, i in enumerate(manufacturer)], "",
+    ]
+    return "\n".join(head) + "\n" + "\n\n".join(sections) + "\n"
