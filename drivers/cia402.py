@@ -966,3 +966,78 @@ class Axis:
                 if near or (self.mode_display == Mode.PV and sw & SW_TARGET_REACHED
                             and vel is None):
                     self._finish(out, now, True)
+
+
+# -- configuration from a device map -----------------------------------------------------------
+
+#: The keys of an axis table in a device map, besides those the map itself owns.
+AXIS_KEYS = ("axis", "counts_per_unit", "position_limits", "max_velocity", "quick_stop_option",
+             "safe_stop", "timeouts", "position_window", "velocity_window", "standstill",
+             "edge_gap", "resend", "read_every")
+
+
+def _number(value: object, where: str, *, positive: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) \
+            or not math.isfinite(value) or (positive and value <= 0):
+        raise Cia402Error(f"{where}: expected a finite{' positive' if positive else ''} "
+                          f"number, got {value!r}")
+    return float(value)
+
+
+def _count(value: object, where: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise Cia402Error(f"{where}: expected a whole number of counts >= 0, got {value!r}")
+    return value
+
+
+def config_from_table(name: str, table: dict[str, object], where: str) -> AxisConfig:
+    """An :class:`AxisConfig` from the axis keys of a device-map table (:data:`AXIS_KEYS`;
+    others are the caller's). ``where`` names the file and key for messages (``"cell.toml:
+    device[3]"``). Raises :class:`Cia402Error` naming ``where.key`` and what was expected."""
+    kw: dict[str, object] = {"name": name}
+    for key, value in table.items():
+        at = f"{where}.{key}"
+        match key:
+            case "axis":
+                if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 7:
+                    raise Cia402Error(f"{at}: expected an axis number 0..7, got {value!r}")
+                kw[key] = value
+            case "counts_per_unit":
+                kw[key] = _number(value, at, positive=True)
+            case "max_velocity" | "edge_gap" | "resend" | "read_every":
+                kw[key] = _number(value, at, positive=True)
+            case "position_window" | "velocity_window" | "standstill":
+                kw[key] = _count(value, at)
+            case "quick_stop_option":
+                if isinstance(value, bool) or not isinstance(value, int) \
+                        or not -32768 <= value <= 32767:
+                    raise Cia402Error(f"{at}: expected 0x605A's value (an INTEGER16), got "
+                                      f"{value!r}")
+                kw[key] = value
+            case "position_limits":
+                if not isinstance(value, (list, tuple)) or len(value) != 2:
+                    raise Cia402Error(f"{at}: expected [low, high], got {value!r}")
+                low, high = (_number(v, at) for v in value)
+                if low >= high:
+                    raise Cia402Error(f"{at}: low {low} is not below high {high}")
+                kw[key] = (low, high)
+            case "safe_stop":
+                choices = {s.name.lower(): s for s in SafeStop}
+                if value not in choices:
+                    raise Cia402Error(f"{at}: expected one of {', '.join(choices)}, got "
+                                      f"{value!r}")
+                kw[key] = choices[str(value)]
+            case "timeouts":
+                if not isinstance(value, dict):
+                    raise Cia402Error(f"{at}: expected a table of seconds per command")
+                fields = Timeouts.__dataclass_fields__
+                unknown = sorted(set(value) - set(fields))
+                if unknown:
+                    raise Cia402Error(f"{at}.{unknown[0]}: unknown timeout; expected one of "
+                                      f"{', '.join(fields)}")
+                kw[key] = Timeouts(**{k: _number(v, f"{at}.{k}", positive=True)
+                                      for k, v in value.items()})
+            case _:
+                raise Cia402Error(f"{at}: unknown key for a cia402 axis; expected one of "
+                                  f"{', '.join(AXIS_KEYS)}")
+    return AxisConfig(**kw)  # type: ignore[arg-type]

@@ -4,6 +4,8 @@ here, the planner from every state to every target, and the Axis engine on scrip
 
 from __future__ import annotations
 
+import re
+
 import pytest
 
 from drivers.cia402 import (
@@ -13,6 +15,7 @@ from drivers.cia402 import (
     AxisBusy,
     AxisConfig,
     AxisLimitError,
+    Cia402Error,
     Command,
     Mode,
     Obj,
@@ -25,6 +28,7 @@ from drivers.cia402 import (
     Target,
     Timeouts,
     Unreachable,
+    config_from_table,
     decode_command,
     decode_state,
     next_state,
@@ -306,3 +310,22 @@ def test_multi_axis_objects_are_offset() -> None:
     assert (w.index, w.value) == (0x6840, 0x06)
     with pytest.raises(ValueError, match="counts_per_unit"):
         AxisConfig("c", counts_per_unit=0.0)
+
+
+def test_an_axis_configuration_from_a_map_table_and_its_errors() -> None:
+    cfg = config_from_table("x", {"axis": 1, "counts_per_unit": 1000, "position_limits": [0, 2],
+                                  "safe_stop": "halt_then_disable", "quick_stop_option": 6,
+                                  "timeouts": {"enable": 3.5}}, "cell.toml: device[3]")
+    assert cfg.axis == 1 and cfg.counts_per_unit == 1000.0 and cfg.position_limits == (0, 2)
+    assert cfg.safe_stop is SafeStop.HALT_THEN_DISABLE and cfg.timeouts.enable == 3.5
+    assert cfg.timeouts.disable == Timeouts().disable
+    bad = [({"axis": 9}, "device[3].axis: expected an axis number 0..7"),
+           ({"counts_per_unit": 0}, "device[3].counts_per_unit: expected a finite positive"),
+           ({"position_limits": [2, 1]}, "device[3].position_limits: low 2.0 is not below"),
+           ({"safe_stop": "brake"}, "device[3].safe_stop: expected one of quick_stop_then"),
+           ({"timeouts": {"enabel": 1}}, "device[3].timeouts.enabel: unknown timeout"),
+           ({"timeouts": {"enable": -1}}, "device[3].timeouts.enable: expected a finite"),
+           ({"speed": 1}, "device[3].speed: unknown key for a cia402 axis")]
+    for table, message in bad:
+        with pytest.raises(Cia402Error, match=re.escape(message)):
+            config_from_table("x", table, "cell.toml: device[3]")
