@@ -192,3 +192,33 @@ def test_an_eds_without_the_cia402_objects_is_refused(tmp_path: Path) -> None:
     path.write_text(drive_eds(rpdos=(), tpdos=((0x6064,),), without=(0x6061,)))
     with pytest.raises(ConfigError, match="0x6061"):
         Cia402Drive(3, path, channel="unused")
+
+
+def test_homing_on_a_drive_that_accepts_it() -> None:
+    channel = f"cia402sim-{uuid.uuid4().hex}"
+    drive = Cia402Drive(NODE, channel=channel, heartbeat_period=0)
+    drive.start()
+    host = Cia402Host(channel, NODE, drive, config(2))
+    try:
+        host.start_node()
+        assert host.run(host.axis.enable).ok
+        assert host.run(lambda now: host.axis.set_mode(Mode.PV, now)).ok
+        assert host.run(lambda now: host.axis.at_velocity(4000, now)).ok
+        host.idle(0.2)
+        assert drive.model.position > 0
+        assert host.run(lambda now: host.axis.set_mode(Mode.HM, now)).ok
+        result = host.run(host.axis.home)
+        assert result.ok, result
+        assert drive.model.position == 0 and drive.model.homed
+        assert 0x1F in drive.received and drive.received[-1] == 0x0F
+    finally:
+        host.close()
+        drive.stop()
+
+
+def test_the_command_line_runs_the_drive_for_a_duration() -> None:
+    from chcos.apps.sim.cia402_drive import main
+
+    channel = f"cia402cli-{uuid.uuid4().hex}"
+    assert main(["--node", "3", "--channel", channel, "--duration", "0.05"]) == 0
+    assert main(["--node", "300", "--channel", channel]) == 2
