@@ -47,11 +47,13 @@ class Cia402Host:
     """One axis on node ``node_id`` of virtual channel ``channel``, hosted as a driver would."""
 
     def __init__(self, channel: str, node_id: int, drive: Drive, config: AxisConfig,
-                 dt: float = 0.01) -> None:
+                 dt: float = 0.01, *, error_code_by_sdo: bool = False) -> None:
         self.node_id = node_id
         self.drive = drive
         self.axis = Axis(config)
         self.dt = dt
+        #: leave 0x603F out of the TPDO readings, as for a drive that does not map it
+        self.error_code_by_sdo = error_code_by_sdo
         self.now = 0.0
         self.image: dict[Obj, int] = {Obj.CONTROLWORD: 0, Obj.MODES: 0,
                                       Obj.TARGET_POSITION: 0, Obj.TARGET_VELOCITY: 0}
@@ -119,7 +121,7 @@ class Cia402Host:
             v = dict(self._view)
         return Reading(statusword=v.get("statusword"), mode_display=v.get("mode"),
                        position=v.get("position"), velocity=v.get("velocity"),
-                       error_code=v.get("error"))
+                       error_code=None if self.error_code_by_sdo else v.get("error"))
 
     # -- sending -------------------------------------------------------------------------------
 

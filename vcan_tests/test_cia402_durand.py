@@ -10,7 +10,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from drivers.cia402 import AxisConfig, Mode, Op, SafeStop, State, Timeouts
+from drivers.cia402 import AxisConfig, Mode, Obj, Op, SafeStop, State, Timeouts
 from vcan_tests.peers.durand_cia402 import (
     ENABLED,
     FAULT,
@@ -222,3 +222,53 @@ def test_commands_refused_in_the_wrong_state_name_it(rig: tuple) -> None:
     result = host.run(lambda now: host.axis.move_to(5, now))
     assert not result.ok and "needs OPERATION_ENABLED" in result.reason
     assert "SWITCH_ON_DISABLED" in result.reason and drive.received == []
+
+
+def test_an_e_stop_during_a_move_stops_then_removes_the_power(rig: tuple) -> None:
+    """The safe action superseding a running command (e-stop): the move fails as superseded,
+    the drive gets the quick stop while moving and disable voltage only at standstill."""
+    drive, host = rig
+    enabled_in(host, Mode.PP)
+    host.perform(host.axis.move_to(50_000, host.now))
+    host.idle(0.2)
+    assert drive.velocity > 0
+    result = host.run(host.axis.safe_stop)
+    assert result.ok and drive.state == SOD
+    (move,) = host.op_results(Op.MOVE_TO)
+    assert not move.ok and move.reason == "superseded by safe stop"
+    assert 0 < drive.position < 50_000
+    quick = [speed for cw, _s, speed in drive.log if cw == 0x02]
+    assert quick and quick[0] > 0
+    assert all(speed == 0 for cw, _s, speed in drive.log if cw == 0x00)
+
+
+def test_a_safe_stop_of_a_faulted_drive_fails_naming_the_fault_and_sends_nothing(
+        rig: tuple) -> None:
+    drive, host = rig
+    enabled_in(host, Mode.PP)
+    drive.inject_fault(OVER_TEMPERATURE, persistent=True)
+    host.idle(0.05)
+    before = len(drive.received)
+    result = host.run(host.axis.safe_stop)
+    assert not result.ok and result.state is State.FAULT and result.error_code == 0x4310
+    assert len(drive.received) == before and drive.state == FAULT
+
+
+def test_the_error_code_is_read_by_sdo_when_no_pdo_brings_it() -> None:
+    channel = f"cia402-{uuid.uuid4().hex}"
+    drive = DurandCia402Drive(channel, NODE)
+    host = Cia402Host(channel, NODE, drive, AxisConfig("x", position_window=1),
+                      error_code_by_sdo=True)
+    try:
+        host.start_node()
+        enabled_in(host, Mode.PP)
+        host.perform(host.axis.move_to(50_000, host.now))
+        host.idle(0.05)
+        drive.inject_fault(FOLLOWING_ERROR)
+        host.idle(0.05)
+        (move,) = host.op_results(Op.MOVE_TO)
+        assert not move.ok and move.error_code == FOLLOWING_ERROR
+        assert Obj.ERROR_CODE in host.sdo_reads
+    finally:
+        host.close()
+        drive.close()
