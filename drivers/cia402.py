@@ -309,6 +309,14 @@ def plan(state: State, target: Target) -> Command | Plan:
     return step
 
 
+def next_controlwords(state: State, target: Target) -> tuple[int, ...]:
+    """The controlword(s) to send next from ``state`` toward ``target``, in order (two for a
+    fault reset's edge); empty when there (or when the drive moves on by itself). Raises
+    :class:`Unreachable` naming the state."""
+    step = plan(state, target)
+    return step.sequence if isinstance(step, Command) else ()
+
+
 # -- modes -------------------------------------------------------------------------------------
 
 

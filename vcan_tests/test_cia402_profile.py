@@ -31,6 +31,7 @@ from drivers.cia402 import (
     config_from_table,
     decode_command,
     decode_state,
+    next_controlwords,
     next_state,
     plan,
 )
@@ -341,3 +342,13 @@ def test_an_axis_configuration_from_a_map_table_and_its_errors() -> None:
     for table, message in bad:
         with pytest.raises(Cia402Error, match=re.escape(message)):
             config_from_table("x", table, "cell.toml: device[3]")
+
+
+def test_next_controlwords_from_the_planner() -> None:
+    assert next_controlwords(S.SWITCH_ON_DISABLED, Target.ENABLED) == (0x06,)
+    assert next_controlwords(S.SWITCHED_ON, Target.ENABLED) == (0x0F,)
+    assert next_controlwords(S.OPERATION_ENABLED, Target.QUICK_STOP) == (0x02,)
+    assert next_controlwords(S.FAULT, Target.FAULT_CLEARED) == (0x00, 0x80)
+    assert next_controlwords(S.OPERATION_ENABLED, Target.ENABLED) == ()
+    with pytest.raises(Unreachable, match="ENABLED cannot be reached from FAULT"):
+        next_controlwords(S.FAULT, Target.ENABLED)
