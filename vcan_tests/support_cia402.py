@@ -64,6 +64,7 @@ class Cia402Host:
         self._cond = threading.Condition()
         self._view: dict[str, int] = {}
         self.network: Any = canopen.Network()
+        self.network.NOTIFIER_CYCLE = 0.05  # bounds how long close() waits for the notifier
         self.network.connect(interface="virtual", channel=channel, receive_own_messages=False)
         self.node: Any = canopen.RemoteNode(node_id, canopen.ObjectDictionary())
         self.network.add_node(self.node)
