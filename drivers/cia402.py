@@ -593,6 +593,21 @@ class Axis:
             self.statusword = reading.statusword
         return self._step(now)
 
+    def lost(self, reason: str, now: float) -> Actions:
+        """The drive can no longer be heard (node failed, rebooted, bus lost): the running
+        command fails with ``reason``, and the readings are forgotten so that nothing stale is
+        reported as the drive's state. The next statusword starts afresh; a drive that rebooted
+        is enabled again only on a new command."""
+        out = _Out()
+        self._finish(out, now, False, f"drive lost: {reason}")
+        self.statusword = self.mode_display = None
+        self.position_counts = self.velocity_counts = None
+        self.controlword = None
+        if self._fault_since is not None or self.fault is not None:
+            self._fault_since, self._fault_reported, self.fault = None, False, None
+            out.faults.append(None)
+        return out.actions()
+
     def poll(self, now: float) -> Actions:
         """Advance timers (timeouts, the fault reset's edge, resends) at time ``now``; call it
         every cycle of the host."""

@@ -353,3 +353,16 @@ def test_next_controlwords_from_the_planner() -> None:
     assert next_controlwords(S.OPERATION_ENABLED, Target.ENABLED) == ()
     with pytest.raises(Unreachable, match="ENABLED cannot be reached from FAULT"):
         next_controlwords(S.FAULT, Target.ENABLED)
+
+
+def test_a_lost_drive_fails_the_command_and_forgets_its_state() -> None:
+    axis = Axis(AxisConfig("x"))
+    axis.update(Reading(statusword=0x0250, position=10), 0.0)
+    axis.enable(0.0)
+    out = axis.lost("heartbeat lost", 0.1)
+    (result,) = out.results
+    assert not result.ok and result.reason == "drive lost: heartbeat lost"
+    assert axis.state is None and axis.position is None and axis.busy is None
+    # after a reboot the drive shows switch on disabled; nothing is sent without a command
+    assert not axis.update(Reading(statusword=0x0250), 0.2).writes
+    assert cws(axis.enable(0.3)) == [0x06]
