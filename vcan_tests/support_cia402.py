@@ -209,11 +209,14 @@ def drive_eds(*, name: str = "CiA 402 drive", rpdos: tuple[tuple[int, ...], ...]
               tpdos: tuple[tuple[int, ...], ...] = VENDOR_TPDOS, transmission: int = 255,
               event_timer: int = 100, defaults: bool = True,
               extra: tuple[tuple[int, str, int, str, int | None], ...] = (),
-              without: tuple[int, ...] = ()) -> str:
+              without: tuple[int, ...] = (),
+              records: tuple[tuple[int, str, tuple[tuple[str, int, str, object], ...]],
+                             ...] = ()) -> str:
     """The text of an EDS for a one-axis CiA 402 drive: the objects of :data:`DRIVE_OBJECTS`
     (plus ``extra``), the RPDOs/TPDOs given, TPDOs of ``transmission`` type with
     ``event_timer`` ms; ``defaults=False`` leaves the application objects without DefaultValue,
-    as some vendor files do; ``without`` leaves objects out."""
+    as some vendor files do; ``without`` leaves objects out; ``records`` adds records (index,
+    name, entries from sub-index 1 as (name, data type, access, default))."""
     objects = tuple(o for o in DRIVE_OBJECTS + extra if o[0] not in without)
     kinds = {i: (n, t, a, d) for i, n, t, a, d in objects}
     sections: list[str] = []
@@ -265,7 +268,11 @@ def drive_eds(*, name: str = "CiA 402 drive", rpdos: tuple[tuple[int, ...], ...]
         pdo_indices += [0x1800 + n, 0x1A00 + n]
     for index, pname, dtype, access, default in objects:
         var(f"{index:04X}", pname, dtype, access, default if defaults else None, 1)
-    optional = [0x1017] + pdo_indices + [i for i, *_ in objects if i < 0x2000 or i >= 0x6000]
+    for index, pname, entries in records:
+        record(index, pname, [("Highest sub-index supported", 0x0005, "ro", len(entries)),
+                              *entries])
+    optional = [0x1017] + pdo_indices + [i for i, *_ in objects if i < 0x2000 or i >= 0x6000] \
+        + [i for i, *_ in records]
     manufacturer = [i for i, *_ in objects if 0x2000 <= i < 0x6000]
     head = [
         "[FileInfo]", f"FileName={name.replace(' ', '_')}.eds", "FileVersion=1",

@@ -94,6 +94,30 @@ def test_multi_axis_drives_are_found_at_their_offsets(tmp_path: Path) -> None:
     assert table["objects"]["statusword"] == 0x6841
 
 
+def test_units_come_from_the_factor_group(tmp_path: Path) -> None:
+    """4096 increments per motor turn, gear 5:1, 10 mm feed per shaft turn: 2048 counts/mm."""
+    u32 = 0x0007
+    factor = ((0x608F, "Position encoder resolution", (("Encoder increments", u32, "rw", 4096),
+                                                       ("Motor revolutions", u32, "rw", 1))),
+              (0x6091, "Gear ratio", (("Motor revolutions", u32, "rw", 5),
+                                      ("Shaft revolutions", u32, "rw", 1))),
+              (0x6092, "Feed constant", (("Feed", u32, "rw", 10),
+                                         ("Shaft revolutions", u32, "rw", 1))))
+    path = tmp_path / "geared.eds"
+    path.write_text(drive_eds(records=factor))
+    (axis,) = detect_axes(load(path, 3), 3)
+    assert axis.counts_per_unit == pytest.approx(2048.0)
+    assert any("2048 counts per feed unit" in n for n in axis.notes)
+    assert axis_table(axis, "z")["counts_per_unit"] == pytest.approx(2048.0)
+    path.write_text(drive_eds(records=factor[:1]))
+    (turns,) = detect_axes(load(path, 3), 3)
+    assert turns.counts_per_unit == 4096.0
+    assert any("per shaft revolution" in n and "360" in n for n in turns.notes)
+    (plain,) = detect_axes(load(_drive(tmp_path), 3), 3)
+    assert plain.counts_per_unit is None
+    assert any("set counts_per_unit" in n for n in plain.notes)
+
+
 def test_an_eds_that_is_no_drive_is_refused_naming_what_lacks(tmp_path: Path) -> None:
     path = tmp_path / "io.eds"
     path.write_text(drive_eds(rpdos=(), tpdos=((0x6064,),), without=(0x6060,)))

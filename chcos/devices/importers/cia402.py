@@ -123,6 +123,8 @@ class DriveAxis:
     objects: dict[Role, AxisObject]
     notes: tuple[str, ...] = field(default=())
     quick_stop_option: int | None = None
+    #: drive counts per user unit from the factor group (None: the EDS does not say)
+    counts_per_unit: float | None = None
 
     @property
     def warnings(self) -> tuple[str, ...]:
@@ -209,9 +211,39 @@ def detect_axes(od: Any, node: int) -> list[DriveAxis]:
                                        str(var.access_type), _int(od, index, 0), mapped)
             notes.extend(_object_notes(objects[role]))
         option = objects.get(Role.QUICK_STOP_OPTION)
+        factor, note = factor_group(od, axis)
+        notes.append(note)
         axes.append(DriveAxis(node, axis, objects, tuple(dict.fromkeys(notes)),
-                              option.default if option else None))
+                              option.default if option else None, factor))
     return axes
+
+
+def factor_group(od: Any, axis: int = 0) -> tuple[float | None, str]:
+    """Drive counts per user unit from the EDS's factor group, and a note saying how: position
+    encoder resolution 0x608F (increments per motor revolution) x gear ratio 0x6091 (motor per
+    shaft revolutions) / feed constant 0x6092 (feed per shaft revolution). Without 0x6092 the
+    unit is a shaft revolution. (None, why) when the EDS gives no usable defaults."""
+    base = AXIS_OFFSET * axis
+
+    def ratio(index: int) -> float | None:
+        top, bottom = _int(od, index + base, 1), _int(od, index + base, 2)
+        if top is None or bottom is None or top <= 0 or bottom <= 0:
+            return None
+        return top / bottom
+
+    encoder = ratio(0x608F)
+    if encoder is None:
+        return None, (f"no position encoder resolution (0x{0x608F + base:04X}) with defaults in "
+                      "the EDS: set counts_per_unit (drive counts per mm or per degree)")
+    gear = ratio(0x6091)
+    feed = ratio(0x6092)
+    counts = encoder * (gear if gear is not None else 1.0)
+    if feed is None:
+        return counts, (f"counts_per_unit = {counts:g} counts per shaft revolution (0x608F"
+                        + (", 0x6091" if gear is not None else "")
+                        + "; no feed constant 0x6092): divide by 360 for degrees")
+    return counts / feed, (f"counts_per_unit = {counts / feed:g} counts per feed unit (0x608F, "
+                           + ("0x6091, " if gear is not None else "") + "0x6092)")
 
 
 def _object_notes(obj: AxisObject) -> list[str]:
@@ -233,13 +265,14 @@ def _object_notes(obj: AxisObject) -> list[str]:
     return notes
 
 
-def axis_table(axis: DriveAxis, name: str, *, counts_per_unit: float = 1.0,
+def axis_table(axis: DriveAxis, name: str, *, counts_per_unit: float | None = None,
                mode: str = "PP") -> dict[str, Any]:
-    """The ``profile = "cia402"`` axis table for a map: node, axis, mode, units and the objects
-    it uses (by role)."""
+    """The ``profile = "cia402"`` axis table for a map: node, axis, mode, units (given, else
+    from the factor group, else 1) and the objects it uses (by role)."""
+    units = counts_per_unit if counts_per_unit is not None else axis.counts_per_unit
     table: dict[str, Any] = {
         "name": name, "profile": "cia402", "node": axis.node, "axis": axis.axis, "mode": mode,
-        "counts_per_unit": counts_per_unit,
+        "counts_per_unit": units if units is not None else 1.0,
         "objects": {role.name.lower(): Hex(obj.index) for role, obj in axis.objects.items()},
     }
     if axis.quick_stop_option is not None:
