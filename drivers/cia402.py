@@ -492,12 +492,25 @@ class Actions:
     faults: tuple[Fault | None, ...] = ()
 
 
+class _Phase(Enum):
+    """Where a running command is."""
+
+    START = "start"
+    LOW = "bit 7 low"          # fault reset: 0x00 sent
+    HIGH = "bit 7 high"        # fault reset: 0x80 sent
+    RETRY = "retry"            # fault reset: the drive stayed in FAULT, a new edge
+    CONFIRMING = "confirming"  # set mode: waiting for 0x6061
+    RUNNING = "running"        # motion: under way
+    STOPPING = "stopping"      # safe stop: waiting for standstill
+    DISABLING = "disabling"    # safe stop: disable voltage sent
+
+
 @dataclass
 class _Job:
     op: Op
     started: float
     deadline: float
-    phase: str = "start"
+    phase: _Phase = _Phase.START
     mode: int | None = None
     target: int | None = None
     since: float = 0.0
@@ -817,7 +830,7 @@ class Axis:
             self._finish(out, now, False, f"0x6061 shows {mode_name(self.mode_display)}, not "
                          f"{mode_name(job.mode)}, after {timeout} s")
             return
-        if job.op is Op.SAFE_STOP and job.phase == "stopping":
+        if job.op is Op.SAFE_STOP and job.phase == _Phase.STOPPING:
             # not stopped in time: remove the power anyway, and say so
             self._send_cw(out, now, Command.DISABLE_VOLTAGE.controlword)
             self._finish(out, now, False, f"not stopped within {timeout} s; voltage disabled "
@@ -843,22 +856,22 @@ class Axis:
         if state is State.FAULT_REACTION_ACTIVE:
             return
         if state is not State.FAULT:
-            if job.phase == "start":
+            if job.phase == _Phase.START:
                 self._finish(out, now, True, "not in a fault")
             else:
                 self._finish(out, now, True)
             return
         # the edge: bit 7 clear, edge_gap later set; again if the drive stays in FAULT
-        if job.phase in ("start", "retry"):
+        if job.phase in (_Phase.START, _Phase.RETRY):
             self._send(out, Obj.CONTROLWORD, 0x0000)
             self.controlword, self._cw_time = 0x0000, now
-            job.phase, job.since = "low", now
-        elif job.phase == "low" and now >= job.since + self.config.edge_gap:
+            job.phase, job.since = _Phase.LOW, now
+        elif job.phase == _Phase.LOW and now >= job.since + self.config.edge_gap:
             self._send(out, Obj.CONTROLWORD, Command.FAULT_RESET.controlword)
             self.controlword, self._cw_time = Command.FAULT_RESET.controlword, now
-            job.phase, job.since = "high", now
-        elif job.phase == "high" and now >= job.since + self.config.resend:
-            job.phase = "retry"
+            job.phase, job.since = _Phase.HIGH, now
+        elif job.phase == _Phase.HIGH and now >= job.since + self.config.resend:
+            job.phase = _Phase.RETRY
             self._fault_reset(out, now, job, state)
 
     def _quick_stop(self, out: _Out, now: float, job: _Job, state: State) -> None:
@@ -874,7 +887,7 @@ class Axis:
 
     def _safe_stop(self, out: _Out, now: float, job: _Job, state: State) -> None:
         kind = self.config.safe_stop
-        if job.phase == "start":
+        if job.phase == _Phase.START:
             if state is State.SWITCH_ON_DISABLED:
                 self._finish(out, now, True)
                 return
@@ -883,15 +896,15 @@ class Axis:
             if state in (State.READY_TO_SWITCH_ON, State.SWITCHED_ON) \
                     or kind is SafeStop.DISABLE_VOLTAGE:
                 self._send_cw(out, now, Command.DISABLE_VOLTAGE.controlword)
-                job.phase = "disabling"
+                job.phase = _Phase.DISABLING
             elif state is State.OPERATION_ENABLED:
                 halt = kind is SafeStop.HALT_THEN_DISABLE
                 self._send_cw(out, now, Command.ENABLE_OPERATION.controlword | CW_HALT if halt
                               else Command.QUICK_STOP.controlword)
-                job.phase = "stopping"
+                job.phase = _Phase.STOPPING
             else:   # already in quick stop: wait until stopped
-                job.phase = "stopping"
-        if job.phase == "stopping":
+                job.phase = _Phase.STOPPING
+        if job.phase == _Phase.STOPPING:
             if state is State.SWITCH_ON_DISABLED:
                 self._finish(out, now, True)
             elif state in (State.QUICK_STOP_ACTIVE, State.OPERATION_ENABLED) and self._stopped():
@@ -899,11 +912,11 @@ class Axis:
                     self._finish(out, now, True)
                     return
                 self._send_cw(out, now, Command.DISABLE_VOLTAGE.controlword)
-                job.phase = "disabling"
+                job.phase = _Phase.DISABLING
             elif state in (State.READY_TO_SWITCH_ON, State.SWITCHED_ON):
                 self._send_cw(out, now, Command.DISABLE_VOLTAGE.controlword)
-                job.phase = "disabling"
-        if job.phase == "disabling":
+                job.phase = _Phase.DISABLING
+        if job.phase == _Phase.DISABLING:
             if state is State.SWITCH_ON_DISABLED:
                 self._finish(out, now, True)
             else:
@@ -911,9 +924,9 @@ class Axis:
 
     def _set_mode(self, out: _Out, now: float, job: _Job) -> None:
         assert job.mode is not None
-        if job.phase == "start":
+        if job.phase == _Phase.START:
             self._send(out, Obj.MODES, job.mode)
-            job.phase = "confirming"
+            job.phase = _Phase.CONFIRMING
             out.reads.append(Obj.MODES_DISPLAY)
             self._last_read = now
             return
@@ -927,7 +940,7 @@ class Axis:
         wanted = {Op.HOME: (Mode.HM,), Op.MOVE_TO: (Mode.PP, Mode.CSP),
                   Op.AT_VELOCITY: (Mode.PV, Mode.CSV)}[job.op]
         sw = self.statusword or 0
-        if job.phase == "start":
+        if job.phase == _Phase.START:
             if state is not State.OPERATION_ENABLED:
                 self._finish(out, now, False, f"needs OPERATION_ENABLED, the drive is in "
                              f"{state.name}")
@@ -955,7 +968,7 @@ class Axis:
                     self._send(out, Obj.TARGET_VELOCITY, job.target)
                     self._send_cw(out, now, base)
                     job.acked = True
-            job.phase = "running"
+            job.phase = _Phase.RUNNING
             return
         if state is not State.OPERATION_ENABLED:
             self._finish(out, now, False, f"the drive left OPERATION_ENABLED for {state.name}")
