@@ -272,3 +272,14 @@ def test_the_error_code_is_read_by_sdo_when_no_pdo_brings_it() -> None:
     finally:
         host.close()
         drive.close()
+
+
+def test_a_stale_controlword_in_a_shared_rpdo_disables_the_drive(rig: tuple) -> None:
+    """Why RPDOs are composed from one image: the drive applies every object of a frame, so a
+    mode write that carries a stale controlword 0 (issue 36) is a disable voltage."""
+    drive, host = rig
+    assert host.run(host.axis.enable).ok and drive.state == ENABLED
+    before = drive.frames()
+    host.network.send_message(0x300 + NODE, bytes([0x00, 0x00, 0x03]))   # RPDO2: cw 0, mode 3
+    assert drive.wait(lambda: drive.frames() > before)
+    assert drive.state == SOD and drive.received[-1] == 0x00 and drive.read(0x6061) == 3
