@@ -1,0 +1,396 @@
+"""cia402_drive - a simulated CiA 402 servo drive for ``chcos sim``, the pytest plugin and the
+cells: the power state machine reacting to the controlword (fault reset on the rising edge of bit 7
+only), modes of operation confirmed on 0x6061 (some refusable), position and velocity loops,
+quick-stop deceleration per 0x605A, following-error (0x8611) and over-temperature (0x4310) faults
+with EMCY and 0x603F, a fault that needs a reset.
+
+:class:`DriveModel` is the drive without a bus (pure, stepped on virtual time);
+:class:`Cia402Drive` puts it on a CAN bus as a :class:`~chcos.apps.sim.canopen_slave.CanopenSlave`
+with the EDS ``eds/cia402_drive.eds`` (every RPDO carries the controlword, as vendor drives map
+them; TPDO1 statusword + modes display + error code, TPDO2 position + velocity).
+
+The model is written here from the CiA 402 state diagram, apart from :mod:`drivers.cia402` (the
+master side), so that the one checks the other.
+"""
+
+from __future__ import annotations
+
+import argparse
+import struct
+import sys
+import threading
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from enum import Enum
+from pathlib import Path
+from typing import Any
+
+from chcos import resources
+from chcos.apps.sim.canopen_slave import CanopenSlave
+from chcos.errors import BusError, ConfigError
+
+#: The EDS shipped for the simulated CiA 402 drive.
+CIA402_EDS = resources.path("chcos.apps.sim", "eds", "cia402_drive.eds")
+
+FOLLOWING_ERROR = 0x8611
+OVER_TEMPERATURE = 0x4310
+#: Error register (0x1001) bits sent with each fault's EMCY: generic, and temperature.
+ERROR_REGISTER = {FOLLOWING_ERROR: 0x01, OVER_TEMPERATURE: 0x09}
+
+
+class Power(Enum):
+    """The drive's power state, with its statusword bits 0-3, 5 and 6."""
+
+    NOT_READY = 0x00
+    SWITCH_ON_DISABLED = 0x40
+    READY = 0x21
+    SWITCHED_ON = 0x23
+    ENABLED = 0x27
+    QUICK_STOP = 0x07
+    FAULT_REACTION = 0x0F
+    FAULT = 0x08
+
+
+#: The device control commands, by controlword bits 0-3 and 7 after masking (bit 7 handled
+#: apart as an edge): (mask, value, command name).
+COMMANDS: tuple[tuple[int, int, str], ...] = (
+    (0x02, 0x00, "disable voltage"),
+    (0x06, 0x02, "quick stop"),
+    (0x07, 0x06, "shutdown"),
+    (0x0F, 0x07, "switch on"),
+    (0x0F, 0x0F, "enable operation"),
+)
+
+#: (state, command) -> next state. "quick stop" from ENABLED depends on 0x605A (see
+#: :meth:`DriveModel.controlword`).
+REACTIONS: dict[tuple[Power, str], Power] = {
+    (Power.SWITCH_ON_DISABLED, "shutdown"): Power.READY,
+    (Power.READY, "switch on"): Power.SWITCHED_ON,
+    (Power.READY, "enable operation"): Power.ENABLED,
+    (Power.READY, "disable voltage"): Power.SWITCH_ON_DISABLED,
+    (Power.READY, "quick stop"): Power.SWITCH_ON_DISABLED,
+    (Power.SWITCHED_ON, "enable operation"): Power.ENABLED,
+    (Power.SWITCHED_ON, "shutdown"): Power.READY,
+    (Power.SWITCHED_ON, "disable voltage"): Power.SWITCH_ON_DISABLED,
+    (Power.SWITCHED_ON, "quick stop"): Power.SWITCH_ON_DISABLED,
+    (Power.ENABLED, "switch on"): Power.SWITCHED_ON,
+    (Power.ENABLED, "shutdown"): Power.READY,
+    (Power.ENABLED, "disable voltage"): Power.SWITCH_ON_DISABLED,
+    (Power.ENABLED, "quick stop"): Power.QUICK_STOP,
+    (Power.QUICK_STOP, "disable voltage"): Power.SWITCH_ON_DISABLED,
+}
+
+PP, PV, HM, CSP, CSV = 1, 3, 6, 8, 9
+MODES = (PP, PV, HM, CSP, CSV)
+
+
+@dataclass
+class DriveModel:
+    """One CiA 402 axis without a bus. Objects it reads (targets, profile, options) are given to
+    :meth:`step`; :meth:`controlword` and :meth:`mode` take what the master wrote. ``emcys``
+    collects the EMCY codes to send (0: error reset) for the bus side to drain."""
+
+    refused_modes: tuple[int, ...] = ()
+    temperature_limit: float = 80.0
+    power: Power = Power.NOT_READY
+    mode_display: int = 0
+    position: float = 0.0
+    velocity: float = 0.0
+    demand: float = 0.0
+    setpoint: float = 0.0
+    error_code: int = 0
+    temperature: float = 25.0
+    blocked: bool = False
+    acked: bool = False
+    homing: bool = False
+    homed: bool = False
+    new_setpoint: bool = False
+    last_cw: int = 0
+    emcys: list[int] = field(default_factory=list)
+    history: list[Power] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.history.append(self.power)
+
+    def _enter(self, power: Power) -> None:
+        if power is not self.power:
+            self.power = power
+            self.history.append(power)
+            if power is Power.ENABLED:
+                self.demand = self.setpoint = self.position
+            else:
+                self.acked = self.homing = self.new_setpoint = False
+
+    def controlword(self, cw: int, quick_stop_option: int) -> None:
+        """React to a controlword written by the master."""
+        previous, self.last_cw = self.last_cw, cw
+        if self.power is Power.FAULT:
+            if cw & 0x80 and not previous & 0x80:
+                self._reset()
+            return
+        if self.power in (Power.NOT_READY, Power.FAULT_REACTION):
+            return
+        command = next((name for mask, value, name in COMMANDS if cw & mask == value), None)
+        if command is None:
+            return
+        if (self.power, command) == (Power.QUICK_STOP, "enable operation") \
+                and 5 <= quick_stop_option <= 8:
+            self._enter(Power.ENABLED)                 # transition 16
+        nxt = REACTIONS.get((self.power, command))
+        if nxt is Power.QUICK_STOP and quick_stop_option == 0:
+            nxt = Power.SWITCH_ON_DISABLED             # option 0: disable drive function
+        if nxt is Power.SWITCH_ON_DISABLED and self.power is not Power.QUICK_STOP:
+            self.velocity = 0.0                        # power removed: the motor coasts
+        if nxt is not None:
+            self._enter(nxt)
+        if self.power is Power.ENABLED:
+            rising = cw & 0x10 and not previous & 0x10
+            if self.mode_display == PP:
+                if rising:
+                    self.new_setpoint = True           # latched at the next cycle
+                elif not cw & 0x10:
+                    self.acked = False
+            elif self.mode_display == HM and rising:
+                self.homing, self.homed = True, False
+
+    def mode(self, value: int) -> None:
+        """The master wrote 0x6060: shown on 0x6061 unless refused or unknown."""
+        if value in MODES and value not in self.refused_modes:
+            self.mode_display = value
+            self.demand = self.setpoint = self.position
+
+    def fault(self, code: int) -> None:
+        """A fault: fault reaction (then FAULT at the next step), 0x603F, an EMCY."""
+        if self.power in (Power.FAULT, Power.FAULT_REACTION):
+            return
+        self.error_code = code
+        self.emcys.append(code)
+        self._enter(Power.FAULT_REACTION)
+
+    def _reset(self) -> None:
+        if self.temperature > self.temperature_limit:
+            return                                     # the cause persists: stay in FAULT
+        self.error_code = 0
+        self.emcys.append(0)
+        self._enter(Power.SWITCH_ON_DISABLED)
+
+    def statusword(self, target_velocity: int) -> int:
+        """The statusword for the present state."""
+        sw = self.power.value | 0x0200
+        if self.power in (Power.READY, Power.SWITCHED_ON, Power.ENABLED, Power.QUICK_STOP):
+            sw |= 0x0010
+        if self.power is Power.ENABLED:
+            if self.mode_display == PP:
+                at = round(self.position) == round(self.setpoint)
+                sw |= (0x0400 if at and not self.new_setpoint else 0) | (0x1000 if self.acked
+                                                                         else 0)
+            elif self.mode_display == PV:
+                sw |= 0x0400 if round(self.velocity) == target_velocity else 0
+                sw |= 0x1000 if round(self.velocity) == 0 else 0
+            elif self.mode_display == HM and self.homed:
+                sw |= 0x1400
+            elif self.mode_display in (CSP, CSV):
+                sw |= 0x0400
+        elif self.power is Power.QUICK_STOP and self.velocity == 0:
+            sw |= 0x0400
+        return sw
+
+    def step(self, dt: float, *, target_position: int, target_velocity: int,
+             profile_velocity: int, quick_stop_deceleration: int, following_window: int,
+             quick_stop_option: int) -> None:
+        """Advance ``dt`` seconds: automatic transitions, the loops, the fault checks."""
+        if self.power is Power.NOT_READY:
+            self._enter(Power.SWITCH_ON_DISABLED)      # transition 1: self test done
+        elif self.power is Power.FAULT_REACTION:
+            self.velocity = 0.0
+            self._enter(Power.FAULT)                   # transition 14
+        if self.temperature > self.temperature_limit:
+            self.fault(OVER_TEMPERATURE)
+        if dt <= 0:
+            return
+        if self.power is Power.QUICK_STOP or (self.power is Power.ENABLED
+                                              and self.last_cw & 0x100):
+            self._brake(quick_stop_deceleration, dt)
+            if (self.power is Power.QUICK_STOP and self.velocity == 0
+                    and not 5 <= quick_stop_option <= 8):
+                self._enter(Power.SWITCH_ON_DISABLED)  # option 1..4: on to switch on disabled
+            return
+        if self.power is not Power.ENABLED:
+            return
+        if self.mode_display in (PV, CSV):
+            self._run(float(target_velocity), dt)
+            return
+        if self.mode_display == PP and self.new_setpoint:
+            self.setpoint, self.acked, self.new_setpoint = float(target_position), True, False
+        goal = {PP: self.setpoint, CSP: float(target_position),
+                HM: 0.0 if self.homing else self.demand}.get(self.mode_display, self.demand)
+        reach = max(0, profile_velocity) * dt
+        move = max(-reach, min(reach, goal - self.demand))
+        self.demand += move
+        if self.mode_display == CSP:
+            self.demand = goal                         # the master interpolates
+        if not self.blocked:
+            travel = self.demand - self.position
+            self.velocity = travel / dt
+            self.position = self.demand
+        else:
+            self.velocity = 0.0
+        if self.homing and self.position == 0.0:
+            self.homing, self.homed = False, True
+        if abs(self.demand - self.position) > following_window:
+            self.fault(FOLLOWING_ERROR)
+
+    def _brake(self, deceleration: int, dt: float) -> None:
+        speed = max(0.0, abs(self.velocity) - max(0, deceleration) * dt)
+        self.velocity = speed if self.velocity >= 0 else -speed
+        self.position += self.velocity * dt
+        self.demand = self.position
+
+    def _run(self, velocity: float, dt: float) -> None:
+        self.velocity = 0.0 if self.blocked else velocity
+        self.position += self.velocity * dt
+        self.demand = self.position
+
+
+class Cia402Drive(CanopenSlave):
+    """A simulated CiA 402 drive on a CAN bus: :class:`DriveModel` behind the objects of
+    ``eds/cia402_drive.eds``. ``quick_stop_option`` sets 0x605A; ``refused_modes`` are modes
+    the drive does not accept. Every controlword it applied (RPDO or SDO) is kept in
+    :attr:`received`. Raises :class:`ConfigError` for an EDS without the CiA 402 objects."""
+
+    def __init__(self, node_id: int, eds: str | Path = CIA402_EDS, *, channel: str,
+                 interface: str = "virtual", bitrate: int | None = None,
+                 heartbeat_period: float = 0.1, tpdo_period: float | None = None,
+                 quick_stop_option: int = 2, refused_modes: tuple[int, ...] = ()) -> None:
+        super().__init__(node_id, eds, channel=channel, interface=interface, bitrate=bitrate,
+                         heartbeat_period=heartbeat_period, tpdo_period=tpdo_period)
+        for index in (0x6040, 0x6041, 0x6060, 0x6061, 0x6064, 0x606C, 0x603F):
+            self.get(index)                            # ConfigError naming the missing object
+        self.model = DriveModel(refused_modes=refused_modes)
+        self.set(0x605A, 0, quick_stop_option)
+        #: every controlword applied, in order
+        self.received: list[int] = []
+        self._changed = threading.Condition(self._lock)
+        self._since_events = 0.0
+
+    def start(self) -> None:
+        """As :meth:`CanopenSlave.start`, and watch the master's writes of 0x6040/0x6060."""
+        super().start()
+        # the write hook of canopen's LocalNode: each RPDO entry and SDO download, in order
+        self._node.add_write_callback(self._on_write)
+
+    def _on_write(self, *, index: int, subindex: int, od: Any, data: bytes) -> None:
+        if subindex != 0 or index not in (0x6040, 0x6060):
+            return
+        with self._lock:
+            if index == 0x6040:
+                (cw,) = struct.unpack("<H", bytes(data[:2]))
+                self.received.append(cw)
+                self.model.controlword(cw, int(self.get(0x605A)))
+            else:
+                (mode,) = struct.unpack("<b", bytes(data[:1]))
+                self.model.mode(mode)
+            self._publish()
+
+    def _publish(self) -> None:
+        """Show the model in the objects (TPDOs go out on change) and send its EMCYs."""
+        m = self.model
+        for code in m.emcys:
+            self.set(0x603F, 0, m.error_code)
+            self.send_emcy(code, ERROR_REGISTER.get(code, 0x01) if code else 0)
+        m.emcys.clear()
+        self.set(0x603F, 0, m.error_code)
+        self.set(0x6061, 0, m.mode_display)
+        self.set(0x6064, 0, round(m.position))
+        self.set(0x606C, 0, round(m.velocity))
+        self.set(0x6041, 0, m.statusword(int(self.get(0x60FF))))
+        self._changed.notify_all()
+
+    def tick(self, dt: float) -> None:
+        """Advance the drive ``dt`` seconds, then the TPDO event timers."""
+        with self._lock:
+            self.model.step(dt, target_position=int(self.get(0x607A)),
+                            target_velocity=int(self.get(0x60FF)),
+                            profile_velocity=int(self.get(0x6081)),
+                            quick_stop_deceleration=int(self.get(0x6085)),
+                            following_window=int(self.get(0x6065)),
+                            quick_stop_option=int(self.get(0x605A)))
+            self._publish()
+            # the event timers of CanopenSlave: every TPDO each period
+            self._since_events += dt
+            period = self._tpdo_event_period()
+            if period is not None and self._since_events >= period:
+                self._since_events = 0.0
+                for pdo_map in self._node.tpdo.map.values():
+                    self._transmit(pdo_map)
+
+    # -- fault injection and what tests read --------------------------------------------------
+
+    def block(self, blocked: bool = True) -> None:
+        """A load that stops the motor: a following error builds up while it moves."""
+        with self._lock:
+            self.model.blocked = blocked
+
+    def set_temperature(self, celsius: float) -> None:
+        """The drive's temperature; above the limit it faults with 0x4310 and refuses resets."""
+        with self._lock:
+            self.model.temperature = celsius
+
+    def published(self) -> tuple[int, int, int, int, int]:
+        """(statusword, modes display, position, velocity, error code) as the objects hold."""
+        with self._lock:
+            return (int(self.get(0x6041)), int(self.get(0x6061)), int(self.get(0x6064)),
+                    int(self.get(0x606C)), int(self.get(0x603F)))
+
+    def frames(self) -> int:
+        """How many controlwords the drive applied."""
+        with self._lock:
+            return len(self.received)
+
+    def wait(self, predicate: Callable[[], bool], timeout: float = 10.0) -> bool:
+        """Block until ``predicate()`` holds (checked on every change of the drive)."""
+        with self._changed:
+            return self._changed.wait_for(predicate, timeout)
+
+    def step(self, dt: float) -> None:
+        """:meth:`tick` (the name test hosts use)."""
+        self.tick(dt)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run a simulated CiA 402 drive in real time until interrupted or ``--duration``
+    elapses. Returns the process exit status (0 ok, 2 bad arguments or bus)."""
+    parser = argparse.ArgumentParser(prog="chcos sim cia402",
+                                     description="Simulated CiA 402 drive (state machine).")
+    parser.add_argument("--node", type=int, default=1, help="node id 1..127 (default 1)")
+    parser.add_argument("--eds", default=str(CIA402_EDS), help="EDS file")
+    parser.add_argument("--interface", default="virtual", help="python-can interface")
+    parser.add_argument("--channel", required=True, help="python-can channel (e.g. vcan0)")
+    parser.add_argument("--bitrate", type=int, default=None)
+    parser.add_argument("--heartbeat", type=float, default=0.1, help="heartbeat period, s")
+    parser.add_argument("--quick-stop-option", type=int, default=2, help="0x605A (default 2)")
+    parser.add_argument("--refuse-mode", type=int, action="append", default=[],
+                        help="a mode of operation the drive refuses (repeatable)")
+    parser.add_argument("--step", type=float, default=0.01, help="physics step, s")
+    parser.add_argument("--duration", type=float, default=None, help="run this long, s")
+    args = parser.parse_args(list(argv) if argv is not None else None)
+    try:
+        drive = Cia402Drive(args.node, args.eds, channel=args.channel,
+                            interface=args.interface, bitrate=args.bitrate,
+                            heartbeat_period=args.heartbeat,
+                            quick_stop_option=args.quick_stop_option,
+                            refused_modes=tuple(args.refuse_mode))
+        drive.start()
+    except (ConfigError, BusError) as exc:
+        print(f"chcos sim cia402: {exc}", file=sys.stderr)
+        return 2
+    drive.run_realtime(args.step)
+    print(f"CiA 402 drive node {args.node} on {args.interface}:{args.channel}", flush=True)
+    done = threading.Event()
+    try:
+        done.wait(args.duration)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        drive.stop()
+    return 0
