@@ -21,7 +21,7 @@ import pytest
 from chcos.apps.sim.scripts import csv_trace, parse_script
 from chcos.cli import cellrun, scaffold
 from chcos.cli import main as cli
-from chcos.errors import ConfigError
+from chcos.errors import ConfigError, DeviceError
 from chcos.helpers import free_port
 
 VENDOR = Path(__file__).resolve().parent / "vendor"
@@ -261,3 +261,35 @@ def test_sim_from_map_faults_on_a_schedule(tmp_path: Path,
     assert "the end must come after the start" in capsys.readouterr().err
     assert cli.main(["sim", "--from", devices, "--value", "valve=3"]) == 2
     assert "'valve' is not a sensor" in capsys.readouterr().err
+
+
+def test_vendor_node_with_sync_tpdos_and_no_defaults_runs_virtual(tmp_path: Path) -> None:
+    # the awkward EDS: synchronous TPDO1 (statusword, position), objects without a
+    # DefaultValue, empty numeric fields. Imported as is, it runs healthy on virtual time: the
+    # imported sync_period makes the simulated node send TPDO1 and SDO reads of an object
+    # without a default are answered (0)
+    devmap = tmp_path / "ax7.toml"
+    assert cli.main(["import", "eds", str(VENDOR / "awkward_ax7.eds"), "--node", "3",
+                     "--bus", "ax", "-o", str(devmap)]) == 0
+    system = _system(tmp_path, devmap, "install -m0 sysfile\n")
+    with cellrun.open_cell(system, virtual=True) as cell:
+        slaves = cell.slaves
+        assert slaves is not None
+        node = slaves.canopen_node("ax", 3)
+        assert node.wait_state("OPERATIONAL", 10)
+        slaves.set("statusword", 0x0237)
+        slaves.set("position_actual_value", -4321)
+        deadline = time.monotonic() + 10
+        while cell.device("position_actual_value").value != -4321 \
+                and time.monotonic() < deadline:
+            cell.run_for(0.05)       # SYNC runs on wall time: give it some
+        assert cell.device("position_actual_value").value == -4321     # by TPDO1, on SYNC
+        assert cell.device("statusword").value == 0x0237
+        assert node.stats.syncs > 0 and node.stats.tpdos > 0
+        cell.run_for(0.5)
+        assert cell.device("heat_sink_temperature").value == 0          # no default: zero
+        assert cell.device("heat_sink_temperature").status.value == "OK"
+        with pytest.raises(DeviceError, match="'nope' has no simulated peer"):
+            slaves.canopen_node("nope", 3)
+        with pytest.raises(DeviceError, match="no simulated CANopen node 9"):
+            slaves.canopen_node("ax", 9)

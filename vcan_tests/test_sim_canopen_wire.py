@@ -21,6 +21,7 @@ from chcos.apps.sim.canopen_slave import (
     MasterLost,
     NmtState,
 )
+from chcos.errors import ConfigError
 from vcan_tests.netutil import unique_channel
 from vcan_tests.support_fb import WAIT
 
@@ -403,5 +404,5 @@ def test_realtime_heartbeat_and_restart_of_a_stopped_slave(wire: tuple[Wire, str
 
 def test_bad_fault_code_is_refused() -> None:
     slave = CanopenSlave(NODE, channel=unique_channel("cosim"))
-    with pytest.raises(Exception, match="0x10"):
+    with pytest.raises(ConfigError, match="fault code 0x10: expected an EMCY error code"):
         slave.inject_fault(0x10)

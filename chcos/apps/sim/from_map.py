@@ -12,8 +12,9 @@ that answers the bus's devices on the real protocol:
   round) every cycle (the DBC's ``GenMsgCycleTime``, else 0.1 s) and decodes the actuators'
   frames;
 * ``canopen`` - per node, :class:`chcos.apps.sim.canopen_slave.CanopenSlave` over the node's EDS
-  (canopen's LocalNode: SDO server, NMT, RPDOs applied, TPDOs sent on change and every event
-  timer) with a heartbeat every third of the map's ``heartbeat_timeout``;
+  on the slaves' clock: boot-up, NMT state machine, SDO server (zero for objects without a
+  default), RPDOs applied, TPDOs on change, event timer and SYNC, EMCY on injected faults
+  (:meth:`SimSlaves.canopen_node`), a heartbeat every third of the map's ``heartbeat_timeout``;
 * ``serial`` - a TCP serial server (the driver reaches it as ``socket://127.0.0.1:PORT``)
   speaking the bus's framing: a line protocol's sensor lines are generated from its ``pattern``
   (the named groups filled with the values; the line is checked against the pattern), binary
@@ -46,7 +47,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from chcos.apps.sim.peers import CanopenPeer, CanPeer, ModbusPeer, Peer
 from chcos.apps.sim.scripts import Script, parse_script
@@ -54,6 +55,9 @@ from chcos.apps.sim.serial_peer import SerialPeer
 from chcos.devices.spec import BusSpec, DeviceMap, DeviceSpec
 from chcos.errors import ConfigError, DeviceError
 from chcos.helpers import is_number
+
+if TYPE_CHECKING:
+    from chcos.apps.sim.canopen_slave import CanopenSlave
 
 IN_PROCESS = ("memory", "signal", "weld-direct")
 """Bus kinds that need no simulated peer."""
@@ -135,6 +139,18 @@ class SimSlaves:
         except KeyError:
             raise DeviceError(f"bus {bus!r} has no simulated peer (simulated: "
                               f"{', '.join(sorted(self.peers)) or 'none'})") from None
+
+    def canopen_node(self, bus: str, node: int) -> CanopenSlave:
+        """The simulated CANopen node ``node`` of ``bus``, for fault scripts: its
+        ``inject_fault``/``clear_fault`` (0x1001 and EMCY), ``reset``, ``silence``. Raises
+        DeviceError naming the bus for a bus without simulated CANopen nodes or another id."""
+        peer = self._bus(bus)
+        if not isinstance(peer, CanopenPeer):
+            raise DeviceError(f"bus {bus!r} is a {peer.bus.kind!r} bus, not canopen")
+        try:
+            return peer.node(node)  # type: ignore[no-any-return]
+        except ConfigError as exc:
+            raise DeviceError(str(exc)) from None
 
     def describe(self) -> list[str]:
         """One line per peer: the bus and where it listens."""
