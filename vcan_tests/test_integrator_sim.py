@@ -293,3 +293,32 @@ def test_vendor_node_with_sync_tpdos_and_no_defaults_runs_virtual(tmp_path: Path
             slaves.canopen_node("nope", 3)
         with pytest.raises(DeviceError, match="no simulated CANopen node 9"):
             slaves.canopen_node("ax", 9)
+
+
+def test_sim_from_map_raises_emcy_faults_on_a_schedule(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import can
+
+    channel = f"emcy-{os.getpid()}"
+    devmap = tmp_path / "ax7.toml"
+    assert cli.main(["import", "eds", str(VENDOR / "awkward_ax7.eds"), "--node", "3",
+                     "--bus", "ax", "--interface", "virtual", "--channel", channel,
+                     "-o", str(devmap)]) == 0
+    wire = can.Bus(interface="virtual", channel=channel)   # what the node puts on the bus
+    try:
+        assert cli.main(["sim", "--from", str(devmap), "--emcy", "ax:3:0x4210@0.2-0.5",
+                         "--duration", "0.8"]) == 0
+        frames = []
+        while (msg := wire.recv(0)) is not None:
+            frames.append(msg)
+    finally:
+        wire.shutdown()
+    out = capsys.readouterr().out
+    assert "fault: node 3 EMCY 0x4210" in out and "fault over: node 3 error reset" in out
+    assert bytes(frames[0].data) == b"\x00" and frames[0].arbitration_id == 0x703  # boot-up
+    emcy = [bytes(m.data) for m in frames if m.arbitration_id == 0x83]
+    assert emcy == [bytes.fromhex("1042090000000000"), bytes(8)]
+    for bad in ("ax:3:0x10@1", "ax:9:0x4210@1", "nope:3:0x4210@1", "ax:0x4210@1"):
+        assert cli.main(["sim", "--from", str(devmap), "--emcy", bad]) == 2
+    err = capsys.readouterr().err
+    assert "--emcy 'ax:9:0x4210@1': bus 'ax' has no simulated CANopen node 9" in err

@@ -1032,7 +1032,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="raise EMCY fault CODE (e.g. 0x4210) from START seconds (to END)")
     args = parser.parse_args(list(argv) if argv is not None else None)
     try:
-        faults = [_fault_arg(item) for item in args.fault]
+        faults = [fault_arg(item) for item in args.fault]
         slave = CanopenSlave(args.node, args.eds, channel=args.channel,
                              interface=args.interface, bitrate=args.bitrate,
                              heartbeat_period=args.heartbeat,
@@ -1069,7 +1069,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
-def _fault_arg(item: str) -> tuple[int, float, float]:
+def fault_arg(item: str) -> tuple[int, float, float]:
     """``CODE@START[-END]`` -> (code, start, end); raises ConfigError naming the item."""
     code_text, at, span = item.partition("@")
     start_text, _, end_text = span.partition("-")

@@ -243,6 +243,25 @@ def _fault(item: str, slaves: SimSlaves) -> tuple[str, float, float]:
     return bus, t0, t1
 
 
+def _emcy(item: str, slaves: SimSlaves) -> tuple[CanopenSlave, int, float, float]:
+    """``BUS:NODE:CODE@START[-END]`` -> (node, code, start, end); raises ConfigError naming
+    the item."""
+    from chcos.apps.sim.canopen_slave import fault_arg
+
+    where, at, span = item.partition("@")
+    parts = where.split(":")
+    if len(parts) != 3 or not at:
+        raise ConfigError(f"--emcy {item!r}: expected BUS:NODE:CODE@START[-END], e.g. "
+                          "axis:5:0x4210@2-6")
+    bus, node_text, code_text = parts
+    code, t0, t1 = fault_arg(f"{code_text}@{span}")
+    try:
+        node = slaves.canopen_node(bus, int(node_text, 0))
+    except (DeviceError, ValueError) as exc:
+        raise ConfigError(f"--emcy {item!r}: {exc}") from None
+    return node, code, t0, t1
+
+
 def main(argv: list[str]) -> int:
     """``chcos sim --from MAP...``: serve simulated slaves at the addresses the maps name until
     Ctrl-C, SIGTERM or ``--duration``; prints what each actuator was sent once a second.
@@ -268,6 +287,10 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--fault", action="append", default=[], metavar="BUS@START[-END]",
                     help="silence the peer of BUS from START seconds (to END), e.g. plc@5-8: "
                          "a Modbus server closes its port, CAN and CANopen nodes stop sending")
+    ap.add_argument("--emcy", action="append", default=[], metavar="BUS:NODE:CODE@START[-END]",
+                    help="raise fault CODE on CANopen node NODE of BUS from START seconds (to "
+                         "END): 0x1001 set, an EMCY sent, an error-reset EMCY when it ends, "
+                         "e.g. axis:5:0x4210@2-6")
     ap.add_argument("--duration", type=float, help="stop after this many seconds")
     args = ap.parse_args(argv)
     stop = threading.Event()
@@ -285,6 +308,8 @@ def main(argv: list[str]) -> int:
                     raise ConfigError(f"--value {item!r}: {name!r} is not a sensor of the maps")
                 slaves.script(name, parse_script(spec, Path.cwd()))
             faults = [_fault(item, slaves) for item in args.fault]
+            emcys = [_emcy(item, slaves) for item in args.emcy]
+            raised: set[int] = set()
             for line in slaves.describe():
                 print(f"simulating {line}", flush=True)
             slaves.run_realtime()
@@ -303,6 +328,17 @@ def main(argv: list[str]) -> int:
                         slaves.restore(bus)
                         silenced.discard(bus)
                         print(f"t={t:6.1f} s  fault over: {bus} answers again", flush=True)
+                for i, (node, code, t0, t1) in enumerate(emcys):
+                    if t0 <= t < t1 and i not in raised:
+                        node.inject_fault(code)
+                        raised.add(i)
+                        print(f"t={t:6.1f} s  fault: node {node.node_id} EMCY 0x{code:04X}",
+                              flush=True)
+                    elif t >= t1 and i in raised:
+                        node.clear_fault(code)
+                        raised.discard(i)
+                        print(f"t={t:6.1f} s  fault over: node {node.node_id} error reset",
+                              flush=True)
                 if t + 1e-9 < shown_at + 1.0:
                     continue
                 shown_at = t
