@@ -406,3 +406,50 @@ def test_bad_fault_code_is_refused() -> None:
     slave = CanopenSlave(NODE, channel=unique_channel("cosim"))
     with pytest.raises(ConfigError, match="fault code 0x10: expected an EMCY error code"):
         slave.inject_fault(0x10)
+
+
+def test_pdo_remapping_follows_the_cia301_procedure(wire: tuple[Wire, str]) -> None:
+    w, channel = wire
+    with _slave(channel, AWKWARD, heartbeat_period=0) as slave:
+        assert w.download(0x1A00, 1, struct.pack("<I", 0x60400010)) == 0x08000022  # PDO valid
+        assert w.download(0x1800, 1, struct.pack("<I", 0x1C3)) == 0x06090030   # new COB-ID
+        assert w.download(0x1800, 1, struct.pack("<I", 0x8000_0183)) == 0      # disable
+        assert w.download(0x1A00, 1, struct.pack("<I", 0x60400010)) == 0x08000022  # count 2
+        assert w.download(0x1A00, 0, b"\x00") == 0
+        assert w.download(0x1A00, 1, struct.pack("<I", 0x10000020)) == 0x06040041  # 0x1000
+        assert w.download(0x1A00, 1, struct.pack("<I", 0x60990020)) == 0x06020000  # missing
+        assert w.download(0x1A00, 1, struct.pack("<I", 0x60400010)) == 0
+        assert w.download(0x1A00, 0, b"\x03") == 0x06040042     # more entries than exist
+        assert w.download(0x1A00, 0, b"\x01") == 0
+        assert w.download(0x1800, 1, struct.pack("<I", 0x183)) == 0            # enable
+        assert w.download(0x1401, 1, struct.pack("<I", 0x8000_0303)) == 0
+        assert w.download(0x1601, 0, b"\x00") == 0
+        assert w.download(0x1601, 1, struct.pack("<I", 0x60410010)) == 0x06040041  # ro object
+        w.nmt(0x01)
+        assert slave.wait_state(NmtState.OPERATIONAL, WAIT)
+        slave.set(0x6040, 0, 0x1234)
+        w.sync()
+        tpdo1 = [bytes(m.data) for m in w.barrier() if m.arbitration_id == 0x180 + NODE]
+        assert tpdo1 == [struct.pack("<H", 0x1234)]          # the new mapping, 16 bits
+        w.send(0x300 + NODE, struct.pack("<Hb", 7, 7))         # RPDO2 disabled: ignored
+        w.barrier()
+        assert slave.get(0x6060) == 0
+
+
+def test_error_history_0x1003_and_emcy_cob_id_0x1014(wire: tuple[Wire, str]) -> None:
+    w, channel = wire
+    with _slave(channel, heartbeat_period=0) as slave:
+        assert w.upload(0x1003, 0) == b"\x00"
+        slave.inject_fault(0x3210)
+        slave.inject_fault(0x4210)
+        assert w.upload(0x1003, 0) == b"\x01"                    # the EDS holds one entry
+        assert w.upload(0x1003, 1) == struct.pack("<I", 0x4210)  # newest first
+        assert w.download(0x1003, 0, b"\x05") == 0x06090030
+        assert w.download(0x1003, 0, b"\x00") == 0
+        assert w.upload(0x1003, 1) == 0x08000024
+        assert w.upload(0x1001, 0) == b"\x0D"                    # clearing history keeps 0x1001
+        assert w.download(0x1014, 0, struct.pack("<I", 0x8000_0083)) == 0     # EMCY off
+        before = slave.stats.emcys
+        slave.clear_fault()
+        assert [m for m in w.barrier() if 0x80 < m.arbitration_id < 0x100] == []
+        assert slave.stats.emcys == before

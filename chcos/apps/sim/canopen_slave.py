@@ -75,6 +75,11 @@ EMCY_HEARTBEAT_LOST = 0x8130  # life guard / heartbeat consumer error
 SYNC_COB = 0x080
 ABORT_NOT_STORED = 0x08000020     # data cannot be transferred or stored (wrong signature)
 ABORT_STATE = 0x08000022          # data cannot be transferred: present device state
+ABORT_NO_DATA = 0x08000024        # no data available
+ABORT_NOT_MAPPABLE = 0x06040041   # object cannot be mapped to the PDO
+ABORT_PDO_LENGTH = 0x06040042     # number and length of the objects would exceed the PDO
+ABORT_INVALID_VALUE = 0x06090030  # value range of parameter exceeded
+ABORT_NO_OBJECT = 0x06020000      # object does not exist in the object dictionary
 
 
 class NmtState(enum.IntEnum):
@@ -333,6 +338,7 @@ class CanopenSlave:
         self._hb_suppressed = False
         self._muted = False
         self._faults: dict[int, Fault] = {}
+        self._history: list[int] = []   # 0x1003, newest first
         self._aborts: dict[tuple[int, int], int] = {}
         self._tpdos: list[PdoConfig] = []
         self._rpdos: list[PdoConfig] = []
@@ -511,6 +517,9 @@ class CanopenSlave:
         bits = error_bits(code) if register is None else ErrorBits(register) | ErrorBits.GENERIC
         with self._lock:
             self._faults[code] = Fault(code, bits, data)
+            depth = self._history_depth()
+            if depth:
+                self._history = [code, *self._history][:depth]
             self._emcy(code, self.error_register, data)
             self._changed.notify_all()
 
@@ -856,12 +865,24 @@ class CanopenSlave:
                 return
             self._node.sdo.on_request(can_id, data, timestamp)
 
+    def _history_depth(self) -> int:
+        """How many errors 0x1003 holds (its sub-indices in the EDS)."""
+        obj = self._node.object_dictionary.get(0x1003) \
+            if 0x1003 in self._node.object_dictionary else None
+        return len([s for s in getattr(obj, "subindices", {}) if s]) if obj is not None else 0
+
     def _on_sdo_read(self, *, index: int, subindex: int, od: Any) -> Any:
         code = self._aborts.get((index, subindex))
         if code is not None:
             raise SdoAbortedError(code)
         if index == 0x1001 and subindex == 0:
             return int(self.error_register)
+        if index == 0x1003:   # pre-defined error field: newest first
+            if subindex == 0:
+                return len(self._history)
+            if subindex > len(self._history):
+                raise SdoAbortedError(ABORT_NO_DATA)
+            return self._history[subindex - 1]
         if index in (0x1010, 0x1011) and subindex >= 1:
             return 1   # saves on command / restores on command
         if self._node.data_store.get(index, {}).get(subindex) is not None:
@@ -884,6 +905,13 @@ class CanopenSlave:
             for key in [k for k in self._saved if area(k[0])]:
                 del self._saved[key]   # EDS defaults again from the next reset
             return
+        if index == 0x1003:
+            if subindex != 0 or value != 0:
+                raise SdoAbortedError(ABORT_INVALID_VALUE)   # only 0 (clear) may be written
+            self._history.clear()
+            return
+        if 0x1400 <= index <= 0x1BFF:
+            self._check_pdo_write(index, subindex, value)
         # the parameters below take effect at once: store first, then re-read them
         self._node.data_store.setdefault(index, {})[subindex] = bytes(data)
         if index == 0x1017:
@@ -894,6 +922,39 @@ class CanopenSlave:
         elif 0x1400 <= index <= 0x1BFF:
             self._read_pdos()
         self._changed_object(index, subindex)
+
+    def _check_pdo_write(self, index: int, subindex: int, value: int) -> None:
+        """Refuse what a CiA 301 node refuses: a new COB-ID for a valid PDO; a mapping changed
+        while its PDO is valid, or an entry while the entry count is not 0; an entry that
+        names an object missing or not mappable in that direction; more than 64 bits."""
+        od = self._node.object_dictionary
+        comm = index if index < 0x1600 or 0x1800 <= index < 0x1A00 else index - 0x200
+        valid = not self._int(comm, 1, 0x8000_0000) & 0x8000_0000
+        if index == comm:
+            old = self._int(comm, 1, 0x8000_0000)
+            if subindex == 1 and valid and not value & 0x8000_0000 \
+                    and (old ^ value) & 0x1FFF_FFFF:
+                raise SdoAbortedError(ABORT_INVALID_VALUE)
+            return
+        if valid:
+            raise SdoAbortedError(ABORT_STATE)
+        if subindex == 0:
+            if value and od.get_variable(index, value) is None:
+                raise SdoAbortedError(ABORT_PDO_LENGTH)   # more entries than the EDS has
+            if sum(self._int(index, s) & 0xFF for s in range(1, value + 1)) > 64:
+                raise SdoAbortedError(ABORT_PDO_LENGTH)
+            return
+        if self._int(index, 0):
+            raise SdoAbortedError(ABORT_STATE)
+        obj_index, obj_sub = value >> 16, (value >> 8) & 0xFF
+        if obj_index < 0x1000:
+            return   # a dummy entry (data-type index) fills a gap
+        var = od.get_variable(obj_index, obj_sub)
+        if var is None:
+            raise SdoAbortedError(ABORT_NO_OBJECT)
+        receive = comm < 0x1800
+        if not var.pdo_mappable or not (var.writable if receive else var.readable):
+            raise SdoAbortedError(ABORT_NOT_MAPPABLE)
 
     # -- internals: PDO, SYNC, EMCY -----------------------------------------------------------
 
@@ -942,8 +1003,11 @@ class CanopenSlave:
     def _emcy(self, code: int, register: ErrorBits, data: bytes) -> None:
         if self._state in (NmtState.STOPPED, NmtState.INITIALISING) or self._muted:
             return
+        cob = self._int(0x1014, 0, 0x80 + self.node_id)
+        if cob & 0x8000_0000:
+            return   # EMCY disabled in 0x1014
         self.stats.emcys += 1
-        self._send(0x80 + self.node_id,
+        self._send(cob & 0x7FF,
                    struct.pack("<HB", code, int(register)) + data.ljust(5, b"\x00")[:5])
 
     def _on_sync(self, can_id: int, data: bytes, timestamp: float) -> None:
