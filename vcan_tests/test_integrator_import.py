@@ -252,3 +252,15 @@ def test_eds_empty_required_field_is_an_error_naming_it(
                                 "ObjectType=0x7\nDataType="), encoding="utf-8")
     assert cli.main(["import", "eds", str(eds), "--node", "3"]) == 2
     assert "broken.eds: [6041] DataType: empty; expected a number" in capsys.readouterr().err
+
+
+def test_eds_in_latin1_is_read_with_a_warning(tmp_path: Path,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    text = (VENDOR / "awkward_ax7.eds").read_text(encoding="utf-8")
+    eds = tmp_path / "latin.eds"
+    eds.write_bytes(text.replace("ParameterName=Heat sink temperature",
+                                 "ParameterName=Kühlkörpertemperatur").encode("latin-1"))
+    out, devs = _import(tmp_path, "eds", str(eds), "--node", "3")
+    assert "latin.eds: not UTF-8; read as Latin-1" in capsys.readouterr().err
+    assert "# 0x2000:00 Kühlkörpertemperatur: SDO" in out.read_text(encoding="utf-8")
+    assert devs["k_hlk_rpertemperatur"]["address"]["index"] == 0x2000
