@@ -40,7 +40,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -215,7 +215,6 @@ class SlaveStats:
     rpdos_ignored: int = 0
     emcys: int = 0
     masters_lost: int = 0
-    extra: dict[str, int] = field(default_factory=dict)
 
 
 Plant = Callable[["CanopenSlave", float], None]
@@ -986,7 +985,22 @@ class CanopenSlave:
             offset += size
         return bits.to_bytes((offset + 7) // 8, "little")
 
-    def _transmit(self, pdo: PdoConfig) -> None:
+    def _tpdo_event_period(self) -> float | None:
+        """The shortest event period of the enabled event-driven TPDOs (``tpdo_period`` when
+        given), None without one: for subclasses that time every TPDO together."""
+        periods = [p for pdo in self._tpdos if (p := self._event_period(pdo)) is not None]
+        return min(periods) if periods else None
+
+    def _transmit(self, pdo: PdoConfig | Any) -> None:
+        """Send one TPDO now (when OPERATIONAL and not silenced). ``pdo`` is a
+        :class:`PdoConfig` or, for subclasses walking ``self._node.tpdo.map``, canopen's map
+        of the same TPDO (the node's own parameters decide what it carries)."""
+        if not isinstance(pdo, PdoConfig):
+            number = int(pdo.com_record.od.index) - 0x1800 + 1
+            found = next((p for p in self._tpdos if p.number == number), None)
+            if found is None:
+                return
+            pdo = found
         if not (self._started and pdo.enabled and self._state is NmtState.OPERATIONAL) \
                 or self._muted:
             return
@@ -1059,8 +1073,9 @@ class CanopenSlave:
                 continue   # a dummy entry, or a frame shorter than the mapping
             nbytes = max(1, len(var) // 8) if var.data_type in INTEGER_TYPES or \
                 var.data_type in FLOAT_TYPES or var.data_type == BOOLEAN else (size + 7) // 8
-            self._node.data_store.setdefault(index, {})[subindex] = raw.to_bytes(nbytes,
-                                                                                  "little")
+            # through the node's write hooks (subclasses watch RPDO-written objects there)
+            with contextlib.suppress(SdoAbortedError):
+                self._node.set_data(index, subindex, raw.to_bytes(nbytes, "little"))
         self.stats.rpdos += 1
         self._changed.notify_all()
         self.rpdo_received.set()
