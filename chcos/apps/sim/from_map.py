@@ -57,6 +57,8 @@ from chcos.errors import ConfigError, DeviceError
 from chcos.helpers import is_number
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from chcos.apps.sim.canopen_slave import CanopenSlave
 
 IN_PROCESS = ("memory", "signal", "weld-direct")
@@ -71,6 +73,33 @@ PEERS: dict[str, type[Peer]] = {"modbus-tcp": ModbusPeer, "modbus-rtu": ModbusPe
 
 
 @dataclass
+class EmcyFault:
+    """A fault scheduled on a simulated CANopen node (:meth:`SimSlaves.schedule_emcy`)."""
+
+    node: CanopenSlave
+    code: int
+    start: float
+    end: float
+    report: Callable[[str], None] | None = None
+    raised: bool = False
+
+    def apply(self, now: float) -> None:
+        """Raise or clear the fault as ``now`` (seconds since the start) says."""
+        if self.start <= now < self.end and not self.raised:
+            self.node.inject_fault(self.code)
+            self.raised = True
+            line = f"fault: node {self.node.node_id} EMCY 0x{self.code:04X}"
+        elif now >= self.end and self.raised:
+            self.node.clear_fault(self.code)
+            self.raised = False
+            line = f"fault over: node {self.node.node_id} error reset"
+        else:
+            return
+        if self.report is not None:
+            self.report(f"t={now:6.1f} s  {line}")
+
+
+@dataclass
 class SimSlaves:
     """The simulated peers of one device map (see the module doc). Close with :meth:`close`."""
 
@@ -82,6 +111,7 @@ class SimSlaves:
     _rt: threading.Thread | None = None
     _rt_stop: threading.Event = dataclasses.field(default_factory=threading.Event)
     _closed: bool = False
+    _emcy_plan: list[EmcyFault] = dataclasses.field(default_factory=list)
 
     def simulated(self, device: str) -> bool:
         """True if ``device`` has a simulated peer that :meth:`set`/:meth:`get` reach."""
@@ -152,6 +182,30 @@ class SimSlaves:
         except ConfigError as exc:
             raise DeviceError(str(exc)) from None
 
+    def schedule_emcy(self, items: list[str],
+                      report: Callable[[str], None] | None = None) -> None:
+        """Faults on simulated CANopen nodes from ``BUS:NODE:CODE@START[-END]`` items
+        (``--emcy``): from START seconds the node raises CODE (0x1001 and EMCY), at END it
+        clears it (error-reset EMCY), on this handle's clock. ``report`` gets a line for each.
+        Raises ConfigError naming the item; nothing is scheduled then."""
+        from chcos.apps.sim.canopen_slave import fault_arg
+
+        plan = []
+        for item in items:
+            where, at, span = item.partition("@")
+            parts = where.split(":")
+            if len(parts) != 3 or not at:
+                raise ConfigError(f"--emcy {item!r}: expected BUS:NODE:CODE@START[-END], e.g. "
+                                  "axis:5:0x4210@2-6")
+            bus, node_text, code_text = parts
+            code, t0, t1 = fault_arg(f"{code_text}@{span}")
+            try:
+                node = self.canopen_node(bus, int(node_text, 0))
+            except (DeviceError, ValueError) as exc:
+                raise ConfigError(f"--emcy {item!r}: {exc}") from None
+            plan.append(EmcyFault(node, code, t0, t1, report))
+        self._emcy_plan.extend(plan)
+
     def describe(self) -> list[str]:
         """One line per peer: the bus and where it listens."""
         return [f"{name}: {peer.describe()}" for name, peer in self.peers.items()]
@@ -162,6 +216,8 @@ class SimSlaves:
             self.set(device, fn(now))
         for peer in self.peers.values():
             peer.tick(now)
+        for fault in self._emcy_plan:
+            fault.apply(now)
 
     def attach(self, kernel: Any) -> None:
         """Run on ``kernel``'s clock from now (virtual time stays deterministic)."""
@@ -243,25 +299,6 @@ def _fault(item: str, slaves: SimSlaves) -> tuple[str, float, float]:
     return bus, t0, t1
 
 
-def _emcy(item: str, slaves: SimSlaves) -> tuple[CanopenSlave, int, float, float]:
-    """``BUS:NODE:CODE@START[-END]`` -> (node, code, start, end); raises ConfigError naming
-    the item."""
-    from chcos.apps.sim.canopen_slave import fault_arg
-
-    where, at, span = item.partition("@")
-    parts = where.split(":")
-    if len(parts) != 3 or not at:
-        raise ConfigError(f"--emcy {item!r}: expected BUS:NODE:CODE@START[-END], e.g. "
-                          "axis:5:0x4210@2-6")
-    bus, node_text, code_text = parts
-    code, t0, t1 = fault_arg(f"{code_text}@{span}")
-    try:
-        node = slaves.canopen_node(bus, int(node_text, 0))
-    except (DeviceError, ValueError) as exc:
-        raise ConfigError(f"--emcy {item!r}: {exc}") from None
-    return node, code, t0, t1
-
-
 def main(argv: list[str]) -> int:
     """``chcos sim --from MAP...``: serve simulated slaves at the addresses the maps name until
     Ctrl-C, SIGTERM or ``--duration``; prints what each actuator was sent once a second.
@@ -284,13 +321,13 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--value", action="append", default=[], metavar="DEVICE=SCRIPT",
                     help="a sensor's value: a number, ramp(start, end, period), sine(center, "
                          "amplitude, period), square(low, high, period) or csv(FILE[, column])")
-    ap.add_argument("--fault", action="append", default=[], metavar="BUS@START[-END]",
-                    help="silence the peer of BUS from START seconds (to END), e.g. plc@5-8: "
-                         "a Modbus server closes its port, CAN and CANopen nodes stop sending")
     ap.add_argument("--emcy", action="append", default=[], metavar="BUS:NODE:CODE@START[-END]",
                     help="raise fault CODE on CANopen node NODE of BUS from START seconds (to "
                          "END): 0x1001 set, an EMCY sent, an error-reset EMCY when it ends, "
                          "e.g. axis:5:0x4210@2-6")
+    ap.add_argument("--fault", action="append", default=[], metavar="BUS@START[-END]",
+                    help="silence the peer of BUS from START seconds (to END), e.g. plc@5-8: "
+                         "a Modbus server closes its port, CAN and CANopen nodes stop sending")
     ap.add_argument("--duration", type=float, help="stop after this many seconds")
     args = ap.parse_args(argv)
     stop = threading.Event()
@@ -308,8 +345,7 @@ def main(argv: list[str]) -> int:
                     raise ConfigError(f"--value {item!r}: {name!r} is not a sensor of the maps")
                 slaves.script(name, parse_script(spec, Path.cwd()))
             faults = [_fault(item, slaves) for item in args.fault]
-            emcys = [_emcy(item, slaves) for item in args.emcy]
-            raised: set[int] = set()
+            slaves.schedule_emcy(args.emcy, report=lambda line: print(line, flush=True))
             for line in slaves.describe():
                 print(f"simulating {line}", flush=True)
             slaves.run_realtime()
@@ -328,17 +364,6 @@ def main(argv: list[str]) -> int:
                         slaves.restore(bus)
                         silenced.discard(bus)
                         print(f"t={t:6.1f} s  fault over: {bus} answers again", flush=True)
-                for i, (node, code, t0, t1) in enumerate(emcys):
-                    if t0 <= t < t1 and i not in raised:
-                        node.inject_fault(code)
-                        raised.add(i)
-                        print(f"t={t:6.1f} s  fault: node {node.node_id} EMCY 0x{code:04X}",
-                              flush=True)
-                    elif t >= t1 and i in raised:
-                        node.clear_fault(code)
-                        raised.discard(i)
-                        print(f"t={t:6.1f} s  fault over: node {node.node_id} error reset",
-                              flush=True)
                 if t + 1e-9 < shown_at + 1.0:
                     continue
                 shown_at = t

@@ -115,7 +115,7 @@ def main(argv: Sequence[str]) -> int:
                                       port=args.port, unit=args.unit, machine=args.machine,
                                       prefix=args.prefix, one_based=args.one_based)
         for warning in draft.warnings:
-            print(f"chcos import {args.kind}: warning: {warning}", file=sys.stderr)
+            print(f"warning: {warning}", file=sys.stderr)
         _write(render(draft), args.output)
     except (ConfigError, OSError) as exc:
         print(f"chcos import {args.kind}: {exc}", file=sys.stderr)

@@ -17,12 +17,12 @@ from typing import Any
 @dataclass
 class MapDraft:
     """A device map being written: header comment lines, bus tables, device tables (each with
-    the comment lines printed above it), and warnings for the importer's caller."""
+    the comment lines printed above it)."""
 
     header: list[str] = field(default_factory=list)
     buses: list[dict[str, Any]] = field(default_factory=list)
     devices: list[tuple[list[str], dict[str, Any]]] = field(default_factory=list)
-    #: What will not work as imported, for ``chcos import`` to print (one line each).
+    #: what will not work on a real bus as imported (printed on stderr by ``chcos import``)
     warnings: list[str] = field(default_factory=list)
     _names: set[str] = field(default_factory=set)
 
