@@ -3,11 +3,13 @@
 canopen's ``import_od`` rejects a whole file for one empty numeric field (``VendorNumber=``,
 ``Lines=``, ``Dummy0001=``, ``PDOMapping=``), and for a file that is not UTF-8. :func:`read_eds`
 reads the file first (UTF-8, else Latin-1 with a warning), drops or zeroes each empty numeric field
-with a warning naming the file, section and key, and hands the cleaned text to canopen.
-Fields CiA 306 lets be empty (``LowLimit``, ``HighLimit``, ``DefaultValue``, ``ParameterValue``)
-are read as absent without a warning. A field nothing can stand in for (an empty ``DataType`` or
-``NrOfEntries``) is an error naming the file, section and key. Used by ``chcos check`` (through
-the canopen driver's object-dictionary loader), ``chcos import eds`` and the simulated node.
+with a warning naming the file, section and key, and hands the cleaned text to canopen (an
+empty ``ObjectType`` is a record when the object has sub-index sections, else a variable).
+Fields CiA 306 lets be empty (``LowLimit``, ``HighLimit``, ``DefaultValue``,
+``ParameterValue``) are read as absent without a warning. A field nothing can stand in for
+(an empty ``DataType`` or ``NrOfEntries``) is an error naming the file, section and key.
+Used by ``chcos check`` (through the canopen driver's object-dictionary loader),
+``chcos import eds`` and the simulated node.
 """
 
 from __future__ import annotations
@@ -54,12 +56,19 @@ def clean(text: str, where: str) -> tuple[str, list[str]]:
     except configparser.Error as exc:
         raise ValueError(f"{where}: not an EDS (INI) file: {exc}") from exc
     warnings: list[str] = []
+    with_subs = {name[:4].upper() for name in parser.sections()
+                 if re.match(r"^[0-9A-Fa-f]{4}[Ss]ub[0-9A-Fa-f]+$", name)}
     for section in parser.sections():
         for key, value in list(parser.items(section)):
             if value.strip():
                 continue
             action = _empty(section, key)
             if action == "keep":
+                continue
+            if key == "ObjectType" and section.upper() in with_subs:
+                parser.set(section, key, "0x9")   # its sub-indices make it a record
+                warnings.append(f"{where}: [{section}] {key}: empty value; read as 0x9 "
+                                f"(a record: the object has sub-indices)")
                 continue
             if action == "error":
                 raise ValueError(f"{where}: [{section}] {key}: empty; expected a number")
