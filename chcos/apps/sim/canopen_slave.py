@@ -395,10 +395,11 @@ class CanopenSlave:
         with self._lock:
             if not self._started:
                 return
-            self._started = False
+            self._started = False   # from here on nothing is sent
             self._stop_hb_task()
-            with contextlib.suppress(Exception):  # the bus is going away anyway
-                self._network.disconnect()
+        # outside the lock: the notifier thread, which disconnect joins, may be waiting for it
+        with contextlib.suppress(Exception):  # the bus is going away anyway
+            self._network.disconnect()
 
     def __enter__(self) -> CanopenSlave:
         self.start()
