@@ -6,15 +6,16 @@ check of a value for its data type. No bus I/O; the driver is :mod:`drivers.cano
 
 from __future__ import annotations
 
+import logging
 import struct
 from collections.abc import Mapping
 from typing import Any
 
-import canopen
 from canopen.objectdictionary import BOOLEAN, FLOAT_TYPES, INTEGER_TYPES
 from canopen.objectdictionary.datatypes import REAL32, SIGNED_TYPES
 
 from chcos.devices import parsecache
+from chcos.devices.eds_file import read_eds
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.helpers import is_int, is_number
 from drivers.base import not_finite
@@ -34,10 +35,18 @@ def load_od(bus: BusSpec, node_id: int, eds: str) -> Any:
     if not path.is_file():
         raise ValueError(f"EDS file {path} does not exist")
     try:
-        return parsecache.cached("eds", path, node_id,
-                                 lambda: canopen.import_od(str(path), node_id))
+        return parsecache.cached("eds", path, node_id, lambda: _read_od(path, node_id))
     except Exception as exc:  # canopen raises assorted types for a malformed EDS
         raise ValueError(f"canopen cannot read EDS {path}: {exc}") from exc
+
+
+def _read_od(path: Any, node_id: int) -> Any:
+    """The object dictionary, read tolerantly (:mod:`chcos.devices.eds_file`: an empty numeric
+    field is logged as a warning naming the file, section and key, not a rejection)."""
+    read = read_eds(path, node_id)
+    for warning in read.warnings:
+        logging.getLogger("chcos.eds").warning("%s", warning)
+    return read.od
 
 
 def checked_od(bus: BusSpec, node_id: int, eds: str) -> Any:

@@ -101,3 +101,26 @@ def test_cli_mains_run_and_return_zero(capsys: pytest.CaptureFixture[str]) -> No
     assert "units [1, 2]" in out and "node 9" in out
     assert canopen_slave.main(["--channel", "x", "--node", "200"]) == 2
     assert "node id 200" in capsys.readouterr().err
+
+
+def test_canopen_cli_raises_and_clears_a_fault_on_schedule(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    import can
+
+    channel = unique_channel("fbfault")
+    wire = can.Bus(interface="virtual", channel=channel)
+    try:
+        assert canopen_slave.main(["--channel", channel, "--node", "9", "--heartbeat", "0",
+                                   "--fault", "0x2310@0.1-0.3", "--duration", "0.5"]) == 0
+        frames = []
+        while (msg := wire.recv(0)) is not None:
+            frames.append((msg.arbitration_id, bytes(msg.data)))
+    finally:
+        wire.shutdown()
+    assert frames[0] == (0x709, b"\x00")                                   # boot-up
+    assert [d for cob, d in frames if cob == 0x89] == [bytes.fromhex("1023030000000000"),
+                                                       bytes(8)]          # EMCY, then reset
+    assert "fault 0x2310 raised" in capsys.readouterr().out
+    for bad in ("0x2310", "0x10@1", "0x2310@3-1", "x@1"):
+        assert canopen_slave.main(["--channel", channel, "--fault", bad]) == 2
+    assert "--fault 'x@1': expected CODE@START[-END]" in capsys.readouterr().err

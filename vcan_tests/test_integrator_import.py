@@ -186,3 +186,81 @@ def test_import_errors_name_the_file(tmp_path: Path,
     assert "expected a CANopen node id 1..127" in capsys.readouterr().err
     assert cli.main(["import", "dbc", str(VENDOR / "hpu_press.dbc"), "--node", "NOPE"]) == 2
     assert "expected one of the DBC's nodes (CELL_CTRL, HPU, PRESS_IO)" in capsys.readouterr().err
+
+
+def test_awkward_eds_imports_with_warnings_and_passes_check(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str],
+        caplog: pytest.LogCaptureFixture) -> None:
+    awkward = VENDOR / "awkward_ax7.eds"
+    import canopen
+
+    with pytest.raises(ValueError):
+        canopen.import_od(str(awkward), 3)   # the library alone rejects the whole file
+    out, devs = _import(tmp_path, "eds", str(awkward), "--node", "3", "--bus", "ax")
+    err = capsys.readouterr().err
+    # each empty numeric field named with its file, section and key - a warning, not an error
+    assert "awkward_ax7.eds: [DeviceInfo] VendorNumber: empty value" in err
+    assert "[Comments] Lines: empty value; read as 0" in err
+    assert "[2000] PDOMapping: empty value" in err
+    assert "no heartbeat producer (0x1017 default 0)" in err
+    assert "TPDO1 (type 1) is synchronous" in err and "sync_period = 0.01 s was chosen" in err
+    assert "DefaultValue" not in err               # no warning per object without a default
+    # chcos check (run by _import) reads the same file: a logged warning, not a rejection
+    assert any("awkward_ax7.eds: [DeviceInfo] VendorNumber: empty value" in r.getMessage()
+               for r in caplog.records if r.name == "chcos.eds")
+    doc = tomllib.loads(out.read_text(encoding="utf-8"))
+    bus = doc["bus"][0]
+    assert bus["sync_period"] == 0.01              # the synchronous TPDO gets its SYNC
+    assert set(bus["nodes"][0]) == {"id", "eds"}
+    assert "heartbeat_timeout" not in bus["nodes"][0]   # a suggestion, as a comment only
+    text = out.read_text(encoding="utf-8")
+    assert "# Heartbeat: node 3 produces none" in text and "heartbeat_timeout = 0.3" in text
+    assert "also mapped in RPDO2" in text
+    assert "7 object(s) have no DefaultValue" in text
+    assert devs["statusword"]["stale_after"] == 0.05      # 5 x (every SYNC x 10 ms)
+    assert devs["velocity_actual_value"]["stale_after"] == 0.25   # 5 x 50 ms event timer
+    assert devs["controlword"]["limits"] == [0.0, 65535.0]        # UNSIGNED16, no EDS limits
+    assert {n for n, d in devs.items() if d["direction"] == "actuator"} == {
+        "controlword", "modes_of_operation"}
+
+
+def test_eds_communication_cycle_sets_sync_period(tmp_path: Path) -> None:
+    text = (VENDOR / "awkward_ax7.eds").read_text(encoding="utf-8")
+    cycle = ("[1006]\nParameterName=Communication cycle period\nObjectType=0x7\n"
+             "DataType=0x0007\nAccessType=rw\nDefaultValue=4000\nPDOMapping=0\n\n")
+    eds = tmp_path / "cycle.eds"
+    eds.write_text(text.replace("[1010]", cycle + "[1010]"), encoding="utf-8")
+    out, devs = _import(tmp_path, "eds", str(eds), "--node", "3")
+    assert tomllib.loads(out.read_text(encoding="utf-8"))["bus"][0]["sync_period"] == 0.004
+    assert devs["statusword"]["stale_after"] == 0.02
+    # transmission type 4: a PDO every fourth SYNC, stale after five of those
+    eds.write_text(text.replace("[1010]", cycle + "[1010]").replace(
+        "ParameterName=Transmission type\nObjectType=0x7\nDataType=0x0005\n"
+        "AccessType=rw\nDefaultValue=1", "ParameterName=Transmission type\n"
+        "ObjectType=0x7\nDataType=0x0005\nAccessType=rw\nDefaultValue=4"),
+        encoding="utf-8")
+    out, devs = _import(tmp_path, "eds", str(eds), "--node", "3")
+    assert devs["statusword"]["stale_after"] == 0.08
+
+
+def test_eds_empty_required_field_is_an_error_naming_it(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    text = (VENDOR / "awkward_ax7.eds").read_text(encoding="utf-8")
+    eds = tmp_path / "broken.eds"
+    eds.write_text(text.replace("[6041]\nParameterName=Statusword\nObjectType=0x7\n"
+                                "DataType=0x0006", "[6041]\nParameterName=Statusword\n"
+                                "ObjectType=0x7\nDataType="), encoding="utf-8")
+    assert cli.main(["import", "eds", str(eds), "--node", "3"]) == 2
+    assert "broken.eds: [6041] DataType: empty; expected a number" in capsys.readouterr().err
+
+
+def test_eds_in_latin1_is_read_with_a_warning(tmp_path: Path,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    text = (VENDOR / "awkward_ax7.eds").read_text(encoding="utf-8")
+    eds = tmp_path / "latin.eds"
+    eds.write_bytes(text.replace("ParameterName=Heat sink temperature",
+                                 "ParameterName=Kühlkörpertemperatur").encode("latin-1"))
+    out, devs = _import(tmp_path, "eds", str(eds), "--node", "3")
+    assert "latin.eds: not UTF-8; read as Latin-1" in capsys.readouterr().err
+    assert "# 0x2000:00 Kühlkörpertemperatur: SDO" in out.read_text(encoding="utf-8")
+    assert devs["k_hlk_rpertemperatur"]["address"]["index"] == 0x2000

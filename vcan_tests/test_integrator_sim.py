@@ -21,7 +21,7 @@ import pytest
 from chcos.apps.sim.scripts import csv_trace, parse_script
 from chcos.cli import cellrun, scaffold
 from chcos.cli import main as cli
-from chcos.errors import ConfigError
+from chcos.errors import ConfigError, DeviceError
 from chcos.helpers import free_port
 
 VENDOR = Path(__file__).resolve().parent / "vendor"
@@ -261,3 +261,64 @@ def test_sim_from_map_faults_on_a_schedule(tmp_path: Path,
     assert "the end must come after the start" in capsys.readouterr().err
     assert cli.main(["sim", "--from", devices, "--value", "valve=3"]) == 2
     assert "'valve' is not a sensor" in capsys.readouterr().err
+
+
+def test_vendor_node_with_sync_tpdos_and_no_defaults_runs_virtual(tmp_path: Path) -> None:
+    # the awkward EDS: synchronous TPDO1 (statusword, position), objects without a
+    # DefaultValue, empty numeric fields. Imported as is, it runs healthy on virtual time: the
+    # imported sync_period makes the simulated node send TPDO1 and SDO reads of an object
+    # without a default are answered (0)
+    devmap = tmp_path / "ax7.toml"
+    assert cli.main(["import", "eds", str(VENDOR / "awkward_ax7.eds"), "--node", "3",
+                     "--bus", "ax", "-o", str(devmap)]) == 0
+    system = _system(tmp_path, devmap, "install -m0 sysfile\n")
+    with cellrun.open_cell(system, virtual=True) as cell:
+        slaves = cell.slaves
+        assert slaves is not None
+        node = slaves.canopen_node("ax", 3)
+        assert node.wait_state("OPERATIONAL", 10)
+        slaves.set("statusword", 0x0237)
+        slaves.set("position_actual_value", -4321)
+        deadline = time.monotonic() + 10
+        while cell.device("position_actual_value").value != -4321 \
+                and time.monotonic() < deadline:
+            cell.run_for(0.05)       # SYNC runs on wall time: give it some
+        assert cell.device("position_actual_value").value == -4321     # by TPDO1, on SYNC
+        assert cell.device("statusword").value == 0x0237
+        assert node.stats.syncs > 0 and node.stats.tpdos > 0
+        cell.run_for(0.5)
+        assert cell.device("heat_sink_temperature").value == 0          # no default: zero
+        assert cell.device("heat_sink_temperature").status.value == "OK"
+        with pytest.raises(DeviceError, match="'nope' has no simulated peer"):
+            slaves.canopen_node("nope", 3)
+        with pytest.raises(DeviceError, match="no simulated CANopen node 9"):
+            slaves.canopen_node("ax", 9)
+
+
+def test_sim_from_map_raises_emcy_faults_on_a_schedule(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import can
+
+    channel = f"emcy-{os.getpid()}"
+    devmap = tmp_path / "ax7.toml"
+    assert cli.main(["import", "eds", str(VENDOR / "awkward_ax7.eds"), "--node", "3",
+                     "--bus", "ax", "--interface", "virtual", "--channel", channel,
+                     "-o", str(devmap)]) == 0
+    wire = can.Bus(interface="virtual", channel=channel)   # what the node puts on the bus
+    try:
+        assert cli.main(["sim", "--from", str(devmap), "--emcy", "ax:3:0x4210@0.2-0.5",
+                         "--duration", "0.8"]) == 0
+        frames = []
+        while (msg := wire.recv(0)) is not None:
+            frames.append(msg)
+    finally:
+        wire.shutdown()
+    out = capsys.readouterr().out
+    assert "fault: node 3 EMCY 0x4210" in out and "fault over: node 3 error reset" in out
+    assert bytes(frames[0].data) == b"\x00" and frames[0].arbitration_id == 0x703  # boot-up
+    emcy = [bytes(m.data) for m in frames if m.arbitration_id == 0x83]
+    assert emcy == [bytes.fromhex("1042090000000000"), bytes(8)]
+    for bad in ("ax:3:0x10@1", "ax:9:0x4210@1", "nope:3:0x4210@1", "ax:0x4210@1"):
+        assert cli.main(["sim", "--from", str(devmap), "--emcy", bad]) == 2
+    err = capsys.readouterr().err
+    assert "--emcy 'ax:9:0x4210@1': bus 'ax' has no simulated CANopen node 9" in err

@@ -12,8 +12,9 @@ that answers the bus's devices on the real protocol:
   round) every cycle (the DBC's ``GenMsgCycleTime``, else 0.1 s) and decodes the actuators'
   frames;
 * ``canopen`` - per node, :class:`chcos.apps.sim.canopen_slave.CanopenSlave` over the node's EDS
-  (canopen's LocalNode: SDO server, NMT, RPDOs applied, TPDOs sent on change and every event
-  timer) with a heartbeat every third of the map's ``heartbeat_timeout``;
+  on the slaves' clock: boot-up, NMT state machine, SDO server (zero for objects without a
+  default), RPDOs applied, TPDOs on change, event timer and SYNC, EMCY on injected faults
+  (:meth:`SimSlaves.canopen_node`), a heartbeat every third of the map's ``heartbeat_timeout``;
 * ``serial`` - a TCP serial server (the driver reaches it as ``socket://127.0.0.1:PORT``)
   speaking the bus's framing: a line protocol's sensor lines are generated from its ``pattern``
   (the named groups filled with the values; the line is checked against the pattern), binary
@@ -46,7 +47,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from chcos.apps.sim.peers import CanopenPeer, CanPeer, ModbusPeer, Peer
 from chcos.apps.sim.scripts import Script, parse_script
@@ -54,6 +55,11 @@ from chcos.apps.sim.serial_peer import SerialPeer
 from chcos.devices.spec import BusSpec, DeviceMap, DeviceSpec
 from chcos.errors import ConfigError, DeviceError
 from chcos.helpers import is_number
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from chcos.apps.sim.canopen_slave import CanopenSlave
 
 IN_PROCESS = ("memory", "signal", "weld-direct")
 """Bus kinds that need no simulated peer."""
@@ -64,6 +70,33 @@ TICK = 0.01
 
 PEERS: dict[str, type[Peer]] = {"modbus-tcp": ModbusPeer, "modbus-rtu": ModbusPeer,
                                 "can": CanPeer, "canopen": CanopenPeer, "serial": SerialPeer}
+
+
+@dataclass
+class EmcyFault:
+    """A fault scheduled on a simulated CANopen node (:meth:`SimSlaves.schedule_emcy`)."""
+
+    node: CanopenSlave
+    code: int
+    start: float
+    end: float
+    report: Callable[[str], None] | None = None
+    raised: bool = False
+
+    def apply(self, now: float) -> None:
+        """Raise or clear the fault as ``now`` (seconds since the start) says."""
+        if self.start <= now < self.end and not self.raised:
+            self.node.inject_fault(self.code)
+            self.raised = True
+            line = f"fault: node {self.node.node_id} EMCY 0x{self.code:04X}"
+        elif now >= self.end and self.raised:
+            self.node.clear_fault(self.code)
+            self.raised = False
+            line = f"fault over: node {self.node.node_id} error reset"
+        else:
+            return
+        if self.report is not None:
+            self.report(f"t={now:6.1f} s  {line}")
 
 
 @dataclass
@@ -78,6 +111,7 @@ class SimSlaves:
     _rt: threading.Thread | None = None
     _rt_stop: threading.Event = dataclasses.field(default_factory=threading.Event)
     _closed: bool = False
+    _emcy_plan: list[EmcyFault] = dataclasses.field(default_factory=list)
 
     def simulated(self, device: str) -> bool:
         """True if ``device`` has a simulated peer that :meth:`set`/:meth:`get` reach."""
@@ -136,6 +170,42 @@ class SimSlaves:
             raise DeviceError(f"bus {bus!r} has no simulated peer (simulated: "
                               f"{', '.join(sorted(self.peers)) or 'none'})") from None
 
+    def canopen_node(self, bus: str, node: int) -> CanopenSlave:
+        """The simulated CANopen node ``node`` of ``bus``, for fault scripts: its
+        ``inject_fault``/``clear_fault`` (0x1001 and EMCY), ``reset``, ``silence``. Raises
+        DeviceError naming the bus for a bus without simulated CANopen nodes or another id."""
+        peer = self._bus(bus)
+        if not isinstance(peer, CanopenPeer):
+            raise DeviceError(f"bus {bus!r} is a {peer.bus.kind!r} bus, not canopen")
+        try:
+            return peer.node(node)  # type: ignore[no-any-return]
+        except ConfigError as exc:
+            raise DeviceError(str(exc)) from None
+
+    def schedule_emcy(self, items: list[str],
+                      report: Callable[[str], None] | None = None) -> None:
+        """Faults on simulated CANopen nodes from ``BUS:NODE:CODE@START[-END]`` items
+        (``--emcy``): from START seconds the node raises CODE (0x1001 and EMCY), at END it
+        clears it (error-reset EMCY), on this handle's clock. ``report`` gets a line for each.
+        Raises ConfigError naming the item; nothing is scheduled then."""
+        from chcos.apps.sim.canopen_slave import fault_arg
+
+        plan = []
+        for item in items:
+            where, at, span = item.partition("@")
+            parts = where.split(":")
+            if len(parts) != 3 or not at:
+                raise ConfigError(f"--emcy {item!r}: expected BUS:NODE:CODE@START[-END], e.g. "
+                                  "axis:5:0x4210@2-6")
+            bus, node_text, code_text = parts
+            code, t0, t1 = fault_arg(f"{code_text}@{span}")
+            try:
+                node = self.canopen_node(bus, int(node_text, 0))
+            except (DeviceError, ValueError) as exc:
+                raise ConfigError(f"--emcy {item!r}: {exc}") from None
+            plan.append(EmcyFault(node, code, t0, t1, report))
+        self._emcy_plan.extend(plan)
+
     def describe(self) -> list[str]:
         """One line per peer: the bus and where it listens."""
         return [f"{name}: {peer.describe()}" for name, peer in self.peers.items()]
@@ -146,6 +216,8 @@ class SimSlaves:
             self.set(device, fn(now))
         for peer in self.peers.values():
             peer.tick(now)
+        for fault in self._emcy_plan:
+            fault.apply(now)
 
     def attach(self, kernel: Any) -> None:
         """Run on ``kernel``'s clock from now (virtual time stays deterministic)."""
@@ -249,6 +321,10 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--value", action="append", default=[], metavar="DEVICE=SCRIPT",
                     help="a sensor's value: a number, ramp(start, end, period), sine(center, "
                          "amplitude, period), square(low, high, period) or csv(FILE[, column])")
+    ap.add_argument("--emcy", action="append", default=[], metavar="BUS:NODE:CODE@START[-END]",
+                    help="raise fault CODE on CANopen node NODE of BUS from START seconds (to "
+                         "END): 0x1001 set, an EMCY sent, an error-reset EMCY when it ends, "
+                         "e.g. axis:5:0x4210@2-6")
     ap.add_argument("--fault", action="append", default=[], metavar="BUS@START[-END]",
                     help="silence the peer of BUS from START seconds (to END), e.g. plc@5-8: "
                          "a Modbus server closes its port, CAN and CANopen nodes stop sending")
@@ -269,6 +345,7 @@ def main(argv: list[str]) -> int:
                     raise ConfigError(f"--value {item!r}: {name!r} is not a sensor of the maps")
                 slaves.script(name, parse_script(spec, Path.cwd()))
             faults = [_fault(item, slaves) for item in args.fault]
+            slaves.schedule_emcy(args.emcy, report=lambda line: print(line, flush=True))
             for line in slaves.describe():
                 print(f"simulating {line}", flush=True)
             slaves.run_realtime()

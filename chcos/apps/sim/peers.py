@@ -225,8 +225,13 @@ class CanPeer(Mutable, Peer):
 
 
 class CanopenPeer(Peer):
+    """Per node of the bus, a :class:`chcos.apps.sim.canopen_slave.CanopenSlave` on the tick
+    clock (virtual time stays deterministic): heartbeat every third of the node's
+    ``heartbeat_timeout`` (none without it), TPDOs on change, event timer and SYNC, no plant
+    (values come from :meth:`set` and scripts). :meth:`node` hands a node to fault scripts."""
+
     def __init__(self, bus: BusSpec, devices: tuple[DeviceSpec, ...], rewrite: bool) -> None:
-        from chcos.apps.sim.canopen_slave import CanopenSlave
+        from chcos.apps.sim.canopen_slave import CanopenSlave, Clock
         from drivers.codecs.canopen import eds_path
 
         self.args = can_args(bus.options, rewrite, bus.name)
@@ -235,24 +240,30 @@ class CanopenPeer(Peer):
             options.update(self.args)
         self.bus = dataclasses.replace(bus, options=options)
         self.slaves: dict[int, Any] = {}
-        self.heartbeat: dict[int, float] = {}
-        self.muted = False
-        self.next_hb: dict[int, float] = {}
-        self.next_tpdo: dict[int, float] = {}
+        self.last = 0.0
         try:
             for node in bus.options.get("nodes", []):
                 nid = int(node["id"])
+                timeout = float(node.get("heartbeat_timeout") or 0)
                 slave = CanopenSlave(nid, eds_path(bus, str(node["eds"])),
                                      channel=str(self.args["channel"]),
-                                     interface=str(self.args["interface"]), heartbeat_period=0.0)
-                slave.start()
+                                     interface=str(self.args["interface"]),
+                                     heartbeat_period=timeout / 3, clock=Clock.TICK,
+                                     servo=False)
                 self.slaves[nid] = slave
-                if node.get("heartbeat_timeout"):
-                    self.heartbeat[nid] = float(node["heartbeat_timeout"]) / 3
-                    self.next_hb[nid] = 0.0
+                slave.start()
         except BaseException:
             self.close()
             raise
+
+    def node(self, node_id: int) -> Any:
+        """The simulated node ``node_id`` (a ``CanopenSlave``); raises ConfigError naming the
+        bus's nodes for another id."""
+        try:
+            return self.slaves[node_id]
+        except KeyError:
+            raise ConfigError(f"bus {self.bus.name!r} has no simulated CANopen node "
+                              f"{node_id} (nodes: {', '.join(map(str, self.slaves))})") from None
 
     def _slave(self, device: DeviceSpec) -> tuple[Any, int, int]:
         a = device.address
@@ -260,13 +271,8 @@ class CanopenPeer(Peer):
 
     def set(self, device: DeviceSpec, raw: Any) -> None:
         slave, index, sub = self._slave(device)
-        var = slave._var(index, sub)  # the EDS's type decides how the value is coded
-        if getattr(var, "data_type", None) not in float_types():
+        if slave.data_type(index, sub) not in float_types():
             raw = round(raw) if not isinstance(raw, bool) else raw
-        if self.muted:
-            with slave._lock:
-                slave._node.data_store.setdefault(index, {})[sub] = var.encode_raw(raw)
-            return
         slave.set(index, sub, raw)
 
     def get(self, device: DeviceSpec) -> Any:
@@ -274,28 +280,17 @@ class CanopenPeer(Peer):
         return slave.get(index, sub)
 
     def tick(self, now: float) -> None:
-        if self.muted:
-            return
-        for nid, period in self.heartbeat.items():
-            if now + 1e-9 >= self.next_hb[nid]:
-                self.next_hb[nid] = now + period
-                slave = self.slaves[nid]
-                state = {"OPERATIONAL": 0x05, "STOPPED": 0x04}.get(slave.nmt_state, 0x7F)
-                slave._network.send_message(0x700 + nid, bytes([state]))
-        for slave in self.slaves.values():  # TPDO event timers
-            period = slave._tpdo_event_period()
-            if period is None:
-                continue
-            if now + 1e-9 >= self.next_tpdo.get(slave.node_id, 0.0):
-                self.next_tpdo[slave.node_id] = now + period
-                for pdo_map in slave._node.tpdo.map.values():
-                    slave._transmit(pdo_map)
+        dt, self.last = max(0.0, now - self.last), now
+        for slave in self.slaves.values():
+            slave.tick(dt)
 
     def silence(self) -> None:
-        self.muted = True
+        for slave in self.slaves.values():
+            slave.silence()
 
     def restore(self) -> None:
-        self.muted = False
+        for slave in self.slaves.values():
+            slave.restore()
 
     def describe(self) -> str:
         return (f"CANopen node(s) {', '.join(str(n) for n in self.slaves)} on "

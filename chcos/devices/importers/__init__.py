@@ -114,6 +114,8 @@ def main(argv: Sequence[str]) -> int:
             draft = import_modbus_csv(args.file, bus=args.bus or "plc", host=args.host,
                                       port=args.port, unit=args.unit, machine=args.machine,
                                       prefix=args.prefix, one_based=args.one_based)
+        for warning in draft.warnings:
+            print(f"warning: {warning}", file=sys.stderr)
         _write(render(draft), args.output)
     except (ConfigError, OSError) as exc:
         print(f"chcos import {args.kind}: {exc}", file=sys.stderr)

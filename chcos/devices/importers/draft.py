@@ -22,6 +22,8 @@ class MapDraft:
     header: list[str] = field(default_factory=list)
     buses: list[dict[str, Any]] = field(default_factory=list)
     devices: list[tuple[list[str], dict[str, Any]]] = field(default_factory=list)
+    #: what will not work on a real bus as imported (printed on stderr by ``chcos import``)
+    warnings: list[str] = field(default_factory=list)
     _names: set[str] = field(default_factory=set)
 
     def name(self, text: str, prefix: str = "") -> str:

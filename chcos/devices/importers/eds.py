@@ -15,6 +15,21 @@ Names come from the EDS's ParameterName (a record's name joined with the entry's
 LowLimit/HighLimit; units and scale from canopen's ``unit``/``factor`` where the EDS has them.
 The bus gets ``nodes = [{id, eds, heartbeat_timeout}]`` (three producer-heartbeat periods, from
 0x1017, when it is set). Nothing else is guessed: safe values are left for the user to set.
+
+What will not work on a real bus is said twice, as a warning (:attr:`MapDraft.warnings`, printed
+by ``chcos import``) and as a comment in the map:
+
+* synchronous TPDOs (transmission type 0..240) never arrive without SYNC: the bus gets
+  ``sync_period`` from the EDS's communication cycle period (0x1006) or, without one,
+  :data:`DEFAULT_SYNC_PERIOD` with a warning saying it was chosen; their sensors'
+  ``stale_after`` is five PDO periods;
+* a node without a heartbeat producer (0x1017 = 0) cannot be supervised: a warning, and the
+  configuration to give it (0x1017, then ``heartbeat_timeout``) as a comment;
+* an object mapped into two RPDOs is named with both PDOs.
+
+The EDS is read tolerantly (:func:`chcos.devices.eds_file.read_eds`: an empty numeric field is a
+warning naming the file, section and key). Objects without a DefaultValue are counted in one
+comment line, not one warning each.
 """
 
 from __future__ import annotations
@@ -29,17 +44,22 @@ ACCESS_SENSOR = ("ro", "const", "rw", "rwr")
 ACCESS_ACTUATOR = ("wo", "rww")
 
 
-def _load(path: str | Path, node: int) -> Any:
-    import canopen.objectdictionary as od_mod
+#: SYNC period chosen for synchronous TPDOs when the EDS gives no cycle (0x1006), seconds.
+DEFAULT_SYNC_PERIOD = 0.01
+#: Producer heartbeat time suggested for a node that has none, milliseconds.
+SUGGESTED_HEARTBEAT_MS = 100
+
+
+def _load(path: str | Path, node: int) -> tuple[Any, tuple[str, ...]]:
+    from chcos.devices.eds_file import read_eds
 
     if not 1 <= node <= 127:
         raise ConfigError(f"--node {node}: expected a CANopen node id 1..127")
     try:
-        return od_mod.import_od(str(path), node)
-    except FileNotFoundError as exc:
-        raise ConfigError(f"{path}: cannot read the EDS: {exc}") from exc
-    except Exception as exc:  # canopen raises several kinds for a malformed file
-        raise ConfigError(f"{path}: not a readable EDS: {exc}") from exc
+        read = read_eds(path, node)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from exc
+    return read.od, read.warnings
 
 
 def od_default(od: Any, index: int, sub: int) -> int | None:
@@ -79,6 +99,34 @@ def pdo_mappings(od: Any, comm: int, mapping: int) -> list[tuple[int, int, int, 
     return out
 
 
+def pdo_params(od: Any, comm: int) -> list[tuple[int, int, int, int]]:
+    """(pdo number, cob id, transmission type, event timer ms) of every enabled PDO of the
+    communication range ``comm`` (0x1400 RPDOs, 0x1800 TPDOs); the type is 255 when absent."""
+    out = []
+    for n in range(512):
+        if comm + n not in od:
+            continue
+        cob = od_default(od, comm + n, 1)
+        if cob is None or cob & 0x8000_0000:
+            continue
+        trans = od_default(od, comm + n, 2)
+        out.append((n + 1, cob & 0x1FFF_FFFF, 255 if trans is None else trans,
+                    od_default(od, comm + n, 5) or 0))
+    return out
+
+
+def _no_default(od: Any) -> list[str]:
+    """``index:sub`` of every numeric object without a DefaultValue (nor ParameterValue)."""
+    out: list[str] = []
+    for index in sorted(od.indices):
+        obj = od[index]
+        subs = [obj] if not hasattr(obj, "subindices") else \
+            [obj[s] for s in sorted(obj.subindices)]
+        out.extend(f"0x{v.index:04X}:{v.subindex:02X}" for v in subs
+                   if _numeric(v) and v.default is None and v.value is None)
+    return out
+
+
 def _numeric(var: Any) -> bool:
     from canopen.objectdictionary import BOOLEAN, FLOAT_TYPES, INTEGER_TYPES
 
@@ -101,8 +149,17 @@ def _device(draft: MapDraft, var: Any, direction: str, bus: str, machine: int, p
     factor = float(getattr(var, "factor", 1) or 1)
     if factor != 1:
         dev["scale"] = factor
-    lim = limits(None if var.min is None else var.min * factor,
-                 None if var.max is None else var.max * factor)
+    lo, hi = var.min, var.max
+    if direction == "actuator":
+        from drivers.canopen_od import accepted
+
+        # an open end is the data type's: check then has nothing to warn about, the driver
+        # refuses what the object cannot hold before it reaches the bus
+        span = accepted(var)
+        if span is not None:
+            lo = span[0] if lo is None else lo
+            hi = span[1] if hi is None else hi
+    lim = limits(None if lo is None else lo * factor, None if hi is None else hi * factor)
     if lim is not None:
         dev["limits"] = lim
     if getattr(var, "unit", ""):
@@ -116,20 +173,64 @@ def import_eds(path: str | Path, node: int, *, bus: str = "canopen", machine: in
     """The device map draft of node ``node`` described by the EDS at ``path`` (see the module
     doc); ``eds_ref`` is how the map names the EDS (default: ``path`` as given). Raises
     ConfigError naming the file if it is not a readable EDS or the node id is out of range."""
-    od = _load(path, node)
+    od, read_warnings = _load(path, node)
     draft = MapDraft()
+    draft.warnings.extend(read_warnings)
     info = getattr(od, "device_information", None)
     vendor = getattr(info, "vendor_name", None) or "?"
     product = getattr(info, "product_name", None) or "?"
     draft.header = [f"CANopen node {node}: {product} ({vendor}), imported from {Path(path).name}",
                     "by chcos import eds. Check with chcos check; set safe_value on the actuators.",
                     "Delete interface/channel to take them from python-can's configuration."]
+    where = Path(path).name
     node_table: dict[str, Any] = {"id": node, "eds": eds_ref or str(path)}
-    hb = od_default(od, 0x1017, 0)
+    hb = od_default(od, 0x1017, 0) if od.get_variable(0x1017, 0) is not None else None
     if hb:
         node_table["heartbeat_timeout"] = round(3 * hb / 1000, 3)
-    draft.buses.append({"name": bus, "kind": "canopen", "interface": interface,
-                        "channel": channel, "nodes": [node_table]})
+    else:
+        draft.warnings.append(
+            f"{where}: node {node} has no heartbeat producer (0x1017 "
+            f"{'absent' if hb is None else 'default 0'}): chcos cannot notice it disappear; "
+            f"configure 0x1017 = {SUGGESTED_HEARTBEAT_MS} ms on the node, then set "
+            f"heartbeat_timeout = {3 * SUGGESTED_HEARTBEAT_MS / 1000:g}")
+        draft.header.append(
+            f"Heartbeat: node {node} produces none (0x1017 = 0). Once the node is configured "
+            f"with 0x1017 = {SUGGESTED_HEARTBEAT_MS} ms, add to its nodes entry: "
+            f"heartbeat_timeout = {3 * SUGGESTED_HEARTBEAT_MS / 1000:g}")
+    if od.get_variable(0x1016, 1) is not None:
+        draft.header.append(
+            "Controller loss: the node has a heartbeat consumer (0x1016); pointed at the "
+            "master's heartbeat it stops the node when the controller dies"
+            + (" (with 0x6007, the abort connection option code, saying how)."
+               if od.get_variable(0x6007, 0) is not None else "."))
+    bus_table: dict[str, Any] = {"name": bus, "kind": "canopen", "interface": interface,
+                                 "channel": channel}
+    tpdos = {n: (cob, trans, timer) for n, cob, trans, timer in pdo_params(od, 0x1800)}
+    rpdos = {n: (cob, trans, timer) for n, cob, trans, timer in pdo_params(od, 0x1400)}
+    sync_types = {n: trans for n, (_, trans, _) in tpdos.items() if trans <= 240}
+    sync_period: float | None = None
+    if sync_types:
+        shown = ", ".join(f"TPDO{n} (type {t})" for n, t in sorted(sync_types.items())) \
+            + (" is" if len(sync_types) == 1 else " are")
+        cycle_us = od_default(od, 0x1006, 0) if od.get_variable(0x1006, 0) is not None else None
+        if cycle_us:
+            sync_period = cycle_us / 1e6
+            draft.header.append(f"SYNC: {shown} synchronous; sync_period = "
+                                f"{sync_period:g} s from the communication cycle (0x1006).")
+        else:
+            sync_period = DEFAULT_SYNC_PERIOD
+            draft.warnings.append(
+                f"{where}: {shown} synchronous: sent on SYNC only, never without it; the EDS "
+                f"gives no cycle (0x1006), so sync_period = {sync_period:g} s was chosen: set "
+                f"the cycle your drive and bus need")
+            draft.header.append(f"SYNC: {shown} synchronous (sent on SYNC only); "
+                                f"sync_period = {sync_period:g} s was chosen: set your cycle.")
+        bus_table["sync_period"] = sync_period
+    bus_table["nodes"] = [node_table]
+    draft.buses.append(bus_table)
+    rpdos_of: dict[tuple[int, int], list[int]] = {}
+    for n, index, sub, _timer, _cob in pdo_mappings(od, 0x1400, 0x1600):
+        rpdos_of.setdefault((index, sub), []).append(n)
     done: set[tuple[int, int]] = set()
     for kind, comm, mapping, direction in (("TPDO", 0x1800, 0x1A00, "sensor"),
                                            ("RPDO", 0x1400, 0x1600, "actuator")):
@@ -140,10 +241,22 @@ def import_eds(path: str | Path, node: int, *, bus: str = "canopen", machine: in
             done.add((index, sub))
             dev = _device(draft, var, direction, bus, machine, prefix, node)
             notes = [f"0x{index:04X}:{sub:02X} {_name(var)}: {kind}{n} (COB-ID 0x{cob:03X})"]
-            if direction == "sensor" and timer:
+            trans = (tpdos if kind == "TPDO" else rpdos).get(n, (0, 255, 0))[1]
+            if direction == "sensor" and trans <= 240 and sync_period is not None:
+                every = max(1, trans)
+                dev["stale_after"] = round(5 * every * sync_period, 6)
+                notes.append(f"synchronous (type {trans}): every "
+                             f"{'changed ' if trans == 0 else ''}"
+                             f"{'' if every == 1 else f'{every}th '}SYNC; stale after five "
+                             f"PDO periods")
+            elif direction == "sensor" and timer:
                 dev["stale_after"] = round(5 * timer / 1000, 3)
                 notes.append(f"event timer {timer} ms: stale after five periods")
             if direction == "actuator":
+                also = [f"RPDO{m}" for m in rpdos_of.get((index, sub), []) if m != n]
+                if also:
+                    notes.append(f"also mapped in {', '.join(also)}: every RPDO mapping it "
+                                 f"carries the value written")
                 notes.append("set safe_value: written on e-stop, task failure and shutdown")
             draft.add(notes, dev)
     if sdo:
@@ -171,4 +284,10 @@ def import_eds(path: str | Path, node: int, *, bus: str = "canopen", machine: in
                 draft.add(notes, dev)
     if not draft.devices:
         raise ConfigError(f"{path}: no PDO-mapped or application object in node {node}'s EDS")
+    missing = _no_default(od)
+    if missing:
+        draft.header.append(
+            f"{len(missing)} object(s) have no DefaultValue (the node answers what it holds; "
+            f"no safe value is derived from them): {', '.join(missing[:8])}"
+            + (", ..." if len(missing) > 8 else ""))
     return draft
