@@ -1,8 +1,16 @@
 """canopen_events - the receive side of the ``canopen`` driver (:mod:`drivers.canopen_node`):
 the frames of its reader thread handed to canopen's listeners (SDO responses, PDOs, heartbeats,
-EMCY), TPDO readings, the heartbeat watchdog of the nodes, EMCY failures and recoveries, and the
-frames canopen would drop quietly. :class:`CanopenEvents` holds the driver's state; the life
-cycle, the SDO polls and the writes are :class:`drivers.canopen_node.CanopenDriver`.
+EMCY), TPDO readings, the NMT state of each heartbeat driving the node's lifecycle (a boot-up is
+a reboot), heartbeat supervision (on its own thread, :mod:`drivers.canopen_watchdog`), EMCY
+failures and recoveries, and the frames canopen would drop quietly. :class:`CanopenEvents`
+holds the driver's state; the life cycle of the driver, the boot procedure of the nodes, the SDO
+polls and the writes are :class:`drivers.canopen_node.CanopenDriver`.
+
+Failure causes of a device (:class:`drivers.health.Health`, each with its reason): ``lifecycle``
+(the node is not in the state the map requires: waiting for its boot-up, rebooted, identity
+mismatch, configuration refused, held in PRE-OPERATIONAL), ``heartbeat`` (lost), ``emcy`` (a
+fatal EMCY, or the error register 0x1001 set at boot), ``sdo`` (a transfer of this device
+failed). A device recovers when its last cause clears.
 """
 
 from __future__ import annotations
@@ -10,14 +18,18 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import can
 
 from chcos.devices.spec import BusSpec, DeviceSpec
 from drivers.base import DriverHost, deliver_all
-from drivers.canopen_od import DEFAULT_POLL
+from drivers.canopen_jobs import OP, BootNode, ReportHeld
+from drivers.canopen_lifecycle import NmtState, NodeLifecycle, NodeStatus
+from drivers.canopen_od import DEFAULT_MASTER_ID, DEFAULT_POLL
+from drivers.canopen_remote import ManagedNode
+from drivers.canopen_watchdog import HeartbeatWatchdog
 from drivers.codecs.canopen import (
     emcy_node,
     heartbeat_node,
@@ -46,33 +58,21 @@ class Binding:
     poll_period: float = DEFAULT_POLL
 
 
-@dataclass
-class NodeState:
-    """A node of the bus: its canopen RemoteNode, heartbeat supervision and devices."""
-
-    node: Any
-    heartbeat_timeout: float | None
-    nmt_start: bool
-    last_heartbeat: float = field(default_factory=time.monotonic)
-    lost: bool = False
-    devices: list[str] = field(default_factory=list)
-
-
 class CanopenEvents(WorkerJobDriver):
     """The state of a ``canopen`` driver and its receive side (see the module doc)."""
 
     def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
         super().__init__(bus, devices, host)
         self._health = Health(host)
-        self._hb_lock = threading.Lock()      # guards NodeState.last_heartbeat and .lost
         self._network: Any = None
-        self._nodes: dict[int, NodeState] = {}
+        self._nodes: dict[int, ManagedNode] = {}
         self._bindings: dict[str, Binding] = {}
         self._pdo_sensors: dict[tuple[int, int, int], list[str]] = {}
         self._poll_groups: dict[float, list[Binding]] = {}   # SDO-polled sensors by period
         self._bus_failed = False
-        #: whether any node has heartbeat supervision (set at start; the watchdog's fast exit)
-        self._watched = False
+        self._watchdog: HeartbeatWatchdog | None = None
+        #: the node id of this master's heartbeat (bus option ``master_node_id``)
+        self._master_id = DEFAULT_MASTER_ID
         #: frames handed to canopen's listeners, written by whoever receives (the reader, or a
         #: settle's drain: one at a time, under the reader's lock); of which reported to the
         #: host as ``frames`` (:meth:`_tell_frames`, under ``_told_lock``)
@@ -80,13 +80,52 @@ class CanopenEvents(WorkerJobDriver):
         self._frames_told = 0
         self._told_lock = threading.Lock()
 
-    # -- I/O thread: the heartbeat watchdog -------------------------------------------------
+    # -- what the driver shows ------------------------------------------------------------------
+
+    def node_states(self) -> dict[int, NodeStatus]:
+        """Each node's lifecycle status by node id (see :class:`NodeStatus`). Thread-safe."""
+        out = {}
+        for nid, node in self._nodes.items():
+            with node.lock:
+                out[nid] = node.lifecycle.status()
+        return out
+
+    # -- the node's readiness and its devices ----------------------------------------------------
+
+    def _where(self, node: ManagedNode) -> str:
+        return node.where(self.bus.name)
+
+    def _judge(self, node: ManagedNode, why_ok: str) -> None:
+        """Fail or recover ``node``'s devices (cause ``lifecycle``) by its lifecycle: OK only
+        while it is ready; while the driver is first bringing it up, not failed yet."""
+        with node.lock:
+            ready = node.lifecycle.ready()
+            if ready:
+                node.starting = False
+            hold = node.starting
+            reason = f"{self._where(node)}: {node.lifecycle.state.value}: {node.lifecycle.reason}"
+        if ready:
+            for dev in node.devices:
+                self._health.clear(dev, "lifecycle", f"{self._where(node)}: {why_ok}")
+        elif not hold:
+            for dev in node.devices:
+                self._health.fail(dev, "lifecycle", reason)
+
+    def _fail_node(self, node: ManagedNode, cause: str, reason: str) -> None:
+        for dev in node.devices:
+            self._health.fail(dev, cause, reason)
+
+    def _clear_node(self, node: ManagedNode, cause: str, why: str) -> None:
+        for dev in node.devices:
+            self._health.clear(dev, cause, why)
+
+    # -- the watchdog thread ----------------------------------------------------------------------
 
     def _tick(self) -> float:
-        """The worker's longest wait for a job: until the next heartbeat deadline. Before each
-        job and at least every 0.5 s: the frames received meanwhile go to the bus statistics."""
+        """The worker's longest wait for a job; the frames received meanwhile go to the bus
+        statistics before each job and at least every 0.5 s."""
         self._tell_frames()
-        return self._watchdog() if self._watched else 0.5
+        return 0.5
 
     def _tell_frames(self) -> None:
         """Count the frames received since the last call in the host's ``frames`` statistic,
@@ -105,37 +144,47 @@ class CanopenEvents(WorkerJobDriver):
         finally:
             self._tell_frames()
 
-    def _watchdog(self) -> float:
-        """Fail the devices of nodes whose heartbeat is overdue; the time to the next deadline.
-        Before it declares a node lost it has the reader hand over every frame the operating
-        system already holds: after this process was stalled (a loaded machine, a virtual one)
-        the I/O thread may wake before the reader, and a heartbeat waiting in the socket is not a
-        missing one."""
+    def _check_heartbeats(self) -> float:
+        """Fail the devices of nodes whose heartbeat is overdue; the time to the next deadline
+        (the watchdog thread). Before it declares a node lost it has the reader hand over every
+        frame the operating system already holds: after this process was stalled (a loaded
+        machine, a virtual one) the watchdog may wake before the reader, and a heartbeat waiting
+        in the socket is not a missing one."""
         now = time.monotonic()
-        with self._hb_lock:
-            overdue = any(s.heartbeat_timeout is not None and not s.lost
-                          and now - s.last_heartbeat > s.heartbeat_timeout
-                          for s in self._nodes.values())
+        overdue = False
+        for s in self._nodes.values():
+            with s.lock:
+                overdue |= (s.heartbeat_timeout is not None and not s.lost
+                            and now - s.last_heartbeat > s.heartbeat_timeout)
         rx = self._rx
         if overdue and rx is not None:
-            # a late heartbeat is not a dead node: first hand over every frame the OS already
-            # received (this thread or the reader may simply have been starved of CPU)
             rx.settle(HEARTBEAT_SETTLE)
         wait = 0.5
-        for nid, s in self._nodes.items():
-            with self._hb_lock:
+        for s in self._nodes.values():
+            with s.lock:
                 if s.heartbeat_timeout is None or s.lost:
                     continue
                 late = now - s.last_heartbeat
                 s.lost = late > s.heartbeat_timeout
+                if s.lost:
+                    s.starting = False
             if s.lost:
-                reason = (f"canopen node {nid} on bus {self.bus.name}: no heartbeat for more than "
-                          f"heartbeat_timeout {s.heartbeat_timeout} s")
-                for dev in s.devices:
-                    self._health.fail(dev, "heartbeat", reason)
+                self._fail_node(s, "heartbeat", f"{self._where(s)}: no heartbeat for more "
+                                                f"than heartbeat_timeout {s.heartbeat_timeout} s")
             else:
                 wait = min(wait, s.heartbeat_timeout - late + 0.001)
         return wait
+
+    def _start_watchdog(self) -> None:
+        if any(s.heartbeat_timeout is not None for s in self._nodes.values()):
+            self._watchdog = HeartbeatWatchdog(self._check_heartbeats,
+                                               f"canopen-{self.bus.name}-watchdog")
+            self._watchdog.start()
+
+    def _stop_watchdog(self) -> None:
+        wd, self._watchdog = self._watchdog, None
+        if wd is not None:
+            wd.stop()
 
     # -- reader thread ------------------------------------------------------------------------
 
@@ -171,36 +220,61 @@ class CanopenEvents(WorkerJobDriver):
                                 for dev in self._pdo_sensors.get((nid, var.index, var.subindex),
                                                                  ())])
 
-    def _on_heartbeat(self, state: NodeState, nmt_state: int) -> None:
-        with self._hb_lock:
-            state.last_heartbeat = time.monotonic()
-            was_lost, state.lost = state.lost, False
+    def _on_heartbeat(self, node: ManagedNode, code: int) -> None:
+        """A heartbeat or boot-up of ``node`` (reader thread): supervision, then the lifecycle."""
+        nmt = NmtState.of(code)
+        with node.lock:
+            node.last_heartbeat = time.monotonic()
+            was_lost, node.lost = node.lost, False
         if was_lost:
-            for dev in state.devices:
-                self._health.clear(dev, "heartbeat", f"canopen node {state.node.id}: heartbeat "
-                                                     f"back")
-        if state.nmt_start and nmt_state in (0, 127):  # boot-up or PRE-OPERATIONAL
-            self._submit("nmt", str(state.node.id))
+            self._clear_node(node, "heartbeat", f"canopen node {node.id}: heartbeat back")
+        if nmt is None:
+            self.host.error(self.bus.name, "malformed", f"{self._where(node)}: heartbeat with "
+                                                        f"unknown NMT state {code:#x}")
+            return
+        if nmt is NmtState.BOOT_UP:
+            self._rebooted(node)
+            return
+        with node.lock:
+            before = node.lifecycle.state
+            node.lifecycle.heartbeat(nmt)
+            after, generation = node.lifecycle.state, node.lifecycle.generation
+            if after is NodeLifecycle.PREOP_HELD:
+                node.starting = False
+        if after is NodeLifecycle.PREOP_HELD and before is not NodeLifecycle.PREOP_HELD:
+            self._submit(OP, ReportHeld(node.id, generation))
+        if after is not before or not node.lifecycle.ready():
+            self._judge(node, f"heartbeat confirms {nmt.name}")
 
-    def _on_emcy(self, state: NodeState, entry: Any) -> None:
-        nid = state.node.id
-        text = f"canopen node {nid} on bus {self.bus.name}: EMCY {entry} register " \
-               f"0x{entry.register:02X}"
+    def _rebooted(self, node: ManagedNode) -> None:
+        """A boot-up message: the node's devices fail, its boot procedure runs again (the safe
+        values follow its recovery, through the host)."""
+        with node.lock:
+            generation = node.lifecycle.booted()
+            node.starting = False
+        reason = f"{self._where(node)}: rebooted (boot-up message): configuring it again"
+        self.host.error(self.bus.name, "boot-up", reason)
+        self._fail_node(node, "lifecycle", reason)
+        self._submit(OP, BootNode(node.id, generation))
+
+    def _on_emcy(self, node: ManagedNode, entry: Any) -> None:
+        text = f"{self._where(node)}: EMCY {entry} register 0x{entry.register:02X}"
+        with node.lock:
+            node.lifecycle.last_emcy = f"{entry} register 0x{entry.register:02X}"
         self.host.error(self.bus.name, "emcy", text)
         if is_error_reset(entry.code):
-            for dev in state.devices:
-                self._health.clear(dev, "emcy", f"canopen node {nid}: error-reset EMCY")
+            self._clear_node(node, "emcy", f"canopen node {node.id}: error-reset EMCY")
         elif is_fatal_emcy(entry.code):
-            for dev in state.devices:
-                self._health.fail(dev, "emcy", text)
+            self._fail_node(node, "emcy", text)
 
     def report_frame(self, kind: str, detail: str) -> None:
         """A frame-level problem seen by the bus listener (see :class:`FrameCheck`)."""
         self.host.error(self.bus.name, kind, detail)
 
     def knows_node(self, node_id: int) -> bool:
-        """True if ``node_id`` is one of this bus's nodes."""
-        return node_id in self._nodes
+        """True if ``node_id`` is one of this bus's nodes or the master's own id (whose
+        heartbeat other sockets of this host see on SocketCAN)."""
+        return node_id in self._nodes or node_id == self._master_id
 
 
 class FrameCheck(can.Listener):
