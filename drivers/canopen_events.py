@@ -154,7 +154,7 @@ class CanopenEvents(WorkerJobDriver):
         overdue = False
         for s in self._nodes.values():
             with s.lock:
-                overdue |= (s.heartbeat_timeout is not None and not s.lost
+                overdue |= (s.heartbeat_timeout is not None and not s.lost and not s.booting
                             and now - s.last_heartbeat > s.heartbeat_timeout)
         rx = self._rx
         if overdue and rx is not None:
@@ -162,7 +162,7 @@ class CanopenEvents(WorkerJobDriver):
         wait = 0.5
         for s in self._nodes.values():
             with s.lock:
-                if s.heartbeat_timeout is None or s.lost:
+                if s.heartbeat_timeout is None or s.lost or s.booting:
                     continue
                 late = now - s.last_heartbeat
                 s.lost = late > s.heartbeat_timeout
@@ -223,17 +223,18 @@ class CanopenEvents(WorkerJobDriver):
     def _on_heartbeat(self, node: ManagedNode, code: int) -> None:
         """A heartbeat or boot-up of ``node`` (reader thread): supervision, then the lifecycle."""
         nmt = NmtState.of(code)
+        if nmt is NmtState.BOOT_UP:     # failed for the reboot before the loss ends
+            self._rebooted(node)
         with node.lock:
             node.last_heartbeat = time.monotonic()
             was_lost, node.lost = node.lost, False
         if was_lost:
             self._clear_node(node, "heartbeat", f"canopen node {node.id}: heartbeat back")
+        if nmt is NmtState.BOOT_UP:
+            return
         if nmt is None:
             self.host.error(self.bus.name, "malformed", f"{self._where(node)}: heartbeat with "
                                                         f"unknown NMT state {code:#x}")
-            return
-        if nmt is NmtState.BOOT_UP:
-            self._rebooted(node)
             return
         with node.lock:
             before = node.lifecycle.state
@@ -252,6 +253,7 @@ class CanopenEvents(WorkerJobDriver):
         with node.lock:
             generation = node.lifecycle.booted()
             node.starting = False
+            node.booting = True
         reason = f"{self._where(node)}: rebooted (boot-up message): configuring it again"
         self.host.error(self.bus.name, "boot-up", reason)
         self._fail_node(node, "lifecycle", reason)

@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import contextlib
 import struct
+import time
 from typing import Any
 
 import can
@@ -211,6 +212,7 @@ class CanopenDriver(CanopenEvents):
             with node.lock:
                 generation = node.lifecycle.restart("driver started: identity, configuration "
                                                     "and NMT start under way")
+                node.booting = True
             self._submit(OP, BootNode(node.id, generation))
         if "master_heartbeat_ms" in opts:
             self._start_master_heartbeat(bus, int(opts["master_heartbeat_ms"]))
@@ -336,6 +338,8 @@ class CanopenDriver(CanopenEvents):
         with node.lock:
             if job.generation != node.lifecycle.generation:
                 return
+            node.booting = False        # supervision counts from here
+            node.last_heartbeat = time.monotonic()
             lc = node.lifecycle
             match result.outcome:
                 case BootOutcome.SILENT:

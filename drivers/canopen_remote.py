@@ -91,6 +91,9 @@ class ManagedNode:
     #: True until the first boot procedure after the driver's start ended: meanwhile a node that
     #: is not ready yet does not fail its devices (it is being brought up)
     starting: bool = True
+    #: True while a boot procedure is queued or running: heartbeat supervision waits (a node
+    #: that rebooted without its stored configuration has no heartbeat until it is configured)
+    booting: bool = True
 
     @property
     def id(self) -> int:
