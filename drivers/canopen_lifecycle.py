@@ -159,8 +159,10 @@ class Lifecycle:
                 self.confirmed = True
                 self.reason = ""
             return
-        if self.state is NodeLifecycle.STARTED:
-            # the first may have left the node before the NMT start reached it
+        if (self.state in (NodeLifecycle.STARTED, NodeLifecycle.OPERATIONAL)
+                and not self.confirmed):
+            # no OPERATIONAL heartbeat since the start yet: the first may have left the node
+            # before the NMT start reached it
             self.not_started_beats += 1
             if self.not_started_beats < HELD_AFTER:
                 return
