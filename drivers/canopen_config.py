@@ -232,10 +232,12 @@ def _uint(value: object, bits: int) -> bool:
     return is_int(value) and 0 <= value < (1 << bits)
 
 
-def check(k: str, node: Mapping[str, Any], od: Any | None, master_ms: float | None) -> list[str]:
+def check(k: str, node: Mapping[str, Any], od: Any | None, master_ms: float | None,
+          has_sync: bool = True) -> list[str]:
     """Errors of the ``identity`` and ``config`` keys of node entry ``k``; ``od`` the node's
     EDS (None if unreadable: only the shapes are checked), ``master_ms`` the bus's
-    ``master_heartbeat_ms`` (None without a master heartbeat)."""
+    ``master_heartbeat_ms`` (None without a master heartbeat), ``has_sync`` whether the bus
+    produces SYNC (a synchronous TPDO without it is never sent)."""
     errs: list[str] = []
     ident = node.get("identity")
     if ident is not None:
@@ -283,6 +285,12 @@ def check(k: str, node: Mapping[str, Any], od: Any | None, master_ms: float | No
     seen: set[str] = set()
     for i, p in enumerate(pdos):
         errs += _check_pdo(f"{kc}.pdos[{i}]", p, od, seen)
+        tt = p.get("transmission_type") if isinstance(p, Mapping) else None
+        if (not has_sync and str(p.get("pdo", "")).startswith("tpdo") and is_int(tt)
+                and 0 <= tt <= 240):
+            errs.append(f"{kc}.pdos[{i}].transmission_type: a synchronous TPDO (type {tt}) on "
+                        f"a bus without sync_period is never sent; set the bus's sync_period "
+                        f"or use 254/255")
     sdo = cfg.get("sdo", [])
     if not isinstance(sdo, list):
         errs.append(f"{kc}.sdo: expected an array of {{index, subindex, value}} tables, "

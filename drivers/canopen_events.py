@@ -29,6 +29,7 @@ from drivers.canopen_jobs import OP, BootNode, ReportHeld
 from drivers.canopen_lifecycle import NmtState, NodeLifecycle, NodeStatus
 from drivers.canopen_od import DEFAULT_MASTER_ID, DEFAULT_POLL
 from drivers.canopen_remote import ManagedNode
+from drivers.canopen_sync import SyncCycle, SyncStats
 from drivers.canopen_watchdog import HeartbeatWatchdog
 from drivers.codecs.canopen import (
     emcy_node,
@@ -71,6 +72,9 @@ class CanopenEvents(WorkerJobDriver):
         self._poll_groups: dict[float, list[Binding]] = {}   # SDO-polled sensors by period
         self._bus_failed = False
         self._watchdog: HeartbeatWatchdog | None = None
+        self._sync: SyncCycle | None = None
+        #: the SYNC counters last added to the host's statistics (cycles, missing, late)
+        self._sync_told = (0, 0, 0)
         #: the node id of this master's heartbeat (bus option ``master_node_id``)
         self._master_id = DEFAULT_MASTER_ID
         #: frames handed to canopen's listeners, written by whoever receives (the reader, or a
@@ -89,6 +93,17 @@ class CanopenEvents(WorkerJobDriver):
             with node.lock:
                 out[nid] = node.lifecycle.status()
         return out
+
+    def sync_stats(self) -> SyncStats | None:
+        """The SYNC cycle's counters and jitter (None without ``sync_period``)."""
+        sync = self._sync
+        return None if sync is None else sync.stats()
+
+    def wait_cycle(self, n: int, timeout: float) -> bool:
+        """Wait until SYNC cycle ``n`` is complete: every synchronous TPDO due in it arrived
+        (True), or SYNC n+1 went out first or ``timeout`` passed (False; also without SYNC)."""
+        sync = self._sync
+        return False if sync is None else sync.wait_cycle(n, timeout)
 
     # -- the node's readiness and its devices ----------------------------------------------------
 
@@ -135,6 +150,15 @@ class CanopenEvents(WorkerJobDriver):
             new, self._frames_told = n - self._frames_told, n
         if new:
             self.host.stat(self.bus.name, "frames", new)
+        sync = self._sync
+        if sync is not None:
+            now = sync.counters()
+            with self._told_lock:
+                told, self._sync_told = self._sync_told, now
+            for key, a, b in zip(("sync-cycles", "sync-missing", "sync-late"), told, now,
+                                 strict=True):
+                if b > a:
+                    self.host.stat(self.bus.name, key, b - a)
 
     def settle(self, timeout: float) -> bool:
         """As :meth:`drivers.jobs.JobDriver.settle`; the frames handed over are counted in the
@@ -211,6 +235,9 @@ class CanopenEvents(WorkerJobDriver):
         """A TPDO arrived (reader thread, or settle's drain: both under the reader's lock, so
         settle never returns while one is being delivered)."""
         nid = pdo_map.pdo_node.node.id
+        sync = self._sync
+        if sync is not None:
+            sync.tpdo(pdo_map.cob_id)
         if len(pdo_map.data) * 8 < pdo_map.length:
             self.host.error(self.bus.name, "malformed",
                             f"{pdo_map.name} from canopen node {nid}: {len(pdo_map.data)} "

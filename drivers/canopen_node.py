@@ -78,6 +78,7 @@ from drivers.canopen_od import (
     value_error,
 )
 from drivers.canopen_remote import BootOutcome, ManagedNode, RpdoImages
+from drivers.canopen_sync import SYNC_COB_ID, SyncCycle
 from drivers.codecs.canopen import EMCY_BASE, HEARTBEAT_BASE
 from drivers.jobs import Job
 from drivers.threaded import ReaderThread
@@ -217,7 +218,7 @@ class CanopenDriver(CanopenEvents):
         if "master_heartbeat_ms" in opts:
             self._start_master_heartbeat(bus, int(opts["master_heartbeat_ms"]))
         if "sync_period" in opts:
-            network.sync.start(float(opts["sync_period"]))
+            self._start_sync(bus, float(opts["sync_period"]))
         groups: dict[float, list[Binding]] = {}
         for b in self._bindings.values():
             if b.device.direction == "sensor" and b.pdo_var is None:
@@ -239,6 +240,25 @@ class CanopenDriver(CanopenEvents):
         except (can.CanError, OSError, NotImplementedError) as exc:
             self.host.error(self.bus.name, "can", f"canopen bus {self.bus.name}: cannot start "
                                                   f"the master heartbeat: {exc}")
+
+    def _start_sync(self, bus: can.BusABC, period: float) -> None:
+        """The SYNC producer and the cycle's books (:mod:`drivers.canopen_sync`), expecting the
+        nodes' synchronous TPDOs."""
+        frame = can.Message(arbitration_id=SYNC_COB_ID, data=b"", is_extended_id=False)
+
+        def send() -> None:
+            bus.send(frame)
+
+        def error(text: str) -> None:
+            self.host.error(self.bus.name, "can", f"canopen bus {self.bus.name}: {text}")
+
+        sync = SyncCycle(period, send, error, f"canopen-{self.bus.name}-sync")
+        for node in self._nodes.values():
+            for m in node.remote.tpdo.map.values():
+                if m.enabled and m.cob_id and m.trans_type is not None:
+                    sync.expect(m.cob_id, int(m.trans_type))
+        self._sync = sync
+        sync.start()
 
     def _bind_devices(self) -> None:
         default_poll = float(self.bus.options.get("poll_period", DEFAULT_POLL))
@@ -262,6 +282,9 @@ class CanopenDriver(CanopenEvents):
         self._running = False
         self._stop_worker()     # runs every job queued before: they go out first
         self._stop_watchdog()
+        sync, self._sync = self._sync, None
+        if sync is not None:
+            sync.stop()
         task, self._master_task = self._master_task, None
         if task is not None:
             with contextlib.suppress(Exception):
@@ -272,8 +295,6 @@ class CanopenDriver(CanopenEvents):
         self._tell_frames()
         network, self._network = self._network, None
         if network is not None:
-            with contextlib.suppress(Exception):
-                network.sync.stop()
             with contextlib.suppress(Exception):
                 network.disconnect()
 

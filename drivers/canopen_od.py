@@ -114,7 +114,8 @@ def check_node(bus: BusSpec, k: str, node: object, seen: set[int]) -> list[str]:
         except ValueError as exc:
             errs.append(f"{k}.eds: expected a readable EDS file; {exc}")
     mh = bus.options.get("master_heartbeat_ms")
-    errs.extend(canopen_config.check(k, node, od, mh if is_int(mh) else None))
+    errs.extend(canopen_config.check(k, node, od, mh if is_int(mh) else None,
+                                     "sync_period" in bus.options))
     hb = node.get("heartbeat_timeout")
     if hb is not None and not (is_number(hb) and hb > 0):
         errs.append(f"{k}.heartbeat_timeout: expected a number of seconds > 0, got {hb!r}")
