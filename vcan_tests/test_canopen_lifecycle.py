@@ -198,3 +198,83 @@ def test_an_absent_node_waits_for_its_boot_up_and_is_brought_up_then(tmp_path: P
         r.node.power_on()
         assert r.host.wait_for(lambda h: len(h.recoveries) == len(DEVICES))
         assert r.node.read(0x1017, 0) == 20 and r.node.state == StateEnum.OPERATIONAL
+
+
+SYSTEM_MAP = """
+[[bus]]
+name = "co"
+kind = "canopen"
+interface = "virtual"
+channel = "{channel}"
+sdo_timeout = 0.2
+
+[[bus.nodes]]
+id = {node}
+eds = "{eds}"
+heartbeat_timeout = 0.3
+[bus.nodes.config]
+heartbeat_producer_ms = 20
+pdos = [{{ pdo = "rpdo1", transmission_type = 255, map = [[0x607A, 0]] }}]
+
+[[device]]
+name = "target"
+direction = "actuator"
+bus = "co"
+address = {{ node = {node}, index = 0x607A }}
+limits = [-100000, 100000]
+safe_value = 11
+
+[[device]]
+name = "speed"
+direction = "actuator"
+bus = "co"
+address = {{ node = {node}, index = 0x6081 }}
+limits = [0, 100000]
+safe_value = 7
+"""
+
+
+def test_a_rebooted_node_gets_its_configuration_then_the_safe_values(tmp_path: Path) -> None:
+    """With the device table: a node that reboots without its stored configuration is
+    configured again, started, and the first commands it gets are the safe values (not the
+    values commanded before the reboot), on the wire after its configuration and its start."""
+    from chcos.kernel.clock import VirtualClock
+    from chcos.system.embedded import System
+    from vcan_tests.netutil import unique_channel
+    from vcan_tests.peers.durand_node import DurandNode, Wire
+    from vcan_tests.support_faults import run_until
+
+    channel = unique_channel("sys")
+    node = DurandNode(channel, NODE)
+    eds = node.write_eds(tmp_path / "node.eds")
+    wire = Wire(channel)
+    path = tmp_path / "co.toml"
+    path.write_text(SYSTEM_MAP.format(channel=channel, node=NODE, eds=eds), encoding="utf-8")
+    s = System([path], clock=VirtualClock(), machines=[0])
+    try:
+        drv = next(d for d in s.devtab.drivers if d.bus.name == "co")
+        states = drv.node_states  # type: ignore[attr-defined]
+        assert run_until(s, lambda: states()[NODE].ready)
+        s.devtab.write("target", 999)
+        s.devtab.write("speed", 999)
+        assert run_until(s, lambda: node.read(0x607A, 0) == 999 and node.read(0x6081, 0) == 999)
+        booted = time.monotonic()
+        node.power_cycle()
+        assert node.read(0x607A, 0) == 0 and node.read(0x1017, 0) == 0
+        assert run_until(s, lambda: s.devtab.get("target").status.value == "failed")
+        assert "rebooted" in s.devtab.get("target").reason
+        assert run_until(s, lambda: s.devtab.get("target").status.value == "OK"
+                         and s.devtab.get("speed").status.value == "OK"
+                         and node.read(0x607A, 0) == 11 and node.read(0x6081, 0) == 7)
+        assert node.read(0x1017, 0) == 20 and node.state == StateEnum.OPERATIONAL
+        frames = [f for f in wire.frames if f.at >= booted]
+        rpdos = [f for f in frames if f.cob_id == 0x200 + NODE]
+        speeds = sdo_downloads(frames, NODE, 0x6081)
+        assert rpdos[0].data == (11).to_bytes(4, "little") and speeds[:1] == [7]
+        start = next(f for f in frames if f.cob_id == 0 and f.data == bytes((1, NODE)))
+        configured = next(f for f in frames if sdo_downloads([f], NODE, 0x1017))
+        assert configured.at <= start.at <= rpdos[0].at
+    finally:
+        s.shutdown()
+        wire.close()
+        node.close()
