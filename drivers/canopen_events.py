@@ -40,6 +40,9 @@ from drivers.codecs.canopen import (
 from drivers.health import Health
 from drivers.jobs import WorkerJobDriver
 
+RETRY_SILENT = 2.0
+"""Seconds between two boot procedures of a node that heartbeats but did not answer SDO."""
+
 HEARTBEAT_SETTLE = 0.1
 """Bound (s) on handing over received frames before a heartbeat loss is declared (polling
 interfaces; on SocketCAN the drain is immediate)."""
@@ -263,6 +266,8 @@ class CanopenEvents(WorkerJobDriver):
             self.host.error(self.bus.name, "malformed", f"{self._where(node)}: heartbeat with "
                                                         f"unknown NMT state {code:#x}")
             return
+        if self._retry_silent(node):
+            return
         with node.lock:
             before = node.lifecycle.state
             node.lifecycle.heartbeat(nmt)
@@ -273,6 +278,22 @@ class CanopenEvents(WorkerJobDriver):
             self._submit(OP, ReportHeld(node.id, generation))
         if after is not before or not node.lifecycle.ready():
             self._judge(node, f"heartbeat confirms {nmt.name}")
+
+    def _retry_silent(self, node: ManagedNode) -> bool:
+        """A heartbeat of a node whose boot procedure found it silent (it was busy, or came up
+        without a boot-up message we saw): run the procedure again, at most every
+        :data:`RETRY_SILENT` s (each try may cost SDO timeouts on the I/O thread)."""
+        now = time.monotonic()
+        with node.lock:
+            if (node.booting or node.lifecycle.state is not NodeLifecycle.WAITING_BOOT
+                    or now < node.retry_at):
+                return False
+            node.retry_at = now + RETRY_SILENT
+            node.booting = True
+            generation = node.lifecycle.restart("heartbeat of a node that had not answered: "
+                                                "identity, configuration and NMT start again")
+        self._submit(OP, BootNode(node.id, generation))
+        return True
 
     def _rebooted(self, node: ManagedNode) -> None:
         """A boot-up message: the node's devices fail, its boot procedure runs again (the safe

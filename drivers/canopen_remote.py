@@ -94,6 +94,8 @@ class ManagedNode:
     #: True while a boot procedure is queued or running: heartbeat supervision waits (a node
     #: that rebooted without its stored configuration has no heartbeat until it is configured)
     booting: bool = True
+    #: when a silent node's heartbeat may start its boot procedure again (monotonic s)
+    retry_at: float = 0.0
 
     @property
     def id(self) -> int:

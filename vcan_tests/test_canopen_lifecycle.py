@@ -278,3 +278,20 @@ def test_a_rebooted_node_gets_its_configuration_then_the_safe_values(tmp_path: P
         s.shutdown()
         wire.close()
         node.close()
+
+
+def test_a_node_heard_without_a_boot_up_is_brought_up(tmp_path: Path) -> None:
+    """Absent at start, then heartbeating without a boot-up anyone saw (connected late): its
+    heartbeat starts the boot procedure again."""
+    with durand_rig(tmp_path, DEVICES, heartbeat_timeout=0.3, start=False,
+                    node_kw={"stored": Stored(heartbeat_ms=20)}) as r:
+        r.node.power_off()
+        r.driver.start()
+        assert r.host.wait_for(lambda h: len(h.failures) == len(DEVICES))
+        since = time.monotonic()
+        r.node.power_on(announce=False)
+        assert r.host.wait_for(lambda h: len(h.recoveries) == len(DEVICES))
+        assert r.node.state == StateEnum.OPERATIONAL
+        assert [f for f in r.wire.of(0x700 + NODE, since) if f.data == b"\x00"] == []
+        st = r.driver.node_states()[NODE]
+        assert st.boots == 0 and st.nmt_starts == 1 and st.ready

@@ -128,9 +128,11 @@ class GatedNetwork(CANBusNetwork):  # type: ignore[misc]
             return
         super().send(cob_id, msg)
 
-    def open(self) -> None:
+    def open(self, send_held: bool = True) -> None:
+        """Let sends through; the held ones (the boot-up) go out first unless ``send_held`` is
+        False (a boot-up nobody saw: the wire was not connected yet)."""
         held, self._held = self._held, None
-        for cob_id, msg in held or ():
+        for cob_id, msg in held if send_held and held else ():
             super().send(cob_id, msg)
 
     def close(self) -> None:
@@ -194,15 +196,15 @@ class DurandNode:
             node.nmt.state_callbacks.add(self._refuse_start)
         return node
 
-    def power_on(self) -> None:
+    def power_on(self, announce: bool = True) -> None:
         """Build the node (a fresh object dictionary plus what is stored) and send its boot-up
-        once it answers SDO; then its stored heartbeat starts."""
+        once it answers SDO (not with ``announce`` False); then its stored heartbeat starts."""
         bus = can.Bus(interface="virtual", channel=self.channel, receive_own_messages=False)
         network = GatedNetwork(bus)
         self.node = self._build(network)
         self._bus, self._network = bus, network
         self.boots += 1
-        network.open()
+        network.open(announce)
         if self.stored.heartbeat_ms:
             self.node.object_dictionary.write(0x1017, 0, self.stored.heartbeat_ms)
 
