@@ -87,6 +87,9 @@ DEFAULT_SDO_TIMEOUT = 0.3
 #: The reader's default receive timeout on interfaces without a file descriptor.
 DEFAULT_RX_POLL = 0.005
 SDO_TX_BASE = 0x580   # SDO server -> client: COB-ID 0x580 + node id
+#: lifecycle states in which a node is known not to be OPERATIONAL: an RPDO to it is sent (a
+#: safe value goes out whatever the state) but not reported written
+IGNORES_RPDOS = (NodeLifecycle.PREOP_HELD, NodeLifecycle.FAILED, NodeLifecycle.WAITING_BOOT)
 
 
 def node_filters(nodes: dict[int, ManagedNode]) -> list[dict[str, int]]:
@@ -451,10 +454,17 @@ class CanopenDriver(CanopenEvents):
         name = b.device.name
         if b.pdo_var is not None:
             # every RPDO image mapping the object takes the value; the PDO bound first carries it
-            self._nodes[b.node].images.set(b.index, b.subindex, bytes(data))
-            b.pdo_var.pdo_parent.transmit()
+            node = self._nodes[b.node]
+            node.images.set(b.index, b.subindex, bytes(data))
+            b.pdo_var.pdo_parent.transmit()     # on the wire whatever the node's state
             self.sent_frames[name] += 1
-            self.host.written(name, value)
+            with node.lock:
+                state, why = node.lifecycle.state, node.lifecycle.reason
+            if state in IGNORES_RPDOS:
+                self.host.write_failed(name, value, f"{self._where(node)}: RPDO sent, but the "
+                                                    f"node ignores it: {state.value}: {why}")
+            else:
+                self.host.written(name, value)
             return
         self.host.stat(self.bus.name, "requests", device=name)
         try:

@@ -117,9 +117,10 @@ def test_reboot_without_stored_configuration_is_configured_again(tmp_path: Path)
 def test_a_node_held_in_preoperational_is_reported_and_not_restarted(tmp_path: Path) -> None:
     """durand configured to refuse the NMT start while 0x1001 is set: one start per boot, the
     failure names the error register and the last EMCY."""
+    stored = Stored(heartbeat_ms=20, rpdo={1: [(0x607A, 0)]})
     with durand_rig(tmp_path, DEVICES, heartbeat_timeout=0.3, start=False,
-                    node_kw={"refuse_start_on_error": True, "stored": Stored(heartbeat_ms=20)}
-                    ) as r:
+                    eds_defaults={"1600sub0": 1, "1600sub1": mapping_entry(0x607A, 0, 32)},
+                    node_kw={"refuse_start_on_error": True, "stored": stored}) as r:
         r.driver.start()
         assert r.node.wait(lambda: r.driver.node_states()[NODE].ready)
         r.node.emcy(0x6100, 0x01)              # software error: not fatal, 0x1001 set
@@ -137,6 +138,13 @@ def test_a_node_held_in_preoperational_is_reported_and_not_restarted(tmp_path: P
         assert all(f.data == b"\x7f" for f in r.wire.of(0x700 + NODE, held))
         assert r.wire.nmt_starts(NODE) == 2       # one per boot, not one per heartbeat
         assert r.host.failed("target") and r.host.recoveries[recovered:] == []
+        # a command to it goes on the wire, but is not reported done: the node ignores RPDOs
+        r.driver.write("target", 5)
+        assert r.driver.settle(WAIT)
+        assert r.host.writes[-1][:2] == ("target", 5) and "ignores it" in r.host.writes[-1][2]
+        assert r.wire.wait_for(lambda w: any(f.data == (5).to_bytes(4, "little")
+                                             for f in w.of(0x200 + NODE)))
+        assert r.node.read(0x607A, 0) == 0
 
 
 def test_the_error_register_at_boot_decides_not_the_emcy_chcos_happened_to_see(
