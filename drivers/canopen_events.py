@@ -29,7 +29,7 @@ from drivers.canopen_jobs import OP, BootNode, ReportHeld
 from drivers.canopen_lifecycle import NmtState, NodeLifecycle, NodeStatus
 from drivers.canopen_od import DEFAULT_MASTER_ID, DEFAULT_POLL
 from drivers.canopen_remote import ManagedNode
-from drivers.canopen_sync import SyncCycle, SyncStats
+from drivers.canopen_sync import SYNC_COB_ID, SyncCycle, SyncStats
 from drivers.canopen_watchdog import HeartbeatWatchdog
 from drivers.codecs.canopen import (
     emcy_node,
@@ -76,6 +76,8 @@ class CanopenEvents(WorkerJobDriver):
         self._bus_failed = False
         self._watchdog: HeartbeatWatchdog | None = None
         self._sync: SyncCycle | None = None
+        #: True when the kernel produces SYNC and the reader counts each one it sees
+        self._observe_sync = False
         #: the SYNC counters last added to the host's statistics (cycles, missing, late)
         self._sync_told = (0, 0, 0)
         #: the node id of this master's heartbeat (bus option ``master_node_id``)
@@ -219,6 +221,11 @@ class CanopenEvents(WorkerJobDriver):
         """A received frame to canopen's listeners (what its notifier would do)."""
         self._bus_failed = False     # a receive error is reported again after a good frame
         self._frames_in += 1         # to the statistics in _tell_frames
+        if frame.arbitration_id == SYNC_COB_ID and self._observe_sync:
+            sync = self._sync
+            if sync is not None:
+                sync.seen(frame.timestamp)
+            return
         network = self._network
         if network is None:
             return

@@ -133,6 +133,7 @@ class CanopenDriver(CanopenEvents):
     def __init__(self, bus: BusSpec, devices: Any, host: Any) -> None:
         super().__init__(bus, devices, host)
         self._master_task: Any = None
+        self._sync_task: Any = None
 
     # -- validation (drivers.canopen_od) -----------------------------------------------------
 
@@ -195,7 +196,13 @@ class CanopenDriver(CanopenEvents):
                 rates = [n.remote.object_dictionary.bitrate for n in self._nodes.values()]
                 if any(rates):
                     cfg_bus["bitrate"] = next(r for r in rates if r)
-            bus = can.Bus(**cfg_bus, can_filters=node_filters(self._nodes))
+            # on SocketCAN the kernel produces SYNC and the reader sees each one come back
+            self._observe_sync = ("sync_period" in opts
+                                  and cfg_bus.get("interface") == "socketcan")
+            filters = node_filters(self._nodes)
+            if self._observe_sync:
+                filters.append({"can_id": SYNC_COB_ID, "can_mask": 0x7FF})
+            bus = can.Bus(**cfg_bus, can_filters=filters)
         except (can.CanError, OSError, ValueError, ImportError) as exc:
             raise BusError(f"canopen bus {self.bus.name} ({self.bus.file} {self.bus.key}): cannot "
                            f"open CAN bus {config or 'from python-can config'}: {exc}") from exc
@@ -246,7 +253,8 @@ class CanopenDriver(CanopenEvents):
 
     def _start_sync(self, bus: can.BusABC, period: float) -> None:
         """The SYNC producer and the cycle's books (:mod:`drivers.canopen_sync`), expecting the
-        nodes' synchronous TPDOs."""
+        nodes' synchronous TPDOs: the kernel's cyclic job on SocketCAN (each SYNC observed by
+        the reader), else a thread."""
         frame = can.Message(arbitration_id=SYNC_COB_ID, data=b"", is_extended_id=False)
 
         def send() -> None:
@@ -261,7 +269,14 @@ class CanopenDriver(CanopenEvents):
                 if m.enabled and m.cob_id and m.trans_type is not None:
                     sync.expect(m.cob_id, int(m.trans_type))
         self._sync = sync
-        sync.start()
+        if self._observe_sync:
+            try:
+                self._sync_task = bus.send_periodic(frame, period)
+            except (can.CanError, OSError, NotImplementedError) as exc:
+                error(f"cannot start the SYNC producer: {exc}")
+            sync.start(produce=False)
+        else:
+            sync.start()
 
     def _bind_devices(self) -> None:
         default_poll = float(self.bus.options.get("poll_period", DEFAULT_POLL))
@@ -285,6 +300,10 @@ class CanopenDriver(CanopenEvents):
         self._running = False
         self._stop_worker()     # runs every job queued before: they go out first
         self._stop_watchdog()
+        sync_task, self._sync_task = self._sync_task, None
+        if sync_task is not None:
+            with contextlib.suppress(Exception):
+                sync_task.stop()
         sync, self._sync = self._sync, None
         if sync is not None:
             sync.stop()

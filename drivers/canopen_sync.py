@@ -1,5 +1,5 @@
-"""canopen_sync - the SYNC cycle of a ``canopen`` bus as a first-class thing: a producer thread
-sending SYNC (COB-ID 0x080) on an absolute-deadline schedule, the cycle number, the synchronous
+"""canopen_sync - the SYNC cycle of a ``canopen`` bus as a first-class thing: a SYNC producer
+(COB-ID 0x080), the cycle number, the synchronous
 TPDOs (transmission type 1..240) collected per cycle, and the bus's cycle statistics: cycles,
 complete cycles, missing TPDOs (a synchronous TPDO due in cycle n that had not arrived when SYNC
 n+1 went out), late SYNCs (sent more than half a period after their deadline) and the SYNC
@@ -8,6 +8,12 @@ period jitter (|interval - period|) as p50/p99/max over the last :data:`WINDOW` 
 :meth:`SyncCycle.wait_cycle` lets a caller wait until cycle n is complete (every synchronous
 TPDO of it arrived) or give up after a timeout. A TPDO of transmission type k (1..240) is due
 every k-th SYNC; its phase is learned from its first arrival.
+
+Two producers: on SocketCAN the kernel's broadcast manager sends SYNC (a cyclic job, no Python
+thread between two SYNCs) and the driver's reader sees each one come back with its kernel time
+stamp (:meth:`SyncCycle.seen`): cycles and jitter are counted from what went on the wire, late is
+an interval longer than 1.5 periods. Elsewhere (python-can's ``virtual`` bus) a thread sends SYNC
+on absolute deadlines (:meth:`SyncCycle.start`) and counts from its send times.
 """
 
 from __future__ import annotations
@@ -82,10 +88,21 @@ class SyncCycle:
         if 1 <= transmission_type <= 240:
             self._due[cob_id] = _Due(transmission_type)
 
-    def start(self) -> None:
+    def start(self, produce: bool = True) -> None:
+        """Begin: with ``produce`` the producer thread sends SYNC; without it the caller's
+        producer does and reports each SYNC on the wire through :meth:`seen`."""
         self._running = True
-        self._thread = threading.Thread(target=self._loop, name=self._name, daemon=True)
-        self._thread.start()
+        if produce:
+            self._thread = threading.Thread(target=self._loop, name=self._name, daemon=True)
+            self._thread.start()
+
+    def seen(self, at: float) -> None:
+        """A SYNC went on the wire at ``at`` (its receive time stamp, seconds): the cycle turns
+        (observed mode: reader thread)."""
+        with self._cond:
+            if self._last_sent is not None and at - self._last_sent > 1.5 * self.period:
+                self._late += 1
+        self._sent(at)
 
     def stop(self) -> None:
         with self._cond:

@@ -67,3 +67,33 @@ def test_master_heartbeat_stops_when_the_controller_is_killed(tmp_path: Path) ->
             proc.kill()
             proc.wait(WAIT)
         seen.shutdown()
+
+
+@pytest.mark.socketcan
+def test_the_kernel_produces_sync_and_the_driver_counts_what_went_out(tmp_path: Path) -> None:
+    """On SocketCAN the SYNC producer is the broadcast manager's cyclic job; the driver counts
+    the cycles and the jitter from the SYNCs its reader sees on the wire (kernel time stamps)."""
+    from chcos.devices.spec import BusSpec
+    from drivers.canopen_node import CanopenDriver
+    from vcan_tests import uml
+    from vcan_tests.support_fb import FakeHost
+
+    channel = uml.can_channel("socketcan")
+    seen = can.Bus(interface="socketcan", channel=channel,
+                   can_filters=[{"can_id": 0x080, "can_mask": 0x7FF}])
+    bus = BusSpec(name="co", kind="canopen", key="bus[0]", options={
+        "interface": "socketcan", "channel": channel, "sync_period": 0.01, "sdo_timeout": 0.05,
+        "nodes": [{"id": 42, "eds": str(SERVO_EDS), "nmt_start": False}]})
+    host = FakeHost()
+    driver = CanopenDriver(bus, [], host)
+    driver.start()
+    try:
+        for _ in range(10):
+            assert seen.recv(WAIT) is not None, "no SYNC on the wire"
+        driver.wait_cycle(10, WAIT)
+        stats = driver.sync_stats()
+        assert stats is not None and stats.cycles >= 10
+        assert 0 <= stats.jitter_p50 <= stats.jitter_p99 <= stats.jitter_max < 1.0
+    finally:
+        driver.stop()
+        seen.shutdown()
