@@ -2,9 +2,10 @@
 the frames of its reader thread handed to canopen's listeners (SDO responses, PDOs, heartbeats,
 EMCY), TPDO readings, the NMT state of each heartbeat driving the node's lifecycle (a boot-up is
 a reboot), heartbeat supervision (on its own thread, :mod:`drivers.canopen_watchdog`), EMCY
-failures and recoveries, and the frames canopen would drop quietly. :class:`CanopenEvents`
-holds the driver's state; the life cycle of the driver, the boot procedure of the nodes, the SDO
-polls and the writes are :class:`drivers.canopen_node.CanopenDriver`.
+failures and recoveries, and the frames canopen would drop quietly. :class:`NodeEvents` is an
+object the driver composes (it holds the nodes, their health and the SYNC cycle, and queues jobs
+through the callable it is given); the life cycle of the driver, the boot procedure of the nodes,
+the SDO polls and the writes are :class:`drivers.canopen_node.CanopenDriver`.
 
 Failure causes of a device (:class:`drivers.health.Health`, each with its reason): ``lifecycle``
 (the node is not in the state the map requires: waiting for its boot-up, rebooted, identity
@@ -17,17 +18,15 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Callable
 from typing import Any
 
 import can
 
-from chcos.devices.spec import BusSpec, DeviceSpec
 from drivers.base import DriverHost, deliver_all
-from drivers.canopen_jobs import OP, BootNode, ReportHeld
+from drivers.canopen_jobs import BootNode, CanopenJob, ReportHeld
 from drivers.canopen_lifecycle import NmtState, NodeLifecycle, NodeStatus
-from drivers.canopen_od import DEFAULT_MASTER_ID, DEFAULT_POLL
+from drivers.canopen_od import DEFAULT_MASTER_ID
 from drivers.canopen_remote import ManagedNode
 from drivers.canopen_sync import SYNC_COB_ID, SyncCycle, SyncStats
 from drivers.canopen_watchdog import HeartbeatWatchdog
@@ -38,7 +37,7 @@ from drivers.codecs.canopen import (
     is_fatal_emcy,
 )
 from drivers.health import Health
-from drivers.jobs import WorkerJobDriver
+from drivers.threaded import ReaderThread
 
 RETRY_SILENT = 2.0
 """Seconds between two boot procedures of a node that heartbeats but did not answer SDO."""
@@ -48,74 +47,65 @@ HEARTBEAT_SETTLE = 0.1
 interfaces; on SocketCAN the drain is immediate)."""
 
 
-@dataclass
-class Binding:
-    """A device of the bus bound to its object: the node, index, subindex, the object's
-    variable, the PDO variable that carries it (if any) and its SDO poll period."""
+class NodeEvents:
+    """The nodes of a ``canopen`` bus and everything that happens to them (see the module doc).
+    ``submit`` queues a job on the driver's I/O thread (False when it is stopping)."""
 
-    device: DeviceSpec
-    node: int
-    index: int
-    subindex: int
-    od_var: Any
-    pdo_var: Any = None        # TPDO variable (sensor) or RPDO variable (actuator), or None
-    poll_period: float = DEFAULT_POLL
-
-
-class CanopenEvents(WorkerJobDriver):
-    """The state of a ``canopen`` driver and its receive side (see the module doc)."""
-
-    def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
-        super().__init__(bus, devices, host)
-        self._health = Health(host)
-        self._network: Any = None
-        self._nodes: dict[int, ManagedNode] = {}
-        self._bindings: dict[str, Binding] = {}
-        self._pdo_sensors: dict[tuple[int, int, int], list[str]] = {}
-        self._poll_groups: dict[float, list[Binding]] = {}   # SDO-polled sensors by period
-        self._bus_failed = False
-        self._watchdog: HeartbeatWatchdog | None = None
-        self._sync: SyncCycle | None = None
-        #: True when the kernel produces SYNC and the reader counts each one it sees
-        self._observe_sync = False
-        #: the SYNC counters last added to the host's statistics (cycles, missing, late)
-        self._sync_told = (0, 0, 0)
+    def __init__(self, bus: str, host: DriverHost, submit: Callable[[CanopenJob], bool]) -> None:
+        self.bus = bus
+        self.host = host
+        self.health = Health(host)
+        self.submit = submit
+        self.nodes: dict[int, ManagedNode] = {}
+        #: sensors delivered from TPDOs: (node, index, subindex) -> device names
+        self.pdo_sensors: dict[tuple[int, int, int], list[str]] = {}
+        #: canopen's Network whose listeners get the frames (set at start)
+        self.network: Any = None
+        #: the reader whose input a watchdog hands over before it declares a loss (set at start)
+        self.rx: ReaderThread | None = None
         #: the node id of this master's heartbeat (bus option ``master_node_id``)
-        self._master_id = DEFAULT_MASTER_ID
+        self.master_id = DEFAULT_MASTER_ID
+        self.sync: SyncCycle | None = None
+        #: True when the kernel produces SYNC and the reader counts each one it sees
+        self.observe_sync = False
+        self._watchdog: HeartbeatWatchdog | None = None
+        self._bus_failed = False
         #: frames handed to canopen's listeners, written by whoever receives (the reader, or a
         #: settle's drain: one at a time, under the reader's lock); of which reported to the
-        #: host as ``frames`` (:meth:`_tell_frames`, under ``_told_lock``)
+        #: host as ``frames`` (:meth:`tell_frames`, under ``_told_lock``)
         self._frames_in = 0
         self._frames_told = 0
         self._told_lock = threading.Lock()
+        #: the SYNC counters last added to the host's statistics (cycles, missing, late)
+        self._sync_told = (0, 0, 0)
 
     # -- what the driver shows ------------------------------------------------------------------
 
     def node_states(self) -> dict[int, NodeStatus]:
         """Each node's lifecycle status by node id (see :class:`NodeStatus`). Thread-safe."""
         out = {}
-        for nid, node in self._nodes.items():
+        for nid, node in self.nodes.items():
             with node.lock:
                 out[nid] = node.lifecycle.status()
         return out
 
     def sync_stats(self) -> SyncStats | None:
         """The SYNC cycle's counters and jitter (None without ``sync_period``)."""
-        sync = self._sync
+        sync = self.sync
         return None if sync is None else sync.stats()
 
     def wait_cycle(self, n: int, timeout: float) -> bool:
         """Wait until SYNC cycle ``n`` is complete: every synchronous TPDO due in it arrived
         (True), or SYNC n+1 went out first or ``timeout`` passed (False; also without SYNC)."""
-        sync = self._sync
+        sync = self.sync
         return False if sync is None else sync.wait_cycle(n, timeout)
 
     # -- the node's readiness and its devices ----------------------------------------------------
 
-    def _where(self, node: ManagedNode) -> str:
-        return node.where(self.bus.name)
+    def where(self, node: ManagedNode) -> str:
+        return node.where(self.bus)
 
-    def _judge(self, node: ManagedNode, why_ok: str) -> None:
+    def judge(self, node: ManagedNode, why_ok: str) -> None:
         """Fail or recover ``node``'s devices (cause ``lifecycle``) by its lifecycle: OK only
         while it is ready; while the driver is first bringing it up, not failed yet."""
         with node.lock:
@@ -123,39 +113,33 @@ class CanopenEvents(WorkerJobDriver):
             if ready:
                 node.starting = False
             hold = node.starting
-            reason = f"{self._where(node)}: {node.lifecycle.state.value}: {node.lifecycle.reason}"
+            reason = f"{self.where(node)}: {node.lifecycle.state.value}: {node.lifecycle.reason}"
         if ready:
             for dev in node.devices:
-                self._health.clear(dev, "lifecycle", f"{self._where(node)}: {why_ok}")
+                self.health.clear(dev, "lifecycle", f"{self.where(node)}: {why_ok}")
         elif not hold:
             for dev in node.devices:
-                self._health.fail(dev, "lifecycle", reason)
+                self.health.fail(dev, "lifecycle", reason)
 
-    def _fail_node(self, node: ManagedNode, cause: str, reason: str) -> None:
+    def fail_node(self, node: ManagedNode, cause: str, reason: str) -> None:
         for dev in node.devices:
-            self._health.fail(dev, cause, reason)
+            self.health.fail(dev, cause, reason)
 
-    def _clear_node(self, node: ManagedNode, cause: str, why: str) -> None:
+    def clear_node(self, node: ManagedNode, cause: str, why: str) -> None:
         for dev in node.devices:
-            self._health.clear(dev, cause, why)
+            self.health.clear(dev, cause, why)
 
-    # -- the watchdog thread ----------------------------------------------------------------------
+    # -- statistics and the watchdog thread -------------------------------------------------
 
-    def _tick(self) -> float:
-        """The worker's longest wait for a job; the frames received meanwhile go to the bus
-        statistics before each job and at least every 0.5 s."""
-        self._tell_frames()
-        return 0.5
-
-    def _tell_frames(self) -> None:
+    def tell_frames(self) -> None:
         """Count the frames received since the last call in the host's ``frames`` statistic,
         as one addition (one per frame would cost the reader a locked call per frame)."""
         with self._told_lock:
             n = self._frames_in
             new, self._frames_told = n - self._frames_told, n
         if new:
-            self.host.stat(self.bus.name, "frames", new)
-        sync = self._sync
+            self.host.stat(self.bus, "frames", new)
+        sync = self.sync
         if sync is not None:
             now = sync.counters()
             with self._told_lock:
@@ -163,17 +147,9 @@ class CanopenEvents(WorkerJobDriver):
             for key, a, b in zip(("sync-cycles", "sync-missing", "sync-late"), told, now,
                                  strict=True):
                 if b > a:
-                    self.host.stat(self.bus.name, key, b - a)
+                    self.host.stat(self.bus, key, b - a)
 
-    def settle(self, timeout: float) -> bool:
-        """As :meth:`drivers.jobs.JobDriver.settle`; the frames handed over are counted in the
-        bus statistics before it returns."""
-        try:
-            return super().settle(timeout)
-        finally:
-            self._tell_frames()
-
-    def _check_heartbeats(self) -> float:
+    def check_heartbeats(self) -> float:
         """Fail the devices of nodes whose heartbeat is overdue; the time to the next deadline
         (the watchdog thread). Before it declares a node lost it has the reader hand over every
         frame the operating system already holds: after this process was stalled (a loaded
@@ -181,15 +157,15 @@ class CanopenEvents(WorkerJobDriver):
         in the socket is not a missing one."""
         now = time.monotonic()
         overdue = False
-        for s in self._nodes.values():
+        for s in self.nodes.values():
             with s.lock:
                 overdue |= (s.heartbeat_timeout is not None and not s.lost and not s.booting
                             and now - s.last_heartbeat > s.heartbeat_timeout)
-        rx = self._rx
+        rx = self.rx
         if overdue and rx is not None:
             rx.settle(HEARTBEAT_SETTLE)
         wait = 0.5
-        for s in self._nodes.values():
+        for s in self.nodes.values():
             with s.lock:
                 if s.heartbeat_timeout is None or s.lost or s.booting:
                     continue
@@ -198,82 +174,82 @@ class CanopenEvents(WorkerJobDriver):
                 if s.lost:
                     s.starting = False
             if s.lost:
-                self._fail_node(s, "heartbeat", f"{self._where(s)}: no heartbeat for more "
+                self.fail_node(s, "heartbeat", f"{self.where(s)}: no heartbeat for more "
                                                 f"than heartbeat_timeout {s.heartbeat_timeout} s")
             else:
                 wait = min(wait, s.heartbeat_timeout - late + 0.001)
         return wait
 
-    def _start_watchdog(self) -> None:
-        if any(s.heartbeat_timeout is not None for s in self._nodes.values()):
-            self._watchdog = HeartbeatWatchdog(self._check_heartbeats,
-                                               f"canopen-{self.bus.name}-watchdog")
+    def start_watchdog(self) -> None:
+        if any(s.heartbeat_timeout is not None for s in self.nodes.values()):
+            self._watchdog = HeartbeatWatchdog(self.check_heartbeats,
+                                               f"canopen-{self.bus}-watchdog")
             self._watchdog.start()
 
-    def _stop_watchdog(self) -> None:
+    def stop_watchdog(self) -> None:
         wd, self._watchdog = self._watchdog, None
         if wd is not None:
             wd.stop()
 
     # -- reader thread ------------------------------------------------------------------------
 
-    def _on_frame(self, frame: can.Message) -> None:
+    def on_frame(self, frame: can.Message) -> None:
         """A received frame to canopen's listeners (what its notifier would do)."""
         self._bus_failed = False     # a receive error is reported again after a good frame
-        self._frames_in += 1         # to the statistics in _tell_frames
-        if frame.arbitration_id == SYNC_COB_ID and self._observe_sync:
-            sync = self._sync
+        self._frames_in += 1         # to the statistics in tell_frames
+        if frame.arbitration_id == SYNC_COB_ID and self.observe_sync:
+            sync = self.sync
             if sync is not None:
                 sync.seen(frame.timestamp)
             return
-        network = self._network
+        network = self.network
         if network is None:
             return
         for listener in network.listeners:
             try:
                 listener.on_message_received(frame)
             except Exception as exc:  # the reader must survive any canopen/host surprise
-                self.host.error(self.bus.name, "internal", f"frame handling failed: {exc!r}")
+                self.host.error(self.bus, "internal", f"frame handling failed: {exc!r}")
 
-    def _on_bus_error(self, reason: str) -> None:
+    def on_bus_error(self, reason: str) -> None:
         if not self._bus_failed:
             self._bus_failed = True
-            self.host.error(self.bus.name, "bus-error",
-                            f"canopen bus {self.bus.name}: receive failed: {reason}")
+            self.host.error(self.bus, "bus-error",
+                            f"canopen bus {self.bus}: receive failed: {reason}")
 
-    def _on_tpdo(self, pdo_map: Any) -> None:
+    def on_tpdo(self, pdo_map: Any) -> None:
         """A TPDO arrived (reader thread, or settle's drain: both under the reader's lock, so
         settle never returns while one is being delivered)."""
         nid = pdo_map.pdo_node.node.id
-        sync = self._sync
+        sync = self.sync
         if sync is not None:
             sync.tpdo(pdo_map.cob_id)
         if len(pdo_map.data) * 8 < pdo_map.length:
-            self.host.error(self.bus.name, "malformed",
+            self.host.error(self.bus, "malformed",
                             f"{pdo_map.name} from canopen node {nid}: {len(pdo_map.data)} "
                             f"bytes, expected {(pdo_map.length + 7) // 8}")
             return
         deliver_all(self.host, [(dev, var.raw) for var in pdo_map.map
-                                for dev in self._pdo_sensors.get((nid, var.index, var.subindex),
+                                for dev in self.pdo_sensors.get((nid, var.index, var.subindex),
                                                                  ())])
 
-    def _on_heartbeat(self, node: ManagedNode, code: int) -> None:
+    def on_heartbeat(self, node: ManagedNode, code: int) -> None:
         """A heartbeat or boot-up of ``node`` (reader thread): supervision, then the lifecycle."""
         nmt = NmtState.of(code)
         if nmt is NmtState.BOOT_UP:     # failed for the reboot before the loss ends
-            self._rebooted(node)
+            self.rebooted(node)
         with node.lock:
             node.last_heartbeat = time.monotonic()
             was_lost, node.lost = node.lost, False
         if was_lost:
-            self._clear_node(node, "heartbeat", f"canopen node {node.id}: heartbeat back")
+            self.clear_node(node, "heartbeat", f"canopen node {node.id}: heartbeat back")
         if nmt is NmtState.BOOT_UP:
             return
         if nmt is None:
-            self.host.error(self.bus.name, "malformed", f"{self._where(node)}: heartbeat with "
+            self.host.error(self.bus, "malformed", f"{self.where(node)}: heartbeat with "
                                                         f"unknown NMT state {code:#x}")
             return
-        if self._retry_silent(node):
+        if self.retry_silent(node):
             return
         with node.lock:
             before = node.lifecycle.state
@@ -282,11 +258,11 @@ class CanopenEvents(WorkerJobDriver):
             if after is NodeLifecycle.PREOP_HELD:
                 node.starting = False
         if after is NodeLifecycle.PREOP_HELD and before is not NodeLifecycle.PREOP_HELD:
-            self._submit(OP, ReportHeld(node.id, generation))
+            self.submit(ReportHeld(node.id, generation))
         if after is not before or not node.lifecycle.ready():
-            self._judge(node, f"heartbeat confirms {nmt.name}")
+            self.judge(node, f"heartbeat confirms {nmt.name}")
 
-    def _retry_silent(self, node: ManagedNode) -> bool:
+    def retry_silent(self, node: ManagedNode) -> bool:
         """A heartbeat of a node whose boot procedure found it silent (it was busy, or came up
         without a boot-up message we saw): run the procedure again, at most every
         :data:`RETRY_SILENT` s (each try may cost SDO timeouts on the I/O thread)."""
@@ -299,45 +275,45 @@ class CanopenEvents(WorkerJobDriver):
             node.booting = True
             generation = node.lifecycle.restart("heartbeat of a node that had not answered: "
                                                 "identity, configuration and NMT start again")
-        self._submit(OP, BootNode(node.id, generation))
+        self.submit(BootNode(node.id, generation))
         return True
 
-    def _rebooted(self, node: ManagedNode) -> None:
+    def rebooted(self, node: ManagedNode) -> None:
         """A boot-up message: the node's devices fail, its boot procedure runs again (the safe
         values follow its recovery, through the host)."""
         with node.lock:
             generation = node.lifecycle.booted()
             node.starting = False
             node.booting = True
-        reason = f"{self._where(node)}: rebooted (boot-up message): configuring it again"
-        self.host.error(self.bus.name, "boot-up", reason)
-        self._fail_node(node, "lifecycle", reason)
-        self._submit(OP, BootNode(node.id, generation))
+        reason = f"{self.where(node)}: rebooted (boot-up message): configuring it again"
+        self.host.error(self.bus, "boot-up", reason)
+        self.fail_node(node, "lifecycle", reason)
+        self.submit(BootNode(node.id, generation))
 
-    def _on_emcy(self, node: ManagedNode, entry: Any) -> None:
-        text = f"{self._where(node)}: EMCY {entry} register 0x{entry.register:02X}"
+    def on_emcy(self, node: ManagedNode, entry: Any) -> None:
+        text = f"{self.where(node)}: EMCY {entry} register 0x{entry.register:02X}"
         with node.lock:
             node.lifecycle.last_emcy = f"{entry} register 0x{entry.register:02X}"
-        self.host.error(self.bus.name, "emcy", text)
+        self.host.error(self.bus, "emcy", text)
         if is_error_reset(entry.code):
-            self._clear_node(node, "emcy", f"canopen node {node.id}: error-reset EMCY")
+            self.clear_node(node, "emcy", f"canopen node {node.id}: error-reset EMCY")
         elif is_fatal_emcy(entry.code):
-            self._fail_node(node, "emcy", text)
+            self.fail_node(node, "emcy", text)
 
     def report_frame(self, kind: str, detail: str) -> None:
         """A frame-level problem seen by the bus listener (see :class:`FrameCheck`)."""
-        self.host.error(self.bus.name, kind, detail)
+        self.host.error(self.bus, kind, detail)
 
     def knows_node(self, node_id: int) -> bool:
         """True if ``node_id`` is one of this bus's nodes or the master's own id (whose
         heartbeat other sockets of this host see on SocketCAN)."""
-        return node_id in self._nodes or node_id == self._master_id
+        return node_id in self.nodes or node_id == self.master_id
 
 
 class FrameCheck(can.Listener):
     """Reports frames canopen would drop quietly: heartbeats of unknown nodes, short EMCYs."""
 
-    def __init__(self, driver: CanopenEvents) -> None:
+    def __init__(self, driver: NodeEvents) -> None:
         self._driver = driver
 
     def on_message_received(self, msg: can.Message) -> None:

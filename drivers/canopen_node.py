@@ -22,7 +22,7 @@ Each node is a :class:`drivers.canopen_remote.ManagedNode` with a lifecycle
 (:mod:`drivers.canopen_lifecycle`): at start and after every boot-up message the I/O thread checks
 its identity, reads its error register 0x1001, downloads its configuration (every write read
 back), sends one NMT start, and its devices are OK once its heartbeat confirms OPERATIONAL
-(:meth:`CanopenEvents.node_states` shows where each node is). The kernel receives only the
+(:meth:`CanopenDriver.node_states` shows where each node is). The kernel receives only the
 nodes' COB-IDs (``can_filters``: heartbeats, EMCY, SDO answers, TPDOs).
 
 Frames are received by the driver's own reader thread (:func:`drivers.canbus.read_frames`), not
@@ -51,6 +51,8 @@ from __future__ import annotations
 import contextlib
 import struct
 import time
+from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import can
@@ -61,11 +63,11 @@ from chcos.devices import parsecache
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError
 from drivers import canopen_config
-from drivers.base import deliver_all
+from drivers.base import DriverHost, deliver_all
 from drivers.canbus import read_frames
-from drivers.canopen_events import Binding, CanopenEvents, FrameCheck
-from drivers.canopen_jobs import OP, BootNode, Probe, ReportHeld
-from drivers.canopen_lifecycle import Lifecycle, NodeLifecycle
+from drivers.canopen_events import FrameCheck, NodeEvents
+from drivers.canopen_jobs import OP, BootNode, CanopenJob, Probe, ReportHeld
+from drivers.canopen_lifecycle import Lifecycle, NodeLifecycle, NodeStatus
 from drivers.canopen_od import (
     DEFAULT_MASTER_ID,
     DEFAULT_POLL,
@@ -78,9 +80,9 @@ from drivers.canopen_od import (
     value_error,
 )
 from drivers.canopen_remote import BootOutcome, ManagedNode, RpdoImages
-from drivers.canopen_sync import SYNC_COB_ID, SyncCycle
+from drivers.canopen_sync import SYNC_COB_ID, SyncCycle, SyncStats
 from drivers.codecs.canopen import EMCY_BASE, HEARTBEAT_BASE
-from drivers.jobs import Job
+from drivers.jobs import Job, WorkerJobDriver
 from drivers.threaded import ReaderThread
 
 DEFAULT_SDO_TIMEOUT = 0.3
@@ -90,6 +92,20 @@ SDO_TX_BASE = 0x580   # SDO server -> client: COB-ID 0x580 + node id
 #: lifecycle states in which a node is known not to be OPERATIONAL: an RPDO to it is sent (a
 #: safe value goes out whatever the state) but not reported written
 IGNORES_RPDOS = (NodeLifecycle.PREOP_HELD, NodeLifecycle.FAILED, NodeLifecycle.WAITING_BOOT)
+
+
+@dataclass
+class Binding:
+    """A device of the bus bound to its object: the node, index, subindex, the object's
+    variable, the PDO variable that carries it (if any) and its SDO poll period."""
+
+    device: DeviceSpec
+    node: int
+    index: int
+    subindex: int
+    od_var: Any
+    pdo_var: Any = None        # TPDO variable (sensor) or RPDO variable (actuator), or None
+    poll_period: float = DEFAULT_POLL
 
 
 def node_filters(nodes: dict[int, ManagedNode]) -> list[dict[str, int]]:
@@ -125,15 +141,52 @@ def apply_pdo_config(remote: Any, cfg: canopen_config.NodeConfig) -> None:
             pdo_map.subscribe()
 
 
-class CanopenDriver(CanopenEvents):
+class CanopenDriver(WorkerJobDriver):
     """The ``canopen`` bus: see the module doc for options, addresses and failure handling."""
 
     kind = "canopen"
 
-    def __init__(self, bus: BusSpec, devices: Any, host: Any) -> None:
+    def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
         super().__init__(bus, devices, host)
+        #: the nodes and what happens to them (the receive side, heartbeats, EMCY, SYNC)
+        self._events = NodeEvents(bus.name, host, self._submit_job)
+        self._nodes = self._events.nodes
+        self._bindings: dict[str, Binding] = {}
+        self._poll_groups: dict[float, list[Binding]] = {}   # SDO-polled sensors by period
         self._master_task: Any = None
         self._sync_task: Any = None
+
+    def _submit_job(self, job: CanopenJob) -> bool:
+        return self._submit(OP, job)
+
+    # -- what the driver shows ----------------------------------------------------------------
+
+    def node_states(self) -> dict[int, NodeStatus]:
+        """Each node's lifecycle status by node id (:class:`NodeStatus`). Thread-safe."""
+        return self._events.node_states()
+
+    def sync_stats(self) -> SyncStats | None:
+        """The SYNC cycle's counters and jitter (None without ``sync_period``)."""
+        return self._events.sync_stats()
+
+    def wait_cycle(self, n: int, timeout: float) -> bool:
+        """Wait until SYNC cycle ``n`` is complete: every synchronous TPDO due in it arrived
+        (True), or SYNC n+1 went out first or ``timeout`` passed (False; also without SYNC)."""
+        return self._events.wait_cycle(n, timeout)
+
+    def _tick(self) -> float:
+        """The worker's longest wait for a job; the frames received meanwhile go to the bus
+        statistics before each job and at least every 0.5 s."""
+        self._events.tell_frames()
+        return 0.5
+
+    def settle(self, timeout: float) -> bool:
+        """As :meth:`drivers.jobs.JobDriver.settle`; the frames handed over are counted in the
+        bus statistics before it returns."""
+        try:
+            return super().settle(timeout)
+        finally:
+            self._events.tell_frames()
 
     # -- validation (drivers.canopen_od) -----------------------------------------------------
 
@@ -168,9 +221,9 @@ class CanopenDriver(CanopenEvents):
         if errs:
             raise BusError(f"canopen bus {self.bus.name} ({self.bus.file}): " + "; ".join(errs))
         network: Any = canopen.Network()
-        network.listeners.append(FrameCheck(self))
+        network.listeners.append(FrameCheck(self._events))
         opts = self.bus.options
-        self._master_id = int(opts.get("master_node_id", DEFAULT_MASTER_ID))
+        self._events.master_id = int(opts.get("master_node_id", DEFAULT_MASTER_ID))
         for ncfg in opts["nodes"]:
             nid = int(ncfg["id"])
             remote: Any = canopen.RemoteNode(nid, load_od(self.bus, nid, ncfg["eds"]))
@@ -181,13 +234,13 @@ class CanopenDriver(CanopenEvents):
             cfg = canopen_config.with_bits(canopen_config.parse(ncfg), remote.object_dictionary)
             apply_pdo_config(remote, cfg)
             for pdo_map in remote.tpdo.map.values():
-                pdo_map.add_callback(self._on_tpdo)
+                pdo_map.add_callback(self._events.on_tpdo)
             hb = ncfg.get("heartbeat_timeout")
             self._nodes[nid] = ManagedNode(
                 remote, cfg, float(hb) if hb is not None else None,
                 Lifecycle(nid, bool(ncfg.get("nmt_start", True)), hb is not None),
                 RpdoImages(remote))
-        self._network = network
+        self._events.network = network
         self._bind_devices()
         config = {k: opts[k] for k in ("interface", "channel", "bitrate") if k in opts}
         try:
@@ -197,10 +250,10 @@ class CanopenDriver(CanopenEvents):
                 if any(rates):
                     cfg_bus["bitrate"] = next(r for r in rates if r)
             # on SocketCAN the kernel produces SYNC and the reader sees each one come back
-            self._observe_sync = ("sync_period" in opts
+            self._events.observe_sync = ("sync_period" in opts
                                   and cfg_bus.get("interface") == "socketcan")
             filters = node_filters(self._nodes)
-            if self._observe_sync:
+            if self._events.observe_sync:
                 filters.append({"can_id": SYNC_COB_ID, "can_mask": 0x7FF})
             bus = can.Bus(**cfg_bus, can_filters=filters)
         except (can.CanError, OSError, ValueError, ImportError) as exc:
@@ -209,16 +262,17 @@ class CanopenDriver(CanopenEvents):
         network.bus = bus
         poll = float(opts.get("poll", DEFAULT_RX_POLL))
         rx = self._rx = ReaderThread(
-            lambda: read_frames(rx, bus, poll, self._on_frame, self._on_bus_error),
+            lambda: read_frames(rx, bus, poll, self._events.on_frame, self._events.on_bus_error),
             f"canopen-{self.bus.name}-rx")
         rx.start()
+        self._events.rx = rx
         for node in self._nodes.values():
             node.remote.nmt.add_heartbeat_callback(
-                lambda code, n=node: self._on_heartbeat(n, code))
-            node.remote.emcy.add_callback(lambda entry, n=node: self._on_emcy(n, entry))
+                lambda code, n=node: self._events.on_heartbeat(n, code))
+            node.remote.emcy.add_callback(lambda entry, n=node: self._events.on_emcy(n, entry))
         self._running = True
         self._start_worker()
-        self._start_watchdog()
+        self._events.start_watchdog()
         for node in self._nodes.values():
             with node.lock:
                 generation = node.lifecycle.restart("driver started: identity, configuration "
@@ -243,7 +297,7 @@ class CanopenDriver(CanopenEvents):
     def _start_master_heartbeat(self, bus: can.BusABC, period_ms: int) -> None:
         """The master's heartbeat (state OPERATIONAL) at ``period_ms``: a cyclic task of the
         interface (SocketCAN's broadcast manager: the kernel stops it when this process dies)."""
-        msg = can.Message(arbitration_id=HEARTBEAT_BASE + self._master_id, data=b"\x05",
+        msg = can.Message(arbitration_id=HEARTBEAT_BASE + self._events.master_id, data=b"\x05",
                           is_extended_id=False)
         try:
             self._master_task = bus.send_periodic(msg, period_ms / 1000.0)
@@ -268,8 +322,8 @@ class CanopenDriver(CanopenEvents):
             for m in node.remote.tpdo.map.values():
                 if m.enabled and m.cob_id and m.trans_type is not None:
                     sync.expect(m.cob_id, int(m.trans_type))
-        self._sync = sync
-        if self._observe_sync:
+        self._events.sync = sync
+        if self._events.observe_sync:
             try:
                 self._sync_task = bus.send_periodic(frame, period)
             except (can.CanError, OSError, NotImplementedError) as exc:
@@ -292,19 +346,19 @@ class CanopenDriver(CanopenEvents):
                 float(a.get("poll_period", default_poll)))
             self._nodes[nid].devices.append(dev.name)
             if dev.direction == "sensor" and pdo_var is not None:
-                self._pdo_sensors.setdefault((nid, index, sub), []).append(dev.name)
+                self._events.pdo_sensors.setdefault((nid, index, sub), []).append(dev.name)
 
     def stop(self) -> None:
         """Put every queued write on the wire (safe values at shutdown), then stop the master
         heartbeat, SYNC, the threads and the bus. Idempotent; never raises."""
         self._running = False
         self._stop_worker()     # runs every job queued before: they go out first
-        self._stop_watchdog()
+        self._events.stop_watchdog()
         sync_task, self._sync_task = self._sync_task, None
         if sync_task is not None:
             with contextlib.suppress(Exception):
                 sync_task.stop()
-        sync, self._sync = self._sync, None
+        sync, self._events.sync = self._events.sync, None
         if sync is not None:
             sync.stop()
         task, self._master_task = self._master_task, None
@@ -314,8 +368,8 @@ class CanopenDriver(CanopenEvents):
         rx, self._rx = self._rx, None
         if rx is not None:
             rx.stop()
-        self._tell_frames()
-        network, self._network = self._network, None
+        self._events.tell_frames()
+        network, self._events.network = self._events.network, None
         if network is not None:
             with contextlib.suppress(Exception):
                 network.disconnect()
@@ -376,8 +430,8 @@ class CanopenDriver(CanopenEvents):
         with node.lock:
             if job.generation != node.lifecycle.generation:
                 return      # the node booted again meanwhile: that boot's procedure follows
-        result = node.boot(self._master_id)
-        where = self._where(node)
+        result = node.boot(self._events.master_id)
+        where = self._events.where(node)
         with node.lock:
             if job.generation != node.lifecycle.generation:
                 return
@@ -404,14 +458,14 @@ class CanopenDriver(CanopenEvents):
             case BootOutcome.CONFIGURED:
                 reg = result.error_register
                 if reg:
-                    self._fail_node(node, "emcy", f"{where}: error register 0x1001 = "
+                    self._events.fail_node(node, "emcy", f"{where}: error register 0x1001 = "
                                                   f"0x{reg:02X} at boot")
                 else:
-                    self._clear_node(node, "emcy", f"{where}: error register 0x1001 clear at "
-                                                   f"boot")
+                    self._events.clear_node(node, "emcy",
+                                            f"{where}: error register 0x1001 clear at boot")
                 if node.lifecycle.nmt_start:
                     node.send_nmt_start()
-        self._judge(node, "configured and started" if node.lifecycle.nmt_start
+        self._events.judge(node, "configured and started" if node.lifecycle.nmt_start
                     else "configured")
 
     def _report_held(self, job: ReportHeld) -> None:
@@ -434,8 +488,8 @@ class CanopenDriver(CanopenEvents):
             state = lc.nmt.name.replace("_", "-") if lc.nmt is not None else "not OPERATIONAL"
             lc.reason = f"stays {state} after the NMT start ({'; '.join(parts)})"
             reason = lc.reason
-        self.host.error(self.bus.name, "preop-held", f"{self._where(node)}: {reason}")
-        self._judge(node, "operational")
+        self.host.error(self.bus.name, "preop-held", f"{self._events.where(node)}: {reason}")
+        self._events.judge(node, "operational")
 
     def _sdo_where(self, b: Binding) -> str:
         return f"canopen node {b.node} 0x{b.index:04X}:{b.subindex:02X} (device {b.device.name})"
@@ -448,15 +502,15 @@ class CanopenDriver(CanopenEvents):
             data = node.sdo.upload(b.index, b.subindex)
             value = b.od_var.decode_raw(data)
         except SdoAbortedError as exc:
-            self._health.fail(b.device.name, "sdo", f"SDO read of {self._sdo_where(b)} "
+            self._events.health.fail(b.device.name, "sdo", f"SDO read of {self._sdo_where(b)} "
                                                     f"aborted: {exc}")
             return
         except (SdoCommunicationError, struct.error) as exc:
-            self._health.fail(b.device.name, "sdo", f"SDO read of {self._sdo_where(b)} "
+            self._events.health.fail(b.device.name, "sdo", f"SDO read of {self._sdo_where(b)} "
                                                     f"failed: {exc}")
             return
-        if self._health.has_causes(b.device.name):
-            self._health.clear(b.device.name, "sdo", f"SDO read of {self._sdo_where(b)} "
+        if self._events.health.has_causes(b.device.name):
+            self._events.health.clear(b.device.name, "sdo", f"SDO read of {self._sdo_where(b)} "
                                                      f"answered")
         batch.append((b.device.name, value))
 
@@ -480,8 +534,9 @@ class CanopenDriver(CanopenEvents):
             with node.lock:
                 state, why = node.lifecycle.state, node.lifecycle.reason
             if state in IGNORES_RPDOS:
-                self.host.write_failed(name, value, f"{self._where(node)}: RPDO sent, but the "
-                                                    f"node ignores it: {state.value}: {why}")
+                self.host.write_failed(name, value, f"{self._events.where(node)}: RPDO sent, "
+                                                    f"but the node ignores it: {state.value}: "
+                                                    f"{why}")
             else:
                 self.host.written(name, value)
             return
@@ -497,7 +552,7 @@ class CanopenDriver(CanopenEvents):
                                                      f"failed: {exc}")
             return
         self.host.written(name, value)
-        self._health.clear(name, "sdo", f"SDO write to {self._sdo_where(b)} answered")
+        self._events.health.clear(name, "sdo", f"SDO write to {self._sdo_where(b)} answered")
 
     def _write_refused(self, b: Binding, value: Any, kind: str, text: str) -> None:
         """An SDO write failed: reported, the actuator failed, and a probe armed that clears
@@ -505,7 +560,7 @@ class CanopenDriver(CanopenEvents):
         name = b.device.name
         self.host.error(self.bus.name, kind, text, name)
         self.host.write_failed(name, value, text)
-        self._health.fail(name, "sdo", text)
+        self._events.health.fail(name, "sdo", text)
         self._arm_probe(b)
 
     def _arm_probe(self, b: Binding) -> None:
@@ -520,7 +575,7 @@ class CanopenDriver(CanopenEvents):
         """An SDO upload of the failed actuator's object (of 0x1000, the device type, if the
         object cannot be read): an answer clears the failure, none arms the next probe."""
         b = self._bindings[job.device]
-        if not self._health.failed(job.device):
+        if not self._events.health.failed(job.device):
             return
         readable = b.od_var is not None and b.od_var.readable
         index, sub = (b.index, b.subindex) if readable else (0x1000, 0)
@@ -529,5 +584,5 @@ class CanopenDriver(CanopenEvents):
         except (SdoAbortedError, SdoCommunicationError):
             self._arm_probe(b)
             return
-        self._health.clear(job.device, "sdo", f"canopen node {b.node} answered a probe of "
+        self._events.health.clear(job.device, "sdo", f"canopen node {b.node} answered a probe of "
                                               f"0x{index:04X}:{sub:02X}")

@@ -183,21 +183,22 @@ def test_a_heartbeat_waiting_for_the_reader_is_not_a_loss(
     the reader hand over what was received first. Here the only heartbeat after a 10 s "stall"
     is the one that hand-over delivers."""
     driver = rig.driver
-    state = driver._nodes[NODE]
-    rx = driver._rx
+    events = driver._events
+    state = events.nodes[NODE]
+    rx = events.rx
     assert rx is not None
     handed_over: list[float] = []
 
     def settle(timeout: float) -> bool:
         handed_over.append(timeout)
-        driver._on_heartbeat(state, 5)   # the OPERATIONAL heartbeat waiting in the socket
+        events.on_heartbeat(state, 5)    # the OPERATIONAL heartbeat waiting in the socket
         return True
 
     rig.slave.stop_heartbeat()
     monkeypatch.setattr(rx, "settle", settle)
     with state.lock:
         state.last_heartbeat -= 10.0
-    driver._check_heartbeats()
+    events.check_heartbeats()
     assert handed_over and not state.lost
     assert rig.host.failures == []
 
