@@ -251,7 +251,7 @@ class CanopenDriver(WorkerJobDriver):
                     cfg_bus["bitrate"] = next(r for r in rates if r)
             # on SocketCAN the kernel produces SYNC and the reader sees each one come back
             self._events.observe_sync = ("sync_period" in opts
-                                  and cfg_bus.get("interface") == "socketcan")
+                                         and cfg_bus.get("interface") == "socketcan")
             filters = node_filters(self._nodes)
             if self._events.observe_sync:
                 filters.append({"can_id": SYNC_COB_ID, "can_mask": 0x7FF})
