@@ -55,6 +55,9 @@ def test_boot_checks_identity_configures_starts_once_and_confirms(tmp_path: Path
         # the configured PDOs carry the devices both ways
         r.node.write(0x6064, 0, -4321)
         assert r.host.wait_for(lambda h: -4321 in h.values("pos"))
+        # one reading per TPDO on the wire (the reconfigured TPDO is subscribed once)
+        tpdo = 0x180 + NODE
+        assert r.wire.wait_for(lambda w: len(w.of(tpdo)) == len(r.host.values("pos")))
         r.driver.write("target", 2500)
         assert r.node.wait(lambda: r.node.read(0x607A, 0) == 2500)
         # heartbeats keep coming; the NMT start went out once
