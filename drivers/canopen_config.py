@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import re
 import struct
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -399,14 +399,3 @@ def _check_sdo(k: str, w: object, od: Any | None) -> list[str]:
         return [f"{k}.value: {value!r} does not fit {where}'s data type: {exc}"]
     return []
 
-
-def pdo_overlap(pdos: Sequence[PdoConfig]) -> list[str]:
-    """Objects mapped into more than one RPDO of ``pdos``, named with both PDOs: the driver keeps
-    them consistent (one image per object), this says so for ``chcos check`` notes."""
-    where: dict[tuple[int, int], list[str]] = {}
-    for p in pdos:
-        if p.kind == "rpdo" and p.mapping:
-            for index, sub, _ in p.mapping:
-                where.setdefault((index, sub), []).append(p.name)
-    return [f"0x{i:04X}:{s:02X} in {' and '.join(names)}"
-            for (i, s), names in where.items() if len(names) > 1]
