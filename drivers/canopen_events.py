@@ -1,23 +1,35 @@
 """canopen_events - the receive side of the ``canopen`` driver (:mod:`drivers.canopen_node`):
 the frames of its reader thread handed to canopen's listeners (SDO responses, PDOs, heartbeats,
-EMCY), TPDO readings, the heartbeat watchdog of the nodes, EMCY failures and recoveries, and the
-frames canopen would drop quietly. :class:`CanopenEvents` holds the driver's state; the life
-cycle, the SDO polls and the writes are :class:`drivers.canopen_node.CanopenDriver`.
+EMCY), TPDO readings, the NMT state of each heartbeat driving the node's lifecycle (a boot-up is
+a reboot), heartbeat supervision (on its own thread, :mod:`drivers.canopen_watchdog`), EMCY
+failures and recoveries, and the frames canopen would drop quietly. :class:`NodeEvents` is an
+object the driver composes (it holds the nodes, their health and the SYNC cycle, and queues jobs
+through the callable it is given); the life cycle of the driver, the boot procedure of the nodes,
+the SDO polls and the writes are :class:`drivers.canopen_node.CanopenDriver`.
+
+Failure causes of a device (:class:`drivers.health.Health`, each with its reason): ``lifecycle``
+(the node is not in the state the map requires: waiting for its boot-up, rebooted, identity
+mismatch, configuration refused, held in PRE-OPERATIONAL), ``heartbeat`` (lost), ``emcy`` (a
+fatal EMCY, or the error register 0x1001 set at boot), ``sdo`` (a transfer of this device
+failed). A device recovers when its last cause clears.
 """
 
 from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable
 from typing import Any
 
 import can
 
-from chcos.devices.spec import BusSpec, DeviceSpec
 from drivers.base import DriverHost, deliver_all
-from drivers.canopen_od import DEFAULT_POLL
+from drivers.canopen_jobs import BootNode, CanopenJob, ReportHeld
+from drivers.canopen_lifecycle import NmtState, NodeLifecycle, NodeStatus
+from drivers.canopen_od import DEFAULT_MASTER_ID
+from drivers.canopen_remote import ManagedNode
+from drivers.canopen_sync import SYNC_COB_ID, SyncCycle, SyncStats
+from drivers.canopen_watchdog import HeartbeatWatchdog
 from drivers.codecs.canopen import (
     emcy_node,
     heartbeat_node,
@@ -25,188 +37,283 @@ from drivers.codecs.canopen import (
     is_fatal_emcy,
 )
 from drivers.health import Health
-from drivers.jobs import WorkerJobDriver
+from drivers.threaded import ReaderThread
+
+RETRY_SILENT = 2.0
+"""Seconds between two boot procedures of a node that heartbeats but did not answer SDO."""
 
 HEARTBEAT_SETTLE = 0.1
 """Bound (s) on handing over received frames before a heartbeat loss is declared (polling
 interfaces; on SocketCAN the drain is immediate)."""
 
 
-@dataclass
-class Binding:
-    """A device of the bus bound to its object: the node, index, subindex, the object's
-    variable, the PDO variable that carries it (if any) and its SDO poll period."""
+class NodeEvents:
+    """The nodes of a ``canopen`` bus and everything that happens to them (see the module doc).
+    ``submit`` queues a job on the driver's I/O thread (False when it is stopping)."""
 
-    device: DeviceSpec
-    node: int
-    index: int
-    subindex: int
-    od_var: Any
-    pdo_var: Any = None        # TPDO variable (sensor) or RPDO variable (actuator), or None
-    poll_period: float = DEFAULT_POLL
-
-
-@dataclass
-class NodeState:
-    """A node of the bus: its canopen RemoteNode, heartbeat supervision and devices."""
-
-    node: Any
-    heartbeat_timeout: float | None
-    nmt_start: bool
-    last_heartbeat: float = field(default_factory=time.monotonic)
-    lost: bool = False
-    devices: list[str] = field(default_factory=list)
-
-
-class CanopenEvents(WorkerJobDriver):
-    """The state of a ``canopen`` driver and its receive side (see the module doc)."""
-
-    def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
-        super().__init__(bus, devices, host)
-        self._health = Health(host)
-        self._hb_lock = threading.Lock()      # guards NodeState.last_heartbeat and .lost
-        self._network: Any = None
-        self._nodes: dict[int, NodeState] = {}
-        self._bindings: dict[str, Binding] = {}
-        self._pdo_sensors: dict[tuple[int, int, int], list[str]] = {}
-        self._poll_groups: dict[float, list[Binding]] = {}   # SDO-polled sensors by period
+    def __init__(self, bus: str, host: DriverHost, submit: Callable[[CanopenJob], bool]) -> None:
+        self.bus = bus
+        self.host = host
+        self.health = Health(host)
+        self.submit = submit
+        self.nodes: dict[int, ManagedNode] = {}
+        #: sensors delivered from TPDOs: (node, index, subindex) -> device names
+        self.pdo_sensors: dict[tuple[int, int, int], list[str]] = {}
+        #: canopen's Network whose listeners get the frames (set at start)
+        self.network: Any = None
+        #: the reader whose input a watchdog hands over before it declares a loss (set at start)
+        self.rx: ReaderThread | None = None
+        #: the node id of this master's heartbeat (bus option ``master_node_id``)
+        self.master_id = DEFAULT_MASTER_ID
+        self.sync: SyncCycle | None = None
+        #: True when the kernel produces SYNC and the reader counts each one it sees
+        self.observe_sync = False
+        self._watchdog: HeartbeatWatchdog | None = None
         self._bus_failed = False
-        #: whether any node has heartbeat supervision (set at start; the watchdog's fast exit)
-        self._watched = False
         #: frames handed to canopen's listeners, written by whoever receives (the reader, or a
         #: settle's drain: one at a time, under the reader's lock); of which reported to the
-        #: host as ``frames`` (:meth:`_tell_frames`, under ``_told_lock``)
+        #: host as ``frames`` (:meth:`tell_frames`, under ``_told_lock``)
         self._frames_in = 0
         self._frames_told = 0
         self._told_lock = threading.Lock()
+        #: the SYNC counters last added to the host's statistics (cycles, missing, late)
+        self._sync_told = (0, 0, 0)
 
-    # -- I/O thread: the heartbeat watchdog -------------------------------------------------
+    # -- what the driver shows ------------------------------------------------------------------
 
-    def _tick(self) -> float:
-        """The worker's longest wait for a job: until the next heartbeat deadline. Before each
-        job and at least every 0.5 s: the frames received meanwhile go to the bus statistics."""
-        self._tell_frames()
-        return self._watchdog() if self._watched else 0.5
+    def node_states(self) -> dict[int, NodeStatus]:
+        """Each node's lifecycle status by node id (see :class:`NodeStatus`). Thread-safe."""
+        out = {}
+        for nid, node in self.nodes.items():
+            with node.lock:
+                out[nid] = node.lifecycle.status()
+        return out
 
-    def _tell_frames(self) -> None:
+    def sync_stats(self) -> SyncStats | None:
+        """The SYNC cycle's counters and jitter (None without ``sync_period``)."""
+        sync = self.sync
+        return None if sync is None else sync.stats()
+
+    def wait_cycle(self, n: int, timeout: float) -> bool:
+        """Wait until SYNC cycle ``n`` is complete: every synchronous TPDO due in it arrived
+        (True), or SYNC n+1 went out first or ``timeout`` passed (False; also without SYNC)."""
+        sync = self.sync
+        return False if sync is None else sync.wait_cycle(n, timeout)
+
+    # -- the node's readiness and its devices ----------------------------------------------------
+
+    def where(self, node: ManagedNode) -> str:
+        return node.where(self.bus)
+
+    def judge(self, node: ManagedNode, why_ok: str) -> None:
+        """Fail or recover ``node``'s devices (cause ``lifecycle``) by its lifecycle: OK only
+        while it is ready; while the driver is first bringing it up, not failed yet."""
+        with node.lock:
+            ready = node.lifecycle.ready()
+            if ready:
+                node.starting = False
+            hold = node.starting
+            reason = f"{self.where(node)}: {node.lifecycle.state.value}: {node.lifecycle.reason}"
+        if ready:
+            for dev in node.devices:
+                self.health.clear(dev, "lifecycle", f"{self.where(node)}: {why_ok}")
+        elif not hold:
+            for dev in node.devices:
+                self.health.fail(dev, "lifecycle", reason)
+
+    def fail_node(self, node: ManagedNode, cause: str, reason: str) -> None:
+        for dev in node.devices:
+            self.health.fail(dev, cause, reason)
+
+    def clear_node(self, node: ManagedNode, cause: str, why: str) -> None:
+        for dev in node.devices:
+            self.health.clear(dev, cause, why)
+
+    # -- statistics and the watchdog thread -------------------------------------------------
+
+    def tell_frames(self) -> None:
         """Count the frames received since the last call in the host's ``frames`` statistic,
         as one addition (one per frame would cost the reader a locked call per frame)."""
         with self._told_lock:
             n = self._frames_in
             new, self._frames_told = n - self._frames_told, n
         if new:
-            self.host.stat(self.bus.name, "frames", new)
+            self.host.stat(self.bus, "frames", new)
+        sync = self.sync
+        if sync is not None:
+            now = sync.counters()
+            with self._told_lock:
+                told, self._sync_told = self._sync_told, now
+            for key, a, b in zip(("sync-cycles", "sync-missing", "sync-late"), told, now,
+                                 strict=True):
+                if b > a:
+                    self.host.stat(self.bus, key, b - a)
 
-    def settle(self, timeout: float) -> bool:
-        """As :meth:`drivers.jobs.JobDriver.settle`; the frames handed over are counted in the
-        bus statistics before it returns."""
-        try:
-            return super().settle(timeout)
-        finally:
-            self._tell_frames()
-
-    def _watchdog(self) -> float:
-        """Fail the devices of nodes whose heartbeat is overdue; the time to the next deadline.
-        Before it declares a node lost it has the reader hand over every frame the operating
-        system already holds: after this process was stalled (a loaded machine, a virtual one)
-        the I/O thread may wake before the reader, and a heartbeat waiting in the socket is not a
-        missing one."""
+    def check_heartbeats(self) -> float:
+        """Fail the devices of nodes whose heartbeat is overdue; the time to the next deadline
+        (the watchdog thread). Before it declares a node lost it has the reader hand over every
+        frame the operating system already holds: after this process was stalled (a loaded
+        machine, a virtual one) the watchdog may wake before the reader, and a heartbeat waiting
+        in the socket is not a missing one."""
         now = time.monotonic()
-        with self._hb_lock:
-            overdue = any(s.heartbeat_timeout is not None and not s.lost
-                          and now - s.last_heartbeat > s.heartbeat_timeout
-                          for s in self._nodes.values())
-        rx = self._rx
+        overdue = False
+        for s in self.nodes.values():
+            with s.lock:
+                overdue |= (s.heartbeat_timeout is not None and not s.lost and not s.booting
+                            and now - s.last_heartbeat > s.heartbeat_timeout)
+        rx = self.rx
         if overdue and rx is not None:
-            # a late heartbeat is not a dead node: first hand over every frame the OS already
-            # received (this thread or the reader may simply have been starved of CPU)
             rx.settle(HEARTBEAT_SETTLE)
         wait = 0.5
-        for nid, s in self._nodes.items():
-            with self._hb_lock:
-                if s.heartbeat_timeout is None or s.lost:
+        for s in self.nodes.values():
+            with s.lock:
+                if s.heartbeat_timeout is None or s.lost or s.booting:
                     continue
                 late = now - s.last_heartbeat
                 s.lost = late > s.heartbeat_timeout
+                if s.lost:
+                    s.starting = False
             if s.lost:
-                reason = (f"canopen node {nid} on bus {self.bus.name}: no heartbeat for more than "
-                          f"heartbeat_timeout {s.heartbeat_timeout} s")
-                for dev in s.devices:
-                    self._health.fail(dev, "heartbeat", reason)
+                self.fail_node(s, "heartbeat", f"{self.where(s)}: no heartbeat for more "
+                                                f"than heartbeat_timeout {s.heartbeat_timeout} s")
             else:
                 wait = min(wait, s.heartbeat_timeout - late + 0.001)
         return wait
 
+    def start_watchdog(self) -> None:
+        if any(s.heartbeat_timeout is not None for s in self.nodes.values()):
+            self._watchdog = HeartbeatWatchdog(self.check_heartbeats,
+                                               f"canopen-{self.bus}-watchdog")
+            self._watchdog.start()
+
+    def stop_watchdog(self) -> None:
+        wd, self._watchdog = self._watchdog, None
+        if wd is not None:
+            wd.stop()
+
     # -- reader thread ------------------------------------------------------------------------
 
-    def _on_frame(self, frame: can.Message) -> None:
+    def on_frame(self, frame: can.Message) -> None:
         """A received frame to canopen's listeners (what its notifier would do)."""
         self._bus_failed = False     # a receive error is reported again after a good frame
-        self._frames_in += 1         # to the statistics in _tell_frames
-        network = self._network
+        self._frames_in += 1         # to the statistics in tell_frames
+        if frame.arbitration_id == SYNC_COB_ID and self.observe_sync:
+            sync = self.sync
+            if sync is not None:
+                sync.seen(frame.timestamp)
+            return
+        network = self.network
         if network is None:
             return
         for listener in network.listeners:
             try:
                 listener.on_message_received(frame)
             except Exception as exc:  # the reader must survive any canopen/host surprise
-                self.host.error(self.bus.name, "internal", f"frame handling failed: {exc!r}")
+                self.host.error(self.bus, "internal", f"frame handling failed: {exc!r}")
 
-    def _on_bus_error(self, reason: str) -> None:
+    def on_bus_error(self, reason: str) -> None:
         if not self._bus_failed:
             self._bus_failed = True
-            self.host.error(self.bus.name, "bus-error",
-                            f"canopen bus {self.bus.name}: receive failed: {reason}")
+            self.host.error(self.bus, "bus-error",
+                            f"canopen bus {self.bus}: receive failed: {reason}")
 
-    def _on_tpdo(self, pdo_map: Any) -> None:
+    def on_tpdo(self, pdo_map: Any) -> None:
         """A TPDO arrived (reader thread, or settle's drain: both under the reader's lock, so
         settle never returns while one is being delivered)."""
         nid = pdo_map.pdo_node.node.id
+        sync = self.sync
+        if sync is not None:
+            sync.tpdo(pdo_map.cob_id)
         if len(pdo_map.data) * 8 < pdo_map.length:
-            self.host.error(self.bus.name, "malformed",
+            self.host.error(self.bus, "malformed",
                             f"{pdo_map.name} from canopen node {nid}: {len(pdo_map.data)} "
                             f"bytes, expected {(pdo_map.length + 7) // 8}")
             return
         deliver_all(self.host, [(dev, var.raw) for var in pdo_map.map
-                                for dev in self._pdo_sensors.get((nid, var.index, var.subindex),
+                                for dev in self.pdo_sensors.get((nid, var.index, var.subindex),
                                                                  ())])
 
-    def _on_heartbeat(self, state: NodeState, nmt_state: int) -> None:
-        with self._hb_lock:
-            state.last_heartbeat = time.monotonic()
-            was_lost, state.lost = state.lost, False
+    def on_heartbeat(self, node: ManagedNode, code: int) -> None:
+        """A heartbeat or boot-up of ``node`` (reader thread): supervision, then the lifecycle."""
+        nmt = NmtState.of(code)
+        if nmt is NmtState.BOOT_UP:     # failed for the reboot before the loss ends
+            self.rebooted(node)
+        with node.lock:
+            node.last_heartbeat = time.monotonic()
+            was_lost, node.lost = node.lost, False
         if was_lost:
-            for dev in state.devices:
-                self._health.clear(dev, "heartbeat", f"canopen node {state.node.id}: heartbeat "
-                                                     f"back")
-        if state.nmt_start and nmt_state in (0, 127):  # boot-up or PRE-OPERATIONAL
-            self._submit("nmt", str(state.node.id))
+            self.clear_node(node, "heartbeat", f"canopen node {node.id}: heartbeat back")
+        if nmt is NmtState.BOOT_UP:
+            return
+        if nmt is None:
+            self.host.error(self.bus, "malformed", f"{self.where(node)}: heartbeat with "
+                                                        f"unknown NMT state {code:#x}")
+            return
+        if self.retry_silent(node):
+            return
+        with node.lock:
+            before = node.lifecycle.state
+            node.lifecycle.heartbeat(nmt)
+            after, generation = node.lifecycle.state, node.lifecycle.generation
+            if after is NodeLifecycle.PREOP_HELD:
+                node.starting = False
+        if after is NodeLifecycle.PREOP_HELD and before is not NodeLifecycle.PREOP_HELD:
+            self.submit(ReportHeld(node.id, generation))
+        if after is not before or not node.lifecycle.ready():
+            self.judge(node, f"heartbeat confirms {nmt.name}")
 
-    def _on_emcy(self, state: NodeState, entry: Any) -> None:
-        nid = state.node.id
-        text = f"canopen node {nid} on bus {self.bus.name}: EMCY {entry} register " \
-               f"0x{entry.register:02X}"
-        self.host.error(self.bus.name, "emcy", text)
+    def retry_silent(self, node: ManagedNode) -> bool:
+        """A heartbeat of a node whose boot procedure found it silent (it was busy, or came up
+        without a boot-up message we saw): run the procedure again, at most every
+        :data:`RETRY_SILENT` s (each try may cost SDO timeouts on the I/O thread)."""
+        now = time.monotonic()
+        with node.lock:
+            if (node.booting or node.lifecycle.state is not NodeLifecycle.WAITING_BOOT
+                    or now < node.retry_at):
+                return False
+            node.retry_at = now + RETRY_SILENT
+            node.booting = True
+            generation = node.lifecycle.restart("heartbeat of a node that had not answered: "
+                                                "identity, configuration and NMT start again")
+        self.submit(BootNode(node.id, generation))
+        return True
+
+    def rebooted(self, node: ManagedNode) -> None:
+        """A boot-up message: the node's devices fail, its boot procedure runs again (the safe
+        values follow its recovery, through the host)."""
+        with node.lock:
+            generation = node.lifecycle.booted()
+            node.starting = False
+            node.booting = True
+        reason = f"{self.where(node)}: rebooted (boot-up message): configuring it again"
+        self.host.error(self.bus, "boot-up", reason)
+        self.fail_node(node, "lifecycle", reason)
+        self.submit(BootNode(node.id, generation))
+
+    def on_emcy(self, node: ManagedNode, entry: Any) -> None:
+        text = f"{self.where(node)}: EMCY {entry} register 0x{entry.register:02X}"
+        with node.lock:
+            node.lifecycle.last_emcy = f"{entry} register 0x{entry.register:02X}"
+        self.host.error(self.bus, "emcy", text)
         if is_error_reset(entry.code):
-            for dev in state.devices:
-                self._health.clear(dev, "emcy", f"canopen node {nid}: error-reset EMCY")
+            self.clear_node(node, "emcy", f"canopen node {node.id}: error-reset EMCY")
         elif is_fatal_emcy(entry.code):
-            for dev in state.devices:
-                self._health.fail(dev, "emcy", text)
+            self.fail_node(node, "emcy", text)
 
     def report_frame(self, kind: str, detail: str) -> None:
         """A frame-level problem seen by the bus listener (see :class:`FrameCheck`)."""
-        self.host.error(self.bus.name, kind, detail)
+        self.host.error(self.bus, kind, detail)
 
     def knows_node(self, node_id: int) -> bool:
-        """True if ``node_id`` is one of this bus's nodes."""
-        return node_id in self._nodes
+        """True if ``node_id`` is one of this bus's nodes or the master's own id (whose
+        heartbeat other sockets of this host see on SocketCAN)."""
+        return node_id in self.nodes or node_id == self.master_id
 
 
 class FrameCheck(can.Listener):
     """Reports frames canopen would drop quietly: heartbeats of unknown nodes, short EMCYs."""
 
-    def __init__(self, driver: CanopenEvents) -> None:
+    def __init__(self, driver: NodeEvents) -> None:
         self._driver = driver
 
     def on_message_received(self, msg: can.Message) -> None:

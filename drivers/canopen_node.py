@@ -4,14 +4,26 @@ Bus options (``[[bus]] kind = "canopen"``):
 
 * ``interface``, ``channel``, ``bitrate`` - the python-can bus; any left out comes from python-can's
   own configuration (``can.util.load_config``: ``CAN_INTERFACE``, ``CAN_CHANNEL``, config files).
-* ``nodes = [{id, eds, heartbeat_timeout, nmt_start}]`` - node id 1..127, the node's EDS file
-  (absolute, or relative to the device-map file), heartbeat timeout in seconds (optional: no
-  heartbeat supervision), and whether the driver puts the node OPERATIONAL (default true).
+* ``nodes = [{id, eds, heartbeat_timeout, nmt_start, identity, config}]`` - node id 1..127, the
+  node's EDS file (absolute, or relative to the device-map file), heartbeat timeout in seconds
+  (optional: no heartbeat supervision), whether the driver puts the node OPERATIONAL (default
+  true), the identity 0x1018 it must have and the configuration downloaded at each boot
+  (:mod:`drivers.canopen_config`).
 * ``sync_period`` (s, optional) - produce SYNC at this period; ``poll_period`` (s, default 0.1) -
   default SDO polling period; ``sdo_timeout`` (s, default 0.3) - SDO response timeout.
+* ``master_heartbeat_ms`` (optional) - produce the master's heartbeat (COB-ID 0x700 +
+  ``master_node_id``, default 127, state OPERATIONAL) at this period, so that nodes with a
+  heartbeat consumer (0x1016) notice a dead controller.
 * ``poll`` (s, default 0.005) - the receive timeout of the driver's reader on interfaces it cannot
   wait on without receiving; it bounds :meth:`CanopenDriver.settle` there. Not used on SocketCAN
   or python-can's ``virtual`` interface (see :func:`drivers.canbus.read_frames`).
+
+Each node is a :class:`drivers.canopen_remote.ManagedNode` with a lifecycle
+(:mod:`drivers.canopen_lifecycle`): at start and after every boot-up message the I/O thread checks
+its identity, reads its error register 0x1001, downloads its configuration (every write read
+back), sends one NMT start, and its devices are OK once its heartbeat confirms OPERATIONAL
+(:meth:`CanopenDriver.node_states` shows where each node is). The kernel receives only the
+nodes' COB-IDs (``can_filters``: heartbeats, EMCY, SDO answers, TPDOs).
 
 Frames are received by the driver's own reader thread (:func:`drivers.canbus.read_frames`), not
 by canopen's notifier, and handed to canopen's listeners (SDO responses, PDOs, heartbeats, EMCY),
@@ -19,22 +31,19 @@ so that :meth:`CanopenDriver.settle` can promise that every frame that arrived b
 handled: virtual-time runs are deterministic on CANopen too.
 
 Device address: ``{node, index, subindex = 0, poll_period}``. A sensor whose object is mapped in an
-enabled TPDO of the node's EDS is delivered from the PDO callback; any other sensor is read by SDO
-every ``poll_period``, paced by the polls as in :mod:`drivers.jobs` (the kernel timer only
-enqueues; the SDOs run on the driver's I/O
-thread, the sensors of one period in turn in one job). An actuator write goes in the RPDO that
-maps the object, else by SDO download.
+enabled TPDO of the node (as configured, else as in its EDS) is delivered from the PDO callback;
+any other sensor is read by SDO every ``poll_period``, paced by the polls as in
+:mod:`drivers.jobs`. An actuator write goes in the RPDO that maps the object (composed from the
+current value of every object it maps: :class:`drivers.canopen_remote.RpdoImages`), else by SDO
+download. An SDO write that aborts or times out fails the actuator; the driver then probes the
+object by SDO upload until the node answers and the failure clears (no latch).
 
-Failures: a node whose heartbeat is missing longer than its ``heartbeat_timeout`` fails all its
-devices until a heartbeat returns. Every EMCY is reported through ``host.error(bus, "emcy", ...)``;
-EMCY codes of the classes current (2xxx), voltage (3xxx), temperature (4xxx), device hardware (50xx)
-and monitoring (8xxx) are fatal: they fail the node's devices until an error-reset EMCY (code 0000).
-An SDO abort or timeout fails that device (with the abort code text) until its next good transfer.
-Short PDO and EMCY frames, and heartbeats of nodes not in ``nodes``, are ``host.error`` reports.
-
-This module holds the life cycle, the SDO polls (a poll's readings go to the host as one
-interrupt) and the writes; the receive side (frames, TPDOs, the heartbeat watchdog, EMCY) and the
-driver's state are :mod:`drivers.canopen_events`, the object dictionary :mod:`drivers.canopen_od`.
+Failures are listed in :mod:`drivers.canopen_events`. Every EMCY is reported through
+``host.error(bus, "emcy", ...)``; EMCY codes of the classes current (2xxx), voltage (3xxx),
+temperature (4xxx), device hardware (50xx) and monitoring (8xxx) are fatal: they fail the node's
+devices until an error-reset EMCY (code 0000) or a boot that reads 0x1001 clear. Other
+``host.error`` kinds: ``boot-up`` (a node rebooted), ``identity``, ``config``, ``preop-held``,
+``sdo-abort``, ``timeout``, ``malformed``, ``unknown-node``.
 """
 
 from __future__ import annotations
@@ -42,6 +51,8 @@ from __future__ import annotations
 import contextlib
 import struct
 import time
+from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import can
@@ -51,10 +62,14 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 from chcos.devices import parsecache
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError
-from drivers.base import deliver_all
+from drivers import canopen_config
+from drivers.base import DriverHost, deliver_all
 from drivers.canbus import read_frames
-from drivers.canopen_events import Binding, CanopenEvents, FrameCheck, NodeState
+from drivers.canopen_events import FrameCheck, NodeEvents
+from drivers.canopen_jobs import OP, BootNode, CanopenJob, Probe, ReportHeld
+from drivers.canopen_lifecycle import Lifecycle, NodeLifecycle, NodeStatus
 from drivers.canopen_od import (
+    DEFAULT_MASTER_ID,
     DEFAULT_POLL,
     accepted,
     check_bus,
@@ -64,24 +79,121 @@ from drivers.canopen_od import (
     load_od,
     value_error,
 )
-from drivers.jobs import Job
+from drivers.canopen_remote import BootOutcome, ManagedNode, RpdoImages
+from drivers.canopen_sync import SYNC_COB_ID, SyncCycle, SyncStats
+from drivers.codecs.canopen import EMCY_BASE, HEARTBEAT_BASE
+from drivers.jobs import Job, WorkerJobDriver
 from drivers.threaded import ReaderThread
 
 DEFAULT_SDO_TIMEOUT = 0.3
 #: The reader's default receive timeout on interfaces without a file descriptor.
 DEFAULT_RX_POLL = 0.005
+SDO_TX_BASE = 0x580   # SDO server -> client: COB-ID 0x580 + node id
+#: lifecycle states in which a node is known not to be OPERATIONAL: an RPDO to it is sent (a
+#: safe value goes out whatever the state) but not reported written
+IGNORES_RPDOS = (NodeLifecycle.PREOP_HELD, NodeLifecycle.FAILED, NodeLifecycle.WAITING_BOOT)
 
 
-class CanopenDriver(CanopenEvents):
+@dataclass
+class Binding:
+    """A device of the bus bound to its object: the node, index, subindex, the object's
+    variable, the PDO variable that carries it (if any) and its SDO poll period."""
+
+    device: DeviceSpec
+    node: int
+    index: int
+    subindex: int
+    od_var: Any
+    pdo_var: Any = None        # TPDO variable (sensor) or RPDO variable (actuator), or None
+    poll_period: float = DEFAULT_POLL
+
+
+def node_filters(nodes: dict[int, ManagedNode]) -> list[dict[str, int]]:
+    """python-can ``can_filters`` (kernel filters on SocketCAN) for the frames the driver needs:
+    every heartbeat (0x700..0x77F: unknown nodes are reported), and each node's EMCY, SDO
+    answers and enabled TPDOs."""
+    out = [{"can_id": HEARTBEAT_BASE, "can_mask": 0x780}]
+    for nid, node in nodes.items():
+        ids = {EMCY_BASE + nid, SDO_TX_BASE + nid}
+        ids.update(m.cob_id for m in node.remote.tpdo.map.values() if m.enabled and m.cob_id)
+        out.extend({"can_id": cob, "can_mask": 0x7FF} for cob in sorted(ids))
+    return out
+
+
+def apply_pdo_config(remote: Any, cfg: canopen_config.NodeConfig) -> None:
+    """The driver's view of the node's PDOs (canopen's PDO maps, read from the EDS) changed to
+    what ``cfg`` downloads: COB-IDs, enabled, transmission types, mappings."""
+    for p in cfg.pdos:
+        maps = remote.rpdo.map if p.kind == "rpdo" else remote.tpdo.map
+        pdo_map = maps[p.number]
+        if p.kind == "tpdo" and pdo_map.enabled and pdo_map.cob_id:
+            with contextlib.suppress(Exception):
+                remote.network.unsubscribe(pdo_map.cob_id, pdo_map.on_message)
+        pdo_map.cob_id = canopen_config.effective_cob_id(p, remote.object_dictionary, remote.id)
+        pdo_map.enabled = p.enabled
+        if p.transmission_type is not None:
+            pdo_map.trans_type = p.transmission_type
+        if p.mapping is not None:
+            pdo_map.clear()
+            for index, sub, bits in p.mapping:
+                pdo_map.add_variable(index, sub, bits)
+        if p.kind == "tpdo":
+            pdo_map.subscribe()
+
+
+class CanopenDriver(WorkerJobDriver):
     """The ``canopen`` bus: see the module doc for options, addresses and failure handling."""
 
     kind = "canopen"
+
+    def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
+        super().__init__(bus, devices, host)
+        #: the nodes and what happens to them (the receive side, heartbeats, EMCY, SYNC)
+        self._events = NodeEvents(bus.name, host, self._submit_job)
+        self._nodes = self._events.nodes
+        self._bindings: dict[str, Binding] = {}
+        self._poll_groups: dict[float, list[Binding]] = {}   # SDO-polled sensors by period
+        self._master_task: Any = None
+        self._sync_task: Any = None
+
+    def _submit_job(self, job: CanopenJob) -> bool:
+        return self._submit(OP, job)
+
+    # -- what the driver shows ----------------------------------------------------------------
+
+    def node_states(self) -> dict[int, NodeStatus]:
+        """Each node's lifecycle status by node id (:class:`NodeStatus`). Thread-safe."""
+        return self._events.node_states()
+
+    def sync_stats(self) -> SyncStats | None:
+        """The SYNC cycle's counters and jitter (None without ``sync_period``)."""
+        return self._events.sync_stats()
+
+    def wait_cycle(self, n: int, timeout: float) -> bool:
+        """Wait until SYNC cycle ``n`` is complete: every synchronous TPDO due in it arrived
+        (True), or SYNC n+1 went out first or ``timeout`` passed (False; also without SYNC)."""
+        return self._events.wait_cycle(n, timeout)
+
+    def _tick(self) -> float:
+        """The worker's longest wait for a job; the frames received meanwhile go to the bus
+        statistics before each job and at least every 0.5 s."""
+        self._events.tell_frames()
+        return 0.5
+
+    def settle(self, timeout: float) -> bool:
+        """As :meth:`drivers.jobs.JobDriver.settle`; the frames handed over are counted in the
+        bus statistics before it returns."""
+        try:
+            return super().settle(timeout)
+        finally:
+            self._events.tell_frames()
 
     # -- validation (drivers.canopen_od) -----------------------------------------------------
 
     @classmethod
     def check_bus(cls, bus: BusSpec) -> list[str]:
-        """Errors of the bus options (unknown keys, types, node ids, unreadable EDS files)."""
+        """Errors of the bus options (unknown keys, types, node ids, unreadable EDS files, the
+        nodes' identity and configuration, PDO mappings against the EDS)."""
         return check_bus(bus)
 
     @classmethod
@@ -99,8 +211,9 @@ class CanopenDriver(CanopenEvents):
     # -- life cycle ---------------------------------------------------------------------------
 
     def start(self) -> None:
-        """Validate, open the CAN bus, bind devices to PDOs or SDO polling, start the I/O thread
-        and put the nodes OPERATIONAL. Raises :class:`BusError` (invalid options included)."""
+        """Validate, open the CAN bus, bind devices to PDOs or SDO polling, start the I/O,
+        reader and watchdog threads and the master heartbeat, and queue each node's boot
+        procedure. Raises :class:`BusError` (invalid options included)."""
         with parsecache.scope():   # each EDS parsed once for the checks, not once per device
             errs = self.check_bus(self.bus)
             for dev in self.devices.values():
@@ -108,48 +221,68 @@ class CanopenDriver(CanopenEvents):
         if errs:
             raise BusError(f"canopen bus {self.bus.name} ({self.bus.file}): " + "; ".join(errs))
         network: Any = canopen.Network()
-        network.listeners.append(FrameCheck(self))
+        network.listeners.append(FrameCheck(self._events))
         opts = self.bus.options
+        self._events.master_id = int(opts.get("master_node_id", DEFAULT_MASTER_ID))
         for ncfg in opts["nodes"]:
             nid = int(ncfg["id"])
-            node: Any = canopen.RemoteNode(nid, load_od(self.bus, nid, ncfg["eds"]))
-            node.sdo.RESPONSE_TIMEOUT = float(opts.get("sdo_timeout", DEFAULT_SDO_TIMEOUT))
-            network.add_node(node)
+            remote: Any = canopen.RemoteNode(nid, load_od(self.bus, nid, ncfg["eds"]))
+            remote.sdo.RESPONSE_TIMEOUT = float(opts.get("sdo_timeout", DEFAULT_SDO_TIMEOUT))
+            network.add_node(remote)
+            remote.tpdo.read(from_od=True)
+            remote.rpdo.read(from_od=True)
+            cfg = canopen_config.with_bits(canopen_config.parse(ncfg), remote.object_dictionary)
+            apply_pdo_config(remote, cfg)
+            for pdo_map in remote.tpdo.map.values():
+                pdo_map.add_callback(self._events.on_tpdo)
             hb = ncfg.get("heartbeat_timeout")
-            self._nodes[nid] = NodeState(node, float(hb) if hb is not None else None,
-                                          bool(ncfg.get("nmt_start", True)))
-        self._network = network
-        self._watched = any(s.heartbeat_timeout is not None for s in self._nodes.values())
+            self._nodes[nid] = ManagedNode(
+                remote, cfg, float(hb) if hb is not None else None,
+                Lifecycle(nid, bool(ncfg.get("nmt_start", True)), hb is not None),
+                RpdoImages(remote))
+        self._events.network = network
         self._bind_devices()
         config = {k: opts[k] for k in ("interface", "channel", "bitrate") if k in opts}
         try:
-            cfg = dict(can.util.load_config(config=config))
-            if "bitrate" not in cfg:   # as canopen's connect(): the first EDS that names one
-                rates = [s.node.object_dictionary.bitrate for s in self._nodes.values()]
+            cfg_bus = dict(can.util.load_config(config=config))
+            if "bitrate" not in cfg_bus:   # as canopen's connect(): the first EDS naming one
+                rates = [n.remote.object_dictionary.bitrate for n in self._nodes.values()]
                 if any(rates):
-                    cfg["bitrate"] = next(r for r in rates if r)
-            bus = can.Bus(**cfg)
+                    cfg_bus["bitrate"] = next(r for r in rates if r)
+            # on SocketCAN the kernel produces SYNC and the reader sees each one come back
+            self._events.observe_sync = ("sync_period" in opts
+                                         and cfg_bus.get("interface") == "socketcan")
+            filters = node_filters(self._nodes)
+            if self._events.observe_sync:
+                filters.append({"can_id": SYNC_COB_ID, "can_mask": 0x7FF})
+            bus = can.Bus(**cfg_bus, can_filters=filters)
         except (can.CanError, OSError, ValueError, ImportError) as exc:
             raise BusError(f"canopen bus {self.bus.name} ({self.bus.file} {self.bus.key}): cannot "
                            f"open CAN bus {config or 'from python-can config'}: {exc}") from exc
         network.bus = bus
         poll = float(opts.get("poll", DEFAULT_RX_POLL))
         rx = self._rx = ReaderThread(
-            lambda: read_frames(rx, bus, poll, self._on_frame, self._on_bus_error),
+            lambda: read_frames(rx, bus, poll, self._events.on_frame, self._events.on_bus_error),
             f"canopen-{self.bus.name}-rx")
         rx.start()
-        for state in self._nodes.values():
-            state.node.nmt.add_heartbeat_callback(
-                lambda nmt_state, s=state: self._on_heartbeat(s, nmt_state))
-            state.node.emcy.add_callback(lambda entry, s=state: self._on_emcy(s, entry))
-            state.last_heartbeat = time.monotonic()
+        self._events.rx = rx
+        for node in self._nodes.values():
+            node.remote.nmt.add_heartbeat_callback(
+                lambda code, n=node: self._events.on_heartbeat(n, code))
+            node.remote.emcy.add_callback(lambda entry, n=node: self._events.on_emcy(n, entry))
         self._running = True
         self._start_worker()
-        for nid, state in self._nodes.items():
-            if state.nmt_start:
-                self._submit("nmt", str(nid))
+        self._events.start_watchdog()
+        for node in self._nodes.values():
+            with node.lock:
+                generation = node.lifecycle.restart("driver started: identity, configuration "
+                                                    "and NMT start under way")
+                node.booting = True
+            self._submit(OP, BootNode(node.id, generation))
+        if "master_heartbeat_ms" in opts:
+            self._start_master_heartbeat(bus, int(opts["master_heartbeat_ms"]))
         if "sync_period" in opts:
-            network.sync.start(float(opts["sync_period"]))
+            self._start_sync(bus, float(opts["sync_period"]))
         groups: dict[float, list[Binding]] = {}
         for b in self._bindings.values():
             if b.device.direction == "sensor" and b.pdo_var is None:
@@ -161,17 +294,50 @@ class CanopenDriver(CanopenEvents):
         for period in groups:
             self._poll_every(period, period)
 
+    def _start_master_heartbeat(self, bus: can.BusABC, period_ms: int) -> None:
+        """The master's heartbeat (state OPERATIONAL) at ``period_ms``: a cyclic task of the
+        interface (SocketCAN's broadcast manager: the kernel stops it when this process dies)."""
+        msg = can.Message(arbitration_id=HEARTBEAT_BASE + self._events.master_id, data=b"\x05",
+                          is_extended_id=False)
+        try:
+            self._master_task = bus.send_periodic(msg, period_ms / 1000.0)
+        except (can.CanError, OSError, NotImplementedError) as exc:
+            self.host.error(self.bus.name, "can", f"canopen bus {self.bus.name}: cannot start "
+                                                  f"the master heartbeat: {exc}")
+
+    def _start_sync(self, bus: can.BusABC, period: float) -> None:
+        """The SYNC producer and the cycle's books (:mod:`drivers.canopen_sync`), expecting the
+        nodes' synchronous TPDOs: the kernel's cyclic job on SocketCAN (each SYNC observed by
+        the reader), else a thread."""
+        frame = can.Message(arbitration_id=SYNC_COB_ID, data=b"", is_extended_id=False)
+
+        def send() -> None:
+            bus.send(frame)
+
+        def error(text: str) -> None:
+            self.host.error(self.bus.name, "can", f"canopen bus {self.bus.name}: {text}")
+
+        sync = SyncCycle(period, send, error, f"canopen-{self.bus.name}-sync")
+        for node in self._nodes.values():
+            for m in node.remote.tpdo.map.values():
+                if m.enabled and m.cob_id and m.trans_type is not None:
+                    sync.expect(m.cob_id, int(m.trans_type))
+        self._events.sync = sync
+        if self._events.observe_sync:
+            try:
+                self._sync_task = bus.send_periodic(frame, period)
+            except (can.CanError, OSError, NotImplementedError) as exc:
+                error(f"cannot start the SYNC producer: {exc}")
+            sync.start(produce=False)
+        else:
+            sync.start()
+
     def _bind_devices(self) -> None:
         default_poll = float(self.bus.options.get("poll_period", DEFAULT_POLL))
-        for state in self._nodes.values():
-            state.node.tpdo.read(from_od=True)
-            state.node.rpdo.read(from_od=True)
-            for pdo_map in state.node.tpdo.map.values():
-                pdo_map.add_callback(self._on_tpdo)
         for dev in self.devices.values():
             a = dev.address
             nid, index, sub = int(a["node"]), int(a["index"]), int(a.get("subindex", 0))
-            node = self._nodes[nid].node
+            node = self._nodes[nid].remote
             maps = node.tpdo.map if dev.direction == "sensor" else node.rpdo.map
             pdo_var = next((v for m in maps.values() if m.enabled for v in m.map
                             if v.index == index and v.subindex == sub), None)
@@ -180,21 +346,31 @@ class CanopenDriver(CanopenEvents):
                 float(a.get("poll_period", default_poll)))
             self._nodes[nid].devices.append(dev.name)
             if dev.direction == "sensor" and pdo_var is not None:
-                self._pdo_sensors.setdefault((nid, index, sub), []).append(dev.name)
+                self._events.pdo_sensors.setdefault((nid, index, sub), []).append(dev.name)
 
     def stop(self) -> None:
-        """Put every queued write on the wire (safe values at shutdown), then stop SYNC, the I/O
-        thread and the bus. Idempotent; never raises."""
+        """Put every queued write on the wire (safe values at shutdown), then stop the master
+        heartbeat, SYNC, the threads and the bus. Idempotent; never raises."""
         self._running = False
         self._stop_worker()     # runs every job queued before: they go out first
+        self._events.stop_watchdog()
+        sync_task, self._sync_task = self._sync_task, None
+        if sync_task is not None:
+            with contextlib.suppress(Exception):
+                sync_task.stop()
+        sync, self._events.sync = self._events.sync, None
+        if sync is not None:
+            sync.stop()
+        task, self._master_task = self._master_task, None
+        if task is not None:
+            with contextlib.suppress(Exception):
+                task.stop()
         rx, self._rx = self._rx, None
         if rx is not None:
             rx.stop()
-        self._tell_frames()
-        network, self._network = self._network, None
+        self._events.tell_frames()
+        network, self._events.network = self._events.network, None
         if network is not None:
-            with contextlib.suppress(Exception):
-                network.sync.stop()
             with contextlib.suppress(Exception):
                 network.disconnect()
 
@@ -216,48 +392,126 @@ class CanopenDriver(CanopenEvents):
     # -- I/O thread ---------------------------------------------------------------------------
 
     def _run(self, job: Job) -> None:
-        """A poll (SDO upload), a write (RPDO or SDO download), or an NMT start of a node."""
-        op, name, arg = job
+        """One job: a poll (SDO uploads), a write (RPDO or SDO download), a node's boot
+        procedure, the report of a node held in PRE-OPERATIONAL, a probe after a failed write."""
         try:
-            if op == "poll":
-                self._poll_taken(name)
-                batch: list[tuple[str, Any]] = []
-                try:
-                    for b in self._poll_groups[name]:
-                        try:
-                            self._poll(b, batch)
-                        except can.CanError as exc:   # this object's request; the next go out
-                            self.host.error(self.bus.name, "can", f"poll {b.device.name}: CAN "
-                                                                  f"send failed: {exc}")
-                finally:   # the poll's readings as one interrupt
-                    deliver_all(self.host, batch)
-            elif op == "write":
-                self._transfer(self._bindings[name], arg)
-            elif op == "nmt":
-                self._nodes[int(name)].node.nmt.state = "OPERATIONAL"
+            match job:
+                case Job("poll", period):
+                    self._poll_group(period)
+                case Job("write", device, value):
+                    self._transfer(self._bindings[device], value)
+                case Job(op, BootNode() as boot) if op == OP:
+                    self._boot(boot)
+                case Job(op, ReportHeld() as held) if op == OP:
+                    self._report_held(held)
+                case Job(op, Probe() as probe) if op == OP:
+                    self._probe(probe)
         except can.CanError as exc:
-            self.host.error(self.bus.name, "can", f"{op} {name}: CAN send failed: {exc}")
-            if op == "write":
-                self.host.write_failed(name, arg, f"CAN send failed: {exc}")
+            self.host.error(self.bus.name, "can", f"{job.op} {job.what}: CAN send failed: {exc}")
+            if job.op == "write":
+                self.host.write_failed(job.what, job.value, f"CAN send failed: {exc}")
 
-    def _where(self, b: Binding) -> str:
+    def _poll_group(self, period: float) -> None:
+        self._poll_taken(period)
+        batch: list[tuple[str, Any]] = []
+        try:
+            for b in self._poll_groups[period]:
+                try:
+                    self._poll(b, batch)
+                except can.CanError as exc:   # this object's request; the next go out
+                    self.host.error(self.bus.name, "can", f"poll {b.device.name}: CAN send "
+                                                          f"failed: {exc}")
+        finally:   # the poll's readings as one interrupt
+            deliver_all(self.host, batch)
+
+    def _boot(self, job: BootNode) -> None:
+        """The boot procedure of a node (see :meth:`ManagedNode.boot`), then its NMT start."""
+        node = self._nodes[job.node]
+        with node.lock:
+            if job.generation != node.lifecycle.generation:
+                return      # the node booted again meanwhile: that boot's procedure follows
+        result = node.boot(self._events.master_id)
+        where = self._events.where(node)
+        with node.lock:
+            if job.generation != node.lifecycle.generation:
+                return
+            node.booting = False        # supervision counts from here
+            node.last_heartbeat = time.monotonic()
+            lc = node.lifecycle
+            match result.outcome:
+                case BootOutcome.SILENT:
+                    lc.no_answer(f"{result.reason}")
+                    node.starting = False
+                case BootOutcome.IDENTITY_MISMATCH | BootOutcome.CONFIG_REFUSED:
+                    lc.failed(result.reason)
+                    node.starting = False
+                case BootOutcome.CONFIGURED:
+                    lc.error_register = result.error_register
+                    lc.configured()
+                    if lc.nmt_start:
+                        lc.started()
+        match result.outcome:
+            case BootOutcome.IDENTITY_MISMATCH:
+                self.host.error(self.bus.name, "identity", f"{where}: {result.reason}")
+            case BootOutcome.CONFIG_REFUSED:
+                self.host.error(self.bus.name, "config", f"{where}: {result.reason}")
+            case BootOutcome.CONFIGURED:
+                reg = result.error_register
+                if reg:
+                    self._events.fail_node(node, "emcy", f"{where}: error register 0x1001 = "
+                                                  f"0x{reg:02X} at boot")
+                else:
+                    self._events.clear_node(node, "emcy",
+                                            f"{where}: error register 0x1001 clear at boot")
+                if node.lifecycle.nmt_start:
+                    node.send_nmt_start()
+        self._events.judge(node, "configured and started" if node.lifecycle.nmt_start
+                    else "configured")
+
+    def _report_held(self, job: ReportHeld) -> None:
+        """A started node stays PRE-OPERATIONAL: its error register and last EMCY into the
+        reason; reported once per boot, no NMT start again (the node refuses for a reason)."""
+        node = self._nodes[job.node]
+        try:
+            reg: int | None = node.read_error_register()
+            got = "" if reg is None else f"error register 0x1001 = 0x{reg:02X}"
+        except SdoCommunicationError as exc:
+            reg, got = None, f"error register 0x1001 not read: {exc}"
+        with node.lock:
+            lc = node.lifecycle
+            if job.generation != lc.generation or lc.state is not NodeLifecycle.PREOP_HELD:
+                return
+            if reg is not None:
+                lc.error_register = reg
+            parts = [p for p in (got, f"last EMCY {lc.last_emcy}" if lc.last_emcy else
+                                 "no EMCY seen") if p]
+            state = lc.nmt.name.replace("_", "-") if lc.nmt is not None else "not OPERATIONAL"
+            lc.reason = f"stays {state} after the NMT start ({'; '.join(parts)})"
+            reason = lc.reason
+        self.host.error(self.bus.name, "preop-held", f"{self._events.where(node)}: {reason}")
+        self._events.judge(node, "operational")
+
+    def _sdo_where(self, b: Binding) -> str:
         return f"canopen node {b.node} 0x{b.index:04X}:{b.subindex:02X} (device {b.device.name})"
 
     def _poll(self, b: Binding, batch: list[tuple[str, Any]]) -> None:
         """SDO-read ``b``'s object: the reading goes to ``batch`` (delivered at the end of the
         poll), a failure to the host at once."""
-        node = self._nodes[b.node].node
+        node = self._nodes[b.node].remote
         try:
             data = node.sdo.upload(b.index, b.subindex)
             value = b.od_var.decode_raw(data)
         except SdoAbortedError as exc:
-            self._health.fail(b.device.name, "sdo", f"SDO read of {self._where(b)} aborted: {exc}")
+            self._events.health.fail(b.device.name, "sdo", f"SDO read of {self._sdo_where(b)} "
+                                                    f"aborted: {exc}")
             return
         except (SdoCommunicationError, struct.error) as exc:
-            self._health.fail(b.device.name, "sdo", f"SDO read of {self._where(b)} failed: {exc}")
+            self._events.health.fail(b.device.name, "sdo", f"SDO read of {self._sdo_where(b)} "
+                                                    f"failed: {exc}")
             return
-        if self._health.has_causes(b.device.name):
-            self._health.clear(b.device.name, "sdo", f"SDO read of {self._where(b)} answered")
+        if self._events.health.has_causes(b.device.name):
+            self._events.health.clear(b.device.name, "sdo", f"SDO read of {self._sdo_where(b)} "
+                                                     f"answered")
         batch.append((b.device.name, value))
 
     def _transfer(self, b: Binding, value: Any) -> None:
@@ -265,33 +519,70 @@ class CanopenDriver(CanopenEvents):
             raw = coerce(b.od_var, value)
             data = b.od_var.encode_raw(raw)
         except (struct.error, TypeError, ValueError, OverflowError) as exc:
-            text = (f"write {value!r} to {self._where(b)}: expected a value of data "
+            text = (f"write {value!r} to {self._sdo_where(b)}: expected a value of data "
                     f"type {b.od_var.data_type:#x}: {exc}")
             self.host.error(self.bus.name, "range", text, b.device.name)
             self.host.write_failed(b.device.name, value, text)
             return
         name = b.device.name
         if b.pdo_var is not None:
-            b.pdo_var.set_data(data)
-            b.pdo_var.pdo_parent.transmit()
+            # every RPDO image mapping the object takes the value; the PDO bound first carries it
+            node = self._nodes[b.node]
+            node.images.set(b.index, b.subindex, bytes(data))
+            b.pdo_var.pdo_parent.transmit()     # on the wire whatever the node's state
             self.sent_frames[name] += 1
-            self.host.written(name, value)
+            with node.lock:
+                state, why = node.lifecycle.state, node.lifecycle.reason
+            if state in IGNORES_RPDOS:
+                self.host.write_failed(name, value, f"{self._events.where(node)}: RPDO sent, "
+                                                    f"but the node ignores it: {state.value}: "
+                                                    f"{why}")
+            else:
+                self.host.written(name, value)
             return
         self.host.stat(self.bus.name, "requests", device=name)
         try:
-            self._nodes[b.node].node.sdo.download(b.index, b.subindex, data)
+            self._nodes[b.node].remote.sdo.download(b.index, b.subindex, data)
         except SdoAbortedError as exc:
-            text = f"SDO write to {self._where(b)} aborted: {exc}"
-            self.host.error(self.bus.name, "sdo-abort", text, name)
-            self.host.write_failed(name, value, text)
-            self._health.fail(name, "sdo", text)
+            self._write_refused(b, value, "sdo-abort", f"SDO write to {self._sdo_where(b)} "
+                                                       f"aborted: {exc}")
             return
         except SdoCommunicationError as exc:
-            text = f"SDO write to {self._where(b)} failed: {exc}"
-            self.host.error(self.bus.name, "timeout", text, name)
-            self.host.write_failed(name, value, text)
-            self._health.fail(name, "sdo", text)
+            self._write_refused(b, value, "timeout", f"SDO write to {self._sdo_where(b)} "
+                                                     f"failed: {exc}")
             return
         self.host.written(name, value)
-        self._health.clear(name, "sdo", f"SDO write to {self._where(b)} answered")
+        self._events.health.clear(name, "sdo", f"SDO write to {self._sdo_where(b)} answered")
 
+    def _write_refused(self, b: Binding, value: Any, kind: str, text: str) -> None:
+        """An SDO write failed: reported, the actuator failed, and a probe armed that clears
+        the failure once the node answers again (a failed actuator gets no writes to do it)."""
+        name = b.device.name
+        self.host.error(self.bus.name, kind, text, name)
+        self.host.write_failed(name, value, text)
+        self._events.health.fail(name, "sdo", text)
+        self._arm_probe(b)
+
+    def _arm_probe(self, b: Binding) -> None:
+        if self._running:
+            self.host.at(round(self.host.now() + b.poll_period, 9),
+                         lambda: self._queue_probe(b.device.name))
+
+    def _queue_probe(self, device: str) -> None:
+        self._submit(OP, Probe(device))
+
+    def _probe(self, job: Probe) -> None:
+        """An SDO upload of the failed actuator's object (of 0x1000, the device type, if the
+        object cannot be read): an answer clears the failure, none arms the next probe."""
+        b = self._bindings[job.device]
+        if not self._events.health.failed(job.device):
+            return
+        readable = b.od_var is not None and b.od_var.readable
+        index, sub = (b.index, b.subindex) if readable else (0x1000, 0)
+        try:
+            self._nodes[b.node].remote.sdo.upload(index, sub)
+        except (SdoAbortedError, SdoCommunicationError):
+            self._arm_probe(b)
+            return
+        self._events.health.clear(job.device, "sdo", f"canopen node {b.node} answered a probe of "
+                                              f"0x{index:04X}:{sub:02X}")

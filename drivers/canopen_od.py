@@ -18,12 +18,16 @@ from chcos.devices import parsecache
 from chcos.devices.eds_file import read_eds
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.helpers import is_int, is_number
+from drivers import canopen_config
 from drivers.base import not_finite
 from drivers.codecs.canopen import eds_path
 
 BUS_OPTIONS = ("interface", "channel", "bitrate", "nodes", "sync_period", "poll_period",
-               "sdo_timeout", "poll")
-NODE_KEYS = ("id", "eds", "heartbeat_timeout", "nmt_start")
+               "sdo_timeout", "poll", "master_heartbeat_ms", "master_node_id")
+NODE_KEYS = ("id", "eds", "heartbeat_timeout", "nmt_start", "identity", "config")
+#: the node id of the master's heartbeat (0x700 + id) unless the bus's ``master_node_id`` says
+#: otherwise: 127, the highest id, which slave nodes rarely use
+DEFAULT_MASTER_ID = 127
 ADDRESS_KEYS = ("node", "index", "subindex", "poll_period")
 DEFAULT_POLL = 0.1
 
@@ -76,6 +80,12 @@ def check_bus(bus: BusSpec) -> list[str]:
     for key in ("sync_period", "poll_period", "sdo_timeout"):
         if key in opts and not (is_number(opts[key]) and opts[key] > 0):
             errs.append(f"{k}.{key}: expected a number of seconds > 0, got {opts[key]!r}")
+    mh = opts.get("master_heartbeat_ms")
+    if mh is not None and not (is_int(mh) and 1 <= mh <= 65535):
+        errs.append(f"{k}.master_heartbeat_ms: expected 1..65535 ms, got {mh!r}")
+    mid = opts.get("master_node_id", DEFAULT_MASTER_ID)
+    if not (is_int(mid) and 1 <= mid <= 127):
+        errs.append(f"{k}.master_node_id: expected a node id 1..127, got {mid!r}")
     nodes = opts.get("nodes")
     if not isinstance(nodes, list) or not nodes:
         return [*errs, f"{k}.nodes: expected a non-empty array of {{id, eds}} tables, "
@@ -83,6 +93,11 @@ def check_bus(bus: BusSpec) -> list[str]:
     seen: set[int] = set()
     for i, node in enumerate(nodes):
         errs.extend(check_node(bus, f"{k}.nodes[{i}]", node, seen))
+    if is_int(mid) and mid in seen and "master_node_id" in opts:
+        errs.append(f"{k}.master_node_id: {mid} is also the id of a node of the bus")
+    elif is_int(mid) and mid in seen and mh is not None:
+        errs.append(f"{k}.master_heartbeat_ms: the master's default id {mid} is the id of a "
+                    f"node of the bus; set master_node_id to a free id")
     return errs
 
 def check_node(bus: BusSpec, k: str, node: object, seen: set[int]) -> list[str]:
@@ -99,13 +114,17 @@ def check_node(bus: BusSpec, k: str, node: object, seen: set[int]) -> list[str]:
     else:
         seen.add(nid)
     eds = node.get("eds")
+    od = None
     if not isinstance(eds, str) or not eds:
         errs.append(f"{k}.eds: expected the path of the node's EDS file, got {eds!r}")
     elif is_int(nid):
         try:
-            load_od(bus, nid, eds)
+            od = load_od(bus, nid, eds)
         except ValueError as exc:
             errs.append(f"{k}.eds: expected a readable EDS file; {exc}")
+    mh = bus.options.get("master_heartbeat_ms")
+    errs.extend(canopen_config.check(k, node, od, mh if is_int(mh) else None,
+                                     "sync_period" in bus.options))
     hb = node.get("heartbeat_timeout")
     if hb is not None and not (is_number(hb) and hb > 0):
         errs.append(f"{k}.heartbeat_timeout: expected a number of seconds > 0, got {hb!r}")

@@ -179,25 +179,26 @@ def test_heartbeat_loss_fails_node_devices_and_recovers(rig: Rig) -> None:
 
 def test_a_heartbeat_waiting_for_the_reader_is_not_a_loss(
         rig: Rig, monkeypatch: pytest.MonkeyPatch) -> None:
-    """After a stall of the process the I/O thread's watchdog may run before the reader: it has
+    """After a stall of the process the watchdog thread may run before the reader: it has
     the reader hand over what was received first. Here the only heartbeat after a 10 s "stall"
     is the one that hand-over delivers."""
     driver = rig.driver
-    state = driver._nodes[NODE]
-    rx = driver._rx
+    events = driver._events
+    state = events.nodes[NODE]
+    rx = events.rx
     assert rx is not None
     handed_over: list[float] = []
 
     def settle(timeout: float) -> bool:
         handed_over.append(timeout)
-        driver._on_heartbeat(state, 5)   # the OPERATIONAL heartbeat waiting in the socket
+        events.on_heartbeat(state, 5)    # the OPERATIONAL heartbeat waiting in the socket
         return True
 
     rig.slave.stop_heartbeat()
     monkeypatch.setattr(rx, "settle", settle)
-    with driver._hb_lock:
+    with state.lock:
         state.last_heartbeat -= 10.0
-    driver._watchdog()
+    events.check_heartbeats()
     assert handed_over and not state.lost
     assert rig.host.failures == []
 
@@ -331,15 +332,17 @@ def test_frames_received_are_counted_by_the_time_settle_returns(
                            [make_device("vel", "sensor", "co", node=NODE, index=0x606C)], host)
     driver.start()
     try:
-        while seen.recv(0) is not None:                       # the boot-up, before the driver
+        assert driver.settle(WAIT)            # the node's boot procedure (SDO) is done
+        base = host.stats.get("frames", 0)
+        while seen.recv(0) is not None:       # the boot-up and the boot procedure's frames
             pass
         for n in (1, 2, 3):
             host.tick(0.1)
             assert driver.settle(WAIT)
-            assert host.stats.get("frames") == n
+            assert host.stats.get("frames") == base + n
         slave.send_emcy(0x1000)               # a frame no job waits for: the settle counts it
         assert driver.settle(WAIT)
-        assert host.stats.get("frames") == 4
+        assert host.stats.get("frames") == base + 4
         ids = []
         while (msg := seen.recv(0)) is not None:
             ids.append(msg.arbitration_id)

@@ -142,27 +142,58 @@ REFERENCE: dict[str, Kind] = {
         '[[bus]]\nname = "cellcan"\nkind = "can"\ndbc = "cell.dbc"\n\n[[device]]\nname = "T1"\n'
         'direction = "sensor"\nbus = "cellcan"\naddress = { message = "Temps", signal = "T1" }'),
     "canopen": Kind(
-        "remote CANopen nodes (canopen): SDO, PDO from the EDS mapping, NMT, heartbeat, EMCY",
+        "remote CANopen nodes (canopen): node lifecycle (identity, configuration at boot, one "
+        "NMT start, OPERATIONAL confirmed by the heartbeat), SDO, PDO (as configured, else from "
+        "the EDS), master heartbeat, SYNC, EMCY; guide: docs/canopen.md",
         (*_CAN_BUS,
          Key("nodes", "array of tables", "required", "`{id, eds, heartbeat_timeout, "
-             "nmt_start}` per node"),
+             "nmt_start, identity, config}` per node"),
          Key("sync_period", "float s", "none", "produce SYNC at this period"),
          Key("poll_period", "float s", "0.1", "default SDO polling period"),
          Key("sdo_timeout", "float s", "0.3", "SDO response timeout"),
          Key("poll", "float s", "0.005", "receive timeout on interfaces without a file "
              "descriptor"),
+         Key("master_heartbeat_ms", "integer 1..65535", "none", "produce the master's "
+             "heartbeat (0x700 + master_node_id, state OPERATIONAL) at this period"),
+         Key("master_node_id", "integer 1..127", "127", "the master's node id (its heartbeat "
+             "COB-ID; what the nodes' 0x1016 entry watches)"),
          Key("id", "integer 1..127", "required", "node id", "nodes[]"),
          Key("eds", "path", "required", "the node's EDS (relative to the map)", "nodes[]"),
-         Key("heartbeat_timeout", "float s", "none", "a node silent longer fails its devices",
+         Key("heartbeat_timeout", "float s", "none", "a node silent longer fails its devices; "
+             "with it, OPERATIONAL must be confirmed by a heartbeat", "nodes[]"),
+         Key("nmt_start", "boolean", "true", "the driver starts the node (once per boot) and "
+             "requires OPERATIONAL; false: required state is PRE-OPERATIONAL or OPERATIONAL",
              "nodes[]"),
-         Key("nmt_start", "boolean", "true", "put the node OPERATIONAL", "nodes[]")),
+         Key("identity", "inline table", "none", "`{vendor, product, revision, serial}` "
+             "(serial optional): 0x1018 checked at each boot; a mismatch fails the node",
+             "nodes[]"),
+         Key("config", "table", "none", "downloaded at each boot, every write read back: the "
+             "keys below", "nodes[]"),
+         Key("heartbeat_producer_ms", "integer 0..65535", "none", "0x1017", "nodes[].config"),
+         Key("master_consumer_ms", "integer 1..65535", "none", "0x1016:01 = master_node_id "
+             "<< 16 | ms: the node watches the master heartbeat (needs master_heartbeat_ms, "
+             "more than it)", "nodes[].config"),
+         Key("error_behaviour", "integer 0..255", "none", "0x1029:01 (0 pre-operational, "
+             "1 no change, 2 stopped on a communication error)", "nodes[].config"),
+         Key("pdos", "array of tables", "[]", "`{pdo = \"rpdo1\"|\"tpdo1\"..., cob_id, "
+             "transmission_type, inhibit_100us, event_timer_ms, enabled, map = [[index, "
+             "subindex(, bits)], ...]}`: only the keys given are written (disable, parameters, "
+             "mapping, enable); `check` validates each map against the EDS (at most 64 bits, "
+             "mappable objects, writable for an RPDO, readable for a TPDO)", "nodes[].config"),
+         Key("sdo", "array of tables", "[]", "`{index, subindex = 0, value}`: further SDO "
+             "writes (the data type from the EDS), after the PDOs", "nodes[].config")),
         (Key("node", "integer", "required", "a node id of the bus"),
          Key("index", "integer", "required", "object index (write it `0x6064`)"),
          Key("subindex", "integer", "0", "sub-index"),
          Key("poll_period", "float s", "the bus's", "SDO polling period (objects not in a "
              "TPDO)")),
-        '[[bus]]\nname = "axis"\nkind = "canopen"\nnodes = [{ id = 5, eds = "drive.eds", '
-        'heartbeat_timeout = 0.3 }]\n\n[[device]]\nname = "position"\ndirection = "sensor"\n'
+        '[[bus]]\nname = "axis"\nkind = "canopen"\nmaster_heartbeat_ms = 100\n\n'
+        '[[bus.nodes]]\nid = 5\neds = "drive.eds"\nheartbeat_timeout = 0.3\n'
+        'identity = { vendor = 0x1234, product = 0x42, revision = 0x10001 }\n'
+        '[bus.nodes.config]\nheartbeat_producer_ms = 50\nmaster_consumer_ms = 300\n'
+        'pdos = [{ pdo = "tpdo1", transmission_type = 255, map = [[0x6041, 0], [0x6064, 0]] }]'
+        '\nsdo = [{ index = 0x6007, value = 3 }]\n\n'
+        '[[device]]\nname = "position"\ndirection = "sensor"\n'
         'bus = "axis"\naddress = { node = 5, index = 0x6064 }'),
     "modbus-tcp": Kind(
         "Modbus TCP client (pymodbus)",

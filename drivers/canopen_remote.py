@@ -1,0 +1,198 @@
+"""canopen_remote - one remote CANopen node as the ``canopen`` driver manages it: an object
+composing canopen's ``RemoteNode`` (its SDO client, PDO maps, NMT and EMCY parts) with the
+node's lifecycle (:mod:`drivers.canopen_lifecycle`), its boot configuration
+(:mod:`drivers.canopen_config`), heartbeat supervision, the RPDO images and its devices; and the
+boot procedure the driver's I/O thread runs for it (identity, error register, configuration
+download with read-back, RPDO images seeded from the node). Failures are returned as typed
+outcomes, never raised; what they mean for the node's devices is the driver's business
+(:mod:`drivers.canopen_node`).
+"""
+
+from __future__ import annotations
+
+import struct
+import threading
+import time
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any
+
+from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
+
+from drivers.canopen_config import NodeConfig, SdoWrite
+from drivers.canopen_lifecycle import Lifecycle
+from drivers.canopen_od import coerce
+
+#: NMT command specifier "start remote node" (CiA 301 7.2.8.3.1)
+NMT_START = 0x01
+
+
+class RpdoImages:
+    """The frames of a node's enabled RPDOs, composed from the current value of every object they
+    map: an object mapped into several RPDOs is written into each of their images, so sending
+    one PDO never carries a stale copy of an object another PDO wrote (CiA 402 drives map the
+    controlword 0x6040 into RPDO1 and, with 0x6060, into RPDO2). Used by one thread at a time
+    (the driver's I/O thread)."""
+
+    def __init__(self, remote: Any) -> None:
+        self._vars: dict[tuple[int, int], list[Any]] = {}
+        for pdo_map in remote.rpdo.map.values():
+            if pdo_map.enabled:
+                for var in pdo_map.map:
+                    self._vars.setdefault((var.index, var.subindex), []).append(var)
+
+    def objects(self) -> list[tuple[int, int]]:
+        """Every object mapped into an enabled RPDO."""
+        return list(self._vars)
+
+    def pdos_of(self, index: int, subindex: int) -> list[Any]:
+        """The RPDO maps carrying ``index``:``subindex``, in PDO order."""
+        return [v.pdo_parent for v in self._vars.get((index, subindex), ())]
+
+    def set(self, index: int, subindex: int, data: bytes) -> None:
+        """The object's new encoded value, into every image that maps it."""
+        for var in self._vars.get((index, subindex), ()):
+            var.set_data(data)
+
+
+class BootOutcome(Enum):
+    """How the boot procedure of a node ended."""
+
+    CONFIGURED = "configured"         # identity right, every write read back
+    SILENT = "no answer"              # an SDO timed out: the node is not there (yet)
+    IDENTITY_MISMATCH = "identity mismatch"
+    CONFIG_REFUSED = "configuration refused"
+
+
+@dataclass(frozen=True)
+class BootResult:
+    """The outcome, the reason (naming the object and both values where they differ) and the
+    error register 0x1001 as read at this boot (None if the node has no 0x1001)."""
+
+    outcome: BootOutcome
+    reason: str = ""
+    error_register: int | None = None
+
+
+@dataclass
+class ManagedNode:
+    """A node of the bus (see the module doc). ``lock`` guards the lifecycle and the heartbeat
+    fields, which the reader, the watchdog and the I/O thread all touch."""
+
+    remote: Any
+    config: NodeConfig
+    heartbeat_timeout: float | None
+    lifecycle: Lifecycle
+    images: RpdoImages
+    devices: list[str] = field(default_factory=list)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    last_heartbeat: float = field(default_factory=time.monotonic)
+    lost: bool = False
+    #: True until the first boot procedure after the driver's start ended: meanwhile a node that
+    #: is not ready yet does not fail its devices (it is being brought up)
+    starting: bool = True
+    #: True while a boot procedure is queued or running: heartbeat supervision waits (a node
+    #: that rebooted without its stored configuration has no heartbeat until it is configured)
+    booting: bool = True
+    #: when a silent node's heartbeat may start its boot procedure again (monotonic s)
+    retry_at: float = 0.0
+
+    @property
+    def id(self) -> int:
+        return int(self.remote.id)
+
+    def where(self, bus: str) -> str:
+        return f"canopen node {self.id} on bus {bus}"
+
+    def send_nmt_start(self) -> None:
+        """Send the NMT start command to this node (raises ``can.CanError``)."""
+        self.remote.network.send_message(0, bytes((NMT_START, self.id)))
+
+    # -- the boot procedure (driver's I/O thread) ---------------------------------------------
+
+    def upload_uint(self, index: int, subindex: int) -> int:
+        """An unsigned object read by SDO (raises the canopen SDO errors)."""
+        return int.from_bytes(self.remote.sdo.upload(index, subindex), "little")
+
+    def read_error_register(self) -> int | None:
+        """0x1001 by SDO; None if the node refuses it (raises SdoCommunicationError)."""
+        try:
+            return self.upload_uint(0x1001, 0)
+        except SdoAbortedError:
+            return None
+
+    def boot(self, master_id: int) -> BootResult:
+        """Identity check, error register, configuration download with read-back, RPDO images
+        from the node's values. Raises ``can.CanError`` if a request cannot be sent."""
+        try:
+            if (why := self._check_identity()) is not None:
+                return BootResult(BootOutcome.IDENTITY_MISMATCH, why)
+            with self.lock:
+                self.lifecycle.identity_checked()
+            error_register = self.read_error_register()
+            for w in self.config.writes(self.remote.object_dictionary, self.id, master_id):
+                if (why := self._download(w)) is not None:
+                    return BootResult(BootOutcome.CONFIG_REFUSED, why, error_register)
+            self._seed_images()
+        except SdoCommunicationError as exc:
+            return BootResult(BootOutcome.SILENT, f"no SDO answer: {exc}")
+        return BootResult(BootOutcome.CONFIGURED, "", error_register)
+
+    def _check_identity(self) -> str | None:
+        ident = self.config.identity
+        if ident is None:
+            return None
+        for sub, name, want in ident.fields():
+            try:
+                got = self.upload_uint(0x1018, sub)
+            except SdoAbortedError as exc:
+                return f"identity 0x1018:{sub:02X} ({name}) not readable: {exc}"
+            if got != want:
+                return (f"identity mismatch: {name} (0x1018:{sub:02X}) is 0x{got:08X} on the "
+                        f"node, 0x{want:08X} in the map")
+        return None
+
+    def _encode(self, w: SdoWrite) -> bytes:
+        if w.bits is not None:
+            return int(w.value).to_bytes(w.bits // 8, "little")
+        var = self.remote.object_dictionary.get_variable(w.index, w.subindex)
+        return bytes(var.encode_raw(coerce(var, w.value)))
+
+    def _download(self, w: SdoWrite) -> str | None:
+        """One configuration write and its read-back; why it failed, or None."""
+        where = f"0x{w.index:04X}:{w.subindex:02X} ({w.what})"
+        try:
+            data = self._encode(w)
+        except (struct.error, ValueError, TypeError, OverflowError) as exc:
+            return f"configuration write {where} = {w.value!r}: cannot encode: {exc}"
+        try:
+            self.remote.sdo.download(w.index, w.subindex, data)
+        except SdoAbortedError as exc:
+            return f"configuration write {where} = {w.value!r} aborted: {exc}"
+        if not w.read_back:
+            return None
+        try:
+            back = self.remote.sdo.upload(w.index, w.subindex)
+        except SdoAbortedError as exc:
+            return f"configuration read-back of {where} aborted: {exc}"
+        mask = ~w.ignore_mask
+        got = int.from_bytes(back[:len(data)], "little")
+        want = int.from_bytes(data, "little")
+        if len(back) < len(data) or got & mask != want & mask:
+            return (f"configuration read-back of {where}: wrote {want:#x}, the node holds "
+                    f"{got:#x}")
+        return None
+
+    def _seed_images(self) -> None:
+        """Every RPDO-mapped object's current value from the node into the images, so the
+        first RPDO sent carries the node's values for the objects nobody wrote yet."""
+        od = self.remote.object_dictionary
+        for index, sub in self.images.objects():
+            var = od.get_variable(index, sub)
+            if var is None or not var.readable:
+                continue
+            try:
+                data = self.remote.sdo.upload(index, sub)
+            except SdoAbortedError:
+                continue
+            self.images.set(index, sub, bytes(data))

@@ -1,0 +1,193 @@
+"""canopen_sync - the SYNC cycle of a ``canopen`` bus as a first-class thing: a SYNC producer
+(COB-ID 0x080), the cycle number, the synchronous
+TPDOs (transmission type 1..240) collected per cycle, and the bus's cycle statistics: cycles,
+complete cycles, missing TPDOs (a synchronous TPDO due in cycle n that had not arrived when SYNC
+n+1 went out), late SYNCs (sent more than half a period after their deadline) and the SYNC
+period jitter (|interval - period|) as p50/p99/max over the last :data:`WINDOW` cycles.
+
+:meth:`SyncCycle.wait_cycle` lets a caller wait until cycle n is complete (every synchronous
+TPDO of it arrived) or give up after a timeout. A TPDO of transmission type k (1..240) is due
+every k-th SYNC; its phase is learned from its first arrival.
+
+Two producers: on SocketCAN the kernel's broadcast manager sends SYNC (a cyclic job, no Python
+thread between two SYNCs) and the driver's reader sees each one come back with its kernel time
+stamp (:meth:`SyncCycle.seen`): cycles and jitter are counted from what went on the wire, late is
+an interval longer than 1.5 periods. Elsewhere (python-can's ``virtual`` bus) a thread sends SYNC
+on absolute deadlines (:meth:`SyncCycle.start`) and counts from its send times.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+
+SYNC_COB_ID = 0x080
+#: cycles the jitter percentiles are computed over
+WINDOW = 10_000
+
+
+@dataclass(frozen=True)
+class SyncStats:
+    """The SYNC cycle's counters and jitter (seconds) so far."""
+
+    period: float
+    cycles: int
+    complete: int
+    missing: int
+    late: int
+    jitter_p50: float
+    jitter_p99: float
+    jitter_max: float
+
+
+@dataclass
+class _Due:
+    """A synchronous TPDO of the cycle: every ``every``-th SYNC, phase from its first arrival."""
+
+    every: int
+    phase: int | None = None
+    arrived_in: int = -1
+
+
+def percentile(sorted_values: list[float], q: float) -> float:
+    """The ``q`` quantile (0..1, nearest rank) of ascending ``sorted_values``; 0 if empty."""
+    if not sorted_values:
+        return 0.0
+    rank = min(len(sorted_values) - 1, max(0, round(q * (len(sorted_values) - 1))))
+    return sorted_values[rank]
+
+
+class SyncCycle:
+    """SYNC producer and cycle bookkeeping (see the module doc). ``send(cob_id)`` puts a SYNC
+    on the wire (raises on a bus error: reported through ``on_error`` and the cycle goes on)."""
+
+    def __init__(self, period: float, send: Callable[[], None],
+                 on_error: Callable[[str], None], name: str) -> None:
+        self.period = period
+        self._send = send
+        self._on_error = on_error
+        self._name = name
+        self._cond = threading.Condition()
+        self._running = False
+        self._thread: threading.Thread | None = None
+        self._due: dict[int, _Due] = {}          # COB-ID -> its schedule
+        self.cycle = 0                           # the number of the last SYNC sent
+        self._complete = 0
+        self._missing = 0
+        self._late = 0
+        self._last_sent: float | None = None
+        self._jitter: deque[float] = deque(maxlen=WINDOW)
+        self._jitter_max = 0.0
+        self._completed_upto = 0                 # the highest cycle known complete
+
+    def expect(self, cob_id: int, transmission_type: int) -> None:
+        """A synchronous TPDO (type 1..240) the cycle collects; call before :meth:`start`."""
+        if 1 <= transmission_type <= 240:
+            self._due[cob_id] = _Due(transmission_type)
+
+    def start(self, produce: bool = True) -> None:
+        """Begin: with ``produce`` the producer thread sends SYNC; without it the caller's
+        producer does and reports each SYNC on the wire through :meth:`seen`."""
+        self._running = True
+        if produce:
+            self._thread = threading.Thread(target=self._loop, name=self._name, daemon=True)
+            self._thread.start()
+
+    def seen(self, at: float) -> None:
+        """A SYNC went on the wire at ``at`` (its receive time stamp, seconds): the cycle turns
+        (observed mode: reader thread)."""
+        with self._cond:
+            if self._last_sent is not None and at - self._last_sent > 1.5 * self.period:
+                self._late += 1
+        self._sent(at)
+
+    def stop(self) -> None:
+        with self._cond:
+            self._running = False
+            self._cond.notify_all()
+        t, self._thread = self._thread, None
+        if t is not None and t is not threading.current_thread():
+            t.join(timeout=2.0)
+
+    def _loop(self) -> None:
+        start = time.monotonic()
+        n = 0
+        while True:
+            n += 1
+            deadline = start + n * self.period
+            with self._cond:
+                while self._running and (left := deadline - time.monotonic()) > 0:
+                    self._cond.wait(left)
+                if not self._running:
+                    return
+            now = time.monotonic()
+            if now - deadline > self.period / 2:
+                with self._cond:
+                    self._late += 1
+                if now - deadline > self.period:     # far behind: resynchronise, skip cycles
+                    start = now - n * self.period
+            try:
+                self._send()
+            except Exception as exc:  # a bus error: reported, the cycle goes on
+                self._on_error(f"SYNC not sent: {exc}")
+                continue
+            self._sent(time.monotonic())
+
+    def _sent(self, at: float) -> None:
+        """SYNC number ``cycle + 1`` is on the wire: close the previous cycle's books."""
+        with self._cond:
+            if self._last_sent is not None:
+                j = abs(at - self._last_sent - self.period)
+                self._jitter.append(j)
+                self._jitter_max = max(self._jitter_max, j)
+            self._last_sent = at
+            closing = self.cycle
+            if closing > 0:
+                due = [d for d in self._due.values() if self._is_due(d, closing)]
+                absent = sum(1 for d in due if d.arrived_in != closing)
+                self._missing += absent
+                if due and not absent:
+                    self._complete += 1
+            self.cycle += 1
+            self._cond.notify_all()
+
+    @staticmethod
+    def _is_due(d: _Due, cycle: int) -> bool:
+        return d.phase is not None and (cycle - d.phase) % d.every == 0
+
+    def tpdo(self, cob_id: int) -> None:
+        """A TPDO arrived (reader thread): counted for the current cycle if it is synchronous."""
+        d = self._due.get(cob_id)
+        if d is None:
+            return
+        with self._cond:
+            cycle = self.cycle
+            if d.phase is None:
+                d.phase = cycle % d.every
+            d.arrived_in = cycle
+            if all(dd.arrived_in == cycle for dd in self._due.values()
+                   if self._is_due(dd, cycle)):
+                self._completed_upto = max(self._completed_upto, cycle)
+            self._cond.notify_all()
+
+    def wait_cycle(self, n: int, timeout: float) -> bool:
+        """Wait until cycle ``n`` is complete (every synchronous TPDO due in it arrived): True,
+        or False once SYNC n+1 went out without them or ``timeout`` passed."""
+        with self._cond:
+            self._cond.wait_for(lambda: self._completed_upto >= n or self.cycle > n
+                                or not self._running, timeout)
+            return self._completed_upto >= n
+
+    def counters(self) -> tuple[int, int, int]:
+        """(cycles, missing, late) without the jitter percentiles (cheap)."""
+        with self._cond:
+            return self.cycle, self._missing, self._late
+
+    def stats(self) -> SyncStats:
+        with self._cond:
+            values = sorted(self._jitter)
+            return SyncStats(self.period, self.cycle, self._complete, self._missing, self._late,
+                             percentile(values, 0.5), percentile(values, 0.99), self._jitter_max)

@@ -1,0 +1,99 @@
+"""The master heartbeat on real SocketCAN (runs inside the User-Mode-Linux guest): it is a
+cyclic job of the kernel's broadcast manager, so when the controller process is killed
+(SIGKILL: no shutdown code runs) the kernel closes its socket and the heartbeat stops; a drive
+watching it with 0x1016 then reacts (docs/canopen.md)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import can
+import pytest
+
+from chcos.apps.sim.canopen_slave import SERVO_EDS
+from vcan_tests.support_fb import WAIT
+
+ROOT = Path(__file__).resolve().parent.parent
+MASTER = 100
+
+CONTROLLER = """
+import sys, threading
+from chcos.devices.spec import BusSpec
+from drivers.canopen_node import CanopenDriver
+from vcan_tests.support_fb import FakeHost
+
+bus = BusSpec(name="co", kind="canopen", key="bus[0]", options={{
+    "interface": "socketcan", "channel": "{channel}", "master_heartbeat_ms": 10,
+    "master_node_id": {master}, "sdo_timeout": 0.05,
+    "nodes": [{{"id": 42, "eds": "{eds}", "nmt_start": False}}]}})
+CanopenDriver(bus, [], FakeHost()).start()
+print("started", flush=True)
+threading.Event().wait()
+"""
+
+
+@pytest.mark.socketcan
+def test_master_heartbeat_stops_when_the_controller_is_killed(tmp_path: Path) -> None:
+    from vcan_tests import uml
+
+    channel = uml.can_channel("socketcan")
+    script = tmp_path / "controller.py"
+    script.write_text(textwrap.dedent(CONTROLLER.format(channel=channel, master=MASTER,
+                                                        eds=SERVO_EDS)), encoding="utf-8")
+    seen = can.Bus(interface="socketcan", channel=channel,
+                   can_filters=[{"can_id": 0x700 + MASTER, "can_mask": 0x7FF}])
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, env=env,
+                            text=True)
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "started"
+        beats = 0
+        while beats < 5:
+            msg = seen.recv(WAIT)
+            assert msg is not None, "no master heartbeat on the wire"
+            assert msg.data == b"\x05"
+            beats += 1
+        proc.kill()
+        proc.wait(WAIT)
+        while seen.recv(0) is not None:      # what was on the wire before the kill
+            pass
+        assert seen.recv(0.3) is None, "the heartbeat outlived the controller"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(WAIT)
+        seen.shutdown()
+
+
+@pytest.mark.socketcan
+def test_the_kernel_produces_sync_and_the_driver_counts_what_went_out(tmp_path: Path) -> None:
+    """On SocketCAN the SYNC producer is the broadcast manager's cyclic job; the driver counts
+    the cycles and the jitter from the SYNCs its reader sees on the wire (kernel time stamps)."""
+    from chcos.devices.spec import BusSpec
+    from drivers.canopen_node import CanopenDriver
+    from vcan_tests import uml
+    from vcan_tests.support_fb import FakeHost
+
+    channel = uml.can_channel("socketcan")
+    seen = can.Bus(interface="socketcan", channel=channel,
+                   can_filters=[{"can_id": 0x080, "can_mask": 0x7FF}])
+    bus = BusSpec(name="co", kind="canopen", key="bus[0]", options={
+        "interface": "socketcan", "channel": channel, "sync_period": 0.01, "sdo_timeout": 0.05,
+        "nodes": [{"id": 42, "eds": str(SERVO_EDS), "nmt_start": False}]})
+    host = FakeHost()
+    driver = CanopenDriver(bus, [], host)
+    driver.start()
+    try:
+        for _ in range(10):
+            assert seen.recv(WAIT) is not None, "no SYNC on the wire"
+        driver.wait_cycle(10, WAIT)
+        stats = driver.sync_stats()
+        assert stats is not None and stats.cycles >= 10
+        assert 0 <= stats.jitter_p50 <= stats.jitter_p99 <= stats.jitter_max < 1.0
+    finally:
+        driver.stop()
+        seen.shutdown()
