@@ -258,6 +258,8 @@ class NodeEvents:
             was_lost, node.lost = node.lost, False
         if was_lost:
             self.clear_node(node, "heartbeat", f"canopen node {node.id}: heartbeat back")
+            if node.axes and self.node_up is not None:
+                self.node_up(node)
         if nmt is NmtState.BOOT_UP:
             return
         if nmt is None:

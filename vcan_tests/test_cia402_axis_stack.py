@@ -58,7 +58,7 @@ async def axis_task(ctx: TaskContext, cmd: dict[str, Any]) -> None:
 
 
 # ---- the rig --------------------------------------------------------------------------------
-def axis_map(channel: str, eds: Path, **axis: str) -> str:
+def axis_map(channel: str, eds: Path, node_extra: str = "", **axis: str) -> str:
     keys = {"mode": '"PP"', "quick_stop_option": "2", "counts_per_unit": "1000.0",
             "timeouts": "{ enable = 5.0, disable = 5.0, quick_stop = 10.0, fault_reset = 5.0, "
                         "set_mode = 2.0, move = 60.0, velocity = 10.0, safe_stop = 10.0 }",
@@ -71,7 +71,7 @@ kind = "canopen"
 interface = "virtual"
 channel = "{channel}"
 sdo_timeout = 0.2
-nodes = [{{ id = {NODE}, eds = "{eds}" }}]
+nodes = [{{ id = {NODE}, eds = "{eds}"{node_extra} }}]
 
 [[device]]
 name = "x"
@@ -105,6 +105,16 @@ class Rig:
             self.s.run_for(STEP)
         return True
 
+    def hold(self, pred: Callable[[], bool], wall: float = WALL) -> bool:
+        """Run the system without advancing its clock until ``pred()`` (what is judged on
+        real time, a heartbeat's loss, happens meanwhile)."""
+        deadline = time.monotonic() + wall
+        while not pred():
+            if time.monotonic() > deadline:
+                return False
+            self.s.run_for(0.0)
+        return True
+
     def caught_up(self, wall: float = 2.0) -> None:
         """Run the system without advancing its clock until its ``x.statusword`` is the
         drive's (or ``wall`` seconds passed: a drive that is not heard, e.g. rebooting)."""
@@ -128,11 +138,11 @@ class Rig:
         return self.s.devtab.get(name).status.value
 
 
-def make_system(tmp_path: Path, channel: str, **axis: str) -> System:
+def make_system(tmp_path: Path, channel: str, node_extra: str = "", **axis: str) -> System:
     eds = tmp_path / "drive.eds"
     eds.write_text(drive_eds(), encoding="utf-8")
     path = tmp_path / "axis.toml"
-    path.write_text(axis_map(channel, eds, **axis), encoding="utf-8")
+    path.write_text(axis_map(channel, eds, node_extra, **axis), encoding="utf-8")
     s = System([path], clock=VirtualClock(), machines=[0])
     s.execute(f"install -m0o1 --code={M}:axis_task T x")
     return s
@@ -419,3 +429,50 @@ def test_device_commands_complete_on_the_drive(rig: Rig) -> None:
         dt.write("x", 9)
     with pytest.raises(ChcosError, match="command code of the axis"):
         dt.write("x", 2.5)
+
+
+def test_a_lost_heartbeat_fails_the_command_and_stops_the_axis_each_time(
+        tmp_path: Path) -> None:
+    import can
+    channel = unique_channel("axis")
+    d = DurandCia402Drive(channel, NODE, quick_stop_option=2)
+    bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+    beating = threading.Event()
+    done = threading.Event()
+
+    def heartbeat() -> None:       # the drive's heartbeat, OPERATIONAL, while ``beating``
+        while not done.wait(0.05):
+            if beating.is_set():
+                bus.send(can.Message(arbitration_id=0x700 + NODE, data=b"\x05",
+                                     is_extended_id=False))
+
+    beating.set()
+    beater = threading.Thread(target=heartbeat, daemon=True)
+    beater.start()
+    s = make_system(tmp_path, channel, node_extra=", heartbeat_timeout = 0.3")
+    r = Rig(s, d)
+    try:
+        assert r.run(lambda: r.value("x.state") == "SWITCH_ON_DISABLED" and r.status("x") == "OK")
+        r.do(("set_mode",), ("enable",))
+        for _ in range(2):          # the second loss is seen as well as the first
+            r.s.invoke("T", {"steps": [("move_to", 50.0)], "log": r.log})
+            assert r.run(lambda: d.velocity > 0 and d.received[-1] == 0x0F and not d.ack)
+            n, start = len(d.log), len(r.log)
+            beating.clear()
+            # the loss is judged on real time: virtual time (and the move) wait for it
+            assert r.hold(lambda: r.status("x") == "failed")
+            assert r.run(lambda k=start: len(r.log) > k)
+            (op, err), = r.log[start:]
+            assert op == "move_to" and "drive lost" in str(err) and "heartbeat" in str(err)
+            assert r.run(lambda: d.state == SOD)
+            stopped_before_disable(d, n)
+            beating.set()
+            assert r.run(lambda: r.status("x") == "OK")
+            assert d.state == SOD                      # back: nothing enabled it again
+            r.do(("enable",))
+    finally:
+        done.set()
+        beater.join(2)
+        bus.shutdown()
+        s.shutdown()
+        d.close()
