@@ -38,6 +38,18 @@ current value of every object it maps: :class:`drivers.canopen_remote.RpdoImages
 download. An SDO write that aborts or times out fails the actuator; the driver then probes the
 object by SDO upload until the node answers and the failure clears (no latch).
 
+CiA 402 axes (``profile = "cia402"`` device-map tables, :mod:`drivers.canopen_axis`): the
+driver hosts one :class:`drivers.cia402.Axis` engine per axis on its I/O thread: the TPDO values
+of the axis's objects are fed in as one reading, the engine is cycled every :data:`AXIS_CYCLE`
+s, each write it asks for goes out as its own frame (the first RPDO mapping the object, composed
+from the node's image, else an SDO download), its reads are SDO uploads, its results complete
+the task's call (:meth:`CanopenDriver.axis_call`) or the Devtab write of a command code, and a
+drive fault fails the axis's actuator alone (cause ``drive-fault``). On a node hosting an axis,
+EMCY and the error register at boot do not fail the node's devices (the fault reset must get
+through). A node lost or rebooted makes each of its axes forget the drive and start its safe
+stop. :meth:`CanopenDriver.flush` keeps cycling the axes at shutdown until their safe stops
+ended.
+
 Failures are listed in :mod:`drivers.canopen_events`. Every EMCY is reported through
 ``host.error(bus, "emcy", ...)``; EMCY codes of the classes current (2xxx), voltage (3xxx),
 temperature (4xxx), device hardware (50xx) and monitoring (8xxx) are fatal: they fail the node's
