@@ -213,6 +213,13 @@ def test_enable_from_a_fault_fails_naming_the_fault(rig: Rig) -> None:
     (_op, err), = rig.do(("enable",))
     assert isinstance(err, AxisCommandFailed) and "FAULT" in str(err)
     assert "0x603F 0x2310" in str(err)
+    # shutdown says the faulted axis is not at its safe state, and sends it nothing
+    n = len(rig.drive.received)
+    rig.s.devtab.shutdown_window = 1.0
+    rig.s.shutdown()
+    outcome = rig.s.devtab.safe_outcomes["x"]
+    assert not outcome.written and "FAULT" in outcome.reason and "0x2310" in outcome.reason
+    assert rig.drive.received[n:] == [] and rig.drive.state == FAULT
 
 
 # ---- the fault that used to deadlock --------------------------------------------------------
