@@ -199,6 +199,16 @@ class AxisHost:
                     error_code=values.get(Obj.ERROR_CODE))
         self._perform(self.engine.update(r, now), now)
 
+    def refresh(self, now: float) -> None:
+        """Read every object of the axis by SDO (those the drive answers) as one reading."""
+        values = {}
+        for (index, _sub), obj in self.objects().items():
+            value = self.read(obj, index)
+            if value is not None:
+                values[obj] = value
+        if values:
+            self.reading(values, now)
+
     def poll(self, now: float) -> None:
         """Advance the engine's timers."""
         self._perform(self.engine.poll(now), now)

@@ -68,4 +68,12 @@ class AxisLost:
     reason: str
 
 
-CanopenJob = BootNode | ReportHeld | Probe | AxisFeed | AxisCommand | AxisLost
+@dataclass(frozen=True)
+class AxisRefresh:
+    """The node of axis ``device`` is ready: read the axis's objects by SDO, so its sensors
+    show the drive before any command or TPDO."""
+
+    device: str
+
+
+CanopenJob = BootNode | ReportHeld | Probe | AxisFeed | AxisCommand | AxisLost | AxisRefresh

@@ -86,6 +86,7 @@ from drivers.canopen_jobs import (
     AxisCommand,
     AxisFeed,
     AxisLost,
+    AxisRefresh,
     BootNode,
     CanopenJob,
     Probe,
@@ -452,6 +453,8 @@ class CanopenDriver(WorkerJobDriver):
     def _axis_node_up(self, node: ManagedNode) -> None:
         with self._down_lock:
             self._down.discard(node.id)
+        for name in node.axes:
+            self._submit(OP, AxisRefresh(name))
 
     def _axis_send(self, node: ManagedNode, w: Write) -> None:
         """One write of an axis as its own frame: the first RPDO mapping the object, composed
@@ -493,13 +496,15 @@ class CanopenDriver(WorkerJobDriver):
         except (SdoAbortedError, SdoCommunicationError, struct.error, ValueError):
             return None
 
-    def _axis_job(self, job: AxisFeed | AxisCommand | AxisLost) -> None:
+    def _axis_job(self, job: AxisFeed | AxisCommand | AxisLost | AxisRefresh) -> None:
         now = self.host.now()
         match job:
             case AxisFeed(device, values):
                 self._axes[device].reading({Obj(o): v for o, v in values}, now)
             case AxisCommand(device, call, done):
                 self._axes[device].command(call, done, now)
+            case AxisRefresh(device):
+                self._axes[device].refresh(now)
             case AxisLost(device, reason):
                 axis = self._axes[device]
                 axis.lost(reason, now)
@@ -618,7 +623,8 @@ class CanopenDriver(WorkerJobDriver):
                     self._report_held(held)
                 case Job(op, Probe() as probe) if op == OP:
                     self._probe(probe)
-                case Job(op, AxisFeed() | AxisCommand() | AxisLost() as axis_job) if op == OP:
+                case Job(op, AxisFeed() | AxisCommand() | AxisLost() | AxisRefresh() as axis_job) \
+                        if op == OP:
                     self._guarded(self._axis_job, axis_job)
                 case Job(op, key) if op == AXIS_POLL:
                     if key is not None:

@@ -364,6 +364,7 @@ def test_the_simulated_drive_as_an_axis(tmp_path: Path) -> None:
         assert [cw for cw in d.received if cw][:3] == [0x06, 0x07, 0x0F]
         assert 0x1F in d.received
         assert d.published()[2] == 200
+        assert r.run(lambda: d.received[-1] == 0x0F)      # the set-point handshake's end
         n = len(d.received)
         assert r.do(("disable",)) == [("disable", "ok")] and d.received[n:] == [0x00]
         assert d.published()[0] & 0x4F == 0x40
