@@ -140,10 +140,12 @@ def mode_of(value: object) -> Mode | None:
 
 @dataclass
 class _Pending:
-    """A running command's caller (None: nobody waits, e.g. a node-loss safe stop)."""
+    """A running command's caller (None: nobody waits, e.g. a node-loss safe stop), and the
+    callers of the same safe stop asked for again while it ran (they get its result)."""
 
     op: Op
     done: Done | None
+    joined: list[Done] = field(default_factory=list)
 
 
 @dataclass
@@ -220,6 +222,12 @@ class AxisHost:
         waiting) a command that does not supersede the running one waits for it to end; a
         superseding one (quick stop, disable, safe stop) fails the queued ones."""
         eng = self.engine
+        if call.op is Op.SAFE_STOP and eng.busy is Op.SAFE_STOP and self._pending:
+            # e-stop, then the abnormal end of the task it interrupted: one sequence, not one
+            # superseding the other (each caller gets its result)
+            if done is not None:
+                self._pending[-1].joined.append(done)
+            return
         if call.op in PREEMPTING:
             dropped, self._queued = self._queued, []
             for queued, queued_done in dropped:
@@ -304,9 +312,11 @@ class AxisHost:
         if not self._pending:
             return
         p = self._pending.pop(0)
+        for joined in p.joined:
+            joined(result)
         if p.done is not None:
             p.done(result)
-        elif not result.ok:
+        elif not result.ok and not p.joined:
             self.report(f"axis {self.name}: {result}")
 
     def _fault(self, fault: Fault | None) -> None:

@@ -57,6 +57,11 @@ async def axis_task(ctx: TaskContext, cmd: dict[str, Any]) -> None:
         log.append((op, "ok"))
 
 
+async def mover(ctx: TaskContext, cmd: dict[str, Any]) -> None:
+    """Moves axis ``x`` to ``cmd["to"]``; a failure ends the task abnormally."""
+    await ctx.axis("x").move_to(cmd["to"])
+
+
 # ---- the rig --------------------------------------------------------------------------------
 def axis_map(channel: str, eds: Path, node_extra: str = "", **axis: str) -> str:
     keys = {"mode": '"PP"', "quick_stop_option": "2", "counts_per_unit": "1000.0",
@@ -299,6 +304,24 @@ def test_abnormal_completion_of_the_owner_stops_the_axis(rig: Rig) -> None:
     rig.s.invoke("T", {"steps": [("raise",)], "log": rig.log})
     assert rig.run(lambda: d.state == SOD)
     stopped_before_disable(d, n)
+
+
+def test_an_estop_during_a_move_is_one_safe_stop_with_the_abnormal_end_it_causes(
+        rig: Rig) -> None:
+    d, s = rig.drive, rig.s
+    s.execute(f"install -m0o1 --code={M}:mover V x")
+    rig.do(("set_mode",), ("enable",))
+    s.invoke("V", {"to": 50.0})
+    assert rig.run(lambda: d.velocity > 0 and d.received[-1] == 0x0F and not d.ack)
+    n = len(d.log)
+    s.devtab.estop("test")
+    assert rig.run(lambda: d.state == SOD and s.devtab.get("x").pending is None)
+    v = s.tsktab.get("V")
+    assert v.abnormal == 1 and "superseded by safe stop" in (v.last_error or "")
+    stopped_before_disable(d, n)
+    sent = [cw for cw, *_ in d.log[n:]]
+    assert sent.count(0x02) == 1 and sent[-1] == 0x00      # one sequence
+    assert s.devtab.safe_failures == []
 
 
 def test_shutdown_reports_the_safe_stop_the_drive_confirmed(tmp_path: Path) -> None:
