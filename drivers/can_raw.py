@@ -431,16 +431,18 @@ class CanDriver(ThreadedDriver):
     def _malformed(self, key: tuple[int, bool], kind: str, detail: str) -> None:
         """A malformed frame of a sensor message (reader thread): after :data:`BAD_FRAMES` in a
         row, or at the first if the message never had a well-formed frame, its sensors fail
-        (the readings of earlier frames are handed over first)."""
+        (their readings of earlier frames are handed over first)."""
         n = self._bad[key] = self._bad.get(key, 0) + 1
         if key in self._bad_failed or (n < BAD_FRAMES and key in self._good_seen):
             return
-        self._end_batch()
+        sensors = self.codec.sensors_of(*key)
+        if any(dev in sensors for dev, _ in self._batch):
+            self._end_batch()              # their earlier readings go before the failure
         self._bad_failed.add(key)
         name = self.codec.message_name(*key)
         why = (f"{n} malformed frame(s) of {name} in a row" if key in self._good_seen
                else f"only malformed frames of {name} received")
-        for dev in self.codec.sensors_of(*key):
+        for dev in sensors:
             self.host.fail(dev, f"CAN bus {self.bus.name!r}: {why} (last: {kind}: {detail})")
 
     def _well_formed(self, key: tuple[int, bool]) -> None:
