@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 import os
 import socket
-import statistics
 import subprocess
 import sys
 import threading
@@ -73,8 +72,8 @@ class _Traffic:
         # the flood comes from other nodes on a real bus, not from this CPU: cangen runs at the
         # lowest priority, so it takes the CPU the cell leaves (the kernel's receive path of
         # every frame still runs on it, as it would on a real bus)
-        self._flood_args = ["nice", "-n", "19", "cangen", CHANNEL, "-I", f"{FLOOD_ID:X}", "-L", "8", "-D", "r",
-                            "-g", "1", "-c", str(burst), "-n", str(self.flood_n)]
+        self._flood_args = ["nice", "-n", "19", "cangen", CHANNEL, "-I", f"{FLOOD_ID:X}",
+                            "-L", "8", "-D", "r", "-g", "1", "-c", str(burst), "-n", str(self.flood_n)]
         self._own_args = ["cangen", CHANNEL, "-I", f"{OWN_ID:X}", "-L", "8", "-D", "i",
                           "-g", f"{gap_ms:g}", "-n", str(self.own_n)]
         self.flood_rate = 0.0
@@ -251,7 +250,7 @@ def main() -> None:
     if a.inside or _have_vcan():
         inside(a.seconds, a.burst, a.own_rate)
         return
-    print(f"host load average {' '.join(os.getloadavg().__repr__()[1:-1].split(', '))} "
+    print(f"host load average {' '.join(f'{x:.1f}' for x in os.getloadavg())} "
           f"({os.cpu_count()} CPUs): the guest's timing suffers from a loaded host",
           flush=True)
     argv = [sys.executable, "-m", "tools.bench_can_flood", "--inside", "--seconds",
