@@ -73,7 +73,8 @@ class _Traffic:
         # lowest priority, so it takes the CPU the cell leaves (the kernel's receive path of
         # every frame still runs on it, as it would on a real bus)
         self._flood_args = ["nice", "-n", "19", "cangen", CHANNEL, "-I", f"{FLOOD_ID:X}",
-                            "-L", "8", "-D", "r", "-g", "1", "-c", str(burst), "-n", str(self.flood_n)]
+                            "-L", "8", "-D", "r", "-g", "1", "-c", str(burst),
+                            "-n", str(self.flood_n)]
         self._own_args = ["cangen", CHANNEL, "-I", f"{OWN_ID:X}", "-L", "8", "-D", "i",
                           "-g", f"{gap_ms:g}", "-n", str(self.own_n)]
         self.flood_rate = 0.0
