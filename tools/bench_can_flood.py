@@ -33,6 +33,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -101,7 +102,7 @@ def _tx_packets() -> int:
     return int(Path(f"/sys/class/net/{CHANNEL}/statistics/tx_packets").read_text())
 
 
-def _seq(data: bytes) -> int:
+def _seq(data: bytes | bytearray) -> int:
     return int.from_bytes(bytes(data[:4]), "little")
 
 
@@ -208,10 +209,11 @@ def _plain_phase(traffic: _Traffic, use_filter: bool) -> dict[str, Any]:
 
 def inside(seconds: float, burst: int, own_rate: float) -> None:
     """Run the phases (inside the guest) and print the table."""
-    phases = [("chcos (kernel filters)", lambda tr: _chcos_phase(tr, True)),
-              ("chcos, filter = false", lambda tr: _chcos_phase(tr, False)),
-              ("plain python-can reader", lambda tr: _plain_phase(tr, False)),
-              ("plain reader + filters", lambda tr: _plain_phase(tr, True))]
+    phases: list[tuple[str, Callable[[_Traffic], dict[str, Any]]]] = [
+        ("chcos (kernel filters)", lambda tr: _chcos_phase(tr, True)),
+        ("chcos, filter = false", lambda tr: _chcos_phase(tr, False)),
+        ("plain python-can reader", lambda tr: _plain_phase(tr, False)),
+        ("plain reader + filters", lambda tr: _plain_phase(tr, True))]
     print(f"bench_can_flood: SocketCAN {CHANNEL} in the UML guest, {os.cpu_count()} CPU; own "
           f"frames id 0x{OWN_ID:X} at {own_rate:g}/s for {seconds:g} s, flood id 0x{FLOOD_ID:X}"
           f" in bursts of {burst}/ms")
