@@ -197,9 +197,10 @@ class CanDriver(ThreadedDriver):
                     load_dbc(o["dbc"])
                 except BusError as exc:
                     errs.append(f"{bus.key}.dbc: {exc}")
-        errs += [f"{bus.key}.{k}: chcos does not compute counters or checksums; a map "
-                 f"cannot declare them (an actuator message carrying one is sent with the "
-                 f"signal at its last written or initial value)" for k in REFUSED_OPTIONS
+        errs += [f"{bus.key}.{k}: unknown option for a can bus: chcos does not compute "
+                 f"counters or checksums, and a map cannot declare them (an actuator "
+                 f"message carrying one is sent with the signal at its last written or "
+                 f"initial value)" for k in REFUSED_OPTIONS
                  if k in o]
         if "filter" in o and not isinstance(o["filter"], bool):
             errs.append(f"{bus.key}.filter: expected true or false, got {o['filter']!r}")

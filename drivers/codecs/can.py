@@ -364,7 +364,8 @@ def check_address(bus: BusSpec, device: DeviceSpec, dbc: Any) -> list[str]:
     """Errors of one device address on a ``can`` bus (``dbc`` is the loaded DBC or None)."""
     key = f"{device.key}.address"
     a = device.address
-    refused = [f"{key}.{k}: chcos does not compute counters or checksums (an actuator's "
+    refused = [f"{key}.{k}: unknown key: chcos does not compute counters or checksums (an "
+               f"actuator's "
                f"message is sent with the signal at its last written or initial value, which a "
                f"receiver checking it rejects); a sensor reads such a signal as a plain value"
                for k in a if k in UNSUPPORTED_KEYS]
