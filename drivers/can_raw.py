@@ -8,11 +8,19 @@ Bus options:
   the cell.
 - ``bitrate`` (int > 0, optional), ``fd`` (bool, default false)
 - ``dbc``: a DBC file (relative to the map file); needed for ``{message, signal}`` addresses
-- ``record``: a log file (``.log``/``.asc``/``.blf``...) receiving every frame received and sent
+- ``record``: a log file (``.log``/``.asc``/``.blf``...) receiving every frame received (with
+  ``filter``, only the map's ids) and sent
 - ``poll``: the reader's receive timeout in seconds (default 0.005) on interfaces it cannot wait
   on without receiving; it bounds :meth:`settle` there. On SocketCAN (``select`` on the socket)
   and python-can's ``virtual`` interface (its receive queue) the reader sleeps until a frame is
   there and :meth:`settle` drains the bus itself, so ``poll`` is not used
+- ``filter`` (bool, default true): open the bus with receive filters on the ids of the messages
+  that carry a sensor signal, less ``ignore_ids`` (:func:`drivers.canbus.can_filters`; on
+  SocketCAN in the kernel): frames of other ids never reach chcos
+- ``ignore_ids``: ids and ranges (``["0x700-0x77F", 0x80]``) another node owns: never warned
+  about, counted as ``ignored-id``
+- ``unknown_ids``: ``ignore`` | ``warn`` (default) | ``fail``, see :class:`UnknownIds`
+- ``counter``, ``crc``, ``checksum`` (here or in an address) are refused: chcos computes neither
 
 Device addresses, one of two forms:
 
@@ -23,14 +31,26 @@ Device addresses, one of two forms:
   Raw devices that share an id form one message and must agree on ``dlc`` and ``extended``.
 
 Received frames are decoded on the reader thread: a frame of a sensor message is decoded and every
-sensor signal in it delivered; a frame whose id carries only actuator signals is ignored (another
-node, or a replayed log, sends it); any other id is ``host.error(bus, "unknown-id")``, a frame of
-the wrong length ``"wrong-length"``, one cantools cannot decode ``"undecodable"``, an error frame
-``"error-frame"``, a remote frame (a data request, which chcos does not answer) ``"remote-frame"``.
+sensor signal in it delivered (of a multiplexed message, the signals its multiplexer selects; a
+multiplexer value the DBC does not list is counted as ``unknown-mux``); a frame whose id carries
+only actuator signals is ignored (another node, or a replayed log, sends it); a frame of any other
+id is counted (``unknown-id``, or ``ignored-id`` for ``ignore_ids``) and handled by
+``unknown_ids``: reported once per :data:`REPORT_PERIOD` with the count, as a warning or (``fail``)
+a bus error. A frame of the wrong length is ``host.error(bus, "wrong-length")``, one cantools
+cannot decode ``"undecodable"``; either fails its message's sensors after :data:`BAD_FRAMES` in a
+row (at the first if the message never had a well-formed frame) until a well-formed one comes.
+An error frame is ``"error-frame"``, a remote frame (a data request, which chcos does not answer)
+``"remote-frame"``. On a real-time kernel clock each reading carries its frame's receive time (the
+kernel's stamp on SocketCAN, :func:`drivers.canbus.receive_time`) to the host, and a reading older
+than its sensor's ``stale_after`` on arrival is counted (``stale-on-arrival``) and not delivered.
 On SocketCAN, frames the kernel dropped because the socket's receive buffer was full are
-``"overrun"`` with the number lost (the socket's drop count, read with ``SO_MEMINFO``, the count
-``SO_RXQ_OVFL`` reports), also summed in ``CanDriver.overrun_lost``; python-can's ``virtual``
-interface has no such buffer and never overruns. Actuator writes never block the caller: each
+counted as ``lost`` in the bus counts and reported as ``"overrun"`` errors with the number lost
+(the socket's drop count, read with ``SO_MEMINFO``: the count ``SO_RXQ_OVFL`` reports, which
+python-can's receive does not ask for), also summed in ``CanDriver.overrun_lost``; the first
+overrun is reported at once, later ones once per :data:`REPORT_PERIOD` with their sum;
+python-can's ``virtual`` interface has no such buffer and never overruns. See docs/can-faults.md.
+
+Actuator writes never block the caller: each
 is encoded as the whole message, keeping the other signals at their last written value or else
 the DBC initial value (0 if none, clipped into the signal's range), and sent. On the interfaces of
 :data:`INLINE_INTERFACES` (``virtual``, ``socketcan``), without ``record``, a write that finds
@@ -133,6 +153,7 @@ class CanDriver(ThreadedDriver):
         self._ignore, _ = parse_ids(o.get("ignore_ids", []), f"{bus.key}.ignore_ids")
         self._unknown = UnknownIds(o.get("unknown_ids", "warn"))
         self._tally = Tally(self._report_unknown, REPORT_PERIOD)
+        self._overruns = Tally(self._report_overrun, REPORT_PERIOD, examples=1)
         self._virtual: bool | None = None
         self._stale_after = {d.name: d.stale_after for d in devices
                              if d.direction == "sensor" and d.stale_after is not None}
@@ -317,6 +338,7 @@ class CanDriver(ThreadedDriver):
         warnings still count. Idempotent; never raises."""
         self._stop_threads()
         self._tally.flush()
+        self._overruns.flush()
         if self._bus is not None:
             with contextlib.suppress(can.CanError, OSError):
                 self._bus.shutdown()
@@ -342,8 +364,12 @@ class CanDriver(ThreadedDriver):
         lost, self._drops_seen = drops - self._drops_seen, drops
         self.overrun_lost += lost
         self.host.stat(self.bus.name, "lost", lost)
-        self._error("overrun", f"{lost} frame(s) lost on bus {self.bus.name!r}: the socket's "
-                               f"receive buffer overflowed (kernel drop count {drops})")
+        self._overruns.add("overrun", f"kernel drop count {drops}", lost)
+
+    def _report_overrun(self, kind: str, n: int, examples: list[str]) -> None:
+        """One aggregated report of frames the kernel dropped (a bus error)."""
+        self._error(kind, f"{n} frame(s) lost on bus {self.bus.name!r}: the socket's receive "
+                          f"buffer overflowed ({examples[-1] if examples else 'no drop count'})")
 
     def _receive(self, frame: can.Message) -> None:
         """One received frame (reader thread): counted, recorded, decoded; its readings join

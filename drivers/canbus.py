@@ -158,14 +158,15 @@ class Tally:
         #: every event counted, per kind (reported or pending)
         self.total: Counter[str] = Counter()
 
-    def add(self, kind: str, example: str) -> None:
-        """Count one event of ``kind``; report what is pending if the period has passed."""
+    def add(self, kind: str, example: str, n: int = 1) -> None:
+        """Count ``n`` events of ``kind``; report what is pending if the period has passed."""
         with self._lock:
-            self.total[kind] += 1
-            self._pending[kind] += 1
+            self.total[kind] += n
+            self._pending[kind] += n
             seen = self._seen.setdefault(kind, [])
-            if example not in seen and len(seen) < self._examples:
+            if example not in seen:
                 seen.append(example)
+                del seen[:-self._examples]     # the newest few
             now = time.monotonic()
             last = self._last.get(kind)
             if last is not None and now - last < self.period:
