@@ -18,7 +18,7 @@ import cantools
 import pytest
 
 from chcos.devices.entry import DeviceStatus
-from chcos.kernel.clock import VirtualClock
+from chcos.kernel.clock import RealClock, VirtualClock
 from chcos.system.embedded import System
 from drivers.can_raw import CanDriver
 from drivers.canbus import NOTHING, can_filters, filters_admit, parse_ids
@@ -366,3 +366,72 @@ def test_check_names_bad_shared_wire_options_and_a_device_in_ignore_ids() -> Non
     assert [(d.name, why) for d, why in found] == [
         ("S", "device[0].address: id 0x701 is in bus[0].ignore_ids: the device's frames "
               "would be ignored")]
+
+
+CAN_MAP = """
+[[bus]]
+name = "can0"
+kind = "can"
+interface = "virtual"
+channel = "{channel}"
+filter = false
+unknown_ids = "{policy}"
+
+[[device]]
+name = "S"
+direction = "sensor"
+bus = "can0"
+stale_after = 0.3
+address = {{ id = 0x120, start = 0, length = 8, dlc = 1 }}
+"""
+
+
+def _until(pred: Any, what: str, timeout: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not pred():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.002)
+
+
+@pytest.mark.parametrize("policy", ["warn", "fail"])
+def test_in_a_running_system_late_frames_are_not_fresh_and_unknown_ids_fail_only_if_told(
+        tmp_path: Path, channel: str, policy: str) -> None:
+    """The driver and Devtab together on the real clock: a frame received 1 s ago is counted
+    stale-on-arrival in the bus statistics and the sensor has no reading from it; a fresh one
+    is read with its receive time; an id of no device is a bus error (what makes ``chcos run``
+    unhealthy) only with ``unknown_ids = "fail"``."""
+    path = tmp_path / "can.toml"
+    path.write_text(CAN_MAP.format(channel=channel, policy=policy), encoding="utf-8")
+    s = System([path], clock=RealClock(), machines=[0], map_path=tmp_path / "sysfile.map")
+    peer = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
+    s.start()
+    try:
+        dt = s.devtab
+
+        def counts() -> dict[str, int]:
+            st = s.call(lambda: dt.bus_stats.get("can0"))
+            return {} if st is None else dict(st.counts)
+
+        peer.send(can.Message(arbitration_id=0x120, data=b"\x01", is_extended_id=False,
+                              timestamp=time.time() - 1.0))
+        peer.send(can.Message(arbitration_id=0x555, data=b"\x01", is_extended_id=False,
+                              timestamp=time.time()))
+        _until(lambda: counts().get("unknown-id") == 1, "the unknown id counted")
+        assert counts()["stale-on-arrival"] == 1 and s.call(lambda: dt.get("S").readings) == 0
+        if policy == "fail":       # what chcos run's health reads
+            _until(lambda: "can0" in s.call(lambda: dt.last_bus_error), "the bus error")
+            assert s.call(lambda: dt.last_bus_error["can0"]).startswith(
+                "unknown-id: 1 frame(s) with an id of no device")
+        else:                      # counted at once when reported, so none is coming
+            assert s.call(lambda: dict(dt.bus_errors)) == {}
+        sent = time.time()
+        peer.send(can.Message(arbitration_id=0x120, data=b"\x02", is_extended_id=False,
+                              timestamp=sent))
+        _until(lambda: s.call(lambda: dt.get("S").readings) == 1, "the fresh reading")
+        e = s.call(lambda: dt.get("S"))
+        now = s.call(s.kernel.clock.now)
+        assert e.value == 2 and e.rx_at is not None
+        assert 0 <= now - e.rx_at <= time.time() - sent + 0.05
+    finally:
+        peer.shutdown()
+        s.shutdown()
