@@ -435,3 +435,21 @@ def test_in_a_running_system_late_frames_are_not_fresh_and_unknown_ids_fail_only
     finally:
         peer.shutdown()
         s.shutdown()
+
+
+def test_import_dbc_leaves_out_a_multiplexed_message_chcos_would_send_and_checks_clean(
+        mux_dbc: Path, tmp_path: Path) -> None:
+    from chcos.devices.devmap import check
+    from chcos.devices.importers.dbc import import_dbc
+    from chcos.devices.importers.draft import render
+
+    draft = import_dbc(mux_dbc, node="PLC", dbc_ref="mux.dbc", interface="virtual",
+                       channel="x")
+    out = tmp_path / "mux.toml"
+    out.write_text(render(draft), encoding="utf-8")
+    text = out.read_text(encoding="utf-8")
+    assert "MuxCmd (0x402) is multiplexed: not imported" in text
+    devmap, errors, _warnings = check(out)
+    assert errors == [] and devmap is not None
+    assert {d.name: d.direction for d in devmap.devices} == {
+        "sel": "sensor", "a": "sensor", "b": "sensor", "common": "sensor", "p": "sensor"}
