@@ -40,9 +40,10 @@ a bus error. A frame of the wrong length is ``host.error(bus, "wrong-length")``,
 cannot decode ``"undecodable"``; either fails its message's sensors after :data:`BAD_FRAMES` in a
 row (at the first if the message never had a well-formed frame) until a well-formed one comes.
 An error frame is ``"error-frame"``, a remote frame (a data request, which chcos does not answer)
-``"remote-frame"``. On a real-time kernel clock each reading carries its frame's receive time (the
-kernel's stamp on SocketCAN, :func:`drivers.canbus.receive_time`) to the host, and a reading older
-than its sensor's ``stale_after`` on arrival is counted (``stale-on-arrival``) and not delivered.
+``"remote-frame"``. On a real-time kernel clock, on the interfaces of :data:`WALL_STAMPED`, each
+reading carries its frame's receive time (the kernel's stamp on SocketCAN,
+:func:`drivers.canbus.receive_time`) to the host, and a reading older than its sensor's
+``stale_after`` on arrival is counted (``stale-on-arrival``) and not delivered.
 On SocketCAN, frames the kernel dropped because the socket's receive buffer was full are
 counted as ``lost`` in the bus counts and reported as ``"overrun"`` errors with the number lost
 (the socket's drop count, read with ``SO_MEMINFO``: the count ``SO_RXQ_OVFL`` reports, which
@@ -132,6 +133,11 @@ AT_SPREAD = 0.001
 #: unbounded queues, ``socketcan`` selects with a zero timeout, then sends once); their writes
 #: take the fast path (sent on the kernel thread). Every other interface keeps the writer thread.
 INLINE_INTERFACES = frozenset({"virtual", "socketcan"})
+
+#: Interfaces whose ``Message.timestamp`` is wall-clock time (``time.time()``'s epoch): on
+#: SocketCAN the kernel's receive stamp, on ``virtual`` the sender's. Elsewhere (hardware time
+#: stamps with their own epoch) readings are stamped when the driver takes them.
+WALL_STAMPED = frozenset({"socketcan", "virtual"})
 
 #: Seconds the writer thread waits for room in the transmit buffer before a send fails.
 SEND_TIMEOUT = 0.5
@@ -313,7 +319,9 @@ class CanDriver(ThreadedDriver):
             cfg = bus_config(self.bus.options)
         except BusError as exc:
             raise BusError(f"{where}: {exc}") from exc
-        self._virtual = host_clock_virtual(self.host)
+        # receive times only where the frame's stamp is known to be wall-clock time
+        virtual = host_clock_virtual(self.host)
+        self._virtual = virtual if cfg.get("interface") in WALL_STAMPED else None
         if self._filter:
             ids = [(i, e) for i, e in self.codec.sensor_ids() if not in_ranges(i, self._ignore)]
             self.filters = cfg["can_filters"] = can_filters(
