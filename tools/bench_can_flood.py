@@ -246,7 +246,7 @@ def inside(seconds: float, burst: int, own_rate: float) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=5.0, help="own frames per phase, seconds")
-    ap.add_argument("--burst", type=int, default=10, help="flood frames per millisecond")
+    ap.add_argument("--burst", type=int, default=40, help="flood frames per millisecond")
     ap.add_argument("--own-rate", type=float, default=100.0, help="own frames per second")
     ap.add_argument("--inside", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args()
