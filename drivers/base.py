@@ -80,16 +80,31 @@ class DriverHost(Protocol):
         """The kernel clock's current time in seconds."""
 
 
-def deliver_all(host: DriverHost, readings: Sequence[tuple[str, Any]]) -> None:
+def host_clock_virtual(host: DriverHost) -> bool | None:
+    """Whether ``host``'s kernel clock is virtual (``host.virtual_clock``, which
+    :class:`chcos.devices.devtab.Devtab` has), or None for a host that does not say: a driver
+    then passes no receive time (``at``) with its readings."""
+    v = getattr(host, "virtual_clock", None)
+    return v if isinstance(v, bool) else None
+
+
+def deliver_all(host: DriverHost, readings: Sequence[tuple[str, Any]],
+                at: float | None = None) -> None:
     """Hand ``readings`` - ``(device, raw value)`` pairs taken together, such as one poll's - to
     ``host``: as one interrupt through the host's ``deliver_many(readings)`` where it has one
     (:class:`chcos.devices.devtab.Devtab` does: one kernel wake-up per poll instead of one per
-    reading), else one :meth:`DriverHost.deliver` each, in order."""
+    reading), else one :meth:`DriverHost.deliver` each, in order. ``at``, if given, is when
+    they were received on the kernel clock (a frame's receive time stamp, see
+    :func:`drivers.canbus.receive_time`), passed as ``deliver_many(readings, at=at)``: staleness
+    and age are then judged from it (a host without ``deliver_many`` does not get it)."""
     if not readings:
         return
     many = getattr(host, "deliver_many", None)
     if many is not None:
-        many(readings)
+        if at is None:
+            many(readings)
+        else:
+            many(readings, at=at)
         return
     for device, value in readings:
         host.deliver(device, value)

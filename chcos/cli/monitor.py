@@ -215,7 +215,12 @@ class Monitor:
         # frames another node sends) are watched as inputs
         self.read_back = {d.name for d in devmap.devices if d.direction == "actuator"
                           and devmap.bus(d.bus).kind in READ_BACK}
-        rest = DeviceMap(tuple(b for b in devmap.buses if b.kind != "canopen"),
+        # raw CAN: no receive filters and every id of no device an error, so they are flagged
+        # (ids the map's ignore_ids names stay quiet)
+        buses = tuple(dataclasses.replace(b, options={"unknown_ids": "fail", **b.options,
+                                                      "filter": False})
+                      if b.kind == "can" else b for b in devmap.buses if b.kind != "canopen")
+        rest = DeviceMap(buses,
                          tuple(dataclasses.replace(d, direction="sensor", stale_after=None)
                                if d.name in self.read_back else d for d in devmap.devices
                                if devmap.bus(d.bus).kind != "canopen"), devmap.files)

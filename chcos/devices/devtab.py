@@ -224,10 +224,18 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
                                    attempts)
 
     # ---- DriverHost (thread-safe: everything goes through the interrupt queue) -------------
-    def deliver(self, device: str, value: Any) -> None:
+    @property
+    def virtual_clock(self) -> bool:
+        """True if the kernel runs on a virtual clock (a driver then stamps readings ``now``,
+        see :func:`drivers.base.host_clock_virtual`)."""
+        return self.kernel.clock.virtual
+
+    def deliver(self, device: str, value: Any, at: float | None = None) -> None:
         """A new raw reading of sensor ``device`` (from a driver thread), stamped with the time
-        the driver got it: staleness is judged from that, not from when the kernel handles it."""
-        at = self.kernel.clock.now()
+        the driver got it, or ``at`` (kernel-clock time the frame was received, never later
+        than now): staleness is judged from that, not from when the kernel handles it."""
+        now = self.kernel.clock.now()
+        at = now if at is None or at > now else at
         self._rx_stamp[device] = at
         self.kernel.interrupt(self._readings, ((device, value),), at)
 
@@ -249,12 +257,13 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         self._rx_stamp[device] = at
         self._reading(device, value, at, at)
 
-    def deliver_many(self, readings: Sequence[tuple[str, Any]]) -> None:
+    def deliver_many(self, readings: Sequence[tuple[str, Any]], at: float | None = None) -> None:
         """New raw readings taken together (one poll of a driver: ``(device, value)`` pairs, in
         order) as one interrupt, so the kernel wakes once per poll; each is handled as
-        :meth:`deliver` would, all stamped with this call's time (see
-        :func:`drivers.base.deliver_all`)."""
-        at = self.kernel.clock.now()
+        :meth:`deliver` would, all stamped with this call's time, or ``at`` as in
+        :meth:`deliver` (see :func:`drivers.base.deliver_all`)."""
+        now = self.kernel.clock.now()
+        at = now if at is None or at > now else at
         stamp = self._rx_stamp
         for device, _ in readings:
             stamp[device] = at

@@ -128,7 +128,14 @@ REFERENCE: dict[str, Kind] = {
              "addresses"),
          Key("record", "path", "-", "record every frame (`.log` candump, `.asc`, `.blf`)"),
          Key("poll", "float s", "0.005", "receive timeout on interfaces without a file "
-             "descriptor")),
+             "descriptor"),
+         Key("filter", "boolean", "true", "receive filters (in the kernel on SocketCAN) from the "
+             "ids of the sensors' messages: no other frame reaches chcos (docs/can-faults.md)"),
+         Key("ignore_ids", "array", "[]", "ids and ranges (`[\"0x700-0x77F\", 0x80]`) another "
+             "node owns: never warned about, counted as `ignored-id`"),
+         Key("unknown_ids", "string", "`warn`", "a frame of an id of no device that reaches "
+             "chcos: `ignore` (counted), `warn` (counted, one warning per 10 s), `fail` (a bus "
+             "error: the run is unhealthy)")),
         (Key("message", "string", "required (DBC form)", "message name in the DBC", "DBC form"),
          Key("signal", "string", "required (DBC form)", "signal name; the DBC's scale and "
              "offset are applied by the driver", "DBC form"),

@@ -5,8 +5,9 @@ The DBC is read with cantools. Every signal of every message becomes a device ad
 encodes with the DBC's own scale and offset, so the device's ``scale`` stays 1 and the DBC's
 factor and offset are noted in its comment. Units and limits (the signal's minimum and maximum)
 come from the DBC. With ``node``, the messages that node sends become actuators (chcos plays that
-node) and all others sensors; without it every signal is a sensor. Sensors of cyclic messages
-(``GenMsgCycleTime``) get ``stale_after`` = five cycles.
+node) and all others sensors; without it every signal is a sensor. A multiplexed message the node
+sends is left out (named in the header): chcos does not send multiplexed messages. Sensors of
+cyclic messages (``GenMsgCycleTime``) get ``stale_after`` = five cycles.
 """
 
 from __future__ import annotations
@@ -46,6 +47,11 @@ def import_dbc(path: str | Path, *, bus: str = "can0", node: str | None = None,
     names = [s.name for m in db.messages for s in m.signals]
     for msg in db.messages:
         actuator = node is not None and node in msg.senders
+        if actuator and msg.is_multiplexed():
+            draft.header.append(f"{msg.name} (0x{msg.frame_id:X}) is multiplexed: not imported "
+                                f"(chcos decodes multiplexed messages for sensors but does not "
+                                f"send them).")
+            continue
         for sig in msg.signals:
             base = sig.name if names.count(sig.name) == 1 else f"{msg.name}_{sig.name}"
             dev: dict[str, Any] = {
