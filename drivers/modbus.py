@@ -39,9 +39,15 @@ actuators reads the first actuator's first entry every ``poll_period`` (default 
 liveness probe, so a dead server fails the devices without waiting for a write and its return
 is noticed (and the safe values written) without one. An exception
 response fails the devices of that request (code and meaning in the reason) until a later request
-for them succeeds. A request timeout counts as a lost link on ``modbus-tcp`` (the connection is
-closed and re-made), and on ``modbus-rtu`` fails only the devices of that request (one unit of the
-line not answering). Every write is confirmed (``host.written`` once the server answered it) or
+for them succeeds. A write that fails while its unit is there (an exception answer; on
+``modbus-rtu`` also no answer) fails the actuator (cause ``write``) and the driver reads the
+actuator's own coil or registers back every ``poll_period`` by itself: data, or exception 1/2/3
+(the entry cannot be read), ends the failure; busy, acknowledge and silence do not. Commands to
+the failed actuator are refused meanwhile (Devtab names the status), so recovery never waits for
+one; after it Devtab writes the safe value first.
+A request timeout counts as a lost link on ``modbus-tcp`` (the connection is closed and
+re-made), and on ``modbus-rtu`` fails only the devices of that request (one unit of the line not
+answering). Every write is confirmed (``host.written`` once the server answered it) or
 reported failed (``host.write_failed``: exception answer, no answer, link down, dropped at stop);
 a value the register type cannot hold is refused before it is queued (:meth:`check_value`).
 Statistics (``host.stat``/``host.error``): ``requests``, ``reconnects``; errors ``timeout``,

@@ -28,7 +28,7 @@ from drivers.codecs.modbus import (
     value_error,
 )
 from drivers.jobs import Job
-from drivers.modbus_requests import READ_CALL, ModbusRequests
+from drivers.modbus_requests import READ_CALL, READBACK, ModbusRequests
 
 PROBE_PERIOD = 1.0   # s between liveness probes of an actuator-only bus without poll_period
 COMMON_OPTIONS = ("timeout", "retries", "reconnect_delay", "reconnect_delay_max", "poll_period")
@@ -280,6 +280,10 @@ class ModbusDriver(ModbusRequests):
             self._poll_taken(what)
         elif op == "probe":
             self._poll_taken("probe")
+        elif op == READBACK:
+            self._poll_taken(READBACK)
+            if self._readback:      # still failed: try again once the link is back
+                self._arm_readback()
         self._done()
 
     def _serve(self) -> None:
@@ -318,5 +322,7 @@ class ModbusDriver(ModbusRequests):
         elif op == "probe":
             self._poll_taken("probe")
             self._liveness()
+        elif op == READBACK:
+            self._read_back()
         else:
             self._write_point(self._points[what], value)

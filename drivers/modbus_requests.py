@@ -35,6 +35,14 @@ from drivers.codecs.modbus import (
 from drivers.health import Health
 from drivers.jobs import WorkerJobDriver
 
+#: The health cause of an actuator whose last write failed with its unit there; cleared by a
+#: later answered write or by the driver's own read-back (:meth:`ModbusRequests._read_back`).
+WRITE_CAUSE = "write"
+#: The key and job op of the read-back of write-failed actuators.
+READBACK = "readback"
+#: Exception codes to a read-back that still mean the unit answered: the entry cannot be read
+#: (illegal function, data address, data value), not that the unit is busy or failing.
+UNIT_ANSWERED = frozenset({1, 2, 3})
 READ_METHOD = {"coil": "read_coils", "discrete": "read_discrete_inputs",
                "holding": "read_holding_registers", "input": "read_input_registers"}
 #: The read function of each table, called with the client first (no bound method per request).
@@ -72,6 +80,10 @@ class ModbusRequests(WorkerJobDriver):
         #: held while an answer is taken (statistics, failures, health, readings): the shares of
         #: a parallel poll run on several threads
         self._lock = threading.Lock()
+        #: actuators whose last write failed with their unit there: read back until it answers
+        self._readback: set[str] = set()
+        self._readback_armed = False
+        self._lock_readback = threading.Lock()
 
     # -- to be provided by the kinds ----------------------------------------------------------
 
@@ -267,8 +279,7 @@ class ModbusRequests(WorkerJobDriver):
             if not c.connected or self.timeout_is_link_loss:
                 raise ConnectionException(f"no response: {exc}") from exc
             self.host.write_failed(p.device, value, f"{where}: write not answered: {exc}")
-            self._health.fail(p.device, "exception", f"{where} (device {p.device}): write not "
-                                                     f"answered: {exc}")
+            self._write_failed(p, f"{where} (device {p.device}): write not answered: {exc}")
             return
         if resp.isError():
             code = int(getattr(resp, "exception_code", 0))
@@ -276,9 +287,82 @@ class ModbusRequests(WorkerJobDriver):
                     f"{code} ({EXCEPTION_TEXT.get(code, 'unknown')})")
             self.host.error(self.bus.name, f"exception-{code}", text, p.device)
             self.host.write_failed(p.device, value, text)
-            self._health.fail(p.device, "exception", text)
+            self._write_failed(p, text)
             self._answer(p.unit)       # after the new cause: no OK in between
             return
         self._answer(p.unit)
         self.host.written(p.device, value)
-        self._health.clear(p.device, "exception", f"{where}: write answered")
+        self._readback.discard(p.device)
+        self._health.clear(p.device, WRITE_CAUSE, f"{where}: write answered")
+
+    # -- no latch: the read-back of actuators whose write failed -------------------------------
+
+    def _write_failed(self, p: Point, reason: str) -> None:
+        """A write to ``p`` failed while its unit is there (exception answer, or on RTU no
+        answer): the actuator fails (cause ``write``) and is read back at the poll cadence
+        until its unit answers (:meth:`_read_back`), so the failure does not latch while every
+        command to it is refused."""
+        self._health.fail(p.device, WRITE_CAUSE, reason)
+        self._readback.add(p.device)
+        self._arm_readback()
+
+    def _arm_readback(self) -> None:
+        """Queue the read-back job one ``poll_period`` from now, unless it is armed already
+        (any thread)."""
+        with self._lock_readback:
+            if self._readback_armed or not self._running:
+                return
+            self._readback_armed = True
+        period = float(self.bus.options.get("poll_period", 0.1))
+        self.host.at(round(self.host.now() + period, 9), self._readback_due)
+
+    def _readback_due(self) -> None:
+        """The kernel timer of the read-back: hand the job to the worker."""
+        with self._lock_readback:
+            self._readback_armed = False
+        self._submit_poll(READBACK, READBACK)
+
+    def _read_back(self) -> None:
+        """The read-back job: read each write-failed actuator's own coil or registers. Data,
+        or an exception answer saying the entry cannot be read (codes 1, 2, 3), is its unit
+        answering: the write failure ends. Busy, acknowledge, other codes and silence keep it;
+        the job is armed again while an actuator is left. On ``modbus-tcp`` silence is a lost
+        link (raises ConnectionException)."""
+        self._poll_taken(READBACK)
+        for name in sorted(self._readback):
+            p = self._points[name]
+            if not self._unit_due(p.unit):
+                continue
+            where = f"{self.kind} bus {self.bus.name} read-back of unit {p.unit} {p.table} " \
+                    f"{p.address} (device {name})"
+            self.host.stat(self.bus.name, "requests")
+            try:
+                resp = READ_CALL[p.table](self._client, p.address, count=p.size,
+                                          device_id=p.unit)
+            except ModbusIOException as exc:
+                kind, what = self._unanswered(where)
+                self.host.error(self.bus.name, kind, f"{where}: {what}: {exc}", name)
+                if not self._client.connected or self.timeout_is_link_loss:
+                    raise ConnectionException(f"no response to the read-back: {exc}") from exc
+                self._unit_silent(p.unit, where)
+                continue
+            code = int(getattr(resp, "exception_code", 0)) if resp.isError() else 0
+            self._answer(p.unit)
+            if code and code not in UNIT_ANSWERED:
+                self.host.error(self.bus.name, f"exception-{code}",
+                                f"{where}: exception code {code}", name)
+                continue
+            self._readback.discard(name)
+            self._health.clear(name, WRITE_CAUSE, f"{where} answered" + (
+                f" (exception code {code}: {EXCEPTION_TEXT.get(code, 'unknown')})"
+                if code else ""))
+        if self._readback:
+            self._arm_readback()
+
+    def _unit_due(self, unit: int) -> bool:
+        """Whether a request to ``unit`` goes out now (RTU: a dead unit is tried less often);
+        True here."""
+        return True
+
+    def _unit_silent(self, unit: int, where: str) -> None:
+        """``unit`` did not answer ``where`` (RTU only; nothing here)."""
