@@ -66,6 +66,7 @@ import fcntl
 import select
 import struct
 import termios
+import time
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -76,7 +77,7 @@ from pymodbus.framer import FramerType
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.helpers import is_int
 from drivers.base import DriverHost
-from drivers.codecs.modbus import classify_rtu_answer
+from drivers.codecs.modbus import LineTiming, classify_rtu_answer
 from drivers.modbus_link import MAX_CONNECTIONS, ModbusDriver, check_common
 
 
@@ -91,17 +92,41 @@ class SerialClient(ModbusSerialClient):
     asyncio transport. A port without a file descriptor (``rfc2217://``, ``loop://``) keeps
     pymodbus' receive."""
 
+    def __init__(self, port: str, *, line: LineTiming, **kwargs: Any) -> None:
+        super().__init__(port, **kwargs)
+        #: the line's timing: the silence kept before every request
+        self.line = line
+        #: when the line last went quiet (the last byte received, a receive that timed out, the
+        #: end of a request sent) on ``time.monotonic``
+        self._quiet_from = 0.0
+
+    def send(self, request: bytes, addr: tuple[Any, ...] | None = None) -> int:
+        """Send ``request`` once the line has been silent for 3.5 characters (t3.5, from the
+        last byte received or the timeout that ended a wait): every slave on the line takes the
+        silence as the end of the previous frame. Raises ConnectionException as pymodbus'."""
+        wait = self._quiet_from + self.line.silence - time.monotonic()
+        if wait > 0:
+            time.sleep(wait)
+        sent = int(super().send(request, addr))
+        self._quiet_from = time.monotonic() + len(request) * self.line.char_time
+        return sent
+
     def recv(self, size: int | None) -> bytes:
         """The bytes the port holds once it can be read; ``b""`` after ``timeout`` s of silence.
         Raises ConnectionException (and closes the port) when the peer closed or the port
         failed."""
+        data = self._recv(size)
+        self._quiet_from = time.monotonic()
+        return data
+
+    def _recv(self, size: int | None) -> bytes:
         port = self.socket
         if size is not None or port is None:
-            return super().recv(size)
+            return bytes(super().recv(size))
         try:
             fd = port.fileno()
         except (OSError, ValueError, AttributeError):   # no descriptor to wait on
-            return super().recv(size)
+            return bytes(super().recv(size))
         try:
             if not select.select([fd], [], [], self.comm_params.timeout_connect)[0]:
                 return b""
@@ -112,6 +137,13 @@ class SerialClient(ModbusSerialClient):
             self.socket = None                  # as pymodbus' close(): the port is gone
             port.close()
             raise ConnectionException(str(self)) from None
+
+
+def line_timing(bus: BusSpec) -> LineTiming:
+    """The timing of a ``modbus-rtu`` bus's line, from its serial options."""
+    o = bus.options
+    return LineTiming(int(o.get("baudrate", 19200)), int(o.get("bytesize", 8)),
+                      str(o.get("parity", "N")), int(o.get("stopbits", 1)))
 
 
 class ModbusTcpDriver(ModbusDriver):
@@ -158,7 +190,8 @@ class ModbusRtuDriver(ModbusDriver):
     @classmethod
     def check_bus(cls, bus: BusSpec) -> list[str]:
         """Errors of the serial options and the common options."""
-        errs = check_common(bus, ("port", "baudrate", "parity", "stopbits", "bytesize"))
+        errs = check_common(bus, ("port", "baudrate", "parity", "stopbits", "bytesize",
+                                  "dead_unit_backoff"))
         o: Mapping[str, Any] = bus.options
         k = bus.key
         if not (isinstance(o.get("port"), str) and o["port"]):
@@ -172,6 +205,11 @@ class ModbusRtuDriver(ModbusDriver):
             errs.append(f"{k}.stopbits: expected 1 or 2, got {o.get('stopbits')!r}")
         if o.get("bytesize", 8) not in (7, 8) or isinstance(o.get("bytesize"), bool):
             errs.append(f"{k}.bytesize: expected 7 or 8, got {o.get('bytesize')!r}")
+        if "dead_unit_backoff" in o and not (is_int(o["dead_unit_backoff"])
+                                             and o["dead_unit_backoff"] >= 1):
+            errs.append(f"{k}.dead_unit_backoff: expected an integer >= 1 (the most poll "
+                        f"periods between two tries of a unit that does not answer), got "
+                        f"{o['dead_unit_backoff']!r}")
         return errs
 
     def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
@@ -205,7 +243,8 @@ class ModbusRtuDriver(ModbusDriver):
 
     def _make_client(self) -> Any:
         o = self.bus.options
-        return SerialClient(str(o["port"]), framer=FramerType.RTU, trace_packet=self._trace,
+        return SerialClient(str(o["port"]), line=line_timing(self.bus), framer=FramerType.RTU,
+                            trace_packet=self._trace,
                             baudrate=int(o.get("baudrate", 19200)),
                             parity=str(o.get("parity", "N")), stopbits=int(o.get("stopbits", 1)),
                             bytesize=int(o.get("bytesize", 8)),

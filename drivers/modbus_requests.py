@@ -18,6 +18,7 @@ import threading
 from abc import abstractmethod
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from pymodbus.client.mixin import ModbusClientMixin
@@ -29,6 +30,7 @@ from drivers.codecs.modbus import (
     EXCEPTION_TEXT,
     Point,
     ReadRequest,
+    UnitBackoff,
     reading_of,
     value_error,
 )
@@ -38,11 +40,32 @@ from drivers.jobs import WorkerJobDriver
 #: The health cause of an actuator whose last write failed with its unit there; cleared by a
 #: later answered write or by the driver's own read-back (:meth:`ModbusRequests._read_back`).
 WRITE_CAUSE = "write"
+#: The health cause of every device of an RTU unit that stopped answering (cleared by any
+#: answer from the unit).
+UNIT_CAUSE = "unit"
 #: The key and job op of the read-back of write-failed actuators.
 READBACK = "readback"
 #: Exception codes to a read-back that still mean the unit answered: the entry cannot be read
 #: (illegal function, data address, data value), not that the unit is busy or failing.
 UNIT_ANSWERED = frozenset({1, 2, 3})
+DEFAULT_DEAD_UNIT_BACKOFF = 8   # poll periods, at least, between two tries of a dead unit
+
+
+@dataclass(frozen=True)
+class QueuedWrite:
+    """A write job's value and the epoch of its unit when it was queued (see
+    :meth:`drivers.codecs.modbus.UnitBackoff.epoch`): a write queued before its unit stopped
+    answering is not sent after that."""
+
+    value: Any
+    epoch: int
+
+
+def raw_value(value: Any) -> Any:
+    """The value a write job carries (what :meth:`Driver.write` was given)."""
+    return value.value if isinstance(value, QueuedWrite) else value
+
+
 READ_METHOD = {"coil": "read_coils", "discrete": "read_discrete_inputs",
                "holding": "read_holding_registers", "input": "read_input_registers"}
 #: The read function of each table, called with the client first (no bound method per request).
@@ -84,6 +107,8 @@ class ModbusRequests(WorkerJobDriver):
         self._readback: set[str] = set()
         self._readback_armed = False
         self._lock_readback = threading.Lock()
+        #: RTU: which units answer and how often a dead one is tried (see start())
+        self._units = UnitBackoff(DEFAULT_DEAD_UNIT_BACKOFF)
 
     # -- to be provided by the kinds ----------------------------------------------------------
 
@@ -206,6 +231,8 @@ class ModbusRequests(WorkerJobDriver):
         end of the poll), its failures to the host at once. Raises ConnectionException when
         the link is lost (TCP: also when the server does not answer)."""
         with self._lock:
+            if not self._units.due(r.unit):
+                return                 # a dead unit sitting out its turn
             self.host.stat(self.bus.name, "requests")
         try:
             resp = READ_CALL[r.table](c, r.address, count=r.count, device_id=r.unit)
@@ -222,9 +249,12 @@ class ModbusRequests(WorkerJobDriver):
             self.host.error(self.bus.name, kind, f"{r.describe()}: {what}: {exc}", p.device)
         if not c.connected or self.timeout_is_link_loss:
             raise ConnectionException(f"no response: {exc}") from exc
-        for p in r.points:
-            self._health.fail(p.device, "exception", f"{self.kind} bus {self.bus.name} "
-                              f"{r.describe()} (device {p.device}): {what}")
+        where = f"{self.kind} bus {self.bus.name} {r.describe()}"
+        if kind == "timeout":
+            self._unit_silent(r.unit, where, what)
+            return
+        for p in r.points:           # garbled: the unit is there, its answer was not usable
+            self._health.fail(p.device, "exception", f"{where} (device {p.device}): {what}")
 
     def _read_answered(self, r: ReadRequest, resp: Any, batch: list[tuple[str, Any]]) -> None:
         if resp.isError():
@@ -239,7 +269,7 @@ class ModbusRequests(WorkerJobDriver):
                                   f"({EXCEPTION_TEXT.get(code, 'unknown')})")
             self._answer(r.unit)       # after the new cause: no OK in between
             return
-        if not self._answered:
+        if not self._answered or self._units.dead(r.unit):
             self._answer(r.unit)
         entries = resp.bits if r.table in ("coil", "discrete") else resp.registers
         for p in r.points:
@@ -255,8 +285,24 @@ class ModbusRequests(WorkerJobDriver):
                 self._health.clear(p.device, "exception", f"{r.describe()} answered")
             batch.append((p.device, value))
 
-    def _write_point(self, p: Point, value: Any) -> None:
+    def _write(self, device: str, value: Any) -> None:
+        """Queue a ``write`` job stamped with its unit's epoch; never blocks."""
+        p = self._points.get(device)
+        job = QueuedWrite(value, self._units.epoch(p.unit) if p is not None else 0)
+        if not self._submit("write", device, job):
+            self._refuse(device, value, "stopped", f"{self.kind} bus {self.bus.name} is not "
+                                                   f"running")
+
+    def _write_point(self, p: Point, job: QueuedWrite) -> None:
         c = self._client
+        value = job.value
+        if job.epoch != self._units.epoch(p.unit):
+            stale = (f"{self.kind} bus {self.bus.name} unit {p.unit} stopped answering after "
+                     f"the write was queued: not sent (re-issue it)")
+            self.host.error(self.bus.name, "not-sent", f"write {value!r} to {p.device}: {stale}",
+                            p.device)
+            self.host.write_failed(p.device, value, stale)
+            return
         why = value_error(p.type, value)
         if why is not None:
             self.host.error(self.bus.name, "range", f"write {value!r} to {p.device}: {why}",
@@ -280,6 +326,8 @@ class ModbusRequests(WorkerJobDriver):
                 raise ConnectionException(f"no response: {exc}") from exc
             self.host.write_failed(p.device, value, f"{where}: write not answered: {exc}")
             self._write_failed(p, f"{where} (device {p.device}): write not answered: {exc}")
+            if kind == "timeout":
+                self._unit_silent(p.unit, where, what)
             return
         if resp.isError():
             code = int(getattr(resp, "exception_code", 0))
@@ -334,7 +382,7 @@ class ModbusRequests(WorkerJobDriver):
             if not self._unit_due(p.unit):
                 continue
             where = f"{self.kind} bus {self.bus.name} read-back of unit {p.unit} {p.table} " \
-                    f"{p.address} (device {name})"
+                    f"{p.address}"
             self.host.stat(self.bus.name, "requests")
             try:
                 resp = READ_CALL[p.table](self._client, p.address, count=p.size,
@@ -344,7 +392,7 @@ class ModbusRequests(WorkerJobDriver):
                 self.host.error(self.bus.name, kind, f"{where}: {what}: {exc}", name)
                 if not self._client.connected or self.timeout_is_link_loss:
                     raise ConnectionException(f"no response to the read-back: {exc}") from exc
-                self._unit_silent(p.unit, where)
+                self._unit_silent(p.unit, where, what)
                 continue
             code = int(getattr(resp, "exception_code", 0)) if resp.isError() else 0
             self._answer(p.unit)
@@ -353,16 +401,31 @@ class ModbusRequests(WorkerJobDriver):
                                 f"{where}: exception code {code}", name)
                 continue
             self._readback.discard(name)
-            self._health.clear(name, WRITE_CAUSE, f"{where} answered" + (
+            self._health.clear(name, WRITE_CAUSE, f"{where} (device {name}) answered" + (
                 f" (exception code {code}: {EXCEPTION_TEXT.get(code, 'unknown')})"
                 if code else ""))
         if self._readback:
             self._arm_readback()
 
     def _unit_due(self, unit: int) -> bool:
-        """Whether a request to ``unit`` goes out now (RTU: a dead unit is tried less often);
-        True here."""
-        return True
+        """Whether a request to ``unit`` goes out now (a dead unit sits out some turns)."""
+        with self._lock:
+            return self._units.due(unit)
 
-    def _unit_silent(self, unit: int, where: str) -> None:
-        """``unit`` did not answer ``where`` (RTU only; nothing here)."""
+    def _unit_silent(self, unit: int, where: str, what: str) -> None:
+        """RTU: ``unit`` did not answer the request ``where``: every device of the unit fails
+        (cause ``unit``), its later requests are thinned out (:class:`UnitBackoff`), and
+        writes queued for it until now are not sent."""
+        self._units.silent(unit)
+        for name, q in self._points.items():
+            if q.unit == unit:
+                self._health.fail(name, UNIT_CAUSE, f"{where} (device {name}): {what}")
+
+    def _unit_back(self, unit: int) -> None:
+        """``unit`` answered after it had stopped: its devices lose the cause ``unit``."""
+        if not self._units.answered(unit):
+            return
+        for name, q in self._points.items():
+            if q.unit == unit:
+                self._health.clear(name, UNIT_CAUSE, f"{self.kind} bus {self.bus.name}: unit "
+                                                     f"{unit} answers again")

@@ -142,7 +142,7 @@ def test_rtu_write_not_answered_recovers_by_itself_and_the_next_write_reaches_th
         driver.write("out", 77)
         assert driver.settle(WAIT)
         assert host.writes == [("out", 77, host.writes[0][2])] and host.writes[0][2]
-        assert "write not answered" in host.failed("out")[-1]
+        assert any("write not answered" in r for r in host.failed("out")[1:])
         for _ in range(3):                                    # poll periods, no command
             host.tick(0.1)
             assert driver.settle(WAIT)

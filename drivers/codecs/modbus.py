@@ -290,3 +290,88 @@ def coerce(type_: str, value: Any) -> int | float:
     if isinstance(value, float):
         return round(value)  # raises OverflowError/ValueError for inf/nan
     return int(value)
+
+
+@dataclass(frozen=True)
+class LineTiming:
+    """The timing of a Modbus RTU serial line: the time of one character (start bit, data bits,
+    parity bit if any, stop bits) and the silence that must separate two frames (3.5
+    characters; a fixed 1.75 ms above 19200 baud, as the Modbus serial line specification
+    allows)."""
+
+    baudrate: int
+    bytesize: int = 8
+    parity: str = "N"
+    stopbits: int = 1
+
+    @property
+    def char_time(self) -> float:
+        """Seconds one character takes on the line."""
+        bits = 1 + self.bytesize + (0 if self.parity == "N" else 1) + self.stopbits
+        return bits / self.baudrate
+
+    @property
+    def silence(self) -> float:
+        """Seconds of silence between two frames (t3.5)."""
+        return 1.75e-3 if self.baudrate > 19200 else 3.5 * self.char_time
+
+    def exchange_time(self, request_bytes: int, answer_bytes: int) -> float:
+        """Seconds a request and its answer take on the line, with the silence after each."""
+        return (request_bytes + answer_bytes) * self.char_time + 2 * self.silence
+
+
+def answer_bytes(r: ReadRequest) -> int:
+    """The length of the RTU answer to read request ``r`` (unit, function, byte count, data,
+    CRC)."""
+    data = (r.count + 7) // 8 if r.table in ("coil", "discrete") else 2 * r.count
+    return 5 + data
+
+
+READ_REQUEST_BYTES = 8   # unit, function, address, count, CRC
+
+
+class UnitBackoff:
+    """Which units of an RTU line answer, and how often a unit that does not is tried: after
+    its ``k``-th unanswered request in a row a unit sits out ``min(2**(k-1), cap) - 1`` of its
+    requests (none after the first: one lost answer costs nothing more), so a dead unit takes
+    a bounded share of the line and the live units keep their rate. Each time a unit stops
+    answering its ``epoch`` grows: a write queued in an older epoch is not sent (it was meant
+    for a unit that answered). Not thread-safe: the driver's worker owns it (the epoch is read
+    from the kernel thread, a plain int)."""
+
+    def __init__(self, cap: int) -> None:
+        self.cap = max(1, cap)
+        self._misses: dict[int, int] = {}      # unit -> unanswered requests in a row
+        self._skip: dict[int, int] = {}        # unit -> requests still to sit out
+        self._epoch: dict[int, int] = {}
+
+    def due(self, unit: int) -> bool:
+        """Whether a request to ``unit`` goes out now; a dead unit's request that sits out
+        counts down its turn."""
+        left = self._skip.get(unit, 0)
+        if left <= 0:
+            return True
+        self._skip[unit] = left - 1
+        return False
+
+    def silent(self, unit: int) -> bool:
+        """``unit`` did not answer a request; True if it answered until then (it fails now)."""
+        k = self._misses.get(unit, 0) + 1
+        self._misses[unit] = k
+        self._skip[unit] = min(2 ** min(k - 1, 30), self.cap) - 1
+        if k == 1:
+            self._epoch[unit] = self._epoch.get(unit, 0) + 1
+        return k == 1
+
+    def answered(self, unit: int) -> bool:
+        """``unit`` answered (data or an exception); True if it had stopped answering."""
+        self._skip.pop(unit, None)
+        return self._misses.pop(unit, 0) > 0
+
+    def dead(self, unit: int) -> bool:
+        """True while ``unit``'s last request went unanswered."""
+        return self._misses.get(unit, 0) > 0
+
+    def epoch(self, unit: int) -> int:
+        """How many times ``unit`` stopped answering."""
+        return self._epoch.get(unit, 0)
