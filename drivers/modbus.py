@@ -77,8 +77,20 @@ from pymodbus.framer import FramerType
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.helpers import is_int
 from drivers.base import DriverHost
-from drivers.codecs.modbus import LineTiming, classify_rtu_answer
-from drivers.modbus_link import MAX_CONNECTIONS, ModbusDriver, check_common
+from drivers.codecs.modbus import (
+    READ_REQUEST_BYTES,
+    LineTiming,
+    answer_bytes,
+    classify_rtu_answer,
+    plan_reads,
+    point_of,
+)
+from drivers.modbus_link import (
+    MAX_CONNECTIONS,
+    ModbusDriver,
+    check_common,
+    dead_unit_backoff,
+)
 
 
 class SerialClient(ModbusSerialClient):
@@ -211,6 +223,41 @@ class ModbusRtuDriver(ModbusDriver):
                         f"periods between two tries of a unit that does not answer), got "
                         f"{o['dead_unit_backoff']!r}")
         return errs
+
+    @classmethod
+    def check_warnings(cls, bus: BusSpec, devices: Sequence[DeviceSpec]) -> list[str]:
+        """A ``timeout`` the line's timing defeats: shorter than the longest exchange (request,
+        answer and the silence after each, at the line's baud rate) - that answer never arrives
+        in time - or, with several units, a try of the dead ones (``timeout`` x (``retries`` +
+        1) each) longer than the poll period - the live units miss polls at each try."""
+        o = bus.options
+        line = line_timing(bus)
+        timeout = float(o.get("timeout", 1.0))
+        points = [point_of(d) for d in devices]
+        reads = plan_reads([p for p, d in zip(points, devices, strict=True)
+                            if d.direction == "sensor"])
+        longest = max([line.exchange_time(READ_REQUEST_BYTES, answer_bytes(r)) for r in reads]
+                      + [line.exchange_time(READ_REQUEST_BYTES + 2 * p.size + 1, 8)
+                         for p, d in zip(points, devices, strict=True)
+                         if d.direction == "actuator"], default=0.0)
+        out = []
+        if longest > timeout:
+            out.append(f"timeout: {timeout:g} s is shorter than the longest exchange on the "
+                       f"line ({longest * 1e3:.1f} ms at {line.baudrate} baud with the 3.5-"
+                       f"character silences): that answer can never arrive in time")
+        units = {p.unit for p in points}
+        cost = timeout * (int(o.get("retries", 1)) + 1)
+        periods = [float(d.address.get("poll_period", o.get("poll_period", 0.1)))
+                   for d in devices if d.direction == "sensor"]
+        period = min(periods, default=float(o.get("poll_period", 1.0)))
+        if len(units) > 1 and cost * (len(units) - 1) > period:
+            out.append(f"timeout: a unit that does not answer holds the line {cost:g} s per try "
+                       f"(timeout x (retries + 1)), {len(units) - 1} such unit(s) "
+                       f"{cost * (len(units) - 1):g} s, longer than the poll period "
+                       f"{period:g} s: while units are dead the live ones miss polls at each "
+                       f"try (a dead unit is tried at most every {dead_unit_backoff(bus)} poll "
+                       f"periods, dead_unit_backoff)")
+        return out
 
     def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
         super().__init__(bus, devices, host)

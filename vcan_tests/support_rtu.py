@@ -12,11 +12,13 @@ compiled from ``vcan_tests/peers/rtu_slave.c`` with gcc against libmodbus once p
 
 from __future__ import annotations
 
+import contextlib
 import os
 import select
 import shutil
 import subprocess
 import threading
+import time
 import tty
 from collections.abc import Callable
 from pathlib import Path
@@ -149,9 +151,12 @@ class FaultRelay:
 class RtuSlave:
     """The libmodbus slave process on ``port`` as ``unit``; reads its report lines."""
 
-    def __init__(self, exe: Path, port: Path, unit: int) -> None:
-        self.proc = subprocess.Popen([str(exe), str(port), str(unit)], stdout=subprocess.PIPE,
-                                     stderr=subprocess.PIPE, text=True)
+    def __init__(self, exe: Path, port: Path, unit: int, response_timeout: str = "") -> None:
+        """``response_timeout``: the slave's libmodbus response timeout in ms, or ``"default"``
+        for libmodbus' own (500 ms); empty: 50 ms (see rtu_slave.c)."""
+        extra = [response_timeout] if response_timeout else []
+        self.proc = subprocess.Popen([str(exe), str(port), str(unit), *extra],
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         self._cond = threading.Condition()
         self.lines: list[str] = []
         out: IO[str] | None = self.proc.stdout
@@ -191,3 +196,54 @@ class RtuSlave:
     def close(self) -> None:
         self.proc.terminate()
         self.proc.wait(5)
+
+
+class LineHub:
+    """A multi-drop line (RS-485) joining ``sides`` ptys: what one side sends, every other side
+    receives at once (a slave hears the master and every other slave's answers, as on a real
+    line). Side 0 is the master's. Each side is a pty the hub makes and keeps open on both ends,
+    so a slave process may die and a new one open the same port (:meth:`port`). ``log`` holds
+    every chunk read, as ``(time.monotonic(), side, bytes)``."""
+
+    def __init__(self, sides: int) -> None:
+        pairs = [os.openpty() for _ in range(sides)]
+        for _, tty_fd in pairs:
+            tty.setraw(tty_fd)
+        self._fds = [master for master, _ in pairs]
+        self._ttys = [tty_fd for _, tty_fd in pairs]
+        self._lock = threading.Lock()
+        self.log: list[tuple[float, int, bytes]] = []
+        self._stop_r, self._stop_w = os.pipe()
+        self._thread = threading.Thread(target=self._run, name="line-hub", daemon=True)
+        self._thread.start()
+
+    def port(self, side: int) -> str:
+        """The device path a program opens to sit on ``side`` of the line."""
+        return os.ttyname(self._ttys[side])
+
+    def _run(self) -> None:
+        while True:
+            ready, _, _ = select.select([*self._fds, self._stop_r], [], [])
+            if self._stop_r in ready:
+                return
+            for side, fd in enumerate(self._fds):
+                if fd not in ready:
+                    continue
+                data = os.read(fd, 4096)
+                with self._lock:
+                    self.log.append((time.monotonic(), side, data))
+                for other, out in enumerate(self._fds):
+                    if other != side:
+                        with contextlib.suppress(OSError):   # a full queue: lost, as on a line
+                            os.write(out, data)
+
+    def chunks(self) -> list[tuple[float, int, bytes]]:
+        """A copy of :attr:`log`."""
+        with self._lock:
+            return list(self.log)
+
+    def close(self) -> None:
+        os.write(self._stop_w, b"x")
+        self._thread.join(5)
+        for fd in (*self._fds, *self._ttys, self._stop_r, self._stop_w):
+            os.close(fd)

@@ -78,8 +78,9 @@ _MODBUS_COMMON = (
     Key("reconnect_delay", "float s", "0.1", "first reconnect back-off; doubled after each "
         "failure"),
     Key("reconnect_delay_max", "float s", "5.0", "longest back-off"),
-    Key("poll_period", "float s", "0.1", "default polling period of the sensors; on a bus "
-        "with no sensor the liveness probe's period (default 1.0)"),
+    Key("poll_period", "float s", "0.1", "default polling period of the sensors and of the "
+        "read-back of an actuator whose write failed; on a bus (or RTU unit) with no sensor "
+        "the liveness probe's period (default 1.0)"),
 )
 _MODBUS_ADDRESS = (
     Key("unit", "integer 0..255", "1", "unit (slave / device) id"),
@@ -184,6 +185,10 @@ REFERENCE: dict[str, Kind] = {
          Key("parity", "string", "`N`", "`N`, `E` or `O`"),
          Key("stopbits", "integer", "1", "1 or 2"),
          Key("bytesize", "integer", "8", "7 or 8"),
+         Key("dead_unit_backoff", "integer >= 1", "8, or more", "the most poll periods "
+             "between two tries of a unit that stopped answering (its requests are thinned "
+             "out 1, 2, 4... up to this); by default 8, raised so a dead unit's tries take at "
+             "most a tenth of the line's time"),
          *_MODBUS_COMMON),
         _MODBUS_ADDRESS,
         '[[bus]]\nname = "rtu"\nkind = "modbus-rtu"\nport = "/dev/ttyUSB0"\nbaudrate = 19200'),
