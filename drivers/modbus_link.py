@@ -45,13 +45,14 @@ COMMON_OPTIONS = ("timeout", "retries", "reconnect_delay", "reconnect_delay_max"
 def dead_unit_backoff(bus: BusSpec) -> int:
     """The most poll periods between two tries of a unit that stopped answering: the bus's
     ``dead_unit_backoff``, else 8 - but never so few that the dead unit's tries (``timeout`` x
-    (``retries`` + 1) each) take more than a tenth of the line's time."""
+    (``retries`` + 1) each) take more than a twentieth of the line's time (the live units keep
+    95 % of their polls)."""
     o = bus.options
     if "dead_unit_backoff" in o:
         return int(o["dead_unit_backoff"])
     cost = float(o.get("timeout", 1.0)) * (int(o.get("retries", 1)) + 1)
     period = float(o.get("poll_period", 0.1))
-    return max(DEFAULT_DEAD_UNIT_BACKOFF, math.ceil(9 * cost / period - 1e-9))
+    return max(DEFAULT_DEAD_UNIT_BACKOFF, math.ceil(19 * cost / period - 1e-9))
 MAX_CONNECTIONS = 16   # the most connections a modbus-tcp bus may open for parallel polls
 
 

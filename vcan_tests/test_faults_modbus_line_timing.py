@@ -95,7 +95,7 @@ def test_check_warns_when_a_dead_unit_costs_more_than_the_poll_period(tmp_path: 
     assert errors == [] and len(warnings) == 1
     assert "bus[0].timeout" in warnings[0] and "holds the line 2 s per try" in warnings[0]
     assert "longer than the poll period 0.1 s" in warnings[0]
-    assert "every 180 poll periods" in warnings[0]           # a tenth of the line's time at most
+    assert "every 380 poll periods" in warnings[0]   # a twentieth of the line's time at most
     _, warnings = run_check(tmp_path, 19200, 1.0, "dead_unit_backoff = 20")
     assert "every 20 poll periods" in warnings[0]
     _, warnings = run_check(tmp_path, 19200, 0.04, "retries = 1")

@@ -188,7 +188,7 @@ REFERENCE: dict[str, Kind] = {
          Key("dead_unit_backoff", "integer >= 1", "8, or more", "the most poll periods "
              "between two tries of a unit that stopped answering (its requests are thinned "
              "out 1, 2, 4... up to this); by default 8, raised so a dead unit's tries take at "
-             "most a tenth of the line's time"),
+             "most a twentieth of the line's time"),
          *_MODBUS_COMMON),
         _MODBUS_ADDRESS,
         '[[bus]]\nname = "rtu"\nkind = "modbus-rtu"\nport = "/dev/ttyUSB0"\nbaudrate = 19200'),
