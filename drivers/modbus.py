@@ -14,8 +14,9 @@ Bus options:
   bus with no sensor: the period of the liveness probe, 1.0).
 
 Device address: ``{unit = 1, table = coil|discrete|holding|input, address, type, word_order =
-big|little, poll_period}``; ``type`` is ``bool`` for coils and discrete inputs (the default there)
-and one of ``int16 uint16 int32 uint32 float32 float64`` for registers (default ``uint16``).
+ABCD|CDAB|BADC|DCBA (big = ABCD, little = CDAB), poll_period}``; ``type`` is ``bool`` for
+coils and discrete inputs (the default there) and one of ``int16 uint16 int32 uint32 float32
+float64`` for registers (default ``uint16``).
 Sensors are polled every ``poll_period`` of the kernel clock, paced by the polls (a bus slower
 than the period is polled back to back, counted ``polls-late``; see :mod:`drivers.jobs`; the
 kernel timer only enqueues); each poll groups the contiguous addresses of one unit and table into

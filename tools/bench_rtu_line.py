@@ -23,7 +23,7 @@ from chcos.devices.spec import BusSpec
 from chcos.kernel.clock import RealClock
 from chcos.system.embedded import System
 from drivers.modbus_link import dead_unit_backoff
-from vcan_tests.support_rtu import LineHub, RtuSlave, build_slave
+from tools.peer_rtu import LineHub, RtuSlave, compile_slave
 
 PERIOD = 0.1
 MAP = """
@@ -80,7 +80,7 @@ def main() -> None:
     args = ap.parse_args()
     logging.disable(logging.ERROR)      # unit 2's timeouts are the point: keep the table alone
     with tempfile.TemporaryDirectory() as tmp:
-        exe = build_slave(Path(tmp))
+        exe = compile_slave(Path(tmp))
         hub = LineHub(3)
         slaves = {u: RtuSlave(exe, Path(hub.port(u)), u, "default") for u in (1, 2)}
         path = Path(tmp) / "line.toml"

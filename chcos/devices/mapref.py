@@ -90,8 +90,11 @@ _MODBUS_ADDRESS = (
         "`holding` 0)"),
     Key("type", "string", "`bool` (bits), `uint16`", "`bool` for coils and discrete inputs; "
         "`int16 uint16 int32 uint32 float32 float64` for registers"),
-    Key("word_order", "string", "`big`", "`big` (high word first, ABCD) or `little` (CDAB) "
-        "for 32/64-bit types"),
+    Key("word_order", "string", "`ABCD`", "for 32/64-bit types, by the bytes of a 32-bit "
+        "value A B C D (A most significant): `ABCD` (high word first), `CDAB` (words "
+        "swapped), `BADC` (bytes swapped in each word), `DCBA` (both); `big` and `little` "
+        "are aliases of `ABCD` and `CDAB`; a 64-bit value follows the same rule over its four "
+        "words"),
     Key("poll_period", "float s", "the bus's", "this sensor's polling period"),
 )
 

@@ -4,9 +4,12 @@ register type, RTU answer classification and the address checks. No I/O (no pymo
 import starts its asyncio clients): used by the Modbus drivers (:mod:`drivers.modbus`) and by
 the simulated slaves.
 
-Registers are 16-bit words sent big-endian; a 32/64-bit value spans 2/4 registers, most
-significant word first (``word_order = "big"``) or last (``"little"``), as pymodbus'
-``convert_to_registers``/``convert_from_registers`` pack them.
+Registers are 16-bit words sent big-endian; a 32/64-bit value spans 2/4 registers in one of
+the four orders devices use, named by the bytes of a 32-bit value ``A B C D`` (``A`` most
+significant): ``ABCD`` (most significant word first, each word big-endian; alias ``big``),
+``CDAB`` (words swapped; alias ``little``), ``BADC`` (bytes swapped in each word) and ``DCBA``
+(both). A 64-bit value follows the same rule over its four words. ``big`` and ``little`` pack
+as pymodbus' ``convert_to_registers``/``convert_from_registers`` do.
 """
 
 from __future__ import annotations
@@ -44,25 +47,43 @@ EXCEPTION_TEXT = {1: "illegal function", 2: "illegal data address", 3: "illegal 
                   11: "gateway target device failed to respond"}
 
 
-def to_registers(type_: str, value: int | float,
-                 word_order: Literal["big", "little"] = "big") -> list[int]:
-    """``value`` packed into the registers of ``type_``. Raises struct.error if it does not
-    fit (an integer out of range)."""
-    code, _ = REGISTER_TYPES[type_]
+WordOrder = Literal["ABCD", "CDAB", "BADC", "DCBA"]
+#: Every ``word_order`` a map may give, and the order each names (``big``/``little``: aliases).
+WORD_ORDERS: dict[str, WordOrder] = {"ABCD": "ABCD", "CDAB": "CDAB", "BADC": "BADC",
+                                     "DCBA": "DCBA", "big": "ABCD", "little": "CDAB"}
+
+
+def _reorder(regs: list[int], order: str) -> list[int]:
+    """``regs`` (most significant word first, each big-endian) in ``order``, or back: both
+    steps - words reversed (``CDAB``, ``DCBA``), bytes swapped in each word (``BADC``,
+    ``DCBA``) - undo themselves. Raises KeyError for an unknown order."""
+    named = WORD_ORDERS[order]
+    if named in ("BADC", "DCBA"):
+        regs = [((r & 0xFF) << 8) | (r >> 8) for r in regs]
+    return regs[::-1] if named in ("CDAB", "DCBA") else regs
+
+
+def to_registers(type_: str, value: int | float, word_order: str = "ABCD") -> list[int]:
+    """``value`` packed into the registers of ``type_`` in ``word_order`` (one of
+    :data:`WORD_ORDERS`; a 16-bit type has one register, whatever the order). Raises
+    struct.error if it does not fit (an integer out of range)."""
+    code, size = REGISTER_TYPES[type_]
     raw = struct.pack(f">{code}", value)
     regs = [int.from_bytes(raw[i:i + 2], "big") for i in range(0, len(raw), 2)]
-    return regs[::-1] if word_order == "little" else regs
+    return _reorder(regs, word_order) if size > 1 else regs
 
 
 def from_registers(type_: str, registers: Sequence[int],
-                   word_order: Literal["big", "little"] = "big") -> int | float:
-    """The value of ``type_`` in ``registers`` (exactly its size). Raises ValueError if their
-    number is not the type's size or a register is not 0..0xFFFF."""
+                   word_order: str = "ABCD") -> int | float:
+    """The value of ``type_`` in ``registers`` (exactly its size) in ``word_order``. Raises
+    ValueError if their number is not the type's size or a register is not 0..0xFFFF."""
     size = REGISTER_TYPES[type_][1]
     if len(registers) != size:
         raise ValueError(f"{len(registers)} registers for a {type_}, expected {size}")
+    if any(not 0 <= r <= 0xFFFF for r in registers):
+        raise ValueError(f"registers {list(registers)} are not 16-bit words")
     try:
-        raw = WORDS_STRUCT[size].pack(*(registers[::-1] if word_order == "little" and size > 1
+        raw = WORDS_STRUCT[size].pack(*(_reorder(list(registers), word_order) if size > 1
                                         else registers))
     except struct.error as exc:
         raise ValueError(f"registers {list(registers)} are not 16-bit words: {exc}") from None
@@ -90,7 +111,7 @@ class Point:
     table: str
     address: int
     type: str
-    word_order: Literal["big", "little"]
+    word_order: WordOrder
 
     @functools.cached_property
     def size(self) -> int:
@@ -153,7 +174,7 @@ def point_of(device: DeviceSpec) -> Point:
     a = device.address
     table = str(a["table"])
     default = "bool" if table in ("coil", "discrete") else "uint16"
-    order: Literal["big", "little"] = "little" if a.get("word_order") == "little" else "big"
+    order = WORD_ORDERS[str(a.get("word_order", "ABCD"))]
     return Point(device.name, int(a.get("unit", 1)), table, int(a["address"]),
                  str(a.get("type", default)), order)
 
@@ -188,8 +209,10 @@ def check_address(bus: BusSpec, device: DeviceSpec) -> list[str]:
     if not (is_int(address) and 0 <= address <= 0x10000 - size):
         errs.append(f"{k}.address: expected an integer 0..{0x10000 - size} (a {typ} spans {size} "
                     f"entr{'y' if size == 1 else 'ies'}), got {address!r}")
-    if a.get("word_order", "big") not in ("big", "little"):
-        errs.append(f"{k}.word_order: expected \"big\" or \"little\", got {a['word_order']!r}")
+    order = a.get("word_order", "ABCD")
+    if not (isinstance(order, str) and order in WORD_ORDERS):
+        errs.append(f"{k}.word_order: expected \"ABCD\", \"CDAB\", \"BADC\" or \"DCBA\" (or "
+                    f"\"big\" = ABCD, \"little\" = CDAB), got {order!r}")
     pp = a.get("poll_period")
     if pp is not None and not (is_number(pp) and pp > 0):
         errs.append(f"{k}.poll_period: expected a number of seconds > 0, got {pp!r}")
