@@ -25,21 +25,25 @@ from drivers.codecs.modbus import (
     UnitBackoff,
     accepted,
     check_address,
+    check_watchdog,
     plan_reads,
     point_of,
     value_error,
+    watchdog_of,
 )
 from drivers.jobs import Job
 from drivers.modbus_requests import (
     DEFAULT_DEAD_UNIT_BACKOFF,
     READ_CALL,
     READBACK,
+    WATCHDOG,
     ModbusRequests,
     raw_value,
 )
 
 PROBE_PERIOD = 1.0   # s between liveness probes of an actuator-only bus without poll_period
-COMMON_OPTIONS = ("timeout", "retries", "reconnect_delay", "reconnect_delay_max", "poll_period")
+COMMON_OPTIONS = ("timeout", "retries", "reconnect_delay", "reconnect_delay_max", "poll_period",
+                  "watchdog")
 
 
 def dead_unit_backoff(bus: BusSpec) -> int:
@@ -68,6 +72,7 @@ def check_common(bus: BusSpec, own: Sequence[str]) -> list[str]:
             errs.append(f"{k}.{key}: expected a number of seconds > 0, got {o[key]!r}")
     if "retries" in o and not (is_int(o["retries"]) and o["retries"] >= 0):
         errs.append(f"{k}.retries: expected an integer >= 0, got {o['retries']!r}")
+    errs.extend(check_watchdog(bus))
     return errs
 
 
@@ -116,12 +121,15 @@ class ModbusDriver(ModbusRequests):
         self._probed = list({q.unit: q for q in reversed(list(self._points.values()))
                              if q.unit not in read_units}.values())[::-1]
         self._units = UnitBackoff(dead_unit_backoff(self.bus))
+        self._watchdog = watchdog_of(self.bus)
         self._start_worker()
         self._running = True
         timeout = float(self.bus.options.get("timeout", 1.0))
         self._first_attempt.wait(timeout + 2.0)
         for period in self._plans:
             self._poll_every(period, period)
+        if self._watchdog is not None:
+            self._poll_every(WATCHDOG, self._watchdog.period, WATCHDOG)
         if self._probed:      # units with actuators only: nothing read would notice
             self._poll_every("probe", float(self.bus.options.get("poll_period", PROBE_PERIOD)),
                              "probe")
@@ -309,6 +317,8 @@ class ModbusDriver(ModbusRequests):
             self._poll_taken(what)
         elif op == "probe":
             self._poll_taken("probe")
+        elif op == WATCHDOG:
+            self._poll_taken(WATCHDOG)
         elif op == READBACK:
             self._poll_taken(READBACK)
             if self._readback:      # still failed: try again once the link is back
@@ -357,5 +367,8 @@ class ModbusDriver(ModbusRequests):
             self._liveness()
         elif op == READBACK:
             self._read_back()
+        elif op == WATCHDOG:
+            self._poll_taken(WATCHDOG)
+            self._beat()
         else:
             self._write_point(self._points[what], value)

@@ -31,6 +31,7 @@ from drivers.codecs.modbus import (
     Point,
     ReadRequest,
     UnitBackoff,
+    Watchdog,
     reading_of,
     value_error,
 )
@@ -43,6 +44,11 @@ WRITE_CAUSE = "write"
 #: The health cause of every device of an RTU unit that stopped answering (cleared by any
 #: answer from the unit).
 UNIT_CAUSE = "unit"
+#: The health cause of the devices of the watchdog's unit while the unit refuses the watchdog
+#: write (an exception answer: the PLC's comm-loss logic will act).
+WATCHDOG_CAUSE = "watchdog"
+#: The key and job op of the watchdog write.
+WATCHDOG = "watchdog"
 #: The key and job op of the read-back of write-failed actuators.
 READBACK = "readback"
 #: Exception codes to a read-back that still mean the unit answered: the entry cannot be read
@@ -109,6 +115,9 @@ class ModbusRequests(WorkerJobDriver):
         self._lock_readback = threading.Lock()
         #: RTU: which units answer and how often a dead one is tried (see start())
         self._units = UnitBackoff(DEFAULT_DEAD_UNIT_BACKOFF)
+        #: the bus's watchdog register (see start()) and how many times it was written
+        self._watchdog: Watchdog | None = None
+        self._beats = 0
 
     # -- to be provided by the kinds ----------------------------------------------------------
 
@@ -406,6 +415,46 @@ class ModbusRequests(WorkerJobDriver):
                 if code else ""))
         if self._readback:
             self._arm_readback()
+
+    # -- the watchdog register ------------------------------------------------------------------
+
+    def _beat(self) -> None:
+        """The watchdog job: write the next watchdog value. Not answered: as any request
+        (``modbus-tcp``: a lost link, raises ConnectionException; ``modbus-rtu``: the unit's
+        devices fail). An exception answer fails the devices of the watchdog's unit (cause
+        ``watchdog``: the PLC will act on the loss) until a write is answered."""
+        wd = self._watchdog
+        if wd is None or not self._unit_due(wd.unit):
+            return
+        c = self._client
+        value = wd.value_at(self._beats)
+        self._beats += 1
+        where = f"{self.kind} bus {self.bus.name} watchdog {wd.describe()}"
+        self.host.stat(self.bus.name, "requests")
+        try:
+            resp = (c.write_coil(wd.address, bool(value), device_id=wd.unit)
+                    if wd.table == "coil" else
+                    c.write_register(wd.address, value, device_id=wd.unit))
+        except ModbusIOException as exc:
+            kind, what = self._unanswered(where)
+            self.host.error(self.bus.name, kind, f"{where}: write not answered: {what}: {exc}")
+            if not c.connected or self.timeout_is_link_loss:
+                raise ConnectionException(f"no response to the watchdog: {exc}") from exc
+            self._unit_silent(wd.unit, where, f"watchdog write not answered: {what}")
+            return
+        self._answer(wd.unit)
+        names = [n for n, q in self._points.items() if q.unit == wd.unit]
+        if resp.isError():
+            code = int(getattr(resp, "exception_code", 0))
+            text = (f"{where}: write refused with exception code {code} "
+                    f"({EXCEPTION_TEXT.get(code, 'unknown')})")
+            self.host.error(self.bus.name, f"exception-{code}", text)
+            for name in names:
+                self._health.fail(name, WATCHDOG_CAUSE, f"{text} (device {name})")
+            return
+        self.host.stat(self.bus.name, "watchdog")
+        for name in names:
+            self._health.clear(name, WATCHDOG_CAUSE, f"{where}: write answered")
 
     def _unit_due(self, unit: int) -> bool:
         """Whether a request to ``unit`` goes out now (a dead unit sits out some turns)."""

@@ -81,6 +81,12 @@ _MODBUS_COMMON = (
     Key("poll_period", "float s", "0.1", "default polling period of the sensors and of the "
         "read-back of an actuator whose write failed; on a bus (or RTU unit) with no sensor "
         "the liveness probe's period (default 1.0)"),
+    Key("watchdog", "inline table", "none", "a register written every `period` s so the PLC's "
+        "comm-loss logic sees the controller alive: `{unit = 1, table = \"holding\", "
+        "address, period = 1.0, value = \"counter\"}` (`table` also `\"coil\"`, `value` also "
+        "an integer written each time); a counter writes 1, 2, ... "
+        "(a coil toggles); a write not answered fails devices as any request, an exception "
+        "answer fails the devices of its unit (see docs/modbus-faults.md)"),
 )
 _MODBUS_ADDRESS = (
     Key("unit", "integer 0..255", "1", "unit (slave / device) id"),

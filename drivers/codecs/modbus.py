@@ -398,3 +398,69 @@ class UnitBackoff:
     def epoch(self, unit: int) -> int:
         """How many times ``unit`` stopped answering."""
         return self._epoch.get(unit, 0)
+
+
+WATCHDOG_KEYS = ("unit", "table", "address", "period", "value")
+WATCHDOG_TABLES = ("holding", "coil")
+
+
+@dataclass(frozen=True)
+class Watchdog:
+    """A bus's watchdog register: written every ``period`` s so the PLC's comm-loss logic sees
+    the controller alive. ``value`` None is a counter (1, 2, ... wrapping at 65536 on a holding
+    register; 1, 0, 1... on a coil), else the same value each time."""
+
+    unit: int
+    table: str
+    address: int
+    period: float
+    value: int | None
+
+    def value_at(self, beat: int) -> int:
+        """The value of the ``beat``-th write (0 first)."""
+        if self.value is not None:
+            return self.value
+        return (beat + 1) % (2 if self.table == "coil" else 0x10000)
+
+    def describe(self) -> str:
+        """``unit 1 holding 900`` - for reasons."""
+        return f"unit {self.unit} {self.table} {self.address}"
+
+
+def watchdog_of(bus: BusSpec) -> Watchdog | None:
+    """The validated bus's watchdog (None without one)."""
+    w = bus.options.get("watchdog")
+    if not isinstance(w, dict):
+        return None
+    value = w.get("value", "counter")
+    return Watchdog(int(w.get("unit", 1)), str(w.get("table", "holding")), int(w["address"]),
+                    float(w.get("period", 1.0)), None if value == "counter" else int(value))
+
+
+def check_watchdog(bus: BusSpec) -> list[str]:
+    """Errors of a bus's ``watchdog`` table (none without one)."""
+    if "watchdog" not in bus.options:
+        return []
+    w = bus.options["watchdog"]
+    k = f"{bus.key}.watchdog"
+    if not isinstance(w, dict):
+        return [f"{k}: expected a table {{unit, table, address, period, value}}, got {w!r}"]
+    errs = [f"{k}.{key}: unknown key; valid keys: {', '.join(WATCHDOG_KEYS)}"
+            for key in w if key not in WATCHDOG_KEYS]
+    unit = w.get("unit", 1)
+    if not (is_int(unit) and 0 <= unit <= 247):
+        errs.append(f"{k}.unit: expected a Modbus device id 0..247, got {unit!r}")
+    table = w.get("table", "holding")
+    if table not in WATCHDOG_TABLES:
+        errs.append(f"{k}.table: expected \"holding\" or \"coil\", got {table!r}")
+    address = w.get("address")
+    if not (is_int(address) and 0 <= address <= 0xFFFF):
+        errs.append(f"{k}.address: expected an integer 0..65535, got {address!r}")
+    period = w.get("period", 1.0)
+    if not (is_number(period) and period > 0):
+        errs.append(f"{k}.period: expected a number of seconds > 0, got {period!r}")
+    value = w.get("value", "counter")
+    top = 1 if table == "coil" else 0xFFFF
+    if value != "counter" and not (is_int(value) and 0 <= value <= top):
+        errs.append(f"{k}.value: expected \"counter\" or an integer 0..{top}, got {value!r}")
+    return errs
