@@ -42,6 +42,7 @@ from drivers.modbus_requests import (
 )
 
 PROBE_PERIOD = 1.0   # s between liveness probes of an actuator-only bus without poll_period
+FLUSH_NOTICE = 0.05  # s: how soon a reconnect backoff notices that the shutdown flush began
 COMMON_OPTIONS = ("timeout", "retries", "reconnect_delay", "reconnect_delay_max", "poll_period",
                   "watchdog")
 
@@ -186,6 +187,7 @@ class ModbusDriver(ModbusRequests):
                     self._first_attempt.set()
                     self._serve()
                 else:
+                    self.host.stat(self.bus.name, "connect-failed")
                     self._link_down(f"cannot connect to {self._link()}")
                     self._first_attempt.set()
                     self._backoff(delay)
@@ -204,14 +206,29 @@ class ModbusDriver(ModbusRequests):
         self._client.close()
 
     def _backoff(self, delay: float) -> None:
-        """Wait ``delay`` seconds (or until stop), completing jobs that arrive meanwhile."""
-        deadline = time.monotonic() + delay
-        while not self._stop_seen and (left := deadline - time.monotonic()) > 0:
-            try:
-                job = self._jobs.get(timeout=left)
-            except queue.Empty:
+        """Wait ``delay`` seconds (or until stop), completing jobs that arrive meanwhile (a
+        write fails at once: the link is down). Once the shutdown flush began, the wait is
+        ``reconnect_delay`` at most, so a peer that returns within the flush's window is
+        reached while the safe values are still being re-issued."""
+        start = time.monotonic()
+        shortest = float(self.bus.options.get("reconnect_delay", 0.1))
+        while not self._stop_seen:
+            wait = min(delay, shortest) if self._shutting_down else delay
+            left = start + wait - time.monotonic()
+            if left <= 0:
                 return
+            try:        # wakes now and then to notice a flush that begins meanwhile
+                job = self._jobs.get(timeout=min(left, FLUSH_NOTICE))
+            except queue.Empty:
+                continue
             self._finish_unsent(job)
+
+    def flush(self, timeout: float) -> bool:
+        """As :meth:`drivers.jobs.JobDriver.flush` (shutdown: wait until every write handed
+        over is answered or reported failed); from then on, until stop, a lost link is
+        reconnected every ``reconnect_delay`` instead of after the grown backoff."""
+        self._shutting_down = True
+        return super().flush(timeout)
 
     def _link_up(self) -> None:
         """Connected - not yet healthy: the link clears on the first answered request."""

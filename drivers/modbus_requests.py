@@ -118,6 +118,8 @@ class ModbusRequests(WorkerJobDriver):
         #: the bus's watchdog register (see start()) and how many times it was written
         self._watchdog: Watchdog | None = None
         self._beats = 0
+        #: set by the shutdown flush: reconnect at the shortest delay from then on
+        self._shutting_down = False
 
     # -- to be provided by the kinds ----------------------------------------------------------
 
@@ -337,6 +339,14 @@ class ModbusRequests(WorkerJobDriver):
             self._write_failed(p, f"{where} (device {p.device}): write not answered: {exc}")
             if kind == "timeout":
                 self._unit_silent(p.unit, where, what)
+            return
+        except ConnectionException:
+            raise                           # the link is lost: the worker's supervision
+        except ModbusException as exc:      # an answer that is no valid answer
+            text = f"{where} (device {p.device}): write answer malformed: {exc}"
+            self.host.error(self.bus.name, "malformed", text, p.device)
+            self.host.write_failed(p.device, value, text)
+            self._write_failed(p, text)
             return
         if resp.isError():
             code = int(getattr(resp, "exception_code", 0))
