@@ -8,10 +8,16 @@ Bus options:
   connections is polled over those it takes).
 * ``modbus-rtu``: ``port`` (required: a serial device, or a pyserial URL such as
   ``socket://127.0.0.1:5020``), ``baudrate`` (19200), ``parity`` (``N``/``E``/``O``), ``stopbits``
-  (1/2), ``bytesize`` (7/8).
+  (1/2), ``bytesize`` (7/8), ``dead_unit_backoff`` (the most poll periods between two tries of
+  a unit that stopped answering; see :func:`drivers.modbus_link.dead_unit_backoff`). Every
+  request waits for 3.5 characters of silence on the line (:class:`SerialClient`).
 * both: ``timeout`` (s per request, 1.0), ``retries`` (1), ``reconnect_delay`` (s, 0.1; doubled
-  after each failed attempt up to ``reconnect_delay_max``, 5.0), ``poll_period`` (s, 0.1; on a
-  bus with no sensor: the period of the liveness probe, 1.0).
+  after each failed attempt up to ``reconnect_delay_max``, 5.0; from the shutdown flush on,
+  ``reconnect_delay`` each time), ``poll_period`` (s, 0.1; on a bus with no sensor: the period
+  of the liveness probe, 1.0), ``watchdog`` (``{unit, table, address, period, value}``: a
+  register written every period for the PLC's comm-loss logic).
+
+What each bus does under faults, and what to set on the PLC: ``docs/modbus-faults.md``.
 
 Device address: ``{unit = 1, table = coil|discrete|holding|input, address, type, word_order =
 ABCD|CDAB|BADC|DCBA (big = ABCD, little = CDAB), poll_period}``; ``type`` is ``bool`` for
@@ -47,12 +53,16 @@ actuator's own coil or registers back every ``poll_period`` by itself: data, or 
 the failed actuator are refused meanwhile (Devtab names the status), so recovery never waits for
 one; after it Devtab writes the safe value first.
 A request timeout counts as a lost link on ``modbus-tcp`` (the connection is closed and
-re-made), and on ``modbus-rtu`` fails only the devices of that request (one unit of the line not
-answering). Every write is confirmed (``host.written`` once the server answered it) or
-reported failed (``host.write_failed``: exception answer, no answer, link down, dropped at stop);
-a value the register type cannot hold is refused before it is queued (:meth:`check_value`).
-Statistics (``host.stat``/``host.error``): ``requests``, ``reconnects``; errors ``timeout``,
-``exception-<code>``, ``disconnected``, ``malformed``.
+re-made), and on ``modbus-rtu`` fails every device of that unit, actuators too (cause
+``unit``; the other units of the line are not touched) until the unit answers again; its
+requests are thinned out meanwhile (:class:`drivers.codecs.modbus.UnitBackoff`) and a write
+queued for it before it stopped answering is not sent. Every write is confirmed
+(``host.written`` once the server answered it) or reported failed (``host.write_failed``:
+exception answer, no answer, malformed answer, link down, unit failed since it was queued,
+dropped at stop); a value the register type cannot hold is refused before it is queued
+(:meth:`check_value`). Statistics (``host.stat``/``host.error``): ``requests``,
+``reconnects``, ``connect-failed``, ``watchdog``; errors ``timeout``, ``exception-<code>``,
+``disconnected``, ``malformed``, ``not-sent``.
 
 This module holds the two kinds; what they share (polling, writes, link supervision) is
 :class:`drivers.modbus_link.ModbusDriver` (life cycle, jobs, link supervision) on
