@@ -43,6 +43,7 @@ from drivers.modbus_requests import (
 
 PROBE_PERIOD = 1.0   # s between liveness probes of an actuator-only bus without poll_period
 FLUSH_NOTICE = 0.05  # s: how soon a reconnect backoff notices that the shutdown flush began
+MAX_CONNECTIONS = 16   # the most connections a modbus-tcp bus may open for parallel polls
 COMMON_OPTIONS = ("timeout", "retries", "reconnect_delay", "reconnect_delay_max", "poll_period",
                   "watchdog")
 
@@ -58,7 +59,6 @@ def dead_unit_backoff(bus: BusSpec) -> int:
     cost = float(o.get("timeout", 1.0)) * (int(o.get("retries", 1)) + 1)
     period = float(o.get("poll_period", 0.1))
     return max(DEFAULT_DEAD_UNIT_BACKOFF, math.ceil(19 * cost / period - 1e-9))
-MAX_CONNECTIONS = 16   # the most connections a modbus-tcp bus may open for parallel polls
 
 
 def check_common(bus: BusSpec, own: Sequence[str]) -> list[str]:
@@ -117,10 +117,11 @@ class ModbusDriver(ModbusRequests):
                 period = float(dev.address.get("poll_period", default))
                 by_period.setdefault(period, []).append(self._points[dev.name])
         self._plans = {p: plan_reads(pts) for p, pts in by_period.items()}
-        read_units = {q.unit for plan in self._plans.values() for r in plan for q in r.points}
-        #: the first actuator of each unit no poll reads: read as a liveness probe
-        self._probed = list({q.unit: q for q in reversed(list(self._points.values()))
-                             if q.unit not in read_units}.values())[::-1]
+        seen = {q.unit for plan in self._plans.values() for r in plan for q in r.points}
+        for q in self._points.values():      # the first actuator of each unit no poll reads
+            if q.unit not in seen:
+                seen.add(q.unit)
+                self._probed.append(q)
         self._units = UnitBackoff(dead_unit_backoff(self.bus))
         self._watchdog = watchdog_of(self.bus)
         self._start_worker()

@@ -96,6 +96,8 @@ class ModbusRequests(WorkerJobDriver):
         self._connected = False
         self._plans: dict[float, list[ReadRequest]] = {}
         self._points: dict[str, Point] = {}
+        #: the first actuator of each unit no poll reads: read every period as a liveness probe
+        self._probed: list[Point] = []
         self._first_attempt = threading.Event()
         self._answered = True      # a request was answered since the last (re)connect
         self._units_answered: set[int] = set()   # RTU: the units that did, since then
