@@ -398,35 +398,38 @@ class ModbusRequests(WorkerJobDriver):
         the job is armed again while an actuator is left. On ``modbus-tcp`` silence is a lost
         link (raises ConnectionException)."""
         self._poll_taken(READBACK)
-        for name in sorted(self._readback):
-            p = self._points[name]
-            if not self._unit_due(p.unit):
-                continue
-            where = f"{self.kind} bus {self.bus.name} read-back of unit {p.unit} {p.table} " \
-                    f"{p.address}"
-            self.host.stat(self.bus.name, "requests")
-            try:
-                resp = READ_CALL[p.table](self._client, p.address, count=p.size,
-                                          device_id=p.unit)
-            except ModbusIOException as exc:
-                kind, what = self._unanswered(where)
-                self.host.error(self.bus.name, kind, f"{where}: {what}: {exc}", name)
-                if not self._client.connected or self.timeout_is_link_loss:
-                    raise ConnectionException(f"no response to the read-back: {exc}") from exc
-                self._unit_silent(p.unit, where, what)
-                continue
-            code = int(getattr(resp, "exception_code", 0)) if resp.isError() else 0
-            self._answer(p.unit)
-            if code and code not in UNIT_ANSWERED:
-                self.host.error(self.bus.name, f"exception-{code}",
-                                f"{where}: exception code {code}", name)
-                continue
-            self._readback.discard(name)
-            self._health.clear(name, WRITE_CAUSE, f"{where} (device {name}) answered" + (
-                f" (exception code {code}: {EXCEPTION_TEXT.get(code, 'unknown')})"
-                if code else ""))
-        if self._readback:
-            self._arm_readback()
+        try:      # a lost link ends the loop: armed again all the same
+            for name in sorted(self._readback):
+                if self._unit_due(self._points[name].unit):
+                    self._read_back_one(name)
+        finally:
+            if self._readback:
+                self._arm_readback()
+
+    def _read_back_one(self, name: str) -> None:
+        """Read write-failed actuator ``name``'s entries back (see :meth:`_read_back`)."""
+        p = self._points[name]
+        where = f"{self.kind} bus {self.bus.name} read-back of unit {p.unit} {p.table} " \
+                f"{p.address}"
+        self.host.stat(self.bus.name, "requests")
+        try:
+            resp = READ_CALL[p.table](self._client, p.address, count=p.size, device_id=p.unit)
+        except ModbusIOException as exc:
+            kind, what = self._unanswered(where)
+            self.host.error(self.bus.name, kind, f"{where}: {what}: {exc}", name)
+            if not self._client.connected or self.timeout_is_link_loss:
+                raise ConnectionException(f"no response to the read-back: {exc}") from exc
+            self._unit_silent(p.unit, where, what)
+            return
+        code = int(getattr(resp, "exception_code", 0)) if resp.isError() else 0
+        self._answer(p.unit)
+        if code and code not in UNIT_ANSWERED:
+            self.host.error(self.bus.name, f"exception-{code}", f"{where}: exception code {code}",
+                            name)
+            return
+        self._readback.discard(name)
+        self._health.clear(name, WRITE_CAUSE, f"{where} (device {name}) answered" + (
+            f" (exception code {code}: {EXCEPTION_TEXT.get(code, 'unknown')})" if code else ""))
 
     # -- the watchdog register ------------------------------------------------------------------
 

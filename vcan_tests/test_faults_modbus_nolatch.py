@@ -158,3 +158,29 @@ def test_rtu_write_not_answered_recovers_by_itself_and_the_next_write_reaches_th
         relay.close()
         a.close()
         b.close()
+
+
+def test_tcp_read_back_survives_a_lost_link(tmp_path: Path) -> None:
+    """The server goes away right after the busy answer: the read-back meets the lost link,
+    and once the server is back (same port) the read-back goes on and the actuator recovers."""
+    bank = DataBank()
+    handler = BusyOnce(bank, busy=1)
+    server = ModbusServer(host="127.0.0.1", port=free_port(), no_block=True, data_hdl=handler)
+    server.start()
+    path = tmp_path / "mb.toml"
+    path.write_text(MAP.format(port=server.port, heater=HEATER), encoding="utf-8")
+    s = System([path], clock=VirtualClock(), machines=[0])
+    try:
+        s.run_for(0.1)
+        heater = s.devtab.get("heater")
+        s.devtab.write("heater", 300)
+        assert run_until(s, lambda: heater.status.value == "failed", step=0.01)
+        server.stop()                                     # before the first read-back
+        requests = s.devtab.bus_stats["mb"].counts["requests"]
+        assert run_until(s, lambda: s.devtab.bus_stats["mb"].counts["requests"] > requests)
+        server.start()
+        assert run_until(s, lambda: heater.status.value == "OK" and heater.value == 5)
+        assert server.data_bank.get_holding_registers(HEATER) == [5]
+    finally:
+        s.shutdown()
+        server.stop()
