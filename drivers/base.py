@@ -174,6 +174,13 @@ class Driver(ABC):
         return []
 
     @classmethod
+    def check_warnings(cls, bus: BusSpec, devices: Sequence[DeviceSpec]) -> list[str]:
+        """What is legal in ``bus`` (options and devices, all valid) but bound to misbehave:
+        ``chcos check`` prints each as a warning, ``"<key path under the bus>: <why>"`` like
+        :meth:`check_bus`; [] if none."""
+        return []
+
+    @classmethod
     def encodable(cls, bus: BusSpec, device: DeviceSpec) -> tuple[float, float] | None:
         """The raw values a valid ``device``'s address can carry on the wire, as (lo, hi), or
         None where the driver does not know or the type is unbounded. ``chcos check`` warns when

@@ -29,6 +29,7 @@ from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from chcos.errors import BusError, ConfigError
+from drivers.codecs.modbus import WORD_ORDERS
 
 Table = Literal["coil", "discrete", "holding", "input"]
 TABLES: tuple[Table, ...] = ("coil", "discrete", "holding", "input")
@@ -42,6 +43,17 @@ DATATYPES: dict[str, Any] = {
     "int32": ModbusClientMixin.DATATYPE.INT32, "uint32": ModbusClientMixin.DATATYPE.UINT32,
     "float32": ModbusClientMixin.DATATYPE.FLOAT32, "float64": ModbusClientMixin.DATATYPE.FLOAT64,
 }
+
+
+def _pymodbus_order(word_order: str) -> tuple[Literal["big", "little"], bool]:
+    """pymodbus' word order for ``word_order`` and whether the bytes of each register are
+    swapped on top of it (``BADC``, ``DCBA``)."""
+    named = WORD_ORDERS[word_order]
+    return ("little" if named in ("CDAB", "DCBA") else "big"), named in ("BADC", "DCBA")
+
+
+def _swap_bytes(regs: list[int], swap: bool) -> list[int]:
+    return [((r & 0xFF) << 8) | (r >> 8) for r in regs] if swap and len(regs) > 1 else regs
 
 
 class RegisterStore:
@@ -93,14 +105,16 @@ class RegisterStore:
             self._cond.notify_all()
 
     def set_value(self, unit: int, table: str, address: int, value: Any, type: str = "uint16",
-                  word_order: Literal["big", "little"] = "big") -> None:
+                  word_order: str = "ABCD") -> None:
         """Store an engineering value of ``type`` (bool, int16 ... float64) with pymodbus's own
-        register conversion."""
+        register conversion, in ``word_order`` (one of the codec's ``WORD_ORDERS``)."""
         if type == "bool":
             self.write(unit, table, address, [bool(value)])
             return
         try:
-            regs = ModbusClientMixin.convert_to_registers(value, DATATYPES[type], word_order)
+            words, swap = _pymodbus_order(word_order)
+            regs = _swap_bytes(ModbusClientMixin.convert_to_registers(value, DATATYPES[type],
+                                                                      words), swap)
         except KeyError as exc:
             raise ConfigError(f"modbus store: type {type!r}; expected bool or one of "
                               f"{', '.join(DATATYPES)}") from exc
@@ -109,7 +123,7 @@ class RegisterStore:
         self.write(unit, table, address, regs)
 
     def get_value(self, unit: int, table: str, address: int, type: str = "uint16",
-                  word_order: Literal["big", "little"] = "big") -> Any:
+                  word_order: str = "ABCD") -> Any:
         """The value of ``type`` at ``address`` (see :meth:`set_value`)."""
         if type == "bool":
             return self.read(unit, table, address, 1)[0]
@@ -118,7 +132,8 @@ class RegisterStore:
                               f"{', '.join(DATATYPES)}")
         dt = DATATYPES[type]
         regs = self.read(unit, table, address, dt.value[1])
-        return ModbusClientMixin.convert_from_registers(regs, dt, word_order)
+        words, swap = _pymodbus_order(word_order)
+        return ModbusClientMixin.convert_from_registers(_swap_bytes(regs, swap), dt, words)
 
     def wait_for(self, pred: Callable[[RegisterStore], bool], timeout: float) -> bool:
         """Block until ``pred(store)`` holds, re-checked after every write; False on timeout."""

@@ -15,7 +15,8 @@ address    ``address``, ``register``, ``addr``, ``offset address``; without a ta
 type       ``type``, ``data type``, ``datatype``, ``format``: int16/INT, uint16/UINT/WORD,
            int32/DINT, uint32/UDINT/DWORD, float32/REAL/FLOAT, float64/LREAL, bool/BOOL
 word order ``word order``, ``word swap``, ``byte order``: big/ABCD/high first/no, little/
-           CDAB/low first/yes
+           CDAB/low first/yes (written ``big``/``little``), BADC/byte swap, DCBA/little endian
+           bytes
 scale      ``scale``, ``factor``, ``gain``, ``multiplier``; ``offset``
 units      ``units``, ``eng unit``, ``uom`` (a ``unit`` column is the unit id when it holds
            whole numbers, else the units)
@@ -70,7 +71,9 @@ TYPES = {"int16": "int16", "int": "int16", "short": "int16", "sint16": "int16",
          "double": "float64", "bool": "bool", "boolean": "bool", "bit": "bool"}
 ORDERS = {"big": "big", "abcd": "big", "highfirst": "big", "no": "big", "false": "big",
           "bigendian": "big", "little": "little", "cdab": "little", "lowfirst": "little",
-          "yes": "little", "true": "little", "swapped": "little", "littleendian": "little"}
+          "yes": "little", "true": "little", "swapped": "little", "littleendian": "little",
+          "badc": "BADC", "byteswap": "BADC", "bytesswapped": "BADC", "dcba": "DCBA",
+          "littleendianbytes": "DCBA", "byteandwordswap": "DCBA"}
 MODICON = {"0": "coil", "1": "discrete", "3": "input", "4": "holding"}
 
 
@@ -178,8 +181,8 @@ def import_modbus_csv(path: str | Path, *, bus: str = "plc", host: str = "127.0.
         if order_text and typ in ("int32", "uint32", "float32", "float64"):
             order = ORDERS.get(_key(order_text))
             if order is None:
-                raise ConfigError(f"{where}: word order {order_text!r}: expected big/ABCD or "
-                                  "little/CDAB")
+                raise ConfigError(f"{where}: word order {order_text!r}: expected big/ABCD, "
+                                  "little/CDAB, BADC or DCBA")
             address_table["word_order"] = order
         access = cell("access").lower()
         writable = table in ("coil", "holding") and ("w" in access or "actuator" in access
