@@ -104,7 +104,7 @@ class Satellite:
         secret = sf.secret()
         sf.state_dir.mkdir(parents=True, exist_ok=True, mode=0o700)
         self.transport = Transport(link_config_for(sf, machine, secret),
-                                   sealer=secret.sealer("satellite"))
+                                   sealer=secret.sealer("satellite", f"m{machine}"))
         try:
             self.system = System(sf.devmaps, clock=clock or RealClock(),
                                  task_path=sf.task_path, base_dir=sf.base_dir, map_path=None,
