@@ -1,7 +1,8 @@
 """The viewer against password guessing and hostile bodies (issue 41): repeated wrong logins
 from one client are slowed down (429 with Retry-After, growing waits on a virtual clock, other
 clients unaffected, a right login clears the count) and a JSON body nested too deeply is a 400
-naming the problem, never a 500, for a logged-in operator as for anybody."""
+naming the problem, never a 500, for a logged-in operator as for anybody; the metrics
+endpoint refused off loopback names the options that give it TLS."""
 
 from __future__ import annotations
 
@@ -112,3 +113,22 @@ def test_deeply_nested_json_is_a_400(fig65: System) -> None:
         assert r.status < 500  # the server is still there and answering
 
     run(viewer, body)
+
+
+def test_metrics_off_loopback_names_options_that_exist(fig65: System) -> None:
+    import argparse
+    import re
+
+    from chcos.north import NorthError
+    from chcos.north.metrics import serve
+    from chcos.north.services import add_north_arguments
+
+    with pytest.raises(NorthError) as info:
+        serve(fig65, "192.0.2.7", 0)
+    named = re.findall(r"--[a-z-]+", str(info.value))
+    assert named == ["--north-tls-cert", "--north-tls-key"]
+    parser = argparse.ArgumentParser()
+    add_north_arguments(parser)
+    args = parser.parse_args(["--metrics", "192.0.2.7:9464", named[0], "c.pem", named[1],
+                              "k.pem"])
+    assert (args.north_tls_cert, args.north_tls_key) == ("c.pem", "k.pem")
