@@ -44,7 +44,6 @@ import subprocess
 import tempfile
 import threading
 import time
-from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -288,8 +287,8 @@ _WINDOW_MASK = (1 << WINDOW) - 1
 #: Oldest message accepted, and furthest into the future (clock skew allowance), in seconds.
 MAX_AGE_S = 30.0
 MAX_AHEAD_S = 30.0
-#: Senders a receiver remembers; beyond this the least recently heard is forgotten (and
-#: nothing older than its newest message is accepted from an unknown sender again).
+#: Senders a receiver remembers; beyond this the first heard is forgotten (and nothing older
+#: than its newest message is accepted from an unknown sender again).
 MAX_SENDERS = 4096
 #: Windows kept per sender (one per receiver and stream).
 MAX_WINDOWS = 256
@@ -338,7 +337,10 @@ class Sealer:
         self._max_age = int(max_age_s * 1e9)
         self._max_ahead = int(max_ahead_s * 1e9)
         self._lock = threading.Lock()
-        self._senders: OrderedDict[tuple[int, bytes], _Sender] = OrderedDict()
+        # senders by (role, id), oldest first; their current (epoch, AEAD) apart for the
+        # lock-free look-up
+        self._senders: dict[tuple[int, bytes], _Sender] = {}
+        self._runs: dict[tuple[int, bytes], tuple[bytes, AESGCM]] = {}
         self._floor = 0  # no unknown sender is accepted at or before this time stamp (ns)
         self.refused: dict[Refusal, int] = dict.fromkeys(Refusal, 0)
 
@@ -369,9 +371,8 @@ class Sealer:
         if key is None:
             return self._refuse(Refusal.UNAUTHENTICATED, f"unknown role byte {role}")
         ident = (role, sender)
-        with self._lock:
-            known = self._senders.get(ident)
-            aead = known.aead if known is not None and known.epoch == epoch else None
+        known = self._runs.get(ident)  # read without the lock: one tuple, replaced whole
+        aead = known[1] if known is not None and known[0] == epoch else None
         if aead is None:
             aead = _derive(key, role, sender, epoch)
         header = data[:_HEADER.size]
@@ -404,8 +405,11 @@ class Sealer:
             if stamp <= self._floor:
                 return Refusal.STALE
             s = self._senders[ident] = _Sender(epoch, stamp, stamp, aead)
-            if len(self._senders) > MAX_SENDERS:
-                _, old = self._senders.popitem(last=False)
+            self._runs[ident] = (epoch, aead)
+            if len(self._senders) > MAX_SENDERS:  # forget the oldest (it may come back as new)
+                gone = next(iter(self._senders))
+                old = self._senders.pop(gone)
+                self._runs.pop(gone, None)
                 self._floor = max(self._floor, old.last_ns)
         elif s.epoch != epoch:
             if epoch in s.retired or stamp < s.first_ns:
@@ -413,7 +417,7 @@ class Sealer:
             s.retired.append(s.epoch)
             del s.retired[:-RETIRED_RUNS]
             s.epoch, s.first_ns, s.aead, s.windows = epoch, stamp, aead, {}
-        self._senders.move_to_end(ident)
+            self._runs[ident] = (epoch, aead)
         window = s.windows.get(stream)
         if window is None:
             window = s.windows[stream] = _Window()
@@ -422,7 +426,8 @@ class Sealer:
         why = window.check(seq)
         if why is None:
             window.accept(seq)
-            s.last_ns = max(s.last_ns, stamp)
+            if stamp > s.last_ns:
+                s.last_ns = stamp
         return why
 
     def _refuse(self, refusal: Refusal, detail: str) -> NoReturn:
