@@ -8,7 +8,9 @@ replays, see :mod:`chcos.comm.secret`):
   process and received back, at ``--rate`` messages/s for ``--seconds`` (target: p99 < 1 ms);
   each ping is sealed and opened twice on the way (there and back);
 * raw one-way throughput (messages/s, MB/s) of ``--count`` messages sent as fast as the link
-  takes them (congestion control BLOCK, so nothing is dropped) for two payload sizes;
+  takes them (congestion control BLOCK, so nothing is dropped) for two payload sizes, with the
+  sender's CPU time per message (all its threads: a figure a loaded machine does not distort
+  as it does the wall-clock rates);
 
 then the sealed figures beside the bare ones (ratio), and how long after ``kill -9`` of the
 child its liveliness token is seen gone. With ``--pin`` this process and its child each run on
@@ -145,14 +147,17 @@ def latency(link: Transport, rate: int, seconds: float) -> dict[str, float]:
     return {"p50": _percentile(got, 50), "p99": _percentile(got, 99), "max": got[-1]}
 
 
-def throughput(link: Transport, count: int, size: int) -> float:
+def throughput(link: Transport, count: int, size: int) -> tuple[float, float]:
     """Send ``count`` messages of ``size`` bytes as fast as possible; print the rates and
-    return the messages per second received."""
+    return the messages per second received and this process's CPU time per message sent
+    (us; all its threads, so it holds on a loaded machine where wall-clock rates do not)."""
     payload = bytes(size)
     link.request(COUNT, timeout=5.0)  # reset the child's counter
     start = time.perf_counter()
+    cpu = time.process_time()
     for _ in range(count):
         link.publish(BULK, payload, priority=30, kind=MessageKind.COMMAND)
+    cpu_us = (time.process_time() - cpu) / count * 1e6
     sent = time.perf_counter() - start
     # the count request travels behind the bulk data on the same link, in order, but at a
     # higher priority: poll until everything arrived
@@ -163,9 +168,10 @@ def throughput(link: Transport, count: int, size: int) -> float:
     elapsed = time.perf_counter() - start
     print(
         f"throughput {size:>5} B: {count} sent in {sent:.2f} s, {total} received in "
-        f"{elapsed:.2f} s: {total / elapsed:,.0f} msg/s, {total * size / elapsed / 1e6:.1f} MB/s"
+        f"{elapsed:.2f} s: {total / elapsed:,.0f} msg/s, {total * size / elapsed / 1e6:.1f} MB/s, "
+        f"sender CPU {cpu_us:.1f} us/msg"
     )
-    return total / elapsed
+    return total / elapsed, cpu_us
 
 
 def kill_detection(link: Transport, child: subprocess.Popen[str]) -> None:
@@ -208,7 +214,9 @@ def measure(secret: str | None, a: argparse.Namespace, last: bool) -> dict[str, 
                   else "bare link (no seal):")
             figures = latency(link, a.rate, a.seconds)
             for size in (64, 1024):
-                figures[f"msg/s {size} B"] = throughput(link, a.count, size)
+                rate, cpu_us = throughput(link, a.count, size)
+                figures[f"msg/s {size} B"] = rate
+                figures[f"cpu {size} B"] = cpu_us
             if last:
                 kill_detection(link, child)
         finally:
@@ -254,8 +262,10 @@ def main(argv: list[str] | None = None) -> int:
               f"{'met' if sealed['p99'] < 1000 else 'NOT met'}")
         for size in (64, 1024):
             k = f"msg/s {size} B"
+            c = f"cpu {size} B"
             print(f"  throughput {size} B: {sealed[k]:,.0f} / {bare[k]:,.0f} msg/s "
-                  f"(x{sealed[k] / bare[k]:.2f})")
+                  f"(x{sealed[k] / bare[k]:.2f}); sender CPU {sealed[c]:.1f} / {bare[c]:.1f} "
+                  f"us/msg (+{sealed[c] - bare[c]:.1f} us to seal)")
     return 0
 
 
