@@ -2,7 +2,8 @@
 system file with ``[link.auth]`` gives away (the password) and the TLS files, but not the
 system's sealing secret: it opens a session and hears the satellites' traffic, yet reads
 nothing of it, and what it replays is refused and counted. A member (it holds the secret)
-replaying its own messages, or holding one back beyond the replay window, gets no further."""
+replaying its own messages, or holding one back beyond the replay window, gets no further. A
+liveliness token declared by the password holder does not make a dead satellite up."""
 
 from __future__ import annotations
 
@@ -12,7 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from chcos.comm.codec import LinkMessage, MessageKind, encode, encode_batch
+from chcos.comm.codec import LinkMessage, MessageKind, decode_batch, encode, encode_batch
+from chcos.comm.payloads import Hello, from_wire
 from chcos.comm.qos import band_of
 from chcos.comm.secret import WINDOW, Refusal, SealRefused, load_or_create
 from chcos.comm.transport import Transport
@@ -143,3 +145,37 @@ def test_a_member_replaying_or_holding_back_its_own_traffic_is_refused(
     assert counts["link seal refused: behind the replay window"] == 1
     doc = c.host.map_doc(0)
     assert device(doc, "M0")["value"] == 44 and device(doc, "M0")["commands"] == 2
+
+
+@pytest.mark.slow
+def test_a_forged_liveliness_token_does_not_bring_a_dead_satellite_back(
+        cluster: Cluster) -> None:
+    c = cluster
+    p = c.sf.prefix
+    c.kill(1)
+    c.wait_until(lambda d: device(d, "S1")["status"] == "failed", machine=0)
+    spy = _eavesdropper(c)
+    member = c.sf.secret().sealer("satellite")  # the test reads what machine 0 says
+    hellos: list[Hello] = []
+    cond = threading.Condition()
+
+    def heard(key: str, data: bytes) -> None:
+        for m in decode_batch(member.open(key, data)[1]):
+            if m.kind is MessageKind.STATUS and isinstance(
+                    hello := from_wire(m.kind, m.value), Hello):
+                with cond:
+                    hellos.append(hello)
+                    cond.notify_all()
+
+    try:
+        spy.subscribe(f"{p}/all/msg", heard)
+        spy.announce(f"{p}/alive/1")  # the password holder poses as machine 1
+        with cond:  # machine 0 saw the token and asked machine 1 for a sealed hello
+            assert cond.wait_for(lambda: Hello(0, True) in hellos, timeout=20)
+        doc = c.host.map_doc(0)
+        assert device(doc, "S1")["status"] == "failed"  # no answer: still down there
+    finally:
+        spy.close()
+    c.start(1)  # the real one comes back: its token and its hello
+    c.host.wait_for([0, 1])
+    c.wait_until(lambda d: device(d, "S1")["status"] == "OK", machine=0)
