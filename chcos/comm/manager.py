@@ -17,11 +17,13 @@ superseded on the way (a gap) and counts them as sent and overwritten on its cop
 ``msgstat`` keeps sent = delivered + overwritten + unread on the destination's satellite.
 
 Keys, under ``chcos/<system>``: ``m/<N>/msg`` (messages to machine N), ``all/msg`` (broadcast:
-estop, device status), ``alive/<N>`` (liveliness tokens). Only payloads sealed by the satellite
-role are accepted on the message keys (a host cannot set device values, write actuators, forge
-statuses or e-stop through them). A malformed or refused message is counted by cause and logged
-at most once per cause per interval (:attr:`CommManager.rejected`); actuator values must match
-the actuator's type (a number where the safe value or limits are numbers) and be finite.
+estop, device status, hellos), ``alive/<N>`` (liveliness tokens: a satellite is up once its
+token is seen and a sealed hello from it arrived, see :meth:`CommManager.is_up`). Only payloads
+sealed by the satellite role are accepted on the message keys (a host cannot set device values,
+write actuators, forge statuses or e-stop through them). A malformed or refused message is
+counted by cause and logged at most once per cause per interval (:attr:`CommManager.rejected`);
+actuator values must match the actuator's type (a number where the safe value or limits are
+numbers) and be finite.
 
 Payloads are typed (:mod:`chcos.comm.payloads`), encoded and checked only at this boundary.
 The collaborators (kernel, tables, message manager, device table) are given at construction
