@@ -227,8 +227,8 @@ def serve(system: System, host: str = "127.0.0.1", port: int = 0, *,
     """Serve ``/metrics`` of ``system`` on ``host:port`` (0: a free port). Raises NorthError if
     the address is not loopback and no TLS certificate and key are given, or it cannot bind."""
     if not is_loopback(host) and not (certfile and keyfile):
-        raise NorthError(f"metrics on {host}: a non-loopback address needs TLS "
-                         "(--metrics-tls-cert/--metrics-tls-key)")
+        raise NorthError(f"metrics on {host}: a non-loopback address needs TLS: give "
+                         "--north-tls-cert and --north-tls-key (PEM certificate and key)")
     steps = StepTimes()
     registry = CollectorRegistry(auto_describe=False)
     registry.register(SystemCollector(system, steps))

@@ -104,7 +104,7 @@ class Satellite:
         secret = sf.secret()
         sf.state_dir.mkdir(parents=True, exist_ok=True, mode=0o700)
         self.transport = Transport(link_config_for(sf, machine, secret),
-                                   sealer=secret.sealer("satellite"))
+                                   sealer=secret.sealer("satellite", f"m{machine}"))
         try:
             self.system = System(sf.devmaps, clock=clock or RealClock(),
                                  task_path=sf.task_path, base_dir=sf.base_dir, map_path=None,
@@ -162,10 +162,14 @@ class Satellite:
 
     def rejected_counts(self) -> dict[str, int]:
         """How many payloads were refused or malformed so far, by cause (link, messages, host
-        requests, install logs)."""
+        requests, install logs), and the link's seal refusals by kind, all receivers
+        together (``link seal refused: replayed``...)."""
         out: dict[str, int] = {}
         for t in (self.transport.rejected, self.comm.rejected, self.rejected):
             out.update(t.counts)
+        for kind, n in self.transport.refusals.items():
+            if n:
+                out[f"link seal refused: {kind}"] = n
         return out
 
     # ---- the install log ----------------------------------------------------------------------
