@@ -232,6 +232,8 @@ def parser() -> argparse.ArgumentParser:
                          "time (outputs are on only when asked), on with --virtual")
     ap.add_argument("--workdir",
                     help="where sysfile.map is written (default: a temporary directory)")
+    ap.add_argument("-v", "--verbose", action="store_true",
+                    help="log at INFO level (also accepted before 'run': chcos -v run ...)")
     add_north_arguments(ap)
     return ap
 
@@ -241,6 +243,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     wrong (listed in the summary); 2: the system could not be built."""
     ap = parser()
     args = ap.parse_args(argv)
+    if args.verbose:
+        import logging
+
+        logging.getLogger().setLevel(logging.INFO)
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         ap.error(f"--duration {args.duration}: expected seconds > 0")
     stop = threading.Event()

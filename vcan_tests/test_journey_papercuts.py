@@ -1,0 +1,108 @@
+"""Papercuts a new user met on the journey from vendor files to a running cell (issue 39).
+
+Each test failed before its fix: ``chcos check --system`` on the scaffold's system file,
+``chcos run --help | head -1``, ``chcos run -v``, ``read_any`` answering with a port index when
+given names, ``chcos run`` on a system whose install script has a bad task name.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from chcos.cli.main import main as cli_main
+from chcos.user.context import TaskContext
+from vcan_tests.conftest import MakeSystem, memory_map
+
+M = "vcan_tests.test_journey_papercuts"
+
+
+def _chcos(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "chcos.cli.main", *args], capture_output=True,
+                          text=True, timeout=120, cwd=cwd)
+
+
+@pytest.fixture
+def cell(tmp_path: Path) -> Path:
+    """A scaffolded cell project (``chcos new``)."""
+    assert cli_main(["new", str(tmp_path / "cell")]) == 0
+    return tmp_path / "cell"
+
+
+def test_check_system_on_the_scaffold_says_ok(cell: Path,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    capsys.readouterr()
+    assert cli_main(["check", "--system", str(cell / "system.toml")]) == 0
+    out, err = capsys.readouterr()
+    assert out.startswith("ok: system cell") and "2 devices" in out, out
+    assert "Traceback" not in err
+
+
+def test_check_system_checks_the_maps_it_names(cell: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    devices = cell / "devices.toml"
+    devices.write_text(devices.read_text(encoding="utf-8").replace("[[device]]",
+                                                                   "[[device]]\nbogus = 1", 1),
+                       encoding="utf-8")
+    capsys.readouterr()
+    assert cli_main(["check", "--system", str(cell / "system.toml")]) == 1
+    _out, err = capsys.readouterr()
+    assert "devices.toml" in err and "bogus" in err, err
+
+
+def test_check_help_shows_system() -> None:
+    res = _chcos("check", "--help")
+    assert res.returncode == 0 and "--system" in res.stdout
+
+
+def test_help_into_a_closed_pipe_ends_quietly() -> None:
+    shell = subprocess.run(f"{sys.executable} -m chcos.cli.main run --help | head -1",
+                           shell=True, capture_output=True, text=True, timeout=120)
+    assert shell.stdout.startswith("usage: chcos run")
+    assert "Traceback" not in shell.stderr and "BrokenPipeError" not in shell.stderr, \
+        shell.stderr
+
+
+@pytest.mark.parametrize("where", ["after", "before"])
+def test_run_takes_verbose(cell: Path, where: str) -> None:
+    args = ["run", "-v", str(cell / "system.toml")] if where == "after" else \
+        ["-v", "run", str(cell / "system.toml")]
+    res = _chcos(*args, "--virtual", "--duration", "1")
+    assert res.returncode == 0, res.stderr
+    assert "INFO" in res.stderr and "healthy" in res.stdout
+
+
+def test_run_with_a_bad_task_name_exits_2_naming_the_rule(cell: Path) -> None:
+    (cell / "install.chcos").write_text("install -m0 sysfile\ninstall -m0i1 .. level\n",
+                                        encoding="utf-8")
+    res = _chcos("run", str(cell / "system.toml"), "--virtual", "--duration", "1")
+    assert res.returncode == 2, res.stderr
+    assert "Traceback" not in res.stderr
+    assert "task name '..' breaks the rule" in res.stderr
+
+
+# ---- read_any answers with what the caller named ----------------------------------------------
+async def named_reader(ctx: TaskContext, cmd: dict[str, Any]) -> None:
+    while True:
+        cmd["log"].append(await ctx.read_any(cmd["ports"]))
+
+
+@pytest.mark.parametrize("ports", [["S1", "S2"], [1, 0], ["S2", 0]])
+def test_read_any_returns_the_port_as_named(make_system: MakeSystem, ports: list[Any]) -> None:
+    s = make_system(memory_map(["S1", "S2"]))
+    s.execute(f"install -m0i2 --code={M}:named_reader R S1 S2")
+    log: list[Any] = []
+    s.invoke("R", {"log": log, "ports": ports})
+    s.run_for(0.1)
+    s.devtab.inject("S2", 2.0)
+    s.run_for(0.1)
+    s.devtab.inject("S1", 1.0)
+    s.run_for(0.1)
+    by_source = {"S1": 0, "S2": 1}
+    expected = [next(p for p in ports if p in (src, by_source[src])) for src in ("S2", "S1")]
+    assert [port for port, _value in log] == expected
+    assert [value for _port, value in log] == [2.0, 1.0]
