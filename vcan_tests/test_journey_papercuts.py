@@ -14,7 +14,9 @@ from typing import Any
 
 import pytest
 
+from chcos.cli import scaffold
 from chcos.cli.main import main as cli_main
+from chcos.helpers import free_port
 from chcos.user.context import TaskContext
 from vcan_tests.conftest import MakeSystem, memory_map
 
@@ -28,8 +30,8 @@ def _chcos(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[s
 
 @pytest.fixture
 def cell(tmp_path: Path) -> Path:
-    """A scaffolded cell project (``chcos new``)."""
-    assert cli_main(["new", str(tmp_path / "cell")]) == 0
+    """A scaffolded cell project (``chcos new``) on a free loopback port."""
+    scaffold.create(tmp_path / "cell", port=free_port())
     return tmp_path / "cell"
 
 
@@ -106,3 +108,49 @@ def test_read_any_returns_the_port_as_named(make_system: MakeSystem, ports: list
     expected = [next(p for p in ports if p in (src, by_source[src])) for src in ("S2", "S1")]
     assert [port for port, _value in log] == expected
     assert [value for _port, value in log] == [2.0, 1.0]
+
+
+# ---- chcos sim --from: one line per device, only changes; virtual channels refused ------------
+def test_sim_from_prints_one_line_per_device_and_only_changes(
+        cell: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    capsys.readouterr()
+    assert cli_main(["sim", "--from", str(cell / "devices.toml"), "--value", "level=42",
+                     "--duration", "2.5", "--every", "0.5"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    shown = [ln for ln in out if ln.startswith("t=")]
+    assert all(len(ln) < 100 for ln in out), out
+    # level is constant and valve idle: each is shown once, however long the run
+    assert [ln.split()[-2] for ln in shown] == ["level=42", "valve=0"], out
+
+
+CAN_MAP = """\
+[[bus]]
+name = "cell"
+kind = "can"
+interface = "virtual"
+channel = "cell"
+
+[[device]]
+name = "T1"
+direction = "sensor"
+bus = "cell"
+address = { id = 0x100, start = 0, length = 16 }
+"""
+
+
+def test_sim_from_refuses_a_process_local_virtual_channel(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    devices = tmp_path / "can.toml"
+    devices.write_text(CAN_MAP, encoding="utf-8")
+    assert cli_main(["sim", "--from", str(devices), "--duration", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "can.toml: bus[0] (cell)" in err and "inside one process" in err
+    assert "udp_multicast" in err
+
+
+def test_run_on_real_time_warns_of_a_virtual_channel(tmp_path: Path) -> None:
+    (tmp_path / "can.toml").write_text(CAN_MAP, encoding="utf-8")
+    (tmp_path / "system.toml").write_text('[system]\nname = "c"\ndevmaps = ["can.toml"]\n',
+                                          encoding="utf-8")
+    res = _chcos("run", str(tmp_path / "system.toml"), "--duration", "0.5")
+    assert "warning: bus cell" in res.stdout and "inside this process" in res.stdout, res.stdout

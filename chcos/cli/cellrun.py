@@ -165,6 +165,14 @@ def run(system_file: str | Path, *, virtual: bool = False, duration: float | Non
               "stops", file=out)
         if not outputs and not virtual:
             print("  (give --outputs on to drive the actuators)", file=out)
+        if not virtual:
+            from chcos.apps.sim.from_map import process_local
+
+            for bus in process_local(s.devmap):
+                print(f"  warning: bus {bus.name} ({bus.file}) is on python-can's 'virtual' "
+                      "interface, which lives inside this process: a simulator in another "
+                      "process (chcos sim --from) is never heard. Use interface = "
+                      "\"udp_multicast\" or a vcan channel, or run with --virtual", file=out)
         for a in cell.answers:
             print(f"  host: {a}", file=out)
         out.flush()

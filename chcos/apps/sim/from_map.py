@@ -227,10 +227,45 @@ def _fault(item: str, slaves: SimSlaves) -> tuple[str, float, float]:
     return bus, t0, t1
 
 
+def process_local(devmap: DeviceMap) -> list[BusSpec]:
+    """The CAN and CANopen buses of ``devmap`` (with devices) on python-can's ``virtual``
+    interface (named in the map or by python-can's own configuration): a channel that exists
+    only inside one process, so a peer in another process never reaches it."""
+    from chcos.apps.sim.peers import can_args
+
+    found = []
+    for bus in devmap.buses:
+        if bus.kind in ("can", "canopen") and devmap.devices_on(bus.name):
+            try:
+                interface = can_args(bus.options, False, bus.name).get("interface")
+            except (ValueError, NotImplementedError):  # checked again where the bus opens
+                continue
+            if interface == "virtual":
+                found.append(bus)
+    return found
+
+
+def changes(slaves: SimSlaves, last: dict[str, str]) -> list[str]:
+    """One ``name=value units`` line per simulated device whose value changed since ``last``
+    (updated; the first call shows every device), in the map's order."""
+    lines = []
+    for d in slaves.devmap.devices:
+        if not slaves.simulated(d.name):
+            continue
+        v = slaves.get(d.name)
+        text = f"{v:.4g}" if isinstance(v, float) else str(v)
+        shown = f"{d.name}={text} {d.units}".rstrip()
+        if last.get(d.name) != shown:
+            last[d.name] = shown
+            lines.append(f"{d.direction:<8} {shown}")
+    return lines
+
+
 def main(argv: list[str]) -> int:
     """``chcos sim --from MAP...``: serve simulated slaves at the addresses the maps name until
-    Ctrl-C, SIGTERM or ``--duration``; prints what each actuator was sent once a second.
-    Returns 0, or 2 when a map or script is invalid or a peer cannot listen."""
+    Ctrl-C, SIGTERM or ``--duration``; prints each device's value on a line of its own when it
+    changed, at most every ``--every`` seconds. Returns 0, or 2 when a map or script is invalid,
+    a bus is on a process-local channel (see :func:`process_local`) or a peer cannot listen."""
     import argparse
     import signal
     import sys
@@ -253,12 +288,24 @@ def main(argv: list[str]) -> int:
                     help="silence the peer of BUS from START seconds (to END), e.g. plc@5-8: "
                          "a Modbus server closes its port, CAN and CANopen nodes stop sending")
     ap.add_argument("--duration", type=float, help="stop after this many seconds")
+    ap.add_argument("--every", type=float, default=1.0, metavar="S",
+                    help="print a device's value at most every S seconds, one line per device, "
+                         "and only when it changed (default 1)")
     args = ap.parse_args(argv)
+    if not (math.isfinite(args.every) and args.every > 0):
+        ap.error(f"--every {args.every}: expected seconds > 0")
     stop = threading.Event()
     old = {sig: signal.signal(sig, lambda *_: stop.set())
            for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         devmap = load(args.maps)
+        for bus in process_local(devmap):
+            raise ConfigError(f"{bus.file}: {bus.key} ({bus.name}): python-can's 'virtual' "
+                              "interface lives inside one process: a 'chcos run' in another "
+                              "process would never hear this simulator. Use interface = "
+                              "\"udp_multicast\" (any machine, loopback) or a SocketCAN vcan "
+                              "channel; or 'chcos run SYSTEM --virtual', which simulates in its "
+                              "own process")
         slaves = simulate(devmap, rewrite=False)
         try:
             for item in args.value:
@@ -273,7 +320,8 @@ def main(argv: list[str]) -> int:
                 print(f"simulating {line}", flush=True)
             slaves.run_realtime()
             start = time.monotonic()
-            shown_at = 0.0
+            shown_at = -math.inf
+            last_shown: dict[str, str] = {}
             silenced: set[str] = set()
             while not stop.wait(0.1):
                 t = time.monotonic() - start
@@ -287,16 +335,11 @@ def main(argv: list[str]) -> int:
                         slaves.restore(bus)
                         silenced.discard(bus)
                         print(f"t={t:6.1f} s  fault over: {bus} answers again", flush=True)
-                if t + 1e-9 < shown_at + 1.0:
+                if t + 1e-9 < shown_at + args.every:
                     continue
                 shown_at = t
-                shown = []
-                for d in devmap.devices:
-                    if slaves.simulated(d.name):
-                        v = slaves.get(d.name)
-                        text = f"{v:.4g}" if isinstance(v, float) else str(v)
-                        shown.append(f"{d.name}={text}")
-                print(f"t={t:6.1f} s  " + "  ".join(shown), flush=True)
+                for line in changes(slaves, last_shown):
+                    print(f"t={t:6.1f} s  {line}", flush=True)
                 if args.duration is not None and t >= args.duration:
                     break
         finally:
