@@ -299,8 +299,8 @@ def main(argv: list[str]) -> int:
            for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         devmap = load(args.maps)
-        for bus in process_local(devmap):
-            raise ConfigError(f"{bus.file}: {bus.key} ({bus.name}): python-can's 'virtual' "
+        for local in process_local(devmap):
+            raise ConfigError(f"{local.file}: {local.key} ({local.name}): python-can's 'virtual' "
                               "interface lives inside one process: a 'chcos run' in another "
                               "process would never hear this simulator. Use interface = "
                               "\"udp_multicast\" (any machine, loopback) or a SocketCAN vcan "
