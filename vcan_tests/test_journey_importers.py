@@ -45,7 +45,7 @@ def _imported(tmp_path: Path, capsys: pytest.CaptureFixture[str],
 # ---- DBC --------------------------------------------------------------------------------------
 def test_dbc_with_every_awkward_feature_passes_check(tmp_path: Path,
                                                      capsys: pytest.CaptureFixture[str]) -> None:
-    text, devs, err = _imported(tmp_path, capsys, "dbc", str(VENDOR / "awkward.dbc"),
+    text, devs, _err = _imported(tmp_path, capsys, "dbc", str(VENDOR / "awkward.dbc"),
                                 "--node", "ECU")
     # the three-line comment: every line a comment, the quotes and the '#' kept as text
     assert "# Measured at the encoder, not the load." in text
