@@ -136,14 +136,16 @@ class RunResult:
 def run(system_file: str | Path, *, virtual: bool = False, duration: float | None = None,
         outputs: bool = True, workdir: str | Path | None = None, period: float = 1.0,
         out: TextIO | None = None, stop: threading.Event | None = None,
-        north: NorthOptions | None = None, pin: bool = False) -> RunResult:
+        north: NorthOptions | None = None, pin: bool = False, values: Sequence[str] = (),
+        plants: Sequence[str] = ()) -> RunResult:
     """The ``chcos run SYSTEM`` job: build, run until ``stop`` is set (SIGINT/SIGTERM in the
     command), or ``duration`` seconds of clock time, printing progress every ``period``; then
     safe values and the summary. ``north`` names the north-side services (OPC UA, Modbus
     facade, metrics, the live view) to serve while it runs; they need real time. ``pin``: the
     process (the command's own) is pinned first to the CPUs of ``system.cpus``, if any. Raises
     ChcosError if the system or a service cannot be set up (ConfigError for CPUs this process
-    may not use)."""
+    may not use). ``values`` and ``plants`` drive the simulated slaves (``virtual`` only; see
+    :func:`~chcos.cli.cellsystem.open_cell`)."""
     from chcos.north.services import start as start_north
     from chcos.satellites import sysfile
     from chcos.system.affinity import pin_process
@@ -157,7 +159,8 @@ def run(system_file: str | Path, *, virtual: bool = False, duration: float | Non
     if cpus is not None:  # before the drivers' threads start (they inherit it)
         pin_process(cpus, f"{Path(system_file).resolve()}: system.cpus")
         print(f"pinned to CPU(s) {', '.join(map(str, sorted(cpus)))} (system.cpus)", file=out)
-    with open_cell(system_file, virtual=virtual, outputs=outputs, workdir=workdir) as cell:
+    with open_cell(system_file, virtual=virtual, outputs=outputs, workdir=workdir,
+                   values=values, plants=plants) as cell:
         s = cell.system
         print(f"system {cell.sf.name}: {len(s.devtab)} devices, {len(s.tsktab)} tasks, "
               f"{'virtual time, simulated slaves' if virtual else 'real time'}, outputs "
@@ -240,6 +243,14 @@ def parser() -> argparse.ArgumentParser:
                          "time (outputs are on only when asked), on with --virtual")
     ap.add_argument("--workdir",
                     help="where sysfile.map is written (default: a temporary directory)")
+    ap.add_argument("--value", action="append", default=[], metavar="DEVICE=SCRIPT",
+                    help="with --virtual: a simulated sensor's value, as in chcos sim --from: a "
+                         "number, ramp(start, end, period), sine(center, amplitude, period), "
+                         "square(low, high, period) or csv(FILE[, column]) (repeatable)")
+    ap.add_argument("--plant", action="append", default=[], metavar="FILE.py:FUNCTION",
+                    help="with --virtual: a plant model called every 10 ms of clock time as "
+                         "FUNCTION(seconds, slaves); it reads the actuators (slaves.get(name)) "
+                         "and sets the sensors (slaves.set(name, value)) (repeatable)")
     ap.add_argument("-v", "--verbose", action="store_true",
                     help="log at INFO level (also accepted before 'run': chcos -v run ...)")
     add_north_arguments(ap)
@@ -267,7 +278,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         result = run(args.system, virtual=args.virtual, duration=args.duration,
                      outputs=args.outputs == "on" or (args.outputs is None and args.virtual),
                      workdir=args.workdir, stop=stop, north=NorthOptions.from_args(args),
-                     pin=True)
+                     pin=True, values=args.value, plants=args.plant)
     except ChcosError as exc:
         print(f"chcos run: {exc}", file=sys.stderr)
         return 2

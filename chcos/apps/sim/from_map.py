@@ -44,6 +44,7 @@ import math
 import re
 import threading
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -66,6 +67,12 @@ PEERS: dict[str, type[Peer]] = {"modbus-tcp": ModbusPeer, "modbus-rtu": ModbusPe
                                 "can": CanPeer, "canopen": CanopenPeer, "serial": SerialPeer}
 
 
+Plant = Callable[[float, "SimSlaves"], None]
+"""A user's plant model: called every TICK with the seconds since the start and the slaves; it
+reads what the system sent (:meth:`SimSlaves.get` of an actuator) and sets what the sensors
+serve (:meth:`SimSlaves.set`)."""
+
+
 @dataclass
 class SimSlaves:
     """The simulated peers of one device map (see the module doc). Close with :meth:`close`."""
@@ -74,6 +81,7 @@ class SimSlaves:
     specs: dict[str, DeviceSpec] = dataclasses.field(default_factory=dict)
     peers: dict[str, Peer] = dataclasses.field(default_factory=dict)
     scripts: dict[str, Script] = dataclasses.field(default_factory=dict)
+    plants: list[Plant] = dataclasses.field(default_factory=list)
     _timer: Any = None
     _rt: threading.Thread | None = None
     _rt_stop: threading.Event = dataclasses.field(default_factory=threading.Event)
@@ -119,6 +127,30 @@ class SimSlaves:
         self._peer(device)
         self.scripts[device] = parse_script(script) if isinstance(script, str) else script
 
+    def values(self, items: Sequence[str], base_dir: Path | None = None) -> None:
+        """Scripts from ``DEVICE=SCRIPT`` items (``--value``: a number, ``ramp(...)``,
+        ``sine(...)``, ``square(...)``, ``csv(FILE[, column])``, files relative to
+        ``base_dir``). Raises ConfigError naming the item for a bad item, a device that is not
+        a simulated sensor, or a bad script; nothing is applied then."""
+        parsed: dict[str, Script] = {}
+        for item in items:
+            name, eq, spec = item.partition("=")
+            name = name.strip()
+            if not eq:
+                raise ConfigError(f"--value {item!r}: expected DEVICE=SCRIPT")
+            if name not in self.specs or self.specs[name].direction != "sensor":
+                raise ConfigError(f"--value {item!r}: {name!r} is not a sensor of the maps")
+            if not self.simulated(name):
+                raise ConfigError(f"--value {item!r}: {name!r} is on an in-process bus with "
+                                  "no simulated slave (inject its readings instead)")
+            parsed[name] = parse_script(spec, base_dir)
+        self.scripts.update(parsed)
+
+    def add_plant(self, plant: Plant) -> None:
+        """Call ``plant(seconds since the start, self)`` every TICK, after the scripts: a
+        user's model of the machine (what the actuators do to the sensors)."""
+        self.plants.append(plant)
+
     def silence(self, bus: str) -> None:
         """Make the peer of ``bus`` stop answering: a Modbus server closes its port, a CAN node
         stops sending, a CANopen node stops its heartbeat and TPDOs. Raises DeviceError if the
@@ -144,6 +176,8 @@ class SimSlaves:
         """Apply the scripts at time ``now`` (seconds since the start) and send what is due."""
         for device, fn in self.scripts.items():
             self.set(device, fn(now))
+        for plant in self.plants:
+            plant(now, self)
         for peer in self.peers.values():
             peer.tick(now)
 
@@ -227,6 +261,39 @@ def _fault(item: str, slaves: SimSlaves) -> tuple[str, float, float]:
     return bus, t0, t1
 
 
+def load_plant(ref: str, base_dir: Path | None = None) -> Plant:
+    """The plant model ``ref`` names: ``FILE.py:function`` (relative to ``base_dir``) or
+    ``package.module:function``. Raises ConfigError naming ``ref`` if it cannot be loaded or is
+    not a callable."""
+    import importlib
+    import importlib.util
+
+    target, colon, func = ref.rpartition(":")
+    if not colon or not target or not func.isidentifier():
+        raise ConfigError(f"--plant {ref!r}: expected FILE.py:function or module:function")
+    try:
+        if target.endswith(".py") or "/" in target:
+            path = Path(target)
+            if not path.is_absolute() and base_dir is not None:
+                path = base_dir / path
+            spec = importlib.util.spec_from_file_location(f"chcos_plant_{path.stem}", path)
+            if spec is None or spec.loader is None or not path.is_file():
+                raise ConfigError(f"--plant {ref!r}: no file {path}")
+            module = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(module)
+        else:
+            module = importlib.import_module(target)
+    except ConfigError:
+        raise
+    except Exception as exc:  # the user's module failed to import: say how
+        raise ConfigError(f"--plant {ref!r}: cannot load it: {type(exc).__name__}: "
+                          f"{exc}") from exc
+    fn = getattr(module, func, None)
+    if not callable(fn):
+        raise ConfigError(f"--plant {ref!r}: {target} has no function {func}")
+    return fn  # type: ignore[no-any-return]
+
+
 def process_local(devmap: DeviceMap) -> list[BusSpec]:
     """The CAN and CANopen buses of ``devmap`` (with devices) on python-can's ``virtual``
     interface (named in the map or by python-can's own configuration): a channel that exists
@@ -287,6 +354,9 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--fault", action="append", default=[], metavar="BUS@START[-END]",
                     help="silence the peer of BUS from START seconds (to END), e.g. plc@5-8: "
                          "a Modbus server closes its port, CAN and CANopen nodes stop sending")
+    ap.add_argument("--plant", action="append", default=[], metavar="FILE.py:FUNCTION",
+                    help="a plant model called every 10 ms as FUNCTION(seconds, slaves): it reads "
+                         "actuators (slaves.get) and sets sensors (slaves.set)")
     ap.add_argument("--duration", type=float, help="stop after this many seconds")
     ap.add_argument("--every", type=float, default=1.0, metavar="S",
                     help="print a device's value at most every S seconds, one line per device, "
@@ -308,13 +378,9 @@ def main(argv: list[str]) -> int:
                               "own process")
         slaves = simulate(devmap, rewrite=False)
         try:
-            for item in args.value:
-                name, eq, spec = item.partition("=")
-                if not eq:
-                    raise ConfigError(f"--value {item!r}: expected DEVICE=SCRIPT")
-                if name not in slaves.specs or slaves.specs[name].direction != "sensor":
-                    raise ConfigError(f"--value {item!r}: {name!r} is not a sensor of the maps")
-                slaves.script(name, parse_script(spec, Path.cwd()))
+            slaves.values(args.value, Path.cwd())
+            for ref in args.plant:
+                slaves.add_plant(load_plant(ref, Path.cwd()))
             faults = [_fault(item, slaves) for item in args.fault]
             for line in slaves.describe():
                 print(f"simulating {line}", flush=True)
