@@ -23,7 +23,8 @@ def bus_config(options: Mapping[str, Any]) -> dict[str, Any]:
     """python-can's configuration for this bus: the map's options over ``can.util.load_config``.
 
     Raises :class:`BusError` if python-can's configuration names no usable interface."""
-    given = {k: options[k] for k in ("interface", "channel", "bitrate", "fd") if k in options}
+    given = {k: options[k] for k in ("interface", "channel", "bitrate", "fd", "port")
+             if k in options}  # port: udp_multicast's UDP port (one group and port per bus)
     try:
         cfg = dict(can.util.load_config(config=given))
     except (can.CanInterfaceNotImplementedError, ValueError) as exc:

@@ -135,7 +135,7 @@ def can_args(options: Any, rewrite: bool, tag: str) -> dict[str, Any]:
     if rewrite:
         return {"interface": "virtual",
                 "channel": f"chcos-sim-{tag}-{os.getpid()}-{next(_channels)}"}
-    args = {k: options[k] for k in ("interface", "channel", "bitrate") if k in options}
+    args = {k: options[k] for k in ("interface", "channel", "bitrate", "port") if k in options}
     if "interface" not in args or "channel" not in args:
         import can
 
