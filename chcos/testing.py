@@ -47,6 +47,25 @@ class TestCell:
         """Run ``seconds`` of virtual time (as fast as possible)."""
         self.cell.run_for(seconds)
 
+    def run_until(self, condition: Callable[[], bool], *, step: float = 0.1,
+                  limit: float = 60.0, timeout: float = 30.0) -> float:
+        """Run virtual time in ``step``s until ``condition()`` holds; returns the virtual
+        seconds it took. The drivers reconnect on wall-clock time (a PLC back after a blip is
+        found by the driver's next retry, up to its longest back-off), so this also waits up to
+        ``timeout`` real seconds. Raises TimeoutError, saying how long it ran, if ``condition``
+        still fails after ``limit`` virtual seconds and ``timeout`` real ones."""
+        import time
+
+        start, deadline = self.now, time.monotonic() + timeout
+        while not condition():
+            if self.now - start >= limit and time.monotonic() >= deadline:
+                raise TimeoutError(f"condition not met after {self.now - start:.1f} s of "
+                                   f"virtual time and {timeout:.0f} s of real time")
+            self.cell.run_for(step)
+            if self.now - start >= limit:  # virtual time is up: let the drivers' threads work
+                time.sleep(step)
+        return self.now - start
+
     @property
     def now(self) -> float:
         """Seconds of virtual time since the cell was built."""

@@ -154,3 +154,17 @@ def test_run_on_real_time_warns_of_a_virtual_channel(tmp_path: Path) -> None:
                                           encoding="utf-8")
     res = _chcos("run", str(tmp_path / "system.toml"), "--duration", "0.5")
     assert "warning: bus cell" in res.stdout and "inside this process" in res.stdout, res.stdout
+
+
+def test_no_doc_tells_users_to_pip_install_chcos_from_pypi() -> None:
+    """chcos is not on PyPI: every install line names a checkout, a path or a git URL."""
+    root = Path(__file__).resolve().parent.parent
+    for doc in sorted((root / "docs").glob("*.md")):
+        text = doc.read_text(encoding="utf-8")
+        assert "pip install chcos`" not in text and "pip install chcos\n" not in text, doc
+
+
+def test_scaffold_installs_its_loop_with_a_restart_policy(cell: Path) -> None:
+    install = (cell / "install.chcos").read_text(encoding="utf-8")
+    assert "--standing --restart=on-recovery" in install
+    assert "--restart=on-recovery" in (cell / "README.md").read_text(encoding="utf-8")
