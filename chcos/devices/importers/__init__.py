@@ -77,6 +77,9 @@ def main(argv: Sequence[str]) -> int:
                                    "actuators, all others sensors.")
     p.add_argument("file", metavar="DBC")
     p.add_argument("--node", help="the DBC node chcos plays (its messages become actuators)")
+    p.add_argument("--udp-port", type=int, metavar="PORT",
+                   help="with --interface udp_multicast: the bus's UDP port (give each bus "
+                        "its own group and port)")
     p.add_argument("--signals", nargs="+", default=[], metavar="PATTERN",
                    help="only these signals: SIGNAL or MESSAGE.SIGNAL, shell patterns "
                         "(e.g. 'Status.*' Setpoint)")
@@ -120,7 +123,7 @@ def main(argv: Sequence[str]) -> int:
                                machine=args.machine, prefix=args.prefix,
                                dbc_ref=_file_ref(args.file, args.output),
                                interface=args.interface, channel=args.channel,
-                               signals=args.signals)
+                               signals=args.signals, udp_port=args.udp_port)
         else:
             from chcos.devices.importers.modbus_csv import import_modbus_csv
 

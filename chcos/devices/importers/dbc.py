@@ -52,11 +52,12 @@ def _picked(patterns: Sequence[str], message: str, signal: str) -> bool:
 def import_dbc(path: str | Path, *, bus: str = "can0", node: str | None = None,
                machine: int = 0, prefix: str = "", dbc_ref: str | None = None,
                interface: str = "socketcan", channel: str = "can0",
-               signals: Sequence[str] = ()) -> MapDraft:
+               signals: Sequence[str] = (), udp_port: int | None = None) -> MapDraft:
     """The device-map draft of the DBC at ``path`` (see the module doc); ``dbc_ref`` is how the
     map names the DBC; ``signals``: shell-style patterns of the signals to import (all if
     empty). Raises ConfigError naming the file if cantools cannot read it, if ``node`` is not
-    one of its nodes, or if nothing is left to import."""
+    one of its nodes, or if nothing is left to import. ``udp_port``: the bus's ``port`` (the
+    ``udp_multicast`` interface only)."""
     import cantools
 
     try:
@@ -74,8 +75,14 @@ def import_dbc(path: str | Path, *, bus: str = "can0", node: str | None = None,
                     "chcos import dbc" + (f" as node {node}" if node else "") + ".",
                     "Check with chcos check; set safe_value on the actuators.",
                     "Delete interface/channel to take them from python-can's configuration."]
-    draft.buses.append({"name": bus, "kind": "can", "interface": interface, "channel": channel,
-                        "dbc": dbc_ref or str(path)})
+    bus_table: dict[str, Any] = {"name": bus, "kind": "can", "interface": interface,
+                                 "channel": channel}
+    if udp_port is not None:
+        if interface != "udp_multicast":
+            raise ConfigError(f"--udp-port {udp_port}: only with --interface udp_multicast")
+        bus_table["port"] = udp_port
+    bus_table["dbc"] = dbc_ref or str(path)
+    draft.buses.append(bus_table)
     names = [s.name for m in db.messages for s in m.signals]
     for msg in db.messages:
         actuator = node is not None and node in msg.senders
