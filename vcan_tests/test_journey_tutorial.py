@@ -112,9 +112,9 @@ def test_from_vendor_files_verbatim(tmp_path: Path, netns: str) -> None:
             if p.poll() is None:
                 p.kill()
                 p.wait()
-    imported = [r for c, r in outputs.items() if c.startswith("chcos import dbc")][0]
+    imported = next(r for c, r in outputs.items() if c.startswith("chcos import dbc"))
     assert "RollingCounter (rolling counter), CRC8 (checksum), left out" in imported.stderr
-    checked = [r for c, r in outputs.items() if c.startswith("chcos check drive.toml")][0]
+    checked = next(r for c, r in outputs.items() if c.startswith("chcos check drive.toml"))
     assert checked.stdout.startswith("ok: 3 buses, 18 devices"), checked.stdout
     runs = [r.stdout for c, r in outputs.items() if c.startswith("chcos run")]
     assert len(runs) == 2
