@@ -13,6 +13,7 @@ was healthy.
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 import signal
 import sys
@@ -28,7 +29,7 @@ from chcos.devices.entry import DeviceStatus
 from chcos.errors import ChcosError
 from chcos.north.services import NorthOptions, add_north_arguments
 
-__all__ = ["Cell", "CellSystem", "OutputsOff", "RunResult", "SinceStartClock", "main",
+__all__ = ["Cell", "CellSystem", "LogFile", "OutputsOff", "RunResult", "SinceStartClock", "main",
            "open_cell", "parser", "problems", "report", "run", "show_progress"]
 
 
@@ -178,6 +179,10 @@ def run(system_file: str | Path, *, virtual: bool = False, duration: float | Non
                       "\"udp_multicast\" or a vcan channel, or run with --virtual", file=out)
         for a in cell.answers:
             print(f"  host: {a}", file=out)
+        logging.getLogger("chcos.run").info(
+            "system %s (%s): %d devices, %d tasks, %s, outputs %s", cell.sf.name, cell.sf.path,
+            len(s.devtab), len(s.tsktab), "virtual time" if virtual else "real time",
+            "on" if outputs else "off")
         out.flush()
         if not virtual:
             s.start()
@@ -194,6 +199,13 @@ def run(system_file: str | Path, *, virtual: bool = False, duration: float | Non
         snap = cell.snapshot()
         found = problems(cell, snap)
         report(cell, snap, found, out)
+        runlog = logging.getLogger("chcos.run")
+        if found:
+            runlog.warning("system %s: UNHEALTHY after %.1f s: %s", cell.sf.name, snap["t"],
+                           "; ".join(found))
+        else:
+            runlog.info("system %s: healthy after %.1f s, %d messages", cell.sf.name,
+                        snap["t"], snap["messages"])
         return RunResult(not found, found, snap["t"], snap)
 
 
@@ -251,6 +263,13 @@ def parser() -> argparse.ArgumentParser:
                     help="with --virtual: a plant model called every 10 ms of clock time as "
                          "FUNCTION(seconds, slaves); it reads the actuators (slaves.get(name)) "
                          "and sets the sensors (slaves.set(name, value)) (repeatable)")
+    ap.add_argument("--log", metavar="FILE",
+                    help="also log to FILE, at INFO level with times (device failures, "
+                         "restarts, task ends, the summary), rotated at --log-size")
+    ap.add_argument("--log-size", type=float, default=10.0, metavar="MB",
+                    help="rotate the log file at this many megabytes (default 10)")
+    ap.add_argument("--log-keep", type=int, default=5, metavar="N",
+                    help="keep N rotated log files, FILE.1 ... FILE.N (default 5)")
     ap.add_argument("-v", "--verbose", action="store_true",
                     help="log at INFO level (also accepted before 'run': chcos -v run ...)")
     add_north_arguments(ap)
@@ -263,12 +282,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = parser()
     args = ap.parse_args(argv)
     if args.verbose:
-        import logging
-
         logging.getLogger().setLevel(logging.INFO)
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         ap.error(f"--duration {args.duration}: expected seconds > 0")
+    if not (math.isfinite(args.log_size) and args.log_size > 0) or args.log_keep < 1:
+        ap.error("--log-size: expected megabytes > 0; --log-keep: expected a count >= 1")
     stop = threading.Event()
+    try:
+        logfile = LogFile(args.log, args.log_size, args.log_keep) if args.log else None
+    except OSError as exc:
+        print(f"chcos run: --log {args.log}: {exc}", file=sys.stderr)
+        return 2
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
         stop.set()
@@ -281,9 +305,44 @@ def main(argv: Sequence[str] | None = None) -> int:
                      pin=True, values=args.value, plants=args.plant)
     except ChcosError as exc:
         print(f"chcos run: {exc}", file=sys.stderr)
+        logging.getLogger("chcos.run").error("chcos run: %s", exc)
         return 2
     finally:
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
+        for sig, previous in old.items():
+            signal.signal(sig, previous)
+        if logfile is not None:
+            logfile.close()
     return 0 if result.healthy else 1
 
+
+class LogFile:
+    """``chcos run --log``: a rotating log file on the root logger at INFO level while the run
+    lasts (the terminal keeps the level the command line set): the file is renamed ``FILE.1``
+    (older ones shifted, ``keep`` kept) when it would grow past ``megabytes``. :meth:`close`
+    puts the levels back. Raises OSError if the file cannot be opened."""
+
+    def __init__(self, path: str, megabytes: float, keep: int) -> None:
+        from logging.handlers import RotatingFileHandler
+
+        self.handler = RotatingFileHandler(path, maxBytes=int(megabytes * 1024 * 1024),
+                                           backupCount=keep, encoding="utf-8")
+        self.handler.setLevel(logging.INFO)
+        self.handler.setFormatter(logging.Formatter(
+            "%(asctime)s %(levelname)s %(name)s: %(message)s"))
+        root = logging.getLogger()
+        self._root_level = root.level
+        self._quieted = [h for h in root.handlers if h.level == logging.NOTSET]
+        for h in self._quieted:
+            h.setLevel(root.level)
+        root.addHandler(self.handler)
+        if root.level > logging.INFO or root.level == logging.NOTSET:
+            root.setLevel(logging.INFO)
+
+    def close(self) -> None:
+        """Detach and close the file; the root logger and the terminal get their levels back."""
+        root = logging.getLogger()
+        root.removeHandler(self.handler)
+        self.handler.close()
+        root.setLevel(self._root_level)
+        for h in self._quieted:
+            h.setLevel(logging.NOTSET)
