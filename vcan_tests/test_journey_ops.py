@@ -1,8 +1,13 @@
-"""Operations a cell needs (issue 39): ``chcos run --log FILE`` with rotation."""
+"""Operations a cell needs (issue 39): ``chcos run --log FILE`` with rotation; the live view's
+history of each device (a sparkline per device on the page, the same data as CSV)."""
 
 from __future__ import annotations
 
+import csv
+import io
 import logging
+import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -10,6 +15,10 @@ import pytest
 from chcos.cli import scaffold
 from chcos.cli.main import main as cli_main
 from chcos.helpers import free_port
+from chcos.kernel.clock import VirtualClock
+from chcos.viewer.history import History
+from chcos.viewer.server import serve
+from vcan_tests.support_view import get, get_json, small_cell
 
 
 @pytest.fixture
@@ -45,3 +54,46 @@ def test_run_log_refuses_an_unwritable_file(cell: Path, tmp_path: Path,
     assert cli_main(["run", str(cell / "system.toml"), "--virtual", "--duration", "1",
                      "--log", str(tmp_path / "no" / "such" / "dir" / "run.log")]) == 2
     assert "--log" in capsys.readouterr().err
+
+
+# ---- the live view's history: a sparkline per device, the same data as CSV ---------------------
+def test_viewer_keeps_each_devices_history_and_serves_it_as_csv(tmp_path: Path) -> None:
+    s = small_cell(tmp_path, clock=VirtualClock())
+    viewer = serve(s)
+    try:
+        for value in (1.0, 2.5, 4.0):     # one value per virtual second, each seen by a sample
+            s.devtab.inject("P1", value)
+            s.run_for(1.0)
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline:
+                got = get_json(viewer.url + "api/history")["devices"].get("P1", [])
+                if got and got[-1][1] == value:
+                    break
+                threading.Event().wait(0.05)
+            assert got and got[-1][1] == value, got
+        status, text = get(viewer.url + "api/history.csv")
+        assert status == 200
+        rows = list(csv.DictReader(io.StringIO(text)))
+        p1 = [float(r["value"]) for r in rows if r["device"] == "P1"]
+        assert [v for i, v in enumerate(p1) if i == 0 or v != p1[i - 1]] == [1.0, 2.5, 4.0]
+        times = [float(r["time_s"]) for r in rows if r["device"] == "P1"]
+        assert times == sorted(times) and times[-1] - times[0] >= 1.9
+        page = get(viewer.url)[1]
+        assert 'href="/api/history.csv"' in page
+        assert "sparkline" in get(viewer.url + "static/app.js")[1]
+    finally:
+        viewer.stop()
+        s.shutdown()
+
+
+def test_history_window_and_what_it_skips() -> None:
+    h = History(window=10.0, every=1.0)
+    for t in range(30):
+        h.sample(float(t), [{"name": "a", "value": t}, {"name": "s", "value": "text"},
+                            {"name": "b", "value": None}, {"name": "f", "value": t % 2 == 0}])
+    h.sample(29.0, [{"name": "a", "value": 99}])         # the clock has not moved: ignored
+    series = h.series()
+    assert set(series) == {"a", "f"}
+    assert [t for t, _v in series["a"]] == [float(t) for t in range(19, 30)]
+    assert series["a"][-1] == (29.0, 29.0) and series["f"][-1] == (29.0, 0.0)
+    assert not h.due(29.5) and h.due(30.0)
