@@ -97,3 +97,37 @@ def test_history_window_and_what_it_skips() -> None:
     assert [t for t, _v in series["a"]] == [float(t) for t in range(19, 30)]
     assert series["a"][-1] == (29.0, 29.0) and series["f"][-1] == (29.0, 0.0)
     assert not h.due(29.5) and h.due(30.0)
+
+
+def test_thirty_devices_with_long_names_draw_without_overlapping_labels() -> None:
+    """Each label is cut to what its node's width holds (the full name is the node's title),
+    so the labels of neighbouring nodes on a row never run into each other."""
+    import re
+    import xml.etree.ElementTree as ET
+
+    from chcos.viewer.graph import LINE_CHARS, NAME_CHARS, render_svg
+
+    names = [f"supply_monitor_channel_{i:02d}_dc_bus_voltage" for i in range(30)]
+    doc = {"tasks": [], "links": [],
+           "devices": [{"name": n, "direction": "sensor", "machine": 0, "status": "OK",
+                        "value": 123456.789, "units": "mV"} for n in names]}
+    root = ET.fromstring(render_svg(doc))
+    ns = {"s": "http://www.w3.org/2000/svg"}
+    rows: dict[float, list[tuple[float, float]]] = {}
+    for g in root.iter("{http://www.w3.org/2000/svg}g"):
+        if g.get("data-kind") != "sensor":
+            continue
+        assert g.findtext("s:title", namespaces=ns) in names     # the full name on hover
+        for t in g.findall("s:text", ns):
+            text = "".join(t.itertext())
+            bold = t.get("font-weight") == "bold"
+            assert len(text) <= (NAME_CHARS if bold else LINE_CHARS), text
+            width = len(text) * (7.4 if bold else 6.2)
+            x, y = float(t.get("x", "0")), float(t.get("y", "0"))
+            rows.setdefault(y, []).append((x - width / 2, x + width / 2))
+    assert rows
+    for spans in rows.values():
+        spans.sort()
+        for (_a0, a1), (b0, _b1) in zip(spans, spans[1:], strict=False):
+            assert a1 < b0, "labels overlap"
+    assert re.search("…", ET.tostring(root, encoding="unicode"))   # cut, not dropped
