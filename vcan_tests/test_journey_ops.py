@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import io
+import itertools
 import logging
 import threading
 import time
@@ -128,6 +129,6 @@ def test_thirty_devices_with_long_names_draw_without_overlapping_labels() -> Non
     assert rows
     for spans in rows.values():
         spans.sort()
-        for (_a0, a1), (b0, _b1) in zip(spans, spans[1:], strict=False):
+        for (_a0, a1), (b0, _b1) in itertools.pairwise(spans):
             assert a1 < b0, "labels overlap"
     assert re.search("…", ET.tostring(root, encoding="unicode"))   # cut, not dropped
