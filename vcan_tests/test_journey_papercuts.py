@@ -168,3 +168,24 @@ def test_scaffold_installs_its_loop_with_a_restart_policy(cell: Path) -> None:
     install = (cell / "install.chcos").read_text(encoding="utf-8")
     assert "--standing --restart=on-recovery" in install
     assert "--restart=on-recovery" in (cell / "README.md").read_text(encoding="utf-8")
+
+
+def test_scaffold_service_unit_runs_the_cell(cell: Path) -> None:
+    """The unit's ExecStart, run as systemd would (in its WorkingDirectory; here on virtual
+    time for a second), runs the cell healthy and writes the rotating log it names."""
+    import configparser
+    import os
+    import shlex
+
+    unit = configparser.ConfigParser(strict=False, interpolation=None)
+    unit.read(cell / "chcos-cell.service", encoding="utf-8")
+    service = unit["Service"]
+    assert service["Restart"] == "on-failure"
+    assert Path(service["WorkingDirectory"]) == cell.resolve()
+    argv = shlex.split(service["ExecStart"])
+    assert argv[1:5] == ["-m", "chcos.cli.main", "run", "system.toml"]
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parent.parent))
+    res = subprocess.run([*argv, "--virtual", "--duration", "1"], cwd=service["WorkingDirectory"],
+                         capture_output=True, text=True, timeout=120, env=env)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "healthy" in (cell / "cell.log").read_text(encoding="utf-8")

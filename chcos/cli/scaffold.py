@@ -155,6 +155,7 @@ the valve in proportion to how far the level is below its set-point.
 | `tasks/fill.py` | the task |
 | `install.chcos` | host commands run at start: load machine 0, install and invoke `fill` |
 | `tests/test_cell.py` | tests on virtual time against a simulated PLC (`pytest`) |
+| `chcos-{name}.service` | a systemd unit: the cell at boot, outputs on, restarted after a crash, a rotating `{name}.log` |
 
 `fill` is installed `--standing --restart=on-recovery`. Without a restart policy a task that ends
 abnormally stays ended (the thesis' rule: its owner decides): after the PLC's first network blip
@@ -171,6 +172,28 @@ chcos run system.toml                        # the real PLC: tasks run, the valv
 chcos run system.toml --outputs on           # the real PLC, driven; Ctrl-C: the valve goes to 0
 ```
 """
+
+UNIT = """\
+# systemd unit of cell {name}: runs it at boot and again after a crash. Install it with
+#   sudo cp chcos-{name}.service /etc/systemd/system/ && sudo systemctl enable --now chcos-{name}
+# Stopping it (systemctl stop, shutdown) sends SIGTERM: every actuator goes to its safe value.
+[Unit]
+Description=chcos cell {name}
+Wants=network-online.target
+After=network-online.target
+
+[Service]
+Type=simple
+WorkingDirectory={workdir}
+ExecStart={python} -m chcos.cli.main run system.toml --outputs on --log {name}.log
+Restart=on-failure
+RestartSec=5
+TimeoutStopSec=30
+
+[Install]
+WantedBy=multi-user.target
+"""
+
 
 def create(directory: str | Path, *, name: str | None = None, host: str = "127.0.0.1",
            port: int = 5020) -> list[Path]:
@@ -190,12 +213,14 @@ def create(directory: str | Path, *, name: str | None = None, host: str = "127.0
         "system.toml": SYSTEM, "devices.toml": DEVICES, "tasks/fill.py": TASK,
         "install.chcos": INSTALL, "README.md": README, "tests/test_cell.py": TEST,
         "pytest.ini": "[pytest]\ntestpaths = tests\naddopts = -p no:cacheprovider\n",
+        f"chcos-{name}.service": UNIT,
     }
     written = []
     for rel, text in files.items():
         path = root / rel
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(text.format(name=name, host=host, port=port), encoding="utf-8")
+        path.write_text(text.format(name=name, host=host, port=port, workdir=root.resolve(),
+                                    python=sys.executable), encoding="utf-8")
         written.append(path)
     return written
 
