@@ -155,7 +155,7 @@ the valve in proportion to how far the level is below its set-point.
 | `tasks/fill.py` | the task |
 | `install.chcos` | host commands run at start: load machine 0, install and invoke `fill` |
 | `tests/test_cell.py` | tests on virtual time against a simulated PLC (`pytest`) |
-| `chcos-{name}.service` | a systemd unit: the cell at boot, outputs on, restarted after a crash, a rotating `{name}.log` |
+| `chcos-{name}.service` | systemd unit: at boot, outputs on, restarted on a crash, `{name}.log` |
 
 `fill` is installed `--standing --restart=on-recovery`. Without a restart policy a task that ends
 abnormally stays ended (the thesis' rule: its owner decides): after the PLC's first network blip
