@@ -189,3 +189,23 @@ def test_scaffold_service_unit_runs_the_cell(cell: Path) -> None:
                          capture_output=True, text=True, timeout=120, env=env)
     assert res.returncode == 0, res.stdout + res.stderr
     assert "healthy" in (cell / "cell.log").read_text(encoding="utf-8")
+
+
+def test_check_warns_of_udp_multicast_buses_sharing_a_port(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    one = CAN_MAP.replace('"virtual"', '"udp_multicast"').replace('channel = "cell"',
+                                                                  'channel = "239.1.2.3"')
+    two = one.replace('name = "cell"', 'name = "cell2"').replace('bus = "cell"',
+                                                                 'bus = "cell2"') \
+        .replace("239.1.2.3", "239.1.2.4").replace('name = "T1"', 'name = "T2"')
+    (tmp_path / "a.toml").write_text(one, encoding="utf-8")
+    (tmp_path / "b.toml").write_text(two, encoding="utf-8")
+    capsys.readouterr()
+    assert cli_main(["check", str(tmp_path / "a.toml"), str(tmp_path / "b.toml")]) == 0
+    err = capsys.readouterr().err
+    assert "b.toml: bus[0] (cell2): udp_multicast port 43113 is also bus cell's" in err, err
+    (tmp_path / "b.toml").write_text(two.replace('channel = "239.1.2.4"',
+                                                 'channel = "239.1.2.4"\nport = 43120'),
+                                     encoding="utf-8")
+    assert cli_main(["check", str(tmp_path / "a.toml"), str(tmp_path / "b.toml")]) == 0
+    assert "udp_multicast port" not in capsys.readouterr().err

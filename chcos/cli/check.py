@@ -12,10 +12,40 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
+from chcos.devices.spec import BusSpec, DeviceMap
 from chcos.errors import ChcosError
 
-__all__ = ["check_system", "main", "parser"]
+__all__ = ["check_maps", "check_system", "main", "parser", "shared_multicast_ports"]
+
+UDP_DEFAULT_PORT = 43113
+"""python-can's udp_multicast port when a bus names none."""
+
+
+def shared_multicast_ports(dmap: DeviceMap) -> list[str]:
+    """A warning per pair of ``udp_multicast`` buses on one UDP port: a socket bound to a port
+    hears every group joined on it, so each bus would receive the other's frames. Give each bus
+    its own group and port."""
+    by_port: dict[int, list[BusSpec]] = {}
+    for bus in dmap.buses:
+        if bus.kind in ("can", "canopen") and bus.options.get("interface") == "udp_multicast":
+            port = bus.options.get("port", UDP_DEFAULT_PORT)
+            by_port.setdefault(port if isinstance(port, int) else -1, []).append(bus)
+    return [f"{later.file}: {later.key} ({later.name}): udp_multicast port {port} is also "
+            f"bus {buses[0].name}'s ({buses[0].file}): each would hear the other's frames; "
+            "give every bus its own port (and group)"
+            for port, buses in by_port.items() if port > 0 for later in buses[1:]]
+
+
+def check_maps(paths: Sequence[str | Path]) -> tuple[DeviceMap | None, list[str], list[str]]:
+    """:func:`chcos.devices.devmap.check` plus :func:`shared_multicast_ports`' warnings."""
+    from chcos.devices.devmap import check
+
+    dmap, errors, warnings = check(list(paths))
+    if dmap is not None:
+        warnings = [*warnings, *shared_multicast_ports(dmap)]
+    return dmap, errors, warnings
 
 
 def parser() -> argparse.ArgumentParser:
@@ -36,7 +66,6 @@ def parser() -> argparse.ArgumentParser:
 def check_system(path: str) -> tuple[list[str], list[str], str]:
     """Check one system file: returns ``(errors, warnings, summary)``; never raises for a bad
     file (each problem is a line naming it)."""
-    from chcos.devices.devmap import check
     from chcos.satellites import sysfile
 
     try:
@@ -56,7 +85,7 @@ def check_system(path: str) -> tuple[list[str], list[str], str]:
     warnings: list[str] = []
     devices = 0
     if sf.devmaps:
-        dmap, errors, warnings = check(list(sf.devmaps))
+        dmap, errors, warnings = check_maps(list(sf.devmaps))
         devices = len(dmap.devices) if dmap is not None else 0
     if sf.satellites:
         where = ", ".join(f"{m}@{sf.host_of(m)}:{p}" for m, p in sorted(sf.satellites.items()))
@@ -82,9 +111,16 @@ def main(argv: Sequence[str]) -> int:
         ap.error("expected device-map files or --system SYSTEM")
     status = 0
     if maps:
-        from chcos.devices.devmap import check_main as check_maps
-
-        status = check_maps(maps)
+        dmap, errors, warnings = check_maps(maps)
+        for w in warnings:
+            print(f"warning: {w}", file=sys.stderr)
+        if dmap is None:
+            print(f"{len(errors)} error(s) in device map {', '.join(maps)}:\n"
+                  + "\n".join(errors), file=sys.stderr)
+            status = 1
+        else:
+            print(f"ok: {len(dmap.buses)} buses, {len(dmap.devices)} devices"
+                  + (f", {len(warnings)} warning(s)" if warnings else ""))
     for path in systems:
         errors, warnings, summary = check_system(path)
         for w in warnings:
