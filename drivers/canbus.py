@@ -27,7 +27,7 @@ def bus_config(options: Mapping[str, Any]) -> dict[str, Any]:
              if k in options}  # port: udp_multicast's UDP port (one group and port per bus)
     try:
         cfg = dict(can.util.load_config(config=given))
-    except (can.CanInterfaceNotImplementedError, ValueError) as exc:
+    except (can.CanInterfaceNotImplementedError, ValueError, TypeError) as exc:
         raise BusError(f"python-can configuration: {exc}") from exc
     if cfg.get("channel") is None:
         raise BusError("python-can configuration gives no channel (set channel or CAN_CHANNEL)")

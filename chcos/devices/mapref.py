@@ -128,7 +128,10 @@ REFERENCE: dict[str, Kind] = {
              "addresses"),
          Key("record", "path", "-", "record every frame (`.log` candump, `.asc`, `.blf`)"),
          Key("poll", "float s", "0.005", "receive timeout on interfaces without a file "
-             "descriptor")),
+             "descriptor"),
+         Key("port", "integer 1..65535", "43113", "UDP port of interface `udp_multicast` "
+             "(a bus shared by processes on any machine; `channel` is its multicast group): "
+             "give each bus its own group and port")),
         (Key("message", "string", "required (DBC form)", "message name in the DBC", "DBC form"),
          Key("signal", "string", "required (DBC form)", "signal name; the DBC's scale and "
              "offset are applied by the driver", "DBC form"),
