@@ -110,3 +110,22 @@ def test_pytest_plugin_takes_values_and_a_plant(cell: Path, chcos_cell: Any) -> 
     modelled.script("level", "40")
     modelled.run_for(0.5)                        # the script wins over the plant it follows
     assert modelled.peer("valve") == 100
+
+
+def test_sim_from_takes_a_plant_too(cell: Path, monkeypatch: pytest.MonkeyPatch,
+                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """A plant that fills the tank at 10 cm/s: the level the simulated PLC serves climbs."""
+    (cell / "inflow.py").write_text(
+        "def inflow(t, slaves):\n"
+        "    slaves.set('level', min(200.0, (slaves.get('level') or 0.0) + 0.1))\n",
+        encoding="utf-8")
+    monkeypatch.chdir(cell)
+    capsys.readouterr()
+    assert cli_main(["sim", "--from", "devices.toml", "--plant", "inflow.py:inflow",
+                     "--duration", "1.5", "--every", "0.5"]) == 0
+    levels = [float(line.split("level=")[1].split()[0])
+              for line in capsys.readouterr().out.splitlines() if "level=" in line]
+    assert len(levels) >= 2 and levels == sorted(levels) and levels[-1] > 5.0, levels
+    assert cli_main(["sim", "--from", "devices.toml", "--plant", "inflow.py:nope",
+                     "--duration", "1"]) == 2
+    assert "has no function nope" in capsys.readouterr().err
