@@ -27,6 +27,7 @@ Your own cell:
   chcos monitor SYSTEM           commission a live bus: listen-only, mismatches flagged
   chcos import eds|dbc|modbus F  write a device map from an EDS, a DBC or a register list
   chcos check FILE...            validate device maps without opening a bus
+                                 (--system SYSTEM: a system file and its maps)
   chcos sim --from MAP           simulated slaves for every device of a map
 
 The thesis' systems:

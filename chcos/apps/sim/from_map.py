@@ -30,7 +30,10 @@ address).
 :class:`SimSlaves` is the handle: :meth:`~SimSlaves.set` puts a sensor's value (engineering units,
 the map's scale and offset applied backwards), :meth:`~SimSlaves.script` makes it follow a
 function of time (:func:`parse_script`: constant, ramp, sine, square, CSV trace),
-:meth:`~SimSlaves.get` reads what the system last wrote to an actuator, and
+:meth:`~SimSlaves.values` takes ``DEVICE=SCRIPT`` items (``--value``), :meth:`~SimSlaves.add_plant`
+attaches a user's plant model (:data:`Plant`, called every :data:`TICK`; :func:`load_plant` loads
+one from ``FILE.py:function``), :meth:`~SimSlaves.get` reads what the system last wrote to an
+actuator, and
 :meth:`~SimSlaves.silence`/:meth:`~SimSlaves.restore` make a bus's peer stop and resume answering.
 Time comes from :meth:`~SimSlaves.attach` (a kernel's clock: virtual time stays deterministic) or
 :meth:`~SimSlaves.run_realtime`. A serial bus on a device path (not ``socket://``) can be
