@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from chcos.errors import CommandSyntaxError
 from chcos.satellites import control
 from chcos.system.textview import render_text
 from vcan_tests.support_sat import DEVMAP, Cluster
@@ -42,5 +43,9 @@ def test_a_map_of_ten_thousand_devices_is_read_whole(tmp_path: Path) -> None:
         assert len(json.dumps(doc)) > 2 * 1024 * 1024   # more than one link message carries
         assert f"sensor_with_a_long_name_{N - 1:05d}" in render_text(doc)   # chcos host map
         assert host.rejected(0) is not None
+        # host input capped before it is sent: the satellite never sees a malformed request
+        with pytest.raises(CommandSyntaxError, match=f"at most {control.MAX_LINE}"):
+            host.execute("invoke T x=" + "1" * (control.MAX_LINE + 10))
+        assert host.rejected(0) == {}
     finally:
         cluster.close()

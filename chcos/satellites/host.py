@@ -276,7 +276,12 @@ class Host:
 
     def execute(self, line: str) -> str:
         """Carry out one host command line on the system; returns the answer. Raises
-        CommandSyntaxError, InstallError (nothing changed anywhere), LinkError."""
+        CommandSyntaxError, InstallError (nothing changed anywhere), LinkError. A line longer
+        than a satellite takes (``control.MAX_LINE``) is refused here, before it is sent."""
+        if len(line) > control.MAX_LINE:
+            raise CommandSyntaxError(f"{line[:40].strip()}...: a command line of {len(line)} "
+                                     f"characters; a satellite takes at most "
+                                     f"{control.MAX_LINE}")
         req = cmdline.parse(line)
         if req is None:
             return ""
