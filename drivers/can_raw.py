@@ -7,6 +7,8 @@ Bus options:
   variables and its config files), so one map serves ``virtual`` on a laptop and ``socketcan`` at
   the cell.
 - ``bitrate`` (int > 0, optional), ``fd`` (bool, default false)
+- ``port``: with ``interface = "udp_multicast"`` (python-can's bus between processes on any
+  machine, ``channel`` the multicast group), the UDP port; give each bus its own group and port
 - ``dbc``: a DBC file (relative to the map file); needed for ``{message, signal}`` addresses
 - ``record``: a log file (``.log``/``.asc``/``.blf``...) receiving every frame received (with
   ``filter``, only the map's ids) and sent
@@ -105,7 +107,7 @@ from drivers.recording import LOG_SUFFIXES, Recorder
 from drivers.threaded import ThreadedDriver
 
 BUS_OPTIONS = ("interface", "channel", "bitrate", "fd", "dbc", "record", "poll", "filter",
-               "ignore_ids", "unknown_ids")
+               "ignore_ids", "unknown_ids", "port")
 #: Bus keys that would declare counters or checksums: refused by ``check`` with the reason.
 REFUSED_OPTIONS = ("counter", "crc", "checksum")
 
@@ -207,6 +209,10 @@ class CanDriver(ThreadedDriver):
         if "poll" in o and (isinstance(o["poll"], bool) or not isinstance(o["poll"], int | float)
                             or not 0 < o["poll"] <= 1):
             errs.append(f"{bus.key}.poll: expected seconds in (0, 1], got {o['poll']!r}")
+        if "port" in o and (o.get("interface") != "udp_multicast" or not is_int(o["port"])
+                            or not 1 <= o["port"] <= 65535):
+            errs.append(f"{bus.key}.port: the UDP port of interface \"udp_multicast\" "
+                        f"(1..65535), got {o['port']!r} with interface {o.get('interface')!r}")
         for k in ("interface", "channel"):
             if k in o and not isinstance(o[k], str | int):
                 errs.append(f"{bus.key}.{k}: expected a string, got {o[k]!r}")

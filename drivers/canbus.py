@@ -29,10 +29,11 @@ def bus_config(options: Mapping[str, Any]) -> dict[str, Any]:
     """python-can's configuration for this bus: the map's options over ``can.util.load_config``.
 
     Raises :class:`BusError` if python-can's configuration names no usable interface."""
-    given = {k: options[k] for k in ("interface", "channel", "bitrate", "fd") if k in options}
+    given = {k: options[k] for k in ("interface", "channel", "bitrate", "fd", "port")
+             if k in options}  # port: udp_multicast's UDP port (one group and port per bus)
     try:
         cfg = dict(can.util.load_config(config=given))
-    except (can.CanInterfaceNotImplementedError, ValueError) as exc:
+    except (can.CanInterfaceNotImplementedError, ValueError, TypeError) as exc:
         raise BusError(f"python-can configuration: {exc}") from exc
     if cfg.get("channel") is None:
         raise BusError("python-can configuration gives no channel (set channel or CAN_CHANNEL)")

@@ -145,7 +145,10 @@ REFERENCE: dict[str, Kind] = {
              "node owns: never warned about, counted as `ignored-id`"),
          Key("unknown_ids", "string", "`warn`", "a frame of an id of no device that reaches "
              "chcos: `ignore` (counted), `warn` (counted, one warning per 10 s), `fail` (a bus "
-             "error: the run is unhealthy)")),
+             "error: the run is unhealthy)"),
+         Key("port", "integer 1..65535", "43113", "UDP port of interface `udp_multicast` "
+             "(a bus shared by processes on any machine; `channel` is its multicast group): "
+             "give each bus its own group and port")),
         (Key("message", "string", "required (DBC form)", "message name in the DBC", "DBC form"),
          Key("signal", "string", "required (DBC form)", "signal name; the DBC's scale and "
              "offset are applied by the driver", "DBC form"),

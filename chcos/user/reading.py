@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import logging
 import types
-from collections.abc import Callable, Generator, Sequence
+from collections.abc import Awaitable, Callable, Generator, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar, overload
 
 from chcos.errors import MessageError, ReadTimeout, SensorFailure
 from chcos.kernel.scheduler import BLOCK
@@ -40,6 +40,17 @@ def _best(ports: Sequence[InPort]) -> InPort | None:
             if prio > top or (prio == top and p.index < best.index):  # type: ignore[union-attr]
                 best, top = p, prio
     return best
+
+
+_Named = TypeVar("_Named", bound=Port)   # how a read_any caller names its ports
+
+
+def _position(ports: Sequence[InPort], port: InPort) -> int:
+    """Where ``port`` is in ``ports`` (by identity: the first place, if it is named twice)."""
+    for i, p in enumerate(ports):
+        if p is port:
+            return i
+    raise AssertionError("read_any took a port it was not given")
 
 
 @dataclass(frozen=True)
@@ -132,11 +143,21 @@ class Reading(TaskHandle):
             return value
         return self._take(p)
 
-    @types.coroutine
+    @overload
+    def read_any(self, ports: None = None,
+                 timeout: float | None = None) -> Awaitable[tuple[int, Any]]: ...
+
+    @overload
+    def read_any(self, ports: Sequence[_Named],
+                 timeout: float | None = None) -> Awaitable[tuple[_Named, Any]]: ...
+
+    @types.coroutine  # type: ignore[misc]
     def read_any(self, ports: Sequence[Port] | None = None,
-                 timeout: float | None = None) -> Generator[Any, Any, tuple[int, Any]]:
-        """(port index, message) from whichever of ``ports`` (default: all inputs) has one; if
+                 timeout: float | None = None) -> Generator[Any, Any, tuple[Port, Any]]:
+        """(port, message) from whichever of ``ports`` (default: all inputs) has one; if
         several do, the highest-priority link first, then the lowest port. Waits if none has.
+        The port comes back as the caller named it: the element of ``ports`` it was given as
+        (a source name stays a name, an index an index); without ``ports``, the port index.
         Raises as :meth:`read`."""
         t = self._t
         best: InPort | None = None
@@ -175,17 +196,19 @@ class Reading(TaskHandle):
             # what is there now, by the priorities now
             best = chosen[0] if single else _best(chosen)
             assert best is not None
+        # what the caller named: the element of ``ports`` that is this port, else its index
+        named: Port = best.index if ports is None else ports[_position(chosen, best)]
         if best.plain:  # the hot paths, as in read
             value = best.value
             best.value = None
             best.fresh = False
-            return best.index, value
+            return named, value
         if best.fifo_plain:
             fifo = best.fifo
             value = fifo.popleft()[0]  # type: ignore[union-attr]
             best.fresh = bool(fifo)
-            return best.index, value
-        return best.index, self._take(best)
+            return named, value
+        return named, self._take(best)
 
     def poll(self, port: Port = 0, default: Any = None) -> Any:
         """The newest message on ``port`` if there is one, else ``default`` (never waits).

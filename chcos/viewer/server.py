@@ -59,6 +59,7 @@ from chcos.system.textview import render_text
 from chcos.viewer import ViewerError
 from chcos.viewer.commands import PageCommands
 from chcos.viewer.graph import Live, render_dot, render_svg
+from chcos.viewer.history import History
 from chcos.viewer.snapshot import (
     SAME,
     EventLog,
@@ -128,7 +129,8 @@ class Viewer:
                  users: Users | None = None, implicit: bool = False,
                  svg_period: float = 1.0, stall_timeout: float = 5.0,
                  max_buffer: int = 1 << 20, ssl_context: ssl.SSLContext | None = None,
-                 login_throttle: LoginThrottle | None = None) -> None:
+                 login_throttle: LoginThrottle | None = None,
+                 history: History | None = None) -> None:
         if period <= 0:
             raise ViewerError(f"snapshot period {period} s: must be positive")
         if stall_timeout <= 0 or max_buffer <= 0:
@@ -146,6 +148,8 @@ class Viewer:
         self.stall_timeout = stall_timeout
         self.max_buffer = max_buffer
         self.users = users
+        #: each device's recent values (sparklines on the page, /api/history.csv)
+        self.history = history or History()
         self.snapshots = Snapshotter(system, events, implicit)
         self.events = self.snapshots.events
         self.implicit = implicit
@@ -223,6 +227,8 @@ class Viewer:
         app.router.add_get("/api/map.svg", self._map_svg)
         app.router.add_get("/api/map.dot", self._map_dot)
         app.router.add_get("/api/map.txt", self._map_txt)
+        app.router.add_get("/api/history", self._history)
+        app.router.add_get("/api/history.csv", self._history_csv)
         app.router.add_get("/api/session", self.commands.session)
         app.router.add_post("/api/login", self.commands.login)
         app.router.add_post("/api/logout", self.commands.logout)
@@ -277,6 +283,7 @@ class Viewer:
         assert self._tick is not None
         while True:
             await asyncio.sleep(self.period)
+            await self._sample_history()
             if self._clients:
                 try:
                     new = self._next_state()
@@ -286,6 +293,19 @@ class Viewer:
                 self._prev, self._state = self._state, new
                 async with self._tick:
                     self._tick.notify_all()
+
+    async def _sample_history(self) -> None:
+        """A history sample when one is due on the system's clock (pages open or not); the
+        tables are read on a worker thread, never on the event loop."""
+        now = self.system.kernel.clock.now() - self.events.t0
+        if not self.history.due(now):
+            return
+        loop = asyncio.get_running_loop()
+        try:
+            doc = await loop.run_in_executor(None, self.snapshots.map_doc)
+        except ViewerError:  # a torn read: the next tick samples
+            return
+        self.history.sample(now, doc["devices"])
 
     # ---- guard: Host and Origin -------------------------------------------------------------
     def _own_hosts(self) -> set[str]:
@@ -368,6 +388,14 @@ class Viewer:
     async def _map_dot(self, request: web.Request) -> web.Response:
         doc = self.snapshots.map_doc()
         return web.Response(text=render_dot(doc), content_type="text/vnd.graphviz")
+
+    async def _history(self, request: web.Request) -> web.Response:
+        return web.json_response(self.history.as_json(), dumps=_dumps)
+
+    async def _history_csv(self, request: web.Request) -> web.Response:
+        return web.Response(text=self.history.as_csv(), content_type="text/csv",
+                            headers={"Content-Disposition":
+                                     'attachment; filename="chcos-history.csv"'})
 
     async def _map_txt(self, request: web.Request) -> web.Response:
         return web.Response(text=render_text(self.snapshots.map_doc()) + "\n")

@@ -65,8 +65,7 @@ async def _watch(ctx: TaskContext) -> None:
     sticking_until: float | None = None
     last_set: float | None = None
     while True:
-        port, msg = await ctx.read_any(["A1", "A2", "A4"])
-        src = ctx.inputs[port]
+        src, msg = await ctx.read_any(["A1", "A2", "A4"])
         if not isinstance(msg, dict) or "fail" in msg:
             continue
         now = ctx.now

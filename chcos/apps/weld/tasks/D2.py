@@ -144,8 +144,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     while True:
         for task in ("B1", "B4", "A5"):
             await _check(ctx, task)
-        index, msg = await ctx.read_any(["A7", "A1", "C1", "B1"], timeout=1.0)
-        src = ctx.inputs[index]
+        src, msg = await ctx.read_any(["A7", "A1", "C1", "B1"], timeout=1.0)
         here = await latest(ctx, "A4")
         travelled = tracker.moved(here["pos"])
         if not isinstance(msg, dict) or "fail" in msg:
