@@ -224,7 +224,7 @@ def _links(s: System) -> list[Any]:
             lk.dst_machine) for lk in s.msgtab]
     special = sorted((t.name, sorted(t.special_links)) for t in s.tsktab)
     taps = [(e.name, sorted(links)) for e, _tap, links in s.msgmgr.taps]
-    tapped = [(t.name, t.tapped, t.up_one is not None) for t in s.tsktab]
+    tapped = [(t.name, t.tapped, len(t.up_links)) for t in s.tsktab]
     return [*out, special, taps, tapped]
 
 

@@ -9,21 +9,18 @@ tells the layer above through its end handler (:data:`EndHandler`, with an :clas
 from __future__ import annotations
 
 import enum
-from collections import deque
 from collections.abc import Callable
 from typing import Any
 
 from chcos.errors import KernelError, Preempted
 from chcos.tables.tasks import TaskEntry, TaskState
 
-__all__ = ["BLOCK", "YIELD", "End", "EndHandler", "FrozenUnwait", "Lifecycle"]
+__all__ = ["BLOCK", "YIELD", "End", "EndHandler", "Lifecycle"]
 
 #: Trap a task yields to give the processor back and stay ready.
 YIELD = object()
 #: Trap a task yields after it has recorded what it waits for.
 BLOCK = object()
-
-_READY = TaskState.READY
 
 
 class End(enum.Enum):
@@ -37,30 +34,12 @@ class End(enum.Enum):
 EndHandler = Callable[[TaskEntry, End, Any], None]
 
 
-class FrozenUnwait:
-    """The ``unwait`` of a task suspended in a wait: it ends that wait as the task's own did.
-
-    A delivery tells a plain read of its port by identity (``w.unwait is port.unwait``) and
-    then readies the reader itself; while the reader is frozen, this stand-in fails that test,
-    so the delivery takes the general path, which keeps the wake-up for :meth:`Lifecycle.resume`.
-    (The hot path so tests no freeze.)"""
-
-    __slots__ = ("inner",)
-
-    def __init__(self, inner: Callable[[TaskEntry], None]) -> None:
-        self.inner = inner
-
-    def __call__(self, t: TaskEntry) -> None:
-        self.inner(t)
-
-
 class Lifecycle:
     """Suspend, resume, cancel and end activations (a base of the kernel, which provides
     ``ready``, ``current`` and the end handler)."""
 
     current: TaskEntry | None
     _on_end: EndHandler | None
-    _irq: deque[tuple[Callable[..., None], tuple[Any, ...]]]  # the kernel's interrupt queue
     ready: Callable[[TaskEntry, int], None]  # the kernel's: make a task ready at a priority
     unready: Callable[[TaskEntry], None]  # the kernel's: take a task out of the ready queue
 
@@ -93,9 +72,8 @@ class Lifecycle:
             t.frozen_ready = t.prio
             self.unready(t)
         else:
-            t.frozen_state = t.state  # what it waits in, for resume
-            if t.unwait is not None:
-                t.unwait = FrozenUnwait(t.unwait)
+            t.frozen_state = t.state  # what it waits in, for resume (a wake-up meanwhile
+            # ends the wait and is kept by ready as frozen_ready)
         t.state = TaskState.SUSPENDED
 
     def resume(self, t: TaskEntry) -> None:
@@ -103,9 +81,6 @@ class Lifecycle:
         if not t.frozen:
             return
         t.frozen = False
-        unwait = t.unwait
-        if unwait.__class__ is FrozenUnwait:  # still in the wait it was frozen in
-            t.unwait = unwait.inner
         pending, t.frozen_ready = t.frozen_ready, None
         state, t.frozen_state = t.frozen_state, None
         if pending is not None:
@@ -123,26 +98,13 @@ class Lifecycle:
         t.cancelling = True
         self.unhook(t)
         t.throw_exc = Preempted(reason)
-        t.plain = None
         t.send_value = None
-        if t is not self.current:
+        if t is not self.current:  # (cancelled in its own step: the step ends it, see _step)
             frozen, t.frozen = t.frozen, False
             self.ready(t, max(t.prio, t.base_prio))
             t.frozen = frozen
             if frozen:  # it runs to its end although frozen; resume finds it ready
-                t.frozen_state = _READY
-        else:  # cancelled in its own step, which the run loop's plain step does not test
-            # for: this interrupt, first in line, ends the activation right after the step
-            self._irq.appendleft((self._cancelled_in_step, (t, t.coro)))
-
-    def _cancelled_in_step(self, t: TaskEntry, coro: Any) -> None:
-        """``t`` was cancelled during its own step (which has ended now): end the activation
-        there, whether the step ended in a wait or a yield, unless it ended it itself."""
-        if t.coro is not coro or not t.cancelling:  # it returned or raised (see _raised)
-            return
-        if t.state is _READY:  # it yielded
-            self.unready(t)
-        self._odd_trap(t, coro, None)
+                t.frozen_state = TaskState.READY
 
     def _raised(self, t: TaskEntry, err: Exception) -> None:
         """``t``'s step raised ``err``: its activation ended (returned, pre-empted, failed)."""
@@ -155,20 +117,20 @@ class Lifecycle:
 
     def _odd_trap(self, t: TaskEntry, coro: Any, trap: Any) -> None:
         """``t``'s step ended in something other than a plain block or yield: a cancelled task
-        that carried on, a frozen task's yield, or an await of something not a chcos call."""
+        that carried on (or was cancelled during the step), or an await of something not a
+        chcos call."""
         if t.cancelling:  # it caught the cancellation and carried on: end it for good
             coro.close()
             self._end(t, End.PREEMPTED, None)
-        elif trap is YIELD:
-            self.ready(t, t.prio)
         else:
             coro.close()
             self._end(t, End.ERROR, KernelError(
                 f"task {t.name} awaited something that is not a chcos call ({trap!r})"))
 
     def _end(self, t: TaskEntry, how: End, value: Any) -> None:
-        t.coro = t.plain = None
+        t.coro = None
         t.send_value = None   # a next activation's first step sends None
+        t.throw_exc = None
         t.cancelling = False
         self.unhook(t)
         if self._on_end is not None:

@@ -52,7 +52,7 @@ class Timers:
     """Timers and collected errors for :class:`chcos.kernel.scheduler.Kernel` (its base)."""
 
     clock: Clock
-    ready_seq: int
+    _seq: int  # the kernel's entry sequence (ties: first come first)
     #: periods that periodic timers skipped because the kernel came back too late for them
     skipped_periods: int = 0
     _timers: list[tuple[float, int, Timer]]
@@ -66,8 +66,8 @@ class Timers:
         if period is not None and period <= 0:
             raise ValueError(f"timer period must be positive, got {period}")
         tm = Timer(deadline, callback, period)
-        self.ready_seq += 1
-        heappush(self._timers, (deadline, self.ready_seq, tm))
+        self._seq += 1
+        heappush(self._timers, (deadline, self._seq, tm))
         return tm
 
     def call_later(self, delay: float, callback: Callable[[], None]) -> Timer:
@@ -89,7 +89,7 @@ class Timers:
                 heappop(timers)
                 continue
             period = tm.period
-            if period is not None:  # re-armed in place: one sift of the heap instead of two
+            if period is not None:  # re-armed in place
                 count = tm.count + 1
                 # drift-free, whole nanoseconds (see _skip)
                 deadline = round((tm.base + count * period) * 1e9) / 1e9
@@ -97,8 +97,8 @@ class Timers:
                     count, deadline = self._skip(tm, count, now)
                 tm.count = count
                 tm.deadline = deadline
-                self.ready_seq = seq = self.ready_seq + 1
-                heapreplace(timers, (deadline, seq, tm))
+                self._seq += 1
+                heapreplace(timers, (deadline, self._seq, tm))
             else:
                 heappop(timers)
             try:
