@@ -19,11 +19,11 @@ from collections.abc import Callable
 from heapq import heapify, heappop, heappush
 from typing import Any
 
-from chcos.errors import HandlerError, KernelError
+from chcos.errors import KernelError
 from chcos.kernel.clock import Clock, RealClock
 from chcos.kernel.instrument import Hooks
 from chcos.kernel.lifecycle import BLOCK, YIELD, End, EndHandler, Lifecycle
-from chcos.kernel.timers import KEEP_ERRORS, Timer, Timers
+from chcos.kernel.timers import HandlerErrors, Timer, Timers
 from chcos.tables.tasks import TaskEntry, TaskState
 
 __all__ = ["BLOCK", "YIELD", "End", "EndHandler", "Kernel", "Timer"]  # Timer: what call_at returns
@@ -37,7 +37,7 @@ def _nothing() -> None:
     after draining interrupts, so a stop must leave one there."""
 
 
-class Kernel(Lifecycle, Hooks, Timers):
+class Kernel(Lifecycle, Hooks):
     """One satellite's scheduler. Everything except :meth:`interrupt` and :meth:`stop` must be
     called on the kernel thread (from tasks, timer callbacks or interrupt handlers).
 
@@ -46,7 +46,8 @@ class Kernel(Lifecycle, Hooks, Timers):
     it when the task is woken or cancelled. Every path that readies a task goes through
     :meth:`ready` (a wake-up through :meth:`wake`, which calls it), and every task step through
     :meth:`_step`. Instruments: see :class:`Hooks`; suspend, resume, cancel and how
-    activations end: see :class:`Lifecycle`; timers: see :class:`Timers`."""
+    activations end: see :class:`Lifecycle`; timers: :attr:`timers` (a :class:`Timers`); the
+    errors collected on the kernel thread: :attr:`errors` (a :class:`HandlerErrors`)."""
 
     def __init__(self, clock: Clock | None = None) -> None:
         super().__init__()
@@ -58,7 +59,10 @@ class Kernel(Lifecycle, Hooks, Timers):
         self._ready: list[tuple[int, int, TaskEntry]] = []
         # the sequence number of the newest ready-queue or timer entry (ties: first come first)
         self._seq = 0
-        self._timers: list[tuple[float, int, Timer]] = []
+        #: the errors of interrupt handlers and timer callbacks, raised by :meth:`check`
+        self.errors = HandlerErrors()
+        #: the kernel's timers (the thesis' delta list)
+        self.timers = Timers(self.clock, self.errors)
         self._irq: deque[tuple[Callable[..., None], tuple[Any, ...]]] = deque()
         self._wake = threading.Event()
         self._idle = False
@@ -75,9 +79,35 @@ class Kernel(Lifecycle, Hooks, Timers):
         # step counts, so a step counts once, on its task, and nowhere else
         self._tasks: dict[TaskEntry, None] = {}
         self._on_end: EndHandler | None = None
-        #: text of every failed interrupt handler and timer callback (the newest KEEP_ERRORS)
-        self.irq_errors: list[str] = []
-        self._unchecked: deque[HandlerError] = deque(maxlen=KEEP_ERRORS)  # see check()
+
+    # ---- timers and collected errors (owned objects) ------------------------------------------
+    def call_at(self, deadline: float, callback: Callable[[], None],
+                period: float | None = None) -> Timer:
+        """See :meth:`Timers.call_at`."""
+        return self.timers.call_at(deadline, callback, period)
+
+    def call_later(self, delay: float, callback: Callable[[], None]) -> Timer:
+        """See :meth:`Timers.call_later`."""
+        return self.timers.call_later(delay, callback)
+
+    def every(self, period: float, callback: Callable[[], None]) -> Timer:
+        """See :meth:`Timers.every`."""
+        return self.timers.every(period, callback)
+
+    @property
+    def skipped_periods(self) -> int:
+        """Periods that periodic timers skipped because the kernel came back too late."""
+        return self.timers.skipped_periods
+
+    @property
+    def irq_errors(self) -> list[str]:
+        """Text of every failed interrupt handler and timer callback (the newest ones)."""
+        return self.errors.texts
+
+    def check(self) -> None:
+        """See :meth:`HandlerErrors.check`: raise the oldest error collected on the kernel
+        thread and not raised yet (a HandlerError). Thread-safe."""
+        self.errors.check()
 
     @property
     def steps(self) -> int:
@@ -90,7 +120,7 @@ class Kernel(Lifecycle, Hooks, Timers):
         late for them (see :mod:`chcos.kernel.timers`), failed handlers and timer callbacks."""
         return {"steps": self.steps,
                 "ready": len(self._ready),
-                "timers": sum(1 for _d, _s, tm in self._timers if not tm.cancelled),
+                "timers": self.timers.pending(),
                 "skipped_periods": self.skipped_periods,
                 "handler_errors": len(self.irq_errors)}
 
@@ -173,7 +203,7 @@ class Kernel(Lifecycle, Hooks, Timers):
             try:
                 handler(*args)
             except Exception as exc:
-                self._record_irq_error(getattr(handler, "__qualname__", repr(handler)), exc)
+                self.errors.record(getattr(handler, "__qualname__", repr(handler)), exc)
 
     def add_settler(self, settle: Callable[[float], bool]) -> None:
         """Register a driver's ``settle(timeout)``; called before virtual time jumps ahead so
@@ -212,7 +242,7 @@ class Kernel(Lifecycle, Hooks, Timers):
         self._running = True
         self._stop = False
         self.thread_ident = threading.get_ident()
-        irq, timers, ready, step = self._irq, self._timers, self._ready, self._step
+        irq, timers, ready, step = self._irq, self.timers.heap, self._ready, self._step
         try:
             while True:
                 if irq:  # interrupts first, and stop(), which queues one
@@ -223,7 +253,7 @@ class Kernel(Lifecycle, Hooks, Timers):
                     now = self.clock.now()
                     due = timers[0][0]
                     if due <= now and (until is None or due <= until):
-                        self._fire_timers(now if until is None else min(now, until))
+                        self.timers.fire(now if until is None else min(now, until))
                 if ready:  # the highest priority first, ties first come first served
                     step(heappop(ready)[2])
                 elif not self._idle_wait(until):
@@ -241,9 +271,7 @@ class Kernel(Lifecycle, Hooks, Timers):
             if self._ready or self._irq:
                 return True
         clock = self.clock
-        while self._timers and self._timers[0][2].cancelled:
-            heappop(self._timers)
-        deadline = self._timers[0][0] if self._timers else None
+        deadline = self.timers.next_deadline()
         if until is not None and (deadline is None or deadline > until):
             deadline = until
         if clock.virtual:
