@@ -20,7 +20,7 @@ from chcos.errors import MessageError, ReadTimeout
 from chcos.kernel.clock import VirtualClock
 from chcos.system.embedded import System
 from chcos.user.context import TaskContext
-from chcos.user.worldmodel import WorldModel
+from chcos.user.worldmodel import WorldModel, task
 
 M = "vcan_tests.test_sat_comm"
 
@@ -50,6 +50,7 @@ class SeamModel(WorldModel):
         return super().answer(topic, *args)
 
 
+@task(world_model=SeamModel)
 async def modelled(ctx: TaskContext, cmd: Any) -> None:
     """Keeps a seam centre in its world model and sends it upward."""
     ctx.world.sensory["centre"] = 12.5
@@ -57,7 +58,6 @@ async def modelled(ctx: TaskContext, cmd: Any) -> None:
     await ctx.sleep(1000.0)
 
 
-modelled.world_model = SeamModel  # type: ignore[attr-defined]
 
 
 async def asker(ctx: TaskContext, cmd: dict[str, Any]) -> None:

@@ -110,7 +110,7 @@ class Delivery:
             kernel.notify(kernel.h_sent, "message_sent", link)
         w = port.waiter
         if w is not None and (w.wake_filter is None or self._wanted(w, link.src, value)):
-            prio = w.base_prio
+            prio = w.prio_src.priority  # the task's base priority (TaskEntry.base_prio)
             kernel.wake(w, prio if prio > link.priority else link.priority, port)
         return 1
 
