@@ -1,6 +1,6 @@
 """lifecycle - how a task's activation is frozen, cancelled and ended, for the scheduler.
 
-:class:`Lifecycle` is a base of :class:`chcos.kernel.scheduler.Kernel`: suspend/resume (a frozen
+:class:`Lifecycle` is owned by :class:`chcos.kernel.scheduler.Kernel`: suspend/resume (a frozen
 task keeps its wake-ups for later), cancellation (:class:`chcos.errors.Preempted` thrown in at
 its next step), and the end of an activation (returned, pre-empted, failed), which the kernel
 tells the layer above through its end handler (:data:`EndHandler`, with an :class:`End`).
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import enum
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 
 from chcos.errors import KernelError, Preempted
 from chcos.tables.tasks import TaskEntry, TaskState
@@ -34,19 +34,26 @@ class End(enum.Enum):
 EndHandler = Callable[[TaskEntry, End, Any], None]
 
 
-class Lifecycle:
-    """Suspend, resume, cancel and end activations (a base of the kernel, which provides
-    ``ready``, ``current`` and the end handler)."""
+class Scheduler(Protocol):
+    """What :class:`Lifecycle` needs of its kernel (:class:`chcos.kernel.scheduler.Kernel`)."""
 
     current: TaskEntry | None
-    _on_end: EndHandler | None
-    ready: Callable[[TaskEntry, int], None]  # the kernel's: make a task ready at a priority
-    unready: Callable[[TaskEntry], None]  # the kernel's: take a task out of the ready queue
 
-    def set_end_handler(self, handler: EndHandler) -> None:
-        """Who is told when an activation ends: ``handler(task, how, value)`` with ``how`` an
-        :class:`End`. The system connects the message manager here."""
-        self._on_end = handler
+    def ready(self, t: TaskEntry, prio: int) -> None:
+        """Make ``t`` ready at ``prio``."""
+
+    def unready(self, t: TaskEntry) -> None:
+        """Take ``t`` out of the ready queue."""
+
+
+class Lifecycle:
+    """Suspend, resume, cancel and end the activations of ``kernel``'s tasks (owned by the
+    kernel, which delegates its ``suspend``, ``resume``, ``cancel`` and ``unhook`` here and
+    hands it every step that ends otherwise than in a plain wait or yield)."""
+
+    def __init__(self, kernel: Scheduler) -> None:
+        self.kernel = kernel
+        self.on_end: EndHandler | None = None
 
     def unhook(self, t: TaskEntry) -> None:
         """Forget whatever ``t`` was waiting for: its timer or sleep, and what the layer that
@@ -63,14 +70,14 @@ class Lifecycle:
     def suspend(self, t: TaskEntry) -> None:
         """Freeze ``t`` where it is: it will not run until :meth:`resume`; wake-ups meanwhile are
         kept. Raises KernelError when a task suspends itself (it would never resume)."""
-        if t is self.current:
+        if t is self.kernel.current:
             raise KernelError(f"task {t.name} cannot suspend itself")
         if t.frozen:
             return
         t.frozen = True
         if t.state is TaskState.READY:
             t.frozen_ready = t.prio
-            self.unready(t)
+            self.kernel.unready(t)
         else:
             t.frozen_state = t.state  # what it waits in, for resume (a wake-up meanwhile
             # ends the wait and is kept by ready as frozen_ready)
@@ -84,7 +91,7 @@ class Lifecycle:
         pending, t.frozen_ready = t.frozen_ready, None
         state, t.frozen_state = t.frozen_state, None
         if pending is not None:
-            self.ready(t, pending)
+            self.kernel.ready(t, pending)
         elif t.coro is not None and state is not None:
             t.state = state  # still waiting for what it waited for when it was frozen
         else:
@@ -99,14 +106,14 @@ class Lifecycle:
         self.unhook(t)
         t.throw_exc = Preempted(reason)
         t.send_value = None
-        if t is not self.current:  # (cancelled in its own step: the step ends it, see _step)
+        if t is not self.kernel.current:  # (cancelled in its own step: the step ends it)
             frozen, t.frozen = t.frozen, False
-            self.ready(t, max(t.prio, t.base_prio))
+            self.kernel.ready(t, max(t.prio, t.base_prio))
             t.frozen = frozen
             if frozen:  # it runs to its end although frozen; resume finds it ready
                 t.frozen_state = TaskState.READY
 
-    def _raised(self, t: TaskEntry, err: Exception) -> None:
+    def raised(self, t: TaskEntry, err: Exception) -> None:
         """``t``'s step raised ``err``: its activation ended (returned, pre-empted, failed)."""
         if isinstance(err, StopIteration):
             self._end(t, End.PREEMPTED if t.cancelling else End.RETURN, err.value)
@@ -115,7 +122,7 @@ class Lifecycle:
         else:
             self._end(t, End.PREEMPTED if t.cancelling else End.ERROR, err)
 
-    def _odd_trap(self, t: TaskEntry, coro: Any, trap: Any) -> None:
+    def odd_trap(self, t: TaskEntry, coro: Any, trap: Any) -> None:
         """``t``'s step ended in something other than a plain block or yield: a cancelled task
         that carried on (or was cancelled during the step), or an await of something not a
         chcos call."""
@@ -133,7 +140,7 @@ class Lifecycle:
         t.throw_exc = None
         t.cancelling = False
         self.unhook(t)
-        if self._on_end is not None:
-            self._on_end(t, how, value)
+        if self.on_end is not None:
+            self.on_end(t, how, value)
         else:
             t.state = TaskState.SUSPENDED

@@ -37,7 +37,7 @@ def _nothing() -> None:
     after draining interrupts, so a stop must leave one there."""
 
 
-class Kernel(Lifecycle, Hooks):
+class Kernel(Hooks):
     """One satellite's scheduler. Everything except :meth:`interrupt` and :meth:`stop` must be
     called on the kernel thread (from tasks, timer callbacks or interrupt handlers).
 
@@ -78,9 +78,31 @@ class Kernel(Lifecycle, Hooks):
         # every task this kernel has made ready (a dict as an ordered set): steps sums their
         # step counts, so a step counts once, on its task, and nowhere else
         self._tasks: dict[TaskEntry, None] = {}
-        self._on_end: EndHandler | None = None
+        #: suspend, resume, cancel and the end of activations
+        self.lifecycle = Lifecycle(self)
 
-    # ---- timers and collected errors (owned objects) ------------------------------------------
+    # ---- the lifecycle of activations, timers and collected errors (owned objects) -----------
+    def set_end_handler(self, handler: EndHandler) -> None:
+        """Who is told when an activation ends: ``handler(task, how, value)`` with ``how`` an
+        :class:`End`. The system connects the message manager here."""
+        self.lifecycle.on_end = handler
+
+    def suspend(self, t: TaskEntry) -> None:
+        """See :meth:`Lifecycle.suspend`."""
+        self.lifecycle.suspend(t)
+
+    def resume(self, t: TaskEntry) -> None:
+        """See :meth:`Lifecycle.resume`."""
+        self.lifecycle.resume(t)
+
+    def cancel(self, t: TaskEntry, reason: str) -> None:
+        """See :meth:`Lifecycle.cancel`."""
+        self.lifecycle.cancel(t, reason)
+
+    def unhook(self, t: TaskEntry) -> None:
+        """See :meth:`Lifecycle.unhook`."""
+        self.lifecycle.unhook(t)
+
     def call_at(self, deadline: float, callback: Callable[[], None],
                 period: float | None = None) -> Timer:
         """See :meth:`Timers.call_at`."""
@@ -325,17 +347,17 @@ class Kernel(Lifecycle, Hooks):
                 trap = coro.throw(exc)
         except Exception as err:
             self.current = None
-            self._raised(t, err)
+            self.lifecycle.raised(t, err)
         else:
             self.current = None
             if t.cancelling:  # cancelled during its own step, or it carried on after one
-                self._odd_trap(t, coro, trap)
+                self.lifecycle.odd_trap(t, coro, trap)
             elif trap is BLOCK:
                 if self.h_blocked:
                     self.notify(self.h_blocked, "task_blocked", t)
             elif trap is YIELD:
                 self.ready(t, t.prio)
             else:
-                self._odd_trap(t, coro, trap)
+                self.lifecycle.odd_trap(t, coro, trap)
         if self.h_after:
             self.notify(self.h_after, "after_step", t)
