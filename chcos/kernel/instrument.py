@@ -113,10 +113,10 @@ HOOKS = {"task_scheduled": "h_scheduled", "before_step": "h_before", "after_step
 
 
 class Hooks:
-    """The installed instruments of a kernel, one tuple per hook holding only the instruments
-    that override it: an idle instrument costs nothing on the hot path. Callers test the tuple
-    (``if kernel.h_sent:``) and then call :meth:`notify`, which removes and logs an instrument
-    whose hook raises (the others still hear of the event)."""
+    """The installed instruments of a kernel (its ``hooks``), one tuple per hook holding only
+    the instruments that override it, so that a hook nobody overrides is one truth test.
+    Callers test the tuple (``if hooks.h_sent:``) and then call :meth:`notify`, which removes
+    and logs an instrument whose hook raises (the others still hear of the event)."""
 
     def __init__(self) -> None:
         self.instruments: tuple[Instrument, ...] = ()

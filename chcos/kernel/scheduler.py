@@ -21,7 +21,7 @@ from typing import Any
 
 from chcos.errors import KernelError
 from chcos.kernel.clock import Clock, RealClock
-from chcos.kernel.instrument import Hooks
+from chcos.kernel.instrument import Hooks, Instrument
 from chcos.kernel.lifecycle import BLOCK, YIELD, End, EndHandler, Lifecycle
 from chcos.kernel.timers import HandlerErrors, Timer, Timers
 from chcos.tables.tasks import TaskEntry, TaskState
@@ -37,7 +37,7 @@ def _nothing() -> None:
     after draining interrupts, so a stop must leave one there."""
 
 
-class Kernel(Hooks):
+class Kernel:
     """One satellite's scheduler. Everything except :meth:`interrupt` and :meth:`stop` must be
     called on the kernel thread (from tasks, timer callbacks or interrupt handlers).
 
@@ -46,11 +46,13 @@ class Kernel(Hooks):
     it when the task is woken or cancelled. Every path that readies a task goes through
     :meth:`ready` (a wake-up through :meth:`wake`, which calls it), and every task step through
     :meth:`_step`. Instruments: see :class:`Hooks`; suspend, resume, cancel and how
-    activations end: see :class:`Lifecycle`; timers: :attr:`timers` (a :class:`Timers`); the
+    activations end: :attr:`lifecycle` (a :class:`Lifecycle`); instruments: :attr:`hooks` (a
+    :class:`Hooks`); timers: :attr:`timers` (a :class:`Timers`); the
     errors collected on the kernel thread: :attr:`errors` (a :class:`HandlerErrors`)."""
 
     def __init__(self, clock: Clock | None = None) -> None:
-        super().__init__()
+        #: the installed instruments, one tuple per hook (see :class:`Hooks`)
+        self.hooks = Hooks()
         self.clock: Clock = clock if clock is not None else RealClock()
         self.current: TaskEntry | None = None
         # the ready queue, a heap of (-priority, sequence, task): one entry for each READY
@@ -81,7 +83,29 @@ class Kernel(Hooks):
         #: suspend, resume, cancel and the end of activations
         self.lifecycle = Lifecycle(self)
 
-    # ---- the lifecycle of activations, timers and collected errors (owned objects) -----------
+    # ---- instruments, the lifecycle of activations, timers, collected errors (owned objects) --
+    def add_instrument(self, instrument: Instrument) -> None:
+        """See :meth:`Hooks.add_instrument`."""
+        self.hooks.add_instrument(instrument)
+
+    def remove_instrument(self, instrument: Instrument) -> None:
+        """See :meth:`Hooks.remove_instrument`."""
+        self.hooks.remove_instrument(instrument)
+
+    @property
+    def instruments(self) -> tuple[Instrument, ...]:
+        """The installed instruments, in the order they were added."""
+        return self.hooks.instruments
+
+    @property
+    def dropped_instruments(self) -> list[tuple[Instrument, str, str]]:
+        """(instrument, hook, error text) of every instrument removed because a hook raised."""
+        return self.hooks.dropped_instruments
+
+    def event(self, kind: str, detail: str) -> None:
+        """See :meth:`Hooks.event`: report a system event to the instruments and the log."""
+        self.hooks.event(kind, detail)
+
     def set_end_handler(self, handler: EndHandler) -> None:
         """Who is told when an activation ends: ``handler(task, how, value)`` with ``how`` an
         :class:`End`. The system connects the message manager here."""
@@ -163,8 +187,8 @@ class Kernel(Hooks):
         t.state = _READY
         self._seq = seq = self._seq + 1
         heappush(self._ready, (-prio, seq, t))
-        if self.h_scheduled:
-            self.notify(self.h_scheduled, "task_scheduled", t)
+        if self.hooks.h_scheduled:
+            self.hooks.notify(self.hooks.h_scheduled, "task_scheduled", t)
 
     def wake(self, t: TaskEntry, prio: int, value: Any = None,
              exc: BaseException | None = None) -> None:
@@ -334,8 +358,8 @@ class Kernel(Hooks):
         t.state = _CURRENT
         self.current = t
         t.steps += 1
-        if self.h_before:
-            self.notify(self.h_before, "before_step", t)
+        if self.hooks.h_before:
+            self.hooks.notify(self.hooks.h_before, "before_step", t)
         try:
             if t.throw_exc is None:
                 value = t.send_value
@@ -353,11 +377,11 @@ class Kernel(Hooks):
             if t.cancelling:  # cancelled during its own step, or it carried on after one
                 self.lifecycle.odd_trap(t, coro, trap)
             elif trap is BLOCK:
-                if self.h_blocked:
-                    self.notify(self.h_blocked, "task_blocked", t)
+                if self.hooks.h_blocked:
+                    self.hooks.notify(self.hooks.h_blocked, "task_blocked", t)
             elif trap is YIELD:
                 self.ready(t, t.prio)
             else:
                 self.lifecycle.odd_trap(t, coro, trap)
-        if self.h_after:
-            self.notify(self.h_after, "after_step", t)
+        if self.hooks.h_after:
+            self.hooks.notify(self.hooks.h_after, "after_step", t)

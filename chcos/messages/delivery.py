@@ -101,13 +101,14 @@ class Delivery:
         if not isinstance(port, InPort):
             raise MessageError(f"sensory link {link.name} has no input port")
         kernel = self.kernel
+        hooks = kernel.hooks
         if port.store(value, kernel.clock.now()):  # a newest-wins port had an unread one
             link.overwritten += 1
-            if kernel.h_overwritten:
-                kernel.notify(kernel.h_overwritten, "message_overwritten", link)
+            if hooks.h_overwritten:
+                hooks.notify(hooks.h_overwritten, "message_overwritten", link)
         link.sent += 1
-        if kernel.h_sent:
-            kernel.notify(kernel.h_sent, "message_sent", link)
+        if hooks.h_sent:
+            hooks.notify(hooks.h_sent, "message_sent", link)
         w = port.waiter
         if w is not None and (w.wake_filter is None or self._wanted(w, link.src, value)):
             prio = w.prio_src.priority  # the task's base priority (TaskEntry.base_prio)
@@ -151,9 +152,10 @@ class Delivery:
         """The receiver read a message of ``link`` (an input port's: Link.delivered counts it
         by itself): feed the latency instruments."""
         kernel = self.kernel
-        if kernel.h_delivered:
-            kernel.notify(kernel.h_delivered, "message_delivered", link,
-                          kernel.clock.now() - sent_at)
+        hooks = kernel.hooks
+        if hooks.h_delivered:
+            hooks.notify(hooks.h_delivered, "message_delivered", link,
+                         kernel.clock.now() - sent_at)
 
     # ---- devices: readings up their links, e-stop -------------------------------------------
     def add_device_link(self, link: Link) -> None:

@@ -186,7 +186,7 @@ class Ownership(Delivery):
         if link is None:
             return
         t.completions += 1
-        if self.kernel.h_event:
+        if self.kernel.hooks.h_event:
             self.event("complete", f"{t.name} completed for {link.src}")
         self._report(link, LinkStatus.NORMAL, result=result)
         t.owner = None

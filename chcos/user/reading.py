@@ -74,7 +74,7 @@ class Reading(TaskHandle):
     def _take(self, p: InPort) -> Any:
         """Take the message on ``p`` (an instrument hears of its delivery)."""
         value, at = p.take()
-        if self._k.h_delivered:
+        if self._k.hooks.h_delivered:
             self._mm.taken(p.link, at)
         return value
 
@@ -107,7 +107,7 @@ class Reading(TaskHandle):
             self._wait_for((p,), timeout)
             yield BLOCK
         value, at = p.take()
-        if self._k.h_delivered:
+        if self._k.hooks.h_delivered:
             self._mm.taken(p.link, at)
         return value
 
