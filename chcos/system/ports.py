@@ -48,11 +48,6 @@ class Messages(Protocol):
         """True if ``machine`` runs in this process."""
         ...
 
-    @property
-    def hooked(self) -> bool:
-        """An instrument hears of messages now (a new link's :attr:`Link.hooked`)."""
-        ...
-
     def resolve_path(self, name: str) -> Path:
         """The file an install argument names."""
         ...
