@@ -82,11 +82,35 @@ class SyncCycle:
         self._jitter: deque[float] = deque(maxlen=WINDOW)
         self._jitter_max = 0.0
         self._completed_upto = 0                 # the highest cycle known complete
+        #: told the outcome of each cycle once (see :meth:`watch`); the highest cycle told
+        self._watchers: list[Callable[[int, bool], None]] = []
+        self._told_upto = 0
 
     def expect(self, cob_id: int, transmission_type: int) -> None:
         """A synchronous TPDO (type 1..240) the cycle collects; call before :meth:`start`."""
         if 1 <= transmission_type <= 240:
             self._due[cob_id] = _Due(transmission_type)
+
+    def watch(self, fn: Callable[[int, bool], None]) -> Callable[[], None]:
+        """Call ``fn(n, complete)`` once per cycle from now on, as soon as its outcome is
+        known: complete when its last synchronous TPDO arrives, not complete when SYNC n+1
+        goes out first. Called on the reader's or the producer's thread: ``fn`` must not block.
+        Returns the function that ends the watch."""
+        with self._cond:
+            self._watchers.append(fn)
+            self._told_upto = max(self._told_upto, self._completed_upto,
+                                  self.cycle - 1 if self.cycle else 0)
+
+        def unwatch() -> None:
+            with self._cond:
+                if fn in self._watchers:
+                    self._watchers.remove(fn)
+        return unwatch
+
+    def _tell(self, outcomes: list[tuple[int, bool]]) -> None:
+        for n, complete in outcomes:
+            for fn in list(self._watchers):
+                fn(n, complete)
 
     def start(self, produce: bool = True) -> None:
         """Begin: with ``produce`` the producer thread sends SYNC; without it the caller's
@@ -145,14 +169,19 @@ class SyncCycle:
                 self._jitter_max = max(self._jitter_max, j)
             self._last_sent = at
             closing = self.cycle
+            told: list[tuple[int, bool]] = []
             if closing > 0:
                 due = [d for d in self._due.values() if self._is_due(d, closing)]
                 absent = sum(1 for d in due if d.arrived_in != closing)
                 self._missing += absent
                 if due and not absent:
                     self._complete += 1
+                if self._watchers and closing > self._told_upto:
+                    told.append((closing, self._completed_upto >= closing))
+                    self._told_upto = closing
             self.cycle += 1
             self._cond.notify_all()
+        self._tell(told)
 
     @staticmethod
     def _is_due(d: _Due, cycle: int) -> bool:
@@ -168,10 +197,15 @@ class SyncCycle:
             if d.phase is None:
                 d.phase = cycle % d.every
             d.arrived_in = cycle
+            told: list[tuple[int, bool]] = []
             if all(dd.arrived_in == cycle for dd in self._due.values()
                    if self._is_due(dd, cycle)):
                 self._completed_upto = max(self._completed_upto, cycle)
+                if self._watchers and cycle > self._told_upto:
+                    told.append((cycle, True))
+                    self._told_upto = cycle
             self._cond.notify_all()
+        self._tell(told)
 
     def wait_cycle(self, n: int, timeout: float) -> bool:
         """Wait until cycle ``n`` is complete (every synchronous TPDO due in it arrived): True,

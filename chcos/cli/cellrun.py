@@ -28,7 +28,8 @@ from chcos.devices.entry import DeviceStatus
 from chcos.errors import ChcosError
 from chcos.north.services import NorthOptions, add_north_arguments
 
-__all__ = ["Cell", "CellSystem", "OutputsOff", "RunResult", "SinceStartClock", "main",
+__all__ = ["Cell", "CellSystem", "OutputsOff", "RunResult", "SinceStartClock", "bus_status_lines",
+           "main",
            "open_cell", "parser", "problems", "report", "run", "show_progress"]
 
 
@@ -60,6 +61,31 @@ def show_progress(snap: dict[str, Any], rate: float, out: TextIO) -> None:
         print(f"  task     {t['name']:<{width}} level {t['level']} machine {t['machine']}  "
               f"{t['state']:<9} executions {t['steps']}{err}", file=out)
     out.flush()
+
+
+def bus_status_lines(status: dict[str, dict[str, Any]]) -> list[str]:
+    """One line per remote node (its lifecycle state, boot-ups seen, NMT starts, error register,
+    last EMCY, why it is not ready) and one per SYNC cycle (cycles, complete, missing TPDOs,
+    late SYNCs, late answers, jitter), from :meth:`chcos.devices.devtab.Devtab.bus_status`."""
+    out = []
+    for bus, doc in status.items():
+        for n in doc.get("nodes", ()):
+            reg = n.get("error_register")
+            text = (f"node     {bus}/{n['node']:<13} {n['state']}, {n['boots']} boot-up(s) seen, "
+                    f"{n['nmt_starts']} NMT start(s), error register "
+                    f"{'-' if reg is None else f'0x{reg:02X}'}, last EMCY "
+                    f"{n['last_emcy'] or 'none'}")
+            if n.get("reason"):
+                text += f" ({n['reason']})"
+            out.append(text)
+        st = doc.get("sync")
+        if st:
+            out.append(f"SYNC     {bus:<16} {st['cycles']} cycles of {st['period'] * 1e3:g} ms, "
+                       f"{st['complete']} complete, {st['missing']} TPDOs missing, "
+                       f"{st['late']} late, {st['late_writes']} late answers; jitter p50 "
+                       f"{st['jitter_p50'] * 1e3:.3f} ms, p99 {st['jitter_p99'] * 1e3:.3f} ms, "
+                       f"max {st['jitter_max'] * 1e3:.3f} ms")
+    return out
 
 
 def problems(cell: Cell, snap: dict[str, Any]) -> list[str]:
@@ -103,6 +129,8 @@ def report(cell: Cell, snap: dict[str, Any], found: list[str], out: TextIO) -> N
     for t in snap["tasks"]:
         print(f"  task     {t['name']:<16} {t['steps']} executions, {t['completions']} "
               f"completions, {t['abnormal']} abnormal", file=out)
+    for line in bus_status_lines(cell.system.devtab.bus_status()):
+        print(f"  {line}", file=out)
     print(f"  messages: {snap['messages']} ({snap['messages'] / secs:.0f}/s)", file=out)
     outcomes = cell.system.devtab.safe_outcomes
     for e in cell.system.devtab:
@@ -212,6 +240,8 @@ def _loop(cell: Cell, virtual: bool, duration: float | None, period: float,
         rate = (snap["messages"] - last_msgs) / max(1e-9, snap["t"] - last_t)
         last_msgs, last_t = snap["messages"], snap["t"]
         show_progress(snap, rate, out)
+        for line in bus_status_lines(s.devtab.bus_status()):
+            print(f"  {line}", file=out, flush=True)
         tick += 1
         if duration is not None and snap["t"] >= duration - 1e-9:
             break
