@@ -185,13 +185,15 @@ class CanopenDriver(WorkerJobDriver):
     def status_doc(self) -> dict[str, Any]:
         """Each node's lifecycle (``nodes``: state name, ready, confirmed, NMT state of its
         last heartbeat, boot-ups seen, NMT starts sent, 0x1001, last EMCY, the reason it is
-        not ready) and the SYNC cycle's counters and jitter (``sync``, while it runs; with
-        ``late_writes``: RPDO answers to cycle n that went out after SYNC n+1). Thread-safe."""
+        not ready, whether its heartbeat is lost now) and the SYNC cycle's counters and jitter
+        (``sync``, while it runs; with ``late_writes``: RPDO answers to cycle n that went out
+        after SYNC n+1). Thread-safe."""
         nodes = [{"node": st.node, "state": st.lifecycle.name, "ready": st.ready,
                   "confirmed": st.confirmed, "nmt": None if st.nmt is None else st.nmt.name,
                   "boots": st.boots, "nmt_starts": st.nmt_starts,
                   "error_register": st.error_register, "last_emcy": st.last_emcy,
-                  "reason": st.reason} for _nid, st in sorted(self.node_states().items())]
+                  "reason": st.reason, "heartbeat_lost": self._nodes[nid].lost}
+                 for nid, st in sorted(self.node_states().items())]
         doc: dict[str, Any] = {"nodes": nodes}
         stats = self.sync_stats()
         if stats is not None:

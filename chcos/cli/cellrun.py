@@ -27,9 +27,9 @@ from chcos.cli.cellsystem import Cell, CellSystem, OutputsOff, SinceStartClock, 
 from chcos.devices.entry import DeviceStatus
 from chcos.errors import ChcosError
 from chcos.north.services import NorthOptions, add_north_arguments
+from chcos.system.textview import bus_status_lines
 
-__all__ = ["Cell", "CellSystem", "OutputsOff", "RunResult", "SinceStartClock", "bus_status_lines",
-           "main",
+__all__ = ["Cell", "CellSystem", "OutputsOff", "RunResult", "SinceStartClock", "main",
            "open_cell", "parser", "problems", "report", "run", "show_progress"]
 
 
@@ -61,31 +61,6 @@ def show_progress(snap: dict[str, Any], rate: float, out: TextIO) -> None:
         print(f"  task     {t['name']:<{width}} level {t['level']} machine {t['machine']}  "
               f"{t['state']:<9} executions {t['steps']}{err}", file=out)
     out.flush()
-
-
-def bus_status_lines(status: dict[str, dict[str, Any]]) -> list[str]:
-    """One line per remote node (its lifecycle state, boot-ups seen, NMT starts, error register,
-    last EMCY, why it is not ready) and one per SYNC cycle (cycles, complete, missing TPDOs,
-    late SYNCs, late answers, jitter), from :meth:`chcos.devices.devtab.Devtab.bus_status`."""
-    out = []
-    for bus, doc in status.items():
-        for n in doc.get("nodes", ()):
-            reg = n.get("error_register")
-            text = (f"node     {bus}/{n['node']:<13} {n['state']}, {n['boots']} boot-up(s) seen, "
-                    f"{n['nmt_starts']} NMT start(s), error register "
-                    f"{'-' if reg is None else f'0x{reg:02X}'}, last EMCY "
-                    f"{n['last_emcy'] or 'none'}")
-            if n.get("reason"):
-                text += f" ({n['reason']})"
-            out.append(text)
-        st = doc.get("sync")
-        if st:
-            out.append(f"SYNC     {bus:<16} {st['cycles']} cycles of {st['period'] * 1e3:g} ms, "
-                       f"{st['complete']} complete, {st['missing']} TPDOs missing, "
-                       f"{st['late']} late, {st['late_writes']} late answers; jitter p50 "
-                       f"{st['jitter_p50'] * 1e3:.3f} ms, p99 {st['jitter_p99'] * 1e3:.3f} ms, "
-                       f"max {st['jitter_max'] * 1e3:.3f} ms")
-    return out
 
 
 def problems(cell: Cell, snap: dict[str, Any]) -> list[str]:

@@ -24,6 +24,7 @@ Exported (``chcos_`` prefix; labels in brackets):
                                             others [bus, node, state] (CANopen: WAITING_BOOT …
                                             OPERATIONAL, PREOP_HELD, FAILED)
 ``node_ready``                              1 if the node is in the state the map requires
+``node_heartbeat_lost``                     1 while the node's heartbeat is lost [bus, node]
 ``node_boots_total``, ``node_nmt_starts``   boot-up messages seen, NMT starts sent [bus, node]
 ``node_error_register``                     0x1001 as last read [bus, node]
 ``sync_cycles_total`` … ``_late_writes``    SYNC cycles, complete cycles, missing TPDOs, late
@@ -227,6 +228,8 @@ def node_families(status: dict[str, dict[str, Any]]) -> list[Any]:
                                 labels=["bus", "node"])
     starts = CounterMetricFamily("chcos_node_nmt_starts", "NMT start commands sent",
                                  labels=["bus", "node"])
+    lost = GaugeMetricFamily("chcos_node_heartbeat_lost", "1 while the node's heartbeat is "
+                             "lost", labels=["bus", "node"])
     ereg = GaugeMetricFamily("chcos_node_error_register", "error register 0x1001 as last read",
                              labels=["bus", "node"])
     sync = {k: CounterMetricFamily(f"chcos_sync_{k}", d, labels=["bus"]) for k, d in (
@@ -244,6 +247,7 @@ def node_families(status: dict[str, dict[str, Any]]) -> list[Any]:
                 state.add_metric([*labels, name], 1.0 if n["state"] == name else 0.0)
             ready.add_metric(labels, 1.0 if n["ready"] else 0.0)
             boots.add_metric(labels, float(n["boots"]))
+            lost.add_metric(labels, 1.0 if n.get("heartbeat_lost") else 0.0)
             starts.add_metric(labels, float(n["nmt_starts"]))
             if n.get("error_register") is not None:
                 ereg.add_metric(labels, float(n["error_register"]))
@@ -254,7 +258,7 @@ def node_families(status: dict[str, dict[str, Any]]) -> list[Any]:
             period.add_metric([bus], float(st["period"]))
             for q, key in (("0.5", "jitter_p50"), ("0.99", "jitter_p99"), ("max", "jitter_max")):
                 jitter.add_metric([bus, q], float(st[key]))
-    return [state, ready, boots, starts, ereg, *sync.values(), period, jitter]
+    return [state, ready, lost, boots, starts, ereg, *sync.values(), period, jitter]
 
 
 class MetricsServer:
