@@ -94,8 +94,9 @@ class SyncCycle:
     def watch(self, fn: Callable[[int, bool], None]) -> Callable[[], None]:
         """Call ``fn(n, complete)`` once per cycle from now on, as soon as its outcome is
         known: complete when its last synchronous TPDO arrives, not complete when SYNC n+1
-        goes out first. Called on the reader's or the producer's thread: ``fn`` must not block.
-        Returns the function that ends the watch."""
+        goes out first; in cycle order, with this object's lock held (on the reader's or the
+        producer's thread): ``fn`` must not block nor call back. Returns the function that
+        ends the watch."""
         with self._cond:
             self._watchers.append(fn)
             self._told_upto = max(self._told_upto, self._completed_upto,
@@ -107,10 +108,12 @@ class SyncCycle:
                     self._watchers.remove(fn)
         return unwatch
 
-    def _tell(self, outcomes: list[tuple[int, bool]]) -> None:
-        for n, complete in outcomes:
-            for fn in list(self._watchers):
-                fn(n, complete)
+    def _tell(self, n: int, complete: bool) -> None:
+        """Tell the watchers cycle ``n``'s outcome; called with the lock held, so that they
+        hear the cycles in order, each once."""
+        self._told_upto = n
+        for fn in self._watchers:
+            fn(n, complete)
 
     def start(self, produce: bool = True) -> None:
         """Begin: with ``produce`` the producer thread sends SYNC; without it the caller's
@@ -169,7 +172,6 @@ class SyncCycle:
                 self._jitter_max = max(self._jitter_max, j)
             self._last_sent = at
             closing = self.cycle
-            told: list[tuple[int, bool]] = []
             if closing > 0:
                 due = [d for d in self._due.values() if self._is_due(d, closing)]
                 absent = sum(1 for d in due if d.arrived_in != closing)
@@ -177,11 +179,9 @@ class SyncCycle:
                 if due and not absent:
                     self._complete += 1
                 if self._watchers and closing > self._told_upto:
-                    told.append((closing, self._completed_upto >= closing))
-                    self._told_upto = closing
+                    self._tell(closing, self._completed_upto >= closing)
             self.cycle += 1
             self._cond.notify_all()
-        self._tell(told)
 
     @staticmethod
     def _is_due(d: _Due, cycle: int) -> bool:
@@ -197,15 +197,12 @@ class SyncCycle:
             if d.phase is None:
                 d.phase = cycle % d.every
             d.arrived_in = cycle
-            told: list[tuple[int, bool]] = []
             if all(dd.arrived_in == cycle for dd in self._due.values()
                    if self._is_due(dd, cycle)):
                 self._completed_upto = max(self._completed_upto, cycle)
                 if self._watchers and cycle > self._told_upto:
-                    told.append((cycle, True))
-                    self._told_upto = cycle
+                    self._tell(cycle, True)
             self._cond.notify_all()
-        self._tell(told)
 
     def wait_cycle(self, n: int, timeout: float) -> bool:
         """Wait until cycle ``n`` is complete (every synchronous TPDO due in it arrived): True,

@@ -31,7 +31,10 @@ async def main(ctx, command):
                 log.write(f"error {exc}\\n")
                 log.flush()
                 return
-            ctx.write("target", c.number)
+            try:
+                ctx.write("target", c.number)
+            except Exception as exc:     # the node failed meanwhile: the cycle still counts
+                log.write(f"refused {exc}\\n")
             log.write(f"{c.number} {int(c.complete)}\\n")
             log.flush()
 '''
@@ -42,7 +45,7 @@ def logged(path: Path) -> list[tuple[int, bool]]:
         return []
     return [(int(a), b == "1") for a, b in (line.split() for line in
                                             path.read_text(encoding="utf-8").splitlines()
-                                            if not line.startswith("error"))]
+                                            if line[0].isdigit())]
 
 
 def system(tmp_path: Path, node: DurandNode, sync_period: float = 0.01) -> System:
@@ -54,6 +57,17 @@ def system(tmp_path: Path, node: DurandNode, sync_period: float = 0.01) -> Syste
     log = tmp_path / "cycles.log"
     s.execute(f"install -m0i1o1 --param=log={str(log)!r} answer pos target".replace("'", '"'))
     return s
+
+
+def why(s: System, log: Path) -> str:
+    """The task's log and last error, for a failed assertion."""
+    text = log.read_text(encoding="utf-8") if log.exists() else "(no log)"
+    return f"{text[-2000:]}\nlast error: {s.tsktab.get('answer').last_error}"
+
+
+def answers(wire: Wire) -> set[int]:
+    """The values RPDO1 (the target) carried on the wire."""
+    return {int.from_bytes(f.data[:4], "little", signed=True) for f in wire.of(0x200 + NODE)}
 
 
 def late_writes(s: System) -> int:
@@ -68,16 +82,16 @@ def test_a_task_waits_for_each_cycle_and_its_answers_reach_the_node(tmp_path: Pa
     try:
         assert run_until(s, lambda: s.devtab.get("target").status.value == "OK")
         s.invoke("answer", {"bus": "co", "count": 400})
-        assert run_until(s, lambda: len(logged(log)) >= 20)
+        assert run_until(s, lambda: sum(c for _, c in logged(log)) >= 5), why(s, log)
         got = logged(log)
         numbers = [n for n, _ in got]
         assert numbers == list(range(numbers[0], numbers[0] + len(numbers)))   # every cycle once
-        assert sum(1 for _, complete in got if complete) >= len(got) // 2
+        complete = s.devtab.bus_status()["co"]["sync"]["complete"]
+        # the driver counted them complete too (at SYNC n+1: the last one may not be yet)
+        assert sum(c for _, c in got) <= complete + 1
         # what the node saw: the answers, in its RPDO1, the last one in its object dictionary
         assert run_until(s, lambda: node.read(0x607A) >= numbers[-1])
-        rpdos = [int.from_bytes(f.data[:4], "little", signed=True)
-                 for f in wire.of(0x200 + NODE)]
-        assert [n for n in numbers if n in rpdos] == numbers
+        assert wire.wait_for(lambda w: set(numbers) <= answers(w))
         on_time_late = late_writes(s)
         # the kernel held up past SYNC n+2: the answer to cycle n goes out late, and is counted
         waiting = s.tsktab.get("answer")
@@ -87,7 +101,7 @@ def test_a_task_waits_for_each_cycle_and_its_answers_reach_the_node(tmp_path: Pa
         answered = len(logged(log))
         assert run_until(s, lambda: len(logged(log)) > answered and late_writes(s) > on_time_late)
         held_for = logged(log)[answered][0]
-        assert node.read(0x607A) >= held_for
+        assert node.wait(lambda: node.read(0x607A) >= held_for)
         # the node gone: its synchronous TPDO is missing, the cycles the task gets incomplete
         node.power_off()
         gone = len(logged(log))

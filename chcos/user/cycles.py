@@ -25,6 +25,8 @@ from chcos.tables.tasks import TaskEntry, TaskState
 
 #: cycle outcomes a board remembers (a task asking for a cycle this far back gets an error)
 HISTORY = 256
+#: what a task waiting for "the next cycle" waits for before the first outcome is told
+NEXT = 0
 
 
 @dataclass(frozen=True)
@@ -59,6 +61,7 @@ class CycleBoard:
         self.kernel = kernel
         self.bus = bus
         self.outcomes: OrderedDict[int, bool] = OrderedDict()
+        self.first: int | None = None                  # the first cycle told (None: none yet)
         self.last = 0                                  # the highest cycle told
         self.waiting: dict[TaskEntry, int] = {}        # task -> the cycle it waits for
         self.answering: dict[int, int] = {}            # task id -> the cycle it last woke for
@@ -73,17 +76,24 @@ class CycleBoard:
         return None if t is None else self.answering.get(t.tid)
 
     def _told(self, n: int, complete: bool) -> None:
-        """Cycle ``n``'s outcome: remembered, and every task waiting for it (or an earlier
-        one) woken with its cycle."""
+        """Cycle ``n``'s outcome (the driver tells them in order, each once): remembered, and
+        every task waiting for it woken with it (a task waiting for "the next" one too; one
+        waiting for a cycle before the first told gets MessageError)."""
+        if self.first is None:
+            self.first = n
         self.outcomes[n] = complete
         while len(self.outcomes) > HISTORY:
             self.outcomes.popitem(last=False)
-        self.last = max(self.last, n)
+        self.last = n
         for t, want in [(t, w) for t, w in self.waiting.items() if w <= n]:
             del self.waiting[t]
-            self.answering[t.tid] = want
-            self.kernel.wake(t, t.base_prio, Cycle(self.bus, want, self.outcomes.get(want,
-                                                                                      False)))
+            if want is NEXT or want == n:
+                self.answering[t.tid] = n
+                self.kernel.wake(t, t.base_prio, Cycle(self.bus, n, complete))
+            else:
+                self.kernel.wake(t, t.base_prio, exc=MessageError(
+                    f"sync_cycle: cycle {want} of bus {self.bus} was over before this task "
+                    f"first waited (the first cycle told was {n})"))
 
     def forget(self, t: TaskEntry) -> None:
         """``t`` stops waiting (woken, timed out, cancelled): the task's ``unwait``."""
@@ -123,8 +133,10 @@ def wait_cycle(t: TaskEntry, kernel: Kernel, drivers: Iterable[Any], bus: str,
     MessageError (no such bus, no SYNC cycle, cycle ``n`` older than the history), ReadTimeout
     after ``timeout`` seconds of kernel time without the outcome."""
     b = board(kernel, drivers, bus)
-    want = b.last + 1 if n is None else n
-    if want <= b.last:
+    if n is not None and n <= NEXT:
+        raise MessageError(f"sync_cycle: cycle numbers start at 1, got {n}")
+    want = (NEXT if b.first is None else b.last + 1) if n is None else n
+    if want != NEXT and want <= b.last:
         if want not in b.outcomes:
             raise MessageError(f"sync_cycle: cycle {want} of bus {bus} is past (the last "
                                f"{HISTORY} are kept; the last told is {b.last})")
