@@ -59,6 +59,11 @@ def test_monitor_shows_node_lives_and_the_masters_sync(tmp_path: Path) -> None:
         sync = next(x for x in mon.node_lines() if x.startswith("bus co: SYNC: "))
         assert "jitter against 10 ms p50" in sync and "period" in sync, sync
         assert master.sync_stats() is not None
+        # the position, decoded from TPDO1 as the node's config maps it (not as its EDS)
+        node.write(0x6064, 0, 4321)
+        assert until(lambda: next(r for r in mon.rows() if r["name"] == "pos")["value"]
+                     == 4321), mon.rows()
+        assert not [f for f in mon.bus_flags() if "unknown id" in f], mon.bus_flags()
         out = io.StringIO()
         monitor._show(mon.rows(), mon.bus_flags(), 1.0, out, mon.node_lines())
         assert f"  bus co: node {NODE}: OPERATIONAL" in out.getvalue(), out.getvalue()

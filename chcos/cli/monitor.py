@@ -114,9 +114,10 @@ class PassiveCanopen:
                     bits = int(_default_entry(od, mapping + n - 1, index, sub) or 0)
                     device = by_obj.get((nid, index, sub))
                     pdo.fields.append((device, var, bits))
-                    if device is not None:
-                        self.in_pdo.add(device)
                     pdo.length += bits // 8
+            self._configured(node, nid, od, by_obj)
+        self.in_pdo = {dev for pdo in self.pdos.values() for dev, _var, _bits in pdo.fields
+                       if dev is not None}
         args = {k: bus.options[k] for k in ("interface", "channel", "bitrate")
                 if k in bus.options}
         try:
@@ -128,6 +129,35 @@ class PassiveCanopen:
         self._thread = threading.Thread(target=self._read, name=f"monitor-{bus.name}",
                                         daemon=True)
         self._thread.start()
+
+    def _configured(self, node: dict[str, Any], nid: int, od: Any,
+                    by_obj: dict[tuple[int, int, int], str]) -> None:
+        """The PDOs as the node's ``config`` downloads them at boot (COB-ID, enabled,
+        mapping) in place of the EDS's: what a master following the map puts on the wire."""
+        from drivers import canopen_config
+
+        try:
+            cfg = canopen_config.with_bits(canopen_config.parse(node), od)
+        except Exception:   # an invalid config: chcos check names it; the EDS's view stays
+            return
+        for p in cfg.pdos:
+            name = f"{p.kind.upper()}{p.number}"
+            old = next(((cob, pd) for cob, pd in self.pdos.items()
+                        if pd.node == nid and pd.kind == name), None)
+            if old is not None:
+                del self.pdos[old[0]]
+            if not p.enabled:
+                continue
+            cob = canopen_config.effective_cob_id(p, od, nid)
+            if p.mapping is None:
+                if old is not None:
+                    self.pdos[cob] = old[1]
+                continue
+            pdo = self.pdos[cob] = _Pdo(name, nid, 0)
+            for index, sub, bits in p.mapping:
+                pdo.fields.append((by_obj.get((nid, index, sub)), od.get_variable(index, sub),
+                                   bits))
+                pdo.length += bits // 8
 
     def _flag(self, text: str) -> None:
         self.flags[text] += 1
