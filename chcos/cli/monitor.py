@@ -208,7 +208,7 @@ class PassiveCanopen:
                     self.boots[nid] += 1
             return
         if cid == 0x080:
-            at = float(frame.timestamp or now)
+            at = float(frame.timestamp or time.time())    # the interface's receive time
             if self.last_sync is not None:
                 self.sync_intervals.append(at - self.last_sync)
             self.syncs += 1
