@@ -81,6 +81,9 @@ def test_a_task_waits_for_each_cycle_and_its_answers_reach_the_node(tmp_path: Pa
     log = tmp_path / "cycles.log"
     try:
         assert run_until(s, lambda: s.devtab.get("target").status.value == "OK")
+        s.devtab.write("target", -7)                 # a host's write answers no cycle
+        assert run_until(s, lambda: node.read(0x607A) == -7)
+        assert late_writes(s) == 0
         s.invoke("answer", {"bus": "co", "count": 400})
         assert run_until(s, lambda: sum(c for _, c in logged(log)) >= 5), why(s, log)
         got = logged(log)
@@ -125,3 +128,29 @@ def test_waiting_for_a_bus_without_a_cycle_is_refused(tmp_path: Path) -> None:
     finally:
         s.shutdown()
         node.close()
+
+
+def test_each_cycle_is_told_once_in_order_as_soon_as_it_is_known() -> None:
+    """The driver's side of the seam (drivers.canopen_sync), SYNCs observed as on SocketCAN:
+    a cycle whose TPDO arrived is told complete at once, one without it when SYNC n+1 is seen,
+    and nothing twice."""
+    from drivers.canopen_sync import SyncCycle
+
+    sync = SyncCycle(0.01, lambda: None, lambda text: None, "test-sync")
+    sync.expect(0x185, 1)
+    sync.start(produce=False)
+    told: list[tuple[int, bool]] = []
+    unwatch = sync.watch(lambda n, complete: told.append((n, complete)))
+    sync.seen(0.00)                      # SYNC 1
+    sync.tpdo(0x185)                     # its TPDO: cycle 1 complete now
+    assert told == [(1, True)]
+    sync.seen(0.01)                      # SYNC 2 closes cycle 1: told already
+    sync.seen(0.02)                      # SYNC 3: cycle 2 had no TPDO
+    assert told == [(1, True), (2, False)]
+    sync.tpdo(0x185)
+    sync.tpdo(0x185)                     # a second copy in the same cycle: told once
+    unwatch()
+    sync.seen(0.03)
+    assert told == [(1, True), (2, False), (3, True)]
+    assert sync.stats().complete == 2 and sync.stats().missing == 1
+    sync.stop()

@@ -6,8 +6,9 @@ The bus's driver tells each cycle's outcome once, as soon as it is known, on its
 (``watch_cycles``, e.g. :meth:`drivers.canopen_node.CanopenDriver.watch_cycles`); a
 :class:`CycleBoard` per driver turns that into a kernel interrupt that wakes the tasks waiting
 for that cycle. The board also tells the driver which cycle the task writing an actuator
-answers (the last one it woke for), so that an RPDO made in response to cycle n that goes out
-after SYNC n+1 is counted late (the bus counter ``sync-late-writes``).
+answers - the one it got last, until it waits for a cycle again - so that an RPDO made in
+answer to cycle n that goes out after SYNC n+1 is counted late (the bus counter
+``sync-late-writes``).
 """
 
 from __future__ import annotations
@@ -136,6 +137,7 @@ def wait_cycle(t: TaskEntry, kernel: Kernel, drivers: Iterable[Any], bus: str,
     if n is not None and n <= NEXT:
         raise MessageError(f"sync_cycle: cycle numbers start at 1, got {n}")
     want = (NEXT if b.first is None else b.last + 1) if n is None else n
+    b.answering.pop(t.tid, None)     # what it writes while it waits answers no cycle
     if want != NEXT and want <= b.last:
         if want not in b.outcomes:
             raise MessageError(f"sync_cycle: cycle {want} of bus {bus} is past (the last "
