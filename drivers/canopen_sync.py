@@ -6,7 +6,9 @@ n+1 went out), late SYNCs (sent more than half a period after their deadline) an
 period jitter (|interval - period|) as p50/p99/max over the last :data:`WINDOW` cycles.
 
 :meth:`SyncCycle.wait_cycle` lets a caller wait until cycle n is complete (every synchronous
-TPDO of it arrived) or give up after a timeout. A TPDO of transmission type k (1..240) is due
+TPDO of it arrived) or give up after a timeout; :meth:`SyncCycle.watch` tells each cycle's
+outcome once, in order, as soon as it is known (tasks wait through it: :mod:`chcos.user.cycles`).
+A TPDO of transmission type k (1..240) is due
 every k-th SYNC; its phase is learned from its first arrival.
 
 Two producers: on SocketCAN the kernel's broadcast manager sends SYNC (a cyclic job, no Python
@@ -82,7 +84,7 @@ class SyncCycle:
         self._jitter: deque[float] = deque(maxlen=WINDOW)
         self._jitter_max = 0.0
         self._completed_upto = 0                 # the highest cycle known complete
-        #: told the outcome of each cycle once (see :meth:`watch`); the highest cycle told
+        #: who is told each cycle's outcome (:meth:`watch`), and the highest cycle told
         self._watchers: list[Callable[[int, bool], None]] = []
         self._told_upto = 0
 
