@@ -8,8 +8,8 @@ period jitter (|interval - period|) as p50/p99/max over the last :data:`WINDOW` 
 :meth:`SyncCycle.wait_cycle` lets a caller wait until cycle n is complete (every synchronous
 TPDO of it arrived) or give up after a timeout; :meth:`SyncCycle.watch` tells each cycle's
 outcome once, in order, as soon as it is known (tasks wait through it: :mod:`chcos.user.cycles`).
-A TPDO of transmission type k (1..240) is due
-every k-th SYNC; its phase is learned from its first arrival.
+A TPDO of transmission type k (1..240) is due every k-th SYNC; its phase is learned from its
+first arrival.
 
 Two producers: on SocketCAN the kernel's broadcast manager sends SYNC (a cyclic job, no Python
 thread between two SYNCs) and the driver's reader sees each one come back with its kernel time
