@@ -207,6 +207,16 @@ class Driver(ABC):
         answer must not change; a driver whose check depends on state returns None."""
         return None
 
+    def status_doc(self) -> dict[str, Any]:
+        """What the driver knows of its bus beyond the bus statistics, JSON-ready, for the
+        system map, ``chcos run``'s summary, metrics and OPC UA; thread-safe (a scrape thread
+        asks). Keys, each optional: ``nodes`` - a list of ``{"node": id, "state": name,
+        "ready": bool, ...}`` (one per remote node with a life of its own, e.g. CANopen's
+        lifecycle); ``sync`` - ``{"period", "cycles", "complete", "missing", "late",
+        "late_writes", "jitter_p50", "jitter_p99", "jitter_max"}`` (seconds) of a SYNC cycle.
+        The default: {} (nothing to show)."""
+        return {}
+
     def flush(self, timeout: float) -> bool:
         """Block until every write queued so far has been put on the wire or reported failed;
         True if done within ``timeout``. Called at shutdown before :meth:`stop`."""

@@ -28,6 +28,7 @@ from chcos.cli.cellsystem import Cell, CellSystem, OutputsOff, SinceStartClock, 
 from chcos.devices.entry import DeviceStatus
 from chcos.errors import ChcosError
 from chcos.north.services import NorthOptions, add_north_arguments
+from chcos.system.textview import bus_status_lines
 
 __all__ = ["Cell", "CellSystem", "LogFile", "OutputsOff", "RunResult", "SinceStartClock", "main",
            "open_cell", "parser", "problems", "report", "run", "show_progress"]
@@ -104,6 +105,8 @@ def report(cell: Cell, snap: dict[str, Any], found: list[str], out: TextIO) -> N
     for t in snap["tasks"]:
         print(f"  task     {t['name']:<16} {t['steps']} executions, {t['completions']} "
               f"completions, {t['abnormal']} abnormal", file=out)
+    for line in bus_status_lines(cell.system.devtab.bus_status()):
+        print(f"  {line}", file=out)
     print(f"  messages: {snap['messages']} ({snap['messages'] / secs:.0f}/s)", file=out)
     outcomes = cell.system.devtab.safe_outcomes
     for e in cell.system.devtab:
@@ -235,6 +238,8 @@ def _loop(cell: Cell, virtual: bool, duration: float | None, period: float,
         rate = (snap["messages"] - last_msgs) / max(1e-9, snap["t"] - last_t)
         last_msgs, last_t = snap["messages"], snap["t"]
         show_progress(snap, rate, out)
+        for line in bus_status_lines(s.devtab.bus_status()):
+            print(f"  {line}", file=out, flush=True)
         tick += 1
         if duration is not None and snap["t"] >= duration - 1e-9:
             break

@@ -86,6 +86,8 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         self._wlock = threading.Lock()
         self._inflight: dict[str, deque[Write]] = {}
         self._rx_stamp: dict[str, float] = {}
+        #: each stopped driver's last :meth:`drivers.base.Driver.status_doc`, by bus
+        self._kept_status: dict[str, dict[str, Any]] = {}
 
     def listen(self, listener: DeviceListener) -> None:
         """Send every reading and sensor failure to ``listener`` from now on (one listener: the
@@ -171,6 +173,7 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         except Exception:  # shutdown must go on
             log.exception("safe values at shutdown failed")
         for drv in self.drivers:
+            self._keep_status(drv)
             try:
                 drv.stop()
             except Exception:
@@ -178,6 +181,26 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
             self._keep_sent(drv)
         self.drivers.clear()
         return undelivered
+
+    def bus_status(self) -> dict[str, dict[str, Any]]:
+        """What each bus's driver shows beyond the counters (:meth:`Driver.status_doc`: e.g.
+        CANopen nodes' lifecycles and the SYNC cycle), by bus name, only buses with something
+        to show; a stopped driver's as it was when it stopped. Thread-safe."""
+        out = dict(self._kept_status)
+        for drv in list(self.drivers):
+            doc = drv.status_doc()
+            if doc:
+                out[drv.bus.name] = doc
+        return dict(sorted(out.items()))
+
+    def _keep_status(self, drv: Driver) -> None:
+        try:
+            doc = drv.status_doc()
+        except Exception:   # shutdown must go on
+            log.exception("driver %s: status not kept", drv.bus.name)
+            return
+        if doc:
+            self._kept_status[drv.bus.name] = doc
 
     def _shutdown_safe_values(self, deadline: float) -> list[SafeOutcome]:
         """Every local actuator's safe value, issued and then re-issued while it is reported

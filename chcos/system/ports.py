@@ -128,6 +128,11 @@ class Devices(Protocol):
         """The bus statistics, for the map."""
         ...
 
+    def bus_status(self) -> dict[str, dict[str, Any]]:
+        """What each bus's driver shows beyond the counters (CANopen nodes, the SYNC cycle),
+        for the map."""
+        ...
+
 
 @dataclass
 class Setup:
