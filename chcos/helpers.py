@@ -4,7 +4,7 @@ chcos.errors).
 * :func:`is_int`, :func:`is_number` - the type checks of configuration values, where a TOML or
   JSON ``true`` must not pass for the integer 1;
 * :func:`free_port` - a loopback TCP port for a simulator, a test or a benchmark to bind;
-* :data:`NAME_PATTERN`, :func:`is_name` - the name of a task or device (letters, digits,
+* :data:`NAME_PATTERN` - the name of a task or device (letters, digits,
   ``_ . -``, not starting with a digit, ``.`` or ``-``);
 * :func:`load_toml` - a TOML file read with an error that names the file, what it is and what
   went wrong.
@@ -57,11 +57,6 @@ def free_ports(count: int, host: str = "127.0.0.1") -> list[int]:
 
 #: A task or device name: ``[A-Za-z_][A-Za-z0-9_.-]*`` (use ``fullmatch``).
 NAME_PATTERN = re.compile(r"[A-Za-z_][A-Za-z0-9_.-]*")
-
-
-def is_name(text: object) -> bool:
-    """Whether ``text`` is a valid task or device name (see :data:`NAME_PATTERN`)."""
-    return isinstance(text, str) and NAME_PATTERN.fullmatch(text) is not None
 
 
 def load_toml(path: str | Path, what: str = "file") -> dict[str, Any]:

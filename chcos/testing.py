@@ -13,12 +13,14 @@ and read it; every cell is shut down (actuators at their safe values) when the t
         assert cell.value("level") == 100.0    # what Devtab holds
         assert cell.peer("valve") == 40        # what the simulated PLC was sent
         cell.silence("plc")                    # fault: the PLC stops answering
+        cell.script("level", "ramp(0, 100, 10)")   # a value script, as chcos run --value
+        cell.plant(tank)                       # tank(seconds, slaves) every 10 ms
         cell.invoke("fill", setpoint=80)       # a host command
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import ExitStack
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -26,6 +28,7 @@ from typing import TYPE_CHECKING, Any
 import pytest
 
 if TYPE_CHECKING:  # the plugin loads in every pytest run: import chcos only when used
+    from chcos.apps.sim.from_map import Plant
     from chcos.cli.cellrun import Cell
     from chcos.tables.tasks import TaskEntry
 
@@ -43,6 +46,25 @@ class TestCell:
     def run_for(self, seconds: float) -> None:
         """Run ``seconds`` of virtual time (as fast as possible)."""
         self.cell.run_for(seconds)
+
+    def run_until(self, condition: Callable[[], bool], *, step: float = 0.1,
+                  limit: float = 60.0, timeout: float = 30.0) -> float:
+        """Run virtual time in ``step``s until ``condition()`` holds; returns the virtual
+        seconds it took. The drivers reconnect on wall-clock time (a PLC back after a blip is
+        found by the driver's next retry, up to its longest back-off), so this also waits up to
+        ``timeout`` real seconds. Raises TimeoutError, saying how long it ran, if ``condition``
+        still fails after ``limit`` virtual seconds and ``timeout`` real ones."""
+        import time
+
+        start, deadline = self.now, time.monotonic() + timeout
+        while not condition():
+            if self.now - start >= limit and time.monotonic() >= deadline:
+                raise TimeoutError(f"condition not met after {self.now - start:.1f} s of "
+                                   f"virtual time and {timeout:.0f} s of real time")
+            self.cell.run_for(step)
+            if self.now - start >= limit:  # virtual time is up: let the drivers' threads work
+                time.sleep(step)
+        return self.now - start
 
     @property
     def now(self) -> float:
@@ -77,6 +99,17 @@ class TestCell:
         put on the wire (engineering units)."""
         assert self.cell.slaves is not None
         return self.cell.slaves.get(device)
+
+    def script(self, device: str, script: str | Callable[[float], float]) -> None:
+        """Make sensor ``device`` follow a value script from now on (a function of the seconds
+        since the start, or its text: ``ramp(0, 100, 10)``...)."""
+        assert self.cell.slaves is not None
+        self.cell.slaves.script(device, script)
+
+    def plant(self, model: Plant) -> None:
+        """Attach a plant model: ``model(seconds, slaves)`` every 10 ms of virtual time."""
+        assert self.cell.slaves is not None
+        self.cell.slaves.add_plant(model)
 
     def silence(self, bus: str) -> None:
         """Fault: the simulated slave of ``bus`` stops answering (its connection drops)."""
@@ -136,22 +169,30 @@ class TestCell:
 @pytest.fixture
 def chcos_cell(request: pytest.FixtureRequest,
                tmp_path: Path) -> Iterator[Callable[..., TestCell]]:
-    """Factory ``chcos_cell(system_file, outputs=True)`` -> :class:`TestCell`: the system on
-    virtual time against simulated slaves; a relative path starts at the pytest root
-    directory. Every cell is shut down at the end of the test."""
+    """Factory ``chcos_cell(system_file, outputs=True, values=None, plant=None)`` ->
+    :class:`TestCell`: the system on virtual time against simulated slaves; ``values`` maps
+    sensors to value scripts (``{"level": "sine(50, 10, 4)"}``, as ``--value``), ``plant`` is a
+    plant model (a callable ``(seconds, slaves)`` or ``FILE.py:function``). Relative paths
+    start at the pytest root directory. Every cell is shut down at the end of the test."""
     from chcos.cli.cellrun import open_cell
 
     stack = ExitStack()
     built = [0]
 
-    def build(system_file: str | Path = "system.toml", *, outputs: bool = True) -> TestCell:
+    def build(system_file: str | Path = "system.toml", *, outputs: bool = True,
+              values: Mapping[str, str | float] | None = None,
+              plant: Plant | str | None = None) -> TestCell:
         path = Path(system_file)
+        root = Path(request.config.rootpath)
         if not path.is_absolute():
-            path = Path(request.config.rootpath) / path
+            path = root / path
         built[0] += 1
         work = tmp_path / f"chcos-cell-{built[0]}"
+        items = [f"{name}={script}" for name, script in (values or {}).items()]
         cell = stack.enter_context(open_cell(path, virtual=True, outputs=outputs,
-                                             workdir=work))
+                                             workdir=work, values=items,
+                                             plants=[plant] if plant is not None else [],
+                                             base_dir=root))
         return TestCell(cell)
 
     with stack:

@@ -80,16 +80,31 @@ class DriverHost(Protocol):
         """The kernel clock's current time in seconds."""
 
 
-def deliver_all(host: DriverHost, readings: Sequence[tuple[str, Any]]) -> None:
+def host_clock_virtual(host: DriverHost) -> bool | None:
+    """Whether ``host``'s kernel clock is virtual (``host.virtual_clock``, which
+    :class:`chcos.devices.devtab.Devtab` has), or None for a host that does not say: a driver
+    then passes no receive time (``at``) with its readings."""
+    v = getattr(host, "virtual_clock", None)
+    return v if isinstance(v, bool) else None
+
+
+def deliver_all(host: DriverHost, readings: Sequence[tuple[str, Any]],
+                at: float | None = None) -> None:
     """Hand ``readings`` - ``(device, raw value)`` pairs taken together, such as one poll's - to
     ``host``: as one interrupt through the host's ``deliver_many(readings)`` where it has one
     (:class:`chcos.devices.devtab.Devtab` does: one kernel wake-up per poll instead of one per
-    reading), else one :meth:`DriverHost.deliver` each, in order."""
+    reading), else one :meth:`DriverHost.deliver` each, in order. ``at``, if given, is when
+    they were received on the kernel clock (a frame's receive time stamp, see
+    :func:`drivers.canbus.receive_time`), passed as ``deliver_many(readings, at=at)``: staleness
+    and age are then judged from it (a host without ``deliver_many`` does not get it)."""
     if not readings:
         return
     many = getattr(host, "deliver_many", None)
     if many is not None:
-        many(readings)
+        if at is None:
+            many(readings)
+        else:
+            many(readings, at=at)
         return
     for device, value in readings:
         host.deliver(device, value)
@@ -159,6 +174,13 @@ class Driver(ABC):
         return []
 
     @classmethod
+    def check_warnings(cls, bus: BusSpec, devices: Sequence[DeviceSpec]) -> list[str]:
+        """What is legal in ``bus`` (options and devices, all valid) but bound to misbehave:
+        ``chcos check`` prints each as a warning, ``"<key path under the bus>: <why>"`` like
+        :meth:`check_bus`; [] if none."""
+        return []
+
+    @classmethod
     def encodable(cls, bus: BusSpec, device: DeviceSpec) -> tuple[float, float] | None:
         """The raw values a valid ``device``'s address can carry on the wire, as (lo, hi), or
         None where the driver does not know or the type is unbounded. ``chcos check`` warns when
@@ -184,6 +206,16 @@ class Driver(ABC):
         default): ask for every value. Read once per device while the driver runs, so the
         answer must not change; a driver whose check depends on state returns None."""
         return None
+
+    def status_doc(self) -> dict[str, Any]:
+        """What the driver knows of its bus beyond the bus statistics, JSON-ready, for the
+        system map, ``chcos run``'s summary, metrics and OPC UA; thread-safe (a scrape thread
+        asks). Keys, each optional: ``nodes`` - a list of ``{"node": id, "state": name,
+        "ready": bool, ...}`` (one per remote node with a life of its own, e.g. CANopen's
+        lifecycle); ``sync`` - ``{"period", "cycles", "complete", "missing", "late",
+        "late_writes", "jitter_p50", "jitter_p99", "jitter_max"}`` (seconds) of a SYNC cycle.
+        The default: {} (nothing to show)."""
+        return {}
 
     def flush(self, timeout: float) -> bool:
         """Block until every write queued so far has been put on the wire or reported failed;

@@ -7,12 +7,22 @@ Bus options:
   variables and its config files), so one map serves ``virtual`` on a laptop and ``socketcan`` at
   the cell.
 - ``bitrate`` (int > 0, optional), ``fd`` (bool, default false)
+- ``port``: with ``interface = "udp_multicast"`` (python-can's bus between processes on any
+  machine, ``channel`` the multicast group), the UDP port; give each bus its own group and port
 - ``dbc``: a DBC file (relative to the map file); needed for ``{message, signal}`` addresses
-- ``record``: a log file (``.log``/``.asc``/``.blf``...) receiving every frame received and sent
+- ``record``: a log file (``.log``/``.asc``/``.blf``...) receiving every frame received (with
+  ``filter``, only the map's ids) and sent
 - ``poll``: the reader's receive timeout in seconds (default 0.005) on interfaces it cannot wait
   on without receiving; it bounds :meth:`settle` there. On SocketCAN (``select`` on the socket)
   and python-can's ``virtual`` interface (its receive queue) the reader sleeps until a frame is
   there and :meth:`settle` drains the bus itself, so ``poll`` is not used
+- ``filter`` (bool, default true): open the bus with receive filters on the ids of the messages
+  that carry a sensor signal, less ``ignore_ids`` (:func:`drivers.canbus.can_filters`; on
+  SocketCAN in the kernel): frames of other ids never reach chcos
+- ``ignore_ids``: ids and ranges (``["0x700-0x77F", 0x80]``) another node owns: never warned
+  about, counted as ``ignored-id``
+- ``unknown_ids``: ``ignore`` | ``warn`` (default) | ``fail``, see :class:`UnknownIds`
+- ``counter``, ``crc``, ``checksum`` (here or in an address) are refused: chcos computes neither
 
 Device addresses, one of two forms:
 
@@ -23,14 +33,27 @@ Device addresses, one of two forms:
   Raw devices that share an id form one message and must agree on ``dlc`` and ``extended``.
 
 Received frames are decoded on the reader thread: a frame of a sensor message is decoded and every
-sensor signal in it delivered; a frame whose id carries only actuator signals is ignored (another
-node, or a replayed log, sends it); any other id is ``host.error(bus, "unknown-id")``, a frame of
-the wrong length ``"wrong-length"``, one cantools cannot decode ``"undecodable"``, an error frame
-``"error-frame"``, a remote frame (a data request, which chcos does not answer) ``"remote-frame"``.
+sensor signal in it delivered (of a multiplexed message, the signals its multiplexer selects; a
+multiplexer value the DBC does not list is counted as ``unknown-mux``); a frame whose id carries
+only actuator signals is ignored (another node, or a replayed log, sends it); a frame of any other
+id is counted (``unknown-id``, or ``ignored-id`` for ``ignore_ids``) and handled by
+``unknown_ids``: reported once per :data:`REPORT_PERIOD` with the count, as a warning or (``fail``)
+a bus error. A frame of the wrong length is ``host.error(bus, "wrong-length")``, one cantools
+cannot decode ``"undecodable"``; either fails its message's sensors after :data:`BAD_FRAMES` in a
+row (at the first if the message never had a well-formed frame) until a well-formed one comes.
+An error frame is ``"error-frame"``, a remote frame (a data request, which chcos does not answer)
+``"remote-frame"``. On a real-time kernel clock, on the interfaces of :data:`WALL_STAMPED`, each
+reading carries its frame's receive time (the kernel's stamp on SocketCAN,
+:func:`drivers.canbus.receive_time`) to the host, and a reading older than its sensor's
+``stale_after`` on arrival is counted (``stale-on-arrival``) and not delivered.
 On SocketCAN, frames the kernel dropped because the socket's receive buffer was full are
-``"overrun"`` with the number lost (the socket's drop count, read with ``SO_MEMINFO``, the count
-``SO_RXQ_OVFL`` reports), also summed in ``CanDriver.overrun_lost``; python-can's ``virtual``
-interface has no such buffer and never overruns. Actuator writes never block the caller: each
+counted as ``lost`` in the bus counts and reported as ``"overrun"`` errors with the number lost
+(the socket's drop count, read with ``SO_MEMINFO``: the count ``SO_RXQ_OVFL`` reports, which
+python-can's receive does not ask for), also summed in ``CanDriver.overrun_lost``; the first
+overrun is reported at once, later ones once per :data:`REPORT_PERIOD` with their sum;
+python-can's ``virtual`` interface has no such buffer and never overruns. See docs/can-faults.md.
+
+Actuator writes never block the caller: each
 is encoded as the whole message, keeping the other signals at their last written value or else
 the DBC initial value (0 if none, clipped into the signal's range), and sent. On the interfaces of
 :data:`INLINE_INTERFACES` (``virtual``, ``socketcan``), without ``record``, a write that finds
@@ -46,9 +69,12 @@ reports ``host.recover(device)``. Bus errors are also counted in ``CanDriver.err
 from __future__ import annotations
 
 import contextlib
+import enum
 import errno
 import functools
+import logging
 import time
+from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -58,8 +84,18 @@ import can
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError
 from chcos.helpers import is_int
-from drivers.base import DriverHost, deliver_all
-from drivers.canbus import bus_config, bus_fileno, read_frames, socket_drops
+from drivers.base import DriverHost, deliver_all, host_clock_virtual
+from drivers.canbus import (
+    Tally,
+    bus_config,
+    bus_fileno,
+    can_filters,
+    in_ranges,
+    parse_ids,
+    read_frames,
+    receive_time,
+    socket_drops,
+)
 from drivers.codecs.can import (
     CanCodec,
     check_address,
@@ -70,12 +106,40 @@ from drivers.codecs.can import (
 from drivers.recording import LOG_SUFFIXES, Recorder
 from drivers.threaded import ThreadedDriver
 
-BUS_OPTIONS = ("interface", "channel", "bitrate", "fd", "dbc", "record", "poll")
+BUS_OPTIONS = ("interface", "channel", "bitrate", "fd", "dbc", "record", "poll", "filter",
+               "ignore_ids", "unknown_ids", "port")
+#: Bus keys that would declare counters or checksums: refused by ``check`` with the reason.
+REFUSED_OPTIONS = ("counter", "crc", "checksum")
+
+log = logging.getLogger("chcos.drivers.can")
+
+
+class UnknownIds(enum.Enum):
+    """What a frame with an id of no device does (bus option ``unknown_ids``)."""
+
+    IGNORE = "ignore"   # counted (``unknown-id`` in the bus counts) only
+    WARN = "warn"       # counted, and one aggregated warning per period
+    FAIL = "fail"       # counted, and one bus error per period: the run is unhealthy
+
+
+#: Malformed frames of a message in a row (wrong length, undecodable) that fail its sensors;
+#: a message that never had a well-formed frame fails them at the first.
+BAD_FRAMES = 3
+#: Seconds between two aggregated reports of unknown ids (wall time).
+REPORT_PERIOD = 10.0
+#: Frames received further apart than this (seconds) go to the host as separate deliveries,
+#: each with its own receive time; closer ones share the oldest one's.
+AT_SPREAD = 0.001
 
 #: Interfaces whose ``send(frame, timeout=0)`` never blocks (python-can 4: ``virtual`` puts into
 #: unbounded queues, ``socketcan`` selects with a zero timeout, then sends once); their writes
 #: take the fast path (sent on the kernel thread). Every other interface keeps the writer thread.
 INLINE_INTERFACES = frozenset({"virtual", "socketcan"})
+
+#: Interfaces whose ``Message.timestamp`` is wall-clock time (``time.time()``'s epoch): on
+#: SocketCAN the kernel's receive stamp, on ``virtual`` the sender's. Elsewhere (hardware time
+#: stamps with their own epoch) readings are stamped when the driver takes them.
+WALL_STAMPED = frozenset({"socketcan", "virtual"})
 
 #: Seconds the writer thread waits for room in the transmit buffer before a send fails.
 SEND_TIMEOUT = 0.5
@@ -91,7 +155,30 @@ class CanDriver(ThreadedDriver):
     def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
         super().__init__(bus, devices, host)
         self.codec = CanCodec(bus, devices)
-        self._poll = float(bus.options.get("poll", 0.005))
+        o = bus.options
+        self._poll = float(o.get("poll", 0.005))
+        self._filter = bool(o.get("filter", True))
+        self._ignore, _ = parse_ids(o.get("ignore_ids", []), f"{bus.key}.ignore_ids")
+        self._unknown = UnknownIds(o.get("unknown_ids", "warn"))
+        self._tally = Tally(self._report_unknown, REPORT_PERIOD)
+        self._overruns = Tally(self._report_overrun, REPORT_PERIOD, examples=1)
+        self._virtual: bool | None = None
+        self._stale_after = {d.name: d.stale_after for d in devices
+                             if d.direction == "sensor" and d.stale_after is not None}
+        #: the filters the bus was opened with (None: every frame is received)
+        self.filters: list[Any] | None = None
+        #: frames whose readings were older than their sensor's stale_after when received
+        #: (not delivered), per device
+        self.stale_on_arrival: Counter[str] = Counter()
+        #: frames of ids no device uses, and of ids in ignore_ids, that reached the driver
+        self.unknown_ids = 0
+        self.ignored_ids = 0
+        # malformed frames: in a row per message; messages with a good frame; failed messages
+        self._bad: dict[tuple[int, bool], int] = {}
+        self._good_seen: set[tuple[int, bool]] = set()
+        self._bad_failed: set[tuple[int, bool]] = set()
+        self._pending_stats: Counter[tuple[str, str]] = Counter()
+        self._batch_at: float | None = None
         self._failed = False
         self._bus: can.BusABC | None = None
         self._drops_seen: int | None = None
@@ -113,7 +200,8 @@ class CanDriver(ThreadedDriver):
         """Unknown options, types, python-can configuration, DBC and record file."""
         o = bus.options
         errs = [f"{bus.key}.{k}: unknown option for a can bus; valid options: "
-                f"{', '.join(BUS_OPTIONS)}" for k in o if k not in BUS_OPTIONS]
+                f"{', '.join(BUS_OPTIONS)}" for k in o
+                if k not in BUS_OPTIONS and k not in REFUSED_OPTIONS]
         if "bitrate" in o and (not is_int(o["bitrate"]) or o["bitrate"] <= 0):
             errs.append(f"{bus.key}.bitrate: expected bits per second > 0, got {o['bitrate']!r}")
         if "fd" in o and not isinstance(o["fd"], bool):
@@ -121,6 +209,10 @@ class CanDriver(ThreadedDriver):
         if "poll" in o and (isinstance(o["poll"], bool) or not isinstance(o["poll"], int | float)
                             or not 0 < o["poll"] <= 1):
             errs.append(f"{bus.key}.poll: expected seconds in (0, 1], got {o['poll']!r}")
+        if "port" in o and (o.get("interface") != "udp_multicast" or not is_int(o["port"])
+                            or not 1 <= o["port"] <= 65535):
+            errs.append(f"{bus.key}.port: the UDP port of interface \"udp_multicast\" "
+                        f"(1..65535), got {o['port']!r} with interface {o.get('interface')!r}")
         for k in ("interface", "channel"):
             if k in o and not isinstance(o[k], str | int):
                 errs.append(f"{bus.key}.{k}: expected a string, got {o[k]!r}")
@@ -138,6 +230,18 @@ class CanDriver(ThreadedDriver):
                     load_dbc(o["dbc"])
                 except BusError as exc:
                     errs.append(f"{bus.key}.dbc: {exc}")
+        errs += [f"{bus.key}.{k}: unknown option for a can bus: chcos does not compute "
+                 f"counters or checksums, and a map cannot declare them (an actuator "
+                 f"message carrying one is sent with the signal at its last written or "
+                 f"initial value)" for k in REFUSED_OPTIONS
+                 if k in o]
+        if "filter" in o and not isinstance(o["filter"], bool):
+            errs.append(f"{bus.key}.filter: expected true or false, got {o['filter']!r}")
+        if "ignore_ids" in o:
+            errs += parse_ids(o["ignore_ids"], f"{bus.key}.ignore_ids")[1]
+        if "unknown_ids" in o and o["unknown_ids"] not in [u.value for u in UnknownIds]:
+            errs.append(f"{bus.key}.unknown_ids: expected one of "
+                        f"{', '.join(u.value for u in UnknownIds)}, got {o['unknown_ids']!r}")
         rec = o.get("record")
         if rec is not None and (not isinstance(rec, str)
                                 or Path(rec).suffix.lower() not in LOG_SUFFIXES):
@@ -155,6 +259,36 @@ class CanDriver(ThreadedDriver):
             except BusError:
                 return []          # reported once, by check_bus
         return check_address(bus, device, dbc)
+
+    @classmethod
+    def check_devices(cls, bus: BusSpec, devices: Sequence[DeviceSpec]) -> list[
+            tuple[DeviceSpec, str]]:
+        """A device whose message id is in the bus's ``ignore_ids``."""
+        ranges, bad = parse_ids(bus.options.get("ignore_ids", []), f"{bus.key}.ignore_ids")
+        if bad or not ranges:
+            return []
+        dbc = None
+        if isinstance(bus.options.get("dbc"), str):
+            try:
+                dbc = checked_dbc(bus.options["dbc"])
+            except BusError:
+                return []
+        out = []
+        for d in devices:
+            a = d.address
+            try:
+                if "message" in a:
+                    if dbc is None:
+                        continue           # reported by check_device
+                    fid = int(dbc.get_message_by_name(a["message"]).frame_id)
+                else:
+                    fid = int(a["id"])
+            except (KeyError, AttributeError, TypeError, ValueError):
+                continue                   # reported by check_device
+            if in_ranges(fid, ranges):
+                out.append((d, f"{d.key}.address: id 0x{fid:X} is in {bus.key}.ignore_ids: "
+                               f"the device's frames would be ignored"))
+        return out
 
     @classmethod
     def encodable(cls, bus: BusSpec, device: DeviceSpec) -> tuple[float, float] | None:
@@ -191,6 +325,13 @@ class CanDriver(ThreadedDriver):
             cfg = bus_config(self.bus.options)
         except BusError as exc:
             raise BusError(f"{where}: {exc}") from exc
+        # receive times only where the frame's stamp is known to be wall-clock time
+        virtual = host_clock_virtual(self.host)
+        self._virtual = virtual if cfg.get("interface") in WALL_STAMPED else None
+        if self._filter:
+            ids = [(i, e) for i, e in self.codec.sensor_ids() if not in_ranges(i, self._ignore)]
+            self.filters = cfg["can_filters"] = can_filters(
+                [i for i, e in ids if not e], [i for i, e in ids if e])
         try:
             self._bus = can.Bus(**cfg)
         except (can.CanError, OSError, ValueError, ImportError) as exc:
@@ -207,8 +348,11 @@ class CanDriver(ThreadedDriver):
         self._start_threads()
 
     def stop(self) -> None:
-        """Stop the threads, close the bus and the record file. Idempotent; never raises."""
+        """Stop the threads, close the bus and the record file, report what the aggregated
+        warnings still count. Idempotent; never raises."""
         self._stop_threads()
+        self._tally.flush()
+        self._overruns.flush()
         if self._bus is not None:
             with contextlib.suppress(can.CanError, OSError):
                 self._bus.shutdown()
@@ -233,8 +377,13 @@ class CanDriver(ThreadedDriver):
             return
         lost, self._drops_seen = drops - self._drops_seen, drops
         self.overrun_lost += lost
-        self._error("overrun", f"{lost} frame(s) lost on bus {self.bus.name!r}: the socket's "
-                               f"receive buffer overflowed (kernel drop count {drops})")
+        self.host.stat(self.bus.name, "lost", lost)
+        self._overruns.add("overrun", f"kernel drop count {drops}", lost)
+
+    def _report_overrun(self, kind: str, n: int, examples: list[str]) -> None:
+        """One aggregated report of frames the kernel dropped (a bus error)."""
+        self._error(kind, f"{n} frame(s) lost on bus {self.bus.name!r}: the socket's receive "
+                          f"buffer overflowed ({examples[-1] if examples else 'no drop count'})")
 
     def _receive(self, frame: can.Message) -> None:
         """One received frame (reader thread): counted, recorded, decoded; its readings join
@@ -252,11 +401,101 @@ class CanDriver(ThreadedDriver):
             status, result = self.codec.decode(frame)
             if status == "ok":
                 assert isinstance(result, list)
-                self._batch += result
+                key = (frame.arbitration_id, bool(frame.is_extended_id))
+                if key not in self._good_seen or self._bad:
+                    self._well_formed(key)
+                if result:
+                    self._add(result, frame)
+            elif status == "unknown-id":
+                self._unknown_id(frame)
+            elif status == "unknown-mux":
+                self._pending_stats["unknown-mux", ""] += 1
+            elif status in ("wrong-length", "undecodable"):
+                self._error(status, str(result))
+                self._malformed((frame.arbitration_id, bool(frame.is_extended_id)), status,
+                                str(result))
             elif status != "ignore":
                 self._error(status, str(result))
         except Exception as exc:  # the reader must survive any host/codec surprise
             self._error("internal", f"frame handling failed: {exc!r}")
+
+    def _add(self, readings: list[tuple[str, Any]], frame: can.Message) -> None:
+        """Readings of one frame join the batch (reader thread). On a real kernel clock each
+        is judged by the frame's receive time stamp: a reading older than its sensor's
+        ``stale_after`` is counted (``stale-on-arrival``) and not delivered; frames received
+        more than :data:`AT_SPREAD` apart are delivered separately, each batch with its oldest
+        receive time."""
+        at: float | None = None
+        if self._virtual is False:
+            now = self.host.now()
+            at = receive_time(frame.timestamp, now, False)
+            age = now - at
+            stale = self._stale_after
+            if stale and any(age > stale.get(dev, age) for dev, _ in readings):
+                for dev, _ in readings:
+                    if age > stale.get(dev, age):
+                        self.stale_on_arrival[dev] += 1
+                        self._pending_stats["stale-on-arrival", dev] += 1
+                readings = [(d, v) for d, v in readings if not age > stale.get(d, age)]
+                if not readings:
+                    return
+            if self._batch and (self._batch_at is None or at - self._batch_at > AT_SPREAD):
+                self._end_batch()
+        if not self._batch:
+            self._batch_at = at
+        self._batch += readings
+
+    def _unknown_id(self, frame: can.Message) -> None:
+        """A frame with an id of no device (reader thread): in ``ignore_ids`` only counted
+        (``ignored-id``), else counted (``unknown-id``) and handled by ``unknown_ids``."""
+        fid = frame.arbitration_id
+        if self._ignore and in_ranges(fid, self._ignore):
+            self.ignored_ids += 1
+            self._pending_stats["ignored-id", ""] += 1
+            return
+        self.unknown_ids += 1
+        self._pending_stats["unknown-id", ""] += 1
+        if self._unknown is not UnknownIds.IGNORE:
+            self._tally.add("unknown-id", f"0x{fid:X}")
+
+    def _report_unknown(self, kind: str, n: int, examples: list[str]) -> None:
+        """One aggregated report of ids of no device (see :class:`drivers.canbus.Tally`): a
+        warning, or with ``unknown_ids = "fail"`` a bus error."""
+        text = (f"{n} frame(s) with an id of no device ({', '.join(examples)}"
+                f"{', ...' if n > len(examples) else ''}) since the last report; name them "
+                f"in {self.bus.key}.ignore_ids if another node owns them")
+        if self._unknown is UnknownIds.FAIL:
+            self._error(kind, text)
+        else:
+            log.warning("bus %s: %s: %s", self.bus.name, kind, text)
+
+    def _malformed(self, key: tuple[int, bool], kind: str, detail: str) -> None:
+        """A malformed frame of a sensor message (reader thread): after :data:`BAD_FRAMES` in a
+        row, or at the first if the message never had a well-formed frame, its sensors fail
+        (their readings of earlier frames are handed over first)."""
+        n = self._bad[key] = self._bad.get(key, 0) + 1
+        if key in self._bad_failed or (n < BAD_FRAMES and key in self._good_seen):
+            return
+        sensors = self.codec.sensors_of(*key)
+        if any(dev in sensors for dev, _ in self._batch):
+            self._end_batch()              # their earlier readings go before the failure
+        self._bad_failed.add(key)
+        name = self.codec.message_name(*key)
+        why = (f"{n} malformed frame(s) of {name} in a row" if key in self._good_seen
+               else f"only malformed frames of {name} received")
+        for dev in sensors:
+            self.host.fail(dev, f"CAN bus {self.bus.name!r}: {why} (last: {kind}: {detail})")
+
+    def _well_formed(self, key: tuple[int, bool]) -> None:
+        """A well-formed frame of a sensor message: its malformed count restarts, and sensors
+        its malformed frames failed recover."""
+        self._good_seen.add(key)
+        self._bad.pop(key, None)
+        if key in self._bad_failed:
+            self._bad_failed.discard(key)
+            for dev in self.codec.sensors_of(*key):
+                self.host.recover(dev, f"a well-formed frame of {self.codec.message_name(*key)}"
+                                       f" received")
 
     def _end_batch(self) -> None:
         """The frames received together are handled (on the reader thread, or under the
@@ -270,9 +509,13 @@ class CanDriver(ThreadedDriver):
         if n:
             self._counted = self.received
             self.host.stat(self.bus.name, "frames", n)
+        if self._pending_stats:
+            pending, self._pending_stats = self._pending_stats, Counter()
+            for (key, dev), k in pending.items():
+                self.host.stat(self.bus.name, key, k, dev)
         if self._batch:
             batch, self._batch = self._batch, []
-            deliver_all(self.host, batch)
+            deliver_all(self.host, batch, at=self._batch_at)
 
     def check_value(self, device: str, value: Any) -> str | None:
         """Why ``value`` cannot be encoded for ``device`` (see :meth:`CanCodec.check`)."""
@@ -398,5 +641,7 @@ class CanDriver(ThreadedDriver):
     def _bus_up(self) -> None:
         if self._failed:
             self._failed = False
+            bad = {d for key in self._bad_failed for d in self.codec.sensors_of(*key)}
             for name in self.devices:
-                self.host.recover(name, "frames received again")
+                if name not in bad:        # malformed frames keep those failed
+                    self.host.recover(name, "frames received again")

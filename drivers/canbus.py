@@ -1,19 +1,25 @@
 """canbus - python-can plumbing shared by the ``can`` and ``canopen`` drivers: the bus
-configuration, the reader thread's receive loop (event-driven where the interface allows it) and
-the SocketCAN overrun count.
+configuration, receive filters from a set of ids (:func:`can_filters`), id sets and ranges from a
+map (:func:`parse_ids`), the reader thread's receive loop (event-driven where the interface allows
+it), the SocketCAN overrun count, a frame's receive time on the kernel clock
+(:func:`receive_time`) and rate-limited warnings (:class:`Tally`).
 """
 
 from __future__ import annotations
 
 import functools
 import queue
+import re
 import socket
 import struct
-from collections import deque
-from collections.abc import Callable, Mapping
+import threading
+import time
+from collections import Counter, deque
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 import can
+from can.typechecking import CanFilter
 
 from chcos.errors import BusError
 from drivers.threaded import ReaderThread
@@ -23,14 +29,160 @@ def bus_config(options: Mapping[str, Any]) -> dict[str, Any]:
     """python-can's configuration for this bus: the map's options over ``can.util.load_config``.
 
     Raises :class:`BusError` if python-can's configuration names no usable interface."""
-    given = {k: options[k] for k in ("interface", "channel", "bitrate", "fd") if k in options}
+    given = {k: options[k] for k in ("interface", "channel", "bitrate", "fd", "port")
+             if k in options}  # port: udp_multicast's UDP port (one group and port per bus)
     try:
         cfg = dict(can.util.load_config(config=given))
-    except (can.CanInterfaceNotImplementedError, ValueError) as exc:
+    except (can.CanInterfaceNotImplementedError, ValueError, TypeError) as exc:
         raise BusError(f"python-can configuration: {exc}") from exc
     if cfg.get("channel") is None:
         raise BusError("python-can configuration gives no channel (set channel or CAN_CHANNEL)")
     return cfg
+
+
+#: Above this many ids of one frame format, :func:`can_filters` merges ids into id/mask pairs
+#: (the kernel takes at most 512 filters per socket, CAN_RAW_FILTER_MAX; single-id filters are
+#: looked up by id, masks are tried one by one).
+FILTER_LIMIT = 256
+SFF_MASK = 0x7FF
+EFF_MASK = 0x1FFFFFFF
+#: The filter of an empty id set: extended id 0x1FFFFFFF only (python-can takes an empty filter
+#: list as "everything"; SocketCAN itself could say "nothing", python-can cannot).
+NOTHING: CanFilter = {"can_id": EFF_MASK, "can_mask": EFF_MASK, "extended": True}
+
+
+def _merge(groups: list[tuple[int, int]], width: int, limit: int) -> list[tuple[int, int]]:
+    """``(id, mask)`` groups sorted by id, merged pairwise until at most ``limit`` remain: each
+    step merges the two neighbours whose merged mask lets the fewest ids through (the bits
+    where their ids differ are cleared from the mask)."""
+    groups = list(groups)
+    while len(groups) > max(1, limit):
+        best, best_free = 0, width.bit_count() + 1
+        for k in range(len(groups) - 1):
+            (a, ma), (b, mb) = groups[k], groups[k + 1]
+            free = (width & ~(ma & mb & ~(a ^ b))).bit_count()
+            if free < best_free:
+                best, best_free = k, free
+        (a, ma), (b, mb) = groups[best], groups[best + 1]
+        m = ma & mb & ~(a ^ b) & width
+        groups[best:best + 2] = [(a & m, m)]
+    return groups
+
+
+def can_filters(standard: Iterable[int], extended: Iterable[int] = (),
+                limit: int = FILTER_LIMIT) -> list[CanFilter]:
+    """python-can ``can_filters`` that let through exactly the ``standard`` (11-bit) and
+    ``extended`` (29-bit) ids given - on SocketCAN in the kernel, so no other frame reaches user
+    space, elsewhere in python-can's ``recv`` - or, where one frame format has more than
+    ``limit`` ids, id/mask pairs that let through those ids and as few others as a greedy merge
+    of neighbouring ids finds (the driver then meets the others as ids of no device). Each
+    filter names its frame format (``extended``). An empty set gives :data:`NOTHING`.
+
+    Raises ValueError for an id outside its format's range. Used by the raw CAN driver (the
+    map's ids) and meant for the CANopen driver (its nodes' COB-IDs)."""
+    out: list[CanFilter] = []
+    for ids, width, ext in ((standard, SFF_MASK, False), (extended, EFF_MASK, True)):
+        uniq = sorted(set(ids))
+        bad = [i for i in uniq if not 0 <= i <= width]
+        if bad:
+            raise ValueError(f"CAN id(s) {', '.join(hex(i) for i in bad)} outside "
+                             f"0..0x{width:X} ({'extended' if ext else 'standard'})")
+        groups = _merge([(i, width) for i in uniq], width, limit)
+        out += [{"can_id": i, "can_mask": m, "extended": ext} for i, m in groups]
+    return out or [NOTHING]
+
+
+def filters_admit(filters: Iterable[CanFilter], can_id: int, extended: bool) -> bool:
+    """Whether a frame with ``can_id`` passes ``filters`` (as SocketCAN and python-can judge)."""
+    return any(f.get("extended", extended) == extended
+               and can_id & f["can_mask"] == f["can_id"] & f["can_mask"] for f in filters)
+
+
+_RANGE = re.compile(r"^\s*(0[xX][0-9a-fA-F]+|\d+)\s*(?:-\s*(0[xX][0-9a-fA-F]+|\d+)\s*)?$")
+
+
+def parse_ids(value: Any, key: str, top: int = EFF_MASK) -> tuple[list[tuple[int, int]], list[str]]:
+    """An id set from a map: a list of ids (integers) and ranges (strings ``"0x700-0x77F"``,
+    ends included; a string may also be one id, ``"0x80"``). Returns the ranges (``(lo, hi)``)
+    and the errors, each naming ``key`` and the item."""
+    if not isinstance(value, list):
+        return [], [f"{key}: expected a list of CAN ids and ranges such as "
+                    f"[\"0x700-0x77F\", 0x80], got {value!r}"]
+    ranges: list[tuple[int, int]] = []
+    errs: list[str] = []
+    for k, item in enumerate(value):
+        lo = hi = None
+        if isinstance(item, int) and not isinstance(item, bool):
+            lo = hi = item
+        elif isinstance(item, str) and (m := _RANGE.match(item)):
+            lo = int(m.group(1), 0)
+            hi = int(m.group(2), 0) if m.group(2) else lo
+        if lo is None or hi is None or not 0 <= lo <= hi <= top:
+            errs.append(f"{key}[{k}]: expected a CAN id 0..0x{top:X} or a range \"LO-HI\" "
+                        f"with LO <= HI, got {item!r}")
+            continue
+        ranges.append((lo, hi))
+    return ranges, errs
+
+
+def in_ranges(can_id: int, ranges: Iterable[tuple[int, int]]) -> bool:
+    """Whether ``can_id`` lies in one of ``ranges`` (``(lo, hi)``, ends included)."""
+    return any(lo <= can_id <= hi for lo, hi in ranges)
+
+
+def receive_time(frame_stamp: float, now: float, virtual: bool) -> float:
+    """A frame's receive time on the kernel clock: ``now`` on a virtual clock (the frame's
+    stamp is wall time, which a virtual clock does not follow); on the real clock ``now`` less
+    the frame's age by the wall clock (``frame_stamp`` is python-can's ``Message.timestamp``:
+    on SocketCAN the kernel's receive time stamp, SO_TIMESTAMPNS), never after ``now``."""
+    if virtual or frame_stamp <= 0:
+        return now
+    return now - max(0.0, time.time() - frame_stamp)
+
+
+class Tally:
+    """Rate-limited reports of recurring events (unknown ids on a shared wire): the first
+    event of a kind is reported at once, the others counted and reported as one line per kind
+    per ``period`` seconds (wall time) with their count and a few examples, at the next event
+    after the period or at :meth:`flush`. ``report(kind, count, examples)`` does the reporting.
+    Thread-safe."""
+
+    def __init__(self, report: Callable[[str, int, list[str]], None], period: float = 10.0,
+                 examples: int = 5) -> None:
+        self._report = report
+        self.period = period
+        self._examples = examples
+        self._lock = threading.Lock()
+        self._pending: Counter[str] = Counter()
+        self._seen: dict[str, list[str]] = {}
+        self._last: dict[str, float] = {}
+        #: every event counted, per kind (reported or pending)
+        self.total: Counter[str] = Counter()
+
+    def add(self, kind: str, example: str, n: int = 1) -> None:
+        """Count ``n`` events of ``kind``; report what is pending if the period has passed."""
+        with self._lock:
+            self.total[kind] += n
+            self._pending[kind] += n
+            seen = self._seen.setdefault(kind, [])
+            if example not in seen:
+                seen.append(example)
+                del seen[:-self._examples]     # the newest few
+            now = time.monotonic()
+            last = self._last.get(kind)
+            if last is not None and now - last < self.period:
+                return
+            self._last[kind] = now
+            n, ex = self._pending.pop(kind), self._seen.pop(kind, [])
+        self._report(kind, n, ex)
+
+    def flush(self) -> None:
+        """Report every pending count now (at stop)."""
+        with self._lock:
+            items = [(k, n, self._seen.pop(k, [])) for k, n in self._pending.items() if n]
+            self._pending.clear()
+        for kind, n, ex in items:
+            self._report(kind, n, ex)
 
 
 def bus_fileno(bus: can.BusABC) -> int | None:
@@ -120,17 +272,20 @@ def read_frames(rx: ReaderThread, bus: can.BusABC, poll: float,
     items = _queued(bus)
 
     def drain(limit: int = 0) -> bool:
-        n = 0
+        n = tries = 0
         try:
-            while limit <= 0 or n < limit:
+            while limit <= 0 or tries < limit:
                 if items is not None and not items:   # nothing queued: spare the empty
                     break                             # receive (python-can raises Empty)
+                tries += 1
                 try:
                     frame = bus.recv(0)
                 except (can.CanError, OSError) as exc:
                     on_error(str(exc))
                     return False
                 if frame is None:
+                    if items:      # a frame python-can's own filters took out: go on
+                        continue
                     break
                 n += 1
                 on_frame(frame)

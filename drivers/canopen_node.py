@@ -65,8 +65,9 @@ import functools
 import struct
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import can
@@ -191,6 +192,12 @@ class CanopenDriver(WorkerJobDriver):
         #: nodes hosting axes that are down (their axes told once), under ``_down_lock``
         self._down: set[int] = set()
         self._down_lock = threading.Lock()
+        #: the SYNC cycle the writing task answers (see :meth:`watch_cycles`), and per actuator
+        #: the cycle each queued RPDO write answers (None: not an answer)
+        self._responding: Callable[[], int | None] | None = None
+        self._answers: dict[str, deque[int | None]] = {}
+        self._answers_lock = threading.Lock()
+        self._late_writes = 0
 
     def _submit_job(self, job: CanopenJob) -> bool:
         return self._submit(OP, job)
@@ -209,6 +216,60 @@ class CanopenDriver(WorkerJobDriver):
         """Wait until SYNC cycle ``n`` is complete: every synchronous TPDO due in it arrived
         (True), or SYNC n+1 went out first or ``timeout`` passed (False; also without SYNC)."""
         return self._events.wait_cycle(n, timeout)
+
+    def status_doc(self) -> dict[str, Any]:
+        """Each node's lifecycle (``nodes``: state name, ready, confirmed, NMT state of its
+        last heartbeat, boot-ups seen, NMT starts sent, 0x1001, last EMCY, the reason it is
+        not ready, whether its heartbeat is lost now) and the SYNC cycle's counters and jitter
+        (``sync``, while it runs; with ``late_writes``: RPDO answers to cycle n that went out
+        after SYNC n+1). Thread-safe."""
+        nodes = [{"node": st.node, "state": st.lifecycle.name, "ready": st.ready,
+                  "confirmed": st.confirmed, "nmt": None if st.nmt is None else st.nmt.name,
+                  "boots": st.boots, "nmt_starts": st.nmt_starts,
+                  "error_register": st.error_register, "last_emcy": st.last_emcy,
+                  "reason": st.reason, "heartbeat_lost": self._nodes[nid].lost}
+                 for nid, st in sorted(self.node_states().items())]
+        doc: dict[str, Any] = {"nodes": nodes}
+        stats = self.sync_stats()
+        if stats is not None:
+            doc["sync"] = {**asdict(stats), "late_writes": self._late_writes}
+        return doc
+
+    def watch_cycles(self, fn: Callable[[int, bool], None],
+                     responding: Callable[[], int | None]) -> Callable[[], None]:
+        """Call ``fn(n, complete)`` once per SYNC cycle as soon as its outcome is known
+        (:meth:`drivers.canopen_sync.SyncCycle.watch`; on a driver thread: ``fn`` must not
+        block). ``responding()``, asked on the kernel thread when an actuator write is made,
+        names the cycle the writing task answers (None: none): an RPDO carrying it that goes
+        out after SYNC n+1 is counted late (``sync-late-writes``). Returns the function that
+        ends the watch. Raises BusError if the bus has no SYNC cycle (no ``sync_period``, or
+        the driver is not running)."""
+        sync = self._events.sync
+        if sync is None:
+            raise BusError(f"canopen bus {self.bus.name} ({self.bus.file}): no SYNC cycle to "
+                           f"wait for: the bus has no sync_period, or is not running")
+        self._responding = responding
+        return sync.watch(fn)
+
+    def _write(self, device: str, value: Any) -> None:
+        """Queue the write (as :meth:`drivers.jobs.JobDriver._write`), remembering the SYNC
+        cycle it answers if it goes in an RPDO and a task waiting for cycles made it."""
+        responding = self._responding
+        b = self._bindings.get(device)
+        tag = responding() if responding is not None and b is not None and b.pdo_var else None
+        with self._answers_lock:
+            self._answers.setdefault(device, deque()).append(tag)
+        if not self._submit("write", device, value):
+            with self._answers_lock:
+                self._answers[device].pop()
+            self._refuse(device, value, "stopped", f"{self.kind} bus {self.bus.name} is not "
+                                                   f"running")
+
+    def _answered(self, device: str) -> int | None:
+        """The cycle the write of ``device`` now taken by the I/O thread answers, if any."""
+        with self._answers_lock:
+            q = self._answers.get(device)
+            return q.popleft() if q else None
 
     def _tick(self) -> float:
         """The worker's longest wait for a job; the frames received meanwhile go to the bus
@@ -614,9 +675,10 @@ class CanopenDriver(WorkerJobDriver):
                 case Job("poll", period):
                     self._poll_group(period)
                 case Job("write", device, value) if device in self._axes:
+                    self._answered(device)      # an axis command answers no SYNC cycle
                     self._axis_write(device, value)
                 case Job("write", device, value):
-                    self._transfer(self._bindings[device], value)
+                    self._transfer(self._bindings[device], value, self._answered(device))
                 case Job(op, BootNode() as boot) if op == OP:
                     self._boot(boot)
                 case Job(op, ReportHeld() as held) if op == OP:
@@ -738,7 +800,7 @@ class CanopenDriver(WorkerJobDriver):
                                                      f"answered")
         batch.append((b.device.name, value))
 
-    def _transfer(self, b: Binding, value: Any) -> None:
+    def _transfer(self, b: Binding, value: Any, answers: int | None = None) -> None:
         try:
             raw = coerce(b.od_var, value)
             data = b.od_var.encode_raw(raw)
@@ -755,6 +817,10 @@ class CanopenDriver(WorkerJobDriver):
             node.images.set(b.index, b.subindex, bytes(data))
             b.pdo_var.pdo_parent.transmit()     # on the wire whatever the node's state
             self.sent_frames[name] += 1
+            sync = self._events.sync
+            if answers is not None and sync is not None and sync.cycle > answers:
+                self._late_writes += 1          # SYNC n+1 went out before this answer to n
+                self.host.stat(self.bus.name, "sync-late-writes", device=name)
             with node.lock:
                 state, why = node.lifecycle.state, node.lifecycle.reason
             if state in IGNORES_RPDOS:

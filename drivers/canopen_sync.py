@@ -6,8 +6,10 @@ n+1 went out), late SYNCs (sent more than half a period after their deadline) an
 period jitter (|interval - period|) as p50/p99/max over the last :data:`WINDOW` cycles.
 
 :meth:`SyncCycle.wait_cycle` lets a caller wait until cycle n is complete (every synchronous
-TPDO of it arrived) or give up after a timeout. A TPDO of transmission type k (1..240) is due
-every k-th SYNC; its phase is learned from its first arrival.
+TPDO of it arrived) or give up after a timeout; :meth:`SyncCycle.watch` tells each cycle's
+outcome once, in order, as soon as it is known (tasks wait through it: :mod:`chcos.user.cycles`).
+A TPDO of transmission type k (1..240) is due every k-th SYNC; its phase is learned from its
+first arrival.
 
 Two producers: on SocketCAN the kernel's broadcast manager sends SYNC (a cyclic job, no Python
 thread between two SYNCs) and the driver's reader sees each one come back with its kernel time
@@ -82,11 +84,38 @@ class SyncCycle:
         self._jitter: deque[float] = deque(maxlen=WINDOW)
         self._jitter_max = 0.0
         self._completed_upto = 0                 # the highest cycle known complete
+        #: who is told each cycle's outcome (:meth:`watch`), and the highest cycle told
+        self._watchers: list[Callable[[int, bool], None]] = []
+        self._told_upto = 0
 
     def expect(self, cob_id: int, transmission_type: int) -> None:
         """A synchronous TPDO (type 1..240) the cycle collects; call before :meth:`start`."""
         if 1 <= transmission_type <= 240:
             self._due[cob_id] = _Due(transmission_type)
+
+    def watch(self, fn: Callable[[int, bool], None]) -> Callable[[], None]:
+        """Call ``fn(n, complete)`` once per cycle from now on, as soon as its outcome is
+        known: complete when its last synchronous TPDO arrives, not complete when SYNC n+1
+        goes out first; in cycle order, with this object's lock held (on the reader's or the
+        producer's thread): ``fn`` must not block nor call back. Returns the function that
+        ends the watch."""
+        with self._cond:
+            self._watchers.append(fn)
+            self._told_upto = max(self._told_upto, self._completed_upto,
+                                  self.cycle - 1 if self.cycle else 0)
+
+        def unwatch() -> None:
+            with self._cond:
+                if fn in self._watchers:
+                    self._watchers.remove(fn)
+        return unwatch
+
+    def _tell(self, n: int, complete: bool) -> None:
+        """Tell the watchers cycle ``n``'s outcome; called with the lock held, so that they
+        hear the cycles in order, each once."""
+        self._told_upto = n
+        for fn in self._watchers:
+            fn(n, complete)
 
     def start(self, produce: bool = True) -> None:
         """Begin: with ``produce`` the producer thread sends SYNC; without it the caller's
@@ -151,6 +180,8 @@ class SyncCycle:
                 self._missing += absent
                 if due and not absent:
                     self._complete += 1
+                if self._watchers and closing > self._told_upto:
+                    self._tell(closing, self._completed_upto >= closing)
             self.cycle += 1
             self._cond.notify_all()
 
@@ -171,6 +202,8 @@ class SyncCycle:
             if all(dd.arrived_in == cycle for dd in self._due.values()
                    if self._is_due(dd, cycle)):
                 self._completed_upto = max(self._completed_upto, cycle)
+                if self._watchers and cycle > self._told_upto:
+                    self._tell(cycle, True)
             self._cond.notify_all()
 
     def wait_cycle(self, n: int, timeout: float) -> bool:

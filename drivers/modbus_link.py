@@ -8,6 +8,7 @@ rules are described in :mod:`drivers.modbus`.
 
 from __future__ import annotations
 
+import math
 import queue
 import time
 from collections.abc import Sequence
@@ -21,18 +22,43 @@ from chcos.helpers import is_int, is_number
 from drivers.codecs.modbus import (
     RAW_RANGE,
     Point,
+    UnitBackoff,
     accepted,
     check_address,
+    check_watchdog,
     plan_reads,
     point_of,
     value_error,
+    watchdog_of,
 )
 from drivers.jobs import Job
-from drivers.modbus_requests import READ_CALL, ModbusRequests
+from drivers.modbus_requests import (
+    DEFAULT_DEAD_UNIT_BACKOFF,
+    READ_CALL,
+    READBACK,
+    WATCHDOG,
+    ModbusRequests,
+    raw_value,
+)
 
 PROBE_PERIOD = 1.0   # s between liveness probes of an actuator-only bus without poll_period
-COMMON_OPTIONS = ("timeout", "retries", "reconnect_delay", "reconnect_delay_max", "poll_period")
+FLUSH_NOTICE = 0.05  # s: how soon a reconnect backoff notices that the shutdown flush began
 MAX_CONNECTIONS = 16   # the most connections a modbus-tcp bus may open for parallel polls
+COMMON_OPTIONS = ("timeout", "retries", "reconnect_delay", "reconnect_delay_max", "poll_period",
+                  "watchdog")
+
+
+def dead_unit_backoff(bus: BusSpec) -> int:
+    """The most poll periods between two tries of a unit that stopped answering: the bus's
+    ``dead_unit_backoff``, else 8 - but never so few that the dead unit's tries (``timeout`` x
+    (``retries`` + 1) each) take more than a twentieth of the line's time (the live units keep
+    95 % of their polls)."""
+    o = bus.options
+    if "dead_unit_backoff" in o:
+        return int(o["dead_unit_backoff"])
+    cost = float(o.get("timeout", 1.0)) * (int(o.get("retries", 1)) + 1)
+    period = float(o.get("poll_period", 0.1))
+    return max(DEFAULT_DEAD_UNIT_BACKOFF, math.ceil(19 * cost / period - 1e-9))
 
 
 def check_common(bus: BusSpec, own: Sequence[str]) -> list[str]:
@@ -47,6 +73,7 @@ def check_common(bus: BusSpec, own: Sequence[str]) -> list[str]:
             errs.append(f"{k}.{key}: expected a number of seconds > 0, got {o[key]!r}")
     if "retries" in o and not (is_int(o["retries"]) and o["retries"] >= 0):
         errs.append(f"{k}.retries: expected an integer >= 0, got {o['retries']!r}")
+    errs.extend(check_watchdog(bus))
     return errs
 
 
@@ -90,13 +117,22 @@ class ModbusDriver(ModbusRequests):
                 period = float(dev.address.get("poll_period", default))
                 by_period.setdefault(period, []).append(self._points[dev.name])
         self._plans = {p: plan_reads(pts) for p, pts in by_period.items()}
+        seen = {q.unit for plan in self._plans.values() for r in plan for q in r.points}
+        for q in self._points.values():      # the first actuator of each unit no poll reads
+            if q.unit not in seen:
+                seen.add(q.unit)
+                self._probed.append(q)
+        self._units = UnitBackoff(dead_unit_backoff(self.bus))
+        self._watchdog = watchdog_of(self.bus)
         self._start_worker()
         self._running = True
         timeout = float(self.bus.options.get("timeout", 1.0))
         self._first_attempt.wait(timeout + 2.0)
         for period in self._plans:
             self._poll_every(period, period)
-        if not self._plans and self._points:     # actuators only: nothing read would notice
+        if self._watchdog is not None:
+            self._poll_every(WATCHDOG, self._watchdog.period, WATCHDOG)
+        if self._probed:      # units with actuators only: nothing read would notice
             self._poll_every("probe", float(self.bus.options.get("poll_period", PROBE_PERIOD)),
                              "probe")
 
@@ -152,6 +188,7 @@ class ModbusDriver(ModbusRequests):
                     self._first_attempt.set()
                     self._serve()
                 else:
+                    self.host.stat(self.bus.name, "connect-failed")
                     self._link_down(f"cannot connect to {self._link()}")
                     self._first_attempt.set()
                     self._backoff(delay)
@@ -170,14 +207,29 @@ class ModbusDriver(ModbusRequests):
         self._client.close()
 
     def _backoff(self, delay: float) -> None:
-        """Wait ``delay`` seconds (or until stop), completing jobs that arrive meanwhile."""
-        deadline = time.monotonic() + delay
-        while not self._stop_seen and (left := deadline - time.monotonic()) > 0:
-            try:
-                job = self._jobs.get(timeout=left)
-            except queue.Empty:
+        """Wait ``delay`` seconds (or until stop), completing jobs that arrive meanwhile (a
+        write fails at once: the link is down). Once the shutdown flush began, the wait is
+        ``reconnect_delay`` at most, so a peer that returns within the flush's window is
+        reached while the safe values are still being re-issued."""
+        start = time.monotonic()
+        shortest = float(self.bus.options.get("reconnect_delay", 0.1))
+        while not self._stop_seen:
+            wait = min(delay, shortest) if self._shutting_down else delay
+            left = start + wait - time.monotonic()
+            if left <= 0:
                 return
+            try:        # wakes now and then to notice a flush that begins meanwhile
+                job = self._jobs.get(timeout=min(left, FLUSH_NOTICE))
+            except queue.Empty:
+                continue
             self._finish_unsent(job)
+
+    def flush(self, timeout: float) -> bool:
+        """As :meth:`drivers.jobs.JobDriver.flush` (shutdown: wait until every write handed
+        over is answered or reported failed); from then on, until stop, a lost link is
+        reconnected every ``reconnect_delay`` instead of after the grown backoff."""
+        self._shutting_down = True
+        return super().flush(timeout)
 
     def _link_up(self) -> None:
         """Connected - not yet healthy: the link clears on the first answered request."""
@@ -192,7 +244,10 @@ class ModbusDriver(ModbusRequests):
 
     def _answer(self, unit: int | None = None) -> None:
         """A request was answered (with data or an exception): the link works - on RTU for
-        the devices of the ``unit`` that answered (the others stay failed until theirs does)."""
+        the devices of the ``unit`` that answered (the others stay failed until theirs does),
+        and a unit that had stopped answering is back."""
+        if unit is not None and self._units.dead(unit):
+            self._unit_back(unit)
         if self._answered:
             return
         if not self.timeout_is_link_loss and unit is not None:
@@ -228,27 +283,27 @@ class ModbusDriver(ModbusRequests):
         return True
 
     def _liveness(self) -> None:
-        """The periodic probe of an actuator-only bus: read the first actuator's first entry.
-        An answer (data or an exception) means the server is there; none is a lost link on
+        """The periodic probe of the units no poll reads (an actuator-only bus, or on a line the
+        units that have actuators only): read each one's first actuator's first entry. An
+        answer (data or an exception) means the unit is there; none is a lost link on
         ``modbus-tcp`` (raises ConnectionException: reconnect, probe, recovery) and on
-        ``modbus-rtu`` fails the devices (cause ``link``) until a request is answered."""
-        p = next(iter(self._points.values()))
-        where = f"{self.kind} bus {self.bus.name} probe of unit {p.unit} {p.table} {p.address}"
-        self.host.stat(self.bus.name, "requests")
-        try:
-            READ_CALL[p.table](self._client, p.address, count=1, device_id=p.unit)
-        except ModbusIOException as exc:
-            kind, what = self._unanswered(where)
-            self.host.error(self.bus.name, kind, f"{where}: {what}: {exc}")
-            if not self._client.connected or self.timeout_is_link_loss:
-                raise ConnectionException(f"no response to the probe: {exc}") from exc
-            self._answered = False
-            self._units_answered.discard(p.unit)
-            for name, q in self._points.items():
-                if q.unit == p.unit:
-                    self._health.fail(name, "link", f"{where}: no answer: {what}")
-            return
-        self._answer(p.unit)
+        ``modbus-rtu`` fails the unit's devices (cause ``unit``) until it answers."""
+        for p in self._probed:
+            if not self._unit_due(p.unit):
+                continue
+            where = f"{self.kind} bus {self.bus.name} probe of unit {p.unit} {p.table} " \
+                    f"{p.address}"
+            self.host.stat(self.bus.name, "requests")
+            try:
+                READ_CALL[p.table](self._client, p.address, count=1, device_id=p.unit)
+            except ModbusIOException as exc:
+                kind, what = self._unanswered(where)
+                self.host.error(self.bus.name, kind, f"{where}: {what}: {exc}")
+                if not self._client.connected or self.timeout_is_link_loss:
+                    raise ConnectionException(f"no response to the probe: {exc}") from exc
+                self._unit_silent(p.unit, where, f"no answer: {what}")
+                continue
+            self._answer(p.unit)
 
     def _link_down(self, why: str) -> None:
         was = self._connected
@@ -266,7 +321,7 @@ class ModbusDriver(ModbusRequests):
             self._finish_unsent(self._jobs.get_nowait())
 
     def _finish_unsent(self, job: Job) -> None:
-        op, what, value = job
+        op, what, value = job.op, job.what, raw_value(job.value)
         if op == "stop":
             self._stop_seen = True
             return
@@ -280,6 +335,12 @@ class ModbusDriver(ModbusRequests):
             self._poll_taken(what)
         elif op == "probe":
             self._poll_taken("probe")
+        elif op == WATCHDOG:
+            self._poll_taken(WATCHDOG)
+        elif op == READBACK:
+            self._poll_taken(READBACK)
+            if self._readback:      # still failed: try again once the link is back
+                self._arm_readback()
         self._done()
 
     def _serve(self) -> None:
@@ -303,20 +364,29 @@ class ModbusDriver(ModbusRequests):
                 self._run(job)
             except (ConnectionException, OSError) as exc:
                 if job.op == "write":
-                    self.host.write_failed(job.what, job.value, f"connection to "
-                                                                  f"{self._link()} lost: {exc}")
+                    self.host.write_failed(job.what, raw_value(job.value),
+                                           f"connection to {self._link()} lost: {exc}")
                 self._link_down(f"connection to {self._link()} lost: {exc}")
                 return
             finally:
                 self._done()
 
+    def _unsent_write(self, job: Job) -> None:
+        """A write job dropped at stop, never run: reported failed with the value given."""
+        super()._unsent_write(job._replace(value=raw_value(job.value)))
+
     def _run(self, job: Job) -> None:
-        op, what, value = job
+        op, what, value = job.op, job.what, job.value
         if op == "poll":
             self._poll_taken(what)
             self._poll(self._plans[what])
         elif op == "probe":
             self._poll_taken("probe")
             self._liveness()
+        elif op == READBACK:
+            self._read_back()
+        elif op == WATCHDOG:
+            self._poll_taken(WATCHDOG)
+            self._beat()
         else:
             self._write_point(self._points[what], value)

@@ -18,6 +18,7 @@ import threading
 from abc import abstractmethod
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from pymodbus.client.mixin import ModbusClientMixin
@@ -29,11 +30,47 @@ from drivers.codecs.modbus import (
     EXCEPTION_TEXT,
     Point,
     ReadRequest,
+    UnitBackoff,
+    Watchdog,
     reading_of,
     value_error,
 )
 from drivers.health import Health
 from drivers.jobs import WorkerJobDriver
+
+#: The health cause of an actuator whose last write failed with its unit there; cleared by a
+#: later answered write or by the driver's own read-back (:meth:`ModbusRequests._read_back`).
+WRITE_CAUSE = "write"
+#: The health cause of every device of an RTU unit that stopped answering (cleared by any
+#: answer from the unit).
+UNIT_CAUSE = "unit"
+#: The health cause of the devices of the watchdog's unit while the unit refuses the watchdog
+#: write (an exception answer: the PLC's comm-loss logic will act).
+WATCHDOG_CAUSE = "watchdog"
+#: The key and job op of the watchdog write.
+WATCHDOG = "watchdog"
+#: The key and job op of the read-back of write-failed actuators.
+READBACK = "readback"
+#: Exception codes to a read-back that still mean the unit answered: the entry cannot be read
+#: (illegal function, data address, data value), not that the unit is busy or failing.
+UNIT_ANSWERED = frozenset({1, 2, 3})
+DEFAULT_DEAD_UNIT_BACKOFF = 8   # poll periods, at least, between two tries of a dead unit
+
+
+@dataclass(frozen=True)
+class QueuedWrite:
+    """A write job's value and the epoch of its unit when it was queued (see
+    :meth:`drivers.codecs.modbus.UnitBackoff.epoch`): a write queued before its unit stopped
+    answering is not sent after that."""
+
+    value: Any
+    epoch: int
+
+
+def raw_value(value: Any) -> Any:
+    """The value a write job carries (what :meth:`Driver.write` was given)."""
+    return value.value if isinstance(value, QueuedWrite) else value
+
 
 READ_METHOD = {"coil": "read_coils", "discrete": "read_discrete_inputs",
                "holding": "read_holding_registers", "input": "read_input_registers"}
@@ -59,6 +96,8 @@ class ModbusRequests(WorkerJobDriver):
         self._connected = False
         self._plans: dict[float, list[ReadRequest]] = {}
         self._points: dict[str, Point] = {}
+        #: the first actuator of each unit no poll reads: read every period as a liveness probe
+        self._probed: list[Point] = []
         self._first_attempt = threading.Event()
         self._answered = True      # a request was answered since the last (re)connect
         self._units_answered: set[int] = set()   # RTU: the units that did, since then
@@ -72,6 +111,17 @@ class ModbusRequests(WorkerJobDriver):
         #: held while an answer is taken (statistics, failures, health, readings): the shares of
         #: a parallel poll run on several threads
         self._lock = threading.Lock()
+        #: actuators whose last write failed with their unit there: read back until it answers
+        self._readback: set[str] = set()
+        self._readback_armed = False
+        self._lock_readback = threading.Lock()
+        #: RTU: which units answer and how often a dead one is tried (see start())
+        self._units = UnitBackoff(DEFAULT_DEAD_UNIT_BACKOFF)
+        #: the bus's watchdog register (see start()) and how many times it was written
+        self._watchdog: Watchdog | None = None
+        self._beats = 0
+        #: set by the shutdown flush: reconnect at the shortest delay from then on
+        self._shutting_down = False
 
     # -- to be provided by the kinds ----------------------------------------------------------
 
@@ -194,6 +244,8 @@ class ModbusRequests(WorkerJobDriver):
         end of the poll), its failures to the host at once. Raises ConnectionException when
         the link is lost (TCP: also when the server does not answer)."""
         with self._lock:
+            if not self._units.due(r.unit):
+                return                 # a dead unit sitting out its turn
             self.host.stat(self.bus.name, "requests")
         try:
             resp = READ_CALL[r.table](c, r.address, count=r.count, device_id=r.unit)
@@ -210,9 +262,12 @@ class ModbusRequests(WorkerJobDriver):
             self.host.error(self.bus.name, kind, f"{r.describe()}: {what}: {exc}", p.device)
         if not c.connected or self.timeout_is_link_loss:
             raise ConnectionException(f"no response: {exc}") from exc
-        for p in r.points:
-            self._health.fail(p.device, "exception", f"{self.kind} bus {self.bus.name} "
-                              f"{r.describe()} (device {p.device}): {what}")
+        where = f"{self.kind} bus {self.bus.name} {r.describe()}"
+        if kind == "timeout":
+            self._unit_silent(r.unit, where, what)
+            return
+        for p in r.points:           # garbled: the unit is there, its answer was not usable
+            self._health.fail(p.device, "exception", f"{where} (device {p.device}): {what}")
 
     def _read_answered(self, r: ReadRequest, resp: Any, batch: list[tuple[str, Any]]) -> None:
         if resp.isError():
@@ -227,7 +282,7 @@ class ModbusRequests(WorkerJobDriver):
                                   f"({EXCEPTION_TEXT.get(code, 'unknown')})")
             self._answer(r.unit)       # after the new cause: no OK in between
             return
-        if not self._answered:
+        if not self._answered or self._units.dead(r.unit):
             self._answer(r.unit)
         entries = resp.bits if r.table in ("coil", "discrete") else resp.registers
         for p in r.points:
@@ -243,8 +298,24 @@ class ModbusRequests(WorkerJobDriver):
                 self._health.clear(p.device, "exception", f"{r.describe()} answered")
             batch.append((p.device, value))
 
-    def _write_point(self, p: Point, value: Any) -> None:
+    def _write(self, device: str, value: Any) -> None:
+        """Queue a ``write`` job stamped with its unit's epoch; never blocks."""
+        p = self._points.get(device)
+        job = QueuedWrite(value, self._units.epoch(p.unit) if p is not None else 0)
+        if not self._submit("write", device, job):
+            self._refuse(device, value, "stopped", f"{self.kind} bus {self.bus.name} is not "
+                                                   f"running")
+
+    def _write_point(self, p: Point, job: QueuedWrite) -> None:
         c = self._client
+        value = job.value
+        if job.epoch != self._units.epoch(p.unit):
+            stale = (f"{self.kind} bus {self.bus.name} unit {p.unit} stopped answering after "
+                     f"the write was queued: not sent (re-issue it)")
+            self.host.error(self.bus.name, "not-sent", f"write {value!r} to {p.device}: {stale}",
+                            p.device)
+            self.host.write_failed(p.device, value, stale)
+            return
         why = value_error(p.type, value)
         if why is not None:
             self.host.error(self.bus.name, "range", f"write {value!r} to {p.device}: {why}",
@@ -267,8 +338,17 @@ class ModbusRequests(WorkerJobDriver):
             if not c.connected or self.timeout_is_link_loss:
                 raise ConnectionException(f"no response: {exc}") from exc
             self.host.write_failed(p.device, value, f"{where}: write not answered: {exc}")
-            self._health.fail(p.device, "exception", f"{where} (device {p.device}): write not "
-                                                     f"answered: {exc}")
+            self._write_failed(p, f"{where} (device {p.device}): write not answered: {exc}")
+            if kind == "timeout":
+                self._unit_silent(p.unit, where, what)
+            return
+        except ConnectionException:
+            raise                           # the link is lost: the worker's supervision
+        except ModbusException as exc:      # an answer that is no valid answer
+            text = f"{where} (device {p.device}): write answer malformed: {exc}"
+            self.host.error(self.bus.name, "malformed", text, p.device)
+            self.host.write_failed(p.device, value, text)
+            self._write_failed(p, text)
             return
         if resp.isError():
             code = int(getattr(resp, "exception_code", 0))
@@ -276,9 +356,140 @@ class ModbusRequests(WorkerJobDriver):
                     f"{code} ({EXCEPTION_TEXT.get(code, 'unknown')})")
             self.host.error(self.bus.name, f"exception-{code}", text, p.device)
             self.host.write_failed(p.device, value, text)
-            self._health.fail(p.device, "exception", text)
+            self._write_failed(p, text)
             self._answer(p.unit)       # after the new cause: no OK in between
             return
         self._answer(p.unit)
         self.host.written(p.device, value)
-        self._health.clear(p.device, "exception", f"{where}: write answered")
+        self._readback.discard(p.device)
+        self._health.clear(p.device, WRITE_CAUSE, f"{where}: write answered")
+
+    # -- no latch: the read-back of actuators whose write failed -------------------------------
+
+    def _write_failed(self, p: Point, reason: str) -> None:
+        """A write to ``p`` failed while its unit is there (exception answer, or on RTU no
+        answer): the actuator fails (cause ``write``) and is read back at the poll cadence
+        until its unit answers (:meth:`_read_back`), so the failure does not latch while every
+        command to it is refused."""
+        self._health.fail(p.device, WRITE_CAUSE, reason)
+        self._readback.add(p.device)
+        self._arm_readback()
+
+    def _arm_readback(self) -> None:
+        """Queue the read-back job one ``poll_period`` from now, unless it is armed already
+        (any thread)."""
+        with self._lock_readback:
+            if self._readback_armed or not self._running:
+                return
+            self._readback_armed = True
+        period = float(self.bus.options.get("poll_period", 0.1))
+        self.host.at(round(self.host.now() + period, 9), self._readback_due)
+
+    def _readback_due(self) -> None:
+        """The kernel timer of the read-back: hand the job to the worker."""
+        with self._lock_readback:
+            self._readback_armed = False
+        self._submit_poll(READBACK, READBACK)
+
+    def _read_back(self) -> None:
+        """The read-back job: read each write-failed actuator's own coil or registers. Data,
+        or an exception answer saying the entry cannot be read (codes 1, 2, 3), is its unit
+        answering: the write failure ends. Busy, acknowledge, other codes and silence keep it;
+        the job is armed again while an actuator is left. On ``modbus-tcp`` silence is a lost
+        link (raises ConnectionException)."""
+        self._poll_taken(READBACK)
+        try:      # a lost link ends the loop: armed again all the same
+            for name in sorted(self._readback):
+                if self._unit_due(self._points[name].unit):
+                    self._read_back_one(name)
+        finally:
+            if self._readback:
+                self._arm_readback()
+
+    def _read_back_one(self, name: str) -> None:
+        """Read write-failed actuator ``name``'s entries back (see :meth:`_read_back`)."""
+        p = self._points[name]
+        where = f"{self.kind} bus {self.bus.name} read-back of unit {p.unit} {p.table} " \
+                f"{p.address}"
+        self.host.stat(self.bus.name, "requests")
+        try:
+            resp = READ_CALL[p.table](self._client, p.address, count=p.size, device_id=p.unit)
+        except ModbusIOException as exc:
+            kind, what = self._unanswered(where)
+            self.host.error(self.bus.name, kind, f"{where}: {what}: {exc}", name)
+            if not self._client.connected or self.timeout_is_link_loss:
+                raise ConnectionException(f"no response to the read-back: {exc}") from exc
+            self._unit_silent(p.unit, where, what)
+            return
+        code = int(getattr(resp, "exception_code", 0)) if resp.isError() else 0
+        self._answer(p.unit)
+        if code and code not in UNIT_ANSWERED:
+            self.host.error(self.bus.name, f"exception-{code}", f"{where}: exception code {code}",
+                            name)
+            return
+        self._readback.discard(name)
+        self._health.clear(name, WRITE_CAUSE, f"{where} (device {name}) answered" + (
+            f" (exception code {code}: {EXCEPTION_TEXT.get(code, 'unknown')})" if code else ""))
+
+    # -- the watchdog register ------------------------------------------------------------------
+
+    def _beat(self) -> None:
+        """The watchdog job: write the next watchdog value. Not answered: as any request
+        (``modbus-tcp``: a lost link, raises ConnectionException; ``modbus-rtu``: the unit's
+        devices fail). An exception answer fails the devices of the watchdog's unit (cause
+        ``watchdog``: the PLC will act on the loss) until a write is answered."""
+        wd = self._watchdog
+        if wd is None or not self._unit_due(wd.unit):
+            return
+        c = self._client
+        value = wd.value_at(self._beats)
+        self._beats += 1
+        where = f"{self.kind} bus {self.bus.name} watchdog {wd.describe()}"
+        self.host.stat(self.bus.name, "requests")
+        try:
+            resp = (c.write_coil(wd.address, bool(value), device_id=wd.unit)
+                    if wd.table == "coil" else
+                    c.write_register(wd.address, value, device_id=wd.unit))
+        except ModbusIOException as exc:
+            kind, what = self._unanswered(where)
+            self.host.error(self.bus.name, kind, f"{where}: write not answered: {what}: {exc}")
+            if not c.connected or self.timeout_is_link_loss:
+                raise ConnectionException(f"no response to the watchdog: {exc}") from exc
+            self._unit_silent(wd.unit, where, f"watchdog write not answered: {what}")
+            return
+        self._answer(wd.unit)
+        names = [n for n, q in self._points.items() if q.unit == wd.unit]
+        if resp.isError():
+            code = int(getattr(resp, "exception_code", 0))
+            text = (f"{where}: write refused with exception code {code} "
+                    f"({EXCEPTION_TEXT.get(code, 'unknown')})")
+            self.host.error(self.bus.name, f"exception-{code}", text)
+            for name in names:
+                self._health.fail(name, WATCHDOG_CAUSE, f"{text} (device {name})")
+            return
+        self.host.stat(self.bus.name, "watchdog")
+        for name in names:
+            self._health.clear(name, WATCHDOG_CAUSE, f"{where}: write answered")
+
+    def _unit_due(self, unit: int) -> bool:
+        """Whether a request to ``unit`` goes out now (a dead unit sits out some turns)."""
+        with self._lock:
+            return self._units.due(unit)
+
+    def _unit_silent(self, unit: int, where: str, what: str) -> None:
+        """RTU: ``unit`` did not answer the request ``where``: every device of the unit fails
+        (cause ``unit``), its later requests are thinned out (:class:`UnitBackoff`), and
+        writes queued for it until now are not sent."""
+        self._units.silent(unit)
+        for name, q in self._points.items():
+            if q.unit == unit:
+                self._health.fail(name, UNIT_CAUSE, f"{where} (device {name}): {what}")
+
+    def _unit_back(self, unit: int) -> None:
+        """``unit`` answered after it had stopped: its devices lose the cause ``unit``."""
+        if not self._units.answered(unit):
+            return
+        for name, q in self._points.items():
+            if q.unit == unit:
+                self._health.clear(name, UNIT_CAUSE, f"{self.kind} bus {self.bus.name}: unit "
+                                                     f"{unit} answers again")

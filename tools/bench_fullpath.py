@@ -274,12 +274,29 @@ def paired_batch(loops: int, window: int = 64, pairs: int = PAIRS, tag: str = ""
     return b
 
 
-#: where an executed bytecode instruction's code lives, by path fragment, first match wins:
-#: chcos' own code, the python-can and cantools packages, and the standard library's modules
-#: python-can's virtual bus runs (its deepcopy per receiver, its queue, their locks)
-_PLACES = (("/chcos/", "chcos"), ("/drivers/", "chcos"), ("bench_fullpath", "bench"),
-           ("/cantools/", "cantools"), ("/can/", "python-can"), ("/asyncio/", "asyncio"),
-           ("/copy.py", "python-can"), ("/copyreg.py", "python-can"), ("/queue.py", "python-can"))
+def _places() -> tuple[tuple[str, str], ...]:
+    """Where an executed bytecode instruction's code lives, as (directory or file prefix, name),
+    first match wins: chcos' own code (the ``chcos`` and ``drivers`` packages), this benchmark,
+    the cantools and python-can packages, asyncio, and the standard library's modules
+    python-can's virtual bus runs (its deepcopy per receiver, its queue, their locks). The
+    prefixes are the imported packages' own directories, so a checkout directory that happens
+    to be named ``chcos`` or ``can`` does not move code from one place to another."""
+    import copy
+    import copyreg
+    import queue
+
+    import chcos
+    import drivers
+
+    def pkg(mod: types.ModuleType) -> str:
+        return os.path.dirname(os.path.realpath(mod.__file__ or "")) + os.sep
+
+    def src(mod: types.ModuleType) -> str:
+        return os.path.realpath(mod.__file__ or "")
+
+    return ((pkg(chcos), "chcos"), (pkg(drivers), "chcos"), (src(sys.modules[__name__]), "bench"),
+            (pkg(cantools), "cantools"), (pkg(can), "python-can"), (pkg(asyncio), "asyncio"),
+            (src(copy), "python-can"), (src(copyreg), "python-can"), (src(queue), "python-can"))
 
 
 def count_instructions(run: Callable[[int], float], n: int = 2000) -> dict[str, float]:
@@ -294,9 +311,12 @@ def count_instructions(run: Callable[[int], float], n: int = 2000) -> dict[str, 
     counts: Counter[str] = Counter()
     where: dict[str, str] = {}
 
+    places = _places()
+
     def place(filename: str) -> str:
-        for frag, name in _PLACES:
-            if frag in filename:
+        real = os.path.realpath(filename)
+        for prefix, name in places:
+            if real.startswith(prefix):
                 return name
         return "other"
 

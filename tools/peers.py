@@ -76,9 +76,17 @@ class ModbusPeer:
             self.proc = None
 
     def freeze(self) -> None:
-        """SIGSTOP: the kernel still accepts connections, nothing answers."""
+        """SIGSTOP: the kernel still accepts connections, nothing answers. Returns once the
+        process is stopped (a signal is delivered when the process is next scheduled: on a
+        loaded machine it could answer a request sent just after the kill(2))."""
         assert self.proc is not None
         self.proc.send_signal(signal.SIGSTOP)
+        stat = Path(f"/proc/{self.proc.pid}/stat")
+        deadline = time.monotonic() + WAIT
+        while stat.exists() and stat.read_text().rsplit(")", 1)[1].split()[0] not in ("t", "T"):
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"pyModbusTCP peer {self.proc.pid} did not stop")
+            time.sleep(0.001)
 
     def thaw(self) -> None:
         """SIGCONT."""

@@ -1,4 +1,5 @@
-"""support_rtu - a libmodbus RTU slave behind a fault relay, over two socat pty pairs.
+"""support_rtu - a libmodbus RTU slave behind a fault relay, over two socat pty pairs (the slave
+process and the multi-drop line hub are :mod:`tools.peer_rtu`).
 
 ::
 
@@ -17,14 +18,13 @@ import select
 import shutil
 import subprocess
 import threading
-import tty
-from collections.abc import Callable
 from pathlib import Path
-from typing import IO
 
+from tools.peer_rtu import LineHub, RtuSlave, compile_slave, open_raw
 from vcan_tests.conftest import require
 
-SOURCE = Path(__file__).resolve().parent / "peers" / "rtu_slave.c"
+__all__ = ["FaultRelay", "LineHub", "PtyPair", "RtuSlave", "build_slave", "need"]
+
 GAP = 0.004      # seconds of quiet that end one answer (t3.5 at 19200 baud is 1.8 ms)
 
 
@@ -42,10 +42,7 @@ def build_slave(out_dir: Path) -> Path:
     flags = subprocess.run(["pkg-config", "--cflags", "--libs", "libmodbus"],
                            capture_output=True, text=True)
     need("libmodbus-dev (pkg-config libmodbus)", flags.returncode == 0)
-    exe = out_dir / "rtu_slave"
-    subprocess.run(["gcc", "-Wall", "-Wextra", "-Werror", "-O2", "-o", str(exe), str(SOURCE),
-                    *flags.stdout.split()], check=True, capture_output=True, text=True)
-    return exe
+    return compile_slave(out_dir)
 
 
 class PtyPair:
@@ -73,12 +70,6 @@ class PtyPair:
         self.proc.wait(5)
 
 
-def _open_raw(path: Path) -> int:
-    fd = os.open(path, os.O_RDWR | os.O_NOCTTY)
-    tty.setraw(fd)
-    return fd
-
-
 class FaultRelay:
     """Copies bytes between the master's pty and the slave's pty; damages answers on demand.
 
@@ -88,8 +79,8 @@ class FaultRelay:
     answers that passed, ``damaged`` the ones damaged, by fault."""
 
     def __init__(self, master_side: Path, slave_side: Path) -> None:
-        self._m = _open_raw(master_side)
-        self._s = _open_raw(slave_side)
+        self._m = open_raw(master_side)
+        self._s = open_raw(slave_side)
         self._faults: list[str] = []
         self._lock = threading.Lock()
         self.answers = 0
@@ -144,50 +135,3 @@ class FaultRelay:
         self._thread.join(5)
         for fd in (self._m, self._s, self._stop_r, self._stop_w):
             os.close(fd)
-
-
-class RtuSlave:
-    """The libmodbus slave process on ``port`` as ``unit``; reads its report lines."""
-
-    def __init__(self, exe: Path, port: Path, unit: int) -> None:
-        self.proc = subprocess.Popen([str(exe), str(port), str(unit)], stdout=subprocess.PIPE,
-                                     stderr=subprocess.PIPE, text=True)
-        self._cond = threading.Condition()
-        self.lines: list[str] = []
-        out: IO[str] | None = self.proc.stdout
-        assert out is not None
-        first = out.readline().strip()
-        assert first == "READY", f"rtu_slave did not start: {first!r} {self.proc.stderr!r}"
-        self._thread = threading.Thread(target=self._read, args=(out,), daemon=True)
-        self._thread.start()
-
-    def _read(self, out: IO[str]) -> None:
-        for line in out:
-            with self._cond:
-                self.lines.append(line.strip())
-                self._cond.notify_all()
-
-    def wait(self, pred: Callable[[RtuSlave], bool], timeout: float = 5.0) -> bool:
-        """Block until ``pred(self)`` holds (checked on every report line); False on timeout."""
-        with self._cond:
-            return self._cond.wait_for(lambda: pred(self), timeout)
-
-    @property
-    def answered(self) -> int:
-        """How many requests the slave answered."""
-        with self._cond:
-            return len(self.lines)
-
-    def last_registers(self) -> tuple[list[int], str]:
-        """The holding registers and coils (as 0/1 digits) after the last answered request."""
-        with self._cond:
-            line = self.lines[-1] if self.lines else ""
-        if not line:
-            return [], ""
-        words = line.split()
-        hr = [int(w) for w in words[3:19]]
-        return hr, words[20]
-
-    def close(self) -> None:
-        self.proc.terminate()
-        self.proc.wait(5)

@@ -1,6 +1,6 @@
-"""Message delivery off its inlined hot path: a reader that is suspended, that waits with a
-read timeout, or that an instrument watches gets the same messages and counts as on the hot
-path (virtual clock)."""
+"""Message delivery to a reader that is suspended, that waits with a read timeout, or that an
+instrument watches: it gets the same messages, and the links count the same, as a plain reader
+(virtual clock)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,6 @@ from chcos.devices.spec import DeviceMap
 from chcos.errors import MessageError, ReadTimeout
 from chcos.kernel.clock import VirtualClock
 from chcos.kernel.instrument import Counters, Instrument
-from chcos.kernel.lifecycle import FrozenUnwait
 from chcos.system.embedded import System
 from chcos.tables.messages import Link
 from chcos.tables.tasks import TaskEntry, TaskState
@@ -61,24 +60,22 @@ def test_suspended_reader_keeps_the_newest_message_until_resumed(tmp_path: Path)
     assert link.delivered == 1
 
 
-def test_reader_suspended_and_resumed_in_its_wait_is_woken_on_the_hot_path(
+def test_reader_suspended_and_resumed_in_its_wait_is_woken_by_the_next_message(
         tmp_path: Path) -> None:
-    """suspend() swaps a waiting reader's unwait for a FrozenUnwait (so a delivery's hot path,
-    which tells a plain read by its unwait, leaves it alone); resume() gives the read its own
-    back, so the next message readies it on the hot path again."""
+    """A reader suspended and resumed before any message came still waits in its read; the
+    next message readies it, and it reads that message."""
     log: list[Any] = []
     s, c, link = _system(tmp_path, {"log": log})
     s.run()
-    port = link.port
-    assert c.unwait is port.unwait  # a plain read of the port
     s.kernel.suspend(c)
-    assert isinstance(c.unwait, FrozenUnwait) and c.unwait is not port.unwait
+    assert c.state is TaskState.SUSPENDED
     s.kernel.resume(c)
-    assert c.unwait is port.unwait and c.state.value == "waiting"
+    assert c.state.value == "waiting"  # (mypy narrowed c.state to SUSPENDED above)
     s.msgmgr.deliver(link, 7)
-    assert c.state is TaskState.READY and c.unwait is None and port.waiter is None
+    assert c.state.value == "ready" and s.kernel.ready_tasks() == [c]
     s.run()
-    assert log == [7]
+    assert log == [7] and c.state.value == "waiting"
+    assert (link.sent, link.overwritten, link.delivered) == (1, 0, 1)
 
 
 def test_message_before_the_read_timeout_cancels_that_timeout(tmp_path: Path) -> None:
@@ -160,13 +157,17 @@ def test_an_instrument_hears_every_block_once_with_the_state_it_waits_in(
     s.run(until=3.0)
     assert len(blocked.seen) == 3  # C returned, B's done() returned: nobody waits again
     s.kernel.remove_instrument(blocked)
-    assert s.tsktab.get("C").plain is None  # (ended) and the steps are plain again:
-    assert s.kernel._h_step is False
+    s.invoke("B", None, priority=20)   # a second round: C sleeps, reads, returns again
+    s.run(until=5.0)
+    s.msgmgr.deliver(s.tsktab.get("C").in_ports[0].link, 2)
+    s.run(until=6.0)
+    assert len(blocked.seen) == 3  # a removed instrument hears of no more blocks
+    assert s.tsktab.get("C").completions == 2
 
 
 def test_an_instrument_hears_links_installed_after_it_and_queued_links(tmp_path: Path) -> None:
-    """While an instrument hears of messages no link has a hot path (Link.hooked), the links
-    installed meanwhile included; the queued link's reads take theirs through InPort.take."""
+    """An instrument hears of the messages on links installed after it, newest-wins and
+    queued; once removed it hears of nothing more, and the links count the same."""
     s = System(DeviceMap(), clock=VirtualClock(), machines=[0], base_dir=tmp_path)
     counters = Counters()
     s.kernel.add_instrument(counters)
@@ -175,8 +176,6 @@ def test_an_instrument_hears_links_installed_after_it_and_queued_links(tmp_path:
     s.execute(f"install -m0i2 --queue=Q=4 --code={M}:reader2 C P Q")
     c = s.tsktab.get("C")
     newest, queued = c.in_ports[0].link, c.in_ports[1].link
-    assert newest.hooked and newest.direct is None and not newest.port.plain
-    assert queued.hooked and queued.queue is None and not queued.port.fifo_plain
     log: list[Any] = []
     s.invoke("C", {"log": log}, priority=20)
     s.run(until=0.0)
@@ -188,13 +187,12 @@ def test_an_instrument_hears_links_installed_after_it_and_queued_links(tmp_path:
     assert counters.sent[newest.name] == 2 and counters.overwritten[newest.name] == 1
     assert counters.delivered[newest.name] == 1 and counters.delivered[queued.name] == 2
     s.kernel.remove_instrument(counters)
-    assert not newest.hooked and newest.direct is newest.port and newest.port.plain
-    assert queued.queue is queued.port and queued.port.fifo_plain and not queued.port.plain
     s.msgmgr.deliver(queued, -3)
     s.msgmgr.deliver(newest, 3)
     s.run()
     assert log == [2, -1, -2, 3, -3]
     assert (newest.sent, newest.delivered, queued.sent, queued.delivered) == (3, 2, 3, 3)
+    assert counters.sent[newest.name] == 2 and counters.delivered[queued.name] == 2
 
 
 async def reader2(ctx: TaskContext, cmd: dict[str, Any]) -> None:
@@ -213,9 +211,8 @@ async def port_reader(ctx: TaskContext, cmd: dict[str, Any]) -> None:
 
 
 def test_read_finds_a_port_by_index_or_name_and_names_a_bad_one(tmp_path: Path) -> None:
-    """read's one dict lookup: an index or a source name, or anything equal to an index (as
-    a dict finds it: True is 1, whether or not port 1 was read before); a bad index, an
-    unknown name or an unhashable port is a MessageError naming it."""
+    """A port is an index or a source name, nothing else: a bad index, an unknown name, or a
+    bool, float or list is a MessageError naming it."""
     s = System(DeviceMap(), clock=VirtualClock(), machines=[0], base_dir=tmp_path)
     s.execute(f"install -m0 --code={M}:idle P")
     s.execute(f"install -m0 --code={M}:idle Q")
@@ -223,7 +220,7 @@ def test_read_finds_a_port_by_index_or_name_and_names_a_bad_one(tmp_path: Path) 
     c = s.tsktab.get("C")
     p, q = c.in_ports[0].link, c.in_ports[1].link
     log: list[Any] = []
-    ports: list[Any] = [True, 1.0, "P", 0, -1, 2, "X", [0], 1]
+    ports: list[Any] = [1, "Q", "P", 0, -1, 2, "X", [0], True, 1.0, 1]
     s.invoke("C", {"log": log, "ports": ports}, priority=20)
     for _ in ports:  # a message on both before each read
         s.msgmgr.deliver(p, "p")
@@ -233,5 +230,7 @@ def test_read_finds_a_port_by_index_or_name_and_names_a_bad_one(tmp_path: Path) 
     assert log[4] == "task C has no input port -1 (it has 2: P, Q)"
     assert log[5] == "task C has no input port 2 (it has 2: P, Q)"
     assert log[6] == "task C has no input from 'X' (inputs: P, Q)"
-    assert log[7] == "task C has no input port [0] (it has 2: P, Q)"
-    assert log[8] == "q"
+    assert log[7] == "task C: an input port is an index or a source name, not [0]"
+    assert log[8] == "task C: an input port is an index or a source name, not True"
+    assert log[9] == "task C: an input port is an index or a source name, not 1.0"
+    assert log[10] == "q"

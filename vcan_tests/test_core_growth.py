@@ -11,7 +11,6 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import canopen
 import cantools
 import pytest
 
@@ -26,6 +25,7 @@ from chcos.system.installer import Installer
 from chcos.tables.messages import TOP_PRIORITY, EndpointKind, LinkType, TapPort
 from chcos.tables.tasks import Role, TaskEntry
 from chcos.user.context import TaskContext
+from drivers import canopen_od
 from drivers.codecs.can import load_dbc
 
 M = "vcan_tests.test_core_growth"
@@ -88,13 +88,13 @@ def test_a_bad_signal_is_still_reported_with_the_cache(tmp_path: Path,
 
 def test_eds_files_are_parsed_once_per_node_per_load(monkeypatch: pytest.MonkeyPatch) -> None:
     calls: list[tuple[str, int]] = []
-    real = canopen.import_od
+    real = canopen_od.read_eds
 
-    def counting(path: str, node_id: int | None = None) -> Any:
-        calls.append((path, int(node_id or 0)))
+    def counting(path: Any, node_id: int | None = None) -> Any:
+        calls.append((str(path), int(node_id or 0)))
         return real(path, node_id)
 
-    monkeypatch.setattr(canopen, "import_od", counting)
+    monkeypatch.setattr(canopen_od, "read_eds", counting)   # the one EDS parse of the driver
     dm = devmap.load(ROOT / "chcos" / "apps" / "weld" / "maps" / "weld_cell.toml")
     canopen_buses = [b for b in dm.buses if b.kind == "canopen"]
     nodes = sum(len(b.options["nodes"]) for b in canopen_buses)
@@ -224,7 +224,7 @@ def _links(s: System) -> list[Any]:
             lk.dst_machine) for lk in s.msgtab]
     special = sorted((t.name, sorted(t.special_links)) for t in s.tsktab)
     taps = [(e.name, sorted(links)) for e, _tap, links in s.msgmgr.taps]
-    tapped = [(t.name, t.tapped, t.up_one is not None) for t in s.tsktab]
+    tapped = [(t.name, t.tapped, len(t.up_links)) for t in s.tsktab]
     return [*out, special, taps, tapped]
 
 

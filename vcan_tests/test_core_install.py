@@ -10,12 +10,12 @@ from typing import Any
 import pytest
 
 from chcos.apps import fig65
-from chcos.errors import CommandSyntaxError, InstallError, MessageError
+from chcos.errors import CommandSyntaxError, ConfigError, InstallError, MessageError
 from chcos.kernel.clock import VirtualClock
 from chcos.system.embedded import System, cmdline, sysmap
 from chcos.tables.messages import LinkType
 from chcos.user.context import TaskContext
-from chcos.user.worldmodel import WorldModel
+from chcos.user.worldmodel import WorldModel, task
 from vcan_tests.conftest import MakeSystem, memory_map
 
 M = "vcan_tests.test_core_install"
@@ -33,12 +33,12 @@ class GapModel(WorldModel):
         return super().answer(topic, *args)
 
 
+@task(world_model=GapModel)
 async def modelled(ctx: TaskContext, cmd: Any) -> None:
     ctx.world.sensory["centre"] = 12.0
     await ctx.sleep(1000.0)
 
 
-modelled.world_model = GapModel  # type: ignore[attr-defined]
 
 
 async def asker(ctx: TaskContext, cmd: dict[str, Any]) -> None:
@@ -147,6 +147,17 @@ def test_setpri_unknown_link_and_range(make_system: MakeSystem) -> None:
         s.execute("setpri -100 S1 A")
     s.execute("setpri -42 S1 A")
     assert s.msgtab.find("S1", "A").priority == 42
+
+
+def test_the_task_decorator_names_the_world_model_and_refuses_a_non_callable(
+        make_system: MakeSystem) -> None:
+    s = make_system()
+    s.execute(f"install -m0 --code={M}:modelled D1")
+    s.execute(f"install -m0 --code={M}:idle X")
+    assert type(s.tsktab.get("D1").world) is GapModel
+    assert type(s.tsktab.get("X").world) is WorldModel
+    with pytest.raises(ConfigError, match="world_model"):
+        task(world_model=3)  # type: ignore[arg-type]
 
 
 def test_world_model_is_queried_through_a_link(make_system: MakeSystem) -> None:

@@ -206,7 +206,7 @@ def test_the_system_map_and_its_text_view_show_the_kernel_stats() -> None:
 
 
 def test_a_late_periodic_timer_moves_to_the_first_boundary_after_now() -> None:
-    """Kernel._fire_timers on many late firings (seeded): the next deadline is the first
+    """Timers.fire on many late firings (seeded): the next deadline is the first
     period boundary after the firing time (or the one after it, when the firing time is
     within a nanosecond of a boundary), never one before; every boundary in between is
     counted as skipped, and the timer fires once per firing."""
@@ -224,7 +224,7 @@ def _one_late_firing(rng: random.Random) -> None:
     now = base + period * rng.uniform(0.0, 50.0)
     if rng.random() < 0.2:  # right on a boundary, or within a hair of one
         now = base + period * rng.randrange(1, 50) + rng.choice([0.0, 1e-12, -1e-12])
-    k._fire_timers(now)
+    k.timers.fire(now)
     assert fired == [1]
     c = tm.count
 

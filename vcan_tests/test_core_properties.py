@@ -59,7 +59,7 @@ class Checker(Instrument):
         ready = self.s.kernel.ready_priorities()
         if ready and ready[0] > task.prio:
             self.violations.append(f"{task.name} p{task.prio} ran while p{ready[0]} ready")
-        queued = [t for _p, _s, t in self.s.kernel.ready_heap]  # once each, and only READY
+        queued = self.s.kernel.ready_tasks()  # once each, and only READY
         if len({id(t) for t in queued}) != len(queued) or any(
                 t.state is not TaskState.READY for t in queued):
             self.violations.append(f"ready queue {[(t.name, t.state.value) for t in queued]}")
@@ -84,7 +84,7 @@ def test_scheduler_invariants(programs: list[list[Op]], prios: list[int]) -> Non
     for i, name in enumerate(names):
         s.invoke(name, cmds[i], priority=prios[(i + 3) % len(prios)])
     s.run_for(30.0)
-    assert chk.violations == []
+    assert chk.violations == [] and not s.kernel.dropped_instruments
     for i, name in enumerate(names[1:], start=1):
         link = s.msgtab.find(names[i - 1], name)
         port = link.port

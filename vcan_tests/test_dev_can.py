@@ -85,18 +85,22 @@ def test_unencodable_write_is_refused_and_reported_not_a_device_failure(rig: Any
     assert host.wait(lambda h: h.writes[-1] == ("Spindle", 100, ""))
 
 
-def test_unknown_id_and_wrong_length_are_counted_not_fatal(rig: Any) -> None:
+def test_filters_keep_unknown_ids_out_and_malformed_only_data_fails_the_sensors(
+        rig: Any) -> None:
     drv, host, sim = rig
-    sim.send_raw(0x555, b"\x01\x02")
-    sim.send_raw(0x101, b"\x01\x02")            # Temps is 4 bytes
-    sim.send_raw(0x201, b"\x00\x00\x00\x00")    # Drive: only actuators, ignored
-    assert host.wait(lambda h: len(h.errors) == 2)
-    assert host.error_kinds() == ["unknown-id", "wrong-length"]
-    assert drv.error_counts == {"unknown-id": 1, "wrong-length": 1}
-    assert "0x555" in host.errors[0][2] and "expected 4" in host.errors[1][2]
+    sim.send_raw(0x555, b"\x01\x02")           # no device's id: the receive filter drops it
+    sim.send_raw(0x101, b"\x01\x02")           # Temps is 4 bytes
+    sim.send_raw(0x201, b"\x00\x00\x00\x00")   # Drive: only actuators, filtered out too
+    assert host.wait(lambda h: len(h.failures) == 2)
+    assert host.error_kinds() == ["wrong-length"] and "expected 4" in host.errors[0][2]
+    # nothing but malformed Temps frames so far: its sensors fail at once, with the reason
+    assert sorted(d for d, _ in host.failures) == ["T1", "T2"]
+    assert all("only malformed frames of Temps" in why for _, why in host.failures)
+    assert drv.unknown_ids == 0 and drv.received == 1
     sim.set("Temps", T1=1.0)
     sim.send("Temps")
     assert host.wait(lambda h: h.values("T1"))
+    assert sorted(host.recoveries) == ["T1", "T2"]
 
 
 def test_settle_returns_after_every_queued_frame_was_delivered() -> None:
@@ -131,7 +135,7 @@ def test_sim_tick_sends_periodic_messages_on_its_owners_clock() -> None:
             assert sent == 10 + 20
             assert drv.settle(WAIT)
             assert len(host.values("T1")) == 10
-            assert host.error_kinds() == ["unknown-id"] * 20   # Pressure has no device here
+            assert host.errors == [] and drv.received == 10   # Pressure: no device, filtered
         finally:
             drv.stop()
 
@@ -151,4 +155,5 @@ def test_driver_is_a_driver_and_check_bus_rejects_unknown_options() -> None:
     assert issubclass(CanDriver, Driver)
     errs = CanDriver.check_bus(bus("can", interface="virtual", channel="x", speed=5))
     assert errs == ["bus[0].speed: unknown option for a can bus; valid options: interface, "
-                    "channel, bitrate, fd, dbc, record, poll"]
+                    "channel, bitrate, fd, dbc, record, poll, filter, ignore_ids, unknown_ids, "
+                    "port"]

@@ -104,7 +104,7 @@ DEVICE_ROWS = [
     (ModbusTcpDriver, TCP_OK, "sensor", {"unit": 300, "table": "coil", "address": 1},
      "device[7].address.unit: expected a Modbus device id 0..247"),
     (ModbusRtuDriver, RTU_OK, "sensor", {"table": "holding", "address": 1, "word_order": "mid"},
-     "device[7].address.word_order: expected \"big\" or \"little\""),
+     "device[7].address.word_order: expected \"ABCD\", \"CDAB\", \"BADC\" or \"DCBA\""),
     (ModbusRtuDriver, RTU_OK, "sensor", {"table": "holding", "address": 1, "poll_period": -2},
      "device[7].address.poll_period: expected a number of seconds > 0"),
 ]

@@ -128,7 +128,7 @@ def test_tutorial_commands_verbatim(tmp_path: Path) -> None:
             if cmd.startswith("chcos run") and "--outputs off" in cmd:
                 assert "actuator writes logged, not sent" in res.stdout, res.stdout
                 assert _valve_register() == 0  # nothing was sent
-        assert "2 passed" in outputs["pytest -q"]
+        assert "3 passed" in outputs["pytest -q"]
         last = commands[-1]
         assert last.startswith("python -c") and "valve register: [0]" in outputs[last]
         assert _valve_register() == 0  # the safe value is in the server's register

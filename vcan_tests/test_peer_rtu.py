@@ -129,18 +129,21 @@ def test_a_missing_unit_fails_only_its_own_devices(rig: Rig) -> None:
     assert "unit 2 has not answered a request yet" in opened
     assert "unit 2 input 5..5 (device gone): no response (silence)" in silent
     assert "gone" not in rig.host.recoveries             # never OK: its unit never answered
-    assert rig.driver.unanswered == {"timeout": 4}
-    assert rig.host.error_kinds() == ["timeout"] * 4
+    # unit 2 is tried less often once it stopped answering (1, 2, then every 4th poll...):
+    # fewer tries than polls, each a timeout naming it (a bound: a loaded machine may add one)
+    tries = [d for _, k, d in rig.host.errors if "unit 2" in d]
+    assert 2 <= len(tries) < 4 and set(rig.host.error_kinds()) == {"timeout"}
+    assert rig.driver.unanswered["timeout"] >= len(tries)
     assert rig.driver._client.connected                  # the port stayed open
 
 
 def test_an_open_port_is_not_health_a_silent_slave_never_shows_ok(rig: Rig) -> None:
-    rig.relay.damage(*["silence"] * 3)                   # the slave silent from the start
-    rig.poll(3)
-    for name in ("level", "setpoint"):
+    rig.relay.damage(*["silence"] * 2)                   # the slave silent from the start
+    rig.poll(3)                                          # tried at polls 1 and 2, then it sits
+    for name in ("level", "setpoint"):                   # out one poll (backed off)
         assert "is open, unit 1 has not answered a request yet" in rig.host.failed(name)[0], name
     assert rig.host.recoveries == []                     # never OK while nobody answered
-    assert rig.driver.unanswered == {"timeout": 3} and rig.relay.damaged == {"silence": 3}
+    assert rig.driver.unanswered == {"timeout": 2} and rig.relay.damaged == {"silence": 2}
     rig.poll(1)                                          # the slave answers: the link is up
     assert rig.host.values("level") == [102]
     assert sorted(rig.host.recoveries) == ["level", "setpoint"]
@@ -157,7 +160,7 @@ def test_an_actuator_only_line_is_probed(rig: Rig) -> None:
     assert b"".join(rig.relay.requests)[:6] == bytes([UNIT, 3, 0, 7, 0, 1])   # read holding 7
     rig.relay.damage("silence")                          # the slave stops answering
     rig.poll(10)
-    assert "probe of unit 1 holding 7: no answer: no response (silence)" in \
+    assert "probe of unit 1 holding 7 (device out): no answer: no response (silence)" in \
         rig.host.failed("out")[-1]
     assert rig.host.writes == []                         # noticed without a write
     rig.poll(10)                                         # answers again

@@ -486,3 +486,22 @@ def test_code_that_fails_to_load_after_commit_keeps_the_tables_alike(tmp_path: P
             while not doc["tasks"][0]["last_error"] and time.monotonic() < deadline:
                 doc = host.map_doc()  # each poll is a round trip
             assert "no such hardware" in doc["tasks"][0]["last_error"]
+
+
+def test_install_logs_are_owner_only(tmp_path: Path) -> None:
+    from chcos.satellites.installlog import append_log, read_log, write_log
+
+    path = tmp_path / "m0.log"
+    old = os.umask(0o022)
+    try:
+        write_log(path, ["install -m0 sysfile"])
+        assert stat.S_IMODE(path.stat().st_mode) == 0o600
+        path.chmod(0o644)  # a log written by an older version
+        append_log(path, "install -m0 sysfile")
+        assert stat.S_IMODE(path.stat().st_mode) == 0o600
+        fresh = tmp_path / "m1.log"
+        append_log(fresh, "install -m1 sysfile")
+        assert stat.S_IMODE(fresh.stat().st_mode) == 0o600
+    finally:
+        os.umask(old)
+    assert read_log(path) == ["install -m0 sysfile"] * 2

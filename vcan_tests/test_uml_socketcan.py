@@ -319,6 +319,8 @@ GUEST_LEGS = {  # module -> what it covers; each must have passed tests inside t
     "test_dev_can": "raw CAN driver (DBC) against the simulated CAN node",
     "test_fb_canopen": "CANopen driver against the simulated servo drive",
     "test_fuzz_bus": "CAN receive overrun: a cangen flood past the socket buffer, frames lost",
+    "test_faults_can_flood": "raw CAN under a cangen flood: kernel filters, ignore_ids, "
+                             "aggregated warnings, kernel receive stamps",
 }
 
 

@@ -9,7 +9,7 @@ import io
 import json
 from pathlib import Path
 
-from chcos.apps.weld.learning import forget, learning_curve
+from chcos.apps.weld.learning import forget, learning_curve, one_run
 from chcos.user.knowledge import LearnedPattern, Store
 
 
@@ -37,6 +37,19 @@ def test_learned_recognizer_reacts_earlier_on_repeated_runs(tmp_path: Path) -> N
     forget(tmp_path)
     assert not learned.exists()
     assert not LearnedPattern(["volts"], Store.beside(tmp_path, "C1-tip")).examples
+
+
+def test_a_freeze_without_a_precursor_teaches_nothing_and_a_fault_free_run_raises_no_alarm(
+        tmp_path: Path) -> None:
+    """A tip that freezes with no precursor (nothing in the arc voltage before it differs from
+    normal welding) leaves C1 nothing to learn: no learned data is written, and the next,
+    fault-free run in the same directory has no learned reaction (no false "sticking")."""
+    first = one_run(tmp_path, "tip-stuck@t=50s")
+    assert first["reaction"] == "hard-coded" and first["outcome"] == "welded", first
+    assert not (tmp_path / "learned" / "C1-tip.json").exists()
+    second = one_run(tmp_path, "")
+    assert second["reaction"] == "none" and second["false_alarms"] == 0, second
+    assert second["outcome"] == "welded", second
 
 
 def test_precursor_parameter_parses_round_trips_and_is_checked() -> None:

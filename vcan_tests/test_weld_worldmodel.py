@@ -124,16 +124,26 @@ def _ramp(pattern: LearnedPattern, t0: float, n: int, slope: float) -> list[bool
             for i in range(n)]
 
 
+def _normal_then_ramp(pattern: LearnedPattern, t0: float, slope: float) -> list[bool]:
+    """3 s of normal windows (flat, a little noise), then 2 s of a ramp of ``slope``."""
+    flat = [pattern.push(t0 + 0.05 * i, {"temp": 1500 + 0.5 * (-1) ** i, "v": 5.0})
+            for i in range(60)]
+    return flat + [pattern.push(t0 + 3.0 + 0.05 * i,
+                                {"temp": 1500 + slope * 0.05 * i + 0.5 * (-1) ** i, "v": 5.0})
+                   for i in range(40)]
+
+
 def test_learned_pattern_fires_on_the_precursor_it_learned(tmp_path: Path) -> None:
     store = Store.beside(tmp_path, "tip")
     lp = LearnedPattern(["temp", "v"], store, lead=0.5)
-    assert not any(_ramp(lp, 0.0, 40, 200.0))  # nothing learned yet
-    assert lp.learn(2.0) is not None
+    assert not any(_normal_then_ramp(lp, 0.0, 200.0))  # nothing learned yet
+    assert lp.learn(5.0) is not None
     lp2 = LearnedPattern(["temp", "v"], Store.beside(tmp_path, "tip"), lead=0.5)  # next run
-    fired = _ramp(lp2, 10.0, 40, 200.0)
-    assert any(fired) and fired.index(True) <= 11  # as soon as a full lead window is seen
+    fired = _normal_then_ramp(lp2, 10.0, 200.0)
+    assert not any(fired[:60])  # normal windows never fire
+    assert any(fired) and fired.index(True) <= 60 + 11  # once a full lead window is seen
     lp3 = LearnedPattern(["temp", "v"], Store.beside(tmp_path, "tip"), lead=0.5)
-    assert not any(_ramp(lp3, 20.0, 40, 20.0))  # a different slope is not the precursor
+    assert not any(_normal_then_ramp(lp3, 20.0, 20.0))  # a different slope is not the precursor
     lp3.reset()
     assert not LearnedPattern(["temp", "v"], store, lead=0.5).examples
     with pytest.raises(ConfigError, match="feature"):
@@ -167,3 +177,51 @@ def test_plans_fall_through_to_the_next_permissible_one(tmp_path: Path) -> None:
     bad = Plans("find start", [plan("spiral", False), plan("raster", False)])
     with pytest.raises(PlansExhausted, match="spiral: spiral found nothing; raster: raster"):
         asyncio.run(bad.attempt(WorldModel(), 1))
+
+
+def test_an_outcome_without_a_precursor_teaches_nothing_and_raises_no_alarm_later(
+        tmp_path: Path) -> None:
+    """The learner needs a reference point: an outcome after normal windows only (a freeze
+    without a precursor) learns no example and writes nothing; a later run of normal windows
+    raises no alarm, even with an example that looks normal left by an older version."""
+    store = Store.beside(tmp_path, "tip")
+    lp = LearnedPattern(["temp", "v"], store, lead=0.5)
+    flat = [lp.push(0.05 * i, {"temp": 1500 + 0.5 * (-1) ** i, "v": 5.0}) for i in range(100)]
+    assert not any(flat)
+    assert lp.learn(5.0) is None
+    assert not lp.examples and store.path is not None and not store.path.exists()
+    # an example of a normal window's rates, as the unfixed recognizer stored one
+    store.save({"examples": [{"temp": 0.0, "v": 0.0}], "features": ["temp", "v"]})
+    later = LearnedPattern(["temp", "v"], Store.beside(tmp_path, "tip"), lead=0.5)
+    assert len(later.examples) == 1
+    alarms = [later.push(10.0 + 0.05 * i, {"temp": 1500 + 0.5 * (-1) ** i, "v": 5.0})
+              for i in range(400)]
+    assert not any(alarms) and later.false_alarms == 0
+
+
+def test_false_alarms_count_against_a_learned_pattern_until_it_is_forgotten(
+        tmp_path: Path) -> None:
+    """An example that fires again within ``recur`` s of its previous alarm, with no outcome
+    in between, scores a false alarm (kept in the store); after two more false alarms than
+    predicted outcomes it is forgotten and fires no more."""
+    store = Store.beside(tmp_path, "tip")
+    lp = LearnedPattern(["temp", "v"], store, lead=0.5, recur=2.0)
+    _normal_then_ramp(lp, 0.0, 200.0)
+    assert lp.learn(5.0) is not None
+    run = LearnedPattern(["temp", "v"], Store.beside(tmp_path, "tip"), lead=0.5, recur=2.0)
+    fired = _normal_then_ramp(run, 10.0, 200.0)   # the ramp goes on: it fires again and again
+    fired += [run.push(15.0 + 0.05 * i, {"temp": 1700 + 200.0 * 0.05 * i, "v": 5.0})
+              for i in range(40)]
+    assert fired.count(True) >= 1
+    assert run.false_alarms == 2 and run.forgotten == 1 and not run.examples
+    assert not LearnedPattern(["temp", "v"], Store.beside(tmp_path, "tip")).examples
+    # an alarm followed by its outcome counts for the example instead
+    lp = LearnedPattern(["temp", "v"], Store.beside(tmp_path, "tip2"), lead=0.5)
+    _normal_then_ramp(lp, 0.0, 200.0)
+    lp.learn(5.0)
+    t = 10.0
+    while not lp.push(t, {"temp": 1500 + 200.0 * (t - 10.0), "v": 5.0}):
+        t += 0.05
+        assert t < 12.0
+    lp.learn(t + 0.1)
+    assert lp.scores[0] == [1, 0] and lp.false_alarms == 0

@@ -13,6 +13,7 @@ was healthy.
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 import signal
 import sys
@@ -27,8 +28,9 @@ from chcos.cli.cellsystem import Cell, CellSystem, OutputsOff, SinceStartClock, 
 from chcos.devices.entry import DeviceStatus
 from chcos.errors import ChcosError
 from chcos.north.services import NorthOptions, add_north_arguments
+from chcos.system.textview import bus_status_lines
 
-__all__ = ["Cell", "CellSystem", "OutputsOff", "RunResult", "SinceStartClock", "main",
+__all__ = ["Cell", "CellSystem", "LogFile", "OutputsOff", "RunResult", "SinceStartClock", "main",
            "open_cell", "parser", "problems", "report", "run", "show_progress"]
 
 
@@ -103,6 +105,8 @@ def report(cell: Cell, snap: dict[str, Any], found: list[str], out: TextIO) -> N
     for t in snap["tasks"]:
         print(f"  task     {t['name']:<16} {t['steps']} executions, {t['completions']} "
               f"completions, {t['abnormal']} abnormal", file=out)
+    for line in bus_status_lines(cell.system.devtab.bus_status()):
+        print(f"  {line}", file=out)
     print(f"  messages: {snap['messages']} ({snap['messages'] / secs:.0f}/s)", file=out)
     outcomes = cell.system.devtab.safe_outcomes
     for e in cell.system.devtab:
@@ -144,14 +148,16 @@ class RunResult:
 def run(system_file: str | Path, *, virtual: bool = False, duration: float | None = None,
         outputs: bool = True, workdir: str | Path | None = None, period: float = 1.0,
         out: TextIO | None = None, stop: threading.Event | None = None,
-        north: NorthOptions | None = None, pin: bool = False) -> RunResult:
+        north: NorthOptions | None = None, pin: bool = False, values: Sequence[str] = (),
+        plants: Sequence[str] = ()) -> RunResult:
     """The ``chcos run SYSTEM`` job: build, run until ``stop`` is set (SIGINT/SIGTERM in the
     command), or ``duration`` seconds of clock time, printing progress every ``period``; then
     safe values and the summary. ``north`` names the north-side services (OPC UA, Modbus
     facade, metrics, the live view) to serve while it runs; they need real time. ``pin``: the
     process (the command's own) is pinned first to the CPUs of ``system.cpus``, if any. Raises
     ChcosError if the system or a service cannot be set up (ConfigError for CPUs this process
-    may not use)."""
+    may not use). ``values`` and ``plants`` drive the simulated slaves (``virtual`` only; see
+    :func:`~chcos.cli.cellsystem.open_cell`)."""
     from chcos.north.services import start as start_north
     from chcos.satellites import sysfile
     from chcos.system.affinity import pin_process
@@ -165,7 +171,8 @@ def run(system_file: str | Path, *, virtual: bool = False, duration: float | Non
     if cpus is not None:  # before the drivers' threads start (they inherit it)
         pin_process(cpus, f"{Path(system_file).resolve()}: system.cpus")
         print(f"pinned to CPU(s) {', '.join(map(str, sorted(cpus)))} (system.cpus)", file=out)
-    with open_cell(system_file, virtual=virtual, outputs=outputs, workdir=workdir) as cell:
+    with open_cell(system_file, virtual=virtual, outputs=outputs, workdir=workdir,
+                   values=values, plants=plants) as cell:
         s = cell.system
         print(f"system {cell.sf.name}: {len(s.devtab)} devices, {len(s.tsktab)} tasks, "
               f"{'virtual time, simulated slaves' if virtual else 'real time'}, outputs "
@@ -173,8 +180,20 @@ def run(system_file: str | Path, *, virtual: bool = False, duration: float | Non
               "stops", file=out)
         if not outputs and not virtual:
             print("  (give --outputs on to drive the actuators)", file=out)
+        if not virtual:
+            from chcos.apps.sim.from_map import process_local
+
+            for bus in process_local(s.devmap):
+                print(f"  warning: bus {bus.name} ({bus.file}) is on python-can's 'virtual' "
+                      "interface, which lives inside this process: a simulator in another "
+                      "process (chcos sim --from) is never heard. Use interface = "
+                      "\"udp_multicast\" or a vcan channel, or run with --virtual", file=out)
         for a in cell.answers:
             print(f"  host: {a}", file=out)
+        logging.getLogger("chcos.run").info(
+            "system %s (%s): %d devices, %d tasks, %s, outputs %s", cell.sf.name, cell.sf.path,
+            len(s.devtab), len(s.tsktab), "virtual time" if virtual else "real time",
+            "on" if outputs else "off")
         out.flush()
         if not virtual:
             s.start()
@@ -191,6 +210,13 @@ def run(system_file: str | Path, *, virtual: bool = False, duration: float | Non
         snap = cell.snapshot()
         found = problems(cell, snap)
         report(cell, snap, found, out)
+        runlog = logging.getLogger("chcos.run")
+        if found:
+            runlog.warning("system %s: UNHEALTHY after %.1f s: %s", cell.sf.name, snap["t"],
+                           "; ".join(found))
+        else:
+            runlog.info("system %s: healthy after %.1f s, %d messages", cell.sf.name,
+                        snap["t"], snap["messages"])
         return RunResult(not found, found, snap["t"], snap)
 
 
@@ -212,6 +238,8 @@ def _loop(cell: Cell, virtual: bool, duration: float | None, period: float,
         rate = (snap["messages"] - last_msgs) / max(1e-9, snap["t"] - last_t)
         last_msgs, last_t = snap["messages"], snap["t"]
         show_progress(snap, rate, out)
+        for line in bus_status_lines(s.devtab.bus_status()):
+            print(f"  {line}", file=out, flush=True)
         tick += 1
         if duration is not None and snap["t"] >= duration - 1e-9:
             break
@@ -240,6 +268,23 @@ def parser() -> argparse.ArgumentParser:
                          "time (outputs are on only when asked), on with --virtual")
     ap.add_argument("--workdir",
                     help="where sysfile.map is written (default: a temporary directory)")
+    ap.add_argument("--value", action="append", default=[], metavar="DEVICE=SCRIPT",
+                    help="with --virtual: a simulated sensor's value, as in chcos sim --from: a "
+                         "number, ramp(start, end, period), sine(center, amplitude, period), "
+                         "square(low, high, period) or csv(FILE[, column]) (repeatable)")
+    ap.add_argument("--plant", action="append", default=[], metavar="FILE.py:FUNCTION",
+                    help="with --virtual: a plant model called every 10 ms of clock time as "
+                         "FUNCTION(seconds, slaves); it reads the actuators (slaves.get(name)) "
+                         "and sets the sensors (slaves.set(name, value)) (repeatable)")
+    ap.add_argument("--log", metavar="FILE",
+                    help="also log to FILE, at INFO level with times (device failures, "
+                         "restarts, task ends, the summary), rotated at --log-size")
+    ap.add_argument("--log-size", type=float, default=10.0, metavar="MB",
+                    help="rotate the log file at this many megabytes (default 10)")
+    ap.add_argument("--log-keep", type=int, default=5, metavar="N",
+                    help="keep N rotated log files, FILE.1 ... FILE.N (default 5)")
+    ap.add_argument("-v", "--verbose", action="store_true",
+                    help="log at INFO level (also accepted before 'run': chcos -v run ...)")
     add_north_arguments(ap)
     return ap
 
@@ -249,9 +294,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     wrong (listed in the summary); 2: the system could not be built."""
     ap = parser()
     args = ap.parse_args(argv)
+    if args.verbose:
+        logging.getLogger().setLevel(logging.INFO)
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         ap.error(f"--duration {args.duration}: expected seconds > 0")
+    if not (math.isfinite(args.log_size) and args.log_size > 0) or args.log_keep < 1:
+        ap.error("--log-size: expected megabytes > 0; --log-keep: expected a count >= 1")
     stop = threading.Event()
+    try:
+        logfile = LogFile(args.log, args.log_size, args.log_keep) if args.log else None
+    except OSError as exc:
+        print(f"chcos run: --log {args.log}: {exc}", file=sys.stderr)
+        return 2
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
         stop.set()
@@ -261,12 +315,47 @@ def main(argv: Sequence[str] | None = None) -> int:
         result = run(args.system, virtual=args.virtual, duration=args.duration,
                      outputs=args.outputs == "on" or (args.outputs is None and args.virtual),
                      workdir=args.workdir, stop=stop, north=NorthOptions.from_args(args),
-                     pin=True)
+                     pin=True, values=args.value, plants=args.plant)
     except ChcosError as exc:
         print(f"chcos run: {exc}", file=sys.stderr)
+        logging.getLogger("chcos.run").error("chcos run: %s", exc)
         return 2
     finally:
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
+        for sig, previous in old.items():
+            signal.signal(sig, previous)
+        if logfile is not None:
+            logfile.close()
     return 0 if result.healthy else 1
 
+
+class LogFile:
+    """``chcos run --log``: a rotating log file on the root logger at INFO level while the run
+    lasts (the terminal keeps the level the command line set): the file is renamed ``FILE.1``
+    (older ones shifted, ``keep`` kept) when it would grow past ``megabytes``. :meth:`close`
+    puts the levels back. Raises OSError if the file cannot be opened."""
+
+    def __init__(self, path: str, megabytes: float, keep: int) -> None:
+        from logging.handlers import RotatingFileHandler
+
+        self.handler = RotatingFileHandler(path, maxBytes=int(megabytes * 1024 * 1024),
+                                           backupCount=keep, encoding="utf-8")
+        self.handler.setLevel(logging.INFO)
+        self.handler.setFormatter(logging.Formatter(
+            "%(asctime)s %(levelname)s %(name)s: %(message)s"))
+        root = logging.getLogger()
+        self._root_level = root.level
+        self._quieted = [h for h in root.handlers if h.level == logging.NOTSET]
+        for h in self._quieted:
+            h.setLevel(root.level)
+        root.addHandler(self.handler)
+        if root.level > logging.INFO or root.level == logging.NOTSET:
+            root.setLevel(logging.INFO)
+
+    def close(self) -> None:
+        """Detach and close the file; the root logger and the terminal get their levels back."""
+        root = logging.getLogger()
+        root.removeHandler(self.handler)
+        self.handler.close()
+        root.setLevel(self._root_level)
+        for h in self._quieted:
+            h.setLevel(logging.NOTSET)

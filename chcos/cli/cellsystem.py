@@ -15,15 +15,16 @@ from __future__ import annotations
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from chcos.apps.sim.from_map import SimSlaves, simulate
+from chcos.apps.sim.from_map import Plant, SimSlaves, load_plant, simulate
 from chcos.devices.devmap import load
 from chcos.devices.entry import DeviceEntry
+from chcos.errors import ConfigError
 from chcos.kernel.clock import Clock, RealClock, VirtualClock
 from chcos.kernel.instrument import Counters
 from chcos.satellites import sysfile
@@ -185,14 +186,23 @@ def _boot_lines(sf: sysfile.SystemFile, machines: Iterable[int]) -> list[str]:
 @contextmanager
 def open_cell(system_file: str | Path, *, virtual: bool = False, outputs: bool = True,
               workdir: str | Path | None = None, clock: Clock | None = None,
-              quiet_slaves: bool = False) -> Iterator[Cell]:
+              quiet_slaves: bool = False, values: Sequence[str] = (),
+              plants: Sequence[Plant | str] = (),
+              base_dir: Path | None = None) -> Iterator[Cell]:
     """Build and install the system of ``system_file``; shut it down (actuators safe) on exit.
 
     ``virtual``: virtual time against simulated slaves from the device maps; ``outputs=False``:
     actuator writes logged, not sent; ``workdir``: where sysfile.map goes (default a temporary
     directory). Without ``system.install`` every machine of the maps is loaded and nothing is
-    installed. Raises ConfigError for a bad system file or device map (naming it), BusError if a
-    bus cannot be opened, InstallError naming the script's file and line."""
+    installed. ``values`` (``DEVICE=SCRIPT``, as ``chcos sim --from --value``) and ``plants``
+    (callables, or ``FILE.py:function`` references; see :data:`~chcos.apps.sim.from_map.Plant`)
+    drive the simulated slaves, so they need ``virtual``; their files are relative to
+    ``base_dir`` (default the current directory). Raises ConfigError for a bad system file,
+    device map, value script or plant (naming it), BusError if a bus cannot be opened,
+    InstallError naming the script's file and line."""
+    if (values or plants) and not virtual:
+        raise ConfigError("value scripts and plant models drive the simulated slaves: they "
+                          "need virtual time (--virtual)")
     sf = sysfile.load(system_file)
     devmap = load(list(sf.devmaps)) if sf.devmaps else None
     slaves = None
@@ -207,6 +217,13 @@ def open_cell(system_file: str | Path, *, virtual: bool = False, outputs: bool =
         if devmap is not None and virtual:
             slaves = simulate(devmap)
             devmap = slaves.devmap
+            where = base_dir or Path.cwd()
+            slaves.values(values, where)
+            for plant in plants:
+                slaves.add_plant(load_plant(plant, where) if isinstance(plant, str) else plant)
+        elif values or plants:
+            raise ConfigError(f"{sf.path}: value scripts and plant models need device maps "
+                              "with simulated slaves; the system names none")
         holder: list[Cell] = []
 
         def logged(device: str, value: Any) -> None:

@@ -27,6 +27,7 @@ Your own cell:
   chcos monitor SYSTEM           commission a live bus: listen-only, mismatches flagged
   chcos import eds|dbc|modbus F  write a device map from an EDS, a DBC or a register list
   chcos check FILE...            validate device maps without opening a bus
+                                 (--system SYSTEM: a system file and its maps)
   chcos sim --from MAP           simulated slaves for every device of a map
 
 The thesis' systems:
@@ -188,16 +189,39 @@ def _host(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``chcos`` console script; returns the exit status."""
-    argv = list(sys.argv[1:] if argv is None else argv)
+    """Entry point of the ``chcos`` console script; returns the exit status. A reader that goes
+    away (``chcos run --help | head -1``) ends the command quietly, as ``cat`` does."""
+    try:
+        return _dispatch(list(sys.argv[1:] if argv is None else argv))
+    except BrokenPipeError:
+        # what is still buffered for the closed pipe must not fail again at exit
+        import os
+
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+        return 1
+
+
+def _verbose(argv: list[str]) -> list[str]:
+    """``-v``/``--verbose`` before the command, or anywhere among ``run``'s arguments: INFO
+    messages on; the rest of ``argv``."""
+    if argv[:1] in (["-v"], ["--verbose"]):
+        logging.getLogger().setLevel(logging.INFO)
+        argv = argv[1:]
+    if argv[:1] == ["run"] and ("-v" in argv or "--verbose" in argv):
+        logging.getLogger().setLevel(logging.INFO)
+        argv = [a for a in argv if a not in ("-v", "--verbose")]
+    return argv
+
+
+def _dispatch(argv: list[str]) -> int:
+    """Hand ``argv`` to its subcommand; returns the exit status."""
     # warnings are shown by default (a handler set by an embedding program or pytest is kept)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    if argv[:2] == ["check", "--system"]:
-        from chcos.satellites.sysfile import check_main as check_system
-
-        return check_system(argv[2:])
+    argv = _verbose(argv)
     if argv[:1] == ["check"]:
-        from chcos.devices.devmap import check_main
+        from chcos.cli.check import main as check_main
 
         return check_main(argv[1:])
     if argv[:1] == ["sim"] and argv[1:2] and argv[1].split("=")[0] == "--from":

@@ -10,7 +10,9 @@ map, flagging mismatches; it never writes:
   sends them; frames of ids no device uses and frames of the wrong length are counted and flagged;
 * ``canopen``: no NMT, no SDO, no SYNC - a passive listener (:class:`PassiveCanopen`) decodes the
   TPDOs and RPDOs the nodes' EDS files map, watches heartbeats, and flags heartbeats of nodes not
-  in the map, PDOs whose length does not fit the mapping, and ids that belong to nothing;
+  in the map, PDOs whose length does not fit the mapping, and ids that belong to nothing; each
+  node's life as the wire shows it gets a line (NMT state of its last heartbeat, boot-ups seen,
+  last EMCY), and the SYNC cycle of another master one (SYNCs seen, period and jitter);
 * ``serial``: the port is read (nothing is written); ``memory``/``signal``: in-process.
 
 Mismatches: a sensor with no answer (failed, or nothing within ``--grace`` seconds), a value
@@ -27,7 +29,7 @@ import signal
 import sys
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,8 +42,13 @@ from chcos.devices.spec import BusSpec, DeviceMap, DeviceSpec
 from chcos.errors import BusError, ChcosError
 from chcos.helpers import is_number
 from chcos.satellites import sysfile
+from drivers.canopen_sync import percentile
 
 _FIXED_IDS = {0x000: "NMT", 0x080: "SYNC", 0x100: "TIME"}
+#: the NMT state in a heartbeat (CiA 301), by its code (toggle bit cleared)
+NMT_NAMES = {0x00: "BOOT-UP", 0x04: "STOPPED", 0x05: "OPERATIONAL", 0x7F: "PRE-OPERATIONAL"}
+#: SYNC intervals the monitor keeps for its period and jitter figures
+SYNC_WINDOW = 10_000
 READ_BACK = ("modbus-tcp", "modbus-rtu", "can")
 """Bus kinds whose outputs the monitor reads without writing."""
 
@@ -81,6 +88,14 @@ class PassiveCanopen:
         self.heartbeat_timeout: dict[int, float | None] = {}
         self.last_heartbeat: dict[int, float] = {}
         self.nmt_state: dict[int, int] = {}
+        self.boots: Counter[int] = Counter()
+        self.last_emcy: dict[int, str] = {}
+        #: SYNC frames seen, their intervals (the last :data:`SYNC_WINDOW`), the last one's time
+        self.syncs = 0
+        self.sync_intervals: deque[float] = deque(maxlen=SYNC_WINDOW)
+        self.last_sync: float | None = None
+        self.sync_period = (float(bus.options["sync_period"])
+                            if "sync_period" in bus.options else None)
         self.pdos: dict[int, _Pdo] = {}
         self.flags: Counter[str] = Counter()
         self.lock = threading.Lock()
@@ -99,9 +114,10 @@ class PassiveCanopen:
                     bits = int(_default_entry(od, mapping + n - 1, index, sub) or 0)
                     device = by_obj.get((nid, index, sub))
                     pdo.fields.append((device, var, bits))
-                    if device is not None:
-                        self.in_pdo.add(device)
                     pdo.length += bits // 8
+            self._configured(node, nid, od, by_obj)
+        self.in_pdo = {dev for pdo in self.pdos.values() for dev, _var, _bits in pdo.fields
+                       if dev is not None}
         args = {k: bus.options[k] for k in ("interface", "channel", "bitrate")
                 if k in bus.options}
         try:
@@ -113,6 +129,35 @@ class PassiveCanopen:
         self._thread = threading.Thread(target=self._read, name=f"monitor-{bus.name}",
                                         daemon=True)
         self._thread.start()
+
+    def _configured(self, node: dict[str, Any], nid: int, od: Any,
+                    by_obj: dict[tuple[int, int, int], str]) -> None:
+        """The PDOs as the node's ``config`` downloads them at boot (COB-ID, enabled,
+        mapping) in place of the EDS's: what a master following the map puts on the wire."""
+        from drivers import canopen_config
+
+        try:
+            cfg = canopen_config.with_bits(canopen_config.parse(node), od)
+        except Exception:   # an invalid config: chcos check names it; the EDS's view stays
+            return
+        for p in cfg.pdos:
+            name = f"{p.kind.upper()}{p.number}"
+            old = next(((cob, pd) for cob, pd in self.pdos.items()
+                        if pd.node == nid and pd.kind == name), None)
+            if old is not None:
+                del self.pdos[old[0]]
+            if not p.enabled:
+                continue
+            cob = canopen_config.effective_cob_id(p, od, nid)
+            if p.mapping is None:
+                if old is not None:
+                    self.pdos[cob] = old[1]
+                continue
+            pdo = self.pdos[cob] = _Pdo(name, nid, 0)
+            for index, sub, bits in p.mapping:
+                pdo.fields.append((by_obj.get((nid, index, sub)), od.get_variable(index, sub),
+                                   bits))
+                pdo.length += bits // 8
 
     def _flag(self, text: str) -> None:
         self.flags[text] += 1
@@ -159,11 +204,24 @@ class PassiveCanopen:
             else:
                 self.last_heartbeat[nid] = now
                 self.nmt_state[nid] = data[0] if data else -1
+                if data and data[0] & 0x7F == 0:
+                    self.boots[nid] += 1
+            return
+        if cid == 0x080:
+            at = float(frame.timestamp or time.time())    # the interface's receive time
+            if self.last_sync is not None:
+                self.sync_intervals.append(at - self.last_sync)
+            self.syncs += 1
+            self.last_sync = at
             return
         if 0x081 <= cid <= 0x0FF:
             nid = cid - 0x80
             what = "EMCY" if nid in self.nodes else "EMCY of a node not in the map:"
-            self._flag(f"{what} node {nid} code 0x{int.from_bytes(data[:2], 'little'):04X}")
+            code = int.from_bytes(data[:2], "little")
+            self._flag(f"{what} node {nid} code 0x{code:04X}")
+            if nid in self.nodes:
+                self.last_emcy[nid] = (f"0x{code:04X} register 0x{data[2]:02X}" if len(data) > 2
+                                       else f"0x{code:04X}")
             return
         if cid in _FIXED_IDS or (0x581 <= cid <= 0x5FF and cid - 0x580 in self.nodes) \
                 or (0x601 <= cid <= 0x67F and cid - 0x600 in self.nodes):
@@ -180,6 +238,35 @@ class PassiveCanopen:
                 if timeout is not None and (last is None or now - last > timeout):
                     out.append(f"node {nid}: no heartbeat within {timeout} s")
         return out
+
+    def node_lines(self) -> list[str]:
+        """One line per node of the map as the wire shows it (the NMT state of its last
+        heartbeat and how long ago, boot-ups seen, last EMCY) and one for the SYNC cycle if
+        another master produces one (SYNCs seen, median period, jitter against the map's
+        ``sync_period`` p50/p99/max)."""
+        now = time.monotonic()
+        out = []
+        with self.lock:
+            for nid in sorted(self.nodes):
+                code = self.nmt_state.get(nid)
+                last = self.last_heartbeat.get(nid)
+                state = ("no heartbeat seen" if code is None or last is None else
+                         f"{NMT_NAMES.get(code & 0x7F, f'state 0x{code:02X}')} (heartbeat "
+                         f"{now - last:.1f} s ago)")
+                out.append(f"node {nid}: {state}, {self.boots[nid]} boot-up(s) seen, last EMCY "
+                           f"{self.last_emcy.get(nid) or 'none'}")
+            if self.syncs:
+                iv = sorted(self.sync_intervals)
+                text = f"SYNC: {self.syncs} seen"
+                if iv:
+                    text += f", period {percentile(iv, 0.5) * 1e3:.3f} ms (median)"
+                if iv and self.sync_period is not None:
+                    jit = sorted(abs(x - self.sync_period) for x in iv)
+                    text += (f", jitter against {self.sync_period * 1e3:g} ms p50 "
+                             f"{percentile(jit, 0.5) * 1e3:.3f} ms, p99 "
+                             f"{percentile(jit, 0.99) * 1e3:.3f} ms, max {jit[-1] * 1e3:.3f} ms")
+                out.append(text)
+        return [f"bus {self.bus.name}: {line}" for line in out]
 
     def close(self) -> None:
         """Stop listening and close the channel."""
@@ -215,7 +302,12 @@ class Monitor:
         # frames another node sends) are watched as inputs
         self.read_back = {d.name for d in devmap.devices if d.direction == "actuator"
                           and devmap.bus(d.bus).kind in READ_BACK}
-        rest = DeviceMap(tuple(b for b in devmap.buses if b.kind != "canopen"),
+        # raw CAN: no receive filters and every id of no device an error, so they are flagged
+        # (ids the map's ignore_ids names stay quiet)
+        buses = tuple(dataclasses.replace(b, options={"unknown_ids": "fail", **b.options,
+                                                      "filter": False})
+                      if b.kind == "can" else b for b in devmap.buses if b.kind != "canopen")
+        rest = DeviceMap(buses,
                          tuple(dataclasses.replace(d, direction="sensor", stale_after=None)
                                if d.name in self.read_back else d for d in devmap.devices
                                if devmap.bus(d.bus).kind != "canopen"), devmap.files)
@@ -295,6 +387,10 @@ class Monitor:
             out += [f"bus {p.bus.name}: {text}" for text in p.problems()]
         return out
 
+    def node_lines(self) -> list[str]:
+        """Each CANopen node's life and the SYNC cycle, as the wire shows them."""
+        return [line for p in self.passive for line in p.node_lines()]
+
     def close(self) -> None:
         """Stop everything; actuator safe values are held back like every other write."""
         for p in self.passive:
@@ -303,7 +399,8 @@ class Monitor:
         self.system.shutdown()
 
 
-def _show(rows: list[dict[str, Any]], bus: list[str], t: float, out: TextIO) -> None:
+def _show(rows: list[dict[str, Any]], bus: list[str], t: float, out: TextIO,
+          nodes: Sequence[str] = ()) -> None:
     print(f"t={t:7.1f} s", file=out)
     width = max([len(r["name"]) for r in rows] + [8])
     for r in rows:
@@ -314,7 +411,7 @@ def _show(rows: list[dict[str, Any]], bus: list[str], t: float, out: TextIO) -> 
         flag = ("  <-- " + "; ".join(r["flags"])) if r["flags"] else ""
         print(f"  {r['direction']:<8} {r['name']:<{width}} {text:>14}  {age:<12} "
               f"{r['state']}{flag}", file=out)
-    for b in bus:
+    for b in (*nodes, *bus):
         print(f"  {b}", file=out)
     out.flush()
 
@@ -342,17 +439,19 @@ def run(system_file: str | Path, *, duration: float | None = None, grace: float 
         tick = 1
         while not stop.wait(max(0.0, mon.start + tick - time.monotonic())):
             t = time.monotonic() - mon.start
-            _show(mon.rows(), mon.bus_flags(), t, out)
+            _show(mon.rows(), mon.bus_flags(), t, out, mon.node_lines())
             tick += 1
             if duration is not None and t >= duration - 1e-6:
                 break
-        rows, bus = mon.rows(), mon.bus_flags()
+        rows, bus, nodes = mon.rows(), mon.bus_flags(), mon.node_lines()
     finally:
         mon.close()
     found = [f"{r['name']}: {f}" for r in rows for f in r["flags"]] + bus
     print("\nsummary", file=out)
     print(f"  {sum(1 for r in rows if r['value'] is not None)} of {len(rows)} devices seen; "
           f"writes held back: {len(mon.writes_held)}", file=out)
+    for line in nodes:
+        print(f"  {line}", file=out)
     print("  mismatches:" + ("" if found else " none"), file=out)
     for f in found:
         print(f"    {f}", file=out)

@@ -84,7 +84,11 @@ async def main(ctx: TaskContext, command: Any) -> None:
 INSTALL = """\
 # Host commands that build cell {name} (chcos README: "Host commands").
 install -m0 sysfile                    # machine 0: start the drivers of its devices
-install -m0i1o1 fill level valve       # task fill: input level, output valve
+# task fill: input level, output valve. --standing --restart=on-recovery: when the PLC drops
+# out, fill ends abnormally and the valve goes to its safe value; once the level reads again,
+# fill is invoked again with its last command (after --backoff seconds), so the cell rides
+# through a network blip instead of staying safe until someone notices (see README.md).
+install -m0i1o1 --standing --restart=on-recovery --backoff=0.5 fill level valve
 invoke fill setpoint=120               # start it with its command
 """
 
@@ -114,10 +118,27 @@ def test_a_failed_sensor_makes_the_valve_safe(chcos_cell):
     assert cell.task("fill").abnormal == 1   # the task was told and ended abnormally
     assert cell.peer("valve") == 0           # its actuator's safe value reached the PLC
     cell.recover("level")                    # the fault ends (a reading alone would not)
-    cell.invoke("fill", setpoint=100)        # a new command starts it again
-    cell.run_for(1.0)
+    cell.run_for(1.0)                        # restart on recovery: fill runs again by itself
     assert cell.status("level") == "OK"
+    assert cell.peer("valve") == 60
+    cell.invoke("fill", setpoint=100)        # a new command from the host
+    cell.run_for(1.0)
     assert cell.peer("valve") == 20
+
+
+def test_the_cell_rides_through_a_plc_blip(chcos_cell):
+    cell = chcos_cell("system.toml")
+    cell.set("level", 90.0)
+    cell.run_for(1.0)
+    assert cell.peer("valve") == 60
+    cell.silence("plc")                      # the PLC drops off the network for 2 s
+    cell.run_for(2.0)
+    assert cell.status("level") != "OK"      # stale: the task was told and stopped
+    cell.restore("plc")                      # it is back: the driver finds it at its next retry
+    cell.run_until(lambda: cell.status("level") == "OK")
+    cell.run_for(1.0)
+    assert cell.task("fill").abnormal >= 1
+    assert cell.peer("valve") == 60          # fill restarted on recovery: controlling again
 '''
 
 README = """\
@@ -134,6 +155,14 @@ the valve in proportion to how far the level is below its set-point.
 | `tasks/fill.py` | the task |
 | `install.chcos` | host commands run at start: load machine 0, install and invoke `fill` |
 | `tests/test_cell.py` | tests on virtual time against a simulated PLC (`pytest`) |
+| `chcos-{name}.service` | systemd unit: at boot, outputs on, restarted on a crash, `{name}.log` |
+
+`fill` is installed `--standing --restart=on-recovery`. Without a restart policy a task that ends
+abnormally stays ended (the thesis' rule: its owner decides): after the PLC's first network blip
+the valve would sit at its safe value until someone invoked `fill` again. With it, the valve goes
+safe while the level cannot be read, and `fill` is invoked again with its last command half a
+second after the level reads again; `tests/test_cell.py` shows both (a failed sensor, a 2 s PLC
+blip).
 
 ```sh
 chcos check devices.toml                     # validate the device map
@@ -143,6 +172,28 @@ chcos run system.toml                        # the real PLC: tasks run, the valv
 chcos run system.toml --outputs on           # the real PLC, driven; Ctrl-C: the valve goes to 0
 ```
 """
+
+UNIT = """\
+# systemd unit of cell {name}: runs it at boot and again after a crash. Install it with
+#   sudo cp chcos-{name}.service /etc/systemd/system/ && sudo systemctl enable --now chcos-{name}
+# Stopping it (systemctl stop, shutdown) sends SIGTERM: every actuator goes to its safe value.
+[Unit]
+Description=chcos cell {name}
+Wants=network-online.target
+After=network-online.target
+
+[Service]
+Type=simple
+WorkingDirectory={workdir}
+ExecStart={python} -m chcos.cli.main run system.toml --outputs on --log {name}.log
+Restart=on-failure
+RestartSec=5
+TimeoutStopSec=30
+
+[Install]
+WantedBy=multi-user.target
+"""
+
 
 def create(directory: str | Path, *, name: str | None = None, host: str = "127.0.0.1",
            port: int = 5020) -> list[Path]:
@@ -162,12 +213,14 @@ def create(directory: str | Path, *, name: str | None = None, host: str = "127.0
         "system.toml": SYSTEM, "devices.toml": DEVICES, "tasks/fill.py": TASK,
         "install.chcos": INSTALL, "README.md": README, "tests/test_cell.py": TEST,
         "pytest.ini": "[pytest]\ntestpaths = tests\naddopts = -p no:cacheprovider\n",
+        f"chcos-{name}.service": UNIT,
     }
     written = []
     for rel, text in files.items():
         path = root / rel
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(text.format(name=name, host=host, port=port), encoding="utf-8")
+        path.write_text(text.format(name=name, host=host, port=port, workdir=root.resolve(),
+                                    python=sys.executable), encoding="utf-8")
         written.append(path)
     return written
 

@@ -17,11 +17,13 @@ superseded on the way (a gap) and counts them as sent and overwritten on its cop
 ``msgstat`` keeps sent = delivered + overwritten + unread on the destination's satellite.
 
 Keys, under ``chcos/<system>``: ``m/<N>/msg`` (messages to machine N), ``all/msg`` (broadcast:
-estop, device status), ``alive/<N>`` (liveliness tokens). Only payloads sealed by the satellite
-role are accepted on the message keys (a host cannot set device values, write actuators, forge
-statuses or e-stop through them). A malformed or refused message is counted by cause and logged
-at most once per cause per interval (:attr:`CommManager.rejected`); actuator values must match
-the actuator's type (a number where the safe value or limits are numbers) and be finite.
+estop, device status, hellos), ``alive/<N>`` (liveliness tokens: a satellite is up once its
+token is seen and a sealed hello from it arrived, see :meth:`CommManager.is_up`). Only payloads
+sealed by the satellite role are accepted on the message keys (a host cannot set device values,
+write actuators, forge statuses or e-stop through them). A malformed or refused message is
+counted by cause and logged at most once per cause per interval (:attr:`CommManager.rejected`);
+actuator values must match the actuator's type (a number where the safe value or limits are
+numbers) and be finite.
 
 Payloads are typed (:mod:`chcos.comm.payloads`), encoded and checked only at this boundary.
 The collaborators (kernel, tables, message manager, device table) are given at construction
@@ -44,6 +46,7 @@ from chcos.comm.payloads import (
     ActuatorCommand,
     CloseRequest,
     EmergencyStop,
+    Hello,
     OpenAnswer,
     OpenReply,
     OpenRequest,
@@ -108,6 +111,8 @@ class CommManager:
         self.error_count = 0
         self.rejected = Throttle(log)
         self.alive: set[int] = {machine}
+        self._tokens: set[int] = set()   # machines whose liveliness token is seen now
+        self._greeted: set[int] = set()  # machines whose sealed hello came since that token
         self.batches = Batches(kernel, transport, self._collect, self._leave)
         self._keys: dict[int | None, str] = {}   # destination machine -> its message key
         self.superseded = 0
@@ -338,7 +343,8 @@ class CommManager:
         self._send(None, "", "", 0, TOP_PRIORITY, EmergencyStop(reason, self.machine))
 
     def is_up(self, machine: int) -> bool:
-        """Whether satellite ``machine`` is on the link now (its liveliness token is seen)."""
+        """Whether satellite ``machine`` is on the link now (its liveliness token is seen and
+        a sealed hello from it arrived)."""
         return machine in self.alive
 
     def query(self, link: Link, asker: TaskEntry, peer: TaskEntry, qid: int, topic: str,
@@ -393,7 +399,9 @@ class CommManager:
                 mm.deliver(link, msg.value)
             return
         p = from_wire(msg.kind, msg.value)
-        if isinstance(p, StatusChange):
+        if isinstance(p, Hello):
+            self._on_hello(p)
+        elif isinstance(p, StatusChange):
             if p.origin != self.machine:
                 self.devtab.set_status(p.device, DeviceStatus(p.status), p.reason)
         elif isinstance(p, EmergencyStop):
@@ -449,15 +457,50 @@ class CommManager:
             self.superseded += gap
 
     # ---- liveliness -------------------------------------------------------------------------
+    # A liveliness token carries no seal: any session that may open could declare one. A
+    # satellite is up here only once its token is seen *and* a sealed hello from it arrived
+    # (it answers the hello this satellite asks with when the token appears), so a forged
+    # token for a satellite that is down changes nothing. A token vanishing still means down.
     def _joined(self, key: str) -> None:
         m = machine_of(key)
         if m is not None and m != self.machine:
-            self.kernel.interrupt(self._on_join, m)
+            self.kernel.interrupt(self._on_token, m)
 
     def _left(self, key: str) -> None:
         m = machine_of(key)
         if m is not None and m != self.machine:
-            self.kernel.interrupt(self._on_leave, m)
+            self.kernel.interrupt(self._on_token_gone, m)
+
+    def _on_token(self, machine: int) -> None:
+        self._tokens.add(machine)
+        if machine in self._greeted:
+            self._confirm(machine)
+        else:
+            self._hello(ask=True)
+
+    def _on_token_gone(self, machine: int) -> None:
+        self._tokens.discard(machine)
+        self._greeted.discard(machine)
+        if machine in self.alive:
+            self._on_leave(machine)
+
+    def _hello(self, ask: bool) -> None:
+        try:
+            self._send(None, "", "", 0, TOP_PRIORITY - 1, Hello(self.machine, ask))
+        except MessageError as exc:  # the link is down: the next token seen asks again
+            log.warning("machine %d: hello not sent: %s", self.machine, exc)
+
+    def _on_hello(self, hello: Hello) -> None:
+        if hello.origin == self.machine:
+            return
+        self._greeted.add(hello.origin)
+        if hello.ask:
+            self._hello(ask=False)
+        self._confirm(hello.origin)
+
+    def _confirm(self, machine: int) -> None:
+        if machine in self._tokens and machine not in self.alive:
+            self._on_join(machine)
 
     def _on_join(self, machine: int) -> None:
         self.alive.add(machine)

@@ -13,6 +13,7 @@ The wire form is JSON objects with an ``op`` key, as before::
     REPLY     {"op": "open", "answer": "owner"|"queued"|"busy", "reason": str}  OpenReply
               {"op": "answer", "qid": int, "answer": ...}        QueryAnswer
     STATUS    {"device": str, "status": str, "reason": str, "from": int}  StatusChange
+              {"op": "hello", "from": int, "ask": bool}          Hello
     COMPLETION/PREEMPTION {"status": str, "result": ..., "error": str}  Report
     QUERY     {"qid": int, "topic": str, "args": [...]}          Query
     ERROR     {"qid": int, "error": str}                         QueryFailed
@@ -151,8 +152,17 @@ class QueryFailed:
     error: str
 
 
+@dataclass(frozen=True)
+class Hello:
+    """Satellite ``origin`` is on the link (sealed, so a liveliness token alone does not make
+    a satellite up); ``ask``: every satellite that hears it answers with its own."""
+
+    origin: int
+    ask: bool
+
+
 Payload = (OpenRequest | CloseRequest | ActuatorCommand | EmergencyStop | OpenReply
-           | StatusChange | Report | Query | QueryAnswer | QueryFailed)
+           | StatusChange | Report | Query | QueryAnswer | QueryFailed | Hello)
 
 #: The message kind each payload type travels as.
 KIND_OF: dict[type[Any], MessageKind] = {
@@ -160,6 +170,7 @@ KIND_OF: dict[type[Any], MessageKind] = {
     ActuatorCommand: MessageKind.COMMAND, EmergencyStop: MessageKind.COMMAND,
     OpenReply: MessageKind.REPLY, QueryAnswer: MessageKind.REPLY,
     StatusChange: MessageKind.STATUS, Query: MessageKind.QUERY, QueryFailed: MessageKind.ERROR,
+    Hello: MessageKind.STATUS,
 }
 
 
@@ -179,6 +190,8 @@ def to_wire(p: Payload) -> dict[str, Any]:
         return {"op": "answer", "qid": p.qid, "answer": p.answer}
     if isinstance(p, StatusChange):
         return {"device": p.device, "status": p.status, "reason": p.reason, "from": p.origin}
+    if isinstance(p, Hello):
+        return {"op": "hello", "from": p.origin, "ask": p.ask}
     if isinstance(p, Report):
         return {"status": p.status.value, "result": p.result, "error": p.error}
     if isinstance(p, Query):
@@ -226,6 +239,9 @@ def from_wire(kind: MessageKind, value: Any) -> Payload:
             return QueryAnswer(_get(kind, v, "qid", int, "a query id"), v.get("answer"))
         raise MessageError(f"REPLY message: unknown op {op!r:.40}; expected open or answer")
     if kind is MessageKind.STATUS:
+        if op == "hello":
+            return Hello(_get(kind, v, "from", int, "a machine"),
+                         _get(kind, v, "ask", bool, "true/false"))
         status = v.get("status")
         if status not in DEVICE_STATUSES:
             raise MessageError(f"STATUS message: 'status': expected one of "

@@ -6,11 +6,20 @@ A system's nodes prove two things to each other on every payload they exchange:
   that does not hold the secret from opening a session with any satellite at all, so it can
   neither read nor send anything. The credentials and the dictionary file every listening node
   checks them against are derived from the secret (:meth:`SystemSecret.zenoh_auth`);
-* **role**: every payload carries an HMAC-SHA256 tag made with the key of the sender's role
-  (:class:`Sealer`). Satellites accept host requests (install, setpri, boot, invoke, suspend,
+* **role**: every payload is sealed (:class:`Sealer`) with a key derived from the key of the
+  sender's role. Satellites accept host requests (install, setpri, boot, invoke, suspend,
   resume, inject) only when sealed with the *host* key, and device values, actuator commands,
-  statuses and e-stops only when sealed with the *satellite* key. A tag also binds the Zenoh key
-  the payload was sent on, so a payload cannot be replayed onto another key.
+  statuses and e-stops only when sealed with the *satellite* key. A seal also binds the Zenoh
+  key the payload was sent on, so a payload cannot be moved onto another key;
+* **freshness**: every seal carries its sender's identity, the sender's run (a random epoch
+  drawn at each start), a sequence number and a time stamp. A receiver refuses a payload
+  older than :data:`MAX_AGE_S`, further ahead than :data:`MAX_AHEAD_S`, from a run its
+  sender has replaced, already accepted, or reordered beyond :data:`WINDOW`, and counts each
+  refusal by kind (:class:`Refusal`);
+* **confidentiality**: payloads are encrypted (AES-256-GCM, a key per sender's run derived
+  with HKDF-SHA256 from the role key, the nonce made of the epoch and the sequence number):
+  a session that passed the Zenoh authentication (it holds a ``[link.auth]`` password, or the
+  TLS files) but not the secret sees only headers and ciphertext.
 
 The secret is generated on first use (``secrets.token_bytes``) and stored as JSON with
 owner-only permissions (0600, directory 0700) in the system's state directory, or where the
@@ -20,20 +29,30 @@ needs a copy of the same file (copy it with ``scp -p``; keep it 0600).
 
 from __future__ import annotations
 
+import enum
 import hashlib
 import hmac
+import itertools
 import json
 import logging
 import os
 import secrets
 import shutil
 import stat
+import struct
 import subprocess
 import tempfile
 import threading
 import time
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NoReturn
+
+from cryptography.exceptions import InvalidTag
+from cryptography.hazmat.primitives import hashes
+from cryptography.hazmat.primitives.ciphers.aead import AESGCM
+from cryptography.hazmat.primitives.kdf.hkdf import HKDF
 
 from chcos.errors import ConfigError, LinkError
 
@@ -44,7 +63,8 @@ FORMAT = "chcos-secret/1"
 ROLES: dict[str, int] = {"host": 1, "satellite": 2}
 _ROLE_OF = {v: k for k, v in ROLES.items()}
 TAG_BYTES = 16
-SEAL_BYTES = 1 + TAG_BYTES
+#: Bytes a seal adds to a payload (header and AEAD tag).
+SEAL_BYTES = 35 + TAG_BYTES
 
 
 def _owner_only(path: Path) -> None:
@@ -81,11 +101,13 @@ class SystemSecret:
             _write_private(path, text)
         return path
 
-    def sealer(self, role: str) -> Sealer:
-        """The :class:`Sealer` of a node of ``role``. Raises ConfigError on an unknown role."""
+    def sealer(self, role: str, sender: str | None = None) -> Sealer:
+        """The :class:`Sealer` of a node of ``role``, named ``sender`` if it keeps one identity
+        across restarts (a satellite's machine), else a sender of its own. Raises ConfigError
+        on an unknown role."""
         if role not in ROLES:
             raise ConfigError(f"role {role!r}: expected one of {', '.join(ROLES)}")
-        return Sealer(role, self.keys, self.identity)
+        return Sealer(role, self.keys, self.identity, sender=sender)
 
 
 def _write_private(path: Path, text: str) -> None:
@@ -190,38 +212,228 @@ def loopback_pki(directory: Path, system: str) -> tuple[Path, Path, Path] | None
     return files
 
 
-class Sealer:
-    """Seals payloads with the key of this node's ``role`` and opens sealed payloads, telling
-    which role sealed them. Thread-safe (stateless apart from counters)."""
+class Refusal(enum.Enum):
+    """Why :meth:`Sealer.open` refused a payload (each kind is counted apart)."""
 
-    def __init__(self, role: str, keys: dict[str, bytes], identity: str) -> None:
+    UNAUTHENTICATED = "unauthenticated"          # too short, unknown version/role, bad tag
+    REPLAYED = "replayed"                        # its sequence number was already accepted
+    BEHIND_WINDOW = "behind the replay window"   # reordered further back than WINDOW
+    STALE = "too old"                            # time stamp older than the age bound
+    FUTURE = "from the future"                   # time stamp beyond the clock skew allowance
+    OLD_RUN = "from a sender's earlier run"      # an epoch the sender has since replaced
+
+
+class SealRefused(LinkError):
+    """A payload :meth:`Sealer.open` refused; ``refusal`` says which kind."""
+
+    def __init__(self, refusal: Refusal, detail: str) -> None:
+        super().__init__(f"{refusal.value}: {detail}")
+        self.refusal = refusal
+
+
+def _derive(key: bytes, role: int, sender: bytes, epoch: bytes) -> AESGCM:
+    """The AEAD of one run (``epoch``) of one sender of ``role``: its own key, derived from the
+    role's key of the system secret with HKDF-SHA256."""
+    hkdf = HKDF(algorithm=hashes.SHA256(), length=32, salt=None,
+                info=b"chcos-seal/2 " + bytes((role,)) + sender + epoch)
+    return AESGCM(hkdf.derive(key))
+
+
+class _Window:
+    """The sequence numbers accepted lately on one stream of one sender's run: the highest
+    (``top``) and a bitmap of the WINDOW below it (bit i set: ``top - i`` was accepted), as
+    IPsec and DTLS keep them."""
+
+    __slots__ = ("bits", "top")
+
+    def __init__(self) -> None:
+        self.top = 0
+        self.bits = 0
+
+    def check(self, seq: int) -> Refusal | None:
+        """None if ``seq`` is new and within the window (nothing recorded yet), else why not."""
+        if seq > self.top:
+            return None
+        back = self.top - seq
+        if back >= WINDOW:
+            return Refusal.BEHIND_WINDOW
+        return Refusal.REPLAYED if (self.bits >> back) & 1 else None
+
+    def accept(self, seq: int) -> None:
+        """Record ``seq`` (checked by :meth:`check` first)."""
+        if seq > self.top:
+            self.bits = ((self.bits << (seq - self.top)) | 1) & _WINDOW_MASK
+            self.top = seq
+        else:
+            self.bits |= 1 << (self.top - seq)
+
+
+@dataclass
+class _Sender:
+    """What a receiver remembers of one sender: its current run (epoch), the first time stamp
+    seen in it, one window per (receiver, stream), and the runs it replaced."""
+
+    epoch: bytes
+    first_ns: int
+    last_ns: int
+    aead: AESGCM
+    windows: dict[tuple[int, int], _Window] = field(default_factory=dict)
+    retired: list[bytes] = field(default_factory=list)
+
+
+#: Receive windows kept per stream (sequence numbers a message may be reordered by).
+WINDOW = 4096
+_WINDOW_MASK = (1 << WINDOW) - 1
+#: Oldest message accepted, and furthest into the future (clock skew allowance), in seconds.
+MAX_AGE_S = 30.0
+MAX_AHEAD_S = 30.0
+#: Senders a receiver remembers; beyond this the first heard is forgotten (and nothing older
+#: than its newest message is accepted from an unknown sender again).
+MAX_SENDERS = 4096
+#: Windows kept per sender (one per receiver and stream).
+MAX_WINDOWS = 256
+#: Earlier runs remembered per sender.
+RETIRED_RUNS = 16
+#: The stream of replies to requests (publications and requests use their priority band).
+REPLY_STREAM = 255
+
+_HEADER = struct.Struct(">BBB8s8sQQ")  # version, role, stream, sender, epoch, sequence, time
+SEAL_VERSION = 2
+
+
+class Sealer:
+    """Seals payloads as this node (``role``, a sender identity and a run of its own) and opens
+    sealed payloads, telling which role sealed them.
+
+    A sealed payload is a header (version, role, stream, sender id, epoch, sequence number,
+    time stamp in ns) followed by the payload encrypted with AES-256-GCM under a key derived
+    (HKDF-SHA256) from the role's key, the sender id and the epoch; the nonce is the epoch's
+    first four bytes and the sequence number, which never repeats within a run, and the
+    header and the Zenoh key are authenticated with it. ``sender`` names the node (a
+    satellite passes its machine, so that its restarts are one sender's successive runs);
+    without one every Sealer is a sender of its own. Each Sealer starts a new run: a random
+    64-bit epoch, sequence numbers from 1.
+
+    Receiving, :meth:`open` refuses (:class:`SealRefused`, counted in :attr:`refused` by
+    :class:`Refusal`) a payload that does not authenticate, is older than ``max_age_s`` or
+    further ahead than ``max_ahead_s`` of ``clock`` (ns since the epoch), comes from a run
+    its sender has since replaced, repeats a sequence number already accepted, or falls
+    behind the :data:`WINDOW` of its stream. Thread-safe."""
+
+    def __init__(self, role: str, keys: dict[str, bytes], identity: str, *,
+                 sender: str | None = None, clock: Callable[[], int] = time.time_ns,
+                 max_age_s: float = MAX_AGE_S, max_ahead_s: float = MAX_AHEAD_S) -> None:
         self.role = role
         self.identity = identity
-        self._keys = {ROLES[r]: hmac.new(k, digestmod=hashlib.sha256) for r, k in keys.items()}
+        self._role_keys = {ROLES[r]: k for r, k in keys.items()}
         self._mine = ROLES[role]
+        self.sender = (hashlib.sha256(f"{identity}/{role}/{sender}".encode()).digest()[:8]
+                       if sender is not None else secrets.token_bytes(8))
+        self.epoch = secrets.token_bytes(8)
+        self._aead = _derive(self._role_keys[self._mine], self._mine, self.sender, self.epoch)
+        self._nonce = self.epoch[:4]
+        self._seq = itertools.count(1)  # next() is atomic: concurrent seals never share one
+        self._clock = clock
+        self._max_age = int(max_age_s * 1e9)
+        self._max_ahead = int(max_ahead_s * 1e9)
+        self._lock = threading.Lock()
+        # senders by (role, id), oldest first; their current (epoch, AEAD) apart for the
+        # lock-free look-up
+        self._senders: dict[tuple[int, bytes], _Sender] = {}
+        self._runs: dict[tuple[int, bytes], tuple[bytes, AESGCM]] = {}
+        self._floor = 0  # no unknown sender is accepted at or before this time stamp (ns)
+        self.refused: dict[Refusal, int] = dict.fromkeys(Refusal, 0)
 
-    def _tag(self, role: int, key_expr: str, payload: bytes) -> bytes:
-        h = self._keys[role].copy()  # keyed state made once; copying it is cheaper than a new key
-        h.update(key_expr.encode() + b"\0" + bytes((role,)))
-        h.update(payload)
-        return h.digest()[:TAG_BYTES]
+    def seal(self, key_expr: str, payload: bytes, stream: int = 0) -> bytes:
+        """``payload`` sealed for ``key_expr``: the header then the encrypted payload and its
+        tag. ``stream`` (0..255) is the ordering domain the receiver keeps a window for:
+        messages that the transport may reorder among each other (e.g. two priority bands)
+        belong to different streams."""
+        seq = next(self._seq)
+        header = _HEADER.pack(SEAL_VERSION, self._mine, stream, self.sender, self.epoch, seq,
+                              self._clock())
+        nonce = self._nonce + seq.to_bytes(8, "big")
+        return header + self._aead.encrypt(nonce, payload, header + key_expr.encode())
 
-    def seal(self, key_expr: str, payload: bytes) -> bytes:
-        """``payload`` followed by this node's role byte and the tag over key and payload."""
-        return payload + bytes((self._mine,)) + self._tag(self._mine, key_expr, payload)
-
-    def open(self, key_expr: str, data: bytes) -> tuple[str, bytes]:
-        """(role, payload) of a sealed ``data`` received on ``key_expr``. Raises LinkError if
-        it is too short, names no known role, or its tag does not match (not sealed by a member
-        of this system, altered, or sent on another key)."""
+    def open(self, key_expr: str, data: bytes, receiver: int = 0) -> tuple[str, bytes]:
+        """(role, payload) of a sealed ``data`` received on ``key_expr`` by ``receiver`` (one
+        number per subscriber or server of this node: each gets a message once). Raises SealRefused
+        (a LinkError) saying why it is refused: not sealed by a member of this system (too
+        short, unknown version or role, altered, sent on another key), too old or ahead of
+        the clock, from a sender's earlier run, replayed, or behind the window."""
         if len(data) < SEAL_BYTES:
-            raise LinkError("unauthenticated: payload too short to carry a seal")
-        payload, role, tag = data[:-SEAL_BYTES], data[-SEAL_BYTES], data[-TAG_BYTES:]
-        if role not in self._keys:
-            raise LinkError(f"unauthenticated: unknown role byte {role}")
-        if not hmac.compare_digest(tag, self._tag(role, key_expr, payload)):
-            raise LinkError("unauthenticated: bad seal (not sealed by a member of this system)")
+            return self._refuse(Refusal.UNAUTHENTICATED, "payload too short to carry a seal")
+        version, role, stream, sender, epoch, seq, stamp = _HEADER.unpack_from(data)
+        if version != SEAL_VERSION:
+            return self._refuse(Refusal.UNAUTHENTICATED, f"seal version {version}, expected "
+                                f"{SEAL_VERSION}")
+        key = self._role_keys.get(role)
+        if key is None:
+            return self._refuse(Refusal.UNAUTHENTICATED, f"unknown role byte {role}")
+        ident = (role, sender)
+        known = self._runs.get(ident)  # read without the lock: one tuple, replaced whole
+        aead = known[1] if known is not None and known[0] == epoch else None
+        if aead is None:
+            aead = _derive(key, role, sender, epoch)
+        header = data[:_HEADER.size]
+        try:
+            payload = aead.decrypt(epoch[:4] + seq.to_bytes(8, "big"), data[_HEADER.size:],
+                                   header + key_expr.encode())
+        except InvalidTag:
+            return self._refuse(Refusal.UNAUTHENTICATED, "bad seal (not sealed by a member of "
+                                "this system, altered, or sent on another key)")
+        now = self._clock()
+        if stamp < now - self._max_age:
+            return self._refuse(Refusal.STALE, f"sealed {(now - stamp) / 1e9:.1f} s ago, at "
+                                f"most {self._max_age / 1e9:g} s accepted")
+        if stamp > now + self._max_ahead:
+            return self._refuse(Refusal.FUTURE, f"sealed {(stamp - now) / 1e9:.1f} s ahead of "
+                                f"this clock, at most {self._max_ahead / 1e9:g} s accepted")
+        with self._lock:
+            why = self._admit(ident, epoch, aead, (receiver, stream), seq, stamp)
+        if why is not None:
+            return self._refuse(why, f"sequence {seq} of stream {stream} of sender "
+                                f"{sender.hex()} run {epoch.hex()}")
         return _ROLE_OF[role], payload
+
+    def _admit(self, ident: tuple[int, bytes], epoch: bytes, aead: AESGCM,
+               stream: tuple[int, int], seq: int, stamp: int) -> Refusal | None:
+        """Record an authenticated message in its sender's state (lock held), or say why it
+        is refused."""
+        s = self._senders.get(ident)
+        if s is None:
+            if stamp <= self._floor:
+                return Refusal.STALE
+            s = self._senders[ident] = _Sender(epoch, stamp, stamp, aead)
+            self._runs[ident] = (epoch, aead)
+            if len(self._senders) > MAX_SENDERS:  # forget the oldest (it may come back as new)
+                gone = next(iter(self._senders))
+                old = self._senders.pop(gone)
+                self._runs.pop(gone, None)
+                self._floor = max(self._floor, old.last_ns)
+        elif s.epoch != epoch:
+            if epoch in s.retired or stamp < s.first_ns:
+                return Refusal.OLD_RUN
+            s.retired.append(s.epoch)
+            del s.retired[:-RETIRED_RUNS]
+            s.epoch, s.first_ns, s.aead, s.windows = epoch, stamp, aead, {}
+            self._runs[ident] = (epoch, aead)
+        window = s.windows.get(stream)
+        if window is None:
+            window = s.windows[stream] = _Window()
+            if len(s.windows) > MAX_WINDOWS:  # receivers come and go: forget the oldest
+                del s.windows[next(iter(s.windows))]
+        why = window.check(seq)
+        if why is None:
+            window.accept(seq)
+            if stamp > s.last_ns:
+                s.last_ns = stamp
+        return why
+
+    def _refuse(self, refusal: Refusal, detail: str) -> NoReturn:
+        with self._lock:
+            self.refused[refusal] += 1
+        raise SealRefused(refusal, detail)
 
 
 class Throttle:

@@ -5,6 +5,7 @@ the seals on every payload and the cached publishers (the base of
 
 from __future__ import annotations
 
+import itertools
 import logging
 import sys
 import threading
@@ -15,7 +16,7 @@ import zenoh
 
 from chcos.comm.config import LinkConfig
 from chcos.comm.qos import PRIORITY_BANDS, check_key
-from chcos.comm.secret import SEAL_BYTES, Sealer, Throttle
+from chcos.comm.secret import SEAL_BYTES, Refusal, Sealer, SealRefused, Throttle
 from chcos.comm.subscription import Subscription
 from chcos.errors import LinkError
 
@@ -25,6 +26,9 @@ log = logging.getLogger("chcos.comm")
 SERVER_ERROR_ENCODING = "text/plain;chcos-server-error"
 #: Largest payload sent or accepted on the link by default (bytes, before the seal).
 MAX_MESSAGE_BYTES = 1024 * 1024
+#: The receiver number of the answers to this session's requests (subscribers and servers are
+#: numbered from 1, each opening the payloads it receives once).
+REQUESTER = 0
 #: Publishers kept declared (one per key and QoS); the least recently used beyond this is dropped.
 PUBLISHER_CACHE_SIZE = 256
 
@@ -50,6 +54,7 @@ class Session:
         self._malformed = 0
         self._closed = False
         self._entities: dict[int, Subscription] = {}
+        self._receivers = itertools.count(REQUESTER + 1)
         # (key, priority band, express, block) -> zenoh.Publisher (zenoh.Priority is unhashable)
         self._publishers: OrderedDict[tuple[str, int, bool, bool], Any] = OrderedDict()
         try:
@@ -143,14 +148,16 @@ class Session:
         self.rejected.note(f"link {what}: a callback raised (ignored)",
                            f"{type(exc).__name__}: {exc} ({self._errors} so far)")
 
-    def _seal(self, key: str, payload: bytes) -> bytes:
+    def _seal(self, key: str, payload: bytes, stream: int) -> bytes:
+        """``payload`` sealed for ``key`` on ``stream`` (see :meth:`Sealer.seal`), or as is
+        without a sealer. Raises LinkError if it is larger than the link's limit."""
         if len(payload) > self.max_bytes:
             raise LinkError(f"{key!r}: payload of {len(payload)} bytes is larger than the "
                             f"link's limit of {self.max_bytes} bytes")
-        return payload if self.sealer is None else self.sealer.seal(key, payload)
+        return payload if self.sealer is None else self.sealer.seal(key, payload, stream)
 
-    def _open(self, what: str, key: str, data: bytes, roles: frozenset[str] | None
-              ) -> tuple[str, bytes] | None:
+    def _open(self, what: str, key: str, data: bytes, roles: frozenset[str] | None,
+              receiver: int) -> tuple[str, bytes] | None:
         """(role, payload) of an accepted payload, or None (counted and logged by cause)."""
         limit = self.max_bytes + (SEAL_BYTES if self.sealer is not None else 0)
         if len(data) > limit:
@@ -160,15 +167,24 @@ class Session:
         if self.sealer is None:
             return "", data
         try:
-            role, payload = self.sealer.open(key, data)
-        except LinkError as exc:
-            self.rejected.note(f"link {what}: unauthenticated payload dropped", f"{key}: {exc}")
+            role, payload = self.sealer.open(key, data, receiver)
+        except SealRefused as exc:
+            self.rejected.note(f"link {what}: {exc.refusal.value} payload dropped",
+                               f"{key}: {exc}")
             return None
         if roles is not None and role not in roles:
             self.rejected.note(f"link {what}: payload from a {role} refused",
                                f"{key}: only {', '.join(sorted(roles))} may send here")
             return None
         return role, payload
+
+    @property
+    def refusals(self) -> dict[str, int]:
+        """How many received payloads the seals refused so far, by kind (:class:`Refusal`
+        value: unauthenticated, replayed, behind the replay window, too old, from the future,
+        from a sender's earlier run); all zero without a sealer."""
+        counts = self.sealer.refused if self.sealer is not None else dict.fromkeys(Refusal, 0)
+        return {r.value: n for r, n in counts.items()}
 
     def _publisher(self, key: str, band: int, express: bool, block: bool) -> Any:
         cache_key = (key, band, express, block)

@@ -54,7 +54,8 @@ from chcos.comm.qos import (
     is_express,
     zenoh_priority,
 )
-from chcos.comm.session import SERVER_ERROR_ENCODING, Session
+from chcos.comm.secret import REPLY_STREAM
+from chcos.comm.session import REQUESTER, SERVER_ERROR_ENCODING, Session
 from chcos.comm.subscription import Subscription
 from chcos.errors import LinkError
 
@@ -105,7 +106,7 @@ class Transport(Session):
         except ValueError as exc:
             raise LinkError(f"publish {key!r}: expected a MessageKind, got {kind!r}") from exc
         try:
-            data = self._seal(key, bytes(payload))
+            data = self._seal(key, bytes(payload), band)
             pub = self._publisher(key, band, express, block)
             pub.put(data)
         except zenoh.ZError as exc:
@@ -125,11 +126,12 @@ class Transport(Session):
         self._check_open("subscribe")
         check_key("subscribe", key_expr, concrete=False)
         what = f"subscriber {key_expr}"
+        receiver = next(self._receivers)
 
         def on_sample(sample: zenoh.Sample) -> None:
             try:
                 key = str(sample.key_expr)
-                opened = self._open(what, key, sample.payload.to_bytes(), roles)
+                opened = self._open(what, key, sample.payload.to_bytes(), roles, receiver)
                 if opened is not None:
                     callback(key, opened[1])
             except Exception:
@@ -178,13 +180,14 @@ class Transport(Session):
         self._check_open("serve")
         check_key("serve", key_expr, concrete=False)
         what = f"server {key_expr}"
+        receiver = next(self._receivers)
 
         def on_query(query: zenoh.Query) -> None:
             try:
                 payload = query.payload
                 key = str(query.key_expr)
                 opened = self._open(what, key, b"" if payload is None else payload.to_bytes(),
-                                    roles)
+                                    roles, receiver)
                 if opened is None:
                     query.reply_err(b"refused: not authenticated or not authorised here",
                                     encoding=SERVER_ERROR_ENCODING)
@@ -193,7 +196,7 @@ class Transport(Session):
                     result = handler(opened[1])
                     if not isinstance(result, bytes | bytearray | memoryview):
                         raise TypeError(f"handler returned {type(result).__name__}, expected bytes")
-                    answer = self._seal(key, bytes(result))
+                    answer = self._seal(key, bytes(result), REPLY_STREAM)
                 except Exception as exc:
                     self._failed(what)
                     query.reply_err(
@@ -236,7 +239,7 @@ class Transport(Session):
         try:
             replies = self._session.get(
                 key,
-                payload=self._seal(key, bytes(payload)),
+                payload=self._seal(key, bytes(payload), band_of(priority)),
                 timeout=timeout,
                 target=zenoh.QueryTarget.BEST_MATCHING,
                 priority=zenoh_priority(priority),
@@ -246,7 +249,8 @@ class Transport(Session):
             for reply in replies:
                 ok = reply.ok
                 if ok is not None:
-                    opened = self._open(f"request {key}", key, ok.payload.to_bytes(), roles)
+                    opened = self._open(f"request {key}", key, ok.payload.to_bytes(), roles,
+                                        REQUESTER)
                     if opened is None:
                         raise LinkError(f"request {key!r}: the answer is not authenticated")
                     return opened[1]

@@ -175,6 +175,20 @@ def _warnings(fe_by_file: Mapping[str, FileErrors], buses: Mapping[str, BusSpec]
                                               f"scale and offset): such writes fail on the bus")
         out.extend(fe.errors[before:])
         del fe.errors[before:]
+    for name, bus in buses.items():    # the drivers' own warnings about a bus as a whole
+        cls = classes.get(name)
+        if cls is None:
+            continue
+        fe = fe_by_file[bus.file]
+        before = len(fe.errors)
+        try:
+            found = cls.check_warnings(bus, [d for d in devices if d.bus == name])
+        except Exception as exc:  # a driver bug must not end the check
+            found = [f"could not be checked ({type(exc).__name__}: {exc})"]
+        for msg in found:
+            fe.add(*_split(msg, bus.key, ""))
+        out.extend(fe.errors[before:])
+        del fe.errors[before:]
     return out
 
 

@@ -86,6 +86,8 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         self._wlock = threading.Lock()
         self._inflight: dict[str, deque[Write]] = {}
         self._rx_stamp: dict[str, float] = {}
+        #: each stopped driver's last :meth:`drivers.base.Driver.status_doc`, by bus
+        self._kept_status: dict[str, dict[str, Any]] = {}
 
     def listen(self, listener: DeviceListener) -> None:
         """Send every reading and sensor failure to ``listener`` from now on (one listener: the
@@ -171,6 +173,7 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         except Exception:  # shutdown must go on
             log.exception("safe values at shutdown failed")
         for drv in self.drivers:
+            self._keep_status(drv)
             try:
                 drv.stop()
             except Exception:
@@ -178,6 +181,26 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
             self._keep_sent(drv)
         self.drivers.clear()
         return undelivered
+
+    def bus_status(self) -> dict[str, dict[str, Any]]:
+        """What each bus's driver shows beyond the counters (:meth:`Driver.status_doc`: e.g.
+        CANopen nodes' lifecycles and the SYNC cycle), by bus name, only buses with something
+        to show; a stopped driver's as it was when it stopped. Thread-safe."""
+        out = dict(self._kept_status)
+        for drv in list(self.drivers):
+            doc = drv.status_doc()
+            if doc:
+                out[drv.bus.name] = doc
+        return dict(sorted(out.items()))
+
+    def _keep_status(self, drv: Driver) -> None:
+        try:
+            doc = drv.status_doc()
+        except Exception:   # shutdown must go on
+            log.exception("driver %s: status not kept", drv.bus.name)
+            return
+        if doc:
+            self._kept_status[drv.bus.name] = doc
 
     def _shutdown_safe_values(self, deadline: float) -> list[SafeOutcome]:
         """Every local actuator's safe value, issued and then re-issued while it is reported
@@ -224,10 +247,18 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
                                    attempts)
 
     # ---- DriverHost (thread-safe: everything goes through the interrupt queue) -------------
-    def deliver(self, device: str, value: Any) -> None:
+    @property
+    def virtual_clock(self) -> bool:
+        """True if the kernel runs on a virtual clock (a driver then stamps readings ``now``,
+        see :func:`drivers.base.host_clock_virtual`)."""
+        return self.kernel.clock.virtual
+
+    def deliver(self, device: str, value: Any, at: float | None = None) -> None:
         """A new raw reading of sensor ``device`` (from a driver thread), stamped with the time
-        the driver got it: staleness is judged from that, not from when the kernel handles it."""
-        at = self.kernel.clock.now()
+        the driver got it, or ``at`` (kernel-clock time the frame was received, never later
+        than now): staleness is judged from that, not from when the kernel handles it."""
+        now = self.kernel.clock.now()
+        at = now if at is None or at > now else at
         self._rx_stamp[device] = at
         self.kernel.interrupt(self._readings, ((device, value),), at)
 
@@ -249,12 +280,13 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         self._rx_stamp[device] = at
         self._reading(device, value, at, at)
 
-    def deliver_many(self, readings: Sequence[tuple[str, Any]]) -> None:
+    def deliver_many(self, readings: Sequence[tuple[str, Any]], at: float | None = None) -> None:
         """New raw readings taken together (one poll of a driver: ``(device, value)`` pairs, in
         order) as one interrupt, so the kernel wakes once per poll; each is handled as
-        :meth:`deliver` would, all stamped with this call's time (see
-        :func:`drivers.base.deliver_all`)."""
-        at = self.kernel.clock.now()
+        :meth:`deliver` would, all stamped with this call's time, or ``at`` as in
+        :meth:`deliver` (see :func:`drivers.base.deliver_all`)."""
+        now = self.kernel.clock.now()
+        at = now if at is None or at > now else at
         stamp = self._rx_stamp
         for device, _ in readings:
             stamp[device] = at

@@ -88,8 +88,15 @@ _MODBUS_COMMON = (
     Key("reconnect_delay", "float s", "0.1", "first reconnect back-off; doubled after each "
         "failure"),
     Key("reconnect_delay_max", "float s", "5.0", "longest back-off"),
-    Key("poll_period", "float s", "0.1", "default polling period of the sensors; on a bus "
-        "with no sensor the liveness probe's period (default 1.0)"),
+    Key("poll_period", "float s", "0.1", "default polling period of the sensors and of the "
+        "read-back of an actuator whose write failed; on a bus (or RTU unit) with no sensor "
+        "the liveness probe's period (default 1.0)"),
+    Key("watchdog", "inline table", "none", "a register written every `period` s so the PLC's "
+        "comm-loss logic sees the controller alive: `{unit = 1, table = \"holding\", "
+        "address, period = 1.0, value = \"counter\"}` (`table` also `\"coil\"`, `value` also "
+        "an integer written each time); a counter writes 1, 2, ... "
+        "(a coil toggles); a write not answered fails devices as any request, an exception "
+        "answer fails the devices of its unit (see docs/modbus-faults.md)"),
 )
 _MODBUS_ADDRESS = (
     Key("unit", "integer 0..255", "1", "unit (slave / device) id"),
@@ -99,8 +106,11 @@ _MODBUS_ADDRESS = (
         "`holding` 0)"),
     Key("type", "string", "`bool` (bits), `uint16`", "`bool` for coils and discrete inputs; "
         "`int16 uint16 int32 uint32 float32 float64` for registers"),
-    Key("word_order", "string", "`big`", "`big` (high word first, ABCD) or `little` (CDAB) "
-        "for 32/64-bit types"),
+    Key("word_order", "string", "`ABCD`", "for 32/64-bit types, by the bytes of a 32-bit "
+        "value A B C D (A most significant): `ABCD` (high word first), `CDAB` (words "
+        "swapped), `BADC` (bytes swapped in each word), `DCBA` (both); `big` and `little` "
+        "are aliases of `ABCD` and `CDAB`; a 64-bit value follows the same rule over its four "
+        "words"),
     Key("poll_period", "float s", "the bus's", "this sensor's polling period"),
 )
 
@@ -138,7 +148,17 @@ REFERENCE: dict[str, Kind] = {
              "addresses"),
          Key("record", "path", "-", "record every frame (`.log` candump, `.asc`, `.blf`)"),
          Key("poll", "float s", "0.005", "receive timeout on interfaces without a file "
-             "descriptor")),
+             "descriptor"),
+         Key("filter", "boolean", "true", "receive filters (in the kernel on SocketCAN) from the "
+             "ids of the sensors' messages: no other frame reaches chcos (docs/can-faults.md)"),
+         Key("ignore_ids", "array", "[]", "ids and ranges (`[\"0x700-0x77F\", 0x80]`) another "
+             "node owns: never warned about, counted as `ignored-id`"),
+         Key("unknown_ids", "string", "`warn`", "a frame of an id of no device that reaches "
+             "chcos: `ignore` (counted), `warn` (counted, one warning per 10 s), `fail` (a bus "
+             "error: the run is unhealthy)"),
+         Key("port", "integer 1..65535", "43113", "UDP port of interface `udp_multicast` "
+             "(a bus shared by processes on any machine; `channel` is its multicast group): "
+             "give each bus its own group and port")),
         (Key("message", "string", "required (DBC form)", "message name in the DBC", "DBC form"),
          Key("signal", "string", "required (DBC form)", "signal name; the DBC's scale and "
              "offset are applied by the driver", "DBC form"),
@@ -225,6 +245,10 @@ REFERENCE: dict[str, Kind] = {
          Key("parity", "string", "`N`", "`N`, `E` or `O`"),
          Key("stopbits", "integer", "1", "1 or 2"),
          Key("bytesize", "integer", "8", "7 or 8"),
+         Key("dead_unit_backoff", "integer >= 1", "8, or more", "the most poll periods "
+             "between two tries of a unit that stopped answering (its requests are thinned "
+             "out 1, 2, 4... up to this); by default 8, raised so a dead unit's tries take at "
+             "most a twentieth of the line's time"),
          *_MODBUS_COMMON),
         _MODBUS_ADDRESS,
         '[[bus]]\nname = "rtu"\nkind = "modbus-rtu"\nport = "/dev/ttyUSB0"\nbaudrate = 19200'),

@@ -113,10 +113,10 @@ HOOKS = {"task_scheduled": "h_scheduled", "before_step": "h_before", "after_step
 
 
 class Hooks:
-    """The installed instruments of a kernel, one tuple per hook holding only the instruments
-    that override it: an idle instrument costs nothing on the hot path. Callers test the tuple
-    (``if kernel.h_sent:``) and then call :meth:`notify`, which removes and logs an instrument
-    whose hook raises (the others still hear of the event)."""
+    """The installed instruments of a kernel (its ``hooks``), one tuple per hook holding only
+    the instruments that override it, so that a hook nobody overrides is one truth test.
+    Callers test the tuple (``if hooks.h_sent:``) and then call :meth:`notify`, which removes
+    and logs an instrument whose hook raises (the others still hear of the event)."""
 
     def __init__(self) -> None:
         self.instruments: tuple[Instrument, ...] = ()
@@ -128,10 +128,6 @@ class Hooks:
         self.h_overwritten: tuple[Instrument, ...] = ()
         self.h_delivered: tuple[Instrument, ...] = ()
         self.h_event: tuple[Instrument, ...] = ()
-        #: True when an instrument hears of messages or of tasks made ready (h_sent,
-        #: h_overwritten, h_delivered or h_scheduled): the message layer then takes every
-        #: link off its hot paths (Link.hooked), so that none of them tests this
-        self.h_msg = False
         #: (instrument, hook, error text) of every instrument removed because a hook raised
         self.dropped_instruments: list[tuple[Instrument, str, str]] = []
 
@@ -150,8 +146,6 @@ class Hooks:
             base = getattr(Instrument, hook)
             setattr(self, attr, tuple(i for i in self.instruments
                                       if getattr(type(i), hook, base) is not base))
-        self.h_msg = bool(self.h_sent or self.h_overwritten or self.h_delivered
-                          or self.h_scheduled)
 
     def notify(self, hooks: tuple[Instrument, ...], hook: str, *args: Any) -> None:
         """Call ``hook(*args)`` on each of ``hooks`` (one of the ``h_*`` tuples). An instrument

@@ -1,6 +1,6 @@
 """lifecycle - how a task's activation is frozen, cancelled and ended, for the scheduler.
 
-:class:`Lifecycle` is a base of :class:`chcos.kernel.scheduler.Kernel`: suspend/resume (a frozen
+:class:`Lifecycle` is owned by :class:`chcos.kernel.scheduler.Kernel`: suspend/resume (a frozen
 task keeps its wake-ups for later), cancellation (:class:`chcos.errors.Preempted` thrown in at
 its next step), and the end of an activation (returned, pre-empted, failed), which the kernel
 tells the layer above through its end handler (:data:`EndHandler`, with an :class:`End`).
@@ -9,21 +9,18 @@ tells the layer above through its end handler (:data:`EndHandler`, with an :clas
 from __future__ import annotations
 
 import enum
-from collections import deque
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 
 from chcos.errors import KernelError, Preempted
 from chcos.tables.tasks import TaskEntry, TaskState
 
-__all__ = ["BLOCK", "YIELD", "End", "EndHandler", "FrozenUnwait", "Lifecycle"]
+__all__ = ["BLOCK", "YIELD", "End", "EndHandler", "Lifecycle"]
 
 #: Trap a task yields to give the processor back and stay ready.
 YIELD = object()
 #: Trap a task yields after it has recorded what it waits for.
 BLOCK = object()
-
-_READY = TaskState.READY
 
 
 class End(enum.Enum):
@@ -37,37 +34,26 @@ class End(enum.Enum):
 EndHandler = Callable[[TaskEntry, End, Any], None]
 
 
-class FrozenUnwait:
-    """The ``unwait`` of a task suspended in a wait: it ends that wait as the task's own did.
+class Scheduler(Protocol):
+    """What :class:`Lifecycle` needs of its kernel (:class:`chcos.kernel.scheduler.Kernel`)."""
 
-    A delivery tells a plain read of its port by identity (``w.unwait is port.unwait``) and
-    then readies the reader itself; while the reader is frozen, this stand-in fails that test,
-    so the delivery takes the general path, which keeps the wake-up for :meth:`Lifecycle.resume`.
-    (The hot path so tests no freeze.)"""
+    current: TaskEntry | None
 
-    __slots__ = ("inner",)
+    def ready(self, t: TaskEntry, prio: int) -> None:
+        """Make ``t`` ready at ``prio``."""
 
-    def __init__(self, inner: Callable[[TaskEntry], None]) -> None:
-        self.inner = inner
-
-    def __call__(self, t: TaskEntry) -> None:
-        self.inner(t)
+    def unready(self, t: TaskEntry) -> None:
+        """Take ``t`` out of the ready queue."""
 
 
 class Lifecycle:
-    """Suspend, resume, cancel and end activations (a base of the kernel, which provides
-    ``ready``, ``current`` and the end handler)."""
+    """Suspend, resume, cancel and end the activations of ``kernel``'s tasks (owned by the
+    kernel, which delegates its ``suspend``, ``resume``, ``cancel`` and ``unhook`` here and
+    hands it every step that ends otherwise than in a plain wait or yield)."""
 
-    current: TaskEntry | None
-    _on_end: EndHandler | None
-    _irq: deque[tuple[Callable[..., None], tuple[Any, ...]]]  # the kernel's interrupt queue
-    ready: Callable[[TaskEntry, int], None]  # the kernel's: make a task ready at a priority
-    unready: Callable[[TaskEntry], None]  # the kernel's: take a task out of the ready queue
-
-    def set_end_handler(self, handler: EndHandler) -> None:
-        """Who is told when an activation ends: ``handler(task, how, value)`` with ``how`` an
-        :class:`End`. The system connects the message manager here."""
-        self._on_end = handler
+    def __init__(self, kernel: Scheduler) -> None:
+        self.kernel = kernel
+        self.on_end: EndHandler | None = None
 
     def unhook(self, t: TaskEntry) -> None:
         """Forget whatever ``t`` was waiting for: its timer or sleep, and what the layer that
@@ -84,18 +70,17 @@ class Lifecycle:
     def suspend(self, t: TaskEntry) -> None:
         """Freeze ``t`` where it is: it will not run until :meth:`resume`; wake-ups meanwhile are
         kept. Raises KernelError when a task suspends itself (it would never resume)."""
-        if t is self.current:
+        if t is self.kernel.current:
             raise KernelError(f"task {t.name} cannot suspend itself")
         if t.frozen:
             return
         t.frozen = True
         if t.state is TaskState.READY:
             t.frozen_ready = t.prio
-            self.unready(t)
+            self.kernel.unready(t)
         else:
-            t.frozen_state = t.state  # what it waits in, for resume
-            if t.unwait is not None:
-                t.unwait = FrozenUnwait(t.unwait)
+            t.frozen_state = t.state  # what it waits in, for resume (a wake-up meanwhile
+            # ends the wait and is kept by ready as frozen_ready)
         t.state = TaskState.SUSPENDED
 
     def resume(self, t: TaskEntry) -> None:
@@ -103,13 +88,10 @@ class Lifecycle:
         if not t.frozen:
             return
         t.frozen = False
-        unwait = t.unwait
-        if unwait.__class__ is FrozenUnwait:  # still in the wait it was frozen in
-            t.unwait = unwait.inner
         pending, t.frozen_ready = t.frozen_ready, None
         state, t.frozen_state = t.frozen_state, None
         if pending is not None:
-            self.ready(t, pending)
+            self.kernel.ready(t, pending)
         elif t.coro is not None and state is not None:
             t.state = state  # still waiting for what it waited for when it was frozen
         else:
@@ -123,28 +105,15 @@ class Lifecycle:
         t.cancelling = True
         self.unhook(t)
         t.throw_exc = Preempted(reason)
-        t.plain = None
         t.send_value = None
-        if t is not self.current:
+        if t is not self.kernel.current:  # (cancelled in its own step: the step ends it)
             frozen, t.frozen = t.frozen, False
-            self.ready(t, max(t.prio, t.base_prio))
+            self.kernel.ready(t, max(t.prio, t.base_prio))
             t.frozen = frozen
             if frozen:  # it runs to its end although frozen; resume finds it ready
-                t.frozen_state = _READY
-        else:  # cancelled in its own step, which the run loop's plain step does not test
-            # for: this interrupt, first in line, ends the activation right after the step
-            self._irq.appendleft((self._cancelled_in_step, (t, t.coro)))
+                t.frozen_state = TaskState.READY
 
-    def _cancelled_in_step(self, t: TaskEntry, coro: Any) -> None:
-        """``t`` was cancelled during its own step (which has ended now): end the activation
-        there, whether the step ended in a wait or a yield, unless it ended it itself."""
-        if t.coro is not coro or not t.cancelling:  # it returned or raised (see _raised)
-            return
-        if t.state is _READY:  # it yielded
-            self.unready(t)
-        self._odd_trap(t, coro, None)
-
-    def _raised(self, t: TaskEntry, err: Exception) -> None:
+    def raised(self, t: TaskEntry, err: Exception) -> None:
         """``t``'s step raised ``err``: its activation ended (returned, pre-empted, failed)."""
         if isinstance(err, StopIteration):
             self._end(t, End.PREEMPTED if t.cancelling else End.RETURN, err.value)
@@ -153,25 +122,25 @@ class Lifecycle:
         else:
             self._end(t, End.PREEMPTED if t.cancelling else End.ERROR, err)
 
-    def _odd_trap(self, t: TaskEntry, coro: Any, trap: Any) -> None:
+    def odd_trap(self, t: TaskEntry, coro: Any, trap: Any) -> None:
         """``t``'s step ended in something other than a plain block or yield: a cancelled task
-        that carried on, a frozen task's yield, or an await of something not a chcos call."""
+        that carried on (or was cancelled during the step), or an await of something not a
+        chcos call."""
         if t.cancelling:  # it caught the cancellation and carried on: end it for good
             coro.close()
             self._end(t, End.PREEMPTED, None)
-        elif trap is YIELD:
-            self.ready(t, t.prio)
         else:
             coro.close()
             self._end(t, End.ERROR, KernelError(
                 f"task {t.name} awaited something that is not a chcos call ({trap!r})"))
 
     def _end(self, t: TaskEntry, how: End, value: Any) -> None:
-        t.coro = t.plain = None
+        t.coro = None
         t.send_value = None   # a next activation's first step sends None
+        t.throw_exc = None
         t.cancelling = False
         self.unhook(t)
-        if self._on_end is not None:
-            self._on_end(t, how, value)
+        if self.on_end is not None:
+            self.on_end(t, how, value)
         else:
             t.state = TaskState.SUSPENDED

@@ -19,22 +19,17 @@ from collections.abc import Callable
 from heapq import heapify, heappop, heappush
 from typing import Any
 
-from chcos.errors import HandlerError, KernelError
+from chcos.errors import KernelError
 from chcos.kernel.clock import Clock, RealClock
-from chcos.kernel.instrument import Hooks
+from chcos.kernel.instrument import Hooks, Instrument
 from chcos.kernel.lifecycle import BLOCK, YIELD, End, EndHandler, Lifecycle
-from chcos.kernel.timers import KEEP_ERRORS, Timer, Timers
+from chcos.kernel.timers import HandlerErrors, Timer, Timers
 from chcos.tables.tasks import TaskEntry, TaskState
 
 __all__ = ["BLOCK", "YIELD", "End", "EndHandler", "Kernel", "Timer"]  # Timer: what call_at returns
 
 log = logging.getLogger("chcos.kernel.scheduler")
-# enum members as module constants: a member lookup (TaskState.READY) costs a class-attribute
-# access per use, and the hot path of every message does several
-_READY = TaskState.READY
-_CURRENT = TaskState.CURRENT
-_SUSPENDED = TaskState.SUSPENDED
-
+_READY, _CURRENT, _SUSPENDED = TaskState.READY, TaskState.CURRENT, TaskState.SUSPENDED
 
 
 def _nothing() -> None:
@@ -42,28 +37,34 @@ def _nothing() -> None:
     after draining interrupts, so a stop must leave one there."""
 
 
-class Kernel(Lifecycle, Hooks, Timers):
+class Kernel:
     """One satellite's scheduler. Everything except :meth:`interrupt` and :meth:`stop` must be
     called on the kernel thread (from tasks, timer callbacks or interrupt handlers).
 
     The kernel knows tasks, priorities, timers and sleeps; what else a task waits for (ports,
     links, queries) belongs to the layer that blocked it, which leaves ``task.unwait`` to undo
-    it when the task is woken or cancelled. Instruments: see :class:`Hooks`; suspend, resume,
-    cancel and how activations end: see :class:`Lifecycle`; timers: see :class:`Timers`."""
+    it when the task is woken or cancelled. Every path that readies a task goes through
+    :meth:`ready` (a wake-up through :meth:`wake`, which calls it), and every task step through
+    :meth:`_step`. Instruments: see :class:`Hooks`; suspend, resume, cancel and how
+    activations end: :attr:`lifecycle` (a :class:`Lifecycle`); instruments: :attr:`hooks` (a
+    :class:`Hooks`); timers: :attr:`timers` (a :class:`Timers`); the
+    errors collected on the kernel thread: :attr:`errors` (a :class:`HandlerErrors`)."""
 
     def __init__(self, clock: Clock | None = None) -> None:
-        super().__init__()
+        #: the installed instruments, one tuple per hook (see :class:`Hooks`)
+        self.hooks = Hooks()
         self.clock: Clock = clock if clock is not None else RealClock()
         self.current: TaskEntry | None = None
-        #: the ready queue, a heap of (-priority, sequence, task): one entry for each READY
-        #: task and nothing else (a re-queue, a suspension or a wipe takes the entry out:
-        #: :meth:`unready`, so a step needs no test for a stale one). Public for the message
-        #: layer, which inlines a wake-up (see :meth:`wake`) on every delivery to a waiting
-        #: reader.
-        self.ready_heap: list[tuple[int, int, TaskEntry]] = []
-        #: the sequence number of the newest ready-queue or timer entry (ties: first come first)
-        self.ready_seq = 0
-        self._timers: list[tuple[float, int, Timer]] = []
+        # the ready queue, a heap of (-priority, sequence, task): one entry for each READY
+        # task and nothing else (a re-queue, a suspension or a wipe takes the entry out, see
+        # unready), so a step needs no test for a stale entry. Only ready() pushes onto it.
+        self._ready: list[tuple[int, int, TaskEntry]] = []
+        # the sequence number of the newest ready-queue or timer entry (ties: first come first)
+        self._seq = 0
+        #: the errors of interrupt handlers and timer callbacks, raised by :meth:`check`
+        self.errors = HandlerErrors()
+        #: the kernel's timers (the thesis' delta list)
+        self.timers = Timers(self.clock, self.errors)
         self._irq: deque[tuple[Callable[..., None], tuple[Any, ...]]] = deque()
         self._wake = threading.Event()
         self._idle = False
@@ -76,17 +77,83 @@ class Kernel(Lifecycle, Hooks, Timers):
         self.thread_ident: int | None = None
         self._settlers: list[Callable[[float], bool]] = []
         self._idle_hooks: list[Callable[[], None]] = []
-        #: every task this kernel has made ready (a dict as an ordered set): :attr:`steps`
-        #: sums their step counts, so a step counts once, on its task, and nowhere else
+        # every task this kernel has made ready (a dict as an ordered set): steps sums their
+        # step counts, so a step counts once, on its task, and nowhere else
         self._tasks: dict[TaskEntry, None] = {}
-        #: an instrument hears of steps or blocks (h_before, h_after, h_blocked): every step
-        #: is then :meth:`_step`'s, which tells them
-        self._h_step = False
-        self._instruments_listeners: list[Callable[[], None]] = []
-        self._on_end: EndHandler | None = None
-        #: text of every failed interrupt handler and timer callback (the newest KEEP_ERRORS)
-        self.irq_errors: list[str] = []
-        self._unchecked: deque[HandlerError] = deque(maxlen=KEEP_ERRORS)  # see check()
+        #: suspend, resume, cancel and the end of activations
+        self.lifecycle = Lifecycle(self)
+
+    # ---- instruments, the lifecycle of activations, timers, collected errors (owned objects) --
+    def add_instrument(self, instrument: Instrument) -> None:
+        """See :meth:`Hooks.add_instrument`."""
+        self.hooks.add_instrument(instrument)
+
+    def remove_instrument(self, instrument: Instrument) -> None:
+        """See :meth:`Hooks.remove_instrument`."""
+        self.hooks.remove_instrument(instrument)
+
+    @property
+    def instruments(self) -> tuple[Instrument, ...]:
+        """The installed instruments, in the order they were added."""
+        return self.hooks.instruments
+
+    @property
+    def dropped_instruments(self) -> list[tuple[Instrument, str, str]]:
+        """(instrument, hook, error text) of every instrument removed because a hook raised."""
+        return self.hooks.dropped_instruments
+
+    def event(self, kind: str, detail: str) -> None:
+        """See :meth:`Hooks.event`: report a system event to the instruments and the log."""
+        self.hooks.event(kind, detail)
+
+    def set_end_handler(self, handler: EndHandler) -> None:
+        """Who is told when an activation ends: ``handler(task, how, value)`` with ``how`` an
+        :class:`End`. The system connects the message manager here."""
+        self.lifecycle.on_end = handler
+
+    def suspend(self, t: TaskEntry) -> None:
+        """See :meth:`Lifecycle.suspend`."""
+        self.lifecycle.suspend(t)
+
+    def resume(self, t: TaskEntry) -> None:
+        """See :meth:`Lifecycle.resume`."""
+        self.lifecycle.resume(t)
+
+    def cancel(self, t: TaskEntry, reason: str) -> None:
+        """See :meth:`Lifecycle.cancel`."""
+        self.lifecycle.cancel(t, reason)
+
+    def unhook(self, t: TaskEntry) -> None:
+        """See :meth:`Lifecycle.unhook`."""
+        self.lifecycle.unhook(t)
+
+    def call_at(self, deadline: float, callback: Callable[[], None],
+                period: float | None = None) -> Timer:
+        """See :meth:`Timers.call_at`."""
+        return self.timers.call_at(deadline, callback, period)
+
+    def call_later(self, delay: float, callback: Callable[[], None]) -> Timer:
+        """See :meth:`Timers.call_later`."""
+        return self.timers.call_later(delay, callback)
+
+    def every(self, period: float, callback: Callable[[], None]) -> Timer:
+        """See :meth:`Timers.every`."""
+        return self.timers.every(period, callback)
+
+    @property
+    def skipped_periods(self) -> int:
+        """Periods that periodic timers skipped because the kernel came back too late."""
+        return self.timers.skipped_periods
+
+    @property
+    def irq_errors(self) -> list[str]:
+        """Text of every failed interrupt handler and timer callback (the newest ones)."""
+        return self.errors.texts
+
+    def check(self) -> None:
+        """See :meth:`HandlerErrors.check`: raise the oldest error collected on the kernel
+        thread and not raised yet (a HandlerError). Thread-safe."""
+        self.errors.check()
 
     @property
     def steps(self) -> int:
@@ -98,33 +165,37 @@ class Kernel(Lifecycle, Hooks, Timers):
         pending timers, periods that periodic timers skipped because the kernel came back too
         late for them (see :mod:`chcos.kernel.timers`), failed handlers and timer callbacks."""
         return {"steps": self.steps,
-                "ready": len(self.ready_heap),
-                "timers": sum(1 for _d, _s, tm in self._timers if not tm.cancelled),
+                "ready": len(self._ready),
+                "timers": self.timers.pending(),
                 "skipped_periods": self.skipped_periods,
                 "handler_errors": len(self.irq_errors)}
 
     # ---- task manager primitives ------------------------------------------------------------
     def ready(self, t: TaskEntry, prio: int) -> None:
-        """Make ``t`` ready at priority ``prio`` (re-queues it if it already was)."""
+        """Make ``t`` ready at priority ``prio`` (the thesis' and Xinu's ready): the one place
+        that puts a task on the ready queue. A task already ready is re-queued at ``prio``,
+        behind the others there; a suspended task keeps the wake-up (the highest priority)
+        for :meth:`resume`. Instruments hear of it (``task_scheduled``)."""
         self._tasks[t] = None    # every task is made ready here before its first step
         if t.frozen:
             t.frozen_ready = prio if t.frozen_ready is None else max(prio, t.frozen_ready)
             t.state = _SUSPENDED
             return
-        if t.state is _READY:  # queued already: now at prio, behind the others there
+        if t.state is _READY:
             self.unready(t)
         t.prio = prio
         t.state = _READY
-        self.ready_seq = seq = self.ready_seq + 1
-        heappush(self.ready_heap, (-prio, seq, t))
-        if self.h_scheduled:
-            self.notify(self.h_scheduled, "task_scheduled", t)
+        self._seq = seq = self._seq + 1
+        heappush(self._ready, (-prio, seq, t))
+        if self.hooks.h_scheduled:
+            self.hooks.notify(self.hooks.h_scheduled, "task_scheduled", t)
 
     def wake(self, t: TaskEntry, prio: int, value: Any = None,
              exc: BaseException | None = None) -> None:
-        """End ``t``'s wait (its timer, and whatever its ``unwait`` undoes) and ready it with
-        ``value`` as the result of its pending ``await`` (or ``exc`` thrown into it)."""
-        unwait = t.unwait
+        """End ``t``'s wait (its timer, and whatever its ``unwait`` undoes) and ready it at
+        ``prio`` with ``value`` as the result of its pending ``await`` (or ``exc`` thrown into
+        it): every layer that wakes a waiting task calls this (Xinu's signal calls ready)."""
+        unwait = t.unwait  # (Lifecycle.unhook's work, here without its call)
         if unwait is not None:
             t.unwait = None
             unwait(t)
@@ -134,20 +205,12 @@ class Kernel(Lifecycle, Hooks, Timers):
             t.sleep_until = None
         t.send_value = value
         t.throw_exc = exc
-        t.plain = t.coro if exc is None and not self._h_step else None
-        if t.frozen or self.h_scheduled or t.state is _READY:
-            self.ready(t, prio)
-            return
-        # ready(t, prio) inlined: one call less on every message that wakes a reader
-        t.prio = prio
-        t.state = _READY
-        self.ready_seq = seq = self.ready_seq + 1
-        heappush(self.ready_heap, (-prio, seq, t))
+        self.ready(t, prio)
 
     def unready(self, t: TaskEntry) -> None:
         """Take ``t``'s entry out of the ready queue, if it has one (a linear search: for the
         rare re-queue, suspension or wipe of a ready task, so that a step needs no test)."""
-        heap = self.ready_heap
+        heap = self._ready
         for i, entry in enumerate(heap):
             if entry[2] is t:
                 last = heap.pop()
@@ -162,8 +225,12 @@ class Kernel(Lifecycle, Hooks, Timers):
         t.state = state
 
     def ready_priorities(self) -> list[int]:
-        """Priorities of the tasks now ready (for tests and monitors)."""
-        return sorted((-p for p, _s, _t in self.ready_heap), reverse=True)
+        """Priorities of the tasks now ready, highest first (for tests and monitors)."""
+        return sorted((-p for p, _s, _t in self._ready), reverse=True)
+
+    def ready_tasks(self) -> list[TaskEntry]:
+        """The tasks now ready, in the order they will run (for tests and monitors)."""
+        return [t for _p, _s, t in sorted(self._ready)]
 
     # ---- interrupts -------------------------------------------------------------------------
     def interrupt(self, handler: Callable[..., None], *args: Any) -> None:
@@ -182,17 +249,12 @@ class Kernel(Lifecycle, Hooks, Timers):
             try:
                 handler(*args)
             except Exception as exc:
-                self._record_irq_error(getattr(handler, "__qualname__", repr(handler)), exc)
+                self.errors.record(getattr(handler, "__qualname__", repr(handler)), exc)
 
     def add_settler(self, settle: Callable[[float], bool]) -> None:
         """Register a driver's ``settle(timeout)``; called before virtual time jumps ahead so
         that everything already on a bus is delivered first."""
         self._settlers.append(settle)
-
-    def add_instruments_listener(self, listener: Callable[[], None]) -> None:
-        """Call ``listener()`` each time the instruments change (after the ``h_*`` tuples are
-        recomputed): the message layer turns its hot paths off while one hears of messages."""
-        self._instruments_listeners.append(listener)
 
     def add_idle_hook(self, hook: Callable[[], None]) -> None:
         """Call ``hook()`` on the kernel thread each time nothing is left to run, before the
@@ -226,65 +288,21 @@ class Kernel(Lifecycle, Hooks, Timers):
         self._running = True
         self._stop = False
         self.thread_ident = threading.get_ident()
-        clock = self.clock
-        ready = self.ready_heap
-        timers = self._timers
-        irq = self._irq
-        step = self._step
-        # the step's globals as locals (a local is the cheapest load there is)
-        block, yld, current, ready_state = BLOCK, YIELD, _CURRENT, _READY
-        pop, push = heappop, heappush
+        irq, timers, ready, step = self._irq, self.timers.heap, self._ready, self._step
         try:
             while True:
-                if irq:  # interrupts, and stop(), which queues one
-                    self.current = None     # no task runs (see below)
+                if irq:  # interrupts first, and stop(), which queues one
                     self._drain_irq()
                     if self._stop:
                         break
                 if timers:
-                    now = clock.now()
-                    if timers[0][0] <= now and (until is None or timers[0][0] <= until):
-                        self.current = None
-                        self._fire_timers(now if until is None else min(now, until))
-                if ready:
-                    t = pop(ready)[2]
-                    coro = t.plain  # None: no activation, an exception to throw, an instrument
-                    if coro is None:
-                        step(t)
-                        continue
-                    # _step(t) inlined for the common step (a value sent in, no instrument):
-                    # one call less per step; anything unusual goes to the same helpers. An
-                    # instrument the step installs hears of its end through an interrupt
-                    # (see _rehook).
-                    # After the step ``current`` stays set until something other than a step
-                    # runs on this thread (interrupts, timers, the idle wait: each clears it
-                    # first), and ``send_value`` stays until the next wake-up sets it (a yield
-                    # ignores what is sent in; an activation's end clears it): two stores less
-                    # per step.
-                    t.state = current
-                    self.current = t
-                    t.steps += 1
-                    try:
-                        trap = coro.send(t.send_value)
-                    except Exception as err:
-                        self.current = None
-                        self._raised(t, err)
-                        continue
-                    # neither frozen nor cancelled: a frozen or cancelled task steps through
-                    # _step (Lifecycle.cancel clears its plain), and a cancellation during
-                    # the step ends it through an interrupt (Lifecycle._cancelled_in_step)
-                    if trap is block:
-                        continue
-                    if trap is yld:
-                        t.state = ready_state
-                        self.ready_seq = seq = self.ready_seq + 1
-                        push(ready, (-t.prio, seq, t))
-                        continue
-                    self.current = None
-                    self._odd_trap(t, coro, trap)
-                    continue
-                self.current = None
-                if not self._idle_wait(until):
+                    now = self.clock.now()
+                    due = timers[0][0]
+                    if due <= now and (until is None or due <= until):
+                        self.timers.fire(now if until is None else min(now, until))
+                if ready:  # the highest priority first, ties first come first served
+                    step(heappop(ready)[2])
+                elif not self._idle_wait(until):
                     break
         finally:
             self.current = None
@@ -296,12 +314,10 @@ class Kernel(Lifecycle, Hooks, Timers):
         if self._idle_hooks:
             for hook in self._idle_hooks:
                 hook()
-            if self.ready_heap or self._irq:
+            if self._ready or self._irq:
                 return True
         clock = self.clock
-        while self._timers and self._timers[0][2].cancelled:
-            heappop(self._timers)
-        deadline = self._timers[0][0] if self._timers else None
+        deadline = self.timers.next_deadline()
         if until is not None and (deadline is None or deadline > until):
             deadline = until
         if clock.virtual:
@@ -330,69 +346,42 @@ class Kernel(Lifecycle, Hooks, Timers):
         """Let every driver finish what is in flight; True if that produced work."""
         for settle in self._settlers:
             settle(5.0)
-        return bool(self._irq or self.ready_heap)
+        return bool(self._irq or self._ready)
 
     def _step(self, t: TaskEntry) -> None:
-        """Context switch: run ``t`` until its next trap (the thesis' ctxsw)."""
+        """Context switch: run ``t`` until its next trap (the thesis' ctxsw), then requeue it
+        (a yield), tell the instruments it blocked (a wait), or end its activation."""
+        coro = t.coro
+        if coro is None:  # woken after its activation ended: nothing to run
+            t.state = _SUSPENDED
+            return
         t.state = _CURRENT
         self.current = t
         t.steps += 1
-        after = self.h_after  # one installed during the step is told through _rehook
-        if self.h_before:
-            self.notify(self.h_before, "before_step", t)
-        coro = t.coro
-        if coro is None:  # woken after its activation ended: nothing to run
-            self.current = None
-            t.state = _SUSPENDED
-            return
-        exc = t.throw_exc
+        if self.hooks.h_before:
+            self.hooks.notify(self.hooks.h_before, "before_step", t)
         try:
-            if exc is None:
+            if t.throw_exc is None:
                 value = t.send_value
-                if value is not None:
-                    t.send_value = None
+                t.send_value = None
                 trap = coro.send(value)
             else:
+                exc = t.throw_exc
                 t.throw_exc = None
                 trap = coro.throw(exc)
         except Exception as err:
             self.current = None
-            self._raised(t, err)
+            self.lifecycle.raised(t, err)
         else:
             self.current = None
-            if trap is BLOCK and not t.cancelling:
-                if self.h_blocked:
-                    self.notify(self.h_blocked, "task_blocked", t)
-            elif trap is YIELD and not t.cancelling and not t.frozen:
-                t.state = _READY
-                self.ready_seq = seq = self.ready_seq + 1
-                heappush(self.ready_heap, (-t.prio, seq, t))
+            if t.cancelling:  # cancelled during its own step, or it carried on after one
+                self.lifecycle.odd_trap(t, coro, trap)
+            elif trap is BLOCK:
+                if self.hooks.h_blocked:
+                    self.hooks.notify(self.hooks.h_blocked, "task_blocked", t)
+            elif trap is YIELD:
+                self.ready(t, t.prio)
             else:
-                self._odd_trap(t, coro, trap)
-        self.refresh_step(t)
-        if after and self.h_after:
-            self.notify(self.h_after, "after_step", t)
-
-    def refresh_step(self, t: TaskEntry) -> None:
-        """Recompute ``t.plain`` after its coroutine, its pending exception or the step
-        instruments changed: the coroutine when the next step is a plain send, else None."""
-        t.plain = t.coro if t.throw_exc is None and not self._h_step else None
-
-    def _rehook(self) -> None:
-        """Instruments changed: recompute the hook tuples and the run loop's one step flag. An
-        instrument with ``after_step`` installed by a step that began without one is told of
-        that step's end by an interrupt, which runs right after the step."""
-        had_after = bool(self.h_after)
-        super()._rehook()
-        self._h_step = bool(self.h_before or self.h_after or self.h_blocked)
-        for task in self._tasks:
-            self.refresh_step(task)
-        for listener in self._instruments_listeners:
-            listener()
-        t = self.current
-        if t is not None and self.h_after and not had_after:
-            self._irq.append((self._after_late, (t,)))
-
-    def _after_late(self, t: TaskEntry) -> None:
-        if self.h_after:
-            self.notify(self.h_after, "after_step", t)
+                self.lifecycle.odd_trap(t, coro, trap)
+        if self.hooks.h_after:
+            self.hooks.notify(self.hooks.h_after, "after_step", t)

@@ -1,6 +1,6 @@
 """timers - the kernel's timers (the thesis' delta list, kept as a heap of deadlines) and the
 errors it collects from the callbacks it runs: a timer callback or interrupt handler that raises
-is logged and kept, and :meth:`Timers.check` raises it later.
+is logged and kept, and :meth:`HandlerErrors.check` raises it later.
 
 A periodic timer is drift-free: its k-th deadline is ``first + k * period``. When the kernel
 comes back late (a long step, a stalled machine) and several of its deadlines have passed, it
@@ -48,16 +48,54 @@ class Timer:
         self.cancelled = True
 
 
-class Timers:
-    """Timers and collected errors for :class:`chcos.kernel.scheduler.Kernel` (its base)."""
+class HandlerErrors:
+    """The errors collected on the kernel thread: an interrupt handler or timer callback that
+    raises is logged and kept here, and :meth:`check` raises it later (the newest
+    :data:`KEEP_ERRORS`)."""
 
-    clock: Clock
-    ready_seq: int
-    #: periods that periodic timers skipped because the kernel came back too late for them
-    skipped_periods: int = 0
-    _timers: list[tuple[float, int, Timer]]
-    irq_errors: list[str]
-    _unchecked: deque[HandlerError]
+    def __init__(self) -> None:
+        #: text of every failed interrupt handler and timer callback (the newest KEEP_ERRORS)
+        self.texts: list[str] = []
+        self._unchecked: deque[HandlerError] = deque(maxlen=KEEP_ERRORS)
+
+    def record(self, where: str, exc: Exception) -> None:
+        """``where`` (a handler's name, or "timer") raised ``exc``: log it and keep it."""
+        text = f"{where}: {type(exc).__name__}: {exc}"
+        log.error("interrupt handler failed: %s\n%s", text, traceback.format_exc())
+        self.texts.append(text)
+        del self.texts[:-KEEP_ERRORS]
+        err = HandlerError(f"{where} failed on the kernel thread: {type(exc).__name__}: {exc}")
+        err.__cause__ = exc
+        self._unchecked.append(err)
+
+    def check(self) -> None:
+        """Raise the oldest error collected and not raised yet: a :class:`HandlerError`
+        naming the interrupt handler or timer callback that failed, its exception chained as
+        the cause, with how many more are waiting. Each collected error is raised once (the
+        texts stay in :attr:`texts`). Thread-safe; returns quietly when nothing failed."""
+        try:
+            err = self._unchecked.popleft()
+        except IndexError:
+            return
+        more = len(self._unchecked)
+        if more:
+            err.add_note(f"{more} more handler error(s) collected; check() again")
+        raise err
+
+
+class Timers:
+    """The kernel's timers, a heap of (deadline, sequence, :class:`Timer`) on ``clock``; a
+    callback that raises is recorded in ``errors``. Owned by
+    :class:`chcos.kernel.scheduler.Kernel`, which fires them between task steps."""
+
+    def __init__(self, clock: Clock, errors: HandlerErrors) -> None:
+        self.clock = clock
+        self.errors = errors
+        #: the pending timers, earliest first (ties: first come first)
+        self.heap: list[tuple[float, int, Timer]] = []
+        self._seq = 0
+        #: periods that periodic timers skipped because the kernel came back too late for them
+        self.skipped_periods = 0
 
     def call_at(self, deadline: float, callback: Callable[[], None],
                 period: float | None = None) -> Timer:
@@ -66,8 +104,8 @@ class Timers:
         if period is not None and period <= 0:
             raise ValueError(f"timer period must be positive, got {period}")
         tm = Timer(deadline, callback, period)
-        self.ready_seq += 1
-        heappush(self._timers, (deadline, self.ready_seq, tm))
+        self._seq += 1
+        heappush(self.heap, (deadline, self._seq, tm))
         return tm
 
     def call_later(self, delay: float, callback: Callable[[], None]) -> Timer:
@@ -78,8 +116,20 @@ class Timers:
         """Run ``callback`` every ``period`` seconds, the first time one period from now."""
         return self.call_at(self.clock.now() + period, callback, period)
 
-    def _fire_timers(self, now: float) -> None:
-        timers = self._timers
+    def next_deadline(self) -> float | None:
+        """The earliest deadline of a timer not cancelled (None: no timer)."""
+        heap = self.heap
+        while heap and heap[0][2].cancelled:
+            heappop(heap)
+        return heap[0][0] if heap else None
+
+    def pending(self) -> int:
+        """How many timers are pending (not cancelled)."""
+        return sum(1 for _d, _s, tm in self.heap if not tm.cancelled)
+
+    def fire(self, now: float) -> None:
+        """Run the callback of every timer due at ``now`` (a periodic one re-armed first)."""
+        timers = self.heap
         while timers:
             entry = timers[0]
             if entry[0] > now:
@@ -89,7 +139,7 @@ class Timers:
                 heappop(timers)
                 continue
             period = tm.period
-            if period is not None:  # re-armed in place: one sift of the heap instead of two
+            if period is not None:  # re-armed in place
                 count = tm.count + 1
                 # drift-free, whole nanoseconds (see _skip)
                 deadline = round((tm.base + count * period) * 1e9) / 1e9
@@ -97,21 +147,20 @@ class Timers:
                     count, deadline = self._skip(tm, count, now)
                 tm.count = count
                 tm.deadline = deadline
-                self.ready_seq = seq = self.ready_seq + 1
-                heapreplace(timers, (deadline, seq, tm))
+                self._seq += 1
+                heapreplace(timers, (deadline, self._seq, tm))
             else:
                 heappop(timers)
             try:
                 tm.callback()
             except Exception as exc:  # a failing timer callback must not stop the kernel
-                self._record_irq_error("timer", exc)
+                self.errors.record("timer", exc)
 
     def _skip(self, tm: Timer, count: int, now: float) -> tuple[int, float]:
         """Periodic ``tm``'s ``count``-th deadline has passed too: (count, deadline) of the
         first period boundary after ``now``; the boundaries in between are skipped and
         counted. Deadlines are ``base + count * period`` in whole nanoseconds: no accumulated
-        rounding, and k * period lands on k * period (an integer round: round(x, 9) would go
-        through decimal text, several times slower)."""
+        rounding, and k * period lands on k * period."""
         period = tm.period
         assert period is not None
         base = tm.base
@@ -127,27 +176,3 @@ class Timers:
         tm.skipped += missed
         self.skipped_periods += missed
         return count, deadline
-
-    def _record_irq_error(self, where: str, exc: Exception) -> None:
-        text = f"{where}: {type(exc).__name__}: {exc}"
-        log.error("interrupt handler failed: %s\n%s", text, traceback.format_exc())
-        self.irq_errors.append(text)
-        del self.irq_errors[:-KEEP_ERRORS]
-        err = HandlerError(f"{where} failed on the kernel thread: {type(exc).__name__}: {exc}")
-        err.__cause__ = exc
-        self._unchecked.append(err)
-
-    def check(self) -> None:
-        """Raise the oldest error collected on the kernel thread and not raised yet: a
-        :class:`HandlerError` naming the interrupt handler or timer callback that failed, its
-        exception chained as the cause, with how many more are waiting. Each collected error
-        is raised once (the texts stay in :attr:`irq_errors`). Thread-safe; returns quietly
-        when nothing failed."""
-        try:
-            err = self._unchecked.popleft()
-        except IndexError:
-            return
-        more = len(self._unchecked)
-        if more:
-            err.add_note(f"{more} more handler error(s) collected; check() again")
-        raise err

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterable
-from heapq import heappush
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -19,11 +18,9 @@ from chcos.errors import MessageError, QueueOverflow, SensorFailure
 from chcos.kernel.scheduler import Kernel
 from chcos.messages.protocols import Comm, Devices, NoComm
 from chcos.tables.messages import EndpointKind, InPort, Link, Msgtab, TapPort
-from chcos.tables.tasks import TaskEntry, TaskState, Tsktab
+from chcos.tables.tasks import TaskEntry, Tsktab
 
 log = logging.getLogger("chcos.messages.manager")
-_TO_DEVICE = EndpointKind.DEVICE         # ... and on every command a task writes
-_READY = TaskState.READY
 
 
 class Delivery:
@@ -51,22 +48,6 @@ class Delivery:
         self.taps: list[tuple[TaskEntry, TapPort, dict[str, Link]]] = []
         self._files: dict[str, TextIO] = {}
         self._device_links: dict[str, list[Link]] = {}
-        kernel.add_instruments_listener(self._instruments_changed)
-
-    @property
-    def hooked(self) -> bool:
-        """An instrument hears of messages now: a link made now starts without its hot paths
-        (:attr:`Link.hooked`); :meth:`_instruments_changed` keeps every link's from then on."""
-        return self.kernel.h_msg
-
-    def _instruments_changed(self) -> None:
-        """The kernel's instruments changed: every link's hot paths follow whether one hears
-        of messages now (:attr:`Link.hooked`)."""
-        hooked = self.kernel.h_msg
-        for link in self.msgtab:
-            if link.hooked != hooked:
-                link.hooked = hooked
-                link.refresh()
 
     def is_local(self, machine: int) -> bool:
         """True if ``machine`` runs in this process."""
@@ -86,15 +67,14 @@ class Delivery:
         Never blocks. Returns how many links took it. Raises QueueOverflow (after delivering to
         every other link) if a queued link was full.
         """
-        if t.up_one is not None:  # the common case: one reader, no exception task taps t
-            return self.deliver(t.up_one, value)
         links = t.up_links
+        if len(links) == 1 and not t.tapped:  # one reader, no exception task: no gathering
+            return self.deliver(links[0], value)
         n = 0
         overflow: QueueOverflow | None = None
         for link in links:
             try:
-                if self.deliver(link, value):
-                    n += 1
+                n += self.deliver(link, value)
             except QueueOverflow as exc:
                 overflow = exc
         if t.tapped:
@@ -104,81 +84,35 @@ class Delivery:
         return n
 
     def deliver(self, link: Link, value: Any) -> int:
-        """Put ``value`` into ``link``'s destination port and ready a receiver waiting on it.
+        """Put ``value`` into ``link``'s destination port and wake a receiver waiting on it, at
+        the higher of its own and the link's priority (through :meth:`Kernel.wake`).
 
         1 if the link took it, 0 if it is suspended (a count: :meth:`put` returns it). Raises
         QueueOverflow for a full queued link, MessageError for a link without an input port.
         """
-        port = link.direct  # None while an instrument hears of messages (Link.hooked)
-        if port is None:  # not a local newest-wins port
-            port = link.queue
-            if port is None or len(port.fifo) >= link.queued:  # type: ignore[arg-type]
-                return self._deliver_other(link, value)
-            # a local queued port with room, no instrument: InPort.store inlined
-            port.fifo.append((value, self.kernel.clock.now()))  # type: ignore[union-attr]
-        else:  # the hot path: a local newest-wins port, not suspended, no instrument
-            if port.fresh:
-                link.overwritten += 1
-            port.value = value
-        port.fresh = True
-        link.sent += 1
-        w = port.waiter
-        if w is None:
-            return 1
-        base = w.prio_src.priority  # w.base_prio, inlined
-        prio = base if base > link.priority else link.priority
-        if w.unwait is port.unwait:
-            # a plain read of this port (without a timeout: a timed one leaves forget as its
-            # unwait; a suspended reader's is a FrozenUnwait): end its wait and ready it here
-            # (kernel.wake(w, prio, port) inlined: a call and half its work less per message)
-            port.waiter = None
-            w.unwait = None     # nothing sent in: the plain waits know their port
-            kernel = self.kernel
-            w.prio = prio
-            w.state = _READY
-            kernel.ready_seq = seq = kernel.ready_seq + 1
-            heappush(kernel.ready_heap, (-prio, seq, w))
-            return 1
-        # (an OutSlot has no waiter: only an InPort gets here)
-        return self._wake_reader(w, prio, link, port, value)  # type: ignore[arg-type]
-
-    def _deliver_other(self, link: Link, value: Any) -> int:
-        """:meth:`deliver` off its hot path: a suspended or remote link, a full queued one, or
-        any link while an instrument hears of messages (:attr:`Link.hooked`; a queued link
-        with room and no instrument is the hot path's)."""
         if link.suspended:
             link.refused += 1
             return 0
-        if link.remote:
-            link.sent += 1
+        if link.remote:  # the communications manager batches it (or raises: not counted)
             self.comm.sensory(link, value)
+            link.sent += 1
             return 1
         port = link.port
-        if port.__class__ is not InPort:  # not isinstance or type(): no call per message
+        if not isinstance(port, InPort):
             raise MessageError(f"sensory link {link.name} has no input port")
         kernel = self.kernel
-        if port.store(value, kernel.clock.now()):
+        hooks = kernel.hooks
+        if port.store(value, kernel.clock.now()):  # a newest-wins port had an unread one
             link.overwritten += 1
-            if kernel.h_overwritten:
-                kernel.notify(kernel.h_overwritten, "message_overwritten", link)
+            if hooks.h_overwritten:
+                hooks.notify(hooks.h_overwritten, "message_overwritten", link)
         link.sent += 1
-        if kernel.h_sent:
-            kernel.notify(kernel.h_sent, "message_sent", link)
+        if hooks.h_sent:
+            hooks.notify(hooks.h_sent, "message_sent", link)
         w = port.waiter
-        if w is None:
-            return 1
-        return self._wake_reader(w, max(w.base_prio, link.priority), link, port, value)
-
-    def _wake_reader(self, w: TaskEntry, prio: int, link: Link, port: InPort,
-                     value: Any) -> int:
-        """Ready ``w``, which waits on ``port``, at ``prio`` (unless its ``wait_any``
-        filter turns the message from ``link`` down); 1, the message was taken."""
-        if w.unwait is port.unwait:  # a plain read of this port: end its wait here
-            port.waiter = None
-            w.unwait = None
-            self.kernel.wake(w, prio, port)
-        elif w.wake_filter is None or self._wanted(w, link.src, value):
-            self.kernel.wake(w, prio, port)
+        if w is not None and (w.wake_filter is None or self._wanted(w, link.src, value)):
+            prio = w.prio_src.priority  # the task's base priority (TaskEntry.base_prio)
+            kernel.wake(w, prio if prio > link.priority else link.priority, port)
         return 1
 
     @staticmethod
@@ -218,18 +152,15 @@ class Delivery:
         """The receiver read a message of ``link`` (an input port's: Link.delivered counts it
         by itself): feed the latency instruments."""
         kernel = self.kernel
-        if kernel.h_delivered:
-            kernel.notify(kernel.h_delivered, "message_delivered", link,
-                          kernel.clock.now() - sent_at)
+        hooks = kernel.hooks
+        if hooks.h_delivered:
+            hooks.notify(hooks.h_delivered, "message_delivered", link,
+                         kernel.clock.now() - sent_at)
 
     # ---- devices: readings up their links, e-stop -------------------------------------------
     def add_device_link(self, link: Link) -> None:
         """Route the readings of device ``link.src`` into sensory link ``link`` (at install)."""
         self._device_links.setdefault(link.src, []).append(link)
-
-    def device_links(self, device: str) -> list[Link]:
-        """The sensory links leaving ``device``, in install order."""
-        return list(self._device_links.get(device, ()))
 
     def reading(self, device: str, value: Any) -> bool:
         """Devtab listener: a new reading of sensor ``device`` goes up every sensory link
@@ -239,13 +170,12 @@ class Delivery:
         link was full."""
         over = False
         overflow: QueueOverflow | None = None
-        deliver = self.deliver
         for link in self._device_links.get(device, ()):
             # an unread message on a newest-wins port is overwritten (a queued link keeps it,
             # a suspended one refuses the new one): the link counts it
             before = link.overwritten
             try:
-                deliver(link, value)
+                self.deliver(link, value)
             except QueueOverflow as exc:
                 overflow = exc
             if link.overwritten != before:
@@ -283,7 +213,7 @@ class Delivery:
         if link.suspended:
             link.refused += 1
             raise MessageError(f"link {link.name} is suspended")
-        if link.dst_kind is _TO_DEVICE:
+        if link.dst_kind is EndpointKind.DEVICE:
             self.devices.write(link.dst, value, t.name)
         elif link.dst_kind is EndpointKind.FILE:
             self.write_file(link.dst, value)

@@ -128,7 +128,6 @@ class Ownership(Delivery):
                 f"task {target.name}: {target.code or 'its function'} is not an async def"))
             return
         target.coro = coro  # type: ignore[assignment]
-        self.kernel.refresh_step(target)
         self.kernel.ready(target, prio)
 
     def _release(self, t: TaskEntry) -> None:
@@ -187,7 +186,7 @@ class Ownership(Delivery):
         if link is None:
             return
         t.completions += 1
-        if self.kernel.h_event:
+        if self.kernel.hooks.h_event:
             self.event("complete", f"{t.name} completed for {link.src}")
         self._report(link, LinkStatus.NORMAL, result=result)
         t.owner = None
@@ -200,7 +199,7 @@ class Ownership(Delivery):
         """Kernel end handler: ``t``'s activation ended ``how`` with ``value`` (its result, or
         the exception). Reports to the owner, releases what it owned, puts its actuators safe
         after an error or a release, starts the next command or a standing task's own loop."""
-        t.coro = t.plain = None
+        t.coro = None
         t.new_command = None
         self.release_subordinates(t, f"{t.name} ended ({how.value})")
         if how is End.RETURN:
@@ -329,7 +328,7 @@ class Ownership(Delivery):
             self._report(link, LinkStatus.PREEMPTED, error=why)
         t.owner = None
         t.waitq.clear()
-        coro, t.coro, t.plain = t.coro, None, None
+        coro, t.coro = t.coro, None
         self.kernel.unhook(t)
         self.kernel.unready(t)  # no ready-queue entry is left behind
         if coro is not None:

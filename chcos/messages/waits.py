@@ -3,9 +3,7 @@
 A task blocked in ``read``, ``read_any``, ``wait_any``, ``invoke``/``done``, ``ask`` or
 ``read_exception`` records in its Tsktab entry the ports, links, tap or query it waits on, and
 leaves :func:`forget` as its ``unwait``: the kernel calls it when it wakes or cancels the task,
-without knowing what any of those are. A plain ``read`` of one port leaves that port's own
-``unwait`` instead (:attr:`chcos.tables.messages.InPort.unwait`), which a delivery to the port
-recognises and ends without a call.
+without knowing what any of those are.
 """
 
 from __future__ import annotations
@@ -22,12 +20,11 @@ def forget(t: TaskEntry) -> None:
     t.wait_ports = ()
     t.wait_link = None
     t.wait_query = None
+    tap = t.tap
+    if tap is not None and tap.waiter is t:
+        tap.waiter = None
     if t.multi_wait:
         t.multi_wait = False
         t.wait_links = ()
         t.wait_commands = False
         t.wake_filter = None
-        t.wait_tap = False
-    tap = t.tap
-    if tap is not None and tap.waiter is t:
-        tap.waiter = None

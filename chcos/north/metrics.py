@@ -20,6 +20,16 @@ Exported (``chcos_`` prefix; labels in brackets):
 ``task_step_seconds``                       histogram of step durations [task]
 ``task_schedule_latency_seconds``           histogram: made ready → first step [task]
 ``link_sent_total`` … ``_overwritten_total`` per link [link, type]; ``link_priority``
+``node_state``                              1 for the node's current lifecycle state, 0 for the
+                                            others [bus, node, state] (CANopen: WAITING_BOOT …
+                                            OPERATIONAL, PREOP_HELD, FAILED)
+``node_ready``                              1 if the node is in the state the map requires
+``node_heartbeat_lost``                     1 while the node's heartbeat is lost [bus, node]
+``node_boots_total``, ``node_nmt_starts``   boot-up messages seen, NMT starts sent [bus, node]
+``node_error_register``                     0x1001 as last read [bus, node]
+``sync_cycles_total`` … ``_late_writes``    SYNC cycles, complete cycles, missing TPDOs, late
+                                            SYNCs, RPDO answers after SYNC n+1 [bus]
+``sync_period_seconds``, ``sync_jitter``    the period; jitter [bus, quantile 0.5/0.99/max]
 =========================================== ====================================================
 
 The endpoint (:func:`serve`) binds loopback by default; another address needs a TLS certificate
@@ -166,6 +176,7 @@ class SystemCollector(Collector):
             for key, n in sorted(b.counts.items()):
                 bcounts.add_metric([b.name, key], float(n))
         yield from (errors, bcounts, ndev)
+        yield from node_families(s.devtab.bus_status())
 
         tasks = list(s.tsktab)
         fams = {k: CounterMetricFamily(f"chcos_task_{n}", d, labels=["task"]) for k, n, d in (
@@ -203,6 +214,53 @@ class SystemCollector(Collector):
         yield from (*lfams.values(), lprio)
 
 
+def node_families(status: dict[str, dict[str, Any]]) -> list[Any]:
+    """The ``chcos_node_*`` and ``chcos_sync_*`` families from the drivers' status documents
+    (:meth:`chcos.devices.devtab.Devtab.bus_status`)."""
+    from drivers.canopen_lifecycle import NodeLifecycle
+
+    states = [s.name for s in NodeLifecycle]
+    state = GaugeMetricFamily("chcos_node_state", "1 for the node's current lifecycle state",
+                              labels=["bus", "node", "state"])
+    ready = GaugeMetricFamily("chcos_node_ready", "1 if the node is in the state the map "
+                              "requires", labels=["bus", "node"])
+    boots = CounterMetricFamily("chcos_node_boots", "boot-up messages seen",
+                                labels=["bus", "node"])
+    starts = CounterMetricFamily("chcos_node_nmt_starts", "NMT start commands sent",
+                                 labels=["bus", "node"])
+    lost = GaugeMetricFamily("chcos_node_heartbeat_lost", "1 while the node's heartbeat is "
+                             "lost", labels=["bus", "node"])
+    ereg = GaugeMetricFamily("chcos_node_error_register", "error register 0x1001 as last read",
+                             labels=["bus", "node"])
+    sync = {k: CounterMetricFamily(f"chcos_sync_{k}", d, labels=["bus"]) for k, d in (
+        ("cycles", "SYNC cycles"), ("complete", "cycles whose synchronous TPDOs all arrived"),
+        ("missing", "synchronous TPDOs missing at the end of their cycle"),
+        ("late", "SYNCs sent late"),
+        ("late_writes", "RPDO answers to cycle n sent after SYNC n+1"))}
+    period = GaugeMetricFamily("chcos_sync_period_seconds", "SYNC period", labels=["bus"])
+    jitter = GaugeMetricFamily("chcos_sync_jitter_seconds", "SYNC period jitter "
+                               "|interval - period|", labels=["bus", "quantile"])
+    for bus, doc in status.items():
+        for n in doc.get("nodes", ()):
+            labels = [bus, str(n["node"])]
+            for name in states:
+                state.add_metric([*labels, name], 1.0 if n["state"] == name else 0.0)
+            ready.add_metric(labels, 1.0 if n["ready"] else 0.0)
+            boots.add_metric(labels, float(n["boots"]))
+            lost.add_metric(labels, 1.0 if n.get("heartbeat_lost") else 0.0)
+            starts.add_metric(labels, float(n["nmt_starts"]))
+            if n.get("error_register") is not None:
+                ereg.add_metric(labels, float(n["error_register"]))
+        st = doc.get("sync")
+        if st:
+            for k, fam in sync.items():
+                fam.add_metric([bus], float(st[k]))
+            period.add_metric([bus], float(st["period"]))
+            for q, key in (("0.5", "jitter_p50"), ("0.99", "jitter_p99"), ("max", "jitter_max")):
+                jitter.add_metric([bus, q], float(st[key]))
+    return [state, ready, lost, boots, starts, ereg, *sync.values(), period, jitter]
+
+
 class MetricsServer:
     """The running endpoint: ``url``, :meth:`stop`."""
 
@@ -227,8 +285,8 @@ def serve(system: System, host: str = "127.0.0.1", port: int = 0, *,
     """Serve ``/metrics`` of ``system`` on ``host:port`` (0: a free port). Raises NorthError if
     the address is not loopback and no TLS certificate and key are given, or it cannot bind."""
     if not is_loopback(host) and not (certfile and keyfile):
-        raise NorthError(f"metrics on {host}: a non-loopback address needs TLS "
-                         "(--metrics-tls-cert/--metrics-tls-key)")
+        raise NorthError(f"metrics on {host}: a non-loopback address needs TLS: give "
+                         "--north-tls-cert and --north-tls-key (PEM certificate and key)")
     steps = StepTimes()
     registry = CollectorRegistry(auto_describe=False)
     registry.register(SystemCollector(system, steps))
@@ -244,4 +302,4 @@ def serve(system: System, host: str = "127.0.0.1", port: int = 0, *,
                          f"{scheme}://{h}:{httpd.server_address[1]}/metrics")
 
 
-__all__ = ["MetricsServer", "StepTimes", "SystemCollector", "serve"]
+__all__ = ["MetricsServer", "StepTimes", "SystemCollector", "node_families", "serve"]

@@ -12,6 +12,13 @@ Address space (namespace ``urn:chcos``, string node ids):
   ``Completions``, ``Abnormal`` and ``LastError`` (the last completion's error, "" if normal);
 * ``Links.<src>/<dst>``: every link with ``Sent``, ``Delivered``, ``Overwritten``, ``Status``
   (msgstat) and ``Priority``;
+* ``Buses.<bus>``: what a bus's driver shows beyond its counters
+  (:meth:`chcos.devices.devtab.Devtab.bus_status`): ``Buses.<bus>.Node<id>`` an object per
+  remote node (CANopen) with ``State`` (its lifecycle: WAITING_BOOT ... OPERATIONAL,
+  PREOP_HELD, FAILED), ``Ready``, ``HeartbeatLost``, ``Boots`` (boot-ups seen), ``NmtStarts``,
+  ``ErrorRegister`` (0x1001, -1 if never read), ``LastEmcy`` and ``Reason``; ``Buses.<bus>.Sync``
+  the SYNC cycle's ``Cycles``, ``Complete``, ``Missing``, ``Late``, ``LateWrites``, ``Period``
+  and ``JitterP50``/``JitterP99``/``JitterMax`` (seconds); refreshed with the task figures;
 * methods on the ``chcos`` object: ``Invoke(Task, Args, Priority)``, ``SetPri(Src, Dst,
   Priority)``, ``Suspend(Task)``, ``Resume(Task)``, ``EStop(Reason)``; each runs through the
   host's command path (:meth:`System.execute`, the system manager's checks) and is refused
@@ -212,7 +219,7 @@ class OpcUaServer(AlarmsMixin):
         self._idx, self._server = idx, server
         root = await server.nodes.objects.add_object(ua.NodeId("chcos", idx), self._qn("chcos"))
         self._folders = {k: await root.add_folder(ua.NodeId(k, idx), self._qn(k))
-                         for k in ("Devices", "Tasks", "Links")}
+                         for k in ("Devices", "Tasks", "Links", "Buses")}
         await self._add_methods(root, idx)
         self._alarm_folder = await root.add_folder(ua.NodeId("Alarms", idx), self._qn("Alarms"))
         evgen = await server.get_event_generator(emitting_node=root.nodeid)
@@ -295,6 +302,58 @@ class OpcUaServer(AlarmsMixin):
             nodes[name] = await self._var(obj, f"{nid}.{name}", name, init, vt)
         self._nodes[nid] = nodes
 
+    async def _add_object(self, parent: Node, nid: str, name: str,
+                          fields: tuple[tuple[str, ua.VariantType, Any], ...]) -> None:
+        obj = await parent.add_object(ua.NodeId(nid, self._idx), self._qn(name))
+        self._nodes[nid] = {f: await self._var(obj, f"{nid}.{f}", f, init, vt)
+                            for f, vt, init in fields}
+
+    def bus_status(self) -> dict[str, dict[str, Any]]:
+        """What the buses' drivers show (the server in a child process gets it by pipe)."""
+        return self.system.devtab.bus_status()
+
+    async def _refresh_buses(self) -> None:
+        """``Buses.<bus>``: each remote node's lifecycle and the SYNC cycle's figures."""
+        I64, STR, DBL, BOOL, I32 = (ua.VariantType.Int64, ua.VariantType.String,
+                                    ua.VariantType.Double, ua.VariantType.Boolean,
+                                    ua.VariantType.Int32)
+        for bus, doc in self.bus_status().items():
+            bid = f"Buses.{bus}"
+            if bid not in self._nodes:
+                obj = await self._folders["Buses"].add_object(ua.NodeId(bid, self._idx),
+                                                              self._qn(bus))
+                self._nodes[bid] = {"object": obj}
+            parent = self._nodes[bid]["object"]
+            for n in doc.get("nodes", ()):
+                nid = f"{bid}.Node{n['node']}"
+                reg = n.get("error_register")
+                values: tuple[tuple[str, ua.VariantType, Any], ...] = (
+                    ("State", STR, n["state"]), ("Ready", BOOL, bool(n["ready"])),
+                    ("HeartbeatLost", BOOL, bool(n.get("heartbeat_lost"))),
+                    ("Boots", I64, int(n["boots"])), ("NmtStarts", I64, int(n["nmt_starts"])),
+                    ("ErrorRegister", I32, -1 if reg is None else int(reg)),
+                    ("LastEmcy", STR, n.get("last_emcy") or ""),
+                    ("Reason", STR, n.get("reason") or ""))
+                if nid not in self._nodes:
+                    await self._add_object(parent, nid, f"Node{n['node']}", values)
+                for name, vt, value in values:
+                    await self._set(self._nodes[nid][name], f"{nid}.{name}", value, vt)
+            st = doc.get("sync")
+            if st:
+                nid = f"{bid}.Sync"
+                values = (("Cycles", I64, int(st["cycles"])),
+                          ("Complete", I64, int(st["complete"])),
+                          ("Missing", I64, int(st["missing"])), ("Late", I64, int(st["late"])),
+                          ("LateWrites", I64, int(st["late_writes"])),
+                          ("Period", DBL, float(st["period"])),
+                          ("JitterP50", DBL, float(st["jitter_p50"])),
+                          ("JitterP99", DBL, float(st["jitter_p99"])),
+                          ("JitterMax", DBL, float(st["jitter_max"])))
+                if nid not in self._nodes:
+                    await self._add_object(parent, nid, "Sync", values)
+                for name, vt, value in values:
+                    await self._set(self._nodes[nid][name], f"{nid}.{name}", value, vt)
+
     # ---- refreshing -------------------------------------------------------------------------
     async def _set(self, node: Node, key: str, value: Any, vtype: ua.VariantType,
                    status: ua.StatusCode | None = None, source: datetime | None = None) -> None:
@@ -361,6 +420,7 @@ class OpcUaServer(AlarmsMixin):
                                     ("Status", lk.status.value, STR),
                                     ("Priority", lk.priority, I32)):
                 await self._set(n[name], f"{nid}.{name}", value, vt)
+        await self._refresh_buses()
 
     async def _refresher(self) -> None:
         loop = asyncio.get_running_loop()

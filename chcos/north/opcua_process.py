@@ -58,6 +58,7 @@ def snapshot(system: System, slow: bool) -> dict[str, Any]:
                           t.abnormal, t.last_error) for t in list(system.tsktab)]
         snap["links"] = [(lk.src, lk.dst, lk.sent, lk.delivered, lk.overwritten,
                           lk.status.value, lk.priority) for lk in list(system.msgtab)]
+        snap["bus_status"] = system.devtab.bus_status()
     return snap
 
 
@@ -91,6 +92,8 @@ class Mirror:
         self._by_name = {d.name: d for d in self.devtab}
         self.tsktab: list[Any] = []
         self.msgtab: list[Any] = []
+        #: what the buses' drivers show (Devtab.bus_status), as last told
+        self.bus_status: dict[str, dict[str, Any]] = {}
 
     def update(self, snap: dict[str, Any]) -> None:
         """Apply one snapshot."""
@@ -105,6 +108,8 @@ class Mirror:
                 name=n, frozen=fr, state=SimpleNamespace(value=st), level=lv,
                 owner=None if ow is None else SimpleNamespace(src=ow), prio=pr, completions=co,
                 abnormal=ab, last_error=le) for n, fr, st, lv, ow, pr, co, ab, le in snap["tasks"]]
+        if "bus_status" in snap:
+            self.bus_status = snap["bus_status"]
         if "links" in snap:
             self.msgtab = [SimpleNamespace(src=s, dst=d, sent=se, delivered=de, overwritten=ov,
                                            status=SimpleNamespace(value=st), priority=pr)
@@ -121,6 +126,11 @@ class _ChildServer(OpcUaServer):
         self.ids = itertools.count(1)
         self.pending: dict[int, Future[str]] = {}
         self._listen_health = False  # the parent tells health changes down the pipe
+
+    def bus_status(self) -> dict[str, dict[str, Any]]:
+        """The parent's, from its last snapshot."""
+        mirror: Mirror = self.system  # type: ignore[assignment]
+        return mirror.bus_status
 
     def send(self, msg: tuple[Any, ...]) -> None:
         with self.lock:

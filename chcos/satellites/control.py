@@ -10,7 +10,9 @@ exception's class name}``.
 =============== ====================================== =========================================
 op              request                                answer
 =============== ====================================== =========================================
-``map``         :class:`MapRequest`                    ``map``, ``alive``, ``rejected``
+``map``         :class:`MapRequest` (part, token)      ``page``, ``part``, ``parts``, ``token``:
+                                                       one page of the JSON text of ``map``,
+                                                       ``alive``, ``rejected``
 ``log``         :class:`LogRequest`                    ``log``: the install log
 ``head``        :class:`HeadRequest`                   ``length``, ``hash`` of the install log
 ``sync``        :class:`SyncRequest` (source, need)    ``applied``: entries fetched and applied
@@ -30,6 +32,9 @@ from typing import Any
 
 #: Longest command line accepted in a request (and in an install log).
 MAX_LINE = 4096
+#: Characters of the map answer's JSON text per page: the text is ASCII (``ensure_ascii``), and
+#: carried in a JSON string it at most doubles, so a page stays far below the link's 1 MiB.
+MAP_PAGE = 256 * 1024
 
 
 class Phase(enum.Enum):
@@ -42,7 +47,12 @@ class Phase(enum.Enum):
 
 @dataclass(frozen=True)
 class MapRequest:
-    """This satellite's view of the system map, who is alive, what it refused."""
+    """This satellite's view of the system map, who is alive, what it refused: page ``part``
+    (of MAP_PAGE characters) of the answer made for ``token`` (part 0 without a token makes a
+    new answer and its token; a large system's map does not fit one link message)."""
+
+    part: int = 0
+    token: str = ""
 
 
 @dataclass(frozen=True)
@@ -84,13 +94,15 @@ class ChangeRequest:
 ControlRequest = (MapRequest | LogRequest | HeadRequest | SyncRequest | ExecRequest
                   | ChangeRequest)
 
-_PLAIN: dict[str, type[Any]] = {"map": MapRequest, "log": LogRequest, "head": HeadRequest}
+_PLAIN: dict[str, type[Any]] = {"log": LogRequest, "head": HeadRequest}
 
 
 def encode(req: ControlRequest) -> bytes:
     """The JSON bytes that carry ``req``. Raises TypeError if it is not a control request."""
     doc: dict[str, Any]
-    if isinstance(req, SyncRequest):
+    if isinstance(req, MapRequest):
+        doc = {"op": "map", "part": req.part, "token": req.token}
+    elif isinstance(req, SyncRequest):
         doc = {"op": "sync", "source": req.source, "need": req.need}
     elif isinstance(req, ExecRequest):
         doc = {"op": "exec", "line": req.line}
@@ -133,6 +145,11 @@ def decode(payload: bytes) -> ControlRequest:
     if isinstance(op, str) and op in _PLAIN:
         plain: ControlRequest = _PLAIN[op]()
         return plain
+    if op == "map":
+        token = doc.get("token", "")
+        if not isinstance(token, str) or len(token) > 64:
+            raise TypeError(f"token: expected a map answer's token, got {token!r:.40}")
+        return MapRequest(_int(doc, "part", "a page number", optional=True) or 0, token)
     if op == "sync":
         return SyncRequest(_int(doc, "source", "a machine"), _int(doc, "need", "a log length"))
     if op == "exec":

@@ -135,6 +135,24 @@ class Host:
             raise InstallError(f"machine {machine}: {err}")
         return reply
 
+    def _map_answer(self, machine: int) -> dict[str, Any]:
+        """Satellite ``machine``'s map answer (``map``, ``alive``, ``rejected``), read page by
+        page (a large system's map does not fit one link message). Raises LinkError if it
+        cannot be read whole (the answer expired three times running), and what :meth:`_ask`
+        raises."""
+        for _attempt in range(3):
+            first = self._ask(machine, MapRequest())
+            pages = [str(first["page"])]
+            try:
+                for part in range(1, int(first["parts"])):
+                    pages.append(str(self._ask(machine, MapRequest(part,
+                                                                   str(first["token"])))["page"]))
+            except LinkError:  # expired while we read (other hosts asked): from the start
+                continue
+            answer: dict[str, Any] = json.loads("".join(pages))
+            return answer
+        raise LinkError(f"machine {machine}: the map answer expired three times while read")
+
     def _up(self) -> list[int]:
         """The machines up. A new session first waits (at most ``timeout``) to reach any, and
         up to ``settle`` seconds more to reach every satellite of the system file."""
@@ -159,7 +177,7 @@ class Host:
         gets ``age``: seconds since its value on its own machine's clock (None before one), and
         ``errors`` lists what each satellite collected (``machine N: ...``)."""
         up = self._up()
-        views = {m: self._ask(m, MapRequest())["map"]
+        views = {m: self._map_answer(m)["map"]
                  for m in ([machine] if machine is not None else up)}
         doc: dict[str, Any] = dict(views[min(views)])
         where = {t["name"]: t["machine"] for t in doc["tasks"]}
@@ -246,7 +264,7 @@ class Host:
 
     def rejected(self, machine: int) -> dict[str, int]:
         """How many payloads satellite ``machine`` refused so far, by cause."""
-        return dict(self._ask(machine, MapRequest())["rejected"])
+        return dict(self._map_answer(machine)["rejected"])
 
     def log_heads(self) -> dict[int, tuple[int, str]]:
         """(length, SHA-256) of the install log of every satellite up."""
@@ -258,7 +276,12 @@ class Host:
 
     def execute(self, line: str) -> str:
         """Carry out one host command line on the system; returns the answer. Raises
-        CommandSyntaxError, InstallError (nothing changed anywhere), LinkError."""
+        CommandSyntaxError, InstallError (nothing changed anywhere), LinkError. A line longer
+        than a satellite takes (``control.MAX_LINE``) is refused here, before it is sent."""
+        if len(line) > control.MAX_LINE:
+            raise CommandSyntaxError(f"{line[:40].strip()}...: a command line of {len(line)} "
+                                     f"characters; a satellite takes at most "
+                                     f"{control.MAX_LINE}")
         req = cmdline.parse(line)
         if req is None:
             return ""

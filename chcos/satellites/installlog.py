@@ -100,11 +100,23 @@ def read_log(path: Path) -> list[str]:
         raise LinkError(f"{path}: {exc}") from exc
 
 
+def _open_private(path: Path, flags: int) -> int:
+    """A descriptor on ``path`` opened with ``flags``, the file owner-only (0600) whatever
+    mode an older file had (install lines name code and devices: not for other users)."""
+    fd = os.open(path, flags | os.O_CREAT, 0o600)
+    try:
+        os.fchmod(fd, 0o600)
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
 def write_log(path: Path, entries: list[str]) -> None:
-    """Write the whole install log to ``path`` (atomically: temporary file, fsync, rename).
-    Raises OSError if it cannot be written."""
+    """Write the whole install log to ``path`` (atomically: temporary file, fsync, rename;
+    owner-only, 0600). Raises OSError if it cannot be written."""
     tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w", encoding="utf-8") as f:
+    with os.fdopen(_open_private(tmp, os.O_WRONLY | os.O_TRUNC), "w", encoding="utf-8") as f:
         f.write("".join(json.dumps(line) + "\n" for line in entries))
         f.flush()
         os.fsync(f.fileno())
@@ -112,8 +124,9 @@ def write_log(path: Path, entries: list[str]) -> None:
 
 
 def append_log(path: Path, line: str) -> None:
-    """Append one entry to the install log in ``path`` (fsync'd). Raises OSError."""
-    with open(path, "a", encoding="utf-8") as f:
+    """Append one entry to the install log in ``path`` (fsync'd; the file owner-only, 0600).
+    Raises OSError."""
+    with os.fdopen(_open_private(path, os.O_WRONLY | os.O_APPEND), "a", encoding="utf-8") as f:
         f.write(json.dumps(line) + "\n")
         f.flush()
         os.fsync(f.fileno())

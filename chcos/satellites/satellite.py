@@ -38,6 +38,7 @@ any member).
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import logging
 import threading
@@ -65,6 +66,9 @@ from chcos.system import cmdline, sysmap
 from chcos.system.embedded import System
 from chcos.tables.messages import PRIORITIES, PRIORITY_TEXT
 from chcos.user.context import TaskContext
+
+MAP_ANSWERS = 8
+"""Map answers a satellite keeps for their pages (hosts reading them at the same time)."""
 
 log = logging.getLogger("chcos.satellites.satellite")
 
@@ -104,7 +108,7 @@ class Satellite:
         secret = sf.secret()
         sf.state_dir.mkdir(parents=True, exist_ok=True, mode=0o700)
         self.transport = Transport(link_config_for(sf, machine, secret),
-                                   sealer=secret.sealer("satellite"))
+                                   sealer=secret.sealer("satellite", f"m{machine}"))
         try:
             self.system = System(sf.devmaps, clock=clock or RealClock(),
                                  task_path=sf.task_path, base_dir=sf.base_dir, map_path=None,
@@ -117,6 +121,9 @@ class Satellite:
         self.comm: CommManager = self.system.comm
         self.log: list[str] = []
         self._lock = threading.RLock()
+        self._map_lock = threading.Lock()
+        self._map_answers: dict[str, str] = {}   # token -> the map answer's JSON text
+        self._map_serial = itertools.count(1)
         self._subs: list[Subscription] = []
         self._stopping = threading.Event()
         self.refused: list[str] = []
@@ -162,10 +169,14 @@ class Satellite:
 
     def rejected_counts(self) -> dict[str, int]:
         """How many payloads were refused or malformed so far, by cause (link, messages, host
-        requests, install logs)."""
+        requests, install logs), and the link's seal refusals by kind, all receivers
+        together (``link seal refused: replayed``...)."""
         out: dict[str, int] = {}
         for t in (self.transport.rejected, self.comm.rejected, self.rejected):
             out.update(t.counts)
+        for kind, n in self.transport.refusals.items():
+            if n:
+                out[f"link seal refused: {kind}"] = n
         return out
 
     # ---- the install log ----------------------------------------------------------------------
@@ -313,13 +324,36 @@ class Satellite:
             reply = {"ok": False, "error": text, "type": "LinkError"}
         return json.dumps(reply, default=str).encode()
 
+    def _map_page(self, req: control.MapRequest) -> dict[str, Any]:
+        """One page of the map answer (see :class:`control.MapRequest`): part 0 without a
+        token makes the answer's JSON text and keeps it (the last MAP_ANSWERS kept) so every
+        page comes from the same map. Raises LinkError for a token no longer kept (the host
+        asks again from part 0), TypeError for a part beyond the answer."""
+        with self._map_lock:
+            text = self._map_answers.get(req.token) if req.token else None
+        token = req.token
+        if text is None:
+            if req.part != 0:
+                raise LinkError(f"map answer {req.token!r} expired: ask again from part 0")
+            doc = self.system.call(self.system.sysmgr.map_doc)
+            text = json.dumps({"map": doc, "alive": sorted(self.comm.alive),
+                               "rejected": self.rejected_counts()}, default=str)
+            token = f"{self.machine}-{next(self._map_serial)}"
+            with self._map_lock:
+                self._map_answers[token] = text
+                while len(self._map_answers) > MAP_ANSWERS:
+                    del self._map_answers[next(iter(self._map_answers))]
+        parts = max(1, -(-len(text) // control.MAP_PAGE))
+        if req.part >= parts:
+            raise TypeError(f"part: the map answer has {parts} page(s), got part {req.part}")
+        page = text[req.part * control.MAP_PAGE:(req.part + 1) * control.MAP_PAGE]
+        return {"ok": True, "page": page, "part": req.part, "parts": parts, "token": token}
+
     def _serve(self, req: control.ControlRequest) -> dict[str, Any]:
         """Answer one host request (see :mod:`chcos.satellites.control`). Raises ChcosError
         (refused: the host is told why), TypeError (malformed)."""
         if isinstance(req, control.MapRequest):
-            doc = self.system.call(self.system.sysmgr.map_doc)
-            return {"ok": True, "map": doc, "alive": sorted(self.comm.alive),
-                    "rejected": self.rejected_counts()}
+            return self._map_page(req)
         if isinstance(req, control.LogRequest):
             return {"ok": True, "log": list(self.log)}
         if isinstance(req, control.HeadRequest):

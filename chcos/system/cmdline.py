@@ -21,8 +21,15 @@ from typing import Any
 
 from chcos.devices.spec import MAX_MACHINE
 from chcos.errors import CommandSyntaxError
+from chcos.helpers import NAME_PATTERN
 from chcos.tables.messages import PRIORITIES
 
+MAX_LINE = 16384        # characters in one host command line (longer lines are refused unparsed)
+MAX_NAME = 128          # characters in a task name
+MAX_CODE = 1024         # characters in a task's code reference (a file path or module:function)
+MAX_FILE_PART = 255     # characters in one part of a code file's path (the file system's limit)
+
+_MODULE_PART = re.compile(r"[A-Za-z0-9_-]+")
 _COMBINED = re.compile(r"^-(?:m(\d+))?(?:i(\d+))?(?:o(\d+))?(s)?$")
 _PRIO = re.compile(r"^-(\d+)$")
 
@@ -265,10 +272,51 @@ def _install(args: list[str]) -> Install | Boot:
     name, eq, ref = name_word.partition("=")
     if eq:
         code = ref
+    check_task_name("install", name)
+    check_code("install " + name, code or name)
     return Install(name=name, machine=machine, inputs=tuple(files[:n_in]),
                    outputs=tuple(files[n_in:]), code=code or name, role=role, level=level,
                    params=params, queued=queued, standing=standing, restart=restart,
                    backoff=backoff)
+
+
+def check_task_name(cmd: str, name: str) -> None:
+    """Refuse a task name that breaks the rule: 1 to MAX_NAME characters, letters, digits,
+    ``_ . -``, starting with a letter or ``_``. Raises CommandSyntaxError saying so."""
+    if len(name) > MAX_NAME:
+        raise CommandSyntaxError(f"{cmd}: task name {_short(name)} has {len(name)} characters; "
+                                 f"a task name has at most {MAX_NAME}")
+    if not NAME_PATTERN.fullmatch(name):
+        raise CommandSyntaxError(f"{cmd}: task name {name!r} breaks the rule: letters, digits, "
+                                 "_ . -, starting with a letter or _")
+
+
+def check_code(cmd: str, code: str) -> None:
+    """Refuse a task code reference that cannot name code: a module path (``pkg.mod``, with
+    ``:function``) whose every part is a Python identifier, or a ``.py`` file (a path with
+    ``/``) whose every part fits a file name. Raises CommandSyntaxError naming the rule."""
+    if len(code) > MAX_CODE:
+        raise CommandSyntaxError(f"{cmd}: code {_short(code)} has {len(code)} characters; at "
+                                 f"most {MAX_CODE}")
+    target, colon, func = code.partition(":")
+    if colon and not func.isidentifier():
+        raise CommandSyntaxError(f"{cmd}: code {code!r}: the function after ':' must be a "
+                                 "Python identifier")
+    if target.endswith(".py") or "/" in target:
+        long = [part for part in target.split("/") if len(part) > MAX_FILE_PART]
+        if long:
+            raise CommandSyntaxError(f"{cmd}: code {_short(code)}: a file-name part has "
+                                     f"{len(long[0])} characters; at most {MAX_FILE_PART}")
+        return
+    parts = target.split(".")
+    if not all(_MODULE_PART.fullmatch(part) for part in parts):
+        raise CommandSyntaxError(f"{cmd}: code {code!r} breaks the rule: a module path "
+                                 "(pkg.module: parts of letters, digits, _ or -, no leading, "
+                                 "trailing or doubled '.'), optionally ':function', or a .py "
+                                 "file")
+    if any(len(part) > MAX_FILE_PART - 3 for part in parts):  # looked up as PART.py
+        raise CommandSyntaxError(f"{cmd}: code {_short(code)}: a module name has more than "
+                                 f"{MAX_FILE_PART - 3} characters")
 
 
 def _seconds(cmd: str, word: str) -> float:
@@ -306,8 +354,12 @@ _PLAIN = re.compile(r"[ \t\r\n!$-&(-\[\]-~]*")
 def parse(line: str | list[str]) -> Request | None:
     """Parse one host command line; None for a blank line or a comment.
 
-    Raises CommandSyntaxError naming the command and the offending word.
+    Raises CommandSyntaxError naming the command and the offending word, and for a line longer
+    than MAX_LINE characters (refused before any parsing).
     """
+    if isinstance(line, str) and len(line) > MAX_LINE:
+        raise CommandSyntaxError(f"{_short(line.strip())}: a command line of {len(line)} "
+                                 f"characters; at most {MAX_LINE}")
     if isinstance(line, str) and _PLAIN.fullmatch(line):
         words = line.split()   # no quote, escape or comment: what shlex would give, 10x faster
     elif isinstance(line, str):

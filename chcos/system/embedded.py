@@ -220,7 +220,7 @@ class System:
         for t in self.tsktab:  # end every activation (runs their finally blocks)
             if t.coro is not None:
                 t.coro.close()
-                t.coro = t.plain = None
+                t.coro = None
         self.devtab.stop_drivers()
         self.msgmgr.close_files()
         try:  # the map's runtime fields as they were at the end

@@ -204,7 +204,6 @@ class Installer:
             link.dst_port = i
             port = InPort(link, i)
             link.port = port
-            link.refresh()
             t.in_ports.append(port)
             if p.kind is EndpointKind.TASK:
                 self.tsktab.get(p.name).add_up_link(link)
@@ -233,7 +232,6 @@ class Installer:
         mt = self.msgtab
         link = Link(mt.next_lid(), src, dst, type, prio, sk, dk, sm, dm, queued=queued, tap=tap)
         link.remote = dm >= 0 and not self.msgmgr.is_local(dm)
-        link.hooked = self.msgmgr.hooked  # (the message manager keeps it from now on)
         mt.add(link)
         return link
 

@@ -336,6 +336,7 @@ class SystemManager:
                 "task_path": [str(p) for p in self.setup.task_path],
                 "time": self.kernel.clock.now(), "tasks": tasks, "links": links,
                 "devices": devices, "buses": self.devtab.stats_doc(),
+                "bus_status": self.devtab.bus_status(),
                 "kernel": self.kernel.stats(), "errors": self.setup.errors()}
 
     # ---- the map file (see chcos.system.mapfile) --------------------------------------------

@@ -48,11 +48,6 @@ class Messages(Protocol):
         """True if ``machine`` runs in this process."""
         ...
 
-    @property
-    def hooked(self) -> bool:
-        """An instrument hears of messages now (a new link's :attr:`Link.hooked`)."""
-        ...
-
     def resolve_path(self, name: str) -> Path:
         """The file an install argument names."""
         ...
@@ -131,6 +126,11 @@ class Devices(Protocol):
 
     def stats_doc(self) -> dict[str, Any]:
         """The bus statistics, for the map."""
+        ...
+
+    def bus_status(self) -> dict[str, dict[str, Any]]:
+        """What each bus's driver shows beyond the counters (CANopen nodes, the SYNC cycle),
+        for the map."""
         ...
 
 

@@ -1,4 +1,5 @@
-"""textview - the system map drawn as text: levels top to bottom, tasks, links, devices.
+"""textview - the system map drawn as text: levels top to bottom, tasks, links, devices, buses
+(with their remote nodes' lifecycles and SYNC cycles).
 
 Works on the document of :meth:`chcos.system.manager.SystemManager.map_doc` or a sysfile.map read
 with
@@ -20,6 +21,34 @@ def _rate(lk: dict[str, Any], rates: Mapping[str, float] | None) -> str:
     star = "*" if lk.get("implicit") else ""
     key = f"{lk['src']}/{lk['dst']}:{lk['type']}{star}"
     return f" {rates.get(key, 0.0):6.1f}/s"
+
+
+def bus_status_lines(status: dict[str, dict[str, Any]]) -> list[str]:
+    """One line per remote node (its lifecycle state, boot-ups seen, NMT starts, error register,
+    last EMCY, why it is not ready) and one per SYNC cycle (cycles, complete, missing TPDOs,
+    late SYNCs, late answers, jitter), from :meth:`chcos.devices.devtab.Devtab.bus_status`
+    (the map's ``bus_status``)."""
+    out = []
+    for bus, doc in status.items():
+        for n in doc.get("nodes", ()):
+            reg = n.get("error_register")
+            text = (f"node     {bus}/{n['node']:<13} {n['state']}, {n['boots']} boot-up(s) seen, "
+                    f"{n['nmt_starts']} NMT start(s), error register "
+                    f"{'-' if reg is None else f'0x{reg:02X}'}, last EMCY "
+                    f"{n['last_emcy'] or 'none'}")
+            if n.get("heartbeat_lost"):
+                text += ", heartbeat LOST"
+            if n.get("reason"):
+                text += f" ({n['reason']})"
+            out.append(text)
+        st = doc.get("sync")
+        if st:
+            out.append(f"SYNC     {bus:<16} {st['cycles']} cycles of {st['period'] * 1e3:g} ms, "
+                       f"{st['complete']} complete, {st['missing']} TPDOs missing, "
+                       f"{st['late']} late, {st['late_writes']} late answers; jitter p50 "
+                       f"{st['jitter_p50'] * 1e3:.3f} ms, p99 {st['jitter_p99'] * 1e3:.3f} ms, "
+                       f"max {st['jitter_max'] * 1e3:.3f} ms")
+    return out
 
 
 def render_text(doc: dict[str, Any], rates: Mapping[str, float] | None = None,
@@ -75,6 +104,7 @@ def render_text(doc: dict[str, Any], rates: Mapping[str, float] | None = None,
         errors = " ".join(f"{k} {v}" for k, v in sorted(st.get("errors", {}).items()))
         out.append(f"  bus {bus}: {counts or 'no traffic'}"
                    f"{'; errors: ' + errors if errors else ''}")
+    out.extend(f"  {line}" for line in bus_status_lines(doc.get("bus_status") or {}))
     k = doc.get("kernel")
     if k:
         out.append(f"  kernel: {k.get('steps', 0)} steps, {k.get('ready', 0)} ready, "

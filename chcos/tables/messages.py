@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import enum
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any
 
 from chcos.errors import MessageError, QueueOverflow
 
@@ -101,32 +101,20 @@ class Link:
     overwritten: int = 0
     refused: int = 0
     discarded: int = 0  # unread messages dropped when the receiving task was reset
-    #: ``port`` while a message can be stored straight into it (a local newest-wins input
-    #: port, the link not suspended; on a remote newest-wins link, :attr:`out` while a message
-    #: waits in it), else None: the delivery's one test for its hot path;
-    #: ``queue`` the same for a queued port. Kept by :meth:`refresh`, which the :attr:`status`
-    #: setter calls; whoever sets ``port`` or ``remote`` calls it too (the installer, once)
-    direct: InPort | OutSlot | None = None
-    queue: InPort | None = None
     #: a remote newest-wins link's message waiting to leave in a batch (the communications
-    #: manager's; while one waits, ``direct`` is it, so that a newer message replaces it on the
-    #: delivery's hot path, as in a local input port)
+    #: manager's, see :mod:`chcos.comm.manager`)
     out: OutSlot | None = None
-    suspended: bool = False  # status is SUSPENDED (a plain attribute for the hot paths)
-    #: an instrument of this satellite's kernel hears of messages (sent, overwritten,
-    #: delivered, tasks made ready): no hot path then, neither the delivery's (``direct``,
-    #: ``queue``) nor the read's (the port's ``plain``). Kept by the message manager when
-    #: instruments change and by the installer for a new link; :meth:`refresh` applies it
+    #: the communications manager's: ``out`` while its message waits. The message layer no
+    #: longer reads it (every remote message goes through ``Comm.sensory``); kept until the
+    #: communications manager drops it
+    direct: OutSlot | None = None
+    #: the communications manager's, always False: kept until it drops it (see ``direct``)
     hooked: bool = False
-    #: counts every priority change of any link (:meth:`set_priority`): an order of links by
-    #: priority kept with the count it was made at is current while the count is the same
-    epoch: ClassVar[int] = 0
+    suspended: bool = False  # status is SUSPENDED (kept by the status setter)
 
     def set_priority(self, priority: int) -> None:
-        """Change the link's priority (setpri, resetpri, an invoke at a priority): every kept
-        order of links by priority is stale from now (:attr:`epoch`)."""
+        """Change the link's priority (setpri, resetpri, an invoke at a priority)."""
         self.priority = priority
-        Link.epoch += 1
         if self.remote:  # an express priority is not batched: the next message decides again
             self.direct = None
 
@@ -139,15 +127,13 @@ class Link:
     def status(self, status: LinkStatus) -> None:
         self._status = status
         self.suspended = status is LinkStatus.SUSPENDED
-        self.refresh()
 
     @property
     def delivered(self) -> int:
         """Messages the receiver has taken: on a sensory link into a local input port, what
-        was sent and neither overwritten, discarded nor is still unread (the reads count
-        nothing: a store per message less); on a command link to an actuator or a file, what
-        was sent (written at once); 0 on any other link here (the task's own satellite counts
-        a remote link's)."""
+        was sent and neither overwritten, discarded nor is still unread; on a command link to
+        an actuator or a file, what was sent (written at once); 0 on any other link here (the
+        task's own satellite counts a remote link's)."""
         port = self.port
         if port.__class__ is InPort and not self.remote:
             fifo = port.fifo
@@ -157,21 +143,6 @@ class Link:
         if self.dst_kind is EndpointKind.DEVICE or self.dst_kind is EndpointKind.FILE:
             return self.sent
         return 0
-
-    def refresh(self) -> None:
-        """Recompute :attr:`direct`, :attr:`queue` and the port's ``plain`` from the port,
-        ``remote``, :attr:`hooked` and the status."""
-        port = self.port
-        self.direct = self.queue = None
-        if port.__class__ is not InPort:
-            return
-        port.plain = port.fifo is None and not self.hooked
-        port.fifo_plain = port.fifo is not None and not self.hooked
-        if not self.remote and not self.hooked and self._status is not LinkStatus.SUSPENDED:
-            if port.fifo is None:
-                self.direct = port
-            else:
-                self.queue = port
 
     @property
     def name(self) -> str:
@@ -190,14 +161,12 @@ class InPort:
     """One of a task's eight input ports: the newest unread message of its sensory link, or a
     bounded FIFO for a queued link."""
 
-    __slots__ = ("device", "fifo", "fifo_plain", "fresh", "index", "link", "plain", "sent_at",
-                 "single", "unwait", "value", "waiter")
+    __slots__ = ("device", "fifo", "fresh", "index", "link", "sent_at", "value", "waiter")
 
     def __init__(self, link: Link, index: int) -> None:
         self.link = link
         self.index = index
         self.device = link.src_kind is EndpointKind.DEVICE
-        self.single = (self,)
         self.value: Any = None
         self.fresh = False
         self.sent_at = 0.0
@@ -205,20 +174,6 @@ class InPort:
         # the type is not named: the task table sits on the message table, not beside it)
         self.waiter: Any = None
         self.fifo: deque[tuple[Any, float]] | None = deque() if link.queued else None
-        #: a read takes the message here itself (a newest-wins port; ``fifo_plain`` a queued
-        #: one), no instrument hearing of messages: kept by :meth:`Link.refresh`; else through
-        #: :meth:`take`
-        self.plain = self.fifo is None and not link.hooked
-        self.fifo_plain = self.fifo is not None and not link.hooked
-        #: the ``unwait`` of a task whose only wait is this port (a ``read`` without a timeout):
-        #: it stops naming the task as its waiter. One object per port, so that a delivery
-        #: recognises a plain read of its own port by identity (``w.unwait is port.unwait``)
-        #: and ends it itself.
-        self.unwait: Callable[[Any], None] = self._forget
-
-    def _forget(self, t: Any) -> None:
-        if self.waiter is t:
-            self.waiter = None
 
     def store(self, value: Any, now: float) -> bool:
         """Put a message in; True if it overwrote an unread one. Raises QueueOverflow when a
@@ -254,16 +209,14 @@ class InPort:
 
 class OutSlot:
     """A remote newest-wins link's message waiting in an outgoing batch (see
-    :mod:`chcos.comm.manager`). While it waits the link's ``direct`` names it, and a delivery
-    stores a newer message into it as into a local input port (counting the one it replaces
-    as overwritten on this satellite's copy of the link); the batch takes ``value`` when it
+    :mod:`chcos.comm.manager`). A newer message replaces it (the one replaced counts as
+    overwritten on this satellite's copy of the link); the batch takes ``value`` when it
     leaves. ``waiter`` is always None: nobody reads it on this satellite."""
 
-    __slots__ = ("fresh", "over0", "unwait", "value", "waiter")
+    __slots__ = ("fresh", "over0", "value", "waiter")
 
     def __init__(self) -> None:
         self.waiter: Any = None
-        self.unwait: Any = None
         self.value: Any = None
         #: a message waits (the link's batch holds this slot)
         self.fresh = False

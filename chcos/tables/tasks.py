@@ -90,17 +90,10 @@ class TaskEntry:
     prio: int = 0
     _owner: Link | None = None  # see :attr:`owner`
     coro: Coroutine[Any, Any, Any] | None = None
-    #: ``coro`` while its next step is a plain ``send`` (no exception to throw into it, no
-    #: instrument hearing of steps), else None: the run loop's one test for its fast step. The
-    #: kernel keeps it (Kernel.refresh_step); whoever ends an activation clears it with ``coro``
-    plain: Coroutine[Any, Any, Any] | None = None
     command: Any = None  # parameters of the current activation
     in_ports: list[InPort] = field(default_factory=list)
     out_links: list[Link] = field(default_factory=list)
     up_links: list[Link] = field(default_factory=list)  # add with add_up_link
-    #: the only one of up_links while no exception task taps this task (None: none, several,
-    #: or tapped): a sender's hot path delivers to it alone. Kept by add_up_link and mark_tapped
-    up_one: Link | None = None
     tapped: bool = False  # an exception task's tap link leaves this task (see mark_tapped)
     special_links: dict[str, Link] = field(default_factory=dict)  # assassin links by target
     tap: TapPort | None = None  # the exception task's tap
@@ -118,9 +111,8 @@ class TaskEntry:
     new_command: tuple[Any] | None = None  # a newer command from the owner, not yet taken
     wait_commands: bool = False  # waiting (wait_any) for a command message
     wait_links: tuple[Link, ...] = ()  # waiting (wait_any) for a completion on these links
-    wait_tap: bool = False  # waiting (wait_any) on the exception tap
     wake_filter: Callable[[str, Any], bool] | None = None  # wait_any(when=...)
-    multi_wait: bool = False  # any of the four above is set
+    multi_wait: bool = False  # waiting in wait_any (for any of the above)
     # scheduler bookkeeping
     send_value: Any = None
     throw_exc: BaseException | None = None
@@ -144,8 +136,7 @@ class TaskEntry:
     last_error: str = ""
 
     #: where :attr:`base_prio` comes from: the owning link, or the holder of the default
-    #: priority when nobody owns the task (kept by the two setters below; a delivery reads
-    #: ``prio_src.priority``, one attribute instead of a test and two)
+    #: priority when nobody owns the task (kept by the two setters below)
     prio_src: Link | DefaultPriority = field(init=False, repr=False)
     _default: DefaultPriority = field(init=False, repr=False)
 
@@ -179,19 +170,13 @@ class TaskEntry:
         return self.prio_src.priority
 
     def add_up_link(self, link: Link) -> None:
-        """A sensory link leaving this task (at install): appended to ``up_links``, and kept
-        in ``up_one`` while it is the only one and no tap listens (the senders' hot path)."""
+        """A sensory link leaving this task (at install)."""
         self.up_links.append(link)
-        self._refresh_up()
 
     def mark_tapped(self) -> None:
-        """An exception task's tap link now leaves this task (at install): its messages must
-        go through the taps, so the senders' hot path (``up_one``) is off for it."""
+        """An exception task's tap link now leaves this task (at install): its messages also
+        go into the taps."""
         self.tapped = True
-        self._refresh_up()
-
-    def _refresh_up(self) -> None:
-        self.up_one = self.up_links[0] if len(self.up_links) == 1 and not self.tapped else None
 
     def __repr__(self) -> str:
         return f"<task {self.name} m{self.machine} L{self.level} {self.state.value} p{self.prio}>"

@@ -28,17 +28,13 @@ class Commanding(TaskHandle):
     def put(self, value: Any) -> int:
         """Send ``value`` upward to every task that reads this one; never blocks. Returns how
         many links took it. Raises QueueOverflow if a queued link was full."""
-        link = self._t.up_one  # None when several links or a tap take it
-        if link is not None:  # MessageManager.put's own fast path, a call less
-            return self._deliver(link, value)
         return self._mm.put(self._t, value)
 
     def write(self, port: Port, value: Any) -> None:
         """Command actuator (or output file) on ``port`` with ``value``; never blocks.
         Raises DeviceError if the actuator refuses it (outside limits, failed), MessageError if
         the port leads to a task."""
-        link = self._out_named.get(port) if port.__class__ is str else None  # (no call)
-        self._mm.write(self._t, link or self._out(port), value)
+        self._mm.write(self._t, self._out(port), value)
 
     # ---- command messages (topen, tclose, teotsk, msgstat) ----------------------------------
     @types.coroutine

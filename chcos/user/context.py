@@ -28,11 +28,12 @@ from chcos.tables.messages import LinkType
 from chcos.tables.tasks import TaskState
 from chcos.user.axes import AxisHandle, axis_handle
 from chcos.user.commanding import Commanding
+from chcos.user.cycles import Cycle, wait_cycle
 from chcos.user.ports import Port
 from chcos.user.reading import Event, Reading
 from chcos.user.worldmodel import WorldModel
 
-__all__ = ["Event", "Port", "TaskContext"]
+__all__ = ["Cycle", "Event", "Port", "TaskContext"]
 
 
 class TaskContext(Reading, Commanding):
@@ -128,6 +129,17 @@ class TaskContext(Reading, Commanding):
         t.timer = k.call_at(t.sleep_until, wake)
         k.block(t, TaskState.ASLEEP)
         yield BLOCK
+
+    def sync_cycle(self, bus: str, n: int | None = None,
+                   timeout: float | None = None) -> Generator[Any, Any, Cycle]:
+        """Wait (through the kernel) for SYNC cycle ``n`` of field bus ``bus`` - the next one
+        if None - to be over: a :class:`~chcos.user.cycles.Cycle` with ``complete`` True when
+        every synchronous TPDO due in it arrived, False when SYNC n+1 went out first. RPDO
+        writes made in answer that go out after SYNC n+1 are counted (``sync-late-writes``).
+        Raises MessageError (no such bus here, no SYNC cycle, ``n`` long past), ReadTimeout
+        after ``timeout`` seconds. See :mod:`chcos.user.cycles`."""
+        return wait_cycle(self._t, self._k, getattr(self._mm.devices, "drivers", ()), bus, n,
+                          timeout)
 
     @types.coroutine
     def checkpoint(self) -> Generator[Any, Any, None]:

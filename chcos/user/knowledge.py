@@ -160,32 +160,60 @@ class Experience:
 class LearnedPattern:
     """A recognizer that learns the sensory window preceding an outcome (e.g. a stuck tip).
 
-    Each sample is a vector of named ``features``. When the outcome happens,
-    :meth:`learn` takes the history of the ``lead`` seconds before it (skipping the last
-    ``guard`` seconds, which are the outcome's own onset) as an example, summarized as the
-    rate of change (least-squares slope) of each feature over the window. :meth:`push`
-    matches the current window against the learned examples: it fires when every feature's
-    rate is within ``tolerance`` (relative) of an example's. Examples are kept in a
-    :class:`Store` across runs."""
+    Each sample is a vector of named ``features``; a window (the last ``lead`` seconds) is
+    summarized as the rate of change (least-squares slope) of each feature. Every full window
+    :meth:`push` sees also feeds the *normal* reference: the running mean and spread of those
+    rates. When the outcome happens, :meth:`learn` takes the window of the ``lead`` seconds
+    before it (skipping the last ``guard`` seconds, the outcome's own onset) as an example -
+    only if it differs from the normal windows (by more than ``spread`` standard deviations in
+    some feature, with at least ``reference`` normal windows seen): an outcome without a
+    precursor teaches nothing. :meth:`push` fires when the current window differs from normal
+    and every feature's rate is within ``tolerance`` (relative) of an example's. An example
+    that fires again within ``recur`` seconds of its previous alarm, with no outcome in
+    between, has given a false alarm: one that has given two more false alarms than it
+    predicted outcomes is forgotten (a match within ``lead`` seconds of an alarm is the same
+    alarm). Examples and their scores are kept in a :class:`Store`
+    across runs."""
 
     def __init__(self, features: Sequence[str], store: Store, *, lead: float = 1.0,
-                 guard: float = 0.0, tolerance: float = 0.35, keep: int = 20) -> None:
+                 guard: float = 0.0, tolerance: float = 0.35, keep: int = 20,
+                 spread: float = 4.0, reference: int = 20, recur: float = 2.0) -> None:
         if not features:
             raise ConfigError("LearnedPattern: expected at least one feature")
-        if not (lead > 0 and guard >= 0 and tolerance > 0):
+        if not (lead > 0 and guard >= 0 and tolerance > 0 and spread > 0 and reference >= 2
+                and recur > 0):
             raise ConfigError(f"LearnedPattern: lead {lead!r} > 0, guard {guard!r} >= 0, "
-                              f"tolerance {tolerance!r} > 0 expected")
+                              f"tolerance {tolerance!r} > 0, spread {spread!r} > 0, "
+                              f"reference {reference!r} >= 2, recur {recur!r} > 0 expected")
         self.features = list(features)
         self.store = store
         self.lead = float(lead)
         self.guard = float(guard)
         self.tolerance = float(tolerance)
+        self.spread = float(spread)
+        self.reference = int(reference)
+        self.recur = float(recur)
+        self.keep = keep
         doc = store.load()
         ex = doc.get("examples", [])
-        self.examples: deque[dict[str, float]] = deque(
-            ({str(k): float(v) for k, v in e.items()} for e in ex if isinstance(e, dict)),
-            maxlen=keep)
+        self.examples: list[dict[str, float]] = [
+            {str(k): float(v) for k, v in e.items()} for e in ex if isinstance(e, dict)][-keep:]
+        raw = doc.get("scores", [])
+        scores = [[int(x[0]), int(x[1])] for x in raw if isinstance(x, list) and len(x) == 2] \
+            if isinstance(raw, list) else []
+        #: [outcomes predicted, false alarms] of each example
+        self.scores: list[list[int]] = (scores + [[0, 0]] * len(self.examples))[
+            :len(self.examples)]
         self.history: deque[tuple[float, list[float]]] = deque()
+        #: false alarms so far (every run), and examples forgotten for them
+        self.false_alarms = 0
+        self.forgotten = 0
+        # the normal reference: count, mean and sum of squared deviations of each feature's
+        # rate over the windows seen (Welford)
+        self._n = 0
+        self._mean = [0.0] * len(self.features)
+        self._m2 = [0.0] * len(self.features)
+        self._alarm: tuple[float, int] | None = None  # (time, example) of the last alarm
 
     def _rates(self, window: Sequence[tuple[float, list[float]]]) -> dict[str, float] | None:
         """Least-squares slope of each feature over ``window`` (robust to noisy end points)."""
@@ -202,9 +230,30 @@ class LearnedPattern:
             out[f] = sum((t - tm) * (v[i] - vm) for t, v in window) / stt
         return out
 
+    def _observe(self, rates: Mapping[str, float]) -> None:
+        """Add a window's rates to the normal reference."""
+        self._n += 1
+        for i, f in enumerate(self.features):
+            d = rates[f] - self._mean[i]
+            self._mean[i] += d / self._n
+            self._m2[i] += d * (rates[f] - self._mean[i])
+
+    def differs(self, rates: Mapping[str, float]) -> bool:
+        """True if ``rates`` lie outside the normal windows seen so far (more than ``spread``
+        standard deviations away in some feature); False while fewer than ``reference``
+        normal windows have been seen (no reference point yet)."""
+        if self._n < self.reference:
+            return False
+        for i, f in enumerate(self.features):
+            std = (self._m2[i] / (self._n - 1)) ** 0.5
+            floor = 1e-3 * max(1.0, abs(self._mean[i]))  # a noise-free signal still varies
+            if abs(rates[f] - self._mean[i]) > self.spread * max(std, floor):
+                return True
+        return False
+
     def push(self, t: float, sample: Mapping[str, float]) -> bool:
-        """Add a sample; True if the newest ``lead`` s look like a learned precursor. Raises
-        ConfigError if a feature is missing from ``sample``."""
+        """Add a sample; True if the newest ``lead`` s differ from normal and look like a
+        learned precursor. Raises ConfigError if a feature is missing from ``sample``."""
         try:
             vec = [float(sample[f]) for f in self.features]
         except KeyError as exc:
@@ -212,15 +261,40 @@ class LearnedPattern:
         self.history.append((float(t), vec))
         while self.history and self.history[0][0] < t - self.lead - self.guard - 1.0:
             self.history.popleft()
-        if not self.examples:
-            return False
         window = [s for s in self.history if s[0] >= t - self.lead]
         if not window or window[-1][0] - window[0][0] < 0.8 * self.lead:
             return False
         rates = self._rates(window)
         if rates is None:
             return False
-        return any(self._close(rates, ex) for ex in self.examples)
+        if not self.differs(rates):
+            self._observe(rates)  # (the reference stays normal: unusual windows stay out)
+            return False
+        hit = next((i for i, ex in enumerate(self.examples) if self._close(rates, ex)), None)
+        if hit is None:
+            return False
+        last = self._alarm
+        if last is not None and last[1] == hit and t - last[0] <= self.lead:
+            return True  # the same alarm: its window has not been renewed yet
+        if last is not None and last[1] == hit and t - last[0] <= self.recur:
+            self._false_alarm(hit)
+            if hit >= len(self.examples) or not self._close(rates, self.examples[hit]):
+                self._alarm = None
+                return False  # forgotten: no alarm from it
+        self._alarm = (float(t), hit)
+        return True
+
+    def _false_alarm(self, i: int) -> None:
+        """Example ``i`` fired again with no outcome since its last alarm: count it against
+        the example, and forget an example with two more false alarms than predictions."""
+        self.false_alarms += 1
+        score = self.scores[i]
+        score[1] += 1
+        if score[1] >= score[0] + 2:
+            del self.examples[i]
+            del self.scores[i]
+            self.forgotten += 1
+        self._save()
 
     def _close(self, rates: Mapping[str, float], ex: Mapping[str, float]) -> bool:
         for f in self.features:
@@ -231,18 +305,35 @@ class LearnedPattern:
         return True
 
     def learn(self, t: float) -> dict[str, float] | None:
-        """The outcome happened at ``t``: learn the window before it (saved). Returns the
-        example, or None if the history is too short."""
+        """The outcome happened at ``t``: learn the window before it (saved), if it differs
+        from the normal ones. Returns the example, or None if the history is too short or the
+        window looks normal (an outcome without a precursor teaches nothing). An alarm in the
+        ``recur`` seconds before counts as a prediction of its example."""
+        predicted = self._alarm is not None and t - self._alarm[0] <= self.recur + self.lead
+        if self._alarm is not None and predicted:
+            self.scores[self._alarm[1]][0] += 1
+        self._alarm = None
         end = t - self.guard
         window = [s for s in self.history if end - self.lead <= s[0] <= end]
         rates = self._rates(window)
-        if rates is None:
+        if rates is None or not self.differs(rates):
+            if predicted:
+                self._save()
             return None
         self.examples.append(rates)
-        self.store.save({"examples": list(self.examples), "features": self.features})
+        self.scores.append([0, 0])
+        del self.examples[:-self.keep]
+        del self.scores[:-self.keep]
+        self._save()
         return rates
+
+    def _save(self) -> None:
+        self.store.save({"examples": self.examples, "scores": self.scores,
+                         "features": self.features})
 
     def reset(self) -> None:
         """Forget every learned example (memory and file)."""
         self.examples.clear()
+        self.scores.clear()
+        self._alarm = None
         self.store.reset()

@@ -16,25 +16,12 @@ Port = int | str
 
 class TaskHandle:
     """What every part of :class:`chcos.user.context.TaskContext` stands on: the task's entry,
-    the kernel and the message manager, and the port lookup."""
-
-    """The handle a task's code uses for every system call. One per task, made at install."""
+    the kernel and the message manager, and the port lookup. One per task, made at install."""
 
     def __init__(self, task: TaskEntry, kernel: Kernel, msgmgr: MessageManager) -> None:
         self._t = task
         self._k = kernel
         self._mm = msgmgr
-        self._deliver = msgmgr.deliver  # put's hot path: one attribute less per message
-        #: input ports found so far, by index and by source name (read's hot path, one lookup:
-        #: a dict, so a negative index misses, and so does anything unhashable). A task's
-        #: ports are only ever appended (at its install), so what is found stays right. A key
-        #: equal to one here finds it too, as in any dict (True is port 1)
-        self._in_found: dict[int | str, InPort] = {}
-        self._out_named: dict[str, Link] = {}
-        #: the input ports in read_any's order (highest link priority, then lowest port), and
-        #: the :attr:`Link.epoch` it was made at (read_any makes it again after any setpri)
-        self._any_order: tuple[InPort, ...] = ()
-        self._any_epoch = -1
 
     def take_command(self) -> Any:
         """The owner's newest command to this running activation (it becomes :attr:`command`).
@@ -57,37 +44,44 @@ class TaskHandle:
         return [lk.dst for lk in self._t.out_links]
 
     def _in(self, port: Port) -> InPort:
+        """Input ``port``, by index or by the source's name; raises MessageError naming the
+        task and its inputs if there is no such port."""
         ports = self._t.in_ports
-        if not isinstance(port, str):
-            # an index, or anything equal to one (True, 1.0), as read's dict finds it
-            if port in range(len(ports)):
-                p = self._in_found[port] = ports[int(port)]
-                return p
+        if port.__class__ is int:
+            if 0 <= port < len(ports):
+                return ports[port]
             raise MessageError(f"task {self._t.name} has no input port {port} "
                                f"(it has {len(ports)}: {', '.join(self.inputs) or 'none'})")
-        for p in ports:
-            if p.link.src == port:
-                self._in_found[port] = p
-                return p
-        raise MessageError(f"task {self._t.name} has no input from {port!r} "
-                           f"(inputs: {', '.join(self.inputs) or 'none'})")
+        if type(port) is str:
+            for p in ports:
+                if p.link.src == port:
+                    return p
+            raise MessageError(f"task {self._t.name} has no input from {port!r} "
+                               f"(inputs: {', '.join(self.inputs) or 'none'})")
+        raise MessageError(f"task {self._t.name}: an input port is an index or a source name, "
+                           f"not {port!r}")
 
     def _out(self, port: Port) -> Link:
+        """Output ``port``, by index or by the destination's name (an assassin's special link
+        by its target's name too); raises MessageError naming the task and its outputs if
+        there is no such port."""
         links = self._t.out_links
-        if isinstance(port, int):
+        if type(port) is int:
             if 0 <= port < len(links):
                 return links[port]
             raise MessageError(f"task {self._t.name} has no output port {port} "
                                f"(it has {len(links)}: {', '.join(self.outputs) or 'none'})")
-        for lk in links:
-            if lk.dst == port:
-                self._out_named[port] = lk
-                return lk
-        special = self._t.special_links.get(port)
-        if special is not None:
-            return special
-        raise MessageError(f"task {self._t.name} has no output to {port!r} "
-                           f"(outputs: {', '.join(self.outputs) or 'none'})")
+        if type(port) is str:
+            for lk in links:
+                if lk.dst == port:
+                    return lk
+            special = self._t.special_links.get(port)
+            if special is not None:
+                return special
+            raise MessageError(f"task {self._t.name} has no output to {port!r} "
+                               f"(outputs: {', '.join(self.outputs) or 'none'})")
+        raise MessageError(f"task {self._t.name}: an output port is an index or a destination "
+                           f"name, not {port!r}")
 
     def _task_link(self, port: Port) -> Link:
         link = self._out(port)

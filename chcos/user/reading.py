@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import logging
 import types
-from collections.abc import Callable, Generator, Sequence
+from collections.abc import Awaitable, Callable, Generator, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar, overload
 
 from chcos.errors import MessageError, ReadTimeout, SensorFailure
 from chcos.kernel.scheduler import BLOCK
@@ -21,17 +21,12 @@ from chcos.tables.tasks import TaskState
 from chcos.user.ports import Port, TaskHandle
 
 log = logging.getLogger("chcos.user.context")
-_WAITING = TaskState.WAITING  # a module constant: read on every blocking read
-
-
-def _by_priority(p: InPort) -> tuple[int, int]:
-    """read_any's order: the highest link priority first, then the lowest port."""
-    return (-p.link.priority, p.index)
+_WAITING = TaskState.WAITING
 
 
 def _best(ports: Sequence[InPort]) -> InPort | None:
-    """The port read_any takes of ``ports`` now (see :func:`_by_priority`), None if none has a
-    message: one pass over the ports, by the links' priorities as they are now."""
+    """The port read_any takes of ``ports`` now, None if none has a message: the highest link
+    priority (as the priorities are now), then the lowest port."""
     best: InPort | None = None
     top = -1  # best's link priority (priorities are 0..99)
     for p in ports:
@@ -40,6 +35,17 @@ def _best(ports: Sequence[InPort]) -> InPort | None:
             if prio > top or (prio == top and p.index < best.index):  # type: ignore[union-attr]
                 best, top = p, prio
     return best
+
+
+_Named = TypeVar("_Named", bound=Port)   # how a read_any caller names its ports
+
+
+def _position(ports: Sequence[InPort], port: InPort) -> int:
+    """Where ``port`` is in ``ports`` (by identity: the first place, if it is named twice)."""
+    for i, p in enumerate(ports):
+        if p is port:
+            return i
+    raise AssertionError("read_any took a port it was not given")
 
 
 @dataclass(frozen=True)
@@ -77,8 +83,10 @@ class Reading(TaskHandle):
             self._mm.devices.check_readable(link.src)
 
     def _take(self, p: InPort) -> Any:
+        """Take the message on ``p`` (an instrument hears of its delivery)."""
         value, at = p.take()
-        self._mm.taken(p.link, at)
+        if self._k.hooks.h_delivered:
+            self._mm.taken(p.link, at)
         return value
 
     def _arm_timeout(self, timeout: float | None, what: str) -> None:
@@ -94,98 +102,72 @@ class Reading(TaskHandle):
         t.timer = k.call_later(timeout, expire)
 
     @types.coroutine
-    def read(self, port: Port = 0, timeout: float | None = None) -> Generator[Any, Any, Any]:
-        """The newest message on input ``port``, waiting for one if there is none.
-        (``timeout`` is not keyword-only on purpose: in CPython 3.11 a keyword-only default
-        costs every call ~30 ns, some 2-3 % of a task-to-task message; the same for read_any and
-        read_exception.)
+    def read(self, port: Port = 0, *,
+             timeout: float | None = None) -> Generator[Any, Any, Any]:
+        """The newest message on input ``port`` (an index or the source's name), waiting for
+        one if there is none (the oldest unread one on a queued link).
 
         Raises MessageError for a bad port, SensorFailure if the source is a failed or stale
         sensor (also while waiting), ReadTimeout after ``timeout`` seconds without a message.
         """
-        t = self._t
-        try:
-            p = self._in_found[port]
-        except (KeyError, TypeError):  # the first read of it, or no such port
-            p = self._in(port)  # finds and keeps it, or raises naming the port
+        ports = self._t.in_ports
+        p = ports[port] if port.__class__ is int and 0 <= port < len(ports) else self._in(port)
         if not p.fresh:
             if p.device:
                 self._check_source(p)
-            p.waiter = t
-            t.state = _WAITING  # (an instrument hears of the block from the kernel)
-            if timeout is not None:  # a timed wait ends through forget, which a delivery calls
-                t.wait_ports = p.single
-                t.unwait = forget
-                self._arm_timeout(timeout, p.link.name)
-            else:  # the port's own unwait: a delivery to it ends this wait itself
-                t.unwait = p.unwait
+            self._wait_for((p,), timeout)
             yield BLOCK
-        if p.plain:  # the hot path: InPort.take of a newest-wins port, no instrument to tell
-            value = p.value
-            p.value = None
-            p.fresh = False
-            return value  # counted by Link.delivered
-        if p.fifo_plain:  # the same for a queued port
-            fifo = p.fifo
-            value = fifo.popleft()[0]  # type: ignore[union-attr]
-            p.fresh = bool(fifo)
-            return value
-        return self._take(p)
+        value, at = p.take()
+        if self._k.hooks.h_delivered:
+            self._mm.taken(p.link, at)
+        return value
 
-    @types.coroutine
-    def read_any(self, ports: Sequence[Port] | None = None,
-                 timeout: float | None = None) -> Generator[Any, Any, tuple[int, Any]]:
-        """(port index, message) from whichever of ``ports`` (default: all inputs) has one; if
+    @overload
+    def read_any(self, ports: None = None, *,
+                 timeout: float | None = None) -> Awaitable[tuple[int, Any]]: ...
+
+    @overload
+    def read_any(self, ports: Sequence[_Named], *,
+                 timeout: float | None = None) -> Awaitable[tuple[_Named, Any]]: ...
+
+    @types.coroutine  # type: ignore[misc]
+    def read_any(self, ports: Sequence[Port] | None = None, *,
+                 timeout: float | None = None) -> Generator[Any, Any, tuple[Port, Any]]:
+        """(port, message) from whichever of ``ports`` (default: all inputs) has one; if
         several do, the highest-priority link first, then the lowest port. Waits if none has.
+        The port comes back as the caller named it: the element of ``ports`` it was given as
+        (a source name stays a name, an index an index); without ``ports``, the port index.
         Raises as :meth:`read`."""
         t = self._t
-        best: InPort | None = None
-        if ports is None:  # every input, in the order kept between calls: the first there
-            chosen: Sequence[InPort] = t.in_ports
-            order = self._any_order
-            if self._any_epoch != Link.epoch:  # a setpri since (the ports are made at install)
-                order = self._any_order = tuple(sorted(chosen, key=_by_priority))
-                self._any_epoch = Link.epoch
-            for p in order:
-                if p.fresh:
-                    best = p
-                    break
-        else:
-            chosen = [self._in(p) for p in ports]
-            best = _best(chosen)
+        chosen = tuple(t.in_ports if ports is None else [self._in(p) for p in ports])
+        best = _best(chosen)
         if best is None:
             if not chosen:
                 raise MessageError(f"task {t.name} has no input ports to read")
             for p in chosen:
                 if p.device:  # its link comes from a sensor
                     self._mm.devices.check_readable(p.link.src)
-            for p in chosen:
-                p.waiter = t
-            single = len(chosen) == 1
-            if single and timeout is None:  # as a plain read (see read)
-                t.unwait = chosen[0].unwait
-            else:
-                t.wait_ports = tuple(chosen)
-                t.unwait = forget
-            t.state = _WAITING
-            if timeout is not None:
-                self._arm_timeout(timeout, ", ".join(p.link.name for p in chosen))
+            self._wait_for(chosen, timeout)
             yield BLOCK
             # woken by the first message; others may have come before this step: the best of
             # what is there now, by the priorities now
-            best = chosen[0] if single else _best(chosen)
+            best = _best(chosen)
             assert best is not None
-        if best.plain:  # the hot paths, as in read
-            value = best.value
-            best.value = None
-            best.fresh = False
-            return best.index, value
-        if best.fifo_plain:
-            fifo = best.fifo
-            value = fifo.popleft()[0]  # type: ignore[union-attr]
-            best.fresh = bool(fifo)
-            return best.index, value
-        return best.index, self._take(best)
+        # what the caller named: the element of ``ports`` that is this port, else its index
+        named: Port = best.index if ports is None else ports[_position(chosen, best)]
+        return named, self._take(best)
+
+    def _wait_for(self, ports: tuple[InPort, ...], timeout: float | None) -> None:
+        """Record that the calling task waits for a message on one of ``ports`` (a delivery
+        wakes it through the kernel), for at most ``timeout`` seconds (then ReadTimeout)."""
+        t = self._t
+        for p in ports:
+            p.waiter = t
+        t.wait_ports = ports
+        t.unwait = forget
+        t.state = _WAITING
+        if timeout is not None:
+            self._arm_timeout(timeout, ", ".join(p.link.name for p in ports))
 
     def poll(self, port: Port = 0, default: Any = None) -> Any:
         """The newest message on ``port`` if there is one, else ``default`` (never waits).
@@ -237,7 +219,6 @@ class Reading(TaskHandle):
             t.wait_ports = ins
             if tap is not None:
                 tap.waiter = t
-                t.wait_tap = True
             t.wait_links = links
             t.wait_commands = commands
             t.wake_filter = when
@@ -303,7 +284,7 @@ class Reading(TaskHandle):
         return self._in(port).link.status
 
     @types.coroutine
-    def read_exception(self, timeout: float | None = None) -> Generator[Any, Any,
+    def read_exception(self, *, timeout: float | None = None) -> Generator[Any, Any,
                                                                          tuple[str, Any]]:
         """(source task, message): the next sensory message any lower task sent, newest per
         source. Only for a task installed as the exception task; raises MessageError otherwise."""

@@ -21,9 +21,9 @@ On top of the two structures the facility gives what section 7 asks of a world m
 from __future__ import annotations
 
 import math
-from collections.abc import Awaitable, Mapping, Sequence
+from collections.abc import Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 from chcos.errors import ConfigError, MessageError
 from chcos.helpers import is_number
@@ -171,3 +171,25 @@ async def context(ctx: Asker, topic: str = DOING, *args: Any,
     if owner is None:
         return None
     return await ctx.ask(owner, topic, *args, timeout=timeout)
+
+
+_Func = TypeVar("_Func", bound=Callable[..., Awaitable[Any]])
+
+
+def task(*, world_model: Callable[[], WorldModel]) -> Callable[[_Func], _Func]:
+    """Decorate a task's ``async def main(ctx, command)`` with the class (or factory) of the
+    world model its task gets at install (without it: a plain :class:`WorldModel`)::
+
+        @task(world_model=GapModel)
+        async def main(ctx: TaskContext, command: Any) -> None: ...
+
+    Raises ConfigError if ``world_model`` is not callable."""
+    if not callable(world_model):
+        raise ConfigError(f"task(world_model=...): expected a class or factory, "
+                          f"got {world_model!r}")
+
+    def mark(func: _Func) -> _Func:
+        func.__dict__["world_model"] = world_model  # read by the installer
+        return func
+
+    return mark

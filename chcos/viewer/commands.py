@@ -170,8 +170,9 @@ class PageCommands:
                 raise TypeError("line must be a string")
         except (ValueError, KeyError, TypeError) as exc:
             return refuse(400, f'expected JSON {{"line": "setpri -9 C1 B1"}}: {exc}')
-        try:
-            req = cmdline.parse(line)
+        loop = asyncio.get_running_loop()
+        try:  # capped (cmdline.MAX_LINE) and parsed on a worker thread, never on the event loop
+            req = await loop.run_in_executor(None, cmdline.parse, line)
         except (ChcosError, ValueError) as exc:
             return refuse(400, str(exc))
         if req is None:
@@ -183,7 +184,6 @@ class PageCommands:
         if not session.user.may(name):
             return refuse(403, f"{name}: role {session.user.role!r} of {session.user.name} "
                                "may not issue it")
-        loop = asyncio.get_running_loop()
         try:
             answer = await loop.run_in_executor(None, self.system.execute, line)
         except Busy as exc:

@@ -65,6 +65,18 @@ def _fmt_rate(r: float) -> str:
     return f"{r:.1f}/s" if r < 100 else f"{r:.0f}/s"
 
 
+#: Characters that fit a node's width: a bold 12 px name (about 7.4 px a character) and a
+#: 10.5 px line (about 6.2 px), with 4 px of padding each side. Longer text is cut with "…" so
+#: labels of neighbouring nodes never run into each other; the full name is the node's title.
+NAME_CHARS = int((NODE_W - 8) / 7.4)
+LINE_CHARS = int((NODE_W - 8) / 6.2)
+
+
+def fit(text: str, chars: int) -> str:
+    """``text`` cut to ``chars`` characters, the last one "…" when cut."""
+    return text if len(text) <= chars else text[:chars - 1] + "…"
+
+
 def _text(x: float, y: float, text: str, cls: str, **attrs: str) -> str:
     extra = "".join(f" {k.replace('_', '-')}={quoteattr(v)}" for k, v in attrs.items())
     return (f'<text x="{x:.1f}" y="{y:.1f}" class={quoteattr(cls)}{extra}>'
@@ -186,7 +198,8 @@ def _node_svg(n: Node, live: Live | None) -> str:
         if status in ("failed", "stale"):
             stroke = ALERT_COLOR
             classes.append("alert")
-        lines.append((f"{n.name} ({n.kind})", "name"))
+        named = f"{n.name} ({n.kind})"   # the kind goes first when the name is long
+        lines.append((named if len(named) <= NAME_CHARS else n.name, "name"))
         lines.append((f"{_fmt_value(d.get('value'))} {d.get('units', '')}".strip(), "value"))
         age = live.ages.get(n.name) if live is not None else None
         age_txt = (f"age {age:.2f} s · " if age is not None else
@@ -207,6 +220,7 @@ def _node_svg(n: Node, live: Live | None) -> str:
              f'rx="{rx}" fill="{fill}" stroke="{stroke}" stroke-width="1.6"{dash}/>']
     for i, (text, cls) in enumerate(lines):
         weight = {"font_weight": "bold"} if cls == "name" else {}
+        text = fit(text, NAME_CHARS if cls == "name" else LINE_CHARS)  # full name: <title>
         parts.append(_text(n.x, y + 16 + i * 15, text, cls, text_anchor="middle",
                            font_size="12" if cls == "name" else "10.5", **weight))
     if mark is not None and mark[0] in ALERT_MARKS:

@@ -26,7 +26,9 @@ Security. Every request's ``Host`` must be this server's own address (``127.0.0.
 ``localhost:PORT`` on loopback) and an ``Origin``, when sent, the same: a page from another site,
 also one reached through DNS rebinding, can neither read nor command. Logins and commands
 (read-only without ``users``; session cookie and token; setpri and invoke only) are
-:mod:`chcos.viewer.commands`.
+:mod:`chcos.viewer.commands`. Wrong logins are slowed down per client address
+(:class:`LoginThrottle`: after a few, each further attempt waits longer, answered ``429`` with
+``Retry-After`` meanwhile); a JSON body nested too deeply to parse is answered ``400``.
 
 The cell is never slowed by the page: snapshots are taken on the viewer's thread at the viewer's
 rate, only while a page is connected, by reading the tables (torn reads accepted, see
@@ -40,9 +42,11 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import math
 import ssl
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any
 
@@ -55,6 +59,7 @@ from chcos.system.textview import render_text
 from chcos.viewer import ViewerError
 from chcos.viewer.commands import PageCommands
 from chcos.viewer.graph import Live, render_dot, render_svg
+from chcos.viewer.history import History
 from chcos.viewer.snapshot import (
     SAME,
     EventLog,
@@ -72,6 +77,42 @@ log = logging.getLogger("chcos.viewer")
 STATIC = resources.path("chcos.viewer", "static")
 #: Events a newly connected page receives from before it connected.
 HISTORY = 200
+class LoginThrottle:
+    """Slows down repeated wrong logins, per client address: the first ``free`` failures cost
+    nothing, then each further failure bars that client for ``base`` seconds doubled per
+    failure (at most ``longest``); a successful login clears its count. ``clock`` is in
+    seconds (monotonic). At most ``clients`` addresses are remembered (the least recently
+    failed is forgotten first). Used on the viewer's loop thread only."""
+
+    def __init__(self, *, free: int = 5, base: float = 1.0, longest: float = 300.0,
+                 clients: int = 10_000, clock: Callable[[], float] = time.monotonic) -> None:
+        self.free = free
+        self.base = base
+        self.longest = longest
+        self.clients = clients
+        self.clock = clock
+        self.refused = 0
+        self._failed: OrderedDict[str, tuple[int, float]] = OrderedDict()  # count, barred to
+
+    def wait(self, client: str) -> float:
+        """Seconds ``client`` must still wait before it may try again (0: it may now)."""
+        entry = self._failed.get(client)
+        return 0.0 if entry is None else max(0.0, entry[1] - self.clock())
+
+    def failed(self, client: str) -> None:
+        """Count a wrong login of ``client`` and bar it if it had its free attempts."""
+        count = self._failed.pop(client, (0, 0.0))[0] + 1
+        delay = (0.0 if count <= self.free
+                 else min(self.longest, self.base * 2.0 ** (count - self.free - 1)))
+        self._failed[client] = (count, self.clock() + delay)
+        while len(self._failed) > self.clients:
+            self._failed.popitem(last=False)
+
+    def succeeded(self, client: str) -> None:
+        """A right login of ``client``: forget its failures."""
+        self._failed.pop(client, None)
+
+
 def _dumps(obj: Any) -> str:
     return json.dumps(obj, default=str, separators=(",", ":"))
 
@@ -87,7 +128,9 @@ class Viewer:
                  period: float = 0.1, events: EventLog | None = None,
                  users: Users | None = None, implicit: bool = False,
                  svg_period: float = 1.0, stall_timeout: float = 5.0,
-                 max_buffer: int = 1 << 20, ssl_context: ssl.SSLContext | None = None) -> None:
+                 max_buffer: int = 1 << 20, ssl_context: ssl.SSLContext | None = None,
+                 login_throttle: LoginThrottle | None = None,
+                 history: History | None = None) -> None:
         if period <= 0:
             raise ViewerError(f"snapshot period {period} s: must be positive")
         if stall_timeout <= 0 or max_buffer <= 0:
@@ -105,6 +148,8 @@ class Viewer:
         self.stall_timeout = stall_timeout
         self.max_buffer = max_buffer
         self.users = users
+        #: each device's recent values (sparklines on the page, /api/history.csv)
+        self.history = history or History()
         self.snapshots = Snapshotter(system, events, implicit)
         self.events = self.snapshots.events
         self.implicit = implicit
@@ -116,6 +161,7 @@ class Viewer:
         self._prev: dict[str, Any] | None = None
         self._svg: tuple[Any, float, str] | None = None  # (structure, when, svg)
         self.commands = PageCommands(system, users, secure=ssl_context is not None)
+        self.login_throttle = login_throttle or LoginThrottle()
         self._clients = 0
         self._count = threading.Condition()
         self.dropped = 0
@@ -171,8 +217,9 @@ class Viewer:
         self.stop()
 
     def app(self) -> web.Application:
-        """The aiohttp application (routes and the Host/Origin guard); also for test clients."""
-        app = web.Application(middlewares=[self._guard])
+        """The aiohttp application (routes, the Host/Origin guard, login throttling and the
+        answer to bodies nested too deeply); also for test clients."""
+        app = web.Application(middlewares=[self._guard, self._limits])
         app.router.add_get("/", self._index)
         app.router.add_static("/static/", STATIC)
         app.router.add_get("/api/snapshot", self._snapshot)
@@ -180,6 +227,8 @@ class Viewer:
         app.router.add_get("/api/map.svg", self._map_svg)
         app.router.add_get("/api/map.dot", self._map_dot)
         app.router.add_get("/api/map.txt", self._map_txt)
+        app.router.add_get("/api/history", self._history)
+        app.router.add_get("/api/history.csv", self._history_csv)
         app.router.add_get("/api/session", self.commands.session)
         app.router.add_post("/api/login", self.commands.login)
         app.router.add_post("/api/logout", self.commands.logout)
@@ -234,6 +283,7 @@ class Viewer:
         assert self._tick is not None
         while True:
             await asyncio.sleep(self.period)
+            await self._sample_history()
             if self._clients:
                 try:
                     new = self._next_state()
@@ -243,6 +293,19 @@ class Viewer:
                 self._prev, self._state = self._state, new
                 async with self._tick:
                     self._tick.notify_all()
+
+    async def _sample_history(self) -> None:
+        """A history sample when one is due on the system's clock (pages open or not); the
+        tables are read on a worker thread, never on the event loop."""
+        now = self.system.kernel.clock.now() - self.events.t0
+        if not self.history.due(now):
+            return
+        loop = asyncio.get_running_loop()
+        try:
+            doc = await loop.run_in_executor(None, self.snapshots.map_doc)
+        except ViewerError:  # a torn read: the next tick samples
+            return
+        self.history.sample(now, doc["devices"])
 
     # ---- guard: Host and Origin -------------------------------------------------------------
     def _own_hosts(self) -> set[str]:
@@ -272,6 +335,36 @@ class Viewer:
                 status=403)
         return await handler(request)
 
+    @web.middleware
+    async def _limits(self, request: web.Request,
+                      handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
+                      ) -> web.StreamResponse:
+        """Wrong logins throttled per client (429 with Retry-After while barred); a body the
+        JSON parser cannot descend (nested too deeply) answered 400, not 500."""
+        login = request.method == "POST" and request.path == "/api/login"
+        client = request.remote or "?"
+        if login:
+            wait = self.login_throttle.wait(client)
+            if wait > 0:
+                self.login_throttle.refused += 1
+                retry = max(1, math.ceil(wait))
+                return web.json_response(
+                    {"ok": False, "error": f"too many wrong logins from {client}: try again in "
+                                           f"{retry} s"},
+                    status=429, headers={"Retry-After": str(retry)})
+        try:
+            resp = await handler(request)
+        except RecursionError:
+            return web.json_response(
+                {"ok": False, "error": "request body nested too deeply: expected a flat JSON "
+                                       "object"}, status=400)
+        if login:
+            if resp.status == 401:
+                self.login_throttle.failed(client)
+            elif resp.status == 200:
+                self.login_throttle.succeeded(client)
+        return resp
+
     # ---- handlers ---------------------------------------------------------------------------
     async def _index(self, request: web.Request) -> web.StreamResponse:
         return web.FileResponse(STATIC / "index.html")
@@ -295,6 +388,14 @@ class Viewer:
     async def _map_dot(self, request: web.Request) -> web.Response:
         doc = self.snapshots.map_doc()
         return web.Response(text=render_dot(doc), content_type="text/vnd.graphviz")
+
+    async def _history(self, request: web.Request) -> web.Response:
+        return web.json_response(self.history.as_json(), dumps=_dumps)
+
+    async def _history_csv(self, request: web.Request) -> web.Response:
+        return web.Response(text=self.history.as_csv(), content_type="text/csv",
+                            headers={"Content-Disposition":
+                                     'attachment; filename="chcos-history.csv"'})
 
     async def _map_txt(self, request: web.Request) -> web.Response:
         return web.Response(text=render_text(self.snapshots.map_doc()) + "\n")

@@ -24,6 +24,8 @@ from drivers.base import not_finite
 DBC_KEYS = ("message", "signal")
 RAW_KEYS = ("id", "start", "length", "byte_order", "signed", "dlc", "extended")
 BYTE_ORDERS = ("little_endian", "big_endian")
+#: Keys that would declare an alive counter or a checksum: refused by ``check`` with a reason.
+UNSUPPORTED_KEYS = ("counter", "crc", "checksum")
 
 
 def load_dbc(path: str) -> Any:
@@ -115,8 +117,10 @@ class _Frame:
     length: int = 0
     frame_id: int = 0
     extended: bool = False
+    multiplexed: bool = False
 
     def __post_init__(self) -> None:
+        self.multiplexed = bool(self.message.is_multiplexed())
         self.length = int(self.message.length)
         self.frame_id = int(self.message.frame_id)
         self.extended = bool(self.message.is_extended_frame)
@@ -214,10 +218,25 @@ class CanCodec:
         side[signal] = device.name
         self._by_device[device.name] = (fr, signal, None)
 
+    def sensor_ids(self) -> list[tuple[int, bool]]:
+        """``(id, extended)`` of every message with a sensor signal: what the driver receives."""
+        return sorted(k for k, fr in self._by_id.items() if fr.sensors)
+
+    def sensors_of(self, can_id: int, extended: bool) -> list[str]:
+        """The sensor devices of the message with ``can_id`` (none for an unknown id)."""
+        fr = self._by_id.get((can_id, extended))
+        return [] if fr is None else list(fr.sensors.values())
+
+    def message_name(self, can_id: int, extended: bool) -> str:
+        """The name of the message with ``can_id`` (the DBC's, or ``raw_0x..``)."""
+        fr = self._by_id.get((can_id, extended))
+        return f"0x{can_id:X}" if fr is None else str(fr.message.name)
+
     def decode(self, frame: FrameLike) -> tuple[str, list[tuple[str, Any]] | str]:
-        """Classify and decode ``frame``: ``("ok", [(device, value)...])``, ``("ignore", why)``,
+        """Classify and decode ``frame``: ``("ok", [(device, value)...])`` (of a multiplexed
+        message only the sensors its multiplexer selects, possibly none), ``("ignore", why)``,
         or ``(error_kind, detail)`` with error_kind in remote-frame, unknown-id, wrong-length,
-        undecodable."""
+        undecodable, unknown-mux (a multiplexer value the DBC does not list)."""
         if frame.is_remote_frame:
             return "remote-frame", (f"remote frame (a data request) for id "
                                     f"0x{frame.arbitration_id:X}, dlc {frame.dlc}: chcos does "
@@ -244,8 +263,12 @@ class CanCodec:
         try:
             vals = fr.message.decode(bytes(frame.data), decode_choices=False)
         except (cantools.database.DecodeError, ValueError, KeyError) as exc:
+            if fr.multiplexed and "multiplexer id" in str(exc):
+                return "unknown-mux", (f"frame id 0x{frame.arbitration_id:X} "
+                                       f"({fr.message.name}): {exc}")
             return "undecodable", f"frame id 0x{frame.arbitration_id:X}: {exc}"
-        out = [(dev, vals[sig]) for sig, dev in fr.sensors.items()]
+        # a multiplexed message gives only the signals its multiplexer selects in this frame
+        out = [(dev, vals[sig]) for sig, dev in fr.sensors.items() if sig in vals]
         for dev, v in out:
             if isinstance(v, float) and not math.isfinite(v):
                 return "undecodable", (f"frame id 0x{frame.arbitration_id:X}: signal of {dev} "
@@ -341,6 +364,13 @@ def check_address(bus: BusSpec, device: DeviceSpec, dbc: Any) -> list[str]:
     """Errors of one device address on a ``can`` bus (``dbc`` is the loaded DBC or None)."""
     key = f"{device.key}.address"
     a = device.address
+    refused = [f"{key}.{k}: unknown key: chcos does not compute counters or checksums (an "
+               f"actuator's "
+               f"message is sent with the signal at its last written or initial value, which a "
+               f"receiver checking it rejects); a sensor reads such a signal as a plain value"
+               for k in a if k in UNSUPPORTED_KEYS]
+    if refused:
+        return refused
     if "message" in a or "signal" in a:
         errs = [f"{key}.{k}: unknown key in a DBC address; valid keys: {', '.join(DBC_KEYS)}"
                 for k in a if k not in DBC_KEYS]
@@ -360,6 +390,10 @@ def check_address(bus: BusSpec, device: DeviceSpec, dbc: Any) -> list[str]:
         if sig_name not in [s.name for s in msg.signals]:
             return [*errs, f"{key}.signal: no signal {sig_name!r} in message {msg_name}; "
                            f"expected one of: {', '.join(s.name for s in msg.signals)}"]
+        if device.direction == "actuator" and msg.is_multiplexed():
+            errs.append(f"{key}.message: {msg_name} is multiplexed; chcos decodes multiplexed "
+                        f"messages for sensors but does not send them: an actuator needs a "
+                        f"message without multiplexer")
         return errs
     errs = [f"{key}.{k}: unknown key; valid keys: {', '.join(DBC_KEYS)} (DBC form) or "
             f"{', '.join(RAW_KEYS)} (raw form)" for k in a if k not in RAW_KEYS]

@@ -4,9 +4,12 @@ register type, RTU answer classification and the address checks. No I/O (no pymo
 import starts its asyncio clients): used by the Modbus drivers (:mod:`drivers.modbus`) and by
 the simulated slaves.
 
-Registers are 16-bit words sent big-endian; a 32/64-bit value spans 2/4 registers, most
-significant word first (``word_order = "big"``) or last (``"little"``), as pymodbus'
-``convert_to_registers``/``convert_from_registers`` pack them.
+Registers are 16-bit words sent big-endian; a 32/64-bit value spans 2/4 registers in one of
+the four orders devices use, named by the bytes of a 32-bit value ``A B C D`` (``A`` most
+significant): ``ABCD`` (most significant word first, each word big-endian; alias ``big``),
+``CDAB`` (words swapped; alias ``little``), ``BADC`` (bytes swapped in each word) and ``DCBA``
+(both). A 64-bit value follows the same rule over its four words. ``big`` and ``little`` pack
+as pymodbus' ``convert_to_registers``/``convert_from_registers`` do.
 """
 
 from __future__ import annotations
@@ -44,25 +47,43 @@ EXCEPTION_TEXT = {1: "illegal function", 2: "illegal data address", 3: "illegal 
                   11: "gateway target device failed to respond"}
 
 
-def to_registers(type_: str, value: int | float,
-                 word_order: Literal["big", "little"] = "big") -> list[int]:
-    """``value`` packed into the registers of ``type_``. Raises struct.error if it does not
-    fit (an integer out of range)."""
-    code, _ = REGISTER_TYPES[type_]
+WordOrder = Literal["ABCD", "CDAB", "BADC", "DCBA"]
+#: Every ``word_order`` a map may give, and the order each names (``big``/``little``: aliases).
+WORD_ORDERS: dict[str, WordOrder] = {"ABCD": "ABCD", "CDAB": "CDAB", "BADC": "BADC",
+                                     "DCBA": "DCBA", "big": "ABCD", "little": "CDAB"}
+
+
+def _reorder(regs: list[int], order: str) -> list[int]:
+    """``regs`` (most significant word first, each big-endian) in ``order``, or back: both
+    steps - words reversed (``CDAB``, ``DCBA``), bytes swapped in each word (``BADC``,
+    ``DCBA``) - undo themselves. Raises KeyError for an unknown order."""
+    named = WORD_ORDERS[order]
+    if named in ("BADC", "DCBA"):
+        regs = [((r & 0xFF) << 8) | (r >> 8) for r in regs]
+    return regs[::-1] if named in ("CDAB", "DCBA") else regs
+
+
+def to_registers(type_: str, value: int | float, word_order: str = "ABCD") -> list[int]:
+    """``value`` packed into the registers of ``type_`` in ``word_order`` (one of
+    :data:`WORD_ORDERS`; a 16-bit type has one register, whatever the order). Raises
+    struct.error if it does not fit (an integer out of range)."""
+    code, size = REGISTER_TYPES[type_]
     raw = struct.pack(f">{code}", value)
     regs = [int.from_bytes(raw[i:i + 2], "big") for i in range(0, len(raw), 2)]
-    return regs[::-1] if word_order == "little" else regs
+    return _reorder(regs, word_order) if size > 1 else regs
 
 
 def from_registers(type_: str, registers: Sequence[int],
-                   word_order: Literal["big", "little"] = "big") -> int | float:
-    """The value of ``type_`` in ``registers`` (exactly its size). Raises ValueError if their
-    number is not the type's size or a register is not 0..0xFFFF."""
+                   word_order: str = "ABCD") -> int | float:
+    """The value of ``type_`` in ``registers`` (exactly its size) in ``word_order``. Raises
+    ValueError if their number is not the type's size or a register is not 0..0xFFFF."""
     size = REGISTER_TYPES[type_][1]
     if len(registers) != size:
         raise ValueError(f"{len(registers)} registers for a {type_}, expected {size}")
+    if any(not 0 <= r <= 0xFFFF for r in registers):
+        raise ValueError(f"registers {list(registers)} are not 16-bit words")
     try:
-        raw = WORDS_STRUCT[size].pack(*(registers[::-1] if word_order == "little" and size > 1
+        raw = WORDS_STRUCT[size].pack(*(_reorder(list(registers), word_order) if size > 1
                                         else registers))
     except struct.error as exc:
         raise ValueError(f"registers {list(registers)} are not 16-bit words: {exc}") from None
@@ -90,7 +111,7 @@ class Point:
     table: str
     address: int
     type: str
-    word_order: Literal["big", "little"]
+    word_order: WordOrder
 
     @functools.cached_property
     def size(self) -> int:
@@ -153,7 +174,7 @@ def point_of(device: DeviceSpec) -> Point:
     a = device.address
     table = str(a["table"])
     default = "bool" if table in ("coil", "discrete") else "uint16"
-    order: Literal["big", "little"] = "little" if a.get("word_order") == "little" else "big"
+    order = WORD_ORDERS[str(a.get("word_order", "ABCD"))]
     return Point(device.name, int(a.get("unit", 1)), table, int(a["address"]),
                  str(a.get("type", default)), order)
 
@@ -188,8 +209,10 @@ def check_address(bus: BusSpec, device: DeviceSpec) -> list[str]:
     if not (is_int(address) and 0 <= address <= 0x10000 - size):
         errs.append(f"{k}.address: expected an integer 0..{0x10000 - size} (a {typ} spans {size} "
                     f"entr{'y' if size == 1 else 'ies'}), got {address!r}")
-    if a.get("word_order", "big") not in ("big", "little"):
-        errs.append(f"{k}.word_order: expected \"big\" or \"little\", got {a['word_order']!r}")
+    order = a.get("word_order", "ABCD")
+    if not (isinstance(order, str) and order in WORD_ORDERS):
+        errs.append(f"{k}.word_order: expected \"ABCD\", \"CDAB\", \"BADC\" or \"DCBA\" (or "
+                    f"\"big\" = ABCD, \"little\" = CDAB), got {order!r}")
     pp = a.get("poll_period")
     if pp is not None and not (is_number(pp) and pp > 0):
         errs.append(f"{k}.poll_period: expected a number of seconds > 0, got {pp!r}")
@@ -290,3 +313,154 @@ def coerce(type_: str, value: Any) -> int | float:
     if isinstance(value, float):
         return round(value)  # raises OverflowError/ValueError for inf/nan
     return int(value)
+
+
+@dataclass(frozen=True)
+class LineTiming:
+    """The timing of a Modbus RTU serial line: the time of one character (start bit, data bits,
+    parity bit if any, stop bits) and the silence that must separate two frames (3.5
+    characters; a fixed 1.75 ms above 19200 baud, as the Modbus serial line specification
+    allows)."""
+
+    baudrate: int
+    bytesize: int = 8
+    parity: str = "N"
+    stopbits: int = 1
+
+    @property
+    def char_time(self) -> float:
+        """Seconds one character takes on the line."""
+        bits = 1 + self.bytesize + (0 if self.parity == "N" else 1) + self.stopbits
+        return bits / self.baudrate
+
+    @property
+    def silence(self) -> float:
+        """Seconds of silence between two frames (t3.5)."""
+        return 1.75e-3 if self.baudrate > 19200 else 3.5 * self.char_time
+
+    def exchange_time(self, request_bytes: int, answer_bytes: int) -> float:
+        """Seconds a request and its answer take on the line, with the silence after each."""
+        return (request_bytes + answer_bytes) * self.char_time + 2 * self.silence
+
+
+def answer_bytes(r: ReadRequest) -> int:
+    """The length of the RTU answer to read request ``r`` (unit, function, byte count, data,
+    CRC)."""
+    data = (r.count + 7) // 8 if r.table in ("coil", "discrete") else 2 * r.count
+    return 5 + data
+
+
+READ_REQUEST_BYTES = 8   # unit, function, address, count, CRC
+
+
+class UnitBackoff:
+    """Which units of an RTU line answer, and how often a unit that does not is tried: after
+    its ``k``-th unanswered request in a row a unit sits out ``min(2**(k-1), cap) - 1`` of its
+    requests (none after the first: one lost answer costs nothing more), so a dead unit takes
+    a bounded share of the line and the live units keep their rate. Each time a unit stops
+    answering its ``epoch`` grows: a write queued in an older epoch is not sent (it was meant
+    for a unit that answered). Not thread-safe: the driver's worker owns it (the epoch is read
+    from the kernel thread, a plain int)."""
+
+    def __init__(self, cap: int) -> None:
+        self.cap = max(1, cap)
+        self._misses: dict[int, int] = {}      # unit -> unanswered requests in a row
+        self._skip: dict[int, int] = {}        # unit -> requests still to sit out
+        self._epoch: dict[int, int] = {}
+
+    def due(self, unit: int) -> bool:
+        """Whether a request to ``unit`` goes out now; a dead unit's request that sits out
+        counts down its turn."""
+        left = self._skip.get(unit, 0)
+        if left <= 0:
+            return True
+        self._skip[unit] = left - 1
+        return False
+
+    def silent(self, unit: int) -> bool:
+        """``unit`` did not answer a request; True if it answered until then (it fails now)."""
+        k = self._misses.get(unit, 0) + 1
+        self._misses[unit] = k
+        self._skip[unit] = min(2 ** min(k - 1, 30), self.cap) - 1
+        if k == 1:
+            self._epoch[unit] = self._epoch.get(unit, 0) + 1
+        return k == 1
+
+    def answered(self, unit: int) -> bool:
+        """``unit`` answered (data or an exception); True if it had stopped answering."""
+        self._skip.pop(unit, None)
+        return self._misses.pop(unit, 0) > 0
+
+    def dead(self, unit: int) -> bool:
+        """True while ``unit``'s last request went unanswered."""
+        return self._misses.get(unit, 0) > 0
+
+    def epoch(self, unit: int) -> int:
+        """How many times ``unit`` stopped answering."""
+        return self._epoch.get(unit, 0)
+
+
+WATCHDOG_KEYS = ("unit", "table", "address", "period", "value")
+WATCHDOG_TABLES = ("holding", "coil")
+
+
+@dataclass(frozen=True)
+class Watchdog:
+    """A bus's watchdog register: written every ``period`` s so the PLC's comm-loss logic sees
+    the controller alive. ``value`` None is a counter (1, 2, ... wrapping at 65536 on a holding
+    register; 1, 0, 1... on a coil), else the same value each time."""
+
+    unit: int
+    table: str
+    address: int
+    period: float
+    value: int | None
+
+    def value_at(self, beat: int) -> int:
+        """The value of the ``beat``-th write (0 first)."""
+        if self.value is not None:
+            return self.value
+        return (beat + 1) % (2 if self.table == "coil" else 0x10000)
+
+    def describe(self) -> str:
+        """``unit 1 holding 900`` - for reasons."""
+        return f"unit {self.unit} {self.table} {self.address}"
+
+
+def watchdog_of(bus: BusSpec) -> Watchdog | None:
+    """The validated bus's watchdog (None without one)."""
+    w = bus.options.get("watchdog")
+    if not isinstance(w, dict):
+        return None
+    value = w.get("value", "counter")
+    return Watchdog(int(w.get("unit", 1)), str(w.get("table", "holding")), int(w["address"]),
+                    float(w.get("period", 1.0)), None if value == "counter" else int(value))
+
+
+def check_watchdog(bus: BusSpec) -> list[str]:
+    """Errors of a bus's ``watchdog`` table (none without one)."""
+    if "watchdog" not in bus.options:
+        return []
+    w = bus.options["watchdog"]
+    k = f"{bus.key}.watchdog"
+    if not isinstance(w, dict):
+        return [f"{k}: expected a table {{unit, table, address, period, value}}, got {w!r}"]
+    errs = [f"{k}.{key}: unknown key; valid keys: {', '.join(WATCHDOG_KEYS)}"
+            for key in w if key not in WATCHDOG_KEYS]
+    unit = w.get("unit", 1)
+    if not (is_int(unit) and 0 <= unit <= 247):
+        errs.append(f"{k}.unit: expected a Modbus device id 0..247, got {unit!r}")
+    table = w.get("table", "holding")
+    if table not in WATCHDOG_TABLES:
+        errs.append(f"{k}.table: expected \"holding\" or \"coil\", got {table!r}")
+    address = w.get("address")
+    if not (is_int(address) and 0 <= address <= 0xFFFF):
+        errs.append(f"{k}.address: expected an integer 0..65535, got {address!r}")
+    period = w.get("period", 1.0)
+    if not (is_number(period) and period > 0):
+        errs.append(f"{k}.period: expected a number of seconds > 0, got {period!r}")
+    value = w.get("value", "counter")
+    top = 1 if table == "coil" else 0xFFFF
+    if value != "counter" and not (is_int(value) and 0 <= value <= top):
+        errs.append(f"{k}.value: expected \"counter\" or an integer 0..{top}, got {value!r}")
+    return errs

@@ -1,6 +1,6 @@
 /* rtu_slave - an independent Modbus RTU slave for chcos' peer tests, on libmodbus.
  *
- * Usage: rtu_slave DEVICE UNIT
+ * Usage: rtu_slave DEVICE UNIT [RESPONSE_TIMEOUT_MS]
  * Opens DEVICE (a serial port or pty) at 19200 8N1 as unit UNIT with 16 coils, 16 discrete
  * inputs, 16 holding and 16 input registers (input register i holds 100 + i, holding register
  * i holds 1000 + i at start). Requests for other units are ignored, as on a real line.
@@ -12,7 +12,8 @@
  * After a request for another unit, libmodbus takes the next frame on the line for that unit's
  * answer and ignores it; its response timeout is set to 50 ms so that an absent unit's request
  * (which nobody answers) costs the line 50 ms rather than the next request (the master's
- * request timeout must be longer, as it is on any multi-drop line).
+ * request timeout must be longer, as it is on any multi-drop line). RESPONSE_TIMEOUT_MS sets
+ * another one; "default" keeps libmodbus' own (500 ms), as a stock slave has it.
  */
 #include <errno.h>
 #include <modbus.h>
@@ -21,8 +22,8 @@
 #include <string.h>
 
 int main(int argc, char **argv) {
-    if (argc != 3) {
-        fprintf(stderr, "usage: %s DEVICE UNIT\n", argv[0]);
+    if (argc != 3 && argc != 4) {
+        fprintf(stderr, "usage: %s DEVICE UNIT [RESPONSE_TIMEOUT_MS|default]\n", argv[0]);
         return 2;
     }
     int unit = atoi(argv[2]);
@@ -31,7 +32,12 @@ int main(int argc, char **argv) {
         fprintf(stderr, "rtu_slave: bad arguments: %s\n", modbus_strerror(errno));
         return 2;
     }
-    modbus_set_response_timeout(ctx, 0, 50000);
+    if (argc == 3)
+        modbus_set_response_timeout(ctx, 0, 50000);
+    else if (strcmp(argv[3], "default") != 0) {
+        long ms = atol(argv[3]);
+        modbus_set_response_timeout(ctx, (uint32_t)(ms / 1000), (uint32_t)(ms % 1000) * 1000);
+    }
     modbus_mapping_t *map = modbus_mapping_new(16, 16, 16, 16);
     if (map == NULL) {
         fprintf(stderr, "rtu_slave: no memory\n");
@@ -45,6 +51,7 @@ int main(int argc, char **argv) {
         fprintf(stderr, "rtu_slave: cannot open %s: %s\n", argv[1], modbus_strerror(errno));
         return 1;
     }
+    modbus_flush(ctx);              /* a unit powering up has heard nothing before */
     printf("READY\n");
     fflush(stdout);
     uint8_t query[MODBUS_RTU_MAX_ADU_LENGTH];

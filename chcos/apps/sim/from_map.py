@@ -31,7 +31,10 @@ address).
 :class:`SimSlaves` is the handle: :meth:`~SimSlaves.set` puts a sensor's value (engineering units,
 the map's scale and offset applied backwards), :meth:`~SimSlaves.script` makes it follow a
 function of time (:func:`parse_script`: constant, ramp, sine, square, CSV trace),
-:meth:`~SimSlaves.get` reads what the system last wrote to an actuator, and
+:meth:`~SimSlaves.values` takes ``DEVICE=SCRIPT`` items (``--value``), :meth:`~SimSlaves.add_plant`
+attaches a user's plant model (:data:`Plant`, called every :data:`TICK`; :func:`load_plant` loads
+one from ``FILE.py:function``), :meth:`~SimSlaves.get` reads what the system last wrote to an
+actuator, and
 :meth:`~SimSlaves.silence`/:meth:`~SimSlaves.restore` make a bus's peer stop and resume answering.
 Time comes from :meth:`~SimSlaves.attach` (a kernel's clock: virtual time stays deterministic) or
 :meth:`~SimSlaves.run_realtime`. A serial bus on a device path (not ``socket://``) can be
@@ -45,6 +48,7 @@ import math
 import re
 import threading
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -70,6 +74,12 @@ TICK = 0.01
 
 PEERS: dict[str, type[Peer]] = {"modbus-tcp": ModbusPeer, "modbus-rtu": ModbusPeer,
                                 "can": CanPeer, "canopen": CanopenPeer, "serial": SerialPeer}
+
+
+Plant = Callable[[float, "SimSlaves"], None]
+"""A user's plant model: called every TICK with the seconds since the start and the slaves; it
+reads what the system sent (:meth:`SimSlaves.get` of an actuator) and sets what the sensors
+serve (:meth:`SimSlaves.set`)."""
 
 
 @dataclass
@@ -107,6 +117,7 @@ class SimSlaves:
     specs: dict[str, DeviceSpec] = dataclasses.field(default_factory=dict)
     peers: dict[str, Peer] = dataclasses.field(default_factory=dict)
     scripts: dict[str, Script] = dataclasses.field(default_factory=dict)
+    plants: list[Plant] = dataclasses.field(default_factory=list)
     _timer: Any = None
     _rt: threading.Thread | None = None
     _rt_stop: threading.Event = dataclasses.field(default_factory=threading.Event)
@@ -152,6 +163,30 @@ class SimSlaves:
         engineering units, or its text for :func:`parse_script`)."""
         self._peer(device)
         self.scripts[device] = parse_script(script) if isinstance(script, str) else script
+
+    def values(self, items: Sequence[str], base_dir: Path | None = None) -> None:
+        """Scripts from ``DEVICE=SCRIPT`` items (``--value``: a number, ``ramp(...)``,
+        ``sine(...)``, ``square(...)``, ``csv(FILE[, column])``, files relative to
+        ``base_dir``). Raises ConfigError naming the item for a bad item, a device that is not
+        a simulated sensor, or a bad script; nothing is applied then."""
+        parsed: dict[str, Script] = {}
+        for item in items:
+            name, eq, spec = item.partition("=")
+            name = name.strip()
+            if not eq:
+                raise ConfigError(f"--value {item!r}: expected DEVICE=SCRIPT")
+            if name not in self.specs or self.specs[name].direction != "sensor":
+                raise ConfigError(f"--value {item!r}: {name!r} is not a sensor of the maps")
+            if not self.simulated(name):
+                raise ConfigError(f"--value {item!r}: {name!r} is on an in-process bus with "
+                                  "no simulated slave (inject its readings instead)")
+            parsed[name] = parse_script(spec, base_dir)
+        self.scripts.update(parsed)
+
+    def add_plant(self, plant: Plant) -> None:
+        """Call ``plant(seconds since the start, self)`` every TICK, after the scripts: a
+        user's model of the machine (what the actuators do to the sensors)."""
+        self.plants.append(plant)
 
     def silence(self, bus: str) -> None:
         """Make the peer of ``bus`` stop answering: a Modbus server closes its port, a CAN node
@@ -214,6 +249,8 @@ class SimSlaves:
         """Apply the scripts at time ``now`` (seconds since the start) and send what is due."""
         for device, fn in self.scripts.items():
             self.set(device, fn(now))
+        for plant in self.plants:
+            plant(now, self)
         for peer in self.peers.values():
             peer.tick(now)
         for fault in self._emcy_plan:
@@ -299,10 +336,78 @@ def _fault(item: str, slaves: SimSlaves) -> tuple[str, float, float]:
     return bus, t0, t1
 
 
+def load_plant(ref: str, base_dir: Path | None = None) -> Plant:
+    """The plant model ``ref`` names: ``FILE.py:function`` (relative to ``base_dir``) or
+    ``package.module:function``. Raises ConfigError naming ``ref`` if it cannot be loaded or is
+    not a callable."""
+    import importlib
+    import importlib.util
+
+    target, colon, func = ref.rpartition(":")
+    if not colon or not target or not func.isidentifier():
+        raise ConfigError(f"--plant {ref!r}: expected FILE.py:function or module:function")
+    try:
+        if target.endswith(".py") or "/" in target:
+            path = Path(target)
+            if not path.is_absolute() and base_dir is not None:
+                path = base_dir / path
+            spec = importlib.util.spec_from_file_location(f"chcos_plant_{path.stem}", path)
+            if spec is None or spec.loader is None or not path.is_file():
+                raise ConfigError(f"--plant {ref!r}: no file {path}")
+            module = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(module)
+        else:
+            module = importlib.import_module(target)
+    except ConfigError:
+        raise
+    except Exception as exc:  # the user's module failed to import: say how
+        raise ConfigError(f"--plant {ref!r}: cannot load it: {type(exc).__name__}: "
+                          f"{exc}") from exc
+    fn = getattr(module, func, None)
+    if not callable(fn):
+        raise ConfigError(f"--plant {ref!r}: {target} has no function {func}")
+    return fn  # type: ignore[no-any-return]
+
+
+def process_local(devmap: DeviceMap) -> list[BusSpec]:
+    """The CAN and CANopen buses of ``devmap`` (with devices) on python-can's ``virtual``
+    interface (named in the map or by python-can's own configuration): a channel that exists
+    only inside one process, so a peer in another process never reaches it."""
+    from chcos.apps.sim.peers import can_args
+
+    found = []
+    for bus in devmap.buses:
+        if bus.kind in ("can", "canopen") and devmap.devices_on(bus.name):
+            try:
+                interface = can_args(bus.options, False, bus.name).get("interface")
+            except (ValueError, NotImplementedError):  # checked again where the bus opens
+                continue
+            if interface == "virtual":
+                found.append(bus)
+    return found
+
+
+def changes(slaves: SimSlaves, last: dict[str, str]) -> list[str]:
+    """One ``name=value units`` line per simulated device whose value changed since ``last``
+    (updated; the first call shows every device), in the map's order."""
+    lines = []
+    for d in slaves.devmap.devices:
+        if not slaves.simulated(d.name):
+            continue
+        v = slaves.get(d.name)
+        text = f"{v:.4g}" if isinstance(v, float) else str(v)
+        shown = f"{d.name}={text} {d.units}".rstrip()
+        if last.get(d.name) != shown:
+            last[d.name] = shown
+            lines.append(f"{d.direction:<8} {shown}")
+    return lines
+
+
 def main(argv: list[str]) -> int:
     """``chcos sim --from MAP...``: serve simulated slaves at the addresses the maps name until
-    Ctrl-C, SIGTERM or ``--duration``; prints what each actuator was sent once a second.
-    Returns 0, or 2 when a map or script is invalid or a peer cannot listen."""
+    Ctrl-C, SIGTERM or ``--duration``; prints each device's value on a line of its own when it
+    changed, at most every ``--every`` seconds. Returns 0, or 2 when a map or script is invalid,
+    a bus is on a process-local channel (see :func:`process_local`) or a peer cannot listen."""
     import argparse
     import signal
     import sys
@@ -328,29 +433,41 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--fault", action="append", default=[], metavar="BUS@START[-END]",
                     help="silence the peer of BUS from START seconds (to END), e.g. plc@5-8: "
                          "a Modbus server closes its port, CAN and CANopen nodes stop sending")
+    ap.add_argument("--plant", action="append", default=[], metavar="FILE.py:FUNCTION",
+                    help="a plant model called every 10 ms as FUNCTION(seconds, slaves): it reads "
+                         "actuators (slaves.get) and sets sensors (slaves.set)")
     ap.add_argument("--duration", type=float, help="stop after this many seconds")
+    ap.add_argument("--every", type=float, default=1.0, metavar="S",
+                    help="print a device's value at most every S seconds, one line per device, "
+                         "and only when it changed (default 1)")
     args = ap.parse_args(argv)
+    if not (math.isfinite(args.every) and args.every > 0):
+        ap.error(f"--every {args.every}: expected seconds > 0")
     stop = threading.Event()
     old = {sig: signal.signal(sig, lambda *_: stop.set())
            for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         devmap = load(args.maps)
+        for local in process_local(devmap):
+            raise ConfigError(f"{local.file}: {local.key} ({local.name}): python-can's 'virtual' "
+                              "interface lives inside one process: a 'chcos run' in another "
+                              "process would never hear this simulator. Use interface = "
+                              "\"udp_multicast\" (any machine, loopback) or a SocketCAN vcan "
+                              "channel; or 'chcos run SYSTEM --virtual', which simulates in its "
+                              "own process")
         slaves = simulate(devmap, rewrite=False)
         try:
-            for item in args.value:
-                name, eq, spec = item.partition("=")
-                if not eq:
-                    raise ConfigError(f"--value {item!r}: expected DEVICE=SCRIPT")
-                if name not in slaves.specs or slaves.specs[name].direction != "sensor":
-                    raise ConfigError(f"--value {item!r}: {name!r} is not a sensor of the maps")
-                slaves.script(name, parse_script(spec, Path.cwd()))
+            slaves.values(args.value, Path.cwd())
+            for ref in args.plant:
+                slaves.add_plant(load_plant(ref, Path.cwd()))
             faults = [_fault(item, slaves) for item in args.fault]
             slaves.schedule_emcy(args.emcy, report=lambda line: print(line, flush=True))
             for line in slaves.describe():
                 print(f"simulating {line}", flush=True)
             slaves.run_realtime()
             start = time.monotonic()
-            shown_at = 0.0
+            shown_at = -math.inf
+            last_shown: dict[str, str] = {}
             silenced: set[str] = set()
             while not stop.wait(0.1):
                 t = time.monotonic() - start
@@ -364,16 +481,11 @@ def main(argv: list[str]) -> int:
                         slaves.restore(bus)
                         silenced.discard(bus)
                         print(f"t={t:6.1f} s  fault over: {bus} answers again", flush=True)
-                if t + 1e-9 < shown_at + 1.0:
+                if t + 1e-9 < shown_at + args.every:
                     continue
                 shown_at = t
-                shown = []
-                for d in devmap.devices:
-                    if slaves.simulated(d.name):
-                        v = slaves.get(d.name)
-                        text = f"{v:.4g}" if isinstance(v, float) else str(v)
-                        shown.append(f"{d.name}={text}")
-                print(f"t={t:6.1f} s  " + "  ".join(shown), flush=True)
+                for line in changes(slaves, last_shown):
+                    print(f"t={t:6.1f} s  {line}", flush=True)
                 if args.duration is not None and t >= args.duration:
                     break
         finally:

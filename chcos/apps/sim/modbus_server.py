@@ -19,7 +19,7 @@ import asyncio
 import contextlib
 import sys
 import threading
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any, Literal
 
 from pymodbus.client.mixin import ModbusClientMixin
@@ -29,6 +29,7 @@ from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from chcos.errors import BusError, ConfigError
+from drivers.codecs.modbus import WORD_ORDERS
 
 Table = Literal["coil", "discrete", "holding", "input"]
 TABLES: tuple[Table, ...] = ("coil", "discrete", "holding", "input")
@@ -44,19 +45,57 @@ DATATYPES: dict[str, Any] = {
 }
 
 
-class RegisterStore:
-    """The four tables of each unit, ``size`` entries each, addresses 0..size-1. Thread-safe.
+def _pymodbus_order(word_order: str) -> tuple[Literal["big", "little"], bool]:
+    """pymodbus' word order for ``word_order`` and whether the bytes of each register are
+    swapped on top of it (``BADC``, ``DCBA``)."""
+    named = WORD_ORDERS[word_order]
+    return ("little" if named in ("CDAB", "DCBA") else "big"), named in ("BADC", "DCBA")
 
-    Raises :class:`chcos.errors.ConfigError` for an unknown unit/table or an address range outside
-    the table.
+
+def _swap_bytes(regs: list[int], swap: bool) -> list[int]:
+    return [((r & 0xFF) << 8) | (r >> 8) for r in regs] if swap and len(regs) > 1 else regs
+
+
+Span = tuple[int, int]
+"""A run of mapped addresses: (first, count)."""
+
+
+def merge(spans: Iterable[Span]) -> list[Span]:
+    """``spans`` sorted, with overlapping and adjacent runs joined."""
+    out: list[Span] = []
+    for first, count in sorted(s for s in spans if s[1] > 0):
+        if out and first <= out[-1][0] + out[-1][1]:
+            last_first, last_count = out[-1]
+            out[-1] = (last_first, max(last_count, first + count - last_first))
+        else:
+            out.append((first, count))
+    return out
+
+
+class RegisterStore:
+    """The four tables of each unit. Only mapped addresses exist: by default ``size`` entries
+    from 0 in each table; with ``spans`` (table -> runs of (first, count)) only those runs, so a
+    device with registers at 0 and 64512 costs a few entries, not 64513. Thread-safe.
+
+    Raises :class:`chcos.errors.ConfigError` for an unknown unit/table or an address that is
+    not mapped, or for an address beyond 65535.
     """
 
-    def __init__(self, units: Iterable[int] = (1,), size: int = 1000) -> None:
-        self.size = size
+    def __init__(self, units: Iterable[int] = (1,), size: int = 1000, *,
+                 spans: Mapping[str, Iterable[Span]] | None = None) -> None:
+        self.spans: dict[str, list[Span]] = {
+            t: merge(spans.get(t, ()) if spans is not None else [(0, size)]) for t in TABLES}
+        for table, runs in self.spans.items():
+            for first, count in runs:
+                if first < 0 or first + count > 0x10000:
+                    raise ConfigError(f"modbus store {table}: addresses {first}.."
+                                      f"{first + count - 1} outside 0..65535")
+        self.size = max([f + c for runs in self.spans.values() for f, c in runs] + [0])
         self._cond = threading.Condition()
-        self._units: dict[int, dict[str, list[Any]]] = {
-            u: {"coil": [False] * size, "discrete": [False] * size,
-                "holding": [0] * size, "input": [0] * size} for u in units}
+        self._units: dict[int, dict[str, dict[int, Any]]] = {
+            u: {t: {a: (False if t in BIT_TABLES else 0)
+                    for first, count in self.spans[t] for a in range(first, first + count)}
+                for t in TABLES} for u in units}
         self.client_writes = 0
         self.requests = 0
 
@@ -65,20 +104,24 @@ class RegisterStore:
         """The unit ids served."""
         return sorted(self._units)
 
-    def _table(self, unit: int, table: str, address: int, count: int) -> list[Any]:
+    def _table(self, unit: int, table: str, address: int, count: int) -> dict[int, Any]:
         if unit not in self._units:
             raise ConfigError(f"modbus store: no unit {unit}; units are {self.units}")
         if table not in TABLES:
             raise ConfigError(f"modbus store: table {table!r}; expected one of {TABLES}")
-        if address < 0 or count < 0 or address + count > self.size:
+        data = self._units[unit][table]
+        if address < 0 or count < 0 or not all(a in data for a in range(address,
+                                                                        address + count)):
+            mapped = " and ".join(f"{f}..{f + c - 1}" for f, c in self.spans[table])
             raise ConfigError(f"modbus store unit {unit} {table}: addresses {address}.."
-                              f"{address + count - 1} outside 0..{self.size - 1}")
-        return self._units[unit][table]
+                              f"{address + count - 1} outside {mapped or 'nothing mapped'}")
+        return data
 
     def read(self, unit: int, table: str, address: int, count: int = 1) -> list[Any]:
         """``count`` raw entries (bools or 16-bit ints) from ``address``."""
         with self._cond:
-            return list(self._table(unit, table, address, count)[address:address + count])
+            data = self._table(unit, table, address, count)
+            return [data[a] for a in range(address, address + count)]
 
     def write(self, unit: int, table: str, address: int, values: Sequence[Any]) -> None:
         """Store raw entries (bools for bit tables, 0..65535 for registers) from ``address``."""
@@ -89,18 +132,21 @@ class RegisterStore:
                 if not bits and not (isinstance(v, int) and 0 <= v <= 0xFFFF):
                     raise ConfigError(f"modbus store unit {unit} {table}: register value {v!r} "
                                       f"is not 0..65535")
-            data[address:address + len(values)] = [bool(v) for v in values] if bits else values
+            for a, v in enumerate(values, address):
+                data[a] = bool(v) if bits else v
             self._cond.notify_all()
 
     def set_value(self, unit: int, table: str, address: int, value: Any, type: str = "uint16",
-                  word_order: Literal["big", "little"] = "big") -> None:
+                  word_order: str = "ABCD") -> None:
         """Store an engineering value of ``type`` (bool, int16 ... float64) with pymodbus's own
-        register conversion."""
+        register conversion, in ``word_order`` (one of the codec's ``WORD_ORDERS``)."""
         if type == "bool":
             self.write(unit, table, address, [bool(value)])
             return
         try:
-            regs = ModbusClientMixin.convert_to_registers(value, DATATYPES[type], word_order)
+            words, swap = _pymodbus_order(word_order)
+            regs = _swap_bytes(ModbusClientMixin.convert_to_registers(value, DATATYPES[type],
+                                                                      words), swap)
         except KeyError as exc:
             raise ConfigError(f"modbus store: type {type!r}; expected bool or one of "
                               f"{', '.join(DATATYPES)}") from exc
@@ -109,7 +155,7 @@ class RegisterStore:
         self.write(unit, table, address, regs)
 
     def get_value(self, unit: int, table: str, address: int, type: str = "uint16",
-                  word_order: Literal["big", "little"] = "big") -> Any:
+                  word_order: str = "ABCD") -> Any:
         """The value of ``type`` at ``address`` (see :meth:`set_value`)."""
         if type == "bool":
             return self.read(unit, table, address, 1)[0]
@@ -118,7 +164,8 @@ class RegisterStore:
                               f"{', '.join(DATATYPES)}")
         dt = DATATYPES[type]
         regs = self.read(unit, table, address, dt.value[1])
-        return ModbusClientMixin.convert_from_registers(regs, dt, word_order)
+        words, swap = _pymodbus_order(word_order)
+        return ModbusClientMixin.convert_from_registers(_swap_bytes(regs, swap), dt, words)
 
     def wait_for(self, pred: Callable[[RegisterStore], bool], timeout: float) -> bool:
         """Block until ``pred(store)`` holds, re-checked after every write; False on timeout."""
@@ -142,13 +189,16 @@ class RegisterStore:
                 first = address // 16
                 for i in range(count):
                     word = 0
-                    for bit, v in enumerate(entries[(first + i) * 16:(first + i + 1) * 16]):
-                        word |= int(v) << bit
+                    for bit in range(16):
+                        word |= int(entries.get((first + i) * 16 + bit, False)) << bit
                     image[first - start + i] = word
             else:
-                image[address - start:address - start + count] = entries[address:address + count]
+                for a in range(address, address + count):
+                    image[a - start] = entries.get(a, 0)
             if values:
-                entries[address:address + len(values)] = values
+                for a, v in enumerate(values, address):
+                    if a in entries:   # pymodbus refuses unmapped addresses itself
+                        entries[a] = v
                 self.client_writes += 1
                 self._cond.notify_all()
         return None
@@ -204,8 +254,13 @@ class ModbusSimServer:
             ready.wait()
             if failure:
                 thread.join()
-                raise BusError(f"modbus sim server: cannot listen on {self.host}:{self.port}: "
-                               f"{failure[0]}") from failure[0]
+                exc = failure[0]
+                if isinstance(exc, OSError) or "listen" in str(exc).lower():
+                    raise BusError(f"modbus sim server: cannot listen on {self.host}:"
+                                   f"{self.port}: {exc}") from exc
+                # not the port: say what it was (a MemoryError's text is empty)
+                raise BusError(f"modbus sim server on {self.host}:{self.port} failed to start: "
+                               f"{type(exc).__name__}: {exc}".rstrip(": ")) from exc
             self._loop, self._thread = loop, thread
 
     async def _listen(self) -> None:
@@ -219,11 +274,17 @@ class ModbusSimServer:
         await self._server.serve_forever(background=True)
 
     def _blocks(self) -> tuple[list[SimData], list[SimData], list[SimData], list[SimData]]:
-        n = self.store.size
-        return ([SimData(0, count=n, values=False, datatype=DataType.BITS)],
-                [SimData(0, count=n, values=False, datatype=DataType.BITS)],
-                [SimData(0, count=n, values=0, datatype=DataType.REGISTERS)],
-                [SimData(0, count=n, values=0, datatype=DataType.REGISTERS)])
+        """pymodbus's register image: one entry per mapped address (pymodbus's checks grow with
+        the square of an entry's count: one entry of 64512 registers asked for gigabytes); an
+        address outside them is answered "illegal data address". A table with nothing mapped
+        gets address 0, as pymodbus wants a block in every table."""
+        def block(table: str, value: Any, datatype: DataType) -> list[SimData]:
+            runs = self.store.spans[table] or [(0, 1)]
+            return [SimData(a, count=1, values=value, datatype=datatype)
+                    for first, count in runs for a in range(first, first + count)]
+
+        return (block("coil", False, DataType.BITS), block("discrete", False, DataType.BITS),
+                block("holding", 0, DataType.REGISTERS), block("input", 0, DataType.REGISTERS))
 
     def _action(self, unit: int) -> Any:
         store = self.store

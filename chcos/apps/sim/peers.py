@@ -77,8 +77,10 @@ class ModbusPeer(Peer):
         self.points = {d.name: point_of(d) for d in devices}
         pts = list(self.points.values())
         units = sorted({p.unit for p in pts}) or [1]
-        size = max([p.address + p.size for p in pts] + [16])
-        self.store = RegisterStore(units, size=size)
+        spans: dict[str, list[tuple[int, int]]] = {}
+        for p in pts:  # only the mapped addresses exist (a register at 64512 costs one entry)
+            spans.setdefault(p.table, []).append((p.address, p.size))
+        self.store = RegisterStore(units, spans=spans)
         framer: Literal["tcp", "rtu"] = "tcp" if bus.kind == "modbus-tcp" else "rtu"
         options = dict(bus.options)
         if rewrite:
@@ -133,7 +135,7 @@ def can_args(options: Any, rewrite: bool, tag: str) -> dict[str, Any]:
     if rewrite:
         return {"interface": "virtual",
                 "channel": f"chcos-sim-{tag}-{os.getpid()}-{next(_channels)}"}
-    args = {k: options[k] for k in ("interface", "channel", "bitrate") if k in options}
+    args = {k: options[k] for k in ("interface", "channel", "bitrate", "port") if k in options}
     if "interface" not in args or "channel" not in args:
         import can
 

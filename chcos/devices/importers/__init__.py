@@ -77,6 +77,12 @@ def main(argv: Sequence[str]) -> int:
                                    "actuators, all others sensors.")
     p.add_argument("file", metavar="DBC")
     p.add_argument("--node", help="the DBC node chcos plays (its messages become actuators)")
+    p.add_argument("--udp-port", type=int, metavar="PORT",
+                   help="with --interface udp_multicast: the bus's UDP port (give each bus "
+                        "its own group and port)")
+    p.add_argument("--signals", nargs="+", default=[], metavar="PATTERN",
+                   help="only these signals: SIGNAL or MESSAGE.SIGNAL, shell patterns "
+                        "(e.g. 'Status.*' Setpoint)")
     p = sub.add_parser("modbus", parents=[common], help="a Modbus register list (CSV)",
                        description="Devices from a register list: a CSV with a header row naming "
                                    "the columns name, table, address, type, word order, scale, "
@@ -84,13 +90,22 @@ def main(argv: Sequence[str]) -> int:
                                    "accepted; see the README). Only rows whose access includes "
                                    "W become actuators.")
     p.add_argument("file", metavar="CSV")
-    p.add_argument("--host", default="127.0.0.1", help="the server's address (default "
-                                                       "127.0.0.1)")
+    p.add_argument("--host", default=None, help="the server's address (default 127.0.0.1, "
+                                                  "with a warning)")
     p.add_argument("--port", type=int, default=502, help="the server's TCP port (default 502)")
     p.add_argument("--unit", type=int, default=1, help="unit id when the list has no unit "
                                                        "column (default 1)")
     p.add_argument("--one-based", action="store_true",
-                   help="the list's addresses start at 1 (register 1 is protocol address 0)")
+                   help="the list's addresses start at 1 (register 1 is protocol address 0); "
+                        "the same as --addressing one")
+    p.add_argument("--addressing", choices=("auto", "zero", "one", "modicon"), default="auto",
+                   help="how the list counts: auto (Modicon 40001-style when every address of "
+                        "a table is one, else protocol addresses), zero, one or modicon")
+    p.add_argument("--rtu", metavar="SERIAL", help="a Modbus RTU bus on this serial port "
+                                                   "(e.g. /dev/ttyUSB0) instead of TCP")
+    p.add_argument("--baudrate", type=int, default=19200, help="RTU bit/s (default 19200)")
+    p.add_argument("--parity", choices=("N", "E", "O"), default="N",
+                   help="RTU parity (default N)")
     args = ap.parse_args(list(argv))
     draft: MapDraft
     try:
@@ -107,13 +122,16 @@ def main(argv: Sequence[str]) -> int:
             draft = import_dbc(args.file, bus=args.bus or "can0", node=args.node,
                                machine=args.machine, prefix=args.prefix,
                                dbc_ref=_file_ref(args.file, args.output),
-                               interface=args.interface, channel=args.channel)
+                               interface=args.interface, channel=args.channel,
+                               signals=args.signals, udp_port=args.udp_port)
         else:
             from chcos.devices.importers.modbus_csv import import_modbus_csv
 
             draft = import_modbus_csv(args.file, bus=args.bus or "plc", host=args.host,
                                       port=args.port, unit=args.unit, machine=args.machine,
-                                      prefix=args.prefix, one_based=args.one_based)
+                                      prefix=args.prefix, one_based=args.one_based,
+                                      addressing=args.addressing, rtu=args.rtu,
+                                      baudrate=args.baudrate, parity=args.parity)
         for warning in draft.warnings:
             print(f"warning: {warning}", file=sys.stderr)
         _write(render(draft), args.output)

@@ -70,13 +70,23 @@ def toml_value(v: Any) -> str:
     raise TypeError(f"no TOML form for {v!r}")
 
 
+_CONTROL = re.compile(r"[\x00-\x08\x0b-\x1f\x7f]")   # not allowed in a TOML comment
+
+
+def comment(lines: list[str]) -> list[str]:
+    """``lines`` as TOML comment lines: a text of several lines (a vendor file's multi-line
+    comment) gives one ``#`` line each, control characters become spaces."""
+    return [f"# {_CONTROL.sub(' ', part)}".rstrip()
+            for line in lines for part in (str(line).splitlines() or [""])]
+
+
 def render(draft: MapDraft) -> str:
     """The device-map TOML text of ``draft``."""
-    out = [f"# {line}".rstrip() for line in draft.header]
+    out = comment(draft.header)
     for bus in draft.buses:
         out += ["", "[[bus]]"] + [f"{k} = {toml_value(v)}" for k, v in bus.items()]
     for comments, dev in draft.devices:
-        out += [""] + [f"# {c}" for c in comments] + ["[[device]]"]
+        out += ["", *comment(comments), "[[device]]"]
         out += [f"{k} = {toml_value(v)}" for k, v in dev.items()]
     return "\n".join(out) + "\n"
 

@@ -138,6 +138,10 @@ function render(snap, events) {
              (d.reason ? ": " + d.reason : "") +
              (d.write_errors ? " [write errors " + d.write_errors + ": " +
               (d.last_write_error || "") + "]" : ""));
+    const spark = document.createElement("td");
+    spark.className = "spark";
+    spark.innerHTML = sparkline(history[name] || []);
+    tr.appendChild(spark);
   });
   setOptions($("setpri-link"), links.map((l) => l.src + " " + l.dst),
              links.map((l) => l.src + "/" + l.dst + " (" + l.type + ")"));
@@ -146,6 +150,31 @@ function render(snap, events) {
   addEvents(events || []);
   $("seq").textContent = snap.seq;
   $("seq").dataset.seq = snap.seq;
+}
+
+// each device's recent values (GET /api/history every 2 s), drawn as a sparkline per device
+let history = {};
+
+function sparkline(points) {
+  if (points.length < 2) return "";
+  const w = 120, h = 18;
+  const t0 = points[0][0], t1 = points[points.length - 1][0];
+  let lo = Infinity, hi = -Infinity;
+  for (const [, v] of points) { lo = Math.min(lo, v); hi = Math.max(hi, v); }
+  const span = hi - lo || 1, dt = t1 - t0 || 1;
+  const xy = points.map(([t, v]) => ((t - t0) / dt * w).toFixed(1) + "," +
+                                    (h - 1 - (v - lo) / span * (h - 2)).toFixed(1));
+  return '<svg width="' + w + '" height="' + h + '" viewBox="0 0 ' + w + " " + h +
+         '"><title>' + lo.toPrecision(4) + " .. " + hi.toPrecision(4) + " over the last " +
+         Math.round(dt) + ' s</title><polyline fill="none" stroke="#1565c0" points="' +
+         xy.join(" ") + '"/></svg>';
+}
+
+async function loadHistory() {
+  try {
+    const resp = await fetch("/api/history");
+    if (resp.ok) history = (await resp.json()).devices || {};
+  } catch (e) { /* the stream shows the connection state */ }
 }
 
 function update(msg) {
@@ -241,3 +270,5 @@ function connect() {
 }
 loadSession();
 connect();
+loadHistory();
+setInterval(loadHistory, 2000);

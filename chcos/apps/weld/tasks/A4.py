@@ -35,7 +35,7 @@ from chcos.apps.weld.tasks.common import (
 )
 from chcos.errors import SensorFailure
 from chcos.user.context import TaskContext
-from chcos.user.worldmodel import WorldModel
+from chcos.user.worldmodel import WorldModel, task
 
 JOINTS = tuple(f"theta{j}" for j in range(1, 6))
 TARGETS = tuple(f"target{j}" for j in range(1, 6))
@@ -100,6 +100,7 @@ def _command(ctx: TaskContext, command: Any, thetas: list[float],
     return None, pose.yaw, 0.0
 
 
+@task(world_model=PositionModel)
 async def main(ctx: TaskContext, command: Any) -> None:
     """Execute motion commands (the first, then each newer one its owner sends) and report T5
     forever."""
@@ -165,6 +166,3 @@ async def _servo_failed(ctx: TaskContext, exc: SensorFailure) -> NoReturn:
 
 def _fmt(p: Any) -> str:
     return "(" + ", ".join(f"{float(c):.1f}" for c in p) + ")"
-
-
-main.world_model = PositionModel  # type: ignore[attr-defined]

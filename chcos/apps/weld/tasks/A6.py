@@ -13,7 +13,7 @@ from typing import Any
 from chcos.apps.weld.tasks.common import as_dict, latest, pose_of
 from chcos.errors import MessageError
 from chcos.user.context import TaskContext
-from chcos.user.worldmodel import WorldModel
+from chcos.user.worldmodel import WorldModel, task
 
 
 class MemoryModel(WorldModel):
@@ -34,6 +34,7 @@ class MemoryModel(WorldModel):
         return super().answer(topic, *args)
 
 
+@task(world_model=MemoryModel)
 async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     """Stop and/or memorize, then complete with the memorized record."""
     cmd = as_dict(command)
@@ -47,6 +48,3 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     positions[str(record["tag"])] = record
     positions["last"] = record
     return record
-
-
-main.world_model = MemoryModel  # type: ignore[attr-defined]

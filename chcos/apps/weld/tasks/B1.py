@@ -17,7 +17,7 @@ from typing import Any
 
 from chcos.apps.weld.tasks.common import GasFailure, WeldTaskError, WireFailure, as_dict, param
 from chcos.user.context import TaskContext
-from chcos.user.worldmodel import WorldModel
+from chcos.user.worldmodel import WorldModel, task
 
 COOLING_S = 15.0
 """How long after the weld is off a hot arc region is still expected (s)."""
@@ -56,6 +56,7 @@ async def _turn_off(ctx: TaskContext) -> str:
     return "off"
 
 
+@task(world_model=WeldModel)
 async def main(ctx: TaskContext, command: Any) -> str:
     """Turn the weld on (and watch the gas) or off. While on, a newer command from the owner
     (a repeated topen, no new activation) is taken up at once: ``on`` runs the start-up again
@@ -126,6 +127,3 @@ async def _fail(ctx: TaskContext, why: str, what: str = "gas") -> None:
 
 def _bar(gas: Any) -> str:
     return f"{gas['bottle']:.1f} bar" if isinstance(gas, dict) and "bottle" in gas else "unknown"
-
-
-main.world_model = WeldModel  # type: ignore[attr-defined]

@@ -8,11 +8,13 @@ has not moved for 0.5 s although a motion is commanded while the temperature fal
 
 Besides these hard-coded tests C1 learns (thesis 5.4, App. 2 C1.s: temperature and position
 over time): when a short circuit shows the tip stuck, the arc voltage's trend over the half
-second before it is kept as an example (``chcos.user.knowledge.LearnedPattern``, in
+second before it is kept as an example if it differs from the trends of normal welding (a
+freeze without a precursor teaches nothing; ``chcos.user.knowledge.LearnedPattern``, in
 ``learned/C1-tip.json`` beside the system's map). On later runs, when the burning arc's voltage
-follows a learned trend, C1 reports ``{"tip": "sticking"}`` before the tip freezes (its
-commander can cut the wire feed), and ``{"tip": "free"}`` 1 s later. Every reaction is kept in
-the world model's ``reactions`` (``{"t", "kind": "learned" | "hard-coded"}``).
+leaves its normal trends and follows a learned one, C1 reports ``{"tip": "sticking"}`` before
+the tip freezes (its commander can cut the wire feed), and ``{"tip": "free"}`` 1 s later; an
+example that keeps firing with no freeze counts false alarms and is forgotten. Every reaction is
+kept in the world model's ``reactions`` (``{"t", "kind": "learned" | "hard-coded"}``).
 
 ``{"op": "idle"}`` stops watching. ``{"op": "unstick"}``: stop the motors and memorize the
 position (A6), turn the voltage off (A2), move the tip ``lift`` mm (default 10) straight up,
@@ -65,8 +67,7 @@ async def _watch(ctx: TaskContext) -> None:
     sticking_until: float | None = None
     last_set: float | None = None
     while True:
-        port, msg = await ctx.read_any(["A1", "A2", "A4"])
-        src = ctx.inputs[port]
+        src, msg = await ctx.read_any(["A1", "A2", "A4"])
         if not isinstance(msg, dict) or "fail" in msg:
             continue
         now = ctx.now

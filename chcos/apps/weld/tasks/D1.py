@@ -31,7 +31,7 @@ from chcos.apps.weld.tasks.common import (
 )
 from chcos.tables.messages import LinkStatus
 from chcos.user.context import TaskContext
-from chcos.user.worldmodel import WorldModel
+from chcos.user.worldmodel import WorldModel, task
 
 
 class GapModel(WorldModel):
@@ -44,6 +44,7 @@ class GapModel(WorldModel):
         return super().answer(topic, *args)
 
 
+@task(world_model=GapModel)
 async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     """Inspect the gap from its start marker to its end marker."""
     cmd = as_dict(command)
@@ -119,6 +120,3 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
              "width_ok": outcome["inspection"] == "OK", "travelled": tracker.travelled,
              "t": ctx.now, "inspection": outcome["inspection"]})
     return outcome
-
-
-main.world_model = GapModel  # type: ignore[attr-defined]

@@ -42,7 +42,7 @@ from chcos.apps.weld.tasks.common import (
 from chcos.errors import ReadTimeout
 from chcos.tables.messages import LinkStatus
 from chcos.user.context import TaskContext
-from chcos.user.worldmodel import WorldModel
+from chcos.user.worldmodel import WorldModel, task
 
 RETRACT_S = 0.8
 """How long the wire feed is cut when C1 reports the tip about to stick (s)."""
@@ -107,6 +107,7 @@ async def _weld_on(ctx: TaskContext, volts: float, wire: float, band: list[float
                              f"{strike} s (weld {'on' if on else 'not on'})")
 
 
+@task(world_model=WeldGapModel)
 async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     """Weld the gap from its start marker to its end marker."""
     cmd = as_dict(command)
@@ -142,10 +143,9 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     samples = in_band = unstuck = 0
     retract_until: float | None = None
     while True:
-        for task in ("B1", "B4", "A5"):
-            await _check(ctx, task)
-        index, msg = await ctx.read_any(["A7", "A1", "C1", "B1"], timeout=1.0)
-        src = ctx.inputs[index]
+        for lower in ("B1", "B4", "A5"):
+            await _check(ctx, lower)
+        src, msg = await ctx.read_any(["A7", "A1", "C1", "B1"], timeout=1.0)
         here = await latest(ctx, "A4")
         travelled = tracker.moved(here["pos"])
         if not isinstance(msg, dict) or "fail" in msg:
@@ -230,6 +230,3 @@ async def _unstick(ctx: TaskContext, volts: float, wire: float, band: list[float
         raise WeldAborted(f"D2: cannot return to the weld after freeing the tip: {down.error}")
     await ctx.call("C1", {"op": "watch"})
     await _weld_on(ctx, volts, wire, band, strike)
-
-
-main.world_model = WeldGapModel  # type: ignore[attr-defined]

@@ -27,7 +27,7 @@ from typing import Any
 
 from chcos.errors import MessageError, SensorFailure
 from chcos.user.context import TaskContext
-from chcos.user.worldmodel import WorldModel
+from chcos.user.worldmodel import WorldModel, task
 
 HEAT_RECHECK_S = 0.5
 """After B1 said heat is expected, D3 does not ask again (nor wake for heat) for this long."""
@@ -72,6 +72,7 @@ async def _heat_expected(ctx: TaskContext) -> bool:
         return False
 
 
+@task(world_model=ExceptionModel)
 async def main(ctx: TaskContext, command: Any) -> None:
     """Watch the intruder and every lower sensory message for dangerous patterns; run only when
     one of them has something new to say."""
@@ -143,6 +144,3 @@ async def main(ctx: TaskContext, command: Any) -> None:
         elif not wm.sensory.get(kind):
             wm.sensory[kind] = True
             _alarm(ctx, kind, detail)
-
-
-main.world_model = ExceptionModel  # type: ignore[attr-defined]

@@ -14,7 +14,7 @@ from typing import Any
 
 from chcos.errors import MessageError
 from chcos.user.context import TaskContext
-from chcos.user.worldmodel import WorldModel
+from chcos.user.worldmodel import WorldModel, task
 
 FREEZE = ("D1", "D2", "C1", "C2", "B1", "B3", "B4", "B5")
 
@@ -29,6 +29,7 @@ class AssassinModel(WorldModel):
         return super().answer(topic, *args)
 
 
+@task(world_model=AssassinModel)
 async def main(ctx: TaskContext, command: Any) -> None:
     """Stay armed; react to every alarm."""
     ctx.complete("armed")
@@ -56,6 +57,3 @@ async def main(ctx: TaskContext, command: Any) -> None:
         mem = await ctx.call("A6", {"memorize": "alarm"})
         record["position"] = mem.result["pos"] if mem.ok else f"{mem.status.value}: {mem.error}"
         record["done"] = ctx.now
-
-
-main.world_model = AssassinModel  # type: ignore[attr-defined]

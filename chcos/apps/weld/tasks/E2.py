@@ -19,7 +19,7 @@ from typing import Any
 from chcos.apps.weld.tasks.common import as_dict, param
 from chcos.tables.messages import Completion
 from chcos.user.context import TaskContext
-from chcos.user.worldmodel import WorldModel
+from chcos.user.worldmodel import WorldModel, task
 
 
 class JobModel(WorldModel):
@@ -48,6 +48,7 @@ async def _run(ctx: TaskContext, port: str, command: dict[str, Any]) -> Completi
             raise Alarm(msg)
 
 
+@task(world_model=JobModel)
 async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     """Run the job and report its outcome."""
     cmd = as_dict(command)
@@ -89,6 +90,3 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     wm.command.update(phase="finished", outcome=out)
     ctx.put(out)
     return out
-
-
-main.world_model = JobModel  # type: ignore[attr-defined]
