@@ -224,14 +224,30 @@ class CanPeer(Mutable, Peer):
         self.can.shutdown()
 
 
+def cia402_eds(eds: Any, node: int) -> bool:
+    """True when the EDS at ``eds`` describes a CiA 402 drive (0x6040, 0x6041, 0x6060), read
+    as the simulated node reads it; an unreadable EDS is left to the node to refuse."""
+    from chcos.devices.eds_file import read_eds
+    from chcos.devices.importers.cia402 import is_cia402
+
+    try:
+        return is_cia402(read_eds(eds, node).od)
+    except ValueError:
+        return False
+
+
 class CanopenPeer(Peer):
-    """Per node of the bus, a :class:`chcos.apps.sim.canopen_slave.CanopenSlave` on the tick
-    clock (virtual time stays deterministic): heartbeat every third of the node's
-    ``heartbeat_timeout`` (none without it), TPDOs on change, event timer and SYNC, no plant
-    (values come from :meth:`set` and scripts). :meth:`node` hands a node to fault scripts."""
+    """Per node of the bus, on the tick clock (virtual time stays deterministic), a
+    :class:`chcos.apps.sim.cia402_drive.Cia402Drive` when the node's EDS is a CiA 402 drive's
+    (the state machine answers the controlword; 0x605A as the EDS says), else a
+    :class:`chcos.apps.sim.canopen_slave.CanopenSlave` without a plant (values come from
+    :meth:`set` and scripts). Both send a heartbeat every third of the node's
+    ``heartbeat_timeout`` (none without it), TPDOs on change, event timer and SYNC.
+    :meth:`node` hands a node to fault scripts."""
 
     def __init__(self, bus: BusSpec, devices: tuple[DeviceSpec, ...], rewrite: bool) -> None:
         from chcos.apps.sim.canopen_slave import CanopenSlave, Clock
+        from chcos.apps.sim.cia402_drive import Cia402Drive
         from drivers.codecs.canopen import eds_path
 
         self.args = can_args(bus.options, rewrite, bus.name)
@@ -245,11 +261,18 @@ class CanopenPeer(Peer):
             for node in bus.options.get("nodes", []):
                 nid = int(node["id"])
                 timeout = float(node.get("heartbeat_timeout") or 0)
-                slave = CanopenSlave(nid, eds_path(bus, str(node["eds"])),
-                                     channel=str(self.args["channel"]),
-                                     interface=str(self.args["interface"]),
-                                     heartbeat_period=timeout / 3, clock=Clock.TICK,
-                                     servo=False)
+                eds = eds_path(bus, str(node["eds"]))
+                slave: CanopenSlave
+                if cia402_eds(eds, nid):
+                    slave = Cia402Drive(nid, eds, channel=str(self.args["channel"]),
+                                        interface=str(self.args["interface"]),
+                                        heartbeat_period=timeout / 3, clock=Clock.TICK,
+                                        quick_stop_option=None)
+                else:
+                    slave = CanopenSlave(nid, eds, channel=str(self.args["channel"]),
+                                         interface=str(self.args["interface"]),
+                                         heartbeat_period=timeout / 3, clock=Clock.TICK,
+                                         servo=False)
                 self.slaves[nid] = slave
                 slave.start()
         except BaseException:
