@@ -75,6 +75,16 @@ class AxisLimitError(Cia402Error):
     """A set-point is outside the axis's limits or not a finite number; nothing was written."""
 
 
+class AxisCommandFailed(Cia402Error):
+    """A command of an axis ended without the drive confirming it: ``result`` names the
+    command, the state reached, the statusword and 0x603F (its ``str`` is the message)."""
+
+    def __init__(self, axis: str, result: Result) -> None:
+        super().__init__(f"axis {axis}: {result}")
+        self.axis = axis
+        self.result = result
+
+
 # -- the state machine as data ---------------------------------------------------------------
 
 

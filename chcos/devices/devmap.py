@@ -150,7 +150,7 @@ def _warnings(fe_by_file: Mapping[str, FileErrors], buses: Mapping[str, BusSpec]
         before = len(fe.errors)
         bus = buses.get(d.bus)
         cls = classes.get(d.bus)
-        if d.direction == "actuator" and d.safe_value is None:
+        if d.direction == "actuator" and d.safe_value is None and not d.safe_reason:
             fe.add(f"{d.key}.safe_value", "actuator has no safe value: e-stop, abnormal "
                                           "completion and shutdown leave it at its last command")
         if bus is not None and cls is not None:

@@ -25,8 +25,16 @@ from chcos.tables.messages import PRIORITIES, PRIORITY_TEXT
 
 BUS_KEYS = ("name", "kind")
 DEVICE_KEYS = ("name", "direction", "machine", "bus", "address", "priority", "stale_after",
-               "scale", "offset", "limits", "safe_value", "units", "round",
-               "north_writable")
+               "scale", "offset", "limits", "safe_value", "safe_reason", "units", "round",
+               "north_writable", "profile")
+#: ``safe_value = "none"``: the actuator has no safe value, for the reason in ``safe_reason``
+NO_SAFE_VALUE = "none"
+#: the keys of an axis table (``profile = "cia402"``) besides the axis keys of
+#: :data:`drivers.cia402.AXIS_KEYS` (but ``axis``, which is in the address)
+AXIS_TABLE_KEYS = ("name", "profile", "machine", "bus", "address", "priority", "units",
+                   "mode")
+#: the address keys of an axis table
+AXIS_ADDRESS_KEYS = ("node", "axis")
 TOP_KEYS = ("bus", "device")
 PATH_KEYS = frozenset({"dbc", "eds", "record"})
 MAX_MESSAGE = 300        # characters of one error's expectation
@@ -290,7 +298,22 @@ def _parse_device(fe: FileErrors, i: int, table: Any, base: Path) -> _Parsed:
     if "limits" in table:
         limits = _limits(fe, f"{key}.limits", table["limits"])
     safe: float | None = None
-    if "safe_value" in table:
+    safe_reason = table.get("safe_reason", "")
+    if not isinstance(safe_reason, str) or len(safe_reason) > 200:
+        fe.add(f"{key}.safe_reason", f"expected a string of at most 200 characters, got "
+                                     f"{_type_name(safe_reason)} {short(safe_reason)}")
+        safe_reason = ""
+    if table.get("safe_value") == NO_SAFE_VALUE:
+        if not safe_reason.strip():
+            fe.add(f"{key}.safe_reason", f"safe_value = \"{NO_SAFE_VALUE}\" needs the reason "
+                                         f"(e.g. \"a target position: 0 would send the axis "
+                                         f"home\")")
+        if direction == "sensor":
+            fe.add(f"{key}.safe_value", "applies to actuators only; remove it from a sensor")
+    elif "safe_value" in table:
+        if safe_reason:
+            fe.add(f"{key}.safe_reason", f"only with safe_value = \"{NO_SAFE_VALUE}\"; remove "
+                                         f"it or the safe value")
         safe = _number(fe, f"{key}.safe_value", table["safe_value"], magnitude=MAX_MAGNITUDE)
         if direction == "sensor":
             fe.add(f"{key}.safe_value", "applies to actuators only; remove it from a sensor")
@@ -326,7 +349,9 @@ def _parse_device(fe: FileErrors, i: int, table: Any, base: Path) -> _Parsed:
                       offset=offset if offset is not None else 0.0,
                       limits=limits if limits is not None else (None, None),
                       safe_value=safe, units=units, file=fe.path, key=key,
-                      round=rounding is True, north_writable=north is True)
+                      round=rounding is True, north_writable=north is True,
+                      safe_reason=safe_reason if table.get("safe_value") == NO_SAFE_VALUE
+                      else "")
     return _Parsed(spec if len(fe.errors) == before and limits is not None else None, spec)
 
 
@@ -386,9 +411,93 @@ def read_file(path: Path) -> FileResult:
         if bspec is not None:
             res.buses.append(bspec)
     for i, t in enumerate(device_tables):
+        if isinstance(t, dict) and "profile" in t:
+            specs = _parse_axis(fe, i, t)
+            res.devices.extend(specs)
+            res.checkable.extend(specs)
+            continue
         parsed = _parse_device(fe, i, t, base)
         if parsed.spec is not None:
             res.devices.append(parsed.spec)
         if parsed.checkable is not None:
             res.checkable.append(parsed.checkable)
     return res
+
+
+def _parse_axis(fe: FileErrors, i: int, table: dict[str, Any]) -> list[DeviceSpec]:
+    """An axis table (``profile = "cia402"``): its keys checked (the axis keys by
+    :func:`drivers.cia402.config_from_table`), and the devices it becomes: the actuator
+    ``name`` (safe value: the safe stop sequence) and the sensors ``name.state``, ...
+    (:mod:`drivers.canopen_axis`). Nothing if any key is wrong."""
+    from drivers.canopen_axis import PROFILE, AxisCode, AxisReading, axis_names, mode_of
+    from drivers.cia402 import AXIS_KEYS, Cia402Error, config_from_table
+
+    key = f"device[{i}]"
+    before = len(fe.errors)
+    profile = table.get("profile")
+    if profile != PROFILE:
+        fe.add(f"{key}.profile", f"expected \"{PROFILE}\" (a CiA 402 axis), got {short(profile)}")
+        return []
+    axis_keys = tuple(k for k in AXIS_KEYS if k != "axis")
+    _unknown_keys(fe, key, table, AXIS_TABLE_KEYS + axis_keys)
+    name = _name(fe, key, table)
+    if name is not None and len(name) + len(".statusword") > MAX_NAME:
+        fe.add(f"{key}.name", f"an axis name has at most {MAX_NAME - len('.statusword')} "
+                              f"characters (its sensors are name.statusword...), got {len(name)}")
+    machine = table.get("machine", 0)
+    if not is_int(machine) or not 0 <= machine <= MAX_MACHINE:
+        fe.add(f"{key}.machine", f"expected an integer 0..{MAX_MACHINE}, got {short(machine)}")
+    bus = table.get("bus")
+    if not isinstance(bus, str) or not bus:
+        fe.add(f"{key}.bus", f"expected the name of a canopen bus, got {short(bus)}")
+    priority = table.get("priority", 8)
+    if not is_int(priority) or priority not in PRIORITIES:
+        fe.add(f"{key}.priority", f"expected an integer {PRIORITY_TEXT}, got {short(priority)}")
+    units = table.get("units", "")
+    if not isinstance(units, str) or len(units) > 64:
+        fe.add(f"{key}.units", f"expected a string of at most 64 characters, got {short(units)}")
+    address = table.get("address")
+    node, axis = None, 0
+    if not isinstance(address, dict):
+        fe.add(f"{key}.address", f"expected {{node = 1..127, axis = 0..7}}, got "
+                                 f"{short(address)}")
+    else:
+        _unknown_keys(fe, f"{key}.address", address, AXIS_ADDRESS_KEYS)
+        node = address.get("node")
+        if not is_int(node) or not 1 <= node <= 127:
+            fe.add(f"{key}.address.node", f"expected a node id 1..127, got {short(node)}")
+        axis = address.get("axis", 0)
+        if not is_int(axis) or not 0 <= axis <= 7:
+            fe.add(f"{key}.address.axis", f"expected an axis number 0..7 (0x800 per axis), "
+                                          f"got {short(axis)}")
+    mode = None
+    if "mode" in table:
+        mode = mode_of(table["mode"])
+        if mode is None:
+            fe.add(f"{key}.mode", f"expected a mode of operation (PP, PV, HM, CSP, CSV... or "
+                                  f"its number), got {short(table['mode'])}")
+    cfg_table = {k: v for k, v in table.items() if k in axis_keys}
+    if _check_values(fe, key, cfg_table):
+        try:
+            config_from_table(name or "axis", {"axis": axis if is_int(axis) else 0,
+                                               **cfg_table}, key)
+        except Cia402Error as exc:
+            where, _, what = str(exc).partition(": ")
+            fe.add(where, what)
+    if len(fe.errors) != before or name is None or not isinstance(bus, str):
+        return []
+    common: dict[str, Any] = {"machine": machine, "bus": bus, "priority": priority,
+                              "file": fe.path, "key": key}
+    actuator = DeviceSpec(name=name, direction="actuator", units="",
+                          limits=(float(min(AxisCode)), float(max(AxisCode))),
+                          safe_value=float(AxisCode.SAFE_STOP),
+                          address={"profile": PROFILE, "node": node, "axis": axis,
+                                   "mode": None if mode is None else int(mode),
+                                   "config": cfg_table}, **common)
+    sensor_units = {AxisReading.POSITION: units, AxisReading.VELOCITY: f"{units}/s" if units
+                    else ""}
+    sensors = [DeviceSpec(name=dev, direction="sensor", units=sensor_units.get(r, ""),
+                          address={"profile": PROFILE, "node": node, "axis": axis,
+                                   "reading": r.value}, **common)
+               for r, dev in axis_names(name).items()]
+    return [actuator, *sensors]

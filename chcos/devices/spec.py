@@ -66,6 +66,9 @@ class DeviceSpec:
     #: the north side (Modbus facade, OPC UA) may command this actuator (limits and owner rules
     #: still apply); default False: read-only from above
     north_writable: bool = False
+    #: why the actuator has no safe value (``safe_value = "none"`` in the map, e.g. a target
+    #: position, where any value would move the machine); "" when it has one or none was said
+    safe_reason: str = ""
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,8 @@ Thesis name → chcos name: tgetc → :meth:`TaskContext.read` / :meth:`~TaskCon
 :meth:`~TaskContext.write`; topen → :meth:`~TaskContext.invoke`;
 tclose → :meth:`~TaskContext.close`;
 teotsk → return, or :meth:`~TaskContext.complete`; msgstat → :meth:`~TaskContext.status`;
-sleep → :meth:`~TaskContext.sleep`; gettid → :attr:`~TaskContext.tid`.
+sleep → :meth:`~TaskContext.sleep`; gettid → :attr:`~TaskContext.tid`. A CiA 402 axis:
+:meth:`~TaskContext.axis` (:mod:`chcos.user.axes`).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from chcos.errors import MessageError
 from chcos.kernel.scheduler import BLOCK, YIELD
 from chcos.tables.messages import LinkType
 from chcos.tables.tasks import TaskState
+from chcos.user.axes import AxisHandle, axis_handle
 from chcos.user.commanding import Commanding
 from chcos.user.ports import Port
 from chcos.user.reading import Event, Reading
@@ -147,6 +149,14 @@ class TaskContext(Reading, Commanding):
         ``state_dir/learned``): the directory of its sysfile.map (the satellite's state
         directory, ``chcos run``'s work directory), else its base directory."""
         return Path(self._mm.state_dir)
+
+    # ---- devices with a profile ---------------------------------------------------------------
+    def axis(self, name: str) -> AxisHandle:
+        """The CiA 402 axis ``name`` (a device-map table with ``profile = "cia402"``) on one of
+        this task's output ports: commands that complete (``await ctx.axis("x").enable()``) and
+        its readings (:mod:`chcos.user.axes`). Raises MessageError if it is not on an output
+        port or not an axis driven by this process."""
+        return axis_handle(self._t, self._k, self._mm.devices, name)
 
     # ---- world model queries ----------------------------------------------------------------
     @types.coroutine

@@ -1,0 +1,189 @@
+"""axes - the task API of a CiA 402 axis: ``ctx.axis("x")`` and its commands that complete.
+
+``await ctx.axis("x").enable()`` returns once the drive's statusword confirms OPERATION_ENABLED
+and raises :class:`drivers.cia402.AxisCommandFailed` (a ChcosError) naming the state reached,
+the statusword and 0x603F when it does not; the task never touches a controlword bit. The axis
+must be on one of the task's output ports (an actuator it commands): the task then owns it, and
+its abnormal completion runs the axis's safe stop as any actuator's safe value. While a command
+waits the task is WAITING; the command runs on the CANopen driver's I/O thread
+(:mod:`drivers.canopen_axis`) and its result comes back through the kernel's interrupt queue.
+
+The readings (:attr:`AxisHandle.state`, :attr:`~AxisHandle.position`, ...) are what the drive
+last confirmed; the same values are the sensors ``x.state``, ``x.position``, ... of Devtab.
+"""
+
+from __future__ import annotations
+
+import types
+from collections.abc import Generator
+from typing import TYPE_CHECKING, Any, Protocol
+
+from chcos.errors import DeviceError, MessageError
+from chcos.kernel.scheduler import BLOCK
+from chcos.tables.messages import EndpointKind
+from chcos.tables.tasks import TaskState
+from drivers.canopen_axis import AxisCall, AxisStatus, Done
+from drivers.cia402 import AxisCommandFailed, Fault, Mode, Op, Result, State
+
+if TYPE_CHECKING:
+    from chcos.kernel.scheduler import Kernel
+    from chcos.tables.tasks import TaskEntry
+
+
+class AxisDriver(Protocol):
+    """What a driver hosting axes offers (:class:`drivers.canopen_node.CanopenDriver`)."""
+
+    def axis_call(self, device: str, call: AxisCall, done: Done) -> None:
+        """Start ``call`` on axis ``device``; ``done`` gets its result (any thread)."""
+
+    def axis_status(self, device: str) -> AxisStatus:
+        """What the drive last confirmed."""
+
+
+def find_axis(devices: Any, name: str) -> AxisDriver:
+    """The driver hosting axis ``name`` in Devtab ``devices``. Raises MessageError naming the
+    device when it is not an axis driven by this process."""
+    try:
+        entry = devices.get(name)
+    except Exception as exc:
+        raise MessageError(f"no axis {name!r}: {exc}") from exc
+    drv = entry.driver
+    if entry.spec.address.get("profile") != "cia402" or entry.spec.direction != "actuator":
+        raise MessageError(f"{name} is not a CiA 402 axis (a device-map table with "
+                           f"profile = \"cia402\")")
+    if drv is None or not hasattr(drv, "axis_call"):
+        raise MessageError(f"axis {name} is not driven by this process (machine "
+                           f"{entry.spec.machine})")
+    driver: AxisDriver = drv
+    return driver
+
+
+class AxisHandle:
+    """The commands and readings of one axis for one task (``ctx.axis(name)``)."""
+
+    def __init__(self, name: str, driver: AxisDriver, task: TaskEntry, kernel: Kernel) -> None:
+        self.name = name
+        self._driver = driver
+        self._t = task
+        self._k = kernel
+
+    # ---- readings -----------------------------------------------------------------------------
+    @property
+    def status(self) -> AxisStatus:
+        """Everything the drive last confirmed, at once."""
+        return self._driver.axis_status(self.name)
+
+    @property
+    def state(self) -> State | None:
+        """The drive's power state (None before the first statusword)."""
+        return self.status.state
+
+    @property
+    def statusword(self) -> int | None:
+        """The last statusword 0x6041."""
+        return self.status.statusword
+
+    @property
+    def mode(self) -> int | None:
+        """The mode the drive shows on 0x6061."""
+        return self.status.mode_display
+
+    @property
+    def position(self) -> float | None:
+        """Position actual in user units."""
+        return self.status.position
+
+    @property
+    def velocity(self) -> float | None:
+        """Velocity actual in user units per second."""
+        return self.status.velocity
+
+    @property
+    def fault(self) -> Fault | None:
+        """The drive's fault (error code 0x603F and statusword), None when not in a fault."""
+        return self.status.fault
+
+    # ---- commands -----------------------------------------------------------------------------
+    def enable(self) -> Generator[Any, Any, Result]:
+        """Walk the state machine to OPERATION_ENABLED (never out of a fault)."""
+        return self._call(AxisCall(Op.ENABLE))
+
+    def disable(self) -> Generator[Any, Any, Result]:
+        """Disable voltage (SWITCH_ON_DISABLED; a moving axis coasts)."""
+        return self._call(AxisCall(Op.DISABLE))
+
+    def quick_stop(self) -> Generator[Any, Any, Result]:
+        """Quick stop; done once stopped (per 0x605A)."""
+        return self._call(AxisCall(Op.QUICK_STOP))
+
+    def fault_reset(self) -> Generator[Any, Any, Result]:
+        """The fault reset's edge; done when the drive left FAULT (also while the axis device
+        is failed by that fault: the reset is how it recovers)."""
+        return self._call(AxisCall(Op.FAULT_RESET))
+
+    def set_mode(self, mode: Mode | int | None = None) -> Generator[Any, Any, Result]:
+        """Write 0x6060 (``mode``, or the map's ``mode``); done when 0x6061 shows it."""
+        return self._call(AxisCall(Op.SET_MODE, None if mode is None else int(mode)))
+
+    def home(self) -> Generator[Any, Any, Result]:
+        """Homing (mode HM, operation enabled); done on homing attained."""
+        return self._call(AxisCall(Op.HOME))
+
+    def move_to(self, position: float) -> Generator[Any, Any, Result]:
+        """Move to ``position`` (user units; PP or CSP); done on target reached."""
+        return self._call(AxisCall(Op.MOVE_TO, float(position)))
+
+    def at_velocity(self, velocity: float) -> Generator[Any, Any, Result]:
+        """Run at ``velocity`` (user units/s; PV or CSV); done when the drive is at it."""
+        return self._call(AxisCall(Op.AT_VELOCITY, float(velocity)))
+
+    def safe_stop(self) -> Generator[Any, Any, Result]:
+        """The axis's safe stop sequence (quick stop, wait, disable voltage, per the map)."""
+        return self._call(AxisCall(Op.SAFE_STOP))
+
+    @types.coroutine
+    def _call(self, call: AxisCall) -> Generator[Any, Any, Result]:
+        """Start ``call`` and wait for the drive to confirm it. Raises AxisCommandFailed (the
+        state reached, statusword, 0x603F), or the engine's refusal (AxisBusy,
+        AxisLimitError, ValueError) before anything was written."""
+        t, k, name = self._t, self._k, self.name
+        waiting = [True]
+
+        def forget(_t: TaskEntry) -> None:     # the wait ended otherwise (killed, cancelled)
+            waiting[0] = False
+
+        def arrive(outcome: Result | Exception) -> None:    # kernel thread
+            if waiting[0]:
+                waiting[0] = False
+                t.unwait = None
+                k.wake(t, t.base_prio, value=outcome)
+
+        def done(outcome: Result | Exception) -> None:      # the driver's thread
+            k.interrupt(arrive, outcome)
+
+        t.unwait = forget
+        k.block(t, TaskState.WAITING)
+        try:
+            self._driver.axis_call(name, call, done)
+        except BaseException:
+            t.unwait = None
+            t.state = TaskState.CURRENT
+            raise
+        outcome = yield BLOCK
+        if isinstance(outcome, Exception):
+            raise outcome
+        assert isinstance(outcome, Result)
+        if not outcome.ok:
+            raise AxisCommandFailed(name, outcome)
+        return outcome
+
+
+def axis_handle(task: TaskEntry, kernel: Kernel, devices: Any, name: str) -> AxisHandle:
+    """``ctx.axis(name)``: the axis must be on one of the task's output ports. Raises
+    MessageError naming the task and the axis otherwise, DeviceError for an unknown device."""
+    if not any(lk.dst == name and lk.dst_kind is EndpointKind.DEVICE for lk in task.out_links):
+        if name not in devices:
+            raise DeviceError(f"no device {name!r}")
+        raise MessageError(f"task {task.name} has no output port to axis {name}: link it to "
+                           f"the axis (it then owns it, and its safe stop follows the task)")
+    return AxisHandle(name, find_axis(devices, name), task, kernel)
