@@ -73,6 +73,15 @@ NO_SAFE_VALUE = {
                 "controlword",
     Role.QUICK_STOP_OPTION: "no safe value: a configuration written once",
 }
+def no_safe_value(index: int) -> str | None:
+    """Why the CiA 402 object ``index`` (at any axis's offset) has no safe value, or None
+    when it may have one: the set-points and configuration of :data:`NO_SAFE_VALUE`."""
+    base = 0x6000 + (index - 0x6000) % AXIS_OFFSET if 0x6000 <= index < 0x6000 + 8 * \
+        AXIS_OFFSET else index
+    role = next((r for r in NO_SAFE_VALUE if r.index == base), None)
+    return NO_SAFE_VALUE[role] if role is not None else None
+
+
 #: CANopen integer data types -> the range they carry (limits for the actuators).
 TYPE_RANGES = {0x0002: (-0x80, 0x7F), 0x0003: (-0x8000, 0x7FFF),
                0x0004: (-0x8000_0000, 0x7FFF_FFFF), 0x0005: (0, 0xFF), 0x0006: (0, 0xFFFF),
@@ -135,13 +144,13 @@ class DriveAxis:
 def load(path: str | Path, node: int) -> Any:
     """The object dictionary of node ``node`` from the EDS at ``path`` (canopen's import).
     Raises :class:`ConfigError` naming the file if it cannot be read."""
-    import canopen.objectdictionary as od_mod
+    from chcos.devices.eds_file import read_eds
 
     if not 1 <= node <= 127:
         raise ConfigError(f"--node {node}: expected a CANopen node id 1..127")
     try:
-        return od_mod.import_od(str(path), node)
-    except Exception as exc:  # canopen raises several kinds for a malformed file
+        return read_eds(path, node).od   # tolerant: vendor files leave numeric fields empty
+    except ValueError as exc:
         raise ConfigError(f"{path}: not a readable EDS: {exc}") from exc
 
 
@@ -263,6 +272,47 @@ def _object_notes(obj: AxisObject) -> list[str]:
     if obj.default is None and obj.role.direction == "actuator":
         notes.append(f"{where} has no DefaultValue in the EDS")
     return notes
+
+
+#: the roles an axis device cannot be hosted without (the CANopen driver's axis checks them)
+HOSTED = (Role.STATUSWORD, Role.CONTROLWORD, Role.MODES, Role.MODES_DISPLAY)
+
+
+def hostable(axis: DriveAxis) -> bool:
+    """True when the drive has every object the CANopen driver's axis needs
+    (:data:`HOSTED`); without 0x6061 a mode cannot be confirmed, and the importer writes the
+    axis's objects as plain devices instead."""
+    return all(role in axis.objects for role in HOSTED)
+
+
+def axis_device(axis: DriveAxis, draft: MapDraft, *, bus: str, machine: int = 0,
+                prefix: str = "", several: bool = False) -> tuple[list[str], dict[str, Any]]:
+    """One ``profile = "cia402"`` device table for ``axis`` (its comment lines first): node
+    and axis, the mode (PP with a target position, else PV, else none), ``counts_per_unit``
+    from the factor group (else 1 and a comment asking for it), 0x605A's default as
+    ``quick_stop_option``, the safe stop sequence. The notes of :func:`detect_axes` become the
+    comments."""
+    name = draft.name(f"axis{axis.axis + 1}" if several else "axis", prefix)
+    dev: dict[str, Any] = {"name": name, "profile": "cia402", "bus": bus}
+    if machine:
+        dev["machine"] = machine
+    dev["address"] = {"node": axis.node, "axis": axis.axis}
+    if Role.TARGET_POSITION in axis.objects:
+        dev["mode"] = "PP"
+    elif Role.TARGET_VELOCITY in axis.objects:
+        dev["mode"] = "PV"
+    dev["counts_per_unit"] = axis.counts_per_unit if axis.counts_per_unit else 1.0
+    if axis.quick_stop_option is not None:
+        dev["quick_stop_option"] = axis.quick_stop_option
+    dev["safe_stop"] = "quick_stop_then_disable"
+    objects = ", ".join(f"0x{o.index:04X} " + (f"({', '.join(map(str, o.pdos))})" if o.pdos
+                                               else "(SDO)")
+                        for o in axis.objects.values())
+    comments = [f"CiA 402 axis {axis.axis} of node {axis.node}: {objects}",
+                "its safe action is the stop sequence (quick stop, then disable voltage once "
+                "stopped); tasks command it with ctx.axis(name)",
+                *axis.notes]
+    return comments, dev
 
 
 def axis_table(axis: DriveAxis, name: str, *, counts_per_unit: float | None = None,
