@@ -78,6 +78,12 @@ class NodeEvents:
         self._told_lock = threading.Lock()
         #: the SYNC counters last added to the host's statistics (cycles, missing, late)
         self._sync_told = (0, 0, 0)
+        #: the TPDO values of a node hosting axes: ``axis_feed(node id, [(index, sub, raw)])``
+        self.axis_feed: Callable[[int, list[tuple[int, int, int]]], None] | None = None
+        #: a node hosting axes failed (lifecycle, heartbeat): ``node_down(node, reason)``;
+        #: ``node_up(node)`` once it is ready again (the driver calls its axes' ``lost`` once)
+        self.node_down: Callable[[ManagedNode, str], None] | None = None
+        self.node_up: Callable[[ManagedNode], None] | None = None
 
     # -- what the driver shows ------------------------------------------------------------------
 
@@ -117,13 +123,19 @@ class NodeEvents:
         if ready:
             for dev in node.devices:
                 self.health.clear(dev, "lifecycle", f"{self.where(node)}: {why_ok}")
+            if node.axes and self.node_up is not None:
+                self.node_up(node)
         elif not hold:
             for dev in node.devices:
                 self.health.fail(dev, "lifecycle", reason)
+            if node.axes and self.node_down is not None:
+                self.node_down(node, reason)
 
     def fail_node(self, node: ManagedNode, cause: str, reason: str) -> None:
         for dev in node.devices:
             self.health.fail(dev, cause, reason)
+        if cause != "emcy" and node.axes and self.node_down is not None:
+            self.node_down(node, reason)
 
     def clear_node(self, node: ManagedNode, cause: str, why: str) -> None:
         for dev in node.devices:
@@ -232,6 +244,9 @@ class NodeEvents:
         deliver_all(self.host, [(dev, var.raw) for var in pdo_map.map
                                 for dev in self.pdo_sensors.get((nid, var.index, var.subindex),
                                                                  ())])
+        feed = self.axis_feed
+        if feed is not None and self.nodes[nid].axes:
+            feed(nid, [(var.index, var.subindex, var.raw) for var in pdo_map.map])
 
     def on_heartbeat(self, node: ManagedNode, code: int) -> None:
         """A heartbeat or boot-up of ``node`` (reader thread): supervision, then the lifecycle."""
@@ -297,7 +312,9 @@ class NodeEvents:
         self.host.error(self.bus, "emcy", text)
         if is_error_reset(entry.code):
             self.clear_node(node, "emcy", f"canopen node {node.id}: error-reset EMCY")
-        elif is_fatal_emcy(entry.code):
+        elif is_fatal_emcy(entry.code) and not node.axes:
+            # a drive's fault is its axes' failure, judged from the statusword (failing the
+            # node would refuse the fault reset and the statusword: the deadlock of issue 37)
             self.fail_node(node, "emcy", text)
 
     def report_frame(self, kind: str, detail: str) -> None:

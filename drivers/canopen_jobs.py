@@ -1,12 +1,15 @@
 """canopen_jobs - the typed jobs of the ``canopen`` driver's I/O thread (beside the shared
 ``poll`` and ``write`` jobs of :mod:`drivers.jobs`): a node's boot procedure, the report of a
-node held in PRE-OPERATIONAL, the probe of an actuator whose write failed. Each travels as the
+node held in PRE-OPERATIONAL, the probe of an actuator whose write failed, and the work of the
+CiA 402 axes it hosts (readings, commands, the node's loss). Each travels as the
 ``what`` of a :class:`drivers.jobs.Job` with op :data:`OP` and is dispatched with ``match``.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 #: the op of every job defined here
 OP = "canopen"
@@ -38,4 +41,31 @@ class Probe:
     device: str
 
 
-CanopenJob = BootNode | ReportHeld | Probe
+@dataclass(frozen=True)
+class AxisFeed:
+    """Values of axis ``device``'s objects from one TPDO (engine object -> raw value)."""
+
+    device: str
+    values: tuple[tuple[Any, int], ...]
+
+
+@dataclass(frozen=True)
+class AxisCommand:
+    """Start a command of axis ``device`` (a :class:`drivers.canopen_axis.AxisCall`); ``done``
+    gets its result or the exception that refused it."""
+
+    device: str
+    call: Any
+    done: Callable[[Any], None] | None
+
+
+@dataclass(frozen=True)
+class AxisLost:
+    """The node of axis ``device`` failed or rebooted: the engine forgets the drive, and the
+    safe stop starts (it completes when the drive is heard again)."""
+
+    device: str
+    reason: str
+
+
+CanopenJob = BootNode | ReportHeld | Probe | AxisFeed | AxisCommand | AxisLost

@@ -49,9 +49,11 @@ devices until an error-reset EMCY (code 0000) or a boot that reads 0x1001 clear.
 from __future__ import annotations
 
 import contextlib
+import functools
 import struct
+import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -65,8 +67,18 @@ from chcos.errors import BusError
 from drivers import canopen_config
 from drivers.base import DriverHost, deliver_all
 from drivers.canbus import read_frames
+from drivers.canopen_axis import CODE_OPS, AxisCall, AxisCode, AxisHost, AxisStatus, Done, mode_of
 from drivers.canopen_events import FrameCheck, NodeEvents
-from drivers.canopen_jobs import OP, BootNode, CanopenJob, Probe, ReportHeld
+from drivers.canopen_jobs import (
+    OP,
+    AxisCommand,
+    AxisFeed,
+    AxisLost,
+    BootNode,
+    CanopenJob,
+    Probe,
+    ReportHeld,
+)
 from drivers.canopen_lifecycle import Lifecycle, NodeLifecycle, NodeStatus
 from drivers.canopen_od import (
     DEFAULT_MASTER_ID,
@@ -81,6 +93,7 @@ from drivers.canopen_od import (
 )
 from drivers.canopen_remote import BootOutcome, ManagedNode, RpdoImages
 from drivers.canopen_sync import SYNC_COB_ID, SyncCycle, SyncStats
+from drivers.cia402 import Obj, Result, Write, config_from_table
 from drivers.codecs.canopen import EMCY_BASE, HEARTBEAT_BASE
 from drivers.jobs import Job, WorkerJobDriver
 from drivers.threaded import ReaderThread
@@ -92,6 +105,10 @@ SDO_TX_BASE = 0x580   # SDO server -> client: COB-ID 0x580 + node id
 #: lifecycle states in which a node is known not to be OPERATIONAL: an RPDO to it is sent (a
 #: safe value goes out whatever the state) but not reported written
 IGNORES_RPDOS = (NodeLifecycle.PREOP_HELD, NodeLifecycle.FAILED, NodeLifecycle.WAITING_BOOT)
+#: seconds between two cycles of the axes' engines (timeouts, the fault reset's edge, resends)
+AXIS_CYCLE = 0.01
+#: the job op of the axes' cycle
+AXIS_POLL = "axis-poll"
 
 
 @dataclass
@@ -155,6 +172,12 @@ class CanopenDriver(WorkerJobDriver):
         self._poll_groups: dict[float, list[Binding]] = {}   # SDO-polled sensors by period
         self._master_task: Any = None
         self._sync_task: Any = None
+        #: the CiA 402 axes hosted, by actuator name (:mod:`drivers.canopen_axis`); their
+        #: engines are used by the I/O thread only
+        self._axes: dict[str, AxisHost] = {}
+        #: nodes hosting axes that are down (their axes told once), under ``_down_lock``
+        self._down: set[int] = set()
+        self._down_lock = threading.Lock()
 
     def _submit_job(self, job: CanopenJob) -> bool:
         return self._submit(OP, job)
@@ -242,6 +265,10 @@ class CanopenDriver(WorkerJobDriver):
                 RpdoImages(remote))
         self._events.network = network
         self._bind_devices()
+        if self._axes:
+            self._events.axis_feed = self._axis_feed
+            self._events.node_down = self._axis_node_down
+            self._events.node_up = self._axis_node_up
         config = {k: opts[k] for k in ("interface", "channel", "bitrate") if k in opts}
         try:
             cfg_bus = dict(can.util.load_config(config=config))
@@ -293,6 +320,8 @@ class CanopenDriver(WorkerJobDriver):
         self._poll_groups = groups
         for period in groups:
             self._poll_every(period, period)
+        if self._axes:
+            self._poll_every(("axes",), AXIS_CYCLE, AXIS_POLL)
 
     def _start_master_heartbeat(self, bus: can.BusABC, period_ms: int) -> None:
         """The master's heartbeat (state OPERATIONAL) at ``period_ms``: a cyclic task of the
@@ -336,6 +365,9 @@ class CanopenDriver(WorkerJobDriver):
         default_poll = float(self.bus.options.get("poll_period", DEFAULT_POLL))
         for dev in self.devices.values():
             a = dev.address
+            if a.get("profile") == "cia402":
+                self._bind_axis_device(dev)
+                continue
             nid, index, sub = int(a["node"]), int(a["index"]), int(a.get("subindex", 0))
             node = self._nodes[nid].remote
             maps = node.tpdo.map if dev.direction == "sensor" else node.rpdo.map
@@ -347,6 +379,163 @@ class CanopenDriver(WorkerJobDriver):
             self._nodes[nid].devices.append(dev.name)
             if dev.direction == "sensor" and pdo_var is not None:
                 self._events.pdo_sensors.setdefault((nid, index, sub), []).append(dev.name)
+
+    def _bind_axis_device(self, dev: DeviceSpec) -> None:
+        """A device of a CiA 402 axis table: the actuator gets its engine; every one of them
+        fails with the node (lifecycle, heartbeat), not with the drive's faults."""
+        a = dev.address
+        node = self._nodes[int(a["node"])]
+        node.devices.append(dev.name)
+        if dev.direction != "actuator":
+            return
+        cfg = config_from_table(dev.name, {"axis": int(a.get("axis", 0)),
+                                           **dict(a.get("config", {}))}, dev.key)
+        name = dev.name
+        self._axes[name] = AxisHost(
+            name, node.id, cfg, mode_of(a.get("mode")),
+            send=functools.partial(self._axis_send, node),
+            read=functools.partial(self._axis_read, node),
+            deliver=functools.partial(deliver_all, self.host),
+            fail=self._axis_fault,
+            recover=self._axis_fault_ended,
+            report=functools.partial(self._axis_report, name))
+        node.axes.append(name)
+
+    # -- axes (drivers.canopen_axis) ----------------------------------------------------------
+
+    def axis_call(self, device: str, call: AxisCall, done: Done) -> None:
+        """Start ``call`` on axis ``device`` on the I/O thread; ``done`` gets the engine's
+        :class:`drivers.cia402.Result` (from the I/O thread), or the exception that refused it
+        (AxisBusy, AxisLimitError, ValueError; BusError when the driver is stopped). Never
+        blocks."""
+        if device not in self._axes:
+            done(BusError(f"canopen bus {self.bus.name}: no axis {device!r}"))
+            return
+        if not self._submit(OP, AxisCommand(device, call, done)):
+            done(BusError(f"canopen bus {self.bus.name} is not running: {call.op.value} of "
+                          f"axis {device} not sent"))
+
+    def axis_status(self, device: str) -> AxisStatus:
+        """What axis ``device``'s drive last confirmed (any thread). Raises KeyError for a
+        device that is no axis of this bus."""
+        return self._axes[device].status()
+
+    def _axis_feed(self, nid: int, values: list[tuple[int, int, int]]) -> None:
+        """A TPDO of a node hosting axes (reader thread): each axis's objects in it, as one
+        reading, to the I/O thread."""
+        for host in self._nodes[nid].axes:
+            objs = self._axes[host].objects()
+            mine = tuple((objs[(i, s)], v) for i, s, v in values if (i, s) in objs)
+            if mine:
+                self._submit(OP, AxisFeed(host, mine))
+
+    def _axis_node_down(self, node: ManagedNode, reason: str) -> None:
+        with self._down_lock:
+            if node.id in self._down:
+                return
+            self._down.add(node.id)
+        for name in node.axes:
+            self._submit(OP, AxisLost(name, reason))
+
+    def _axis_node_up(self, node: ManagedNode) -> None:
+        with self._down_lock:
+            self._down.discard(node.id)
+
+    def _axis_send(self, node: ManagedNode, w: Write) -> None:
+        """One write of an axis as its own frame: the first RPDO mapping the object, composed
+        from the node's image, else an SDO download. Raises on failure (the engine resends)."""
+        var = node.remote.object_dictionary.get_variable(w.index, 0)
+        if var is None:
+            raise ValueError(f"node {node.id}'s EDS has no 0x{w.index:04X}")
+        data = bytes(var.encode_raw(coerce(var, w.value)))
+        pdos = node.images.pdos_of(w.index, 0)
+        if pdos:
+            node.images.set(w.index, 0, data)
+            pdos[0].transmit()
+            self.sent_frames[self._axis_device(node, w)] += 1
+            return
+        node.remote.sdo.download(w.index, 0, data)
+
+    def _axis_device(self, node: ManagedNode, w: Write) -> str:
+        for name in node.axes:
+            if self._axes[name].config.index(w.obj) == w.index:
+                return name
+        return node.axes[0]
+
+    def _axis_fault(self, device: str, reason: str) -> None:
+        self._events.health.fail(device, "drive-fault", reason)
+
+    def _axis_fault_ended(self, device: str, why: str) -> None:
+        self._events.health.clear(device, "drive-fault", why)
+
+    def _axis_report(self, device: str, text: str) -> None:
+        self.host.error(self.bus.name, "axis", text, device)
+
+    def _axis_read(self, node: ManagedNode, obj: Obj, index: int) -> int | None:
+        """An axis object read by SDO; None if the drive does not answer or refuses."""
+        var = node.remote.object_dictionary.get_variable(index, 0)
+        try:
+            data = node.remote.sdo.upload(index, 0)
+            return int(var.decode_raw(data)) if var is not None else \
+                int.from_bytes(data, "little")
+        except (SdoAbortedError, SdoCommunicationError, struct.error, ValueError):
+            return None
+
+    def _axis_job(self, job: AxisFeed | AxisCommand | AxisLost) -> None:
+        now = self.host.now()
+        match job:
+            case AxisFeed(device, values):
+                self._axes[device].reading({Obj(o): v for o, v in values}, now)
+            case AxisCommand(device, call, done):
+                self._axes[device].command(call, done, now)
+            case AxisLost(device, reason):
+                axis = self._axes[device]
+                axis.lost(reason, now)
+                axis.command(AxisCall(CODE_OPS[AxisCode.SAFE_STOP]), None, now)
+
+    def _guarded(self, fn: Callable[..., None], *args: Any) -> None:
+        """Axis work on the I/O thread: a surprise is reported, and the thread goes on."""
+        try:
+            fn(*args)
+        except can.CanError:
+            raise
+        except Exception as exc:
+            self.host.error(self.bus.name, "internal", f"axis work failed: {exc!r}")
+
+    def _axis_poll(self) -> None:
+        now = self.host.now()
+        for axis in self._axes.values():
+            axis.poll(now)
+
+    def _axis_write(self, device: str, value: Any) -> None:
+        """A Devtab write to an axis's actuator: the command of code ``value``; confirmed
+        (``written``) when the drive confirmed it, else failed naming the state reached."""
+        host = self.host
+
+        def done(outcome: Result | Exception) -> None:
+            if isinstance(outcome, Result) and outcome.ok:
+                host.written(device, value)
+            else:
+                host.write_failed(device, value, f"axis {device}: {outcome}"
+                                  if isinstance(outcome, Result) else str(outcome))
+
+        code = AxisCode(int(value))
+        self._axes[device].command(AxisCall(CODE_OPS[code]), done, host.now())
+
+    def flush(self, timeout: float) -> bool:
+        """As :meth:`drivers.jobs.JobDriver.flush`, and then, while an axis runs a command (the
+        safe stop at shutdown), keep cycling its engine until it ended or ``timeout`` passed:
+        the kernel's timers no longer run at shutdown, and Devtab's safe outcome of an axis is
+        the drive's confirmation."""
+        deadline = time.monotonic() + timeout
+        ok = super().flush(timeout)
+        while self._axes and any(a.status().busy is not None for a in self._axes.values()):
+            if time.monotonic() >= deadline or not self._running:
+                return False
+            self._submit(AXIS_POLL, None)
+            super().flush(max(0.0, deadline - time.monotonic()))
+            time.sleep(AXIS_CYCLE)      # the drive's next statusword (real time at shutdown)
+        return ok
 
     def stop(self) -> None:
         """Put every queued write on the wire (safe values at shutdown), then stop the master
@@ -379,6 +568,13 @@ class CanopenDriver(WorkerJobDriver):
     def check_value(self, device: str, value: Any) -> str | None:
         """Why ``value`` cannot be encoded for ``device``'s object (None if it can): not a
         finite number, a fraction for an integer object, outside the data type's range."""
+        if device in self._axes:
+            if isinstance(value, bool) or not isinstance(value, int | float) \
+                    or value not in set(AxisCode):
+                return (f"expected a command code of the axis "
+                        f"({', '.join(f'{c.value} {c.name.lower()}' for c in AxisCode)}), "
+                        f"got {value!r}")
+            return None
         b = self._bindings.get(device)
         if b is None:
             return None
@@ -386,6 +582,8 @@ class CanopenDriver(WorkerJobDriver):
 
     def accepts(self, device: str) -> tuple[float, float, bool] | None:
         """The object's data type range (see :func:`drivers.canopen_od.accepted`)."""
+        if device in self._axes:
+            return float(min(AxisCode)), float(max(AxisCode)), True
         b = self._bindings.get(device)
         return None if b is None else accepted(b.od_var)
 
@@ -398,6 +596,8 @@ class CanopenDriver(WorkerJobDriver):
             match job:
                 case Job("poll", period):
                     self._poll_group(period)
+                case Job("write", device, value) if device in self._axes:
+                    self._axis_write(device, value)
                 case Job("write", device, value):
                     self._transfer(self._bindings[device], value)
                 case Job(op, BootNode() as boot) if op == OP:
@@ -406,6 +606,12 @@ class CanopenDriver(WorkerJobDriver):
                     self._report_held(held)
                 case Job(op, Probe() as probe) if op == OP:
                     self._probe(probe)
+                case Job(op, AxisFeed() | AxisCommand() | AxisLost() as axis_job) if op == OP:
+                    self._guarded(self._axis_job, axis_job)
+                case Job(op, key) if op == AXIS_POLL:
+                    if key is not None:
+                        self._poll_taken(key)
+                    self._guarded(self._axis_poll)
         except can.CanError as exc:
             self.host.error(self.bus.name, "can", f"{job.op} {job.what}: CAN send failed: {exc}")
             if job.op == "write":
@@ -457,7 +663,7 @@ class CanopenDriver(WorkerJobDriver):
                 self.host.error(self.bus.name, "config", f"{where}: {result.reason}")
             case BootOutcome.CONFIGURED:
                 reg = result.error_register
-                if reg:
+                if reg and not node.axes:
                     self._events.fail_node(node, "emcy", f"{where}: error register 0x1001 = "
                                                   f"0x{reg:02X} at boot")
                 else:

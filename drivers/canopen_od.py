@@ -137,6 +137,8 @@ def check_device(bus: BusSpec, device: DeviceSpec) -> list[str]:
     readable for a sensor and writable for an actuator."""
     k = f"{device.key}.address"
     a = device.address
+    if a.get("profile") == "cia402":
+        return check_axis(bus, device)
     errs = [f"{k}.{key}: unknown key; valid keys: {', '.join(ADDRESS_KEYS)}"
             for key in a if key not in ADDRESS_KEYS]
     nodes = {n.get("id"): n for n in bus.options.get("nodes", []) if isinstance(n, Mapping)}
@@ -169,10 +171,44 @@ def check_device(bus: BusSpec, device: DeviceSpec) -> list[str]:
                     f"object")
     return errs
 
+#: the objects an axis cannot work without (statusword, controlword, modes, modes display)
+AXIS_REQUIRED = (0x6040, 0x6041, 0x6060, 0x6061)
+
+
+def check_axis(bus: BusSpec, device: DeviceSpec) -> list[str]:
+    """Errors of a device of a CiA 402 axis table (:mod:`drivers.canopen_axis`): its node on
+    this bus, and the node's EDS holding 0x6040, 0x6041, 0x6060 and 0x6061 at the axis's offset
+    (checked once, on the axis's actuator; its sensors share the address)."""
+    k = f"{device.key}.address"
+    a = device.address
+    nodes = {n.get("id"): n for n in bus.options.get("nodes", []) if isinstance(n, Mapping)}
+    nid, axis = a.get("node"), a.get("axis", 0)
+    if device.direction == "sensor":
+        return []
+    if not is_int(nid) or nid not in nodes:
+        return [f"{k}.node: expected the id of a node of bus {bus.name} "
+                f"({', '.join(str(n) for n in nodes) or 'none'}), got {nid!r}"]
+    eds = nodes[nid].get("eds")
+    try:
+        od = checked_od(bus, nid, eds) if isinstance(eds, str) else None
+    except ValueError:
+        return []  # reported by check_bus
+    if od is None:
+        return []
+    missing = [f"0x{i + 0x800 * int(axis):04X}" for i in AXIS_REQUIRED
+               if od.get_variable(i + 0x800 * int(axis), 0) is None]
+    if missing:
+        return [f"{k}: node {nid}'s EDS has no {', '.join(missing)}; a CiA 402 axis needs "
+                f"controlword, statusword, modes of operation and its display"]
+    return []
+
+
 def encodable(bus: BusSpec, device: DeviceSpec) -> tuple[float, float] | None:
     """The range of the object's data type in the node's EDS: 0..1 for BOOLEAN, the
     INTEGERn/UNSIGNEDn ranges, the largest REAL32; None for REAL64 and other types."""
     a = device.address
+    if a.get("profile") == "cia402":
+        return None
     nodes = {n.get("id"): n for n in bus.options.get("nodes", []) if isinstance(n, Mapping)}
     var = checked_od(bus, a["node"], str(nodes[a["node"]]["eds"])).get_variable(
         a["index"], a.get("subindex", 0))

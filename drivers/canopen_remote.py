@@ -85,6 +85,9 @@ class ManagedNode:
     lifecycle: Lifecycle
     images: RpdoImages
     devices: list[str] = field(default_factory=list)
+    #: the CiA 402 axes it hosts (their actuators' names): the drive's faults are theirs,
+    #: judged from the statusword, so EMCY and the error register do not fail the node
+    axes: list[str] = field(default_factory=list)
     lock: threading.Lock = field(default_factory=threading.Lock)
     last_heartbeat: float = field(default_factory=time.monotonic)
     lost: bool = False
