@@ -283,3 +283,54 @@ def test_from_map_keeps_a_plain_node_plain(tmp_path: Path) -> None:
         assert isinstance(node, CanopenSlave) and not isinstance(node, Cia402Drive)
     finally:
         slaves.close()
+
+
+def _axis_map(tmp_path: Path, channel: str, option: int) -> Path:
+    shutil.copy(CIA402_EDS, tmp_path / "drive.eds")
+    devmap = tmp_path / "axis.toml"
+    devmap.write_text(f"""
+[[bus]]
+name = "axis"
+kind = "canopen"
+interface = "virtual"
+channel = "{channel}"
+nodes = [{{ id = {NODE}, eds = "drive.eds" }}]
+
+[[device]]
+name = "x"
+profile = "cia402"
+bus = "axis"
+address = {{ node = {NODE} }}
+quick_stop_option = {option}
+""", encoding="utf-8")
+    return devmap
+
+
+def test_an_axis_map_is_simulated_with_the_drive_it_describes(tmp_path: Path) -> None:
+    from chcos.apps.sim.from_map import simulate
+    from chcos.devices.devmap import load
+    from chcos.errors import DeviceError
+
+    slaves = simulate(load([str(_axis_map(tmp_path, "unused", 6))]))
+    try:
+        drive = slaves.canopen_node("axis", NODE)
+        assert isinstance(drive, Cia402Drive)
+        assert drive.value(0x605A) == 6            # what the map says the drive holds
+        slaves.tick(0.01)
+        assert slaves.get("x") == "SWITCH_ON_DISABLED"
+        assert slaves.get("x.statusword") == drive.value(0x6041)
+        assert slaves.get("x.position") == 0
+        with pytest.raises(DeviceError, match=r"'x\.position' is a CiA 402 axis"):
+            slaves.set("x.position", 5)
+    finally:
+        slaves.close()
+
+
+def test_chcos_sim_from_an_axis_map_shows_the_drive(tmp_path: Path,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    from chcos.apps.sim.from_map import main as sim_from
+
+    devmap = _axis_map(tmp_path, unique_channel("simfrom"), 2)
+    assert sim_from(["--from", str(devmap), "--duration", "1.2"]) == 0
+    out = capsys.readouterr().out
+    assert "x=SWITCH_ON_DISABLED" in out and "x.statusword=" in out

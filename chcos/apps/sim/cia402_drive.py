@@ -401,6 +401,11 @@ class Cia402Drive(CanopenSlave):
             return (self._int(0x6041, 0), self._int(0x6061, 0), self._int(0x6064, 0),
                     self._int(0x606C, 0), self._int(0x603F, 0))
 
+    def value(self, index: int, subindex: int = 0) -> int:
+        """An integer object's value as the drive holds it (0 when its EDS lacks it)."""
+        with self._lock:
+            return self._int(index, subindex, 0)
+
     def frames(self) -> int:
         """How many controlwords the drive applied."""
         with self._lock:
