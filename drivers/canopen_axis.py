@@ -29,8 +29,10 @@ from enum import Enum, IntEnum
 from typing import Any
 
 from drivers.cia402 import (
+    PREEMPTING,
     Actions,
     Axis,
+    AxisBusy,
     AxisConfig,
     Fault,
     Mode,
@@ -157,6 +159,8 @@ class AxisHost:
     engine: Axis = field(init=False)
     sensors: dict[AxisReading, str] = field(init=False)
     _pending: list[_Pending] = field(default_factory=list)
+    #: device commands waiting for the running command to end (Devtab writes, in order)
+    _queued: list[tuple[AxisCall, Done | None]] = field(default_factory=list)
     _status: AxisStatus = field(default_factory=AxisStatus)
     _shown: dict[AxisReading, Any] = field(default_factory=dict)
 
@@ -191,9 +195,22 @@ class AxisHost:
         """Advance the engine's timers."""
         self._perform(self.engine.poll(now), now)
 
-    def command(self, call: AxisCall, done: Done | None, now: float) -> None:
-        """Start ``call``; ``done`` gets its result, or the exception that refused it."""
+    def command(self, call: AxisCall, done: Done | None, now: float, *,
+                queue: bool = False) -> None:
+        """Start ``call``; ``done`` gets its result, or the exception that refused it. With
+        ``queue`` (device commands: Devtab writes, which come one after the other without
+        waiting) a command that does not supersede the running one waits for it to end; a
+        superseding one (quick stop, disable, safe stop) fails the queued ones."""
         eng = self.engine
+        if call.op in PREEMPTING:
+            dropped, self._queued = self._queued, []
+            for queued, queued_done in dropped:
+                if queued_done is not None:
+                    queued_done(AxisBusy(f"axis {self.name}: {queued.op.value} dropped: "
+                                         f"superseded by {call.op.value}"))
+        elif queue and (eng.busy is not None or self._queued):
+            self._queued.append((call, done))
+            return
         try:
             match call.op:
                 case Op.ENABLE:
@@ -253,13 +270,17 @@ class AxisHost:
                     answers[obj] = value
             self._show()
             if not answers:
-                return
+                break
             acts = self.engine.update(Reading(
                 statusword=answers.get(Obj.STATUSWORD),
                 mode_display=answers.get(Obj.MODES_DISPLAY),
                 position=answers.get(Obj.POSITION_ACTUAL),
                 velocity=answers.get(Obj.VELOCITY_ACTUAL),
                 error_code=answers.get(Obj.ERROR_CODE)), now)
+
+        if self._queued and self.engine.busy is None:
+            call, done = self._queued.pop(0)
+            self.command(call, done, now)
 
     def _complete(self, result: Result) -> None:
         if not self._pending:

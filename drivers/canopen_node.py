@@ -520,7 +520,7 @@ class CanopenDriver(WorkerJobDriver):
                                   if isinstance(outcome, Result) else str(outcome))
 
         code = AxisCode(int(value))
-        self._axes[device].command(AxisCall(CODE_OPS[code]), done, host.now())
+        self._axes[device].command(AxisCall(CODE_OPS[code]), done, host.now(), queue=True)
 
     def flush(self, timeout: float) -> bool:
         """As :meth:`drivers.jobs.JobDriver.flush`, and then, while an axis runs a command (the

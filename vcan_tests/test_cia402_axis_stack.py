@@ -332,3 +332,51 @@ def test_the_simulated_drive_as_an_axis(tmp_path: Path) -> None:
     finally:
         s.shutdown()
         d.stop()
+
+
+# ---- node failure, device commands ----------------------------------------------------------
+def test_a_node_reboot_fails_the_command_stops_the_axis_and_never_re_enables(
+        tmp_path: Path) -> None:
+    import can
+    channel = unique_channel("axis")
+    d = DurandCia402Drive(channel, NODE, quick_stop_option=2)
+    s = make_system(tmp_path, channel)
+    r = Rig(s, d)
+    bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+    try:
+        assert r.run(lambda: r.value("x.state") == "SWITCH_ON_DISABLED")
+        r.do(("set_mode",), ("enable",))
+        r.s.invoke("T", {"steps": [("move_to", 50.0)], "log": r.log})   # 50 s at 1 mm/s
+        assert r.run(lambda: d.velocity > 0)
+        n, start = len(d.log), len(r.log)
+        bus.send(can.Message(arbitration_id=0x700 + NODE, data=b"\x00", is_extended_id=False))
+        assert r.run(lambda: len(r.log) > start)
+        (op, err), = r.log[start:]
+        assert op == "move_to" and isinstance(err, AxisCommandFailed)
+        assert "drive lost" in str(err) and "rebooted" in str(err)
+        assert r.run(lambda: d.state == SOD and r.status("x") == "OK")
+        stopped_before_disable(d, n)
+        r.run(lambda: False, wall=0.5)
+        assert d.state == SOD and not {0x06, 0x07, 0x0F} & {cw for cw, *_ in d.log[n:]}
+    finally:
+        bus.shutdown()
+        s.shutdown()
+        d.close()
+
+
+def test_device_commands_complete_on_the_drive(rig: Rig) -> None:
+    from drivers.canopen_axis import AxisCode
+    d, dt = rig.drive, rig.s.devtab
+    dt.write("x", int(AxisCode.SET_MODE))
+    dt.write("x", int(AxisCode.ENABLE))
+    assert rig.run(lambda: dt.get("x").pending is None and d.state == ENABLED)
+    assert dt.get("x").value == int(AxisCode.ENABLE) and d.read(0x6061) == 1
+    dt.write("x", int(AxisCode.DISABLE))
+    dt.write("x", int(AxisCode.HOME))           # not enabled any more: refused by the drive
+    assert rig.run(lambda: dt.get("x").pending is None)
+    assert "needs OPERATION_ENABLED" in (dt.get("x").last_write_error or "")
+    assert d.state == SOD
+    with pytest.raises(ChcosError, match="outside its limits"):
+        dt.write("x", 9)
+    with pytest.raises(ChcosError, match="command code of the axis"):
+        dt.write("x", 2.5)

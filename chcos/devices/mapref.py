@@ -56,13 +56,23 @@ COMMON_DEVICE = (
     Key("offset", "float", "0.0", "see scale"),
     Key("limits", "[lo, hi]", "[-inf, inf]", "engineering units, inclusive: actuator commands "
         "outside are refused (never clamped); `chcos monitor` flags sensor values outside"),
-    Key("safe_value", "float", "none", "actuators: written on e-stop, on abnormal completion "
-        "of the commanding task and on shutdown; within limits"),
+    Key("safe_value", "float or \"none\"", "none", "actuators: written on e-stop, on abnormal "
+        "completion of the commanding task and on shutdown; within limits. `\"none\"` with "
+        "`safe_reason`: the actuator has no safe value (a target position), said once instead "
+        "of a `chcos check` warning"),
+    Key("safe_reason", "string", '""', "why the actuator has no safe value; required with "
+        "`safe_value = \"none\"`, refused otherwise"),
     Key("units", "string", '""', "shown with values"),
     Key("round", "bool", "false", "actuators only: round the raw value to an integer for an "
         "integer address (without it a value the address cannot carry exactly is refused)"),
     Key("north_writable", "bool", "false", "actuators only: the north-side facades (Modbus "
         "facade, OPC UA) may command it, within its limits and the owner rules"),
+    Key("profile", "string", "none", "`\"cia402\"`: a CiA 402 axis on a `canopen` bus, "
+        "without `direction`; keys `address = {node, axis = 0}`, `mode`, `units`, "
+        "`counts_per_unit`, `position_limits`, `max_velocity`, `quick_stop_option`, "
+        "`safe_stop`, `timeouts`, windows; it becomes the actuator `name` and the sensors "
+        "`name.state`, `.statusword`, `.mode`, `.position`, `.velocity`, `.fault` "
+        "(docs/cia402.md §5)"),
 )
 COMMON = {"bus": COMMON_BUS, "device": COMMON_DEVICE}
 
