@@ -6,8 +6,11 @@ with EMCY and 0x603F, a fault that needs a reset.
 
 :class:`DriveModel` is the drive without a bus (pure, stepped on virtual time);
 :class:`Cia402Drive` puts it on a CAN bus as a :class:`~chcos.apps.sim.canopen_slave.CanopenSlave`
-with the EDS ``eds/cia402_drive.eds`` (every RPDO carries the controlword, as vendor drives map
-them; TPDO1 statusword + modes display + error code, TPDO2 position + velocity).
+(the model is its plant, so the node's heartbeat, consumer, SYNC and event timers run as on any
+node) with the EDS ``eds/cia402_drive.eds`` (every RPDO carries the controlword, as vendor
+drives map them; TPDO1 statusword + modes display + error code, TPDO2 position + velocity) or a
+vendor's. ``chcos sim cia402`` is :func:`main`; ``chcos sim --from``, ``run --virtual`` and the
+pytest plugin use the class for every node whose EDS is a drive's.
 
 The model is written here from the CiA 402 state diagram, apart from :mod:`drivers.cia402` (the
 master side), so that the one checks the other.

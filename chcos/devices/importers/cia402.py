@@ -7,12 +7,10 @@ velocity actual, target position and velocity, error code 0x603F, quick stop opt
 0x605A, profile velocity - with the PDOs that carry them, and says what a user must know:
 an object mapped into several RPDOs (they must be sent from one image), synchronous TPDOs (the
 bus needs ``sync_period``), objects read by SDO because no PDO maps them, set-points without a
-safe value. :func:`axis_draft` writes those objects (not the whole dictionary) as a map draft;
-the EDS importer (:mod:`.eds`) calls it for a node :func:`is_cia402` recognises.
-
-The draft's devices are plain sensors and actuators that today's CANopen driver runs; the
-``axes`` list of each :class:`DriveAxis` (:func:`axis_table`) is the ``profile = "cia402"``
-axis the driver will host with :class:`drivers.cia402.Axis`.
+safe value. The EDS importer (:mod:`.eds`, ``chcos import eds``) writes one
+``profile = "cia402"`` device per axis the CANopen driver can host (:func:`hostable`,
+:func:`axis_device`); :func:`axis_draft` writes an axis's objects as plain devices instead (the
+set-points with ``safe_value = "none"`` and the reason, :func:`no_safe_value`).
 """
 
 from __future__ import annotations
@@ -365,6 +363,7 @@ def axis_draft(path: str | Path, node: int, *, bus: str = "canopen", machine: in
                 notes.append(CONTROLWORD_SAFETY)
             elif role in NO_SAFE_VALUE:
                 notes.append(NO_SAFE_VALUE[role])
+                dev["safe_value"], dev["safe_reason"] = "none", NO_SAFE_VALUE[role]
             draft.add(notes, dev)
     for index in extra:
         var = _variable(od, index)

@@ -1,7 +1,10 @@
 """eds - a device map for one CANopen node from its EDS (``chcos import eds FILE --node N``).
 
 The object dictionary is read with canopen's ``import_od`` (``$NODEID`` resolved for node N).
-Devices:
+A CiA 402 drive (0x6040, 0x6041, 0x6060, 0x6061 at an axis's offset) becomes one
+``profile = "cia402"`` axis device per axis and nothing else, unless asked for: ``objects``
+(``--objects``) adds those objects, ``all_objects`` (``--all``) every other one, ``axes=False``
+(``--plain``) writes the drive's objects as plain devices. Plain devices, for any other node:
 
 * every object mapped in an enabled TPDO (COB-ID bit 31 clear in 0x1800+n, mapping 0x1A00+n):
   a sensor, delivered by the PDO; ``stale_after`` is five event-timer periods when the TPDO has an
@@ -14,7 +17,9 @@ Devices:
 Names come from the EDS's ParameterName (a record's name joined with the entry's); limits from
 LowLimit/HighLimit; units and scale from canopen's ``unit``/``factor`` where the EDS has them.
 The bus gets ``nodes = [{id, eds, heartbeat_timeout}]`` (three producer-heartbeat periods, from
-0x1017, when it is set). Nothing else is guessed: safe values are left for the user to set.
+0x1017, when it is set). Nothing else is guessed: safe values are left for the user to set,
+but a CiA 402 set-point (target position or velocity, profile velocity, mode, quick stop option)
+gets ``safe_value = "none"`` with the reason (any value would move the axis).
 
 What will not work on a real bus is said twice, as a warning (:attr:`MapDraft.warnings`, printed
 by ``chcos import``) and as a comment in the map:
