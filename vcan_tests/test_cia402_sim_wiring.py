@@ -11,6 +11,7 @@ from __future__ import annotations
 import shutil
 import struct
 import threading
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -133,6 +134,33 @@ def test_chcos_sim_cia402_is_a_drive_on_the_wire(channel: str, master: Master) -
         assert master.wire.wait_for(lambda w: any(
             state(int.from_bytes(f.data[:2], "little")) == ENABLED
             for f in w.of(0x180 + NODE)), WAIT)
+    finally:
+        stop.set()
+        runner.join(WAIT)
+    assert ran == [0]
+
+
+def test_chcos_sim_cia402_overheats_on_request(channel: str, master: Master,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["--channel", channel, "--overheat", "5-2"]) == 2
+    assert "--overheat '5-2': expected START >= 0 and END after START" in \
+        capsys.readouterr().err
+    stop = threading.Event()
+    ran: list[int] = []
+    runner = threading.Thread(target=lambda: ran.append(main(
+        ["--node", str(NODE), "--channel", channel, "--overheat", "0"], stop)))
+    runner.start()
+    try:
+        # EMCY 0x4310 with the temperature bit in 0x1001's byte, then FAULT with 0x603F
+        assert master.wire.wait_for(lambda w: any(f.data[:3] == b"\x10\x43\x09"
+                                                  for f in w.of(0x080 + NODE)), WAIT)
+        deadline = time.monotonic() + WAIT          # fault reaction, then FAULT (real time)
+        while state(master.read(0x6041)) != FAULT and time.monotonic() < deadline:
+            pass
+        assert state(master.read(0x6041)) == FAULT and master.read(0x603F) == 0x4310
+        for cw in (0x00, 0x80):                       # refused while it is still hot
+            master.write(0x6040, 0, cw, 2)
+        assert state(master.read(0x6041)) == FAULT and master.read(0x603F) == 0x4310
     finally:
         stop.set()
         runner.join(WAIT)

@@ -22,6 +22,7 @@ import argparse
 import struct
 import sys
 import threading
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
@@ -441,8 +442,16 @@ def main(argv: Sequence[str] | None = None, stop: threading.Event | None = None)
                         help="a mode of operation the drive refuses (repeatable)")
     parser.add_argument("--step", type=float, default=0.01, help="physics step, s")
     parser.add_argument("--duration", type=float, default=None, help="run this long, s")
+    parser.add_argument("--overheat", metavar="START[-END]", default=None,
+                        help="over-temperature from START seconds (to END): fault 0x4310, EMCY, "
+                             "fault resets refused until it cools")
+    parser.add_argument("--block", metavar="START[-END]", default=None,
+                        help="a load stops the motor from START seconds (to END): a following "
+                             "error (0x8611) once it moves")
     args = parser.parse_args(list(argv) if argv is not None else None)
     try:
+        spans = {name: _span(f"--{name}", text) for name, text in
+                 (("overheat", args.overheat), ("block", args.block)) if text is not None}
         drive = Cia402Drive(args.node, args.eds, channel=args.channel,
                             interface=args.interface, bitrate=args.bitrate,
                             heartbeat_period=args.heartbeat,
@@ -457,10 +466,38 @@ def main(argv: Sequence[str] | None = None, stop: threading.Event | None = None)
     drive.run_realtime(args.step)
     print(f"CiA 402 drive node {args.node} on {args.interface}:{args.channel}", flush=True)
     done = stop if stop is not None else threading.Event()
+    start = time.monotonic()
+    active: set[str] = set()
     try:
-        done.wait(args.duration)
+        while not done.wait(0.02):
+            t = time.monotonic() - start
+            for name, (t0, t1) in spans.items():
+                on = t0 <= t < t1
+                if on == (name in active):
+                    continue
+                active.symmetric_difference_update({name})
+                if name == "overheat":
+                    drive.set_temperature(95.0 if on else 25.0)
+                else:
+                    drive.block(on)
+                print(f"t={t:6.1f} s  {name} {'on' if on else 'off'}", flush=True)
+            if args.duration is not None and t >= args.duration:
+                break
     except KeyboardInterrupt:
         pass
     finally:
         drive.stop()
     return 0
+
+
+def _span(option: str, text: str) -> tuple[float, float]:
+    """``START[-END]`` seconds -> (start, end); raises ConfigError naming the option."""
+    first, _, last = text.partition("-")
+    try:
+        start, end = float(first), float(last) if last else float("inf")
+    except ValueError:
+        raise ConfigError(f"{option} {text!r}: expected START[-END] in seconds, e.g. 2-5") \
+            from None
+    if start < 0 or end <= start:
+        raise ConfigError(f"{option} {text!r}: expected START >= 0 and END after START")
+    return start, end
