@@ -59,6 +59,14 @@ class AxisReading(Enum):
     FAULT = "fault"
 
 
+#: the object each sensor shows (axis 0; its ``index`` in the address, for tools that read
+#: CANopen addresses without knowing axes)
+READING_OBJECTS: dict[AxisReading, int] = {
+    AxisReading.STATE: 0x6041, AxisReading.STATUSWORD: 0x6041, AxisReading.MODE: 0x6061,
+    AxisReading.POSITION: 0x6064, AxisReading.VELOCITY: 0x606C, AxisReading.FAULT: 0x603F,
+}
+
+
 class AxisCode(IntEnum):
     """What a write to an axis's actuator commands (the value is the code). The safe value of
     every axis is :attr:`SAFE_STOP`."""

@@ -7,6 +7,7 @@ Devtab reports (the axis's health, its sensors, the safe outcomes at shutdown)."
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -59,7 +60,8 @@ async def axis_task(ctx: TaskContext, cmd: dict[str, Any]) -> None:
 # ---- the rig --------------------------------------------------------------------------------
 def axis_map(channel: str, eds: Path, **axis: str) -> str:
     keys = {"mode": '"PP"', "quick_stop_option": "2", "counts_per_unit": "1000.0",
-            "timeouts": "{ enable = 1.0, set_mode = 0.5, move = 10.0, safe_stop = 3.0 }",
+            "timeouts": "{ enable = 5.0, disable = 5.0, quick_stop = 10.0, fault_reset = 5.0, "
+                        "set_mode = 2.0, move = 60.0, velocity = 10.0, safe_stop = 10.0 }",
             **axis}
     extra = "\n".join(f"{k} = {v}" for k, v in keys.items())
     return f"""
@@ -90,15 +92,26 @@ class Rig:
     log: list[tuple[str, Any]] = field(default_factory=list)
 
     def run(self, pred: Callable[[], bool], wall: float = WALL) -> bool:
-        """Step the drive and the system's virtual clock together until ``pred()``."""
-        import time
+        """Step the drive and the system's virtual clock together until ``pred()``; before
+        virtual time goes on, chcos has seen what the drive last published (the drive answers
+        on its own thread, in real time: a loaded machine must not make a timeout of virtual
+        time expire while its answer is on the way)."""
         deadline = time.monotonic() + wall
         while not pred():
             if time.monotonic() > deadline:
                 return False
             self.drive.step(STEP)
+            self.caught_up()
             self.s.run_for(STEP)
         return True
+
+    def caught_up(self, wall: float = 2.0) -> None:
+        """Run the system without advancing its clock until its ``x.statusword`` is the
+        drive's (or ``wall`` seconds passed: a drive that is not heard, e.g. rebooting)."""
+        deadline = time.monotonic() + wall
+        while (self.value("x.statusword") != self.drive.published()[0]
+               and time.monotonic() < deadline):
+            self.s.run_for(0.0)
 
     def do(self, *steps: tuple[Any, ...]) -> list[tuple[str, Any]]:
         """Invoke the task with ``steps`` and run until it reported each of them."""
@@ -347,7 +360,8 @@ def test_a_node_reboot_fails_the_command_stops_the_axis_and_never_re_enables(
         assert r.run(lambda: r.value("x.state") == "SWITCH_ON_DISABLED")
         r.do(("set_mode",), ("enable",))
         r.s.invoke("T", {"steps": [("move_to", 50.0)], "log": r.log})   # 50 s at 1 mm/s
-        assert r.run(lambda: d.velocity > 0)
+        # moving, and the set-point handshake over (0x1F acknowledged, 0x0F back)
+        assert r.run(lambda: d.velocity > 0 and d.received[-1] == 0x0F and not d.ack)
         n, start = len(d.log), len(r.log)
         bus.send(can.Message(arbitration_id=0x700 + NODE, data=b"\x00", is_extended_id=False))
         assert r.run(lambda: len(r.log) > start)

@@ -429,7 +429,14 @@ def _parse_axis(fe: FileErrors, i: int, table: dict[str, Any]) -> list[DeviceSpe
     :func:`drivers.cia402.config_from_table`), and the devices it becomes: the actuator
     ``name`` (safe value: the safe stop sequence) and the sensors ``name.state``, ...
     (:mod:`drivers.canopen_axis`). Nothing if any key is wrong."""
-    from drivers.canopen_axis import PROFILE, AxisCode, AxisReading, axis_names, mode_of
+    from drivers.canopen_axis import (
+        PROFILE,
+        READING_OBJECTS,
+        AxisCode,
+        AxisReading,
+        axis_names,
+        mode_of,
+    )
     from drivers.cia402 import AXIS_KEYS, Cia402Error, config_from_table
 
     key = f"device[{i}]"
@@ -488,16 +495,22 @@ def _parse_axis(fe: FileErrors, i: int, table: dict[str, Any]) -> list[DeviceSpe
         return []
     common: dict[str, Any] = {"machine": machine, "bus": bus, "priority": priority,
                               "file": fe.path, "key": key}
+    # each device also names the object it shows (index/subindex, as any CANopen device), so
+    # what reads CANopen addresses without knowing axes (chcos monitor, chcos sim --from)
+    # works on them: the actuator the controlword, each sensor its object
+    offset = 0x800 * int(axis)
     actuator = DeviceSpec(name=name, direction="actuator", units="",
                           limits=(float(min(AxisCode)), float(max(AxisCode))),
                           safe_value=float(AxisCode.SAFE_STOP),
                           address={"profile": PROFILE, "node": node, "axis": axis,
+                                   "index": 0x6040 + offset, "subindex": 0,
                                    "mode": None if mode is None else int(mode),
                                    "config": cfg_table}, **common)
     sensor_units = {AxisReading.POSITION: units, AxisReading.VELOCITY: f"{units}/s" if units
                     else ""}
     sensors = [DeviceSpec(name=dev, direction="sensor", units=sensor_units.get(r, ""),
                           address={"profile": PROFILE, "node": node, "axis": axis,
+                                   "index": READING_OBJECTS[r] + offset, "subindex": 0,
                                    "reading": r.value}, **common)
                for r, dev in axis_names(name).items()]
     return [actuator, *sensors]
