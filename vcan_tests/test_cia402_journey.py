@@ -8,6 +8,7 @@ on the drive's side (the controlwords it applied, its state and position) or wha
 
 from __future__ import annotations
 
+import itertools
 import time
 import tomllib
 from pathlib import Path
@@ -137,7 +138,8 @@ def test_import_check_run_virtual_and_move_the_axis(vendor_eds: Path, tmp_path: 
         assert log == [(s[0], "ok") for s in steps]
         # what the drive applied: the enable walk, the set-point's edge, the quick stop
         cws = drive.received
-        assert cws[cws.index(0x06):cws.index(0x06) + 3] == [0x06, 0x07, 0x0F]
+        walk = [cw for cw, _ in itertools.groupby(cws)]   # resends of a word left aside
+        assert walk[walk.index(0x06):walk.index(0x06) + 3] == [0x06, 0x07, 0x0F]
         assert 0x1F in cws and 0x02 in cws[cws.index(0x1F):]
         statusword, mode, position, velocity, _error = drive.published()
         assert statusword & 0x4F == 0x40 and mode == 1     # switch on disabled, PP

@@ -267,7 +267,10 @@ class DriveModel:
             self.demand = goal                         # the master interpolates
         if not self.blocked:
             travel = self.demand - self.position
-            self.velocity = travel / dt
+            # arrived at the goal: the motor has stopped (the profile ends at standstill, so a
+            # quick stop right after the arrival does not carry the last step's speed on)
+            self.velocity = 0.0 if self.demand == goal and self.mode_display != CSP \
+                else travel / dt
             self.position = self.demand
         else:
             self.velocity = 0.0
