@@ -350,6 +350,8 @@ def test_an_axis_map_is_simulated_with_the_drive_it_describes(tmp_path: Path) ->
         assert slaves.get("x.position") == 0
         with pytest.raises(DeviceError, match=r"'x\.position' is a CiA 402 axis"):
             slaves.set("x.position", 5)
+        with pytest.raises(DeviceError, match="cannot follow a script"):
+            slaves.script("x.position", "ramp(0, 10, 1)")
     finally:
         slaves.close()
 

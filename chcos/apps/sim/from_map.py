@@ -151,8 +151,12 @@ class SimSlaves:
 
     def script(self, device: str, script: Script | str) -> None:
         """Make sensor ``device`` follow ``script`` (a function of seconds since the start, in
-        engineering units, or its text for :func:`parse_script`)."""
-        self._peer(device)
+        engineering units, or its text for :func:`parse_script`). Raises DeviceError for an
+        unknown or in-process device, or a CiA 402 axis's (the simulated drive owns those)."""
+        _peer, spec = self._peer(device)
+        if spec.address.get("profile") == "cia402":
+            raise DeviceError(f"{device!r} is a CiA 402 axis's: the simulated drive owns its "
+                              "value; it cannot follow a script")
         self.scripts[device] = parse_script(script) if isinstance(script, str) else script
 
     def silence(self, bus: str) -> None:
