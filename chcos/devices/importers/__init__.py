@@ -79,7 +79,10 @@ def main(argv: Sequence[str]) -> int:
                           help="python-can channel of the bus (default can0)")
     p = sub.add_parser("eds", parents=[common, can_opts], help="a CANopen node from its EDS",
                        description="Devices of one CANopen node from its EDS (canopen's "
-                                   "import_od): TPDO-mapped objects as sensors delivered by "
+                                   "import_od). A CiA 402 drive becomes one axis device "
+                                   "(profile = \"cia402\") per axis, and nothing else unless "
+                                   "--objects or --all says so; --plain, or another node: "
+                                   "TPDO-mapped objects as sensors delivered by "
                                    "PDO, RPDO-mapped objects as actuators written by PDO, other "
                                    "application objects (0x2000-0x9FFF) as SDO sensors "
                                    "(read-only and read-write) or actuators (write-only).")
