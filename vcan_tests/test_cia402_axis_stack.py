@@ -247,10 +247,11 @@ def stopped_before_disable(d: DurandCia402Drive, n: int) -> None:
     assert all(speed == 0 for cw, _state, speed in log if cw == 0x00)
 
 
-def test_estop_runs_the_safe_stop_sequence_on_the_drive(tmp_path: Path) -> None:
+@pytest.mark.parametrize("safe_stop", ["quick_stop_then_disable", "halt_then_disable"])
+def test_estop_runs_the_safe_stop_sequence_on_the_drive(tmp_path: Path, safe_stop: str) -> None:
     channel = unique_channel("axis")
     d = DurandCia402Drive(channel, NODE, quick_stop_option=6)  # stays in quick stop active
-    s = make_system(tmp_path, channel, quick_stop_option="6")
+    s = make_system(tmp_path, channel, quick_stop_option="6", safe_stop=f'"{safe_stop}"')
     r = Rig(s, d)
     try:
         assert r.run(lambda: r.value("x.state") == "SWITCH_ON_DISABLED")
@@ -258,8 +259,15 @@ def test_estop_runs_the_safe_stop_sequence_on_the_drive(tmp_path: Path) -> None:
         n = len(d.log)
         r.do(("estop",))
         assert r.run(lambda: d.state == SOD)
-        stopped_before_disable(d, n)
-        assert [cw for cw, *_ in d.log[n:]][-1] == 0x00 and QUICK_STOP in d.history
+        if safe_stop == "halt_then_disable":     # halt (bit 8): enabled until stopped
+            first = d.log[n]
+            assert first[0] == 0x10F and first[1] == ENABLED and first[2] > 0
+            assert QUICK_STOP not in d.history[-3:]
+            assert all(speed == 0 for cw, _s, speed in d.log[n:] if cw == 0x00)
+        else:
+            stopped_before_disable(d, n)
+            assert QUICK_STOP in d.history
+        assert [cw for cw, *_ in d.log[n:]][-1] == 0x00
         assert r.run(lambda: r.s.devtab.get("x").pending is None)
         assert r.s.devtab.safe_failures == []
     finally:
@@ -376,6 +384,23 @@ def test_a_node_reboot_fails_the_command_stops_the_axis_and_never_re_enables(
         bus.shutdown()
         s.shutdown()
         d.close()
+
+
+async def stranger(ctx: TaskContext, cmd: dict[str, Any]) -> None:
+    """Tries to command axis ``x`` without a port to it."""
+    try:
+        ctx.axis("x")
+    except ChcosError as exc:
+        cmd["log"].append(str(exc))
+
+
+def test_only_a_task_with_a_port_to_the_axis_commands_it(rig: Rig) -> None:
+    rig.s.execute(f"install -m0 --code={M}:stranger S")
+    got: list[str] = []
+    rig.s.invoke("S", {"log": got})
+    assert rig.run(lambda: bool(got))
+    assert "task S has no output port to axis x" in got[0]
+    assert rig.drive.received == []
 
 
 def test_device_commands_complete_on_the_drive(rig: Rig) -> None:
