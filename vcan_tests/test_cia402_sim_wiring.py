@@ -229,6 +229,8 @@ def test_sync_tpdos_go_out_on_sync_only(drive: Cia402Drive, master: Master) -> N
 
 def test_reset_node_reboots_the_drive_disabled(drive: Cia402Drive, master: Master) -> None:
     master.write(0x605A, 0, 6, 2)
+    master.write(0x6060, 0, 3, 1)                             # PV, not stored
+    assert master.read(0x6061) == 3
     master.nmt(0x01)
     assert drive.wait_state("OPERATIONAL", WAIT)
     enable(drive, master)
@@ -238,6 +240,23 @@ def test_reset_node_reboots_the_drive_disabled(drive: Cia402Drive, master: Maste
     drive.tick(0.01)
     assert state(master.read(0x6041)) == SWITCH_ON_DISABLED    # nothing re-enabled
     assert master.read(0x605A) == 2                           # the power-on value again
+    assert master.read(0x6061) == 0                           # and the power-on mode
+
+
+def test_the_drive_starts_in_its_stored_mode(channel: str, master: Master) -> None:
+    d = Cia402Drive(NODE, channel=channel, heartbeat_period=0, clock=Clock.TICK)
+    d.set(0x6060, 0, 1)
+    d.store()                                                 # 0x1010 'save': PP at power-on
+    d.start()
+    try:
+        d.tick(0.01)
+        assert master.read(0x6061) == 1
+        master.nmt(0x81)                                      # a reboot keeps what was stored
+        assert master.wire.wait_for(lambda w: [f.data for f in w.of(0x700 + NODE)]
+                                    .count(b"\x00") == 2, WAIT)
+        assert master.read(0x6061) == 1
+    finally:
+        d.stop()
 
 
 def _map(tmp_path: Path, eds: Path) -> Path:

@@ -194,13 +194,16 @@ class DriveModel:
         elif option == 3 and self.power in (Power.READY, Power.SWITCHED_ON):
             self._enter(Power.SWITCH_ON_DISABLED)
 
-    def reboot(self) -> None:
+    def reboot(self, mode: int = 0) -> None:
         """A reset node: the drive starts again from NOT READY (the self test), stopped, with
-        no fault recorded (a cause that persists faults again at the next step)."""
+        no fault recorded (a cause that persists faults again at the next step), in its
+        power-on mode ``mode`` (0x6060's stored value; none if refused or unknown)."""
         self.velocity = 0.0
         self.error_code = 0
         self.last_cw = 0
         self.homed = False
+        self.mode_display = 0
+        self.mode(mode)
         self._enter(Power.NOT_READY)
 
     def _reset(self) -> None:
@@ -385,8 +388,12 @@ class Cia402Drive(CanopenSlave):
     def _boot(self, command: NmtCommand, power_on: bool = False) -> None:
         """As the node's boot; a reset node (not the first power-on) reboots the drive too."""
         super()._boot(command, power_on)
-        if command is NmtCommand.RESET_NODE and not power_on:
-            self.model.reboot()
+        if command is NmtCommand.RESET_NODE:
+            if power_on:                               # the first start: the stored mode
+                self.model.mode_display = 0
+                self.model.mode(self._option(0x6060, 0))
+            else:
+                self.model.reboot(self._option(0x6060, 0))
             self._publish()
 
     # -- fault injection and what tests read --------------------------------------------------
