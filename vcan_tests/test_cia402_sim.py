@@ -189,9 +189,15 @@ def test_the_model_reacts_to_every_command_from_every_state() -> None:
 
 def test_an_eds_without_the_cia402_objects_is_refused(tmp_path: Path) -> None:
     path = tmp_path / "half.eds"
-    path.write_text(drive_eds(rpdos=(), tpdos=((0x6064,),), without=(0x6061,)))
-    with pytest.raises(ConfigError, match="0x6061"):
+    path.write_text(drive_eds(rpdos=(), tpdos=((0x6064,),), without=(0x6060,)))
+    with pytest.raises(ConfigError, match="0x6060"):
         Cia402Drive(3, path, channel="unused")
+    # a vendor drive without the optional objects (0x6061, 0x603F) still runs its state machine
+    path.write_text(drive_eds(rpdos=(), tpdos=((0x6064,),), without=(0x6061, 0x603F)))
+    drive = Cia402Drive(3, path, channel="unused")
+    drive.step(0.01)
+    statusword, mode, _position, _velocity, error = drive.published()
+    assert statusword & 0x4F == 0x40 and mode == 0 and error == 0
 
 
 def test_homing_on_a_drive_that_accepts_it() -> None:

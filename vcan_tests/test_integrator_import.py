@@ -47,7 +47,8 @@ def _import(tmp_path: Path, *args: str) -> tuple[Path, dict[str, Any]]:
 def test_eds_import_round_trip(tmp_path: Path) -> None:
     chan = _channel("co")
     out, devs = _import(tmp_path, "eds", str(VENDOR / "acme_amd200.eds"), "--node", "5",
-                        "--interface", "virtual", "--channel", chan, "--bus", "axis")
+                        "--interface", "virtual", "--channel", chan, "--bus", "axis",
+                        "--plain")
     text = out.read_text(encoding="utf-8")
     assert "AMD-200 (ACME Motion GmbH)" in text and "heartbeat_timeout = 0.3" in text
     direction = {n: d["direction"] for n, d in devs.items()}
@@ -260,7 +261,7 @@ def test_eds_in_latin1_is_read_with_a_warning(tmp_path: Path,
     eds = tmp_path / "latin.eds"
     eds.write_bytes(text.replace("ParameterName=Heat sink temperature",
                                  "ParameterName=Kühlkörpertemperatur").encode("latin-1"))
-    out, devs = _import(tmp_path, "eds", str(eds), "--node", "3")
+    out, devs = _import(tmp_path, "eds", str(eds), "--node", "3", "--objects", "0x2000")
     assert "latin.eds: not UTF-8; read as Latin-1" in capsys.readouterr().err
     assert "# 0x2000:00 Kühlkörpertemperatur: SDO" in out.read_text(encoding="utf-8")
     assert devs["k_hlk_rpertemperatur"]["address"]["index"] == 0x2000

@@ -59,7 +59,7 @@ def cell(tmp_path: Path) -> Iterator[dict[str, Any]]:
     can_chan, co_chan = f"i18-mon-can-{os.getpid()}-{n}", f"i18-mon-co-{os.getpid()}-{n}"
     eds_map = tmp_path / "axis.toml"
     assert cli.main(["import", "eds", str(VENDOR / "acme_amd200.eds"), "--node", "5", "--bus",
-                     "axis", "--interface", "virtual", "--channel", co_chan, "--no-sdo",
+                     "axis", "--interface", "virtual", "--channel", co_chan, "--no-sdo", "--plain",
                      "-o", str(eds_map)]) == 0
     dead = free_port()  # nobody listens there
     (tmp_path / "cell.toml").write_text(f"""

@@ -7,7 +7,6 @@ standalone command serving a map's own address to ``chcos run``."""
 from __future__ import annotations
 
 import io
-import math
 import os
 import signal
 import subprocess
@@ -93,19 +92,24 @@ def test_can_slave_from_an_imported_dbc(tmp_path: Path) -> None:
 
 def test_canopen_node_from_an_imported_eds(tmp_path: Path) -> None:
     devmap = tmp_path / "axis.toml"
+    # --plain: the drive's objects as plain devices (the axis device is tested apart)
     assert cli.main(["import", "eds", str(VENDOR / "acme_amd200.eds"), "--node", "5",
-                     "--bus", "axis", "-o", str(devmap)]) == 0
+                     "--bus", "axis", "--plain", "-o", str(devmap)]) == 0
     system = _system(tmp_path, devmap, "install -m0 sysfile\n")
     with cellrun.open_cell(system, virtual=True) as cell:
         slaves = cell.slaves
         assert slaves is not None
         cell.run_for(0.5)
-        slaves.script("position_actual_value", "sine(0, 1000, 4)")
         slaves.set("heat_sink_temperature", 57)
+        # a CiA 402 EDS is simulated as a drive: its statusword answers the controlword
+        assert int(cell.device("statusword").value) & 0x4F == 0x40          # switch on disabled
+        for cw in (0x06, 0x07, 0x0F):
+            cell.system.devtab.write("controlword", cw)
+            cell.run_for(0.2)
         cell.run_for(3.0)  # heartbeats every 0.1 s of virtual time: the node stays alive
         assert cell.device("position_actual_value").status.value == "OK"
-        assert cell.device("position_actual_value").value == pytest.approx(
-            1000 * math.sin(2 * math.pi * 3.5 / 4), abs=30)
+        assert int(cell.device("statusword").value) & 0x6F == 0x27          # operation enabled
+        assert cell.device("position_actual_value").value == 0         # no mode: holds
         assert cell.device("heat_sink_temperature").value == 57
         cell.system.devtab.write("target_position", 2048)
         cell.system.devtab.write("target_torque", -250)
@@ -270,21 +274,22 @@ def test_vendor_node_with_sync_tpdos_and_no_defaults_runs_virtual(tmp_path: Path
     # without a default are answered (0)
     devmap = tmp_path / "ax7.toml"
     assert cli.main(["import", "eds", str(VENDOR / "awkward_ax7.eds"), "--node", "3",
-                     "--bus", "ax", "-o", str(devmap)]) == 0
+                     "--bus", "ax", "--all", "-o", str(devmap)]) == 0
     system = _system(tmp_path, devmap, "install -m0 sysfile\n")
     with cellrun.open_cell(system, virtual=True) as cell:
         slaves = cell.slaves
         assert slaves is not None
         node = slaves.canopen_node("ax", 3)
         assert node.wait_state("OPERATIONAL", 10)
-        slaves.set("statusword", 0x0237)
-        slaves.set("position_actual_value", -4321)
+        # simulated as a CiA 402 drive: enabled by the controlword, shown by TPDO1 on SYNC
+        for cw in (0x06, 0x07, 0x0F):
+            cell.system.devtab.write("controlword", cw)
+            cell.run_for(0.1)
         deadline = time.monotonic() + 10
-        while cell.device("position_actual_value").value != -4321 \
-                and time.monotonic() < deadline:
+        while cell.device("statusword").value != 0x0237 and time.monotonic() < deadline:
             cell.run_for(0.05)       # SYNC runs on wall time: give it some
-        assert cell.device("position_actual_value").value == -4321     # by TPDO1, on SYNC
-        assert cell.device("statusword").value == 0x0237
+        assert cell.device("statusword").value == 0x0237                # by TPDO1, on SYNC
+        assert cell.device("position_actual_value").value == 0
         assert node.stats.syncs > 0 and node.stats.tpdos > 0
         cell.run_for(0.5)
         assert cell.device("heat_sink_temperature").value == 0          # no default: zero

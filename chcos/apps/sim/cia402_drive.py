@@ -6,8 +6,11 @@ with EMCY and 0x603F, a fault that needs a reset.
 
 :class:`DriveModel` is the drive without a bus (pure, stepped on virtual time);
 :class:`Cia402Drive` puts it on a CAN bus as a :class:`~chcos.apps.sim.canopen_slave.CanopenSlave`
-with the EDS ``eds/cia402_drive.eds`` (every RPDO carries the controlword, as vendor drives map
-them; TPDO1 statusword + modes display + error code, TPDO2 position + velocity).
+(the model is its plant, so the node's heartbeat, consumer, SYNC and event timers run as on any
+node) with the EDS ``eds/cia402_drive.eds`` (every RPDO carries the controlword, as vendor
+drives map them; TPDO1 statusword + modes display + error code, TPDO2 position + velocity) or a
+vendor's. ``chcos sim cia402`` is :func:`main`; ``chcos sim --from``, ``run --virtual`` and the
+pytest plugin use the class for every node whose EDS is a drive's.
 
 The model is written here from the CiA 402 state diagram, apart from :mod:`drivers.cia402` (the
 master side), so that the one checks the other.
@@ -19,6 +22,7 @@ import argparse
 import struct
 import sys
 import threading
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
@@ -26,7 +30,13 @@ from pathlib import Path
 from typing import Any
 
 from chcos import resources
-from chcos.apps.sim.canopen_slave import CanopenSlave
+from chcos.apps.sim.canopen_slave import (
+    EMCY_HEARTBEAT_LOST,
+    CanopenSlave,
+    Clock,
+    MasterLost,
+    NmtCommand,
+)
 from chcos.errors import BusError, ConfigError
 
 #: The EDS shipped for the simulated CiA 402 drive.
@@ -159,13 +169,42 @@ class DriveModel:
             self.mode_display = value
             self.demand = self.setpoint = self.position
 
-    def fault(self, code: int) -> None:
-        """A fault: fault reaction (then FAULT at the next step), 0x603F, an EMCY."""
+    def fault(self, code: int, *, emcy: bool = True) -> None:
+        """A fault: fault reaction (then FAULT at the next step), 0x603F, an EMCY (``emcy``
+        False: the node already sent it)."""
         if self.power in (Power.FAULT, Power.FAULT_REACTION):
             return
         self.error_code = code
-        self.emcys.append(code)
+        if emcy:
+            self.emcys.append(code)
         self._enter(Power.FAULT_REACTION)
+
+    def abort_connection(self, option: int, quick_stop_option: int) -> None:
+        """The master fell silent: act on the abort connection option code 0x6007 (0 no
+        action, 1 fault 0x8130, 2 disable voltage, 3 quick stop)."""
+        if option == 1:
+            self.fault(EMCY_HEARTBEAT_LOST, emcy=False)   # the node sent EMCY 0x8130
+        elif option == 2 and self.power in (Power.READY, Power.SWITCHED_ON, Power.ENABLED,
+                                            Power.QUICK_STOP):
+            self.velocity = 0.0                           # power removed: the motor coasts
+            self._enter(Power.SWITCH_ON_DISABLED)
+        elif option == 3 and self.power is Power.ENABLED:
+            self._enter(Power.SWITCH_ON_DISABLED if quick_stop_option == 0
+                        else Power.QUICK_STOP)
+        elif option == 3 and self.power in (Power.READY, Power.SWITCHED_ON):
+            self._enter(Power.SWITCH_ON_DISABLED)
+
+    def reboot(self, mode: int = 0) -> None:
+        """A reset node: the drive starts again from NOT READY (the self test), stopped, with
+        no fault recorded (a cause that persists faults again at the next step), in its
+        power-on mode ``mode`` (0x6060's stored value; none if refused or unknown)."""
+        self.velocity = 0.0
+        self.error_code = 0
+        self.last_cw = 0
+        self.homed = False
+        self.mode_display = 0
+        self.mode(mode)
+        self._enter(Power.NOT_READY)
 
     def _reset(self) -> None:
         if self.temperature > self.temperature_limit:
@@ -231,7 +270,10 @@ class DriveModel:
             self.demand = goal                         # the master interpolates
         if not self.blocked:
             travel = self.demand - self.position
-            self.velocity = travel / dt
+            # arrived at the goal: the motor has stopped (the profile ends at standstill, so a
+            # quick stop right after the arrival does not carry the last step's speed on)
+            self.velocity = 0.0 if self.demand == goal and self.mode_display != CSP \
+                else travel / dt
             self.position = self.demand
         else:
             self.velocity = 0.0
@@ -254,30 +296,43 @@ class DriveModel:
 
 class Cia402Drive(CanopenSlave):
     """A simulated CiA 402 drive on a CAN bus: :class:`DriveModel` behind the objects of
-    ``eds/cia402_drive.eds``. ``quick_stop_option`` sets 0x605A; ``refused_modes`` are modes
-    the drive does not accept. Every controlword it applied (RPDO or SDO) is kept in
-    :attr:`received`. Raises :class:`ConfigError` for an EDS without the CiA 402 objects."""
+    ``eds/cia402_drive.eds`` (or another CiA 402 EDS). ``quick_stop_option`` sets 0x605A (None:
+    the EDS default); ``refused_modes`` are modes the drive does not accept. Every controlword
+    it applied (RPDO or SDO) is kept in :attr:`received`.
+
+    The drive is a :class:`CanopenSlave` with the model as its plant: :meth:`tick` runs the
+    model, then the node's own life (heartbeat producer on ``clock=TICK``, heartbeat consumer,
+    TPDO event timers); synchronous TPDOs go out on SYNC only, as the node's parameters say.
+    When the consumer finds the master silent, the drive applies its abort connection option
+    code 0x6007 (1 fault, 2 disable voltage, 3 quick stop). An NMT reset node reboots the
+    drive (NOT READY, then SWITCH ON DISABLED; nothing is re-enabled). Raises
+    :class:`ConfigError` for an EDS without the CiA 402 objects."""
 
     def __init__(self, node_id: int, eds: str | Path = CIA402_EDS, *, channel: str,
                  interface: str = "virtual", bitrate: int | None = None,
                  heartbeat_period: float = 0.1, tpdo_period: float | None = None,
-                 quick_stop_option: int = 2, refused_modes: tuple[int, ...] = ()) -> None:
+                 clock: Clock = Clock.REAL, quick_stop_option: int | None = 2,
+                 refused_modes: tuple[int, ...] = ()) -> None:
         super().__init__(node_id, eds, channel=channel, interface=interface, bitrate=bitrate,
-                         heartbeat_period=heartbeat_period, tpdo_period=tpdo_period)
-        for index in (0x6040, 0x6041, 0x6060, 0x6061, 0x6064, 0x606C, 0x603F):
+                         heartbeat_period=heartbeat_period, tpdo_period=tpdo_period,
+                         clock=clock, servo=False)
+        for index in (0x6040, 0x6041, 0x6060):
             self.get(index)                            # ConfigError naming the missing object
+        #: the objects the model shows that this EDS has (vendor files leave some out)
+        self._shown = {i for i in (0x603F, 0x6061, 0x6064, 0x606C)
+                       if self._node.object_dictionary.get_variable(i, 0) is not None}
         self.model = DriveModel(refused_modes=refused_modes)
-        self.set(0x605A, 0, quick_stop_option)
+        if quick_stop_option is not None:
+            # a power-on value: it survives an NMT reset node, as a stored parameter would
+            self._factory[(0x605A, 0)] = bytes(self._var(0x605A, 0).encode_raw(
+                quick_stop_option))
+            self.set(0x605A, 0, quick_stop_option)
         #: every controlword applied, in order
         self.received: list[int] = []
-        self._changed = threading.Condition(self._lock)
-        self._since_events = 0.0
-
-    def start(self) -> None:
-        """As :meth:`CanopenSlave.start`, and watch the master's writes of 0x6040/0x6060."""
-        super().start()
         # the write hook of canopen's LocalNode: each RPDO entry and SDO download, in order
         self._node.add_write_callback(self._on_write)
+        self.add_plant(self._step_model)
+        self.add_master_lost_hook(self._master_lost)
 
     def _on_write(self, *, index: int, subindex: int, od: Any, data: bytes) -> None:
         if subindex != 0 or index not in (0x6040, 0x6060):
@@ -286,43 +341,60 @@ class Cia402Drive(CanopenSlave):
             if index == 0x6040:
                 (cw,) = struct.unpack("<H", bytes(data[:2]))
                 self.received.append(cw)
-                self.model.controlword(cw, int(self.get(0x605A)))
+                self.model.controlword(cw, self._option(0x605A, 2))
             else:
                 (mode,) = struct.unpack("<b", bytes(data[:1]))
                 self.model.mode(mode)
             self._publish()
 
+    def _option(self, index: int, missing: int) -> int:
+        """An optional parameter of the drive (``missing`` when its EDS lacks it)."""
+        return self._int(index, 0, missing)
+
     def _publish(self) -> None:
         """Show the model in the objects (TPDOs go out on change) and send its EMCYs."""
         m = self.model
         for code in m.emcys:
-            self.set(0x603F, 0, m.error_code)
+            self._show(0x603F, m.error_code)
             self.send_emcy(code, ERROR_REGISTER.get(code, 0x01) if code else 0)
         m.emcys.clear()
-        self.set(0x603F, 0, m.error_code)
-        self.set(0x6061, 0, m.mode_display)
-        self.set(0x6064, 0, round(m.position))
-        self.set(0x606C, 0, round(m.velocity))
-        self.set(0x6041, 0, m.statusword(int(self.get(0x60FF))))
+        self._show(0x603F, m.error_code)
+        self._show(0x6061, m.mode_display)
+        self._show(0x6064, round(m.position))
+        self._show(0x606C, round(m.velocity))
+        self.set(0x6041, 0, m.statusword(self._option(0x60FF, 0)))
         self._changed.notify_all()
 
-    def tick(self, dt: float) -> None:
-        """Advance the drive ``dt`` seconds, then the TPDO event timers."""
-        with self._lock:
-            self.model.step(dt, target_position=int(self.get(0x607A)),
-                            target_velocity=int(self.get(0x60FF)),
-                            profile_velocity=int(self.get(0x6081)),
-                            quick_stop_deceleration=int(self.get(0x6085)),
-                            following_window=int(self.get(0x6065)),
-                            quick_stop_option=int(self.get(0x605A)))
+    def _show(self, index: int, value: int) -> None:
+        if index in self._shown:
+            self.set(index, 0, value)
+
+    def _step_model(self, slave: CanopenSlave, dt: float) -> None:
+        """The drive's plant, stepped by :meth:`CanopenSlave.tick` under the node's lock."""
+        self.model.step(dt, target_position=self._option(0x607A, 0),
+                        target_velocity=self._option(0x60FF, 0),
+                        profile_velocity=self._option(0x6081, 10000),
+                        quick_stop_deceleration=self._option(0x6085, 50000),
+                        following_window=self._option(0x6065, 5000),
+                        quick_stop_option=self._option(0x605A, 2))
+        self._publish()
+
+    def _master_lost(self, slave: CanopenSlave, event: MasterLost) -> None:
+        """The heartbeat consumer found the master silent: apply 0x6007."""
+        if event.abort_option is not None:
+            self.model.abort_connection(event.abort_option, self._option(0x605A, 2))
             self._publish()
-            # the event timers of CanopenSlave: every TPDO each period
-            self._since_events += dt
-            period = self._tpdo_event_period()
-            if period is not None and self._since_events >= period:
-                self._since_events = 0.0
-                for pdo_map in self._node.tpdo.map.values():
-                    self._transmit(pdo_map)
+
+    def _boot(self, command: NmtCommand, power_on: bool = False) -> None:
+        """As the node's boot; a reset node (not the first power-on) reboots the drive too."""
+        super()._boot(command, power_on)
+        if command is NmtCommand.RESET_NODE:
+            if power_on:                               # the first start: the stored mode
+                self.model.mode_display = 0
+                self.model.mode(self._option(0x6060, 0))
+            else:
+                self.model.reboot(self._option(0x6060, 0))
+            self._publish()
 
     # -- fault injection and what tests read --------------------------------------------------
 
@@ -337,10 +409,16 @@ class Cia402Drive(CanopenSlave):
             self.model.temperature = celsius
 
     def published(self) -> tuple[int, int, int, int, int]:
-        """(statusword, modes display, position, velocity, error code) as the objects hold."""
+        """(statusword, modes display, position, velocity, error code) as the objects hold
+        (0 for one the EDS lacks)."""
         with self._lock:
-            return (int(self.get(0x6041)), int(self.get(0x6061)), int(self.get(0x6064)),
-                    int(self.get(0x606C)), int(self.get(0x603F)))
+            return (self._int(0x6041, 0), self._int(0x6061, 0), self._int(0x6064, 0),
+                    self._int(0x606C, 0), self._int(0x603F, 0))
+
+    def value(self, index: int, subindex: int = 0) -> int:
+        """An integer object's value as the drive holds it (0 when its EDS lacks it)."""
+        with self._lock:
+            return self._int(index, subindex, 0)
 
     def frames(self) -> int:
         """How many controlwords the drive applied."""
@@ -357,9 +435,10 @@ class Cia402Drive(CanopenSlave):
         self.tick(dt)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Run a simulated CiA 402 drive in real time until interrupted or ``--duration``
-    elapses. Returns the process exit status (0 ok, 2 bad arguments or bus)."""
+def main(argv: Sequence[str] | None = None, stop: threading.Event | None = None) -> int:
+    """``chcos sim cia402``: run a simulated CiA 402 drive in real time until interrupted,
+    ``--duration`` elapses or ``stop`` is set (an embedding program's or a test's). Returns the
+    process exit status (0 ok, 2 bad arguments or bus)."""
     parser = argparse.ArgumentParser(prog="chcos sim cia402",
                                      description="Simulated CiA 402 drive (state machine).")
     parser.add_argument("--node", type=int, default=1, help="node id 1..127 (default 1)")
@@ -373,8 +452,16 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="a mode of operation the drive refuses (repeatable)")
     parser.add_argument("--step", type=float, default=0.01, help="physics step, s")
     parser.add_argument("--duration", type=float, default=None, help="run this long, s")
+    parser.add_argument("--overheat", metavar="START[-END]", default=None,
+                        help="over-temperature from START seconds (to END): fault 0x4310, EMCY, "
+                             "fault resets refused until it cools")
+    parser.add_argument("--block", metavar="START[-END]", default=None,
+                        help="a load stops the motor from START seconds (to END): a following "
+                             "error (0x8611) once it moves")
     args = parser.parse_args(list(argv) if argv is not None else None)
     try:
+        spans = {name: _span(f"--{name}", text) for name, text in
+                 (("overheat", args.overheat), ("block", args.block)) if text is not None}
         drive = Cia402Drive(args.node, args.eds, channel=args.channel,
                             interface=args.interface, bitrate=args.bitrate,
                             heartbeat_period=args.heartbeat,
@@ -384,13 +471,43 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ConfigError, BusError) as exc:
         print(f"chcos sim cia402: {exc}", file=sys.stderr)
         return 2
+    for warning in drive.eds_warnings:
+        print(f"chcos sim cia402: warning: {warning}", file=sys.stderr)
     drive.run_realtime(args.step)
     print(f"CiA 402 drive node {args.node} on {args.interface}:{args.channel}", flush=True)
-    done = threading.Event()
+    done = stop if stop is not None else threading.Event()
+    start = time.monotonic()
+    active: set[str] = set()
     try:
-        done.wait(args.duration)
+        while not done.wait(0.02):
+            t = time.monotonic() - start
+            for name, (t0, t1) in spans.items():
+                on = t0 <= t < t1
+                if on == (name in active):
+                    continue
+                active.symmetric_difference_update({name})
+                if name == "overheat":
+                    drive.set_temperature(95.0 if on else 25.0)
+                else:
+                    drive.block(on)
+                print(f"t={t:6.1f} s  {name} {'on' if on else 'off'}", flush=True)
+            if args.duration is not None and t >= args.duration:
+                break
     except KeyboardInterrupt:
         pass
     finally:
         drive.stop()
     return 0
+
+
+def _span(option: str, text: str) -> tuple[float, float]:
+    """``START[-END]`` seconds -> (start, end); raises ConfigError naming the option."""
+    first, _, last = text.partition("-")
+    try:
+        start, end = float(first), float(last) if last else float("inf")
+    except ValueError:
+        raise ConfigError(f"{option} {text!r}: expected START[-END] in seconds, e.g. 2-5") \
+            from None
+    if start < 0 or end <= start:
+        raise ConfigError(f"{option} {text!r}: expected START >= 0 and END after START")
+    return start, end

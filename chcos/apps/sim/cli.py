@@ -3,8 +3,9 @@
 ``chcos sim can``     a DBC-coded raw CAN node (:mod:`chcos.apps.sim.can_device`)
 ``chcos sim serial``  a line or binary serial instrument on a pty or 127.0.0.1 TCP
                       (:mod:`chcos.apps.sim.serial_device`)
-``chcos sim canopen`` / ``modbus`` / ``weld``: handed to ``chcos.apps.sim.canopen_slave``,
-``chcos.apps.sim.modbus_server`` and ``chcos.apps.weld.plant`` (imported only when asked for).
+``chcos sim canopen`` / ``cia402`` / ``modbus`` / ``weld``: handed to
+``chcos.apps.sim.canopen_slave``, ``chcos.apps.sim.cia402_drive``, ``chcos.apps.sim.modbus_server``
+and ``chcos.apps.weld.plant`` (imported only when asked for).
 
 Every simulator prints what it receives to stdout and runs until Ctrl-C, ``--duration`` seconds,
 or ``--count`` send rounds.
@@ -23,8 +24,8 @@ from typing import Any
 from chcos.errors import BusError, ChcosError
 from drivers.codecs.serial import parse_hex
 
-DELEGATED = {"canopen": "chcos.apps.sim.canopen_slave", "modbus": "chcos.apps.sim.modbus_server",
-             "weld": "chcos.apps.weld.plant"}
+DELEGATED = {"canopen": "chcos.apps.sim.canopen_slave", "cia402": "chcos.apps.sim.cia402_drive",
+             "modbus": "chcos.apps.sim.modbus_server", "weld": "chcos.apps.weld.plant"}
 
 
 def _pairs(items: Sequence[str], what: str) -> list[tuple[str, str]]:
@@ -178,6 +179,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="seconds to wait for the driver to connect or write (60)")
     _common(s)
     delegated_help = {"canopen": "a CANopen servo drive (SDO, PDOs, heartbeat, EMCY)",
+                      "cia402": "a CiA 402 drive (state machine, modes, faults, quick stop)",
                       "modbus": "a Modbus TCP or RTU server with a shared register store",
                       "weld": "the whole welding cell on its real protocols"}
     for name in DELEGATED:

@@ -15,6 +15,8 @@ that answers the bus's devices on the real protocol:
   on the slaves' clock: boot-up, NMT state machine, SDO server (zero for objects without a
   default), RPDOs applied, TPDOs on change, event timer and SYNC, EMCY on injected faults
   (:meth:`SimSlaves.canopen_node`), a heartbeat every third of the map's ``heartbeat_timeout``;
+  a node whose EDS is a CiA 402 drive's is a :class:`chcos.apps.sim.cia402_drive.Cia402Drive`
+  (the state machine answers the controlword; 0x605A as the map's axis says, else the EDS);
 * ``serial`` - a TCP serial server (the driver reaches it as ``socket://127.0.0.1:PORT``)
   speaking the bus's framing: a line protocol's sensor lines are generated from its ``pattern``
   (the named groups filled with the values; the line is checked against the pattern), binary
@@ -154,14 +156,18 @@ class SimSlaves:
         or in-process device."""
         peer, spec = self._peer(device)
         raw = peer.get(spec)
-        if raw is None or isinstance(raw, bool):
+        if raw is None or isinstance(raw, bool) or not is_number(raw):
             return raw
         return raw * spec.scale + spec.offset
 
     def script(self, device: str, script: Script | str) -> None:
         """Make sensor ``device`` follow ``script`` (a function of seconds since the start, in
-        engineering units, or its text for :func:`parse_script`)."""
-        self._peer(device)
+        engineering units, or its text for :func:`parse_script`). Raises DeviceError for an
+        unknown or in-process device, or a CiA 402 axis's (the simulated drive owns those)."""
+        _peer, spec = self._peer(device)
+        if spec.address.get("profile") == "cia402":
+            raise DeviceError(f"{device!r} is a CiA 402 axis's: the simulated drive owns its "
+                              "value; it cannot follow a script")
         self.scripts[device] = parse_script(script) if isinstance(script, str) else script
 
     def values(self, items: Sequence[str], base_dir: Path | None = None) -> None:

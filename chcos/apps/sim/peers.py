@@ -16,8 +16,9 @@ from typing import Any, Literal
 
 from chcos.apps.sim.modbus_server import ModbusSimServer, RegisterStore
 from chcos.devices.spec import BusSpec, DeviceSpec
-from chcos.errors import ConfigError
+from chcos.errors import ConfigError, DeviceError
 from chcos.helpers import free_port
+from drivers.canopen_axis import is_axis_address
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 _channels = itertools.count()
@@ -226,14 +227,30 @@ class CanPeer(Mutable, Peer):
         self.can.shutdown()
 
 
+def cia402_eds(eds: Any, node: int) -> bool:
+    """True when the EDS at ``eds`` describes a CiA 402 drive (0x6040, 0x6041, 0x6060), read
+    as the simulated node reads it; an unreadable EDS is left to the node to refuse."""
+    from chcos.devices.eds_file import read_eds
+    from chcos.devices.importers.cia402 import is_cia402
+
+    try:
+        return is_cia402(read_eds(eds, node).od)
+    except ValueError:
+        return False
+
+
 class CanopenPeer(Peer):
-    """Per node of the bus, a :class:`chcos.apps.sim.canopen_slave.CanopenSlave` on the tick
-    clock (virtual time stays deterministic): heartbeat every third of the node's
-    ``heartbeat_timeout`` (none without it), TPDOs on change, event timer and SYNC, no plant
-    (values come from :meth:`set` and scripts). :meth:`node` hands a node to fault scripts."""
+    """Per node of the bus, on the tick clock (virtual time stays deterministic), a
+    :class:`chcos.apps.sim.cia402_drive.Cia402Drive` when the node's EDS is a CiA 402 drive's
+    (the state machine answers the controlword; 0x605A as the EDS says), else a
+    :class:`chcos.apps.sim.canopen_slave.CanopenSlave` without a plant (values come from
+    :meth:`set` and scripts). Both send a heartbeat every third of the node's
+    ``heartbeat_timeout`` (none without it), TPDOs on change, event timer and SYNC.
+    :meth:`node` hands a node to fault scripts."""
 
     def __init__(self, bus: BusSpec, devices: tuple[DeviceSpec, ...], rewrite: bool) -> None:
         from chcos.apps.sim.canopen_slave import CanopenSlave, Clock
+        from chcos.apps.sim.cia402_drive import Cia402Drive
         from drivers.codecs.canopen import eds_path
 
         self.args = can_args(bus.options, rewrite, bus.name)
@@ -243,15 +260,29 @@ class CanopenPeer(Peer):
         self.bus = dataclasses.replace(bus, options=options)
         self.slaves: dict[int, Any] = {}
         self.last = 0.0
+        # what the map's axes say the drive holds in 0x605A: the simulated drive holds it
+        held: dict[int, int] = {}
+        for d in devices:
+            config = d.address.get("config") if is_axis_address(d.address) else None
+            if isinstance(config, dict) and "quick_stop_option" in config \
+                    and int(d.address.get("axis", 0)) == 0:
+                held[int(d.address["node"])] = int(config["quick_stop_option"])
         try:
             for node in bus.options.get("nodes", []):
                 nid = int(node["id"])
                 timeout = float(node.get("heartbeat_timeout") or 0)
-                slave = CanopenSlave(nid, eds_path(bus, str(node["eds"])),
-                                     channel=str(self.args["channel"]),
-                                     interface=str(self.args["interface"]),
-                                     heartbeat_period=timeout / 3, clock=Clock.TICK,
-                                     servo=False)
+                eds = eds_path(bus, str(node["eds"]))
+                slave: CanopenSlave
+                if cia402_eds(eds, nid):
+                    slave = Cia402Drive(nid, eds, channel=str(self.args["channel"]),
+                                        interface=str(self.args["interface"]),
+                                        heartbeat_period=timeout / 3, clock=Clock.TICK,
+                                        quick_stop_option=held.get(nid))
+                else:
+                    slave = CanopenSlave(nid, eds, channel=str(self.args["channel"]),
+                                         interface=str(self.args["interface"]),
+                                         heartbeat_period=timeout / 3, clock=Clock.TICK,
+                                         servo=False)
                 self.slaves[nid] = slave
                 slave.start()
         except BaseException:
@@ -272,14 +303,43 @@ class CanopenPeer(Peer):
         return self.slaves[int(a["node"])], int(a["index"]), int(a.get("subindex", 0))
 
     def set(self, device: DeviceSpec, raw: Any) -> None:
+        if is_axis_address(device.address):
+            raise DeviceError(f"{device.name!r} is a CiA 402 axis: the simulated drive owns "
+                              "its values; command the axis, or inject a fault on "
+                              "slaves.canopen_node(bus, node)")
         slave, index, sub = self._slave(device)
         if slave.data_type(index, sub) not in float_types():
             raw = round(raw) if not isinstance(raw, bool) else raw
         slave.set(index, sub, raw)
 
     def get(self, device: DeviceSpec) -> Any:
+        if is_axis_address(device.address):
+            return self._axis_value(device)
         slave, index, sub = self._slave(device)
         return slave.get(index, sub)
+
+    def _axis_value(self, device: DeviceSpec) -> Any:
+        """What the simulated drive holds for an axis device, in drive units: the actuator and
+        ``.state`` the state's name, ``.statusword``, ``.mode`` (0x6061), ``.position`` and
+        ``.velocity`` (counts), ``.fault`` (0x603F)."""
+        from chcos.apps.sim.cia402_drive import Cia402Drive
+        from drivers.canopen_axis import AxisReading
+        from drivers.cia402 import decode_state
+
+        slave = self.slaves[int(device.address["node"])]
+        if not isinstance(slave, Cia402Drive):
+            raise DeviceError(f"{device.name!r}: node {slave.node_id} is not simulated as a "
+                              "CiA 402 drive (its EDS lacks 0x6040, 0x6041 or 0x6060)")
+        base = 0x800 * int(device.address.get("axis", 0))
+        statusword = slave.value(0x6041 + base)
+        reading = device.address.get("reading", AxisReading.STATE.value)
+        values = {AxisReading.STATE.value: decode_state(statusword).name,
+                  AxisReading.STATUSWORD.value: statusword,
+                  AxisReading.MODE.value: slave.value(0x6061 + base),
+                  AxisReading.POSITION.value: slave.value(0x6064 + base),
+                  AxisReading.VELOCITY.value: slave.value(0x606C + base),
+                  AxisReading.FAULT.value: slave.value(0x603F + base)}
+        return values[str(reading)]
 
     def tick(self, now: float) -> None:
         dt, self.last = max(0.0, now - self.last), now

@@ -40,6 +40,23 @@ def _file_ref(path: str, output: str | None) -> str:
         return str(src)
 
 
+def _indices(items: Sequence[str]) -> list[int]:
+    """``--objects`` values (comma-separated, hex or decimal) as indices; raises ConfigError
+    naming the bad item."""
+    out = []
+    for item in items:
+        for text in filter(None, (t.strip() for t in item.split(","))):
+            try:
+                index = int(text, 0)
+            except ValueError:
+                index = -1
+            if not 0x1000 <= index <= 0xFFFF:
+                raise ConfigError(f"--objects {text!r}: expected an object index such as "
+                                  "0x2000 (0x1000..0xFFFF)")
+            out.append(index)
+    return out
+
+
 def main(argv: Sequence[str]) -> int:
     """``chcos import eds|dbc|modbus FILE``: print or write (``-o``) a device map. Returns 0, or
     2 (the error on stderr names the file and what was expected)."""
@@ -62,7 +79,10 @@ def main(argv: Sequence[str]) -> int:
                           help="python-can channel of the bus (default can0)")
     p = sub.add_parser("eds", parents=[common, can_opts], help="a CANopen node from its EDS",
                        description="Devices of one CANopen node from its EDS (canopen's "
-                                   "import_od): TPDO-mapped objects as sensors delivered by "
+                                   "import_od). A CiA 402 drive becomes one axis device "
+                                   "(profile = \"cia402\") per axis, and nothing else unless "
+                                   "--objects or --all says so; --plain, or another node: "
+                                   "TPDO-mapped objects as sensors delivered by "
                                    "PDO, RPDO-mapped objects as actuators written by PDO, other "
                                    "application objects (0x2000-0x9FFF) as SDO sensors "
                                    "(read-only and read-write) or actuators (write-only).")
@@ -70,6 +90,15 @@ def main(argv: Sequence[str]) -> int:
     p.add_argument("--node", type=int, required=True, help="the node id 1..127")
     p.add_argument("--no-sdo", action="store_true",
                    help="only the PDO-mapped objects, no SDO devices")
+    p.add_argument("--objects", action="append", default=[], metavar="INDEX[,INDEX...]",
+                   help="also these objects (e.g. 0x2000,0x6071; repeatable); for a CiA 402 "
+                        "drive the default is its axis alone, for another node every object")
+    choice = p.add_mutually_exclusive_group()
+    choice.add_argument("--all", action="store_true",
+                        help="a CiA 402 drive: its axis and every other object")
+    choice.add_argument("--plain", action="store_true",
+                        help="no axis device: a CiA 402 drive's objects as plain sensors and "
+                             "actuators (every object, or those of --objects)")
     p = sub.add_parser("dbc", parents=[common, can_opts], help="every signal of a CAN DBC",
                        description="Every signal of a DBC (cantools) as a device, with the "
                                    "DBC's units and limits; the DBC's scale and offset are "
@@ -115,7 +144,9 @@ def main(argv: Sequence[str]) -> int:
             draft = import_eds(args.file, args.node, bus=args.bus or f"canopen{args.node}",
                                machine=args.machine, prefix=args.prefix, sdo=not args.no_sdo,
                                eds_ref=_file_ref(args.file, args.output),
-                               interface=args.interface, channel=args.channel)
+                               interface=args.interface, channel=args.channel,
+                               axes=not args.plain, all_objects=args.all,
+                               objects=_indices(args.objects) if args.objects else None)
         elif args.kind == "dbc":
             from chcos.devices.importers.dbc import import_dbc
 

@@ -7,12 +7,10 @@ velocity actual, target position and velocity, error code 0x603F, quick stop opt
 0x605A, profile velocity - with the PDOs that carry them, and says what a user must know:
 an object mapped into several RPDOs (they must be sent from one image), synchronous TPDOs (the
 bus needs ``sync_period``), objects read by SDO because no PDO maps them, set-points without a
-safe value. :func:`axis_draft` writes those objects (not the whole dictionary) as a map draft;
-the EDS importer (:mod:`.eds`) calls it for a node :func:`is_cia402` recognises.
-
-The draft's devices are plain sensors and actuators that today's CANopen driver runs; the
-``axes`` list of each :class:`DriveAxis` (:func:`axis_table`) is the ``profile = "cia402"``
-axis the driver will host with :class:`drivers.cia402.Axis`.
+safe value. The EDS importer (:mod:`.eds`, ``chcos import eds``) writes one
+``profile = "cia402"`` device per axis the CANopen driver can host (:func:`hostable`,
+:func:`axis_device`); :func:`axis_draft` writes an axis's objects as plain devices instead (the
+set-points with ``safe_value = "none"`` and the reason, :func:`no_safe_value`).
 """
 
 from __future__ import annotations
@@ -73,6 +71,15 @@ NO_SAFE_VALUE = {
                 "controlword",
     Role.QUICK_STOP_OPTION: "no safe value: a configuration written once",
 }
+def no_safe_value(index: int) -> str | None:
+    """Why the CiA 402 object ``index`` (at any axis's offset) has no safe value, or None
+    when it may have one: the set-points and configuration of :data:`NO_SAFE_VALUE`."""
+    base = 0x6000 + (index - 0x6000) % AXIS_OFFSET if 0x6000 <= index < 0x6000 + 8 * \
+        AXIS_OFFSET else index
+    role = next((r for r in NO_SAFE_VALUE if r.index == base), None)
+    return NO_SAFE_VALUE[role] if role is not None else None
+
+
 #: CANopen integer data types -> the range they carry (limits for the actuators).
 TYPE_RANGES = {0x0002: (-0x80, 0x7F), 0x0003: (-0x8000, 0x7FFF),
                0x0004: (-0x8000_0000, 0x7FFF_FFFF), 0x0005: (0, 0xFF), 0x0006: (0, 0xFFFF),
@@ -135,13 +142,13 @@ class DriveAxis:
 def load(path: str | Path, node: int) -> Any:
     """The object dictionary of node ``node`` from the EDS at ``path`` (canopen's import).
     Raises :class:`ConfigError` naming the file if it cannot be read."""
-    import canopen.objectdictionary as od_mod
+    from chcos.devices.eds_file import read_eds
 
     if not 1 <= node <= 127:
         raise ConfigError(f"--node {node}: expected a CANopen node id 1..127")
     try:
-        return od_mod.import_od(str(path), node)
-    except Exception as exc:  # canopen raises several kinds for a malformed file
+        return read_eds(path, node).od   # tolerant: vendor files leave numeric fields empty
+    except ValueError as exc:
         raise ConfigError(f"{path}: not a readable EDS: {exc}") from exc
 
 
@@ -265,6 +272,47 @@ def _object_notes(obj: AxisObject) -> list[str]:
     return notes
 
 
+#: the roles an axis device cannot be hosted without (the CANopen driver's axis checks them)
+HOSTED = (Role.STATUSWORD, Role.CONTROLWORD, Role.MODES, Role.MODES_DISPLAY)
+
+
+def hostable(axis: DriveAxis) -> bool:
+    """True when the drive has every object the CANopen driver's axis needs
+    (:data:`HOSTED`); without 0x6061 a mode cannot be confirmed, and the importer writes the
+    axis's objects as plain devices instead."""
+    return all(role in axis.objects for role in HOSTED)
+
+
+def axis_device(axis: DriveAxis, draft: MapDraft, *, bus: str, machine: int = 0,
+                prefix: str = "", several: bool = False) -> tuple[list[str], dict[str, Any]]:
+    """One ``profile = "cia402"`` device table for ``axis`` (its comment lines first): node
+    and axis, the mode (PP with a target position, else PV, else none), ``counts_per_unit``
+    from the factor group (else 1 and a comment asking for it), 0x605A's default as
+    ``quick_stop_option``, the safe stop sequence. The notes of :func:`detect_axes` become the
+    comments."""
+    name = draft.name(f"axis{axis.axis + 1}" if several else "axis", prefix)
+    dev: dict[str, Any] = {"name": name, "profile": "cia402", "bus": bus}
+    if machine:
+        dev["machine"] = machine
+    dev["address"] = {"node": axis.node, "axis": axis.axis}
+    if Role.TARGET_POSITION in axis.objects:
+        dev["mode"] = "PP"
+    elif Role.TARGET_VELOCITY in axis.objects:
+        dev["mode"] = "PV"
+    dev["counts_per_unit"] = axis.counts_per_unit if axis.counts_per_unit else 1.0
+    if axis.quick_stop_option is not None:
+        dev["quick_stop_option"] = axis.quick_stop_option
+    dev["safe_stop"] = "quick_stop_then_disable"
+    objects = ", ".join(f"0x{o.index:04X} " + (f"({', '.join(map(str, o.pdos))})" if o.pdos
+                                               else "(SDO)")
+                        for o in axis.objects.values())
+    comments = [f"CiA 402 axis {axis.axis} of node {axis.node}: {objects}",
+                "its safe action is the stop sequence (quick stop, then disable voltage once "
+                "stopped); tasks command it with ctx.axis(name)",
+                *axis.notes]
+    return comments, dev
+
+
 def axis_table(axis: DriveAxis, name: str, *, counts_per_unit: float | None = None,
                mode: str = "PP") -> dict[str, Any]:
     """The ``profile = "cia402"`` axis table for a map: node, axis, mode, units (given, else
@@ -315,6 +363,7 @@ def axis_draft(path: str | Path, node: int, *, bus: str = "canopen", machine: in
                 notes.append(CONTROLWORD_SAFETY)
             elif role in NO_SAFE_VALUE:
                 notes.append(NO_SAFE_VALUE[role])
+                dev["safe_value"], dev["safe_reason"] = "none", NO_SAFE_VALUE[role]
             draft.add(notes, dev)
     for index in extra:
         var = _variable(od, index)

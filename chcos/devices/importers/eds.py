@@ -1,7 +1,10 @@
 """eds - a device map for one CANopen node from its EDS (``chcos import eds FILE --node N``).
 
 The object dictionary is read with canopen's ``import_od`` (``$NODEID`` resolved for node N).
-Devices:
+A CiA 402 drive (0x6040, 0x6041, 0x6060, 0x6061 at an axis's offset) becomes one
+``profile = "cia402"`` axis device per axis and nothing else, unless asked for: ``objects``
+(``--objects``) adds those objects, ``all_objects`` (``--all``) every other one, ``axes=False``
+(``--plain``) writes the drive's objects as plain devices. Plain devices, for any other node:
 
 * every object mapped in an enabled TPDO (COB-ID bit 31 clear in 0x1800+n, mapping 0x1A00+n):
   a sensor, delivered by the PDO; ``stale_after`` is five event-timer periods when the TPDO has an
@@ -14,7 +17,9 @@ Devices:
 Names come from the EDS's ParameterName (a record's name joined with the entry's); limits from
 LowLimit/HighLimit; units and scale from canopen's ``unit``/``factor`` where the EDS has them.
 The bus gets ``nodes = [{id, eds, heartbeat_timeout}]`` (three producer-heartbeat periods, from
-0x1017, when it is set). Nothing else is guessed: safe values are left for the user to set.
+0x1017, when it is set). Nothing else is guessed: safe values are left for the user to set,
+but a CiA 402 set-point (target position or velocity, profile velocity, mode, quick stop option)
+gets ``safe_value = "none"`` with the reason (any value would move the axis).
 
 What will not work on a real bus is said twice, as a warning (:attr:`MapDraft.warnings`, printed
 by ``chcos import``) and as a comment in the map:
@@ -34,6 +39,7 @@ comment line, not one warning each.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Collection
 from pathlib import Path
 from typing import Any
 
@@ -60,6 +66,10 @@ def _load(path: str | Path, node: int) -> tuple[Any, tuple[str, ...]]:
     except ValueError as exc:
         raise ConfigError(str(exc)) from exc
     return read.od, read.warnings
+
+
+def _every(index: int) -> bool:
+    return True
 
 
 def od_default(od: Any, index: int, sub: int) -> int | None:
@@ -169,13 +179,53 @@ def _device(draft: MapDraft, var: Any, direction: str, bus: str, machine: int, p
 
 def import_eds(path: str | Path, node: int, *, bus: str = "canopen", machine: int = 0,
                prefix: str = "", sdo: bool = True, eds_ref: str | None = None,
-               interface: str = "socketcan", channel: str = "can0") -> MapDraft:
+               interface: str = "socketcan", channel: str = "can0", axes: bool = True,
+               objects: Collection[int] | None = None, all_objects: bool = False) -> MapDraft:
     """The device map draft of node ``node`` described by the EDS at ``path`` (see the module
-    doc); ``eds_ref`` is how the map names the EDS (default: ``path`` as given). Raises
-    ConfigError naming the file if it is not a readable EDS or the node id is out of range."""
+    doc); ``eds_ref`` is how the map names the EDS (default: ``path`` as given).
+
+    A CiA 402 drive (``axes``, and 0x6040/0x6041/0x6060/0x6061 at an axis's offset) becomes one
+    ``profile = "cia402"`` axis per axis (:func:`.cia402.axis_device`) plus the objects in
+    ``objects`` (indices), or every other object with ``all_objects``. Another node (or
+    ``axes=False``) gives every object, or only those in ``objects`` when given. Raises
+    ConfigError naming the file if it is not a readable EDS, the node id is out of range or an
+    index of ``objects`` is not in the EDS."""
     od, read_warnings = _load(path, node)
+    from chcos.devices.importers.cia402 import (
+        HOSTED,
+        axis_device,
+        detect_axes,
+        hostable,
+        no_safe_value,
+    )
+
+    draft_warnings: list[str] = []
+
+    drives = detect_axes(od, node) if axes else []
+    found = [a for a in drives if hostable(a)]
+    plain_axes = [a for a in drives if not hostable(a)]
+    for axis in plain_axes:
+        draft_warnings.append(
+            f"{Path(path).name}: node {node} axis {axis.axis} is a CiA 402 drive without "
+            + ", ".join(f"0x{r.index + 0x800 * axis.axis:04X}" for r in HOSTED
+                        if r not in axis.objects)
+            + ": no axis device can confirm its state and mode; its objects are imported "
+              "as plain devices")
+    for index in objects or ():
+        if od.get_variable(index, 0) is None and index not in od:
+            raise ConfigError(f"{path}: --objects 0x{index:04X}: no such object in node "
+                              f"{node}'s EDS")
+    wanted: Callable[[int], bool]
+    if all_objects or (objects is None and not drives):
+        wanted = _every
+    else:
+        chosen = frozenset(objects or ()) | {o.index for a in plain_axes
+                                             for o in a.objects.values()}
+        wanted = chosen.__contains__
+    taken = {(o.index, o.subindex) for a in found for o in a.objects.values()}
     draft = MapDraft()
     draft.warnings.extend(read_warnings)
+    draft.warnings.extend(draft_warnings)
     info = getattr(od, "device_information", None)
     vendor = getattr(info, "vendor_name", None) or "?"
     product = getattr(info, "product_name", None) or "?"
@@ -228,15 +278,25 @@ def import_eds(path: str | Path, node: int, *, bus: str = "canopen", machine: in
         bus_table["sync_period"] = sync_period
     bus_table["nodes"] = [node_table]
     draft.buses.append(bus_table)
+    for axis in found:
+        comments, dev = axis_device(axis, draft, bus=bus, machine=machine, prefix=prefix,
+                                    several=len(found) > 1)
+        draft.add(comments, dev)
+    if found:
+        draft.header.append("A CiA 402 drive: "
+                           + ("one axis" if len(found) == 1 else f"{len(found)} axes")
+                           + (" and every other object (--all)." if all_objects else
+                              " and the objects asked for (--objects)." if objects else
+                              " with the objects it needs (--objects or --all for more)."))
     rpdos_of: dict[tuple[int, int], list[int]] = {}
     for n, index, sub, _timer, _cob in pdo_mappings(od, 0x1400, 0x1600):
         rpdos_of.setdefault((index, sub), []).append(n)
-    done: set[tuple[int, int]] = set()
+    done: set[tuple[int, int]] = set(taken)
     for kind, comm, mapping, direction in (("TPDO", 0x1800, 0x1A00, "sensor"),
                                            ("RPDO", 0x1400, 0x1600, "actuator")):
         for n, index, sub, timer, cob in pdo_mappings(od, comm, mapping):
             var = od.get_variable(index, sub)
-            if var is None or (index, sub) in done:
+            if var is None or (index, sub) in done or not wanted(index):
                 continue
             done.add((index, sub))
             dev = _device(draft, var, direction, bus, machine, prefix, node)
@@ -257,7 +317,12 @@ def import_eds(path: str | Path, node: int, *, bus: str = "canopen", machine: in
                 if also:
                     notes.append(f"also mapped in {', '.join(also)}: every RPDO mapping it "
                                  f"carries the value written")
-                notes.append("set safe_value: written on e-stop, task failure and shutdown")
+                reason = no_safe_value(index) if sub == 0 else None
+                if reason is not None:
+                    dev["safe_value"], dev["safe_reason"] = "none", reason
+                else:
+                    notes.append("set safe_value: written on e-stop, task failure and "
+                                 "shutdown")
             draft.add(notes, dev)
     if sdo:
         for index in sorted(i for i in od.indices if 0x2000 <= i <= 0x9FFF):
@@ -266,7 +331,7 @@ def import_eds(path: str | Path, node: int, *, bus: str = "canopen", machine: in
                 [obj[s] for s in sorted(obj.subindices) if s != 0]
             for var in subs:
                 key = (var.index, var.subindex)
-                if key in done or not _numeric(var):
+                if key in done or not _numeric(var) or not wanted(var.index):
                     continue
                 access = str(var.access_type)
                 if access in ACCESS_ACTUATOR:
@@ -279,9 +344,26 @@ def import_eds(path: str | Path, node: int, *, bus: str = "canopen", machine: in
                 dev = _device(draft, var, direction, bus, machine, prefix, node)
                 notes = [f"0x{var.index:04X}:{var.subindex:02X} {_name(var)}: SDO, access "
                          f"{access}"]
+                reason = no_safe_value(var.index) if var.subindex == 0 else None
+                if direction == "actuator" and reason is not None:
+                    dev["safe_value"], dev["safe_reason"] = "none", reason
                 if access in ("rw", "rwr"):
                     notes.append("read-write: make it an actuator to write it")
                 draft.add(notes, dev)
+    if sdo and objects:
+        for index in sorted(objects):   # an object asked for outside 0x2000-0x9FFF
+            obj = od[index]
+            subs = [obj] if not hasattr(obj, "subindices") else \
+                [obj[s] for s in sorted(obj.subindices) if s != 0]
+            for var in subs:
+                if (var.index, var.subindex) in done or not _numeric(var):
+                    continue
+                done.add((var.index, var.subindex))
+                access = str(var.access_type)
+                direction = "actuator" if access in ACCESS_ACTUATOR else "sensor"
+                draft.add([f"0x{var.index:04X}:{var.subindex:02X} {_name(var)}: SDO, access "
+                           f"{access}, asked for with --objects"],
+                          _device(draft, var, direction, bus, machine, prefix, node))
     if not draft.devices:
         raise ConfigError(f"{path}: no PDO-mapped or application object in node {node}'s EDS")
     missing = _no_default(od)
