@@ -301,9 +301,15 @@ def test_vendor_node_with_sync_tpdos_and_no_defaults_runs_virtual(tmp_path: Path
 
 
 def test_sim_from_map_raises_emcy_faults_on_a_schedule(
-        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+        tmp_path: Path, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
     import can
 
+    from chcos.apps.sim import from_map
+
+    # the observer below is in this very process: the process-local virtual channel, which
+    # `chcos sim --from` refuses for a `chcos run` in another process, is heard here
+    monkeypatch.setattr(from_map, "process_local", lambda devmap: [])
     channel = f"emcy-{os.getpid()}"
     devmap = tmp_path / "ax7.toml"
     assert cli.main(["import", "eds", str(VENDOR / "awkward_ax7.eds"), "--node", "3",

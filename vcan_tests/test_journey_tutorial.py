@@ -115,13 +115,13 @@ def test_from_vendor_files_verbatim(tmp_path: Path, netns: str) -> None:
     imported = next(r for c, r in outputs.items() if c.startswith("chcos import dbc"))
     assert "RollingCounter (rolling counter), CRC8 (checksum), left out" in imported.stderr
     checked = next(r for c, r in outputs.items() if c.startswith("chcos check drive.toml"))
-    assert checked.stdout.startswith("ok: 3 buses, 18 devices"), checked.stdout
+    assert checked.stdout.startswith("ok: 3 buses, 19 devices"), checked.stdout
     runs = [r.stdout for c, r in outputs.items() if c.startswith("chcos run")]
     assert len(runs) == 2
     for out in runs:   # virtual, then real time in a second process
         summary = out.split("summary")[-1]
         assert "healthy" in summary and "UNHEALTHY" not in summary, out
-        assert "sensor   statusword       last 567" in summary, summary
+        assert "sensor   axis.state       last OPERATION_ENABLED" in summary, summary
         assert re.search(r"actuator setpoint +last [\d.]+ mm, [1-9]\d* commands", summary), summary
     # the simulated gripper (the other process) received the set-points the task wrote
     received = [float(m) for m in re.findall(r"actuator setpoint=([\d.]+) mm", "".join(bg_out))]

@@ -22,7 +22,7 @@ from chcos.errors import DeviceError, MessageError
 from chcos.kernel.scheduler import BLOCK
 from chcos.tables.messages import EndpointKind
 from chcos.tables.tasks import TaskState
-from drivers.canopen_axis import AxisCall, AxisStatus, Done
+from drivers.canopen_axis import AxisCall, AxisStatus, Done, mode_of
 from drivers.cia402 import AxisCommandFailed, Fault, Mode, Op, Result, State
 
 if TYPE_CHECKING:
@@ -121,9 +121,17 @@ class AxisHandle:
         is failed by that fault: the reset is how it recovers)."""
         return self._call(AxisCall(Op.FAULT_RESET))
 
-    def set_mode(self, mode: Mode | int | None = None) -> Generator[Any, Any, Result]:
-        """Write 0x6060 (``mode``, or the map's ``mode``); done when 0x6061 shows it."""
-        return self._call(AxisCall(Op.SET_MODE, None if mode is None else int(mode)))
+    def set_mode(self, mode: Mode | int | str | None = None) -> Generator[Any, Any, Result]:
+        """Write 0x6060 (``mode``: a :class:`Mode`, its number or its name as in the map,
+        ``"PP"``, ``"csv"``...; None: the map's ``mode``); done when 0x6061 shows it. Raises
+        ValueError naming a mode that is none of these, before anything is written."""
+        if mode is None:
+            return self._call(AxisCall(Op.SET_MODE, None))
+        chosen = mode_of(mode)
+        if chosen is None:
+            raise ValueError(f"axis {self.name}: set_mode({mode!r}): expected a mode name "
+                             f"({', '.join(Mode.__members__)}) or number")
+        return self._call(AxisCall(Op.SET_MODE, int(chosen)))
 
     def home(self) -> Generator[Any, Any, Result]:
         """Homing (mode HM, operation enabled); done on homing attained."""
