@@ -77,8 +77,10 @@ class CountingHost:
 
     deliver_now = deliver  # (no kernel thread here: the same)
 
-    def deliver_many(self, readings: Sequence[tuple[str, Any]]) -> None:
-        """A poll's readings together, as Devtab takes them (one hand-over per poll)."""
+    def deliver_many(self, readings: Sequence[tuple[str, Any]],
+                     at: float | None = None) -> None:
+        """A poll's readings together, as Devtab takes them (one hand-over per poll; the
+        receive time ``at`` does not matter to the rate)."""
         with self.cond:
             self.delivered += len(readings)
             self.cond.notify_all()

@@ -30,7 +30,8 @@ class BatchHost(FakeHost):
         super().__init__()
         self.batches: list[list[tuple[str, Any]]] = []
 
-    def deliver_many(self, readings: Sequence[tuple[str, Any]]) -> None:
+    def deliver_many(self, readings: Sequence[tuple[str, Any]],
+                     at: float | None = None) -> None:
         with self.cond:
             self.batches.append(list(readings))
             self.delivered.extend(readings)

@@ -108,12 +108,14 @@ class _HostProbe:
             self._on_lc(time.perf_counter())
         self._host.deliver_now(device, value)
 
-    def deliver_many(self, readings: Sequence[tuple[str, Any]]) -> None:
+    def deliver_many(self, readings: Sequence[tuple[str, Any]],
+                     at: float | None = None) -> None:
         """The same for a batch of readings (the CAN driver hands a drain's frames over as
-        one): stamped if an intruder value is among them, then handed on as one batch."""
+        one, with their receive time ``at``): stamped if an intruder value is among them, then
+        handed on as one batch."""
         if any(device == "LC" and value for device, value in readings):
             self._on_lc(time.perf_counter())
-        self._host.deliver_many(readings)
+        self._host.deliver_many(readings, at=at)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._host, name)
