@@ -117,7 +117,7 @@ def test_emergency_probe_stamps_an_intruder_value_in_a_batch_too() -> None:
         def deliver(self, device: str, value: Any) -> None:
             got.append(("one", device, value))
 
-        def deliver_many(self, readings: Any) -> None:
+        def deliver_many(self, readings: Any, at: float | None = None) -> None:
             got.append(("many", list(readings)))
 
     probe = emergency._HostProbe(Host(), stamps.append)
