@@ -1,7 +1,7 @@
 """canopen_axis - a CiA 402 axis as a device of the ``canopen`` driver: the devices one
 ``profile = "cia402"`` table of a device map becomes, the command codes its actuator takes, the
-calls tasks make, and :class:`AxisHost`, which runs one :class:`drivers.cia402.Axis` engine for
-the driver (readings in, writes out in order, reads answered, results completing the calls,
+calls tasks make, and :class:`AxisHost`, which runs one :class:`drivers.codecs.cia402.Axis` engine
+for the driver (readings in, writes out in order, reads answered, results completing the calls,
 faults failing and recovering the axis device alone).
 
 A device map's axis table ``x`` becomes these Devtab devices (all on the axis's bus):
@@ -12,7 +12,8 @@ A device map's axis table ``x`` becomes these Devtab devices (all on the axis's 
   recovery run the axis's safe stop *sequence*, and the write is confirmed only when the drive's
   statusword confirms the sequence ended. A drive fault fails this device alone (cause
   ``drive-fault``, naming 0x603F); the sensors stay readable and the fault reset stays possible.
-* sensors ``x.state`` (the :class:`drivers.cia402.State` name, e.g. ``"OPERATION_ENABLED"``),
+* sensors ``x.state`` (the :class:`drivers.codecs.cia402.State` name, e.g.
+  ``"OPERATION_ENABLED"``),
   ``x.statusword``, ``x.mode`` (0x6061), ``x.position`` and ``x.velocity`` (user units),
   ``x.fault`` (0x603F while in a fault, else 0): what the drive confirmed.
 
@@ -25,15 +26,16 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from enum import Enum, IntEnum
+from enum import IntEnum
 from typing import Any
 
-from drivers.cia402 import (
+from drivers.codecs.cia402 import (
     PREEMPTING,
     Actions,
     Axis,
     AxisBusy,
     AxisConfig,
+    AxisReading,
     Fault,
     Mode,
     Obj,
@@ -42,29 +44,8 @@ from drivers.cia402 import (
     Result,
     State,
     Write,
+    axis_names,
 )
-
-#: the ``profile`` of an axis table in a device map, and the address key marking its devices
-PROFILE = "cia402"
-
-
-class AxisReading(Enum):
-    """The sensors of an axis: ``<axis>.<value>``."""
-
-    STATE = "state"
-    STATUSWORD = "statusword"
-    MODE = "mode"
-    POSITION = "position"
-    VELOCITY = "velocity"
-    FAULT = "fault"
-
-
-#: the object each sensor shows (axis 0; its ``index`` in the address, for tools that read
-#: CANopen addresses without knowing axes)
-READING_OBJECTS: dict[AxisReading, int] = {
-    AxisReading.STATE: 0x6041, AxisReading.STATUSWORD: 0x6041, AxisReading.MODE: 0x6061,
-    AxisReading.POSITION: 0x6064, AxisReading.VELOCITY: 0x606C, AxisReading.FAULT: 0x603F,
-}
 
 
 class AxisCode(IntEnum):
@@ -113,29 +94,6 @@ class AxisStatus:
 
 #: called with a command's result, or the exception that refused it (busy, limits, stopped)
 Done = Callable[[Result | Exception], None]
-
-
-def axis_names(name: str) -> dict[AxisReading, str]:
-    """The sensor device names of axis ``name``."""
-    return {r: f"{name}.{r.value}" for r in AxisReading}
-
-
-def is_axis_address(address: Mapping[str, Any]) -> bool:
-    """True for the address of a device an axis table became (actuator or sensor)."""
-    return address.get("profile") == PROFILE
-
-
-def mode_of(value: object) -> Mode | None:
-    """A mode of operation from a map value: a name (``"PP"``, ``"csp"``) or its number; None
-    if it is neither."""
-    if isinstance(value, str):
-        return Mode.__members__.get(value.upper())
-    if isinstance(value, int) and not isinstance(value, bool):
-        try:
-            return Mode(value)
-        except ValueError:
-            return None
-    return None
 
 
 @dataclass

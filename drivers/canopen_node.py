@@ -38,17 +38,16 @@ current value of every object it maps: :class:`drivers.canopen_remote.RpdoImages
 download. An SDO write that aborts or times out fails the actuator; the driver then probes the
 object by SDO upload until the node answers and the failure clears (no latch).
 
-CiA 402 axes (``profile = "cia402"`` device-map tables, :mod:`drivers.canopen_axis`): the
-driver hosts one :class:`drivers.cia402.Axis` engine per axis on its I/O thread: the TPDO values
-of the axis's objects are fed in as one reading, the engine is cycled every :data:`AXIS_CYCLE`
-s, each write it asks for goes out as its own frame (the first RPDO mapping the object, composed
-from the node's image, else an SDO download), its reads are SDO uploads, its results complete
-the task's call (:meth:`CanopenDriver.axis_call`) or the Devtab write of a command code, and a
-drive fault fails the axis's actuator alone (cause ``drive-fault``). On a node hosting an axis,
-EMCY and the error register at boot do not fail the node's devices (the fault reset must get
-through). A node lost or rebooted makes each of its axes forget the drive and start its safe
-stop. :meth:`CanopenDriver.flush` keeps cycling the axes at shutdown until their safe stops
-ended.
+CiA 402 axes (``profile = "cia402"`` device-map tables, :mod:`drivers.canopen_axis`): the driver
+hosts one :class:`drivers.codecs.cia402.Axis` engine per axis on its I/O thread: the TPDO values of
+the axis's objects are fed in as one reading, the engine is cycled every :data:`AXIS_CYCLE` s, each
+write it asks for goes out as its own frame (the first RPDO mapping the object, composed from the
+node's image, else an SDO download), its reads are SDO uploads, its results complete the task's call
+(:meth:`CanopenDriver.axis_call`) or the Devtab write of a command code, and a drive fault fails the
+axis's actuator alone (cause ``drive-fault``). On a node hosting an axis, EMCY and the error
+register at boot do not fail the node's devices (the fault reset must get through). A node lost or
+rebooted makes each of its axes forget the drive and start its safe stop.
+:meth:`CanopenDriver.flush` keeps cycling the axes at shutdown until their safe stops ended.
 
 Failures are listed in :mod:`drivers.canopen_events`. Every EMCY is reported through
 ``host.error(bus, "emcy", ...)``; EMCY codes of the classes current (2xxx), voltage (3xxx),
@@ -80,7 +79,7 @@ from chcos.errors import BusError
 from drivers import canopen_config
 from drivers.base import DriverHost, deliver_all
 from drivers.canbus import read_frames
-from drivers.canopen_axis import CODE_OPS, AxisCall, AxisCode, AxisHost, AxisStatus, Done, mode_of
+from drivers.canopen_axis import CODE_OPS, AxisCall, AxisCode, AxisHost, AxisStatus, Done
 from drivers.canopen_events import FrameCheck, NodeEvents
 from drivers.canopen_jobs import (
     OP,
@@ -107,8 +106,8 @@ from drivers.canopen_od import (
 )
 from drivers.canopen_remote import BootOutcome, ManagedNode, RpdoImages
 from drivers.canopen_sync import SYNC_COB_ID, SyncCycle, SyncStats
-from drivers.cia402 import Obj, Result, Write, config_from_table
 from drivers.codecs.canopen import EMCY_BASE, HEARTBEAT_BASE
+from drivers.codecs.cia402 import Obj, Result, Write, config_from_table, mode_of
 from drivers.jobs import Job, WorkerJobDriver
 from drivers.threaded import ReaderThread
 
@@ -479,9 +478,9 @@ class CanopenDriver(WorkerJobDriver):
 
     def axis_call(self, device: str, call: AxisCall, done: Done) -> None:
         """Start ``call`` on axis ``device`` on the I/O thread; ``done`` gets the engine's
-        :class:`drivers.cia402.Result` (from the I/O thread), or the exception that refused it
-        (AxisBusy, AxisLimitError, ValueError; BusError when the driver is stopped). Never
-        blocks."""
+        :class:`drivers.codecs.cia402.Result` (from the I/O thread), or the exception that
+        refused it (AxisBusy, AxisLimitError, ValueError; BusError when the driver is stopped).
+        Never blocks."""
         if device not in self._axes:
             done(BusError(f"canopen bus {self.bus.name}: no axis {device!r}"))
             return

@@ -1,6 +1,6 @@
-"""support_cia402 - a CANopen master hosting a :class:`drivers.cia402.Axis` for the CiA 402 tests:
-the canopen library's network on a python-can virtual channel, RPDO frames composed from an image
-of every object they map (so a mode write never sends a stale controlword), TPDOs decoded into
+"""support_cia402 - a CANopen master hosting a :class:`drivers.codecs.cia402.Axis` for the CiA 402
+tests: the canopen library's network on a python-can virtual channel, RPDO frames composed from an
+image of every object they map (so a mode write never sends a stale controlword), TPDOs decoded into
 readings, reads answered by SDO. It is the shape the CANopen driver takes when it hosts an axis.
 
 Time is virtual: :meth:`Cia402Host.cycle` steps the drive by ``dt``, waits until the drive's
@@ -17,7 +17,7 @@ from typing import Any, Protocol
 
 import canopen
 
-from drivers.cia402 import Actions, Axis, AxisConfig, Fault, Obj, Op, Reading, Result
+from drivers.codecs.cia402 import Actions, Axis, AxisConfig, Fault, Obj, Op, Reading, Result
 
 WAIT = 10.0  # seconds to wait for a frame's effect before a test fails
 

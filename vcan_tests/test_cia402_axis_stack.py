@@ -20,7 +20,7 @@ from chcos.errors import ChcosError
 from chcos.kernel.clock import VirtualClock
 from chcos.system.embedded import System
 from chcos.user.context import TaskContext
-from drivers.cia402 import AxisCommandFailed
+from drivers.codecs.cia402 import AxisCommandFailed
 from vcan_tests.netutil import unique_channel
 from vcan_tests.peers.durand_cia402 import (
     ENABLED,

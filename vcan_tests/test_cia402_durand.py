@@ -1,6 +1,6 @@
-"""test_cia402_durand - the Axis engine (drivers/cia402.py) commanding an independent CiA 402 drive
-written on durand (vcan_tests/peers/durand_cia402.py) over a python-can virtual bus: RPDO frames
-composed from an image, TPDOs, SDO reads, EMCY. Every test asserts what the DRIVE saw: the
+"""test_cia402_durand - the Axis engine (drivers/codecs/cia402.py) commanding an independent CiA 402
+drive written on durand (vcan_tests/peers/durand_cia402.py) over a python-can virtual bus: RPDO
+frames composed from an image, TPDOs, SDO reads, EMCY. Every test asserts what the DRIVE saw: the
 controlwords it received, the states it went through, its objects."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from drivers.cia402 import AxisConfig, Mode, Obj, Op, SafeStop, State, Timeouts
+from drivers.codecs.cia402 import AxisConfig, Mode, Obj, Op, SafeStop, State, Timeouts
 from vcan_tests.peers.durand_cia402 import (
     ENABLED,
     FAULT,

@@ -1,4 +1,4 @@
-"""test_cia402_profile - the CiA 402 profile's pure logic (drivers/cia402.py): the statusword
+"""test_cia402_profile - the CiA 402 profile's pure logic (drivers/codecs/cia402.py): the statusword
 decoding, every state x command of the state table against the standard's diagram written out
 here, the planner from every state to every target, and the Axis engine on scripted readings."""
 
@@ -8,7 +8,7 @@ import re
 
 import pytest
 
-from drivers.cia402 import (
+from drivers.codecs.cia402 import (
     AUTOMATIC,
     CONTROLWORDS,
     Axis,

@@ -18,7 +18,7 @@ from chcos.apps.sim.cia402_drive import (
     Power,
 )
 from chcos.errors import ConfigError
-from drivers.cia402 import Actions, Axis, AxisConfig, Mode, State, Timeouts
+from drivers.codecs.cia402 import Actions, Axis, AxisConfig, Mode, State, Timeouts
 from vcan_tests.peers.durand_cia402 import DurandCia402Drive
 from vcan_tests.support_cia402 import Cia402Host, drive_eds
 

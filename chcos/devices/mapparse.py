@@ -30,7 +30,7 @@ DEVICE_KEYS = ("name", "direction", "machine", "bus", "address", "priority", "st
 #: ``safe_value = "none"``: the actuator has no safe value, for the reason in ``safe_reason``
 NO_SAFE_VALUE = "none"
 #: the keys of an axis table (``profile = "cia402"``) besides the axis keys of
-#: :data:`drivers.cia402.AXIS_KEYS` (but ``axis``, which is in the address)
+#: :data:`drivers.codecs.cia402.AXIS_KEYS` (but ``axis``, which is in the address)
 AXIS_TABLE_KEYS = ("name", "profile", "machine", "bus", "address", "priority", "units",
                    "mode")
 #: the address keys of an axis table
@@ -426,18 +426,20 @@ def read_file(path: Path) -> FileResult:
 
 def _parse_axis(fe: FileErrors, i: int, table: dict[str, Any]) -> list[DeviceSpec]:
     """An axis table (``profile = "cia402"``): its keys checked (the axis keys by
-    :func:`drivers.cia402.config_from_table`), and the devices it becomes: the actuator
+    :func:`drivers.codecs.cia402.config_from_table`), and the devices it becomes: the actuator
     ``name`` (safe value: the safe stop sequence) and the sensors ``name.state``, ...
     (:mod:`drivers.canopen_axis`). Nothing if any key is wrong."""
-    from drivers.canopen_axis import (
+    from drivers.canopen_axis import AxisCode
+    from drivers.codecs.cia402 import (
+        AXIS_KEYS,
         PROFILE,
         READING_OBJECTS,
-        AxisCode,
         AxisReading,
+        Cia402Error,
         axis_names,
+        config_from_table,
         mode_of,
     )
-    from drivers.cia402 import AXIS_KEYS, Cia402Error, config_from_table
 
     key = f"device[{i}]"
     before = len(fe.errors)

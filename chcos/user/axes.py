@@ -1,7 +1,7 @@
 """axes - the task API of a CiA 402 axis: ``ctx.axis("x")`` and its commands that complete.
 
 ``await ctx.axis("x").enable()`` returns once the drive's statusword confirms OPERATION_ENABLED
-and raises :class:`drivers.cia402.AxisCommandFailed` (a ChcosError) naming the state reached,
+and raises :class:`drivers.codecs.cia402.AxisCommandFailed` (a ChcosError) naming the state reached,
 the statusword and 0x603F when it does not; the task never touches a controlword bit. The axis
 must be on one of the task's output ports (an actuator it commands): the task then owns it, and
 its abnormal completion runs the axis's safe stop as any actuator's safe value. While a command
@@ -22,8 +22,8 @@ from chcos.errors import DeviceError, MessageError
 from chcos.kernel.scheduler import BLOCK
 from chcos.tables.messages import EndpointKind
 from chcos.tables.tasks import TaskState
-from drivers.canopen_axis import AxisCall, AxisStatus, Done, mode_of
-from drivers.cia402 import AxisCommandFailed, Fault, Mode, Op, Result, State
+from drivers.canopen_axis import AxisCall, AxisStatus, Done
+from drivers.codecs.cia402 import AxisCommandFailed, Fault, Mode, Op, Result, State, mode_of
 
 if TYPE_CHECKING:
     from chcos.kernel.scheduler import Kernel

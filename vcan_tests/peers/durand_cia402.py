@@ -1,5 +1,5 @@
 """durand_cia402 - an independent CiA 402 servo drive written on durand (not the canopen library,
-no code shared with drivers/cia402.py): its own power state machine written from the CiA 402
+no code shared with drivers/codecs/cia402.py): its own power state machine written from the CiA 402
 state diagram, reacting to the controlword it receives by RPDO or SDO; a position/velocity model
 stepped by the test; faults with EMCY and 0x603F; a record of every controlword it received.
 

@@ -12,8 +12,8 @@ drives map them; TPDO1 statusword + modes display + error code, TPDO2 position +
 vendor's. ``chcos sim cia402`` is :func:`main`; ``chcos sim --from``, ``run --virtual`` and the
 pytest plugin use the class for every node whose EDS is a drive's.
 
-The model is written here from the CiA 402 state diagram, apart from :mod:`drivers.cia402` (the
-master side), so that the one checks the other.
+The model is written here from the CiA 402 state diagram, apart from
+:mod:`drivers.codecs.cia402` (the master side), so that the one checks the other.
 """
 
 from __future__ import annotations

@@ -18,7 +18,7 @@ from chcos.apps.sim.modbus_server import ModbusSimServer, RegisterStore
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import ConfigError, DeviceError
 from chcos.helpers import free_port
-from drivers.canopen_axis import is_axis_address
+from drivers.codecs.cia402 import is_axis_address
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 _channels = itertools.count()
@@ -323,8 +323,7 @@ class CanopenPeer(Peer):
         ``.state`` the state's name, ``.statusword``, ``.mode`` (0x6061), ``.position`` and
         ``.velocity`` (counts), ``.fault`` (0x603F)."""
         from chcos.apps.sim.cia402_drive import Cia402Drive
-        from drivers.canopen_axis import AxisReading
-        from drivers.cia402 import decode_state
+        from drivers.codecs.cia402 import AxisReading, decode_state
 
         slave = self.slaves[int(device.address["node"])]
         if not isinstance(slave, Cia402Drive):

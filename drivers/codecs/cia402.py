@@ -15,8 +15,10 @@ multi-axis drives.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import Enum, IntEnum
+from typing import Any
 
 from chcos.errors import ChcosError
 
@@ -1087,3 +1089,51 @@ def config_from_table(name: str, table: dict[str, object], where: str) -> AxisCo
                 raise Cia402Error(f"{at}: unknown key for a cia402 axis; expected one of "
                                   f"{', '.join(AXIS_KEYS)}")
     return AxisConfig(**kw)  # type: ignore[arg-type]
+
+
+# ---- the axis in a device map: its profile, its sensors, its modes by name ----------------
+
+#: the ``profile`` of an axis table in a device map, and the address key marking its devices
+PROFILE = "cia402"
+
+
+class AxisReading(Enum):
+    """The sensors of an axis: ``<axis>.<value>``."""
+
+    STATE = "state"
+    STATUSWORD = "statusword"
+    MODE = "mode"
+    POSITION = "position"
+    VELOCITY = "velocity"
+    FAULT = "fault"
+
+
+#: the object each sensor shows (axis 0; its ``index`` in the address, for tools that read
+#: CANopen addresses without knowing axes)
+READING_OBJECTS: dict[AxisReading, int] = {
+    AxisReading.STATE: 0x6041, AxisReading.STATUSWORD: 0x6041, AxisReading.MODE: 0x6061,
+    AxisReading.POSITION: 0x6064, AxisReading.VELOCITY: 0x606C, AxisReading.FAULT: 0x603F,
+}
+
+
+def axis_names(name: str) -> dict[AxisReading, str]:
+    """The sensor device names of axis ``name``."""
+    return {r: f"{name}.{r.value}" for r in AxisReading}
+
+
+def is_axis_address(address: Mapping[str, Any]) -> bool:
+    """True for the address of a device an axis table became (actuator or sensor)."""
+    return address.get("profile") == PROFILE
+
+
+def mode_of(value: object) -> Mode | None:
+    """A mode of operation from a map value: a name (``"PP"``, ``"csp"``) or its number; None
+    if it is neither."""
+    if isinstance(value, str):
+        return Mode.__members__.get(value.upper())
+    if isinstance(value, int) and not isinstance(value, bool):
+        try:
+            return Mode(value)
+        except ValueError:
+            return None
+    return None
