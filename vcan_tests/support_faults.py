@@ -4,13 +4,14 @@ tools/peers.py, which the fault benchmark shares)."""
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
 
 from chcos.system.embedded import System
 from tools.peers import WAIT, ModbusPeer, PeerWrite
 
-__all__ = ["WAIT", "ModbusPeer", "PeerWrite", "run_until"]
+__all__ = ["WAIT", "ModbusPeer", "PeerWrite", "run_until", "wait_until"]
 
 
 def run_until(system: System, pred: Callable[[], bool], step: float = 0.05,
@@ -23,4 +24,17 @@ def run_until(system: System, pred: Callable[[], bool], step: float = 0.05,
         if time.monotonic() > deadline:
             return False
         system.run_for(step)
+    return True
+
+
+def wait_until(pred: Callable[[], object], timeout: float = WAIT) -> bool:
+    """Wait in wall-clock time until ``pred()`` holds, looking every 10 ms (for what another
+    thread or process does: a peer's log, counts kept on a library's threads); False if it does
+    not within ``timeout`` seconds. The caller asserts, naming what it waited for."""
+    pause = threading.Event()
+    deadline = time.monotonic() + timeout
+    while not pred():
+        if time.monotonic() > deadline:
+            return False
+        pause.wait(0.01)
     return True

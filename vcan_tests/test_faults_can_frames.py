@@ -24,6 +24,7 @@ from drivers.can_raw import CanDriver
 from drivers.canbus import NOTHING, can_filters, filters_admit, parse_ids
 from vcan_tests.netutil import unique_channel
 from vcan_tests.support_dev import FakeHost, bus, device
+from vcan_tests.support_faults import wait_until
 
 MUX_DBC = """VERSION ""
 
@@ -386,13 +387,6 @@ address = {{ id = 0x120, start = 0, length = 8, dlc = 1 }}
 """
 
 
-def _until(pred: Any, what: str, timeout: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not pred():
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.002)
-
-
 @pytest.mark.parametrize("policy", ["warn", "fail"])
 def test_in_a_running_system_late_frames_are_not_fresh_and_unknown_ids_fail_only_if_told(
         tmp_path: Path, channel: str, policy: str) -> None:
@@ -416,10 +410,10 @@ def test_in_a_running_system_late_frames_are_not_fresh_and_unknown_ids_fail_only
                               timestamp=time.time() - 1.0))
         peer.send(can.Message(arbitration_id=0x555, data=b"\x01", is_extended_id=False,
                               timestamp=time.time()))
-        _until(lambda: counts().get("unknown-id") == 1, "the unknown id counted")
+        assert wait_until(lambda: counts().get("unknown-id") == 1), "the unknown id counted"
         assert counts()["stale-on-arrival"] == 1 and s.call(lambda: dt.get("S").readings) == 0
         if policy == "fail":       # what chcos run's health reads
-            _until(lambda: "can0" in s.call(lambda: dt.last_bus_error), "the bus error")
+            assert wait_until(lambda: "can0" in s.call(lambda: dt.last_bus_error)), "the bus error"
             assert s.call(lambda: dt.last_bus_error["can0"]).startswith(
                 "unknown-id: 1 frame(s) with an id of no device")
         else:                      # counted at once when reported, so none is coming
@@ -427,7 +421,7 @@ def test_in_a_running_system_late_frames_are_not_fresh_and_unknown_ids_fail_only
         sent = time.time()
         peer.send(can.Message(arbitration_id=0x120, data=b"\x02", is_extended_id=False,
                               timestamp=sent))
-        _until(lambda: s.call(lambda: dt.get("S").readings) == 1, "the fresh reading")
+        assert wait_until(lambda: s.call(lambda: dt.get("S").readings) == 1), "the fresh reading"
         e = s.call(lambda: dt.get("S"))
         now = s.call(s.kernel.clock.now)
         assert e.value == 2 and e.rx_at is not None

@@ -18,6 +18,7 @@ from chcos.cli import cellrun
 from chcos.devices import devtab
 from tools.peers import ModbusPeer
 from vcan_tests.netutil import free_port
+from vcan_tests.support_faults import wait_until
 
 VALVE = 1
 WAIT = 30.0
@@ -82,11 +83,8 @@ def _stop_once_commanded(peer: ModbusPeer, stop: threading.Event,
     """A thread that waits until the task's command (80 %) is in the server, freezes the
     server, stops the run and starts ``then`` (if given)."""
     def watch() -> None:
-        deadline = time.monotonic() + WAIT
-        while time.monotonic() < deadline and not any(
-                w.address == VALVE and w.values == [80] for w in peer.writes()):
-            time.sleep(0.02)
-        peer.freeze()
+        wait_until(lambda: any(w.address == VALVE and w.values == [80] for w in peer.writes()))
+        peer.freeze()       # (also if it never came: the run is stopped either way)
         stop.set()
         if then is not None:
             then.start()

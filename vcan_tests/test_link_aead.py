@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import json
 import threading
-import time
-from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -30,6 +28,7 @@ from chcos.comm.secret import (
 )
 from chcos.comm.transport import Transport
 from vcan_tests.netutil import free_port
+from vcan_tests.support_faults import wait_until
 
 SECOND = 1_000_000_000
 KEY = "sys/m/0/msg"
@@ -225,7 +224,7 @@ def test_a_password_holder_reads_nothing_and_its_replays_are_refused(
         rogue = load_or_create(tmp_path / "rogue.json", "sys").sealer("satellite", "m1")
         thief.publish("t/m/0/msg", rogue.seal("t/m/0/msg", b"forged", band_of(60)),
                       priority=60, kind=MessageKind.COMMAND)
-        _until(lambda: sum(rx.refusals.values()) >= 26)
+        assert wait_until(lambda: sum(rx.refusals.values()) >= 26), "the refusals counted"
         counts = rx.refusals
         assert counts["replayed"] == 25 and counts["unauthenticated"] == 1
         tx.publish("t/m/0/msg", b"after", priority=60, kind=MessageKind.COMMAND)
@@ -235,13 +234,6 @@ def test_a_password_holder_reads_nothing_and_its_replays_are_refused(
                    if "replayed payload dropped" in k) == 25
 
 
-def _until(pred: Callable[[], bool], timeout: float = 20.0) -> None:
-    """Wait until ``pred()`` holds (the receiver counts on Zenoh's threads)."""
-    pause = threading.Event()
-    deadline = time.monotonic() + timeout
-    while not pred():
-        assert time.monotonic() < deadline, "condition not met in time"
-        pause.wait(0.01)
 
 
 def _add(cond: threading.Condition, seen: set[str], key: str) -> None:
