@@ -4,6 +4,8 @@ Bus options (``[[bus]] kind = "canopen"``):
 
 * ``interface``, ``channel``, ``bitrate`` - the python-can bus; any left out comes from python-can's
   own configuration (``can.util.load_config``: ``CAN_INTERFACE``, ``CAN_CHANNEL``, config files).
+  ``port``: the UDP port of interface ``udp_multicast`` (``channel`` is its multicast group; a bus
+  shared by processes on any machine, e.g. ``chcos sim --from`` beside ``chcos run``).
 * ``nodes = [{id, eds, heartbeat_timeout, nmt_start, identity, config}]`` - node id 1..127, the
   node's EDS file (absolute, or relative to the device-map file), heartbeat timeout in seconds
   (optional: no heartbeat supervision), whether the driver puts the node OPERATIONAL (default
@@ -342,7 +344,7 @@ class CanopenDriver(WorkerJobDriver):
             self._events.axis_feed = self._axis_feed
             self._events.node_down = self._axis_node_down
             self._events.node_up = self._axis_node_up
-        config = {k: opts[k] for k in ("interface", "channel", "bitrate") if k in opts}
+        config = {k: opts[k] for k in ("interface", "channel", "bitrate", "port") if k in opts}
         try:
             cfg_bus = dict(can.util.load_config(config=config))
             if "bitrate" not in cfg_bus:   # as canopen's connect(): the first EDS naming one

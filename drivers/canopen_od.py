@@ -23,7 +23,7 @@ from drivers.base import not_finite
 from drivers.codecs.canopen import eds_path
 
 BUS_OPTIONS = ("interface", "channel", "bitrate", "nodes", "sync_period", "poll_period",
-               "sdo_timeout", "poll", "master_heartbeat_ms", "master_node_id")
+               "sdo_timeout", "poll", "master_heartbeat_ms", "master_node_id", "port")
 NODE_KEYS = ("id", "eds", "heartbeat_timeout", "nmt_start", "identity", "config")
 #: the node id of the master's heartbeat (0x700 + id) unless the bus's ``master_node_id`` says
 #: otherwise: 127, the highest id, which slave nodes rarely use
@@ -77,6 +77,10 @@ def check_bus(bus: BusSpec) -> list[str]:
         errs.append(f"{k}.bitrate: expected an integer > 0 (bit/s), got {opts['bitrate']!r}")
     if "poll" in opts and not (is_number(opts["poll"]) and 0 < opts["poll"] <= 1):
         errs.append(f"{k}.poll: expected seconds in (0, 1], got {opts['poll']!r}")
+    if "port" in opts and (opts.get("interface") != "udp_multicast" or not is_int(opts["port"])
+                           or not 1 <= opts["port"] <= 65535):
+        errs.append(f"{k}.port: the UDP port of interface \"udp_multicast\" (1..65535), got "
+                    f"{opts['port']!r} with interface {opts.get('interface')!r}")
     for key in ("sync_period", "poll_period", "sdo_timeout"):
         if key in opts and not (is_number(opts[key]) and opts[key] > 0):
             errs.append(f"{k}.{key}: expected a number of seconds > 0, got {opts[key]!r}")

@@ -230,3 +230,74 @@ def test_simulator_start_failure_says_what_failed() -> None:
         other = ModbusSimServer(store, server.port)
         with pytest.raises(Exception, match=rf"cannot listen on 127\.0\.0\.1:{server.port}: \S"):
             other.start()
+
+
+def test_a_multiplexed_dbc_message_is_simulated_one_multiplexer_value_per_frame(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The simulator of an imported DBC serves a multiplexed message as the DBC describes it
+    (it used to refuse: "cannot encode mux=0"): a frame per multiplexer value, each carrying
+    only that value's signals, as cantools decodes them off the wire on its own."""
+    import uuid
+
+    import can
+    import cantools
+
+    channel = f"mux-{uuid.uuid4().hex}"
+    _imported(tmp_path, capsys, "dbc", str(VENDOR / "awkward.dbc"), "--node", "ECU",
+              "--interface", "virtual", "--channel", channel)
+    listener = can.Bus(interface="virtual", channel=channel)
+    slaves = simulate(load([tmp_path / "imported.toml"]), rewrite=False)
+    try:
+        slaves.values(["voltage=230", "current=-1.5"], tmp_path)
+        for step in range(1, 41):          # 0.4 s of the simulator's clock
+            slaves.tick(step * 0.01)
+        db = cantools.database.load_file(str(VENDOR / "awkward.dbc"))
+        diag = db.get_message_by_name("Diag")
+        seen: dict[int, dict[str, Any]] = {}
+        while (frame := listener.recv(timeout=0)) is not None:
+            if frame.arbitration_id == diag.frame_id:
+                decoded = diag.decode(frame.data)
+                seen[int(decoded["Mux"])] = decoded
+    finally:
+        slaves.close()
+        listener.shutdown()
+    assert set(seen) == {0, 1}, seen
+    assert seen[0]["Voltage"] == pytest.approx(230) and "Current" not in seen[0]
+    assert seen[1]["Current"] == pytest.approx(-1.5) and "Voltage" not in seen[1]
+
+
+def test_a_multiplexed_dbc_map_runs_on_virtual_time(tmp_path: Path,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """`chcos run --virtual` of the map: both multiplexed sensors get their values."""
+    _imported(tmp_path, capsys, "dbc", str(VENDOR / "awkward.dbc"), "--node", "ECU")
+    (tmp_path / "install.chcos").write_text("install -m0 sysfile\n", encoding="utf-8")
+    (tmp_path / "system.toml").write_text('[system]\nname = "mux"\ndevmaps = ["imported.toml"]\n'
+                                          'install = "install.chcos"\n', encoding="utf-8")
+    assert cli_main(["run", str(tmp_path / "system.toml"), "--virtual", "--duration", "1",
+                     "--value", "voltage=230", "--value", "current=-1.5"]) == 0
+    summary = capsys.readouterr().out.split("summary")[-1]
+    assert "sensor   voltage          last 230 V" in summary, summary
+    assert "sensor   current          last -1.5 A" in summary, summary
+    assert "healthy" in summary
+
+
+def test_canopen_bus_takes_a_udp_multicast_port(tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """A CANopen bus shared by two processes: the importer writes the port, check accepts it
+    only with interface udp_multicast, naming the key otherwise."""
+    eds = Path(__file__).resolve().parent.parent / "docs" / "vendor" / "drive.eds"
+    text, _devs, _err = _imported(tmp_path, capsys, "eds", str(eds), "--node", "5",
+                                  "--interface", "udp_multicast", "--channel", "239.74.163.9",
+                                  "--udp-port", "43119")
+    bus = tomllib.loads(text)["bus"][0]
+    assert (bus["interface"], bus["port"]) == ("udp_multicast", 43119)
+    wrong = tmp_path / "wrong.toml"
+    wrong.write_text((tmp_path / "imported.toml").read_text(encoding="utf-8").replace(
+        'interface = "udp_multicast"', 'interface = "virtual"'), encoding="utf-8")
+    dmap, errors, _ = check([wrong])
+    assert dmap is None
+    assert any("bus[0].port: the UDP port of interface \"udp_multicast\"" in e for e in errors), \
+        errors
+    assert cli_main(["import", "eds", str(eds), "--node", "5", "--udp-port", "43119",
+                     "-o", str(tmp_path / "x.toml")]) == 2
+    assert "--udp-port 43119: only with --interface udp_multicast" in capsys.readouterr().err

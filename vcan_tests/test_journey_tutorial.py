@@ -72,9 +72,10 @@ def test_from_vendor_files_verbatim(tmp_path: Path, netns: str) -> None:
     env.pop("PYTEST_ADDOPTS", None)
     cmds = commands()
     assert any(c.startswith("chcos sim --from") and c.endswith("&") for c in cmds)
-    background: list[subprocess.Popen[str]] = []
-    bg_out: list[str] = []
+    # the shell's jobs: %1, %2... in the order they were started, with what each printed
+    jobs: list[tuple[subprocess.Popen[str], list[str]]] = []
     outputs: dict[str, subprocess.CompletedProcess[str]] = {}
+    finished: dict[str, str] = {}   # a background job's command -> all it printed
 
     def shell(cmd: str) -> list[str]:
         return ["ip", "netns", "exec", netns, "bash", "-c", cmd]
@@ -85,50 +86,67 @@ def test_from_vendor_files_verbatim(tmp_path: Path, netns: str) -> None:
                 proc = subprocess.Popen(shell(f"exec {cmd[:-1]}"), cwd=tmp_path, env=env,
                                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                         text=True)
-                background.append(proc)
+                out: list[str] = []
+                jobs.append((proc, out))
                 ready = threading.Event()
 
-                def read(p: subprocess.Popen[str] = proc, ready: threading.Event = ready) -> None:
+                def read(p: subprocess.Popen[str] = proc, out: list[str] = out,
+                         ready: threading.Event = ready) -> None:
                     assert p.stdout is not None
                     for line in p.stdout:
-                        bg_out.append(line)
-                        if line.startswith("t="):
+                        out.append(line)
+                        if line.startswith("t="):   # the simulator and the run are up
                             ready.set()
+                    ready.set()
 
                 threading.Thread(target=read, daemon=True).start()
-                assert ready.wait(60), "".join(bg_out)
+                assert ready.wait(120) and proc.poll() is None, "".join(out)
                 continue
-            if cmd == "kill %1":
-                for p in background:
-                    p.terminate()
-                    assert p.wait(timeout=30) == 0, "".join(bg_out)
+            job = re.fullmatch(r"(wait|kill) %(\d)", cmd)
+            if job:
+                proc, out = jobs[int(job.group(2)) - 1]
+                if job.group(1) == "kill":
+                    proc.terminate()
+                assert proc.wait(timeout=300) == 0, "".join(out)
+                finished[proc.args[-1]] = "".join(out)
                 continue
             res = subprocess.run(shell(cmd), cwd=tmp_path, env=env, text=True,
                                  capture_output=True, timeout=300)
             assert res.returncode == 0, f"{cmd}\n{res.stdout}\n{res.stderr}"
             outputs[cmd] = res
     finally:
-        for p in background:
-            if p.poll() is None:
-                p.kill()
-                p.wait()
+        for proc, _ in jobs:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
     imported = next(r for c, r in outputs.items() if c.startswith("chcos import dbc"))
     assert "RollingCounter (rolling counter), CRC8 (checksum), left out" in imported.stderr
     checked = next(r for c, r in outputs.items() if c.startswith("chcos check drive.toml"))
     assert checked.stdout.startswith("ok: 3 buses, 19 devices"), checked.stdout
-    runs = [r.stdout for c, r in outputs.items() if c.startswith("chcos run")]
-    assert len(runs) == 2
-    for out in runs:   # virtual, then real time in a second process
+    virtual = next(r.stdout for c, r in outputs.items() if c.startswith("chcos run"))
+    real = next(out for c, out in finished.items() if "chcos run" in c)
+    for out in (virtual, real):   # virtual, then real time in a second process
         summary = out.split("summary")[-1]
         assert "healthy" in summary and "UNHEALTHY" not in summary, out
         assert "sensor   axis.state       last OPERATION_ENABLED" in summary, summary
         assert re.search(r"actuator setpoint +last [\d.]+ mm, [1-9]\d* commands", summary), summary
     # the simulated gripper (the other process) received the set-points the task wrote
-    received = [float(m) for m in re.findall(r"actuator setpoint=([\d.]+) mm", "".join(bg_out))]
-    assert any(v > 0 for v in received), "".join(bg_out)
-    # the tutorial's pytest example, in the same directory
-    (tmp_path / "test_vendor.py").write_text(commands("python")[0], encoding="utf-8")
+    sim = next(out for c, out in finished.items() if "chcos sim" in c)
+    received = [float(m) for m in re.findall(r"actuator setpoint=([\d.]+) mm", sim)]
+    assert any(v > 0 for v in received), sim
+    # the monitor (a third process, listen-only) saw the drive enabled and nothing amiss
+    monitor = next(r.stdout for c, r in outputs.items() if c.startswith("chcos monitor"))
+    assert re.search(r"actuator axis +0x00[0-9A-F]{2} enable operation", monitor), monitor
+    assert monitor.rstrip().endswith("mismatches: none"), monitor
+    # the live view's history of the drive's position, as curl fetched it
+    history = next(r.stdout for c, r in outputs.items() if c.startswith("curl"))
+    assert re.search(r"^[\d.]+,axis\.position,[\d.-]+$", history, flags=re.M), history
+    # the log file the run wrote
+    log = (tmp_path / "cell.log").read_text(encoding="utf-8")
+    assert "healthy" in log, log
+    # the tutorial's pytest examples, in the same directory
+    (tmp_path / "test_cell.py").write_text("\n\n".join(commands("python")), encoding="utf-8")
     res = subprocess.run(shell(f"{sys.executable} -m pytest -q -p no:cacheprovider "
-                               "test_vendor.py"), cwd=tmp_path, env=env, text=True,
+                               "test_cell.py"), cwd=tmp_path, env=env, text=True,
                          capture_output=True, timeout=300)
-    assert res.returncode == 0 and "1 passed" in res.stdout, res.stdout + res.stderr
+    assert res.returncode == 0 and "2 passed" in res.stdout, res.stdout + res.stderr

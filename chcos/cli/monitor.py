@@ -43,6 +43,13 @@ from chcos.errors import BusError, ChcosError
 from chcos.helpers import is_number
 from chcos.satellites import sysfile
 from drivers.canopen_sync import percentile
+from drivers.codecs.cia402 import (
+    AxisReading,
+    StatuswordError,
+    decode_command,
+    decode_state,
+    is_axis_address,
+)
 
 _FIXED_IDS = {0x000: "NMT", 0x080: "SYNC", 0x100: "TIME"}
 #: the NMT state in a heartbeat (CiA 301), by its code (toggle bit cleared)
@@ -65,7 +72,27 @@ class _Pdo:
     kind: str  # TPDO (node -> master) or RPDO (master -> node)
     node: int
     length: int  # bytes the mapping fills
-    fields: list[tuple[str | None, Any, int]] = field(default_factory=list)  # device, var, bits
+    #: per mapped object: the devices showing it (an axis's state and statusword share
+    #: 0x6041), its variable, its bits
+    fields: list[tuple[tuple[str, ...], Any, int]] = field(default_factory=list)
+
+
+def axis_shown(device: DeviceSpec, value: Any) -> Any:
+    """What the monitor shows for a CiA 402 axis device seen on the wire: the controlword and
+    the command it gives for the axis's actuator (its limits are the axis's command codes, not
+    controlwords, so no limit check applies), the state name for ``<axis>.state``; any other
+    device's value unchanged."""
+    if not is_axis_address(device.address) or not isinstance(value, int):
+        return value
+    if device.direction == "actuator":
+        command = decode_command(value)
+        return f"0x{value:04X} {command.value if command else 'no command'}"
+    if device.address.get("reading") == AxisReading.STATE.value:
+        try:
+            return decode_state(value).name
+        except StatuswordError:
+            return f"0x{value:04X} no state"
+    return value
 
 
 class PassiveCanopen:
@@ -99,8 +126,11 @@ class PassiveCanopen:
         self.pdos: dict[int, _Pdo] = {}
         self.flags: Counter[str] = Counter()
         self.lock = threading.Lock()
-        by_obj = {(int(d.address["node"]), int(d.address["index"]),
-                   int(d.address.get("subindex", 0))): d.name for d in devices}
+        by_obj: dict[tuple[int, int, int], tuple[str, ...]] = {}
+        for d in devices:
+            obj = (int(d.address["node"]), int(d.address["index"]),
+                   int(d.address.get("subindex", 0)))
+            by_obj[obj] = (*by_obj.get(obj, ()), d.name)
         for node in bus.options.get("nodes", []):
             nid = int(node["id"])
             od = load_od(bus, nid, str(eds_path(bus, str(node["eds"]))))
@@ -112,13 +142,12 @@ class PassiveCanopen:
                     pdo = self.pdos.setdefault(cob, _Pdo(f"{kind}{n}", nid, 0))
                     var = od.get_variable(index, sub)
                     bits = int(_default_entry(od, mapping + n - 1, index, sub) or 0)
-                    device = by_obj.get((nid, index, sub))
-                    pdo.fields.append((device, var, bits))
+                    pdo.fields.append((by_obj.get((nid, index, sub), ()), var, bits))
                     pdo.length += bits // 8
             self._configured(node, nid, od, by_obj)
-        self.in_pdo = {dev for pdo in self.pdos.values() for dev, _var, _bits in pdo.fields
-                       if dev is not None}
-        args = {k: bus.options[k] for k in ("interface", "channel", "bitrate")
+        self.in_pdo = {dev for pdo in self.pdos.values() for devs, _var, _bits in pdo.fields
+                       for dev in devs}
+        args = {k: bus.options[k] for k in ("interface", "channel", "bitrate", "port")
                 if k in bus.options}
         try:
             self.can: Any = can.Bus(**args)
@@ -131,7 +160,7 @@ class PassiveCanopen:
         self._thread.start()
 
     def _configured(self, node: dict[str, Any], nid: int, od: Any,
-                    by_obj: dict[tuple[int, int, int], str]) -> None:
+                    by_obj: dict[tuple[int, int, int], tuple[str, ...]]) -> None:
         """The PDOs as the node's ``config`` downloads them at boot (COB-ID, enabled,
         mapping) in place of the EDS's: what a master following the map puts on the wire."""
         from drivers import canopen_config
@@ -155,8 +184,8 @@ class PassiveCanopen:
                 continue
             pdo = self.pdos[cob] = _Pdo(name, nid, 0)
             for index, sub, bits in p.mapping:
-                pdo.fields.append((by_obj.get((nid, index, sub)), od.get_variable(index, sub),
-                                   bits))
+                pdo.fields.append((by_obj.get((nid, index, sub), ()),
+                                   od.get_variable(index, sub), bits))
                 pdo.length += bits // 8
 
     def _flag(self, text: str) -> None:
@@ -184,18 +213,20 @@ class PassiveCanopen:
                            f"bytes, the map's EDS mapping fills {pdo.length}")
                 return
             bit = 0
-            for device, var, bits in pdo.fields:
+            for devices, var, bits in pdo.fields:
                 chunk = data[bit // 8:(bit + bits) // 8]
                 bit += bits
-                if device is None:
+                if not devices:
                     continue
                 try:
                     value = var.decode_raw(chunk)
                 except Exception:
-                    self._flag(f"{pdo.kind} of node {pdo.node}: cannot decode {device}")
+                    self._flag(f"{pdo.kind} of node {pdo.node}: cannot decode "
+                               f"{', '.join(devices)}")
                     continue
-                s = self.seen[device]
-                s.value, s.at, s.frames = value, now, s.frames + 1
+                for device in devices:
+                    s = self.seen[device]
+                    s.value, s.at, s.frames = value, now, s.frames + 1
             return
         if 0x701 <= cid <= 0x77F:
             nid = cid - 0x700
@@ -355,7 +386,8 @@ class Monitor:
                 mon = next(p for p in self.passive if d.name in p.seen)
                 with mon.lock:
                     seen = mon.seen[d.name]
-                    value, age = seen.value, None if seen.at is None else now - seen.at
+                    value, age = axis_shown(d, seen.value), None if seen.at is None else \
+                        now - seen.at
                 state = "observed" if seen.at is not None else "not seen"
                 if d.name not in mon.in_pdo:
                     state = "SDO object: not read (listen-only)"

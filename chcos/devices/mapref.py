@@ -82,6 +82,9 @@ _CAN_BUS = (
     Key("channel", "string", "python-can config", "python-can channel (`can0`, `vcan0`...)"),
     Key("bitrate", "integer", "-", "bit/s, where the interface sets it"),
 )
+_UDP_PORT = Key("port", "integer 1..65535", "43113", "UDP port of interface `udp_multicast` (a "
+               "bus shared by processes on any machine; `channel` is its multicast group): give "
+               "each bus its own group and port")
 _MODBUS_COMMON = (
     Key("timeout", "float s", "1.0", "per request"),
     Key("retries", "integer", "1", "retries per request"),
@@ -156,9 +159,7 @@ REFERENCE: dict[str, Kind] = {
          Key("unknown_ids", "string", "`warn`", "a frame of an id of no device that reaches "
              "chcos: `ignore` (counted), `warn` (counted, one warning per 10 s), `fail` (a bus "
              "error: the run is unhealthy)"),
-         Key("port", "integer 1..65535", "43113", "UDP port of interface `udp_multicast` "
-             "(a bus shared by processes on any machine; `channel` is its multicast group): "
-             "give each bus its own group and port")),
+         _UDP_PORT),
         (Key("message", "string", "required (DBC form)", "message name in the DBC", "DBC form"),
          Key("signal", "string", "required (DBC form)", "signal name; the DBC's scale and "
              "offset are applied by the driver", "DBC form"),
@@ -187,6 +188,7 @@ REFERENCE: dict[str, Kind] = {
              "heartbeat (0x700 + master_node_id, state OPERATIONAL) at this period"),
          Key("master_node_id", "integer 1..127", "127", "the master's node id (its heartbeat "
              "COB-ID; what the nodes' 0x1016 entry watches)"),
+         _UDP_PORT,
          Key("id", "integer 1..127", "required", "node id", "nodes[]"),
          Key("eds", "path", "required", "the node's EDS (relative to the map)", "nodes[]"),
          Key("heartbeat_timeout", "float s", "none", "a node silent longer fails its devices; "

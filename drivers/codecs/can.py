@@ -306,7 +306,7 @@ class CanCodec:
         values = dict(fr.values)
         values[sig] = value
         try:
-            fr.message.encode(values, strict=True)
+            fr.message.encode(selected(fr, values, sig), strict=True)
         except (cantools.database.EncodeError, ValueError, KeyError, OverflowError) as exc:
             return f"cannot encode into {fr.message.name}: {exc}"
         return None
@@ -350,7 +350,7 @@ class CanCodec:
             fr.values, fr.data = values, fast
             return fr.frame_id, fast, fr.extended
         try:
-            data = bytes(fr.message.encode(values, strict=True))
+            data = bytes(fr.message.encode(selected(fr, values, sig), strict=True))
         except (cantools.database.EncodeError, ValueError, KeyError, OverflowError) as exc:
             raise BusError(f"cannot encode {device}={value!r} into {fr.message.name}: {exc}") \
                 from exc
@@ -358,6 +358,30 @@ class CanCodec:
         if plan is not None:
             fr.data = data
         return fr.frame_id, data, fr.extended
+
+
+def selected(fr: _Frame, values: dict[str, Any], sig: str) -> dict[str, Any]:
+    """What to encode after a write of signal ``sig`` into ``values`` (all of the message's
+    signals): ``values`` itself for a plain message. For a multiplexed one, the multiplexer(s)
+    above ``sig`` are set in ``values`` to select it (the first multiplexer value listing it,
+    unless the current one does), and only the signals that selection carries are returned:
+    a node sending such a message (the simulator serving a multiplexed DBC message) sends one
+    multiplexer value per frame, as the DBC describes it."""
+    if not fr.multiplexed:
+        return values
+    by_name = {s.name: s for s in fr.message.signals}
+    s = by_name[sig]
+    while s.multiplexer_ids and s.multiplexer_signal is not None:
+        if values.get(s.multiplexer_signal) not in s.multiplexer_ids:
+            values[s.multiplexer_signal] = s.multiplexer_ids[0]
+        s = by_name[s.multiplexer_signal]
+
+    def carried(name: str) -> bool:
+        s = by_name[name]
+        return not s.multiplexer_ids or (values.get(s.multiplexer_signal) in s.multiplexer_ids
+                                         and carried(s.multiplexer_signal))
+
+    return {name: v for name, v in values.items() if carried(name)}
 
 
 def check_address(bus: BusSpec, device: DeviceSpec, dbc: Any) -> list[str]:

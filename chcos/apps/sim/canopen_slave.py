@@ -281,7 +281,8 @@ def _zero(var: Any) -> Any:
 class CanopenSlave:
     """One simulated CANopen node on a CAN bus (see the module doc).
 
-    ``interface``/``channel``/``bitrate`` open a python-can bus (``virtual`` in tests).
+    ``interface``/``channel``/``bitrate`` open a python-can bus (``virtual`` in tests);
+    ``port`` is the UDP port of interface ``udp_multicast``.
     ``heartbeat_period`` (seconds) is the power-on value of 0x1017 (0: no heartbeat);
     ``tpdo_period`` overrides the event timer of every event-driven TPDO. ``servo`` attaches
     the servo plant when the EDS has its objects; ``plant`` is stepped after it.
@@ -292,6 +293,7 @@ class CanopenSlave:
 
     def __init__(self, node_id: int, eds: str | Path = SERVO_EDS, *, channel: str,
                  interface: str = "virtual", bitrate: int | None = None,
+                 port: int | None = None,
                  heartbeat_period: float = 0.1, tpdo_period: float | None = None,
                  clock: Clock = Clock.REAL, servo: bool = True, plant: Plant | None = None,
                  refuse_start_on_error: bool = False) -> None:
@@ -310,6 +312,8 @@ class CanopenSlave:
         self._bus_args: dict[str, Any] = {"interface": interface, "channel": channel}
         if bitrate is not None:
             self._bus_args["bitrate"] = bitrate
+        if port is not None:
+            self._bus_args["port"] = port
         self._tpdo_period = tpdo_period
         self._clock = clock
         self._refuse_start = refuse_start_on_error

@@ -310,10 +310,12 @@ class Cia402Drive(CanopenSlave):
 
     def __init__(self, node_id: int, eds: str | Path = CIA402_EDS, *, channel: str,
                  interface: str = "virtual", bitrate: int | None = None,
+                 port: int | None = None,
                  heartbeat_period: float = 0.1, tpdo_period: float | None = None,
                  clock: Clock = Clock.REAL, quick_stop_option: int | None = 2,
                  refused_modes: tuple[int, ...] = ()) -> None:
         super().__init__(node_id, eds, channel=channel, interface=interface, bitrate=bitrate,
+                         port=port,
                          heartbeat_period=heartbeat_period, tpdo_period=tpdo_period,
                          clock=clock, servo=False)
         for index in (0x6040, 0x6041, 0x6060):

@@ -146,6 +146,13 @@ def can_args(options: Any, rewrite: bool, tag: str) -> dict[str, Any]:
     return args
 
 
+def on_channel(options: Any, args: dict[str, Any]) -> dict[str, Any]:
+    """A CAN or CANopen bus's options moved to the private channel ``args`` of
+    :func:`can_args` (``rewrite``): the map's interface and channel replaced, its
+    ``udp_multicast`` port dropped (it names the map's own group, not the private channel)."""
+    return {**{k: v for k, v in options.items() if k != "port"}, **args}
+
+
 class CanPeer(Mutable, Peer):
     def __init__(self, bus: BusSpec, devices: tuple[DeviceSpec, ...], rewrite: bool) -> None:
         import can
@@ -156,9 +163,7 @@ class CanPeer(Mutable, Peer):
                                        else "sensor") for d in devices]
         self.codec = CanCodec(bus, flipped)
         self.args = can_args(bus.options, rewrite, bus.name)
-        options = dict(bus.options)
-        if rewrite:
-            options.update(self.args)
+        options = on_channel(bus.options, self.args) if rewrite else dict(bus.options)
         self.bus = dataclasses.replace(bus, options=options)
         self.sensors = [d for d in devices if d.direction == "sensor"]
         self.actuators = {d.name: d for d in devices if d.direction == "actuator"}
@@ -254,9 +259,7 @@ class CanopenPeer(Peer):
         from drivers.codecs.canopen import eds_path
 
         self.args = can_args(bus.options, rewrite, bus.name)
-        options = dict(bus.options)
-        if rewrite:
-            options.update(self.args)
+        options = on_channel(bus.options, self.args) if rewrite else dict(bus.options)
         self.bus = dataclasses.replace(bus, options=options)
         self.slaves: dict[int, Any] = {}
         self.last = 0.0
@@ -267,6 +270,7 @@ class CanopenPeer(Peer):
             if isinstance(config, dict) and "quick_stop_option" in config \
                     and int(d.address.get("axis", 0)) == 0:
                 held[int(d.address["node"])] = int(config["quick_stop_option"])
+        port = int(self.args["port"]) if "port" in self.args else None
         try:
             for node in bus.options.get("nodes", []):
                 nid = int(node["id"])
@@ -276,12 +280,12 @@ class CanopenPeer(Peer):
                 if cia402_eds(eds, nid):
                     slave = Cia402Drive(nid, eds, channel=str(self.args["channel"]),
                                         interface=str(self.args["interface"]),
-                                        heartbeat_period=timeout / 3, clock=Clock.TICK,
+                                        port=port, heartbeat_period=timeout / 3, clock=Clock.TICK,
                                         quick_stop_option=held.get(nid))
                 else:
                     slave = CanopenSlave(nid, eds, channel=str(self.args["channel"]),
                                          interface=str(self.args["interface"]),
-                                         heartbeat_period=timeout / 3, clock=Clock.TICK,
+                                         port=port, heartbeat_period=timeout / 3, clock=Clock.TICK,
                                          servo=False)
                 self.slaves[nid] = slave
                 slave.start()

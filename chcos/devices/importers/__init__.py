@@ -77,6 +77,9 @@ def main(argv: Sequence[str]) -> int:
                           help="python-can interface of the bus (default socketcan)")
     can_opts.add_argument("--channel", default="can0",
                           help="python-can channel of the bus (default can0)")
+    can_opts.add_argument("--udp-port", type=int, metavar="PORT",
+                          help="with --interface udp_multicast: the bus's UDP port (give each "
+                               "bus its own group and port)")
     p = sub.add_parser("eds", parents=[common, can_opts], help="a CANopen node from its EDS",
                        description="Devices of one CANopen node from its EDS (canopen's "
                                    "import_od). A CiA 402 drive becomes one axis device "
@@ -106,9 +109,6 @@ def main(argv: Sequence[str]) -> int:
                                    "actuators, all others sensors.")
     p.add_argument("file", metavar="DBC")
     p.add_argument("--node", help="the DBC node chcos plays (its messages become actuators)")
-    p.add_argument("--udp-port", type=int, metavar="PORT",
-                   help="with --interface udp_multicast: the bus's UDP port (give each bus "
-                        "its own group and port)")
     p.add_argument("--signals", nargs="+", default=[], metavar="PATTERN",
                    help="only these signals: SIGNAL or MESSAGE.SIGNAL, shell patterns "
                         "(e.g. 'Status.*' Setpoint)")
@@ -145,7 +145,7 @@ def main(argv: Sequence[str]) -> int:
                                machine=args.machine, prefix=args.prefix, sdo=not args.no_sdo,
                                eds_ref=_file_ref(args.file, args.output),
                                interface=args.interface, channel=args.channel,
-                               axes=not args.plain, all_objects=args.all,
+                               udp_port=args.udp_port, axes=not args.plain, all_objects=args.all,
                                objects=_indices(args.objects) if args.objects else None)
         elif args.kind == "dbc":
             from chcos.devices.importers.dbc import import_dbc

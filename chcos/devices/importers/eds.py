@@ -180,7 +180,8 @@ def _device(draft: MapDraft, var: Any, direction: str, bus: str, machine: int, p
 def import_eds(path: str | Path, node: int, *, bus: str = "canopen", machine: int = 0,
                prefix: str = "", sdo: bool = True, eds_ref: str | None = None,
                interface: str = "socketcan", channel: str = "can0", axes: bool = True,
-               objects: Collection[int] | None = None, all_objects: bool = False) -> MapDraft:
+               objects: Collection[int] | None = None, all_objects: bool = False,
+               udp_port: int | None = None) -> MapDraft:
     """The device map draft of node ``node`` described by the EDS at ``path`` (see the module
     doc); ``eds_ref`` is how the map names the EDS (default: ``path`` as given).
 
@@ -188,8 +189,11 @@ def import_eds(path: str | Path, node: int, *, bus: str = "canopen", machine: in
     ``profile = "cia402"`` axis per axis (:func:`.cia402.axis_device`) plus the objects in
     ``objects`` (indices), or every other object with ``all_objects``. Another node (or
     ``axes=False``) gives every object, or only those in ``objects`` when given. Raises
-    ConfigError naming the file if it is not a readable EDS, the node id is out of range or an
-    index of ``objects`` is not in the EDS."""
+    ConfigError naming the file if it is not a readable EDS, the node id is out of range, an
+    index of ``objects`` is not in the EDS, or ``udp_port`` (the bus's ``port``) is given for an
+    interface other than ``udp_multicast``."""
+    if udp_port is not None and interface != "udp_multicast":
+        raise ConfigError(f"--udp-port {udp_port}: only with --interface udp_multicast")
     od, read_warnings = _load(path, node)
     from chcos.devices.importers.cia402 import (
         HOSTED,
@@ -255,6 +259,8 @@ def import_eds(path: str | Path, node: int, *, bus: str = "canopen", machine: in
                if od.get_variable(0x6007, 0) is not None else "."))
     bus_table: dict[str, Any] = {"name": bus, "kind": "canopen", "interface": interface,
                                  "channel": channel}
+    if udp_port is not None:
+        bus_table["port"] = udp_port
     tpdos = {n: (cob, trans, timer) for n, cob, trans, timer in pdo_params(od, 0x1800)}
     rpdos = {n: (cob, trans, timer) for n, cob, trans, timer in pdo_params(od, 0x1400)}
     sync_types = {n: trans for n, (_, trans, _) in tpdos.items() if trans <= 240}
