@@ -222,6 +222,10 @@ class System:
                 t.coro.close()
                 t.coro = None
         self.devtab.stop_drivers()
+        for t in self.tsktab:  # one restarted in the shutdown window never ran: closed unrun
+            if t.coro is not None:
+                t.coro.close()
+                t.coro = None
         self.msgmgr.close_files()
         try:  # the map's runtime fields as they were at the end
             self.sysmgr.save_map()
