@@ -97,7 +97,7 @@ def test_chcos_run_virtual_stopped_mid_move_reports_the_safe_stop_written(
     text = out.getvalue()
     summary = text.split("summary")[-1]
     assert "safe value axis = 0: written" in summary, summary
-    assert "sensor   axis.state       last SWITCH_ON_DISABLED" in summary, summary
+    assert "sensor   axis.state       last OPERATION_ENABLED" in summary, summary
     assert result.healthy, result.problems
 
 
