@@ -1,0 +1,136 @@
+"""No latch on a raw CAN send failure (issue 38): a frame that cannot be sent (the transmit queue
+full past the send timeout, ENOBUFS; the bus error-passive or off, ENETDOWN) fails that write and
+the actuator, and the driver recovers it by itself: it tries the link again, and the first frame
+that goes out recovers the actuator, whose safe value then goes out, and the owner's next command
+reaches the peer. The fault is injected under the driver by python-can's virtual bus with a send
+that raises what SocketCAN raises; the peer is an independent python-can reader on the same
+channel, and every assertion is on the frames it received."""
+
+from __future__ import annotations
+
+import errno
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import can
+import pytest
+from can.interfaces.virtual import VirtualBus
+
+from chcos.devices.entry import DeviceStatus
+from chcos.errors import DeviceError
+from chcos.kernel.clock import RealClock
+from chcos.system.embedded import System
+from vcan_tests.netutil import unique_channel
+from vcan_tests.support_faults import wait_until
+
+ID = 0x230
+
+CAN_MAP = """
+[[bus]]
+name = "can0"
+kind = "can"
+interface = "virtual"
+channel = "{channel}"
+
+[[device]]
+name = "valve"
+direction = "actuator"
+bus = "can0"
+limits = [0, 100]
+safe_value = 0
+address = {{ id = 0x230, start = 0, length = 8, dlc = 1 }}
+"""
+
+
+class FaultyBus(VirtualBus):
+    """python-can's virtual bus whose ``send`` raises :attr:`failing` while it is set (the
+    error SocketCAN's send raises), counting the refused frames."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.failing: can.CanError | None = None
+        self.refused = 0
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        failing = self.failing
+        if failing is not None:
+            self.refused += 1
+            raise failing
+        super().send(msg, timeout)
+
+
+class Reader(can.Listener):
+    """The independent peer: the data byte of every frame of the actuator's id, in order."""
+
+    def __init__(self) -> None:
+        self.values: list[int] = []
+        self._lock = threading.Lock()
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.arbitration_id == ID:
+            with self._lock:
+                self.values.append(msg.data[0])
+
+    def got(self) -> list[int]:
+        with self._lock:
+            return list(self.values)
+
+
+@pytest.fixture
+def rig(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+        ) -> Iterator[tuple[System, FaultyBus, Reader]]:
+    channel = unique_channel("cansend")
+    peer = can.Bus(interface="virtual", channel=channel)     # before the driver's bus is faulty
+    reader = Reader()
+    notifier = can.Notifier(peer, [reader], timeout=0.05)
+    made: list[FaultyBus] = []
+
+    def faulty(**cfg: Any) -> FaultyBus:
+        cfg.pop("interface", None)
+        made.append(FaultyBus(**cfg))
+        return made[-1]
+
+    monkeypatch.setattr(can, "Bus", faulty)
+    path = tmp_path / "can.toml"
+    path.write_text(CAN_MAP.format(channel=channel), encoding="utf-8")
+    s = System([path], clock=RealClock(), machines=[0], map_path=tmp_path / "sysfile.map")
+    monkeypatch.undo()
+    s.start()
+    try:
+        (bus,) = made
+        yield s, bus, reader
+    finally:
+        s.shutdown()
+        notifier.stop()
+        peer.shutdown()
+
+
+@pytest.mark.parametrize("fault", [
+    can.CanOperationError("No buffer space available", errno.ENOBUFS),
+    can.CanOperationError("Network is down (bus-off)", errno.ENETDOWN),
+], ids=["enobufs", "bus-off"])
+def test_a_send_failure_does_not_latch_the_actuator(
+        rig: tuple[System, FaultyBus, Reader], fault: can.CanError) -> None:
+    s, bus, reader = rig
+    dt = s.devtab
+
+    def status() -> DeviceStatus:
+        return s.call(lambda: dt.get("valve").status)
+
+    s.call(dt.write, "valve", 30)
+    assert wait_until(lambda: reader.got() == [30]), reader.got()
+    bus.failing = fault
+    s.call(dt.write, "valve", 80)
+    assert wait_until(lambda: status() is DeviceStatus.FAILED), "the actuator failed"
+    assert "CAN send on bus 'can0' failed" in s.call(lambda: dt.get("valve").reason)
+    with pytest.raises(DeviceError, match="actuator valve is failed"):   # said, not held
+        s.call(dt.write, "valve", 50)
+    assert wait_until(lambda: bus.refused >= 3), "the driver tries the link again by itself"
+    bus.failing = None       # the bus takes frames again: no command is needed to find out
+    assert wait_until(lambda: status() is DeviceStatus.OK), "recovered by the driver's own send"
+    assert wait_until(lambda: reader.got() == [30, 30, 0]), reader.got()
+    s.call(dt.write, "valve", 60)                # the owner's next command reaches the peer
+    assert wait_until(lambda: reader.got() == [30, 30, 0, 60]), reader.got()
+    assert 80 not in reader.got() and 50 not in reader.got()
