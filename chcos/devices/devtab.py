@@ -235,6 +235,9 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         wall_end = time.monotonic() + self.shutdown_window
         issued = {i.device: i for i in self._safe_all("shutdown")}
         attempts = dict.fromkeys(issued, 1)
+        # a flush that does not wait tells each driver the shutdown began (a Modbus link
+        # lost now reconnects every reconnect_delay); the kernel's settle does the waiting
+        self._flush_drivers(time.monotonic())
 
         def settled() -> bool:
             return all(i.write is None or i.write.done is not None for i in issued.values())
