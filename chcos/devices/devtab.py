@@ -152,13 +152,17 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         confirmed on the wire for up to :attr:`shutdown_window` seconds in all (a peer that
         comes back within it gets its safe value), then stop every driver. Never raises;
         returns (device, reason) of every safe value that was not confirmed (also logged, and
-        in :attr:`safe_outcomes`). Without running drivers (none started, or already stopped)
-        there is nothing to do."""
+        in :attr:`safe_outcomes`). On a virtual clock whose kernel is not running the window is
+        virtual time in which the drivers' timers keep running (see
+        :meth:`_shutdown_on_virtual_time`). Without running drivers (none started, or already
+        stopped) there is nothing to do."""
         undelivered: list[tuple[str, str]] = []
         if not self.drivers:
             return undelivered
         try:
-            outcomes = (self._shutdown_on_virtual_time() if self.kernel.clock.virtual
+            kernel = self.kernel
+            outcomes = (self._shutdown_on_virtual_time()
+                        if kernel.clock.virtual and not kernel.running
                         else self._shutdown_safe_values(time.monotonic() + self.shutdown_window))
             self.safe_outcomes = {o.device: o for o in outcomes}
             undelivered = [(o.device, o.reason) for o in outcomes if not o.written]
