@@ -66,8 +66,9 @@ cannot be encoded is reported as a failed write (the device is fine). A frame th
 (the transmit queue still full after SEND_TIMEOUT, the bus error-passive or off, the interface
 down) is a failed write and fails the actuator (``host.fail``); nothing latches: the driver then
 tries the link again itself (:mod:`drivers.sendprobe`: the actuator's last value sent, else its
-safe value, backing off over :data:`PROBE_BACKOFF`), and the first frame of that actuator that
-goes out, probe or command, reports ``host.recover(device)``. Bus errors are also counted in
+safe value, backing off over :data:`PROBE_BACKOFF`), and the first frame that
+goes out on the bus, probe or command of any actuator, reports ``host.recover`` for every
+actuator failed by a send. Bus errors are also counted in
 ``CanDriver.error_counts``.
 """
 
@@ -198,8 +199,7 @@ class CanDriver(ThreadedDriver):
         #: the last raw value of each actuator that went out (what the peer holds)
         self._last_sent: dict[str, Any] = {}
         #: the actuators whose frame could not be sent, tried again by the driver itself
-        self.probe = SendProbe(f"{self.kind}-{bus.name}", self._probe_send, host.recover,
-                               PROBE_BACKOFF)
+        self.probe = SendProbe(f"{self.kind}-{bus.name}", self._probe_send, PROBE_BACKOFF)
         self.received = 0
         #: of :attr:`sent`, the frames the writer thread sent (the rest: the fast path)
         self.sent_queued = 0
@@ -635,10 +635,8 @@ class CanDriver(ThreadedDriver):
         self._last_sent[device] = value
         if report:
             self.host.written(device, value)
-        if device in self._write_failed:
-            self._write_failed.discard(device)
-            self.probe.ended(device)
-            self.host.recover(device, "a frame was sent")
+        if self._write_failed:
+            self._link_works(device, "a frame was sent")
         if self._recorder is not None:
             frame.is_rx = False
             self._recorder.on_message_received(frame)
@@ -659,12 +657,21 @@ class CanDriver(ThreadedDriver):
             except (BusError, can.CanError, OSError) as exc:
                 return f"CAN send on bus {self.bus.name!r} failed: {exc}"
             self.sent_frames[device] += 1
-            self._write_failed.discard(device)
             if self._recorder is not None:
                 frame.is_rx = False
                 self._recorder.on_message_received(frame)
+            self._link_works(device, f"the bus took a frame again (probe: {value!r} re-sent)")
             return None
         return self._claimed(send)
+
+    def _link_works(self, device: str, why: str) -> None:
+        """A frame of ``device`` went out (under the send's claim): the bus takes frames again,
+        so every actuator failed by a send recovers (see :mod:`drivers.sendprobe`)."""
+        failed, self._write_failed = self._write_failed, set()
+        for name in sorted(failed):
+            self.probe.ended(name)
+            self.host.recover(name, why if name == device else
+                              f"a frame of {device} went out: the bus takes frames again")
 
     @property
     def sent(self) -> int:

@@ -1,5 +1,5 @@
 """sendprobe - no latch on a stream bus (raw CAN, serial): after a command that could not be sent,
-the driver itself tries the link again until it takes a frame, and that recovers the actuator.
+the driver itself tries the link again until it takes a frame, and that recovers the actuators.
 
 A stream bus has no answer to read back (as Modbus has): what proves the link works again is a
 frame that goes out. When a command of an actuator fails on the wire (a full transmit queue, a
@@ -8,12 +8,14 @@ write failed and the actuator failed (so Devtab refuses commands to it, saying s
 the actuator to a :class:`SendProbe`. The probe's thread, backing off from ``backoff[0]`` to
 ``backoff[1]`` seconds (wall time: the link is real I/O), re-sends a value the peer already
 holds or may always take: the last value of that actuator that went out (the peer holds it), or
-else its safe value, raw (:func:`safe_raw`). The first probe that goes out recovers the actuator
-(``host.recover``); Devtab then writes its safe value first, as on every recovery, and the
-owner's next command goes out as usual. The failed command itself is never sent again. A
-command of that actuator that goes out meanwhile (a safe value on e-stop) ends the probing too.
-An actuator with neither value is not probed: it recovers with the bus (a serial port open
-again, CAN frames received again).
+else its safe value, raw (:func:`safe_raw`). A send failure is the link's (a full transmit
+queue, a bus off, a port that does not drain), not one actuator's: the first frame that goes out
+on the bus, a probe or a command of any actuator (a safe value on e-stop), recovers every
+actuator failed by a send (``host.recover``, the driver's ``_link_works``) and ends their
+probing; Devtab then writes their safe values first, as on every recovery, and the owners'
+next commands go out as usual. The failed command itself is never sent again. An actuator with
+neither value is not probed: a frame of another actuator, or the bus coming back (a serial
+port open again, CAN frames received again), recovers it.
 """
 
 from __future__ import annotations
@@ -50,14 +52,13 @@ class _Due:
 
 class SendProbe:
     """The probing of one driver's failed actuators (see the module doc). ``send(device,
-    value)`` puts one probe on the wire in the probe's thread and returns None, or why it
-    failed; ``recover(device, why)`` reports the actuator working again. Thread-safe."""
+    value)`` puts one probe on the wire in the probe's thread and returns None (the driver
+    then recovered the actuators, see :meth:`ended`), or why it failed. Thread-safe."""
 
     def __init__(self, name: str, send: Callable[[str, Any], str | None],
-                 recover: Callable[[str, str], None], backoff: tuple[float, float]) -> None:
+                 backoff: tuple[float, float]) -> None:
         self.name = name
         self._send = send
-        self._recover = recover
         self._backoff = backoff
         self._cond = threading.Condition()
         self._due: dict[str, _Due] = {}
@@ -139,13 +140,13 @@ class SendProbe:
             except Exception as exc:    # a driver bug must not end the probing
                 why = f"probe failed: {exc!r}"
             with self._cond:
-                if self._due.get(device) is not due:    # ended or re-armed meanwhile
-                    continue
                 if why is not None:
+                    if self._due.get(device) is not due:    # ended or re-armed meanwhile
+                        continue
                     self.failed_tries += 1
                     due.delay = min(due.delay * 2, self._backoff[1])
                     due.at = time.monotonic() + due.delay
                     continue
-                del self._due[device]
+                if self._due.get(device) is due:    # (the driver ended it already)
+                    del self._due[device]
                 self.sent += 1
-            self._recover(device, f"the link took a frame again (probe: {due.value!r} re-sent)")

@@ -38,9 +38,9 @@ nothing stops the reader. A command that cannot be encoded is reported as a fail
 device is fine). A command that cannot be written (the port not open, the write failing or timing
 out) is a failed write and ``host.fail(device)``; nothing latches: the driver then tries the port
 again itself (:mod:`drivers.sendprobe`: the actuator's last command that went out, else its safe
-value, backing off from ``reconnect_min`` to ``reconnect_max``), and the first command of that
-actuator that goes out, probe or not, is ``host.recover(device)``; the port open again recovers
-every device.
+value, backing off from ``reconnect_min`` to ``reconnect_max``), and the first command that goes
+out, probe or command of any actuator, is ``host.recover`` for every actuator failed by a write;
+the port open again recovers every device.
 """
 
 from __future__ import annotations
@@ -99,8 +99,7 @@ class SerialDriver(ThreadedDriver):
         self._last_sent: dict[str, Any] = {}
         #: the actuators whose command could not be written, tried again by the driver itself
         #: (backing off as the reconnects do)
-        self.probe = SendProbe(f"{self.kind}-{bus.name}", self._probe_send, host.recover,
-                               self._backoff)
+        self.probe = SendProbe(f"{self.kind}-{bus.name}", self._probe_send, self._backoff)
         self.connects = 0
 
     def _framer(self) -> LineFramer | BinaryFramer:
@@ -384,11 +383,7 @@ class SerialDriver(ThreadedDriver):
         self.host.written(device, value)
         with self._cond:
             self._last_sent[device] = value
-            recovered = device in self._write_failed
-            self._write_failed.discard(device)
-        if recovered:
-            self.probe.ended(device)
-            self.host.recover(device, "a command was written")
+        self._link_works(device, "a command was written")
 
     def _put(self, port: Any, data: bytes) -> None:
         """Write ``data`` to ``port`` and wait until it left; raises BusError naming the port
@@ -420,10 +415,20 @@ class SerialDriver(ThreadedDriver):
                 self._put(port, self.command(device, value))
             except BusError as exc:
                 return str(exc)
-            with self._cond:
-                self._write_failed.discard(device)
+            self._link_works(device, f"the port took a command again (probe: {value!r} "
+                                     f"re-sent)")
             return None
         return self._claimed(send)
+
+    def _link_works(self, device: str, why: str) -> None:
+        """A command of ``device`` went out: the port takes writes again, so every actuator
+        failed by a write recovers (see :mod:`drivers.sendprobe`)."""
+        with self._cond:
+            failed, self._write_failed = self._write_failed, set()
+        for name in sorted(failed):
+            self.probe.ended(name)
+            self.host.recover(name, why if name == device else
+                              f"a command of {device} was written: the port takes writes again")
 
     def _down(self, reason: str) -> None:
         with self._cond:

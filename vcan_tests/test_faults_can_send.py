@@ -2,9 +2,10 @@
 full past the send timeout, ENOBUFS; the bus error-passive or off, ENETDOWN) fails that write and
 the actuator, and the driver recovers it by itself: it tries the link again, and the first frame
 that goes out recovers the actuator, whose safe value then goes out, and the owner's next command
-reaches the peer. The fault is injected under the driver by python-can's virtual bus with a send
-that raises what SocketCAN raises; the peer is an independent python-can reader on the same
-channel, and every assertion is on the frames it received."""
+reaches the peer; an actuator failed meanwhile with nothing to probe it with recovers with that
+frame too (a send failure is the bus's). The fault is injected under the driver by python-can's
+virtual bus with a send that raises what SocketCAN raises; the peer is an independent python-can
+reader on the same channel, and every assertion is on the frames it received."""
 
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ from chcos.system.embedded import System
 from vcan_tests.netutil import unique_channel
 from vcan_tests.support_faults import wait_until
 
-ID = 0x230
+ID, LAMP = 0x230, 0x231
 
 CAN_MAP = """
 [[bus]]
@@ -41,6 +42,13 @@ bus = "can0"
 limits = [0, 100]
 safe_value = 0
 address = {{ id = 0x230, start = 0, length = 8, dlc = 1 }}
+
+[[device]]
+name = "lamp"
+direction = "actuator"
+bus = "can0"
+limits = [0, 100]
+address = {{ id = 0x231, start = 0, length = 8, dlc = 1 }}
 """
 
 
@@ -62,20 +70,19 @@ class FaultyBus(VirtualBus):
 
 
 class Reader(can.Listener):
-    """The independent peer: the data byte of every frame of the actuator's id, in order."""
+    """The independent peer: the data byte of every frame of each id, in order."""
 
     def __init__(self) -> None:
-        self.values: list[int] = []
+        self.values: dict[int, list[int]] = {ID: [], LAMP: []}
         self._lock = threading.Lock()
 
     def on_message_received(self, msg: can.Message) -> None:
-        if msg.arbitration_id == ID:
-            with self._lock:
-                self.values.append(msg.data[0])
-
-    def got(self) -> list[int]:
         with self._lock:
-            return list(self.values)
+            self.values.setdefault(msg.arbitration_id, []).append(msg.data[0])
+
+    def got(self, can_id: int = ID) -> list[int]:
+        with self._lock:
+            return list(self.values.get(can_id, []))
 
 
 @pytest.fixture
@@ -116,8 +123,8 @@ def test_a_send_failure_does_not_latch_the_actuator(
     s, bus, reader = rig
     dt = s.devtab
 
-    def status() -> DeviceStatus:
-        return s.call(lambda: dt.get("valve").status)
+    def status(device: str = "valve") -> DeviceStatus:
+        return s.call(lambda: dt.get(device).status)
 
     s.call(dt.write, "valve", 30)
     assert wait_until(lambda: reader.got() == [30]), reader.got()
@@ -125,12 +132,17 @@ def test_a_send_failure_does_not_latch_the_actuator(
     s.call(dt.write, "valve", 80)
     assert wait_until(lambda: status() is DeviceStatus.FAILED), "the actuator failed"
     assert "CAN send on bus 'can0' failed" in s.call(lambda: dt.get("valve").reason)
+    s.call(dt.write, "lamp", 7)     # never sent before, no safe value: nothing to probe it with
+    assert wait_until(lambda: status("lamp") is DeviceStatus.FAILED), "the lamp failed"
     with pytest.raises(DeviceError, match="actuator valve is failed"):   # said, not held
         s.call(dt.write, "valve", 50)
     assert wait_until(lambda: bus.refused >= 3), "the driver tries the link again by itself"
     bus.failing = None       # the bus takes frames again: no command is needed to find out
     assert wait_until(lambda: status() is DeviceStatus.OK), "recovered by the driver's own send"
+    assert wait_until(lambda: status("lamp") is DeviceStatus.OK), "the bus took a frame: both"
     assert wait_until(lambda: reader.got() == [30, 30, 0]), reader.got()
     s.call(dt.write, "valve", 60)                # the owner's next command reaches the peer
     assert wait_until(lambda: reader.got() == [30, 30, 0, 60]), reader.got()
     assert 80 not in reader.got() and 50 not in reader.got()
+    s.call(dt.write, "lamp", 5)
+    assert wait_until(lambda: reader.got(LAMP) == [5]), reader.got(LAMP)   # never the 7

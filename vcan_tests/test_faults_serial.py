@@ -2,9 +2,10 @@
 as on a peer that stopped reading or a line held by flow control; the write failing) fails that
 write and the actuator, and the driver recovers it by itself: it tries the port again, the first
 command that goes out recovers the actuator, its safe value then goes out, and the owner's next
-command reaches the peer. The peer is the test itself on the master side of a pty (no chcos
-simulator) reading what arrives; the fault is injected in the port under the driver (pyserial's
-own port class with a write that raises what pyserial raises)."""
+command reaches the peer; an actuator failed meanwhile with nothing to probe it with recovers
+with that write too (the failure is the port's). The peer is the test itself on the master side
+of a pty (no chcos simulator) reading what arrives; the fault is injected in the port under the
+driver (pyserial's own port class with a write that raises what pyserial raises)."""
 
 from __future__ import annotations
 
@@ -42,6 +43,13 @@ bus = "line"
 limits = [0, 100]
 safe_value = 0
 address = {{ format = "SET V {{value:.0f}}" }}
+
+[[device]]
+name = "lamp"
+direction = "actuator"
+bus = "line"
+limits = [0, 100]
+address = {{ format = "L {{value:.0f}}" }}
 """
 
 
@@ -128,11 +136,11 @@ def test_a_failed_write_does_not_latch_the_actuator(rig: tuple[System, Peer],
     s, peer = rig
     dt = s.devtab
 
-    def status() -> DeviceStatus:
-        return s.call(lambda: dt.get("valve").status)
+    def status(device: str = "valve") -> DeviceStatus:
+        return s.call(lambda: dt.get(device).status)
 
-    def write(value: float) -> None:
-        s.call(dt.write, "valve", value)
+    def write(value: float, device: str = "valve") -> None:
+        s.call(dt.write, device, value)
 
     assert wait_until(lambda: status() is DeviceStatus.OK and dt.drivers[0].connects == 1)
     write(30)
@@ -141,12 +149,17 @@ def test_a_failed_write_does_not_latch_the_actuator(rig: tuple[System, Peer],
     write(80)
     assert wait_until(lambda: status() is DeviceStatus.FAILED), "the actuator failed"
     assert "write to" in s.call(lambda: dt.get("valve").reason)
+    write(7, "lamp")    # never written before, no safe value: nothing to probe it with
+    assert wait_until(lambda: status("lamp") is DeviceStatus.FAILED), "the lamp failed"
     with pytest.raises(DeviceError, match="actuator valve is failed"):   # said, not held
         write(50)
     assert wait_until(lambda: FaultyPort.refused >= 3), "the driver tries the port by itself"
     FaultyPort.failing = None       # the port takes writes again: no command needed to find out
     assert wait_until(lambda: status() is DeviceStatus.OK), "recovered by the driver's own write"
+    assert wait_until(lambda: status("lamp") is DeviceStatus.OK), "the port took a write: both"
     assert wait_until(lambda: peer.lines() == ["SET V 30", "SET V 30", "SET V 0"]), peer.lines()
     write(60)                       # the owner's next command reaches the peer
     assert wait_until(lambda: peer.lines() == ["SET V 30", "SET V 30", "SET V 0", "SET V 60"]
                       ), peer.lines()
+    write(5, "lamp")
+    assert wait_until(lambda: peer.lines()[4:] == ["L 5"]), peer.lines()     # never the 7
