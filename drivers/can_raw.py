@@ -600,12 +600,8 @@ class CanDriver(ThreadedDriver):
             reason = f"CAN send on bus {self.bus.name!r} failed: {exc}"
             self._error("send", reason)
             self.host.write_failed(device, value, reason)
-            self._write_failed.add(device)
             self.host.fail(device, reason)
-            # no latch: the driver tries the link again itself (see drivers.sendprobe)
-            last = self._last_sent.get(device)
-            self.probe.failed(device, last if last is not None else
-                              safe_raw(self.devices[device]))
+            self._send_failed(device)
             return
         self.sent_queued += 1
         self._sent(device, value, frame)
@@ -664,10 +660,19 @@ class CanDriver(ThreadedDriver):
             return None
         return self._claimed(send)
 
+    def _send_failed(self, device: str) -> None:
+        """Actuator ``device`` failed on the link (its send, or the bus's receive): no latch,
+        the driver tries the link again itself (see :mod:`drivers.sendprobe`)."""
+        with self._lock:
+            self._write_failed.add(device)
+            last = self._last_sent.get(device)
+        self.probe.failed(device, last if last is not None else safe_raw(self.devices[device]))
+
     def _link_works(self, device: str, why: str) -> None:
         """A frame of ``device`` went out (under the send's claim): the bus takes frames again,
         so every actuator failed by a send recovers (see :mod:`drivers.sendprobe`)."""
-        failed, self._write_failed = self._write_failed, set()
+        with self._lock:
+            failed, self._write_failed = self._write_failed, set()
         for name in sorted(failed):
             self.probe.ended(name)
             self.host.recover(name, why if name == device else
@@ -684,10 +689,17 @@ class CanDriver(ThreadedDriver):
         return self.sent - self.sent_queued
 
     def _bus_down(self, reason: str) -> None:
+        """A receive error (the interface down, the controller bus-off): every device fails;
+        the sensors recover with the next frame received, the actuators also with the next
+        frame that goes out, which the driver sends itself (a bus with actuators only may never
+        receive a frame again)."""
         if not self._failed:
             self._failed = True
             for name in self.devices:
                 self.host.fail(name, f"CAN bus {self.bus.name!r} receive failed: {reason}")
+            for name, spec in self.devices.items():
+                if spec.direction == "actuator":
+                    self._send_failed(name)
 
     def _bus_up(self) -> None:
         if self._failed:

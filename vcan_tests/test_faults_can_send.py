@@ -54,12 +54,20 @@ address = {{ id = 0x231, start = 0, length = 8, dlc = 1 }}
 
 class FaultyBus(VirtualBus):
     """python-can's virtual bus whose ``send`` raises :attr:`failing` while it is set (the
-    error SocketCAN's send raises), counting the refused frames."""
+    error SocketCAN's send raises), counting the refused frames, and whose ``recv`` raises
+    :attr:`recv_failing` once (SocketCAN reports an interface gone down once)."""
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(**kwargs)
         self.failing: can.CanError | None = None
+        self.recv_failing: can.CanError | None = None
         self.refused = 0
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        failing, self.recv_failing = self.recv_failing, None
+        if failing is not None:
+            raise failing
+        return super().recv(timeout)
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         failing = self.failing
@@ -87,7 +95,7 @@ class Reader(can.Listener):
 
 @pytest.fixture
 def rig(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-        ) -> Iterator[tuple[System, FaultyBus, Reader]]:
+        ) -> Iterator[tuple[System, FaultyBus, Reader, can.BusABC]]:
     channel = unique_channel("cansend")
     peer = can.Bus(interface="virtual", channel=channel)     # before the driver's bus is faulty
     reader = Reader()
@@ -107,7 +115,7 @@ def rig(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     s.start()
     try:
         (bus,) = made
-        yield s, bus, reader
+        yield s, bus, reader, peer
     finally:
         s.shutdown()
         notifier.stop()
@@ -119,8 +127,8 @@ def rig(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     can.CanOperationError("Network is down (bus-off)", errno.ENETDOWN),
 ], ids=["enobufs", "bus-off"])
 def test_a_send_failure_does_not_latch_the_actuator(
-        rig: tuple[System, FaultyBus, Reader], fault: can.CanError) -> None:
-    s, bus, reader = rig
+        rig: tuple[System, FaultyBus, Reader, can.BusABC], fault: can.CanError) -> None:
+    s, bus, reader, _peer = rig
     dt = s.devtab
 
     def status(device: str = "valve") -> DeviceStatus:
@@ -146,3 +154,31 @@ def test_a_send_failure_does_not_latch_the_actuator(
     assert 80 not in reader.got() and 50 not in reader.got()
     s.call(dt.write, "lamp", 5)
     assert wait_until(lambda: reader.got(LAMP) == [5]), reader.got(LAMP)   # never the 7
+
+
+def test_a_receive_failure_does_not_latch_the_actuators_of_a_bus_that_only_sends(
+        rig: tuple[System, FaultyBus, Reader, can.BusABC]) -> None:
+    """The interface reports a receive error (gone down and back): every device fails, and
+    on a bus with actuators only no frame will ever come to end it; the driver's own send
+    does."""
+    s, bus, reader, peer = rig
+    dt = s.devtab
+
+    def status() -> DeviceStatus:
+        return s.call(lambda: dt.get("valve").status)
+
+    changes: list[tuple[bool, str]] = []
+    s.call(dt.add_health_listener, lambda d, ok, cause: changes.append((ok, cause))
+           if d == "valve" else None)
+    s.call(dt.write, "valve", 30)
+    assert wait_until(lambda: reader.got() == [30]), reader.got()
+    bus.recv_failing = can.CanOperationError("Network is down", errno.ENETDOWN)
+    peer.send(can.Message(arbitration_id=0x7FF, data=b"", is_extended_id=False))  # wakes it
+    assert wait_until(lambda: len(changes) >= 2), "failed, then recovered"
+    (down, why), (up, how) = changes[:2]
+    assert not down and "receive failed: Network is down" in why, why
+    assert up and "the bus took a frame again" in how, how
+    assert status() is DeviceStatus.OK
+    assert wait_until(lambda: reader.got() == [30, 30, 0]), reader.got()
+    s.call(dt.write, "valve", 60)
+    assert wait_until(lambda: reader.got() == [30, 30, 0, 60]), reader.got()
