@@ -10,6 +10,8 @@ reader on the same channel, and every assertion is on the frames it received."""
 from __future__ import annotations
 
 import errno
+import re
+import subprocess
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -23,10 +25,13 @@ from chcos.devices.entry import DeviceStatus
 from chcos.errors import DeviceError
 from chcos.kernel.clock import RealClock
 from chcos.system.embedded import System
+from drivers.can_raw import CanDriver
+from vcan_tests import uml
 from vcan_tests.netutil import unique_channel
 from vcan_tests.support_faults import wait_until
 
 ID, LAMP = 0x230, 0x231
+STEP = 20.0     # seconds a step may take in the guest (UML system calls are slow)
 
 CAN_MAP = """
 [[bus]]
@@ -182,3 +187,59 @@ def test_a_receive_failure_does_not_latch_the_actuators_of_a_bus_that_only_sends
     assert wait_until(lambda: reader.got() == [30, 30, 0]), reader.got()
     s.call(dt.write, "valve", 60)
     assert wait_until(lambda: reader.got() == [30, 30, 0, 60]), reader.got()
+
+
+@pytest.mark.socketcan
+def test_on_socketcan_the_interface_down_and_up_does_not_latch_the_actuator(
+        tmp_path: Path) -> None:
+    """Real SocketCAN in the guest: ``ip link set vcan0 down``: the driver's receive reports
+    it (ENETDOWN), the actuator fails and commands are refused, the driver's probes fail
+    (ENETDOWN on send); once the interface is up again a probe goes out and recovers the
+    actuator, and candump (can-utils, running through the outage with -D) shows what went on
+    the wire: the command before, the probe, the safe value, the next command."""
+    channel = uml.can_channel("socketcan")
+    dump = tmp_path / "candump.log"
+    with dump.open("w", encoding="ascii") as out:
+        candump = subprocess.Popen(["candump", "-D", "-L", f"{channel},{ID:03X}:7FF"],
+                                   stdout=out, stderr=subprocess.STDOUT)
+    path = tmp_path / "can.toml"
+    path.write_text(CAN_MAP.format(channel=channel).replace('"virtual"', '"socketcan"'),
+                    encoding="utf-8")
+    s = System([path], clock=RealClock(), machines=[0], map_path=tmp_path / "sysfile.map")
+    s.start()
+    dt = s.devtab
+
+    def seen() -> list[int]:
+        return [int(m, 16) for m in re.findall(rf"{ID:03X}#([0-9A-F]+)",
+                                                dump.read_text(encoding="ascii"))]
+
+    def status() -> DeviceStatus:
+        return s.call(lambda: dt.get("valve").status)
+
+    try:
+        first = 30
+        while True:     # until candump shows it listens: a command it received
+            s.call(dt.write, "valve", first)
+            if wait_until(lambda v=first: v in seen(), 2.0):
+                break
+            first += 1
+            assert first < 40, dump.read_text(encoding="ascii")
+        subprocess.run(["ip", "link", "set", channel, "down"], check=True, timeout=STEP)
+        try:
+            assert wait_until(lambda: status() is DeviceStatus.FAILED, STEP), "failed"
+            with pytest.raises(DeviceError, match="actuator valve is failed"):
+                s.call(dt.write, "valve", 80)
+            drv = dt.drivers[0]
+            assert isinstance(drv, CanDriver)
+            assert wait_until(lambda: drv.probe.failed_tries >= 2, STEP), "probes while down"
+        finally:
+            subprocess.run(["ip", "link", "set", channel, "up"], check=True, timeout=STEP)
+        assert wait_until(lambda: status() is DeviceStatus.OK, STEP), "recovered by itself"
+        assert wait_until(lambda: seen()[-3:] == [first, first, 0], STEP), seen()
+        s.call(dt.write, "valve", 60)
+        assert wait_until(lambda: seen()[-4:] == [first, first, 0, 60], STEP), seen()
+        assert 80 not in seen()
+    finally:
+        s.shutdown()
+        candump.terminate()
+        candump.wait(timeout=STEP)
