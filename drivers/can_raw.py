@@ -61,9 +61,15 @@ nothing queued is sent at once in the caller's thread (the kernel thread) with `
 the bus cannot take it right now (transmit buffer full, ENOBUFS) or anything is queued or being
 sent, it goes to the writer thread, which waits up to :data:`SEND_TIMEOUT` (0.5 s) for room
 (and tries again every millisecond while SocketCAN reports ENOBUFS, on which python-can does
-not wait). Other interfaces, and buses that record, always use the writer thread. Encoding or send
-failures are reported with ``host.fail(device, ...)``; the next successful write of that actuator
-reports ``host.recover(device)``. Bus errors are also counted in ``CanDriver.error_counts``.
+not wait). Other interfaces, and buses that record, always use the writer thread. A value that
+cannot be encoded is reported as a failed write (the device is fine). A frame that cannot be sent
+(the transmit queue still full after SEND_TIMEOUT, the bus error-passive or off, the interface
+down) is a failed write and fails the actuator (``host.fail``); nothing latches: the driver then
+tries the link again itself (:mod:`drivers.sendprobe`: the actuator's last value sent, else its
+safe value, backing off over :data:`PROBE_BACKOFF`), and the first frame that
+goes out on the bus, probe or command of any actuator, reports ``host.recover`` for every
+actuator failed by a send. Bus errors are also counted in
+``CanDriver.error_counts``.
 """
 
 from __future__ import annotations
@@ -104,6 +110,7 @@ from drivers.codecs.can import (
     load_dbc,
 )
 from drivers.recording import LOG_SUFFIXES, Recorder
+from drivers.sendprobe import SendProbe, safe_raw
 from drivers.threaded import ThreadedDriver
 
 BUS_OPTIONS = ("interface", "channel", "bitrate", "fd", "dbc", "record", "poll", "filter",
@@ -145,6 +152,9 @@ WALL_STAMPED = frozenset({"socketcan", "virtual"})
 SEND_TIMEOUT = 0.5
 #: Seconds between the writer thread's tries while the interface reports ENOBUFS.
 ENOBUFS_RETRY = 0.001
+#: Seconds between two probes of an actuator whose frame could not be sent: the first pause,
+#: doubled after each failed probe up to the second (see drivers.sendprobe)
+PROBE_BACKOFF = (0.05, 1.0)
 
 
 class CanDriver(ThreadedDriver):
@@ -186,6 +196,10 @@ class CanDriver(ThreadedDriver):
         self.overrun_lost = 0
         self._recorder: Recorder | None = None
         self._write_failed: set[str] = set()
+        #: the last raw value of each actuator that went out (what the peer holds)
+        self._last_sent: dict[str, Any] = {}
+        #: the actuators whose frame could not be sent, tried again by the driver itself
+        self.probe = SendProbe(f"{self.kind}-{bus.name}", self._probe_send, PROBE_BACKOFF)
         self.received = 0
         #: of :attr:`sent`, the frames the writer thread sent (the rest: the fast path)
         self.sent_queued = 0
@@ -350,6 +364,7 @@ class CanDriver(ThreadedDriver):
     def stop(self) -> None:
         """Stop the threads, close the bus and the record file, report what the aggregated
         warnings still count. Idempotent; never raises."""
+        self.probe.stop()
         self._stop_threads()
         self._tally.flush()
         self._overruns.flush()
@@ -585,8 +600,8 @@ class CanDriver(ThreadedDriver):
             reason = f"CAN send on bus {self.bus.name!r} failed: {exc}"
             self._error("send", reason)
             self.host.write_failed(device, value, reason)
-            self._write_failed.add(device)
             self.host.fail(device, reason)
+            self._send_failed(device)
             return
         self.sent_queued += 1
         self._sent(device, value, frame)
@@ -613,14 +628,55 @@ class CanDriver(ThreadedDriver):
         """``frame`` is on the wire: count (:attr:`sent_frames`, pulled into the bus statistics:
         no lock or host call per frame), confirm (``report``), recover, record."""
         self.sent_frames[device] += 1
+        self._last_sent[device] = value
         if report:
             self.host.written(device, value)
-        if device in self._write_failed:
-            self._write_failed.discard(device)
-            self.host.recover(device, "a frame was sent")
+        if self._write_failed:
+            self._link_works(device, "a frame was sent")
         if self._recorder is not None:
             frame.is_rx = False
             self._recorder.on_message_received(frame)
+
+    def _probe_send(self, device: str, value: Any) -> str | None:
+        """One probe of ``device`` (the probe's thread, see :mod:`drivers.sendprobe`): the
+        frame of ``value`` sent as a command would be, holding the send; None if it went out
+        (counted in :attr:`sent_frames`, recorded; not reported as a write: no command asked
+        for it), else why not. On success the actuator counts as written again."""
+        def send() -> str | None:
+            bus = self._bus
+            if bus is None:
+                return f"CAN bus {self.bus.name!r} is closed"
+            try:
+                fid, data, ext = self.codec.encode_raw(device, value)
+                frame = can.Message(arbitration_id=fid, data=data, is_extended_id=ext)
+                self._send_waiting(bus, frame)
+            except (BusError, can.CanError, OSError) as exc:
+                return f"CAN send on bus {self.bus.name!r} failed: {exc}"
+            self.sent_frames[device] += 1
+            if self._recorder is not None:
+                frame.is_rx = False
+                self._recorder.on_message_received(frame)
+            self._link_works(device, f"the bus took a frame again (probe: {value!r} re-sent)")
+            return None
+        return self._claimed(send)
+
+    def _send_failed(self, device: str) -> None:
+        """Actuator ``device`` failed on the link (its send, or the bus's receive): no latch,
+        the driver tries the link again itself (see :mod:`drivers.sendprobe`)."""
+        with self._lock:
+            self._write_failed.add(device)
+            last = self._last_sent.get(device)
+        self.probe.failed(device, last if last is not None else safe_raw(self.devices[device]))
+
+    def _link_works(self, device: str, why: str) -> None:
+        """A frame of ``device`` went out (under the send's claim): the bus takes frames again,
+        so every actuator failed by a send recovers (see :mod:`drivers.sendprobe`)."""
+        with self._lock:
+            failed, self._write_failed = self._write_failed, set()
+        for name in sorted(failed):
+            self.probe.ended(name)
+            self.host.recover(name, why if name == device else
+                              f"a frame of {device} went out: the bus takes frames again")
 
     @property
     def sent(self) -> int:
@@ -633,10 +689,17 @@ class CanDriver(ThreadedDriver):
         return self.sent - self.sent_queued
 
     def _bus_down(self, reason: str) -> None:
+        """A receive error (the interface down, the controller bus-off): every device fails;
+        the sensors recover with the next frame received, the actuators also with the next
+        frame that goes out, which the driver sends itself (a bus with actuators only may never
+        receive a frame again)."""
         if not self._failed:
             self._failed = True
             for name in self.devices:
                 self.host.fail(name, f"CAN bus {self.bus.name!r} receive failed: {reason}")
+            for name, spec in self.devices.items():
+                if spec.direction == "actuator":
+                    self._send_failed(name)
 
     def _bus_up(self) -> None:
         if self._failed:

@@ -34,8 +34,13 @@ actuator gives how a command is written: line, ``{ format = "SET M1 {value:.2f}"
 
 A line that does not match, bytes that are not a frame, a bad checksum: ``host.error(bus,
 "garbage" | "malformed" | "checksum", ...)``, also counted in ``SerialDriver.error_counts``;
-nothing stops the reader. A command that cannot be encoded or written is ``host.fail(device)``;
-the next one that goes out is ``host.recover(device)``.
+nothing stops the reader. A command that cannot be encoded is reported as a failed write (the
+device is fine). A command that cannot be written (the port not open, the write failing or timing
+out) is a failed write and ``host.fail(device)``; nothing latches: the driver then tries the port
+again itself (:mod:`drivers.sendprobe`: the actuator's last command that went out, else its safe
+value, backing off from ``reconnect_min`` to ``reconnect_max``), and the first command that goes
+out, probe or command of any actuator, is ``host.recover`` for every actuator failed by a write;
+the port open again recovers every device.
 """
 
 from __future__ import annotations
@@ -65,6 +70,7 @@ from drivers.codecs.serial import (
     parse_hex,
     struct_of,
 )
+from drivers.sendprobe import SendProbe, safe_raw
 from drivers.threaded import ThreadedDriver
 
 
@@ -89,6 +95,11 @@ class SerialDriver(ThreadedDriver):
         self._failed = False
         self._port: Any = None
         self._write_failed: set[str] = set()
+        #: the last raw value of each actuator that went out (what the peer holds)
+        self._last_sent: dict[str, Any] = {}
+        #: the actuators whose command could not be written, tried again by the driver itself
+        #: (backing off as the reconnects do)
+        self.probe = SendProbe(f"{self.kind}-{bus.name}", self._probe_send, self._backoff)
         self.connects = 0
 
     def _framer(self) -> LineFramer | BinaryFramer:
@@ -213,6 +224,7 @@ class SerialDriver(ThreadedDriver):
 
     def stop(self) -> None:
         """Stop both threads and close the port. Idempotent; never raises."""
+        self.probe.stop()
         self._stop_threads()
         self._close()
 
@@ -357,33 +369,66 @@ class SerialDriver(ThreadedDriver):
             self.host.write_failed(device, value, str(exc))
             return
         try:
-            if port is None:
-                raise BusError(f"serial port {self.bus.options['url']} is not open; command "
-                               f"{data!r} not sent")
-            try:
-                port.write(data)
-                port.flush()
-            except (serial.SerialException, OSError) as exc:
-                raise BusError(f"write to {self.bus.options['url']} failed: {exc}") from exc
-            except (TypeError, AttributeError) as exc:
-                if port.is_open:    # not the port closing under the write: a real bug
-                    raise
-                # the reader closed the port (link lost) during the write: pyserial's socket://
-                # then fails with a TypeError instead of an OSError
-                raise BusError(f"write to {self.bus.options['url']} failed: the port was closed "
-                               f"during the write") from exc
+            self._put(port, data)
         except BusError as exc:
             with self._cond:
                 self._write_failed.add(device)
+                last = self._last_sent.get(device)
             self.host.write_failed(device, value, str(exc))
             self.host.fail(device, str(exc))
+            # no latch: the driver tries the port again itself (see drivers.sendprobe)
+            self.probe.failed(device, last if last is not None else
+                              safe_raw(self.devices[device]))
             return
         self.host.written(device, value)
         with self._cond:
-            recovered = device in self._write_failed
-            self._write_failed.discard(device)
-        if recovered:
-            self.host.recover(device, "a command was written")
+            self._last_sent[device] = value
+        self._link_works(device, "a command was written")
+
+    def _put(self, port: Any, data: bytes) -> None:
+        """Write ``data`` to ``port`` and wait until it left; raises BusError naming the port
+        and the cause (not open, the write failed or timed out, the port closed under it)."""
+        if port is None:
+            raise BusError(f"serial port {self.bus.options['url']} is not open; command "
+                           f"{data!r} not sent")
+        try:
+            port.write(data)
+            port.flush()
+        except (serial.SerialException, OSError) as exc:
+            raise BusError(f"write to {self.bus.options['url']} failed: {exc}") from exc
+        except (TypeError, AttributeError) as exc:
+            if port.is_open:    # not the port closing under the write: a real bug
+                raise
+            # the reader closed the port (link lost) during the write: pyserial's socket://
+            # then fails with a TypeError instead of an OSError
+            raise BusError(f"write to {self.bus.options['url']} failed: the port was closed "
+                           f"during the write") from exc
+
+    def _probe_send(self, device: str, value: Any) -> str | None:
+        """One probe of ``device`` (the probe's thread, see :mod:`drivers.sendprobe`): the
+        command of ``value`` written as a command would be, holding the send; None if it went
+        out (not reported as a write: no command asked for it), else why not."""
+        def send() -> str | None:
+            with self._cond:
+                port = self._port
+            try:
+                self._put(port, self.command(device, value))
+            except BusError as exc:
+                return str(exc)
+            self._link_works(device, f"the port took a command again (probe: {value!r} "
+                                     f"re-sent)")
+            return None
+        return self._claimed(send)
+
+    def _link_works(self, device: str, why: str) -> None:
+        """A command of ``device`` went out: the port takes writes again, so every actuator
+        failed by a write recovers (see :mod:`drivers.sendprobe`)."""
+        with self._cond:
+            failed, self._write_failed = self._write_failed, set()
+        for name in sorted(failed):
+            self.probe.ended(name)
+            self.host.recover(name, why if name == device else
+                              f"a command of {device} was written: the port takes writes again")
 
     def _down(self, reason: str) -> None:
         with self._cond:
@@ -398,6 +443,7 @@ class SerialDriver(ThreadedDriver):
             was, self._failed = self._failed, False
             if was:
                 self._write_failed.clear()       # recovered below with every device
+                self.probe.clear()
             self._cond.notify_all()
         if was:
             for name in self.devices:

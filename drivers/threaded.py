@@ -328,6 +328,26 @@ class ThreadedDriver(Driver):
                 self.write_counts[device] += 1
         return sent
 
+    def _claimed(self, send: Callable[[], str | None], timeout: float = 0.5) -> str | None:
+        """Run ``send`` (a frame that is no queued command: a probe, see
+        :mod:`drivers.sendprobe`) holding the send as the writer thread does, once nothing is
+        queued or being sent, so commands keep their order; its result, or why it did not run
+        (stopped, or the link busy for ``timeout`` seconds)."""
+        with self._lock:
+            free = self._cond.wait_for(
+                lambda: not self._running or (not self._outbox and not self._sending), timeout)
+            if not self._running:
+                return f"{self.kind} bus {self.bus.name} stopped"
+            if not free:
+                return "the link is busy with commands"
+            self._sending = True
+        try:
+            return send()
+        finally:
+            with self._lock:
+                self._claim_ends()
+                self._cond.notify_all()
+
     def _claim_ends(self) -> None:
         """A fast-path send is over (under ``_lock``): the writer is woken only if commands
         were queued meanwhile, settle() if anyone waits in it."""

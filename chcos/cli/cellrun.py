@@ -206,8 +206,8 @@ def run(system_file: str | Path, *, virtual: bool = False, duration: float | Non
             if services is not None:
                 services.stop()
         s.stop()
-        cell.close()
-        snap = cell.snapshot()
+        snap = cell.snapshot()  # the devices as the run left them (the shutdown window's
+        cell.close()            # readings, on virtual time, come after it)
         found = problems(cell, snap)
         report(cell, snap, found, out)
         runlog = logging.getLogger("chcos.run")

@@ -152,13 +152,18 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         confirmed on the wire for up to :attr:`shutdown_window` seconds in all (a peer that
         comes back within it gets its safe value), then stop every driver. Never raises;
         returns (device, reason) of every safe value that was not confirmed (also logged, and
-        in :attr:`safe_outcomes`). Without running drivers (none started, or already stopped)
-        there is nothing to do."""
+        in :attr:`safe_outcomes`). On a virtual clock whose kernel is not running the window is
+        virtual time in which the drivers' timers keep running (see
+        :meth:`_shutdown_on_virtual_time`). Without running drivers (none started, or already
+        stopped) there is nothing to do."""
         undelivered: list[tuple[str, str]] = []
         if not self.drivers:
             return undelivered
         try:
-            outcomes = self._shutdown_safe_values(time.monotonic() + self.shutdown_window)
+            kernel = self.kernel
+            outcomes = (self._shutdown_on_virtual_time()
+                        if kernel.clock.virtual and not kernel.running
+                        else self._shutdown_safe_values(time.monotonic() + self.shutdown_window))
             self.safe_outcomes = {o.device: o for o in outcomes}
             undelivered = [(o.device, o.reason) for o in outcomes if not o.written]
             for name, why in undelivered:
@@ -217,6 +222,42 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
             if not again or time.monotonic() + SHUTDOWN_RETRY_PAUSE >= deadline:
                 break
             time.sleep(SHUTDOWN_RETRY_PAUSE)  # let the peer come back (a reconnect, a reboot)
+            for name in again:
+                issued[name] = self._safe_write(self._entries[name], "shutdown")
+                attempts[name] += 1
+        return [self._safe_outcome(i, attempts[name]) for name, i in issued.items()]
+
+    def _shutdown_on_virtual_time(self) -> list[SafeOutcome]:
+        """:meth:`_shutdown_safe_values` on a virtual clock, where time moves only while the
+        kernel runs: the window is :attr:`shutdown_window` seconds of virtual time, during which
+        the kernel runs the drivers' timers and interrupts without stepping tasks
+        (:meth:`Kernel.run_drivers`: a drive ramps down to standstill, a driver's timeout and
+        retries run, a simulated peer steps), and no more wall time than the window either (a
+        real peer that does not answer costs wall time that virtual time does not count)."""
+        clock = self.kernel.clock
+        end = clock.now() + self.shutdown_window
+        wall_end = time.monotonic() + self.shutdown_window
+        issued = {i.device: i for i in self._safe_all("shutdown")}
+        attempts = dict.fromkeys(issued, 1)
+        # a flush that does not wait tells each driver the shutdown began (a Modbus link
+        # lost now reconnects every reconnect_delay); the kernel's settle does the waiting
+        self._flush_drivers(time.monotonic())
+
+        def settled() -> bool:
+            return all(i.write is None or i.write.done is not None for i in issued.values())
+
+        def never() -> bool:
+            return False
+
+        while True:
+            self.kernel.run_drivers(end, settled, wall_end)
+            again = [name for name, i in issued.items()
+                     if i.write is not None and i.write.done is False]
+            if (not again or clock.now() + SHUTDOWN_RETRY_PAUSE >= end
+                    or time.monotonic() >= wall_end):
+                break
+            # let the peer come back (a reconnect, a reboot), on virtual time
+            self.kernel.run_drivers(clock.now() + SHUTDOWN_RETRY_PAUSE, never, wall_end)
             for name in again:
                 issued[name] = self._safe_write(self._entries[name], "shutdown")
                 attempts[name] += 1

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections import deque
 from collections.abc import Callable
 from heapq import heapify, heappop, heappush
@@ -341,6 +342,53 @@ class Kernel:
             self._wake.clear()
             self.idle_time += clock.now() - began
         return True
+
+    def run_drivers(self, until: float, done: Callable[[], bool], wall_deadline: float) -> None:
+        """The shutdown window on a virtual clock: interrupts and timers run and virtual time
+        jumps from timer to timer as in :meth:`run` (drivers poll, simulated peers step, a
+        drive ramps down), but no task is stepped (user tasks have ended; a task woken now
+        stays ready and never runs). Returns as soon as ``done()`` is true, clock time
+        ``until`` is reached (at once when nothing more can happen: no timer, nothing in flight), or
+        ``time.monotonic()`` passes ``wall_deadline`` (real peers that do not answer cost wall
+        time, which virtual time does not count). Runs on the calling thread, which is the
+        kernel thread meanwhile. Raises KernelError if the kernel is running or its clock is not
+        virtual."""
+        if self._running:
+            raise KernelError("kernel is already running")
+        if not self.clock.virtual:
+            raise KernelError("run_drivers needs a virtual clock")
+        self._running = True
+        self.thread_ident = threading.get_ident()
+        clock, irq, timers = self.clock, self._irq, self.timers
+        try:
+            while True:
+                if irq:
+                    self._drain_irq()
+                if done() or time.monotonic() >= wall_deadline:
+                    return
+                now = clock.now()
+                due = timers.next_deadline()
+                if due is not None and due <= now:
+                    timers.fire(now)
+                    continue
+                if self._settle_drivers(max(0.0, wall_deadline - time.monotonic())):
+                    continue
+                if now >= until:
+                    return
+                if due is None:     # nothing can happen any more: the time passes
+                    clock.idle(self._wake, until)
+                    return
+                clock.idle(self._wake, min(due, until))
+        finally:
+            self._running = False
+            self.thread_ident = None
+
+    def _settle_drivers(self, timeout: float) -> bool:
+        """Let every driver finish what is in flight (``timeout`` wall seconds at most each);
+        True if that queued interrupts."""
+        for settle in self._settlers:
+            settle(min(5.0, timeout))
+        return bool(self._irq)
 
     def _settle(self) -> bool:
         """Let every driver finish what is in flight; True if that produced work."""

@@ -217,16 +217,21 @@ class System:
     def shutdown(self) -> None:
         """Stop, write safe values to every actuator, stop the drivers, close output files."""
         self.stop()
-        for t in self.tsktab:  # end every activation (runs their finally blocks)
-            if t.coro is not None:
-                t.coro.close()
-                t.coro = None
+        self._end_activations()
         self.devtab.stop_drivers()
+        self._end_activations()     # one restarted in the shutdown window never ran
         self.msgmgr.close_files()
         try:  # the map's runtime fields as they were at the end
             self.sysmgr.save_map()
         except OSError:
             log.exception("cannot write the system map at shutdown")
+
+    def _end_activations(self) -> None:
+        """Close every task's activation (runs its finally blocks)."""
+        for t in self.tsktab:
+            if t.coro is not None:
+                t.coro.close()
+                t.coro = None
 
     def __enter__(self) -> System:
         return self
