@@ -255,7 +255,8 @@ REFERENCE: dict[str, Kind] = {
         _MODBUS_ADDRESS,
         '[[bus]]\nname = "rtu"\nkind = "modbus-rtu"\nport = "/dev/ttyUSB0"\nbaudrate = 19200'),
     "serial": Kind(
-        "a serial line (pyserial): a text line protocol (regex) or binary frames (struct)",
+        "a serial line (pyserial): a text line protocol (regex) or binary frames (struct); "
+        "when the port or a write fails: docs/serial-faults.md",
         (Key("url", "string", "required", "device path or pyserial URL (`socket://`, `loop://`)"),
          Key("baudrate", "integer", "9600", "bit/s"),
          Key("protocol", "string", "required", "`line` or `binary`"),
