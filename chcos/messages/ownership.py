@@ -127,8 +127,7 @@ class Ownership(Delivery):
             self.activation_ended(target, End.ERROR, MessageError(
                 f"task {target.name}: {target.code or 'its function'} is not an async def"))
             return
-        target.coro = coro  # type: ignore[assignment]
-        self.kernel.ready(target, prio)
+        self.kernel.start(target, coro, prio)  # type: ignore[arg-type]
 
     def _release(self, t: TaskEntry) -> None:
         t.owner = None
