@@ -94,7 +94,8 @@ class Delivery:
             link.refused += 1
             return 0
         if link.remote:  # the communications manager batches it (or raises: not counted)
-            self.comm.sensory(link, value)
+            if self.comm.sensory(link, value):  # it replaced one waiting to leave
+                link.overwritten += 1
             link.sent += 1
             return 1
         port = link.port
@@ -147,6 +148,13 @@ class Delivery:
         if w is not None and (w.wake_filter is None or self._wanted(w, source, value)):
             tap.waiter = None
             kernel.wake(w, max(w.base_prio, link.priority), tap)
+
+    def superseded(self, link: Link, n: int) -> None:
+        """``n`` messages of remote ``link`` were replaced on the sender's satellite before
+        they left (the communications manager saw the gap in their numbers): count them as
+        sent and overwritten on this satellite's copy of the link."""
+        link.sent += n
+        link.overwritten += n
 
     def taken(self, link: Link, sent_at: float) -> None:
         """The receiver read a message of ``link`` (an input port's: Link.delivered counts it
