@@ -369,7 +369,7 @@ def test_a_query_times_out_and_its_late_answer_is_dropped(
                             "'centre' within 0.5 s"]
     _exchange(m0, m1, net)    # both answers arrive; the late one finds nobody waiting
     assert _answers(m0)[1:] == [13.5]
-    assert m0.msgmgr._asks == {}
+    assert m0.msgmgr.queries_pending() == 0
 
 
 def test_a_query_fails_when_the_peer_satellite_dies(
@@ -382,7 +382,7 @@ def test_a_query_fails_when_the_peer_satellite_dies(
     assert _answers(m0) == [
         "MessageError: satellite 1 died before answering A's query",
         "MessageError: cannot ask W: satellite 1 is not up"]
-    assert m0.msgmgr._asks == {}
+    assert m0.msgmgr.queries_pending() == 0
 
 
 def test_a_query_that_cannot_be_encoded_is_refused_in_the_asker(
@@ -394,4 +394,4 @@ def test_a_query_that_cannot_be_encoded_is_refused_in_the_asker(
     coro = ctx.ask("W", "ahead", object())
     with pytest.raises(MessageError, match="cannot send query A->W"):
         coro.send(None)
-    assert a.wait_query is None and m0.msgmgr._asks == {}
+    assert a.wait_query is None and m0.msgmgr.queries_pending() == 0
