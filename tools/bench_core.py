@@ -17,7 +17,9 @@ Prints, measured side by side in one run on one core:
   an opcode tracer over 2,000 messages: a figure the machine's load cannot move).
 Targets (issue 2, issue 21): >= 300,000 messages/s; <= 12x the heapq push+pop time per message;
 <= 1.5x the minimal heap kernel; >= 2x asyncio Queue / Event.
-Usage: python -m tools.bench_core [--messages N] [--repeat R] [--json FILE]
+With ``--where`` it only counts chcos' instructions per message, by function: where a message
+goes.
+Usage: python -m tools.bench_core [--messages N] [--repeat R] [--json FILE] [--where]
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import statistics
 import sys
 import time
 import types
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -237,11 +240,13 @@ def paired_ratio(n: int, pairs: int = PAIRS) -> tuple[float, float, float]:
     return statistics.median(ratios), tc / (k * pairs), tm / (k * pairs)
 
 
-def count_instructions(runner: Any, n: int = 2000) -> float:
+def count_instructions(runner: Any, n: int = 2000,
+                       where: Counter[str] | None = None) -> float:
     """Bytecode instructions per message of ``runner(n, measure=...)`` (:func:`run_chcos` or
     :func:`run_minimal`), counted by an opcode tracer over the exchange only: every instruction
     executed in Python code, the kernel's, the tasks' and the baseline's alike (C code, such as
-    ``heapq``, counts as the one call instruction that enters it)."""
+    ``heapq``, counts as the one call instruction that enters it). ``where``, if given, gets
+    the instructions counted by function (``module.qualname``)."""
     count = 0
 
     def tracer(frame: types.FrameType, event: str, arg: Any) -> Any:
@@ -250,6 +255,9 @@ def count_instructions(runner: Any, n: int = 2000) -> float:
         frame.f_trace_lines = False
         if event == "opcode":
             count += 1
+            if where is not None:
+                code = frame.f_code
+                where[f"{frame.f_globals.get('__name__')}.{code.co_qualname}"] += 1
         return tracer
 
     def measure(run: Any) -> None:
@@ -360,7 +368,19 @@ def main() -> int:
     ap.add_argument("--messages", type=int, default=300_000)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--json", help="write the figures to this file")
+    ap.add_argument("--where", action="store_true",
+                    help="only count chcos' instructions per message, by function")
     args = ap.parse_args()
+    if args.where:
+        where: Counter[str] = Counter()
+        n = 2000
+        total = count_instructions(lambda k, measure: run_chcos(k, False, measure=measure), n,
+                                   where)
+        print(f"bytecode instructions per message: chcos {total:.0f}, by function:")
+        for name, c in where.most_common():
+            if c >= n / 2:
+                print(f"  {c / n:6.1f}  {name}")
+        return 0
     n = args.messages
     runs: dict[str, list[float]] = {}
     vs_min: list[float] = []

@@ -33,8 +33,7 @@ def sleep(k: Kernel, dt: float) -> Generator[Any, Any, None]:
 
 def spawn(k: Kernel, name: str, coro: Coroutine[Any, Any, Any], prio: int) -> TaskEntry:
     t = TaskEntry(tid=0, name=name, machine=0, level=1, func=lambda *a: None)  # type: ignore
-    t.coro = coro
-    k.ready(t, prio)
+    k.start(t, coro, prio)
     return t
 
 

@@ -64,7 +64,7 @@ from chcos.comm.ports import Closable, Devices, Links, LinkTransport, Messages, 
 from chcos.comm.secret import Throttle
 from chcos.devices.entry import DeviceStatus
 from chcos.errors import LinkError, MessageError
-from chcos.tables.messages import TOP_PRIORITY, Link, LinkStatus, OutSlot
+from chcos.tables.messages import TOP_PRIORITY, Link, LinkStatus
 from chcos.tables.tasks import TaskEntry
 
 log = logging.getLogger("chcos.comm.manager")
@@ -75,6 +75,20 @@ SATELLITES = frozenset({"satellite"})
 ERRORS_KEPT = 100
 
 __all__ = ["CommManager", "check_actuator_value", "machine_of"]
+
+
+class OutSlot:
+    """A remote newest-wins link's message waiting in an outgoing batch. A newer message
+    replaces it; the batch takes ``value`` when it leaves."""
+
+    __slots__ = ("fresh", "replaced", "value")
+
+    def __init__(self) -> None:
+        self.value: Any = None
+        #: a message waits (the link's batch holds this slot)
+        self.fresh = False
+        #: how many waiting messages newer ones replaced since the batch took this slot
+        self.replaced = 0
 
 
 def machine_of(token_key: str) -> int | None:
@@ -114,6 +128,8 @@ class CommManager:
         self._tokens: set[int] = set()   # machines whose liveliness token is seen now
         self._greeted: set[int] = set()  # machines whose sealed hello came since that token
         self.batches = Batches(kernel, transport, self._collect, self._leave)
+        # the newest-wins links' messages waiting in batches, by link (see sensory)
+        self._waiting: dict[Link, OutSlot] = {}
         self._keys: dict[int | None, str] = {}   # destination machine -> its message key
         self.superseded = 0
         kernel.add_idle_hook(self.batches.on_idle)
@@ -212,27 +228,25 @@ class CommManager:
                                f"{machine}: {exc}") from exc
         self.batches.add(key, drop, newest_wins, lid, data, priority)
 
-    def sensory(self, link: Link, value: Any) -> None:
-        """A sensory message to a task on another satellite.
+    def sensory(self, link: Link, value: Any) -> bool:
+        """A sensory message to a task on another satellite. True if it replaced one of the
+        link's that was still waiting to leave (the message layer counts that one as
+        overwritten on this satellite's copy of the link).
 
         On a newest-wins link below EXPRESS_FROM (the common case, and the one that comes in
-        floods) the message waits in its batch, unencoded, in the link's :class:`OutSlot`; the
-        link's ``direct`` names the slot while it waits, so the message manager stores newer
-        messages straight into it, as into a local input port (counting each one replaced as
-        overwritten on this satellite's copy of the link), and only the one that leaves is
-        encoded (:meth:`_leave`). What is not a number is encoded here too, so that what
-        cannot be sent fails in the sender's put (a number cannot fail: a float must be
-        finite); a newer message stored on the hot path while one waits is checked when the
-        batch leaves instead (a failure is logged and collected, see :meth:`check`). Raises
+        floods) the message waits in its batch, unencoded, in the link's :class:`OutSlot`;
+        a newer message replaces it there, and only the one that leaves is encoded
+        (:meth:`_leave`). What is not a number is encoded here, so that what cannot be sent
+        fails in the sender's put (a number cannot fail: a float must be finite). Raises
         MessageError for a message that cannot be encoded."""
         if link.queued or link.tap or link.priority >= EXPRESS_FROM:
-            slot = link.out
+            slot = self._waiting.get(link)
             if slot is not None and slot.fresh:  # an express priority came while one waited:
                 self._withdraw(link, slot)       # this newer message replaces it
             self._put(link.dst_machine, MessageKind.SENSORY, link.src, link.dst, link.lid,
                       link.priority, value, queued=bool(link.queued),
                       newest_wins=not link.queued and not link.tap)
-            return
+            return False
         t = type(value)
         if not (t is int or t is bool or (t is float and math.isfinite(value))):
             try:
@@ -241,30 +255,28 @@ class CommManager:
             except LinkError as exc:
                 raise MessageError(f"cannot send sensory {link.src}->{link.dst} to machine "
                                    f"{link.dst_machine}: {exc}") from exc
-        slot = link.out
+        slot = self._waiting.get(link)
         if slot is None:
-            slot = link.out = OutSlot()
-        if slot.fresh:
-            link.overwritten += 1   # as the hot path counts it (see _leave)
+            slot = self._waiting[link] = OutSlot()
+        replaced = slot.fresh
+        if replaced:
+            slot.replaced += 1
         else:
             slot.fresh = True
-            slot.over0 = link.overwritten
+            slot.replaced = 0
             machine = link.dst_machine
             self.batches.add(self._keys.get(machine) or self._key_of(machine), True, True,
                              link.lid, link, link.priority)
         slot.value = value
-        if not link.suspended and not link.hooked:  # (an instrument hears of every message)
-            link.direct = slot
+        return replaced
 
     @staticmethod
-    def _taken(link: Link, slot: OutSlot) -> int:
-        """Empty ``link``'s waiting slot: how many messages it took (the one waiting and those
-        it replaced). The link's hot path ends with it: the next message decides again."""
-        n = 1 + link.overwritten - slot.over0
+    def _taken(slot: OutSlot) -> int:
+        """Empty a link's waiting slot: how many messages it took (the one waiting and those
+        it replaced)."""
+        n = 1 + slot.replaced
         slot.fresh = False
         slot.value = None
-        if link.direct is slot:
-            link.direct = None
         return n
 
     def _withdraw(self, link: Link, slot: OutSlot) -> None:
@@ -272,7 +284,7 @@ class CommManager:
         Its sequence numbers are used up, so that the receiver counts it as overwritten."""
         self.batches.withdraw(self._keys.get(link.dst_machine) or self._key_of(link.dst_machine),
                               link.lid)
-        n = self._taken(link, slot)
+        n = self._taken(slot)
         self.sent += n
         self.batches.coalesced += n
         self._seq[link.lid] = self._seq.get(link.lid, 0) + n
@@ -282,11 +294,11 @@ class CommManager:
         the sequence number of the newest message it replaced (the receiver counts the gap as
         overwritten) and the time it leaves; None if it cannot be encoded (a value stored on
         the hot path: logged and collected, the messages dropped without a number)."""
-        slot = link.out
+        slot = self._waiting.get(link)
         if slot is None or not slot.fresh:
             return None
         value = slot.value
-        n = self._taken(link, slot)
+        n = self._taken(slot)
         lid = link.lid
         seq = self._seq.get(lid, 0) + n
         try:
@@ -452,8 +464,7 @@ class CommManager:
         self._seen[link.lid] = seq
         if not link.queued and seq > last + 1 and last:
             gap = seq - last - 1
-            link.sent += gap
-            link.overwritten += gap
+            self.msgmgr.superseded(link, gap)
             self.superseded += gap
 
     # ---- liveliness -------------------------------------------------------------------------

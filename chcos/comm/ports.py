@@ -90,6 +90,10 @@ class Messages(Protocol):
         """Machine ``machine`` died; returns how many owners were told."""
         ...
 
+    def superseded(self, link: Link, n: int) -> None:
+        """``n`` messages of ``link`` were replaced on the sender's satellite before they left:
+        count them as sent and overwritten on this satellite's copy of the link."""
+
 
 class Devices(Protocol):
     """The device table: statuses from other satellites, actuator commands, the e-stop."""

@@ -128,6 +128,9 @@ class Hooks:
         self.h_overwritten: tuple[Instrument, ...] = ()
         self.h_delivered: tuple[Instrument, ...] = ()
         self.h_event: tuple[Instrument, ...] = ()
+        #: the instruments overriding any of before_step, after_step and task_blocked: the
+        #: kernel tells a step to instruments only when this is not empty
+        self.h_step: tuple[Instrument, ...] = ()
         #: (instrument, hook, error text) of every instrument removed because a hook raised
         self.dropped_instruments: list[tuple[Instrument, str, str]] = []
 
@@ -146,6 +149,15 @@ class Hooks:
             base = getattr(Instrument, hook)
             setattr(self, attr, tuple(i for i in self.instruments
                                       if getattr(type(i), hook, base) is not base))
+        self.h_step = tuple(i for i in self.instruments
+                            if i in self.h_before or i in self.h_after or i in self.h_blocked)
+
+    @staticmethod
+    def still(began: tuple[Instrument, ...],
+              hooks: tuple[Instrument, ...]) -> tuple[Instrument, ...]:
+        """Those of ``hooks`` (an ``h_*`` tuple now) that were also in ``began`` (one as it was
+        when a step began): who hears the end of that step."""
+        return tuple(i for i in hooks if i in began)
 
     def notify(self, hooks: tuple[Instrument, ...], hook: str, *args: Any) -> None:
         """Call ``hook(*args)`` on each of ``hooks`` (one of the ``h_*`` tuples). An instrument

@@ -16,8 +16,9 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Coroutine
 from heapq import heapify, heappop, heappush
+from itertools import count
 from typing import Any
 
 from chcos.errors import KernelError
@@ -60,8 +61,8 @@ class Kernel:
         # task and nothing else (a re-queue, a suspension or a wipe takes the entry out, see
         # unready), so a step needs no test for a stale entry. Only ready() pushes onto it.
         self._ready: list[tuple[int, int, TaskEntry]] = []
-        # the sequence number of the newest ready-queue or timer entry (ties: first come first)
-        self._seq = 0
+        # numbers the ready-queue entries in the order they were made (ties: first come first)
+        self._seq = count(1)
         #: the errors of interrupt handlers and timer callbacks, raised by :meth:`check`
         self.errors = HandlerErrors()
         #: the kernel's timers (the thesis' delta list)
@@ -78,7 +79,7 @@ class Kernel:
         self.thread_ident: int | None = None
         self._settlers: list[Callable[[float], bool]] = []
         self._idle_hooks: list[Callable[[], None]] = []
-        # every task this kernel has made ready (a dict as an ordered set): steps sums their
+        # every task this kernel has started (a dict as an ordered set): steps sums their
         # step counts, so a step counts once, on its task, and nowhere else
         self._tasks: dict[TaskEntry, None] = {}
         #: suspend, resume, cancel and the end of activations
@@ -172,12 +173,19 @@ class Kernel:
                 "handler_errors": len(self.irq_errors)}
 
     # ---- task manager primitives ------------------------------------------------------------
+    def start(self, t: TaskEntry, coro: Coroutine[Any, Any, Any], prio: int) -> None:
+        """Begin an activation of ``t``: its next step runs ``coro`` from the start (Xinu's
+        create and resume); ``t`` is made ready at ``prio``, and its steps count in
+        :attr:`steps` from now on."""
+        self._tasks[t] = None
+        t.coro = coro
+        self.ready(t, prio)
+
     def ready(self, t: TaskEntry, prio: int) -> None:
         """Make ``t`` ready at priority ``prio`` (the thesis' and Xinu's ready): the one place
         that puts a task on the ready queue. A task already ready is re-queued at ``prio``,
         behind the others there; a suspended task keeps the wake-up (the highest priority)
         for :meth:`resume`. Instruments hear of it (``task_scheduled``)."""
-        self._tasks[t] = None    # every task is made ready here before its first step
         if t.frozen:
             t.frozen_ready = prio if t.frozen_ready is None else max(prio, t.frozen_ready)
             t.state = _SUSPENDED
@@ -186,8 +194,7 @@ class Kernel:
             self.unready(t)
         t.prio = prio
         t.state = _READY
-        self._seq = seq = self._seq + 1
-        heappush(self._ready, (-prio, seq, t))
+        heappush(self._ready, (-prio, next(self._seq), t))
         if self.hooks.h_scheduled:
             self.hooks.notify(self.hooks.h_scheduled, "task_scheduled", t)
 
@@ -222,7 +229,7 @@ class Kernel:
 
     def block(self, t: TaskEntry, state: TaskState) -> None:
         """Record that the current task ``t`` is about to wait in ``state`` (instruments hear
-        of it when its step ends in the block: see :meth:`_step`)."""
+        of it when its step ends in the block: see :meth:`_watched_step`)."""
         t.state = state
 
     def ready_priorities(self) -> list[int]:
@@ -290,6 +297,7 @@ class Kernel:
         self._stop = False
         self.thread_ident = threading.get_ident()
         irq, timers, ready, step = self._irq, self.timers.heap, self._ready, self._step
+        hooks = self.hooks
         try:
             while True:
                 if irq:  # interrupts first, and stop(), which queues one
@@ -302,7 +310,10 @@ class Kernel:
                     if due <= now and (until is None or due <= until):
                         self.timers.fire(now if until is None else min(now, until))
                 if ready:  # the highest priority first, ties first come first served
-                    step(heappop(ready)[2])
+                    if hooks.h_step:  # an instrument watches steps
+                        self._watched_step(heappop(ready)[2])
+                    else:
+                        step(heappop(ready)[2])
                 elif not self._idle_wait(until):
                     break
         finally:
@@ -396,18 +407,16 @@ class Kernel:
             settle(5.0)
         return bool(self._irq or self._ready)
 
-    def _step(self, t: TaskEntry) -> None:
+    def _step(self, t: TaskEntry) -> bool:
         """Context switch: run ``t`` until its next trap (the thesis' ctxsw), then requeue it
-        (a yield), tell the instruments it blocked (a wait), or end its activation."""
+        (a yield), leave it waiting (a block), or end its activation. True if it now waits."""
         coro = t.coro
         if coro is None:  # woken after its activation ended: nothing to run
             t.state = _SUSPENDED
-            return
+            return False
         t.state = _CURRENT
         self.current = t
         t.steps += 1
-        if self.hooks.h_before:
-            self.hooks.notify(self.hooks.h_before, "before_step", t)
         try:
             if t.throw_exc is None:
                 value = t.send_value
@@ -420,16 +429,30 @@ class Kernel:
         except Exception as err:
             self.current = None
             self.lifecycle.raised(t, err)
+            return False
+        self.current = None
+        if t.cancelling:  # cancelled during its own step, or it carried on after one
+            self.lifecycle.odd_trap(t, coro, trap)
+        elif trap is BLOCK:
+            return True
+        elif trap is YIELD:
+            self.ready(t, t.prio)
         else:
-            self.current = None
-            if t.cancelling:  # cancelled during its own step, or it carried on after one
-                self.lifecycle.odd_trap(t, coro, trap)
-            elif trap is BLOCK:
-                if self.hooks.h_blocked:
-                    self.hooks.notify(self.hooks.h_blocked, "task_blocked", t)
-            elif trap is YIELD:
-                self.ready(t, t.prio)
-            else:
-                self.lifecycle.odd_trap(t, coro, trap)
-        if self.hooks.h_after:
-            self.hooks.notify(self.hooks.h_after, "after_step", t)
+            self.lifecycle.odd_trap(t, coro, trap)
+        return False
+
+    def _watched_step(self, t: TaskEntry) -> None:
+        """:meth:`_step` told to the instruments watching steps (:attr:`Hooks.h_step`):
+        ``before_step``, then ``task_blocked`` if the step ended in a wait, then
+        ``after_step``. An instrument hears whole steps, those begun after it was added: one
+        that a step adds hears of the next step on."""
+        if t.coro is None:  # nothing to run: no step to tell of
+            self._step(t)
+            return
+        hooks = self.hooks
+        watching = hooks.h_step
+        if hooks.h_before:
+            hooks.notify(hooks.h_before, "before_step", t)
+        if self._step(t):
+            hooks.notify(hooks.still(watching, hooks.h_blocked), "task_blocked", t)
+        hooks.notify(hooks.still(watching, hooks.h_after), "after_step", t)

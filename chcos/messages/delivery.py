@@ -4,61 +4,42 @@ files (tputc, putc).
 
 A sensory message readies the receiver at the link's priority (thesis 6.1.2); a newer message
 overwrites an unread one, a queued link keeps a bounded FIFO and refuses a message when full.
-:class:`Delivery` is the base of :class:`chcos.messages.manager.MessageManager`.
+:class:`Delivery` is a part of :class:`chcos.messages.manager.MessageManager`.
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, TextIO
 
 from chcos.errors import MessageError, QueueOverflow, SensorFailure
-from chcos.kernel.scheduler import Kernel
-from chcos.messages.protocols import Comm, Devices, NoComm
-from chcos.tables.messages import EndpointKind, InPort, Link, Msgtab, TapPort
-from chcos.tables.tasks import TaskEntry, Tsktab
+from chcos.messages.context import MessageContext
+from chcos.tables.messages import EndpointKind, InPort, Link, TapPort
+from chcos.tables.tasks import TaskEntry
 
 log = logging.getLogger("chcos.messages.manager")
 
 
 class Delivery:
-    """Message transfer for one satellite's tables: see the module doc. ``devices`` is the
-    device table, ``comm`` the link to the other satellites (None: a one-process system),
-    ``local`` the machines this process hosts (None: all), ``base_dir`` where relative file
-    names are resolved, ``state_dir`` where run state lives (default: ``base_dir``)."""
+    """Message transfer for one satellite (see the module doc): the part of the message
+    manager that moves sensory messages, device readings and actuator and file output.
+    ``base_dir`` is where relative file names are resolved, ``state_dir`` where run state
+    lives (default: ``base_dir``)."""
 
-    def __init__(self, kernel: Kernel, tsktab: Tsktab, msgtab: Msgtab, devices: Devices,
-                 comm: Comm | None = None, *, local: Iterable[int] | None = None,
-                 base_dir: str | Path | None = None, state_dir: str | Path | None = None) -> None:
-        self.kernel = kernel
-        self.tsktab = tsktab
-        self.msgtab = msgtab
-        self.devices = devices
-        #: the link to the other satellites; a composition root that builds it after this
-        #: manager (it needs the manager for what comes in) puts it here before the kernel runs
-        self.comm: Comm = comm if comm is not None else NoComm()
-        #: machines hosted here (None: every machine, a one-process system)
-        self.local: frozenset[int] | None = frozenset(local) if local is not None else None
+    def __init__(self, ctx: MessageContext, *, base_dir: str | Path | None = None,
+                 state_dir: str | Path | None = None) -> None:
+        self.ctx = ctx
+        self.kernel = ctx.kernel
+        self.devices = ctx.devices
         #: where relative file names of installs are resolved
         self.base_dir = Path(base_dir) if base_dir is not None else Path.cwd()
         #: where run state lives beside the map (learned world-model data)
         self.state_dir = Path(state_dir) if state_dir is not None else self.base_dir
+        #: (exception task, its tap, its tap links by source task) of every exception task
         self.taps: list[tuple[TaskEntry, TapPort, dict[str, Link]]] = []
         self._files: dict[str, TextIO] = {}
         self._device_links: dict[str, list[Link]] = {}
-
-    def is_local(self, machine: int) -> bool:
-        """True if ``machine`` runs in this process."""
-        return self.local is None or machine in self.local
-
-    def _remote_task(self, t: TaskEntry | None) -> bool:
-        return t is not None and self.local is not None and t.machine not in self.local
-
-    def event(self, kind: str, detail: str) -> None:
-        """Report a system event to the instruments and the log (see :meth:`Kernel.event`)."""
-        self.kernel.event(kind, detail)
 
     # ---- sensory messages (tputc) -----------------------------------------------------------
     def put(self, t: TaskEntry, value: Any) -> int:
@@ -94,7 +75,8 @@ class Delivery:
             link.refused += 1
             return 0
         if link.remote:  # the communications manager batches it (or raises: not counted)
-            self.comm.sensory(link, value)
+            if self.ctx.comm.sensory(link, value):  # it replaced one waiting to leave
+                link.overwritten += 1
             link.sent += 1
             return 1
         port = link.port
@@ -133,7 +115,7 @@ class Delivery:
                 continue
             if link.remote:
                 link.sent += 1
-                self.comm.tap(link, t.name, value)
+                self.ctx.comm.tap(link, t.name, value)
                 continue
             self.deliver_tap(link, tap, t.name, value)
 
@@ -147,6 +129,13 @@ class Delivery:
         if w is not None and (w.wake_filter is None or self._wanted(w, source, value)):
             tap.waiter = None
             kernel.wake(w, max(w.base_prio, link.priority), tap)
+
+    def superseded(self, link: Link, n: int) -> None:
+        """``n`` messages of remote ``link`` were replaced on the sender's satellite before
+        they left (the communications manager saw the gap in their numbers): count them as
+        sent and overwritten on this satellite's copy of the link."""
+        link.sent += n
+        link.overwritten += n
 
     def taken(self, link: Link, sent_at: float) -> None:
         """The receiver read a message of ``link`` (an input port's: Link.delivered counts it
@@ -198,9 +187,9 @@ class Delivery:
         """Emergency stop by ``by``: every other satellite is told, every local actuator with a
         safe value gets it at once; then the event is reported (instruments, log). Returns how
         many were written here."""
-        self.comm.estop(reason)
+        self.ctx.comm.estop(reason)
         n = self.devices.estop(reason)
-        self.event("estop", f"{by}: {reason}")
+        self.ctx.event("estop", f"{by}: {reason}")
         return n
 
     # ---- command output to actuators and files (putc) ---------------------------------------

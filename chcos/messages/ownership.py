@@ -15,17 +15,28 @@ from typing import Any
 from chcos.errors import Busy, MessageError
 from chcos.kernel.describe import describe_error
 from chcos.kernel.scheduler import End
-from chcos.messages.delivery import Delivery, log
+from chcos.messages.context import MessageContext
+from chcos.messages.delivery import log
+from chcos.messages.restarts import Restarts
 from chcos.tables.messages import Completion, EndpointKind, Link, LinkStatus, LinkType, TapPort
 from chcos.tables.tasks import TaskEntry, TaskState
 
 _COMMAND = object()  # what wakes a task waiting (wait_any) for a command message
 
 
-class Ownership(Delivery):
-    """Command ownership on top of :class:`Delivery` (see the module doc)."""
+class Ownership:
+    """Command ownership for one satellite (see the module doc): the part of the message
+    manager that owns :class:`~chcos.messages.restarts.Restarts`, the restart policies."""
 
-    _qseq: int  # arrival order in wait queues
+    def __init__(self, ctx: MessageContext) -> None:
+        self.ctx = ctx
+        self.kernel = ctx.kernel
+        self.tsktab = ctx.tsktab
+        self.msgtab = ctx.msgtab
+        self.devices = ctx.devices
+        #: the restart policies of abnormally ended tasks
+        self.restarts = Restarts(ctx, self.activate)
+        self._qseq = 0  # arrival order in wait queues
 
     # ---- command messages (topen / tclose / teotsk) -----------------------------------------
     def open(self, link: Link, command: Any, *, wait: bool) -> bool:
@@ -49,7 +60,7 @@ class Ownership(Delivery):
         if link.remote:  # the target's satellite decides; the caller waits for its answer
             link.pending = True
             link.sent += 1
-            self.comm.open(link, command, wait)
+            self.ctx.comm.open(link, command, wait)
             return False
         owner = target.owner
         if (owner is link and target.coro is not None and not target.cancelling
@@ -64,9 +75,9 @@ class Ownership(Delivery):
             return True
         if owner is link or owner is None or owner.priority < link.priority:
             if owner is not None and owner is not link:
-                self._report(owner, LinkStatus.PREEMPTED,
+                self.report(owner, LinkStatus.PREEMPTED,
                              error=f"pre-empted by {link.src} at priority {link.priority}")
-                self.event("preempt", f"{link.src} took {target.name} from {owner.src} "
+                self.ctx.event("preempt", f"{link.src} took {target.name} from {owner.src} "
                                       f"(priority {link.priority} > {owner.priority})")
             target.owner = link
             link.status = LinkStatus.OK
@@ -91,11 +102,11 @@ class Ownership(Delivery):
         target = self.tsktab.get(link.dst)
         link.pending = False
         if link.remote:
-            self.comm.close(link)
+            self.ctx.comm.close(link)
             return
         target.waitq[:] = [e for e in target.waitq if e[1] is not link]
         if target.owner is link:
-            self._release(target)
+            self.release(target)
 
     def give_command(self, target: TaskEntry, command: Any) -> None:
         """Hand ``command`` to ``target``'s running activation as its newest command (an older
@@ -108,12 +119,14 @@ class Ownership(Delivery):
         """Begin an activation of ``target`` for ``command`` at ``link``'s priority (a running
         activation is cancelled first: the newest command wins)."""
         if target.coro is None:
-            self._activate(target, command, link.priority)
+            self.activate(target, command, link.priority)
         else:
             target.next_command = (command, link.priority, link)
             self.kernel.cancel(target, f"new command from {link.src}")
 
-    def _activate(self, target: TaskEntry, command: Any, prio: int) -> None:
+    def activate(self, target: TaskEntry, command: Any, prio: int) -> None:
+        """Begin an activation of ``target`` for ``command`` at ``prio`` (its task function is
+        called now; one that fails or is not an ``async def`` ends it abnormally at once)."""
         target.command = command
         target.last_command = command
         target.new_command = None
@@ -127,10 +140,11 @@ class Ownership(Delivery):
             self.activation_ended(target, End.ERROR, MessageError(
                 f"task {target.name}: {target.code or 'its function'} is not an async def"))
             return
-        target.coro = coro  # type: ignore[assignment]
-        self.kernel.ready(target, prio)
+        self.kernel.start(target, coro, prio)  # type: ignore[arg-type]
 
-    def _release(self, t: TaskEntry) -> None:
+    def release(self, t: TaskEntry) -> None:
+        """``t``'s owner let it go: the best waiter owns it next (and is told), or its
+        activation is cancelled and it goes back to its default priority."""
         t.owner = None
         if t.waitq:
             best = max(t.waitq, key=lambda e: (e[1].priority, -e[0]))
@@ -139,9 +153,9 @@ class Ownership(Delivery):
             link.pending = False
             link.status = LinkStatus.OK
             t.owner = link
-            caller = self._caller(link)
-            if self._remote_task(caller):
-                self.comm.granted(link)
+            caller = self.ctx.caller(link)
+            if self.ctx.remote_task(caller):
+                self.ctx.comm.granted(link)
             elif caller is not None and caller.wait_link is link:
                 self.kernel.wake(caller, caller.base_prio, True)
             self._start(t, command, link)
@@ -158,20 +172,15 @@ class Ownership(Delivery):
             else:
                 t.prio = t.default_prio
 
-    def _caller(self, link: Link) -> TaskEntry | None:
-        if link.src_kind is EndpointKind.TASK and link.src in self.tsktab:
-            return self.tsktab.get(link.src)
-        return None
-
-    def _report(self, link: Link, status: LinkStatus, result: Any = None, error: str = "") -> None:
+    def report(self, link: Link, status: LinkStatus, result: Any = None, error: str = "") -> None:
         """Set ``link``'s status and tell the calling task (wakes it if it waits in ``done``)."""
         link.status = status
         link.result = result
         link.error = error
         link.reported = True
-        caller = self._caller(link)
-        if self._remote_task(caller):
-            self.comm.report(link)
+        caller = self.ctx.caller(link)
+        if self.ctx.remote_task(caller):
+            self.ctx.comm.report(link)
         elif caller is not None and caller.wait_link is link and not link.pending:
             link.reported = False
             self.kernel.wake(caller, max(caller.base_prio, link.priority), link.completion())
@@ -187,11 +196,11 @@ class Ownership(Delivery):
             return
         t.completions += 1
         if self.kernel.hooks.h_event:
-            self.event("complete", f"{t.name} completed for {link.src}")
-        self._report(link, LinkStatus.NORMAL, result=result)
+            self.ctx.event("complete", f"{t.name} completed for {link.src}")
+        self.report(link, LinkStatus.NORMAL, result=result)
         t.owner = None
         if t.waitq:
-            self._release(t)
+            self.release(t)
         else:
             self._back_to_default(t)
 
@@ -206,32 +215,32 @@ class Ownership(Delivery):
             if t.owner is not None:
                 self.complete(t, value)
             elif t.waitq:
-                self._release(t)
+                self.release(t)
         elif how is End.ERROR:
             t.abnormal += 1
             text = describe_error(value)
             t.last_error = text
             log.error("task %s ended abnormally: %s", t.name, text)
-            self.event("abnormal", f"{t.name}: {text}")
+            self.ctx.event("abnormal", f"{t.name}: {text}")
             link = t.owner
             if link is not None:
-                self._report(link, LinkStatus.ABNORMAL, error=text)
+                self.report(link, LinkStatus.ABNORMAL, error=text)
             self.devices.safe_values(self._actuators(t))
             t.owner = None
             if t.waitq:
-                self._release(t)
+                self.release(t)
         if t.coro is None:
             nxt, t.next_command = t.next_command, None
             if nxt is not None:
                 command, prio, link = nxt
                 if t.owner is link:
-                    self._activate(t, command, prio)
+                    self.activate(t, command, prio)
                     return
             t.state = TaskState.SUSPENDED
             if t.owner is None:
                 t.prio = t.default_prio
                 if how is End.ERROR:
-                    self._plan_restart(t, value)
+                    self.restarts.plan(t, value)
                 elif how is End.PREEMPTED:  # released (tclose): suspended with actuators safe
                     self.devices.safe_values(self._actuators(t))
                     if t.standing and not t.frozen:
@@ -240,14 +249,10 @@ class Ownership(Delivery):
     def start_standing(self, t: TaskEntry, why: str = "started") -> None:
         """Start a standing task's own activation (no owner, no command) if it has none and
         nobody owns it; local tasks only."""
-        if not self.is_local(t.machine) or t.coro is not None or t.owner is not None:
+        if not self.ctx.is_local(t.machine) or t.coro is not None or t.owner is not None:
             return
-        self.event("standing", f"{t.name} {why}")
-        self._activate(t, None, t.default_prio)
-
-    def _plan_restart(self, t: TaskEntry, err: Any) -> None:
-        """After an abnormal end with nobody to take the task over: nothing here; the restart
-        policy (:class:`chcos.messages.restarts.Restarts`) overrides it."""
+        self.ctx.event("standing", f"{t.name} {why}")
+        self.activate(t, None, t.default_prio)
 
     def _actuators(self, t: TaskEntry) -> list[str]:
         """The actuators ``t`` commands."""
@@ -267,7 +272,7 @@ class Ownership(Delivery):
             if link.remote:
                 if link.pending or (link.status is LinkStatus.OK and link.sent):
                     link.pending = False
-                    self.comm.close(link)
+                    self.ctx.comm.close(link)
                 continue
             target = self.tsktab.get(link.dst)
             if link.pending:
@@ -275,8 +280,8 @@ class Ownership(Delivery):
                 target.waitq[:] = [e for e in target.waitq if e[1] is not link]
             if target.owner is link:
                 n += 1
-                self.event("release", f"{target.name} released: {why}")
-                self._release(target)
+                self.ctx.event("release", f"{target.name} released: {why}")
+                self.release(target)
         return n
 
     def suspend_task(self, t: TaskEntry, by: str) -> None:
@@ -303,11 +308,11 @@ class Ownership(Delivery):
         frozen = t.frozen
         if t.owner is not None:
             link = t.owner
-            self._report(link, LinkStatus.PREEMPTED, error=f"{t.name} reset after an emergency")
+            self.report(link, LinkStatus.PREEMPTED, error=f"{t.name} reset after an emergency")
             t.owner = None
         for _seq, link, _cmd in t.waitq:
             link.pending = False
-            self._report(link, LinkStatus.PREEMPTED, error=f"{t.name} reset")
+            self.report(link, LinkStatus.PREEMPTED, error=f"{t.name} reset")
         t.waitq.clear()
         t.next_command = None
         if t.coro is not None:
@@ -325,7 +330,7 @@ class Ownership(Delivery):
         restart are dropped; it stays SUSPENDED at its default priority."""
         for link in [e[1] for e in t.waitq] + ([t.owner] if t.owner is not None else []):
             link.pending = False
-            self._report(link, LinkStatus.PREEMPTED, error=why)
+            self.report(link, LinkStatus.PREEMPTED, error=why)
         t.owner = None
         t.waitq.clear()
         coro, t.coro = t.coro, None

@@ -41,8 +41,9 @@ class Comm(Protocol):
     satellite (see :mod:`chcos.comm.manager`). Every call is made on the kernel thread and must not
     block."""
 
-    def sensory(self, link: Link, value: Any) -> None:
-        """Carry a sensory message to the destination's satellite."""
+    def sensory(self, link: Link, value: Any) -> bool:
+        """Carry a sensory message to the destination's satellite; True if it replaced one of
+        the link's still waiting to leave."""
 
     def tap(self, link: Link, source: str, value: Any) -> None:
         """Carry a tapped sensory message to a remote exception task."""
@@ -87,9 +88,10 @@ class NoComm:
         raise MessageError(f"{what} for machine {machine}: this system has no link to other "
                            f"satellites (no communications manager)")
 
-    def sensory(self, link: Link, value: Any) -> None:
+    def sensory(self, link: Link, value: Any) -> bool:
         """Refused: see the class."""
         self._refuse(f"sensory message on {link.name}", link.dst_machine)
+        return False
 
     def tap(self, link: Link, source: str, value: Any) -> None:
         """Refused: see the class."""

@@ -10,31 +10,41 @@ from typing import Any
 
 from chcos.comm.payloads import OpenAnswer, OpenOutcome
 from chcos.errors import Busy, MessageError
+from chcos.messages.context import MessageContext
 from chcos.messages.ownership import Ownership
 from chcos.messages.waits import forget
 from chcos.tables.messages import EndpointKind, Link, LinkStatus, LinkType
 from chcos.tables.tasks import TaskEntry
 
 
-class Remote(Ownership):
-    """Answers from and to other satellites, on top of :class:`Ownership`."""
+class Remote:
+    """Answers from and to other satellites (see the module doc): the part of the message
+    manager that runs ``ownership``'s topen, tclose and reports for them."""
 
-    _ask_seq: int
-    _asks: dict[int, tuple[TaskEntry, int]]  # remote queries: id -> (asker, machine)
+    def __init__(self, ctx: MessageContext, ownership: Ownership) -> None:
+        self.ctx = ctx
+        self.kernel = ctx.kernel
+        self.ownership = ownership
+        self._ask_seq = 0
+        self._asks: dict[int, tuple[TaskEntry, int]] = {}  # remote queries: id -> (asker, machine)
+
+    def queries_pending(self) -> int:
+        """World-model queries sent to other satellites and not answered yet."""
+        return len(self._asks)
 
     # ---- answers from other satellites (called by the communications manager) ---------------
     def remote_open(self, link: Link, command: Any, wait: bool) -> OpenAnswer:
         """Run an ``open`` that a task on another satellite asked for; returns the answer for
         the caller's satellite: owner, queued, or busy (with the reason)."""
         try:
-            owner = self.open(link, command, wait=wait)
+            owner = self.ownership.open(link, command, wait=wait)
             return OpenAnswer.owner() if owner else OpenAnswer.queued()
         except Busy as exc:
             return OpenAnswer.busy(str(exc))
 
     def open_answer(self, link: Link, answer: OpenAnswer) -> None:
         """The target's satellite answered this satellite's ``open`` on ``link``."""
-        caller = self._caller(link)
+        caller = self.ctx.caller(link)
         if answer.outcome is OpenOutcome.QUEUED:
             return
         link.pending = False
@@ -49,7 +59,7 @@ class Remote(Ownership):
     def remote_report(self, link: Link, status: LinkStatus, result: Any, error: str) -> None:
         """The target's satellite reports a completion or pre-emption on ``link``."""
         link.pending = False
-        self._report(link, status, result, error)
+        self.ownership.report(link, status, result, error)
 
     # ---- world-model queries (thesis 5.4) ---------------------------------------------------
     def world_answer(self, target: TaskEntry, topic: str, args: Sequence[Any]) -> Any:
@@ -71,7 +81,7 @@ class Remote(Ownership):
         waiting for the answer; its caller then blocks ``t``, which :meth:`ask_answered` (or the
         loss of ``peer``'s satellite) wakes. Raises MessageError if that satellite is not up or
         the query cannot be sent (e.g. ``args`` are not JSON-representable)."""
-        comm = self.comm
+        comm = self.ctx.comm
         if not comm.is_up(peer.machine):
             raise MessageError(f"cannot ask {peer.name}: satellite {peer.machine} is not up")
         self._ask_seq += 1
@@ -99,8 +109,8 @@ class Remote(Ownership):
     def _release_from(self, machine: int) -> int:
         """Local tasks owned by (or queued for) a caller on dead ``machine`` are released."""
         n = 0
-        for t in self.tsktab:
-            if not self.is_local(t.machine):
+        for t in self.ctx.tsktab:
+            if not self.ctx.is_local(t.machine):
                 continue
             for _seq, link, _cmd in list(t.waitq):
                 if link.src_machine == machine and link.src_kind is EndpointKind.TASK:
@@ -110,9 +120,9 @@ class Remote(Ownership):
             if (owner is not None and owner.src_kind is EndpointKind.TASK
                     and owner.src_machine == machine):
                 n += 1
-                self.event("release", f"{t.name} released: its owner {owner.src} died with "
+                self.ctx.event("release", f"{t.name} released: its owner {owner.src} died with "
                                       f"satellite {machine}")
-                self._release(t)
+                self.ownership.release(t)
         return n
 
     def satellite_lost(self, machine: int) -> int:
@@ -126,17 +136,17 @@ class Remote(Ownership):
                 n += t.wait_query == qid
                 self.ask_answered(qid, None,
                                   f"satellite {machine} died before answering {t.name}'s query")
-        for link in self.msgtab:
+        for link in self.ctx.msgtab:
             if link.type is not LinkType.COMMAND or link.dst_kind is not EndpointKind.TASK:
                 continue
             if not link.remote or link.dst_machine != machine:
                 continue
-            caller = self._caller(link)
-            if caller is None or self._remote_task(caller):
+            caller = self.ctx.caller(link)
+            if caller is None or self.ctx.remote_task(caller):
                 continue
             if link.pending or (link.status is LinkStatus.OK and link.sent):
                 link.pending = False
-                self._report(link, LinkStatus.ABNORMAL,
+                self.ownership.report(link, LinkStatus.ABNORMAL,
                              error=f"satellite {machine} running {link.dst} died")
                 n += 1
         return n

@@ -2,8 +2,8 @@
 
 A task blocked in ``read``, ``read_any``, ``wait_any``, ``invoke``/``done``, ``ask`` or
 ``read_exception`` records in its Tsktab entry the ports, links, tap or query it waits on, and
-leaves :func:`forget` as its ``unwait``: the kernel calls it when it wakes or cancels the task,
-without knowing what any of those are.
+leaves :func:`forget` (or, waiting on input ports only, :func:`forget_ports`) as its ``unwait``:
+the kernel calls it when it wakes or cancels the task, without knowing what any of those are.
 """
 
 from __future__ import annotations
@@ -28,3 +28,12 @@ def forget(t: TaskEntry) -> None:
         t.wait_links = ()
         t.wait_commands = False
         t.wake_filter = None
+
+
+def forget_ports(t: TaskEntry) -> None:
+    """End a wait of ``t`` on input ports only (``read``, ``read_any``): no port names it as
+    its waiter any more (an :data:`chcos.tables.tasks.Unwait`)."""
+    for p in t.wait_ports:
+        if p.waiter is t:
+            p.waiter = None
+    t.wait_ports = ()

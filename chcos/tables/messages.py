@@ -101,22 +101,11 @@ class Link:
     overwritten: int = 0
     refused: int = 0
     discarded: int = 0  # unread messages dropped when the receiving task was reset
-    #: a remote newest-wins link's message waiting to leave in a batch (the communications
-    #: manager's, see :mod:`chcos.comm.manager`)
-    out: OutSlot | None = None
-    #: the communications manager's: ``out`` while its message waits. The message layer no
-    #: longer reads it (every remote message goes through ``Comm.sensory``); kept until the
-    #: communications manager drops it
-    direct: OutSlot | None = None
-    #: the communications manager's, always False: kept until it drops it (see ``direct``)
-    hooked: bool = False
     suspended: bool = False  # status is SUSPENDED (kept by the status setter)
 
     def set_priority(self, priority: int) -> None:
         """Change the link's priority (setpri, resetpri, an invoke at a priority)."""
         self.priority = priority
-        if self.remote:  # an express priority is not batched: the next message decides again
-            self.direct = None
 
     @property
     def status(self) -> LinkStatus:
@@ -205,23 +194,6 @@ class InPort:
         self.fresh = False
         value, self.value = self.value, None
         return value, self.sent_at
-
-
-class OutSlot:
-    """A remote newest-wins link's message waiting in an outgoing batch (see
-    :mod:`chcos.comm.manager`). A newer message replaces it (the one replaced counts as
-    overwritten on this satellite's copy of the link); the batch takes ``value`` when it
-    leaves. ``waiter`` is always None: nobody reads it on this satellite."""
-
-    __slots__ = ("fresh", "over0", "value", "waiter")
-
-    def __init__(self) -> None:
-        self.waiter: Any = None
-        self.value: Any = None
-        #: a message waits (the link's batch holds this slot)
-        self.fresh = False
-        #: the link's ``overwritten`` when this message started waiting
-        self.over0 = 0
 
 
 class TapPort:

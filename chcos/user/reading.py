@@ -15,7 +15,7 @@ from typing import Any, TypeVar, overload
 
 from chcos.errors import MessageError, ReadTimeout, SensorFailure
 from chcos.kernel.scheduler import BLOCK
-from chcos.messages.waits import forget
+from chcos.messages.waits import forget, forget_ports
 from chcos.tables.messages import EndpointKind, InPort, Link, LinkStatus, TapPort
 from chcos.tables.tasks import TaskState
 from chcos.user.ports import Port, TaskHandle
@@ -164,7 +164,7 @@ class Reading(TaskHandle):
         for p in ports:
             p.waiter = t
         t.wait_ports = ports
-        t.unwait = forget
+        t.unwait = forget_ports
         t.state = _WAITING
         if timeout is not None:
             self._arm_timeout(timeout, ", ".join(p.link.name for p in ports))
