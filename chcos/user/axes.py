@@ -14,19 +14,31 @@ last confirmed; the same values are the sensors ``x.state``, ``x.position``, ...
 
 from __future__ import annotations
 
+import concurrent.futures
+import time
 import types
-from collections.abc import Generator
+from collections.abc import Callable, Generator
 from typing import TYPE_CHECKING, Any, Protocol
 
-from chcos.errors import DeviceError, MessageError
+from chcos.errors import ChcosError, CommandSyntaxError, DeviceError, MessageError
 from chcos.kernel.scheduler import BLOCK
 from chcos.tables.messages import EndpointKind
 from chcos.tables.tasks import TaskState
 from drivers.canopen_axis import AxisCall, AxisStatus, Done
-from drivers.codecs.cia402 import AxisCommandFailed, Fault, Mode, Op, Result, State, mode_of
+from drivers.codecs.cia402 import (
+    AxisCommandFailed,
+    Fault,
+    Mode,
+    Op,
+    Result,
+    State,
+    mode_name,
+    mode_of,
+)
 
 if TYPE_CHECKING:
     from chcos.kernel.scheduler import Kernel
+    from chcos.system.cmdline import AxisCmd
     from chcos.tables.tasks import TaskEntry
 
 
@@ -195,3 +207,93 @@ def axis_handle(task: TaskEntry, kernel: Kernel, devices: Any, name: str) -> Axi
         raise MessageError(f"task {task.name} has no output port to axis {name}: link it to "
                            f"the axis (it then owns it, and its safe stop follows the task)")
     return AxisHandle(name, find_axis(devices, name), task, kernel)
+
+
+# ---- the operator's commands (host shell: ``axis NAME WORD``) -------------------------------
+
+#: the engine operation of each word of the host's ``axis`` command
+OPERATOR_OPS: dict[str, Op] = {
+    "enable": Op.ENABLE, "disable": Op.DISABLE, "quick-stop": Op.QUICK_STOP,
+    "fault-reset": Op.FAULT_RESET, "safe-stop": Op.SAFE_STOP, "set-mode": Op.SET_MODE,
+    "home": Op.HOME,
+}
+#: wall-clock seconds an operator's command waits for its result at most (the engine ends
+#: every command at its own timeout from the map; this only bounds a driver that stopped)
+OPERATOR_WAIT = 120.0
+#: seconds between two looks at a waiting command (and the slice a kernel that does not run
+#: by itself is run for meanwhile)
+OPERATOR_SLICE = 0.01
+
+
+def describe(name: str, status: AxisStatus) -> str:
+    """One line of what axis ``name``'s drive last confirmed: state, statusword, 0x603F,
+    mode, position, velocity, and the command running."""
+    def num(v: float | None) -> str:
+        return "unknown" if v is None else f"{v:g}"
+
+    state = "unknown (no statusword)" if status.state is None else status.state.name
+    sw = "none" if status.statusword is None else f"0x{status.statusword:04X}"
+    if status.fault is not None:
+        code = status.fault.error_code
+        ec = "unknown" if code is None else f"0x{code:04X}"
+    else:
+        ec = "none" if status.state is not None else "unknown"
+    busy = "" if status.busy is None else f", running {status.busy.value}"
+    return (f"axis {name}: state {state}, statusword {sw}, 0x603F {ec}, mode "
+            f"{mode_name(status.mode_display)}, position {num(status.position)}, velocity "
+            f"{num(status.velocity)}{busy}")
+
+
+def operator_call(cmd: AxisCmd) -> AxisCall:
+    """The call of the host's ``axis NAME WORD [MODE]``. Raises CommandSyntaxError naming a
+    mode that is no mode name or number."""
+    op = OPERATOR_OPS[cmd.word]
+    if op is not Op.SET_MODE or not cmd.mode:
+        return AxisCall(op)
+    text = cmd.mode
+    chosen = mode_of(int(text) if text.lstrip("-").isdigit() else text)
+    if chosen is None:
+        raise CommandSyntaxError(f"axis {cmd.device} set-mode: {text!r} is no mode; expected "
+                                 f"a name ({', '.join(Mode.__members__)}) or its number")
+    return AxisCall(op, int(chosen))
+
+
+def operator_command(devices: Any, cmd: AxisCmd, pump: Callable[[], None] | None) -> str:
+    """Carry out the host's ``axis`` command on Devtab ``devices``: ``status`` describes the
+    axis; a command is started on the axis's driver and waited for until the drive confirmed
+    it (``pump``, if given, is called between looks: it runs a kernel that does not run by
+    itself). Returns the result and what the drive shows; raises AxisCommandFailed (the state
+    reached, statusword, 0x603F), the engine's refusal (AxisBusy, AxisLimitError), MessageError
+    for a device that is no axis of this process, DeviceError when no result came within
+    :data:`OPERATOR_WAIT` s."""
+    name = cmd.device
+    driver = find_axis(devices, name)
+    if cmd.word == "status":
+        return describe(name, driver.axis_status(name))
+    call = operator_call(cmd)
+    fut: concurrent.futures.Future[Result | Exception] = concurrent.futures.Future()
+
+    def done(outcome: Result | Exception) -> None:      # the driver's thread
+        if not fut.done():
+            fut.set_result(outcome)
+
+    driver.axis_call(name, call, done)
+    deadline = time.monotonic() + OPERATOR_WAIT
+    while True:
+        try:
+            outcome = fut.result(timeout=OPERATOR_SLICE)
+            break
+        except concurrent.futures.TimeoutError:
+            if time.monotonic() > deadline:
+                raise DeviceError(f"axis {name} {cmd.word}: no result within {OPERATOR_WAIT} s "
+                                  f"({describe(name, driver.axis_status(name))})") from None
+            if pump is not None:
+                pump()
+    if isinstance(outcome, ChcosError):
+        raise outcome
+    if isinstance(outcome, Exception):      # ValueError: the map gives no mode
+        raise DeviceError(f"axis {name} {cmd.word}: {outcome}") from outcome
+    if not outcome.ok:
+        raise AxisCommandFailed(name, outcome)
+    return f"axis {name}: {outcome}"
+
