@@ -165,7 +165,7 @@ class System:
             if not kernel.running:
                 self.run_for(OPERATOR_SLICE)
 
-        return operator_command(self.devtab, req, pump)
+        return operator_command(self.devtab, req.device, req.word, req.mode, pump)
 
     def call(self, fn: Callable[..., T], *args: Any) -> T:
         """Run ``fn(*args)`` on the kernel thread (between task steps) and return its result,

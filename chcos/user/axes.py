@@ -7,6 +7,8 @@ must be on one of the task's output ports (an actuator it commands): the task th
 its abnormal completion runs the axis's safe stop as any actuator's safe value. While a command
 waits the task is WAITING; the command runs on the CANopen driver's I/O thread
 (:mod:`drivers.canopen_axis`) and its result comes back through the kernel's interrupt queue.
+An axis hosted by another satellite is commanded the same way (:class:`RemoteAxis`): the command
+travels over the satellite link, runs on that satellite's driver, and its result comes back.
 
 The readings (:attr:`AxisHandle.state`, :attr:`~AxisHandle.position`, ...) are what the drive
 last confirmed; the same values are the sensors ``x.state``, ``x.position``, ... of Devtab.
@@ -38,7 +40,6 @@ from drivers.codecs.cia402 import (
 
 if TYPE_CHECKING:
     from chcos.kernel.scheduler import Kernel
-    from chcos.system.cmdline import AxisCmd
     from chcos.tables.tasks import TaskEntry
 
 
@@ -50,6 +51,45 @@ class AxisDriver(Protocol):
 
     def axis_status(self, device: str) -> AxisStatus:
         """What the drive last confirmed."""
+
+
+class AxisLink(Protocol):
+    """What reaches an axis hosted by another satellite (the communications manager,
+    :class:`chcos.comm.manager.CommManager`)."""
+
+    axis_results: dict[str, Result]
+
+    def axis_call(self, device: str, machine: int, source: str, call: AxisCall,
+                  done: Done) -> None:
+        """Send ``source``'s ``call`` to satellite ``machine``; ``done`` gets the result."""
+
+
+class RemoteAxis:
+    """An axis hosted by satellite ``machine``, commanded over the satellite link by task
+    ``source`` (:class:`AxisDriver`): each command travels as an axis request, runs on the
+    hosting satellite's driver, and its result (the drive's confirmation, or the failure
+    naming the state reached) comes back as on a local axis. Its status is what the last
+    result confirmed (state, statusword, 0x603F, mode; no position or velocity: link the
+    axis's sensors for those)."""
+
+    def __init__(self, link: AxisLink, machine: int, source: str) -> None:
+        self.link = link
+        self.machine = machine
+        self.source = source
+
+    def axis_call(self, device: str, call: AxisCall, done: Done) -> None:
+        """Send ``call``. Raises MessageError when the hosting satellite is not up."""
+        self.link.axis_call(device, self.machine, self.source, call, done)
+
+    def axis_status(self, device: str) -> AxisStatus:
+        """What the last result of axis ``device`` confirmed (nothing before one)."""
+        r = self.link.axis_results.get(device)
+        if r is None:
+            return AxisStatus()
+        fault = Fault(r.error_code, r.statusword) \
+            if r.state in (State.FAULT, State.FAULT_REACTION_ACTIVE) and r.statusword is not None \
+            else None
+        return AxisStatus(r.state, r.statusword, r.mode_display, fault=fault)
 
 
 def find_axis(devices: Any, name: str) -> AxisDriver:
@@ -206,7 +246,17 @@ def axis_handle(task: TaskEntry, kernel: Kernel, devices: Any, name: str) -> Axi
             raise DeviceError(f"no device {name!r}")
         raise MessageError(f"task {task.name} has no output port to axis {name}: link it to "
                            f"the axis (it then owns it, and its safe stop follows the task)")
-    return AxisHandle(name, find_axis(devices, name), task, kernel)
+    spec = devices.get(name).spec
+    if devices.is_local(spec.machine):
+        return AxisHandle(name, find_axis(devices, name), task, kernel)
+    if spec.address.get("profile") != "cia402" or spec.direction != "actuator":
+        raise MessageError(f"{name} is not a CiA 402 axis (a device-map table with "
+                           f"profile = \"cia402\")")
+    link = getattr(devices, "remote", None)
+    if link is None or not hasattr(link, "axis_call"):
+        raise MessageError(f"axis {name} is on machine {spec.machine}, which this process "
+                           f"does not drive, and no satellite link leads there")
+    return AxisHandle(name, RemoteAxis(link, spec.machine, task.name), task, kernel)
 
 
 # ---- the operator's commands (host shell: ``axis NAME WORD``) -------------------------------
@@ -244,33 +294,34 @@ def describe(name: str, status: AxisStatus) -> str:
             f"{num(status.velocity)}{busy}")
 
 
-def operator_call(cmd: AxisCmd) -> AxisCall:
-    """The call of the host's ``axis NAME WORD [MODE]``. Raises CommandSyntaxError naming a
-    mode that is no mode name or number."""
-    op = OPERATOR_OPS[cmd.word]
-    if op is not Op.SET_MODE or not cmd.mode:
+def operator_call(name: str, word: str, mode: str = "") -> AxisCall:
+    """The call of the host's ``axis NAME WORD [MODE]`` (``word`` one of
+    :data:`OPERATOR_OPS`). Raises CommandSyntaxError naming a mode that is no mode name or
+    number."""
+    op = OPERATOR_OPS[word]
+    if op is not Op.SET_MODE or not mode:
         return AxisCall(op)
-    text = cmd.mode
-    chosen = mode_of(int(text) if text.lstrip("-").isdigit() else text)
+    chosen = mode_of(int(mode) if mode.lstrip("-").isdigit() else mode)
     if chosen is None:
-        raise CommandSyntaxError(f"axis {cmd.device} set-mode: {text!r} is no mode; expected "
+        raise CommandSyntaxError(f"axis {name} set-mode: {mode!r} is no mode; expected "
                                  f"a name ({', '.join(Mode.__members__)}) or its number")
     return AxisCall(op, int(chosen))
 
 
-def operator_command(devices: Any, cmd: AxisCmd, pump: Callable[[], None] | None) -> str:
-    """Carry out the host's ``axis`` command on Devtab ``devices``: ``status`` describes the
+def operator_command(devices: Any, name: str, word: str, mode: str,
+                     pump: Callable[[], None] | None) -> str:
+    """Carry out the host's ``axis NAME WORD [MODE]`` on Devtab ``devices`` (``word``:
+    ``status`` or one of :data:`OPERATOR_OPS`): ``status`` describes the
     axis; a command is started on the axis's driver and waited for until the drive confirmed
     it (``pump``, if given, is called between looks: it runs a kernel that does not run by
     itself). Returns the result and what the drive shows; raises AxisCommandFailed (the state
     reached, statusword, 0x603F), the engine's refusal (AxisBusy, AxisLimitError), MessageError
     for a device that is no axis of this process, DeviceError when no result came within
     :data:`OPERATOR_WAIT` s."""
-    name = cmd.device
     driver = find_axis(devices, name)
-    if cmd.word == "status":
+    if word == "status":
         return describe(name, driver.axis_status(name))
-    call = operator_call(cmd)
+    call = operator_call(name, word, mode)
     fut: concurrent.futures.Future[Result | Exception] = concurrent.futures.Future()
 
     def done(outcome: Result | Exception) -> None:      # the driver's thread
@@ -285,14 +336,14 @@ def operator_command(devices: Any, cmd: AxisCmd, pump: Callable[[], None] | None
             break
         except concurrent.futures.TimeoutError:
             if time.monotonic() > deadline:
-                raise DeviceError(f"axis {name} {cmd.word}: no result within {OPERATOR_WAIT} s "
+                raise DeviceError(f"axis {name} {word}: no result within {OPERATOR_WAIT} s "
                                   f"({describe(name, driver.axis_status(name))})") from None
             if pump is not None:
                 pump()
     if isinstance(outcome, ChcosError):
         raise outcome
     if isinstance(outcome, Exception):      # ValueError: the map gives no mode
-        raise DeviceError(f"axis {name} {cmd.word}: {outcome}") from outcome
+        raise DeviceError(f"axis {name} {word}: {outcome}") from outcome
     if not outcome.ok:
         raise AxisCommandFailed(name, outcome)
     return f"axis {name}: {outcome}"

@@ -484,6 +484,39 @@ class Result:
                 f"after {self.elapsed:.3f} s)")
 
 
+def result_doc(result: Result) -> dict[str, Any]:
+    """``result`` as a JSON object (for the satellite link: an axis hosted elsewhere)."""
+    return {"op": result.op.value, "ok": result.ok,
+            "state": None if result.state is None else result.state.name,
+            "statusword": result.statusword, "error_code": result.error_code,
+            "mode_display": result.mode_display, "reason": result.reason,
+            "elapsed": result.elapsed}
+
+
+def result_from_doc(doc: Mapping[str, Any]) -> Result:
+    """The :class:`Result` a :func:`result_doc` object carries. Raises :class:`Cia402Error`
+    naming the field that is missing or not what it should be."""
+    def optional_int(key: str) -> int | None:
+        value = doc.get(key)
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int)):
+            raise Cia402Error(f"axis result: {key!r}: expected a whole number or null, got "
+                              f"{value!r:.40}")
+        return value
+
+    try:
+        op = Op(doc.get("op"))
+        state = None if doc.get("state") is None else State[str(doc.get("state"))]
+    except (ValueError, KeyError) as exc:
+        raise Cia402Error(f"axis result: unknown command or state: {exc}") from None
+    ok, reason, elapsed = doc.get("ok"), doc.get("reason"), doc.get("elapsed")
+    if not isinstance(ok, bool) or not isinstance(reason, str) \
+            or isinstance(elapsed, bool) or not isinstance(elapsed, (int, float)):
+        raise Cia402Error(f"axis result: expected ok (true/false), reason (a text) and elapsed "
+                          f"(seconds), got {dict(doc)!r:.120}")
+    return Result(op, ok, state, optional_int("statusword"), optional_int("error_code"),
+                  optional_int("mode_display"), reason, float(elapsed))
+
+
 @dataclass(frozen=True)
 class Fault:
     """A drive fault seen by the axis: its error code (0x603F, None if it could not be read)
