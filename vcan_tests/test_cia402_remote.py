@@ -33,8 +33,8 @@ WALL = 20.0
 
 
 async def remote_steps(ctx: TaskContext, cmd: dict[str, Any]) -> None:
-    """Runs ``cmd["steps"]`` on axis ``cmd.get("axis", "x")``: ``(op, *args)``; logs (op,
-    "ok" or the error), and after each the state the handle shows."""
+    """Runs ``cmd["steps"]`` on axis ``cmd.get("axis", "x")``: ``(op, *args)``, or
+    ``("raise",)``; logs (op, "ok" or the error), and after each the state the handle shows."""
     log: list[tuple[str, Any]] = cmd["log"]
     try:
         axis = ctx.axis(cmd.get("axis", "x"))
@@ -42,6 +42,8 @@ async def remote_steps(ctx: TaskContext, cmd: dict[str, Any]) -> None:
         log.append(("axis", exc))
         return
     for op, *args in cmd["steps"]:
+        if op == "raise":
+            raise RuntimeError("the task's own error")
         try:
             await getattr(axis, op)(*args)
         except ChcosError as exc:
@@ -235,3 +237,18 @@ def test_the_hosting_satellite_refuses_a_task_without_a_port_to_the_axis(pair: P
     (err,) = answers
     assert isinstance(err, MessageError) and "task L has no output port to axis x" in str(err)
     assert pair.drive.received == [] and pair.drive.state != FAULT
+
+
+def test_the_abnormal_end_of_the_owner_stops_the_remote_axis(pair: Pair) -> None:
+    d = pair.drive
+    pair.do(("set_mode",), ("enable",), ("at_velocity", 5.0))
+    assert d.state == ENABLED and d.velocity == 5000
+    n = len(d.log)
+    pair.m0.invoke("T", {"steps": [("raise",)], "log": pair.log})
+    # the safe value travels to machine 1 as an actuator command: the safe stop sequence
+    assert pair.run(lambda: d.state == SOD)
+    log = d.log[n:]
+    assert log[0][0] == 0x02 and log[0][1] == ENABLED and log[0][2] > 0, log
+    assert all(speed == 0 for cw, _state, speed in log if cw == 0x00) and log[-1][0] == 0x00
+    assert pair.m0.tsktab.get("T").abnormal == 1
+
