@@ -212,7 +212,8 @@ def test_a_mode_the_drive_refuses_names_what_0x6061_shows(rig: Rig) -> None:
     assert rig.drive.read(0x6061) == 0
 
 
-def test_enable_from_a_fault_fails_naming_the_fault(rig: Rig) -> None:
+def test_enable_from_a_fault_fails_naming_the_fault(rig: Rig,
+                                                   caplog: pytest.LogCaptureFixture) -> None:
     rig.drive.inject_fault(0x2310)
     assert rig.run(lambda: rig.value("x.state") == "FAULT")
     (_op, err), = rig.do(("enable",))
@@ -226,6 +227,9 @@ def test_enable_from_a_fault_fails_naming_the_fault(rig: Rig) -> None:
     outcome = rig.s.devtab.safe_outcomes["x"]
     assert outcome.written, outcome
     assert rig.drive.received[n:] == [] and rig.drive.state == FAULT
+    # the reason it is safe, in the log: the fault, no torque
+    assert "axis x: safe stop done: the drive is in FAULT (0x603F 0x2310)" in caplog.text
+    assert "no torque" in caplog.text
 
 
 def test_a_safe_stop_of_a_faulted_drive_is_reached_and_says_why(rig: Rig) -> None:
