@@ -10,8 +10,10 @@ A device map's axis table ``x`` becomes these Devtab devices (all on the axis's 
   the host shell and the north side can give it); its safe value is
   :attr:`AxisCode.SAFE_STOP`: e-stop, abnormal completion of the owning task, shutdown and its
   recovery run the axis's safe stop *sequence*, and the write is confirmed only when the drive's
-  statusword confirms the sequence ended. A drive fault fails this device alone (cause
-  ``drive-fault``, naming 0x603F); the sensors stay readable and the fault reset stays possible.
+  statusword confirms the sequence ended (or that the drive is in FAULT, its power stage
+  off: confirmed as it is, nothing sent, the reason logged). A drive fault fails this device
+  alone (cause ``drive-fault``, naming 0x603F); the sensors stay readable and the fault reset
+  stays possible.
 * sensors ``x.state`` (the :class:`drivers.codecs.cia402.State` name, e.g.
   ``"OPERATION_ENABLED"``),
   ``x.statusword``, ``x.mode`` (0x6061), ``x.position`` and ``x.velocity`` (user units),
@@ -23,6 +25,7 @@ thread may read.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -46,6 +49,8 @@ from drivers.codecs.cia402 import (
     Write,
     axis_names,
 )
+
+log = logging.getLogger(__name__)
 
 
 class AxisCode(IntEnum):
@@ -270,6 +275,9 @@ class AxisHost:
         if not self._pending:
             return
         p = self._pending.pop(0)
+        if result.ok and result.reason and p.op is Op.SAFE_STOP:
+            # reached, but not by the sequence: say how (a drive in FAULT is safe as it is)
+            log.warning("axis %s: %s", self.name, result)
         for joined in p.joined:
             joined(result)
         if p.done is not None:

@@ -212,19 +212,65 @@ def test_a_mode_the_drive_refuses_names_what_0x6061_shows(rig: Rig) -> None:
     assert rig.drive.read(0x6061) == 0
 
 
-def test_enable_from_a_fault_fails_naming_the_fault(rig: Rig) -> None:
+def test_enable_from_a_fault_fails_naming_the_fault(rig: Rig,
+                                                   caplog: pytest.LogCaptureFixture) -> None:
     rig.drive.inject_fault(0x2310)
     assert rig.run(lambda: rig.value("x.state") == "FAULT")
     (_op, err), = rig.do(("enable",))
     assert isinstance(err, AxisCommandFailed) and "FAULT" in str(err)
     assert "0x603F 0x2310" in str(err)
-    # shutdown says the faulted axis is not at its safe state, and sends it nothing
+    # a drive in FAULT has its power stage off: shutdown's safe stop is reached as it is,
+    # and nothing is sent to it (no reset, no enable)
     n = len(rig.drive.received)
     rig.s.devtab.shutdown_window = 1.0
     rig.s.shutdown()
     outcome = rig.s.devtab.safe_outcomes["x"]
-    assert not outcome.written and "FAULT" in outcome.reason and "0x2310" in outcome.reason
+    assert outcome.written, outcome
     assert rig.drive.received[n:] == [] and rig.drive.state == FAULT
+    # the reason it is safe, in the log: the fault, no torque
+    assert "axis x: safe stop done: the drive is in FAULT (0x603F 0x2310)" in caplog.text
+    assert "no torque" in caplog.text
+
+
+def test_a_safe_stop_of_a_faulted_drive_is_reached_and_says_why(rig: Rig) -> None:
+    d = rig.drive
+    rig.do(("set_mode", 3), ("enable",), ("at_velocity", 2.0))
+    d.inject_fault(0x2310)
+    assert rig.run(lambda: rig.value("x.state") == "FAULT" and rig.value("x.fault") == 0x2310)
+    n = len(d.received)
+    got = rig.do(("safe_stop",))
+    assert got == [("safe_stop", "ok")]
+    assert d.received[n:] == [] and d.state == FAULT and d.velocity == 0
+    rig.run(lambda: False, wall=0.5)                      # time passes: nothing re-enables
+    assert d.received[n:] == [] and d.state == FAULT
+
+
+async def safe_stopper(ctx: TaskContext, cmd: dict[str, Any]) -> None:
+    """Runs axis ``x``'s safe stop and logs its result (or its failure)."""
+    try:
+        cmd["log"].append(await ctx.axis("x").safe_stop())
+    except ChcosError as exc:
+        cmd["log"].append(exc)
+
+
+def test_a_safe_stop_waits_for_the_fault_reaction_to_end(rig: Rig) -> None:
+    from drivers.codecs.cia402 import Result
+    d, s = rig.drive, rig.s
+    s.execute(f"install -m0o1 --code={M}:safe_stopper Q x")
+    rig.do(("set_mode", 3), ("enable",), ("at_velocity", 2.0))
+    d.inject_fault(0x2310)                    # FAULT REACTION ACTIVE until the drive steps
+    assert rig.hold(lambda: rig.value("x.state") == "FAULT_REACTION_ACTIVE")
+    got: list[Any] = []
+    n = len(d.received)
+    s.invoke("Q", {"log": got})
+    s.run_for(0.5)                            # virtual time, the drive still reacting
+    assert got == [] and d.state != FAULT
+    assert rig.run(lambda: bool(got))         # the drive steps: its reaction ends in FAULT
+    (result,) = got
+    assert isinstance(result, Result) and result.ok, result
+    assert "FAULT" in result.reason and "0x2310" in result.reason
+    assert "no torque" in str(result)
+    assert d.received[n:] == [] and d.state == FAULT
 
 
 # ---- the fault that used to deadlock --------------------------------------------------------

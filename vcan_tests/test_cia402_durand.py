@@ -242,7 +242,7 @@ def test_an_e_stop_during_a_move_stops_then_removes_the_power(rig: tuple) -> Non
     assert all(speed == 0 for cw, _s, speed in drive.log if cw == 0x00)
 
 
-def test_a_safe_stop_of_a_faulted_drive_fails_naming_the_fault_and_sends_nothing(
+def test_a_safe_stop_of_a_faulted_drive_is_reached_naming_the_fault_and_sends_nothing(
         rig: tuple) -> None:
     drive, host = rig
     enabled_in(host, Mode.PP)
@@ -250,7 +250,29 @@ def test_a_safe_stop_of_a_faulted_drive_fails_naming_the_fault_and_sends_nothing
     host.idle(0.05)
     before = len(drive.received)
     result = host.run(host.axis.safe_stop)
-    assert not result.ok and result.state is State.FAULT and result.error_code == 0x4310
+    # FAULT: the drive function is disabled (no torque): the safe outcome, said as it is
+    assert result.ok and result.state is State.FAULT and result.error_code == 0x4310
+    assert "0x603F 0x4310" in result.reason and "no torque" in result.reason
+    assert len(drive.received) == before and drive.state == FAULT
+    host.idle(0.5)                                   # nothing re-enables it
+    assert len(drive.received) == before and drive.state == FAULT
+
+
+def test_a_safe_stop_during_the_fault_reaction_waits_for_fault(rig: tuple) -> None:
+    drive, host = rig
+    enabled_in(host, Mode.PP)
+    drive.inject_fault(0x2310)                       # FAULT REACTION ACTIVE until it steps
+    host.settle()
+    host.perform(host.axis.update(host.reading(), host.now))
+    assert host.axis.state is State.FAULT_REACTION_ACTIVE
+    before = len(drive.received)
+    host.perform(host.axis.safe_stop(host.now))
+    host.now += 0.2                                  # time passes, the drive still reacting
+    host.perform(host.axis.poll(host.now))
+    assert host.op_results(Op.SAFE_STOP) == []
+    result = host.run(lambda now: host.axis.poll(now))   # the drive steps: FAULT
+    assert result.op is Op.SAFE_STOP and result.ok and result.state is State.FAULT
+    assert result.error_code == 0x2310
     assert len(drive.received) == before and drive.state == FAULT
 
 

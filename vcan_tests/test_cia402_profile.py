@@ -366,3 +366,26 @@ def test_a_lost_drive_fails_the_command_and_forgets_its_state() -> None:
     # after a reboot the drive shows switch on disabled; nothing is sent without a command
     assert not axis.update(Reading(statusword=0x0250), 0.2).writes
     assert cws(axis.enable(0.3)) == [0x06]
+
+
+def test_a_safe_stop_in_a_fault_is_reached_and_a_fault_reaction_is_waited_for() -> None:
+    axis = Axis(AxisConfig("x", timeouts=Timeouts(safe_stop=1.0)))
+    axis.update(Reading(statusword=0x0637, error_code=0x2310), 0.0)
+    axis.update(Reading(statusword=0x021F, error_code=0x2310), 0.1)   # fault reaction
+    out = axis.safe_stop(0.2)
+    assert not out.writes and not out.results
+    out = axis.poll(1.1)                                              # reaction still on
+    assert not out.writes and not out.results
+    out = axis.update(Reading(statusword=0x0218), 1.15)               # FAULT: power off
+    (result,) = out.results
+    assert result.ok and result.state is S.FAULT and not out.writes
+    assert "0x603F 0x2310" in str(result) and "no torque" in str(result)
+    # a reaction that never ends fails at the timeout, still sending nothing
+    axis = Axis(AxisConfig("x", timeouts=Timeouts(safe_stop=1.0)))
+    axis.update(Reading(statusword=0x021F, error_code=0x2310), 0.0)
+    axis.safe_stop(0.0)
+    assert not axis.poll(0.9).results
+    out = axis.poll(1.0)
+    (result,) = out.results
+    assert not result.ok and "FAULT_REACTION_ACTIVE" in result.reason and not out.writes
+

@@ -284,10 +284,11 @@ def _dispatch(argv: list[str]) -> int:
     p = sub.add_parser("shell", help="host console for an in-process system",
                        description="Build a system from device maps in this process and carry "
                                    "out host commands (install, setpri, invoke, suspend, "
-                                   "resume, close, inject, map) from --script or stdin, one per "
-                                   "line; 'quit' ends. 'run SECONDS' lets the system run that long "
-                                   "(on real time the kernel runs meanwhile anyway; with "
-                                   "--virtual only 'run' advances the clock). To run "
+                                   "resume, close, inject, axis, map) from --script or stdin, one "
+                                   "per line; 'quit' ends. 'run SECONDS' lets the system run that "
+                                   "long (on real time the kernel runs meanwhile anyway; with "
+                                   "--virtual only 'run', and an axis command while it waits for "
+                                   "the drive, advance the clock). To run "
                                    "a whole cell until Ctrl-C, use 'chcos run SYSTEM'.")
     p.add_argument("devmap", nargs="*", metavar="MAP", help="device-map files")
     p.add_argument("--script", help="read commands from this file instead of stdin")

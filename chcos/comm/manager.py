@@ -44,6 +44,8 @@ from chcos.comm.codec import EXPRESS_FROM, LinkMessage, MessageKind, decode_batc
 from chcos.comm.payloads import (
     KIND_OF,
     ActuatorCommand,
+    AxisReply,
+    AxisRequest,
     CloseRequest,
     EmergencyStop,
     Hello,
@@ -66,6 +68,8 @@ from chcos.devices.entry import DeviceStatus
 from chcos.errors import LinkError, MessageError
 from chcos.tables.messages import TOP_PRIORITY, Link, LinkStatus
 from chcos.tables.tasks import TaskEntry
+from drivers.canopen_axis import AxisCall, Done
+from drivers.codecs.cia402 import Op, Result, is_axis_address, result_doc, result_from_doc
 
 log = logging.getLogger("chcos.comm.manager")
 
@@ -132,6 +136,12 @@ class CommManager:
         self._waiting: dict[Link, OutSlot] = {}
         self._keys: dict[int | None, str] = {}   # destination machine -> its message key
         self.superseded = 0
+        #: axis commands sent to other satellites and not answered yet: request id -> (who
+        #: gets the result, the machine hosting the axis, the axis, the command)
+        self._axis_waits: dict[int, tuple[Done, int, str, str]] = {}
+        self._axis_seq = 0
+        #: the last result each remote axis's satellite confirmed, by axis
+        self.axis_results: dict[str, Result] = {}
         kernel.add_idle_hook(self.batches.on_idle)
 
     # ---- collected errors -------------------------------------------------------------------
@@ -354,6 +364,71 @@ class CommManager:
         """Emergency stop everywhere, at top priority, sent express."""
         self._send(None, "", "", 0, TOP_PRIORITY, EmergencyStop(reason, self.machine))
 
+    def axis_call(self, device: str, machine: int, source: str, call: AxisCall,
+                  done: Done) -> None:
+        """Send task ``source``'s command ``call`` of axis ``device`` to satellite ``machine``,
+        which hosts it; ``done`` gets the drive's :class:`Result` (or a MessageError: refused
+        there, or that satellite died first) on the kernel thread. Raises MessageError, sending
+        nothing, when that satellite is not up or the request cannot be sent."""
+        if not self.is_up(machine):
+            raise MessageError(f"axis {device} is on satellite {machine}, which is not up: "
+                               f"{call.op.value} not sent")
+        self._axis_seq += 1
+        rid = self._axis_seq
+        self._send(machine, source, device, 0, TOP_PRIORITY - 1,
+                   AxisRequest(rid, device, call.op.value, call.arg, self.machine))
+        self._axis_waits[rid] = (done, machine, device, call.op.value)
+
+    def _serve_axis(self, msg: LinkMessage, p: AxisRequest) -> None:
+        """Run another satellite's command of a local axis; its result (or why it was
+        refused) goes back to the asker as an AxisReply. Only a task with an output link to
+        the axis may command it (the tables are the same on every satellite)."""
+        def reply(result: Result | None, error: str) -> None:    # kernel thread
+            try:
+                self._send(p.origin, p.device, msg.src, 0, TOP_PRIORITY - 1,
+                           AxisReply(p.rid, None if result is None else result_doc(result),
+                                     error))
+            except MessageError as exc:     # the asker's satellite is gone: nobody waits
+                self._collect(f"axis {p.device}: reply to {msg.src} not sent: {exc}")
+
+        def done(outcome: Result | Exception) -> None:          # the driver's thread
+            if isinstance(outcome, Result):
+                self.kernel.interrupt(reply, outcome, "")
+            else:
+                self.kernel.interrupt(reply, None, f"axis {p.device}: {outcome}")
+
+        try:
+            entry = self.devtab.get(p.device)
+            driver = entry.driver
+            if not is_axis_address(entry.spec.address) or entry.spec.direction != "actuator" \
+                    or driver is None or not hasattr(driver, "axis_call"):
+                raise MessageError(f"{p.device} is not a CiA 402 axis driven by satellite "
+                                   f"{self.machine}")
+            if not any(lk.src == msg.src and lk.dst == p.device for lk in self.msgtab.links):
+                raise MessageError(f"task {msg.src} has no output port to axis {p.device}")
+            driver.axis_call(p.device, AxisCall(Op(p.call), p.arg), done)
+        except Exception as exc:
+            reply(None, str(exc) if isinstance(exc, MessageError)
+                  else f"axis {p.device}: {type(exc).__name__}: {exc}")
+
+    def _axis_answered(self, p: AxisReply) -> None:
+        """The hosting satellite answered axis request ``p.rid``: its waiter gets the result
+        (or a MessageError with the refusal). An answer nobody waits for is dropped."""
+        waiting = self._axis_waits.pop(p.rid, None)
+        if waiting is None:
+            return
+        done, machine, device, _op = waiting
+        if p.result is None:
+            done(MessageError(p.error or f"axis {device}: refused by satellite {machine}"))
+            return
+        try:
+            result = result_from_doc(p.result)
+        except Exception as exc:
+            done(MessageError(f"axis {device}: satellite {machine} answered {exc}"))
+            return
+        self.axis_results[device] = result
+        done(result)
+
     def is_up(self, machine: int) -> bool:
         """Whether satellite ``machine`` is on the link now (its liveliness token is seen and
         a sealed hello from it arrived)."""
@@ -424,6 +499,10 @@ class CommManager:
             spec = self.devtab.get(p.device).spec
             check_actuator_value(spec.name, spec.safe_value, spec.limits, p.value)
             self.devtab.write(p.device, p.value, source=msg.src)
+        elif isinstance(p, AxisRequest):
+            self._serve_axis(msg, p)
+        elif isinstance(p, AxisReply):
+            self._axis_answered(p)
         elif isinstance(p, OpenRequest):
             link = self._link(msg)
             self._send(link.src_machine, link.src, link.dst, link.lid, link.priority,
@@ -522,6 +601,11 @@ class CommManager:
 
     def _on_leave(self, machine: int) -> None:
         self.alive.discard(machine)
+        for rid, (done, m, device, op) in list(self._axis_waits.items()):
+            if m == machine:
+                del self._axis_waits[rid]
+                done(MessageError(f"axis {device}: satellite {machine} died before confirming "
+                                  f"{op}"))
         told = self.msgmgr.satellite_lost(machine)
         self.msgmgr.event("satellite-down", f"machine {machine} died; {told} owner(s) told")
         for e in self.devtab:

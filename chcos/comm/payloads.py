@@ -10,8 +10,11 @@ The wire form is JSON objects with an ``op`` key, as before::
               {"op": "close"}                                    CloseRequest
               {"op": "actuator", "device": str, "value": ...}    ActuatorCommand
               {"op": "estop", "reason": str, "from": int}        EmergencyStop
+              {"op": "axis", "rid": int, "device": str, "call": str, "arg": number|null,
+               "from": int}                                       AxisRequest
     REPLY     {"op": "open", "answer": "owner"|"queued"|"busy", "reason": str}  OpenReply
               {"op": "answer", "qid": int, "answer": ...}        QueryAnswer
+              {"op": "axis", "rid": int, "result": {...}|null, "error": str}  AxisReply
     STATUS    {"device": str, "status": str, "reason": str, "from": int}  StatusChange
               {"op": "hello", "from": int, "ask": bool}          Hello
     COMPLETION/PREEMPTION {"status": str, "result": ..., "error": str}  Report
@@ -94,6 +97,29 @@ class ActuatorCommand:
 
 
 @dataclass(frozen=True)
+class AxisRequest:
+    """A command of a CiA 402 axis to the satellite hosting it, for a task of machine
+    ``origin``: ``call`` is the engine's operation (:class:`drivers.codecs.cia402.Op` value),
+    ``arg`` its argument; ``rid`` names the request in its :class:`AxisReply`."""
+
+    rid: int
+    device: str
+    call: str
+    arg: float | None
+    origin: int
+
+
+@dataclass(frozen=True)
+class AxisReply:
+    """What became of axis request ``rid``: the drive's result (a
+    :func:`drivers.codecs.cia402.result_doc` object), or ``error``: why it was refused."""
+
+    rid: int
+    result: dict[str, Any] | None
+    error: str = ""
+
+
+@dataclass(frozen=True)
 class EmergencyStop:
     """Emergency stop everywhere; ``origin`` is the machine that raised it."""
 
@@ -162,7 +188,8 @@ class Hello:
 
 
 Payload = (OpenRequest | CloseRequest | ActuatorCommand | EmergencyStop | OpenReply
-           | StatusChange | Report | Query | QueryAnswer | QueryFailed | Hello)
+           | StatusChange | Report | Query | QueryAnswer | QueryFailed | Hello | AxisRequest
+           | AxisReply)
 
 #: The message kind each payload type travels as.
 KIND_OF: dict[type[Any], MessageKind] = {
@@ -170,7 +197,7 @@ KIND_OF: dict[type[Any], MessageKind] = {
     ActuatorCommand: MessageKind.COMMAND, EmergencyStop: MessageKind.COMMAND,
     OpenReply: MessageKind.REPLY, QueryAnswer: MessageKind.REPLY,
     StatusChange: MessageKind.STATUS, Query: MessageKind.QUERY, QueryFailed: MessageKind.ERROR,
-    Hello: MessageKind.STATUS,
+    Hello: MessageKind.STATUS, AxisRequest: MessageKind.COMMAND, AxisReply: MessageKind.REPLY,
 }
 
 
@@ -184,6 +211,11 @@ def to_wire(p: Payload) -> dict[str, Any]:
         return {"op": "actuator", "device": p.device, "value": p.value}
     if isinstance(p, EmergencyStop):
         return {"op": "estop", "reason": p.reason, "from": p.origin}
+    if isinstance(p, AxisRequest):
+        return {"op": "axis", "rid": p.rid, "device": p.device, "call": p.call, "arg": p.arg,
+                "from": p.origin}
+    if isinstance(p, AxisReply):
+        return {"op": "axis", "rid": p.rid, "result": p.result, "error": p.error}
     if isinstance(p, OpenReply):
         return {"op": "open", "answer": p.answer.outcome.value, "reason": p.answer.reason}
     if isinstance(p, QueryAnswer):
@@ -225,8 +257,19 @@ def from_wire(kind: MessageKind, value: Any) -> Payload:
             return ActuatorCommand(_get(kind, v, "device", str, "a device name"), v["value"])
         if op == "estop":
             return EmergencyStop(str(v.get("reason", "")), _get(kind, v, "from", int, "a machine"))
+        if op == "axis":
+            arg = v.get("arg")
+            if arg is not None and (isinstance(arg, bool) or not isinstance(arg, int | float)
+                                    or not math.isfinite(arg)):
+                raise MessageError(f"COMMAND message: 'arg': expected a finite number or null, "
+                                   f"got {arg!r:.40}")
+            return AxisRequest(_get(kind, v, "rid", int, "a request id"),
+                               _get(kind, v, "device", str, "a device name"),
+                               _get(kind, v, "call", str, "an axis command"),
+                               None if arg is None else float(arg),
+                               _get(kind, v, "from", int, "a machine"))
         raise MessageError(f"COMMAND message: unknown op {op!r:.40}; expected open, close, "
-                           "actuator or estop")
+                           "actuator, estop or axis")
     if kind is MessageKind.REPLY:
         if op == "open":
             try:
@@ -237,7 +280,15 @@ def from_wire(kind: MessageKind, value: Any) -> Payload:
             return OpenReply(OpenAnswer(outcome, str(v.get("reason", ""))))
         if op == "answer":
             return QueryAnswer(_get(kind, v, "qid", int, "a query id"), v.get("answer"))
-        raise MessageError(f"REPLY message: unknown op {op!r:.40}; expected open or answer")
+        if op == "axis":
+            result = v.get("result")
+            if result is not None and not isinstance(result, dict):
+                raise MessageError(f"REPLY message: 'result': expected an axis result or null, "
+                                   f"got {result!r:.80}")
+            return AxisReply(_get(kind, v, "rid", int, "a request id"), result,
+                             str(v.get("error") or ""))
+        raise MessageError(f"REPLY message: unknown op {op!r:.40}; expected open, answer or "
+                           "axis")
     if kind is MessageKind.STATUS:
         if op == "hello":
             return Hello(_get(kind, v, "from", int, "a machine"),

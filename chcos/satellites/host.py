@@ -294,7 +294,7 @@ class Host:
             return "; ".join(f"machine {m}: {self._ask(m, ExecRequest(line))['answer']}"
                              for m in up)
         name = (req.task if isinstance(req, cmdline.Invoke | cmdline.TaskOp)
-                else req.device if isinstance(req, cmdline.Inject) else "")
+                else req.device if isinstance(req, cmdline.Inject | cmdline.AxisCmd) else "")
         if name not in self._where:
             self.map_doc()
         machine = self._where.get(name)

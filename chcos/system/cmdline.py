@@ -5,7 +5,7 @@
 always`` and ``--backoff=S`` for its restart policy; ``install -m1 sysfile`` loads a satellite, a
 second time reloads it), ``setpri -# srctsk dsttsk``, ``resetpri tsk`` / ``resetpri srctsk
 dsttsk``, ``invoke [-#] tsk [key=value...]``, plus ``suspend``, ``resume``, ``close``, ``reset``,
-``inject`` and ``map``.
+``inject``, ``axis`` (the commands of a CiA 402 axis) and ``map``.
 Parsing is pure: it returns a request record and raises CommandSyntaxError naming the command,
 the word and what was expected.
 """
@@ -111,7 +111,23 @@ class ShowMap:
     """Print the system map."""
 
 
-Request = Install | Boot | SetPri | ResetPri | Invoke | TaskOp | Inject | ShowMap
+#: ``axis NAME WORD``: the operator's commands of a CiA 402 axis (``status`` when no word)
+AXIS_WORDS = ("status", "enable", "disable", "quick-stop", "fault-reset", "safe-stop",
+              "set-mode", "home")
+
+
+@dataclass(frozen=True)
+class AxisCmd:
+    """``axis NAME [WORD [MODE]]``: command CiA 402 axis ``device`` (``word``, one of
+    :data:`AXIS_WORDS`; ``mode`` only for set-mode: a mode name or number, "" for the map's),
+    or show what its drive last confirmed."""
+
+    device: str
+    word: str = "status"
+    mode: str = ""
+
+
+Request = Install | Boot | SetPri | ResetPri | Invoke | TaskOp | Inject | ShowMap | AxisCmd
 
 
 def _int(cmd: str, word: str, what: str, lo: int = 0, hi: int | None = None) -> int:
@@ -413,6 +429,28 @@ def parse(line: str | list[str]) -> Request | None:
         return Inject(args[0], parse_value(" ".join(args[1:]), f"inject {args[0]}"))
     if cmd == "map":
         return ShowMap()
+    if cmd == "axis":
+        return _axis(args)
     raise CommandSyntaxError(
         f"unknown command {cmd!r} (expected install, setpri, resetpri, invoke, suspend, "
-        "resume, close, reset, inject or map)")
+        "resume, close, reset, inject, axis or map)")
+
+
+def _axis(args: list[str]) -> AxisCmd:
+    if not args:
+        raise CommandSyntaxError(f"axis: no axis given (expected axis NAME "
+                                 f"[{'|'.join(AXIS_WORDS)}])")
+    device, rest = args[0], args[1:]
+    word = rest[0] if rest else "status"
+    if word not in AXIS_WORDS:
+        raise CommandSyntaxError(f"axis {device}: unknown command {word!r}; expected one of "
+                                 f"{', '.join(AXIS_WORDS)}")
+    if word == "set-mode":
+        if len(rest) > 2:
+            raise CommandSyntaxError(f"axis {device} set-mode: expected at most one mode, got "
+                                     f"{' '.join(rest[1:])}")
+        return AxisCmd(device, word, rest[1] if len(rest) == 2 else "")
+    if len(rest) > 1:
+        raise CommandSyntaxError(f"axis {device} {word}: takes no argument, got "
+                                 f"{' '.join(rest[1:])}")
+    return AxisCmd(device, word)

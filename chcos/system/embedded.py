@@ -146,7 +146,26 @@ class System:
         req = cmdline.parse(line) if isinstance(line, str) else line
         if req is None:
             return ""
+        if isinstance(req, cmdline.AxisCmd):
+            return self._axis(req)
         return self.call(self.sysmgr.execute, req)
+
+    def _axis(self, req: cmdline.AxisCmd) -> str:
+        """The host's ``axis`` command (:func:`chcos.user.axes.operator_command`): waits here
+        for the drive's confirmation, on this thread, while the kernel goes on. Raises
+        KernelError when called on the kernel's own thread (it would wait for itself)."""
+        from chcos.user.axes import OPERATOR_SLICE, operator_command
+
+        kernel = self.kernel
+        if kernel.running and kernel.on_kernel_thread():
+            raise KernelError(f"axis {req.device}: an axis command waits for the drive and "
+                              "cannot be given from the kernel's thread (a task uses ctx.axis)")
+
+        def pump() -> None:     # a kernel nobody runs: run a slice of its time
+            if not kernel.running:
+                self.run_for(OPERATOR_SLICE)
+
+        return operator_command(self.devtab, req.device, req.word, req.mode, pump)
 
     def call(self, fn: Callable[..., T], *args: Any) -> T:
         """Run ``fn(*args)`` on the kernel thread (between task steps) and return its result,

@@ -478,9 +478,43 @@ class Result:
         sw = "none" if self.statusword is None else f"0x{self.statusword:04X}"
         ec = "unknown" if self.error_code is None else f"0x{self.error_code:04X}"
         state = "no statusword" if self.state is None else self.state.name
-        verdict = "done" if self.ok else f"failed: {self.reason}"
+        verdict = ("done" + (f": {self.reason}" if self.reason else "")) if self.ok \
+            else f"failed: {self.reason}"
         return (f"{self.op.value} {verdict} (state {state}, statusword {sw}, 0x603F {ec}, "
                 f"after {self.elapsed:.3f} s)")
+
+
+def result_doc(result: Result) -> dict[str, Any]:
+    """``result`` as a JSON object (for the satellite link: an axis hosted elsewhere)."""
+    return {"op": result.op.value, "ok": result.ok,
+            "state": None if result.state is None else result.state.name,
+            "statusword": result.statusword, "error_code": result.error_code,
+            "mode_display": result.mode_display, "reason": result.reason,
+            "elapsed": result.elapsed}
+
+
+def result_from_doc(doc: Mapping[str, Any]) -> Result:
+    """The :class:`Result` a :func:`result_doc` object carries. Raises :class:`Cia402Error`
+    naming the field that is missing or not what it should be."""
+    def optional_int(key: str) -> int | None:
+        value = doc.get(key)
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int)):
+            raise Cia402Error(f"axis result: {key!r}: expected a whole number or null, got "
+                              f"{value!r:.40}")
+        return value
+
+    try:
+        op = Op(doc.get("op"))
+        state = None if doc.get("state") is None else State[str(doc.get("state"))]
+    except (ValueError, KeyError) as exc:
+        raise Cia402Error(f"axis result: unknown command or state: {exc}") from None
+    ok, reason, elapsed = doc.get("ok"), doc.get("reason"), doc.get("elapsed")
+    if not isinstance(ok, bool) or not isinstance(reason, str) \
+            or isinstance(elapsed, bool) or not isinstance(elapsed, (int, float)):
+        raise Cia402Error(f"axis result: expected ok (true/false), reason (a text) and elapsed "
+                          f"(seconds), got {dict(doc)!r:.120}")
+    return Result(op, ok, state, optional_int("statusword"), optional_int("error_code"),
+                  optional_int("mode_display"), reason, float(elapsed))
 
 
 @dataclass(frozen=True)
@@ -689,7 +723,10 @@ class Axis:
         """The axis's safe action (:attr:`AxisConfig.safe_stop`) as a sequence: by default
         quick stop, wait until stopped, then disable voltage; done in SWITCH_ON_DISABLED (in
         QUICK_STOP_ACTIVE for :attr:`SafeStop.QUICK_STOP` with 0x605A 5..8). Not stopped in
-        time: voltage disabled anyway and the command fails. Targets are left alone."""
+        time: voltage disabled anyway and the command fails. Targets are left alone. A drive
+        in FAULT is sent nothing: its drive function is disabled (no torque), so the safe stop
+        is done as it is, the reason naming 0x603F; a drive in FAULT_REACTION_ACTIVE is waited
+        for until it shows FAULT (within the timeout). Never a fault reset, never an enable."""
         return self._start(_Job(Op.SAFE_STOP, now, now + self.config.timeouts.safe_stop), now)
 
     # -- limits ------------------------------------------------------------------------------
@@ -805,6 +842,9 @@ class Axis:
         if job is None:
             return
         state = self.state
+        if job.op is Op.SAFE_STOP and state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+            self._safe_stop_faulted(out, now, job, state)
+            return
         if (state in (State.FAULT, State.FAULT_REACTION_ACTIVE)
                 and job.op is not Op.FAULT_RESET):
             if self._fault_code_ready(now):
@@ -933,6 +973,25 @@ class Axis:
                 self._finish(out, now, True)
             else:
                 self._send_cw(out, now, Command.DISABLE_VOLTAGE.controlword)
+
+    def _safe_stop_faulted(self, out: _Out, now: float, job: _Job, state: State) -> None:
+        """The safe stop of a drive in a fault: nothing is sent (a controlword cannot leave
+        FAULT but by a fault reset, and a reset would let a task enable it again). In FAULT the
+        drive function is disabled (CiA 402: power stage off, no torque): the safe outcome is
+        reached, and said so with 0x603F. In FAULT_REACTION_ACTIVE the drive is still braking
+        by its own reaction: wait until it shows FAULT, within the safe stop's timeout."""
+        if state is State.FAULT_REACTION_ACTIVE:
+            if now >= job.deadline:
+                self._finish(out, now, False, f"still in FAULT_REACTION_ACTIVE after "
+                             f"{job.deadline - job.started} s (the drive's own fault reaction "
+                             f"did not end)")
+            return
+        if not self._fault_code_ready(now):
+            return      # 0x603F is on its way (or its wait ends): the result names it
+        code = self._fresh_error_code()
+        ec = "unknown" if code is None else f"0x{code:04X}"
+        self._finish(out, now, True, f"the drive is in FAULT (0x603F {ec}): drive function "
+                     f"disabled, no torque; left in FAULT, nothing sent")
 
     def _set_mode(self, out: _Out, now: float, job: _Job) -> None:
         assert job.mode is not None

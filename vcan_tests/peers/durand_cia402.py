@@ -61,19 +61,33 @@ class DurandCia402Drive:
     ``refused_modes``: modes of operation it ignores (0x6061 keeps its value).
     ``quick_stop_option``: 0x605A at power-on. Thread-safe: the durand notifier thread applies
     frames, the test calls :meth:`step` and the injections.
+
+    ``axis``/``host``: axis ``axis`` of a multi-axis drive, its objects 0x800 per axis above
+    axis 0's, on the node (bus, lock) of ``host`` (its axis 0), with its own state machine; the
+    indices this class takes (:meth:`read`) are axis 0's, the offset added. ``pdos``: map the
+    single-axis drive's PDOs (a multi-axis drive maps its own, see durand_cia402_multi).
     """
 
     def __init__(self, channel: str, node_id: int = 5, *, quick_stop_option: int = 2,
                  refused_modes: tuple[int, ...] = (HM,),
                  supported_modes: tuple[int, ...] = (PP, PV, HM, CSP, CSV),
                  profile_velocity: int = 10_000, quick_stop_deceleration: int = 50_000,
-                 following_error_window: int = 5_000) -> None:
+                 following_error_window: int = 5_000, axis: int = 0,
+                 host: DurandCia402Drive | None = None, pdos: bool = True) -> None:
         self.node_id = node_id
-        self.lock = threading.RLock()
-        self.changed = threading.Condition(self.lock)
-        self.bus: Any = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
-        self.network = _Network(self.bus)
-        self.node: Any = MinimalNode(self.network, node_id)
+        self.axis = axis
+        self.base = 0x800 * axis
+        self.owner = host is None
+        if host is None:
+            self.lock = threading.RLock()
+            self.changed = threading.Condition(self.lock)
+            self.bus: Any = can.Bus(interface="virtual", channel=channel,
+                                    receive_own_messages=False)
+            self.network = _Network(self.bus)
+            self.node: Any = MinimalNode(self.network, node_id)
+        else:
+            self.lock, self.changed = host.lock, host.changed
+            self.bus, self.network, self.node = host.bus, host.network, host.node
         self.refused_modes = refused_modes
         self.supported_modes = supported_modes
         #: every controlword received (RPDO or SDO), in order
@@ -109,35 +123,39 @@ class DurandCia402Drive:
                 (0x6085, DT.UNSIGNED32, "rw", quick_stop_deceleration, "Quick stop decel."),
                 (0x6065, DT.UNSIGNED32, "rw", following_error_window, "Following error window"),
         ):
-            od[index] = Variable(dtype, access, value, name=name)
-        od.download_callbacks[(0x6040, 0)].add(self._on_controlword)
-        od.download_callbacks[(0x6060, 0)].add(self._on_mode)
-        rpdo_maps: tuple[list[tuple[int, int]], ...] = (
-            [(0x6040, 0)], [(0x6040, 0), (0x6060, 0)], [(0x6040, 0), (0x607A, 0)],
-            [(0x6040, 0), (0x60FF, 0)])
-        for n, mapping in enumerate(rpdo_maps):
-            self.node.rpdo[n].mapping = mapping
-        self.node.tpdo[0].mapping = [(0x6041, 0), (0x6061, 0), (0x603F, 0)]
-        self.node.tpdo[1].mapping = [(0x6064, 0), (0x606C, 0)]
+            od[index + self.base] = Variable(dtype, access, value, name=name)
+        od.download_callbacks[(0x6040 + self.base, 0)].add(self._on_controlword)
+        od.download_callbacks[(0x6060 + self.base, 0)].add(self._on_mode)
+        if pdos:
+            rpdo_maps: tuple[list[tuple[int, int]], ...] = (
+                [(0x6040, 0)], [(0x6040, 0), (0x6060, 0)], [(0x6040, 0), (0x607A, 0)],
+                [(0x6040, 0), (0x60FF, 0)])
+            for n, mapping in enumerate(rpdo_maps):
+                self.node.rpdo[n].mapping = mapping
+            self.node.tpdo[0].mapping = [(0x6041, 0), (0x6061, 0), (0x603F, 0)]
+            self.node.tpdo[1].mapping = [(0x6064, 0), (0x606C, 0)]
         # the drive finishes its power-on self test by itself (transition 1)
         with self.lock:
             self._go(SOD)
             self._publish()
 
     def close(self) -> None:
-        """Stop the notifier and close the bus."""
-        self.network.stop()
-        self.bus.shutdown()
+        """Stop the notifier and close the bus (the owner of the node: axis 0)."""
+        if self.owner:
+            self.network.stop()
+            self.bus.shutdown()
 
     # -- the object dictionary, as the drive sees it -----------------------------------------
 
     def read(self, index: int) -> Any:
-        """The value of object ``index`` (sub-index 0)."""
+        """The value of object ``index`` (sub-index 0; axis 0's index, this axis's offset
+        added)."""
         with self.lock:
-            return self.node.object_dictionary.read(index, 0)
+            return self.node.object_dictionary.read(index + self.base, 0)
 
     def _write(self, index: int, value: int) -> None:
         od = self.node.object_dictionary
+        index += self.base
         if od.read(index, 0) != value:
             od.write(index, 0, value)
 
@@ -238,7 +256,9 @@ class DurandCia402Drive:
 
     def _on_mode(self, mode: int) -> None:
         with self.lock:
-            if mode in self.supported_modes and mode not in self.refused_modes:
+            # a mode written again (an RPDO carrying it with a controlword) changes nothing
+            if mode in self.supported_modes and mode not in self.refused_modes \
+                    and mode != self.read(0x6061):
                 self._write(0x6061, mode)
                 self.setpoint = self.position
             self._publish()
