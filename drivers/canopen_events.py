@@ -185,7 +185,9 @@ class NodeEvents:
                 s.lost = late > s.heartbeat_timeout
                 if s.lost:
                     s.starting = False
+                    s.lifecycle.heartbeat_lost()
             if s.lost:
+                self.host.stat(self.bus, "heartbeat-losses")
                 self.fail_node(s, "heartbeat", f"{self.where(s)}: no heartbeat for more "
                                                 f"than heartbeat_timeout {s.heartbeat_timeout} s")
             else:
@@ -310,7 +312,7 @@ class NodeEvents:
     def on_emcy(self, node: ManagedNode, entry: Any) -> None:
         text = f"{self.where(node)}: EMCY {entry} register 0x{entry.register:02X}"
         with node.lock:
-            node.lifecycle.last_emcy = f"{entry} register 0x{entry.register:02X}"
+            node.lifecycle.emcy(f"{entry} register 0x{entry.register:02X}")
         self.host.error(self.bus, "emcy", text)
         if is_error_reset(entry.code):
             self.clear_node(node, "emcy", f"canopen node {node.id}: error-reset EMCY")

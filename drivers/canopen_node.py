@@ -218,13 +218,14 @@ class CanopenDriver(WorkerJobDriver):
 
     def status_doc(self) -> dict[str, Any]:
         """Each node's lifecycle (``nodes``: state name, ready, confirmed, NMT state of its
-        last heartbeat, boot-ups seen, NMT starts sent, 0x1001, last EMCY, the reason it is
-        not ready, whether its heartbeat is lost now) and the SYNC cycle's counters and jitter
-        (``sync``, while it runs; with ``late_writes``: RPDO answers to cycle n that went out
-        after SYNC n+1). Thread-safe."""
+        last heartbeat, boot-ups seen, NMT starts sent, heartbeat losses, EMCYs received,
+        0x1001, last EMCY, the reason it is not ready, whether its heartbeat is lost now) and
+        the SYNC cycle's counters and jitter (``sync``, while it runs; with ``late_writes``:
+        RPDO answers to cycle n that went out after SYNC n+1). Thread-safe."""
         nodes = [{"node": st.node, "state": st.lifecycle.name, "ready": st.ready,
                   "confirmed": st.confirmed, "nmt": None if st.nmt is None else st.nmt.name,
                   "boots": st.boots, "nmt_starts": st.nmt_starts,
+                  "heartbeat_losses": st.heartbeat_losses, "emcys": st.emcys,
                   "error_register": st.error_register, "last_emcy": st.last_emcy,
                   "reason": st.reason, "heartbeat_lost": self._nodes[nid].lost}
                  for nid, st in sorted(self.node_states().items())]

@@ -9,7 +9,9 @@ period jitter (|interval - period|) as p50/p99/max over the last :data:`WINDOW` 
 TPDO of it arrived) or give up after a timeout; :meth:`SyncCycle.watch` tells each cycle's
 outcome once, in order, as soon as it is known (tasks wait through it: :mod:`chcos.user.cycles`).
 A TPDO of transmission type k (1..240) is due every k-th SYNC; its phase is learned from its
-first arrival.
+first arrival. A TPDO of transmission type 0 (acyclic synchronous) is sent after a SYNC only when
+its data changed, so it is never due: each one received in cycle n is counted (``acyclic``), it
+never counts as missing and never holds a cycle's completeness back.
 
 Two producers: on SocketCAN the kernel's broadcast manager sends SYNC (a cyclic job, no Python
 thread between two SYNCs) and the driver's reader sees each one come back with its kernel time
@@ -43,6 +45,8 @@ class SyncStats:
     jitter_p50: float
     jitter_p99: float
     jitter_max: float
+    #: acyclic synchronous TPDOs (transmission type 0) received, each in the cycle it came in
+    acyclic: int = 0
 
 
 @dataclass
@@ -76,6 +80,9 @@ class SyncCycle:
         self._running = False
         self._thread: threading.Thread | None = None
         self._due: dict[int, _Due] = {}          # COB-ID -> its schedule
+        #: acyclic synchronous TPDOs (type 0): COB-ID -> the last cycle one arrived in
+        self._acyclic: dict[int, int] = {}
+        self._acyclic_count = 0
         self.cycle = 0                           # the number of the last SYNC sent
         self._complete = 0
         self._missing = 0
@@ -89,9 +96,13 @@ class SyncCycle:
         self._told_upto = 0
 
     def expect(self, cob_id: int, transmission_type: int) -> None:
-        """A synchronous TPDO (type 1..240) the cycle collects; call before :meth:`start`."""
+        """A synchronous TPDO the cycle collects: type 1..240 is due every k-th cycle, type 0
+        (acyclic synchronous) is counted when it comes and never due; other types are not the
+        cycle's. Call before :meth:`start`."""
         if 1 <= transmission_type <= 240:
             self._due[cob_id] = _Due(transmission_type)
+        elif transmission_type == 0:
+            self._acyclic[cob_id] = -1
 
     def watch(self, fn: Callable[[int, bool], None]) -> Callable[[], None]:
         """Call ``fn(n, complete)`` once per cycle from now on, as soon as its outcome is
@@ -193,6 +204,10 @@ class SyncCycle:
         """A TPDO arrived (reader thread): counted for the current cycle if it is synchronous."""
         d = self._due.get(cob_id)
         if d is None:
+            if cob_id in self._acyclic:
+                with self._cond:
+                    self._acyclic[cob_id] = self.cycle
+                    self._acyclic_count += 1
             return
         with self._cond:
             cycle = self.cycle
@@ -205,6 +220,13 @@ class SyncCycle:
                 if self._watchers and cycle > self._told_upto:
                     self._tell(cycle, True)
             self._cond.notify_all()
+
+    def acyclic_in(self, cob_id: int) -> int | None:
+        """The cycle the last acyclic synchronous TPDO ``cob_id`` arrived in (None: none yet,
+        or not a type-0 TPDO of this cycle)."""
+        with self._cond:
+            n = self._acyclic.get(cob_id, -1)
+            return None if n < 0 else n
 
     def wait_cycle(self, n: int, timeout: float) -> bool:
         """Wait until cycle ``n`` is complete (every synchronous TPDO due in it arrived): True,
@@ -223,4 +245,5 @@ class SyncCycle:
         with self._cond:
             values = sorted(self._jitter)
             return SyncStats(self.period, self.cycle, self._complete, self._missing, self._late,
-                             percentile(values, 0.5), percentile(values, 0.99), self._jitter_max)
+                             percentile(values, 0.5), percentile(values, 0.99), self._jitter_max,
+                             self._acyclic_count)
