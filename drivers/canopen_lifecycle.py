@@ -64,7 +64,8 @@ class NodeStatus:
     its last heartbeat (None before any); ``boots`` boot-up messages seen; ``nmt_starts`` NMT start
     commands sent; ``heartbeat_losses`` times its heartbeat was declared lost (a loss that lasts
     counts once, each new one after its heartbeat came back once more); ``emcys`` EMCY messages
-    received; ``error_register`` 0x1001 as last read (None if never read); ``last_emcy`` the
+    received; ``stores`` configurations stored in the node (``store_config``: 0x1010
+    answered); ``error_register`` 0x1001 as last read (None if never read); ``last_emcy`` the
     text of the last EMCY; ``reason`` why it is not ready ("" when it is)."""
 
     node: int
@@ -79,6 +80,7 @@ class NodeStatus:
     reason: str
     heartbeat_losses: int = 0
     emcys: int = 0
+    stores: int = 0
 
 
 class Lifecycle:
@@ -99,6 +101,8 @@ class Lifecycle:
         #: heartbeat losses declared (see :meth:`heartbeat_lost`) and EMCYs received
         self.heartbeat_losses = 0
         self.emcys = 0
+        #: configurations stored in the node (0x1010 "save" answered)
+        self.stores = 0
         #: the boot the current procedure belongs to (a reboot meanwhile makes it stale)
         self.generation = 0
         self.error_register: int | None = None
@@ -193,4 +197,4 @@ class Lifecycle:
         return NodeStatus(self.node, self.state, self.ready(), self.confirmed, self.nmt,
                           self.boots, self.nmt_starts, self.error_register, self.last_emcy,
                           "" if self.ready() else self.reason, self.heartbeat_losses,
-                          self.emcys)
+                          self.emcys, self.stores)

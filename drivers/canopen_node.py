@@ -4,11 +4,11 @@ Bus options (``[[bus]] kind = "canopen"``):
 
 * ``interface``, ``channel``, ``bitrate`` - the python-can bus; any left out comes from python-can's
   own configuration (``can.util.load_config``: ``CAN_INTERFACE``, ``CAN_CHANNEL``, config files).
-* ``nodes = [{id, eds, heartbeat_timeout, nmt_start, identity, config}]`` - node id 1..127, the
-  node's EDS file (absolute, or relative to the device-map file), heartbeat timeout in seconds
-  (optional: no heartbeat supervision), whether the driver puts the node OPERATIONAL (default
-  true), the identity 0x1018 it must have and the configuration downloaded at each boot
-  (:mod:`drivers.canopen_config`).
+* ``nodes = [{id, eds, heartbeat_timeout, nmt_start, identity, config, store_config}]`` - node
+  id 1..127, the node's EDS file (absolute, or relative to the device-map file), heartbeat
+  timeout in seconds (optional: no heartbeat supervision), whether the driver puts the node
+  OPERATIONAL (default true), the identity 0x1018 it must have, the configuration downloaded at
+  each boot and whether it is then stored in the node (0x1010; :mod:`drivers.canopen_config`).
 * ``sync_period`` (s, optional) - produce SYNC at this period; ``poll_period`` (s, default 0.1) -
   default SDO polling period; ``sdo_timeout`` (s, default 0.3) - SDO response timeout.
 * ``master_heartbeat_ms`` (optional) - produce the master's heartbeat (COB-ID 0x700 +
@@ -219,13 +219,15 @@ class CanopenDriver(WorkerJobDriver):
     def status_doc(self) -> dict[str, Any]:
         """Each node's lifecycle (``nodes``: state name, ready, confirmed, NMT state of its
         last heartbeat, boot-ups seen, NMT starts sent, heartbeat losses, EMCYs received,
-        0x1001, last EMCY, the reason it is not ready, whether its heartbeat is lost now) and
-        the SYNC cycle's counters and jitter (``sync``, while it runs; with ``late_writes``:
-        RPDO answers to cycle n that went out after SYNC n+1). Thread-safe."""
+        configurations stored (``store_config``), 0x1001, last EMCY, the reason it is not
+        ready, whether its heartbeat is lost now) and the SYNC cycle's counters and jitter
+        (``sync``, while it runs; with ``late_writes``: RPDO answers to cycle n that went out
+        after SYNC n+1). Thread-safe."""
         nodes = [{"node": st.node, "state": st.lifecycle.name, "ready": st.ready,
                   "confirmed": st.confirmed, "nmt": None if st.nmt is None else st.nmt.name,
                   "boots": st.boots, "nmt_starts": st.nmt_starts,
                   "heartbeat_losses": st.heartbeat_losses, "emcys": st.emcys,
+                  "config_stores": st.stores,
                   "error_register": st.error_register, "last_emcy": st.last_emcy,
                   "reason": st.reason, "heartbeat_lost": self._nodes[nid].lost}
                  for nid, st in sorted(self.node_states().items())]
@@ -733,6 +735,8 @@ class CanopenDriver(WorkerJobDriver):
                     node.starting = False
                 case BootOutcome.CONFIGURED:
                     lc.error_register = result.error_register
+                    if result.stored:
+                        lc.stores += 1
                     lc.configured()
                     if lc.nmt_start:
                         lc.started()
