@@ -439,13 +439,13 @@ class CanopenDriver(WorkerJobDriver):
             except (can.CanError, OSError, NotImplementedError) as exc:
                 error(f"cannot start the SYNC producer: {exc}")
             else:
-                self._events.pace_sync = self._sync_pacing(self._sync_task, frame, period,
+                self._events.pace_sync = self._sync_pacing(self._sync_task, frame, sync,
                                                            error)
             sync.start(produce=False)
         else:
             sync.start()
 
-    def _sync_pacing(self, task: Any, frame: can.Message, period: float,
+    def _sync_pacing(self, task: Any, frame: can.Message, sync: SyncCycle,
                      error: Callable[[str], None]) -> Callable[[float], None] | None:
         """What the reader calls with each SYNC's wire time to keep the broadcast manager's
         cyclic job on its absolute schedule (:class:`drivers.canopen_sync.SyncPacer`): when a
@@ -458,7 +458,8 @@ class CanopenDriver(WorkerJobDriver):
         from can.interfaces.socketcan import constants as bcm
         from can.interfaces.socketcan.socketcan import build_bcm_header, build_can_frame
 
-        pacer = SyncPacer(period)
+        period = sync.period
+        pacer = sync.pacer = SyncPacer(period)
         body = build_can_frame(frame)
         every_s, every_us = int(period), round((period - int(period)) * 1e6)
 

@@ -100,6 +100,10 @@ class SyncStats:
     jitter_max: float
     #: acyclic synchronous TPDOs (transmission type 0) received, each in the cycle it came in
     acyclic: int = 0
+    #: SYNCs the pacing asked for early after a late one, and cycles given up when it started
+    #: the schedule again after a stall (:class:`SyncPacer`; 0 without pacing)
+    paced: int = 0
+    resynced: int = 0
 
 
 @dataclass
@@ -147,6 +151,8 @@ class SyncCycle:
         #: who is told each cycle's outcome (:meth:`watch`), and the highest cycle told
         self._watchers: list[Callable[[int, bool], None]] = []
         self._told_upto = 0
+        #: the pacing of the kernel's producer, if any (its counters go into :meth:`stats`)
+        self.pacer: SyncPacer | None = None
 
     def expect(self, cob_id: int, transmission_type: int) -> None:
         """A synchronous TPDO the cycle collects: type 1..240 is due every k-th cycle, type 0
@@ -297,6 +303,8 @@ class SyncCycle:
     def stats(self) -> SyncStats:
         with self._cond:
             values = sorted(self._jitter)
+            pacer = self.pacer
             return SyncStats(self.period, self.cycle, self._complete, self._missing, self._late,
                              percentile(values, 0.5), percentile(values, 0.99), self._jitter_max,
-                             self._acyclic_count)
+                             self._acyclic_count, pacer.paced if pacer else 0,
+                             pacer.resynced if pacer else 0)

@@ -394,6 +394,8 @@ def chcos(exe: Path, channel: str, rate: int, seconds: float, eds: Path) -> Figu
     assert first is not None and last is not None
     cpu = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
     syncs, tpdos, gaps, missing, drops = obs.counts
+    print(f"  (chcos paced {last.paced - first.paced} SYNCs after late ones, gave up "
+          f"{last.resynced - first.resynced} cycles after stalls over 1 s)")
     return Figure(f"chcos: {PRODUCER}", rate,
                   last.cycles - first.cycles, last.late - first.late,
                   last.missing - first.missing, last.jitter_p50 * 1e6, last.jitter_p99 * 1e6,
