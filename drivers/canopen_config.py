@@ -17,6 +17,14 @@ Node keys (beside ``id``, ``eds``, ``heartbeat_timeout``, ``nmt_start``)::
              event_timer_ms = 0, enabled = true, map = [[0x6040, 0], [0x6060, 0, 8]]}]
     sdo = [{index = 0x6007, subindex = 0, value = 3}]
 
+Beside ``config``, ``store_config = true`` (or the sub-index of 0x1010 to use: 1 all parameters,
+2 communication, 3 application, 4..127 manufacturer-specific) makes the boot procedure, once every
+write was read back, send the "save" signature to the store parameters object 0x1010 (confirmed
+by the node's SDO answer; an abort refuses the configuration). The store is skipped when the node
+already held every configured value before the download (it came up with its stored
+configuration): a node's flash is not written at every boot. Off by default: use it when
+commissioning.
+
 A PDO entry downloads only the keys it gives; ``map`` entries are ``[index, subindex]`` or
 ``[index, subindex, bits]`` (bits default to the object's data type size). ``cob_id`` defaults
 to the EDS's. The driver's own view of the PDOs (which object rides which PDO) follows the
@@ -43,6 +51,10 @@ SDO_KEYS = ("index", "subindex", "value")
 PDO_NAME = re.compile(r"^(rpdo|tpdo)([1-9][0-9]{0,2})$")
 COB_DISABLED = 0x8000_0000   # COB-ID bit 31: PDO not valid
 COB_NO_RTR = 0x4000_0000     # COB-ID bit 30: no RTR (some nodes set it themselves)
+#: the store parameters object and the "save" signature written to it (CiA 301 7.5.2.13: the
+#: characters s, a, v, e as an UNSIGNED32, little-endian)
+STORE_INDEX = 0x1010
+SAVE_SIGNATURE = 0x65766173
 
 #: the size in bits of the standard objects the configuration writes
 U8, U16, U32 = 8, 16, 32
@@ -117,6 +129,18 @@ class NodeConfig:
     error_behaviour: int | None = None
     pdos: tuple[PdoConfig, ...] = ()
     sdo: tuple[tuple[int, int, int | float], ...] = ()
+    #: the sub-index of 0x1010 the configuration is stored with after the download (None: not
+    #: stored; the node key ``store_config``)
+    store_sub: int | None = None
+
+    def store(self) -> SdoWrite | None:
+        """The write that stores the configuration in the node (None without
+        ``store_config``): the "save" signature to 0x1010, not read back (reading 0x1010 gives
+        the node's storage capabilities, not the signature)."""
+        if self.store_sub is None:
+            return None
+        return SdoWrite(STORE_INDEX, self.store_sub, SAVE_SIGNATURE, U32,
+                        "store parameters (\"save\")", read_back=False)
 
     def writes(self, od: Any, node_id: int, master_id: int) -> list[SdoWrite]:
         """The SDO writes of a boot, in order: heartbeat producer, master consumer, error
@@ -205,7 +229,18 @@ def parse(node: Mapping[str, Any]) -> NodeConfig:
     sdo = tuple((int(w["index"]), int(w.get("subindex", 0)), w["value"])
                 for w in cfg.get("sdo", ()))
     return NodeConfig(identity, cfg.get("heartbeat_producer_ms"), cfg.get("master_consumer_ms"),
-                      cfg.get("error_behaviour"), tuple(pdos), sdo)
+                      cfg.get("error_behaviour"), tuple(pdos), sdo, store_sub(node))
+
+
+def store_sub(node: Mapping[str, Any]) -> int | None:
+    """The 0x1010 sub-index of a node entry's ``store_config`` that :func:`check` accepted
+    (``true`` is 1, all parameters; ``false`` or absent: None)."""
+    value = node.get("store_config", False)
+    if value is True:
+        return 1
+    if value is False:
+        return None
+    return int(value)
 
 
 def with_bits(cfg: NodeConfig, od: Any) -> NodeConfig:
@@ -225,7 +260,7 @@ def with_bits(cfg: NodeConfig, od: Any) -> NodeConfig:
         pdos.append(PdoConfig(p.kind, p.number, p.cob_id, p.enabled, p.transmission_type,
                               p.inhibit_100us, p.event_timer_ms, tuple(entries)))
     return NodeConfig(cfg.identity, cfg.heartbeat_producer_ms, cfg.master_consumer_ms,
-                      cfg.error_behaviour, tuple(pdos), cfg.sdo)
+                      cfg.error_behaviour, tuple(pdos), cfg.sdo, cfg.store_sub)
 
 
 def _uint(value: object, bits: int) -> bool:
@@ -253,6 +288,7 @@ def check(k: str, node: Mapping[str, Any], od: Any | None, master_ms: float | No
                 if not _uint(ident.get(key), 32):
                     errs.append(f"{k}.identity.{key}: expected an UNSIGNED32 (0x1018), got "
                                 f"{ident.get(key)!r}")
+    errs += check_store(k, node, od)
     cfg = node.get("config")
     if cfg is None:
         return errs
@@ -299,6 +335,31 @@ def check(k: str, node: Mapping[str, Any], od: Any | None, master_ms: float | No
     for i, w in enumerate(sdo):
         errs += _check_sdo(f"{kc}.sdo[{i}]", w, od)
     return errs
+
+
+def check_store(k: str, node: Mapping[str, Any], od: Any | None) -> list[str]:
+    """Errors of node entry ``k``'s ``store_config``: true, false or a sub-index 1..127 of
+    0x1010 that the node's EDS (``od``, None if unreadable) has."""
+    if "store_config" not in node:
+        return []
+    value = node["store_config"]
+    if not (isinstance(value, bool) or (is_int(value) and 1 <= value <= 127)):
+        return [f"{k}.store_config: expected true, false or a sub-index of 0x1010 (1 all "
+                f"parameters, 2 communication, 3 application, 4..127 manufacturer), "
+                f"got {value!r}"]
+    sub = store_sub(node)
+    if sub is None or od is None:
+        return []
+    if STORE_INDEX not in od:
+        return [f"{k}.store_config: the node's EDS has no object 0x1010 (store parameters): "
+                f"the node cannot store its configuration; remove store_config"]
+    obj = od[STORE_INDEX]
+    subs = getattr(obj, "subindices", {})
+    highest = getattr(subs.get(0), "default", None)
+    if sub not in subs and not (isinstance(highest, int) and sub <= highest):
+        return [f"{k}.store_config: the node's EDS has no 0x1010:{sub:02X} (store parameters "
+                f"sub-index {sub})"]
+    return []
 
 
 def _check_pdo(k: str, p: object, od: Any | None, seen: set[str]) -> list[str]:

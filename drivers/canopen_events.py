@@ -68,6 +68,8 @@ class NodeEvents:
         self.sync: SyncCycle | None = None
         #: True when the kernel produces SYNC and the reader counts each one it sees
         self.observe_sync = False
+        #: in that mode, told each SYNC's wire time (keeps the kernel's producer on schedule)
+        self.pace_sync: Callable[[float], None] | None = None
         self._watchdog: HeartbeatWatchdog | None = None
         self._bus_failed = False
         #: frames handed to canopen's listeners, written by whoever receives (the reader, or a
@@ -185,7 +187,9 @@ class NodeEvents:
                 s.lost = late > s.heartbeat_timeout
                 if s.lost:
                     s.starting = False
+                    s.lifecycle.heartbeat_lost()
             if s.lost:
+                self.host.stat(self.bus, "heartbeat-losses")
                 self.fail_node(s, "heartbeat", f"{self.where(s)}: no heartbeat for more "
                                                 f"than heartbeat_timeout {s.heartbeat_timeout} s")
             else:
@@ -213,6 +217,9 @@ class NodeEvents:
             sync = self.sync
             if sync is not None:
                 sync.seen(frame.timestamp)
+            pace = self.pace_sync
+            if pace is not None:
+                pace(frame.timestamp)
             return
         network = self.network
         if network is None:
@@ -310,7 +317,7 @@ class NodeEvents:
     def on_emcy(self, node: ManagedNode, entry: Any) -> None:
         text = f"{self.where(node)}: EMCY {entry} register 0x{entry.register:02X}"
         with node.lock:
-            node.lifecycle.last_emcy = f"{entry} register 0x{entry.register:02X}"
+            node.lifecycle.emcy(f"{entry} register 0x{entry.register:02X}")
         self.host.error(self.bus, "emcy", text)
         if is_error_reset(entry.code):
             self.clear_node(node, "emcy", f"canopen node {node.id}: error-reset EMCY")

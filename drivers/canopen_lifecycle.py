@@ -62,7 +62,10 @@ class NodeStatus:
     devices may be OK); ``confirmed`` whether a heartbeat confirmed that state (False for a node
     without heartbeat, whose OPERATIONAL is assumed after the NMT start); ``nmt`` the NMT state of
     its last heartbeat (None before any); ``boots`` boot-up messages seen; ``nmt_starts`` NMT start
-    commands sent; ``error_register`` 0x1001 as last read (None if never read); ``last_emcy`` the
+    commands sent; ``heartbeat_losses`` times its heartbeat was declared lost (a loss that lasts
+    counts once, each new one after its heartbeat came back once more); ``emcys`` EMCY messages
+    received; ``stores`` configurations stored in the node (``store_config``: 0x1010
+    answered); ``error_register`` 0x1001 as last read (None if never read); ``last_emcy`` the
     text of the last EMCY; ``reason`` why it is not ready ("" when it is)."""
 
     node: int
@@ -75,6 +78,9 @@ class NodeStatus:
     error_register: int | None
     last_emcy: str
     reason: str
+    heartbeat_losses: int = 0
+    emcys: int = 0
+    stores: int = 0
 
 
 class Lifecycle:
@@ -92,6 +98,11 @@ class Lifecycle:
         self.confirmed = False
         self.boots = 0
         self.nmt_starts = 0
+        #: heartbeat losses declared (see :meth:`heartbeat_lost`) and EMCYs received
+        self.heartbeat_losses = 0
+        self.emcys = 0
+        #: configurations stored in the node (0x1010 "save" answered)
+        self.stores = 0
         #: the boot the current procedure belongs to (a reboot meanwhile makes it stale)
         self.generation = 0
         self.error_register: int | None = None
@@ -171,8 +182,19 @@ class Lifecycle:
             self.confirmed = False
             self.reason = f"stays {nmt.name.replace('_', '-')} after the NMT start"
 
+    def heartbeat_lost(self) -> None:
+        """The node's heartbeat was declared lost (once per loss: the owner calls it when
+        its supervision goes from alive to lost)."""
+        self.heartbeat_losses += 1
+
+    def emcy(self, text: str) -> None:
+        """An EMCY arrived (``text`` describes it)."""
+        self.emcys += 1
+        self.last_emcy = text
+
     def status(self) -> NodeStatus:
         """The published status."""
         return NodeStatus(self.node, self.state, self.ready(), self.confirmed, self.nmt,
                           self.boots, self.nmt_starts, self.error_register, self.last_emcy,
-                          "" if self.ready() else self.reason)
+                          "" if self.ready() else self.reason, self.heartbeat_losses,
+                          self.emcys, self.stores)

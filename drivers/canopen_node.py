@@ -6,11 +6,11 @@ Bus options (``[[bus]] kind = "canopen"``):
   own configuration (``can.util.load_config``: ``CAN_INTERFACE``, ``CAN_CHANNEL``, config files).
   ``port``: the UDP port of interface ``udp_multicast`` (``channel`` is its multicast group; a bus
   shared by processes on any machine, e.g. ``chcos sim --from`` beside ``chcos run``).
-* ``nodes = [{id, eds, heartbeat_timeout, nmt_start, identity, config}]`` - node id 1..127, the
-  node's EDS file (absolute, or relative to the device-map file), heartbeat timeout in seconds
-  (optional: no heartbeat supervision), whether the driver puts the node OPERATIONAL (default
-  true), the identity 0x1018 it must have and the configuration downloaded at each boot
-  (:mod:`drivers.canopen_config`).
+* ``nodes = [{id, eds, heartbeat_timeout, nmt_start, identity, config, store_config}]`` - node
+  id 1..127, the node's EDS file (absolute, or relative to the device-map file), heartbeat
+  timeout in seconds (optional: no heartbeat supervision), whether the driver puts the node
+  OPERATIONAL (default true), the identity 0x1018 it must have, the configuration downloaded at
+  each boot and whether it is then stored in the node (0x1010; :mod:`drivers.canopen_config`).
 * ``sync_period`` (s, optional) - produce SYNC at this period; ``poll_period`` (s, default 0.1) -
   default SDO polling period; ``sdo_timeout`` (s, default 0.3) - SDO response timeout.
 * ``master_heartbeat_ms`` (optional) - produce the master's heartbeat (COB-ID 0x700 +
@@ -107,7 +107,7 @@ from drivers.canopen_od import (
     value_error,
 )
 from drivers.canopen_remote import BootOutcome, ManagedNode, RpdoImages
-from drivers.canopen_sync import SYNC_COB_ID, SyncCycle, SyncStats
+from drivers.canopen_sync import SYNC_COB_ID, SyncCycle, SyncPacer, SyncStats
 from drivers.codecs.canopen import EMCY_BASE, HEARTBEAT_BASE
 from drivers.codecs.cia402 import Obj, Result, Write, config_from_table, mode_of
 from drivers.jobs import Job, WorkerJobDriver
@@ -124,6 +124,11 @@ IGNORES_RPDOS = (NodeLifecycle.PREOP_HELD, NodeLifecycle.FAILED, NodeLifecycle.W
 AXIS_CYCLE = 0.01
 #: the job op of the axes' cycle
 AXIS_POLL = "axis-poll"
+#: the shortest delay (s) the SYNC pacing asks of the broadcast manager (0 would stop its timer)
+MIN_BCM_DELAY = 1e-5
+#: a SYNC the reader takes more than this fraction of a period after its wire time does not
+#: re-arm the SYNC job (see :meth:`CanopenDriver._sync_pacing`)
+FRESH = 0.25
 
 
 @dataclass
@@ -220,13 +225,16 @@ class CanopenDriver(WorkerJobDriver):
 
     def status_doc(self) -> dict[str, Any]:
         """Each node's lifecycle (``nodes``: state name, ready, confirmed, NMT state of its
-        last heartbeat, boot-ups seen, NMT starts sent, 0x1001, last EMCY, the reason it is
-        not ready, whether its heartbeat is lost now) and the SYNC cycle's counters and jitter
+        last heartbeat, boot-ups seen, NMT starts sent, heartbeat losses, EMCYs received,
+        configurations stored (``store_config``), 0x1001, last EMCY, the reason it is not
+        ready, whether its heartbeat is lost now) and the SYNC cycle's counters and jitter
         (``sync``, while it runs; with ``late_writes``: RPDO answers to cycle n that went out
         after SYNC n+1). Thread-safe."""
         nodes = [{"node": st.node, "state": st.lifecycle.name, "ready": st.ready,
                   "confirmed": st.confirmed, "nmt": None if st.nmt is None else st.nmt.name,
                   "boots": st.boots, "nmt_starts": st.nmt_starts,
+                  "heartbeat_losses": st.heartbeat_losses, "emcys": st.emcys,
+                  "config_stores": st.stores,
                   "error_register": st.error_register, "last_emcy": st.last_emcy,
                   "reason": st.reason, "heartbeat_lost": self._nodes[nid].lost}
                  for nid, st in sorted(self.node_states().items())]
@@ -432,9 +440,50 @@ class CanopenDriver(WorkerJobDriver):
                 self._sync_task = bus.send_periodic(frame, period)
             except (can.CanError, OSError, NotImplementedError) as exc:
                 error(f"cannot start the SYNC producer: {exc}")
+            else:
+                self._events.pace_sync = self._sync_pacing(self._sync_task, frame, sync,
+                                                           error)
             sync.start(produce=False)
         else:
             sync.start()
+
+    def _sync_pacing(self, task: Any, frame: can.Message, sync: SyncCycle,
+                     error: Callable[[str], None]) -> Callable[[float], None] | None:
+        """What the reader calls with each SYNC's wire time to keep the broadcast manager's
+        cyclic job on its absolute schedule (:class:`drivers.canopen_sync.SyncPacer`): when a
+        SYNC was late, the job's next expiry is set to the next one's due time (a BCM
+        TX_SETUP: one frame after that delay, then every period). None if the task is not a
+        SocketCAN broadcast manager job."""
+        sock, task_id = getattr(task, "bcm_socket", None), getattr(task, "task_id", None)
+        if sock is None or task_id is None:
+            return None
+        from can.interfaces.socketcan import constants as bcm
+        from can.interfaces.socketcan.socketcan import build_bcm_header, build_can_frame
+
+        period = sync.period
+        pacer = sync.pacer = SyncPacer(period)
+        body = build_can_frame(frame)
+        every_s, every_us = int(period), round((period - int(period)) * 1e6)
+
+        def pace(at: float) -> None:
+            due = pacer.seen(at)
+            if due is None:
+                return
+            # socketcan stamps are wall-clock; a SYNC the reader takes late (a backlog) says
+            # nothing the job's timer does not already know: re-arming from it could send the
+            # next SYNC right after the one already on its way
+            now = time.time()
+            if now - at > period * FRESH:
+                return
+            delay = max(due - now, MIN_BCM_DELAY)
+            head = build_bcm_header(bcm.CAN_BCM_TX_SETUP, bcm.SETTIMER | bcm.STARTTIMER, 1,
+                                    int(delay), round((delay - int(delay)) * 1e6), every_s,
+                                    every_us, task_id, 1)
+            try:
+                sock.send(head + body)
+            except OSError as exc:   # the cyclic job goes on at its own pace
+                error(f"SYNC producer not paced: {exc}")
+        return pace
 
     def _bind_devices(self) -> None:
         default_poll = float(self.bus.options.get("poll_period", DEFAULT_POLL))
@@ -622,6 +671,7 @@ class CanopenDriver(WorkerJobDriver):
         self._running = False
         self._stop_worker()     # runs every job queued before: they go out first
         self._events.stop_watchdog()
+        self._events.pace_sync = None       # the reader asks the SYNC job for nothing more
         sync_task, self._sync_task = self._sync_task, None
         if sync_task is not None:
             with contextlib.suppress(Exception):
@@ -734,6 +784,8 @@ class CanopenDriver(WorkerJobDriver):
                     node.starting = False
                 case BootOutcome.CONFIGURED:
                     lc.error_register = result.error_register
+                    if result.stored:
+                        lc.stores += 1
                     lc.configured()
                     if lc.nmt_start:
                         lc.started()

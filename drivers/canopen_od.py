@@ -24,7 +24,8 @@ from drivers.codecs.canopen import eds_path
 
 BUS_OPTIONS = ("interface", "channel", "bitrate", "nodes", "sync_period", "poll_period",
                "sdo_timeout", "poll", "master_heartbeat_ms", "master_node_id", "port")
-NODE_KEYS = ("id", "eds", "heartbeat_timeout", "nmt_start", "identity", "config")
+NODE_KEYS = ("id", "eds", "heartbeat_timeout", "nmt_start", "identity", "config",
+             "store_config")
 #: the node id of the master's heartbeat (0x700 + id) unless the bus's ``master_node_id`` says
 #: otherwise: 127, the highest id, which slave nodes rarely use
 DEFAULT_MASTER_ID = 127

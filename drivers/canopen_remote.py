@@ -72,6 +72,9 @@ class BootResult:
     outcome: BootOutcome
     reason: str = ""
     error_register: int | None = None
+    #: with ``store_config``: True if the configuration was stored (0x1010 answered), False
+    #: if the node already held all of it (nothing to store); None without ``store_config``
+    stored: bool | None = None
 
 
 @dataclass
@@ -133,13 +136,46 @@ class ManagedNode:
             with self.lock:
                 self.lifecycle.identity_checked()
             error_register = self.read_error_register()
-            for w in self.config.writes(self.remote.object_dictionary, self.id, master_id):
+            writes = self.config.writes(self.remote.object_dictionary, self.id, master_id)
+            store = self.config.store()
+            # with store_config: whether the node already holds the configuration (it came up
+            # with it stored), asked before the download changes anything
+            held = store is not None and self._holds(writes)
+            for w in writes:
                 if (why := self._download(w)) is not None:
+                    return BootResult(BootOutcome.CONFIG_REFUSED, why, error_register)
+            stored: bool | None = None
+            if store is not None:
+                stored = not held
+                if stored and (why := self._download(store)) is not None:
                     return BootResult(BootOutcome.CONFIG_REFUSED, why, error_register)
             self._seed_images()
         except SdoCommunicationError as exc:
             return BootResult(BootOutcome.SILENT, f"no SDO answer: {exc}")
-        return BootResult(BootOutcome.CONFIGURED, "", error_register)
+        return BootResult(BootOutcome.CONFIGURED, "", error_register, stored)
+
+    def _holds(self, writes: list[SdoWrite]) -> bool:
+        """True if the node already holds the value each object ends with after ``writes``
+        (read by SDO; an object that cannot be read back, or refuses the upload, counts as not
+        held). Raises SdoCommunicationError if the node does not answer."""
+        final: dict[tuple[int, int], SdoWrite] = {}
+        for w in writes:
+            final[(w.index, w.subindex)] = w
+        for w in final.values():
+            if not w.read_back:
+                return False
+            try:
+                want = self._encode(w)
+                back = self.remote.sdo.upload(w.index, w.subindex)
+            except SdoAbortedError:
+                return False
+            except (struct.error, ValueError, TypeError, OverflowError):
+                return False        # the download reports it
+            mask = ~w.ignore_mask
+            if len(back) < len(want) or (int.from_bytes(back[:len(want)], "little") & mask
+                                         != int.from_bytes(want, "little") & mask):
+                return False
+        return True
 
     def _check_identity(self) -> str | None:
         ident = self.config.identity

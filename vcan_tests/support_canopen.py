@@ -44,10 +44,13 @@ def canopen_bus(channel: str, eds: Path, bus_opts: dict[str, Any] | None = None,
 @contextmanager
 def durand_rig(tmp_path: Path, devices: list[DeviceSpec], *, node_kw: dict[str, Any] | None = None,
                eds_defaults: dict[str, int] | None = None, bus_opts: dict[str, Any] | None = None,
-               start: bool = True, **node_opts: Any) -> Iterator[Rig]:
-    """Node first (it boots before the driver), then the observer, then the driver."""
+               start: bool = True, node_cls: type[DurandNode] = DurandNode,
+               **node_opts: Any) -> Iterator[Rig]:
+    """Node first (it boots before the driver), then the observer, then the driver;
+    ``node_cls`` the node's class (a :class:`DurandNode`, or one with more of CiA 301:
+    :mod:`vcan_tests.support_canopen_node`)."""
     channel = unique_channel("co")
-    node = DurandNode(channel, NODE, **(node_kw or {}))
+    node = node_cls(channel, NODE, **(node_kw or {}))
     eds = node.write_eds(tmp_path / "node.eds", eds_defaults)
     wire = Wire(channel)
     host = FakeHost()

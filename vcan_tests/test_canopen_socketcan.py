@@ -97,3 +97,37 @@ def test_the_kernel_produces_sync_and_the_driver_counts_what_went_out(tmp_path: 
     finally:
         driver.stop()
         seen.shutdown()
+
+
+@pytest.mark.socketcan
+def test_the_paced_sync_job_stops_with_the_driver(tmp_path: Path) -> None:
+    """The driver re-arms the broadcast manager's SYNC job after late SYNCs (its pacing,
+    drivers.canopen_sync.SyncPacer); once the driver stopped, nothing re-creates the job: no
+    SYNC on the wire after the stop, on a fast period where late SYNCs are common in the
+    guest."""
+    from chcos.devices.spec import BusSpec
+    from drivers.canopen_node import CanopenDriver
+    from vcan_tests import uml
+    from vcan_tests.support_fb import FakeHost
+
+    channel = uml.can_channel("socketcan")
+    seen = can.Bus(interface="socketcan", channel=channel,
+                   can_filters=[{"can_id": 0x080, "can_mask": 0x7FF}])
+    bus = BusSpec(name="co", kind="canopen", key="bus[0]", options={
+        "interface": "socketcan", "channel": channel, "sync_period": 0.002,
+        "sdo_timeout": 0.05, "nodes": [{"id": 42, "eds": str(SERVO_EDS), "nmt_start": False}]})
+    driver = CanopenDriver(bus, [], FakeHost())
+    driver.start()
+    try:
+        for _ in range(200):
+            assert seen.recv(WAIT) is not None, "no SYNC on the wire"
+        stats = driver.sync_stats()
+        assert stats is not None and stats.cycles >= 1
+    finally:
+        driver.stop()
+    try:
+        while seen.recv(0) is not None:          # what was on the wire before the stop
+            pass
+        assert seen.recv(0.3) is None, "SYNC outlived the driver"
+    finally:
+        seen.shutdown()

@@ -4,6 +4,7 @@ cycle, and the check that refuses a synchronous TPDO on a bus without SYNC."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 from vcan_tests.support_canopen import NODE, durand_rig
@@ -52,3 +53,37 @@ def test_a_synchronous_tpdo_needs_sync_on_the_bus(tmp_path: Path) -> None:
             " on a bus without sync_period is never sent" in errs[0]
         assert CanopenDriver.check_bus(canopen_bus(r.channel, r.eds, {"sync_period": 0.01},
                                                    config=SYNC_TPDO)) == []
+
+
+def test_acyclic_synchronous_tpdos_are_counted_when_they_come_never_missing(
+        tmp_path: Path) -> None:
+    """Transmission type 0: the node sends the TPDO after a SYNC only when its data changed.
+    Cycles without it are not missing it (nothing else is due: the count stays exactly 0),
+    and each one received is counted in the cycle it came in."""
+    devices = [make_device("pos", "sensor", "co", node=NODE, index=0x6064)]
+    config = {"pdos": [{"pdo": "tpdo1", "transmission_type": 0, "map": [[0x6064, 0]]}],
+              "heartbeat_producer_ms": 20}
+    with durand_rig(tmp_path, devices, heartbeat_timeout=0.3, config=config,
+                    bus_opts={"sync_period": 0.01}) as r:
+        assert r.node.wait(lambda: r.driver.node_states()[NODE].ready)
+        assert r.node.read(0x1800, 2) == 0                    # what the node was configured to
+        tpdo = 0x180 + NODE
+        syncs = len(r.wire.of(0x080))
+        assert r.wire.wait_for(lambda w: len(w.of(0x080)) >= syncs + 10)
+        quiet = r.driver.sync_stats()
+        assert quiet is not None and quiet.cycles >= 10
+        assert quiet.missing == 0 and quiet.complete == 0
+        sent = len(r.wire.of(tpdo))
+        written = time.monotonic()
+        r.node.write(0x6064, 0, 4711)                         # changed: sent after next SYNC
+        assert r.host.wait_for(lambda h: 4711 in h.values("pos"))
+        assert r.node.wait(lambda: (s := r.driver.sync_stats()) is not None and s.acyclic >= 1)
+        frame = r.wire.of(tpdo)[sent]
+        assert frame.data[:4] == (4711).to_bytes(4, "little", signed=True)
+        assert any(written <= s.at <= frame.at for s in r.wire.of(0x080, written))
+        # unchanged again: more cycles go by, none of them missing anything
+        syncs = len(r.wire.of(0x080))
+        assert r.wire.wait_for(lambda w: len(w.of(0x080)) >= syncs + 10)
+        stats = r.driver.sync_stats()
+        assert stats is not None and stats.missing == 0 and stats.cycles >= quiet.cycles + 10
+        assert r.driver.status_doc()["sync"]["acyclic"] == stats.acyclic >= 1

@@ -37,7 +37,7 @@ def test_map_and_metrics_show_the_nodes_lifecycle_and_the_sync_cycle(tmp_path: P
         assert run_until(s, lambda: s.devtab.bus_status()["co"]["sync"]["complete"] >= 3)
         text = s.execute("map")                    # chcos map: written, and drawn
         assert f"node     co/{NODE}" in text and "OPERATIONAL, 1 boot-up(s) seen, 2 NMT " \
-            "start(s), error register 0x00, last EMCY none" in text
+            "start(s), " in text and "EMCY(s), error register 0x00, last EMCY none" in text
         assert "SYNC     co" in text and "cycles of 10 ms" in text
         doc = sysmap.read(tmp_path / "sysfile.map")
         n = doc["bus_status"]["co"]["nodes"][0]
@@ -67,8 +67,18 @@ def test_map_and_metrics_show_the_nodes_lifecycle_and_the_sync_cycle(tmp_path: P
         node.power_off()
         assert run_until(s, lambda: node_doc(s)["heartbeat_lost"])
         assert "heartbeat LOST" in s.execute("map")
-        n = sysmap.read(tmp_path / "sysfile.map")["bus_status"]["co"]["nodes"][0]
-        assert n["heartbeat_lost"] and n["boots"] == 1
+        m = sysmap.read(tmp_path / "sysfile.map")
+        n = m["bus_status"]["co"]["nodes"][0]
+        assert m["buses"]["co"]["counts"]["heartbeat-losses"] >= 1
+        assert n["heartbeat_lost"] and n["boots"] == 1 and n["heartbeat_losses"] >= 1
+        assert n["emcys"] == 0
+        registry = CollectorRegistry(auto_describe=False)
+        registry.register(SystemCollector(s))
+        text = generate_latest(registry).decode()
+        losses = float(text.split(f'chcos_node_heartbeat_losses_total{{bus="co",node="{NODE}"}} '
+                                  )[1].split()[0])
+        assert losses >= 1
+        assert f'chcos_node_emcys_total{{bus="co",node="{NODE}"}} 0.0' in text
     finally:
         s.shutdown()
         node.close()

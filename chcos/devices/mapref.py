@@ -178,7 +178,7 @@ REFERENCE: dict[str, Kind] = {
         "the EDS), master heartbeat, SYNC, EMCY; guide: docs/canopen.md",
         (*_CAN_BUS,
          Key("nodes", "array of tables", "required", "`{id, eds, heartbeat_timeout, "
-             "nmt_start, identity, config}` per node"),
+             "nmt_start, identity, config, store_config}` per node"),
          Key("sync_period", "float s", "none", "produce SYNC at this period"),
          Key("poll_period", "float s", "0.1", "default SDO polling period"),
          Key("sdo_timeout", "float s", "0.3", "SDO response timeout"),
@@ -201,6 +201,10 @@ REFERENCE: dict[str, Kind] = {
              "nodes[]"),
          Key("config", "table", "none", "downloaded at each boot, every write read back: the "
              "keys below", "nodes[]"),
+         Key("store_config", "boolean or integer 1..127", "false", "after the download, "
+             "write \"save\" to 0x1010:01 (or this sub-index) unless the node already held "
+             "the configuration; for commissioning (flash wear); needs 0x1010 in the EDS",
+             "nodes[]"),
          Key("heartbeat_producer_ms", "integer 0..65535", "none", "0x1017", "nodes[].config"),
          Key("master_consumer_ms", "integer 1..65535", "none", "0x1016:01 = master_node_id "
              "<< 16 | ms: the node watches the master heartbeat (needs master_heartbeat_ms, "

@@ -24,16 +24,17 @@ def _rate(lk: dict[str, Any], rates: Mapping[str, float] | None) -> str:
 
 
 def bus_status_lines(status: dict[str, dict[str, Any]]) -> list[str]:
-    """One line per remote node (its lifecycle state, boot-ups seen, NMT starts, error register,
-    last EMCY, why it is not ready) and one per SYNC cycle (cycles, complete, missing TPDOs,
-    late SYNCs, late answers, jitter), from :meth:`chcos.devices.devtab.Devtab.bus_status`
-    (the map's ``bus_status``)."""
+    """One line per remote node (its lifecycle state, boot-ups seen, NMT starts, heartbeat
+    losses, EMCYs, error register, last EMCY, why it is not ready) and one per SYNC cycle
+    (cycles, complete, missing TPDOs, late SYNCs, late answers, acyclic TPDOs, jitter), from
+    :meth:`chcos.devices.devtab.Devtab.bus_status` (the map's ``bus_status``)."""
     out = []
     for bus, doc in status.items():
         for n in doc.get("nodes", ()):
             reg = n.get("error_register")
             text = (f"node     {bus}/{n['node']:<13} {n['state']}, {n['boots']} boot-up(s) seen, "
-                    f"{n['nmt_starts']} NMT start(s), error register "
+                    f"{n['nmt_starts']} NMT start(s), {n.get('heartbeat_losses', 0)} heartbeat "
+                    f"loss(es), {n.get('emcys', 0)} EMCY(s), error register "
                     f"{'-' if reg is None else f'0x{reg:02X}'}, last EMCY "
                     f"{n['last_emcy'] or 'none'}")
             if n.get("heartbeat_lost"):
@@ -45,7 +46,8 @@ def bus_status_lines(status: dict[str, dict[str, Any]]) -> list[str]:
         if st:
             out.append(f"SYNC     {bus:<16} {st['cycles']} cycles of {st['period'] * 1e3:g} ms, "
                        f"{st['complete']} complete, {st['missing']} TPDOs missing, "
-                       f"{st['late']} late, {st['late_writes']} late answers; jitter p50 "
+                       f"{st['late']} late, {st['late_writes']} late answers, "
+                       f"{st.get('acyclic', 0)} acyclic TPDOs; jitter p50 "
                        f"{st['jitter_p50'] * 1e3:.3f} ms, p99 {st['jitter_p99'] * 1e3:.3f} ms, "
                        f"max {st['jitter_max'] * 1e3:.3f} ms")
     return out
