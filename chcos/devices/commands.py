@@ -9,7 +9,7 @@ import sys
 from typing import Any
 
 from chcos.devices.entry import DeviceEntry, scalable
-from chcos.devices.health import DeviceHealth
+from chcos.devices.table import DeviceTable
 from chcos.errors import DeviceError
 
 #: An integer command beyond this magnitude has no float (refused as not finite).
@@ -18,11 +18,16 @@ _BIG = int(sys.float_info.max)
 _FMAX = sys.float_info.max
 
 
-class CommandChecks(DeviceHealth):
-    """Command checks for :class:`chcos.devices.devtab.Devtab` (its base class)."""
+class CommandChecks:
+    """Command checks for :class:`chcos.devices.devtab.Devtab`, which owns one; ``table`` says
+    which devices are local (only a local device's driver is asked about a value)."""
 
-    def _check_command(self, e: DeviceEntry, value: Any, source: str) -> Any:
-        """The raw value for ``value``; raises DeviceError (counted as rejected) if refused."""
+    def __init__(self, table: DeviceTable) -> None:
+        self._table = table
+
+    def check(self, e: DeviceEntry, value: Any, source: str) -> Any:
+        """The raw value for command ``value`` from ``source`` to ``e``; raises DeviceError
+        naming the device, the value and the rule (counted as rejected) if refused."""
         kind = type(value)
         if kind is int or kind is float:
             # the common case, the same rules in fewer steps: a plain number inside what the
@@ -39,7 +44,7 @@ class CommandChecks(DeviceHealth):
         return self._check_any(e, value, source)
 
     def _plain(self, e: DeviceEntry) -> tuple[Any, float, float, bool, Any]:
-        """How :meth:`_check_command` checks a plain number (an int or float, not a bool) for
+        """How :meth:`check` checks a plain number (an int or float, not a bool) for
         ``e`` with its current driver, kept in ``e.plain``: ``(driver, lo, hi, integral,
         ask)``. A value in ``lo..hi`` (integers only if ``integral``) is inside the device's
         limits, finite, and accepted by the driver without asking (:meth:`Driver.accepts
@@ -55,7 +60,7 @@ class CommandChecks(DeviceHealth):
             hi = _FMAX if hi_ is None else min(float(hi_), _FMAX)
             integral = False
             ask = None
-            if drv is not None and self.is_local(spec.machine):
+            if drv is not None and self._table.is_local(spec.machine):
                 acc = drv.accepts(spec.name)
                 if acc is None:
                     ask = drv.check_value
@@ -66,7 +71,7 @@ class CommandChecks(DeviceHealth):
         return p
 
     def _check_any(self, e: DeviceEntry, value: Any, source: str) -> Any:
-        """:meth:`_check_command` for every value (the refusals and their reasons)."""
+        """:meth:`check` for every value (the refusals and their reasons)."""
         spec = e.spec
         device = e.name
         # a bus that carries numbers only (every field bus); memory actuators may hold any value
@@ -100,7 +105,7 @@ class CommandChecks(DeviceHealth):
                 near = round(raw)
                 if abs(raw - near) <= 1e-9 * max(1.0, abs(raw)):
                     raw = float(near)   # only scale/offset arithmetic noise
-        if e.driver is not None and self.is_local(spec.machine):
+        if e.driver is not None and self._table.is_local(spec.machine):
             why = e.driver.check_value(device, raw)
             if why is not None:
                 e.rejected += 1
