@@ -98,6 +98,10 @@ from drivers.canbus import (
 )
 from drivers.codecs.can import (
     CanCodec,
+    Decoded,
+    FrameFault,
+    Ignored,
+    Rejected,
     check_address,
     checked_dbc,
     int_range,
@@ -398,24 +402,25 @@ class CanDriver(ThreadedDriver):
             if frame.is_error_frame:
                 self._error("error-frame", "CAN error frame received")
                 return
-            status, result = self.codec.decode(frame)
-            if status == "ok":
-                assert isinstance(result, list)
-                key = (frame.arbitration_id, bool(frame.is_extended_id))
-                if key not in self._good_seen or self._bad:
-                    self._well_formed(key)
-                if result:
-                    self._add(result, frame)
-            elif status == "unknown-id":
-                self._unknown_id(frame)
-            elif status == "unknown-mux":
-                self._pending_stats["unknown-mux", ""] += 1
-            elif status in ("wrong-length", "undecodable"):
-                self._error(status, str(result))
-                self._malformed((frame.arbitration_id, bool(frame.is_extended_id)), status,
-                                str(result))
-            elif status != "ignore":
-                self._error(status, str(result))
+            match self.codec.decode(frame):
+                case Decoded(readings):
+                    key = (frame.arbitration_id, bool(frame.is_extended_id))
+                    if key not in self._good_seen or self._bad:
+                        self._well_formed(key)
+                    if readings:
+                        self._add(readings, frame)
+                case Rejected(FrameFault.UNKNOWN_ID):
+                    self._unknown_id(frame)
+                case Rejected(FrameFault.UNKNOWN_MUX):
+                    self._pending_stats[FrameFault.UNKNOWN_MUX.value, ""] += 1
+                case Rejected(FrameFault.WRONG_LENGTH | FrameFault.UNDECODABLE as fault, detail):
+                    self._error(fault.value, detail)
+                    self._malformed((frame.arbitration_id, bool(frame.is_extended_id)),
+                                    fault.value, detail)
+                case Rejected(fault, detail):
+                    self._error(fault.value, detail)
+                case Ignored():
+                    pass
         except Exception as exc:  # the reader must survive any host/codec surprise
             self._error("internal", f"frame handling failed: {exc!r}")
 
