@@ -555,7 +555,7 @@ class CanDriver(ThreadedDriver):
         bus = self._bus
         if bus is None:
             return False
-        try:     # self._frame(device, value, report), inlined: once per frame sent
+        try:     # as _frame, but the frame object is the actuator's own (below)
             fid, data, ext = self.codec.encode_raw(device, value)
         except BusError as exc:
             if report:
@@ -565,15 +565,15 @@ class CanDriver(ThreadedDriver):
         # the fast path's interfaces take the frame's content during send, and only one
         # fast-path send runs at a time. python-can's virtual bus deep-copies the frame for
         # every receiver - a bytes payload is copied as the same object, a bytearray by a
-        # copyreg round trip of ~300 bytecode instructions - and its Message() gives each copy
-        # a bytearray again; SocketCAN packs bytes(data), which takes bytes as they are
+        # copyreg round trip - and its Message() gives each copy a bytearray again; SocketCAN
+        # packs bytes(data), which takes bytes as they are
         frame = self._outgoing.get(device)
         if frame is None:
             frame = self._outgoing[device] = can.Message(arbitration_id=fid, data=data,
                                                          is_extended_id=ext)
         frame.data = data  # type: ignore[assignment]  # private frame: see above
         try:
-            bus.send(frame, 0)  # (timeout 0, positional: no keyword binding per frame)
+            bus.send(frame, 0)  # timeout 0: never blocks (see INLINE_INTERFACES)
         except (can.CanError, OSError):
             return False
         self._sent(device, value, frame, report)
