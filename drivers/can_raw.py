@@ -104,6 +104,10 @@ from drivers.canbus import (
 )
 from drivers.codecs.can import (
     CanCodec,
+    Decoded,
+    FrameFault,
+    Ignored,
+    Rejected,
     check_address,
     checked_dbc,
     int_range,
@@ -413,24 +417,25 @@ class CanDriver(ThreadedDriver):
             if frame.is_error_frame:
                 self._error("error-frame", "CAN error frame received")
                 return
-            status, result = self.codec.decode(frame)
-            if status == "ok":
-                assert isinstance(result, list)
-                key = (frame.arbitration_id, bool(frame.is_extended_id))
-                if key not in self._good_seen or self._bad:
-                    self._well_formed(key)
-                if result:
-                    self._add(result, frame)
-            elif status == "unknown-id":
-                self._unknown_id(frame)
-            elif status == "unknown-mux":
-                self._pending_stats["unknown-mux", ""] += 1
-            elif status in ("wrong-length", "undecodable"):
-                self._error(status, str(result))
-                self._malformed((frame.arbitration_id, bool(frame.is_extended_id)), status,
-                                str(result))
-            elif status != "ignore":
-                self._error(status, str(result))
+            match self.codec.decode(frame):
+                case Decoded(readings):
+                    key = (frame.arbitration_id, bool(frame.is_extended_id))
+                    if key not in self._good_seen or self._bad:
+                        self._well_formed(key)
+                    if readings:
+                        self._add(readings, frame)
+                case Rejected(FrameFault.UNKNOWN_ID):
+                    self._unknown_id(frame)
+                case Rejected(FrameFault.UNKNOWN_MUX):
+                    self._pending_stats[FrameFault.UNKNOWN_MUX.value, ""] += 1
+                case Rejected(FrameFault.WRONG_LENGTH | FrameFault.UNDECODABLE as fault, detail):
+                    self._error(fault.value, detail)
+                    self._malformed((frame.arbitration_id, bool(frame.is_extended_id)),
+                                    fault.value, detail)
+                case Rejected(fault, detail):
+                    self._error(fault.value, detail)
+                case Ignored():
+                    pass
         except Exception as exc:  # the reader must survive any host/codec surprise
             self._error("internal", f"frame handling failed: {exc!r}")
 
@@ -565,7 +570,7 @@ class CanDriver(ThreadedDriver):
         bus = self._bus
         if bus is None:
             return False
-        try:     # self._frame(device, value, report), inlined: once per frame sent
+        try:     # as _frame, but the frame object is the actuator's own (below)
             fid, data, ext = self.codec.encode_raw(device, value)
         except BusError as exc:
             if report:
@@ -575,15 +580,15 @@ class CanDriver(ThreadedDriver):
         # the fast path's interfaces take the frame's content during send, and only one
         # fast-path send runs at a time. python-can's virtual bus deep-copies the frame for
         # every receiver - a bytes payload is copied as the same object, a bytearray by a
-        # copyreg round trip of ~300 bytecode instructions - and its Message() gives each copy
-        # a bytearray again; SocketCAN packs bytes(data), which takes bytes as they are
+        # copyreg round trip - and its Message() gives each copy a bytearray again; SocketCAN
+        # packs bytes(data), which takes bytes as they are
         frame = self._outgoing.get(device)
         if frame is None:
             frame = self._outgoing[device] = can.Message(arbitration_id=fid, data=data,
                                                          is_extended_id=ext)
         frame.data = data  # type: ignore[assignment]  # private frame: see above
         try:
-            bus.send(frame, 0)  # (timeout 0, positional: no keyword binding per frame)
+            bus.send(frame, 0)  # timeout 0: never blocks (see INLINE_INTERFACES)
         except (can.CanError, OSError):
             return False
         self._sent(device, value, frame, report)

@@ -35,6 +35,7 @@ import threading
 import time
 from abc import abstractmethod
 from collections.abc import Hashable, Sequence
+from enum import StrEnum
 from typing import Any, NamedTuple
 
 from chcos.devices.spec import BusSpec, DeviceSpec
@@ -42,16 +43,29 @@ from drivers.base import Driver, DriverHost
 from drivers.threaded import ReaderThread
 
 
+class JobOp(StrEnum):
+    """What a job does, as far as this module is concerned: it paces the ``POLL`` jobs, reports a
+    ``WRITE`` job it drops as a failed write, and ends the worker at ``STOP``. A string enum: a
+    driver with ops of its own (the CANopen driver's typed jobs travel under one op,
+    :data:`drivers.canopen_jobs.OP`) passes them beside these, and a ``match`` on the literal
+    ``"poll"`` matches :attr:`POLL`."""
+
+    POLL = "poll"
+    WRITE = "write"
+    STOP = "stop"
+
+
 class Job(NamedTuple):
-    """One unit of bus I/O: ``op`` (``poll``, ``write``, ``probe``, ``nmt``, ``stop``...), what it
-    is about (a device, a poll group) and the value to write."""
+    """One unit of bus I/O: ``op`` (a :class:`JobOp`, or an op of the driver's own), what it is
+    about (a poll's key - typed by the driver, e.g. :class:`drivers.modbus_jobs.SensorPoll` -, a
+    write's device, a driver's own job object) and a write's value."""
 
     op: str
     what: Any = None
     value: Any = None
 
 
-STOP = Job("stop")
+STOP = Job(JobOp.STOP)
 JOIN_TIMEOUT = 5.0   # s to wait for the I/O thread at stop
 
 
@@ -88,7 +102,7 @@ class JobDriver(Driver):
             return False
         return True
 
-    def _submit_poll(self, key: Hashable, op: str = "poll") -> None:
+    def _submit_poll(self, key: Hashable, op: str = JobOp.POLL) -> None:
         """Queue the poll ``key`` (job ``(op, key)``) unless it is queued already; the I/O
         thread calls :meth:`_poll_taken` when it takes it."""
         if key in self._polls_queued:   # the kernel's timer fires while the poll waits (or
@@ -100,7 +114,7 @@ class JobDriver(Driver):
         if not self._submit(op, key):
             self._poll_taken(key)
 
-    def _poll_every(self, key: Hashable, period: float, op: str = "poll") -> None:
+    def _poll_every(self, key: Hashable, period: float, op: str = JobOp.POLL) -> None:
         """Poll ``key`` (job ``(op, key)``) every ``period`` seconds of the kernel clock, the
         first one period from now, paced by the polls (see the module doc). Call from start."""
         self._poll_plan[key] = (period, op)
@@ -151,7 +165,7 @@ class JobDriver(Driver):
     def _write(self, device: str, value: Any) -> None:
         """Queue a ``write`` job for actuator ``device``; never blocks. A write the thread
         cannot take (a concurrent stop) is reported like one while stopped."""
-        if not self._submit("write", device, value):
+        if not self._submit(JobOp.WRITE, device, value):
             self._refuse(device, value, "stopped", f"{self.kind} bus {self.bus.name} is not "
                                                    f"running")
 
@@ -181,7 +195,7 @@ class JobDriver(Driver):
 
     def _unsent_write(self, job: Job) -> None:
         """A write job dropped at stop, never run: reported failed."""
-        if job.op == "write":
+        if job.op == JobOp.WRITE:
             self.host.write_failed(job.what, job.value, f"{self.kind} bus {self.bus.name} "
                                                         f"stopped before the write was sent")
 
@@ -224,7 +238,7 @@ class WorkerJobDriver(JobDriver):
                 job = self._jobs.get(timeout=self._tick())
             except queue.Empty:
                 continue
-            if job.op == "stop":
+            if job.op == JobOp.STOP:
                 return
             try:
                 self._run(job)

@@ -31,13 +31,13 @@ from drivers.codecs.modbus import (
     value_error,
     watchdog_of,
 )
-from drivers.jobs import Job
+from drivers.jobs import Job, JobOp
+from drivers.modbus_jobs import LinkChore, SensorPoll
 from drivers.modbus_requests import (
     DEFAULT_DEAD_UNIT_BACKOFF,
     READ_CALL,
-    READBACK,
-    WATCHDOG,
     ModbusRequests,
+    QueuedWrite,
     raw_value,
 )
 
@@ -129,12 +129,12 @@ class ModbusDriver(ModbusRequests):
         timeout = float(self.bus.options.get("timeout", 1.0))
         self._first_attempt.wait(timeout + 2.0)
         for period in self._plans:
-            self._poll_every(period, period)
+            self._poll_every(SensorPoll(period), period)
         if self._watchdog is not None:
-            self._poll_every(WATCHDOG, self._watchdog.period, WATCHDOG)
+            self._poll_every(LinkChore.WATCHDOG, self._watchdog.period)
         if self._probed:      # units with actuators only: nothing read would notice
-            self._poll_every("probe", float(self.bus.options.get("poll_period", PROBE_PERIOD)),
-                             "probe")
+            self._poll_every(LinkChore.PROBE,
+                             float(self.bus.options.get("poll_period", PROBE_PERIOD)))
 
     def stop(self) -> None:
         """Stop the I/O thread and close the connection. Idempotent; never raises."""
@@ -321,26 +321,27 @@ class ModbusDriver(ModbusRequests):
             self._finish_unsent(self._jobs.get_nowait())
 
     def _finish_unsent(self, job: Job) -> None:
-        op, what, value = job.op, job.what, raw_value(job.value)
-        if op == "stop":
-            self._stop_seen = True
-            return
-        if op == "write":
-            why = (f"{self.kind} bus {self.bus.name} is not connected to {self._link()}"
-                   if not self._stop_seen else f"{self.kind} bus {self.bus.name} stopped")
-            self.host.error(self.bus.name, "disconnected",
-                            f"write {value!r} to {what} dropped: {why}", what)
-            self.host.write_failed(what, value, why)
-        elif op == "poll":
-            self._poll_taken(what)
-        elif op == "probe":
-            self._poll_taken("probe")
-        elif op == WATCHDOG:
-            self._poll_taken(WATCHDOG)
-        elif op == READBACK:
-            self._poll_taken(READBACK)
-            if self._readback:      # still failed: try again once the link is back
-                self._arm_readback()
+        """Complete ``job`` without I/O (the link is down, or the driver stops): a write is
+        reported failed, a poll taken (the chores' read-back armed again while an actuator is
+        left), the stop job seen."""
+        match job:
+            case Job(JobOp.STOP):
+                self._stop_seen = True
+                return
+            case Job(JobOp.WRITE, str(device), value):
+                why = (f"{self.kind} bus {self.bus.name} is not connected to {self._link()}"
+                       if not self._stop_seen else f"{self.kind} bus {self.bus.name} stopped")
+                self.host.error(self.bus.name, "disconnected",
+                                f"write {raw_value(value)!r} to {device} dropped: {why}", device)
+                self.host.write_failed(device, raw_value(value), why)
+            case Job(JobOp.POLL, LinkChore.READBACK):
+                self._poll_taken(LinkChore.READBACK)
+                if self._readback:      # still failed: try again once the link is back
+                    self._arm_readback()
+            case Job(JobOp.POLL, SensorPoll() | LinkChore() as key):
+                self._poll_taken(key)
+            case _:
+                raise AssertionError(f"{self.kind} bus {self.bus.name}: unknown job {job!r}")
         self._done()
 
     def _serve(self) -> None:
@@ -353,7 +354,7 @@ class ModbusDriver(ModbusRequests):
                     self._stop_seen = True                     # took the stop job itself
                     return
                 continue
-            if job.op == "stop":
+            if job.op == JobOp.STOP:
                 self._stop_seen = True
                 return
             if not self._client.connected:
@@ -363,7 +364,7 @@ class ModbusDriver(ModbusRequests):
             try:
                 self._run(job)
             except (ConnectionException, OSError) as exc:
-                if job.op == "write":
+                if job.op == JobOp.WRITE:
                     self.host.write_failed(job.what, raw_value(job.value),
                                            f"connection to {self._link()} lost: {exc}")
                 self._link_down(f"connection to {self._link()} lost: {exc}")
@@ -376,17 +377,20 @@ class ModbusDriver(ModbusRequests):
         super()._unsent_write(job._replace(value=raw_value(job.value)))
 
     def _run(self, job: Job) -> None:
-        op, what, value = job.op, job.what, job.value
-        if op == "poll":
-            self._poll_taken(what)
-            self._poll(self._plans[what])
-        elif op == "probe":
-            self._poll_taken("probe")
-            self._liveness()
-        elif op == READBACK:
-            self._read_back()
-        elif op == WATCHDOG:
-            self._poll_taken(WATCHDOG)
-            self._beat()
-        else:
-            self._write_point(self._points[what], value)
+        """Run one job on the worker thread (raises what the client raises for a lost link)."""
+        match job:
+            case Job(JobOp.POLL, SensorPoll(period) as key):
+                self._poll_taken(key)
+                self._poll(self._plans[period])
+            case Job(JobOp.POLL, LinkChore.PROBE):
+                self._poll_taken(LinkChore.PROBE)
+                self._liveness()
+            case Job(JobOp.POLL, LinkChore.READBACK):
+                self._read_back()
+            case Job(JobOp.POLL, LinkChore.WATCHDOG):
+                self._poll_taken(LinkChore.WATCHDOG)
+                self._beat()
+            case Job(JobOp.WRITE, str(device), QueuedWrite() as write):
+                self._write_point(self._points[device], write)
+            case _:
+                raise AssertionError(f"{self.kind} bus {self.bus.name}: unknown job {job!r}")

@@ -36,7 +36,8 @@ from drivers.codecs.modbus import (
     value_error,
 )
 from drivers.health import Health
-from drivers.jobs import WorkerJobDriver
+from drivers.jobs import JobOp, WorkerJobDriver
+from drivers.modbus_jobs import LinkChore
 
 #: The health cause of an actuator whose last write failed with its unit there; cleared by a
 #: later answered write or by the driver's own read-back (:meth:`ModbusRequests._read_back`).
@@ -47,10 +48,6 @@ UNIT_CAUSE = "unit"
 #: The health cause of the devices of the watchdog's unit while the unit refuses the watchdog
 #: write (an exception answer: the PLC's comm-loss logic will act).
 WATCHDOG_CAUSE = "watchdog"
-#: The key and job op of the watchdog write.
-WATCHDOG = "watchdog"
-#: The key and job op of the read-back of write-failed actuators.
-READBACK = "readback"
 #: Exception codes to a read-back that still mean the unit answered: the entry cannot be read
 #: (illegal function, data address, data value), not that the unit is busy or failing.
 UNIT_ANSWERED = frozenset({1, 2, 3})
@@ -302,7 +299,7 @@ class ModbusRequests(WorkerJobDriver):
         """Queue a ``write`` job stamped with its unit's epoch; never blocks."""
         p = self._points.get(device)
         job = QueuedWrite(value, self._units.epoch(p.unit) if p is not None else 0)
-        if not self._submit("write", device, job):
+        if not self._submit(JobOp.WRITE, device, job):
             self._refuse(device, value, "stopped", f"{self.kind} bus {self.bus.name} is not "
                                                    f"running")
 
@@ -389,7 +386,7 @@ class ModbusRequests(WorkerJobDriver):
         """The kernel timer of the read-back: hand the job to the worker."""
         with self._lock_readback:
             self._readback_armed = False
-        self._submit_poll(READBACK, READBACK)
+        self._submit_poll(LinkChore.READBACK)
 
     def _read_back(self) -> None:
         """The read-back job: read each write-failed actuator's own coil or registers. Data,
@@ -397,7 +394,7 @@ class ModbusRequests(WorkerJobDriver):
         answering: the write failure ends. Busy, acknowledge, other codes and silence keep it;
         the job is armed again while an actuator is left. On ``modbus-tcp`` silence is a lost
         link (raises ConnectionException)."""
-        self._poll_taken(READBACK)
+        self._poll_taken(LinkChore.READBACK)
         try:      # a lost link ends the loop: armed again all the same
             for name in sorted(self._readback):
                 if self._unit_due(self._points[name].unit):

@@ -15,7 +15,7 @@ from typing import Any
 
 from chcos.apps.weld.cell import Cell, open_cell
 from chcos.apps.weld.tasks import B4
-from chcos.user.context import TaskContext
+from chcos.user.context import EventKind, TaskContext
 
 M = "vcan_tests.support_weldcell"
 FAIL_ON_WELD_MOVE = 150
@@ -37,7 +37,7 @@ async def faulty_b4(ctx: TaskContext, command: Any) -> Any:
     await B4._order(ctx, command)
     while True:
         ev = await ctx.wait_any(completions=["A4"], commands=True)
-        if ev.kind != "command":
+        if ev.kind is not EventKind.COMMAND:
             break
         count(ev.value)
         await B4._order(ctx, ev.value)

@@ -18,7 +18,7 @@ from chcos.system.cmdline import Install, parse
 from chcos.system.embedded import System, sysmap
 from chcos.tables.messages import LinkStatus
 from chcos.tables.tasks import TaskState
-from chcos.user.context import Event, TaskContext
+from chcos.user.context import Event, EventKind, TaskContext
 from vcan_tests.conftest import MakeSystem, memory_map
 
 M = "vcan_tests.test_core_semantics"
@@ -84,14 +84,14 @@ async def boss(ctx: TaskContext, cmd: Any) -> Any:
 
 async def watcher(ctx: TaskContext, cmd: Any) -> None:
     """Records every wait_any event."""
-    events: list[Event] = ctx.world.sensory.setdefault("events", [])
+    events: list[Event | tuple[str, float]] = ctx.world.sensory.setdefault("events", [])
     kw = dict(cmd)
     ports = kw.pop("ports", ())
     while True:
         try:
             events.append(await ctx.wait_any(ports, **kw))
         except ReadTimeout:
-            events.append(Event("timeout", "", ctx.now))
+            events.append(("timeout", ctx.now))
             return
 
 
@@ -308,8 +308,9 @@ def test_wait_any_returns_a_completion_and_a_command(make_system: MakeSystem) ->
     s.invoke("T")
     s.run_for(1.0)
     ev = _world(s, "C")["events"]
-    assert ev[0] == Event("command", "T", "newer")
-    assert ev[1].kind == "completion" and ev[1].source == "Q" and ev[1].value.result == "job"
+    assert ev[0] == Event(EventKind.COMMAND, "T", "newer")
+    assert ev[1].kind is EventKind.COMPLETION and ev[1].source == "Q"
+    assert ev[1].value.result == "job"
     assert s.tsktab.get("C").activations == 1
 
 
@@ -352,10 +353,10 @@ def test_wait_any_exception_tap_failure_and_timeout(make_system: MakeSystem) -> 
     s.call(s.devtab.fail, "S1", "wire cut")
     s.run_for(3.0)
     ev = _world(s, "X")["events"]
-    assert ev[0] == Event("exception", "P", "low")
-    assert ev[1] == Event("message", "S1", 1, 0)
-    assert ev[2] == Event("failure", "S1", "wire cut", 0)
-    assert ev[3].kind == "timeout"
+    assert ev[0] == Event(EventKind.EXCEPTION, "P", "low")
+    assert ev[1] == Event(EventKind.MESSAGE, "S1", 1, 0)
+    assert ev[2] == Event(EventKind.FAILURE, "S1", "wire cut", 0)
+    assert ev[3][0] == "timeout"
 
 
 def test_weld_exception_task_and_job_run_on_news_not_on_a_clock(tmp_path: Path) -> None:

@@ -10,7 +10,7 @@ import pytest
 from chcos.apps.sim.can_device import CanDeviceSim
 from drivers.base import Driver
 from drivers.can_raw import CanDriver
-from drivers.codecs.can import CanCodec
+from drivers.codecs.can import CanCodec, Decoded
 from vcan_tests.netutil import unique_channel
 from vcan_tests.support_dev import CELL_DBC, WAIT, FakeHost, bus, device
 
@@ -145,10 +145,10 @@ def test_codec_raw_signals_share_one_message() -> None:
             device("B", "sensor", i=1, id=0x10, start=8, length=8, dlc=2, signed=True)]
     codec = CanCodec(bus("can", interface="virtual", channel="x"), devs)
     import can
-    status, result = codec.decode(can.Message(arbitration_id=0x10, data=b"\x0f\xfe",
-                                              is_extended_id=False))
-    assert status == "ok" and isinstance(result, list)
-    assert dict(result) == {"A": 15, "B": -2}
+    result = codec.decode(can.Message(arbitration_id=0x10, data=b"\x0f\xfe",
+                                      is_extended_id=False))
+    assert isinstance(result, Decoded)
+    assert dict(result.readings) == {"A": 15, "B": -2}
 
 
 def test_driver_is_a_driver_and_check_bus_rejects_unknown_options() -> None:

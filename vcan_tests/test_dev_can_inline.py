@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import errno
 import threading
-from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -16,6 +15,8 @@ import can
 import pytest
 
 from chcos.devices.entry import Write
+from chcos.devices.table import DeviceTable
+from chcos.devices.writes import WriteTracking
 from chcos.kernel.clock import VirtualClock
 from chcos.system.embedded import System
 from chcos.user.context import TaskContext
@@ -340,14 +341,14 @@ def test_an_outcome_is_counted_queued_before_its_write_leaves_the_in_flight_queu
     s, gate, peer = cell
     dt = s.devtab
     seen: list[tuple[str, bool]] = []
-    count = type(dt)._queue_outcome
+    count = WriteTracking._queue_outcome
 
-    def probe(self: Any, device: str) -> None:
-        # the state just before the outcome is counted: the write must still be in flight
-        seen.append((threading.current_thread().name, bool(self._inflight.get(device))))
+    def probe(self: WriteTracking, device: str) -> None:
+        # the state just before the outcome is counted: the write must still be outstanding
+        seen.append((threading.current_thread().name, self.outstanding(device)))
         count(self, device)
 
-    monkeypatch.setattr(type(dt), "_queue_outcome", probe)
+    monkeypatch.setattr(WriteTracking, "_queue_outcome", probe)
     gate.full = True                # both fast paths refuse: the writer thread sends
     gate.fail_writer = 1            # ... and fails the first command once
     s.invoke("HT", {"values": [40.0, 50.0], "devtab": dt, "seen": []})
@@ -418,24 +419,30 @@ def test_a_safe_value_after_a_fallback_is_retried_until_it_is_on_the_wire(
 
 
 def test_an_outcome_on_the_kernel_thread_waits_behind_one_still_queued(cell: Any) -> None:
+    """Devtab's write tracking (WriteTracking, on the cell's kernel with a table of the cell's
+    devices): an outcome reported on the kernel thread while an earlier one of the same device
+    is still queued there is applied after it, not before."""
     s, _gate, _peer = cell
-    dt = s.devtab
+    table = DeviceTable()
+    table.load(s.devmap)
+    writes = WriteTracking(s.kernel, table, lambda d, why: None)
     log: list[Any] = []
 
     def step() -> None:        # on the kernel thread, between task steps
-        w1, w2 = Write("H1", 10.0, 100, ""), Write("H1", 20.0, 200, "")
-        with dt._wlock:
-            dt._inflight.setdefault("H1", deque()).extend([w1, w2])
-        t = threading.Thread(target=dt.written, args=("H1", 100))
+        writes.track(Write("H1", 10.0, 100, ""))
+        writes.track(Write("H1", 20.0, 200, ""))
+        t = threading.Thread(target=writes.written, args=("H1", 100))
         t.start()
         t.join(WAIT)           # w1's outcome is queued to the kernel thread
-        dt.written("H1", 200)  # w2's must not overtake it
-        log.append(dt.get("H1").value)
+        assert writes.outstanding("H1")
+        writes.written("H1", 200)  # w2's must not overtake it
+        log.append(table.get("H1").value)
 
     s.kernel.interrupt(step)
     s.run_for(0.01)
     assert log == [None]       # neither applied inside the step
-    assert dt.get("H1").value == 20.0 and dt.get("H1").pending is None
+    assert table.get("H1").value == 20.0 and table.get("H1").pending is None
+    assert not writes.outstanding("H1")
 
 
 def test_write_now_is_confirmed_by_its_answer_and_reports_nothing(rig: Any) -> None:
@@ -649,7 +656,6 @@ def test_the_plain_check_follows_the_devices_driver(raw_cell: Any) -> None:
     dt = s.devtab
     e = dt.get("A")
     dt.write("A", 300)
-    assert e.plain is not None and e.plain[0] is e.driver
     assert e.driver is not None
     strict = Strict(e.driver.bus, list(e.driver.devices.values()), dt)
     strict.start()
@@ -657,7 +663,7 @@ def test_the_plain_check_follows_the_devices_driver(raw_cell: Any) -> None:
     with pytest.raises(DeviceError, match=r"expected 0\.\.100"):
         dt.write("A", 300)
     dt.write("A", 40)
-    assert e.plain[0] is strict and strict.sent == [("A", 40.0)]
+    assert strict.sent == [("A", 40.0)]
     msg = peer.recv(WAIT)
     assert msg is not None and bytes(msg.data) == value_data(300)
     assert peer.recv(0.05) is None

@@ -13,7 +13,7 @@ from typing import Any
 from chcos.devices.spec import BusSpec, DeviceMap
 from chcos.kernel.clock import VirtualClock
 from chcos.system.embedded import System
-from drivers.jobs import Job, WorkerJobDriver
+from drivers.jobs import Job, JobOp, WorkerJobDriver
 from vcan_tests.support_fb import WAIT, FakeHost, make_device
 
 
@@ -42,7 +42,7 @@ class StallDriver(WorkerJobDriver):
         self._stop_worker()
 
     def _run(self, job: Job) -> None:
-        if job.op == "poll":
+        if job.op == JobOp.POLL:
             self._poll_taken(job.what)
             self.taken.append(self.host.now())
             self.in_poll.set()
@@ -126,7 +126,7 @@ class SlowBusDriver(StallDriver):
         self.sent: list[Any] = []
 
     def _run(self, job: Job) -> None:
-        if job.op == "write":
+        if job.op == JobOp.WRITE:
             self.sent.append(job.value)
             self.host.written(job.what, job.value)
             return

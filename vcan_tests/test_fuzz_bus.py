@@ -18,7 +18,7 @@ from pymodbus.exceptions import ModbusException
 
 from drivers.can_raw import CanDriver
 from drivers.canbus import socket_drops
-from drivers.codecs.can import CanCodec
+from drivers.codecs.can import CanCodec, Decoded, FrameFault, Ignored, Rejected
 from drivers.codecs.modbus import REGISTER_TYPES, Point, classify_rtu_answer, reading_of
 from vcan_tests.conftest import require
 from vcan_tests.netutil import unique_channel
@@ -60,21 +60,22 @@ def test_any_can_frame_decodes_to_finite_values_or_a_class(codec: CanCodec, fid:
                                                            extended: bool) -> None:
     frame = can.Message(arbitration_id=fid, data=b"" if remote else data,
                         dlc=len(data), is_remote_frame=remote, is_extended_id=extended)
-    status, result = codec.decode(frame)
-    assert status in ("ok", "ignore", "remote-frame", "unknown-id", "wrong-length",
-                      "undecodable")
+    result = codec.decode(frame)
+    assert isinstance(result, Decoded | Ignored | Rejected)
     if remote:
-        assert status == "remote-frame"
-    if status == "ok":
-        assert isinstance(result, list)
-        assert all(not isinstance(v, float) or math.isfinite(v) for _, v in result)
+        assert isinstance(result, Rejected) and result.fault is FrameFault.REMOTE_FRAME
+    if isinstance(result, Rejected):
+        assert result.fault in (FrameFault.REMOTE_FRAME, FrameFault.UNKNOWN_ID,
+                                FrameFault.WRONG_LENGTH, FrameFault.UNDECODABLE)
+    if isinstance(result, Decoded):
+        assert all(not isinstance(v, float) or math.isfinite(v) for _, v in result.readings)
 
 
 def test_nan_in_a_float_signal_is_undecodable(codec: CanCodec) -> None:
     nan = bytes.fromhex("0000c07f") + bytes(4)              # float32 quiet nan, little endian
-    status, detail = codec.decode(can.Message(arbitration_id=0x103, data=nan,
-                                              is_extended_id=False))
-    assert status == "undecodable" and "not a finite number" in str(detail)
+    result = codec.decode(can.Message(arbitration_id=0x103, data=nan, is_extended_id=False))
+    assert isinstance(result, Rejected) and result.fault is FrameFault.UNDECODABLE
+    assert "not a finite number" in result.detail
 
 
 def test_a_remote_frame_is_counted_as_such_not_as_wrong_length() -> None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import logging
 import threading
 from collections import Counter
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -54,47 +55,51 @@ class BusStats:
 
 
 class BusCounters:
-    """Bus statistics for :class:`chcos.devices.devtab.Devtab` (its base class)."""
+    """Bus statistics for :class:`chcos.devices.devtab.Devtab`, which owns one: what the drivers
+    count through :meth:`stat` and :meth:`error` (any thread, under one lock), and what each
+    running driver counts itself (``drivers()``: the running drivers, read when the statistics
+    are), kept from a stopping driver by :meth:`keep_sent`."""
 
-    kernel: Kernel
-    drivers: list[Driver]
-    #: what the drivers count through :meth:`stat`, per bus (under ``_stats_lock``)
-    _bus_stats: dict[str, BusStats]
-    _stats_lock: threading.Lock
+    def __init__(self, kernel: Kernel, drivers: Callable[[], Sequence[Driver]]) -> None:
+        self._kernel = kernel
+        self._drivers = drivers
+        #: what the drivers count through :meth:`stat`, per bus (under ``_lock``)
+        self._stats: dict[str, BusStats] = {}
+        self._lock = threading.Lock()
 
     @property
     def bus_stats(self) -> dict[str, BusStats]:
         """Per bus: frames/requests, errors by class, reconnects (see :class:`BusStats`); a
         snapshot, with the frames each running driver counted itself (``frames-sent``)."""
-        with self._stats_lock:
-            out = {bus: st.copy() for bus, st in self._bus_stats.items()}
-        for drv in list(self.drivers):
+        with self._lock:
+            out = {bus: st.copy() for bus, st in self._stats.items()}
+        for drv in list(self._drivers()):
             sent = dict(drv.sent_frames)    # one C-level copy: the sender may be counting
             if sent:
                 out.setdefault(drv.bus.name, BusStats()).add_sent(sent)
         return out
 
-    def _keep_sent(self, drv: Driver) -> None:
-        """A driver stops and leaves :attr:`drivers`: its own frame counts are copied into the
+    def keep_sent(self, drv: Driver) -> None:
+        """A driver stops and leaves the running ones: its own frame counts are copied into the
         stored statistics (the driver keeps its own; a restart makes new drivers)."""
         sent = dict(drv.sent_frames)
         if sent:
-            with self._stats_lock:
-                self._bus_stats.setdefault(drv.bus.name, BusStats()).add_sent(sent)
+            with self._lock:
+                self._stats.setdefault(drv.bus.name, BusStats()).add_sent(sent)
 
     def error(self, bus: str, kind: str, detail: str, device: str = "") -> None:
         """Count a bus-level error of class ``kind`` (from a driver thread)."""
         self.stat(bus, kind, device=device, error=True)
-        self.kernel.interrupt(self._bus_error, bus, kind, detail, False)
+        self._kernel.interrupt(self.bus_error, bus, kind, detail, False)
 
     def stat(self, bus: str, key: str, n: int = 1, device: str = "", error: bool = False
              ) -> None:
         """Add ``n`` to bus counter ``key`` (from any thread; see :class:`BusStats`), or with
         ``error`` to error class ``key`` (a device's as ``error:<key>``)."""
-        with self._stats_lock:
-            st = self._bus_stats.get(bus)
+        with self._lock:
+            st = self._stats.get(bus)
             if st is None:
-                st = self._bus_stats[bus] = BusStats()
+                st = self._stats[bus] = BusStats()
             (st.errors if error else st.counts)[key] += n
             if device:
                 dc = st.devices.get(device)
@@ -109,21 +114,23 @@ class BusCounters:
     @property
     def bus_errors(self) -> Counter[tuple[str, str]]:
         """Errors by (bus, class), a copy derived from :attr:`bus_stats`."""
-        with self._stats_lock:
-            return Counter({(bus, kind): n for bus, st in self._bus_stats.items()
+        with self._lock:
+            return Counter({(bus, kind): n for bus, st in self._stats.items()
                             for kind, n in st.errors.items() if n})
 
     @property
     def last_bus_error(self) -> dict[str, str]:
         """The last error's text per bus (``"class: detail"``), derived from :attr:`bus_stats`."""
-        with self._stats_lock:
-            return {bus: st.last_error for bus, st in self._bus_stats.items() if st.last_error}
+        with self._lock:
+            return {bus: st.last_error for bus, st in self._stats.items() if st.last_error}
 
-    def _bus_error(self, bus: str, kind: str, detail: str, count: bool = True) -> None:
+    def bus_error(self, bus: str, kind: str, detail: str, count: bool = True) -> None:
+        """On the kernel thread: an error of class ``kind`` on ``bus`` becomes its last error
+        and a WARNING (counted too unless ``count`` is False: :meth:`error` counted it)."""
         if count:
             self.stat(bus, kind, error=True)
-        with self._stats_lock:
-            st = self._bus_stats.get(bus)
+        with self._lock:
+            st = self._stats.get(bus)
             if st is not None:
                 st.last_error = f"{kind}: {detail}"
         log.warning("bus %s: %s: %s", bus, kind, detail)

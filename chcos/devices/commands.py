@@ -8,65 +8,66 @@ import math
 import sys
 from typing import Any
 
-from chcos.devices.entry import DeviceEntry, scalable
-from chcos.devices.health import DeviceHealth
+from chcos.devices.entry import DeviceEntry, NumberCheck, scalable
+from chcos.devices.table import DeviceTable
 from chcos.errors import DeviceError
 
 #: An integer command beyond this magnitude has no float (refused as not finite).
 _BIG = int(sys.float_info.max)
-#: The largest finite float: the bounds of an unlimited device's plain range (see _plain).
+#: The largest finite float: the bounds of an unlimited device's range (see NumberCheck).
 _FMAX = sys.float_info.max
 
 
-class CommandChecks(DeviceHealth):
-    """Command checks for :class:`chcos.devices.devtab.Devtab` (its base class)."""
+class CommandChecks:
+    """Command checks for :class:`chcos.devices.devtab.Devtab`, which owns one; ``table`` says
+    which devices are local (only a local device's driver is asked about a value)."""
 
-    def _check_command(self, e: DeviceEntry, value: Any, source: str) -> Any:
-        """The raw value for ``value``; raises DeviceError (counted as rejected) if refused."""
+    def __init__(self, table: DeviceTable) -> None:
+        self._table = table
+
+    def check(self, e: DeviceEntry, value: Any, source: str) -> Any:
+        """The raw value for command ``value`` from ``source`` to ``e``; raises DeviceError
+        naming the device, the value and the rule (counted as rejected) if refused."""
         kind = type(value)
         if kind is int or kind is float:
             # the common case, the same rules in fewer steps: a plain number inside what the
-            # limits and the driver accept (see _plain), raw = value as a float (as
+            # limits and the driver accept (see NumberCheck), raw = value as a float (as
             # (value - 0) / 1 gives); everything else, and every refusal, is _check_any's
-            p = e.plain
-            if p is None or p[0] is not e.driver:
-                p = self._plain(e)
-            if p[1] <= value <= p[2] and (kind is int or not p[3] or value.is_integer()):
+            c = e.number_check
+            if c is None or c.driver is not e.driver:
+                c = self._number_check(e)
+            if c.lo <= value <= c.hi and (kind is int or not c.integral or value.is_integer()):
                 raw = float(value)
-                ask = p[4]
+                ask = c.ask
                 if ask is None or ask(e.spec.name, raw) is None:
                     return raw
         return self._check_any(e, value, source)
 
-    def _plain(self, e: DeviceEntry) -> tuple[Any, float, float, bool, Any]:
-        """How :meth:`_check_command` checks a plain number (an int or float, not a bool) for
-        ``e`` with its current driver, kept in ``e.plain``: ``(driver, lo, hi, integral,
-        ask)``. A value in ``lo..hi`` (integers only if ``integral``) is inside the device's
-        limits, finite, and accepted by the driver without asking (:meth:`Driver.accepts
-        <drivers.base.Driver.accepts>`), or else after ``ask`` (its ``check_value``) agrees.
-        A device with scale, offset or ``round`` gets an empty range: :meth:`_check_any`."""
+    def _number_check(self, e: DeviceEntry) -> NumberCheck:
+        """Make ``e``'s :class:`NumberCheck` for its current driver (from the device's limits
+        and the driver's :meth:`~drivers.base.Driver.accepts`) and keep it in
+        ``e.number_check``; the one place it is written."""
         spec, drv = e.spec, e.driver
-        p: tuple[Any, float, float, bool, Any]
         if spec.scale != 1 or spec.offset != 0 or spec.round:
-            p = (drv, 1.0, 0.0, False, None)
+            c = NumberCheck(drv, 1.0, 0.0, False, None)
         else:
             lo_, hi_ = spec.limits
             lo = -_FMAX if lo_ is None else max(float(lo_), -_FMAX)
             hi = _FMAX if hi_ is None else min(float(hi_), _FMAX)
             integral = False
             ask = None
-            if drv is not None and self.is_local(spec.machine):
+            if drv is not None and self._table.is_local(spec.machine):
                 acc = drv.accepts(spec.name)
                 if acc is None:
                     ask = drv.check_value
                 else:
                     lo, hi, integral = max(lo, acc[0]), min(hi, acc[1]), acc[2]
-            p = (drv, lo, hi, integral, ask)
-        e.plain = p
-        return p
+            c = NumberCheck(drv, lo, hi, integral, ask)
+        e.number_check = c
+        return c
 
     def _check_any(self, e: DeviceEntry, value: Any, source: str) -> Any:
-        """:meth:`_check_command` for every value (the refusals and their reasons)."""
+        """:meth:`check` for every value (the refusals and their reasons)."""
         spec = e.spec
         device = e.name
         # a bus that carries numbers only (every field bus); memory actuators may hold any value
@@ -100,7 +101,7 @@ class CommandChecks(DeviceHealth):
                 near = round(raw)
                 if abs(raw - near) <= 1e-9 * max(1.0, abs(raw)):
                     raw = float(near)   # only scale/offset arithmetic noise
-        if e.driver is not None and self.is_local(spec.machine):
+        if e.driver is not None and self._table.is_local(spec.machine):
             why = e.driver.check_value(device, raw)
             if why is not None:
                 e.rejected += 1

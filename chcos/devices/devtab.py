@@ -14,11 +14,9 @@ shutdown. Devtab is the :class:`drivers.base.DriverHost` its drivers talk to.
 from __future__ import annotations
 
 import logging
-import threading
 import time
-from collections import deque
+from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from threading import get_ident
 from typing import TYPE_CHECKING, Any
 
 from chcos.devices.busstats import BusCounters, BusStats
@@ -33,8 +31,9 @@ from chcos.devices.entry import (
     Write,
     scalable,
 )
-from chcos.devices.health import HealthListener, faults, log
+from chcos.devices.health import DeviceHealth, HealthListener, faults, log
 from chcos.devices.spec import DeviceMap
+from chcos.devices.table import DeviceTable
 from chcos.devices.writes import WriteTracking
 from chcos.errors import BusError, DeviceError
 from chcos.kernel.scheduler import Kernel
@@ -52,29 +51,35 @@ _FAILED = DeviceStatus.FAILED
 _SUSPENDED = DeviceStatus.SUSPENDED
 
 
-class Devtab(CommandChecks, BusCounters, WriteTracking):
+class Devtab:
     """The device table of one satellite, and the host of its drivers.
 
     ``local`` are the machines whose devices this process drives (None: all of them);
     ``remote`` reaches the actuators of the others and hears of local status changes (None in
     a one-process system: a command to another machine's actuator is then refused). Readings
-    and sensor failures go to the one :meth:`listen`-er (the message manager)."""
+    and sensor failures go to the one :meth:`listen`-er (the message manager).
+
+    Devtab composes its parts, each with its own state, and delegates to them: the entries
+    (:class:`~chcos.devices.table.DeviceTable`), their health
+    (:class:`~chcos.devices.health.DeviceHealth`), the command checks
+    (:class:`~chcos.devices.commands.CommandChecks`), the writes in flight
+    (:class:`~chcos.devices.writes.WriteTracking`) and the bus counters
+    (:class:`~chcos.devices.busstats.BusCounters`)."""
 
     def __init__(self, kernel: Kernel, *, local: Iterable[int] | None = None,
                  remote: RemoteDevices | None = None) -> None:
         self.kernel = kernel
-        self._local = frozenset(local) if local is not None else None
-        #: the devices of other satellites; a composition root that builds the link after this
-        #: table puts it here before the kernel runs
-        self.remote = remote
+        self._table = DeviceTable(local)
         self._listener: DeviceListener | None = None
-        self._entries: dict[str, DeviceEntry] = {}
         self.drivers: list[Driver] = []
         self.on_write: list[Callable[[str, Any], None]] = []
-        # per bus, what the drivers count through stat() (bus_stats adds what they count
-        # themselves)
-        self._bus_stats: dict[str, BusStats] = {}
-        self._stats_lock = threading.Lock()
+        #: the driver's receive time of each sensor's last reading (set on the driver threads)
+        self._rx_stamp: dict[str, float] = {}
+        self._health = DeviceHealth(kernel, self._table, self._rx_stamp)
+        self.remote = remote
+        self._checks = CommandChecks(self._table)
+        self._counters = BusCounters(kernel, lambda: self.drivers)
+        self._writes = WriteTracking(kernel, self._table, self._safe_failed)
         #: (device, reason) of every safe value that could not be put on the wire, oldest first.
         self.safe_failures: list[tuple[str, str]] = []
         #: what became of each local actuator's safe value at the last shutdown
@@ -82,10 +87,6 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         self.safe_outcomes: dict[str, SafeOutcome] = {}
         #: seconds :meth:`stop_drivers` keeps trying to put the safe values on the wire
         self.shutdown_window = SHUTDOWN_FLUSH
-        self._health_listeners: list[HealthListener] = []
-        self._wlock = threading.Lock()
-        self._inflight: dict[str, deque[Write]] = {}
-        self._rx_stamp: dict[str, float] = {}
         #: each stopped driver's last :meth:`drivers.base.Driver.status_doc`, by bus
         self._kept_status: dict[str, dict[str, Any]] = {}
 
@@ -93,25 +94,96 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         """Send every reading and sensor failure to ``listener`` from now on (one listener: the
         layer that owns the links leaving the devices)."""
         self._listener = listener
+        self._health.listener = listener
+
+    @property
+    def remote(self) -> RemoteDevices | None:
+        """The devices of other satellites: reaches their actuators and hears of local status
+        changes; a composition root that builds the link after this table puts it here before
+        the kernel runs (None: commands to other machines' actuators are refused)."""
+        return self._health.remote
+
+    @remote.setter
+    def remote(self, remote: RemoteDevices | None) -> None:
+        self._health.remote = remote
 
     # ---- table ------------------------------------------------------------------------------
     def load(self, devmap: DeviceMap) -> None:
         """Enter every device of ``devmap``; raises DeviceError (nothing entered) if a name is
         already in the table."""
-        clash = [d.name for d in devmap.devices if d.name in self._entries]
-        if clash:
-            raise DeviceError(f"device(s) already in Devtab: {', '.join(clash)}")
-        for spec in devmap.devices:
-            self._entries[spec.name] = DeviceEntry(spec)
+        self._table.load(devmap)
+
+    def get(self, name: str) -> DeviceEntry:
+        """The entry called ``name``; raises DeviceError naming it if there is none."""
+        return self._table.get(name)
+
+    def is_local(self, machine: int) -> bool:
+        """True if ``machine``'s devices are driven by this process."""
+        return self._table.is_local(machine)
 
     def __contains__(self, name: object) -> bool:
-        return name in self._entries
+        return name in self._table
 
     def __iter__(self) -> Iterator[DeviceEntry]:
-        return iter(self._entries.values())
+        return iter(self._table)
 
     def __len__(self) -> int:
-        return len(self._entries)
+        return len(self._table)
+
+    # ---- health (DeviceHealth) --------------------------------------------------------------
+    def suspend(self, device: str) -> None:
+        """Host ``suspend`` of a device: SUSPENDED (readings dropped, commands refused) until
+        :meth:`resume`. Raises DeviceError for an unknown device."""
+        self._health.suspend(device)
+
+    def resume(self, device: str) -> None:
+        """Undo :meth:`suspend` (see :meth:`chcos.devices.health.DeviceHealth.resume`). Raises
+        DeviceError for an unknown device."""
+        self._health.resume(device)
+
+    def healthy(self, device: str) -> bool:
+        """Whether ``device`` delivers (neither failed nor stale). Raises DeviceError for an
+        unknown device."""
+        return self._health.healthy(device)
+
+    def check_readable(self, device: str) -> None:
+        """Raise SensorFailure if sensor ``device`` is failed or stale (DeviceError if there is
+        no such device)."""
+        self._health.check_readable(device)
+
+    def set_status(self, device: str, status: DeviceStatus, reason: str) -> None:
+        """Another satellite reports the status of one of its devices (or that it died)."""
+        self._health.set_status(device, status, reason)
+
+    def add_health_listener(self, fn: HealthListener) -> None:
+        """Call ``fn(device, healthy, cause)`` on the kernel thread whenever a device's health
+        changes: ``healthy`` False with the failure's cause, True with the event that ended it."""
+        self._health.add_health_listener(fn)
+
+    def remove_health_listener(self, fn: HealthListener) -> None:
+        """Stop calling ``fn`` (added by :meth:`add_health_listener`; no error if it is not)."""
+        self._health.remove_health_listener(fn)
+
+    # ---- bus counters (BusCounters) ---------------------------------------------------------
+    @property
+    def bus_stats(self) -> dict[str, BusStats]:
+        """Per bus: frames/requests, errors by class, reconnects (see :class:`BusStats`); a
+        snapshot, with the frames each running driver counted itself (``frames-sent``)."""
+        return self._counters.bus_stats
+
+    def stats_doc(self) -> dict[str, Any]:
+        """The bus statistics as plain data, per bus (see :class:`BusStats`)."""
+        return self._counters.stats_doc()
+
+    @property
+    def bus_errors(self) -> Counter[tuple[str, str]]:
+        """Errors by (bus, class), a copy derived from :attr:`bus_stats`."""
+        return self._counters.bus_errors
+
+    @property
+    def last_bus_error(self) -> dict[str, str]:
+        """The last error's text per bus (``"class: detail"``), derived from :attr:`bus_stats`."""
+        return self._counters.last_bus_error
 
     # ---- drivers ----------------------------------------------------------------------------
     def start_drivers(self, devmap: DeviceMap, machines: Iterable[int] | None = None) -> None:
@@ -134,7 +206,7 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
                 drv.start()
                 started.append(drv)
                 for d in devs:
-                    self.get(d.name).driver = drv
+                    self._table.get(d.name).driver = drv
                 self.kernel.add_settler(drv.settle)
         except Exception as exc:
             for drv in started:
@@ -143,9 +215,9 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
                 raise
             raise BusError(f"cannot start bus drivers: {exc}") from exc
         self.drivers.extend(started)
-        for e in self._entries.values():
+        for e in self._table:
             if e.is_sensor and e.spec.stale_after is not None and e.driver is not None:
-                self._arm_stale(e, self.kernel.clock.now())
+                self._health.arm_stale(e, self.kernel.clock.now())
 
     def stop_drivers(self) -> list[tuple[str, str]]:
         """Write safe values (whatever state the actuators are in), keep putting the ones not
@@ -183,7 +255,7 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
                 drv.stop()
             except Exception:
                 log.exception("driver %s failed to stop", drv.bus.name)
-            self._keep_sent(drv)
+            self._counters.keep_sent(drv)
         self.drivers.clear()
         return undelivered
 
@@ -223,7 +295,7 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
                 break
             time.sleep(SHUTDOWN_RETRY_PAUSE)  # let the peer come back (a reconnect, a reboot)
             for name in again:
-                issued[name] = self._safe_write(self._entries[name], "shutdown")
+                issued[name] = self._safe_write(self._table.get(name), "shutdown")
                 attempts[name] += 1
         return [self._safe_outcome(i, attempts[name]) for name, i in issued.items()]
 
@@ -274,7 +346,7 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
     def _safe_outcome(self, issue: SafeIssue, attempts: int) -> SafeOutcome:
         """What became of a safe value, from its last issue (see :meth:`_safe_all`)."""
         name = issue.device
-        value = self._entries[name].spec.safe_value
+        value = self._table.get(name).spec.safe_value
         match issue:
             case SafeIssue(refused=str(why)) if why:
                 return SafeOutcome(name, value, False, why, attempts)
@@ -288,6 +360,26 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
                                    attempts)
 
     # ---- DriverHost (thread-safe: everything goes through the interrupt queue) -------------
+    def written(self, device: str, value: Any) -> None:
+        """The oldest outstanding write of ``device`` is on the wire (from any thread; see
+        :mod:`chcos.devices.writes`)."""
+        self._writes.written(device, value)
+
+    def write_failed(self, device: str, value: Any, reason: str) -> None:
+        """The oldest outstanding write of ``device`` did not reach the wire (from a driver
+        thread); a safe value is tried again (see :mod:`chcos.devices.writes`)."""
+        self._writes.write_failed(device, value, reason)
+
+    def stat(self, bus: str, key: str, n: int = 1, device: str = "", error: bool = False
+             ) -> None:
+        """Add ``n`` to bus counter ``key`` (from any thread; see :class:`BusStats`), or with
+        ``error`` to error class ``key`` (a device's as ``error:<key>``)."""
+        self._counters.stat(bus, key, n, device, error)
+
+    def error(self, bus: str, kind: str, detail: str, device: str = "") -> None:
+        """Count a bus-level error of class ``kind`` (from a driver thread)."""
+        self._counters.error(bus, kind, detail, device)
+
     @property
     def virtual_clock(self) -> bool:
         """True if the kernel runs on a virtual clock (a driver then stamps readings ``now``,
@@ -367,9 +459,10 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
     def _reading(self, device: str, raw: Any, at: float, now: float) -> None:
         """One reading on the kernel thread (see :meth:`_readings`): got by the driver at
         ``at``, handled at kernel time ``now``."""
-        e = self._entries.get(device)
+        e = self._table.find(device)
         if e is None:
-            self._bus_error("?", "unknown-device", f"reading for unknown device {device!r}")
+            self._counters.bus_error("?", "unknown-device",
+                                     f"reading for unknown device {device!r}")
             return
         if e.status is _SUSPENDED:
             e.dropped += 1
@@ -384,7 +477,7 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         e.readings += 1
         if e.stale:  # fresh data ends staleness, and nothing else (a driver failure stays)
             e.stale = False
-            self._refresh(e, "fresh data")
+            self._health.refresh(e, "fresh data")
         if self._listener is not None and self._listener.reading(device, value):
             e.overwrites += 1
 
@@ -404,12 +497,12 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
             raise first
 
     def _driver_health(self, device: str, failure: str, ended: str = "") -> None:
-        e = self._entries.get(device)
+        e = self._table.find(device)
         if e is None:
             return
         was = e.status
         e.failure = failure
-        self._refresh(e, ended)
+        self._health.refresh(e, ended)
         if (not failure and was is DeviceStatus.FAILED and e.status is not DeviceStatus.FAILED
                 and not e.is_sensor and e.spec.safe_value is not None
                 and self.is_local(e.spec.machine)):
@@ -427,7 +520,7 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         address type's range). The device shows the value once the driver has put it on the wire
         (``pending`` until then); a write that fails later is a WARNING event (``write-failed``).
         """
-        e = self._entries.get(device) or self.get(device)   # get() names a missing one
+        e = self._table.find(device) or self._table.get(device)   # get() names a missing one
         if e.spec.direction == "sensor":
             raise DeviceError(f"{device} is a sensor: {source} cannot write to it")
         status = e.status
@@ -435,7 +528,7 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
             e.rejected += 1
             raise DeviceError(f"actuator {device} is {e.status.value} ({e.reason}): "
                               f"command {value!r} from {source} refused")
-        raw = self._check_command(e, value, source)
+        raw = self._checks.check(e, value, source)
         self._send(e, value, raw, source)
 
     def _send(self, e: DeviceEntry, value: Any, raw: Any, source: str,
@@ -447,12 +540,12 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         e.updated_at = self.kernel.clock.now()
         e.commands += 1
         w: Write | None = None
-        local = self._local
-        if local is not None and spec.machine not in local:   # not self.is_local(...)
-            if self.remote is None:
+        if not self._table.is_local(spec.machine):
+            remote = self._health.remote
+            if remote is None:
                 raise DeviceError(f"actuator {device} is on machine {spec.machine}, which this "
                                   f"process does not drive, and no link leads there")
-            self.remote.actuator(device, spec.machine, value, source)
+            remote.actuator(device, spec.machine, value, source)
             e.value = value
         elif e.driver is not None and e.driver.confirms_writes:
             if not safe and self._write_now(e, device, raw):
@@ -461,9 +554,7 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
                     hook(device, value)
                 return None
             w = Write(device, value, raw, safe)
-            with self._wlock:
-                q = self._inflight.setdefault(device, deque())
-                q.append(w)
+            self._writes.track(w)
             e.pending = value
             e.driver.write(device, raw)
         else:
@@ -480,10 +571,7 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         an outcome on its way here (so the shown value and the order stay those of the wire).
         True if ``raw`` is on the wire; then nothing is tracked."""
         assert e.driver is not None
-        if self.kernel.thread_ident != get_ident():     # not on_kernel_thread(): a call less
-            return False
-        # no lock: the other threads keep the order that makes this safe (chcos.devices.writes)
-        if self._inflight.get(device) or (self._queued and self._queued.get(device)):
+        if not self.kernel.on_kernel_thread() or self._writes.outstanding(device):
             return False
         return e.driver.write_now(device, raw)
 
@@ -509,9 +597,7 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         """Every local actuator's safe value: first all those the drivers can put on the wire
         at once (:meth:`_safe_burst`), then the others one by one, tracked and tried again as
         any safe value; one :class:`SafeIssue` each."""
-        todo = [e for e in self._entries.values()
-                if not e.is_sensor and e.spec.safe_value is not None
-                and self.is_local(e.spec.machine)]
+        todo = self._table.local_safe_actuators()
         done = self._safe_burst(todo)
         return [SafeIssue(e.name) if e.name in done else self._safe_write(e, reason)
                 for e in todo]
@@ -523,17 +609,16 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         stop's last safe frame leaves as early as it can. Returns the names written; the rest
         (a value the check refuses, a driver that cannot send now) are left to the tracked
         path, which reports them."""
-        if self.kernel.thread_ident != get_ident():
+        if not self.kernel.on_kernel_thread():
             return set()
         groups: dict[Driver, list[tuple[DeviceEntry, Any]]] = {}
         for e in entries:
             drv = e.driver
             name = e.name
-            if (drv is None or not drv.confirms_writes or self._inflight.get(name)
-                    or (self._queued and self._queued.get(name))):
+            if drv is None or not drv.confirms_writes or self._writes.outstanding(name):
                 continue
             try:
-                raw = self._check_command(e, e.spec.safe_value, "safe-value")
+                raw = self._checks.check(e, e.spec.safe_value, "safe-value")
             except Exception:   # the tracked path checks it again and reports it
                 continue
             groups.setdefault(drv, []).append((e, raw))
@@ -551,7 +636,7 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         return {e.name for e in written}
 
     def _safe(self, device: str, why: str = "abnormal completion") -> bool:
-        e = self.get(device)
+        e = self._table.get(device)
         if e.spec.safe_value is None or e.is_sensor:
             return False
         return self._safe_write(e, why).handed_over
@@ -562,7 +647,7 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
         safe = e.spec.safe_value
         assert safe is not None
         try:
-            raw = self._check_command(e, safe, "safe-value")
+            raw = self._checks.check(e, safe, "safe-value")
             w = self._send(e, safe, raw, "safe-value", safe=why)
         except Exception as exc:  # report, keep going with the others
             text = f"{e.name}: safe value ({why}) {safe!r} not written: {exc}"
@@ -571,3 +656,7 @@ class Devtab(CommandChecks, BusCounters, WriteTracking):
             self.kernel.event("write-failed", text)
             return SafeIssue(e.name, refused=str(exc))
         return SafeIssue(e.name, w)
+
+    def _safe_failed(self, device: str, reason: str) -> None:
+        """A tracked safe value was finally not written (:class:`WriteTracking` reports it)."""
+        self.safe_failures.append((device, reason))

@@ -6,6 +6,7 @@ listener that fans readings out over links, the link to the devices of other sat
 from __future__ import annotations
 
 import enum
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -23,6 +24,21 @@ class DeviceStatus(enum.Enum):
     SUSPENDED = "suspended"
     FAILED = "failed"
     STALE = "stale"
+
+
+@dataclass(frozen=True, slots=True)
+class NumberCheck:
+    """How a plain number (an int or float, not a bool) commanded to one device is checked with
+    ``driver``: a value in ``lo..hi`` (integers only if ``integral``) is inside the device's
+    limits, finite, and accepted by the driver without asking, or else after ``ask`` (the
+    driver's ``check_value``) agrees. A device with scale, offset or ``round`` has an empty
+    range (``lo > hi``): every value takes the full check."""
+
+    driver: Driver | None
+    lo: float
+    hi: float
+    integral: bool
+    ask: Callable[[str, Any], str | None] | None
 
 
 @dataclass(eq=False)
@@ -47,9 +63,9 @@ class DeviceEntry:
     pending: Any = None        # a command handed to the driver, not yet on the wire
     write_errors: int = 0
     last_write_error: str = ""
-    #: how a plain numeric command is checked, made by Devtab for the device's current driver
-    #: (see ``CommandChecks._plain``): (driver, lo, hi, integral, ask)
-    plain: tuple[Any, float, float, bool, Any] | None = None
+    #: how a plain numeric command is checked with the device's current driver (made and
+    #: kept by :class:`chcos.devices.commands.CommandChecks`)
+    number_check: NumberCheck | None = None
 
     @property
     def name(self) -> str:

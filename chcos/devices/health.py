@@ -12,10 +12,11 @@ from __future__ import annotations
 
 import contextlib
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 from chcos.devices.entry import DeviceEntry, DeviceListener, DeviceStatus, RemoteDevices
-from chcos.errors import DeviceError, SensorFailure
+from chcos.devices.table import DeviceTable
+from chcos.errors import SensorFailure
 from chcos.kernel.scheduler import Kernel
 
 #: the states a sensor cannot be read in (a module constant: no enum lookups per read)
@@ -31,38 +32,35 @@ HealthListener = Callable[[str, bool, str], None]
 
 
 class DeviceHealth:
-    """Device status for :class:`chcos.devices.devtab.Devtab` (its base class)."""
+    """Device status for :class:`chcos.devices.devtab.Devtab`, which owns one: the status of the
+    entries of ``table`` from what the drivers report (:meth:`refresh` after a change of an
+    entry's ``failure`` or ``stale``), the host's suspend/resume, staleness timers, and who is
+    told. ``rx_stamps`` are the drivers' receive times by device (kept by Devtab, read here by
+    the staleness check). :attr:`remote` hears of local status changes, :attr:`listener` of
+    failed sensors; both are set by the owner."""
 
-    kernel: Kernel
-    remote: RemoteDevices | None
-    _entries: dict[str, DeviceEntry]
-    _listener: DeviceListener | None
-    _health_listeners: list[HealthListener]
-    _rx_stamp: dict[str, float]
-    _local: frozenset[int] | None
-
-    def get(self, name: str) -> DeviceEntry:
-        """The entry called ``name``; raises DeviceError naming it if there is none."""
-        try:
-            return self._entries[name]
-        except KeyError:
-            raise DeviceError(f"no device named {name!r} in Devtab") from None
-
-    def is_local(self, machine: int) -> bool:
-        """True if ``machine``'s devices are driven by this process."""
-        return self._local is None or machine in self._local
+    def __init__(self, kernel: Kernel, table: DeviceTable, rx_stamps: Mapping[str, float]
+                 ) -> None:
+        self._kernel = kernel
+        self._table = table
+        self._rx_stamps = rx_stamps
+        #: the devices of other satellites, told of local status changes (None: no link)
+        self.remote: RemoteDevices | None = None
+        #: told of every sensor that fails or goes stale (the message manager)
+        self.listener: DeviceListener | None = None
+        self._listeners: list[HealthListener] = []
 
     def suspend(self, device: str) -> None:
         """Host ``suspend`` of a device: SUSPENDED (readings dropped, commands refused) until
         :meth:`resume`. Raises DeviceError for an unknown device."""
-        self.get(device)
+        self._table.get(device)
         self._set_status(device, DeviceStatus.SUSPENDED, "suspended by the host")
 
     def resume(self, device: str) -> None:
         """Undo :meth:`suspend`: the device takes the status its health gives (a failure its
         driver reported meanwhile, staleness, else OK); one that is not suspended is left as
         it is. Raises DeviceError for an unknown device."""
-        e = self.get(device)
+        e = self._table.get(device)
         if e.status is DeviceStatus.SUSPENDED:
             status, reason = self._health_status(e)
             self._set_status(device, status, reason, ended="resumed by the host")
@@ -70,11 +68,11 @@ class DeviceHealth:
     def healthy(self, device: str) -> bool:
         """Whether ``device`` delivers (neither failed nor stale). Raises DeviceError for an
         unknown device."""
-        return self.get(device).status not in (DeviceStatus.FAILED, DeviceStatus.STALE)
+        return self._table.get(device).status not in (DeviceStatus.FAILED, DeviceStatus.STALE)
 
     def check_readable(self, device: str) -> None:
         """Raise SensorFailure if sensor ``device`` is failed or stale."""
-        e = self.get(device)
+        e = self._table.get(device)
         if e.status in _UNREADABLE:
             raise SensorFailure(device, e.reason or e.status.value)
 
@@ -85,12 +83,12 @@ class DeviceHealth:
     def add_health_listener(self, fn: HealthListener) -> None:
         """Call ``fn(device, healthy, cause)`` on the kernel thread whenever a device's health
         changes: ``healthy`` False with the failure's cause, True with the event that ended it."""
-        self._health_listeners.append(fn)
+        self._listeners.append(fn)
 
     def remove_health_listener(self, fn: HealthListener) -> None:
         """Stop calling ``fn`` (added by :meth:`add_health_listener`; no error if it is not)."""
         with contextlib.suppress(ValueError):
-            self._health_listeners.remove(fn)
+            self._listeners.remove(fn)
 
     @staticmethod
     def _health_status(e: DeviceEntry) -> tuple[DeviceStatus, str]:
@@ -102,8 +100,9 @@ class DeviceHealth:
             return DeviceStatus.STALE, f"no data for {e.spec.stale_after} s (stale_after)"
         return DeviceStatus.OK, ""
 
-    def _refresh(self, e: DeviceEntry, ended: str) -> None:
-        """Set ``e``'s status from its health (unless the host suspended it)."""
+    def refresh(self, e: DeviceEntry, ended: str) -> None:
+        """Set ``e``'s status from its health (unless the host suspended it); ``ended`` names
+        the event that ended a failure or staleness."""
         if e.status is DeviceStatus.SUSPENDED:
             return
         status, reason = self._health_status(e)
@@ -114,29 +113,33 @@ class DeviceHealth:
 
     def _set_status(self, device: str, status: DeviceStatus, reason: str,
                     tell: bool = True, ended: str = "") -> None:
-        e = self._entries.get(device)
+        e = self._table.find(device)
         if e is None or e.status is status:
             return
         old = e.status
         e.status = status
         e.reason = reason
-        e.since = self.kernel.clock.now()
-        if tell and self.remote is not None and self.is_local(e.spec.machine):
+        e.since = self._kernel.clock.now()
+        if tell and self.remote is not None and self._table.is_local(e.spec.machine):
             self.remote.device_status(device, status, reason)
         cause = reason if status is not DeviceStatus.OK else (ended or f"was {old.value}")
-        self.kernel.event(f"device-{status.name.lower()}",
+        self._kernel.event(f"device-{status.name.lower()}",
                           f"{device}: {cause}" if cause else device)
         if status is not DeviceStatus.SUSPENDED and old is not DeviceStatus.SUSPENDED:
             faults.warning("device %s %s at t=%.6f: %s", device, status.value, e.since, cause)
-        for fn in list(self._health_listeners):
+        for fn in list(self._listeners):
             try:
                 fn(device, status is DeviceStatus.OK, cause)
             except Exception:  # a listener must not break the device manager
                 log.exception("health listener failed for %s", device)
-        if status in (DeviceStatus.FAILED, DeviceStatus.STALE) and self._listener is not None:
-            self._listener.sensor_failed(device, SensorFailure(device, reason or status.value))
+        listener = self.listener
+        if status in (DeviceStatus.FAILED, DeviceStatus.STALE) and listener is not None:
+            listener.sensor_failed(device, SensorFailure(device, reason or status.value))
 
-    def _arm_stale(self, e: DeviceEntry, since: float) -> None:
+    def arm_stale(self, e: DeviceEntry, since: float) -> None:
+        """Check sensor ``e`` for staleness from kernel time ``since`` on, every
+        ``stale_after`` seconds of no fresh data (a kernel timer, for as long as the kernel
+        runs)."""
         limit = e.spec.stale_after
         assert limit is not None
 
@@ -144,13 +147,13 @@ class DeviceHealth:
             # the driver's receive time: a reading received but not yet handled is late, not
             # missing (the stamp is set in the driver's thread before the interrupt is queued)
             last = max(since, e.rx_at if e.rx_at is not None else since,
-                       self._rx_stamp.get(e.name, since))
+                       self._rx_stamps.get(e.name, since))
             due = last + limit
-            if self.kernel.clock.now() >= due:
+            if self._kernel.clock.now() >= due:
                 if not e.stale:
                     e.stale = True
-                    self._refresh(e, "")
-                due = self.kernel.clock.now() + limit
-            self.kernel.call_at(due, check)
+                    self.refresh(e, "")
+                due = self._kernel.clock.now() + limit
+            self._kernel.call_at(due, check)
 
-        self.kernel.call_at(since + limit, check)
+        self._kernel.call_at(since + limit, check)

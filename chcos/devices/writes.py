@@ -8,21 +8,23 @@ one reported on the kernel thread itself (a driver's fast path sends during the 
 step) is applied at once, unless an earlier outcome of the same device is still queued there
 (then it queues behind it, so outcomes are applied in order).
 
-Devtab's fast path (:meth:`Devtab._write_now`, kernel thread) asks without the lock whether
-anything of a device is in flight or has an outcome queued. Only the kernel thread adds to the
-in-flight queues and takes queued outcomes off; another thread that ends a write counts its
-queued outcome *before* it takes the write off the in-flight queue, and a safe value tried again
-never leaves it. So whenever a thread switch falls between the two, the check still sees one of
-them."""
+Devtab's fast path (kernel thread) asks without the lock whether anything of a device is in
+flight or has an outcome queued (:meth:`WriteTracking.outstanding`). Only the kernel thread
+adds to the in-flight queues and takes queued outcomes off; another thread that ends a write
+counts its queued outcome *before* it takes the write off the in-flight queue, and a safe value
+tried again never leaves it. So whenever a thread switch falls between the two, the check still
+sees one of them."""
 
 from __future__ import annotations
 
 import threading
 from collections import deque
+from collections.abc import Callable
 from typing import Any
 
-from chcos.devices.entry import DeviceEntry, Write
+from chcos.devices.entry import Write
 from chcos.devices.health import faults
+from chcos.devices.table import DeviceTable
 from chcos.kernel.scheduler import Kernel
 
 #: Attempts per safe value (e-stop, abnormal completion, shutdown, recovery) before it is
@@ -31,24 +33,44 @@ SAFE_ATTEMPTS = 3
 
 
 class WriteTracking:
-    """Confirmed and failed writes for :class:`chcos.devices.devtab.Devtab` (its base class)."""
+    """Confirmed and failed writes for :class:`chcos.devices.devtab.Devtab`, which owns one:
+    the writes in flight per device (:meth:`track`), their outcomes from the drivers
+    (:meth:`written`, :meth:`write_failed`) applied to the entries of ``table`` on the kernel
+    thread, and a safe value finally not written handed to ``safe_failed(device, reason)``."""
 
-    kernel: Kernel
-    safe_failures: list[tuple[str, str]]
-    _entries: dict[str, DeviceEntry]
-    _wlock: threading.Lock
-    _inflight: dict[str, deque[Write]]
-    #: per device, outcomes queued to the kernel thread and not yet applied (under ``_wlock``)
-    _queued: dict[str, int] | None = None
+    def __init__(self, kernel: Kernel, table: DeviceTable,
+                 safe_failed: Callable[[str, str], None]) -> None:
+        self._kernel = kernel
+        self._table = table
+        self._safe_failed = safe_failed
+        self._lock = threading.Lock()
+        self._inflight: dict[str, deque[Write]] = {}
+        #: per device, outcomes queued to the kernel thread and not yet applied (under
+        #: ``_lock``; None until the first)
+        self._queued: dict[str, int] | None = None
+
+    def track(self, w: Write) -> None:
+        """``w`` is handed to its driver, which will report its outcome (any thread)."""
+        with self._lock:
+            q = self._inflight.get(w.device)
+            if q is None:
+                q = self._inflight[w.device] = deque()
+            q.append(w)
+
+    def outstanding(self, device: str) -> bool:
+        """Whether a write of ``device`` is in flight or has an outcome on its way to the
+        kernel thread. Asked on the kernel thread without the lock (see the module doc)."""
+        queued = self._queued
+        return bool(self._inflight.get(device)) or bool(queued and queued.get(device))
 
     def written(self, device: str, value: Any) -> None:
         """The oldest outstanding write of ``device`` is on the wire (from any thread; on the
         kernel thread applied at once, see the module doc)."""
-        with self._wlock:
+        with self._lock:
             q = self._inflight.get(device)
             if not q:
                 return
-            now = self.kernel.on_kernel_thread() and not (self._queued and
+            now = self._kernel.on_kernel_thread() and not (self._queued and
                                                           self._queued.get(device))
             if not now:
                 self._queue_outcome(device)     # first (see the module doc)
@@ -57,7 +79,7 @@ class WriteTracking:
         if now:
             self._write_done(w)
         else:
-            self.kernel.interrupt(self._queued_done, w)
+            self._kernel.interrupt(self._queued_done, w)
 
     def _queue_outcome(self, device: str) -> None:
         """Count one outcome of ``device`` queued to the kernel thread (under ``_wlock``)."""
@@ -67,7 +89,7 @@ class WriteTracking:
 
     def _queued_done(self, w: Write) -> None:
         """A queued outcome reaches the kernel thread: uncount it, apply it."""
-        with self._wlock:
+        with self._lock:
             if self._queued is not None:
                 n = self._queued.get(w.device, 0) - 1
                 if n > 0:
@@ -80,12 +102,12 @@ class WriteTracking:
         """The oldest outstanding write of ``device`` did not reach the wire (from a driver
         thread). A safe value is tried again (SAFE_ATTEMPTS in all) unless a newer write is
         queued; then it is reported undelivered."""
-        with self._wlock:
+        with self._lock:
             q = self._inflight.get(device)
             if not q:
                 return
             w = q[0]
-            e = self._entries.get(device)
+            e = self._table.find(device)
             driver = e.driver if e is not None else None
             retry = (bool(w.safe) and w.attempts < SAFE_ATTEMPTS and len(q) == 1
                      and driver is not None)
@@ -100,28 +122,28 @@ class WriteTracking:
             return
         w.done = False
         w.reason = reason
-        self.kernel.interrupt(self._queued_done, w)
+        self._kernel.interrupt(self._queued_done, w)
 
     def _write_done(self, w: Write) -> None:
         """A confirmed or failed write, on the kernel thread: the shown value, the events."""
-        e = self._entries.get(w.device)
+        e = self._table.find(w.device)
         if e is None:
             return
-        with self._wlock:
+        with self._lock:
             left = len(self._inflight.get(w.device, ()))
         if left == 0:
             e.pending = None
         if w.done:
             e.value = w.value
-            e.updated_at = self.kernel.clock.now()
+            e.updated_at = self._kernel.clock.now()
             return
         e.write_errors += 1
         e.last_write_error = w.reason
         what = f"safe value ({w.safe})" if w.safe else "command"
         text = f"{w.device}: {what} {w.value!r} not written: {w.reason}"
-        self.kernel.event("write-failed", text)
+        self._kernel.event("write-failed", text)
         if w.safe:
-            self.safe_failures.append((w.device, w.reason))
+            self._safe_failed(w.device, w.reason)
             faults.error("%s", text)
         else:
             faults.warning("%s", text)

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from chcos.errors import MessageError, ReadTimeout
-from chcos.user.context import TaskContext
+from chcos.user.context import EventKind, TaskContext
 
 _log = logging.getLogger("chcos.system.provided")
 
@@ -221,12 +221,12 @@ async def terminal_log(ctx: TaskContext, command: Any) -> None:
     try:
         while True:
             ev = await ctx.wait_any([0], commands=True)
-            if ev.kind == "command":
+            if ev.kind is EventKind.COMMAND:
                 log(f"command {ev.value}")
                 if _stop(ev.value):
                     _detach(ctx)
                     return
-            elif ev.kind == "message":
+            elif ev.kind is EventKind.MESSAGE:
                 log(f"tty {ev.value}")
                 ctx.put(ev.value)
     except GeneratorExit:  # closed for good (shutdown, reload): let the terminal go

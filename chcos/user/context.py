@@ -30,10 +30,10 @@ from chcos.user.axes import AxisHandle, axis_handle
 from chcos.user.commanding import Commanding
 from chcos.user.cycles import Cycle, wait_cycle
 from chcos.user.ports import Port
-from chcos.user.reading import Event, Reading
+from chcos.user.reading import Event, EventKind, Reading
 from chcos.user.worldmodel import WorldModel
 
-__all__ = ["Cycle", "Event", "Port", "TaskContext"]
+__all__ = ["Cycle", "Event", "EventKind", "Port", "TaskContext"]
 
 
 class TaskContext(Reading, Commanding):

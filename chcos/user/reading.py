@@ -7,6 +7,7 @@ also while waiting; every wait may have a timeout (ReadTimeout).
 
 from __future__ import annotations
 
+import enum
 import logging
 import types
 from collections.abc import Awaitable, Callable, Generator, Sequence
@@ -48,18 +49,33 @@ def _position(ports: Sequence[InPort], port: InPort) -> int:
     raise AssertionError("read_any took a port it was not given")
 
 
+class EventKind(enum.StrEnum):
+    """What a :class:`Event` of :meth:`TaskContext.wait_any` is about (a string enum: a task
+    written as ``ev.kind == "command"`` still reads it)."""
+
+    #: a newer command from this task's owner
+    COMMAND = "command"
+    #: a subordinate completed or was pre-empted
+    COMPLETION = "completion"
+    #: a tapped sensory message of a lower task
+    EXCEPTION = "exception"
+    #: a message on an input port
+    MESSAGE = "message"
+    #: the sensor on an input port failed or went stale while waiting
+    FAILURE = "failure"
+
+
 @dataclass(frozen=True)
 class Event:
     """What :meth:`TaskContext.wait_any` returns: what happened first.
 
-    ``kind`` is ``"command"`` (a newer command from this task's owner; ``value`` is the
-    command, ``source`` the owner), ``"completion"`` (a subordinate completed or was
-    pre-empted; ``value`` is the :class:`Completion`, ``port`` the output port), ``"exception"``
-    (a tapped sensory message of a lower task; ``source`` is that task), ``"message"`` (a message
-    on input ``port`` from ``source``) or ``"failure"`` (the sensor on input ``port`` failed or
-    went stale while waiting; ``value`` is the reason)."""
+    ``kind`` is :attr:`EventKind.COMMAND` (``value`` is the command, ``source`` the owner),
+    :attr:`~EventKind.COMPLETION` (``value`` is the :class:`Completion`, ``port`` the output
+    port), :attr:`~EventKind.EXCEPTION` (``source`` is the lower task),
+    :attr:`~EventKind.MESSAGE` (a message on input ``port`` from ``source``) or
+    :attr:`~EventKind.FAILURE` (the sensor on input ``port``; ``value`` is the reason)."""
 
-    kind: str
+    kind: EventKind
     source: str
     value: Any = None
     port: int = -1
@@ -232,7 +248,7 @@ class Reading(TaskHandle):
             except SensorFailure as exc:
                 self._k.unhook(t)
                 index = next((p.index for p in ins if p.link.src == exc.device), -1)
-                return Event("failure", exc.device, exc.reason, index)
+                return Event(EventKind.FAILURE, exc.device, exc.reason, index)
             finally:
                 if t.multi_wait:  # woken by a message, the timer (the deadline) stays
                     t.unwait = None
@@ -243,24 +259,24 @@ class Reading(TaskHandle):
         t = self._t
         if commands and t.new_command is not None:
             src = t.owner.src if t.owner is not None else ""
-            return Event("command", src, self.take_command())
+            return Event(EventKind.COMMAND, src, self.take_command())
         for link in links:
             report = self._mm.done_now(link)
             if report is not None:
-                return Event("completion", link.dst, report, link.src_port)
+                return Event(EventKind.COMPLETION, link.dst, report, link.src_port)
         if tap is not None and tap.order:
             for src in tap.order:
                 value = tap.newest[src][0]
                 if when is None or _accepts(when, src, value):
                     _s, value, _at = tap.take_from(src)
-                    return Event("exception", src, value)
+                    return Event(EventKind.EXCEPTION, src, value)
         best: InPort | None = None
         for p in ins:
             if (p.fresh and (best is None or p.link.priority > best.link.priority)
                     and (when is None or _accepts(when, p.link.src, _head(p)))):
                 best = p
         if best is not None:
-            return Event("message", best.link.src, self._take(best), best.index)
+            return Event(EventKind.MESSAGE, best.link.src, self._take(best), best.index)
         return None
 
     def feed(self, port: Port, value: Any) -> None:

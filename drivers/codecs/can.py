@@ -6,6 +6,7 @@ Used by the CAN driver (:mod:`drivers.can_raw`) and by the simulated CAN nodes.
 
 from __future__ import annotations
 
+import enum
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -60,6 +61,43 @@ def _initial(sig: Any) -> float:
     if sig.maximum is not None and init > sig.maximum:
         init = sig.maximum
     return float(init)
+
+
+class FrameFault(enum.StrEnum):
+    """Why a received frame gives no readings: the error class it is counted under."""
+
+    REMOTE_FRAME = "remote-frame"    # a data request: chcos does not answer remote requests
+    UNKNOWN_ID = "unknown-id"        # in no device's message
+    WRONG_LENGTH = "wrong-length"    # not the message's length
+    UNDECODABLE = "undecodable"      # the DBC cannot decode it, or a signal is not finite
+    UNKNOWN_MUX = "unknown-mux"      # a multiplexer value the DBC does not list
+
+
+@dataclass(frozen=True, slots=True)
+class Decoded:
+    """A well-formed frame's readings, ``(device, value)`` in signal order (of a multiplexed
+    message only the sensors its multiplexer selects, possibly none)."""
+
+    readings: list[tuple[str, Any]]
+
+
+@dataclass(frozen=True, slots=True)
+class Ignored:
+    """A frame of a known message that carries no sensor (an actuator message): not an error."""
+
+    why: str
+
+
+@dataclass(frozen=True, slots=True)
+class Rejected:
+    """A frame that gives no readings, with its class and a text naming the frame."""
+
+    fault: FrameFault
+    detail: str
+
+
+#: What :meth:`CanCodec.decode` makes of a received frame.
+DecodeResult = Decoded | Ignored | Rejected
 
 
 class FrameLike(Protocol):
@@ -232,48 +270,50 @@ class CanCodec:
         fr = self._by_id.get((can_id, extended))
         return f"0x{can_id:X}" if fr is None else str(fr.message.name)
 
-    def decode(self, frame: FrameLike) -> tuple[str, list[tuple[str, Any]] | str]:
-        """Classify and decode ``frame``: ``("ok", [(device, value)...])`` (of a multiplexed
-        message only the sensors its multiplexer selects, possibly none), ``("ignore", why)``,
-        or ``(error_kind, detail)`` with error_kind in remote-frame, unknown-id, wrong-length,
-        undecodable, unknown-mux (a multiplexer value the DBC does not list)."""
+    def decode(self, frame: FrameLike) -> DecodeResult:
+        """Classify and decode ``frame``: its readings (:class:`Decoded`), :class:`Ignored` (an
+        actuator message), or :class:`Rejected` with the :class:`FrameFault` it is counted
+        under."""
         if frame.is_remote_frame:
-            return "remote-frame", (f"remote frame (a data request) for id "
-                                    f"0x{frame.arbitration_id:X}, dlc {frame.dlc}: chcos does "
-                                    f"not answer remote requests")
+            return Rejected(FrameFault.REMOTE_FRAME,
+                            f"remote frame (a data request) for id 0x{frame.arbitration_id:X}, "
+                            f"dlc {frame.dlc}: chcos does not answer remote requests")
         # (id, True) and (id, 1) are the same key: python-can's flag needs no bool()
         fr = self._by_id.get((frame.arbitration_id, frame.is_extended_id))
         if fr is None:
-            return "unknown-id", f"frame id 0x{frame.arbitration_id:X} is in no device's message"
+            return Rejected(FrameFault.UNKNOWN_ID,
+                            f"frame id 0x{frame.arbitration_id:X} is in no device's message")
         if not fr.sensors:
-            return "ignore", "actuator message"
+            return Ignored("actuator message")
         data = frame.data
         if len(data) != fr.length:
-            return "wrong-length", (f"frame id 0x{frame.arbitration_id:X} ({fr.message.name}) "
-                                    f"has {len(data)} bytes, expected {fr.length}")
+            return Rejected(FrameFault.WRONG_LENGTH,
+                            f"frame id 0x{frame.arbitration_id:X} ({fr.message.name}) has "
+                            f"{len(data)} bytes, expected {fr.length}")
         one = fr.read1
         if one is not None:    # one raw whole-byte sensor signal: the int cantools would give
             dev, o, n, sg, whole = one
-            return "ok", [(dev, int.from_bytes(data if whole else data[o:o + n], "little",
-                                               signed=sg))]
+            return Decoded([(dev, int.from_bytes(data if whole else data[o:o + n], "little",
+                                                 signed=sg))])
         reads = fr.reads
         if reads is not None:  # raw whole-byte signals: the ints cantools would give
-            return "ok", [(dev, int.from_bytes(data[o:o + n], "little", signed=sg))
-                          for dev, o, n, sg in reads]
+            return Decoded([(dev, int.from_bytes(data[o:o + n], "little", signed=sg))
+                            for dev, o, n, sg in reads])
         try:
             vals = fr.message.decode(bytes(frame.data), decode_choices=False)
         except (cantools.database.DecodeError, ValueError, KeyError) as exc:
             if fr.multiplexed and "multiplexer id" in str(exc):
-                return "unknown-mux", (f"frame id 0x{frame.arbitration_id:X} "
-                                       f"({fr.message.name}): {exc}")
-            return "undecodable", f"frame id 0x{frame.arbitration_id:X}: {exc}"
+                return Rejected(FrameFault.UNKNOWN_MUX,
+                                f"frame id 0x{frame.arbitration_id:X} ({fr.message.name}): {exc}")
+            return Rejected(FrameFault.UNDECODABLE, f"frame id 0x{frame.arbitration_id:X}: {exc}")
         # a multiplexed message gives only the signals its multiplexer selects in this frame
         out = [(dev, vals[sig]) for sig, dev in fr.sensors.items() if sig in vals]
         for dev, v in out:
             if isinstance(v, float) and not math.isfinite(v):
-                return "undecodable", (f"frame id 0x{frame.arbitration_id:X}: signal of {dev} "
-                                       f"is {v}, not a finite number")
-        return "ok", out
+                return Rejected(FrameFault.UNDECODABLE,
+                                f"frame id 0x{frame.arbitration_id:X}: signal of {dev} is {v}, "
+                                f"not a finite number")
+        return Decoded(out)
 
     def accepts(self, device: str) -> tuple[float, float, bool] | None:
         """What :meth:`check` accepts for ``device`` without a trial encode: a raw (non-DBC)

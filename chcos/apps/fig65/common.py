@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from chcos.helpers import is_number
-from chcos.user.context import TaskContext
+from chcos.user.context import EventKind, TaskContext
 
 FAN_IN = 5  # five inputs at level n make one output at level n+1 (thesis 6.4)
 
@@ -25,14 +25,14 @@ async def condense(ctx: TaskContext, actuator: str | None = None, gain: float = 
     acc: list[float] = []
     while True:
         ev = await ctx.wait_any(range(len(ctx.inputs)), commands=True)
-        if ev.kind == "command":
+        if ev.kind is EventKind.COMMAND:
             if shutdown_requested(ev.value):
                 if actuator is not None:
                     ctx.write(actuator, 0.0)
                 ctx.world.command["state"] = "shut down"
                 return "shut down"
             return ev.value
-        if ev.kind == "failure":
+        if ev.kind is EventKind.FAILURE:
             ctx.put(("sensor failure", ev.source))
             ctx.world.sensory[ev.source] = "failed"
             continue

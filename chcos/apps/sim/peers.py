@@ -201,14 +201,16 @@ class CanPeer(Mutable, Peer):
             self.can.send(msg)
 
     def get(self, device: DeviceSpec) -> Any:
+        from drivers.codecs.can import Decoded
+
         with self.lock:
             while True:
                 frame = self.can.recv(timeout=0)
                 if frame is None:
                     break
-                status, vals = self.codec.decode(frame)
-                if status == "ok" and isinstance(vals, list):
-                    for dev, v in vals:
+                result = self.codec.decode(frame)
+                if isinstance(result, Decoded):
+                    for dev, v in result.readings:
                         self.received[dev] = v
             return self.received.get(device.name)
 
