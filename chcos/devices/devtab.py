@@ -331,7 +331,7 @@ class Devtab:
             # let the peer come back (a reconnect, a reboot), on virtual time
             self.kernel.run_drivers(clock.now() + SHUTDOWN_RETRY_PAUSE, never, wall_end)
             for name in again:
-                issued[name] = self._safe_write(self._entries[name], "shutdown")
+                issued[name] = self._safe_write(self._table.get(name), "shutdown")
                 attempts[name] += 1
         return [self._safe_outcome(i, attempts[name]) for name, i in issued.items()]
 
