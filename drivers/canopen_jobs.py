@@ -1,8 +1,9 @@
 """canopen_jobs - the typed jobs of the ``canopen`` driver's I/O thread (beside the shared
 ``poll`` and ``write`` jobs of :mod:`drivers.jobs`): a node's boot procedure, the report of a
 node held in PRE-OPERATIONAL, the probe of an actuator whose write failed, and the work of the
-CiA 402 axes it hosts (readings, commands, the node's loss). Each travels as the
-``what`` of a :class:`drivers.jobs.Job` with op :data:`OP` and is dispatched with ``match``.
+CiA 402 axes it hosts (readings, commands, the node's loss, a cycle of their engines). Each
+travels as the ``what`` of a :class:`drivers.jobs.Job` with op ``JobOp.OWN`` (the axes' cycle
+also as a paced ``JobOp.POLL`` key) and is dispatched with ``match``.
 """
 
 from __future__ import annotations
@@ -11,8 +12,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-#: the op of every job defined here
-OP = "canopen"
+
+@dataclass(frozen=True)
+class AxisCycle:
+    """One cycle of the hosted axes' engines (timeouts, the fault reset's edge, resends): the
+    key of their paced poll, or a job of its own while a flush waits for a running command."""
 
 
 @dataclass(frozen=True)
@@ -76,4 +80,5 @@ class AxisRefresh:
     device: str
 
 
-CanopenJob = BootNode | ReportHeld | Probe | AxisFeed | AxisCommand | AxisLost | AxisRefresh
+CanopenJob = (BootNode | ReportHeld | Probe | AxisFeed | AxisCommand | AxisLost | AxisRefresh
+              | AxisCycle)

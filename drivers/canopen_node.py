@@ -84,8 +84,8 @@ from drivers.canbus import read_frames
 from drivers.canopen_axis import CODE_OPS, AxisCall, AxisCode, AxisHost, AxisStatus, Done
 from drivers.canopen_events import FrameCheck, NodeEvents
 from drivers.canopen_jobs import (
-    OP,
     AxisCommand,
+    AxisCycle,
     AxisFeed,
     AxisLost,
     AxisRefresh,
@@ -110,7 +110,7 @@ from drivers.canopen_remote import BootOutcome, ManagedNode, RpdoImages
 from drivers.canopen_sync import SYNC_COB_ID, SyncCycle, SyncPacer, SyncStats
 from drivers.codecs.canopen import EMCY_BASE, HEARTBEAT_BASE
 from drivers.codecs.cia402 import Obj, Result, Write, config_from_table, mode_of
-from drivers.jobs import Job, WorkerJobDriver
+from drivers.jobs import Job, JobOp, WorkerJobDriver
 from drivers.threaded import ReaderThread
 
 DEFAULT_SDO_TIMEOUT = 0.3
@@ -122,8 +122,6 @@ SDO_TX_BASE = 0x580   # SDO server -> client: COB-ID 0x580 + node id
 IGNORES_RPDOS = (NodeLifecycle.PREOP_HELD, NodeLifecycle.FAILED, NodeLifecycle.WAITING_BOOT)
 #: seconds between two cycles of the axes' engines (timeouts, the fault reset's edge, resends)
 AXIS_CYCLE = 0.01
-#: the job op of the axes' cycle
-AXIS_POLL = "axis-poll"
 #: the shortest delay (s) the SYNC pacing asks of the broadcast manager (0 would stop its timer)
 MIN_BCM_DELAY = 1e-5
 #: a SYNC the reader takes more than this fraction of a period after its wire time does not
@@ -206,7 +204,7 @@ class CanopenDriver(WorkerJobDriver):
         self._late_writes = 0
 
     def _submit_job(self, job: CanopenJob) -> bool:
-        return self._submit(OP, job)
+        return self._submit(JobOp.OWN, job)
 
     # -- what the driver shows ----------------------------------------------------------------
 
@@ -268,7 +266,7 @@ class CanopenDriver(WorkerJobDriver):
         tag = responding() if responding is not None and b is not None and b.pdo_var else None
         with self._answers_lock:
             self._answers.setdefault(device, deque()).append(tag)
-        if not self._submit("write", device, value):
+        if not self._submit(JobOp.WRITE, device, value):
             with self._answers_lock:
                 self._answers[device].pop()
             self._refuse(device, value, "stopped", f"{self.kind} bus {self.bus.name} is not "
@@ -388,7 +386,7 @@ class CanopenDriver(WorkerJobDriver):
                 generation = node.lifecycle.restart("driver started: identity, configuration "
                                                     "and NMT start under way")
                 node.booting = True
-            self._submit(OP, BootNode(node.id, generation))
+            self._submit(JobOp.OWN, BootNode(node.id, generation))
         if "master_heartbeat_ms" in opts:
             self._start_master_heartbeat(bus, int(opts["master_heartbeat_ms"]))
         if "sync_period" in opts:
@@ -404,7 +402,7 @@ class CanopenDriver(WorkerJobDriver):
         for period in groups:
             self._poll_every(period, period)
         if self._axes:
-            self._poll_every(("axes",), AXIS_CYCLE, AXIS_POLL)
+            self._poll_every(AxisCycle(), AXIS_CYCLE)
 
     def _start_master_heartbeat(self, bus: can.BusABC, period_ms: int) -> None:
         """The master's heartbeat (state OPERATIONAL) at ``period_ms``: a cyclic task of the
@@ -535,7 +533,7 @@ class CanopenDriver(WorkerJobDriver):
         if device not in self._axes:
             done(BusError(f"canopen bus {self.bus.name}: no axis {device!r}"))
             return
-        if not self._submit(OP, AxisCommand(device, call, done)):
+        if not self._submit(JobOp.OWN, AxisCommand(device, call, done)):
             done(BusError(f"canopen bus {self.bus.name} is not running: {call.op.value} of "
                           f"axis {device} not sent"))
 
@@ -551,7 +549,7 @@ class CanopenDriver(WorkerJobDriver):
             objs = self._axes[host].objects()
             mine = tuple((objs[(i, s)], v) for i, s, v in values if (i, s) in objs)
             if mine:
-                self._submit(OP, AxisFeed(host, mine))
+                self._submit(JobOp.OWN, AxisFeed(host, mine))
 
     def _axis_node_down(self, node: ManagedNode, reason: str) -> None:
         with self._down_lock:
@@ -559,13 +557,13 @@ class CanopenDriver(WorkerJobDriver):
                 return
             self._down.add(node.id)
         for name in node.axes:
-            self._submit(OP, AxisLost(name, reason))
+            self._submit(JobOp.OWN, AxisLost(name, reason))
 
     def _axis_node_up(self, node: ManagedNode) -> None:
         with self._down_lock:
             self._down.discard(node.id)
         for name in node.axes:
-            self._submit(OP, AxisRefresh(name))
+            self._submit(JobOp.OWN, AxisRefresh(name))
 
     def _axis_send(self, node: ManagedNode, w: Write) -> None:
         """One write of an axis as its own frame: the first RPDO mapping the object, composed
@@ -660,7 +658,7 @@ class CanopenDriver(WorkerJobDriver):
         while self._axes and any(a.status().busy is not None for a in self._axes.values()):
             if time.monotonic() >= deadline or not self._running:
                 return False
-            self._submit(AXIS_POLL, None)
+            self._submit(JobOp.OWN, AxisCycle())
             super().flush(max(0.0, deadline - time.monotonic()))
             time.sleep(AXIS_CYCLE)      # the drive's next statusword (real time at shutdown)
         return ok
@@ -723,29 +721,32 @@ class CanopenDriver(WorkerJobDriver):
         procedure, the report of a node held in PRE-OPERATIONAL, a probe after a failed write."""
         try:
             match job:
-                case Job("poll", period):
+                case Job(JobOp.POLL, AxisCycle() as cycle):
+                    self._poll_taken(cycle)
+                    self._guarded(self._axis_poll)
+                case Job(JobOp.POLL, period):
                     self._poll_group(period)
-                case Job("write", device, value) if device in self._axes:
+                case Job(JobOp.WRITE, device, value) if device in self._axes:
                     self._answered(device)      # an axis command answers no SYNC cycle
                     self._axis_write(device, value)
-                case Job("write", device, value):
+                case Job(JobOp.WRITE, device, value):
                     self._transfer(self._bindings[device], value, self._answered(device))
-                case Job(op, BootNode() as boot) if op == OP:
+                case Job(JobOp.OWN, BootNode() as boot):
                     self._boot(boot)
-                case Job(op, ReportHeld() as held) if op == OP:
+                case Job(JobOp.OWN, ReportHeld() as held):
                     self._report_held(held)
-                case Job(op, Probe() as probe) if op == OP:
+                case Job(JobOp.OWN, Probe() as probe):
                     self._probe(probe)
-                case Job(op, AxisFeed() | AxisCommand() | AxisLost() | AxisRefresh() as axis_job) \
-                        if op == OP:
+                case Job(JobOp.OWN, AxisFeed() | AxisCommand() | AxisLost() | AxisRefresh()
+                         as axis_job):
                     self._guarded(self._axis_job, axis_job)
-                case Job(op, key) if op == AXIS_POLL:
-                    if key is not None:
-                        self._poll_taken(key)
+                case Job(JobOp.OWN, AxisCycle()):
                     self._guarded(self._axis_poll)
+                case _:
+                    raise AssertionError(f"canopen driver: no such job {job!r}")
         except can.CanError as exc:
             self.host.error(self.bus.name, "can", f"{job.op} {job.what}: CAN send failed: {exc}")
-            if job.op == "write":
+            if job.op is JobOp.WRITE:
                 self.host.write_failed(job.what, job.value, f"CAN send failed: {exc}")
 
     def _poll_group(self, period: float) -> None:
@@ -912,7 +913,7 @@ class CanopenDriver(WorkerJobDriver):
                          lambda: self._queue_probe(b.device.name))
 
     def _queue_probe(self, device: str) -> None:
-        self._submit(OP, Probe(device))
+        self._submit(JobOp.OWN, Probe(device))
 
     def _probe(self, job: Probe) -> None:
         """An SDO upload of the failed actuator's object (of 0x1000, the device type, if the

@@ -44,23 +44,23 @@ from drivers.threaded import ReaderThread
 
 
 class JobOp(StrEnum):
-    """What a job does, as far as this module is concerned: it paces the ``POLL`` jobs, reports a
-    ``WRITE`` job it drops as a failed write, and ends the worker at ``STOP``. A string enum: a
-    driver with ops of its own (the CANopen driver's typed jobs travel under one op,
-    :data:`drivers.canopen_jobs.OP`) passes them beside these, and a ``match`` on the literal
-    ``"poll"`` matches :attr:`POLL`."""
+    """What a job does, as far as this module is concerned: it paces the ``POLL`` jobs (their
+    ``what`` a key typed by the driver), reports a ``WRITE`` job it drops as a failed write, and
+    ends the worker at ``STOP``. ``OWN``: a job of the driver's own, its ``what`` a typed object
+    the driver dispatches with ``match`` (the CANopen driver's :mod:`drivers.canopen_jobs`)."""
 
     POLL = "poll"
     WRITE = "write"
     STOP = "stop"
+    OWN = "own"
 
 
 class Job(NamedTuple):
-    """One unit of bus I/O: ``op`` (a :class:`JobOp`, or an op of the driver's own), what it is
-    about (a poll's key - typed by the driver, e.g. :class:`drivers.modbus_jobs.SensorPoll` -, a
-    write's device, a driver's own job object) and a write's value."""
+    """One unit of bus I/O: ``op``, what it is about (a poll's key - typed by the driver, e.g.
+    :class:`drivers.modbus_jobs.SensorPoll` -, a write's device, a driver's own job object) and
+    a write's value."""
 
-    op: str
+    op: JobOp
     what: Any = None
     value: Any = None
 
@@ -82,8 +82,8 @@ class JobDriver(Driver):
         self._idle = threading.Condition()
         self._pending = 0
         self._polls_queued: set[Hashable] = set()
-        #: paced polls: key -> (period, job op); key -> when the queued poll was due
-        self._poll_plan: dict[Hashable, tuple[float, str]] = {}
+        #: paced polls: key -> period; key -> when the queued poll was due
+        self._poll_plan: dict[Hashable, float] = {}
         self._poll_due_at: dict[Hashable, float] = {}
         self._rx: ReaderThread | None = None
         #: flushes under way: late successors are armed through the host, not queued at once
@@ -93,7 +93,7 @@ class JobDriver(Driver):
     def _put(self, job: Job) -> bool:
         """Hand ``job`` to the I/O thread; False if it cannot take it (not running)."""
 
-    def _submit(self, op: str, what: Any = None, value: Any = None) -> bool:
+    def _submit(self, op: JobOp, what: Any = None, value: Any = None) -> bool:
         """Count and hand over one job; False (and not counted) if the thread cannot take it."""
         with self._idle:
             self._pending += 1
@@ -102,8 +102,8 @@ class JobDriver(Driver):
             return False
         return True
 
-    def _submit_poll(self, key: Hashable, op: str = JobOp.POLL) -> None:
-        """Queue the poll ``key`` (job ``(op, key)``) unless it is queued already; the I/O
+    def _submit_poll(self, key: Hashable) -> None:
+        """Queue the poll ``key`` (job ``(POLL, key)``) unless it is queued already; the I/O
         thread calls :meth:`_poll_taken` when it takes it."""
         if key in self._polls_queued:   # the kernel's timer fires while the poll waits (or
             return                      # catches up): no lock (a racing take only defers it)
@@ -111,13 +111,13 @@ class JobDriver(Driver):
             if key in self._polls_queued:
                 return
             self._polls_queued.add(key)
-        if not self._submit(op, key):
+        if not self._submit(JobOp.POLL, key):
             self._poll_taken(key)
 
-    def _poll_every(self, key: Hashable, period: float, op: str = JobOp.POLL) -> None:
-        """Poll ``key`` (job ``(op, key)``) every ``period`` seconds of the kernel clock, the
+    def _poll_every(self, key: Hashable, period: float) -> None:
+        """Poll ``key`` (job ``(POLL, key)``) every ``period`` seconds of the kernel clock, the
         first one period from now, paced by the polls (see the module doc). Call from start."""
-        self._poll_plan[key] = (period, op)
+        self._poll_plan[key] = period
         self._arm_poll(key, round(self.host.now() + period, 9))
 
     def _arm_poll(self, key: Hashable, due: float) -> None:
@@ -128,7 +128,7 @@ class JobDriver(Driver):
         thread for a late successor); taking it arms the next one."""
         with self._idle:
             self._poll_due_at[key] = due
-        self._submit_poll(key, self._poll_plan[key][1])
+        self._submit_poll(key)
 
     def _poll_taken(self, key: Hashable) -> None:
         """The poll ``key`` left the queue (run, or dropped): it may be queued again. A paced
@@ -140,7 +140,7 @@ class JobDriver(Driver):
             due = self._poll_due_at.pop(key, None)
         if due is None or not self._running:
             return
-        nxt = round(due + self._poll_plan[key][0], 9)
+        nxt = round(due + self._poll_plan[key], 9)
         now = self.host.now()
         if nxt > now or self._flushing:
             self._arm_poll(key, nxt)
