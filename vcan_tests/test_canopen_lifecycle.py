@@ -278,7 +278,12 @@ def test_a_rebooted_node_gets_its_configuration_then_the_safe_values(tmp_path: P
                          and s.devtab.get("speed").status.value == "OK"
                          and node.read(0x607A, 0) == 11 and node.read(0x6081, 0) == 7)
         assert node.read(0x1017, 0) == 20 and node.state == StateEnum.OPERATIONAL
-        frames = [f for f in wire.frames if f.at >= booted]
+        # what the wire carried after the node's boot-up message, in the order it carried it
+        # (not by time stamp: a frame sent just before the reboot may be stamped after it)
+        seen = list(wire.frames)
+        boot = min(i for i, f in enumerate(seen)
+                   if f.cob_id == 0x700 + NODE and f.data == b"\x00" and f.at >= booted)
+        frames = seen[boot + 1:]
         rpdos = [f for f in frames if f.cob_id == 0x200 + NODE]
         speeds = sdo_downloads(frames, NODE, 0x6081)
         assert rpdos[0].data == (11).to_bytes(4, "little") and speeds[:1] == [7]
