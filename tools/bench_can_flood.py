@@ -64,38 +64,43 @@ def _p(values: list[float], q: float) -> float:
 
 
 class _Traffic:
-    """The two cangen processes of one phase: the flood and the cell's own frames."""
+    """The cangen processes of one phase: the flood (``procs`` processes, each sending bursts
+    of ``burst`` frames every ``gap_ms`` ms; ``gap_ms`` 0: back to back, as fast as the guest
+    lets it) and the cell's own frames."""
 
-    def __init__(self, seconds: float, burst: int, own_rate: float) -> None:
+    def __init__(self, seconds: float, burst: int, own_rate: float, procs: int = 1,
+                 gap_ms: float = 1.0) -> None:
         self.own_n = int(seconds * own_rate)
-        gap_ms = 1000.0 / own_rate
-        self.flood_n = int(seconds * burst * 1000 * 1.2)    # more than the phase needs
+        gap_own = 1000.0 / own_rate
+        per = max(1.0, gap_ms) / 1000.0
+        self.flood_n = int(seconds * 4 * max(burst / per, 30000.0))   # more than a phase needs
         # the flood comes from other nodes on a real bus, not from this CPU: cangen runs at the
         # lowest priority, so it takes the CPU the cell leaves (the kernel's receive path of
         # every frame still runs on it, as it would on a real bus)
-        self._flood_args = ["nice", "-n", "19", "cangen", CHANNEL, "-I", f"{FLOOD_ID:X}",
-                            "-L", "8", "-D", "r", "-g", "1", "-c", str(burst),
-                            "-n", str(self.flood_n)]
+        self._flood_args = [["nice", "-n", "19", "cangen", CHANNEL, "-I", f"{FLOOD_ID:X}",
+                             "-L", "8", "-D", "r", "-g", f"{gap_ms:g}", "-c", str(burst),
+                             "-n", str(self.flood_n)] for _ in range(procs)]
         self._own_args = ["cangen", CHANNEL, "-I", f"{OWN_ID:X}", "-L", "8", "-D", "i",
-                          "-g", f"{gap_ms:g}", "-n", str(self.own_n)]
+                          "-g", f"{gap_own:g}", "-n", str(self.own_n)]
         self.flood_rate = 0.0
 
     def run(self) -> None:
         """Start the flood, let it run a moment, send the own frames while it runs, stop it;
-        :attr:`flood_rate` is the rate the flood reached (frames/s, from the interface's
-        transmit counter)."""
-        tx0 = _tx_packets()
-        t0 = time.monotonic()
-        flood = subprocess.Popen(self._flood_args, stdout=subprocess.DEVNULL)
+        :attr:`flood_rate` is the rate the flood reached while the own frames were sent
+        (frames/s, from the interface's transmit counter)."""
+        floods = [subprocess.Popen(a, stdout=subprocess.DEVNULL) for a in self._flood_args]
         try:
             time.sleep(0.3)
+            tx0, t0 = _tx_packets(), time.monotonic()
             subprocess.run(self._own_args, check=True, timeout=600)
+            dt, tx = time.monotonic() - t0, _tx_packets() - tx0
             time.sleep(0.2)
         finally:
-            flood.terminate()
-            flood.wait(timeout=30)
-        dt = time.monotonic() - t0
-        self.flood_rate = max(0, _tx_packets() - tx0 - self.own_n) / dt
+            for f in floods:
+                f.terminate()
+            for f in floods:
+                f.wait(timeout=30)
+        self.flood_rate = max(0, tx - self.own_n) / dt
 
 
 def _tx_packets() -> int:
@@ -207,58 +212,95 @@ def _plain_phase(traffic: _Traffic, use_filter: bool) -> dict[str, Any]:
     return {"delivered": len(seqs), "ages": ages, "lost": lost, "stale": 0}
 
 
-def inside(seconds: float, burst: int, own_rate: float) -> None:
-    """Run the phases (inside the guest) and print the table."""
+FLOOD_TARGET = 10000.0     # frames/s of unrelated traffic (issue 38)
+SHARE_TARGET = 0.99
+P99_TARGET_MS = 5.0
+
+
+def inside(seconds: float, burst: int, own_rate: float, procs: int, gap_ms: float,
+           rounds: int) -> None:
+    """Run the phases ``rounds`` times, one after the other (inside the guest), and print the
+    table of the rounds pooled and the verdict."""
     phases: list[tuple[str, Callable[[_Traffic], dict[str, Any]]]] = [
         ("chcos (kernel filters)", lambda tr: _chcos_phase(tr, True)),
+        ("plain reader + filters", lambda tr: _plain_phase(tr, True)),
         ("chcos, filter = false", lambda tr: _chcos_phase(tr, False)),
-        ("plain python-can reader", lambda tr: _plain_phase(tr, False)),
-        ("plain reader + filters", lambda tr: _plain_phase(tr, True))]
+        ("plain python-can reader", lambda tr: _plain_phase(tr, False))]
+    flood = (f"{procs} cangen process(es) at nice 19, bursts of {burst} every {gap_ms:g} ms"
+             if gap_ms > 0 else f"{procs} cangen process(es) at nice 19, back to back "
+                                f"(as fast as the guest lets them)")
     print(f"bench_can_flood: SocketCAN {CHANNEL} in the UML guest, {os.cpu_count()} CPU; own "
-          f"frames id 0x{OWN_ID:X} at {own_rate:g}/s for {seconds:g} s, flood id 0x{FLOOD_ID:X}"
-          f" in bursts of {burst}/ms")
+          f"frames id 0x{OWN_ID:X} at {own_rate:g}/s for {seconds:g} s per phase, {rounds} "
+          f"round(s) pooled; flood id 0x{FLOOD_ID:X}: {flood}")
     print(f"{'reader':<26} {'own delivered':>15} {'share':>7} {'age p50':>9} {'age p90':>9} "
-          f"{'age p99':>9} {'age max':>9} {'kernel drops':>12} {'stale':>6} {'flood/s':>8}")
-    results = {}
-    for name, run in phases:
-        tr = _Traffic(seconds, burst, own_rate)
-        r = run(tr)
-        results[name] = r
-        share = r["delivered"] / tr.own_n
+          f"{'age p99':>9} {'age max':>9} {'kernel drops':>12} {'stale':>6} {'flood/s':>13}")
+    pooled: dict[str, dict[str, Any]] = {
+        name: {"delivered": 0, "sent": 0, "ages": [], "lost": 0, "stale": 0, "floods": []}
+        for name, _ in phases}
+    for _ in range(rounds):
+        for name, run in phases:
+            tr = _Traffic(seconds, burst, own_rate, procs, gap_ms)
+            r = run(tr)
+            acc = pooled[name]
+            acc["delivered"] += r["delivered"]
+            acc["sent"] += tr.own_n
+            acc["ages"] += r["ages"]
+            acc["lost"] += r["lost"]
+            acc["stale"] += r["stale"]
+            acc["floods"].append(tr.flood_rate)
+    for name, _ in phases:
+        r = pooled[name]
         ages_ms = [a * 1000 for a in r["ages"]]
-        print(f"{name:<26} {r['delivered']:>7}/{tr.own_n:<7} {share:>6.1%} "
+        fl = r["floods"]
+        print(f"{name:<26} {r['delivered']:>7}/{r['sent']:<7} {r['delivered'] / r['sent']:>6.1%} "
               f"{_p(ages_ms, 0.5):>7.2f}ms {_p(ages_ms, 0.9):>7.2f}ms "
               f"{_p(ages_ms, 0.99):>7.2f}ms {max(ages_ms, default=float('nan')):>7.2f}ms "
-              f"{r['lost']:>12} {r['stale']:>6} "
-              f"{tr.flood_rate:>8.0f}", flush=True)
-    ch = results["chcos (kernel filters)"]
-    plain = results["plain python-can reader"]
-    ok_share = ch["delivered"] / int(seconds * own_rate) >= 0.99
-    ok_age = _p([a * 1000 for a in ch["ages"]], 0.99) < 5.0
-    print(f"targets, chcos with filters: share >= 99 %: {'met' if ok_share else 'NOT met'}; "
-          f"p99 age < 5 ms: {'met' if ok_age else 'NOT met'}; beside the plain reader: "
-          f"share x{ch['delivered'] / max(1, plain['delivered']):.2f}, p99 age "
-          f"{_p(ch['ages'], 0.99) * 1000:.2f} ms vs {_p(plain['ages'], 0.99) * 1000:.2f} ms")
+              f"{r['lost']:>12} {r['stale']:>6} {min(fl):>6.0f}-{max(fl):<6.0f}", flush=True)
+    ch, pf = pooled["chcos (kernel filters)"], pooled["plain reader + filters"]
+    ch_ms = [a * 1000 for a in ch["ages"]]
+    pf_ms = [a * 1000 for a in pf["ages"]]
+    reached = min(ch["floods"])
+    share = ch["delivered"] / ch["sent"]
+    p99, floor99 = _p(ch_ms, 0.99), _p(pf_ms, 0.99)
+    if reached < 0.95 * FLOOD_TARGET:
+        print(f"the guest did NOT reach {FLOOD_TARGET:,.0f} frames/s of flood: {reached:,.0f}/s "
+              f"at least in chcos' phases; the verdict below is at that rate, not the target's")
+    else:
+        print(f"flood reached {reached:,.0f}/s at least in chcos' phases (target "
+              f"{FLOOD_TARGET:,.0f}/s)")
+    print(f"targets, chcos with kernel filters: own frames delivered {share:.1%} (>= "
+          f"{SHARE_TARGET:.0%}: {'met' if share >= SHARE_TARGET else 'NOT met'}); p99 age "
+          f"{p99:.2f} ms (< {P99_TARGET_MS:g} ms: {'met' if p99 < P99_TARGET_MS else 'NOT met'})")
+    print(f"beside the plain python-can reader with the same filters in the same run: p50 "
+          f"{_p(ch_ms, 0.5):.2f} vs {_p(pf_ms, 0.5):.2f} ms, p99 {p99:.2f} vs {floor99:.2f} ms "
+          f"(the plain reader's p99 is the guest's own floor: the time from the kernel's stamp "
+          f"until a reader thread runs)")
     if ch["stale"]:
         print(f"  chcos counted {ch['stale']} own frame(s) stale on arrival (older than 0.2 s)")
 
 
 def main() -> None:
+    """Boot the guest and run the phases there (or run them here where vcan0 exists)."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=5.0, help="own frames per phase, seconds")
-    ap.add_argument("--burst", type=int, default=40, help="flood frames per millisecond")
+    ap.add_argument("--burst", type=int, default=40, help="flood frames per burst")
+    ap.add_argument("--gap", type=float, default=1.0,
+                    help="ms between a flood process's bursts (0: back to back)")
+    ap.add_argument("--procs", type=int, default=1, help="flood processes")
     ap.add_argument("--own-rate", type=float, default=100.0, help="own frames per second")
+    ap.add_argument("--rounds", type=int, default=2, help="rounds of the phases, pooled")
     ap.add_argument("--inside", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.inside or _have_vcan():
-        inside(a.seconds, a.burst, a.own_rate)
+        inside(a.seconds, a.burst, a.own_rate, a.procs, a.gap, a.rounds)
         return
     print(f"host load average {' '.join(f'{x:.1f}' for x in os.getloadavg())} "
           f"({os.cpu_count()} CPUs): the guest's timing suffers from a loaded host",
           flush=True)
     argv = [sys.executable, "-m", "tools.bench_can_flood", "--inside", "--seconds",
-            str(a.seconds), "--burst", str(a.burst), "--own-rate", str(a.own_rate)]
-    code = subprocess.run(["bash", str(RUN_IN_UML), "--timeout", "600", "--", *argv],
+            str(a.seconds), "--burst", str(a.burst), "--gap", str(a.gap), "--procs",
+            str(a.procs), "--own-rate", str(a.own_rate), "--rounds", str(a.rounds)]
+    code = subprocess.run(["bash", str(RUN_IN_UML), "--timeout", "900", "--", *argv],
                           cwd=ROOT, check=False).returncode
     sys.exit(code)
 
