@@ -87,6 +87,7 @@ from chcos.helpers import is_int
 from drivers.base import DriverHost, deliver_all, host_clock_virtual
 from drivers.canbus import (
     SocketcanReceive,
+    StampClock,
     Tally,
     bus_config,
     bus_fileno,
@@ -94,7 +95,6 @@ from drivers.canbus import (
     in_ranges,
     parse_ids,
     read_frames,
-    receive_time,
     socket_drops,
 )
 from drivers.codecs.can import (
@@ -168,6 +168,7 @@ class CanDriver(ThreadedDriver):
         self._tally = Tally(self._report_unknown, REPORT_PERIOD)
         self._overruns = Tally(self._report_overrun, REPORT_PERIOD, examples=1)
         self._virtual: bool | None = None
+        self._stamps = StampClock(host.now)
         self._stale_after = {d.name: d.stale_after for d in devices
                              if d.direction == "sensor" and d.stale_after is not None}
         #: the filters the bus was opened with (None: every frame is received)
@@ -444,9 +445,7 @@ class CanDriver(ThreadedDriver):
         receive time."""
         at: float | None = None
         if self._virtual is False:
-            now = self.host.now()
-            at = receive_time(frame.timestamp, now, False)
-            age = now - at
+            at, age = self._stamps.place(frame.timestamp)
             stale = self._stale_after
             if stale and any(age > stale.get(dev, age) for dev, _ in readings):
                 for dev, _ in readings:

@@ -151,6 +151,32 @@ def receive_time(frame_stamp: float, now: float, virtual: bool) -> float:
     return now - max(0.0, time.time() - frame_stamp)
 
 
+class StampClock:
+    """A frame's receive time on the host's (real) clock and its age, from the kernel's stamp
+    (wall time) with one clock read per frame: the offset between the host's clock and the
+    wall clock is measured again at most every ``refresh`` seconds (and whenever the wall
+    clock went back), so a step of the wall clock misplaces receive times on the host's clock
+    for that long at most; the age itself (wall clock now less the stamp) is exact. On
+    SocketCAN under load each clock read is a system call on the reader's path."""
+
+    def __init__(self, now: Callable[[], float], refresh: float = 1.0) -> None:
+        self._now = now
+        self.refresh = refresh
+        self._offset = 0.0
+        self._measured = float("-inf")
+
+    def place(self, frame_stamp: float) -> tuple[float, float]:
+        """``(at, age)``: when the frame was received on the host's clock (never after now)
+        and how old it is now; a frame without a stamp (``frame_stamp`` <= 0) is received
+        now, age 0."""
+        wall = time.time()
+        if not 0 <= wall - self._measured < self.refresh:
+            self._offset = self._now() - wall
+            self._measured = wall
+        age = max(0.0, wall - frame_stamp) if frame_stamp > 0 else 0.0
+        return wall + self._offset - age, age
+
+
 class Tally:
     """Rate-limited reports of recurring events (unknown ids on a shared wire): the first
     event of a kind is reported at once, the others counted and reported as one line per kind
@@ -274,8 +300,10 @@ class SocketcanReceive:
         #: the socket's drop count as of the last frame received (None before the first, or
         #: where the kernel does not add it)
         self.drops: int | None = None
+        self._counted = False    # the kernel adds the count (only when not 0) to each frame
         with contextlib.suppress(OSError):   # else no drop count on the frames: the reader
             sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)             # asks the socket
+            self._counted = True
 
     @staticmethod
     def usable(bus: can.BusABC) -> bool:
@@ -294,6 +322,8 @@ class SocketcanReceive:
         except OSError as exc:
             raise can.CanOperationError(f"Error receiving: {exc.strerror}", exc.errno) from exc
         stamp = 0.0
+        if self._counted:
+            self.drops = 0
         for level, kind, data in anc:
             if level != socket.SOL_SOCKET:
                 continue
@@ -329,7 +359,9 @@ def read_frames(rx: ReaderThread, bus: can.BusABC, poll: float,
     taken together - each drain, the settle's too, or each frame where the loop polls - so that
     ``on_frame`` may collect what it hands on and hand it on there, once per batch. With a
     ``receiver`` (SocketCAN) the drain takes the frames off the socket itself
-    (:class:`SocketcanReceive`) instead of through python-can's ``recv``."""
+    (:class:`SocketcanReceive`) instead of through python-can's ``recv``, and ``end_batch``
+    also runs right after the first frame of each drain: a frame that came alone is handed on
+    before the receive that finds the socket empty (the rest of a burst goes as one batch)."""
     wait = _readiness(rx, bus)
     if wait is None:
         while rx.running:
@@ -351,6 +383,7 @@ def read_frames(rx: ReaderThread, bus: can.BusABC, poll: float,
     take: Callable[[], can.Message | None] = functools.partial(bus.recv, 0)
     if receiver is not None:
         take = receiver.take
+    early = end_batch if receiver is not None else None
 
     def drain(limit: int = 0) -> bool:
         n = tries = 0
@@ -370,7 +403,9 @@ def read_frames(rx: ReaderThread, bus: can.BusABC, poll: float,
                     break
                 n += 1
                 on_frame(frame)
-            return True
+                if n == 1 and early is not None:
+                    early()         # the first frame goes at once: it may be alone, and
+            return True             # finding out costs another receive
         finally:
             if end_batch is not None and n:
                 end_batch()

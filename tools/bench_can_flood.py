@@ -111,12 +111,15 @@ def _seq(data: bytes | bytearray) -> int:
     return int.from_bytes(bytes(data[:4]), "little")
 
 
-def _chcos_phase(traffic: _Traffic, use_filter: bool) -> dict[str, Any]:
+def _chcos_phase(traffic: _Traffic, use_filter: bool, paired: bool = False) -> dict[str, Any]:
+    """chcos' raw CAN driver receiving the own frames; with ``paired``, a plain filtered
+    python-can reader in a process of its own receives the same frames at the same time."""
     from chcos.devices.spec import BusSpec, DeviceSpec
     from drivers.can_raw import CanDriver
 
     ages: list[float] = []
     seqs: set[int] = set()
+    by_seq: dict[int, float] = {}
     lock = threading.Lock()
 
     class Host:
@@ -135,6 +138,7 @@ def _chcos_phase(traffic: _Traffic, use_filter: bool) -> dict[str, Any]:
                     seqs.add(int(v))
                     if at is not None:
                         ages.append(now - at)
+                        by_seq[int(v)] = now - at
 
         def deliver(self, device: str, value: Any) -> None:
             self.deliver_many([(device, value)])
@@ -170,14 +174,64 @@ def _chcos_phase(traffic: _Traffic, use_filter: bool) -> dict[str, Any]:
     dev = DeviceSpec("own", "sensor", 0, "can0", {"id": OWN_ID, "start": 0, "length": 32,
                                                   "dlc": 8}, stale_after=0.2)
     drv = CanDriver(bus, [dev], Host())
+    plain = _PlainProcess() if paired else None
     drv.start()
     try:
         traffic.run()
         drv.settle(5.0)
     finally:
         drv.stop()
+        other = plain.result() if plain is not None else {}
     return {"delivered": len(seqs), "ages": ages, "lost": drv.overrun_lost,
-            "stale": sum(drv.stale_on_arrival.values())}
+            "stale": sum(drv.stale_on_arrival.values()), "by_seq": by_seq, "plain": other}
+
+
+class _PlainProcess:
+    """The plain filtered python-can reader in a process of its own (its own interpreter: no
+    lock shared with chcos' threads), receiving while chcos does; :meth:`result` ends it and
+    gives each own frame's age by sequence number."""
+
+    def __init__(self) -> None:
+        self.proc = subprocess.Popen([sys.executable, "-m", "tools.bench_can_flood",
+                                      "--plain-reader"], cwd=ROOT, stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, text=True)
+        assert self.proc.stdout is not None
+        ready = self.proc.stdout.readline().strip()
+        if ready != "READY":
+            raise RuntimeError(f"the plain reader did not start: {ready!r}")
+
+    def result(self) -> dict[int, float]:
+        """Stop the reader; its ages (s) by sequence number."""
+        out, _ = self.proc.communicate("stop\n", timeout=60)
+        return {int(a): float(b) for a, b in (line.split() for line in out.splitlines() if line)}
+
+
+def plain_reader() -> None:
+    """The paired plain reader's process: a filtered python-can bus on the own id, receiving
+    until a line arrives on stdin; then each own frame's sequence number and age (s)."""
+    import can
+
+    from drivers.canbus import can_filters
+
+    bus = can.Bus(interface="socketcan", channel=CHANNEL, can_filters=can_filters([OWN_ID]))
+    ages: dict[int, float] = {}
+    stop = threading.Event()
+
+    def read() -> None:
+        while not stop.is_set():
+            msg = bus.recv(0.05)
+            if msg is not None and msg.arbitration_id == OWN_ID and not msg.is_extended_id:
+                ages[_seq(msg.data)] = time.time() - msg.timestamp
+
+    t = threading.Thread(target=read, daemon=True)
+    t.start()
+    print("READY", flush=True)
+    sys.stdin.readline()
+    stop.set()
+    t.join(10)
+    bus.shutdown()
+    for seq, age in ages.items():
+        print(seq, repr(age))
 
 
 def _plain_phase(traffic: _Traffic, use_filter: bool) -> dict[str, Any]:
@@ -213,6 +267,7 @@ def _plain_phase(traffic: _Traffic, use_filter: bool) -> dict[str, Any]:
 
 
 FLOOD_TARGET = 10000.0     # frames/s of unrelated traffic (issue 38)
+PAIRED = "chcos + plain (paired)"
 SHARE_TARGET = 0.99
 P99_TARGET_MS = 5.0
 
@@ -222,6 +277,7 @@ def inside(seconds: float, burst: int, own_rate: float, procs: int, gap_ms: floa
     """Run the phases ``rounds`` times, one after the other (inside the guest), and print the
     table of the rounds pooled and the verdict."""
     phases: list[tuple[str, Callable[[_Traffic], dict[str, Any]]]] = [
+        (PAIRED, lambda tr: _chcos_phase(tr, True, paired=True)),
         ("chcos (kernel filters)", lambda tr: _chcos_phase(tr, True)),
         ("plain reader + filters", lambda tr: _plain_phase(tr, True)),
         ("chcos, filter = false", lambda tr: _chcos_phase(tr, False)),
@@ -237,6 +293,7 @@ def inside(seconds: float, burst: int, own_rate: float, procs: int, gap_ms: floa
     pooled: dict[str, dict[str, Any]] = {
         name: {"delivered": 0, "sent": 0, "ages": [], "lost": 0, "stale": 0, "floods": []}
         for name, _ in phases}
+    pairs: list[tuple[float, float]] = []       # (chcos, plain) age of the same frame
     for _ in range(rounds):
         for name, run in phases:
             tr = _Traffic(seconds, burst, own_rate, procs, gap_ms)
@@ -248,6 +305,8 @@ def inside(seconds: float, burst: int, own_rate: float, procs: int, gap_ms: floa
             acc["lost"] += r["lost"]
             acc["stale"] += r["stale"]
             acc["floods"].append(tr.flood_rate)
+            if name == PAIRED:
+                pairs += [(a, r["plain"][q]) for q, a in r["by_seq"].items() if q in r["plain"]]
     for name, _ in phases:
         r = pooled[name]
         ages_ms = [a * 1000 for a in r["ages"]]
@@ -256,6 +315,16 @@ def inside(seconds: float, burst: int, own_rate: float, procs: int, gap_ms: floa
               f"{_p(ages_ms, 0.5):>7.2f}ms {_p(ages_ms, 0.9):>7.2f}ms "
               f"{_p(ages_ms, 0.99):>7.2f}ms {max(ages_ms, default=float('nan')):>7.2f}ms "
               f"{r['lost']:>12} {r['stale']:>6} {min(fl):>6.0f}-{max(fl):<6.0f}", flush=True)
+    if pairs:
+        c_ms = [a * 1000 for a, _ in pairs]
+        p_ms = [b * 1000 for _, b in pairs]
+        d_ms = [(a - b) * 1000 for a, b in pairs]
+        print(f"paired (chcos and a plain filtered reader in its own process, the same {len(pairs)}"
+              f" frames at once): chcos p50 {_p(c_ms, 0.5):.2f} / p99 {_p(c_ms, 0.99):.2f} ms, "
+              f"plain p50 {_p(p_ms, 0.5):.2f} / p99 {_p(p_ms, 0.99):.2f} ms; per frame, chcos "
+              f"minus plain: p50 {_p(d_ms, 0.5):+.2f} ms, p90 {_p(d_ms, 0.9):+.2f} ms, p99 "
+              f"{_p(d_ms, 0.99):+.2f} ms (both readers share the one CPU: whichever runs second "
+              f"waits for the other)")
     ch, pf = pooled["chcos (kernel filters)"], pooled["plain reader + filters"]
     ch_ms = [a * 1000 for a in ch["ages"]]
     pf_ms = [a * 1000 for a in pf["ages"]]
@@ -290,7 +359,11 @@ def main() -> None:
     ap.add_argument("--own-rate", type=float, default=100.0, help="own frames per second")
     ap.add_argument("--rounds", type=int, default=2, help="rounds of the phases, pooled")
     ap.add_argument("--inside", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--plain-reader", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args()
+    if a.plain_reader:
+        plain_reader()
+        return
     if a.inside or _have_vcan():
         inside(a.seconds, a.burst, a.own_rate, a.procs, a.gap, a.rounds)
         return
