@@ -92,6 +92,8 @@ from chcos.errors import BusError
 from chcos.helpers import is_int
 from drivers.base import DriverHost, deliver_all, host_clock_virtual
 from drivers.canbus import (
+    SocketcanReceive,
+    StampClock,
     Tally,
     bus_config,
     bus_fileno,
@@ -99,7 +101,6 @@ from drivers.canbus import (
     in_ranges,
     parse_ids,
     read_frames,
-    receive_time,
     socket_drops,
 )
 from drivers.codecs.can import (
@@ -152,6 +153,10 @@ INLINE_INTERFACES = frozenset({"virtual", "socketcan"})
 #: stamps with their own epoch) readings are stamped when the driver takes them.
 WALL_STAMPED = frozenset({"socketcan", "virtual"})
 
+#: Frames taken in one batch from which the reader asks the socket for its drop count even
+#: when the frames' own count did not grow (see ``CanDriver._check_overrun``).
+BACKLOG = 32
+
 #: Seconds the writer thread waits for room in the transmit buffer before a send fails.
 SEND_TIMEOUT = 0.5
 #: Seconds between the writer thread's tries while the interface reports ENOBUFS.
@@ -177,6 +182,7 @@ class CanDriver(ThreadedDriver):
         self._tally = Tally(self._report_unknown, REPORT_PERIOD)
         self._overruns = Tally(self._report_overrun, REPORT_PERIOD, examples=1)
         self._virtual: bool | None = None
+        self._stamps = StampClock(host.now)
         self._stale_after = {d.name: d.stale_after for d in devices
                              if d.direction == "sensor" and d.stale_after is not None}
         #: the filters the bus was opened with (None: every frame is received)
@@ -205,6 +211,7 @@ class CanDriver(ThreadedDriver):
         #: the actuators whose frame could not be sent, tried again by the driver itself
         self.probe = SendProbe(f"{self.kind}-{bus.name}", self._probe_send, PROBE_BACKOFF)
         self.received = 0
+        self._taken_at_check = 0   # :attr:`received` at the last look for overruns
         #: of :attr:`sent`, the frames the writer thread sent (the rest: the fast path)
         self.sent_queued = 0
         #: the fast path's frame per actuator (see _send_now)
@@ -385,13 +392,24 @@ class CanDriver(ThreadedDriver):
         assert self._bus is not None
         sock = getattr(self._bus, "socket", None) if bus_fileno(self._bus) is not None else None
         self._drops_seen = socket_drops(sock) if sock is not None else None
+        receiver = SocketcanReceive(self._bus) if SocketcanReceive.usable(self._bus) else None
         read_frames(self._rx, self._bus, self._poll, self._receive, self._bus_down,
-                    functools.partial(self._check_overrun, sock) if self._drops_seen is not None
-                    else None, self._end_batch)
+                    functools.partial(self._check_overrun, sock, receiver)
+                    if self._drops_seen is not None else None, self._end_batch, receiver)
+        if self._drops_seen is not None:       # what was dropped after the last frame taken
+            self._check_overrun(sock, None)
 
-    def _check_overrun(self, sock: Any) -> None:
-        """Report the frames the kernel dropped since the last look (reader thread)."""
-        drops = socket_drops(sock)
+    def _check_overrun(self, sock: Any, receiver: SocketcanReceive | None) -> None:
+        """Report the frames the kernel dropped since the last look (reader thread). With a
+        ``receiver`` the count the last frame carried tells, and the socket is asked only when
+        that count grew or the batch was long (:data:`BACKLOG`: the socket had backed up, the
+        only time it drops; frames dropped after the last one queued show only there), so
+        frames that come one by one cost no extra call; without one, the socket is asked."""
+        taken, self._taken_at_check = self.received - self._taken_at_check, self.received
+        drops = receiver.drops if receiver is not None else None
+        if drops is None or taken >= BACKLOG or (self._drops_seen is not None
+                                                and drops > self._drops_seen):
+            drops = socket_drops(sock)
         if drops is None or self._drops_seen is None or drops <= self._drops_seen:
             return
         lost, self._drops_seen = drops - self._drops_seen, drops
@@ -447,9 +465,7 @@ class CanDriver(ThreadedDriver):
         receive time."""
         at: float | None = None
         if self._virtual is False:
-            now = self.host.now()
-            at = receive_time(frame.timestamp, now, False)
-            age = now - at
+            at, age = self._stamps.place(frame.timestamp)
             stale = self._stale_after
             if stale and any(age > stale.get(dev, age) for dev, _ in readings):
                 for dev, _ in readings:

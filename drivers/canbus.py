@@ -7,6 +7,7 @@ it), the SocketCAN overrun count, a frame's receive time on the kernel clock
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import queue
 import re
@@ -19,6 +20,16 @@ from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 import can
+from can.interfaces.socketcan.constants import (
+    CAN_EFF_FLAG,
+    CAN_ERR_FLAG,
+    CAN_RTR_FLAG,
+    CANFD_BRS,
+    CANFD_ESI,
+    CANFD_MTU,
+    SO_TIMESTAMPNS,
+)
+from can.interfaces.socketcan.socketcan import dissect_can_frame
 from can.typechecking import CanFilter
 
 from chcos.errors import BusError
@@ -140,6 +151,32 @@ def receive_time(frame_stamp: float, now: float, virtual: bool) -> float:
     return now - max(0.0, time.time() - frame_stamp)
 
 
+class StampClock:
+    """A frame's receive time on the host's (real) clock and its age, from the kernel's stamp
+    (wall time) with one clock read per frame: the offset between the host's clock and the
+    wall clock is measured again at most every ``refresh`` seconds (and whenever the wall
+    clock went back), so a step of the wall clock misplaces receive times on the host's clock
+    for that long at most; the age itself (wall clock now less the stamp) is exact. On
+    SocketCAN under load each clock read is a system call on the reader's path."""
+
+    def __init__(self, now: Callable[[], float], refresh: float = 1.0) -> None:
+        self._now = now
+        self.refresh = refresh
+        self._offset = 0.0
+        self._measured = float("-inf")
+
+    def place(self, frame_stamp: float) -> tuple[float, float]:
+        """``(at, age)``: when the frame was received on the host's clock (never after now)
+        and how old it is now; a frame without a stamp (``frame_stamp`` <= 0) is received
+        now, age 0."""
+        wall = time.time()
+        if not 0 <= wall - self._measured < self.refresh:
+            self._offset = self._now() - wall
+            self._measured = wall
+        age = max(0.0, wall - frame_stamp) if frame_stamp > 0 else 0.0
+        return wall + self._offset - age, age
+
+
 class Tally:
     """Rate-limited reports of recurring events (unknown ids on a shared wire): the first
     event of a kind is reported at once, the others counted and reported as one line per kind
@@ -239,10 +276,79 @@ def socket_drops(sock: Any) -> int | None:
     return int(struct.unpack_from(f"={SK_MEMINFO_DROPS + 1}I", raw)[SK_MEMINFO_DROPS])
 
 
+SO_RXQ_OVFL = 40          # Linux <asm-generic/socket.h>: the drop count on each frame received
+_TIMESTAMPNS = struct.Struct("@ll")
+_DROPCOUNT = struct.Struct("=I")
+_ANCILLARY = socket.CMSG_SPACE(_TIMESTAMPNS.size) + socket.CMSG_SPACE(_DROPCOUNT.size)
+
+
+class SocketcanReceive:
+    """Frames taken straight off a python-can SocketCAN bus's socket without waiting: one
+    ``recvmsg(MSG_DONTWAIT)`` per frame (python-can's ``recv`` selects on the socket before
+    each one, and an empty receive costs a second ``select``), the kernel's receive time stamp
+    and the socket's drop count (``SO_RXQ_OVFL``) from each frame's ancillary data - so the
+    reader learns about overruns without asking the socket after every batch. The frames are
+    python-can ``Message`` objects as its own receive makes them. The bus's kernel filters
+    apply as before (python-can's SocketCAN bus filters in the kernel only)."""
+
+    def __init__(self, bus: can.BusABC) -> None:
+        sock = getattr(bus, "socket", None)
+        if not isinstance(sock, socket.socket):
+            raise TypeError(f"not a SocketCAN bus: {bus!r}")
+        self._sock = sock
+        self._channel = str(getattr(bus, "channel", "") or "") or None
+        #: the socket's drop count as of the last frame received (None before the first, or
+        #: where the kernel does not add it)
+        self.drops: int | None = None
+        self._counted = False    # the kernel adds the count (only when not 0) to each frame
+        with contextlib.suppress(OSError):   # else no drop count on the frames: the reader
+            sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)             # asks the socket
+            self._counted = True
+
+    @staticmethod
+    def usable(bus: can.BusABC) -> bool:
+        """Whether ``bus`` is python-can's SocketCAN bus with its socket (raw receive works)."""
+        return (type(bus).__name__ == "SocketcanBus"
+                and isinstance(getattr(bus, "socket", None), socket.socket))
+
+    def take(self) -> can.Message | None:
+        """The next frame the socket holds, or None if it holds none now. Raises
+        ``can.CanOperationError`` when the socket fails (the interface went down)."""
+        try:
+            cf, anc, msg_flags, _ = self._sock.recvmsg(CANFD_MTU, _ANCILLARY,
+                                                      socket.MSG_DONTWAIT)
+        except (BlockingIOError, InterruptedError):
+            return None
+        except OSError as exc:
+            raise can.CanOperationError(f"Error receiving: {exc.strerror}", exc.errno) from exc
+        stamp = 0.0
+        if self._counted:
+            self.drops = 0
+        for level, kind, data in anc:
+            if level != socket.SOL_SOCKET:
+                continue
+            if kind == SO_TIMESTAMPNS and len(data) >= _TIMESTAMPNS.size:
+                sec, nsec = _TIMESTAMPNS.unpack_from(data)
+                stamp = sec + nsec * 1e-9
+            elif kind == SO_RXQ_OVFL and len(data) >= _DROPCOUNT.size:
+                self.drops = _DROPCOUNT.unpack_from(data)[0]
+        can_id, dlc, flags, payload = dissect_can_frame(cf)
+        ext = bool(can_id & CAN_EFF_FLAG)
+        fd = len(cf) == CANFD_MTU
+        return can.Message(
+            timestamp=stamp, channel=self._channel,
+            arbitration_id=can_id & (EFF_MASK if ext else SFF_MASK), is_extended_id=ext,
+            is_remote_frame=bool(can_id & CAN_RTR_FLAG), is_error_frame=bool(can_id & CAN_ERR_FLAG),
+            is_fd=fd, is_rx=not msg_flags & socket.MSG_DONTROUTE,
+            bitrate_switch=bool(flags & CANFD_BRS), error_state_indicator=bool(flags & CANFD_ESI),
+            dlc=dlc, data=payload)
+
+
 def read_frames(rx: ReaderThread, bus: can.BusABC, poll: float,
                 on_frame: Callable[[can.Message], None], on_error: Callable[[str], None],
                 after_drain: Callable[[], None] | None = None,
-                end_batch: Callable[[], None] | None = None) -> None:
+                end_batch: Callable[[], None] | None = None,
+                receiver: SocketcanReceive | None = None) -> None:
     """The read loop of a CAN driver's :class:`ReaderThread`: every frame received goes to
     ``on_frame`` (which must not raise), a receive error to ``on_error`` (then a pause of 0.1 s).
     Where it can wait for a frame without taking it (SocketCAN's file descriptor, the
@@ -251,7 +357,11 @@ def read_frames(rx: ReaderThread, bus: can.BusABC, poll: float,
     receives (see :mod:`drivers.threaded`). ``after_drain`` runs after each batch drained (the
     CAN driver reads the socket's drop count there). ``end_batch`` runs after the frames
     taken together - each drain, the settle's too, or each frame where the loop polls - so that
-    ``on_frame`` may collect what it hands on and hand it on there, once per batch."""
+    ``on_frame`` may collect what it hands on and hand it on there, once per batch. With a
+    ``receiver`` (SocketCAN) the drain takes the frames off the socket itself
+    (:class:`SocketcanReceive`) instead of through python-can's ``recv``, and ``end_batch``
+    also runs right after the first frame of each drain: a frame that came alone is handed on
+    before the receive that finds the socket empty (the rest of a burst goes as one batch)."""
     wait = _readiness(rx, bus)
     if wait is None:
         while rx.running:
@@ -270,6 +380,10 @@ def read_frames(rx: ReaderThread, bus: can.BusABC, poll: float,
         return
 
     items = _queued(bus)
+    take: Callable[[], can.Message | None] = functools.partial(bus.recv, 0)
+    if receiver is not None:
+        take = receiver.take
+    early = end_batch if receiver is not None else None
 
     def drain(limit: int = 0) -> bool:
         n = tries = 0
@@ -279,7 +393,7 @@ def read_frames(rx: ReaderThread, bus: can.BusABC, poll: float,
                     break                             # receive (python-can raises Empty)
                 tries += 1
                 try:
-                    frame = bus.recv(0)
+                    frame = take()
                 except (can.CanError, OSError) as exc:
                     on_error(str(exc))
                     return False
@@ -289,7 +403,9 @@ def read_frames(rx: ReaderThread, bus: can.BusABC, poll: float,
                     break
                 n += 1
                 on_frame(frame)
-            return True
+                if n == 1 and early is not None:
+                    early()         # the first frame goes at once: it may be alone, and
+            return True             # finding out costs another receive
         finally:
             if end_batch is not None and n:
                 end_batch()

@@ -34,6 +34,7 @@ from drivers.codecs.modbus import (
 from drivers.jobs import Job, JobOp
 from drivers.modbus_jobs import LinkChore, SensorPoll
 from drivers.modbus_requests import (
+    DEAD_UNIT_SHARE,
     DEFAULT_DEAD_UNIT_BACKOFF,
     READ_CALL,
     ModbusRequests,
@@ -50,15 +51,30 @@ COMMON_OPTIONS = ("timeout", "retries", "reconnect_delay", "reconnect_delay_max"
 
 def dead_unit_backoff(bus: BusSpec) -> int:
     """The most poll periods between two tries of a unit that stopped answering: the bus's
-    ``dead_unit_backoff``, else 8 - but never so few that the dead unit's tries (``timeout`` x
-    (``retries`` + 1) each) take more than a twentieth of the line's time (the live units keep
-    95 % of their polls)."""
+    ``dead_unit_backoff``, else 8 - but never so few that the dead unit's tries take more than
+    a twentieth of the line's time (the live units keep 95 % of their polls)."""
     o = bus.options
     if "dead_unit_backoff" in o:
         return int(o["dead_unit_backoff"])
+    return max(DEFAULT_DEAD_UNIT_BACKOFF, share_turns(bus))
+
+
+def dead_unit_first(bus: BusSpec) -> int:
+    """The poll periods between the first two tries of a unit that stopped answering (later
+    gaps double up to :func:`dead_unit_backoff`): as many as keep its tries within a twentieth
+    of the line's time from its first miss on, so the live units keep their rate while the
+    unit is backed off too, not only once the backoff reached its cap; 1 (the next poll) when
+    a try costs little beside the poll period. Never more than the cap."""
+    return min(dead_unit_backoff(bus), share_turns(bus))
+
+
+def share_turns(bus: BusSpec) -> int:
+    """Poll periods per try of a dead unit that keep its tries (``timeout`` x (``retries`` +
+    1) each, the time such a try holds the line) within a twentieth of the line's time."""
+    o = bus.options
     cost = float(o.get("timeout", 1.0)) * (int(o.get("retries", 1)) + 1)
     period = float(o.get("poll_period", 0.1))
-    return max(DEFAULT_DEAD_UNIT_BACKOFF, math.ceil(19 * cost / period - 1e-9))
+    return max(1, math.ceil((DEAD_UNIT_SHARE - 1) * cost / period - 1e-9))
 
 
 def check_common(bus: BusSpec, own: Sequence[str]) -> list[str]:
@@ -122,8 +138,11 @@ class ModbusDriver(ModbusRequests):
             if q.unit not in seen:
                 seen.add(q.unit)
                 self._probed.append(q)
-        self._units = UnitBackoff(dead_unit_backoff(self.bus))
         self._watchdog = watchdog_of(self.bus)
+        units = {p.unit for p in self._points.values()}
+        if self._watchdog is not None:
+            units.add(self._watchdog.unit)
+        self._units = UnitBackoff(dead_unit_backoff(self.bus), dead_unit_first(self.bus), units)
         self._start_worker()
         self._running = True
         timeout = float(self.bus.options.get("timeout", 1.0))

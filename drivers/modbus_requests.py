@@ -52,6 +52,8 @@ WATCHDOG_CAUSE = "watchdog"
 #: (illegal function, data address, data value), not that the unit is busy or failing.
 UNIT_ANSWERED = frozenset({1, 2, 3})
 DEFAULT_DEAD_UNIT_BACKOFF = 8   # poll periods, at least, between two tries of a dead unit
+#: a dead unit's tries take at most 1/DEAD_UNIT_SHARE of an RTU line's time
+DEAD_UNIT_SHARE = 20
 
 
 @dataclass(frozen=True)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import re
+import select
 import shutil
 import subprocess
 import time
@@ -127,3 +128,68 @@ def test_a_frame_that_waited_in_the_socket_is_judged_by_its_kernel_time_stamp(
     assert drv.stale_on_arrival == {"S": 1} and host.stats.get("stale-on-arrival") == 1
     late = [now - at for at, now in host.stamps if at is not None]
     assert len(late) == 2 and late[0] >= 0.4 and late[1] < late[0]
+
+
+def take_within(receiver: Any, sock: Any, n: int) -> list[Any]:
+    """Up to ``n`` frames from ``receiver``, waiting on ``sock`` (select) at most WAIT s."""
+    got: list[Any] = []
+    deadline = time.monotonic() + WAIT
+    while len(got) < n and select.select([sock], [], [], max(0.0, deadline - time.monotonic()))[0]:
+        while len(got) < n and (msg := receiver.take()) is not None:
+            got.append(msg)
+    return got
+
+
+FRAMES = ("120#2A", "1ABCDE01#0102030405060708", "121#R", "7FF#")
+
+
+def test_frames_taken_off_the_socket_match_python_cans_own_receive(channel: str) -> None:
+    """The driver's receive (SocketcanReceive: recvmsg without select, the drop count from
+    each frame's ancillary data) gives the frames python-can's own recv gives for the same
+    frames from cansend - ids, extended and remote flags, data, length - with the kernel's
+    wall-clock stamp, and a drop count of 0."""
+    import can
+
+    from drivers.canbus import SocketcanReceive
+
+    ours = can.Bus(interface="socketcan", channel=channel)
+    ref = can.Bus(interface="socketcan", channel=channel)
+    try:
+        receiver = SocketcanReceive(ours)
+        assert receiver.take() is None                    # nothing queued: None, no wait
+        for frame in FRAMES:
+            run("cansend", channel, frame)
+        want = [ref.recv(WAIT) for _ in FRAMES]
+        got = take_within(receiver, ours.socket, len(FRAMES))
+    finally:
+        ours.shutdown()
+        ref.shutdown()
+    assert None not in want and len(got) == len(FRAMES)
+    assert [(m.arbitration_id, m.is_extended_id, m.is_remote_frame, bytes(m.data), m.dlc)
+            for m in got] == [(m.arbitration_id, m.is_extended_id, m.is_remote_frame,
+                               bytes(m.data), m.dlc) for m in want if m is not None]
+    assert [m.timestamp for m in got] == [m.timestamp for m in want if m is not None]
+    assert receiver.drops == 0
+
+
+def test_the_drop_count_rides_on_the_frames_after_an_overrun(channel: str) -> None:
+    """A socket nobody reads overflows under cangen; the frame queued after the reader made
+    room carries the kernel's drop count, the count the socket reports (SO_MEMINFO)."""
+    import can
+
+    from drivers.canbus import SocketcanReceive, socket_drops
+
+    bus = can.Bus(interface="socketcan", channel=channel)
+    try:
+        receiver = SocketcanReceive(bus)
+        run("cangen", channel, "-I", "555", "-L", "8", "-g", "0", "-n", "3000")
+        while receiver.take() is not None:               # the frames the buffer held
+            pass
+        dropped = socket_drops(bus.socket)
+        assert dropped is not None and dropped > 0
+        run("cansend", channel, "120#01")
+        got = take_within(receiver, bus.socket, 1)
+    finally:
+        bus.shutdown()
+    assert [m.arbitration_id for m in got] == [0x120]
+    assert receiver.drops == dropped

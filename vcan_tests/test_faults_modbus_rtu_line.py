@@ -2,10 +2,13 @@
 every frame to every side, as an RS-485 line does, each slave with libmodbus' default response
 timeout. Unit 2 is killed and restarted: unit 1 keeps its readings, unit 2's devices (its
 actuator too) fail and recover, a write queued before unit 2 failed never reaches the line, and
-the master keeps 3.5 characters of silence before every request. Needs gcc, libmodbus-dev."""
+the master keeps 3.5 characters of silence before every request; a dead unit is backed off from
+its first miss (no second try at full cost while the live unit would pay for it) and a unit that
+comes back is read again within one backoff cycle. Needs gcc, libmodbus-dev."""
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -14,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from chcos.devices.spec import BusSpec
-from drivers.codecs.modbus import LineTiming, crc16
+from drivers.codecs.modbus import LineTiming, UnitBackoff, crc16
 from drivers.modbus import ModbusRtuDriver
 from vcan_tests.support_fb import WAIT, FakeHost, make_device
 from vcan_tests.support_rtu import LineHub, RtuSlave, build_slave
@@ -49,8 +52,9 @@ class Line:
             [unit])]
 
 
-@pytest.fixture
-def line(slave_exe: Path) -> Iterator[Line]:
+def make_line(slave_exe: Path, **options: object) -> Line:
+    """Units 1 and 2 (stock slaves) on one line and the driver on it (timeout: 1 s, the
+    default; retries 0), with the bus ``options`` given."""
     hub = LineHub(3)
     devices = [
         make_device("level", "sensor", "rtu", key="device[0]", unit=1, table="input",
@@ -60,19 +64,39 @@ def line(slave_exe: Path) -> Iterator[Line]:
         make_device("out2", "actuator", "rtu", key="device[2]", unit=2, table="holding",
                     address=4)]
     bus = BusSpec(name="rtu", kind="modbus-rtu", key="bus[0]",
-                  options={"port": hub.port(0), "retries": 0})       # timeout: 1 s, the default
+                  options={"port": hub.port(0), "retries": 0, **options})
     host = FakeHost()
     ln = Line(hub, {}, ModbusRtuDriver(bus, devices, host), host, slave_exe)
     ln.start_unit(1)
     ln.start_unit(2)
     ln.driver.start()
+    return ln
+
+
+@contextlib.contextmanager
+def running(ln: Line) -> Iterator[Line]:
+    """``ln`` until the test ends; then the driver, the slaves and the hub are closed."""
     try:
         yield ln
     finally:
         ln.driver.stop()
         for s in ln.slaves.values():
             s.close()
-        hub.close()
+        ln.hub.close()
+
+
+@pytest.fixture
+def line(slave_exe: Path) -> Iterator[Line]:
+    """The line with the default backoff (timeout 1 s: a dead unit is tried every 190 polls)."""
+    with running(make_line(slave_exe)) as ln:
+        yield ln
+
+
+@pytest.fixture
+def short_line(slave_exe: Path) -> Iterator[Line]:
+    """The line with ``dead_unit_backoff = 8``: a dead unit is tried every 8th poll."""
+    with running(make_line(slave_exe, dead_unit_backoff=8)) as ln:
+        yield ln
 
 
 def write_frame(unit: int, address: int, value: int) -> bytes:
@@ -80,7 +104,8 @@ def write_frame(unit: int, address: int, value: int) -> bytes:
     return frame + crc16(frame).to_bytes(2, "big")
 
 
-def test_a_dead_unit_costs_the_live_one_nothing_for_good(line: Line) -> None:
+def test_a_dead_unit_costs_the_live_one_nothing_for_good(short_line: Line) -> None:
+    line = short_line
     line.poll(3)
     assert line.host.values("level")[-2:] == [102, 102]
     assert line.host.values("temp2")[-2:] == [103, 103]
@@ -100,7 +125,7 @@ def test_a_dead_unit_costs_the_live_one_nothing_for_good(line: Line) -> None:
     assert line.host.recoveries.count("out2") == 1                   # out2 stays failed
 
     line.start_unit(2)                                  # unit 2 is back
-    for _ in range(40):
+    for _ in range(8):                                  # within one backoff cycle (8 polls)
         line.poll(1)
         if line.host.recoveries.count("out2") == 2:
             break
@@ -124,3 +149,45 @@ def test_the_master_keeps_the_inter_frame_silence(line: Line) -> None:
             if prev[1] != 0 and cur[1] == 0]               # a slave's answer, then a request
     assert len(gaps) >= 10
     assert min(gaps) >= silence, f"{min(gaps) * 1e3:.3f} ms < t3.5 {silence * 1e3:.3f} ms"
+
+
+def test_a_dead_unit_is_backed_off_from_its_first_miss(line: Line) -> None:
+    """At the defaults (timeout 1 s, poll period 0.1 s) a try of a dead unit holds the line
+    for ten polls: after its first miss unit 2 is not asked again for 190 polls, so unit 1
+    answers its polls meanwhile and the line carries nothing for unit 2."""
+    line.poll(3)
+    line.slaves[2].close()
+    line.poll(1)                                        # unit 2's first miss
+    assert "no response" in line.host.failed("temp2")[-1]
+    level, tries = len(line.host.values("level")), len(line.sent(2))
+    line.poll(30)
+    assert len(line.host.values("level")) - level >= 27   # (a loaded machine may lose one)
+    assert len(line.sent(2)) == tries                   # not one request for unit 2
+    assert line.host.recoveries.count("temp2") == 1     # still failed: never tried again
+
+
+def gaps_of_a_dead_unit_2(units: UnitBackoff) -> list[int]:
+    tried = []
+    for turn in range(100):
+        if units.due(2):
+            tried.append(turn)
+            units.silent(2)
+    return [b - a for a, b in itertools.pairwise(tried)]
+
+
+def test_the_backoff_starts_at_first_while_another_unit_answers() -> None:
+    units = UnitBackoff(cap=16, first=4, units=(1, 2))
+    gaps = gaps_of_a_dead_unit_2(units)
+    assert gaps[:3] == [4, 8, 16] and set(gaps[3:]) == {16}
+    assert units.due(1)                                  # the live unit is never held back
+    assert UnitBackoff(cap=8, first=50).first == 8      # never beyond the cap
+
+
+def test_a_unit_alone_on_its_line_is_tried_again_at_once() -> None:
+    """Nobody else pays for its tries: the next poll, then ever less often (also when the
+    line's other units are dead too)."""
+    gaps = gaps_of_a_dead_unit_2(UnitBackoff(cap=16, first=4, units=(2,)))
+    assert gaps[:5] == [1, 2, 4, 8, 16]
+    both = UnitBackoff(cap=16, first=4, units=(1, 2))
+    both.silent(1)
+    assert gaps_of_a_dead_unit_2(both)[:2] == [1, 2]

@@ -129,10 +129,11 @@ def test_a_missing_unit_fails_only_its_own_devices(rig: Rig) -> None:
     assert "unit 2 has not answered a request yet" in opened
     assert "unit 2 input 5..5 (device gone): no response (silence)" in silent
     assert "gone" not in rig.host.recoveries             # never OK: its unit never answered
-    # unit 2 is tried less often once it stopped answering (1, 2, then every 4th poll...):
-    # fewer tries than polls, each a timeout naming it (a bound: a loaded machine may add one)
+    # unit 2 is backed off from its first miss while unit 1 answers (its tries would cost
+    # unit 1 its polls): fewer tries than polls, each a timeout naming it (a bound: a loaded
+    # machine may add one)
     tries = [d for _, k, d in rig.host.errors if "unit 2" in d]
-    assert 2 <= len(tries) < 4 and set(rig.host.error_kinds()) == {"timeout"}
+    assert 1 <= len(tries) <= 2 and set(rig.host.error_kinds()) == {"timeout"}
     assert rig.driver.unanswered["timeout"] >= len(tries)
     assert rig.driver._client.connected                  # the port stayed open
 

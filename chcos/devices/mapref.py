@@ -253,8 +253,9 @@ REFERENCE: dict[str, Kind] = {
          Key("bytesize", "integer", "8", "7 or 8"),
          Key("dead_unit_backoff", "integer >= 1", "8, or more", "the most poll periods "
              "between two tries of a unit that stopped answering (its requests are thinned "
-             "out 1, 2, 4... up to this); by default 8, raised so a dead unit's tries take at "
-             "most a twentieth of the line's time"),
+             "out, the gaps doubling up to this); by default 8, raised so a dead unit's tries "
+             "take at most a twentieth of the line's time; while another unit answers, the "
+             "first gap already keeps to that share"),
          *_MODBUS_COMMON),
         _MODBUS_ADDRESS,
         '[[bus]]\nname = "rtu"\nkind = "modbus-rtu"\nport = "/dev/ttyUSB0"\nbaudrate = 19200'),

@@ -17,7 +17,7 @@ from __future__ import annotations
 import functools
 import math
 import struct
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -355,15 +355,24 @@ READ_REQUEST_BYTES = 8   # unit, function, address, count, CRC
 
 class UnitBackoff:
     """Which units of an RTU line answer, and how often a unit that does not is tried: after
-    its ``k``-th unanswered request in a row a unit sits out ``min(2**(k-1), cap) - 1`` of its
-    requests (none after the first: one lost answer costs nothing more), so a dead unit takes
-    a bounded share of the line and the live units keep their rate. Each time a unit stops
-    answering its ``epoch`` grows: a write queued in an older epoch is not sent (it was meant
-    for a unit that answered). Not thread-safe: the driver's worker owns it (the epoch is read
-    from the kernel thread, a plain int)."""
+    its ``k``-th unanswered request in a row a unit sits out ``min(start * 2**(k-1), cap) - 1``
+    of its requests, so a dead unit takes a bounded share of the line and the live units keep
+    their rate. ``start`` is ``first`` while another unit of the line (``units``) answers -
+    chosen by the driver so that even the second try of a unit that just died keeps the live
+    units' share (see :func:`drivers.modbus_link.dead_unit_first`) - and 1 when none does
+    (nobody pays for the tries: the unit is tried again at once, then ever less often); the
+    bus's ``retries`` are what spares one lost answer. Each time a unit stops answering its
+    ``epoch`` grows: a write queued in an older epoch is not sent (it was meant for a unit that
+    answered). Not thread-safe: the driver's worker owns it (the epoch is read from the kernel
+    thread, a plain int)."""
 
-    def __init__(self, cap: int) -> None:
+    def __init__(self, cap: int, first: int = 1, units: Iterable[int] = ()) -> None:
         self.cap = max(1, cap)
+        #: the turns between the first two tries of a unit that stopped answering while
+        #: another unit of the line answers
+        self.first = min(max(1, first), self.cap)
+        #: the units of the line
+        self.units = frozenset(units)
         self._misses: dict[int, int] = {}      # unit -> unanswered requests in a row
         self._skip: dict[int, int] = {}        # unit -> requests still to sit out
         self._epoch: dict[int, int] = {}
@@ -381,7 +390,9 @@ class UnitBackoff:
         """``unit`` did not answer a request; True if it answered until then (it fails now)."""
         k = self._misses.get(unit, 0) + 1
         self._misses[unit] = k
-        self._skip[unit] = min(2 ** min(k - 1, 30), self.cap) - 1
+        others = any(u != unit and not self.dead(u) for u in self.units)
+        start = self.first if others else 1
+        self._skip[unit] = min(start * 2 ** min(k - 1, 30), self.cap) - 1
         if k == 1:
             self._epoch[unit] = self._epoch.get(unit, 0) + 1
         return k == 1
