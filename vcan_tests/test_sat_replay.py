@@ -12,16 +12,17 @@ from __future__ import annotations
 
 import json
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from chcos.comm.codec import LinkMessage, MessageKind, decode_batch, encode, encode_batch
 from chcos.comm.payloads import Hello, from_wire
 from chcos.comm.qos import band_of
-from chcos.comm.secret import WINDOW, Refusal, SealRefused, load_or_create
-from chcos.comm.transport import REPLY_STREAM, Transport
+from chcos.comm.secret import REPLY_STREAM, WINDOW, Refusal, SealRefused, load_or_create
+from chcos.comm.transport import Transport
 from chcos.errors import LinkError
 from chcos.satellites import sysfile
 from vcan_tests.support_faults import wait_until
@@ -67,6 +68,11 @@ def _eavesdropper(c: Cluster) -> Transport:
     return t
 
 
+def _delivered(n: int) -> Callable[[dict[str, Any]], bool]:
+    """True of a map in which link R1 -> R0 delivered ``n`` readings."""
+    return lambda doc: bool(link(doc, "R1", "R0")["delivered"] == n)
+
+
 @pytest.mark.slow
 def test_a_password_holder_reads_nothing_and_replays_nothing(cluster: Cluster,
                                                              tmp_path: Path) -> None:
@@ -85,7 +91,7 @@ def test_a_password_holder_reads_nothing_and_replays_nothing(cluster: Cluster,
         values = [424201 + i for i in range(5)]
         for n, v in enumerate(values, 1):  # one at a time: each reading is delivered
             c.host.execute(f"inject S1 {v}")
-            c.wait_until(lambda d, n=n: link(d, "R1", "R0")["delivered"] == n, machine=0)
+            c.wait_until(_delivered(n), machine=0)
         c.host.execute("suspend R1")  # A2 suspended: nothing new crosses the link
         with lock:
             stolen = [(k, d) for k, d in captured if k == f"{p}/m/0/msg"]
@@ -137,7 +143,7 @@ def test_a_restarted_satellite_refuses_what_was_recorded_before_its_restart(
         spy.subscribe(f"{p}/m/0/msg", record)
         for n, v in enumerate(values, 1):
             c.host.execute(f"inject S1 {v}")
-            c.wait_until(lambda d, n=n: link(d, "R1", "R0")["delivered"] == n, machine=0)
+            c.wait_until(_delivered(n), machine=0)
         c.host.execute("suspend R1")  # nothing new crosses the link from here on
         with lock:
             stolen = list(captured)
