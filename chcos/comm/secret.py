@@ -259,15 +259,19 @@ class _Window:
         not (and record nothing)."""
         top = self.top
         blocks = self.blocks
-        if seq > top:
-            block, current = seq >> 6, top >> 6
-            if block - current >= _BLOCKS:  # a jump past the whole window: all of it is new
-                blocks[:] = _EMPTY
-            else:
-                for b in range(current + 1, block + 1):  # the blocks entered are new
-                    blocks[b % _BLOCKS] = 0
+        if seq > top:  # ahead of all accepted: nothing of it recorded yet
+            block = seq >> 6
+            current = top >> 6
+            if block != current:
+                if block - current >= _BLOCKS:  # a jump past the whole window: all new
+                    blocks[:] = _EMPTY
+                else:
+                    for b in range(current + 1, block + 1):  # the blocks entered are new
+                        blocks[b % _BLOCKS] = 0
             self.top = seq
-        elif top - seq >= WINDOW:
+            blocks[block % _BLOCKS] |= 1 << (seq & 63)
+            return None
+        if top - seq >= WINDOW:
             return Refusal.BEHIND_WINDOW
         i = (seq >> 6) % _BLOCKS
         bit = 1 << (seq & 63)
@@ -424,7 +428,14 @@ class Sealer:
             return self._refuse(Refusal.FUTURE, f"sealed {(stamp - now) / 1e9:.1f} s ahead of "
                                 f"this clock, at most {self._max_ahead / 1e9:g} s accepted")
         with self._lock:
-            why = self._admit(ident, epoch, aead, (receiver, stream), seq, stamp)
+            s = self._senders.get(ident)
+            if (s is not None and s.epoch == epoch
+                    and (window := s.windows.get((receiver, stream))) is not None):
+                why = window.admit(seq)  # the usual case: a run and a stream heard before
+                if why is None and stamp > s.last_ns:
+                    s.last_ns = stamp
+            else:
+                why = self._admit(ident, epoch, aead, (receiver, stream), seq, stamp)
         if why is not None:
             return self._refuse(why, f"sequence {seq} of stream {stream} of sender "
                                 f"{sender.hex()} run {epoch.hex()}")
