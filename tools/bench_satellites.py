@@ -259,7 +259,10 @@ def scaling_detail(machines: int, seconds: float, kind: str = "echo",
 
 def latency(rate: int, seconds: float, pin: bool = False) -> dict[str, float]:
     """Cross-satellite sensory message latency at ``rate`` messages/s (``pin``: each satellite
-    on a CPU of its own)."""
+    on a CPU of its own): ``n``, ``p50``, ``p99``, ``max`` (us), and ``tx_cpu_us``/``rx_cpu_us``,
+    the CPU time the sending and the receiving satellite process spent per message while the
+    messages flowed (all their threads; a figure the machine's load does not inflate as it does
+    the wall-clock latencies)."""
     c = Cluster(2, load=False, pin=pin)
     try:
         h = c.host
@@ -270,18 +273,22 @@ def latency(rate: int, seconds: float, pin: bool = False) -> dict[str, float]:
                      "setpri -60 P R"):
             h.execute(line)
         h.execute(f"invoke -50 R count={count}")
+        cpu0 = [cpu_seconds(p.pid) for p in c.procs]
         h.execute(f"invoke -50 P rate={rate} count={count}")
         deadline = time.monotonic() + seconds * 3 + 20
         # the host stays away while the messages flow (a map query runs on the receiver's
         # kernel thread and would delay them), then looks now and then
         threading.Event().wait(seconds + 0.5)
+        cpu = [(b - a) / count * 1e6
+               for a, b in zip(cpu0, [cpu_seconds(p.pid) for p in c.procs], strict=True)]
         while time.monotonic() < deadline:
             threading.Event().wait(0.25)  # the host looks now and then, not in a busy loop
             doc = h.map_doc(1)
             r = next(t for t in doc["tasks"] if t["name"] == "R")
             res = r["world"]["sensory"].get("latency_us")
             if res and res["n"] == count and "p99" in res:
-                return {k: float(v) for k, v in res.items()}
+                return {**{k: float(v) for k, v in res.items()}, "tx_cpu_us": cpu[0],
+                        "rx_cpu_us": cpu[1]}
         raise SystemExit("latency run did not finish")
     finally:
         c.close()
@@ -327,13 +334,17 @@ def _raw_receiver(port: int, peer: int, count: int, system: str | None = None,
     with _raw_transport(port, peer, system, 0, seals_only) as t:
         t.subscribe("bench/raw", on_payload)
         t.announce("bench/raw/alive/rx")
+        cpu0 = 0.0
         while len(lat) < count:                 # the second thread (a satellite's kernel)
             if not arrived.wait(30.0):
                 raise SystemExit("raw receiver: no message for 30 s")
+            if not lat:
+                cpu0 = time.process_time()
             arrived.clear()
             while stamps:
                 lat.append((time.time_ns() - stamps.popleft()) / 1e3)
-        print(json.dumps(_stats(lat)), flush=True)
+        cpu_us = (time.process_time() - cpu0) / max(1, count - 1) * 1e6
+        print(json.dumps({**_stats(lat), "rx_cpu_us": cpu_us}), flush=True)
 
 
 def _raw_sender(port: int, peer: int, count: int, rate: int, system: str | None = None,
@@ -349,12 +360,15 @@ def _raw_sender(port: int, peer: int, count: int, rate: int, system: str | None 
         pace = threading.Event()
         period = 1.0 / rate
         start = time.monotonic()
+        cpu0 = time.process_time()
         for i in range(count):
             t.publish("bench/raw", str(time.time_ns()).encode(), priority=60,
                       kind=MessageKind.COMMAND)
             delay = start + (i + 1) * period - time.monotonic()
             if delay > 0:
                 pace.wait(delay)
+        print(json.dumps({"tx_cpu_us": (time.process_time() - cpu0) / count * 1e6}),
+              flush=True)
         pace.wait(1.0)  # let the last messages leave before the session closes
 
 
@@ -387,17 +401,21 @@ def raw_latency(rate: int, seconds: float, secure: bool = False,
                            *extra, *on(0)], cwd=ROOT, env=env, stdout=subprocess.PIPE,
                           text=True)
     tx = subprocess.Popen([*me, "--raw", "tx", str(tx_port), str(rx_port), str(count),
-                           str(rate), *extra, *on(1)], cwd=ROOT, env=env)
+                           str(rate), *extra, *on(1)], cwd=ROOT, env=env,
+                          stdout=subprocess.PIPE, text=True)
     try:
         out, _ = rx.communicate(timeout=seconds * 3 + 60)
-        tx.wait(30)
+        tx_out, _ = tx.communicate(timeout=30)
     finally:
         for p in (rx, tx):
             if p.poll() is None:
                 p.kill()
     if rx.returncode != 0:
         raise SystemExit(f"raw latency run failed (receiver exit {rx.returncode})")
-    return {k: float(v) for k, v in json.loads(out.strip().splitlines()[-1]).items()}
+    res = {k: float(v) for k, v in json.loads(out.strip().splitlines()[-1]).items()}
+    if tx_out.strip():
+        res.update(json.loads(tx_out.strip().splitlines()[-1]))
+    return res
 
 
 def scaling_table(seconds: float, configs: tuple[int, ...] = (1, 2, 3),
@@ -486,6 +504,12 @@ def scaling_report(t: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _cpu(res: dict[str, float]) -> str:
+    """The sender's and receiver's CPU time per message of a latency result, as text."""
+    return (f"sender {res.get('tx_cpu_us', float('nan')):.1f} us, receiver "
+            f"{res.get('rx_cpu_us', float('nan')):.1f} us")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=5.0)
@@ -534,22 +558,23 @@ def main() -> int:
     raw = res["raw_latency_us"] = raw_latency(args.rate, args.seconds, pin=args.pin)
     print(f"cross-satellite latency at {args.rate}/s over {lat['n']:.0f} messages: "
           f"p50 {lat['p50']:.0f} us, p99 {lat['p99']:.0f} us, max {lat['max']:.0f} us "
-          f"(target p99 < 1000 us)")
+          f"(target p99 < 1000 us); CPU per message {_cpu(lat)}")
     print(f"  bare transport, same run     : p50 {raw['p50']:.0f} us, p99 {raw['p99']:.0f} us, "
           f"max {raw['max']:.0f} us (chcos/bare: p50 {lat['p50'] / raw['p50']:.2f}x, "
-          f"p99 {lat['p99'] / raw['p99']:.2f}x)")
+          f"p99 {lat['p99'] / raw['p99']:.2f}x); CPU per message {_cpu(raw)}")
     sealed = res["raw_sealed_latency_us"] = raw_latency(args.rate, args.seconds,
                                                         pin=args.pin, seals_only=True)
     print(f"  bare with seals, plain TCP  : p50 {sealed['p50']:.0f} us, p99 "
           f"{sealed['p99']:.0f} us, max {sealed['max']:.0f} us (AES-256-GCM, replay window; "
           f"sealed/bare: p50 {sealed['p50'] / raw['p50']:.2f}x, p99 "
-          f"{sealed['p99'] / raw['p99']:.2f}x)")
+          f"{sealed['p99'] / raw['p99']:.2f}x); CPU per message {_cpu(sealed)}")
     sec = res["raw_secure_latency_us"] = raw_latency(args.rate, args.seconds, secure=True,
                                                      pin=args.pin)
     print(f"  bare, secured as satellites : p50 {sec['p50']:.0f} us, p99 {sec['p99']:.0f} us, "
           f"max {sec['max']:.0f} us (mutual TLS, user/password, seals; secured/bare: p50 "
           f"{sec['p50'] / raw['p50']:.2f}x, p99 {sec['p99'] / raw['p99']:.2f}x; chcos/secured "
-          f"bare: p50 {lat['p50'] / sec['p50']:.2f}x, p99 {lat['p99'] / sec['p99']:.2f}x)")
+          f"bare: p50 {lat['p50'] / sec['p50']:.2f}x, p99 {lat['p99'] / sec['p99']:.2f}x); CPU "
+          f"per message {_cpu(sec)}")
     if args.json:
         Path(args.json).write_text(json.dumps(res))
     return 0
