@@ -348,7 +348,8 @@ class Sealer:
 
     Per message, sealing packs a time stamp and a counter behind a header prefix made once
     per stream, and opening uses the AEAD derived once per sender's run (kept with the run,
-    looked up without the lock) and a bitmap window (a shift per message in order)."""
+    looked up without the lock) and a ring of window blocks (one bit set per message in
+    order)."""
 
     def __init__(self, role: str, keys: dict[str, bytes], identity: str, *,
                  sender: str | None = None, clock: Callable[[], int] = time.time_ns,
@@ -419,7 +420,8 @@ class Sealer:
         if stamp < self._started:
             return self._refuse(Refusal.BEFORE_START, f"sealed "
                                 f"{(self._started - stamp) / 1e9:.3f} s before this receiver "
-                                f"started (a recorded message replayed to it)")
+                                f"started (recorded and replayed, or its sender's clock is "
+                                f"behind)")
         now = self._clock()
         if stamp < now - self._max_age:
             return self._refuse(Refusal.STALE, f"sealed {(now - stamp) / 1e9:.1f} s ago, at "
