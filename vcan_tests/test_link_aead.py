@@ -179,6 +179,27 @@ def test_a_restarted_receiver_takes_nothing_recorded_before_its_restart(
     assert restarted.refused[Refusal.BEFORE_START] == 3
 
 
+def test_a_clock_stepped_back_after_the_start_refuses_nothing_sealed_since(
+        secret: SystemSecret) -> None:
+    """A receiver's start bound follows its wall clock being stepped back (NTP at boot): what
+    is sealed after the start, on the stepped clock, is delivered; what was sealed before the
+    step's reach is still refused."""
+    clock = Clock()
+    mono = Clock()
+    tx = Sealer("satellite", secret.keys, secret.identity, sender="m1", clock=clock)
+    early = tx.seal(KEY, b"sealed 10 s before the receiver started")
+    clock.now += 10 * SECOND
+    mono.now += 10 * SECOND
+    rx = Sealer("satellite", secret.keys, secret.identity, sender="m0", clock=clock,
+                monotonic=mono)
+    clock.now -= 3 * SECOND  # the wall clock is stepped back 3 s ...
+    mono.now += SECOND // 10  # ... 0.1 s after the start
+    after = tx.seal(KEY, b"sealed after the start, on the stepped clock")
+    assert rx.open(KEY, after)[1] == b"sealed after the start, on the stepped clock"
+    assert _refusal(rx, early) is Refusal.BEFORE_START
+    assert rx.refused[Refusal.BEFORE_START] == 1
+
+
 def test_the_replay_window_matches_a_reference_model(secret: SystemSecret) -> None:
     """Deliveries out of order, duplicated and far behind, in a seeded random order: accepted
     exactly when never accepted before and less than WINDOW behind the highest accepted."""

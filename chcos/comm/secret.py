@@ -344,7 +344,8 @@ class Sealer:
     takes nothing recorded before it), comes from a run its sender has since replaced,
     repeats a sequence number already accepted, or falls behind the :data:`WINDOW` of its
     stream. Between computers this start bound is as good as their clocks agree (a sender's
-    clock behind the receiver's delays its first messages by the difference). Thread-safe.
+    clock behind the receiver's delays its first messages by the difference); a clock stepped
+    back since the start (``monotonic`` tells) moves the bound back by as much. Thread-safe.
 
     Per message, sealing packs a time stamp and a counter behind a header prefix made once
     per stream, and opening uses the AEAD derived once per sender's run (kept with the run,
@@ -353,6 +354,7 @@ class Sealer:
 
     def __init__(self, role: str, keys: dict[str, bytes], identity: str, *,
                  sender: str | None = None, clock: Callable[[], int] = time.time_ns,
+                 monotonic: Callable[[], int] = time.monotonic_ns,
                  max_age_s: float = MAX_AGE_S, max_ahead_s: float = MAX_AHEAD_S) -> None:
         self.role = role
         self.identity = identity
@@ -369,6 +371,8 @@ class Sealer:
         self._seq = itertools.count(1)  # next() is atomic: concurrent seals never share one
         self._clock = clock
         self._started = clock()  # nothing sealed before this is accepted (see above)
+        self._monotonic = monotonic
+        self._started_mono = monotonic()
         self._max_age = int(max_age_s * 1e9)
         self._max_ahead = int(max_ahead_s * 1e9)
         self._lock = threading.Lock()
@@ -417,7 +421,7 @@ class Sealer:
         except InvalidTag:
             return self._refuse(Refusal.UNAUTHENTICATED, "bad seal (not sealed by a member of "
                                 "this system, altered, or sent on another key)")
-        if stamp < self._started:
+        if stamp < self._started and stamp < self._start_now():
             return self._refuse(Refusal.BEFORE_START, f"sealed "
                                 f"{(self._started - stamp) / 1e9:.3f} s before this receiver "
                                 f"started (recorded and replayed, or its sender's clock is "
@@ -442,6 +446,14 @@ class Sealer:
             return self._refuse(why, f"sequence {seq} of stream {stream} of sender "
                                 f"{sender.hex()} run {epoch.hex()}")
         return _ROLE_OF[role], payload
+
+    def _start_now(self) -> int:
+        """This receiver's start on ``clock`` as it reads now: the wall clock at the start, or
+        earlier by as much as the clock has been stepped back since (measured against the
+        monotonic clock), so that a clock stepped back does not refuse what is sealed after
+        the start."""
+        since = self._monotonic() - self._started_mono
+        return min(self._started, self._clock() - since)
 
     def _admit(self, ident: tuple[int, bytes], epoch: bytes, aead: AESGCM,
                stream: tuple[int, int], seq: int, stamp: int) -> Refusal | None:
