@@ -1,6 +1,14 @@
 """bench_link - figures for the chcos inter-satellite link (Zenoh on loopback, two processes).
 
-Prints, in the same run, for the bare link and for the link as satellites use it (every payload
+First, without the link, what a seal costs by itself: microseconds per message to seal, to
+open, and both (a sender's seal and a receiver's open of a 64 B and a 1 KiB payload), beside a
+bare serialize of a link message of that size (:func:`chcos.comm.codec.encode` and
+:func:`chcos.comm.codec.encode_batch`, what every put does anyway) measured in the same rounds;
+each figure is CPU time of this thread (``time.thread_time``: what other processes' load does
+not add to), the best of ``--rounds`` interleaved rounds, and the ratio seal+open / serialize is
+the figure to compare between runs.
+
+Then, in the same run, for the bare link and for the link as satellites use it (every payload
 sealed: encrypted with AES-256-GCM, sender, run, sequence number and time stamp checked against
 replays, see :mod:`chcos.comm.secret`):
 
@@ -16,7 +24,8 @@ then the sealed figures beside the bare ones (ratio), and how long after ``kill 
 child its liveliness token is seen gone. With ``--pin`` this process and its child each run on
 a CPU of their own, as pinned satellites.
 
-Usage: ``python tools/bench_link.py [--rate 5000] [--seconds 5] [--count 200000] [--pin]``.
+Usage: ``python tools/bench_link.py [--rate 5000] [--seconds 5] [--count 200000] [--pin]
+[--rounds 9] [--micro-only]``.
 Only 127.0.0.1 is used, on free ports.
 """
 
@@ -34,6 +43,8 @@ import time
 from pathlib import Path
 
 from chcos.comm import LinkConfig, MessageKind, Transport
+from chcos.comm.codec import LinkMessage, encode, encode_batch
+from chcos.comm.qos import band_of
 from chcos.comm.secret import load_or_create
 from chcos.helpers import free_ports
 from chcos.system.affinity import pin_process
@@ -82,6 +93,46 @@ def echo_main(listen: int, connect: int, secret: str | None, cpu: int | None) ->
         link.announce(ALIVE)
         sys.stdin.read()  # until the parent closes our stdin (or kills us)
     return 0
+
+
+def micro(secret: str, rounds: int, n: int = 5_000) -> dict[str, float]:
+    """Seal, open and seal+open of one message (64 B and 1 KiB payloads) against a bare serialize
+    of a link message of the same size, in us of this thread's CPU time per message, each the
+    best of ``rounds`` interleaved rounds of ``n`` messages; prints them and returns them (keys
+    ``"<what> <size>"`` and ``"ratio <size>"``: seal+open / serialize)."""
+    keys = load_or_create(Path(secret), "bench")
+    tx = keys.sealer("satellite", "m1")
+    rx = keys.sealer("satellite", "m0")
+    key = "chcos/bench/m/0/msg"
+    stream = band_of(60)
+    out: dict[str, float] = {}
+    for size in (64, 1024):
+        message = LinkMessage(MessageKind.SENSORY, "P", "R", 7, 60, 1, time.time_ns(),
+                              "x" * (size - 40))
+        payload = encode_batch([encode(message)])
+        best = dict.fromkeys(("serialize", "seal", "open"), float("inf"))
+        for _ in range(rounds):
+            t0 = time.thread_time()
+            for _ in range(n):
+                encode_batch([encode(message)])
+            t1 = time.thread_time()
+            sealed = [tx.seal(key, payload, stream) for _ in range(n)]
+            t2 = time.thread_time()
+            for data in sealed:
+                rx.open(key, data, 1)
+            t3 = time.thread_time()
+            for what, dt in (("serialize", t1 - t0), ("seal", t2 - t1), ("open", t3 - t2)):
+                best[what] = min(best[what], dt / n * 1e6)
+        both = best["seal"] + best["open"]
+        ratio = both / best["serialize"]
+        out.update({f"{w} {size}": v for w, v in best.items()})
+        out[f"seal+open {size}"] = both
+        out[f"ratio {size}"] = ratio
+        print(f"seal {len(payload):>5} B: seal {best['seal']:.2f} us, open {best['open']:.2f} "
+              f"us, seal+open {both:.2f} us/message; bare serialize {best['serialize']:.2f} "
+              f"us (seal+open / serialize x{ratio:.2f}); thread CPU time, best of {rounds} rounds "
+              f"of {n}")
+    return out
 
 
 def _percentile(sorted_values: list[float], p: float) -> float:
@@ -237,6 +288,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rate", type=int, default=5000)
     p.add_argument("--seconds", type=float, default=5.0)
     p.add_argument("--count", type=int, default=200_000)
+    p.add_argument("--rounds", type=int, default=15,
+                   help="rounds of the seal micro-benchmark (its figures: the best round)")
+    p.add_argument("--micro-only", action="store_true",
+                   help="only the seal micro-benchmark (no link)")
     p.add_argument("--pin", action="store_true",
                    help="this process and the echo child each on a CPU of their own")
     p.add_argument("--echo", nargs=2, type=int, metavar=("LISTEN", "CONNECT"), help="internal")
@@ -253,6 +308,9 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="chcos-bench-link-") as tmp:
         secret = str(Path(tmp) / "secret.json")
         load_or_create(Path(secret), "bench")
+        micro(secret, a.rounds)
+        if a.micro_only:
+            return 0
         bare = measure(None, a, last=False)
         sealed = measure(secret, a, last=True)
     if bare and sealed and "p99" in bare and "p99" in sealed:

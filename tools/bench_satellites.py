@@ -26,10 +26,12 @@
    p50/p99 of arrival minus stamp (target p99 < 1 ms). Measured in the same run, side by side:
    the bare transport under it (two processes, chcos' own Zenoh configuration, the same rate and
    count; the receiver's Zenoh callback hands each stamp to a second thread, as a satellite hands
-   messages to its kernel): what chcos adds to the floor this machine gives today; and the same
-   bare transport secured as satellites are (mutual TLS, user/password, a seal on every
-   payload): what the security costs by itself. With ``--pin`` each satellite (and each bare
-   process) runs on a CPU of its own (``[[satellite]] cpus``), as a cell would deploy them.
+   messages to its kernel): what chcos adds to the floor this machine gives today; the same
+   bare transport with a seal on every payload and nothing else (plain TCP): what sealing and
+   encryption cost by themselves; and the bare transport secured as satellites are (mutual
+   TLS, user/password, a seal on every payload): what the whole security costs. With ``--pin``
+   each satellite (and each bare process) runs on a CPU of its own (``[[satellite]] cpus``),
+   as a cell would deploy them.
 Usage: python -m tools.bench_satellites [--seconds S] [--rate N] [--json FILE] [--latency-only]
 [--scaling-only] [--load echo|sampled] [--sample-hz N] [--pin]
 """
@@ -257,7 +259,10 @@ def scaling_detail(machines: int, seconds: float, kind: str = "echo",
 
 def latency(rate: int, seconds: float, pin: bool = False) -> dict[str, float]:
     """Cross-satellite sensory message latency at ``rate`` messages/s (``pin``: each satellite
-    on a CPU of its own)."""
+    on a CPU of its own): ``n``, ``p50``, ``p99``, ``max`` (us), and ``tx_cpu_us``/``rx_cpu_us``,
+    the CPU time the sending and the receiving satellite process spent per message while the
+    messages flowed (all their threads; a figure the machine's load does not inflate as it does
+    the wall-clock latencies)."""
     c = Cluster(2, load=False, pin=pin)
     try:
         h = c.host
@@ -268,18 +273,22 @@ def latency(rate: int, seconds: float, pin: bool = False) -> dict[str, float]:
                      "setpri -60 P R"):
             h.execute(line)
         h.execute(f"invoke -50 R count={count}")
+        cpu0 = [cpu_seconds(p.pid) for p in c.procs]
         h.execute(f"invoke -50 P rate={rate} count={count}")
         deadline = time.monotonic() + seconds * 3 + 20
         # the host stays away while the messages flow (a map query runs on the receiver's
         # kernel thread and would delay them), then looks now and then
         threading.Event().wait(seconds + 0.5)
+        cpu = [(b - a) / count * 1e6
+               for a, b in zip(cpu0, [cpu_seconds(p.pid) for p in c.procs], strict=True)]
         while time.monotonic() < deadline:
             threading.Event().wait(0.25)  # the host looks now and then, not in a busy loop
             doc = h.map_doc(1)
             r = next(t for t in doc["tasks"] if t["name"] == "R")
             res = r["world"]["sensory"].get("latency_us")
             if res and res["n"] == count and "p99" in res:
-                return {k: float(v) for k, v in res.items()}
+                return {**{k: float(v) for k, v in res.items()}, "tx_cpu_us": cpu[0],
+                        "rx_cpu_us": cpu[1]}
         raise SystemExit("latency run did not finish")
     finally:
         c.close()
@@ -290,10 +299,12 @@ def _stats(lat: list[float]) -> dict[str, float]:
     return {"n": len(s), "p50": s[len(s) // 2], "p99": s[int(len(s) * 0.99) - 1], "max": s[-1]}
 
 
-def _raw_transport(port: int, peer: int, system: str | None, machine: int) -> Any:
+def _raw_transport(port: int, peer: int, system: str | None, machine: int,
+                   seals_only: bool = False) -> Any:
     """A bare transport: chcos' plain-TCP configuration, or (``system``: a system file naming
     both ports) exactly what a satellite of that system uses: mutual TLS, user/password and a
-    seal on every payload."""
+    seal on every payload; ``seals_only``: chcos' plain-TCP configuration with the seals of
+    that system's secret."""
     from chcos.comm.config import LinkConfig
     from chcos.comm.transport import Transport
 
@@ -301,11 +312,14 @@ def _raw_transport(port: int, peer: int, system: str | None, machine: int) -> An
         return Transport(LinkConfig(port, (peer,)))
     sf = sysfile.load(system)
     secret = sf.secret()
+    if seals_only:
+        return Transport(LinkConfig(port, (peer,)), sealer=secret.sealer("satellite"))
     return Transport(sysfile.link_config_for(sf, machine, secret),
                      sealer=secret.sealer("satellite"))
 
 
-def _raw_receiver(port: int, peer: int, count: int, system: str | None = None) -> None:
+def _raw_receiver(port: int, peer: int, count: int, system: str | None = None,
+                  seals_only: bool = False) -> None:
     """The bare-transport receiver process: prints the latency figures as JSON."""
     import collections
 
@@ -317,23 +331,28 @@ def _raw_receiver(port: int, peer: int, count: int, system: str | None = None) -
         stamps.append(int(payload))
         arrived.set()
 
-    with _raw_transport(port, peer, system, 0) as t:
+    with _raw_transport(port, peer, system, 0, seals_only) as t:
         t.subscribe("bench/raw", on_payload)
         t.announce("bench/raw/alive/rx")
+        cpu0 = 0.0
         while len(lat) < count:                 # the second thread (a satellite's kernel)
             if not arrived.wait(30.0):
                 raise SystemExit("raw receiver: no message for 30 s")
+            if not lat:
+                cpu0 = time.process_time()
             arrived.clear()
             while stamps:
                 lat.append((time.time_ns() - stamps.popleft()) / 1e3)
-        print(json.dumps(_stats(lat)), flush=True)
+        cpu_us = (time.process_time() - cpu0) / max(1, count - 1) * 1e6
+        print(json.dumps({**_stats(lat), "rx_cpu_us": cpu_us}), flush=True)
 
 
-def _raw_sender(port: int, peer: int, count: int, rate: int, system: str | None = None) -> None:
+def _raw_sender(port: int, peer: int, count: int, rate: int, system: str | None = None,
+                seals_only: bool = False) -> None:
     """The bare-transport sender process: ``count`` stamps at ``rate`` per second."""
     from chcos.comm.codec import MessageKind
 
-    with _raw_transport(port, peer, system, 1) as t:
+    with _raw_transport(port, peer, system, 1, seals_only) as t:
         up = threading.Event()
         with t.watch("bench/raw/alive/*", lambda k: up.set(), lambda k: None):
             if not up.wait(30.0):
@@ -341,26 +360,30 @@ def _raw_sender(port: int, peer: int, count: int, rate: int, system: str | None 
         pace = threading.Event()
         period = 1.0 / rate
         start = time.monotonic()
+        cpu0 = time.process_time()
         for i in range(count):
             t.publish("bench/raw", str(time.time_ns()).encode(), priority=60,
                       kind=MessageKind.COMMAND)
             delay = start + (i + 1) * period - time.monotonic()
             if delay > 0:
                 pace.wait(delay)
+        print(json.dumps({"tx_cpu_us": (time.process_time() - cpu0) / count * 1e6}),
+              flush=True)
         pace.wait(1.0)  # let the last messages leave before the session closes
 
 
 def raw_latency(rate: int, seconds: float, secure: bool = False,
-                pin: bool = False) -> dict[str, float]:
+                pin: bool = False, seals_only: bool = False) -> dict[str, float]:
     """The bare transport's latency at ``rate`` messages/s (see the module docstring); with
-    ``secure`` configured as the satellites are (mutual TLS, user/password, seals); ``pin``:
-    each of the two processes on a CPU of its own, as pinned satellites."""
+    ``secure`` configured as the satellites are (mutual TLS, user/password, seals); with
+    ``seals_only`` plain TCP with a seal on every payload; ``pin``: each of the two processes
+    on a CPU of its own, as pinned satellites."""
     count = int(rate * seconds)
     rx_port, tx_port = free_ports(2)
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     me = [sys.executable, str(Path(__file__).resolve())]
     extra: list[str] = []
-    if secure:
+    if secure or seals_only:
         tmp = Path(tempfile.mkdtemp(prefix="chcos-bench-raw-"))
         (tmp / "system.toml").write_text(
             f'[system]\nname = "raw{os.getpid()}"\nstate_dir = "state"\n'
@@ -369,6 +392,8 @@ def raw_latency(rate: int, seconds: float, secure: bool = False,
         extra = ["--raw-system", str(tmp / "system.toml")]
         sf = sysfile.load(tmp / "system.toml")
         sysfile.link_config_for(sf, 0, sf.secret())  # make the secret and certificates once
+        if seals_only:
+            extra.append("--raw-seals-only")
     def on(machine: int) -> list[str]:
         return ["--raw-cpu", str(cpu_of(machine))] if pin else []
 
@@ -376,17 +401,21 @@ def raw_latency(rate: int, seconds: float, secure: bool = False,
                            *extra, *on(0)], cwd=ROOT, env=env, stdout=subprocess.PIPE,
                           text=True)
     tx = subprocess.Popen([*me, "--raw", "tx", str(tx_port), str(rx_port), str(count),
-                           str(rate), *extra, *on(1)], cwd=ROOT, env=env)
+                           str(rate), *extra, *on(1)], cwd=ROOT, env=env,
+                          stdout=subprocess.PIPE, text=True)
     try:
         out, _ = rx.communicate(timeout=seconds * 3 + 60)
-        tx.wait(30)
+        tx_out, _ = tx.communicate(timeout=30)
     finally:
         for p in (rx, tx):
             if p.poll() is None:
                 p.kill()
     if rx.returncode != 0:
         raise SystemExit(f"raw latency run failed (receiver exit {rx.returncode})")
-    return {k: float(v) for k, v in json.loads(out.strip().splitlines()[-1]).items()}
+    res = {k: float(v) for k, v in json.loads(out.strip().splitlines()[-1]).items()}
+    if tx_out.strip():
+        res.update(json.loads(tx_out.strip().splitlines()[-1]))
+    return res
 
 
 def scaling_table(seconds: float, configs: tuple[int, ...] = (1, 2, 3),
@@ -475,6 +504,12 @@ def scaling_report(t: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _cpu(res: dict[str, float]) -> str:
+    """The sender's and receiver's CPU time per message of a latency result, as text."""
+    return (f"sender {res.get('tx_cpu_us', float('nan')):.1f} us, receiver "
+            f"{res.get('rx_cpu_us', float('nan')):.1f} us")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=5.0)
@@ -493,6 +528,8 @@ def main() -> int:
                     help=argparse.SUPPRESS)  # internal: one bare-transport process
     ap.add_argument("--raw-system", help=argparse.SUPPRESS)  # internal: secured as satellites
     ap.add_argument("--raw-cpu", type=int, help=argparse.SUPPRESS)  # internal: pinned
+    ap.add_argument("--raw-seals-only", action="store_true",
+                    help=argparse.SUPPRESS)  # internal: seals on plain TCP
     ap.add_argument("--pin", action="store_true",
                     help="latency part: each satellite (and bare-transport process) pinned to "
                          "a CPU of its own ([[satellite]] cpus)")
@@ -502,12 +539,14 @@ def main() -> int:
             pin_process([args.raw_cpu], "--raw-cpu")
         role, port, peer, count, rate = args.raw
         if role == "rx":
-            _raw_receiver(int(port), int(peer), int(count), args.raw_system)
+            _raw_receiver(int(port), int(peer), int(count), args.raw_system,
+                          args.raw_seals_only)
         else:
-            _raw_sender(int(port), int(peer), int(count), int(rate), args.raw_system)
+            _raw_sender(int(port), int(peer), int(count), int(rate), args.raw_system,
+                        args.raw_seals_only)
         return 0
     res: dict[str, Any] = {}
-    print(f"cores: {os.cpu_count()}")
+    print(f"cores: {os.cpu_count()}, load {', '.join(f'{x:.2f}' for x in os.getloadavg())}")
     if args.scaling_only or not args.latency_only:
         res["scaling"] = scaling_table(args.seconds, kind=args.load, sample_hz=args.sample_hz)
         print(scaling_report(res["scaling"]))
@@ -519,14 +558,23 @@ def main() -> int:
     raw = res["raw_latency_us"] = raw_latency(args.rate, args.seconds, pin=args.pin)
     print(f"cross-satellite latency at {args.rate}/s over {lat['n']:.0f} messages: "
           f"p50 {lat['p50']:.0f} us, p99 {lat['p99']:.0f} us, max {lat['max']:.0f} us "
-          f"(target p99 < 1000 us)")
+          f"(target p99 < 1000 us); CPU per message {_cpu(lat)}")
     print(f"  bare transport, same run     : p50 {raw['p50']:.0f} us, p99 {raw['p99']:.0f} us, "
           f"max {raw['max']:.0f} us (chcos/bare: p50 {lat['p50'] / raw['p50']:.2f}x, "
-          f"p99 {lat['p99'] / raw['p99']:.2f}x)")
-    sec = res["raw_secure_latency_us"] = raw_latency(args.rate, args.seconds, secure=True)
+          f"p99 {lat['p99'] / raw['p99']:.2f}x); CPU per message {_cpu(raw)}")
+    sealed = res["raw_sealed_latency_us"] = raw_latency(args.rate, args.seconds,
+                                                        pin=args.pin, seals_only=True)
+    print(f"  bare with seals, plain TCP  : p50 {sealed['p50']:.0f} us, p99 "
+          f"{sealed['p99']:.0f} us, max {sealed['max']:.0f} us (AES-256-GCM, replay window; "
+          f"sealed/bare: p50 {sealed['p50'] / raw['p50']:.2f}x, p99 "
+          f"{sealed['p99'] / raw['p99']:.2f}x); CPU per message {_cpu(sealed)}")
+    sec = res["raw_secure_latency_us"] = raw_latency(args.rate, args.seconds, secure=True,
+                                                     pin=args.pin)
     print(f"  bare, secured as satellites : p50 {sec['p50']:.0f} us, p99 {sec['p99']:.0f} us, "
-          f"max {sec['max']:.0f} us (mutual TLS, user/password, seals; chcos/secured bare: "
-          f"p50 {lat['p50'] / sec['p50']:.2f}x, p99 {lat['p99'] / sec['p99']:.2f}x)")
+          f"max {sec['max']:.0f} us (mutual TLS, user/password, seals; secured/bare: p50 "
+          f"{sec['p50'] / raw['p50']:.2f}x, p99 {sec['p99'] / raw['p99']:.2f}x; chcos/secured "
+          f"bare: p50 {lat['p50'] / sec['p50']:.2f}x, p99 {lat['p99'] / sec['p99']:.2f}x); CPU "
+          f"per message {_cpu(sec)}")
     if args.json:
         Path(args.json).write_text(json.dumps(res))
     return 0

@@ -152,12 +152,91 @@ def test_a_senders_earlier_run_is_refused_after_its_restart(secret: SystemSecret
     assert rx.open(KEY, after.seal(KEY, b"new 0"))[1] == b"new 0"  # its sequence starts again
     for m in captured[1:]:  # never delivered, fresh enough, but from the replaced run
         assert _refusal(rx, m) is Refusal.OLD_RUN
-    # a receiver that starts after the restart refuses the earlier run as well, once it has
-    # heard the new one (the old run's time stamps precede it)
+    # a receiver that starts after the restart refuses the earlier run as well (sealed before
+    # it started), and, once it has heard the new run, anything of an earlier one
     late_rx = Sealer("satellite", secret.keys, secret.identity, sender="m2", clock=clock)
+    assert _refusal(late_rx, captured[2]) is Refusal.BEFORE_START
     assert late_rx.open(KEY, after.seal(KEY, b"new 1"))[1] == b"new 1"
-    assert _refusal(late_rx, captured[2]) is Refusal.OLD_RUN
     assert rx.refused[Refusal.OLD_RUN] == 2
+
+
+def test_a_restarted_receiver_takes_nothing_recorded_before_its_restart(
+        secret: SystemSecret) -> None:
+    """Issue 41's gap: a receiver's replay windows die with it, so a message recorded before
+    it restarted, younger than the age bound, must not be delivered to its next run."""
+    clock = Clock()
+    tx, rx = _pair(secret, clock)
+    recorded = [tx.seal(KEY, b"reading %d" % i) for i in range(3)]
+    assert [rx.open(KEY, m)[1] for m in recorded] == [b"reading 0", b"reading 1", b"reading 2"]
+    clock.now += SECOND // 10  # the receiver restarts 0.1 s later: well inside MAX_AGE_S
+    restarted = Sealer("satellite", secret.keys, secret.identity, sender="m0", clock=clock)
+    for m in recorded:  # delivered once before, replayed to the new run: refused
+        assert _refusal(restarted, m) is Refusal.BEFORE_START
+    clock.now += 1
+    fresh = tx.seal(KEY, b"reading 3")  # the sender's run goes on: its new messages pass
+    assert restarted.open(KEY, fresh)[1] == b"reading 3"
+    assert _refusal(restarted, fresh) is Refusal.REPLAYED
+    assert restarted.refused[Refusal.BEFORE_START] == 3
+
+
+def test_a_clock_stepped_back_after_the_start_refuses_nothing_sealed_since(
+        secret: SystemSecret) -> None:
+    """A receiver's start bound follows its wall clock being stepped back (NTP at boot): what
+    is sealed after the start, on the stepped clock, is delivered; what was sealed before the
+    step's reach is still refused."""
+    clock = Clock()
+    mono = Clock()
+    tx = Sealer("satellite", secret.keys, secret.identity, sender="m1", clock=clock)
+    early = tx.seal(KEY, b"sealed 10 s before the receiver started")
+    clock.now += 10 * SECOND
+    mono.now += 10 * SECOND
+    rx = Sealer("satellite", secret.keys, secret.identity, sender="m0", clock=clock,
+                monotonic=mono)
+    clock.now -= 3 * SECOND  # the wall clock is stepped back 3 s ...
+    mono.now += SECOND // 10  # ... 0.1 s after the start
+    after = tx.seal(KEY, b"sealed after the start, on the stepped clock")
+    assert rx.open(KEY, after)[1] == b"sealed after the start, on the stepped clock"
+    assert _refusal(rx, early) is Refusal.BEFORE_START
+    assert rx.refused[Refusal.BEFORE_START] == 1
+
+
+def test_the_replay_window_matches_a_reference_model(secret: SystemSecret) -> None:
+    """Deliveries out of order, duplicated and far behind, in a seeded random order: accepted
+    exactly when never accepted before and less than WINDOW behind the highest accepted."""
+    import random
+
+    rnd = random.Random(41)
+    clock = Clock()
+    tx, rx = _pair(secret, clock)
+    sealed = [tx.seal(KEY, b"%d" % i) for i in range(3 * WINDOW)]
+    order: list[int] = []
+    i = 0
+    while i < len(sealed):  # mostly in order, some jumps ahead, back and repeated
+        step = rnd.choice((1, 1, 1, 2, 70, 300, WINDOW + 5))
+        order.extend(range(i, min(i + step, len(sealed))))
+        i += step
+        if rnd.random() < 0.3:
+            order.append(rnd.randrange(max(0, i - 2 * WINDOW), min(i, len(sealed))))
+    tail = order[len(order) // 2:]
+    rnd.shuffle(tail)
+    order[len(order) // 2:] = tail
+    accepted: set[int] = set()
+    top = -1
+    for n in order:
+        fresh = n not in accepted and top - n < WINDOW
+        try:
+            assert rx.open(KEY, sealed[n])[1] == b"%d" % n
+            ok = True
+        except SealRefused as exc:
+            ok = False
+            assert exc.refusal is (Refusal.REPLAYED if n in accepted and top - n < WINDOW
+                                   else Refusal.BEHIND_WINDOW)
+        assert ok == fresh, (n, top)
+        if ok:
+            accepted.add(n)
+            top = max(top, n)
+    assert rx.refused[Refusal.REPLAYED] + rx.refused[Refusal.BEHIND_WINDOW] > 0
+    assert len(accepted) > WINDOW
 
 
 def test_roles_keep_their_keys(secret: SystemSecret) -> None:

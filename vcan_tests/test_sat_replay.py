@@ -1,24 +1,31 @@
 """Replays and eavesdropping against running satellites (issue 41). The attacker holds what a
 system file with ``[link.auth]`` gives away (the password) and the TLS files, but not the
 system's sealing secret: it opens a session and hears the satellites' traffic, yet reads
-nothing of it, and what it replays is refused and counted. A member (it holds the secret)
-replaying its own messages, or holding one back beyond the replay window, gets no further. A
-liveliness token declared by the password holder does not make a dead satellite up."""
+nothing of it, and what it replays is refused and counted, also by a satellite restarted since
+the recording (its replay windows start empty, but it takes nothing sealed before it started). A
+member (it holds the secret) replaying its own messages, or holding one back beyond the replay
+window, gets no further. A liveliness token declared by the password holder does not make a
+dead satellite up, neither for the other satellites nor for the host (both want a sealed hello),
+and an answer to another hello, replayed, does not either."""
 
 from __future__ import annotations
 
+import json
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from chcos.comm.codec import LinkMessage, MessageKind, decode_batch, encode, encode_batch
 from chcos.comm.payloads import Hello, from_wire
 from chcos.comm.qos import band_of
-from chcos.comm.secret import WINDOW, Refusal, SealRefused, load_or_create
+from chcos.comm.secret import REPLY_STREAM, WINDOW, Refusal, SealRefused, load_or_create
 from chcos.comm.transport import Transport
+from chcos.errors import LinkError
 from chcos.satellites import sysfile
+from vcan_tests.support_faults import wait_until
 from vcan_tests.support_sat import Cluster, device, link
 from vcan_tests.test_sat_security import _wait_rejected
 
@@ -61,6 +68,11 @@ def _eavesdropper(c: Cluster) -> Transport:
     return t
 
 
+def _delivered(n: int) -> Callable[[dict[str, Any]], bool]:
+    """True of a map in which link R1 -> R0 delivered ``n`` readings."""
+    return lambda doc: bool(link(doc, "R1", "R0")["delivered"] == n)
+
+
 @pytest.mark.slow
 def test_a_password_holder_reads_nothing_and_replays_nothing(cluster: Cluster,
                                                              tmp_path: Path) -> None:
@@ -79,7 +91,7 @@ def test_a_password_holder_reads_nothing_and_replays_nothing(cluster: Cluster,
         values = [424201 + i for i in range(5)]
         for n, v in enumerate(values, 1):  # one at a time: each reading is delivered
             c.host.execute(f"inject S1 {v}")
-            c.wait_until(lambda d, n=n: link(d, "R1", "R0")["delivered"] == n, machine=0)
+            c.wait_until(_delivered(n), machine=0)
         c.host.execute("suspend R1")  # A2 suspended: nothing new crosses the link
         with lock:
             stolen = [(k, d) for k, d in captured if k == f"{p}/m/0/msg"]
@@ -111,6 +123,47 @@ def _actuator(value: int) -> bytes:
     return encode_batch([encode(LinkMessage(MessageKind.COMMAND, "", "M0", 0, 98, 1, 0,
                                             {"op": "actuator", "device": "M0",
                                              "value": value}))])
+
+
+@pytest.mark.slow
+def test_a_restarted_satellite_refuses_what_was_recorded_before_its_restart(
+        cluster: Cluster) -> None:
+    c = cluster
+    p = c.sf.prefix
+    spy = _eavesdropper(c)
+    captured: list[tuple[str, bytes]] = []
+    lock = threading.Lock()
+
+    def record(key: str, payload: bytes) -> None:
+        with lock:
+            captured.append((key, payload))
+
+    values = [515101 + i for i in range(3)]
+    try:
+        spy.subscribe(f"{p}/m/0/msg", record)
+        for n, v in enumerate(values, 1):
+            c.host.execute(f"inject S1 {v}")
+            c.wait_until(_delivered(n), machine=0)
+        c.host.execute("suspend R1")  # nothing new crosses the link from here on
+        with lock:
+            stolen = list(captured)
+        assert len(stolen) >= len(values)
+        c.kill(0)  # the receiver restarts: its replay windows start empty
+        c.start(0)
+        c.host.wait_for([0, 1])
+        before = link(c.host.map_doc(0), "R1", "R0")
+        for k, d in stolen:  # seconds old: well within the age bound
+            spy.publish(k, d, priority=60, kind=MessageKind.SENSORY)
+        counts = _wait_rejected(c, 0, "link seal refused: sealed before this receiver started",
+                                len(stolen))
+    finally:
+        spy.close()
+    assert counts["link seal refused: sealed before this receiver started"] == len(stolen)
+    doc = c.host.map_doc(0)
+    after = link(doc, "R1", "R0")
+    for what in ("delivered", "overwritten", "queued"):  # nothing recorded reached the link
+        assert after[what] == before[what], what
+    assert device(doc, "M0")["value"] not in values
 
 
 @pytest.mark.slow
@@ -176,6 +229,29 @@ def test_a_forged_liveliness_token_does_not_bring_a_dead_satellite_back(
         assert device(doc, "S1")["status"] == "failed"  # no answer: still down there
     finally:
         spy.close()
+    # the host's view: the password holder takes the dead satellite's port (the host connects
+    # to it) and declares machine 1's token there; a token is a hint, and machine 1 does not
+    # answer a sealed hello
+    impostor = Transport(sysfile.link_config_for(c.sf, 1, c.sf.secret()))  # no sealer
+    try:
+        impostor.announce(f"{p}/alive/1")
+        assert wait_until(lambda: c.host.tokens() == [0, 1], timeout=60), "host sees the token"
+        assert c.host.alive() == [0]
+        assert c.host.map_doc()["alive"] == [0]
+        with pytest.raises(LinkError, match=r"\[1\] .* not up"):
+            c.host.wait_for([1], timeout=2.0)
+        # it answers the hellos itself: with an answer a satellite sealed to another hello
+        # (what a member once sent), then with that same answer again
+        forged = member.seal(f"{p}/m/1/ctl", json.dumps(
+            {"ok": True, "machine": 1, "nonce": "0" * 32}).encode(), REPLY_STREAM)
+        with impostor.serve(f"{p}/m/1/ctl", lambda _request: forged):
+            assert c.host.alive() == [0]  # opens (sealed, fresh), but not this hello's nonce
+            assert c.host.alive() == [0]  # the same answer again: a replay, refused
+        assert c.host.transport.refusals["replayed"] >= 1
+        causes = c.host.unconfirmed.counts
+        assert sum(n for k, n in causes.items() if k.startswith("machine 1:")) >= 4
+    finally:
+        impostor.close()
     c.start(1)  # the real one comes back: its token and its hello
     c.host.wait_for([0, 1])
     c.wait_until(lambda d: device(d, "S1")["status"] == "OK", machine=0)

@@ -13,9 +13,11 @@ A system's nodes prove two things to each other on every payload they exchange:
   key the payload was sent on, so a payload cannot be moved onto another key;
 * **freshness**: every seal carries its sender's identity, the sender's run (a random epoch
   drawn at each start), a sequence number and a time stamp. A receiver refuses a payload
-  older than :data:`MAX_AGE_S`, further ahead than :data:`MAX_AHEAD_S`, from a run its
-  sender has replaced, already accepted, or reordered beyond :data:`WINDOW`, and counts each
-  refusal by kind (:class:`Refusal`);
+  older than :data:`MAX_AGE_S`, further ahead than :data:`MAX_AHEAD_S`, sealed before the
+  receiver itself started (so a restarted receiver, whose replay windows start empty, takes
+  nothing recorded before its restart), from a run its sender has replaced, already
+  accepted, or reordered beyond :data:`WINDOW`, and counts each refusal by kind
+  (:class:`Refusal`);
 * **confidentiality**: payloads are encrypted (AES-256-GCM, a key per sender's run derived
   with HKDF-SHA256 from the role key, the nonce made of the epoch and the sequence number):
   a session that passed the Zenoh authentication (it holds a ``[link.auth]`` password, or the
@@ -221,6 +223,7 @@ class Refusal(enum.Enum):
     STALE = "too old"                            # time stamp older than the age bound
     FUTURE = "from the future"                   # time stamp beyond the clock skew allowance
     OLD_RUN = "from a sender's earlier run"      # an epoch the sender has since replaced
+    BEFORE_START = "sealed before this receiver started"  # recorded before its (re)start
 
 
 class SealRefused(LinkError):
@@ -241,31 +244,41 @@ def _derive(key: bytes, role: int, sender: bytes, epoch: bytes) -> AESGCM:
 
 class _Window:
     """The sequence numbers accepted lately on one stream of one sender's run: the highest
-    (``top``) and a bitmap of the WINDOW below it (bit i set: ``top - i`` was accepted), as
-    IPsec and DTLS keep them."""
+    (``top``) and a bitmap of the :data:`WINDOW` below it kept in 64-bit blocks used as a ring
+    (RFC 6479): a message in order sets one bit, and clears a block when it enters a new one,
+    whatever the window's size."""
 
-    __slots__ = ("bits", "top")
+    __slots__ = ("blocks", "top")
 
     def __init__(self) -> None:
         self.top = 0
-        self.bits = 0
+        self.blocks = [0] * _BLOCKS
 
-    def check(self, seq: int) -> Refusal | None:
-        """None if ``seq`` is new and within the window (nothing recorded yet), else why not."""
-        if seq > self.top:
-            return None
-        back = self.top - seq
-        if back >= WINDOW:
-            return Refusal.BEHIND_WINDOW
-        return Refusal.REPLAYED if (self.bits >> back) & 1 else None
-
-    def accept(self, seq: int) -> None:
-        """Record ``seq`` (checked by :meth:`check` first)."""
-        if seq > self.top:
-            self.bits = ((self.bits << (seq - self.top)) | 1) & _WINDOW_MASK
+    def admit(self, seq: int) -> Refusal | None:
+        """Record ``seq`` and return None if it is new and within the window, else say why
+        not (and record nothing)."""
+        top = self.top
+        blocks = self.blocks
+        if seq > top:  # ahead of all accepted: nothing of it recorded yet
+            block = seq >> 6
+            current = top >> 6
+            if block != current:
+                if block - current >= _BLOCKS:  # a jump past the whole window: all new
+                    blocks[:] = _EMPTY
+                else:
+                    for b in range(current + 1, block + 1):  # the blocks entered are new
+                        blocks[b % _BLOCKS] = 0
             self.top = seq
-        else:
-            self.bits |= 1 << (self.top - seq)
+            blocks[block % _BLOCKS] |= 1 << (seq & 63)
+            return None
+        if top - seq >= WINDOW:
+            return Refusal.BEHIND_WINDOW
+        i = (seq >> 6) % _BLOCKS
+        bit = 1 << (seq & 63)
+        if blocks[i] & bit:
+            return Refusal.REPLAYED
+        blocks[i] |= bit
+        return None
 
 
 @dataclass
@@ -283,7 +296,8 @@ class _Sender:
 
 #: Receive windows kept per stream (sequence numbers a message may be reordered by).
 WINDOW = 4096
-_WINDOW_MASK = (1 << WINDOW) - 1
+_BLOCKS = WINDOW // 64 + 1  # the ring of a window: WINDOW bits and the block being filled
+_EMPTY = [0] * _BLOCKS
 #: Oldest message accepted, and furthest into the future (clock skew allowance), in seconds.
 MAX_AGE_S = 30.0
 MAX_AHEAD_S = 30.0
@@ -298,6 +312,15 @@ RETIRED_RUNS = 16
 REPLY_STREAM = 255
 
 _HEADER = struct.Struct(">BBB8s8sQQ")  # version, role, stream, sender, epoch, sequence, time
+_HEADER_SIZE = _HEADER.size
+_unpack_header = _HEADER.unpack_from
+_PREFIX = struct.Struct(">BBB8s8s")  # what a run seals alike on a stream: version to epoch
+_TAIL = struct.Struct(">QQ")  # sequence number, time stamp
+_pack_tail = _TAIL.pack
+#: Where a sealed payload's nonce lies in its header: the epoch's first four bytes, then the
+#: sequence number.
+_NONCE_RUN = slice(11, 15)
+_NONCE_SEQ = slice(19, 27)
 SEAL_VERSION = 2
 
 
@@ -316,12 +339,22 @@ class Sealer:
 
     Receiving, :meth:`open` refuses (:class:`SealRefused`, counted in :attr:`refused` by
     :class:`Refusal`) a payload that does not authenticate, is older than ``max_age_s`` or
-    further ahead than ``max_ahead_s`` of ``clock`` (ns since the epoch), comes from a run
-    its sender has since replaced, repeats a sequence number already accepted, or falls
-    behind the :data:`WINDOW` of its stream. Thread-safe."""
+    further ahead than ``max_ahead_s`` of ``clock`` (ns since the epoch), was sealed before
+    this Sealer was made (``clock`` then: a receiver's restart forgets its windows, so it
+    takes nothing recorded before it), comes from a run its sender has since replaced,
+    repeats a sequence number already accepted, or falls behind the :data:`WINDOW` of its
+    stream. Between computers this start bound is as good as their clocks agree (a sender's
+    clock behind the receiver's delays its first messages by the difference); a clock stepped
+    back since the start (``monotonic`` tells) moves the bound back by as much. Thread-safe.
+
+    Per message, sealing packs a time stamp and a counter behind a header prefix made once
+    per stream, and opening uses the AEAD derived once per sender's run (kept with the run,
+    looked up without the lock) and a ring of window blocks (one bit set per message in
+    order)."""
 
     def __init__(self, role: str, keys: dict[str, bytes], identity: str, *,
                  sender: str | None = None, clock: Callable[[], int] = time.time_ns,
+                 monotonic: Callable[[], int] = time.monotonic_ns,
                  max_age_s: float = MAX_AGE_S, max_ahead_s: float = MAX_AHEAD_S) -> None:
         self.role = role
         self.identity = identity
@@ -331,9 +364,15 @@ class Sealer:
                        if sender is not None else secrets.token_bytes(8))
         self.epoch = secrets.token_bytes(8)
         self._aead = _derive(self._role_keys[self._mine], self._mine, self.sender, self.epoch)
+        self._encrypt = self._aead.encrypt
         self._nonce = self.epoch[:4]
+        self._prefixes = [_PREFIX.pack(SEAL_VERSION, self._mine, stream, self.sender, self.epoch)
+                          for stream in range(256)]
         self._seq = itertools.count(1)  # next() is atomic: concurrent seals never share one
         self._clock = clock
+        self._started = clock()  # nothing sealed before this is accepted (see above)
+        self._monotonic = monotonic
+        self._started_mono = monotonic()
         self._max_age = int(max_age_s * 1e9)
         self._max_ahead = int(max_ahead_s * 1e9)
         self._lock = threading.Lock()
@@ -349,39 +388,44 @@ class Sealer:
         tag. ``stream`` (0..255) is the ordering domain the receiver keeps a window for:
         messages that the transport may reorder among each other (e.g. two priority bands)
         belong to different streams."""
-        seq = next(self._seq)
-        header = _HEADER.pack(SEAL_VERSION, self._mine, stream, self.sender, self.epoch, seq,
-                              self._clock())
-        nonce = self._nonce + seq.to_bytes(8, "big")
-        return header + self._aead.encrypt(nonce, payload, header + key_expr.encode())
+        tail = _pack_tail(next(self._seq), self._clock())
+        header = self._prefixes[stream] + tail
+        return header + self._encrypt(self._nonce + tail[:8], payload,
+                                      header + key_expr.encode())
 
     def open(self, key_expr: str, data: bytes, receiver: int = 0) -> tuple[str, bytes]:
         """(role, payload) of a sealed ``data`` received on ``key_expr`` by ``receiver`` (one
         number per subscriber or server of this node: each gets a message once). Raises SealRefused
         (a LinkError) saying why it is refused: not sealed by a member of this system (too
         short, unknown version or role, altered, sent on another key), too old or ahead of
-        the clock, from a sender's earlier run, replayed, or behind the window."""
+        the clock, sealed before this receiver started, from a sender's earlier run,
+        replayed, or behind the window."""
         if len(data) < SEAL_BYTES:
             return self._refuse(Refusal.UNAUTHENTICATED, "payload too short to carry a seal")
-        version, role, stream, sender, epoch, seq, stamp = _HEADER.unpack_from(data)
+        version, role, stream, sender, epoch, seq, stamp = _unpack_header(data)
         if version != SEAL_VERSION:
             return self._refuse(Refusal.UNAUTHENTICATED, f"seal version {version}, expected "
                                 f"{SEAL_VERSION}")
-        key = self._role_keys.get(role)
-        if key is None:
-            return self._refuse(Refusal.UNAUTHENTICATED, f"unknown role byte {role}")
         ident = (role, sender)
         known = self._runs.get(ident)  # read without the lock: one tuple, replaced whole
-        aead = known[1] if known is not None and known[0] == epoch else None
-        if aead is None:
+        if known is not None and known[0] == epoch:
+            aead = known[1]
+        else:
+            key = self._role_keys.get(role)
+            if key is None:
+                return self._refuse(Refusal.UNAUTHENTICATED, f"unknown role byte {role}")
             aead = _derive(key, role, sender, epoch)
-        header = data[:_HEADER.size]
         try:
-            payload = aead.decrypt(epoch[:4] + seq.to_bytes(8, "big"), data[_HEADER.size:],
-                                   header + key_expr.encode())
+            payload = aead.decrypt(data[_NONCE_RUN] + data[_NONCE_SEQ], data[_HEADER_SIZE:],
+                                   data[:_HEADER_SIZE] + key_expr.encode())
         except InvalidTag:
             return self._refuse(Refusal.UNAUTHENTICATED, "bad seal (not sealed by a member of "
                                 "this system, altered, or sent on another key)")
+        if stamp < self._started and stamp < self._start_now():
+            return self._refuse(Refusal.BEFORE_START, f"sealed "
+                                f"{(self._started - stamp) / 1e9:.3f} s before this receiver "
+                                f"started (recorded and replayed, or its sender's clock is "
+                                f"behind)")
         now = self._clock()
         if stamp < now - self._max_age:
             return self._refuse(Refusal.STALE, f"sealed {(now - stamp) / 1e9:.1f} s ago, at "
@@ -390,11 +434,26 @@ class Sealer:
             return self._refuse(Refusal.FUTURE, f"sealed {(stamp - now) / 1e9:.1f} s ahead of "
                                 f"this clock, at most {self._max_ahead / 1e9:g} s accepted")
         with self._lock:
-            why = self._admit(ident, epoch, aead, (receiver, stream), seq, stamp)
+            s = self._senders.get(ident)
+            if (s is not None and s.epoch == epoch
+                    and (window := s.windows.get((receiver, stream))) is not None):
+                why = window.admit(seq)  # the usual case: a run and a stream heard before
+                if why is None and stamp > s.last_ns:
+                    s.last_ns = stamp
+            else:
+                why = self._admit(ident, epoch, aead, (receiver, stream), seq, stamp)
         if why is not None:
             return self._refuse(why, f"sequence {seq} of stream {stream} of sender "
                                 f"{sender.hex()} run {epoch.hex()}")
         return _ROLE_OF[role], payload
+
+    def _start_now(self) -> int:
+        """This receiver's start on ``clock`` as it reads now: the wall clock at the start, or
+        earlier by as much as the clock has been stepped back since (measured against the
+        monotonic clock), so that a clock stepped back does not refuse what is sealed after
+        the start."""
+        since = self._monotonic() - self._started_mono
+        return min(self._started, self._clock() - since)
 
     def _admit(self, ident: tuple[int, bytes], epoch: bytes, aead: AESGCM,
                stream: tuple[int, int], seq: int, stamp: int) -> Refusal | None:
@@ -423,11 +482,9 @@ class Sealer:
             window = s.windows[stream] = _Window()
             if len(s.windows) > MAX_WINDOWS:  # receivers come and go: forget the oldest
                 del s.windows[next(iter(s.windows))]
-        why = window.check(seq)
-        if why is None:
-            window.accept(seq)
-            if stamp > s.last_ns:
-                s.last_ns = stamp
+        why = window.admit(seq)
+        if why is None and stamp > s.last_ns:
+            s.last_ns = stamp
         return why
 
     def _refuse(self, refusal: Refusal, detail: str) -> NoReturn:

@@ -15,6 +15,9 @@ op              request                                answer
                                                        ``alive``, ``rejected``
 ``log``         :class:`LogRequest`                    ``log``: the install log
 ``head``        :class:`HeadRequest`                   ``length``, ``hash`` of the install log
+``hello``       :class:`HelloRequest` (nonce)          ``machine``, ``nonce``: proof that this
+                                                       satellite is up now (its sealed answer
+                                                       repeats the host's fresh nonce)
 ``sync``        :class:`SyncRequest` (source, need)    ``applied``: entries fetched and applied
 ``exec``        :class:`ExecRequest` (line)            ``answer``: a runtime command's answer
 ``prepare``     :class:`ChangeRequest` (PREPARE)       ``seq``: checked at this log length
@@ -66,6 +69,20 @@ class HeadRequest:
 
 
 @dataclass(frozen=True)
+class HelloRequest:
+    """Prove that this satellite is up: answer with its machine and ``nonce`` (fresh random
+    text the host drew, at most :data:`MAX_NONCE` characters), sealed as every answer is with
+    the satellite role's key. A liveliness token anyone with the link's password can declare;
+    this answer only a satellite, now."""
+
+    nonce: str
+
+
+#: Longest nonce a hello carries.
+MAX_NONCE = 64
+
+
+@dataclass(frozen=True)
 class SyncRequest:
     """Fetch the log entries this satellite misses from satellite ``source``, up to ``need``."""
 
@@ -91,8 +108,8 @@ class ChangeRequest:
     leader: int | None = None
 
 
-ControlRequest = (MapRequest | LogRequest | HeadRequest | SyncRequest | ExecRequest
-                  | ChangeRequest)
+ControlRequest = (MapRequest | LogRequest | HeadRequest | HelloRequest | SyncRequest
+                  | ExecRequest | ChangeRequest)
 
 _PLAIN: dict[str, type[Any]] = {"log": LogRequest, "head": HeadRequest}
 
@@ -102,6 +119,8 @@ def encode(req: ControlRequest) -> bytes:
     doc: dict[str, Any]
     if isinstance(req, MapRequest):
         doc = {"op": "map", "part": req.part, "token": req.token}
+    elif isinstance(req, HelloRequest):
+        doc = {"op": "hello", "nonce": req.nonce}
     elif isinstance(req, SyncRequest):
         doc = {"op": "sync", "source": req.source, "need": req.need}
     elif isinstance(req, ExecRequest):
@@ -150,6 +169,11 @@ def decode(payload: bytes) -> ControlRequest:
         if not isinstance(token, str) or len(token) > 64:
             raise TypeError(f"token: expected a map answer's token, got {token!r:.40}")
         return MapRequest(_int(doc, "part", "a page number", optional=True) or 0, token)
+    if op == "hello":
+        nonce = doc.get("nonce")
+        if not isinstance(nonce, str) or not 0 < len(nonce) <= MAX_NONCE:
+            raise TypeError(f"nonce: expected 1 to {MAX_NONCE} characters, got {nonce!r:.40}")
+        return HelloRequest(nonce)
     if op == "sync":
         return SyncRequest(_int(doc, "source", "a machine"), _int(doc, "need", "a log length"))
     if op == "exec":
@@ -157,7 +181,7 @@ def decode(payload: bytes) -> ControlRequest:
     try:
         phase = Phase(op)
     except ValueError:
-        raise TypeError(f"op: expected one of map, log, head, sync, exec, prepare, append, "
-                        f"commit, got {op!r:.40}") from None
+        raise TypeError(f"op: expected one of map, log, head, hello, sync, exec, prepare, "
+                        f"append, commit, got {op!r:.40}") from None
     return ChangeRequest(phase, _line(doc), _int(doc, "seq", "a log position >= 0"),
                          _int(doc, "leader", "a machine", optional=True))

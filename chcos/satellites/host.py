@@ -9,19 +9,26 @@ a host that lost the race to another host prepares again at the new length (up t
 :data:`RACE_RETRIES` times, then InstallError). A refused install changes no satellite's tables.
 Runtime commands go to the satellite of the task or device concerned. Every request is sealed with
 the host role's key of the system secret (see :mod:`chcos.comm.secret`).
+
+Who is up: a satellite's Zenoh liveliness token is only a hint (anyone holding the link's
+password can declare one); a machine counts as up once it answered a sealed hello carrying a
+nonce the host drew just then (:class:`chcos.satellites.control.HelloRequest`), which only a
+satellite of the system, running now, can answer.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import random
+import secrets
 import threading
 import time
 from typing import Any
 
 from chcos.comm.config import UsrPwdAuth
 from chcos.comm.manager import machine_of
-from chcos.comm.secret import SystemSecret
+from chcos.comm.secret import SystemSecret, Throttle
 from chcos.comm.transport import Transport
 from chcos.errors import CommandSyntaxError, InstallError, LinkError
 from chcos.satellites import control
@@ -30,6 +37,7 @@ from chcos.satellites.control import (
     ControlRequest,
     ExecRequest,
     HeadRequest,
+    HelloRequest,
     MapRequest,
     Phase,
     SyncRequest,
@@ -38,8 +46,12 @@ from chcos.satellites.sysfile import SystemFile, link_config_for
 from chcos.system import cmdline
 from chcos.system.textview import render_text
 
+log = logging.getLogger("chcos.satellites.host")
+
 #: How often a host whose install lost the race to another host prepares it again.
 RACE_RETRIES = 50
+#: Seconds between two hellos to a machine whose token is seen but which did not answer one.
+HELLO_RETRY = 0.5
 
 
 class RaceLost(InstallError):
@@ -67,6 +79,8 @@ class Host:
         self._settled = False
         self.transport = Transport(cfg, sealer=secret.sealer("host"))
         self.races_lost = 0
+        #: liveliness tokens seen without a sealed hello from their machine, by cause
+        self.unconfirmed = Throttle(log)
         self._where: dict[str, int] = {}
 
     def close(self) -> None:
@@ -80,16 +94,68 @@ class Host:
         self.close()
 
     # ---- who is there -----------------------------------------------------------------------
-    def alive(self) -> list[int]:
-        """The machines whose satellites are up now."""
+    def tokens(self) -> list[int]:
+        """The machines whose liveliness token is seen now: a hint only (anyone holding the
+        link's password can declare one; see :meth:`alive`)."""
         keys = self.transport.alive(f"{self.sf.prefix}/alive/*", timeout=1.0)
-        return sorted(m for k in keys if (m := machine_of(k)) is not None)
+        return sorted({m for k in keys if (m := machine_of(k)) is not None})
+
+    def alive(self) -> list[int]:
+        """The machines whose satellites are up now: of the machines of the system file whose
+        liveliness token is seen, those that answer a sealed hello (see the module doc)."""
+        return self._confirmed(set(self.tokens()), self.timeout)
+
+    def _hello(self, machine: int, timeout: float) -> bool:
+        """True if satellite ``machine`` answered a hello with a nonce drawn now, sealed by a
+        satellite (the transport checks the seal: key, role, freshness, replays); False, and
+        counted in :attr:`unconfirmed`, if not (no answer, refused, or a wrong one)."""
+        nonce = secrets.token_hex(16)
+        try:
+            reply = self.transport.request(f"{self.sf.prefix}/m/{machine}/ctl",
+                                           control.encode(HelloRequest(nonce)),
+                                           timeout=timeout, roles=frozenset({"satellite"}))
+            doc = json.loads(reply)
+            if (isinstance(doc, dict) and doc.get("ok") is True
+                    and doc.get("nonce") == nonce and doc.get("machine") == machine):
+                return True
+            why = f"answered {str(doc)[:80]!r}, not the hello"
+        except LinkError as exc:
+            why = str(exc)
+        except ValueError as exc:  # not JSON
+            why = f"a malformed answer: {exc}"
+        self.unconfirmed.note(f"machine {machine}: liveliness token without a sealed hello "
+                              f"(not counted as up)", why)
+        return False
+
+    def _confirmed(self, hinted: set[int], timeout: float) -> list[int]:
+        """The machines of ``hinted`` (token seen) that are of the system file and answer a
+        hello within ``timeout`` seconds, asked all at once (sorted)."""
+        ask = sorted(m for m in hinted if m in self.sf.satellites)
+        for m in sorted(hinted - set(ask)):
+            self.unconfirmed.note(f"machine {m}: liveliness token of a machine the system file "
+                                  f"does not name (ignored)", f"{self.sf.path}")
+        if len(ask) <= 1:
+            return [m for m in ask if self._hello(m, timeout)]
+        answers: dict[int, bool] = {}
+
+        def hello(m: int) -> None:
+            answers[m] = self._hello(m, timeout)
+
+        threads = [threading.Thread(target=hello, args=(m,), name=f"chcos hello m{m}",
+                                    daemon=True) for m in ask]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()  # each returns within its request's timeout
+        return [m for m in ask if answers.get(m)]
 
     def wait_for(self, machines: list[int], timeout: float = 20.0) -> list[int]:
-        """Wait until every machine in ``machines`` is up (its liveliness token is seen; no
-        polling); returns the machines up then. Raises LinkError naming the missing ones after
-        ``timeout`` seconds."""
+        """Wait until every machine in ``machines`` is up (its liveliness token is seen, then
+        it answers a sealed hello; a machine whose token is seen but which does not answer is
+        asked again every :data:`HELLO_RETRY` seconds); returns the machines up then. Raises
+        LinkError naming the missing ones after ``timeout`` seconds."""
         want = set(machines)
+        hinted: set[int] = set()
         up: set[int] = set()
         lock = threading.Lock()
         changed = threading.Event()
@@ -98,7 +164,11 @@ class Host:
             m = machine_of(key)
             if m is not None:
                 with lock:
-                    (up.add if present else up.discard)(m)
+                    if present:
+                        hinted.add(m)
+                    else:
+                        hinted.discard(m)
+                        up.discard(m)
                 changed.set()
 
         deadline = time.monotonic() + timeout
@@ -106,15 +176,25 @@ class Host:
                                   lambda k: seen(k, False)):
             while True:
                 changed.clear()
+                remaining = deadline - time.monotonic()
+                with lock:
+                    ask = hinted - up
+                if ask and remaining > 0:
+                    fresh = self._confirmed(ask, min(self.timeout, remaining))
+                    with lock:
+                        up.update(m for m in fresh if m in hinted)
                 with lock:
                     if want <= up:
                         return sorted(up)
                     missing = sorted(want - up)
+                    unanswered = bool(hinted - up)
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     break
-                changed.wait(remaining)
-        raise LinkError(f"satellite(s) {missing} of {self.sf.name} not up after {timeout} s")
+                changed.wait(min(remaining, HELLO_RETRY) if unanswered else remaining)
+        raise LinkError(f"satellite(s) {missing} of {self.sf.name} not up after {timeout} s "
+                        f"(a machine is up once its liveliness token is seen and it answers a "
+                        f"sealed hello)")
 
     # ---- requests ---------------------------------------------------------------------------
     def _ask(self, machine: int, req: ControlRequest) -> dict[str, Any]:

@@ -356,6 +356,8 @@ class Satellite:
             return self._map_page(req)
         if isinstance(req, control.LogRequest):
             return {"ok": True, "log": list(self.log)}
+        if isinstance(req, control.HelloRequest):  # answered at once, kernel busy or not
+            return {"ok": True, "machine": self.machine, "nonce": req.nonce}
         if isinstance(req, control.HeadRequest):
             with self._lock:
                 return {"ok": True, "length": len(self.log), "hash": self.log_hash()}
