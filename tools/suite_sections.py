@@ -460,6 +460,29 @@ def satellites(run: SuiteRun) -> None:
                      f"p50 {ms(lats_free, 'p50')}; p99 {ms(lats_free, 'p99')} ms; bare p50 "
                      f"{ms(raws_free, 'p50')}; p99 {ms(raws_free, 'p99')} ms",
                      vs(lats_free, raws_free)))
+    seal = seal_cost(run)
+    run.rows.append(("  sealing and encryption alone (tools.bench_link micro: AES-256-GCM seal, "
+                     "open with the replay window; thread CPU time, best of 15 rounds), per "
+                     "64 B / 1 KiB message", "-",
+                     f"seal+open {seal['seal+open 64']:.1f} / {seal['seal+open 1024']:.1f} µs; "
+                     f"a bare serialize {seal['serialize 64']:.1f} / "
+                     f"{seal['serialize 1024']:.1f} µs",
+                     f"x{seal['ratio 64']:.1f} / x{seal['ratio 1024']:.1f} a serialize"))
+
+
+def seal_cost(run: SuiteRun) -> dict[str, float]:
+    """What sealing and encrypting a link message costs by itself (``tools.bench_link.micro``,
+    with a throw-away secret), recorded in ``run.res["seal_us"]``."""
+    import contextlib
+    import io
+
+    from tools.bench_link import micro
+
+    with tempfile.TemporaryDirectory(prefix="chcos-suite-") as tmp, \
+            contextlib.redirect_stdout(io.StringIO()):
+        out = micro(str(Path(tmp) / "secret"), 5 if run.quick else 15)
+    run.res["seal_us"] = out
+    return out
 
 
 def growth(run: SuiteRun) -> None:
