@@ -15,10 +15,10 @@ multi-axis drives.
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import Enum, IntEnum
-import threading
 from typing import Any
 
 from chcos.errors import ChcosError
