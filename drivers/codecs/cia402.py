@@ -641,10 +641,12 @@ class Axis:
     or at its timeout (naming the state reached). Nothing is written without a command.
 
     A reading older than a command proves nothing about it: a command is judged done (or
-    failed by a state the drive left) only on a statusword received after the last controlword
-    went out, and the axis counts as stopped only on a velocity received after it (see
-    :class:`ReceiveOrder`); until then the engine asks for reads. Quick stop and safe stop act
-    at once on the last state known, with controlwords safe in any state.
+    failed by a state the drive left) only on a statusword received after its last write went
+    out (controlword, target or mode), a target as reached only on a position or velocity
+    received after it, and the axis counts as stopped only on a velocity received after the
+    last controlword (see :class:`ReceiveOrder`); until then the engine asks for reads. Quick
+    stop and safe stop act at once on the last state known, with controlwords safe in any
+    state.
     """
 
     def __init__(self, config: AxisConfig) -> None:
@@ -666,8 +668,8 @@ class Axis:
         self.order = ReceiveOrder()
         #: the mark of the value the engine holds, per object
         self._held: dict[Obj, int] = {}
-        #: the mark of the last controlword sent (0: none yet)
-        self._cw_mark = 0
+        #: the mark of the last write (controlword, target, mode; 0: none yet)
+        self._write_mark = 0
         #: readings (or some of their values) ignored as older than what the engine holds
         self.stale_readings = 0
 
@@ -895,7 +897,9 @@ class Axis:
                                   self.mode_display, reason, now - job.started))
 
     def _send(self, out: _Out, obj: Obj, value: int) -> None:
+        """Write ``obj``; readings received before this are older than it."""
         out.writes.append(Write(obj, self.config.index(obj), value))
+        self._write_mark = self.order.mark()
 
     def _send_cw(self, out: _Out, now: float, controlword: int) -> None:
         """Write the controlword when it changes, or again after ``resend`` seconds."""
@@ -903,10 +907,8 @@ class Axis:
             self._write_cw(out, now, controlword)
 
     def _write_cw(self, out: _Out, now: float, controlword: int) -> None:
-        """Write the controlword; readings received before this are older than it."""
         self._send(out, Obj.CONTROLWORD, controlword)
         self.controlword, self._cw_time = controlword, now
-        self._cw_mark = self.order.mark()
 
     def _request(self, out: _Out, now: float, obj: Obj) -> None:
         """Ask for ``obj`` by SDO, at most every ``read_every`` seconds."""
@@ -914,20 +916,21 @@ class Axis:
             out.reads.append(obj)
             self._last_read[obj] = now
 
-    def _after_cw(self, obj: Obj) -> bool:
-        """True when the value held of ``obj`` was received after the last controlword."""
-        return self._held.get(obj, 0) > self._cw_mark
+    def _after_write(self, obj: Obj) -> bool:
+        """True when the value held of ``obj`` was received after the last write (the
+        controlword, a target, the mode): only such a value can confirm a command."""
+        return self._held.get(obj, 0) > self._write_mark
 
     def _stopped(self, out: _Out, now: float) -> bool:
-        """True when a reading received after the last controlword shows standstill: the
+        """True when a reading received after the last write shows standstill: the
         velocity within ``standstill``, or, for a drive whose velocity is never read, the
-        statusword's target reached bit. A velocity older than the controlword (the axis may
+        statusword's target reached bit. A velocity older than the write (the axis may
         have started moving since) proves nothing: it is asked for again."""
-        if self._after_cw(Obj.VELOCITY_ACTUAL):
+        if self._after_write(Obj.VELOCITY_ACTUAL):
             assert self.velocity_counts is not None
             return abs(self.velocity_counts) <= self.config.standstill
         self._request(out, now, Obj.VELOCITY_ACTUAL)
-        if self.velocity_counts is None and self._after_cw(Obj.STATUSWORD):
+        if self.velocity_counts is None and self._after_write(Obj.STATUSWORD):
             return bool((self.statusword or 0) & SW_TARGET_REACHED)
         return False
 
@@ -951,7 +954,7 @@ class Axis:
                              f"statusword 0x{self.statusword:04X} shows no CiA 402 state")
             return
         if not self._judges_now(job, state):
-            # the statusword predates the last controlword: it says nothing about the command
+            # the statusword predates the last write: it says nothing about the command
             self._request(out, now, Obj.STATUSWORD)
             if now >= job.deadline:
                 self._timeout(out, now, job)
@@ -976,10 +979,10 @@ class Axis:
 
     def _judges_now(self, job: _Job, state: State) -> bool:
         """True when ``job`` may act on ``state``: a statusword received after the last
-        controlword; or, whatever its age, the first step of a quick stop or safe stop (they
+        write; or, whatever its age, the first step of a quick stop or safe stop (they
         send controlwords safe in any state, at once), a fault reset's edge while the drive
         shows a fault (timed, not judged), and a mode change (judged on 0x6061)."""
-        if self._after_cw(Obj.STATUSWORD) or job.op is Op.SET_MODE:
+        if self._after_write(Obj.STATUSWORD) or job.op is Op.SET_MODE:
             return True
         if job.op in (Op.QUICK_STOP, Op.SAFE_STOP) and job.phase == _Phase.START:
             return True
@@ -1040,7 +1043,7 @@ class Axis:
         powered = (State.OPERATION_ENABLED, State.SWITCHED_ON, State.READY_TO_SWITCH_ON)
         if job.phase == _Phase.START:
             job.phase = _Phase.STOPPING
-            if state in powered or not self._after_cw(Obj.STATUSWORD):
+            if state in powered or not self._after_write(Obj.STATUSWORD):
                 # a state older than the last controlword may hide an enabled drive: the
                 # quick stop is safe in any state
                 self._send_cw(out, now, Command.QUICK_STOP.controlword)
@@ -1058,7 +1061,7 @@ class Axis:
         if job.phase == _Phase.START:
             # the first step acts at once on the last state known; what comes after is judged
             # only on readings received after it (``_judges_now``)
-            fresh = self._after_cw(Obj.STATUSWORD)
+            fresh = self._after_write(Obj.STATUSWORD)
             if fresh and state is State.SWITCH_ON_DISABLED:
                 self._finish(out, now, True)
                 return
@@ -1126,7 +1129,7 @@ class Axis:
             out.reads.append(Obj.MODES_DISPLAY)
             self._last_read[Obj.MODES_DISPLAY] = now
             return
-        if self.mode_display == job.mode:
+        if self.mode_display == job.mode and self._after_write(Obj.MODES_DISPLAY):
             self._finish(out, now, True)
         else:
             self._request(out, now, Obj.MODES_DISPLAY)
@@ -1187,16 +1190,20 @@ class Axis:
                 if sw & SW_OMS13 and self.mode_display == Mode.CSP:
                     self._finish(out, now, False, "following error (statusword bit 13)")
                     return
-                pos = self.position_counts
+                pos = self.position_counts if self._after_write(Obj.POSITION_ACTUAL) else None
+                if pos is None:
+                    self._request(out, now, Obj.POSITION_ACTUAL)
                 near = pos is not None and abs(pos - job.target) <= cfg.position_window
                 if near and (sw & SW_TARGET_REACHED or self.mode_display == Mode.CSP):
                     self._finish(out, now, True)
             case Op.AT_VELOCITY:
                 assert job.target is not None
-                vel = self.velocity_counts
+                vel = self.velocity_counts if self._after_write(Obj.VELOCITY_ACTUAL) else None
+                if vel is None:
+                    self._request(out, now, Obj.VELOCITY_ACTUAL)
                 near = vel is not None and abs(vel - job.target) <= cfg.velocity_window
                 if near or (self.mode_display == Mode.PV and sw & SW_TARGET_REACHED
-                            and vel is None):
+                            and self.velocity_counts is None):
                     self._finish(out, now, True)
 
 
