@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import uuid
 from collections.abc import Iterator
+from dataclasses import replace
 
 import pytest
 
@@ -341,3 +342,31 @@ def test_a_safe_stop_right_after_a_move_starts_brakes_before_it_removes_the_powe
     finally:
         host.close()
         drive.close()
+
+
+def test_a_statusword_older_than_the_one_held_does_not_fail_a_running_move(rig: tuple) -> None:
+    """Issue 37's two-process failure, on the durand drive: a TPDO showing SWITCHED_ON, received
+    during the enable but fed to the axis only after the move started (it waited in a queue),
+    is older than the statusword that confirmed the enable: ignored, the move goes on."""
+    drive, host = rig
+    host.perform(host.axis.enable(host.now))
+    stale = None
+    while not host.op_results(Op.ENABLE):
+        host.cycle()
+        if host.axis.state is State.SWITCHED_ON and stale is None:
+            # this TPDO's values, as the reader thread marks them on arrival
+            stale = replace(host.reading(), received=host.axis.order.pdo_received(
+                (Obj.STATUSWORD, Obj.MODES_DISPLAY, Obj.POSITION_ACTUAL,
+                 Obj.VELOCITY_ACTUAL)))
+    assert stale is not None and host.op_results(Op.ENABLE)[0].ok
+    assert host.run(lambda now: host.axis.set_mode(Mode.PP, now)).ok
+    host.perform(host.axis.move_to(300, host.now))
+    host.perform(host.axis.update(stale, host.now))           # the queued, older TPDO
+    assert host.axis.busy is Op.MOVE_TO and host.axis.state is State.OPERATION_ENABLED
+    assert host.axis.stale_readings == 1
+    while not host.op_results(Op.MOVE_TO):
+        host.cycle()
+    (move,) = host.op_results(Op.MOVE_TO)
+    assert move.ok, move
+    assert drive.state == ENABLED and drive.position == 300
+    assert squeeze(drive.received) == [0x06, 0x07, 0x0F, 0x1F, 0x0F]
