@@ -802,7 +802,11 @@ class Axis:
     def safe_stop(self, now: float) -> Actions:
         """The axis's safe action (:attr:`AxisConfig.safe_stop`) as a sequence: by default
         quick stop, wait until stopped, then disable voltage; done in SWITCH_ON_DISABLED (in
-        QUICK_STOP_ACTIVE for :attr:`SafeStop.QUICK_STOP` with 0x605A 5..8). Not stopped in
+        QUICK_STOP_ACTIVE for :attr:`SafeStop.QUICK_STOP` with 0x605A 5..8). "Stopped" is a
+        velocity received after the quick stop went out (never the last one held, which may
+        predate a move just started); the drive may also go to SWITCH_ON_DISABLED by itself
+        (0x605A 0..4). The first step acts at once on the last state known: a state older
+        than the last controlword gets the quick stop, safe in any state. Not stopped in
         time: voltage disabled anyway and the command fails. Targets are left alone. A drive
         in FAULT is sent nothing: its drive function is disabled (no torque), so the safe stop
         is done as it is, the reason naming 0x603F; a drive in FAULT_REACTION_ACTIVE is waited
