@@ -20,7 +20,10 @@ A device map's axis table ``x`` becomes these Devtab devices (all on the axis's 
   ``x.fault`` (0x603F while in a fault, else 0): what the drive confirmed.
 
 The engine is used by the driver's I/O thread only; :meth:`AxisHost.status` is a snapshot any
-thread may read.
+thread may read, and :meth:`AxisHost.pdo_received` is called by the reader thread as a TPDO
+arrives: its mark travels with the reading, so that a TPDO that waited in the I/O thread's queue
+behind an SDO answer or a controlword write is known to be the older one (the engine never goes
+back to an earlier state, nor takes a reading older than a controlword as its confirmation).
 """
 
 from __future__ import annotations
@@ -147,6 +150,11 @@ class AxisHost:
         """A snapshot of what the drive confirmed (any thread)."""
         return self._status
 
+    def pdo_received(self, objs: tuple[Obj, ...]) -> int:
+        """The receive mark of a TPDO carrying ``objs`` of this axis, arriving now (the reader
+        thread, before it queues the values for :meth:`reading`)."""
+        return self.engine.order.pdo_received(objs)
+
     # -- the I/O thread ------------------------------------------------------------------------
 
     def objects(self) -> dict[tuple[int, int], Obj]:
@@ -155,24 +163,25 @@ class AxisHost:
                 Obj.ERROR_CODE)
         return {(self.config.index(o), 0): o for o in objs}
 
-    def reading(self, values: Mapping[Obj, int], now: float) -> None:
-        """The values of one TPDO (or SDO answer) of this axis's objects."""
-        r = Reading(statusword=values.get(Obj.STATUSWORD),
-                    mode_display=values.get(Obj.MODES_DISPLAY),
-                    position=values.get(Obj.POSITION_ACTUAL),
-                    velocity=values.get(Obj.VELOCITY_ACTUAL),
-                    error_code=values.get(Obj.ERROR_CODE))
-        self._perform(self.engine.update(r, now), now)
+    def reading(self, values: Mapping[Obj, int], now: float, received: int | None = None,
+                *, answer: bool = False) -> None:
+        """The values of one TPDO (``received``: its mark from :meth:`pdo_received`; None:
+        received now) or SDO answers (``answer``; ``received`` the mark taken before they
+        were asked) of this axis's objects."""
+        self._perform(self.engine.update(_reading(values, received, answer), now), now)
 
     def refresh(self, now: float) -> None:
-        """Read every object of the axis by SDO (those the drive answers) as one reading."""
+        """Read every object of the axis by SDO (those the drive answers) as one reading,
+        marked as asked before the first read: a TPDO that arrives meanwhile is newer and
+        wins for the objects it carries."""
+        asked = self.engine.order.mark()
         values = {}
         for (index, _sub), obj in self.objects().items():
             value = self.read(obj, index)
             if value is not None:
                 values[obj] = value
         if values:
-            self.reading(values, now)
+            self.reading(values, now, asked, answer=True)
 
     def poll(self, now: float) -> None:
         """Advance the engine's timers."""
@@ -253,6 +262,7 @@ class AxisHost:
             for fault in acts.faults:
                 self._fault(fault)
             answers: dict[Obj, int] = {}
+            asked = self.engine.order.mark()
             for obj in acts.reads:
                 value = self.read(obj, self.config.index(obj))
                 if value is not None:
@@ -260,12 +270,7 @@ class AxisHost:
             self._show()
             if not answers:
                 break
-            acts = self.engine.update(Reading(
-                statusword=answers.get(Obj.STATUSWORD),
-                mode_display=answers.get(Obj.MODES_DISPLAY),
-                position=answers.get(Obj.POSITION_ACTUAL),
-                velocity=answers.get(Obj.VELOCITY_ACTUAL),
-                error_code=answers.get(Obj.ERROR_CODE)), now)
+            acts = self.engine.update(_reading(answers, asked, True), now)
 
         if self._queued and self.engine.busy is None:
             call, done = self._queued.pop(0)
@@ -315,3 +320,13 @@ class AxisHost:
         self._shown.update((r, v) for r, v in values.items() if v is not None)
         if out:
             self.deliver(out)
+
+
+def _reading(values: Mapping[Obj, int], received: int | None, answer: bool) -> Reading:
+    """The engine's reading of ``values`` (see :class:`drivers.codecs.cia402.Reading`)."""
+    return Reading(statusword=values.get(Obj.STATUSWORD),
+                   mode_display=values.get(Obj.MODES_DISPLAY),
+                   position=values.get(Obj.POSITION_ACTUAL),
+                   velocity=values.get(Obj.VELOCITY_ACTUAL),
+                   error_code=values.get(Obj.ERROR_CODE),
+                   received=received, answer=answer)

@@ -47,10 +47,12 @@ class Probe:
 
 @dataclass(frozen=True)
 class AxisFeed:
-    """Values of axis ``device``'s objects from one TPDO (engine object -> raw value)."""
+    """Values of axis ``device``'s objects from one TPDO (engine object -> raw value), and
+    its receive mark (:meth:`drivers.canopen_axis.AxisHost.pdo_received`; None: unmarked)."""
 
     device: str
     values: tuple[tuple[Any, int], ...]
+    received: int | None = None
 
 
 @dataclass(frozen=True)

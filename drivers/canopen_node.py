@@ -549,7 +549,9 @@ class CanopenDriver(WorkerJobDriver):
             objs = self._axes[host].objects()
             mine = tuple((objs[(i, s)], v) for i, s, v in values if (i, s) in objs)
             if mine:
-                self._submit(JobOp.OWN, AxisFeed(host, mine))
+                # marked on arrival: it may wait in the queue behind newer SDO answers
+                mark = self._axes[host].pdo_received(tuple(o for o, _v in mine))
+                self._submit(JobOp.OWN, AxisFeed(host, mine, mark))
 
     def _axis_node_down(self, node: ManagedNode, reason: str) -> None:
         with self._down_lock:
@@ -608,8 +610,8 @@ class CanopenDriver(WorkerJobDriver):
     def _axis_job(self, job: AxisFeed | AxisCommand | AxisLost | AxisRefresh) -> None:
         now = self.host.now()
         match job:
-            case AxisFeed(device, values):
-                self._axes[device].reading({Obj(o): v for o, v in values}, now)
+            case AxisFeed(device, values, received):
+                self._axes[device].reading({Obj(o): v for o, v in values}, now, received)
             case AxisCommand(device, call, done):
                 self._axes[device].command(call, done, now)
             case AxisRefresh(device):

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import uuid
 from collections.abc import Iterator
+from dataclasses import replace
 
 import pytest
 
@@ -305,3 +306,67 @@ def test_a_stale_controlword_in_a_shared_rpdo_disables_the_drive(rig: tuple) -> 
     host.network.send_message(0x300 + NODE, bytes([0x00, 0x00, 0x03]))   # RPDO2: cw 0, mode 3
     assert drive.wait(lambda: drive.frames() > before)
     assert drive.state == SOD and drive.received[-1] == 0x00 and drive.read(0x6061) == 3
+
+
+@pytest.mark.parametrize("option", [2, 6])
+def test_a_safe_stop_right_after_a_move_starts_brakes_before_it_removes_the_power(
+        option: int) -> None:
+    """E-stop while the drive already runs but before any TPDO showing it reached the axis (the
+    last velocity it holds, 0, predates the move): the drive gets the quick stop, and disable
+    voltage only once it reported standstill. Before issue 37's fix the engine sent disable
+    voltage right behind the quick stop, on that old 0: the drive coasted at full speed."""
+    drive, host = make(option, standstill=0)
+    try:
+        enabled_in(host, Mode.PV)
+        host.perform(host.axis.at_velocity(5000, host.now))
+        for _ in range(5):       # the drive runs; its TPDOs have not been fed to the axis yet
+            drive.step(host.dt)
+        assert drive.velocity == 5000 and host.axis.velocity == 0
+        first = len(drive.log)
+        host.perform(host.axis.safe_stop(host.now))
+        assert [(cw, state, speed) for cw, state, speed in drive.log[first:]] == \
+            [(0x02, ENABLED, 5000)]
+        while not host.op_results(Op.SAFE_STOP):
+            host.cycle()
+        (result,) = host.op_results(Op.SAFE_STOP)
+        assert result.ok and result.state is State.SWITCH_ON_DISABLED, result
+        assert drive.state == SOD and drive.velocity == 0
+        after = drive.log[first:]
+        assert squeeze([cw for cw, *_rest in after])[0] == 0x02
+        # disable voltage, if the drive needed it, reached it at standstill only
+        assert all(speed == 0 for cw, _s, speed in after if cw == 0x00)
+        if option == 6:
+            assert squeeze([cw for cw, *_rest in after]) == [0x02, 0x00]
+            assert after[-1][1] == QUICK_STOP
+        assert drive.history[-2:] == [QUICK_STOP, SOD]
+    finally:
+        host.close()
+        drive.close()
+
+
+def test_a_statusword_older_than_the_one_held_does_not_fail_a_running_move(rig: tuple) -> None:
+    """Issue 37's two-process failure, on the durand drive: a TPDO showing SWITCHED_ON, received
+    during the enable but fed to the axis only after the move started (it waited in a queue),
+    is older than the statusword that confirmed the enable: ignored, the move goes on."""
+    drive, host = rig
+    host.perform(host.axis.enable(host.now))
+    stale = None
+    while not host.op_results(Op.ENABLE):
+        host.cycle()
+        if host.axis.state is State.SWITCHED_ON and stale is None:
+            # this TPDO's values, as the reader thread marks them on arrival
+            stale = replace(host.reading(), received=host.axis.order.pdo_received(
+                (Obj.STATUSWORD, Obj.MODES_DISPLAY, Obj.POSITION_ACTUAL,
+                 Obj.VELOCITY_ACTUAL)))
+    assert stale is not None and host.op_results(Op.ENABLE)[0].ok
+    assert host.run(lambda now: host.axis.set_mode(Mode.PP, now)).ok
+    host.perform(host.axis.move_to(300, host.now))
+    host.perform(host.axis.update(stale, host.now))           # the queued, older TPDO
+    assert host.axis.busy is Op.MOVE_TO and host.axis.state is State.OPERATION_ENABLED
+    assert host.axis.stale_readings == 1
+    while not host.op_results(Op.MOVE_TO):
+        host.cycle()
+    (move,) = host.op_results(Op.MOVE_TO)
+    assert move.ok, move
+    assert drive.state == ENABLED and drive.position == 300
+    assert squeeze(drive.received) == [0x06, 0x07, 0x0F, 0x1F, 0x0F]

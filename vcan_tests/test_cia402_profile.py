@@ -282,7 +282,13 @@ def test_one_command_at_a_time_but_safe_stop_supersedes() -> None:
         axis.set_mode(Mode.PP, 0.1)
     out = axis.safe_stop(0.1)
     assert [(r.op, r.ok, r.reason) for r in out.results] == \
-        [(Op.ENABLE, False, "superseded by safe stop"), (Op.SAFE_STOP, True, "")]
+        [(Op.ENABLE, False, "superseded by safe stop")]
+    # switch on disabled was read before the enable's shutdown went out: it proves nothing
+    # (the drive may be ready to switch on now), so the safe stop sends a quick stop, safe in
+    # any state, and is done on the statusword that follows it
+    assert cws(out) == [0x02]
+    (done,) = axis.update(Reading(statusword=0x0250), 0.2).results
+    assert (done.op, done.ok, done.reason) == (Op.SAFE_STOP, True, "")
 
 
 @pytest.mark.parametrize("option,ends", [(2, [0x02]), (6, [0x02, 0x00])])
@@ -389,3 +395,92 @@ def test_a_safe_stop_in_a_fault_is_reached_and_a_fault_reaction_is_waited_for() 
     (result,) = out.results
     assert not result.ok and "FAULT_REACTION_ACTIVE" in result.reason and not out.writes
 
+
+
+# -- readings older than the command (issue 37: "a reading older than the command is trusted") --
+
+
+def enabled_axis(mode: int, **config: object) -> Axis:
+    """An axis confirmed in OPERATION_ENABLED and ``mode``, standing at 0 (readings after every
+    write so far)."""
+    axis = Axis(AxisConfig("x", **config))  # type: ignore[arg-type]
+    axis.update(Reading(statusword=0x0250, mode_display=mode, position=0, velocity=0), 0.0)
+    axis.enable(0.0)
+    for sw in (0x0231, 0x0233, 0x0637):
+        axis.update(Reading(statusword=sw, velocity=0), 0.01)
+    assert axis.state is S.OPERATION_ENABLED and axis.busy is None
+    return axis
+
+
+@pytest.mark.parametrize("option", [2, 6])
+def test_a_safe_stop_right_after_a_move_starts_waits_for_a_reading_after_the_quick_stop(
+        option: int) -> None:
+    """The velocity the engine holds (0) was read before the move started: it proves nothing
+    about standstill. Disable voltage goes out only once a reading taken after the quick stop
+    shows standstill (option 2: the drive gets there by itself)."""
+    axis = enabled_axis(3, quick_stop_option=option, standstill=5)
+    assert Obj.TARGET_VELOCITY in [w.obj for w in axis.at_velocity(5000, 1.0).writes]
+    # a TPDO from before the quick stop: it arrives, then waits in the host's queue
+    queued = axis.order.pdo_received((Obj.STATUSWORD, Obj.VELOCITY_ACTUAL))
+    out = axis.safe_stop(1.0)
+    assert cws(out) == [0x02] and not out.results[1:]
+    sent = cws(axis.update(Reading(statusword=0x0637, velocity=0, received=queued), 1.01))
+    sent += cws(axis.poll(1.2))
+    assert sent == []                                 # no disable voltage behind the quick stop
+    assert cws(axis.update(Reading(statusword=0x0217, velocity=4000), 1.3)) == []
+    if option == 6:
+        assert cws(axis.update(Reading(statusword=0x0217, velocity=0), 1.4)) == [0x00]
+        out = axis.update(Reading(statusword=0x0250, velocity=0), 1.5)
+    else:
+        out = axis.update(Reading(statusword=0x0250, velocity=0), 1.4)
+        assert cws(out) == []
+    (result,) = out.results
+    assert result.op is Op.SAFE_STOP and result.ok and result.state is S.SWITCH_ON_DISABLED
+
+
+def test_a_stale_statusword_after_a_newer_one_does_not_fail_a_running_move() -> None:
+    """The two-process run's failure: move to failed at once with 'left OPERATION_ENABLED for
+    SWITCHED_ON (0x0233)', a statusword older than the one that confirmed the enable."""
+    axis = enabled_axis(1, position_window=2)
+    # the TPDO showing switched on arrived during the enable but waited in the queue
+    old = axis.order.pdo_received((Obj.STATUSWORD,))
+    newer = axis.order.pdo_received((Obj.STATUSWORD,))
+    axis.update(Reading(statusword=0x0637, received=newer), 0.02)
+    assert cws(axis.move_to(100, 0.03)) == [0x1F]
+    out = axis.update(Reading(statusword=0x0233, received=old), 0.031)
+    assert not out.results and axis.busy is Op.MOVE_TO
+    assert axis.state is S.OPERATION_ENABLED and axis.stale_readings == 1
+    # the move goes on: acknowledge, then target reached at the position
+    assert cws(axis.update(Reading(statusword=0x1237, position=10), 0.1)) == [0x0F]
+    (done,) = axis.update(Reading(statusword=0x0637, position=99), 0.2).results
+    assert done.op is Op.MOVE_TO and done.ok
+
+
+def test_a_reading_queued_before_the_write_confirms_nothing() -> None:
+    """A TPDO received before the command's write, fed after it: neither completes nor fails
+    the command; the next one does."""
+    axis = enabled_axis(8, position_window=2)                 # CSP: the target alone
+    before = axis.order.pdo_received((Obj.STATUSWORD, Obj.POSITION_ACTUAL))
+    assert [w.obj for w in axis.move_to(0, 0.1).writes] == [Obj.TARGET_POSITION]
+    out = axis.update(Reading(statusword=0x0233, position=0, received=before), 0.11)
+    assert not out.results and axis.busy is Op.MOVE_TO
+    assert Obj.STATUSWORD in out.reads                       # a fresh one is asked for
+    (done,) = axis.update(Reading(statusword=0x0637, position=1), 0.2).results
+    assert done.ok
+    # and a failure, too, needs a statusword taken after the write
+    before = axis.order.pdo_received((Obj.STATUSWORD,))
+    axis.move_to(0.5, 0.3)
+    assert not axis.update(Reading(statusword=0x0233, received=before), 0.31).results
+    (failed,) = axis.update(Reading(statusword=0x0233), 0.32).results
+    assert not failed.ok and "left OPERATION_ENABLED for SWITCHED_ON" in failed.reason
+
+
+def test_an_sdo_answer_asked_before_a_tpdo_arrived_is_dropped_for_that_object() -> None:
+    axis = Axis(AxisConfig("x"))
+    axis.update(Reading(statusword=0x0233), 0.0)
+    asked = axis.order.mark()
+    tpdo = axis.order.pdo_received((Obj.STATUSWORD,))        # arrives during the SDO read
+    axis.update(Reading(statusword=0x0637, position=7, received=asked, answer=True), 0.01)
+    assert axis.state is S.SWITCHED_ON and axis.position == 7  # position: no newer PDO
+    axis.update(Reading(statusword=0x0250, received=tpdo), 0.02)
+    assert axis.state is S.SWITCH_ON_DISABLED and axis.stale_readings == 1

@@ -202,6 +202,10 @@ def test_a_silent_master_stops_the_drive_by_0x6007(drive: Cia402Drive, master: M
                                               for f in w.of(0x080 + NODE)), WAIT)
     assert state(master.read(0x6041)) == ends_in
     assert master.read(0x603F) == error_code
+    if abort_option == 2:       # the power stage is off: the motor coasts down by friction
+        assert 0 < master.read(0x606C) < 4000
+        for _ in range(300):
+            drive.tick(0.01)
     assert master.read(0x606C) == 0                           # stopped
     assert drive.nmt_state == "PRE-OPERATIONAL"               # 0x1029 = 0
     if abort_option == 1:                                     # nothing clears the fault itself

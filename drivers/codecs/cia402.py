@@ -15,6 +15,7 @@ multi-axis drives.
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import Enum, IntEnum
@@ -440,16 +441,67 @@ class AxisConfig:
         return int(obj) + AXIS_OFFSET * self.axis
 
 
+class ReceiveOrder:
+    """One axis's order of events on the wire: a strictly increasing mark for every reading
+    received, every SDO read asked and every controlword sent. A reading is judged against the
+    controlword it follows by these marks, never by when the host got round to feeding it (a
+    TPDO can wait in a queue behind the write of a newer controlword). Thread-safe: the host's
+    reader thread marks TPDOs as they arrive, its I/O thread marks writes and SDO reads.
+
+    It also remembers, per object, the mark of the last PDO that carried it
+    (:meth:`pdo_received`), so that an SDO answer asked before that PDO arrived is known to be
+    older than a value still on its way to the engine."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._last = 0
+        self._pdo: dict[Obj, int] = {}
+
+    def mark(self) -> int:
+        """The next mark (any thread)."""
+        with self._lock:
+            self._last += 1
+            return self._last
+
+    def pdo_received(self, objs: tuple[Obj, ...]) -> int:
+        """The mark of a PDO carrying ``objs``, received now (the reader thread)."""
+        with self._lock:
+            self._last += 1
+            for obj in objs:
+                self._pdo[obj] = self._last
+            return self._last
+
+    def last_pdo(self, obj: Obj) -> int:
+        """The mark of the last PDO that carried ``obj`` (0: none yet)."""
+        with self._lock:
+            return self._pdo.get(obj, 0)
+
+
 @dataclass(frozen=True)
 class Reading:
     """Values read from the drive (raw counts; None: not in this update). A host feeds the
-    objects of one PDO in one reading: 0x603F is taken before the statusword."""
+    objects of one PDO in one reading: 0x603F is taken before the statusword.
+
+    ``received``: the reading's :class:`ReceiveOrder` mark, when the host got it (a PDO) or
+    asked for it (an SDO read, ``answer`` True); None: received now, after everything the
+    engine has seen. A value older than the one the engine holds is ignored (counted in
+    :attr:`Axis.stale_readings`), as is an SDO answer asked before a PDO carrying the same
+    object arrived (that PDO is newer and is on its way)."""
 
     statusword: int | None = None
     mode_display: int | None = None
     position: int | None = None
     velocity: int | None = None
     error_code: int | None = None
+    received: int | None = None
+    answer: bool = False
+
+    def values(self) -> dict[Obj, int]:
+        """The objects this reading carries, with their raw values."""
+        pairs = ((Obj.ERROR_CODE, self.error_code), (Obj.MODES_DISPLAY, self.mode_display),
+                 (Obj.POSITION_ACTUAL, self.position), (Obj.VELOCITY_ACTUAL, self.velocity),
+                 (Obj.STATUSWORD, self.statusword))
+        return {obj: value for obj, value in pairs if value is not None}
 
 
 @dataclass(frozen=True)
@@ -587,6 +639,14 @@ class Axis:
     :meth:`safe_stop` supersede a running one, the others raise :class:`AxisBusy`. A command
     fails when the drive faults (naming 0x603F), when the planner finds the target unreachable,
     or at its timeout (naming the state reached). Nothing is written without a command.
+
+    A reading older than a command proves nothing about it: a command is judged done (or
+    failed by a state the drive left) only on a statusword received after its last write went
+    out (controlword, target or mode), a target as reached only on a position or velocity
+    received after it, and the axis counts as stopped only on a velocity received after the
+    last controlword (see :class:`ReceiveOrder`); until then the engine asks for reads. Quick
+    stop and safe stop act at once on the last state known, with controlwords safe in any
+    state.
     """
 
     def __init__(self, config: AxisConfig) -> None:
@@ -603,7 +663,15 @@ class Axis:
         self._fault_reported = False
         self.fault: Fault | None = None
         self._job: _Job | None = None
-        self._last_read = -math.inf
+        self._last_read: dict[Obj, float] = {}
+        #: the order of readings and writes on the wire (the host marks what it receives)
+        self.order = ReceiveOrder()
+        #: the mark of the value the engine holds, per object
+        self._held: dict[Obj, int] = {}
+        #: the mark of the last write (controlword, target, mode; 0: none yet)
+        self._write_mark = 0
+        #: readings (or some of their values) ignored as older than what the engine holds
+        self.stale_readings = 0
 
     # -- readings ----------------------------------------------------------------------------
 
@@ -638,18 +706,30 @@ class Axis:
         return self._job.op if self._job else None
 
     def update(self, reading: Reading, now: float) -> Actions:
-        """Take new readings at time ``now`` and advance the running command."""
-        if reading.error_code is not None:
-            self.error_code = reading.error_code
-            self._error_code_time = now
-        if reading.mode_display is not None:
-            self.mode_display = reading.mode_display
-        if reading.position is not None:
-            self.position_counts = reading.position
-        if reading.velocity is not None:
-            self.velocity_counts = reading.velocity
-        if reading.statusword is not None:
-            self.statusword = reading.statusword
+        """Take new readings at time ``now`` and advance the running command. A value older
+        than the one held (by :attr:`Reading.received`) is ignored: the engine never goes
+        back to an earlier state of the drive."""
+        mark = reading.received if reading.received is not None else self.order.mark()
+        stale = False
+        for obj, value in reading.values().items():
+            if mark < self._held.get(obj, 0) or (reading.answer
+                                                 and self.order.last_pdo(obj) > mark):
+                stale = True
+                continue
+            self._held[obj] = mark
+            match obj:
+                case Obj.ERROR_CODE:
+                    self.error_code = value
+                    self._error_code_time = now
+                case Obj.MODES_DISPLAY:
+                    self.mode_display = value
+                case Obj.POSITION_ACTUAL:
+                    self.position_counts = value
+                case Obj.VELOCITY_ACTUAL:
+                    self.velocity_counts = value
+                case _:
+                    self.statusword = value
+        self.stale_readings += stale
         return self._step(now)
 
     def lost(self, reason: str, now: float) -> Actions:
@@ -722,7 +802,11 @@ class Axis:
     def safe_stop(self, now: float) -> Actions:
         """The axis's safe action (:attr:`AxisConfig.safe_stop`) as a sequence: by default
         quick stop, wait until stopped, then disable voltage; done in SWITCH_ON_DISABLED (in
-        QUICK_STOP_ACTIVE for :attr:`SafeStop.QUICK_STOP` with 0x605A 5..8). Not stopped in
+        QUICK_STOP_ACTIVE for :attr:`SafeStop.QUICK_STOP` with 0x605A 5..8). "Stopped" is a
+        velocity received after the quick stop went out (never the last one held, which may
+        predate a move just started); the drive may also go to SWITCH_ON_DISABLED by itself
+        (0x605A 0..4). The first step acts at once on the last state known: a state older
+        than the last controlword gets the quick stop, safe in any state. Not stopped in
         time: voltage disabled anyway and the command fails. Targets are left alone. A drive
         in FAULT is sent nothing: its drive function is disabled (no torque), so the safe stop
         is done as it is, the reason naming 0x603F; a drive in FAULT_REACTION_ACTIVE is waited
@@ -817,25 +901,42 @@ class Axis:
                                   self.mode_display, reason, now - job.started))
 
     def _send(self, out: _Out, obj: Obj, value: int) -> None:
+        """Write ``obj``; readings received before this are older than it."""
         out.writes.append(Write(obj, self.config.index(obj), value))
+        self._write_mark = self.order.mark()
 
     def _send_cw(self, out: _Out, now: float, controlword: int) -> None:
         """Write the controlword when it changes, or again after ``resend`` seconds."""
         if controlword != self.controlword or now - self._cw_time >= self.config.resend:
-            self._send(out, Obj.CONTROLWORD, controlword)
-            self.controlword = controlword
-            self._cw_time = now
+            self._write_cw(out, now, controlword)
+
+    def _write_cw(self, out: _Out, now: float, controlword: int) -> None:
+        self._send(out, Obj.CONTROLWORD, controlword)
+        self.controlword, self._cw_time = controlword, now
 
     def _request(self, out: _Out, now: float, obj: Obj) -> None:
-        if now - self._last_read >= self.config.read_every:
+        """Ask for ``obj`` by SDO, at most every ``read_every`` seconds."""
+        if now - self._last_read.get(obj, -math.inf) >= self.config.read_every:
             out.reads.append(obj)
-            self._last_read = now
+            self._last_read[obj] = now
 
-    def _stopped(self) -> bool:
-        sw = self.statusword or 0
-        if self.velocity_counts is not None:
+    def _after_write(self, obj: Obj) -> bool:
+        """True when the value held of ``obj`` was received after the last write (the
+        controlword, a target, the mode): only such a value can confirm a command."""
+        return self._held.get(obj, 0) > self._write_mark
+
+    def _stopped(self, out: _Out, now: float) -> bool:
+        """True when a reading received after the last write shows standstill: the
+        velocity within ``standstill``, or, for a drive whose velocity is never read, the
+        statusword's target reached bit. A velocity older than the write (the axis may
+        have started moving since) proves nothing: it is asked for again."""
+        if self._after_write(Obj.VELOCITY_ACTUAL):
+            assert self.velocity_counts is not None
             return abs(self.velocity_counts) <= self.config.standstill
-        return bool(sw & SW_TARGET_REACHED)
+        self._request(out, now, Obj.VELOCITY_ACTUAL)
+        if self.velocity_counts is None and self._after_write(Obj.STATUSWORD):
+            return bool((self.statusword or 0) & SW_TARGET_REACHED)
+        return False
 
     def _advance(self, out: _Out, now: float) -> None:
         job = self._job
@@ -856,6 +957,12 @@ class Axis:
                              if self.statusword is None else
                              f"statusword 0x{self.statusword:04X} shows no CiA 402 state")
             return
+        if not self._judges_now(job, state):
+            # the statusword predates the last write: it says nothing about the command
+            self._request(out, now, Obj.STATUSWORD)
+            if now >= job.deadline:
+                self._timeout(out, now, job)
+            return
         match job.op:
             case Op.ENABLE:
                 self._walk(out, now, job, state, Target.ENABLED)
@@ -873,6 +980,17 @@ class Axis:
                 self._motion(out, now, job, state)
         if self._job is job and now >= job.deadline:
             self._timeout(out, now, job)
+
+    def _judges_now(self, job: _Job, state: State) -> bool:
+        """True when ``job`` may act on ``state``: a statusword received after the last
+        write; or, whatever its age, the first step of a quick stop or safe stop (they
+        send controlwords safe in any state, at once), a fault reset's edge while the drive
+        shows a fault (timed, not judged), and a mode change (judged on 0x6061)."""
+        if self._after_write(Obj.STATUSWORD) or job.op is Op.SET_MODE:
+            return True
+        if job.op in (Op.QUICK_STOP, Op.SAFE_STOP) and job.phase == _Phase.START:
+            return True
+        return job.op is Op.FAULT_RESET and state in (State.FAULT, State.FAULT_REACTION_ACTIVE)
 
     def _timeout(self, out: _Out, now: float, job: _Job) -> None:
         timeout = job.deadline - job.started
@@ -897,7 +1015,7 @@ class Axis:
         except Unreachable as exc:
             self._finish(out, now, False, str(exc))
             return
-        if state is State.QUICK_STOP_ACTIVE and not self._stopped():
+        if state is State.QUICK_STOP_ACTIVE and not self._stopped(out, now):
             return  # voltage stays on until the quick stop has stopped the axis
         if step is Plan.DONE:
             self._finish(out, now, True)
@@ -915,12 +1033,10 @@ class Axis:
             return
         # the edge: bit 7 clear, edge_gap later set; again if the drive stays in FAULT
         if job.phase in (_Phase.START, _Phase.RETRY):
-            self._send(out, Obj.CONTROLWORD, 0x0000)
-            self.controlword, self._cw_time = 0x0000, now
+            self._write_cw(out, now, 0x0000)
             job.phase, job.since = _Phase.LOW, now
         elif job.phase == _Phase.LOW and now >= job.since + self.config.edge_gap:
-            self._send(out, Obj.CONTROLWORD, Command.FAULT_RESET.controlword)
-            self.controlword, self._cw_time = Command.FAULT_RESET.controlword, now
+            self._write_cw(out, now, Command.FAULT_RESET.controlword)
             job.phase, job.since = _Phase.HIGH, now
         elif job.phase == _Phase.HIGH and now >= job.since + self.config.resend:
             job.phase = _Phase.RETRY
@@ -928,38 +1044,54 @@ class Axis:
 
     def _quick_stop(self, out: _Out, now: float, job: _Job, state: State) -> None:
         stays = quick_stop_stays(self.config.quick_stop_option)
+        powered = (State.OPERATION_ENABLED, State.SWITCHED_ON, State.READY_TO_SWITCH_ON)
+        if job.phase == _Phase.START:
+            job.phase = _Phase.STOPPING
+            if state in powered or not self._after_write(Obj.STATUSWORD):
+                # a state older than the last controlword may hide an enabled drive: the
+                # quick stop is safe in any state
+                self._send_cw(out, now, Command.QUICK_STOP.controlword)
+                return
         if state is State.SWITCH_ON_DISABLED:
             self._finish(out, now, True)
         elif state is State.QUICK_STOP_ACTIVE:
-            if stays and self._stopped():
+            if stays and self._stopped(out, now):
                 self._finish(out, now, True)
-        elif state in (State.OPERATION_ENABLED, State.SWITCHED_ON,
-                       State.READY_TO_SWITCH_ON):
+        elif state in powered:
             self._send_cw(out, now, Command.QUICK_STOP.controlword)
 
     def _safe_stop(self, out: _Out, now: float, job: _Job, state: State) -> None:
         kind = self.config.safe_stop
         if job.phase == _Phase.START:
-            if state is State.SWITCH_ON_DISABLED:
+            # the first step acts at once on the last state known; what comes after is judged
+            # only on readings received after it (``_judges_now``)
+            fresh = self._after_write(Obj.STATUSWORD)
+            if fresh and state is State.SWITCH_ON_DISABLED:
                 self._finish(out, now, True)
                 return
-            if state is State.NOT_READY_TO_SWITCH_ON:
+            if fresh and state is State.NOT_READY_TO_SWITCH_ON:
                 return
-            if state in (State.READY_TO_SWITCH_ON, State.SWITCHED_ON) \
-                    or kind is SafeStop.DISABLE_VOLTAGE:
+            if kind is SafeStop.DISABLE_VOLTAGE or (
+                    fresh and state in (State.READY_TO_SWITCH_ON, State.SWITCHED_ON)):
                 self._send_cw(out, now, Command.DISABLE_VOLTAGE.controlword)
                 job.phase = _Phase.DISABLING
-            elif state is State.OPERATION_ENABLED:
-                halt = kind is SafeStop.HALT_THEN_DISABLE
+                return
+            if fresh and state is State.QUICK_STOP_ACTIVE:
+                job.phase = _Phase.STOPPING     # already braking: wait until stopped
+            else:
+                # enabled, or a state older than the last controlword (which may hide an
+                # enabled drive): halt brakes an enabled drive only, and would enable one
+                # that is not, so a state of unknown age gets the quick stop, safe in any
+                halt = kind is SafeStop.HALT_THEN_DISABLE and fresh
                 self._send_cw(out, now, Command.ENABLE_OPERATION.controlword | CW_HALT if halt
                               else Command.QUICK_STOP.controlword)
                 job.phase = _Phase.STOPPING
-            else:   # already in quick stop: wait until stopped
-                job.phase = _Phase.STOPPING
+                return      # standstill is judged on a velocity received after this
         if job.phase == _Phase.STOPPING:
             if state is State.SWITCH_ON_DISABLED:
                 self._finish(out, now, True)
-            elif state in (State.QUICK_STOP_ACTIVE, State.OPERATION_ENABLED) and self._stopped():
+            elif state in (State.QUICK_STOP_ACTIVE, State.OPERATION_ENABLED) \
+                    and self._stopped(out, now):
                 if kind is SafeStop.QUICK_STOP and state is State.QUICK_STOP_ACTIVE:
                     self._finish(out, now, True)
                     return
@@ -999,9 +1131,9 @@ class Axis:
             self._send(out, Obj.MODES, job.mode)
             job.phase = _Phase.CONFIRMING
             out.reads.append(Obj.MODES_DISPLAY)
-            self._last_read = now
+            self._last_read[Obj.MODES_DISPLAY] = now
             return
-        if self.mode_display == job.mode:
+        if self.mode_display == job.mode and self._after_write(Obj.MODES_DISPLAY):
             self._finish(out, now, True)
         else:
             self._request(out, now, Obj.MODES_DISPLAY)
@@ -1062,16 +1194,20 @@ class Axis:
                 if sw & SW_OMS13 and self.mode_display == Mode.CSP:
                     self._finish(out, now, False, "following error (statusword bit 13)")
                     return
-                pos = self.position_counts
+                pos = self.position_counts if self._after_write(Obj.POSITION_ACTUAL) else None
+                if pos is None:
+                    self._request(out, now, Obj.POSITION_ACTUAL)
                 near = pos is not None and abs(pos - job.target) <= cfg.position_window
                 if near and (sw & SW_TARGET_REACHED or self.mode_display == Mode.CSP):
                     self._finish(out, now, True)
             case Op.AT_VELOCITY:
                 assert job.target is not None
-                vel = self.velocity_counts
+                vel = self.velocity_counts if self._after_write(Obj.VELOCITY_ACTUAL) else None
+                if vel is None:
+                    self._request(out, now, Obj.VELOCITY_ACTUAL)
                 near = vel is not None and abs(vel - job.target) <= cfg.velocity_window
                 if near or (self.mode_display == Mode.PV and sw & SW_TARGET_REACHED
-                            and vel is None):
+                            and self.velocity_counts is None):
                     self._finish(out, now, True)
 
 

@@ -1,8 +1,9 @@
 """cia402_drive - a simulated CiA 402 servo drive for ``chcos sim``, the pytest plugin and the
 cells: the power state machine reacting to the controlword (fault reset on the rising edge of bit 7
 only), modes of operation confirmed on 0x6061 (some refusable), position and velocity loops,
-quick-stop deceleration per 0x605A, following-error (0x8611) and over-temperature (0x4310) faults
-with EMCY and 0x603F, a fault that needs a reset.
+quick-stop deceleration per 0x605A, a motor that coasts down by friction once its power stage is
+off (disable voltage, shutdown: a braked stop and a coasting one differ), following-error (0x8611)
+and over-temperature (0x4310) faults with EMCY and 0x603F, a fault that needs a reset.
 
 :class:`DriveModel` is the drive without a bus (pure, stepped on virtual time);
 :class:`Cia402Drive` puts it on a CAN bus as a :class:`~chcos.apps.sim.canopen_slave.CanopenSlave`
@@ -98,7 +99,9 @@ MODES = (PP, PV, HM, CSP, CSV)
 class DriveModel:
     """One CiA 402 axis without a bus. Objects it reads (targets, profile, options) are given to
     :meth:`step`; :meth:`controlword` and :meth:`mode` take what the master wrote. ``emcys``
-    collects the EMCY codes to send (0: error reset) for the bus side to drain."""
+    collects the EMCY codes to send (0: error reset) for the bus side to drain.
+    ``coast_deceleration``: counts/s^2 by which the motor slows by friction alone while the
+    power stage is off (anything but operation enabled and quick stop active)."""
 
     refused_modes: tuple[int, ...] = ()
     temperature_limit: float = 80.0
@@ -118,6 +121,7 @@ class DriveModel:
     last_cw: int = 0
     emcys: list[int] = field(default_factory=list)
     history: list[Power] = field(default_factory=list)
+    coast_deceleration: float = 2000.0
 
     def __post_init__(self) -> None:
         self.history.append(self.power)
@@ -149,8 +153,7 @@ class DriveModel:
         nxt = REACTIONS.get((self.power, command))
         if nxt is Power.QUICK_STOP and quick_stop_option == 0:
             nxt = Power.SWITCH_ON_DISABLED             # option 0: disable drive function
-        if nxt is Power.SWITCH_ON_DISABLED and self.power is not Power.QUICK_STOP:
-            self.velocity = 0.0                        # power removed: the motor coasts
+        # power removed (from any state): the motor coasts down, see step
         if nxt is not None:
             self._enter(nxt)
         if self.power is Power.ENABLED:
@@ -186,8 +189,7 @@ class DriveModel:
             self.fault(EMCY_HEARTBEAT_LOST, emcy=False)   # the node sent EMCY 0x8130
         elif option == 2 and self.power in (Power.READY, Power.SWITCHED_ON, Power.ENABLED,
                                             Power.QUICK_STOP):
-            self.velocity = 0.0                           # power removed: the motor coasts
-            self._enter(Power.SWITCH_ON_DISABLED)
+            self._enter(Power.SWITCH_ON_DISABLED)         # power removed: the motor coasts
         elif option == 3 and self.power is Power.ENABLED:
             self._enter(Power.SWITCH_ON_DISABLED if quick_stop_option == 0
                         else Power.QUICK_STOP)
@@ -255,6 +257,7 @@ class DriveModel:
                 self._enter(Power.SWITCH_ON_DISABLED)  # option 1..4: on to switch on disabled
             return
         if self.power is not Power.ENABLED:
+            self._coast(dt)
             return
         if self.mode_display in (PV, CSV):
             self._run(float(target_velocity), dt)
@@ -287,6 +290,11 @@ class DriveModel:
         self.velocity = speed if self.velocity >= 0 else -speed
         self.position += self.velocity * dt
         self.demand = self.position
+
+    def _coast(self, dt: float) -> None:
+        """The power stage is off: nothing brakes the motor but friction."""
+        if self.velocity:
+            self._brake(round(self.coast_deceleration), dt)
 
     def _run(self, velocity: float, dt: float) -> None:
         self.velocity = 0.0 if self.blocked else velocity
