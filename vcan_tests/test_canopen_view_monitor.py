@@ -1,6 +1,7 @@
 """``chcos monitor`` shows each CANopen node's life as the wire shows it (NMT state of its
-heartbeat, boot-ups seen, last EMCY) and another master's SYNC cycle (issue 36), listening to a
-durand node driven by chcos's CANopen driver as the master, the node rebooted meanwhile."""
+heartbeat, boot-ups seen, heartbeat losses, EMCYs, last EMCY) and another master's SYNC cycle
+(issue 36), listening to a durand node driven by chcos's CANopen driver as the master, the node
+rebooted meanwhile."""
 
 from __future__ import annotations
 
@@ -45,6 +46,11 @@ def test_monitor_shows_node_lives_and_the_masters_sync(tmp_path: Path) -> None:
         def shown(*parts: str) -> bool:
             return any(line in x and all(p in x for p in parts) for x in mon.node_lines())
 
+        def count(what: str) -> int:
+            """The number before ``what`` on the node's line."""
+            text = next(x for x in mon.node_lines() if line in x)
+            return int(text.split(what)[0].rsplit(" ", 1)[-1])
+
         assert until(lambda: shown(": OPERATIONAL (heartbeat", "0 boot-up(s) seen",
                                    "last EMCY none")), mon.node_lines()
         node.power_cycle()
@@ -67,8 +73,17 @@ def test_monitor_shows_node_lives_and_the_masters_sync(tmp_path: Path) -> None:
         out = io.StringIO()
         monitor._show(mon.rows(), mon.bus_flags(), 1.0, out, mon.node_lines())
         assert f"  bus co: node {NODE}: OPERATIONAL" in out.getvalue(), out.getvalue()
+        assert shown("0 EMCY(s)"), mon.node_lines()
         node.emcy(0x3210, 0x04)                      # over-voltage: durand leaves OPERATIONAL
-        assert until(lambda: shown("last EMCY 0x3210 register 0x04")), mon.node_lines()
+        assert until(lambda: shown("1 EMCY(s), last EMCY 0x3210 register 0x04")), \
+            mon.node_lines()
+        # the node's heartbeat stops beyond its timeout, then comes back: one loss seen
+        losses = count(" heartbeat loss(es)")
+        node.write(0x1017, 0, 0)
+        assert until(lambda: any(f"node {NODE}: no heartbeat" in f for f in mon.bus_flags()))
+        assert count(" heartbeat loss(es)") == losses  # counted once heard again
+        node.write(0x1017, 0, 20)
+        assert until(lambda: count(" heartbeat loss(es)") >= losses + 1), mon.node_lines()
     finally:
         mon.close()
         master.stop()

@@ -93,8 +93,8 @@ def test_opcua_browses_the_nodes_lifecycle_and_the_sync_cycle(
         fields = {ch.read_browse_name().Name for ch in c.get_node(f"ns={i};s={n5}")
                   .get_children()}
         assert fields == {"State", "Ready", "HeartbeatLost", "Boots", "NmtStarts",
-                          "ErrorRegister", "LastEmcy", "Reason"}
-        for name in ("State", "Boots", "Ready"):
+                          "HeartbeatLosses", "Emcys", "ErrorRegister", "LastEmcy", "Reason"}
+        for name in ("State", "Boots", "Ready", "HeartbeatLost", "HeartbeatLosses", "Emcys"):
             sub.subscribe_data_change(c.get_node(f"ns={i};s={n5}.{name}"))
         sub.subscribe_data_change(c.get_node(f"ns={i};s=Buses.co.Sync.Cycles"))
         assert changes.wait(lambda: changes.last(f"{n5}.State") == "OPERATIONAL"
@@ -108,5 +108,17 @@ def test_opcua_browses_the_nodes_lifecycle_and_the_sync_cycle(
         assert c.get_node(f"ns={i};s=Buses.co.Sync.Period").read_value() == 0.01
         assert c.get_node(f"ns={i};s={n5}.ErrorRegister").read_value() == 0
         assert c.get_node(f"ns={i};s={n5}.NmtStarts").read_value() == 2
+        # an EMCY and its reset, then the node's heartbeat stops and comes back: counted
+        assert changes.last(f"{n5}.Emcys") == 0
+        losses = c.get_node(f"ns={i};s={n5}.HeartbeatLosses").read_value()
+        node.emcy(0x1000, 0x01)
+        node.emcy(0x0000, 0x00)
+        assert changes.wait(lambda: changes.last(f"{n5}.Emcys") == 2)
+        node.write(0x1017, 0, 0)
+        assert changes.wait(lambda: changes.last(f"{n5}.HeartbeatLost") is True
+                            and changes.last(f"{n5}.HeartbeatLosses") >= losses + 1)
+        node.write(0x1017, 0, 20)
+        assert changes.wait(lambda: changes.last(f"{n5}.HeartbeatLost") is False)
+        assert c.get_node(f"ns={i};s={n5}.HeartbeatLosses").read_value() >= losses + 1
     finally:
         c.disconnect()

@@ -255,3 +255,42 @@ def test_a_forged_liveliness_token_does_not_bring_a_dead_satellite_back(
     c.start(1)  # the real one comes back: its token and its hello
     c.host.wait_for([0, 1])
     c.wait_until(lambda d: device(d, "S1")["status"] == "OK", machine=0)
+
+
+@pytest.mark.slow
+def test_a_password_holder_answering_first_does_not_make_a_live_satellite_look_down(
+        tmp_path: Path) -> None:
+    c = Cluster(tmp_path, machines=(0, 1, 2), auth=True)
+    p = c.sf.prefix
+    member = c.sf.secret().sealer("satellite")
+    stale = member.seal(f"{p}/m/1/ctl", json.dumps(
+        {"ok": True, "machine": 1, "nonce": "0" * 32}).encode(), REPLY_STREAM)
+    answers = [b"\x00" * 64, stale]  # wrongly sealed; sealed before the host started
+    served: list[int] = []
+
+    def first(_request: bytes) -> bytes:  # answers at once, as machine 1
+        served.append(1)
+        return answers[len(served) % 2]
+
+    # the password holder takes machine 2's port (not started; the host connects to it) and
+    # answers machine 1's requests there, while machine 1 is up
+    attacker = Transport(sysfile.link_config_for(c.sf, 2, c.sf.secret()))  # no sealer
+    try:
+        c.start(0)
+        c.start(1)
+        with attacker.serve(f"{p}/m/1/ctl", first):
+            assert c.host.wait_for([0, 1], timeout=60.0) == [0, 1]
+            # each hello goes to both; the attacker's answers are refused, the satellite's taken
+            assert wait_until(lambda: c.host.alive() == [0, 1] and len(served) >= 2,
+                              timeout=60), "the attacker is asked too"
+            for _ in range(3):
+                assert c.host.alive() == [0, 1]
+            assert c.host.wait_for([0, 1], timeout=20.0) == [0, 1]
+            c.host.execute("install -m1 sysfile")  # other requests are answered too
+            assert c.host.map_doc(1)["alive"] == [0, 1]
+        refusals = c.host.transport.refusals
+        assert refusals["unauthenticated"] >= 1 and refusals[Refusal.BEFORE_START.value] >= 1
+        assert not any(k.startswith("machine 1:") for k in c.host.unconfirmed.counts)
+    finally:
+        attacker.close()
+        c.close()

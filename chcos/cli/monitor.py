@@ -12,7 +12,8 @@ map, flagging mismatches; it never writes:
   TPDOs and RPDOs the nodes' EDS files map, watches heartbeats, and flags heartbeats of nodes not
   in the map, PDOs whose length does not fit the mapping, and ids that belong to nothing; each
   node's life as the wire shows it gets a line (NMT state of its last heartbeat, boot-ups seen,
-  last EMCY), and the SYNC cycle of another master one (SYNCs seen, period and jitter);
+  heartbeat losses seen, EMCYs received, last EMCY), and the SYNC cycle of another master one
+  (SYNCs seen, period and jitter);
 * ``serial``: the port is read (nothing is written); ``memory``/``signal``: in-process.
 
 Mismatches: a sensor with no answer (failed, or nothing within ``--grace`` seconds), a value
@@ -116,6 +117,11 @@ class PassiveCanopen:
         self.last_heartbeat: dict[int, float] = {}
         self.nmt_state: dict[int, int] = {}
         self.boots: Counter[int] = Counter()
+        #: heartbeat losses seen as a listener: a node silent beyond its heartbeat_timeout,
+        #: then heard again, counts one (the wire's receive times, not when this thread ran)
+        self.heartbeat_losses: Counter[int] = Counter()
+        self.heartbeat_at: dict[int, float] = {}
+        self.emcys: Counter[int] = Counter()
         self.last_emcy: dict[int, str] = {}
         #: SYNC frames seen, their intervals (the last :data:`SYNC_WINDOW`), the last one's time
         self.syncs = 0
@@ -234,6 +240,12 @@ class PassiveCanopen:
                 self._flag(f"heartbeat of node {nid}, which is not in the map")
             else:
                 self.last_heartbeat[nid] = now
+                at = float(frame.timestamp or time.time())    # the interface's receive time
+                before = self.heartbeat_at.get(nid)
+                timeout = self.heartbeat_timeout.get(nid)
+                if before is not None and timeout is not None and at - before > timeout:
+                    self.heartbeat_losses[nid] += 1
+                self.heartbeat_at[nid] = at
                 self.nmt_state[nid] = data[0] if data else -1
                 if data and data[0] & 0x7F == 0:
                     self.boots[nid] += 1
@@ -251,6 +263,7 @@ class PassiveCanopen:
             code = int.from_bytes(data[:2], "little")
             self._flag(f"{what} node {nid} code 0x{code:04X}")
             if nid in self.nodes:
+                self.emcys[nid] += 1
                 self.last_emcy[nid] = (f"0x{code:04X} register 0x{data[2]:02X}" if len(data) > 2
                                        else f"0x{code:04X}")
             return
@@ -272,9 +285,10 @@ class PassiveCanopen:
 
     def node_lines(self) -> list[str]:
         """One line per node of the map as the wire shows it (the NMT state of its last
-        heartbeat and how long ago, boot-ups seen, last EMCY) and one for the SYNC cycle if
-        another master produces one (SYNCs seen, median period, jitter against the map's
-        ``sync_period`` p50/p99/max)."""
+        heartbeat and how long ago, boot-ups seen, heartbeat losses seen (silent beyond its
+        ``heartbeat_timeout``, then heard again), EMCYs received, last EMCY) and one for the
+        SYNC cycle if another master produces one (SYNCs seen, median period, jitter against
+        the map's ``sync_period`` p50/p99/max)."""
         now = time.monotonic()
         out = []
         with self.lock:
@@ -284,7 +298,9 @@ class PassiveCanopen:
                 state = ("no heartbeat seen" if code is None or last is None else
                          f"{NMT_NAMES.get(code & 0x7F, f'state 0x{code:02X}')} (heartbeat "
                          f"{now - last:.1f} s ago)")
-                out.append(f"node {nid}: {state}, {self.boots[nid]} boot-up(s) seen, last EMCY "
+                out.append(f"node {nid}: {state}, {self.boots[nid]} boot-up(s) seen, "
+                           f"{self.heartbeat_losses[nid]} heartbeat loss(es), "
+                           f"{self.emcys[nid]} EMCY(s), last EMCY "
                            f"{self.last_emcy.get(nid) or 'none'}")
             if self.syncs:
                 iv = sorted(self.sync_intervals)

@@ -228,20 +228,30 @@ class Transport(Session):
         """Send ``payload`` to the server of ``key`` (concrete) and return its answer, which
         must be sealed by one of ``roles`` (None: any member) when the transport seals.
 
-        Blocks the caller at most about ``timeout`` seconds. Raises LinkError when nobody serves
-        ``key``, when no answer came in time, or when the server's handler failed (its message
-        is included)."""
+        Every server of ``key`` is asked and each answer is seen as it arrives: an answer whose
+        seal is refused (a session holding only the link's password answering first, a
+        replayed answer) is dropped and counted in :attr:`refusals` / :attr:`rejected` by kind,
+        and the request goes on waiting for a good one until ``timeout``. Blocks the caller at
+        most about ``timeout`` seconds. Raises LinkError when nobody serves ``key``, when no
+        accepted answer came in time (naming the refused ones), or when the server's handler
+        failed (its message is included)."""
         self._check_open("request")
         check_key("request", key, concrete=True)
         if not timeout > 0:
             raise LinkError(f"request {key!r}: expected a timeout > 0 seconds, got {timeout!r}")
         start = time.monotonic()
+        refused = 0
+        server_error = ""
+        zenoh_error = ""
         try:
             replies = self._session.get(
                 key,
                 payload=self._seal(key, bytes(payload), band_of(priority)),
                 timeout=timeout,
-                target=zenoh.QueryTarget.BEST_MATCHING,
+                # every server, every answer as it comes: Zenoh's consolidation would keep
+                # the first answer for the key and drop the others, a forged one included
+                target=zenoh.QueryTarget.ALL,
+                consolidation=zenoh.ConsolidationMode.NONE,
                 priority=zenoh_priority(priority),
                 express=is_express(priority),
                 congestion_control=zenoh.CongestionControl.BLOCK,
@@ -251,21 +261,26 @@ class Transport(Session):
                 if ok is not None:
                     opened = self._open(f"request {key}", key, ok.payload.to_bytes(), roles,
                                         REQUESTER)
-                    if opened is None:
-                        raise LinkError(f"request {key!r}: the answer is not authenticated")
+                    if opened is None:  # counted by kind; a good answer may still come
+                        refused += 1
+                        continue
                     return opened[1]
                 err = reply.err
                 if err is None:  # pragma: no cover - a reply is either ok or err
                     continue
+                # an error answer is not sealed: kept, and raised only if no good answer comes
                 text = err.payload.to_bytes().decode("utf-8", "replace")
                 if str(err.encoding) == SERVER_ERROR_ENCODING:
-                    raise LinkError(f"request {key!r}: the server failed: {text}")
-                zenoh_error = text
-                break
-            else:
-                zenoh_error = ""
+                    server_error = server_error or text
+                else:
+                    zenoh_error = zenoh_error or text
         except zenoh.ZError as exc:
             raise LinkError(f"request {key!r}: Zenoh refused: {exc}") from exc
+        if server_error:
+            raise LinkError(f"request {key!r}: the server failed: {server_error}")
+        if refused:
+            raise LinkError(f"request {key!r}: no authenticated answer within {timeout} s "
+                            f"({refused} unauthenticated or stale answer(s) refused)")
         elapsed = time.monotonic() - start
         if elapsed >= timeout * 0.9:
             raise LinkError(f"request {key!r}: no answer within {timeout} s ({zenoh_error})")

@@ -16,6 +16,7 @@ Address space (namespace ``urn:chcos``, string node ids):
   (:meth:`chcos.devices.devtab.Devtab.bus_status`): ``Buses.<bus>.Node<id>`` an object per
   remote node (CANopen) with ``State`` (its lifecycle: WAITING_BOOT ... OPERATIONAL,
   PREOP_HELD, FAILED), ``Ready``, ``HeartbeatLost``, ``Boots`` (boot-ups seen), ``NmtStarts``,
+  ``HeartbeatLosses`` (heartbeat losses declared), ``Emcys`` (EMCY messages received),
   ``ErrorRegister`` (0x1001, -1 if never read), ``LastEmcy`` and ``Reason``; ``Buses.<bus>.Sync``
   the SYNC cycle's ``Cycles``, ``Complete``, ``Missing``, ``Late``, ``LateWrites``, ``Period``
   and ``JitterP50``/``JitterP99``/``JitterMax`` (seconds); refreshed with the task figures;
@@ -331,6 +332,8 @@ class OpcUaServer(AlarmsMixin):
                     ("State", STR, n["state"]), ("Ready", BOOL, bool(n["ready"])),
                     ("HeartbeatLost", BOOL, bool(n.get("heartbeat_lost"))),
                     ("Boots", I64, int(n["boots"])), ("NmtStarts", I64, int(n["nmt_starts"])),
+                    ("HeartbeatLosses", I64, int(n.get("heartbeat_losses", 0))),
+                    ("Emcys", I64, int(n.get("emcys", 0))),
                     ("ErrorRegister", I32, -1 if reg is None else int(reg)),
                     ("LastEmcy", STR, n.get("last_emcy") or ""),
                     ("Reason", STR, n.get("reason") or ""))
