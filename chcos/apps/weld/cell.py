@@ -101,6 +101,8 @@ class Cell:
     timeline: Timeline
     started: float = 0.0
     closers: list[Callable[[], None]] = field(default_factory=list)
+    #: called before the System's shutdown (the simulator goes on on wall-clock time)
+    before_shutdown: list[Callable[[], None]] = field(default_factory=list)
     injector: Callable[[str], None] | None = None
     recorder: Recorder | None = None
 
@@ -167,8 +169,11 @@ class Cell:
         return {d.name: d.value for d in self.system.devtab if not d.is_sensor}
 
     def close(self) -> None:
-        """Shut the System down (safe values out), then the simulator if any."""
+        """Shut the System down (safe values out: the simulator, if any, goes on on wall-clock
+        time meanwhile, so the joint drives confirm their safe stop), then the simulator."""
         try:
+            for prepare in self.before_shutdown:
+                prepare()
             self.system.shutdown()
         finally:
             for close in reversed(self.closers):
@@ -323,7 +328,8 @@ def open_cell(binding: str = "direct", *, scenario: str = "", seed: int = 0,
         else:
             model = next(d.cell for d in system.devtab.drivers if hasattr(d, "cell"))
         cell = Cell(system, model, binding, counters, timeline, closers=closers,
-                    injector=sim.inject if sim is not None else None)
+                    injector=sim.inject if sim is not None else None,
+                    before_shutdown=[sim.continue_realtime] if sim is not None else [])
         cell.recorder = Recorder(system.kernel, model, cell.phase)
         cell.recorder.start()
     except BaseException:

@@ -227,6 +227,35 @@ class WeldSim:
             self._rt_thread = threading.Thread(target=loop, name="weld-sim", daemon=True)
             self._rt_thread.start()
 
+    def continue_realtime(self) -> None:
+        """Go on from where the kernel's clock left the simulator, on wall-clock time: at the
+        System's shutdown the kernel's timers no longer run, but the joint drives must still
+        answer the safe stop (quick stop, then disable voltage) the controller sends them. Does
+        nothing unless attached to a kernel and open."""
+        with self._lock:
+            if self._closed or self._kernel is None or self._rt_thread is not None:
+                return
+            for timer in self._timers:
+                timer.cancel()
+            self._timers = []
+            self._kernel = None
+            self._later = lambda _delay, fn: fn()
+            now = time.monotonic()
+            self._clock = time.monotonic
+            self._origin = now - self._steps * self.tick
+            self._rt_stop.clear()
+
+            def loop() -> None:
+                n = 0
+                while not self._rt_stop.wait(max(0.0, now + (n + 1) * SERVO_PERIOD
+                                                 - time.monotonic())):
+                    n += 1
+                    self._on_servo()
+
+            self._rt_thread = threading.Thread(target=loop, name="weld-sim-shutdown",
+                                               daemon=True)
+            self._rt_thread.start()
+
     def _check_idle(self) -> None:
         if self._closed:
             raise ConfigError("weld simulator: closed; create a new one")
