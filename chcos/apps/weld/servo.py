@@ -7,7 +7,8 @@ controlword in RPDO2, the statusword in TPDO2) and the protocol-free one
 (:mod:`chcos.apps.weld.direct`, an in-process axis on the same drive). What the drive does:
 
 * the joint moves only while the drive is OPERATION ENABLED *and* the safe-torque-off relay
-  (the coil ``drives_enable``) gives it torque; otherwise it is held where it stands;
+  (the coil ``drives_enable``) gives it torque; otherwise it is held where it stands (and a
+  target taken before the relay dropped is forgotten: the joint stays put until the next one);
 * target positions (0x607A, cyclic synchronous position: the controller interpolates) are taken
   only while the drive is OPERATION ENABLED in CSP; one taken before is ignored and counted, and
   on entering OPERATION ENABLED the drive holds where the joint stands until the next target
@@ -117,6 +118,8 @@ class JointDrive:
         not; returns where the joint is commanded (counts), or None to hold it where it
         stands."""
         m = self.model
+        if not torque:
+            self.setpoint = None        # the relay took the torque: the old target is dropped
         measured = 0.0 if self._last is None or dt <= 0 else (actual - self._last) / dt
         self._last = actual
         m.position = m.demand = actual
