@@ -107,6 +107,7 @@ def record_run(tmp_path: Path, attach_first: bool) -> list[tuple[float, dict[str
         q = rig.sim.model.arm.inverse_down((540.0, -120.0, 40.0), 1.2)
         script = {2: lambda: rig.command("POWER", drives_enable=1, volts_set=24.0,
                                          wire_set=90.0, gas_valve=1),
+                  3: lambda: rig.command("DRIVES", **{f"joint{n}": 1.0 for n in range(1, 6)}),
                   4: lambda: rig.command("JOINTS", **{f"target{j + 1}": v
                                                       for j, v in enumerate(q)}),
                   12: lambda: rig.command("POWER", drives_enable=0)}
