@@ -272,3 +272,30 @@ def test_run_prints_progress_each_second_and_a_summary(tmp_path: Path) -> None:
 def test_main_reports_a_bad_scenario(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["--scenario", "meteor@t=1s"]) == 2
     assert "unknown fault kind 'meteor'" in capsys.readouterr().err
+
+
+def test_a_quick_stop_asked_during_the_safe_stop_joins_it(tmp_path: Path) -> None:
+    """An e-stop's safe stop, then the quick stop of the task that stops the arm (A6 through
+    B2): one sequence on the wire (quick stop, then disable voltage), both callers told it
+    ended well, the safe value confirmed; before, the quick stop superseded the safe stop,
+    which then failed."""
+    from drivers.canopen_axis import AxisCall
+    from drivers.codecs.cia402 import Op, Result
+
+    with booted(tmp_path) as s:
+        drv = driver(s)
+        drive = drv.drives[2]
+        s.devtab.write("drives_enable", 1.0)
+        s.devtab.write("joint3", float(AxisCode.ENABLE))
+        s.run_for(0.2)
+        assert drive.power is Power.ENABLED
+        got: list[Result | Exception] = []
+        s.devtab.write("joint3", float(AxisCode.SAFE_STOP))
+        assert drv.axis_status("joint3").busy is Op.SAFE_STOP
+        drv.axis_call("joint3", AxisCall(Op.QUICK_STOP), got.append)
+        s.run_for(0.3)
+        assert len(got) == 1 and isinstance(got[0], Result) and got[0].ok, got
+        assert drive.power is Power.SWITCH_ON_DISABLED
+        assert drive.received[3:] == [0x02, 0x00]
+        assert s.devtab.get("joint3").value == float(AxisCode.SAFE_STOP)
+        assert s.devtab.safe_failures == []
