@@ -194,9 +194,11 @@ class AxisHost:
         waiting) a command that does not supersede the running one waits for it to end; a
         superseding one (quick stop, disable, safe stop) fails the queued ones."""
         eng = self.engine
-        if call.op is Op.SAFE_STOP and eng.busy is Op.SAFE_STOP and self._pending:
-            # e-stop, then the abnormal end of the task it interrupted: one sequence, not one
-            # superseding the other (each caller gets its result)
+        if call.op in (Op.SAFE_STOP, Op.QUICK_STOP) and eng.busy is Op.SAFE_STOP \
+                and self._pending:
+            # e-stop, then the abnormal end of the task it interrupted (or that task's own
+            # quick stop): one sequence, not one superseding the other (each caller gets its
+            # result: the axis stopped)
             if done is not None:
                 self._pending[-1].joined.append(done)
             return

@@ -59,6 +59,34 @@ class JobRun:
     irq_errors: list[str]
     events: list[tuple[str, str]]
     extra: dict[str, Any] = field(default_factory=dict)
+    #: the joint drives as they saw themselves at the end of the job (before the shutdown) and
+    #: after it: power state, power states entered, controlwords received (see drive_facts)
+    drives: dict[str, dict[str, Any]] = field(default_factory=dict)
+    drives_after: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: the drives' power states sampled every 0.1 s of the run, by the job's phase
+    drive_phases: dict[str, set[str]] = field(default_factory=dict)
+
+
+def drive_facts(cell: Cell) -> dict[str, dict[str, Any]]:
+    """What each joint drive holds on its side (the simulator's, not chcos's view): ``power``
+    (its state), ``history`` (every state entered, oldest first), ``received`` (every
+    controlword applied, in order), ``ignored`` (targets it did not take)."""
+    return {f"joint{j}": {"power": d.power.name, "history": [p.name for p in d.model.history],
+                          "received": list(d.received), "ignored": d.ignored_targets}
+            for j, d in enumerate(cell.drives, 1)}
+
+
+def watch_drives(cell: Cell, period: float = 0.1) -> dict[str, set[str]]:
+    """Sample the drives' power states every ``period`` s of the kernel clock, keyed by the
+    job's phase at that moment (filled in as the run goes)."""
+    seen: dict[str, set[str]] = {}
+    kernel = cell.system.kernel
+
+    def sample() -> None:
+        seen.setdefault(cell.phase(), set()).update(d.power.name for d in cell.drives)
+
+    kernel.call_at(kernel.clock.now(), sample, period)
+    return seen
 
 
 def buses_or_skip(binding: str, *, always: bool = False) -> None:
@@ -80,9 +108,11 @@ def run_job(binding: str = "direct", scenario: str = "", *, limit: float = 150.0
     install script."""
     kw: dict[str, Any] = {} if script is None else {"script": script}
     with open_cell(binding, scenario=scenario, replace=replace, workdir=tmp, **kw) as cell:
+        phases = watch_drives(cell)
         cell.start_job(command)
         cell.run(limit)
         extra = after(cell) if after is not None else {}
+        drives = drive_facts(cell)
         m = cell.model
         s = cell.system
         run = JobRun(
@@ -98,5 +128,6 @@ def run_job(binding: str = "direct", scenario: str = "", *, limit: float = 150.0
                             "activations": t.activations} for t in s.tsktab},
             devices={d.name: d.status.value for d in s.devtab},
             irq_errors=list(s.kernel.irq_errors), events=list(cell.counters.events),
-            extra=extra)
+            extra=extra, drives=drives, drive_phases=phases)
+    run.drives_after = drive_facts(cell)      # the shutdown's safe stops, as the drives saw them
     return run

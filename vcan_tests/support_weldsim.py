@@ -3,8 +3,9 @@
 :func:`make_rig` binds a copy of ``chcos/apps/weld/maps/weld_cell.toml`` to fresh virtual CAN
 channels and
 free loopback ports, builds the simulator (first: the drivers connect to it), boots machine 0,
-installs three trivial tasks (:func:`act`) whose inputs and outputs are every device of the cell,
-and attaches the simulator to the kernel. Tasks are commanded with :meth:`WeldRig.command`.
+installs four trivial tasks (:func:`act`) whose inputs and outputs are every device of the cell
+(the axes' sensors aside), and attaches the simulator to the kernel. Tasks are commanded with
+:meth:`WeldRig.command`; :meth:`WeldRig.enable_drives` enables the five CiA 402 joint drives.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ TASKS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
                "gas_flow"),
               ("drives_enable", "volts_set", "wire_set", "gas_valve")),
     "SEAM": (("linear", "range", "start_marker", "end_marker", "intruder"), ()),
+    "DRIVES": ((), ("joint1", "joint2", "joint3", "joint4", "joint5")),
 }
 SENSORS: tuple[str, ...] = tuple(s for ins, _ in TASKS.values() for s in ins)
 
@@ -72,6 +74,22 @@ class WeldRig:
         self.system.invoke(task, cmd)
         return cmd
 
+    def enable_drives(self, limit: float = 1.0) -> None:
+        """Enable the five joint drives through their axes (the command code ENABLE written to
+        each) and run until every drive, on its side, is OPERATION ENABLED and the master has
+        the write confirmed; AssertionError naming their states if not within ``limit`` s of
+        virtual time."""
+        from drivers.canopen_axis import AxisCode
+
+        self.command("DRIVES", **{f"joint{n}": float(AxisCode.ENABLE) for n in range(1, 6)})
+        waited = 0.0
+        drives = self.sim.servo.drives if self.sim.servo is not None else {}
+        while not (all(d.enabled for d in drives.values())
+                   and all(self.value(f"joint{n}") == AxisCode.ENABLE for n in range(1, 6))):
+            assert waited < limit, {n: d.power.name for n, d in drives.items()}
+            self.run(0.02)
+            waited += 0.02
+
     def run(self, seconds: float) -> None:
         """Run the system (and the simulator with it) for ``seconds`` of virtual time."""
         self.system.run_for(seconds)
@@ -89,8 +107,10 @@ class WeldRig:
         return self.entry(device).status.value
 
     def close(self) -> None:
-        """Shut the System down (safe values out), then the simulator."""
+        """Shut the System down (safe values out, the simulator going on on wall-clock time
+        meanwhile), then the simulator."""
         try:
+            self.sim.continue_realtime()
             self.system.shutdown()
         finally:
             self.sim.close()

@@ -48,6 +48,9 @@ def test_intruder_puts_the_actuators_safe_within_one_cycle() -> None:
         nbs.start_job()
         nbs.run(4.9)
         assert cell.outputs()["drives_enable"] == 1  # the inspection is moving the arm
+        # on the CiA 402 joint drives, enabled by MOTORS ON (their side of it)
+        assert [d.power.name for d in cell.drives] == ["ENABLED"] * 5
+        assert all(d.received[:3] == [0x06, 0x07, 0x0F] for d in cell.drives)
         nbs.run(0.6)
         out = cell.outputs()
         assert (out["drives_enable"], out["volts_set"], out["wire_set"], out["gas_valve"]) == (

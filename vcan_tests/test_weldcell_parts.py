@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from chcos.apps.sim.cia402_drive import Power
 from chcos.apps.weld import Seam
 from chcos.apps.weld.cell import _direct_map, open_cell
 from chcos.apps.weld.direct import WeldDirectDriver
@@ -19,6 +20,7 @@ from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.kernel.clock import VirtualClock
 from chcos.system.embedded import System
 from chcos.tables.messages import LinkType
+from drivers.canopen_axis import AxisCode
 
 
 def booted(tmp_path: Path, scenario: str = "") -> System:
@@ -60,13 +62,29 @@ def test_direct_binding_honours_dropouts_and_servo_timeouts(tmp_path: Path) -> N
 
 def test_direct_binding_applies_actuators_and_holds_joints_when_disabled(tmp_path: Path) -> None:
     with booted(tmp_path) as s:
-        cell = driver(s).cell
+        drv = driver(s)
+        cell = drv.cell
+        drive = drv.drives[0]
         s.devtab.write("volts_set", 24.0)
         s.devtab.write("gas_valve", 1.0)
         s.devtab.write("wire_set", 80.0)
         assert (cell.voltage_setpoint, cell.gas_valve, cell.wire_setpoint) == (24.0, True, 80.0)
-        s.devtab.write("drives_enable", 0.0)
         before = list(cell.joints)
+        # the relay on, the drive not enabled: a target does not move the joint
+        s.devtab.write("drives_enable", 1.0)
+        s.devtab.write("target1", before[0] + 0.3)
+        s.run_for(0.5)
+        assert cell.joints == pytest.approx(before)
+        assert drive.power is Power.SWITCH_ON_DISABLED and drive.ignored_targets == 1
+        # enabled through the axis (the command code), confirmed by the drive's statusword
+        s.devtab.write("joint1", float(AxisCode.ENABLE))
+        s.run_for(0.2)
+        assert drive.power is Power.ENABLED
+        assert drive.received[:3] == [0x06, 0x07, 0x0F]
+        assert s.devtab.get("joint1").value == float(AxisCode.ENABLE)       # confirmed
+        assert s.devtab.get("joint1.state").value == "OPERATION_ENABLED"
+        # the relay off: the joint is held whatever its drive's state
+        s.devtab.write("drives_enable", 0.0)
         s.devtab.write("target1", before[0] + 0.3)
         s.run_for(0.5)
         assert cell.joints == pytest.approx(before)
@@ -74,10 +92,44 @@ def test_direct_binding_applies_actuators_and_holds_joints_when_disabled(tmp_pat
         s.devtab.write("target1", before[0] + 0.3)
         s.run_for(0.5)
         assert cell.joints[0] == pytest.approx(before[0] + 0.3)
-        driver(s).write("wire_set", 999.0)  # past the Devtab check: the model refuses
+        assert s.devtab.get("joint1.position").value == pytest.approx(before[0] + 0.3, abs=1e-3)
+        drv.write("wire_set", 999.0)  # past the Devtab check: the model refuses
         s.run_for(0.01)
         assert s.devtab.bus_errors[("cell", "refused")] == 1
         assert cell.wire_setpoint == 80.0
+
+
+def test_direct_binding_quick_stop_decelerates_the_joint_and_the_safe_stop_disables(
+        tmp_path: Path) -> None:
+    """The in-process axis on the same drive model: a quick stop while the joint moves slows it
+    down on the drive's ramp (it does not stop dead, nor run on to the target), and the safe
+    stop (the axis's safe value) ends with the voltage disabled once it stands."""
+    with booted(tmp_path) as s:
+        drv = driver(s)
+        cell = drv.cell
+        drive = drv.drives[0]
+        s.devtab.write("drives_enable", 1.0)
+        s.devtab.write("joint1", float(AxisCode.ENABLE))
+        s.run_for(0.2)
+        start = cell.joints[0]
+        s.devtab.write("target1", start + 1.0)          # 1 rad away: about 1 s at full speed
+        s.run_for(0.3)
+        moving = cell.joints[0]
+        assert drive.velocity > 500_000                     # counts/s: over 0.5 rad/s
+        s.devtab.write("joint1", float(AxisCode.QUICK_STOP))
+        s.run_for(0.5)
+        assert drive.power is Power.QUICK_STOP and drive.velocity == 0
+        stopped = cell.joints[0]
+        assert moving < stopped < start + 1.0 - 0.2         # braked, short of the target
+        assert s.devtab.get("joint1").value == float(AxisCode.QUICK_STOP)  # confirmed
+        s.devtab.write("target1", start)                    # ignored in QUICK STOP ACTIVE
+        s.run_for(0.3)
+        assert cell.joints[0] == pytest.approx(stopped)
+        s.devtab.write("joint1", float(AxisCode.SAFE_STOP))
+        s.run_for(0.3)
+        assert drive.power is Power.SWITCH_ON_DISABLED
+        assert drive.received[-2:] == [0x02, 0x00]          # quick stop, then disable voltage
+        assert s.devtab.get("joint1.state").value == "SWITCH_ON_DISABLED"
 
 
 def test_direct_binding_checks_its_options_and_addresses() -> None:
@@ -93,6 +145,11 @@ def test_direct_binding_checks_its_options_and_addresses() -> None:
     assert "device[3].address.signal: 'nozzle' is not a sensor of the welding cell" in err
     ok = DeviceSpec("T", "sensor", 0, "cell", address={"signal": "arc_temp"})
     assert WeldDirectDriver.check_device(bus, ok) == []
+    axis = DeviceSpec("joint9", "actuator", 0, "cell", key="device[7]",
+                      address={"profile": "cia402", "node": 9, "axis": 1})
+    errs = WeldDirectDriver.check_device(bus, axis)
+    assert any("device[7].address.node: 9 is no joint drive" in e for e in errs), errs
+    assert any("device[7].address.axis:" in e for e in errs), errs
 
 
 # ---- the linear image and the tracker --------------------------------------------------------
@@ -215,3 +272,30 @@ def test_run_prints_progress_each_second_and_a_summary(tmp_path: Path) -> None:
 def test_main_reports_a_bad_scenario(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["--scenario", "meteor@t=1s"]) == 2
     assert "unknown fault kind 'meteor'" in capsys.readouterr().err
+
+
+def test_a_quick_stop_asked_during_the_safe_stop_joins_it(tmp_path: Path) -> None:
+    """An e-stop's safe stop, then the quick stop of the task that stops the arm (A6 through
+    B2): one sequence on the wire (quick stop, then disable voltage), both callers told it
+    ended well, the safe value confirmed; before, the quick stop superseded the safe stop,
+    which then failed."""
+    from drivers.canopen_axis import AxisCall
+    from drivers.codecs.cia402 import Op, Result
+
+    with booted(tmp_path) as s:
+        drv = driver(s)
+        drive = drv.drives[2]
+        s.devtab.write("drives_enable", 1.0)
+        s.devtab.write("joint3", float(AxisCode.ENABLE))
+        s.run_for(0.2)
+        assert drive.power is Power.ENABLED
+        got: list[Result | Exception] = []
+        s.devtab.write("joint3", float(AxisCode.SAFE_STOP))
+        assert drv.axis_status("joint3").busy is Op.SAFE_STOP
+        drv.axis_call("joint3", AxisCall(Op.QUICK_STOP), got.append)
+        s.run_for(0.3)
+        assert len(got) == 1 and isinstance(got[0], Result) and got[0].ok, got
+        assert drive.power is Power.SWITCH_ON_DISABLED
+        assert drive.received[3:] == [0x02, 0x00]
+        assert s.devtab.get("joint3").value == float(AxisCode.SAFE_STOP)
+        assert s.devtab.safe_failures == []

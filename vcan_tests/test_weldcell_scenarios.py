@@ -42,6 +42,19 @@ def test_good_gap_is_welded_start_to_end_in_band(binding: str, tmp_path: Path) -
     assert abs(home[2] - 250.0) < 1.0
     assert run.irq_errors == []
     assert all(t["abnormal"] == 0 for t in run.tasks.values()), run.tasks
+    # the joint drives, on their side: enabled by the job (shutdown, switch on, enable
+    # operation) and never anything else while it welded; the shutdown's safe stop then
+    # brought each to SWITCH ON DISABLED through a quick stop (the master's disable voltage)
+    welding = {p: states for p, states in run.drive_phases.items() if p.startswith("weld/")}
+    assert welding and all(states == {"ENABLED"} for states in welding.values()), \
+        run.drive_phases
+    for name, d in run.drives.items():
+        assert d["power"] == "ENABLED", (name, d)
+        assert [cw for cw in d["received"] if cw][:3] == [0x06, 0x07, 0x0F], (name, d)
+        assert run.drives_after[name]["power"] == "SWITCH_ON_DISABLED", run.drives_after[name]
+        assert run.drives_after[name]["history"][-2:] == ["QUICK_STOP", "SWITCH_ON_DISABLED"]
+        assert run.drives_after[name]["received"][-1] == 0x00
+    assert run.outcome["drives"] == {f"joint{n}": "OPERATION_ENABLED" for n in range(1, 6)}
 
 
 @pytest.mark.parametrize("binding", BINDINGS)
@@ -99,7 +112,13 @@ def test_empty_gas_bottle_stops_the_weld_and_reports_gas_fail(binding: str,
 def test_intruder_puts_every_output_at_its_safe_value_within_5ms(binding: str,
                                                                 tmp_path: Path) -> None:
     buses_or_skip(binding)
-    run = run_job(binding, "intruder@t=40s", tmp=tmp_path)
+
+    def reaction_over(cell: Cell) -> dict[str, Any]:
+        # the job ends at the alarm; E1 goes on (B2's stop waits for the drives' statuswords)
+        cell.run(1.0, until_done=False)
+        return {}
+
+    run = run_job(binding, "intruder@t=40s", tmp=tmp_path, after=reaction_over)
     assert run.outcome is not None and run.outcome["outcome"] == "aborted"
     assert "intruder" in run.outcome["reason"]
     lat = run.summary["latency_s"]
@@ -109,9 +128,24 @@ def test_intruder_puts_every_output_at_its_safe_value_within_5ms(binding: str,
     if binding == "direct":
         assert run.model["enabled"] is False
     reaction = run.worlds["E1"]["sensory"]["reactions"][0]
-    assert reaction["alarm"] == "intruder" and reaction["estop_writes"] == 4
+    # the four safe values and the five joint drives' safe stops
+    assert reaction["alarm"] == "intruder" and reaction["estop_writes"] == 9
     assert set(reaction["suspended"]) >= {"D1", "D2", "B1", "B4"}
-    assert all(v == "normal completion" for v in reaction["b2"].values())
+    assert all(v == "normal completion" for v in reaction["b2"].values()), reaction["b2"]
+    # the whole reaction (e-stop, B2 with A6's quick stops joining the drives' safe stops, A6's
+    # memorized position) took 0.02 s of virtual time on both bindings (the drives answer within
+    # their 10 ms cycles): a generous bound
+    assert reaction["done"] - reaction["seen"] < 0.5, reaction
+    # each joint drive, on its side: enabled while the job ran, then the e-stop's safe stop
+    # (quick stop, then disable voltage once stopped: option 6 does not disable by itself);
+    # A6's quick stop (through B2) joined it, nothing enabled it again
+    assert {"ENABLED"} in [states for p, states in run.drive_phases.items()
+                           if p.startswith(("inspect", "weld"))]
+    for name, d in run.drives.items():
+        assert d["power"] == "SWITCH_ON_DISABLED", (name, d)
+        assert d["history"][-3:] == ["ENABLED", "QUICK_STOP", "SWITCH_ON_DISABLED"], (name, d)
+        assert d["received"][-2:] == [0x02, 0x00], (name, d)
+    assert all(run.devices[f"joint{n}"] == "OK" for n in range(1, 6))
     assert run.tasks["D2"]["frozen"]
     assert ("estop", "E1: intruder: light curtain broken") in run.events
 

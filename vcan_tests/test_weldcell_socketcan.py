@@ -7,7 +7,9 @@ minutes there: UML makes every system call slow). ``test_good_gap_passes_inside_
 host side: it boots UML with CHCOS_UML_WELD=1 and runs the first half there. Its UML run starts
 as soon as the session's tests are collected (marker ``uml_background``, see conftest), so it
 overlaps the rest of the suite on the other core; the test waits for the result and checks that
-the job ran (passed, not skipped) and welded the seam in band.
+the job ran (passed, not skipped) and welded the seam in band, with the five CiA 402 joint drives
+enabled (on their side) for the job and brought to SWITCH ON DISABLED by the shutdown's safe stop
+(quick stop 0x02, then disable voltage 0x00, over vcan0).
 """
 
 from __future__ import annotations
@@ -51,12 +53,18 @@ def test_good_gap_over_socketcan(tmp_path: Path) -> None:
         cell.run(200.0)
         outcome = cell.outcome()
         summary = cell.summary()
+        drives = [d.power.name for d in cell.drives]          # the drives' side, job over
+    # and after the shutdown's safe stops (over vcan0: quick stop, then disable voltage)
+    after = [(d.power.name, d.received[-2:]) for d in cell.drives]
     out = os.environ.get("CHCOS_UML_WELD_OUT")
     if out:
-        Path(out).write_text(json.dumps({"outcome": outcome, "summary": summary}, default=str))
+        Path(out).write_text(json.dumps({"outcome": outcome, "summary": summary,
+                                         "drives": drives, "after": after}, default=str))
     assert outcome is not None and outcome["outcome"] == "welded", outcome
     assert summary["welded_mm"] >= 0.99 * summary["seam_mm"], summary
     assert summary["in_band_pct"] >= 95.0, summary
+    assert drives == ["ENABLED"] * 5, drives
+    assert after == [("SWITCH_ON_DISABLED", [0x02, 0x00])] * 5, after
 
 
 def start_in_background(config: pytest.Config) -> None:
@@ -93,6 +101,9 @@ def test_good_gap_passes_inside_uml(request: pytest.FixtureRequest,
         record_property(f"uml_weld_{key}", summary[key])
     assert done["outcome"]["outcome"] == "welded"
     assert summary["in_band_pct"] >= 95.0, summary
+    # the CiA 402 joint drives, on their side: enabled for the job, safe-stopped at shutdown
+    assert done["drives"] == ["ENABLED"] * 5, done["drives"]
+    assert done["after"] == [["SWITCH_ON_DISABLED", [2, 0]]] * 5, done["after"]
     request.config.stash.setdefault(GUEST_RESULTS, []).append(
         f"welding job (good gap) over vcan0/vcan1 inside UML: welded, "
         f"{summary['in_band_pct']:.1f} % in band, {wall:.0f} s from boot to halt")

@@ -38,6 +38,7 @@ def at_start(rig: WeldRig) -> Readings:
     run until everything has settled; the model's readings then."""
     rig.command("POWER", drives_enable=1, volts_set=24.0, wire_set=100.0, gas_valve=1)
     rig.run(0.05)
+    rig.enable_drives()
     move_to(rig, *ABOVE_START)
     rig.run(2.0)
     return rig.sim.model.readings()
@@ -90,6 +91,7 @@ def test_intruder_frame_goes_out_on_change_at_top_priority(rig: WeldRig) -> None
 def test_joint_targets_move_the_joints(rig: WeldRig) -> None:
     rig.command("POWER", drives_enable=1)
     rig.run(0.05)
+    rig.enable_drives()
     q = move_to(rig, (520.0, -40.0, 60.0), 0.3)
     rig.run(0.05)
     model = rig.sim.model
@@ -109,6 +111,12 @@ def test_targets_are_ignored_and_joints_held_while_drives_are_disabled(rig: Weld
     assert rig.sim.stats["target-ignored-disabled"] == 5
     rig.command("POWER", drives_enable=1)
     rig.run(0.05)
+    move_to(rig, (520.0, -40.0, 60.0), 0.3)   # the relay on, the drives not enabled: ignored
+    rig.run(0.5)
+    assert rig.sim.model.joints == home
+    assert rig.sim.stats["target-ignored-drive"] == 5
+    assert all(d.ignored_targets == 2 for d in rig.sim.servo.drives.values())  # both batches
+    rig.enable_drives()
     q = move_to(rig, (520.0, -40.0, 60.0), 0.3)
     rig.run(0.2)
     moving = list(rig.sim.model.joints)
@@ -146,6 +154,7 @@ def test_power_source_and_gas_commands_reach_the_model(rig: WeldRig) -> None:
 def test_welding_heats_the_arc_and_reports_it_on_can(rig: WeldRig) -> None:
     rig.command("POWER", drives_enable=1, wire_set=80.0, gas_valve=1)
     rig.run(0.05)
+    rig.enable_drives()
     move_to(rig, (550.0, -150.0, 10.0), math.pi / 2.0)
     rig.run(2.0)
     assert rig.value("arc_temp") == pytest.approx(20.0, abs=0.1)
@@ -171,3 +180,52 @@ def test_safe_values_at_shutdown_reach_the_model(tmp_path: Path) -> None:
         assert rig.sim.model.voltage_setpoint == 0.0
     finally:
         rig.sim.close()
+
+
+def test_the_joint_drives_follow_the_controlword_on_canopen(tmp_path: Path) -> None:
+    """The five drives are CiA 402 drives on the bus: what they received and the states they
+    went through, on their side. Enabling walks shutdown, switch on, enable operation; a quick
+    stop mid-move brakes the joint on the drive's ramp (short of its target, not dead) and the
+    drive stays in QUICK STOP ACTIVE; the shutdown's safe stop then disables the voltage (the
+    drive did not do it itself: quick stop option 6)."""
+    from chcos.apps.sim.cia402_drive import Power
+    from drivers.canopen_axis import AxisCode
+
+    rig = make_rig(tmp_path, config=QUIET)
+    try:
+        servo = rig.sim.servo
+        assert servo is not None
+        drive = servo.drives[1]
+        rig.command("POWER", drives_enable=1)
+        rig.run(0.05)
+        assert all(d.power is Power.SWITCH_ON_DISABLED for d in servo.drives.values())
+        rig.enable_drives()
+        for d in servo.drives.values():
+            assert [cw for cw in d.received if cw][:3] == [0x06, 0x07, 0x0F], d.received
+            assert d.mode_display == 8                                # CSP, shown on 0x6061
+        assert rig.value("joint1.state") == "OPERATION_ENABLED"
+        model = rig.sim.model
+        start = model.joints[0]
+        rig.command("JOINTS", target1=start + 1.0)
+        rig.run(0.3)
+        moving = model.joints[0]
+        assert drive.velocity > 500_000
+        rig.command("DRIVES", joint1=float(AxisCode.QUICK_STOP))
+        rig.run(0.5)
+        assert drive.power is Power.QUICK_STOP and drive.velocity == 0
+        assert drive.received[-1] == 0x02
+        stopped = model.joints[0]
+        assert moving < stopped < start + 1.0 - 0.2
+        assert rig.value("joint1.state") == "QUICK_STOP_ACTIVE"
+        assert rig.value("joint1") == float(AxisCode.QUICK_STOP)     # confirmed by the drive
+        rig.command("JOINTS", target1=start)                          # not taken: no motion
+        rig.run(0.3)
+        assert model.joints[0] == pytest.approx(stopped)
+        assert [d.power for d in servo.drives.values()][1:] == [Power.ENABLED] * 4
+    finally:
+        rig.close()
+    assert rig.system.devtab.safe_failures == []
+    for d in servo.drives.values():
+        assert d.power is Power.SWITCH_ON_DISABLED
+        assert d.model.history[-2:] == [Power.QUICK_STOP, Power.SWITCH_ON_DISABLED]
+        assert d.received[-1] == 0x00                  # disable voltage, sent by the master

@@ -45,7 +45,9 @@ def test_servo_timeout_stops_heartbeat_and_tpdo_and_fails_the_joint(
         assert all(rig.status(f"theta{n}") == "OK" for n in range(1, 6))
         rig.sim.inject(Fault("servo-timeout", joint=2, duration=0.3))
         before = rig.entry("theta2").readings
-        rig.run(0.2)                           # no TPDO of node 2 any more: stale on sim time
+        # no TPDO of node 2 any more: stale on sim time (0.12 s: past stale_after 0.1 s, and
+        # short in wall time, well before the heartbeat timeout of 0.5 s wall on a loaded host)
+        rig.run(0.12)
         assert rig.entry("theta2").readings == before
         assert rig.status("theta2") == "stale" and rig.status("theta1") == "OK"
         assert failed.wait(WAIT), "the driver did not notice the missing heartbeat"
@@ -107,6 +109,7 @@ def record_run(tmp_path: Path, attach_first: bool) -> list[tuple[float, dict[str
         q = rig.sim.model.arm.inverse_down((540.0, -120.0, 40.0), 1.2)
         script = {2: lambda: rig.command("POWER", drives_enable=1, volts_set=24.0,
                                          wire_set=90.0, gas_valve=1),
+                  3: lambda: rig.command("DRIVES", **{f"joint{n}": 1.0 for n in range(1, 6)}),
                   4: lambda: rig.command("JOINTS", **{f"target{j + 1}": v
                                                       for j, v in enumerate(q)}),
                   12: lambda: rig.command("POWER", drives_enable=0)}

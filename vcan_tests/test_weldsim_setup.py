@@ -30,9 +30,14 @@ ACTUATORS = {a for _, outs in TASKS.values() for a in outs}
 def test_the_cell_map_checks_and_matches_the_device_table(capsys: pytest.CaptureFixture[str]
                                                           ) -> None:
     assert check_main([str(CELL_TOML)]) == 0
-    assert "ok: 4 buses, 26 devices" in capsys.readouterr().out
+    assert "ok: 4 buses, 61 devices" in capsys.readouterr().out   # 5 axes of 7 devices each
     m = load([CELL_TOML])
-    assert {d.name for d in m.devices if d.direction == "sensor"} == set(SENSORS)
+    axes = {d.name for d in m.devices if d.address.get("profile") == "cia402"}
+    assert axes == {f"joint{n}{r}" for n in range(1, 6)
+                    for r in ("", ".state", ".statusword", ".mode", ".position", ".velocity",
+                              ".fault")}
+    assert {d.name for d in m.devices
+            if d.direction == "sensor" and d.name not in axes} == set(SENSORS)
     assert {d.name for d in m.devices if d.direction == "actuator"} == ACTUATORS
     dev = {d.name: d for d in m.devices}
     assert dev["intruder"].priority == 99

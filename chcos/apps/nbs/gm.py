@@ -49,7 +49,7 @@ from chcos.apps.nbs.executor import CommonMemory, LevelContext, NbsExecutor, Ord
 from chcos.apps.nbs.statetable import Call
 from chcos.apps.weld.kinematics import UnreachableError
 from chcos.apps.weld.model import CellConfig
-from chcos.apps.weld.tasks.common import ARM, LOOK_AHEAD, analyse, left, pose_of
+from chcos.apps.weld.tasks.common import ARM, AXES, LOOK_AHEAD, analyse, left, pose_of
 
 SAFE = (("drives_enable", 0), ("volts_set", 0.0), ("wire_set", 0.0), ("gas_valve", 0))
 """The actuators G1's intruder reflex puts safe (the CHC run's SAFE_DEVICES)."""
@@ -206,7 +206,10 @@ class CellModules:
         if q != self.w.last_targets:
             for j, v in enumerate(q, start=1):
                 self._write(ctx, f"target{j}", v)
-            self.w.last_targets = q
+            # the joint drives (CiA 402) take targets only once enabled: until they all say so,
+            # the targets are written again every cycle
+            if all(ctx.read(f"{a}.state") == "OPERATION_ENABLED" for a in AXES):
+                self.w.last_targets = q
 
     def _order1(self) -> Order | None:
         order = self.ex.memory.get(CommonMemory.cmd(1))
@@ -282,6 +285,8 @@ class CellModules:
             if not w.motors and not w.intruder:
                 # enable first: the drives overwrite targets written while they are disabled
                 self._write(ctx, "drives_enable", 1)
+                for axis in AXES:       # the CiA 402 state machine: the command code ENABLE
+                    self._write(ctx, axis, 1)
                 w.motors, w.last_targets = True, None
                 if w.goal is not None and not w.linear:
                     self._targets(ctx, w.goal, w.goal_yaw)

@@ -30,7 +30,9 @@ from typing import Any
 
 from chcos import resources
 from chcos.apps.weld import WeldCell, parse_scenario
+from chcos.apps.weld.direct import WeldDirectDriver
 from chcos.apps.weld.report import Recorder, write_report
+from chcos.apps.weld.servo import JointDrive
 from chcos.apps.weld.tasks import HERE as TASK_PATH
 from chcos.apps.weld.tasks import SCRIPT
 from chcos.devices.devmap import load
@@ -101,6 +103,10 @@ class Cell:
     timeline: Timeline
     started: float = 0.0
     closers: list[Callable[[], None]] = field(default_factory=list)
+    #: the joint drives as the drives see themselves (joint 1..5): state, controlwords received
+    drives: list[JointDrive] = field(default_factory=list)
+    #: called before the System's shutdown (the simulator goes on on wall-clock time)
+    before_shutdown: list[Callable[[], None]] = field(default_factory=list)
     injector: Callable[[str], None] | None = None
     recorder: Recorder | None = None
 
@@ -167,8 +173,11 @@ class Cell:
         return {d.name: d.value for d in self.system.devtab if not d.is_sensor}
 
     def close(self) -> None:
-        """Shut the System down (safe values out), then the simulator if any."""
+        """Shut the System down (safe values out: the simulator, if any, goes on on wall-clock
+        time meanwhile, so the joint drives confirm their safe stop), then the simulator."""
         try:
+            for prepare in self.before_shutdown:
+                prepare()
             self.system.shutdown()
         finally:
             for close in reversed(self.closers):
@@ -320,10 +329,15 @@ def open_cell(binding: str = "direct", *, scenario: str = "", seed: int = 0,
         if sim is not None:
             sim.attach(system.kernel)
             model = sim.model
+            assert sim.servo is not None
+            drives = [sim.servo.drives[nid] for nid in sorted(sim.servo.drives)]
         else:
-            model = next(d.cell for d in system.devtab.drivers if hasattr(d, "cell"))
+            direct = next(d for d in system.devtab.drivers if isinstance(d, WeldDirectDriver))
+            model, drives = direct.cell, direct.drives
         cell = Cell(system, model, binding, counters, timeline, closers=closers,
-                    injector=sim.inject if sim is not None else None)
+                    injector=sim.inject if sim is not None else None,
+                    drives=drives,
+                    before_shutdown=[sim.continue_realtime] if sim is not None else [])
         cell.recorder = Recorder(system.kernel, model, cell.phase)
         cell.recorder.start()
     except BaseException:

@@ -26,10 +26,22 @@ nodes send on change as well as periodically). A dropped-out sensor stops delive
 marks it stale after its ``stale_after``); a servo timeout silences its joint and calls
 ``host.fail(thetaN)``, and ``host.recover`` when it ends.
 
-Actuators: ``target1``..``target5`` (rad), ``drives_enable`` (0/1; 0 holds every joint where it is
-and target writes are ignored until it is 1 again), ``volts_set`` (V), ``wire_set`` (mm/s),
-``gas_valve`` (0/1). A set-point the model refuses is counted as a bus error
-(``host.error``), as a real drive would answer with an error code.
+Actuators: ``target1``..``target5`` (rad), ``drives_enable`` (0/1, the safe-torque-off relay: 0
+holds every joint where it is and target writes are ignored until it is 1 again), ``volts_set``
+(V), ``wire_set`` (mm/s), ``gas_valve`` (0/1). A set-point the model refuses is counted as a bus
+error (``host.error``), as a real drive would answer with an error code. Every write is
+confirmed (``host.written``) once applied.
+
+The joint drives are CiA 402 drives (:class:`chcos.apps.weld.servo.JointDrive`, the same as the
+real-bus simulator's): a joint moves only while its drive is OPERATION ENABLED and the relay is
+on, and a target is taken only then. An axis table (``profile = "cia402"``, ``address = { node =
+N, axis = 0 }`` for joint N) on this bus is an **in-process axis**: the driver hosts the axis
+engine (:class:`drivers.canopen_axis.AxisHost`) on that drive, with no protocol between them (a
+controlword written is applied at once, the drive's statusword, mode, position and velocity are
+read back every tick), and implements the ``AxisDriver`` protocol of :mod:`chcos.user.axes`, so
+tasks call ``ctx.axis("jointN")`` on both bindings. The axis's actuator takes the command codes
+of :class:`drivers.canopen_axis.AxisCode` (its safe value is the safe stop sequence, confirmed
+when the drive confirms it); its sensors are ``jointN.state``, ``.statusword``, ...
 
 Bus options: ``scenario`` (fault scenario string, :func:`chcos.apps.weld.parse_scenario`, default
 none), ``seed`` (int, noise seed, default 0), ``tick`` (model step in s, default 0.01, at most
@@ -39,14 +51,26 @@ name is one of :data:`SENSORS` / :data:`ACTUATORS`; an empty address means the d
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Sequence
 from typing import Any, ClassVar
 
 from chcos.apps.weld import LinearView, Readings, WeldCell, parse_scenario
+from chcos.apps.weld.servo import POSITION_SCALE, JointDrive
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError, ChcosError, ConfigError
-from drivers.base import Driver, DriverHost
+from drivers.base import Driver, DriverHost, deliver_all
+from drivers.canopen_axis import CODE_OPS, AxisCall, AxisCode, AxisHost, AxisStatus, Done
+from drivers.codecs.cia402 import (
+    Cia402Error,
+    Obj,
+    Result,
+    Write,
+    config_from_table,
+    is_axis_address,
+    mode_of,
+)
 
 JOINTS = tuple(f"theta{j}" for j in range(1, 6))
 TARGETS = tuple(f"target{j}" for j in range(1, 6))
@@ -84,6 +108,9 @@ silences it, and how its value is read from :class:`chcos.apps.weld.Readings`.""
 ACTUATORS: tuple[str, ...] = (*TARGETS, "drives_enable", "volts_set", "wire_set", "gas_valve")
 """Every actuator this binding offers."""
 
+AXIS_ADDRESS = ("profile", "node", "axis", "index", "subindex", "mode", "config", "reading")
+"""The address keys of an axis table's devices (written by the device-map parser)."""
+
 ON_CHANGE = ("intruder", "start_marker", "end_marker")
 OPTIONS = ("scenario", "seed", "tick")
 BASE_TICK = 0.01
@@ -113,6 +140,7 @@ class WeldDirectDriver(Driver):
     """
 
     kind: ClassVar[str] = "weld-direct"
+    confirms_writes: ClassVar[bool] = True
 
     def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
         super().__init__(bus, devices, host)
@@ -125,7 +153,16 @@ class WeldDirectDriver(Driver):
             raise ConfigError(f"{bus.key}.scenario: {exc}") from exc
         self.tick = float(bus.options.get("tick", BASE_TICK))
         self.cell: WeldCell = _Cell(scenario=scenario, seed=int(bus.options.get("seed", 0)))
-        self.signal = {name: str(d.address.get("signal", name)) for name, d in self.devices.items()}
+        #: the joints' CiA 402 drives, joint 1..5 at index 0..4
+        self.drives = [JointDrive(j) for j in range(1, 6)]
+        self.signal = {name: str(d.address.get("signal", name))
+                       for name, d in self.devices.items() if not is_axis_address(d.address)}
+        #: the in-process axes by actuator name, and the joint (0..4) each drives
+        self.axes: dict[str, AxisHost] = {}
+        self.axis_joint: dict[str, int] = {}
+        for d in self.devices.values():
+            if is_axis_address(d.address) and d.direction == "actuator":
+                self._bind_axis(d)
         self.changes: list[tuple[float, str, Any]] = []
         self.writes: dict[str, int] = {}
         self.enabled = True
@@ -161,6 +198,16 @@ class WeldDirectDriver(Driver):
         """The address may only hold ``signal``, naming a sensor or actuator of the cell that
         matches the device's direction."""
         key = f"{device.key}.address"
+        if is_axis_address(device.address):
+            node = device.address.get("node")
+            errs = [f"{key}.{k}: unknown key of an axis" for k in device.address
+                    if k not in AXIS_ADDRESS]
+            if node not in range(1, 6):
+                errs.append(f"{key}.node: {node!r} is no joint drive of the welding cell; "
+                            f"expected 1..5 (joint1..joint5)")
+            if device.address.get("axis", 0) != 0:
+                errs.append(f"{key}.axis: the joint drives have one axis each; expected 0")
+            return errs
         errs = [f"{key}.{k}: unknown key; valid keys: signal" for k in device.address
                 if k != "signal"]
         name = device.address.get("signal", device.name)
@@ -193,8 +240,16 @@ class WeldDirectDriver(Driver):
         if not self._running:
             return
         cell = self.cell
-        if not self.enabled:
-            cell.targets = list(cell.joints)  # safe torque off: hold every joint where it is
+        for j, drive in enumerate(self.drives):
+            # a joint moves only while its drive is enabled and the relay gives torque
+            goal = drive.step(self.tick, cell.joints[j] / POSITION_SCALE, self.enabled)
+            if goal is None:
+                cell.targets[j] = cell.joints[j]
+            else:
+                try:
+                    cell.set_joint_target(j + 1, goal * POSITION_SCALE)
+                except ChcosError:
+                    cell.targets[j] = cell.joints[j]
         cell.step(self.tick)
         self._ticks += 1
         n = round(self._ticks * self.tick / BASE_TICK)
@@ -231,28 +286,180 @@ class WeldDirectDriver(Driver):
             if due or changed:
                 self._last[dev] = value
                 self.host.deliver(dev, value)
+        for name, axis in self.axes.items():
+            j = self.axis_joint[name]
+            if f"joint{j + 1}" in r.silent:
+                continue            # a servo timeout: the drive says nothing
+            drive = self.drives[j]
+            axis.reading({Obj.ERROR_CODE: drive.error_code, Obj.STATUSWORD: drive.statusword,
+                          Obj.MODES_DISPLAY: drive.mode_display,
+                          Obj.POSITION_ACTUAL: round(r.joints[j] / POSITION_SCALE),
+                          Obj.VELOCITY_ACTUAL: drive.velocity}, now)
+            axis.poll(now)
 
     def _write(self, device: str, value: Any) -> None:
-        """Apply a set-point to the model at once. A value the model refuses is reported with
-        ``host.error`` (kind ``refused``)."""
-        sig = self.signal[device]
-        cell = self.cell
+        """Apply a set-point to the model at once and confirm it; a command code of an axis
+        starts its command, confirmed when the drive confirmed it. A value the model refuses is
+        reported with ``host.error`` (kind ``refused``) and ``host.write_failed``."""
+        if device in self.axes:
+            self._axis_write(device, value)
+            return
         try:
-            if sig in TARGETS:
-                if self.enabled:
-                    cell.set_joint_target(TARGETS.index(sig) + 1, float(value))
-            elif sig == "drives_enable":
-                on = bool(round(float(value)))
-                if on and not self.enabled:
-                    cell.targets = list(cell.joints)
-                self.enabled = on
-            elif sig == "volts_set":
-                cell.set_voltage(float(value))
-            elif sig == "wire_set":
-                cell.set_wire_speed(float(value))
-            else:
-                cell.set_gas_valve(bool(round(float(value))))
+            self._apply(device, value)
         except (ChcosError, ValueError, TypeError) as exc:
             self.host.error(self.bus.name, "refused", f"{device} <- {value!r}: {exc}")
+            self.host.write_failed(device, value, str(exc))
             return
         self.writes[device] = self.writes.get(device, 0) + 1
+        self.host.written(device, value)
+
+    def _apply(self, device: str, value: Any) -> None:
+        sig = self.signal[device]
+        cell = self.cell
+        if sig in TARGETS:
+            j = TARGETS.index(sig)
+            if self.drives[j].target(round(float(value) / POSITION_SCALE)) and self.enabled:
+                cell.set_joint_target(j + 1, float(value))
+        elif sig == "drives_enable":
+            on = bool(round(float(value)))
+            if on and not self.enabled:
+                cell.targets = list(cell.joints)
+            self.enabled = on
+        elif sig == "volts_set":
+            cell.set_voltage(float(value))
+        elif sig == "wire_set":
+            cell.set_wire_speed(float(value))
+        else:
+            cell.set_gas_valve(bool(round(float(value))))
+
+    # ---- the in-process axes (the AxisDriver protocol of chcos.user.axes) --------------------
+    def _bind_axis(self, spec: DeviceSpec) -> None:
+        a = spec.address
+        try:
+            cfg = config_from_table(spec.name, {"axis": 0, **dict(a.get("config", {}))},
+                                    spec.key)
+        except Cia402Error as exc:
+            raise ConfigError(str(exc)) from exc
+        j = int(a["node"]) - 1
+        name = spec.name
+        self.axis_joint[name] = j
+        self.axes[name] = AxisHost(
+            name, j + 1, cfg, mode_of(a.get("mode")),
+            send=functools.partial(self._axis_send, j),
+            read=functools.partial(self._axis_read, j),
+            deliver=functools.partial(deliver_all, self.host),
+            fail=self.host.fail,
+            recover=self.host.recover,
+            report=functools.partial(self._axis_report, name))
+
+    def _axis_report(self, device: str, text: str) -> None:
+        self.host.error(self.bus.name, "axis", text, device)
+
+    def _axis_send(self, j: int, w: Write) -> None:
+        """One write of an axis, applied to joint ``j``'s drive at once. Raises BusError for an
+        object the joint drives do not take."""
+        drive = self.drives[j]
+        match w.obj:
+            case Obj.CONTROLWORD:
+                drive.controlword(w.value)
+            case Obj.MODES:
+                drive.mode(w.value)
+            case Obj.TARGET_POSITION:
+                if drive.target(w.value) and self.enabled:
+                    self.cell.set_joint_target(j + 1, w.value * POSITION_SCALE)
+            case _:
+                raise BusError(f"weld-direct bus {self.bus.name}: joint{j + 1}'s drive has no "
+                               f"object 0x{w.index:04X} ({w.obj.name})")
+
+    def _axis_read(self, j: int, obj: Obj, index: int) -> int | None:
+        """An axis object of joint ``j``'s drive as it is now (None: not one it shows, or the
+        drive is silent, a servo timeout)."""
+        drive = self.drives[j]
+        if f"joint{j + 1}" in self.cell.readings().silent:
+            return None
+        values = {Obj.STATUSWORD: drive.statusword, Obj.MODES_DISPLAY: drive.mode_display,
+                  Obj.ERROR_CODE: drive.error_code, Obj.VELOCITY_ACTUAL: drive.velocity,
+                  Obj.POSITION_ACTUAL: round(self.cell.joints[j] / POSITION_SCALE),
+                  Obj.QUICK_STOP_OPTION: drive.quick_stop_option}
+        return values.get(obj)
+
+    def axis_call(self, device: str, call: AxisCall, done: Done) -> None:
+        """Start ``call`` on axis ``device`` (kernel thread); ``done`` gets the engine's
+        :class:`drivers.codecs.cia402.Result`, or the exception that refused it (AxisBusy,
+        AxisLimitError, ValueError; BusError when the driver is stopped or has no such
+        axis)."""
+        axis = self.axes.get(device)
+        if axis is None:
+            done(BusError(f"weld-direct bus {self.bus.name}: no axis {device!r}"))
+            return
+        if not self._running:
+            done(BusError(f"weld-direct bus {self.bus.name} is not running: {call.op.value} "
+                          f"of axis {device} not sent"))
+            return
+        axis.command(call, done, self.host.now())
+
+    def axis_status(self, device: str) -> AxisStatus:
+        """What axis ``device``'s drive last confirmed. Raises KeyError for a device that is
+        no axis of this bus."""
+        return self.axes[device].status()
+
+    def _axis_write(self, device: str, value: Any) -> None:
+        """A Devtab write to an axis's actuator: the command of code ``value``; confirmed when
+        the drive confirmed it, else failed naming the state reached."""
+        host = self.host
+
+        def done(outcome: Result | Exception) -> None:
+            if isinstance(outcome, Result) and outcome.ok:
+                host.written(device, value)
+            else:
+                host.write_failed(device, value, f"axis {device}: {outcome}"
+                                  if isinstance(outcome, Result) else str(outcome))
+
+        try:
+            code = AxisCode(int(value))
+        except (ValueError, TypeError) as exc:
+            host.write_failed(device, value, f"axis {device}: {exc}")
+            return
+        self.axes[device].command(AxisCall(CODE_OPS[code]), done, host.now(), queue=True)
+
+    def check_value(self, device: str, value: Any) -> str | None:
+        """For an axis: why ``value`` is not a command code (None if it is)."""
+        if device in self.axes and (isinstance(value, bool)
+                                    or not isinstance(value, int | float)
+                                    or value not in set(AxisCode)):
+            return (f"expected a command code of the axis "
+                    f"({', '.join(f'{c.value} {c.name.lower()}' for c in AxisCode)}), "
+                    f"got {value!r}")
+        return None
+
+    def flush(self, timeout: float) -> bool:
+        """At shutdown (the kernel's timers no longer run): while an axis runs a command (its
+        safe stop), step the cell on this driver's own clock until it ended or ``timeout``
+        simulated seconds passed; True if every axis ended its command."""
+        if not self._running:
+            return not any(a.status().busy is not None for a in self.axes.values())
+        steps = 0
+        while any(a.status().busy is not None for a in self.axes.values()):
+            if steps * self.tick >= timeout:
+                return False
+            self._shutdown_step(steps)
+            steps += 1
+        return True
+
+    def _shutdown_step(self, steps: int) -> None:
+        """One tick at shutdown: the drives and the cell step, the axes read and poll on a clock
+        ``steps`` ticks past the kernel's."""
+        cell = self.cell
+        now = self.host.now() + (steps + 1) * self.tick
+        for j, drive in enumerate(self.drives):
+            goal = drive.step(self.tick, cell.joints[j] / POSITION_SCALE, self.enabled)
+            cell.targets[j] = cell.joints[j] if goal is None else goal * POSITION_SCALE
+        cell.step(self.tick)
+        for name, axis in self.axes.items():
+            j = self.axis_joint[name]
+            drive = self.drives[j]
+            axis.reading({Obj.ERROR_CODE: drive.error_code, Obj.STATUSWORD: drive.statusword,
+                          Obj.MODES_DISPLAY: drive.mode_display,
+                          Obj.POSITION_ACTUAL: round(cell.joints[j] / POSITION_SCALE),
+                          Obj.VELOCITY_ACTUAL: drive.velocity}, now)
+            axis.poll(now)

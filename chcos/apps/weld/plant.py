@@ -5,8 +5,10 @@ pure physics model :class:`chcos.apps.weld.model.WeldCell` and presents its devi
 ``chcos/apps/weld/DEVICES.md``) on the buses a real cell uses, as laid down in
 ``chcos/apps/weld/maps/weld_cell.toml``:
 
-* **CANopen** on python-can channel A: five servo drives (TPDO1 position actual every 10 ms of
-  simulated time while OPERATIONAL, RPDO1 targets applied to the model);
+* **CANopen** on python-can channel A: five CiA 402 servo drives (TPDO1 position and velocity
+  actual every 10 ms of simulated time while OPERATIONAL, TPDO2 the statusword on change; RPDO2
+  controlwords drive each drive's state machine, RPDO1 targets move its joint while it is
+  OPERATION ENABLED, see :mod:`chcos.apps.weld.servo`);
 * **raw CAN** on channel B: the DBC-coded sensor messages (two channels, so the raw-CAN driver
   never sees CANopen);
 * **Modbus TCP** on ``127.0.0.1:port``, unit 1: the power source and the cell I/O, refreshed
@@ -43,7 +45,9 @@ time.
 A silent sensor stops being sent: no TPDO of that joint, no frame of its DBC message, no serial
 line; its Modbus input register answers exception 11 (gateway target failed to respond), so the
 driver fails that device alone. A servo timeout also stops that node's heartbeat. While the coil
-``drives_enable`` is 0 every joint is held where it is and RPDO targets are ignored.
+``drives_enable`` (the safe-torque-off relay) is 0 every joint is held where it is and RPDO
+targets are ignored, whatever state the drives are in; a joint also moves only while its drive is
+OPERATION ENABLED (or slows down in a quick stop).
 
 Errors: :class:`chcos.errors.ConfigError` for bad arguments, scenarios or device-map templates;
 :class:`chcos.errors.BusError` when a CAN channel cannot be opened or a TCP port bound.
@@ -79,11 +83,13 @@ from chcos.apps.weld.slaves import (
     NODE_IDS,
     POSITION_SCALE,
     SERVO_PERIOD,
+    STATUS_EVERY,
     UNIT,
     WELD_DBC,
     PowerSource,
     SensorFrames,
     ServoDrives,
+    TargetWrite,
     format_line,
 )
 from chcos.errors import BusError, ConfigError, DeviceError
@@ -221,6 +227,35 @@ class WeldSim:
             self._rt_thread = threading.Thread(target=loop, name="weld-sim", daemon=True)
             self._rt_thread.start()
 
+    def continue_realtime(self) -> None:
+        """Go on from where the kernel's clock left the simulator, on wall-clock time: at the
+        System's shutdown the kernel's timers no longer run, but the joint drives must still
+        answer the safe stop (quick stop, then disable voltage) the controller sends them. Does
+        nothing unless attached to a kernel and open."""
+        with self._lock:
+            if self._closed or self._kernel is None or self._rt_thread is not None:
+                return
+            for timer in self._timers:
+                timer.cancel()
+            self._timers = []
+            self._kernel = None
+            self._later = lambda _delay, fn: fn()
+            now = time.monotonic()
+            self._clock = time.monotonic
+            self._origin = now - self._steps * self.tick
+            self._rt_stop.clear()
+
+            def loop() -> None:
+                n = 0
+                while not self._rt_stop.wait(max(0.0, now + (n + 1) * SERVO_PERIOD
+                                                 - time.monotonic())):
+                    n += 1
+                    self._on_servo()
+
+            self._rt_thread = threading.Thread(target=loop, name="weld-sim-shutdown",
+                                               daemon=True)
+            self._rt_thread.start()
+
     def _check_idle(self) -> None:
         if self._closed:
             raise ConfigError("weld simulator: closed; create a new one")
@@ -280,24 +315,32 @@ class WeldSim:
     # -- the cycle ----------------------------------------------------------------------------
 
     def _advance(self, now: float) -> None:
-        """Take in commands, then step the model to the last tick boundary at or before ``now``
-        and apply them from there."""
+        """Take in commands, then step the drives and the model to the last tick boundary at
+        or before ``now`` and apply the commands from there, in arrival order."""
         assert self._origin is not None and self.servo is not None
-        targets = self.servo.drain()
+        commands = self.servo.drain()
         n = math.floor((now - self._origin) / self.tick + 1e-6)
         model = self.model
+        servo = self.servo
         while self._steps < n:
+            servo.step(self.tick, model, self.power.drives_enabled)
             model.step(self.tick)
             self._steps += 1
         self.power.apply(self.model, self._refused)
-        for nid, counts in targets:
+        for command in commands:
+            taken = servo.apply(command)
+            if not isinstance(command, TargetWrite):
+                continue
             if not self.power.drives_enabled:
                 self.stats["target-ignored-disabled"] += 1
-                continue
-            try:
-                model.set_joint_target(nid, counts * POSITION_SCALE)
-            except DeviceError as exc:
-                self._refused("target", f"node {nid} RPDO1 target {counts} counts: {exc}")
+            elif not taken:
+                self.stats["target-ignored-drive"] += 1
+            else:
+                try:
+                    model.set_joint_target(command.node, command.counts * POSITION_SCALE)
+                except DeviceError as exc:
+                    self._refused("target", f"node {command.node} RPDO1 target "
+                                            f"{command.counts} counts: {exc}")
         self._sync_heartbeats()
 
     def _refused(self, kind: str, text: str) -> None:
@@ -327,6 +370,7 @@ class WeldSim:
                 if f"joint{j + 1}" in r.silent or not self.servo.operational[nid]:
                     continue
                 self.servo.send_tpdo(nid, round(r.joints[j] / POSITION_SCALE))
+                self.servo.send_status(nid, force=slot % STATUS_EVERY == 0)
             self.power.publish(r)
             if self.sensors is not None and self.sensors.due(slot, dbc_signals(r, 0)):
                 self._later(PHASES["can"] - PHASES["servo"], functools.partial(self._on_can, slot))

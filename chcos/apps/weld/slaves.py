@@ -3,9 +3,12 @@
 Each class is one side of one bus of ``chcos/apps/weld/maps/weld_cell.toml`` (the contract of
 ``chcos/apps/weld/DEVICES.md``), with the register, object and message layout it answers to:
 
-* :class:`ServoDrives` - **CANopen**: five servo drives, node ids :data:`NODE_IDS` (canopen
-  ``LocalNode``: SDO server, NMT, heartbeat); TPDO1 position actual (0x6064, INTEGER32
-  microradians, :data:`POSITION_SCALE`), RPDO1 target positions (0x607A);
+* :class:`ServoDrives` - **CANopen**: five CiA 402 servo drives
+  (:class:`chcos.apps.weld.servo.JointDrive`), node ids :data:`NODE_IDS` (canopen
+  ``LocalNode``: SDO server, NMT, heartbeat); TPDO1 position and velocity actual (0x6064,
+  0x606C, INTEGER32 microradians, :data:`POSITION_SCALE`), TPDO2 statusword, modes display and
+  error code (0x6041, 0x6061, 0x603F; on change and every :data:`STATUS_EVERY` servo periods),
+  RPDO1 target positions (0x607A), RPDO2 controlword and modes of operation (0x6040, 0x6060);
 * :class:`SensorFrames` - **raw CAN**: the DBC-coded messages of
   ``chcos/apps/weld/maps/weld_cell.dbc`` (:data:`CAN_MESSAGES`), each at its cycle time or on
   change;
@@ -26,8 +29,11 @@ the DBC lacks.
 from __future__ import annotations
 
 import contextlib
+import functools
 import struct
+from collections import deque
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +44,8 @@ from pymodbus.constants import ExcCodes
 from chcos import resources
 from chcos.apps.sim.modbus_server import RegisterStore
 from chcos.apps.weld.model import Readings, WeldCell
+from chcos.apps.weld.servo import POSITION_SCALE as POSITION_SCALE
+from chcos.apps.weld.servo import JointDrive
 from chcos.errors import BusError, ConfigError, DeviceError
 
 BUSCONFIG = resources.path("chcos.apps.weld", "maps")
@@ -49,8 +57,10 @@ WELD_DBC = BUSCONFIG / "weld_cell.dbc"
 
 NODE_IDS: tuple[int, ...] = (1, 2, 3, 4, 5)
 """CANopen node id of joint ``j`` is ``NODE_IDS[j - 1]``."""
-POSITION_SCALE = 1e-6
-"""rad per count of 0x6064 / 0x607A."""
+DRIVE_OBJECTS = (0x603F, 0x6040, 0x6041, 0x605A, 0x6060, 0x6061, 0x6064, 0x606C, 0x607A, 0x6085)
+"""The CiA 402 objects the joint drives' EDS must have."""
+STATUS_EVERY = 10
+"""TPDO2 (the statusword) goes out on change and at least every this many servo periods."""
 HEARTBEAT_PERIOD = 0.05
 """Heartbeat producer period (s of wall time), as 0x1017 of the EDS."""
 
@@ -170,20 +180,55 @@ class PowerSource:
 # --- the servo drives --------------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class TargetWrite:
+    """RPDO1 of node ``node``: target position 0x607A in counts."""
+
+    node: int
+    counts: int
+
+
+@dataclass(frozen=True)
+class ControlWrite:
+    """RPDO2 of node ``node`` (controlword 0x6040, modes of operation 0x6060), or an SDO
+    download of one of them (the other None)."""
+
+    node: int
+    controlword: int | None
+    mode: int | None
+
+
+@dataclass(frozen=True)
+class NodeReset:
+    """An NMT reset node for ``node``: the drive reboots."""
+
+    node: int
+
+
+DriveCommand = TargetWrite | ControlWrite | NodeReset
+
+
 class ServoDrives:
-    """The five joint drives on one CAN channel.
+    """The five joint drives on one CAN channel, each a CiA 402 drive
+    (:class:`chcos.apps.weld.servo.JointDrive`, in :attr:`drives` by node id).
 
     A canopen ``Network`` of ``LocalNode`` objects answers SDO and NMT and produces heartbeats on
-    wall time (its own notifier thread). A second python-can handle on the same channel is read
-    only synchronously by :meth:`drain` (NMT and RPDO frames, in arrival order) and sends the
-    TPDOs, so the simulated-time side never depends on thread timing. Raises :class:`BusError`
-    if the channel cannot be opened, :class:`ConfigError` for an unreadable EDS.
+    wall time (its own notifier thread); its object dictionaries hold what the drives show, so
+    an SDO upload of 0x6041, 0x6061, 0x6064, 0x606C or 0x603F answers the drive's present value.
+    A second python-can handle on the same channel is read only synchronously by :meth:`drain`
+    (NMT, RPDO1 targets and RPDO2 controlwords, in arrival order) and sends the TPDOs, so the
+    simulated-time side never depends on thread timing. SDO downloads of 0x6040, 0x6060 or
+    0x605A (a master without the RPDO) are taken in at the next :meth:`drain`, after the
+    frames. Raises :class:`BusError` if the channel cannot be opened, :class:`ConfigError` for
+    an unreadable EDS or one without the CiA 402 objects.
     """
 
     def __init__(self, interface: str, channel: str, eds: Path = WELD_EDS,
                  heartbeat_period: float = HEARTBEAT_PERIOD) -> None:
         self._hb_ms = max(1, round(heartbeat_period * 1000))
         self.nodes: dict[int, Any] = {}
+        self.drives: dict[int, JointDrive] = {}
+        self._sdo_writes: deque[DriveCommand] = deque()
         network: Any = canopen.Network()
         network.NOTIFIER_CYCLE = 0.05
         for nid in NODE_IDS:
@@ -191,9 +236,17 @@ class ServoDrives:
                 od = canopen.import_od(str(eds), nid)
             except Exception as exc:  # canopen raises assorted types for a bad EDS
                 raise ConfigError(_where("canopen", f"cannot read EDS {eds}: {exc}")) from exc
+            missing = [f"0x{i:04X}" for i in DRIVE_OBJECTS if i not in od]
+            if missing:
+                raise ConfigError(_where("canopen", f"EDS {eds} lacks the CiA 402 objects "
+                                                    f"{', '.join(missing)}"))
             node: Any = canopen.LocalNode(nid, od)
+            node.add_write_callback(functools.partial(self._on_sdo_write, nid))
             network.add_node(node)
             self.nodes[nid] = node
+            self.drives[nid] = JointDrive(
+                nid, quick_stop_option=_default(od, 0x605A),
+                quick_stop_deceleration=_default(od, 0x6085))
         self._network = network
         try:
             network.connect(interface=interface, channel=channel)
@@ -201,11 +254,13 @@ class ServoDrives:
             raise BusError(_where("canopen", f"cannot open {interface} channel {channel!r}: "
                                              f"{exc}")) from exc
         try:
-            # only NMT (0x000) and RPDO1 (0x200 + node) are read here: SocketCAN filters the
-            # rest (heartbeats, SDO) out in the kernel. Not elsewhere: python-can filters in
-            # software, and recv(0) then stops at the first frame that does not match
+            # only NMT (0x000), RPDO1 (0x200 + node) and RPDO2 (0x300 + node) are read here:
+            # SocketCAN filters the rest (heartbeats, SDO) out in the kernel. Not elsewhere:
+            # python-can filters in software, and recv(0) then stops at the first frame that
+            # does not match
             filters = [{"can_id": 0x000, "can_mask": 0x7FF, "extended": False},
-                       {"can_id": 0x200, "can_mask": 0x7F8, "extended": False}]
+                       {"can_id": 0x200, "can_mask": 0x7F8, "extended": False},
+                       {"can_id": 0x300, "can_mask": 0x7F8, "extended": False}]
             self.pdo_bus = can.Bus(interface=interface, channel=channel,
                                    can_filters=filters if interface == "socketcan" else None)
         except (can.CanError, OSError, ValueError, ImportError) as exc:
@@ -217,16 +272,34 @@ class ServoDrives:
         self.beating = dict.fromkeys(NODE_IDS, True)
         self.tpdos_sent = 0
         self.send_errors = 0
-        for node in self.nodes.values():
+        self._shown: dict[int, tuple[int, int, int] | None] = dict.fromkeys(NODE_IDS)
+        self._slots = 0
+        for nid, node in self.nodes.items():
             node.data_store.setdefault(0x1017, {})[0] = \
                 node.object_dictionary[0x1017].encode_raw(self._hb_ms)
+            self._store(nid)
             node.nmt.state = "INITIALISING"
             node.nmt.state = "PRE-OPERATIONAL"  # boot-up message, heartbeat starts
 
-    def drain(self) -> list[tuple[int, int]]:
-        """Read every frame waiting on the synchronous handle: apply NMT commands to the PDO
-        state, and return the RPDO1 targets ``(node, counts)`` of OPERATIONAL nodes in order."""
-        targets: list[tuple[int, int]] = []
+    def _on_sdo_write(self, nid: int, *, index: int, subindex: int, od: Any,
+                      data: bytes) -> None:
+        """An SDO download (canopen's notifier thread): queued for the next :meth:`drain`."""
+        if subindex != 0:
+            return
+        if index == 0x6040:
+            self._sdo_writes.append(ControlWrite(nid, struct.unpack("<H", bytes(data[:2]))[0],
+                                                 None))
+        elif index == 0x6060:
+            self._sdo_writes.append(ControlWrite(nid, None, struct.unpack("<b",
+                                                                          bytes(data[:1]))[0]))
+        elif index == 0x605A:
+            self.drives[nid].quick_stop_option = struct.unpack("<h", bytes(data[:2]))[0]
+
+    def drain(self) -> list[DriveCommand]:
+        """Read every frame waiting on the synchronous handle: apply NMT start/stop to the PDO
+        state, and return what the drives are to apply, in order: NMT resets, RPDO1 targets and
+        RPDO2 controlwords of OPERATIONAL nodes, then SDO downloads received meanwhile."""
+        out: list[DriveCommand] = []
         while True:
             try:
                 msg = self.pdo_bus.recv(0)
@@ -243,22 +316,84 @@ class ServoDrives:
                 for nid in NODE_IDS:
                     if target in (0, nid):
                         self.operational[nid] = cmd == 0x01
+                        if cmd == 0x81:
+                            out.append(NodeReset(nid))
             elif cob - 0x200 in self.nodes and len(data) >= 4:
                 nid = cob - 0x200
                 if self.operational[nid]:
                     counts = struct.unpack_from("<i", data)[0]
                     self.nodes[nid].data_store.setdefault(0x607A, {})[0] = data[:4]
-                    targets.append((nid, counts))
-        return targets
+                    out.append(TargetWrite(nid, counts))
+            elif cob - 0x300 in self.nodes and len(data) >= 3:
+                nid = cob - 0x300
+                if self.operational[nid]:
+                    cw, mode = struct.unpack_from("<Hb", data)
+                    out.append(ControlWrite(nid, cw, mode))
+        while self._sdo_writes:
+            out.append(self._sdo_writes.popleft())
+        return out
+
+    def apply(self, command: DriveCommand) -> bool:
+        """Apply one command of :meth:`drain` to its drive; for a target, True if the drive
+        took it (OPERATION ENABLED in CSP)."""
+        drive = self.drives[command.node]
+        match command:
+            case TargetWrite(_, counts):
+                return drive.target(counts)
+            case ControlWrite(_, cw, mode):
+                if cw is not None:
+                    drive.controlword(cw)
+                if mode is not None:
+                    drive.mode(mode)
+            case NodeReset():
+                drive.reboot()
+        return True
+
+    def step(self, dt: float, model: WeldCell, torque: bool) -> None:
+        """Advance every drive ``dt`` s and command its joint of ``model`` (held where it
+        stands unless OPERATION ENABLED with ``torque`` from the relay, or quick-stopping)."""
+        for j, nid in enumerate(NODE_IDS):
+            goal = self.drives[nid].step(dt, model.joints[j] / POSITION_SCALE, torque)
+            if goal is None:
+                model.targets[j] = model.joints[j]
+                continue
+            try:
+                model.set_joint_target(j + 1, goal * POSITION_SCALE)
+            except DeviceError:
+                model.targets[j] = model.joints[j]
+
+    def _store(self, nid: int, position: int | None = None) -> None:
+        """Show drive ``nid``'s values in its object dictionary (what an SDO upload answers)."""
+        drive, store = self.drives[nid], self.nodes[nid].data_store
+        store.setdefault(0x6041, {})[0] = struct.pack("<H", drive.statusword)
+        store.setdefault(0x6061, {})[0] = struct.pack("<b", drive.mode_display)
+        store.setdefault(0x603F, {})[0] = struct.pack("<H", drive.error_code & 0xFFFF)
+        store.setdefault(0x606C, {})[0] = struct.pack("<i", _int32(drive.velocity))
+        if position is not None:
+            store.setdefault(0x6064, {})[0] = struct.pack("<i", position)
 
     def send_tpdo(self, nid: int, counts: int) -> None:
-        """Send TPDO1 of node ``nid`` (position actual ``counts``) and keep it in 0x6064."""
-        counts = max(-(2**31), min(2**31 - 1, counts))
-        data = struct.pack("<i", counts)
-        self.nodes[nid].data_store.setdefault(0x6064, {})[0] = data
+        """Send TPDO1 of node ``nid`` (position actual ``counts``, velocity actual) and keep
+        them in 0x6064/0x606C."""
+        counts = _int32(counts)
+        data = struct.pack("<ii", counts, _int32(self.drives[nid].velocity))
+        self._store(nid, counts)
+        self._send(0x180 + nid, data)
+
+    def send_status(self, nid: int, force: bool = False) -> None:
+        """Send TPDO2 of node ``nid`` (statusword, modes display, error code) if it changed
+        since the last one, or ``force``."""
+        drive = self.drives[nid]
+        shown = (drive.statusword, drive.mode_display, drive.error_code & 0xFFFF)
+        self._store(nid)
+        if not force and shown == self._shown[nid]:
+            return
+        self._shown[nid] = shown
+        self._send(0x280 + nid, struct.pack("<HbH", *shown))
+
+    def _send(self, cob: int, data: bytes) -> None:
         try:
-            self.pdo_bus.send(can.Message(arbitration_id=0x180 + nid, data=data,
-                                          is_extended_id=False))
+            self.pdo_bus.send(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
             self.tpdos_sent += 1
         except (can.CanError, OSError):
             self.send_errors += 1
@@ -288,6 +423,17 @@ class ServoDrives:
             self._network.disconnect()
         with contextlib.suppress(Exception):
             self.pdo_bus.shutdown()
+
+
+def _default(od: Any, index: int) -> int:
+    """The EDS default of integer object ``index`` (0 if it has none)."""
+    var: Any = od.get_variable(index, 0)
+    default = None if var is None else var.default
+    return int(default) if isinstance(default, int) else 0
+
+
+def _int32(value: int) -> int:
+    return max(-(2**31), min(2**31 - 1, int(value)))
 
 
 # --- the raw CAN sensors -----------------------------------------------------------------------

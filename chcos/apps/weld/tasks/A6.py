@@ -1,16 +1,35 @@
-"""A6 - level 1: stop/memorize position (A6.c).
+"""A6 - level 1: stop/memorize position (A6.c), and the joint drives' power.
 
-Command ``{"stop": true}`` drops ``drives_enable`` (the motors stop where they are);
-``{"memorize": tag}`` stores the present theta1..theta5 and T5 under ``tag`` in the world model,
-where other tasks ask for it (``ctx.ask("A6", "position", tag)``). Completes with the stored
-record ``{"tag", "pos", "yaw", "thetas", "t"}``. Raises SensorFailure if a joint sensor has failed.
+A6 owns the joint drives, CiA 402 axes ``joint1``..``joint5``, and the safe-torque-off relay
+``drives_enable``. Its command is a :class:`chcos.apps.weld.tasks.common.DrivesCommand`:
+
+* ``stop`` - quick-stop the joint drives (each decelerates; the stop is confirmed by the drive's
+  statusword; a drive already in its safe stop after an e-stop joins it) and drop the relay;
+* ``enable`` - switch the relay on, then put each drive in cyclic synchronous position and
+  enable it (confirmed by its statusword): the joints follow the targets A4 streams;
+* ``memorize`` tag - store the present theta1..theta5 and T5 under ``tag`` in the world model,
+  where other tasks ask for it (``ctx.ask("A6", "position", tag)``).
+
+No command (None) memorizes under ``last``. Completes with the stored record ``{"tag", "pos",
+"yaw", "thetas", "t", "stopped", "drives"}`` (``drives``: each drive's state after a stop or an
+enable). Raises MessageError for a command of another type, SensorFailure if a joint sensor has
+failed, ServoFailure naming a drive that did not stop or enable (the relay is then off). While A6
+runs it owns the axes: its abnormal completion runs their safe stop (quick stop, then disable
+voltage).
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-from chcos.apps.weld.tasks.common import as_dict, latest, pose_of
+from chcos.apps.weld.tasks.common import (
+    AXES,
+    DrivesCommand,
+    enable_joints,
+    latest,
+    pose_of,
+    quick_stop_joints,
+)
 from chcos.errors import MessageError
 from chcos.user.context import TaskContext
 from chcos.user.worldmodel import WorldModel, task
@@ -36,15 +55,27 @@ class MemoryModel(WorldModel):
 
 @task(world_model=MemoryModel)
 async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
-    """Stop and/or memorize, then complete with the memorized record."""
-    cmd = as_dict(command)
-    if cmd.get("stop"):
-        ctx.write("drives_enable", 0.0)
+    """Stop, enable and/or memorize, then complete with the memorized record."""
+    match command:
+        case DrivesCommand():
+            cmd = command
+        case None:
+            cmd = DrivesCommand()
+        case _:
+            raise MessageError(f"A6: expected a DrivesCommand (stop, enable, memorize), got "
+                               f"{command!r}")
+    drives: dict[str, str] = {}
+    if cmd.stop:
+        drives = await quick_stop_joints(ctx, "A6")
+    if cmd.enable:
+        await enable_joints(ctx, "A6")
+        drives = {name: str(getattr(ctx.axis(name).state, "name", "unknown")) for name in AXES}
     thetas = [float(await latest(ctx, f"theta{j}", timeout=0.1)) for j in range(1, 6)]
     pose = pose_of(thetas)
-    record = {"tag": str(cmd.get("memorize", "last")), "pos": pose.position, "yaw": pose.yaw,
-              "thetas": thetas, "t": ctx.now, "stopped": bool(cmd.get("stop"))}
-    positions: dict[str, Any] = ctx.world.sensory.setdefault("positions", {})
-    positions[str(record["tag"])] = record
-    positions["last"] = record
+    record = {"tag": cmd.memorize or "last", "pos": pose.position, "yaw": pose.yaw,
+              "thetas": thetas, "t": ctx.now, "stopped": cmd.stop, "drives": drives}
+    if cmd.memorize is not None:
+        positions: dict[str, Any] = ctx.world.sensory.setdefault("positions", {})
+        positions[cmd.memorize] = record
+        positions["last"] = record
     return record

@@ -1,7 +1,9 @@
 """B2 - level 2: stop / assassin's arm (B2.c).
 
-Stops the servomotors (A4 ``stop``: drives off, joints held), turns the voltage off (A2), the
-wire feed off (A5) and the gas off (A3), in that order, and completes with what each answered.
+Stops the servomotors (A6 ``stop``: the joint drives quick-stop, then the safe-torque-off relay
+drops; A4 ``stop``: the joint targets held where the joints stand), turns the voltage off (A2),
+the wire feed off (A5) and the gas off (A3), in that order, and completes with what each
+answered.
 Used by the assassin E1 at top priority (its links to the A tasks are set high by setpri, so it
 pre-empts whoever owns them). Raises WeldTaskError naming the A task that did not comply.
 """
@@ -10,11 +12,12 @@ from __future__ import annotations
 
 from typing import Any
 
-from chcos.apps.weld.tasks.common import WeldTaskError
+from chcos.apps.weld.tasks.common import DrivesCommand, WeldTaskError
 from chcos.user.context import TaskContext
 
-STEPS = (("A4", {"op": "stop"}), ("A2", {"volts": 0.0}), ("A5", {"speed": 0.0}),
-         ("A3", {"gas": "off"}))
+STEPS: tuple[tuple[str, Any], ...] = (
+    ("A6", DrivesCommand(stop=True, memorize=None)), ("A4", {"op": "stop"}),
+    ("A2", {"volts": 0.0}), ("A5", {"speed": 0.0}), ("A3", {"gas": "off"}))
 
 
 async def main(ctx: TaskContext, command: Any) -> dict[str, str]:

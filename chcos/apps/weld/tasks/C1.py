@@ -16,8 +16,9 @@ the tip freezes (its commander can cut the wire feed), and ``{"tip": "free"}`` 1
 example that keeps firing with no freeze counts false alarms and is forgotten. Every reaction is
 kept in the world model's ``reactions`` (``{"t", "kind": "learned" | "hard-coded"}``).
 
-``{"op": "idle"}`` stops watching. ``{"op": "unstick"}``: stop the motors and memorize the
-position (A6), turn the voltage off (A2), move the tip ``lift`` mm (default 10) straight up,
+``{"op": "idle"}`` stops watching. ``{"op": "unstick"}``: stop the motors (the joint drives
+quick-stop) and memorize the position (A6), turn the voltage off (A2), enable the drives again
+(A6), move the tip ``lift`` mm (default 10) straight up,
 90 degrees away from the gap (A4), and check that it moved. Completes with ``{"freed": true,
 "memorized": record, "lift"}``; raises TipStillStuck if the tip did not come free,
 MotionFailed if a lower task failed.
@@ -28,6 +29,7 @@ from __future__ import annotations
 from typing import Any
 
 from chcos.apps.weld.tasks.common import (
+    DrivesCommand,
     MotionFailed,
     TipStillStuck,
     as_dict,
@@ -118,7 +120,7 @@ async def _watch(ctx: TaskContext) -> None:
 async def _unstick(ctx: TaskContext, lift: float) -> dict[str, Any]:
     wm = ctx.world
     wm.command["unstick"] = "stopping"
-    mem = await ctx.call("A6", {"stop": True, "memorize": "stuck"})
+    mem = await ctx.call("A6", DrivesCommand(stop=True, memorize="stuck"))
     if not mem.ok:
         raise MotionFailed(f"C1: A6 could not stop/memorize: {mem.error}")
     off = await ctx.call("A2", {"volts": 0.0})
@@ -126,6 +128,9 @@ async def _unstick(ctx: TaskContext, lift: float) -> dict[str, Any]:
         raise MotionFailed(f"C1: A2 could not turn the voltage off: {off.error}")
     record = await ctx.ask("A6", "position", "stuck")
     p0 = record["pos"]
+    on = await ctx.call("A6", DrivesCommand(enable=True, memorize=None))
+    if not on.ok:
+        raise MotionFailed(f"C1: A6 could not enable the joint drives again: {on.error}")
     wm.command["unstick"] = "lifting"
     up = await ctx.call("A4", {"op": "move", "p": [p0[0], p0[1], p0[2] + lift],
                                "yaw": record["yaw"], "speed": 10.0})

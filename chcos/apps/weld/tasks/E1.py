@@ -1,7 +1,8 @@
 """E1 - level 5: stop / assassin (E1.c), role ``assassin``.
 
 Waits for an alarm from the exception task D3. On one, at top priority: e-stop (every actuator
-with a safe value gets it at once: drives off, voltage, wire and gas to 0), suspend the command
+with a safe value gets it at once: the relay drives_enable off, voltage, wire and gas to 0, and
+each joint drive's safe stop: quick stop, then disable voltage once it stands), suspend the command
 tasks that could command motion or the arc again (D1, D2, C1, C2, B1, B3, B4, B5), then call B2
 to stop the motors, voltage and gas through the level-1 tasks (so none of them re-applies an old
 set-point) and A6 to memorize the position. Each reaction is kept in the world model
@@ -12,6 +13,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from chcos.apps.weld.tasks.common import DrivesCommand
 from chcos.errors import MessageError
 from chcos.user.context import TaskContext
 from chcos.user.worldmodel import WorldModel, task
@@ -54,6 +56,6 @@ async def main(ctx: TaskContext, command: Any) -> None:
         reactions.append(record)
         stop = await ctx.call("B2")
         record["b2"] = stop.result if stop.ok else f"{stop.status.value}: {stop.error}"
-        mem = await ctx.call("A6", {"memorize": "alarm"})
+        mem = await ctx.call("A6", DrivesCommand(memorize="alarm"))
         record["position"] = mem.result["pos"] if mem.ok else f"{mem.status.value}: {mem.error}"
         record["done"] = ctx.now

@@ -1,13 +1,15 @@
 """E2 - level 5: the job (started by the host with ``invoke E2``).
 
-Inspect the gap (D1); if the inspection is OK, weld it (D2) starting from the start D1 found;
+Switch the joint drives on (A6: the safe-torque-off relay, then each CiA 402 drive enabled);
+inspect the gap (D1); if the inspection is OK, weld it (D2) starting from the start D1 found;
 then go home (B3). Meanwhile it listens to the exception task D3: an alarm aborts the job at
 once (the assassin E1 has made the cell safe; E2 does not move it again). Command or install
 parameters: ``start`` [x, y] (probable start of the gap, mm), ``heading`` (rad), ``z`` (tip
 height, mm), ``home`` [x, y, z]; ``inspect_only`` skips the weld.
 
 Completes with ``{"outcome": "welded" | "inspection failed" | "inspection aborted" |
-"weld failed" | "aborted", "reason", "inspection", "weld", "home"}``; the phase and the
+"weld failed" | "drives failed" | "aborted", "reason", "drives", "inspection", "weld", "home"}``;
+the phase and the
 outcome are in the world model (``phase``, ``outcome``).
 """
 
@@ -16,7 +18,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from chcos.apps.weld.tasks.common import as_dict, param
+from chcos.apps.weld.tasks.common import DrivesCommand, as_dict, param
 from chcos.tables.messages import Completion
 from chcos.user.context import TaskContext
 from chcos.user.worldmodel import WorldModel, task
@@ -34,7 +36,7 @@ class Alarm(Exception):
         self.alarm = alarm
 
 
-async def _run(ctx: TaskContext, port: str, command: dict[str, Any]) -> Completion:
+async def _run(ctx: TaskContext, port: str, command: Any) -> Completion:
     """Invoke ``port`` and wait for its completion or an alarm from D3, whichever comes first
     (no polling: E2 runs only on completions and alarms)."""
     await ctx.invoke(port, command)
@@ -57,9 +59,17 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     where = {"start": [float(v) for v in param(ctx, cmd, "start", [542.0, -164.0])],
              "heading": float(param(ctx, cmd, "heading", math.pi / 2)),
              "z": float(param(ctx, cmd, "z", 10.0))}
-    out: dict[str, Any] = {"outcome": "", "reason": "", "inspection": None, "weld": None,
-                           "home": None}
+    out: dict[str, Any] = {"outcome": "", "reason": "", "drives": None, "inspection": None,
+                           "weld": None, "home": None}
     try:
+        wm.command["phase"] = "drives"
+        done = await _run(ctx, "A6", DrivesCommand(enable=True, memorize="start"))
+        out["drives"] = done.result["drives"] if done.ok else done.error
+        if not done.ok:
+            out.update(outcome="drives failed", reason=done.error)
+            wm.command.update(phase="finished", outcome=out)
+            ctx.put(out)
+            return out
         wm.command["phase"] = "inspect"
         done = await _run(ctx, "D1", dict(where))
         out["inspection"] = done.result if done.ok else done.error

@@ -10,19 +10,23 @@ recognise patterns whatever task sent it):
   A7 ``{"range", "pattern", "centre", "width", "start", "end"}``;
 * B1 ``{"weld": "on" | "off" | "fail", "reason"}``, C1 ``{"tip": "stuck" | "free"}``;
 * D3 ``{"alarm": kind, "detail": text, "t": time}`` (read by E1 and E2).
+
+Commands are dicts too, but A6's: a :class:`DrivesCommand` (stop, enable, memorize).
 """
 
 from __future__ import annotations
 
 import math
+import types
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Generator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from chcos.apps.weld.kinematics import Arm, ToolPose
 from chcos.errors import ChcosError, SensorFailure
 from chcos.user.context import Port, TaskContext
+from drivers.codecs.cia402 import Cia402Error, Mode, Op, Result, State
 
 ARM = Arm()
 """The welding arm's geometry (the same DH table as the cell): T5 and inverse kinematics."""
@@ -75,6 +79,77 @@ class ArcFailure(WeldTaskError):
 
 class WeldAborted(WeldTaskError):
     """A weld or an inspection stopped because a lower task failed; names that task."""
+
+
+# ---- the joint drives (CiA 402 axes joint1..joint5) --------------------------------------------
+AXES = tuple(f"joint{j}" for j in range(1, 6))
+"""The joint drives as axes (``ctx.axis``); A6 has them on its output ports (it owns them while
+it runs), beside the safe-torque-off relay ``drives_enable``."""
+
+
+@dataclass(frozen=True)
+class DrivesCommand:
+    """A command of A6 (stop/memorize position, and the joint drives' power), in this order:
+    ``stop`` quick-stops the joint drives and drops the relay; ``enable`` switches the relay on
+    and enables the drives; ``memorize`` stores the position under that tag (None: nothing
+    memorized)."""
+
+    stop: bool = False
+    enable: bool = False
+    memorize: str | None = "last"
+
+
+@types.coroutine
+def confirmed(command: Any) -> Generator[Any, Any, Result]:
+    """Await an axis command (``ctx.axis(name).enable()``...) until the drive confirmed it: its
+    :class:`drivers.codecs.cia402.Result`. Raises what the command raises."""
+    result: Result = yield from command
+    return result
+
+
+def joints_enabled(ctx: TaskContext) -> bool:
+    """True if every joint drive confirmed OPERATION ENABLED in CSP."""
+    return all(ctx.axis(name).state is State.OPERATION_ENABLED
+               and ctx.axis(name).mode == Mode.CSP for name in AXES)
+
+
+async def enable_joints(ctx: TaskContext, who: str) -> None:
+    """Switch the safe-torque-off relay ``drives_enable`` on, then put every joint drive in
+    CSP and enable it, one after the other, each confirmed by its statusword. Raises
+    ServoFailure naming the drive, the state it reached and 0x603F when one is not enabled
+    (or is busy stopping)."""
+    ctx.write("drives_enable", 1.0)
+    for name in AXES:
+        axis = ctx.axis(name)
+        try:
+            if axis.mode != Mode.CSP:
+                await confirmed(axis.set_mode())
+            if axis.state is not State.OPERATION_ENABLED:
+                await confirmed(axis.enable())
+        except Cia402Error as exc:
+            raise ServoFailure(f"{who}: joint drive {name} not enabled: {exc}") from exc
+
+
+async def quick_stop_joints(ctx: TaskContext, who: str) -> dict[str, str]:
+    """Quick-stop every joint drive that is enabled (decelerating; one already in its safe
+    stop, after an e-stop, joins that), each confirmed by its statusword, then drop the relay.
+    Returns each drive's state name afterwards. Raises ServoFailure naming a drive that did
+    not stop."""
+    states: dict[str, str] = {}
+    for name in AXES:
+        axis = ctx.axis(name)
+        if axis.state is State.OPERATION_ENABLED or axis.status.busy is Op.SAFE_STOP:
+            try:
+                await confirmed(axis.quick_stop())
+            except Cia402Error as exc:
+                if axis.state is State.OPERATION_ENABLED and axis.status.busy is not Op.SAFE_STOP:
+                    ctx.write("drives_enable", 0.0)
+                    raise ServoFailure(f"{who}: joint drive {name} did not stop: {exc}") \
+                        from exc
+        state = axis.state
+        states[name] = "unknown" if state is None else state.name
+    ctx.write("drives_enable", 0.0)
+    return states
 
 
 def as_dict(command: Any) -> dict[str, Any]:
