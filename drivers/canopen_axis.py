@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import Any
 
+from drivers.base import DriverHost
 from drivers.codecs.cia402 import (
     PREEMPTING,
     Actions,
@@ -332,3 +333,23 @@ def _reading(values: Mapping[Obj, int], received: int | None, answer: bool) -> R
                    velocity=values.get(Obj.VELOCITY_ACTUAL),
                    error_code=values.get(Obj.ERROR_CODE),
                    received=received, answer=answer)
+
+
+def device_write(axis: AxisHost, host: DriverHost, device: str, value: Any) -> None:
+    """A Devtab write to axis ``device``'s actuator (on ``axis``): the command of code ``value``,
+    queued behind a running one. ``host.written`` once the drive confirmed it; otherwise
+    ``host.write_failed`` naming the state reached, or why ``value`` is no command code."""
+
+    def done(outcome: Result | Exception) -> None:
+        if isinstance(outcome, Result) and outcome.ok:
+            host.written(device, value)
+        else:
+            host.write_failed(device, value, f"axis {device}: {outcome}"
+                              if isinstance(outcome, Result) else str(outcome))
+
+    try:
+        code = AxisCode(int(value))
+    except (ValueError, TypeError) as exc:
+        host.write_failed(device, value, f"axis {device}: {exc}")
+        return
+    axis.command(AxisCall(CODE_OPS[code]), done, host.now(), queue=True)

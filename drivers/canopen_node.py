@@ -81,7 +81,15 @@ from chcos.errors import BusError
 from drivers import canopen_config
 from drivers.base import DriverHost, deliver_all
 from drivers.canbus import read_frames
-from drivers.canopen_axis import CODE_OPS, AxisCall, AxisCode, AxisHost, AxisStatus, Done
+from drivers.canopen_axis import (
+    CODE_OPS,
+    AxisCall,
+    AxisCode,
+    AxisHost,
+    AxisStatus,
+    Done,
+    device_write,
+)
 from drivers.canopen_events import FrameCheck, NodeEvents
 from drivers.canopen_jobs import (
     AxisCommand,
@@ -109,7 +117,7 @@ from drivers.canopen_od import (
 from drivers.canopen_remote import BootOutcome, ManagedNode, RpdoImages
 from drivers.canopen_sync import SYNC_COB_ID, SyncCycle, SyncPacer, SyncStats
 from drivers.codecs.canopen import EMCY_BASE, HEARTBEAT_BASE
-from drivers.codecs.cia402 import Obj, Result, Write, config_from_table, mode_of
+from drivers.codecs.cia402 import Obj, Write, config_from_table, mode_of
 from drivers.jobs import Job, JobOp, WorkerJobDriver
 from drivers.threaded import ReaderThread
 
@@ -636,19 +644,8 @@ class CanopenDriver(WorkerJobDriver):
             axis.poll(now)
 
     def _axis_write(self, device: str, value: Any) -> None:
-        """A Devtab write to an axis's actuator: the command of code ``value``; confirmed
-        (``written``) when the drive confirmed it, else failed naming the state reached."""
-        host = self.host
-
-        def done(outcome: Result | Exception) -> None:
-            if isinstance(outcome, Result) and outcome.ok:
-                host.written(device, value)
-            else:
-                host.write_failed(device, value, f"axis {device}: {outcome}"
-                                  if isinstance(outcome, Result) else str(outcome))
-
-        code = AxisCode(int(value))
-        self._axes[device].command(AxisCall(CODE_OPS[code]), done, host.now(), queue=True)
+        """A Devtab write to an axis's actuator (:func:`drivers.canopen_axis.device_write`)."""
+        device_write(self._axes[device], self.host, device, value)
 
     def flush(self, timeout: float) -> bool:
         """As :meth:`drivers.jobs.JobDriver.flush`, and then, while an axis runs a command (the

@@ -61,11 +61,17 @@ from chcos.apps.weld.servo import POSITION_SCALE, JointDrive
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError, ChcosError, ConfigError
 from drivers.base import Driver, DriverHost, deliver_all
-from drivers.canopen_axis import CODE_OPS, AxisCall, AxisCode, AxisHost, AxisStatus, Done
+from drivers.canopen_axis import (
+    AxisCall,
+    AxisCode,
+    AxisHost,
+    AxisStatus,
+    Done,
+    device_write,
+)
 from drivers.codecs.cia402 import (
     Cia402Error,
     Obj,
-    Result,
     Write,
     config_from_table,
     is_axis_address,
@@ -404,23 +410,8 @@ class WeldDirectDriver(Driver):
         return self.axes[device].status()
 
     def _axis_write(self, device: str, value: Any) -> None:
-        """A Devtab write to an axis's actuator: the command of code ``value``; confirmed when
-        the drive confirmed it, else failed naming the state reached."""
-        host = self.host
-
-        def done(outcome: Result | Exception) -> None:
-            if isinstance(outcome, Result) and outcome.ok:
-                host.written(device, value)
-            else:
-                host.write_failed(device, value, f"axis {device}: {outcome}"
-                                  if isinstance(outcome, Result) else str(outcome))
-
-        try:
-            code = AxisCode(int(value))
-        except (ValueError, TypeError) as exc:
-            host.write_failed(device, value, f"axis {device}: {exc}")
-            return
-        self.axes[device].command(AxisCall(CODE_OPS[code]), done, host.now(), queue=True)
+        """A Devtab write to an axis's actuator (:func:`drivers.canopen_axis.device_write`)."""
+        device_write(self.axes[device], self.host, device, value)
 
     def check_value(self, device: str, value: Any) -> str | None:
         """For an axis: why ``value`` is not a command code (None if it is)."""
