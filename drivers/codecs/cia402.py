@@ -14,8 +14,8 @@ multi-axis drives.
 
 from __future__ import annotations
 
+import itertools
 import math
-import threading
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import Enum, IntEnum
@@ -445,36 +445,33 @@ class ReceiveOrder:
     """One axis's order of events on the wire: a strictly increasing mark for every reading
     received, every SDO read asked and every controlword sent. A reading is judged against the
     controlword it follows by these marks, never by when the host got round to feeding it (a
-    TPDO can wait in a queue behind the write of a newer controlword). Thread-safe: the host's
-    reader thread marks TPDOs as they arrive, its I/O thread marks writes and SDO reads.
+    TPDO can wait in a queue behind the write of a newer controlword). Thread-safe without a
+    lock (a codec takes no I/O or threading): the marks come from one ``itertools.count``,
+    whose ``next`` is atomic, and only the host's reader thread records PDO marks (its I/O
+    thread marks writes and SDO reads, and looks PDO marks up).
 
     It also remembers, per object, the mark of the last PDO that carried it
     (:meth:`pdo_received`), so that an SDO answer asked before that PDO arrived is known to be
     older than a value still on its way to the engine."""
 
     def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._last = 0
+        self._marks = itertools.count(1)
         self._pdo: dict[Obj, int] = {}
 
     def mark(self) -> int:
         """The next mark (any thread)."""
-        with self._lock:
-            self._last += 1
-            return self._last
+        return next(self._marks)
 
     def pdo_received(self, objs: tuple[Obj, ...]) -> int:
-        """The mark of a PDO carrying ``objs``, received now (the reader thread)."""
-        with self._lock:
-            self._last += 1
-            for obj in objs:
-                self._pdo[obj] = self._last
-            return self._last
+        """The mark of a PDO carrying ``objs``, received now (the reader thread only)."""
+        mark = next(self._marks)
+        for obj in objs:
+            self._pdo[obj] = mark
+        return mark
 
     def last_pdo(self, obj: Obj) -> int:
         """The mark of the last PDO that carried ``obj`` (0: none yet)."""
-        with self._lock:
-            return self._pdo.get(obj, 0)
+        return self._pdo.get(obj, 0)
 
 
 @dataclass(frozen=True)
