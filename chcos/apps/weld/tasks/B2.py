@@ -12,11 +12,12 @@ from __future__ import annotations
 
 from typing import Any
 
-from chcos.apps.weld.tasks.common import DrivesCommand, WeldTaskError
+from chcos.apps.weld.tasks.common import WeldTaskError
+from chcos.apps.weld.tasks.messages import DrivesCommand, StopMotion
 from chcos.user.context import TaskContext
 
 STEPS: tuple[tuple[str, Any], ...] = (
-    ("A6", DrivesCommand(stop=True, memorize=None)), ("A4", {"op": "stop"}),
+    ("A6", DrivesCommand(stop=True, memorize=None)), ("A4", StopMotion()),
     ("A2", {"volts": 0.0}), ("A5", {"speed": 0.0}), ("A3", {"gas": "off"}))
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import Any
 
 from chcos.apps.weld.tasks.common import MotionFailed, as_dict, param
+from chcos.apps.weld.tasks.messages import MoveTo
 from chcos.user.context import TaskContext
 
 
@@ -18,7 +19,7 @@ async def main(ctx: TaskContext, command: Any) -> Any:
     cmd = as_dict(command)
     home = [float(v) for v in param(ctx, cmd, "home", [500.0, 0.0, 250.0])]
     speed = float(param(ctx, cmd, "speed", 100.0))
-    done = await ctx.call("A4", {"op": "move", "p": home, "yaw": 0.0, "speed": speed})
+    done = await ctx.call("A4", MoveTo(p=home, yaw=0.0, speed=speed))
     if not done.ok:
         raise MotionFailed(f"B3: going home to {home}: A4 {done.status.value}: {done.error}")
     return done.result

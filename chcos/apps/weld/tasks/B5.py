@@ -27,12 +27,13 @@ from chcos.apps.weld.tasks.common import (
     param,
     sighted,
 )
+from chcos.apps.weld.tasks.messages import MoveTo
 from chcos.errors import ReadTimeout
 from chcos.user.context import TaskContext
 
 
 async def _move(ctx: TaskContext, p: Any, yaw: float, speed: float) -> None:
-    done = await ctx.call("A4", {"op": "move", "p": p, "yaw": yaw, "speed": speed})
+    done = await ctx.call("A4", MoveTo(p=p, yaw=yaw, speed=speed))
     if not done.ok:
         raise MotionFailed(f"B5: A4 {done.status.value}: {done.error}")
 
@@ -70,8 +71,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     # creep forward until the marker leaves the sensor
     here = await latest(ctx, "A4")
     fwd = (math.cos(yaw), math.sin(yaw), 0.0)
-    await ctx.invoke("A4", {"op": "move", "p": add(here["pos"], fwd, 20.0), "yaw": yaw,
-                            "speed": 4.0})
+    await ctx.invoke("A4", MoveTo(p=add(here["pos"], fwd, 20.0), yaw=yaw, speed=4.0))
     while True:
         msg = await ctx.read("A7", timeout=6.0)
         if not sighted(msg, "start"):

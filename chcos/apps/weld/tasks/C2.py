@@ -29,6 +29,7 @@ from chcos.apps.weld.tasks.common import (
     param,
     sighted,
 )
+from chcos.apps.weld.tasks.messages import MoveTo
 from chcos.user.context import TaskContext
 from chcos.user.knowledge import Experience, Store
 from chcos.user.plans import Plan, Plans, PlansExhausted
@@ -86,8 +87,8 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
 
     wm = ctx.world
     wm.command.update(phase="approach", start=[sx, sy])
-    done = await ctx.call("A4", {"op": "move", "p": tip_for(sx, sy), "yaw": heading,
-                                 "speed": float(param(ctx, cmd, "travel", 100.0))})
+    done = await ctx.call("A4", MoveTo(p=tip_for(sx, sy), yaw=heading,
+                                       speed=float(param(ctx, cmd, "travel", 100.0))))
     if not done.ok:
         raise MotionFailed(f"C2: cannot reach the probable start {[sx, sy]}: {done.error}")
     await ctx.sleep(0.05)
@@ -99,8 +100,8 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
             ctx.put({"gap": "searching", "plan": name, "at": [sx, sy], "t": ctx.now})
             prev = (sx, sy)
             for px, py in points:
-                moved = await ctx.call("A4", {"op": "move", "p": tip_for(px, py),
-                                              "yaw": heading, "speed": speed})
+                moved = await ctx.call("A4", MoveTo(p=tip_for(px, py), yaw=heading,
+                                                    speed=speed))
                 if not moved.ok:
                     raise MotionFailed(f"C2: {name} move failed: {moved.error}")
                 searched[0] += math.hypot(px - prev[0], py - prev[1])

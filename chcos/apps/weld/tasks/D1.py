@@ -29,6 +29,7 @@ from chcos.apps.weld.tasks.common import (
     latest,
     param,
 )
+from chcos.apps.weld.tasks.messages import HoldMotion, Step
 from chcos.tables.messages import LinkStatus
 from chcos.user.context import TaskContext
 from chcos.user.worldmodel import WorldModel, task
@@ -111,8 +112,8 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
                      "width": msg.get("width"), "width_ok": width_ok, "travelled": travelled,
                      "t": ctx.now})
             d, yaw = tracker.steer(here["pos"])
-            await ctx.invoke("B4", {"d": d, "yaw": yaw, "speed": speed})
-    await ctx.call("B4", {"op": "hold"})
+            await ctx.invoke("B4", Step(d=d, yaw=yaw, speed=speed))
+    await ctx.call("B4", HoldMotion())
     outcome.update(start=start, heading=heading, length_mm=tracker.travelled,
                    width_min=min(widths, default=None), width_max=max(widths, default=None))
     wm.command.update(phase="done", outcome=outcome)

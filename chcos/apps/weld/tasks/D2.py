@@ -39,6 +39,15 @@ from chcos.apps.weld.tasks.common import (
     param,
     unit,
 )
+from chcos.apps.weld.tasks.messages import (
+    HoldMotion,
+    IdleTip,
+    Step,
+    Unstick,
+    WatchTip,
+    WeldOff,
+    WeldOn,
+)
 from chcos.errors import ReadTimeout
 from chcos.tables.messages import LinkStatus
 from chcos.user.context import TaskContext
@@ -74,9 +83,9 @@ async def _check(ctx: TaskContext, port: str) -> None:
 
 async def _shutdown(ctx: TaskContext) -> None:
     ctx.world.command["phase"] = "stopping"
-    await ctx.call("B1", {"op": "off"})
-    await ctx.call("B4", {"op": "hold"})
-    await ctx.call("C1", {"op": "idle"})
+    await ctx.call("B1", WeldOff())
+    await ctx.call("B4", HoldMotion())
+    await ctx.call("C1", IdleTip())
     ctx.world.command["phase"] = "stopped"
 
 
@@ -85,7 +94,7 @@ async def _weld_on(ctx: TaskContext, volts: float, wire: float, band: list[float
     """Turn the weld on (B1) and wait until the temperature reaches the band."""
     wm = ctx.world
     wm.command["phase"] = "strike"
-    await ctx.invoke("B1", {"op": "on", "volts": volts, "wire": wire})
+    await ctx.invoke("B1", WeldOn(volts=volts, wire=wire))
     t0 = ctx.now
     on = False
     while True:
@@ -131,7 +140,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     tracker = Tracker(float(found.result["yaw"]), float(start[2]))
     wm.predict("temp", centre, deadband, ctx.now)
     last_put = -math.inf
-    await ctx.call("C1", {"op": "watch"})
+    await ctx.call("C1", WatchTip())
     await _weld_on(ctx, volts, wire0, band, strike)
     wm.command["phase"] = "weld"
     here = await latest(ctx, "A4")
@@ -204,7 +213,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
         if ctx.now - last_steer >= steer_s:
             last_steer = ctx.now
             d, yaw = tracker.steer(here["pos"])
-            await ctx.invoke("B4", {"d": d, "yaw": yaw, "speed": speed})
+            await ctx.invoke("B4", Step(d=d, yaw=yaw, speed=speed))
     await _shutdown(ctx)
     result = {"welded_mm": tracker.travelled, "in_band": in_band / max(1, samples),
               "unstuck": unstuck, "speed_range": speeds}
@@ -216,17 +225,17 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
 async def _unstick(ctx: TaskContext, volts: float, wire: float, band: list[float],
                    strike: float) -> None:
     """Free the tip (C1), go back down to where it stuck and restart the weld."""
-    freed = await ctx.call("C1", {"op": "unstick"})
+    freed = await ctx.call("C1", Unstick())
     if not freed.ok:
         await _shutdown(ctx)
         raise WeldAborted(f"D2: weld stopped, the tip could not be freed: {freed.error}")
     mem = freed.result["memorized"]
     here = await latest(ctx, "A4")
     back = [m - h for m, h in zip(mem["pos"], here["pos"], strict=True)]
-    down = await ctx.call("B4", {"d": unit(back), "dist": dist(mem["pos"], here["pos"]),
-                                 "speed": 10.0, "yaw": mem["yaw"]})
+    down = await ctx.call("B4", Step(d=unit(back), dist=dist(mem["pos"], here["pos"]),
+                                     speed=10.0, yaw=mem["yaw"]))
     if not down.ok:
         await _shutdown(ctx)
         raise WeldAborted(f"D2: cannot return to the weld after freeing the tip: {down.error}")
-    await ctx.call("C1", {"op": "watch"})
+    await ctx.call("C1", WatchTip())
     await _weld_on(ctx, volts, wire, band, strike)

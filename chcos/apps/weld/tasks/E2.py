@@ -18,7 +18,8 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from chcos.apps.weld.tasks.common import DrivesCommand, as_dict, param
+from chcos.apps.weld.tasks.common import as_dict, param
+from chcos.apps.weld.tasks.messages import Alarm, DrivesCommand
 from chcos.tables.messages import Completion
 from chcos.user.context import TaskContext
 from chcos.user.worldmodel import WorldModel, task
@@ -28,11 +29,11 @@ class JobModel(WorldModel):
     """E2's world model: the phase of the job and its outcome."""
 
 
-class Alarm(Exception):
+class Aborted(Exception):
     """An alarm from D3 ended the job (internal to E2)."""
 
-    def __init__(self, alarm: dict[str, Any]) -> None:
-        super().__init__(f"{alarm['alarm']}: {alarm.get('detail', '')}")
+    def __init__(self, alarm: Alarm) -> None:
+        super().__init__(f"{alarm.kind}: {alarm.detail}")
         self.alarm = alarm
 
 
@@ -45,9 +46,9 @@ async def _run(ctx: TaskContext, port: str, command: Any) -> Completion:
         if ev.kind == "completion":
             done: Completion = ev.value
             return done
-        msg = ev.value
-        if isinstance(msg, dict) and "alarm" in msg:
-            raise Alarm(msg)
+        match ev.value:
+            case Alarm() as alarm:
+                raise Aborted(alarm)
 
 
 @task(world_model=JobModel)
@@ -95,7 +96,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
         home = {"home": param(ctx, cmd, "home", [500.0, 0.0, 250.0])}
         done = await _run(ctx, "B3", home)
         out["home"] = done.result if done.ok else done.error
-    except Alarm as exc:
+    except Aborted as exc:
         out.update(outcome="aborted", reason=str(exc))
     wm.command.update(phase="finished", outcome=out)
     ctx.put(out)

@@ -9,9 +9,12 @@ recognise patterns whatever task sent it):
   "flow", "flow_ok", "valve"}``, A4 ``{"pos", "yaw", "moving", "t"}``, A5 ``{"wire", "set"}``,
   A7 ``{"range", "pattern", "centre", "width", "start", "end"}``;
 * B1 ``{"weld": "on" | "off" | "fail", "reason"}``, C1 ``{"tip": "stuck" | "free"}``;
-* D3 ``{"alarm": kind, "detail": text, "t": time}`` (read by E1 and E2).
 
-Commands are dicts too, but A6's: a :class:`DrivesCommand` (stop, enable, memorize).
+Commands between tasks and D3's alarm are typed: the dataclasses of
+:mod:`chcos.apps.weld.tasks.messages` (A6's :class:`DrivesCommand`, A4's :class:`MoveTo`...,
+B4's :class:`Step`, B1's :class:`WeldOn`/:class:`WeldOff`, C1's :class:`Unstick`..., D3's
+:class:`Alarm`). The set-point commands of A1, A2, A3, A5 and the job's commands to D1, D2, B3,
+C2, B5 are still dicts.
 """
 
 from __future__ import annotations
@@ -85,18 +88,6 @@ class WeldAborted(WeldTaskError):
 AXES = tuple(f"joint{j}" for j in range(1, 6))
 """The joint drives as axes (``ctx.axis``); A6 has them on its output ports (it owns them while
 it runs), beside the safe-torque-off relay ``drives_enable``."""
-
-
-@dataclass(frozen=True)
-class DrivesCommand:
-    """A command of A6 (stop/memorize position, and the joint drives' power), in this order:
-    ``stop`` quick-stops the joint drives and drops the relay; ``enable`` switches the relay on
-    and enables the drives; ``memorize`` stores the position under that tag (None: nothing
-    memorized)."""
-
-    stop: bool = False
-    enable: bool = False
-    memorize: str | None = "last"
 
 
 @types.coroutine
