@@ -1,16 +1,16 @@
 """B1 - level 2: turn the weld on/off (B1.c).
 
-Commands: :data:`chcos.apps.weld.tasks.messages.WeldCommand` (console: ``op=on volts=...
-wire=...``, ``op=off``). ``WeldOn(volts=V, wire=mm/s)``: gas on (A3) and wait up to
-``gas_wait`` s for the flow, then the wire feed (A5) and the voltage to its start-up value (A2); report ``{"weld": "on"}`` and
-stay active, watching the gas (A3.s) while the weld is on. ``WeldOff()``: voltage off, wire
-off, gas off, report ``{"weld": "off"}``, complete. If the gas fails (bottle empty or no flow for
+Commands: :data:`chcos.apps.weld.tasks.messages.WeldCommand` (console: ``op=on volts=... wire=...``,
+``op=off``). ``WeldOn(volts=V, wire=mm/s)``: gas on (A3) and wait up to ``gas_wait`` s for the flow,
+then the wire feed (A5) and the voltage to its start-up value (A2); report ``{"weld": "on"}`` and
+stay active, watching the gas (A3.s) while the weld is on. ``WeldOff()``: voltage off, wire off, gas
+off, report ``{"weld": "off"}``, complete. If the gas fails (bottle empty or no flow for
 ``gas_grace`` s) while on, the weld is turned off, ``{"weld": "fail", "reason"}`` is reported and
-the activation raises GasFailure (its owner sees an abnormal completion). Installed with A5
-among its inputs, B1 also watches the electrode supply (A5.s): when the spool is empty the weld
-is turned off the same way, reported as ``wire fail`` and WireFailure is raised. The world
-model answers ``welding`` (is the weld on), the context D3 asks for. A message that is not a
-WeldCommand is refused with a MessageError naming B1 and the message.
+the activation raises GasFailure (its owner sees an abnormal completion). Installed with A5 among
+its inputs, B1 also watches the electrode supply (A5.s): when the spool is empty the weld is turned
+off the same way, reported as ``wire fail`` and WireFailure is raised. The world model answers
+``welding`` (is the weld on), the context D3 asks for. A message that is not a WeldCommand is
+refused with a MessageError naming B1 and the message.
 """
 
 from __future__ import annotations

@@ -3,9 +3,9 @@
 Commands: :data:`chcos.apps.weld.tasks.messages.TipCommand` (console: ``op=watch``,
 ``op=idle``, ``op=unstick lift=...``).
 
-``WatchTip()`` or no command (the sensory part, run while D2 welds): reads the arc temperature
-(A1), the arc voltage and current (A2) and the tip position (A4). The tip is stuck when, with the voltage on,
-the arc voltage has collapsed (below 2 V) with a short-circuit current (over 200 A), or the tip
+``WatchTip()`` or no command (the sensory part, run while D2 welds): reads the arc temperature (A1),
+the arc voltage and current (A2) and the tip position (A4). The tip is stuck when, with the voltage
+on, the arc voltage has collapsed (below 2 V) with a short-circuit current (over 200 A), or the tip
 has not moved for 0.5 s although a motion is commanded while the temperature falls. Reports
 ``{"tip": "stuck" | "free", "since"}`` on every change.
 
