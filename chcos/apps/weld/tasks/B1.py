@@ -18,7 +18,15 @@ from __future__ import annotations
 from typing import Any
 
 from chcos.apps.weld.tasks.common import GasFailure, WeldTaskError, WireFailure
-from chcos.apps.weld.tasks.messages import WeldCommand, WeldOff, WeldOn, from_host
+from chcos.apps.weld.tasks.messages import (
+    SetGas,
+    SetVolts,
+    SetWire,
+    WeldCommand,
+    WeldOff,
+    WeldOn,
+    from_host,
+)
 from chcos.errors import MessageError
 from chcos.user.context import TaskContext
 from chcos.user.worldmodel import WorldModel, task
@@ -62,7 +70,9 @@ class WeldModel(WorldModel):
 async def _off(ctx: TaskContext) -> None:
     if ctx.world.command.get("weld") in ("starting", "on", "fail"):
         ctx.world.command["off_at"] = ctx.now
-    for port, cmd in (("A2", {"volts": 0.0}), ("A5", {"speed": 0.0}), ("A3", {"gas": "off"})):
+    steps: tuple[tuple[str, object], ...] = (
+        ("A2", SetVolts(volts=0.0)), ("A5", SetWire(speed=0.0)), ("A3", SetGas(gas="off")))
+    for port, cmd in steps:
         done = await ctx.call(port, cmd)
         if not done.ok:
             raise WeldTaskError(f"B1: turning the weld off, {port} answered "
@@ -101,7 +111,7 @@ async def _on(ctx: TaskContext, cmd: WeldOn) -> WeldCommand:
     gas_wait = _setting(ctx, cmd.gas_wait, "gas_wait", 1.0)
     grace = _setting(ctx, cmd.gas_grace, "gas_grace", 0.15)
     wm.command.update(weld="starting", volts=volts, wire=wire)
-    await ctx.call("A3", {"gas": "on"})
+    await ctx.call("A3", SetGas(gas="on"))
     t0 = ctx.now
     while True:
         ev = await ctx.wait_any(["A3"], commands=True, timeout=gas_wait)
@@ -113,8 +123,8 @@ async def _on(ctx: TaskContext, cmd: WeldOn) -> WeldCommand:
         if ctx.now - t0 > gas_wait:
             await _fail(ctx, f"no gas flow {gas_wait} s after the valve opened "
                              f"(bottle {_bar(gas)})")
-    await ctx.call("A5", {"speed": wire})
-    await ctx.call("A2", {"volts": volts})
+    await ctx.call("A5", SetWire(speed=wire))
+    await ctx.call("A2", SetVolts(volts=volts))
     wm.command["weld"] = "on"
     ctx.put({"weld": "on"})
     bad_since: float | None = None

@@ -42,6 +42,7 @@ from chcos.apps.weld.tasks.messages import (
     DrivesCommand,
     IdleTip,
     MoveTo,
+    SetVolts,
     TipCommand,
     Unstick,
     WatchTip,
@@ -147,7 +148,7 @@ async def _unstick(ctx: TaskContext, lift: float) -> dict[str, Any]:
     mem = await ctx.call("A6", DrivesCommand(stop=True, memorize="stuck"))
     if not mem.ok:
         raise MotionFailed(f"C1: A6 could not stop/memorize: {mem.error}")
-    off = await ctx.call("A2", {"volts": 0.0})
+    off = await ctx.call("A2", SetVolts(volts=0.0))
     if not off.ok:
         raise MotionFailed(f"C1: A2 could not turn the voltage off: {off.error}")
     record = await ctx.ask("A6", "position", "stuck")

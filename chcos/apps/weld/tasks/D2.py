@@ -42,6 +42,8 @@ from chcos.apps.weld.tasks.common import (
 from chcos.apps.weld.tasks.messages import (
     HoldMotion,
     IdleTip,
+    SetBand,
+    SetWire,
     Step,
     Unstick,
     WatchTip,
@@ -130,7 +132,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     strike = float(param(ctx, cmd, "strike", 3.0))
     centre = (band[0] + band[1]) / 2.0
     wm.command.update(phase="search", band=band, speed=speed0, travelled=0.0, unstuck=0)
-    await ctx.call("A1", {"band": band})
+    await ctx.call("A1", SetBand(band=band))
     search = {k: cmd[k] for k in ("start", "heading", "z") if k in cmd}
     found = await ctx.call("C2", search)
     if not found.ok:
@@ -168,11 +170,11 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
             retract_until = ctx.now + RETRACT_S
             ctx.put({"tip": "sticking", "travelled": travelled, "phase": "weld", "t": ctx.now})
             wm.command["retracts"] = wm.command.get("retracts", 0) + 1
-            await ctx.call("A5", {"speed": RETRACT_SHARE * wire0 * speed / speed0})
+            await ctx.call("A5", SetWire(speed=RETRACT_SHARE * wire0 * speed / speed0))
             continue
         if retract_until is not None and ctx.now >= retract_until:
             retract_until = None
-            await ctx.call("A5", {"speed": wire0 * speed / speed0})
+            await ctx.call("A5", SetWire(speed=wire0 * speed / speed0))
         if src == "C1" and msg.get("tip") == "stuck":
             ctx.put({"tip": "stuck", "travelled": travelled, "phase": "unstick", "t": ctx.now})
             unstuck += 1
@@ -199,7 +201,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
                 speed = max(0.5 * speed0, min(2.0 * speed0, speed + (0.1 if cmp == "above"
                                                                         else -0.1)))
                 speeds = [min(speeds[0], speed), max(speeds[1], speed)]
-                await ctx.call("A5", {"speed": wire0 * speed / speed0})
+                await ctx.call("A5", SetWire(speed=wire0 * speed / speed0))
         if src == "A7":
             tracker.ranged(msg.get("range"))
             if msg["centre"] is not None and msg["pattern"] in ("gap", "start", "end"):

@@ -1,6 +1,8 @@
 """messages - the typed messages the welding cell's tasks send each other: one frozen dataclass
 per message kind, received with ``match`` on the class.
 
+* the level-1 set-points :class:`SetBand` (A1), :class:`SetVolts` (A2), :class:`SetGas` (A3),
+  :class:`SetWire` (A5): a field left None leaves that set-point as it is;
 * A6's command :class:`DrivesCommand`;
 * A4's motion commands :class:`MoveTo`, :class:`HoldMotion`, :class:`StopMotion`,
   :class:`Monitor` (:data:`MotionCommand`);
@@ -23,6 +25,44 @@ from typing import Any, TypeVar
 from chcos.errors import MessageError
 
 M = TypeVar("M")
+
+
+# ---- the level-1 set-points (A1, A2, A3, A5) ---------------------------------------------------
+@dataclass(frozen=True)
+class SetBand:
+    """A1: the temperature band ``[low, high]`` (degC) the arc temperature is compared with."""
+
+    band: Sequence[float] | None = None
+
+
+@dataclass(frozen=True)
+class SetVolts:
+    """A2: the arc voltage to set and maintain (V)."""
+
+    volts: float | None = None
+
+
+@dataclass(frozen=True)
+class SetGas:
+    """A3: the gas valve, ``"on"``/``"off"`` (``True``/``1`` also mean on)."""
+
+    gas: str | bool | int | None = None
+
+    @property
+    def on(self) -> bool:
+        """True if the valve is to be opened."""
+        return self.gas in ("on", 1, True)
+
+
+@dataclass(frozen=True)
+class SetWire:
+    """A5: the wire feed ``speed`` (mm/s), or a ``step`` that advances (positive) or retards
+    (negative) it; ``empty_m``: below this much wire on the spool it is empty (None: A5's
+    install parameter, else 0.05 m)."""
+
+    speed: float | None = None
+    step: float | None = None
+    empty_m: float | None = None
 
 
 @dataclass(frozen=True)
