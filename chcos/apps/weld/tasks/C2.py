@@ -29,7 +29,7 @@ from chcos.apps.weld.tasks.common import (
     param,
     sighted,
 )
-from chcos.apps.weld.tasks.messages import MoveTo
+from chcos.apps.weld.tasks.messages import Approach, MoveTo
 from chcos.user.context import TaskContext
 from chcos.user.knowledge import Experience, Store
 from chcos.user.plans import Plan, Plans, PlansExhausted
@@ -126,7 +126,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
             ctx.put({"gap": "not found", "plan": None, "at": [sx, sy], "t": ctx.now})
             raise SearchFail(f"C2: search fail after {searched[0]:.0f} mm: {exc}") from exc
     wm.command["phase"] = "align"
-    aligned = await ctx.call("B5", {"yaw": heading})
+    aligned = await ctx.call("B5", Approach(yaw=heading))
     if not aligned.ok:
         raise WeldTaskError(f"C2: B5 could not align on the target: {aligned.error}")
     wm.command["phase"] = "at start"

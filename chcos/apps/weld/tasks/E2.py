@@ -19,7 +19,7 @@ import math
 from typing import Any
 
 from chcos.apps.weld.tasks.common import as_dict, param
-from chcos.apps.weld.tasks.messages import Alarm, DrivesCommand
+from chcos.apps.weld.tasks.messages import Alarm, DrivesCommand, GoHome
 from chcos.tables.messages import Completion
 from chcos.user.context import TaskContext
 from chcos.user.worldmodel import WorldModel, task
@@ -93,7 +93,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
             else:
                 out.update(outcome="weld failed", reason=done.error)
         wm.command["phase"] = "home"
-        home = {"home": param(ctx, cmd, "home", [500.0, 0.0, 250.0])}
+        home = GoHome(home=param(ctx, cmd, "home", [500.0, 0.0, 250.0]))
         done = await _run(ctx, "B3", home)
         out["home"] = done.result if done.ok else done.error
     except Aborted as exc:

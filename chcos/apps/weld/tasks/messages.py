@@ -8,6 +8,7 @@ per message kind, received with ``match`` on the class.
   :class:`Monitor` (:data:`MotionCommand`);
 * B4's :class:`Step` (or :class:`HoldMotion`) (:data:`StepCommand`);
 * B1's :class:`WeldOn` / :class:`WeldOff` (:data:`WeldCommand`);
+* B3's :class:`GoHome`, B5's :class:`Approach`;
 * C1's :class:`WatchTip` / :class:`IdleTip` / :class:`Unstick` (:data:`TipCommand`);
 * D3's :class:`Alarm`, read by E1 and E2.
 
@@ -121,6 +122,25 @@ class Step:
 
 StepCommand = Step | HoldMotion
 """What B4 accepts."""
+
+
+# ---- B3: go home, B5: approach target ----------------------------------------------------------
+@dataclass(frozen=True)
+class GoHome:
+    """B3: move the tip to ``home`` [x, y, z] (mm) at ``speed`` mm/s (None: B3's install
+    parameters, else [500, 0, 250] and 100 mm/s)."""
+
+    home: Sequence[float] | None = None
+    speed: float | None = None
+
+
+@dataclass(frozen=True)
+class Approach:
+    """B5: centre the tip on the start marker with tool yaw ``yaw`` (None: the yaw it has),
+    ending ``backoff`` mm before it (None: B5's install parameter, else 1.5 mm)."""
+
+    yaw: float | None = None
+    backoff: float | None = None
 
 
 # ---- B1: turn the weld on/off ------------------------------------------------------------------
