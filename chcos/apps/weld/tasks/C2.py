@@ -25,11 +25,10 @@ from chcos.apps.weld.tasks.common import (
     MotionFailed,
     SearchFail,
     WeldTaskError,
-    as_dict,
-    param,
+    setting,
     sighted,
 )
-from chcos.apps.weld.tasks.messages import Approach, MoveTo
+from chcos.apps.weld.tasks.messages import Approach, FindStart, MoveTo, from_host
 from chcos.user.context import TaskContext
 from chcos.user.knowledge import Experience, Store
 from chcos.user.plans import Plan, Plans, PlansExhausted
@@ -70,16 +69,22 @@ def raster(cx: float, cy: float, heading: float, radius: float, length: float, s
 
 async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     """Find and centre on the start-of-gap marker."""
-    cmd = as_dict(command)
-    sx, sy = (float(v) for v in param(ctx, cmd, "start", [542.0, -164.0]))
-    heading = float(param(ctx, cmd, "heading", math.pi / 2))
-    z = float(param(ctx, cmd, "z", 10.0))
-    speed = float(param(ctx, cmd, "speed", 20.0))
-    pitch = float(param(ctx, cmd, "pitch", 6.0))
-    radius = float(param(ctx, cmd, "radius", 30.0))
-    r_radius = float(param(ctx, cmd, "raster_radius", 60.0))
-    r_length = float(param(ctx, cmd, "raster_length", 40.0))
-    r_step = float(param(ctx, cmd, "raster_step", 14.0))
+    match command:
+        case FindStart():
+            cmd = command
+        case None:
+            cmd = FindStart()
+        case _:
+            cmd = from_host("C2", command, {"find": FindStart}, "find", "a FindStart")
+    sx, sy = (float(v) for v in setting(ctx, cmd.start, "start", [542.0, -164.0]))
+    heading = float(setting(ctx, cmd.heading, "heading", math.pi / 2))
+    z = float(setting(ctx, cmd.z, "z", 10.0))
+    speed = float(setting(ctx, cmd.speed, "speed", 20.0))
+    pitch = float(setting(ctx, cmd.pitch, "pitch", 6.0))
+    radius = float(setting(ctx, cmd.radius, "radius", 30.0))
+    r_radius = float(setting(ctx, cmd.raster_radius, "raster_radius", 60.0))
+    r_length = float(setting(ctx, cmd.raster_length, "raster_length", 40.0))
+    r_step = float(setting(ctx, cmd.raster_step, "raster_step", 14.0))
     ux, uy = math.cos(heading), math.sin(heading)
 
     def tip_for(px: float, py: float) -> list[float]:
@@ -88,7 +93,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     wm = ctx.world
     wm.command.update(phase="approach", start=[sx, sy])
     done = await ctx.call("A4", MoveTo(p=tip_for(sx, sy), yaw=heading,
-                                       speed=float(param(ctx, cmd, "travel", 100.0))))
+                                       speed=float(setting(ctx, cmd.travel, "travel", 100.0))))
     if not done.ok:
         raise MotionFailed(f"C2: cannot reach the probable start {[sx, sy]}: {done.error}")
     await ctx.sleep(0.05)

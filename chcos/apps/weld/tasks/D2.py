@@ -33,13 +33,13 @@ from chcos.apps.weld.tasks.common import (
     ArcFailure,
     Tracker,
     WeldAborted,
-    as_dict,
     dist,
     latest,
-    param,
+    setting,
     unit,
 )
 from chcos.apps.weld.tasks.messages import (
+    FindStart,
     HoldMotion,
     IdleTip,
     SetBand,
@@ -47,8 +47,10 @@ from chcos.apps.weld.tasks.messages import (
     Step,
     Unstick,
     WatchTip,
+    Weld,
     WeldOff,
     WeldOn,
+    from_host,
 )
 from chcos.errors import ReadTimeout
 from chcos.tables.messages import LinkStatus
@@ -121,19 +123,25 @@ async def _weld_on(ctx: TaskContext, volts: float, wire: float, band: list[float
 @task(world_model=WeldGapModel)
 async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     """Weld the gap from its start marker to its end marker."""
-    cmd = as_dict(command)
+    match command:
+        case Weld():
+            cmd = command
+        case None:
+            cmd = Weld()
+        case _:
+            cmd = from_host("D2", command, {"weld": Weld}, "weld", "a Weld")
     wm = ctx.world
-    speed0 = float(param(ctx, cmd, "speed", 5.0))
-    band = [float(v) for v in param(ctx, cmd, "band", [1450.0, 1600.0])]
-    volts = float(param(ctx, cmd, "volts", 24.0))
-    wire0 = float(param(ctx, cmd, "wire", 80.0))
-    steer_s = float(param(ctx, cmd, "steer", 0.1))
-    deadband = float(param(ctx, cmd, "deadband", 20.0))
-    strike = float(param(ctx, cmd, "strike", 3.0))
+    speed0 = float(setting(ctx, cmd.speed, "speed", 5.0))
+    band = [float(v) for v in setting(ctx, cmd.band, "band", [1450.0, 1600.0])]
+    volts = float(setting(ctx, cmd.volts, "volts", 24.0))
+    wire0 = float(setting(ctx, cmd.wire, "wire", 80.0))
+    steer_s = float(setting(ctx, cmd.steer, "steer", 0.1))
+    deadband = float(setting(ctx, cmd.deadband, "deadband", 20.0))
+    strike = float(setting(ctx, cmd.strike, "strike", 3.0))
     centre = (band[0] + band[1]) / 2.0
     wm.command.update(phase="search", band=band, speed=speed0, travelled=0.0, unstuck=0)
     await ctx.call("A1", SetBand(band=band))
-    search = {k: cmd[k] for k in ("start", "heading", "z") if k in cmd}
+    search = FindStart(start=cmd.start, heading=cmd.heading, z=cmd.z)
     found = await ctx.call("C2", search)
     if not found.ok:
         wm.command["phase"] = "aborted"

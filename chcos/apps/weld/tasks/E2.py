@@ -19,7 +19,7 @@ import math
 from typing import Any
 
 from chcos.apps.weld.tasks.common import as_dict, param
-from chcos.apps.weld.tasks.messages import Alarm, DrivesCommand, GoHome
+from chcos.apps.weld.tasks.messages import Alarm, DrivesCommand, GoHome, Inspect, Weld
 from chcos.tables.messages import Completion
 from chcos.user.context import TaskContext
 from chcos.user.worldmodel import WorldModel, task
@@ -57,9 +57,9 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     cmd = as_dict(command)
     wm = ctx.world
     wm.command.pop("outcome", None)  # a new job: the last one's outcome is history
-    where = {"start": [float(v) for v in param(ctx, cmd, "start", [542.0, -164.0])],
-             "heading": float(param(ctx, cmd, "heading", math.pi / 2)),
-             "z": float(param(ctx, cmd, "z", 10.0))}
+    start = [float(v) for v in param(ctx, cmd, "start", [542.0, -164.0])]
+    heading = float(param(ctx, cmd, "heading", math.pi / 2))
+    z = float(param(ctx, cmd, "z", 10.0))
     out: dict[str, Any] = {"outcome": "", "reason": "", "drives": None, "inspection": None,
                            "weld": None, "home": None}
     try:
@@ -72,7 +72,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
             ctx.put(out)
             return out
         wm.command["phase"] = "inspect"
-        done = await _run(ctx, "D1", dict(where))
+        done = await _run(ctx, "D1", Inspect(start=start, heading=heading, z=z))
         out["inspection"] = done.result if done.ok else done.error
         if not done.ok:
             out.update(outcome="inspection aborted", reason=done.error)
@@ -82,10 +82,9 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
             out.update(outcome="inspected")
         else:
             wm.command["phase"] = "weld"
-            start = done.result["start"]
-            weld = {**where, "start": [start[0] + 5.0 * math.cos(done.result["heading"]),
-                                       start[1] + 5.0 * math.sin(done.result["heading"])],
-                    "heading": done.result["heading"]}
+            found, gap = done.result["start"], float(done.result["heading"])
+            weld = Weld(start=[found[0] + 5.0 * math.cos(gap), found[1] + 5.0 * math.sin(gap)],
+                        heading=gap, z=z)
             done = await _run(ctx, "D2", weld)
             out["weld"] = done.result if done.ok else done.error
             if done.ok:

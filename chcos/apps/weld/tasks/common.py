@@ -155,6 +155,12 @@ def param(ctx: TaskContext, command: dict[str, Any], key: str, default: Any) -> 
     return ctx.params.get(key, default)
 
 
+def setting(ctx: TaskContext, value: Any, key: str, default: Any) -> Any:
+    """A typed command's field ``value``, else the install-time parameter ``key``, else
+    ``default`` (a field left None means: as installed)."""
+    return ctx.params.get(key, default) if value is None else value
+
+
 async def latest(ctx: TaskContext, port: Port, timeout: float = 0.5) -> Any:
     """The newest message on ``port``: a waiting one, else the last one this task saw (kept in
     its world model), else wait up to ``timeout`` s for one. Raises SensorFailure for a failed

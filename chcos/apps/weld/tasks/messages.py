@@ -9,6 +9,7 @@ per message kind, received with ``match`` on the class.
 * B4's :class:`Step` (or :class:`HoldMotion`) (:data:`StepCommand`);
 * B1's :class:`WeldOn` / :class:`WeldOff` (:data:`WeldCommand`);
 * B3's :class:`GoHome`, B5's :class:`Approach`;
+* the job's :class:`Inspect` (D1) and :class:`Weld` (D2), and their :class:`FindStart` (C2);
 * C1's :class:`WatchTip` / :class:`IdleTip` / :class:`Unstick` (:data:`TipCommand`);
 * D3's :class:`Alarm`, read by E1 and E2.
 
@@ -141,6 +142,60 @@ class Approach:
 
     yaw: float | None = None
     backoff: float | None = None
+
+
+# ---- C2, D1, D2: find the start, inspect, weld ------------------------------------------------
+# A field left None is taken from the receiver's install parameters, else its default.
+@dataclass(frozen=True)
+class FindStart:
+    """C2: find and centre on the start-of-gap marker near ``start`` [x, y] (mm), the gap
+    heading ``heading`` (rad), the tip at height ``z`` (mm); the search's speeds and sizes."""
+
+    start: Sequence[float] | None = None
+    heading: float | None = None
+    z: float | None = None
+    speed: float | None = None
+    travel: float | None = None
+    pitch: float | None = None
+    radius: float | None = None
+    raster_radius: float | None = None
+    raster_length: float | None = None
+    raster_step: float | None = None
+
+
+@dataclass(frozen=True)
+class Inspect:
+    """D1: inspect the gap from near ``start`` (heading, z as :class:`FindStart`) at ``speed``
+    mm/s; widths below ``too_narrow`` or above ``too_wide`` mm, ``confirm`` sightings in a row,
+    are defects; ``steer`` is the steering period (s)."""
+
+    start: Sequence[float] | None = None
+    heading: float | None = None
+    z: float | None = None
+    speed: float | None = None
+    too_narrow: float | None = None
+    too_wide: float | None = None
+    confirm: int | None = None
+    steer: float | None = None
+
+
+@dataclass(frozen=True)
+class Weld:
+    """D2: weld the gap from near ``start`` (heading, z as :class:`FindStart`) at ``speed``
+    mm/s, holding the arc temperature in ``band`` [low, high] degC (``deadband`` degC) with
+    ``volts`` V and ``wire`` mm/s, waiting ``strike`` s for the arc; ``steer`` is the steering
+    period (s)."""
+
+    start: Sequence[float] | None = None
+    heading: float | None = None
+    z: float | None = None
+    speed: float | None = None
+    band: Sequence[float] | None = None
+    volts: float | None = None
+    wire: float | None = None
+    steer: float | None = None
+    deadband: float | None = None
+    strike: float | None = None
 
 
 # ---- B1: turn the weld on/off ------------------------------------------------------------------
