@@ -10,11 +10,9 @@ recognise patterns whatever task sent it):
   A7 ``{"range", "pattern", "centre", "width", "start", "end"}``;
 * B1 ``{"weld": "on" | "off" | "fail", "reason"}``, C1 ``{"tip": "stuck" | "free"}``;
 
-Commands between tasks and D3's alarm are typed: the dataclasses of
-:mod:`chcos.apps.weld.tasks.messages` (A6's :class:`DrivesCommand`, A4's :class:`MoveTo`...,
-B4's :class:`Step`, B1's :class:`WeldOn`/:class:`WeldOff`, C1's :class:`Unstick`..., D3's
-:class:`Alarm`). The set-point commands of A1, A2, A3, A5 and the job's commands to D1, D2, B3,
-C2, B5 are still dicts.
+Commands (every task's) and D3's alarm are typed: the dataclasses of
+:mod:`chcos.apps.weld.tasks.messages`, received with ``match``; a console command (a dict) is
+converted at the boundary by ``messages.from_host``. Completions are still dicts.
 """
 
 from __future__ import annotations
@@ -141,18 +139,6 @@ async def quick_stop_joints(ctx: TaskContext, who: str) -> dict[str, str]:
         states[name] = "unknown" if state is None else state.name
     ctx.write("drives_enable", 0.0)
     return states
-
-
-def as_dict(command: Any) -> dict[str, Any]:
-    """A command message as a dict (None and non-dict commands give an empty dict)."""
-    return dict(command) if isinstance(command, dict) else {}
-
-
-def param(ctx: TaskContext, command: dict[str, Any], key: str, default: Any) -> Any:
-    """``key`` from the command, else from the install-time parameters, else ``default``."""
-    if key in command:
-        return command[key]
-    return ctx.params.get(key, default)
 
 
 def setting(ctx: TaskContext, value: Any, key: str, default: Any) -> Any:

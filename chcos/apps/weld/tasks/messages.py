@@ -9,6 +9,7 @@ per message kind, received with ``match`` on the class.
 * B4's :class:`Step` (or :class:`HoldMotion`) (:data:`StepCommand`);
 * B1's :class:`WeldOn` / :class:`WeldOff` (:data:`WeldCommand`);
 * B3's :class:`GoHome`, B5's :class:`Approach`;
+* the job E2's own :class:`Job` (from the host: ``invoke E2 inspect_only=true``...);
 * the job's :class:`Inspect` (D1) and :class:`Weld` (D2), and their :class:`FindStart` (C2);
 * C1's :class:`WatchTip` / :class:`IdleTip` / :class:`Unstick` (:data:`TipCommand`);
 * D3's :class:`Alarm`, read by E1 and E2.
@@ -161,6 +162,18 @@ class FindStart:
     raster_radius: float | None = None
     raster_length: float | None = None
     raster_step: float | None = None
+
+
+@dataclass(frozen=True)
+class Job:
+    """E2: the job: the gap's probable ``start`` [x, y] (mm), ``heading`` (rad) and the tip
+    height ``z`` (mm), the ``home`` [x, y, z] to return to; ``inspect_only`` skips the weld."""
+
+    start: Sequence[float] | None = None
+    heading: float | None = None
+    z: float | None = None
+    home: Sequence[float] | None = None
+    inspect_only: bool | None = None
 
 
 @dataclass(frozen=True)
