@@ -13,6 +13,7 @@ from chcos.apps.weld.tasks import A4, B1, B4, C1
 from chcos.apps.weld.tasks.messages import (
     Alarm,
     HoldMotion,
+    Job,
     Monitor,
     MoveTo,
     Step,
@@ -21,6 +22,7 @@ from chcos.apps.weld.tasks.messages import (
     WatchTip,
     WeldOff,
     WeldOn,
+    from_host,
 )
 from chcos.errors import MessageError
 
@@ -34,6 +36,8 @@ def test_console_dicts_become_the_receivers_messages() -> None:
     assert B4.step_command({"op": "hold"}) == HoldMotion()
     assert B1.weld_command({"op": "on", "volts": 20.0}) == WeldOn(volts=20.0)
     assert B1.weld_command(None) == WeldOff()
+    assert from_host("E2", {"inspect_only": True}, {"job": Job}, "job", "a Job") == \
+        Job(inspect_only=True)
     typed = Step(d=(0.0, 1.0, 0.0), dist=2.0)
     assert B4.step_command(typed) is typed  # a typed message passes as it is
 
@@ -44,6 +48,8 @@ def test_console_dicts_become_the_receivers_messages() -> None:
     (A4.motion_command, {"op": "move"}, ["A4: move:", "'p'"]),
     (B4.step_command, {"d": [1, 0, 0], "sped": 5}, ["B4: step: unknown key(s) sped",
                                                     "expected d, dist, speed, yaw"]),
+    (lambda m: from_host("E2", m, {"job": Job}, "job", "a Job"), {"inspect": True},
+     ["E2: job: unknown key(s) inspect", "inspect_only"]),
     (B1.weld_command, "on", ["B1: expected a WeldOn or WeldOff, got 'on'"]),
     (B1.weld_command, HoldMotion(), ["B1: expected a WeldOn or WeldOff", "HoldMotion()"]),
 ])
