@@ -15,6 +15,7 @@ from typing import Any
 
 from chcos.apps.weld.cell import Cell, open_cell
 from chcos.apps.weld.tasks import B4
+from chcos.apps.weld.tasks.messages import Step
 from chcos.user.context import EventKind, TaskContext
 
 M = "vcan_tests.support_weldcell"
@@ -27,7 +28,7 @@ async def faulty_b4(ctx: TaskContext, command: Any) -> Any:
     (counting the newer commands a running activation takes up as well)."""
 
     def count(cmd: Any) -> None:
-        if isinstance(cmd, dict) and "d" in cmd and float(cmd.get("speed", 0)) < 10:
+        if isinstance(cmd, Step) and cmd.speed < 10:
             n = ctx.world.command.get("weld_moves", 0) + 1
             ctx.world.command["weld_moves"] = n
             if n == FAIL_ON_WELD_MOVE:

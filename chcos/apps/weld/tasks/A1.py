@@ -14,11 +14,11 @@ from typing import Any
 
 from chcos.apps.weld.tasks.common import (
     SpikeFilter,
-    as_dict,
     await_recovery,
     clear_failure,
     report_failure,
 )
+from chcos.apps.weld.tasks.messages import SetBand, from_host
 from chcos.errors import SensorFailure
 from chcos.user.context import TaskContext
 
@@ -33,10 +33,16 @@ def compare(temp: float, band: Any) -> str | None:
 
 async def main(ctx: TaskContext, command: Any) -> None:
     """Filter, compare and report the arc temperature forever."""
-    cmd = as_dict(command)
+    match command:
+        case SetBand():
+            cmd = command
+        case None:
+            cmd = SetBand()
+        case _:
+            cmd = from_host("A1", command, {"set": SetBand}, "set", "a SetBand")
     wm = ctx.world
-    if "band" in cmd:
-        wm.command["band"] = cmd["band"]
+    if cmd.band is not None:
+        wm.command["band"] = cmd.band
     ctx.complete({"band": wm.command.get("band")})
     filt: SpikeFilter = wm.sensory.setdefault("filter", SpikeFilter())
     while True:

@@ -1,10 +1,11 @@
 """A2 - level 1: adjust and maintain the arc voltage (A2.c); voltage of the arc (A2.s).
 
-Command ``{"volts": V}`` sets the power source (``volts_set``) and is completed at once; the loop
-then maintains it: while the arc burns (read-back within 3 V of the request) a read-back more
-than 0.5 V off trims the set-point by up to 2 V. Reads ``arc_volts`` (20 Hz) and ``arc_amps``,
-filters spikes, and sends ``{"volts", "amps", "set"}`` upward. A failed sensor is reported as
-``{"fail": device}``.
+Command ``SetVolts(volts=V)`` (console: ``invoke A2 volts=V``) sets the power source (``volts_set``)
+and is completed at once; the loop then maintains it: while the arc burns (read-back within 3 V of
+the request) a read-back more than 0.5 V off trims the set-point by up to 2 V. Reads ``arc_volts``
+(20 Hz) and ``arc_amps``, filters spikes, and sends ``{"volts", "amps", "set"}`` upward. A failed
+sensor is reported as ``{"fail": device}``. Another message is refused (MessageError naming A2 and
+the message).
 """
 
 from __future__ import annotations
@@ -13,12 +14,12 @@ from typing import Any
 
 from chcos.apps.weld.tasks.common import (
     SpikeFilter,
-    as_dict,
     await_recovery,
     clear_failure,
     latest,
     report_failure,
 )
+from chcos.apps.weld.tasks.messages import SetVolts, from_host
 from chcos.errors import SensorFailure
 from chcos.user.context import TaskContext
 
@@ -27,10 +28,16 @@ TRIM_MAX = 2.0
 
 async def main(ctx: TaskContext, command: Any) -> None:
     """Set, maintain and report the arc voltage."""
-    cmd = as_dict(command)
+    match command:
+        case SetVolts():
+            cmd = command
+        case None:
+            cmd = SetVolts()
+        case _:
+            cmd = from_host("A2", command, {"set": SetVolts}, "set", "a SetVolts")
     wm = ctx.world
-    if "volts" in cmd:
-        volts = float(cmd["volts"])
+    if cmd.volts is not None:
+        volts = float(cmd.volts)
         wm.command["volts"] = volts
         wm.command["trim"] = 0.0
         ctx.write("volts_set", volts)

@@ -1,10 +1,11 @@
 """A3 - level 1: turn the shielding gas on/off (A3.c); bottle full/empty and flow on/off (A3.s).
 
-Command ``{"gas": "on" | "off"}`` switches ``gas_valve`` and is completed at once. The loop reads
-the bottle pressure ``gas_bottle`` (20 Hz) and the flow ``gas_flow`` and sends ``{"bottle",
-"empty", "flow", "flow_ok", "valve"}`` upward: the bottle is empty below ``empty_bar`` (install
-parameter, default 5 bar), the flow is good from ``min_flow`` (default 8 L/min). A failed sensor
-is reported as ``{"fail": device}``.
+Command ``SetGas(gas="on" | "off")`` (console: ``invoke A3 gas=on``) switches ``gas_valve`` and is
+completed at once. The loop reads the bottle pressure ``gas_bottle`` (20 Hz) and the flow
+``gas_flow`` and sends ``{"bottle", "empty", "flow", "flow_ok", "valve"}`` upward: the bottle is
+empty below ``empty_bar`` (install parameter, default 5 bar), the flow is good from ``min_flow``
+(default 8 L/min). A failed sensor is reported as ``{"fail": device}``. Another message is refused
+(MessageError naming A3 and the message).
 """
 
 from __future__ import annotations
@@ -12,22 +13,28 @@ from __future__ import annotations
 from typing import Any
 
 from chcos.apps.weld.tasks.common import (
-    as_dict,
     await_recovery,
     clear_failure,
     latest,
     report_failure,
 )
+from chcos.apps.weld.tasks.messages import SetGas, from_host
 from chcos.errors import SensorFailure
 from chcos.user.context import TaskContext
 
 
 async def main(ctx: TaskContext, command: Any) -> None:
     """Switch and watch the gas."""
-    cmd = as_dict(command)
+    match command:
+        case SetGas():
+            cmd = command
+        case None:
+            cmd = SetGas()
+        case _:
+            cmd = from_host("A3", command, {"set": SetGas}, "set", "a SetGas")
     wm = ctx.world
-    if "gas" in cmd:
-        on = cmd["gas"] in ("on", 1, True)
+    if cmd.gas is not None:
+        on = cmd.on
         wm.command["valve"] = on
         ctx.write("gas_valve", 1.0 if on else 0.0)
     ctx.complete({"valve": wm.command.get("valve", False)})

@@ -2,24 +2,27 @@
 
 At every sample of the joint sensors (100 Hz: theta1 paces the loop) A4 reads theta1..theta5,
 derives T5 by forward kinematics and sends ``{"pos": [x, y, z], "yaw", "moving", "t"}`` upward.
-Commands:
+Commands (:data:`chcos.apps.weld.tasks.messages.MotionCommand`; from the console, ``invoke A4
+op=move p=[x,y,z] speed=... yaw=...``, ``op=hold``...):
 
-* ``{"op": "move", "p": [x, y, z], "speed": mm/s, "yaw": rad}`` - a commanded point advances
+* ``MoveTo(p=[x, y, z], speed=mm/s, yaw=rad)`` - a commanded point advances
   along the straight line to ``p`` by ``speed * dt`` each cycle (so the speed is regulated; the
   next position is always within the thesis' 100 ms horizon) and the joint targets come from
   inverse kinematics; completes with ``{"at": pos}`` when the tip is within 0.3 mm of ``p``. A
   newer move continues from the commanded point of the last one, so segments join smoothly.
-* ``{"op": "hold"}`` - keep the joints where they are; ``{"op": "stop"}`` - also drop
-  ``drives_enable`` (safe torque off); ``{"op": "monitor"}`` or no command - just report.
+* ``HoldMotion()`` - keep the joints where they are; ``StopMotion()`` - also drop
+  ``drives_enable`` (safe torque off); ``Monitor()`` or no command - just report; these
+  complete at once with ``{"at": pos, "op": "hold" | "stop" | "monitor"}``.
 
 A newer command from the same owner while a move is under way (a repeated topen) is taken up in
 the next cycle, without a new activation. Raises ServoFailure (after dropping the drives) when a
 joint sensor fails, MotionFailed when the position cannot be reached (inverse kinematics) or the
-tip stalls for 2 s.
+tip stalls for 2 s, MessageError naming A4 and the message for anything but a motion command.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any, NoReturn
 
 from chcos.apps.weld.kinematics import UnreachableError, wrap_angle
@@ -27,11 +30,18 @@ from chcos.apps.weld.tasks.common import (
     ARM,
     MotionFailed,
     ServoFailure,
-    as_dict,
     dist,
     latest,
     pose_of,
     report_failure,
+)
+from chcos.apps.weld.tasks.messages import (
+    HoldMotion,
+    Monitor,
+    MotionCommand,
+    MoveTo,
+    StopMotion,
+    from_host,
 )
 from chcos.errors import SensorFailure
 from chcos.user.context import TaskContext
@@ -42,6 +52,10 @@ TARGETS = tuple(f"target{j}" for j in range(1, 6))
 REACHED_MM = 0.3
 STALL_S = 2.0
 YAW_RATE = 2.0
+
+MOTIONS: dict[str, type[MotionCommand]] = {
+    "move": MoveTo, "hold": HoldMotion, "stop": StopMotion, "monitor": Monitor}
+"""A4's commands by the ``op`` a console command names."""
 
 
 class PositionModel(WorldModel):
@@ -68,14 +82,13 @@ async def _next_thetas(ctx: TaskContext) -> list[float]:
 def _command(ctx: TaskContext, command: Any, thetas: list[float],
              pose: Any) -> tuple[tuple[float, float, float] | None, float, float]:
     """Take up one motion command; returns (goal or None, yaw goal, speed)."""
-    cmd = as_dict(command)
-    op = cmd.get("op", "move" if "p" in cmd else "monitor")
+    cmd = motion_command(command)
     wm = ctx.world
     pos = pose.position
-    if op == "move":
-        goal = (float(cmd["p"][0]), float(cmd["p"][1]), float(cmd["p"][2]))
-        yaw_goal = float(cmd.get("yaw", pose.yaw))
-        speed = float(cmd.get("speed", 20.0))
+    if isinstance(cmd, MoveTo):
+        goal = (float(cmd.p[0]), float(cmd.p[1]), float(cmd.p[2]))
+        yaw_goal = float(pose.yaw if cmd.yaw is None else cmd.yaw)
+        speed = float(cmd.speed)
         if speed <= 0:
             raise MotionFailed(f"A4: move to {goal} at speed {speed} mm/s: expected a speed > 0")
         try:
@@ -91,13 +104,42 @@ def _command(ctx: TaskContext, command: Any, thetas: list[float],
         ctx.write("drives_enable", 1.0)
         return goal, yaw_goal, speed
     wm.command.update(goal=None, moving=False, point=pos, yaw=pose.yaw, t=ctx.now)
-    if op in ("hold", "stop"):
-        for name, angle in zip(TARGETS, thetas, strict=True):
-            ctx.write(name, angle)
-    if op == "stop":
-        ctx.write("drives_enable", 0.0)
+    match cmd:
+        case HoldMotion():
+            op = "hold"
+            _hold(ctx, thetas)
+        case StopMotion():
+            op = "stop"
+            _hold(ctx, thetas)
+            ctx.write("drives_enable", 0.0)
+        case Monitor():
+            op = "monitor"
     ctx.complete({"at": pos, "op": op})
     return None, pose.yaw, 0.0
+
+
+def _hold(ctx: TaskContext, thetas: list[float]) -> None:
+    """Keep the joints where they stand (their targets are the angles measured)."""
+    for name, angle in zip(TARGETS, thetas, strict=True):
+        ctx.write(name, angle)
+
+
+def motion_command(command: object) -> MotionCommand:
+    """A4's command as a :data:`MotionCommand` (no command: :class:`Monitor`; a console dict
+    converted by :func:`from_host`, ``op`` defaulting to ``move`` when it has ``p``). Raises
+    MessageError naming A4 and the message for anything else."""
+    match command:
+        case MoveTo() | HoldMotion() | StopMotion() | Monitor():
+            return command
+        case None:
+            return Monitor()
+        case _:
+            return from_host("A4", command, MOTIONS, _default_op,
+                             "a MoveTo, HoldMotion, StopMotion or Monitor")
+
+
+def _default_op(raw: Mapping[str, Any]) -> str:
+    return "move" if "p" in raw else "monitor"
 
 
 @task(world_model=PositionModel)

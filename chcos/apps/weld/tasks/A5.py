@@ -1,13 +1,15 @@
 """A5 - level 1: advance/retard the electrode (wire) speed (A5.c); electrode speed (A5.s).
 
-Command ``{"speed": mm/s}`` sets the wire feed, ``{"step": mm/s}`` advances (positive) or
+Command ``SetWire(speed=mm/s)`` (console: ``invoke A5 speed=...``) sets the wire feed,
+``SetWire(step=mm/s)`` advances (positive) or
 retards (negative) it; either is completed at once. The loop reads ``wire_speed`` (20 Hz) and
 sends ``{"wire", "set"}`` upward; a failed sensor is reported as ``{"fail": "wire_speed"}``.
 
 When A5 is installed with the electrode supply ``wire_left`` (m of wire on the spool) among its
 inputs, each message also carries ``{"left": m, "empty": bool}`` (empty below ``empty_m``,
 default 0.05 m) and a failed supply sensor is reported as ``{"fail": "wire_left"}`` (and
-nothing else is sent until it reports again).
+nothing else is sent until it reports again). Another message is refused (MessageError naming
+A5 and the message).
 """
 
 from __future__ import annotations
@@ -15,13 +17,12 @@ from __future__ import annotations
 from typing import Any
 
 from chcos.apps.weld.tasks.common import (
-    as_dict,
     await_recovery,
     clear_failure,
     latest,
-    param,
     report_failure,
 )
+from chcos.apps.weld.tasks.messages import SetWire, from_host
 from chcos.errors import ReadTimeout, SensorFailure
 from chcos.user.context import TaskContext
 
@@ -30,20 +31,26 @@ WIRE_MAX = 250.0
 
 async def main(ctx: TaskContext, command: Any) -> None:
     """Set and report the electrode speed."""
-    cmd = as_dict(command)
+    match command:
+        case SetWire():
+            cmd = command
+        case None:
+            cmd = SetWire()
+        case _:
+            cmd = from_host("A5", command, {"set": SetWire}, "set", "a SetWire")
     wm = ctx.world
     speed = float(wm.command.get("speed", 0.0))
-    if "speed" in cmd:
-        speed = float(cmd["speed"])
-    if "step" in cmd:
-        speed += float(cmd["step"])
-    if "speed" in cmd or "step" in cmd:
+    if cmd.speed is not None:
+        speed = float(cmd.speed)
+    if cmd.step is not None:
+        speed += float(cmd.step)
+    if cmd.speed is not None or cmd.step is not None:
         speed = max(0.0, min(WIRE_MAX, speed))
         wm.command["speed"] = speed
         ctx.write("wire_set", speed)
     ctx.complete({"speed": speed})
     supply = "wire_left" in ctx.inputs
-    empty_m = float(param(ctx, cmd, "empty_m", 0.05))
+    empty_m = float(ctx.params.get("empty_m", 0.05) if cmd.empty_m is None else cmd.empty_m)
     while True:
         try:
             wire = float(await ctx.read("wire_speed"))

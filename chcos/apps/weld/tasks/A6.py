@@ -1,7 +1,7 @@
 """A6 - level 1: stop/memorize position (A6.c), and the joint drives' power.
 
 A6 owns the joint drives, CiA 402 axes ``joint1``..``joint5``, and the safe-torque-off relay
-``drives_enable``. Its command is a :class:`chcos.apps.weld.tasks.common.DrivesCommand`:
+``drives_enable``. Its command is a :class:`chcos.apps.weld.tasks.messages.DrivesCommand`:
 
 * ``stop`` - quick-stop the joint drives (each decelerates; the stop is confirmed by the drive's
   statusword; a drive already in its safe stop after an e-stop joins it) and drop the relay;
@@ -24,12 +24,12 @@ from typing import Any
 
 from chcos.apps.weld.tasks.common import (
     AXES,
-    DrivesCommand,
     enable_joints,
     latest,
     pose_of,
     quick_stop_joints,
 )
+from chcos.apps.weld.tasks.messages import DrivesCommand, refused
 from chcos.errors import MessageError
 from chcos.user.context import TaskContext
 from chcos.user.worldmodel import WorldModel, task
@@ -62,8 +62,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
         case None:
             cmd = DrivesCommand()
         case _:
-            raise MessageError(f"A6: expected a DrivesCommand (stop, enable, memorize), got "
-                               f"{command!r}")
+            raise refused("A6", command, "a DrivesCommand (stop, enable, memorize)")
     drives: dict[str, str] = {}
     if cmd.stop:
         drives = await quick_stop_joints(ctx, "A6")

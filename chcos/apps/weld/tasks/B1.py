@@ -1,26 +1,54 @@
 """B1 - level 2: turn the weld on/off (B1.c).
 
-``{"op": "on", "volts": V, "wire": mm/s}``: gas on (A3) and wait up to ``gas_wait`` s for the flow,
+Commands: :data:`chcos.apps.weld.tasks.messages.WeldCommand` (console: ``op=on volts=... wire=...``,
+``op=off``). ``WeldOn(volts=V, wire=mm/s)``: gas on (A3) and wait up to ``gas_wait`` s for the flow,
 then the wire feed (A5) and the voltage to its start-up value (A2); report ``{"weld": "on"}`` and
-stay active, watching the gas (A3.s) while the weld is on. ``{"op": "off"}``: voltage off, wire
-off, gas off, report ``{"weld": "off"}``, complete. If the gas fails (bottle empty or no flow for
+stay active, watching the gas (A3.s) while the weld is on. ``WeldOff()``: voltage off, wire off, gas
+off, report ``{"weld": "off"}``, complete. If the gas fails (bottle empty or no flow for
 ``gas_grace`` s) while on, the weld is turned off, ``{"weld": "fail", "reason"}`` is reported and
-the activation raises GasFailure (its owner sees an abnormal completion). Installed with A5
-among its inputs, B1 also watches the electrode supply (A5.s): when the spool is empty the weld
-is turned off the same way, reported as ``wire fail`` and WireFailure is raised. The world
-model answers ``welding`` (is the weld on), the context D3 asks for.
+the activation raises GasFailure (its owner sees an abnormal completion). Installed with A5 among
+its inputs, B1 also watches the electrode supply (A5.s): when the spool is empty the weld is turned
+off the same way, reported as ``wire fail`` and WireFailure is raised. The world model answers
+``welding`` (is the weld on), the context D3 asks for. A message that is not a WeldCommand is
+refused with a MessageError naming B1 and the message.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-from chcos.apps.weld.tasks.common import GasFailure, WeldTaskError, WireFailure, as_dict, param
+from chcos.apps.weld.tasks.common import GasFailure, WeldTaskError, WireFailure
+from chcos.apps.weld.tasks.messages import (
+    SetGas,
+    SetVolts,
+    SetWire,
+    WeldCommand,
+    WeldOff,
+    WeldOn,
+    from_host,
+)
+from chcos.errors import MessageError
 from chcos.user.context import TaskContext
 from chcos.user.worldmodel import WorldModel, task
 
 COOLING_S = 15.0
 """How long after the weld is off a hot arc region is still expected (s)."""
+
+WELD_COMMANDS: dict[str, type[WeldCommand]] = {"on": WeldOn, "off": WeldOff}
+"""B1's commands by the ``op`` a console command names."""
+
+
+def weld_command(command: object) -> WeldCommand:
+    """B1's command as a :data:`WeldCommand` (no command: :class:`WeldOff`, a console dict
+    converted by :func:`from_host`). Raises MessageError naming B1 and the message for anything
+    else."""
+    match command:
+        case WeldOn() | WeldOff():
+            return command
+        case None:
+            return WeldOff()
+        case _:
+            return from_host("B1", command, WELD_COMMANDS, "off", "a WeldOn or WeldOff")
 
 
 class WeldModel(WorldModel):
@@ -42,7 +70,9 @@ class WeldModel(WorldModel):
 async def _off(ctx: TaskContext) -> None:
     if ctx.world.command.get("weld") in ("starting", "on", "fail"):
         ctx.world.command["off_at"] = ctx.now
-    for port, cmd in (("A2", {"volts": 0.0}), ("A5", {"speed": 0.0}), ("A3", {"gas": "off"})):
+    steps: tuple[tuple[str, object], ...] = (
+        ("A2", SetVolts(volts=0.0)), ("A5", SetWire(speed=0.0)), ("A3", SetGas(gas="off")))
+    for port, cmd in steps:
         done = await ctx.call(port, cmd)
         if not done.ok:
             raise WeldTaskError(f"B1: turning the weld off, {port} answered "
@@ -62,34 +92,39 @@ async def main(ctx: TaskContext, command: Any) -> str:
     (a repeated topen, no new activation) is taken up at once: ``on`` runs the start-up again
     (gas, wire, voltage: after C1 freed a stuck tip the voltage is off), anything else turns the
     weld off and completes."""
-    cmd = as_dict(command)
-    while cmd.get("op", "off") == "on":
+    cmd = weld_command(command)
+    while isinstance(cmd, WeldOn):
         cmd = await _on(ctx, cmd)
     return await _turn_off(ctx)
 
 
-async def _on(ctx: TaskContext, cmd: dict[str, Any]) -> dict[str, Any]:
+def _setting(ctx: TaskContext, value: float | None, key: str, default: float) -> float:
+    """A WeldOn field, else B1's install parameter ``key``, else ``default``."""
+    return float(ctx.params.get(key, default) if value is None else value)
+
+
+async def _on(ctx: TaskContext, cmd: WeldOn) -> WeldCommand:
     """Start the weld and watch the gas until the owner's next command, which is returned."""
     wm = ctx.world
-    volts = float(param(ctx, cmd, "volts", 24.0))
-    wire = float(param(ctx, cmd, "wire", 80.0))
-    gas_wait = float(param(ctx, cmd, "gas_wait", 1.0))
-    grace = float(param(ctx, cmd, "gas_grace", 0.15))
+    volts = _setting(ctx, cmd.volts, "volts", 24.0)
+    wire = _setting(ctx, cmd.wire, "wire", 80.0)
+    gas_wait = _setting(ctx, cmd.gas_wait, "gas_wait", 1.0)
+    grace = _setting(ctx, cmd.gas_grace, "gas_grace", 0.15)
     wm.command.update(weld="starting", volts=volts, wire=wire)
-    await ctx.call("A3", {"gas": "on"})
+    await ctx.call("A3", SetGas(gas="on"))
     t0 = ctx.now
     while True:
         ev = await ctx.wait_any(["A3"], commands=True, timeout=gas_wait)
         if ev.kind == "command":
-            return as_dict(ev.value)
+            return await _next(ctx, ev.value)
         gas = ev.value
         if isinstance(gas, dict) and gas.get("flow_ok"):
             break
         if ctx.now - t0 > gas_wait:
             await _fail(ctx, f"no gas flow {gas_wait} s after the valve opened "
                              f"(bottle {_bar(gas)})")
-    await ctx.call("A5", {"speed": wire})
-    await ctx.call("A2", {"volts": volts})
+    await ctx.call("A5", SetWire(speed=wire))
+    await ctx.call("A2", SetVolts(volts=volts))
     wm.command["weld"] = "on"
     ctx.put({"weld": "on"})
     bad_since: float | None = None
@@ -97,7 +132,7 @@ async def _on(ctx: TaskContext, cmd: dict[str, Any]) -> dict[str, Any]:
     while True:
         ev = await ctx.wait_any(watch, commands=True)
         if ev.kind == "command":
-            return as_dict(ev.value)
+            return await _next(ctx, ev.value)
         gas = ev.value
         if ev.source == "A5":
             if isinstance(gas, dict) and gas.get("empty"):
@@ -113,6 +148,16 @@ async def _on(ctx: TaskContext, cmd: dict[str, Any]) -> dict[str, Any]:
                 await _fail(ctx, f"{what} (bottle {_bar(gas)}, flow {gas['flow']:.1f} L/min)")
         else:
             bad_since = None
+
+
+async def _next(ctx: TaskContext, command: object) -> WeldCommand:
+    """The owner's newer command while the weld is starting or on; a message that is not a
+    WeldCommand turns the weld off before it is refused (MessageError naming B1)."""
+    try:
+        return weld_command(command)
+    except MessageError:
+        await _turn_off(ctx)
+        raise
 
 
 async def _fail(ctx: TaskContext, why: str, what: str = "gas") -> None:

@@ -12,12 +12,19 @@ from __future__ import annotations
 
 from typing import Any
 
-from chcos.apps.weld.tasks.common import DrivesCommand, WeldTaskError
+from chcos.apps.weld.tasks.common import WeldTaskError
+from chcos.apps.weld.tasks.messages import (
+    DrivesCommand,
+    SetGas,
+    SetVolts,
+    SetWire,
+    StopMotion,
+)
 from chcos.user.context import TaskContext
 
 STEPS: tuple[tuple[str, Any], ...] = (
-    ("A6", DrivesCommand(stop=True, memorize=None)), ("A4", {"op": "stop"}),
-    ("A2", {"volts": 0.0}), ("A5", {"speed": 0.0}), ("A3", {"gas": "off"}))
+    ("A6", DrivesCommand(stop=True, memorize=None)), ("A4", StopMotion()),
+    ("A2", SetVolts(volts=0.0)), ("A5", SetWire(speed=0.0)), ("A3", SetGas(gas="off")))
 
 
 async def main(ctx: TaskContext, command: Any) -> dict[str, str]:

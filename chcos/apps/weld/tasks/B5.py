@@ -4,8 +4,10 @@ Centres the tip over the start-of-gap marker with the linear sensor (A7): waits 
 sighting, moves sideways by the marker's offset from the image centre, then creeps forward along
 the tool yaw until the marker leaves the sensor (which is 5 mm ahead of the tip, and the marker
 reaches 6 mm past the gap start), and backs off ``backoff`` mm so the tip stands at the gap
-start. Completes with ``{"at": pos, "yaw"}``. Raises TargetNotSighted if no marker is seen,
-MotionFailed if a move fails.
+start. Its command is a :class:`chcos.apps.weld.tasks.messages.Approach` (yaw, backoff; console:
+``invoke B5 yaw=...``). Completes with ``{"at": pos, "yaw"}``. Raises TargetNotSighted if no
+marker is seen, MotionFailed if a move fails, MessageError naming B5 and the message for another
+message.
 
 B5.s decides from the present and the previous binary image whether the gap-start marker has
 been sighted (both show it: one stray image is not a sighting) and puts ``{"target": "sighted" |
@@ -21,26 +23,31 @@ from chcos.apps.weld.tasks.common import (
     MotionFailed,
     TargetNotSighted,
     add,
-    as_dict,
     latest,
     left,
-    param,
     sighted,
 )
+from chcos.apps.weld.tasks.messages import Approach, MoveTo, from_host
 from chcos.errors import ReadTimeout
 from chcos.user.context import TaskContext
 
 
 async def _move(ctx: TaskContext, p: Any, yaw: float, speed: float) -> None:
-    done = await ctx.call("A4", {"op": "move", "p": p, "yaw": yaw, "speed": speed})
+    done = await ctx.call("A4", MoveTo(p=p, yaw=yaw, speed=speed))
     if not done.ok:
         raise MotionFailed(f"B5: A4 {done.status.value}: {done.error}")
 
 
 async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     """Centre on the start marker."""
-    cmd = as_dict(command)
-    backoff = float(param(ctx, cmd, "backoff", 1.5))
+    match command:
+        case Approach():
+            cmd = command
+        case None:
+            cmd = Approach()
+        case _:
+            cmd = from_host("B5", command, {"approach": Approach}, "approach", "an Approach")
+    backoff = float(ctx.params.get("backoff", 1.5) if cmd.backoff is None else cmd.backoff)
     seen: dict[str, Any] | None = None
     previous: Any = None
     t0 = ctx.now
@@ -60,7 +67,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
                                "successive images)")
     ctx.put({"target": "sighted", "marker": seen.get("marker"), "at": None, "t": ctx.now})
     here = await latest(ctx, "A4")
-    yaw = float(cmd.get("yaw", here["yaw"]))
+    yaw = float(here["yaw"] if cmd.yaw is None else cmd.yaw)
     ctx.world.sensory["sighted"] = seen
     off = seen.get("marker")
     if off is None:
@@ -70,8 +77,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     # creep forward until the marker leaves the sensor
     here = await latest(ctx, "A4")
     fwd = (math.cos(yaw), math.sin(yaw), 0.0)
-    await ctx.invoke("A4", {"op": "move", "p": add(here["pos"], fwd, 20.0), "yaw": yaw,
-                            "speed": 4.0})
+    await ctx.invoke("A4", MoveTo(p=add(here["pos"], fwd, 20.0), yaw=yaw, speed=4.0))
     while True:
         msg = await ctx.read("A7", timeout=6.0)
         if not sighted(msg, "start"):

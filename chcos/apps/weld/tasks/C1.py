@@ -1,8 +1,11 @@
 """C1 - level 3: unstick tip (C1.c); tip stuck/free (C1.s).
 
-``{"op": "watch"}`` (the sensory part, run while D2 welds): reads the arc temperature (A1), the arc
-voltage and current (A2) and the tip position (A4). The tip is stuck when, with the voltage on,
-the arc voltage has collapsed (below 2 V) with a short-circuit current (over 200 A), or the tip
+Commands: :data:`chcos.apps.weld.tasks.messages.TipCommand` (console: ``op=watch``,
+``op=idle``, ``op=unstick lift=...``).
+
+``WatchTip()`` or no command (the sensory part, run while D2 welds): reads the arc temperature (A1),
+the arc voltage and current (A2) and the tip position (A4). The tip is stuck when, with the voltage
+on, the arc voltage has collapsed (below 2 V) with a short-circuit current (over 200 A), or the tip
 has not moved for 0.5 s although a motion is commanded while the temperature falls. Reports
 ``{"tip": "stuck" | "free", "since"}`` on every change.
 
@@ -16,12 +19,13 @@ the tip freezes (its commander can cut the wire feed), and ``{"tip": "free"}`` 1
 example that keeps firing with no freeze counts false alarms and is forgotten. Every reaction is
 kept in the world model's ``reactions`` (``{"t", "kind": "learned" | "hard-coded"}``).
 
-``{"op": "idle"}`` stops watching. ``{"op": "unstick"}``: stop the motors (the joint drives
+``IdleTip()`` stops watching. ``Unstick(lift)``: stop the motors (the joint drives
 quick-stop) and memorize the position (A6), turn the voltage off (A2), enable the drives again
 (A6), move the tip ``lift`` mm (default 10) straight up,
 90 degrees away from the gap (A4), and check that it moved. Completes with ``{"freed": true,
 "memorized": record, "lift"}``; raises TipStillStuck if the tip did not come free,
-MotionFailed if a lower task failed.
+MotionFailed if a lower task failed, MessageError naming C1 and the message for anything but a
+TipCommand.
 """
 
 from __future__ import annotations
@@ -29,13 +33,20 @@ from __future__ import annotations
 from typing import Any
 
 from chcos.apps.weld.tasks.common import (
-    DrivesCommand,
     MotionFailed,
     TipStillStuck,
-    as_dict,
     dist,
     latest,
-    param,
+)
+from chcos.apps.weld.tasks.messages import (
+    DrivesCommand,
+    IdleTip,
+    MoveTo,
+    SetVolts,
+    TipCommand,
+    Unstick,
+    WatchTip,
+    from_host,
 )
 from chcos.user.context import TaskContext
 from chcos.user.knowledge import LearnedPattern, Store
@@ -43,15 +54,29 @@ from chcos.user.knowledge import LearnedPattern, Store
 LEAD_S = 0.5
 """How much history before a stuck tip is learned (s)."""
 
+TIP_COMMANDS: dict[str, type[TipCommand]] = {
+    "watch": WatchTip, "idle": IdleTip, "unstick": Unstick}
+"""C1's commands by the ``op`` a console command names."""
+
 
 async def main(ctx: TaskContext, command: Any) -> Any:
     """Watch for a stuck tip, or free it."""
-    cmd = as_dict(command)
-    if cmd.get("op") == "unstick":
-        return await _unstick(ctx, float(param(ctx, cmd, "lift", 10.0)))
-    if cmd.get("op") == "idle":
-        return "idle"
-    await _watch(ctx)
+    match command:
+        case WatchTip() | IdleTip() | Unstick():
+            cmd: TipCommand = command
+        case None:
+            cmd = WatchTip()
+        case _:
+            cmd = from_host("C1", command, TIP_COMMANDS, "watch",
+                            "a WatchTip, IdleTip or Unstick")
+    match cmd:
+        case Unstick(lift=lift):
+            return await _unstick(ctx, float(ctx.params.get("lift", 10.0) if lift is None
+                                             else lift))
+        case IdleTip():
+            return "idle"
+        case WatchTip():
+            await _watch(ctx)
     return None
 
 
@@ -123,7 +148,7 @@ async def _unstick(ctx: TaskContext, lift: float) -> dict[str, Any]:
     mem = await ctx.call("A6", DrivesCommand(stop=True, memorize="stuck"))
     if not mem.ok:
         raise MotionFailed(f"C1: A6 could not stop/memorize: {mem.error}")
-    off = await ctx.call("A2", {"volts": 0.0})
+    off = await ctx.call("A2", SetVolts(volts=0.0))
     if not off.ok:
         raise MotionFailed(f"C1: A2 could not turn the voltage off: {off.error}")
     record = await ctx.ask("A6", "position", "stuck")
@@ -132,8 +157,8 @@ async def _unstick(ctx: TaskContext, lift: float) -> dict[str, Any]:
     if not on.ok:
         raise MotionFailed(f"C1: A6 could not enable the joint drives again: {on.error}")
     wm.command["unstick"] = "lifting"
-    up = await ctx.call("A4", {"op": "move", "p": [p0[0], p0[1], p0[2] + lift],
-                               "yaw": record["yaw"], "speed": 10.0})
+    up = await ctx.call("A4", MoveTo(p=(p0[0], p0[1], p0[2] + lift), yaw=record["yaw"],
+                                     speed=10.0))
     here = await latest(ctx, "A4")
     if not up.ok or here["pos"][2] - p0[2] < 0.8 * lift:
         raise TipStillStuck(f"C1: tip still stuck at {p0} after the lift "

@@ -25,10 +25,10 @@ from chcos.apps.weld.tasks.common import (
     MotionFailed,
     SearchFail,
     WeldTaskError,
-    as_dict,
-    param,
+    setting,
     sighted,
 )
+from chcos.apps.weld.tasks.messages import Approach, FindStart, MoveTo, from_host
 from chcos.user.context import TaskContext
 from chcos.user.knowledge import Experience, Store
 from chcos.user.plans import Plan, Plans, PlansExhausted
@@ -69,16 +69,22 @@ def raster(cx: float, cy: float, heading: float, radius: float, length: float, s
 
 async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     """Find and centre on the start-of-gap marker."""
-    cmd = as_dict(command)
-    sx, sy = (float(v) for v in param(ctx, cmd, "start", [542.0, -164.0]))
-    heading = float(param(ctx, cmd, "heading", math.pi / 2))
-    z = float(param(ctx, cmd, "z", 10.0))
-    speed = float(param(ctx, cmd, "speed", 20.0))
-    pitch = float(param(ctx, cmd, "pitch", 6.0))
-    radius = float(param(ctx, cmd, "radius", 30.0))
-    r_radius = float(param(ctx, cmd, "raster_radius", 60.0))
-    r_length = float(param(ctx, cmd, "raster_length", 40.0))
-    r_step = float(param(ctx, cmd, "raster_step", 14.0))
+    match command:
+        case FindStart():
+            cmd = command
+        case None:
+            cmd = FindStart()
+        case _:
+            cmd = from_host("C2", command, {"find": FindStart}, "find", "a FindStart")
+    sx, sy = (float(v) for v in setting(ctx, cmd.start, "start", [542.0, -164.0]))
+    heading = float(setting(ctx, cmd.heading, "heading", math.pi / 2))
+    z = float(setting(ctx, cmd.z, "z", 10.0))
+    speed = float(setting(ctx, cmd.speed, "speed", 20.0))
+    pitch = float(setting(ctx, cmd.pitch, "pitch", 6.0))
+    radius = float(setting(ctx, cmd.radius, "radius", 30.0))
+    r_radius = float(setting(ctx, cmd.raster_radius, "raster_radius", 60.0))
+    r_length = float(setting(ctx, cmd.raster_length, "raster_length", 40.0))
+    r_step = float(setting(ctx, cmd.raster_step, "raster_step", 14.0))
     ux, uy = math.cos(heading), math.sin(heading)
 
     def tip_for(px: float, py: float) -> list[float]:
@@ -86,8 +92,8 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
 
     wm = ctx.world
     wm.command.update(phase="approach", start=[sx, sy])
-    done = await ctx.call("A4", {"op": "move", "p": tip_for(sx, sy), "yaw": heading,
-                                 "speed": float(param(ctx, cmd, "travel", 100.0))})
+    done = await ctx.call("A4", MoveTo(p=tip_for(sx, sy), yaw=heading,
+                                       speed=float(setting(ctx, cmd.travel, "travel", 100.0))))
     if not done.ok:
         raise MotionFailed(f"C2: cannot reach the probable start {[sx, sy]}: {done.error}")
     await ctx.sleep(0.05)
@@ -99,8 +105,8 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
             ctx.put({"gap": "searching", "plan": name, "at": [sx, sy], "t": ctx.now})
             prev = (sx, sy)
             for px, py in points:
-                moved = await ctx.call("A4", {"op": "move", "p": tip_for(px, py),
-                                              "yaw": heading, "speed": speed})
+                moved = await ctx.call("A4", MoveTo(p=tip_for(px, py), yaw=heading,
+                                                    speed=speed))
                 if not moved.ok:
                     raise MotionFailed(f"C2: {name} move failed: {moved.error}")
                 searched[0] += math.hypot(px - prev[0], py - prev[1])
@@ -125,7 +131,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
             ctx.put({"gap": "not found", "plan": None, "at": [sx, sy], "t": ctx.now})
             raise SearchFail(f"C2: search fail after {searched[0]:.0f} mm: {exc}") from exc
     wm.command["phase"] = "align"
-    aligned = await ctx.call("B5", {"yaw": heading})
+    aligned = await ctx.call("B5", Approach(yaw=heading))
     if not aligned.ok:
         raise WeldTaskError(f"C2: B5 could not align on the target: {aligned.error}")
     wm.command["phase"] = "at start"

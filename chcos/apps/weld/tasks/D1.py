@@ -25,10 +25,10 @@ from typing import Any
 from chcos.apps.weld.tasks.common import (
     Tracker,
     WeldAborted,
-    as_dict,
     latest,
-    param,
+    setting,
 )
+from chcos.apps.weld.tasks.messages import FindStart, HoldMotion, Inspect, Step, from_host
 from chcos.tables.messages import LinkStatus
 from chcos.user.context import TaskContext
 from chcos.user.worldmodel import WorldModel, task
@@ -47,14 +47,20 @@ class GapModel(WorldModel):
 @task(world_model=GapModel)
 async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     """Inspect the gap from its start marker to its end marker."""
-    cmd = as_dict(command)
+    match command:
+        case Inspect():
+            cmd = command
+        case None:
+            cmd = Inspect()
+        case _:
+            cmd = from_host("D1", command, {"inspect": Inspect}, "inspect", "an Inspect")
     wm = ctx.world
-    speed = float(param(ctx, cmd, "speed", 20.0))
-    too_narrow = float(param(ctx, cmd, "too_narrow", 1.2))
-    too_wide = float(param(ctx, cmd, "too_wide", 3.0))
-    confirm = int(param(ctx, cmd, "confirm", 3))
-    steer_s = float(param(ctx, cmd, "steer", 0.1))
-    search = {k: cmd[k] for k in ("start", "heading", "z") if k in cmd}
+    speed = float(setting(ctx, cmd.speed, "speed", 20.0))
+    too_narrow = float(setting(ctx, cmd.too_narrow, "too_narrow", 1.2))
+    too_wide = float(setting(ctx, cmd.too_wide, "too_wide", 3.0))
+    confirm = int(setting(ctx, cmd.confirm, "confirm", 3))
+    steer_s = float(setting(ctx, cmd.steer, "steer", 0.1))
+    search = FindStart(start=cmd.start, heading=cmd.heading, z=cmd.z)
     wm.command.update(phase="search", width_min=None, width_max=None)
     found = await ctx.call("C2", search)
     if not found.ok:
@@ -111,8 +117,8 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
                      "width": msg.get("width"), "width_ok": width_ok, "travelled": travelled,
                      "t": ctx.now})
             d, yaw = tracker.steer(here["pos"])
-            await ctx.invoke("B4", {"d": d, "yaw": yaw, "speed": speed})
-    await ctx.call("B4", {"op": "hold"})
+            await ctx.invoke("B4", Step(d=d, yaw=yaw, speed=speed))
+    await ctx.call("B4", HoldMotion())
     outcome.update(start=start, heading=heading, length_mm=tracker.travelled,
                    width_min=min(widths, default=None), width_max=max(widths, default=None))
     wm.command.update(phase="done", outcome=outcome)

@@ -33,11 +33,24 @@ from chcos.apps.weld.tasks.common import (
     ArcFailure,
     Tracker,
     WeldAborted,
-    as_dict,
     dist,
     latest,
-    param,
+    setting,
     unit,
+)
+from chcos.apps.weld.tasks.messages import (
+    FindStart,
+    HoldMotion,
+    IdleTip,
+    SetBand,
+    SetWire,
+    Step,
+    Unstick,
+    WatchTip,
+    Weld,
+    WeldOff,
+    WeldOn,
+    from_host,
 )
 from chcos.errors import ReadTimeout
 from chcos.tables.messages import LinkStatus
@@ -74,9 +87,9 @@ async def _check(ctx: TaskContext, port: str) -> None:
 
 async def _shutdown(ctx: TaskContext) -> None:
     ctx.world.command["phase"] = "stopping"
-    await ctx.call("B1", {"op": "off"})
-    await ctx.call("B4", {"op": "hold"})
-    await ctx.call("C1", {"op": "idle"})
+    await ctx.call("B1", WeldOff())
+    await ctx.call("B4", HoldMotion())
+    await ctx.call("C1", IdleTip())
     ctx.world.command["phase"] = "stopped"
 
 
@@ -85,7 +98,7 @@ async def _weld_on(ctx: TaskContext, volts: float, wire: float, band: list[float
     """Turn the weld on (B1) and wait until the temperature reaches the band."""
     wm = ctx.world
     wm.command["phase"] = "strike"
-    await ctx.invoke("B1", {"op": "on", "volts": volts, "wire": wire})
+    await ctx.invoke("B1", WeldOn(volts=volts, wire=wire))
     t0 = ctx.now
     on = False
     while True:
@@ -110,19 +123,25 @@ async def _weld_on(ctx: TaskContext, volts: float, wire: float, band: list[float
 @task(world_model=WeldGapModel)
 async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     """Weld the gap from its start marker to its end marker."""
-    cmd = as_dict(command)
+    match command:
+        case Weld():
+            cmd = command
+        case None:
+            cmd = Weld()
+        case _:
+            cmd = from_host("D2", command, {"weld": Weld}, "weld", "a Weld")
     wm = ctx.world
-    speed0 = float(param(ctx, cmd, "speed", 5.0))
-    band = [float(v) for v in param(ctx, cmd, "band", [1450.0, 1600.0])]
-    volts = float(param(ctx, cmd, "volts", 24.0))
-    wire0 = float(param(ctx, cmd, "wire", 80.0))
-    steer_s = float(param(ctx, cmd, "steer", 0.1))
-    deadband = float(param(ctx, cmd, "deadband", 20.0))
-    strike = float(param(ctx, cmd, "strike", 3.0))
+    speed0 = float(setting(ctx, cmd.speed, "speed", 5.0))
+    band = [float(v) for v in setting(ctx, cmd.band, "band", [1450.0, 1600.0])]
+    volts = float(setting(ctx, cmd.volts, "volts", 24.0))
+    wire0 = float(setting(ctx, cmd.wire, "wire", 80.0))
+    steer_s = float(setting(ctx, cmd.steer, "steer", 0.1))
+    deadband = float(setting(ctx, cmd.deadband, "deadband", 20.0))
+    strike = float(setting(ctx, cmd.strike, "strike", 3.0))
     centre = (band[0] + band[1]) / 2.0
     wm.command.update(phase="search", band=band, speed=speed0, travelled=0.0, unstuck=0)
-    await ctx.call("A1", {"band": band})
-    search = {k: cmd[k] for k in ("start", "heading", "z") if k in cmd}
+    await ctx.call("A1", SetBand(band=band))
+    search = FindStart(start=cmd.start, heading=cmd.heading, z=cmd.z)
     found = await ctx.call("C2", search)
     if not found.ok:
         wm.command["phase"] = "aborted"
@@ -131,7 +150,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     tracker = Tracker(float(found.result["yaw"]), float(start[2]))
     wm.predict("temp", centre, deadband, ctx.now)
     last_put = -math.inf
-    await ctx.call("C1", {"op": "watch"})
+    await ctx.call("C1", WatchTip())
     await _weld_on(ctx, volts, wire0, band, strike)
     wm.command["phase"] = "weld"
     here = await latest(ctx, "A4")
@@ -159,11 +178,11 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
             retract_until = ctx.now + RETRACT_S
             ctx.put({"tip": "sticking", "travelled": travelled, "phase": "weld", "t": ctx.now})
             wm.command["retracts"] = wm.command.get("retracts", 0) + 1
-            await ctx.call("A5", {"speed": RETRACT_SHARE * wire0 * speed / speed0})
+            await ctx.call("A5", SetWire(speed=RETRACT_SHARE * wire0 * speed / speed0))
             continue
         if retract_until is not None and ctx.now >= retract_until:
             retract_until = None
-            await ctx.call("A5", {"speed": wire0 * speed / speed0})
+            await ctx.call("A5", SetWire(speed=wire0 * speed / speed0))
         if src == "C1" and msg.get("tip") == "stuck":
             ctx.put({"tip": "stuck", "travelled": travelled, "phase": "unstick", "t": ctx.now})
             unstuck += 1
@@ -190,7 +209,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
                 speed = max(0.5 * speed0, min(2.0 * speed0, speed + (0.1 if cmp == "above"
                                                                         else -0.1)))
                 speeds = [min(speeds[0], speed), max(speeds[1], speed)]
-                await ctx.call("A5", {"speed": wire0 * speed / speed0})
+                await ctx.call("A5", SetWire(speed=wire0 * speed / speed0))
         if src == "A7":
             tracker.ranged(msg.get("range"))
             if msg["centre"] is not None and msg["pattern"] in ("gap", "start", "end"):
@@ -204,7 +223,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
         if ctx.now - last_steer >= steer_s:
             last_steer = ctx.now
             d, yaw = tracker.steer(here["pos"])
-            await ctx.invoke("B4", {"d": d, "yaw": yaw, "speed": speed})
+            await ctx.invoke("B4", Step(d=d, yaw=yaw, speed=speed))
     await _shutdown(ctx)
     result = {"welded_mm": tracker.travelled, "in_band": in_band / max(1, samples),
               "unstuck": unstuck, "speed_range": speeds}
@@ -216,17 +235,17 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
 async def _unstick(ctx: TaskContext, volts: float, wire: float, band: list[float],
                    strike: float) -> None:
     """Free the tip (C1), go back down to where it stuck and restart the weld."""
-    freed = await ctx.call("C1", {"op": "unstick"})
+    freed = await ctx.call("C1", Unstick())
     if not freed.ok:
         await _shutdown(ctx)
         raise WeldAborted(f"D2: weld stopped, the tip could not be freed: {freed.error}")
     mem = freed.result["memorized"]
     here = await latest(ctx, "A4")
     back = [m - h for m, h in zip(mem["pos"], here["pos"], strict=True)]
-    down = await ctx.call("B4", {"d": unit(back), "dist": dist(mem["pos"], here["pos"]),
-                                 "speed": 10.0, "yaw": mem["yaw"]})
+    down = await ctx.call("B4", Step(d=unit(back), dist=dist(mem["pos"], here["pos"]),
+                                     speed=10.0, yaw=mem["yaw"]))
     if not down.ok:
         await _shutdown(ctx)
         raise WeldAborted(f"D2: cannot return to the weld after freeing the tip: {down.error}")
-    await ctx.call("C1", {"op": "watch"})
+    await ctx.call("C1", WatchTip())
     await _weld_on(ctx, volts, wire, band, strike)

@@ -1,8 +1,9 @@
 """D3 - level 4: the sensory exception task (role ``exception``).
 
 Hears every sensory message of every lower task (``ctx.read_exception``) and reads the light
-curtain ``intruder`` itself (priority 99). It recognises the dangerous patterns and sends
-``{"alarm": kind, "detail", "t"}`` upward to the assassin E1 (and the job E2):
+curtain ``intruder`` itself (priority 99). It recognises the dangerous patterns and sends an
+:class:`chcos.apps.weld.tasks.messages.Alarm` (kind, detail, t) upward to the assassin E1 (and
+the job E2):
 
 * ``intruder`` - the light curtain is broken (or its sensor failed);
 * ``sensor failure`` - a lower task reports a failed sensor (at most once per device);
@@ -25,6 +26,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from chcos.apps.weld.tasks.messages import Alarm
 from chcos.errors import MessageError, SensorFailure
 from chcos.user.context import TaskContext
 from chcos.user.worldmodel import WorldModel, task
@@ -60,9 +62,9 @@ class ExceptionModel(WorldModel):
 
 
 def _alarm(ctx: TaskContext, kind: str, detail: str) -> None:
-    record = {"alarm": kind, "detail": detail, "t": ctx.now}
-    ctx.world.sensory.setdefault("alarms", []).append(record)
-    ctx.put(record)
+    alarm = Alarm(kind, detail, ctx.now)
+    ctx.world.sensory.setdefault("alarms", []).append(alarm.record())
+    ctx.put(alarm)
 
 
 async def _heat_expected(ctx: TaskContext) -> bool:

@@ -1,6 +1,7 @@
 """E1 - level 5: stop / assassin (E1.c), role ``assassin``.
 
-Waits for an alarm from the exception task D3. On one, at top priority: e-stop (every actuator
+Waits for an alarm (:class:`chcos.apps.weld.tasks.messages.Alarm`) from the exception task D3.
+On one, at top priority: e-stop (every actuator
 with a safe value gets it at once: the relay drives_enable off, voltage, wire and gas to 0, and
 each joint drive's safe stop: quick stop, then disable voltage once it stands), suspend the command
 tasks that could command motion or the arc again (D1, D2, C1, C2, B1, B3, B4, B5), then call B2
@@ -13,7 +14,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from chcos.apps.weld.tasks.common import DrivesCommand
+from chcos.apps.weld.tasks.messages import Alarm, DrivesCommand
 from chcos.errors import MessageError
 from chcos.user.context import TaskContext
 from chcos.user.worldmodel import WorldModel, task
@@ -38,11 +39,13 @@ async def main(ctx: TaskContext, command: Any) -> None:
     wm = ctx.world
     reactions: list[dict[str, Any]] = wm.sensory.setdefault("reactions", [])
     while True:
-        alarm = await ctx.read("D3")
-        if not isinstance(alarm, dict) or "alarm" not in alarm:
-            continue
+        match await ctx.read("D3"):
+            case Alarm() as alarm:
+                pass
+            case _:
+                continue
         seen = ctx.now
-        written = ctx.estop(f"{alarm['alarm']}: {alarm.get('detail', '')}")
+        written = ctx.estop(f"{alarm.kind}: {alarm.detail}")
         frozen = []
         for name in FREEZE:
             try:
@@ -50,8 +53,8 @@ async def main(ctx: TaskContext, command: Any) -> None:
                 frozen.append(name)
             except MessageError:
                 continue
-        record: dict[str, Any] = {"alarm": alarm["alarm"], "detail": alarm.get("detail"),
-                                  "raised": alarm.get("t"), "seen": seen,
+        record: dict[str, Any] = {"alarm": alarm.kind, "detail": alarm.detail,
+                                  "raised": alarm.t, "seen": seen,
                                   "estop_writes": written, "suspended": frozen}
         reactions.append(record)
         stop = await ctx.call("B2")

@@ -3,8 +3,9 @@
 Switch the joint drives on (A6: the safe-torque-off relay, then each CiA 402 drive enabled);
 inspect the gap (D1); if the inspection is OK, weld it (D2) starting from the start D1 found;
 then go home (B3). Meanwhile it listens to the exception task D3: an alarm aborts the job at
-once (the assassin E1 has made the cell safe; E2 does not move it again). Command or install
-parameters: ``start`` [x, y] (probable start of the gap, mm), ``heading`` (rad), ``z`` (tip
+once (the assassin E1 has made the cell safe; E2 does not move it again). Command (a
+:class:`chcos.apps.weld.tasks.messages.Job`; from the console ``invoke E2 key=value...``) or
+install parameters: ``start`` [x, y] (probable start of the gap, mm), ``heading`` (rad), ``z`` (tip
 height, mm), ``home`` [x, y, z]; ``inspect_only`` skips the weld.
 
 Completes with ``{"outcome": "welded" | "inspection failed" | "inspection aborted" |
@@ -18,7 +19,16 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from chcos.apps.weld.tasks.common import DrivesCommand, as_dict, param
+from chcos.apps.weld.tasks.common import setting
+from chcos.apps.weld.tasks.messages import (
+    Alarm,
+    DrivesCommand,
+    GoHome,
+    Inspect,
+    Job,
+    Weld,
+    from_host,
+)
 from chcos.tables.messages import Completion
 from chcos.user.context import TaskContext
 from chcos.user.worldmodel import WorldModel, task
@@ -28,11 +38,11 @@ class JobModel(WorldModel):
     """E2's world model: the phase of the job and its outcome."""
 
 
-class Alarm(Exception):
+class Aborted(Exception):
     """An alarm from D3 ended the job (internal to E2)."""
 
-    def __init__(self, alarm: dict[str, Any]) -> None:
-        super().__init__(f"{alarm['alarm']}: {alarm.get('detail', '')}")
+    def __init__(self, alarm: Alarm) -> None:
+        super().__init__(f"{alarm.kind}: {alarm.detail}")
         self.alarm = alarm
 
 
@@ -45,20 +55,26 @@ async def _run(ctx: TaskContext, port: str, command: Any) -> Completion:
         if ev.kind == "completion":
             done: Completion = ev.value
             return done
-        msg = ev.value
-        if isinstance(msg, dict) and "alarm" in msg:
-            raise Alarm(msg)
+        match ev.value:
+            case Alarm() as alarm:
+                raise Aborted(alarm)
 
 
 @task(world_model=JobModel)
 async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     """Run the job and report its outcome."""
-    cmd = as_dict(command)
+    match command:
+        case Job():
+            cmd = command
+        case None:
+            cmd = Job()
+        case _:
+            cmd = from_host("E2", command, {"job": Job}, "job", "a Job")
     wm = ctx.world
     wm.command.pop("outcome", None)  # a new job: the last one's outcome is history
-    where = {"start": [float(v) for v in param(ctx, cmd, "start", [542.0, -164.0])],
-             "heading": float(param(ctx, cmd, "heading", math.pi / 2)),
-             "z": float(param(ctx, cmd, "z", 10.0))}
+    start = [float(v) for v in setting(ctx, cmd.start, "start", [542.0, -164.0])]
+    heading = float(setting(ctx, cmd.heading, "heading", math.pi / 2))
+    z = float(setting(ctx, cmd.z, "z", 10.0))
     out: dict[str, Any] = {"outcome": "", "reason": "", "drives": None, "inspection": None,
                            "weld": None, "home": None}
     try:
@@ -71,20 +87,19 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
             ctx.put(out)
             return out
         wm.command["phase"] = "inspect"
-        done = await _run(ctx, "D1", dict(where))
+        done = await _run(ctx, "D1", Inspect(start=start, heading=heading, z=z))
         out["inspection"] = done.result if done.ok else done.error
         if not done.ok:
             out.update(outcome="inspection aborted", reason=done.error)
         elif done.result["inspection"] != "OK":
             out.update(outcome="inspection failed", reason=done.result["reason"])
-        elif param(ctx, cmd, "inspect_only", False):
+        elif setting(ctx, cmd.inspect_only, "inspect_only", False):
             out.update(outcome="inspected")
         else:
             wm.command["phase"] = "weld"
-            start = done.result["start"]
-            weld = {**where, "start": [start[0] + 5.0 * math.cos(done.result["heading"]),
-                                       start[1] + 5.0 * math.sin(done.result["heading"])],
-                    "heading": done.result["heading"]}
+            found, gap = done.result["start"], float(done.result["heading"])
+            weld = Weld(start=[found[0] + 5.0 * math.cos(gap), found[1] + 5.0 * math.sin(gap)],
+                        heading=gap, z=z)
             done = await _run(ctx, "D2", weld)
             out["weld"] = done.result if done.ok else done.error
             if done.ok:
@@ -92,10 +107,10 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
             else:
                 out.update(outcome="weld failed", reason=done.error)
         wm.command["phase"] = "home"
-        home = {"home": param(ctx, cmd, "home", [500.0, 0.0, 250.0])}
+        home = GoHome(home=setting(ctx, cmd.home, "home", [500.0, 0.0, 250.0]))
         done = await _run(ctx, "B3", home)
         out["home"] = done.result if done.ok else done.error
-    except Alarm as exc:
+    except Aborted as exc:
         out.update(outcome="aborted", reason=str(exc))
     wm.command.update(phase="finished", outcome=out)
     ctx.put(out)

@@ -9,9 +9,10 @@ recognise patterns whatever task sent it):
   "flow", "flow_ok", "valve"}``, A4 ``{"pos", "yaw", "moving", "t"}``, A5 ``{"wire", "set"}``,
   A7 ``{"range", "pattern", "centre", "width", "start", "end"}``;
 * B1 ``{"weld": "on" | "off" | "fail", "reason"}``, C1 ``{"tip": "stuck" | "free"}``;
-* D3 ``{"alarm": kind, "detail": text, "t": time}`` (read by E1 and E2).
 
-Commands are dicts too, but A6's: a :class:`DrivesCommand` (stop, enable, memorize).
+Commands (every task's) and D3's alarm are typed: the dataclasses of
+:mod:`chcos.apps.weld.tasks.messages`, received with ``match``; a console command (a dict) is
+converted at the boundary by ``messages.from_host``. Completions are still dicts.
 """
 
 from __future__ import annotations
@@ -87,18 +88,6 @@ AXES = tuple(f"joint{j}" for j in range(1, 6))
 it runs), beside the safe-torque-off relay ``drives_enable``."""
 
 
-@dataclass(frozen=True)
-class DrivesCommand:
-    """A command of A6 (stop/memorize position, and the joint drives' power), in this order:
-    ``stop`` quick-stops the joint drives and drops the relay; ``enable`` switches the relay on
-    and enables the drives; ``memorize`` stores the position under that tag (None: nothing
-    memorized)."""
-
-    stop: bool = False
-    enable: bool = False
-    memorize: str | None = "last"
-
-
 @types.coroutine
 def confirmed(command: Any) -> Generator[Any, Any, Result]:
     """Await an axis command (``ctx.axis(name).enable()``...) until the drive confirmed it: its
@@ -152,16 +141,10 @@ async def quick_stop_joints(ctx: TaskContext, who: str) -> dict[str, str]:
     return states
 
 
-def as_dict(command: Any) -> dict[str, Any]:
-    """A command message as a dict (None and non-dict commands give an empty dict)."""
-    return dict(command) if isinstance(command, dict) else {}
-
-
-def param(ctx: TaskContext, command: dict[str, Any], key: str, default: Any) -> Any:
-    """``key`` from the command, else from the install-time parameters, else ``default``."""
-    if key in command:
-        return command[key]
-    return ctx.params.get(key, default)
+def setting(ctx: TaskContext, value: Any, key: str, default: Any) -> Any:
+    """A typed command's field ``value``, else the install-time parameter ``key``, else
+    ``default`` (a field left None means: as installed)."""
+    return ctx.params.get(key, default) if value is None else value
 
 
 async def latest(ctx: TaskContext, port: Port, timeout: float = 0.5) -> Any:
