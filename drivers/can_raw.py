@@ -205,7 +205,6 @@ class CanDriver(ThreadedDriver):
         #: Frames the kernel dropped because the socket's receive buffer was full (SocketCAN).
         self.overrun_lost = 0
         self._recorder: Recorder | None = None
-        self._write_failed: set[str] = set()
         #: the last raw value of each actuator that went out (what the peer holds)
         self._last_sent: dict[str, Any] = {}
         #: the actuators whose frame could not be sent, tried again by the driver itself
@@ -652,7 +651,7 @@ class CanDriver(ThreadedDriver):
         self._last_sent[device] = value
         if report:
             self.host.written(device, value)
-        if self._write_failed:
+        if self.probe.any_failed:
             self._link_works(device, "a frame was sent")
         if self._recorder is not None:
             frame.is_rx = False
@@ -685,17 +684,13 @@ class CanDriver(ThreadedDriver):
         """Actuator ``device`` failed on the link (its send, or the bus's receive): no latch,
         the driver tries the link again itself (see :mod:`drivers.sendprobe`)."""
         with self._lock:
-            self._write_failed.add(device)
             last = self._last_sent.get(device)
         self.probe.failed(device, last if last is not None else safe_raw(self.devices[device]))
 
     def _link_works(self, device: str, why: str) -> None:
         """A frame of ``device`` went out (under the send's claim): the bus takes frames again,
         so every actuator failed by a send recovers (see :mod:`drivers.sendprobe`)."""
-        with self._lock:
-            failed, self._write_failed = self._write_failed, set()
-        for name in sorted(failed):
-            self.probe.ended(name)
+        for name in self.probe.recovered():
             self.host.recover(name, why if name == device else
                               f"a frame of {device} went out: the bus takes frames again")
 

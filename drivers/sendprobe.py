@@ -1,21 +1,22 @@
-"""sendprobe - no latch on a stream bus (raw CAN, serial): after a command that could not be sent,
-the driver itself tries the link again until it takes a frame, and that recovers the actuators.
+"""sendprobe - no latch on a stream bus (raw CAN, serial): after a command that could not be
+sent, the driver itself tries the link again until it takes a frame, and that recovers the
+actuators.
 
 A stream bus has no answer to read back (as Modbus has): what proves the link works again is a
-frame that goes out. When a command of an actuator fails on the wire (a full transmit queue, a
-bus gone error-passive or off, a serial write that timed out or failed), the driver reports the
-write failed and the actuator failed (so Devtab refuses commands to it, saying so), and hands
-the actuator to a :class:`SendProbe`. The probe's thread, backing off from ``backoff[0]`` to
-``backoff[1]`` seconds (wall time: the link is real I/O), re-sends a value the peer already
-holds or may always take: the last value of that actuator that went out (the peer holds it), or
-else its safe value, raw (:func:`safe_raw`). A send failure is the link's (a full transmit
-queue, a bus off, a port that does not drain), not one actuator's: the first frame that goes out
-on the bus, a probe or a command of any actuator (a safe value on e-stop), recovers every
-actuator failed by a send (``host.recover``, the driver's ``_link_works``) and ends their
-probing; Devtab then writes their safe values first, as on every recovery, and the owners'
-next commands go out as usual. The failed command itself is never sent again. An actuator with
-neither value is not probed: a frame of another actuator, or the bus coming back (a serial
-port open again, CAN frames received again), recovers it.
+frame that goes out. When a command of an actuator fails on the wire (a full transmit queue, a bus
+gone error-passive or off, a serial write that timed out or failed), the driver reports the write
+failed and the actuator failed (so Devtab refuses commands to it, saying so), and hands the
+actuator to a :class:`SendProbe`. The probe's thread, backing off from ``backoff[0]`` to
+``backoff[1]`` seconds (wall time: the link is real I/O), re-sends a value the peer already holds
+or may always take: the last value of that actuator that went out (the peer holds it), or else its
+safe value, raw (:func:`safe_raw`). A send failure is the link's (a full transmit queue, a bus off,
+a port that does not drain), not one actuator's: the first frame that goes out on the bus, a probe
+or a command of any actuator (a safe value on e-stop), recovers every actuator failed by a send
+(the driver's ``_link_works`` takes them from :meth:`SendProbe.recovered` and calls
+``host.recover``) and ends their probing; Devtab then writes their safe values first, as on every
+recovery, and the owners' next commands go out as usual. The failed command itself is never sent
+again. An actuator with neither value is not probed: a frame of another actuator, or the bus coming
+back (a serial port open again, CAN frames received again), recovers it.
 """
 
 from __future__ import annotations
@@ -51,9 +52,10 @@ class _Due:
 
 
 class SendProbe:
-    """The probing of one driver's failed actuators (see the module doc). ``send(device,
-    value)`` puts one probe on the wire in the probe's thread and returns None (the driver
-    then recovered the actuators, see :meth:`ended`), or why it failed. Thread-safe."""
+    """One driver's actuators failed by a send, and their probing (see the module doc): the one
+    owner of which actuators wait for the link. ``send(device, value)`` puts one probe on the
+    wire in the probe's thread and returns None (the driver then recovered the actuators, see
+    :meth:`recovered`), or why it failed. Thread-safe."""
 
     def __init__(self, name: str, send: Callable[[str, Any], str | None],
                  backoff: tuple[float, float]) -> None:
@@ -62,6 +64,7 @@ class SendProbe:
         self._backoff = backoff
         self._cond = threading.Condition()
         self._due: dict[str, _Due] = {}
+        self._failed: set[str] = set()
         self._running = True
         self._thread: threading.Thread | None = None
         #: probes that went out (each recovered its actuator), and probes that failed
@@ -69,12 +72,11 @@ class SendProbe:
         self.failed_tries = 0
 
     def failed(self, device: str, value: Any | None) -> None:
-        """A command of ``device`` failed on the wire: probe with ``value`` (None: nothing
-        to probe with, the actuator recovers with the bus)."""
-        if value is None:
-            return
+        """A command of ``device`` failed on the wire: it waits for the link, probed with
+        ``value`` (None: nothing to probe with, the actuator recovers with the bus)."""
         with self._cond:
-            if not self._running:
+            self._failed.add(device)
+            if value is None or not self._running:
                 return
             due = self._due.get(device)
             if due is None:
@@ -88,27 +90,33 @@ class SendProbe:
                 self._thread.start()
             self._cond.notify_all()
 
-    def ended(self, device: str) -> None:
-        """``device`` works again without a probe (a command of it went out, the bus came
-        back): stop probing it."""
+    @property
+    def any_failed(self) -> bool:
+        """Whether an actuator waits for the link (a lock-free look for the send path; a
+        racing :meth:`failed` is seen by the next frame)."""
+        return bool(self._failed)
+
+    def recovered(self) -> list[str]:
+        """A frame went out: the link works. The actuators that waited for it, in name order,
+        no longer wait and are no longer probed; the driver recovers them."""
         with self._cond:
-            self._due.pop(device, None)
+            failed, self._failed = self._failed, set()
+            for device in failed:
+                self._due.pop(device, None)
+        return sorted(failed)
 
     def clear(self) -> None:
-        """The whole bus came back: stop probing every actuator."""
+        """The whole bus came back (the driver recovers every device itself): nothing waits
+        for the link any more."""
         with self._cond:
+            self._failed.clear()
             self._due.clear()
-
-    @property
-    def probing(self) -> list[str]:
-        """The actuators being probed now."""
-        with self._cond:
-            return sorted(self._due)
 
     def stop(self) -> None:
         """End the probing (its thread too). Idempotent."""
         with self._cond:
             self._running = False
+            self._failed.clear()
             self._due.clear()
             self._cond.notify_all()
             t, self._thread = self._thread, None

@@ -94,7 +94,6 @@ class SerialDriver(ThreadedDriver):
                 self._sensors.setdefault(str(d.address[key]), []).append(d.name)
         self._failed = False
         self._port: Any = None
-        self._write_failed: set[str] = set()
         #: the last raw value of each actuator that went out (what the peer holds)
         self._last_sent: dict[str, Any] = {}
         #: the actuators whose command could not be written, tried again by the driver itself
@@ -372,7 +371,6 @@ class SerialDriver(ThreadedDriver):
             self._put(port, data)
         except BusError as exc:
             with self._cond:
-                self._write_failed.add(device)
                 last = self._last_sent.get(device)
             self.host.write_failed(device, value, str(exc))
             self.host.fail(device, str(exc))
@@ -423,10 +421,7 @@ class SerialDriver(ThreadedDriver):
     def _link_works(self, device: str, why: str) -> None:
         """A command of ``device`` went out: the port takes writes again, so every actuator
         failed by a write recovers (see :mod:`drivers.sendprobe`)."""
-        with self._cond:
-            failed, self._write_failed = self._write_failed, set()
-        for name in sorted(failed):
-            self.probe.ended(name)
+        for name in self.probe.recovered():
             self.host.recover(name, why if name == device else
                               f"a command of {device} was written: the port takes writes again")
 
@@ -442,8 +437,7 @@ class SerialDriver(ThreadedDriver):
         with self._cond:
             was, self._failed = self._failed, False
             if was:
-                self._write_failed.clear()       # recovered below with every device
-                self.probe.clear()
+                self.probe.clear()               # recovered below with every device
             self._cond.notify_all()
         if was:
             for name in self.devices:
