@@ -53,7 +53,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from typing import Any, ClassVar
 
 from chcos.apps.weld import LinearView, Readings, WeldCell, parse_scenario
@@ -292,14 +292,20 @@ class WeldDirectDriver(Driver):
             if due or changed:
                 self._last[dev] = value
                 self.host.deliver(dev, value)
+        self._feed_axes(r.joints, now, r.silent)
+
+    def _feed_axes(self, joints: Sequence[float], now: float,
+                   silent: Collection[str] = ()) -> None:
+        """Each axis's engine takes its drive's objects (the joint at ``joints``) and runs its
+        timers; a drive in ``silent`` (``jointN``: a servo timeout) says nothing."""
         for name, axis in self.axes.items():
             j = self.axis_joint[name]
-            if f"joint{j + 1}" in r.silent:
-                continue            # a servo timeout: the drive says nothing
+            if f"joint{j + 1}" in silent:
+                continue
             drive = self.drives[j]
             axis.reading({Obj.ERROR_CODE: drive.error_code, Obj.STATUSWORD: drive.statusword,
                           Obj.MODES_DISPLAY: drive.mode_display,
-                          Obj.POSITION_ACTUAL: round(r.joints[j] / POSITION_SCALE),
+                          Obj.POSITION_ACTUAL: round(joints[j] / POSITION_SCALE),
                           Obj.VELOCITY_ACTUAL: drive.velocity}, now)
             axis.poll(now)
 
@@ -446,11 +452,4 @@ class WeldDirectDriver(Driver):
             goal = drive.step(self.tick, cell.joints[j] / POSITION_SCALE, self.enabled)
             cell.targets[j] = cell.joints[j] if goal is None else goal * POSITION_SCALE
         cell.step(self.tick)
-        for name, axis in self.axes.items():
-            j = self.axis_joint[name]
-            drive = self.drives[j]
-            axis.reading({Obj.ERROR_CODE: drive.error_code, Obj.STATUSWORD: drive.statusword,
-                          Obj.MODES_DISPLAY: drive.mode_display,
-                          Obj.POSITION_ACTUAL: round(cell.joints[j] / POSITION_SCALE),
-                          Obj.VELOCITY_ACTUAL: drive.velocity}, now)
-            axis.poll(now)
+        self._feed_axes(cell.joints, now)
