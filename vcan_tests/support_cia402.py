@@ -288,3 +288,30 @@ def drive_eds(*, name: str = "CiA 402 drive", rpdos: tuple[tuple[int, ...], ...]
         *[f"{k + 1}=0x{i:04X}" for k, i in enumerate(manufacturer)], "",
     ]
     return "\n".join(head) + "\n" + "\n\n".join(sections) + "\n"
+
+
+def remote_axis_map(channel: str, eds: object, node: int) -> str:
+    """A device map with a CANopen bus on python-can channel ``channel`` (node ``node``, EDS
+    ``eds``) and axis ``x`` on it, hosted by machine 1 (profile velocity, mm): the axis the
+    two-satellite tests command from machine 0."""
+    return f"""
+[[bus]]
+name = "drives"
+kind = "canopen"
+interface = "virtual"
+channel = "{channel}"
+sdo_timeout = 0.2
+nodes = [{{ id = {node}, eds = "{eds}" }}]
+
+[[device]]
+name = "x"
+profile = "cia402"
+machine = 1
+bus = "drives"
+units = "mm"
+address = {{ node = {node} }}
+mode = "PV"
+quick_stop_option = 2
+counts_per_unit = 1000.0
+timeouts = {{ enable = 5.0, disable = 5.0, fault_reset = 5.0, set_mode = 2.0, velocity = 10.0 }}
+"""

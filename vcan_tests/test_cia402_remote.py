@@ -23,7 +23,7 @@ from chcos.user.context import TaskContext
 from drivers.codecs.cia402 import AxisCommandFailed, State
 from vcan_tests.netutil import unique_channel
 from vcan_tests.peers.durand_cia402 import ENABLED, FAULT, SOD, DurandCia402Drive
-from vcan_tests.support_cia402 import drive_eds
+from vcan_tests.support_cia402 import drive_eds, remote_axis_map
 from vcan_tests.test_sat_comm import LoopNet, LoopTransport
 
 M = "vcan_tests.test_cia402_remote"
@@ -54,27 +54,7 @@ async def remote_steps(ctx: TaskContext, cmd: dict[str, Any]) -> None:
 
 
 def axis_map(channel: str, eds: Path) -> str:
-    return f"""
-[[bus]]
-name = "drives"
-kind = "canopen"
-interface = "virtual"
-channel = "{channel}"
-sdo_timeout = 0.2
-nodes = [{{ id = {NODE}, eds = "{eds}" }}]
-
-[[device]]
-name = "x"
-profile = "cia402"
-machine = 1
-bus = "drives"
-units = "mm"
-address = {{ node = {NODE} }}
-mode = "PV"
-quick_stop_option = 2
-counts_per_unit = 1000.0
-timeouts = {{ enable = 5.0, disable = 5.0, fault_reset = 5.0, set_mode = 2.0, velocity = 10.0 }}
-
+    return remote_axis_map(channel, eds, NODE) + f"""
 [[device]]
 name = "lamp"
 direction = "actuator"

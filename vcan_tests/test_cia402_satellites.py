@@ -23,7 +23,7 @@ from chcos.satellites.satellite import Satellite
 from chcos.user.context import TaskContext
 from vcan_tests.netutil import free_port, unique_channel
 from vcan_tests.peers.durand_cia402 import ENABLED, SOD, DurandCia402Drive
-from vcan_tests.support_cia402 import drive_eds
+from vcan_tests.support_cia402 import drive_eds, remote_axis_map
 from vcan_tests.support_faults import wait_until
 
 M = "vcan_tests.test_cia402_satellites"
@@ -41,27 +41,6 @@ async def mover(ctx: TaskContext, cmd: dict[str, Any]) -> str:
     return "" if result.state is None else result.state.name
 
 
-DEVMAP = """
-[[bus]]
-name = "drives"
-kind = "canopen"
-interface = "virtual"
-channel = "{channel}"
-sdo_timeout = 0.2
-nodes = [{{ id = {node}, eds = "{eds}" }}]
-
-[[device]]
-name = "x"
-profile = "cia402"
-machine = 1
-bus = "drives"
-units = "mm"
-address = {{ node = {node} }}
-mode = "PV"
-quick_stop_option = 2
-counts_per_unit = 1000.0
-timeouts = {{ enable = 5.0, disable = 5.0, fault_reset = 5.0, set_mode = 2.0, velocity = 10.0 }}
-"""
 
 
 @dataclass
@@ -75,7 +54,7 @@ def cell(tmp_path: Path) -> Iterator[Cell]:
     channel = unique_channel("axsat")
     (tmp_path / "drive.eds").write_text(drive_eds(), encoding="utf-8")
     (tmp_path / "devices.toml").write_text(
-        DEVMAP.format(channel=channel, node=NODE, eds=tmp_path / "drive.eds"), encoding="utf-8")
+        remote_axis_map(channel, tmp_path / "drive.eds", NODE), encoding="utf-8")
     (tmp_path / "users.txt").write_text("host:s3cret\nsat:s3cret\n", encoding="utf-8")
     sats = "".join(f"[[satellite]]\nmachine = {m}\nport = {free_port()}\n" for m in (0, 1))
     (tmp_path / "system.toml").write_text(
