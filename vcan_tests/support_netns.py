@@ -12,6 +12,9 @@ import shutil
 import subprocess
 import sys
 import time
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, Any
 
@@ -29,6 +32,25 @@ def missing() -> str:
         if shutil.which(tool) is None:
             return f"the {tool} tool (Debian: iproute2 / openssl)"
     return ""
+
+
+@contextmanager
+def loopback_only(tag: str) -> Iterator[str]:
+    """A network namespace of the test's own whose only interface is loopback, with a route
+    for multicast on it (python-can's udp_multicast between processes), named ``tag`` + this
+    process and a random suffix; removed after. Skips (fails under CI) where namespaces are
+    missing (:func:`missing`)."""
+    from vcan_tests.conftest import require
+
+    require(not missing(), missing() or "network namespaces")
+    name = f"{tag}{os.getpid()}x{uuid.uuid4().hex[:6]}"
+    subprocess.run(["ip", "netns", "add", name], check=True, timeout=30)
+    try:
+        for args in (["link", "set", "lo", "up"], ["route", "add", "224.0.0.0/4", "dev", "lo"]):
+            subprocess.run(["ip", "-n", name, *args], check=True, timeout=30)
+        yield name
+    finally:
+        subprocess.run(["ip", "netns", "del", name], timeout=30)
 
 
 def _ip(*args: str) -> None:

@@ -13,14 +13,12 @@ import signal
 import subprocess
 import sys
 import threading
-import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from vcan_tests.conftest import require
-from vcan_tests.support_netns import missing
+from vcan_tests.support_netns import loopback_only
 
 ROOT = Path(__file__).resolve().parent.parent
 WAIT = 60.0
@@ -59,15 +57,8 @@ safe_value = 0
 @pytest.fixture
 def netns() -> Iterator[str]:
     """A network namespace with loopback only (and a multicast route on it); removed after."""
-    require(not missing(), missing() or "network namespaces")
-    name = f"c36x{os.getpid()}x{uuid.uuid4().hex[:6]}"
-    subprocess.run(["ip", "netns", "add", name], check=True, timeout=30)
-    try:
-        for args in (["link", "set", "lo", "up"], ["route", "add", "224.0.0.0/4", "dev", "lo"]):
-            subprocess.run(["ip", "-n", name, *args], check=True, timeout=30)
+    with loopback_only("c36x") as name:
         yield name
-    finally:
-        subprocess.run(["ip", "netns", "del", name], timeout=30)
 
 
 class Lines:

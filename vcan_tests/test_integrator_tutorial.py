@@ -16,32 +16,16 @@ from pathlib import Path
 
 from pyModbusTCP.client import ModbusClient  # dev extra: the independent peer
 
+from vcan_tests.support_docs import doc_commands
+
 ROOT = Path(__file__).resolve().parent.parent
 TUTORIAL = ROOT / "docs" / "first-cell.md"
 PLC_PORT = 5020
 
 
 def tutorial_commands() -> list[str]:
-    """Every command of the tutorial's ``sh`` blocks, in order; a here-document is one command."""
-    blocks = re.findall(r"^```sh\n(.*?)^```", TUTORIAL.read_text(encoding="utf-8"),
-                        flags=re.S | re.M)
-    commands: list[str] = []
-    for block in blocks:
-        lines = iter(block.splitlines())
-        for line in lines:
-            if not line.strip():
-                continue
-            m = re.search(r"<<'(\w+)'", line)
-            if m:
-                body = [line]
-                for more in lines:
-                    body.append(more)
-                    if more == m.group(1):
-                        break
-                commands.append("\n".join(body))
-            else:
-                commands.append(line)
-    return commands
+    """Every command of the tutorial's ``sh`` blocks, in order (:func:`doc_commands`)."""
+    return doc_commands(TUTORIAL)
 
 
 def _valve_register() -> int | None:

@@ -12,56 +12,27 @@ import shutil
 import subprocess
 import sys
 import threading
-import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from vcan_tests.conftest import require
-from vcan_tests.support_netns import missing
+from vcan_tests.support_docs import doc_commands
+from vcan_tests.support_netns import loopback_only
 
 ROOT = Path(__file__).resolve().parent.parent
 TUTORIAL = ROOT / "docs" / "from-vendor-files.md"
 
 
 def commands(kind: str = "sh") -> list[str]:
-    """Every command of the tutorial's ``kind`` blocks, in order; a here-document is one
-    command (``python`` blocks: each block is one)."""
-    blocks = re.findall(rf"^```{kind}\n(.*?)^```", TUTORIAL.read_text(encoding="utf-8"),
-                        flags=re.S | re.M)
-    if kind != "sh":
-        return blocks
-    out: list[str] = []
-    for block in blocks:
-        lines = iter(block.splitlines())
-        for line in lines:
-            if not line.strip():
-                continue
-            m = re.search(r"<<'(\w+)'", line)
-            if m:
-                body = [line]
-                for more in lines:
-                    body.append(more)
-                    if more == m.group(1):
-                        break
-                out.append("\n".join(body))
-            else:
-                out.append(line)
-    return out
+    """Every command of the tutorial's ``kind`` blocks, in order (:func:`doc_commands`)."""
+    return doc_commands(TUTORIAL, kind)
 
 
 @pytest.fixture
 def netns() -> Iterator[str]:
-    require(not missing(), missing() or "network namespaces")
-    name = f"c39t{os.getpid()}x{uuid.uuid4().hex[:6]}"
-    subprocess.run(["ip", "netns", "add", name], check=True, timeout=30)
-    try:
-        for args in (["link", "set", "lo", "up"], ["route", "add", "224.0.0.0/4", "dev", "lo"]):
-            subprocess.run(["ip", "-n", name, *args], check=True, timeout=30)
+    with loopback_only("c39t") as name:
         yield name
-    finally:
-        subprocess.run(["ip", "netns", "del", name], timeout=30)
 
 
 def test_from_vendor_files_verbatim(tmp_path: Path, netns: str) -> None:

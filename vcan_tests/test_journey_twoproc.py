@@ -9,14 +9,12 @@ import os
 import subprocess
 import sys
 import threading
-import uuid
 from pathlib import Path
 
 import pytest
 
 from chcos.devices.devmap import check
-from vcan_tests.conftest import require
-from vcan_tests.support_netns import missing
+from vcan_tests.support_netns import loopback_only
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -55,15 +53,8 @@ async def main(ctx, command):
 @pytest.fixture
 def netns() -> object:
     """A network namespace with loopback only (and a multicast route on it); removed after."""
-    require(not missing(), missing() or "network namespaces")
-    name = f"c39x{os.getpid()}x{uuid.uuid4().hex[:6]}"
-    subprocess.run(["ip", "netns", "add", name], check=True, timeout=30)
-    try:
-        for args in (["link", "set", "lo", "up"], ["route", "add", "224.0.0.0/4", "dev", "lo"]):
-            subprocess.run(["ip", "-n", name, *args], check=True, timeout=30)
+    with loopback_only("c39x") as name:
         yield name
-    finally:
-        subprocess.run(["ip", "netns", "del", name], timeout=30)
 
 
 def _cmd(ns: str, *args: str) -> list[str]:
