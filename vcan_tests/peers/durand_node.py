@@ -264,12 +264,9 @@ class DurandNode:
     def wait(self, pred: Callable[[], bool], timeout: float = WAIT) -> bool:
         """Poll ``pred`` on the node's state until it holds (the node has no condition to wait
         on); False on timeout."""
-        deadline = time.monotonic() + timeout
-        while not pred():
-            if time.monotonic() > deadline:
-                return False
-            time.sleep(0.005)
-        return True
+        from vcan_tests.support_faults import wait_until
+
+        return wait_until(pred, timeout)
 
     # -- its EDS ------------------------------------------------------------------------------
 
