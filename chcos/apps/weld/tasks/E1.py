@@ -39,11 +39,9 @@ async def main(ctx: TaskContext, command: Any) -> None:
     wm = ctx.world
     reactions: list[dict[str, Any]] = wm.sensory.setdefault("reactions", [])
     while True:
-        match await ctx.read("D3"):
-            case Alarm() as alarm:
-                pass
-            case _:
-                continue
+        alarm = await ctx.read("D3")
+        if not isinstance(alarm, Alarm):    # D3 reports nothing else, but only an alarm stops
+            continue
         seen = ctx.now
         written = ctx.estop(f"{alarm.kind}: {alarm.detail}")
         frozen = []
