@@ -78,6 +78,7 @@ def test_acyclic_synchronous_tpdos_are_counted_when_they_come_never_missing(
         r.node.write(0x6064, 0, 4711)                         # changed: sent after next SYNC
         assert r.host.wait_for(lambda h: 4711 in h.values("pos"))
         assert r.node.wait(lambda: (s := r.driver.sync_stats()) is not None and s.acyclic >= 1)
+        assert r.wire.wait_for(lambda w: len(w.of(tpdo)) > sent)   # the recorder's own thread
         frame = r.wire.of(tpdo)[sent]
         assert frame.data[:4] == (4711).to_bytes(4, "little", signed=True)
         assert any(written <= s.at <= frame.at for s in r.wire.of(0x080, written))
