@@ -16,6 +16,7 @@ from chcos.apps.weld.direct import WeldDirectDriver
 from chcos.apps.weld.runner import main, run
 from chcos.apps.weld.tasks import B1, D3
 from chcos.apps.weld.tasks.common import Tracker, analyse, offset_mm
+from chcos.apps.weld.tasks.sensed import ArcTemp, SensorFailed, WeldState
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.kernel.clock import VirtualClock
 from chcos.system.embedded import System
@@ -191,12 +192,13 @@ def test_tracker_predicts_and_steers_towards_the_gap() -> None:
 # ---- D3's patterns and B1's context ----------------------------------------------------------
 def test_exception_patterns() -> None:
     c = D3.classify
-    assert c("A1", {"fail": "arc_temp", "reason": "stale"}, 400, 2600) == (
+    assert c("A1", SensorFailed("arc_temp", "stale", 1.0), 400, 2600) == (
         "sensor failure", "arc_temp (reported by A1): stale")
-    assert c("A1", {"temp": 1500.0}, 400, 2600) == ("heat?", "arc temperature 1500 degC")
-    assert c("A1", {"temp": 2700.0}, 400, 2600)[0] == "overheat"  # type: ignore[index]
-    assert c("A1", {"temp": 300.0}, 400, 2600) is None
-    assert c("B1", {"weld": "fail", "reason": "gas fail"}, 400, 2600) is None
+    assert c("A1", ArcTemp(1500.0, None, None), 400, 2600) == ("heat?",
+                                                              "arc temperature 1500 degC")
+    assert c("A1", ArcTemp(2700.0, None, None), 400, 2600)[0] == "overheat"  # type: ignore[index]
+    assert c("A1", ArcTemp(300.0, None, None), 400, 2600) is None
+    assert c("B1", WeldState("fail", "gas fail"), 400, 2600) is None
 
 
 def test_heat_is_expected_while_welding_and_while_cooling() -> None:

@@ -83,7 +83,7 @@ def test_stuck_tip_is_freed_by_c1_and_welding_resumes(binding: str, tmp_path: Pa
     assert run.outcome is not None and run.outcome["outcome"] == "welded", run.outcome
     assert run.outcome["weld"]["unstuck"] == 1
     stuck = run.worlds["A6"]["sensory"]["positions"]["stuck"]
-    assert stuck["stopped"] and 40.0 < stuck["t"] < 50.0
+    assert stuck.stopped and 40.0 < stuck.t < 50.0
     assert run.worlds["C1"]["command"]["unstick"] == "freed"
     assert run.summary["welded_mm"] >= 0.99 * run.summary["seam_mm"]
     assert run.summary["in_band_pct"] >= 95.0, run.summary

@@ -2,10 +2,10 @@
 
 Reads ``arc_temp`` (50 Hz), filters out spikes (median of three), compares the temperature with
 the band ``{"band": [low, high]}`` its commander gave (the thesis' "threshold from the C module")
-and sends ``{"temp", "cmp", "band"}`` upward, ``cmp`` being ``"below"``, ``"within"``,
-``"above"`` or None without a band. A sensor failure is sent up as ``{"fail": "arc_temp"}`` and
-the loop goes on waiting for the sensor. A command is taken at once (completed) and the loop runs
-on unowned.
+and sends an :class:`~chcos.apps.weld.tasks.sensed.ArcTemp` (temp, cmp, band) upward, ``cmp``
+being ``"below"``, ``"within"``, ``"above"`` or None without a band. A sensor failure is sent up
+as a :class:`~chcos.apps.weld.tasks.sensed.SensorFailed` and the loop goes on waiting for the
+sensor. A command is taken at once (completed with a ``BandSet``) and the loop runs on unowned.
 """
 
 from __future__ import annotations
@@ -19,11 +19,13 @@ from chcos.apps.weld.tasks.common import (
     report_failure,
 )
 from chcos.apps.weld.tasks.messages import SetBand, from_host
+from chcos.apps.weld.tasks.results import BandSet
+from chcos.apps.weld.tasks.sensed import ArcTemp, Compared
 from chcos.errors import SensorFailure
 from chcos.user.context import TaskContext
 
 
-def compare(temp: float, band: Any) -> str | None:
+def compare(temp: float, band: Any) -> Compared | None:
     """Where ``temp`` lies against ``band`` ([low, high] degC): below, within, above, or None."""
     if not isinstance(band, list | tuple) or len(band) != 2:
         return None
@@ -43,7 +45,7 @@ async def main(ctx: TaskContext, command: Any) -> None:
     wm = ctx.world
     if cmd.band is not None:
         wm.command["band"] = cmd.band
-    ctx.complete({"band": wm.command.get("band")})
+    ctx.complete(BandSet(wm.command.get("band")))
     filt: SpikeFilter = wm.sensory.setdefault("filter", SpikeFilter())
     while True:
         try:
@@ -56,4 +58,4 @@ async def main(ctx: TaskContext, command: Any) -> None:
         temp = filt.push(float(raw))
         cmp = compare(temp, wm.command.get("band"))
         wm.sensory["temp"] = temp
-        ctx.put({"temp": temp, "cmp": cmp, "band": wm.command.get("band")})
+        ctx.put(ArcTemp(temp, cmp, wm.command.get("band")))

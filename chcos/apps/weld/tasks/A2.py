@@ -3,9 +3,9 @@
 Command ``SetVolts(volts=V)`` (console: ``invoke A2 volts=V``) sets the power source (``volts_set``)
 and is completed at once; the loop then maintains it: while the arc burns (read-back within 3 V of
 the request) a read-back more than 0.5 V off trims the set-point by up to 2 V. Reads ``arc_volts``
-(20 Hz) and ``arc_amps``, filters spikes, and sends ``{"volts", "amps", "set"}`` upward. A failed
-sensor is reported as ``{"fail": device}``. Another message is refused (MessageError naming A2 and
-the message).
+(20 Hz) and ``arc_amps``, filters spikes, and sends an ``ArcVolts`` (volts, amps, setpoint;
+:mod:`chcos.apps.weld.tasks.sensed`) upward. A failed sensor is reported as a ``SensorFailed``.
+Another message is refused (MessageError naming A2 and the message).
 """
 
 from __future__ import annotations
@@ -20,6 +20,8 @@ from chcos.apps.weld.tasks.common import (
     report_failure,
 )
 from chcos.apps.weld.tasks.messages import SetVolts, from_host
+from chcos.apps.weld.tasks.results import VoltsSet
+from chcos.apps.weld.tasks.sensed import ArcVolts
 from chcos.errors import SensorFailure
 from chcos.user.context import TaskContext
 
@@ -41,7 +43,7 @@ async def main(ctx: TaskContext, command: Any) -> None:
         wm.command["volts"] = volts
         wm.command["trim"] = 0.0
         ctx.write("volts_set", volts)
-    ctx.complete({"volts": wm.command.get("volts", 0.0)})
+    ctx.complete(VoltsSet(float(wm.command.get("volts", 0.0))))
     vf: SpikeFilter = wm.sensory.setdefault("vfilter", SpikeFilter())
     af: SpikeFilter = wm.sensory.setdefault("afilter", SpikeFilter())
     while True:
@@ -62,4 +64,4 @@ async def main(ctx: TaskContext, command: Any) -> None:
             wm.command["trim"] = trim
             ctx.write("volts_set", max(0.0, min(40.0, want + trim)))
         wm.sensory.update(volts=volts, amps=amps)
-        ctx.put({"volts": volts, "amps": amps, "set": want})
+        ctx.put(ArcVolts(volts, amps, want))

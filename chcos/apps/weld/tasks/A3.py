@@ -2,9 +2,10 @@
 
 Command ``SetGas(gas="on" | "off")`` (console: ``invoke A3 gas=on``) switches ``gas_valve`` and is
 completed at once. The loop reads the bottle pressure ``gas_bottle`` (20 Hz) and the flow
-``gas_flow`` and sends ``{"bottle", "empty", "flow", "flow_ok", "valve"}`` upward: the bottle is
-empty below ``empty_bar`` (install parameter, default 5 bar), the flow is good from ``min_flow``
-(default 8 L/min). A failed sensor is reported as ``{"fail": device}``. Another message is refused
+``gas_flow`` and sends a :class:`~chcos.apps.weld.tasks.sensed.GasState` (bottle, empty, flow,
+flow_ok, valve) upward: the bottle is empty below ``empty_bar`` (install parameter, default 5
+bar), the flow is good from ``min_flow`` (default 8 L/min). A failed sensor is reported as a
+``SensorFailed``. Another message is refused
 (MessageError naming A3 and the message).
 """
 
@@ -18,7 +19,9 @@ from chcos.apps.weld.tasks.common import (
     latest,
     report_failure,
 )
-from chcos.apps.weld.tasks.messages import SetGas, from_host
+from chcos.apps.weld.tasks.messages import SetGas, from_host, record
+from chcos.apps.weld.tasks.results import GasSet
+from chcos.apps.weld.tasks.sensed import GasState
 from chcos.errors import SensorFailure
 from chcos.user.context import TaskContext
 
@@ -37,7 +40,7 @@ async def main(ctx: TaskContext, command: Any) -> None:
         on = cmd.on
         wm.command["valve"] = on
         ctx.write("gas_valve", 1.0 if on else 0.0)
-    ctx.complete({"valve": wm.command.get("valve", False)})
+    ctx.complete(GasSet(bool(wm.command.get("valve", False))))
     empty_bar = float(ctx.params.get("empty_bar", 5.0))
     min_flow = float(ctx.params.get("min_flow", 8.0))
     while True:
@@ -50,7 +53,7 @@ async def main(ctx: TaskContext, command: Any) -> None:
             continue
         clear_failure(ctx, "gas_bottle")
         clear_failure(ctx, "gas_flow")
-        msg = {"bottle": bottle, "empty": bottle < empty_bar, "flow": flow,
-               "flow_ok": flow >= min_flow, "valve": bool(wm.command.get("valve", False))}
-        wm.sensory.update(msg)
+        msg = GasState(bottle=bottle, empty=bottle < empty_bar, flow=flow,
+                       flow_ok=flow >= min_flow, valve=bool(wm.command.get("valve", False)))
+        wm.sensory.update(record(msg))
         ctx.put(msg)

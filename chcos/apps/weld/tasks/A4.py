@@ -1,18 +1,19 @@
 """A4 - level 1: move to position p at speed s (A4.c); position of T5 (A4.s).
 
 At every sample of the joint sensors (100 Hz: theta1 paces the loop) A4 reads theta1..theta5,
-derives T5 by forward kinematics and sends ``{"pos": [x, y, z], "yaw", "moving", "t"}`` upward.
+derives T5 by forward kinematics and sends a :class:`~chcos.apps.weld.tasks.sensed.TipPose`
+(pos [x, y, z], yaw, moving, t) upward.
 Commands (:data:`chcos.apps.weld.tasks.messages.MotionCommand`; from the console, ``invoke A4
 op=move p=[x,y,z] speed=... yaw=...``, ``op=hold``...):
 
 * ``MoveTo(p=[x, y, z], speed=mm/s, yaw=rad)`` - a commanded point advances
   along the straight line to ``p`` by ``speed * dt`` each cycle (so the speed is regulated; the
   next position is always within the thesis' 100 ms horizon) and the joint targets come from
-  inverse kinematics; completes with ``{"at": pos}`` when the tip is within 0.3 mm of ``p``. A
+  inverse kinematics; completes with ``Reached(at=pos)`` when the tip is within 0.3 mm of ``p``. A
   newer move continues from the commanded point of the last one, so segments join smoothly.
 * ``HoldMotion()`` - keep the joints where they are; ``StopMotion()`` - also drop
   ``drives_enable`` (safe torque off); ``Monitor()`` or no command - just report; these
-  complete at once with ``{"at": pos, "op": "hold" | "stop" | "monitor"}``.
+  complete at once with ``Reached(at=pos, op="hold" | "stop" | "monitor")``.
 
 A newer command from the same owner while a move is under way (a repeated topen) is taken up in
 the next cycle, without a new activation. Raises ServoFailure (after dropping the drives) when a
@@ -23,7 +24,7 @@ tip stalls for 2 s, MessageError naming A4 and the message for anything but a mo
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any, NoReturn
+from typing import Any, Literal, NoReturn
 
 from chcos.apps.weld.kinematics import UnreachableError, wrap_angle
 from chcos.apps.weld.tasks.common import (
@@ -43,6 +44,8 @@ from chcos.apps.weld.tasks.messages import (
     StopMotion,
     from_host,
 )
+from chcos.apps.weld.tasks.results import Reached
+from chcos.apps.weld.tasks.sensed import TipPose
 from chcos.errors import SensorFailure
 from chcos.user.context import TaskContext
 from chcos.user.worldmodel import WorldModel, task
@@ -104,6 +107,7 @@ def _command(ctx: TaskContext, command: Any, thetas: list[float],
         ctx.write("drives_enable", 1.0)
         return goal, yaw_goal, speed
     wm.command.update(goal=None, moving=False, point=pos, yaw=pose.yaw, t=ctx.now)
+    op: Literal["hold", "stop", "monitor"]
     match cmd:
         case HoldMotion():
             op = "hold"
@@ -114,7 +118,7 @@ def _command(ctx: TaskContext, command: Any, thetas: list[float],
             ctx.write("drives_enable", 0.0)
         case Monitor():
             op = "monitor"
-    ctx.complete({"at": pos, "op": op})
+    ctx.complete(Reached(pos, op))
     return None, pose.yaw, 0.0
 
 
@@ -180,7 +184,7 @@ async def main(ctx: TaskContext, command: Any) -> None:
             if dist(pos, goal) <= REACHED_MM and abs(wrap_angle(yaw_goal - pose.yaw)) < 0.01:
                 goal = None
                 wm.command.update(moving=False, goal=None)
-                ctx.complete({"at": pos})
+                ctx.complete(Reached(pos))
             elif dist(pos, progress_pos) > 0.05:
                 progress_t, progress_pos = ctx.now, pos
             elif ctx.now - progress_t > STALL_S:
@@ -189,7 +193,7 @@ async def main(ctx: TaskContext, command: Any) -> None:
                                    f"to {_fmt(goal)}")
         last_t = ctx.now
         wm.sensory.update(pos=pos, yaw=pose.yaw, thetas=thetas)
-        ctx.put({"pos": pos, "yaw": pose.yaw, "moving": goal is not None, "t": ctx.now})
+        ctx.put(TipPose(pos, pose.yaw, goal is not None, ctx.now))
         try:
             thetas = await _next_thetas(ctx)
         except SensorFailure as exc:

@@ -3,11 +3,12 @@
 Command ``SetWire(speed=mm/s)`` (console: ``invoke A5 speed=...``) sets the wire feed,
 ``SetWire(step=mm/s)`` advances (positive) or
 retards (negative) it; either is completed at once. The loop reads ``wire_speed`` (20 Hz) and
-sends ``{"wire", "set"}`` upward; a failed sensor is reported as ``{"fail": "wire_speed"}``.
+sends a :class:`~chcos.apps.weld.tasks.sensed.WireState` (wire, setpoint) upward; a failed
+sensor is reported as a ``SensorFailed``.
 
 When A5 is installed with the electrode supply ``wire_left`` (m of wire on the spool) among its
-inputs, each message also carries ``{"left": m, "empty": bool}`` (empty below ``empty_m``,
-default 0.05 m) and a failed supply sensor is reported as ``{"fail": "wire_left"}`` (and
+inputs, each message also carries ``left`` (m) and ``empty`` (below ``empty_m``,
+default 0.05 m) and a failed supply sensor is reported as ``SensorFailed("wire_left", ...)`` (and
 nothing else is sent until it reports again). Another message is refused (MessageError naming
 A5 and the message).
 """
@@ -23,6 +24,8 @@ from chcos.apps.weld.tasks.common import (
     report_failure,
 )
 from chcos.apps.weld.tasks.messages import SetWire, from_host
+from chcos.apps.weld.tasks.results import WireSet
+from chcos.apps.weld.tasks.sensed import WireState
 from chcos.errors import ReadTimeout, SensorFailure
 from chcos.user.context import TaskContext
 
@@ -48,7 +51,7 @@ async def main(ctx: TaskContext, command: Any) -> None:
         speed = max(0.0, min(WIRE_MAX, speed))
         wm.command["speed"] = speed
         ctx.write("wire_set", speed)
-    ctx.complete({"speed": speed})
+    ctx.complete(WireSet(speed))
     supply = "wire_left" in ctx.inputs
     empty_m = float(ctx.params.get("empty_m", 0.05) if cmd.empty_m is None else cmd.empty_m)
     while True:
@@ -60,7 +63,7 @@ async def main(ctx: TaskContext, command: Any) -> None:
             continue
         clear_failure(ctx, "wire_speed")
         wm.sensory["wire"] = wire
-        msg: dict[str, Any] = {"wire": wire, "set": wm.command.get("speed", 0.0)}
+        msg = WireState(wire, float(wm.command.get("speed", 0.0)))
         if supply:
             try:
                 left = float(await latest(ctx, "wire_left", timeout=0.3))
@@ -75,6 +78,6 @@ async def main(ctx: TaskContext, command: Any) -> None:
                 pass  # no supply reading yet
             else:
                 clear_failure(ctx, "wire_left")
-                msg.update(left=left, empty=left < empty_m)
+                msg = WireState(msg.wire, msg.setpoint, left, left < empty_m)
                 wm.sensory.update(left=left, empty=left < empty_m)
         ctx.put(msg)

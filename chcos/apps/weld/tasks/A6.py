@@ -10,12 +10,12 @@ A6 owns the joint drives, CiA 402 axes ``joint1``..``joint5``, and the safe-torq
 * ``memorize`` tag - store the present theta1..theta5 and T5 under ``tag`` in the world model,
   where other tasks ask for it (``ctx.ask("A6", "position", tag)``).
 
-No command (None) memorizes under ``last``. Completes with the stored record ``{"tag", "pos",
-"yaw", "thetas", "t", "stopped", "drives"}`` (``drives``: each drive's state after a stop or an
-enable). Raises MessageError for a command of another type, SensorFailure if a joint sensor has
-failed, ServoFailure naming a drive that did not stop or enable (the relay is then off). While A6
-runs it owns the axes: its abnormal completion runs their safe stop (quick stop, then disable
-voltage).
+No command (None) memorizes under ``last``. Completes with the stored record, a
+:class:`chcos.apps.weld.tasks.results.Memorized` (tag, pos, yaw, thetas, t, stopped, drives:
+each drive's state after a stop or an enable). Raises MessageError for a command of another
+type, SensorFailure if a joint sensor has failed, ServoFailure naming a drive that did not stop
+or enable (the relay is then off). While A6 runs it owns the axes: its abnormal completion runs
+their safe stop (quick stop, then disable voltage).
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ from chcos.apps.weld.tasks.common import (
     quick_stop_joints,
 )
 from chcos.apps.weld.tasks.messages import DrivesCommand, refused
+from chcos.apps.weld.tasks.results import Memorized
 from chcos.errors import MessageError
 from chcos.user.context import TaskContext
 from chcos.user.worldmodel import WorldModel, task
@@ -41,7 +42,7 @@ class MemoryModel(WorldModel):
     def answer(self, topic: str, *args: Any) -> Any:
         """``position <tag>``: the record stored under ``tag`` (MessageError if none);
         ``tags``: the stored tags."""
-        positions: dict[str, Any] = self.sensory.setdefault("positions", {})
+        positions: dict[str, Memorized] = self.sensory.setdefault("positions", {})
         if topic == "position":
             tag = args[0] if args else "last"
             if tag not in positions:
@@ -54,7 +55,7 @@ class MemoryModel(WorldModel):
 
 
 @task(world_model=MemoryModel)
-async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
+async def main(ctx: TaskContext, command: Any) -> Memorized:
     """Stop, enable and/or memorize, then complete with the memorized record."""
     match command:
         case DrivesCommand():
@@ -71,10 +72,10 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
         drives = {name: str(getattr(ctx.axis(name).state, "name", "unknown")) for name in AXES}
     thetas = [float(await latest(ctx, f"theta{j}", timeout=0.1)) for j in range(1, 6)]
     pose = pose_of(thetas)
-    record = {"tag": cmd.memorize or "last", "pos": pose.position, "yaw": pose.yaw,
-              "thetas": thetas, "t": ctx.now, "stopped": cmd.stop, "drives": drives}
+    record = Memorized(tag=cmd.memorize or "last", pos=pose.position, yaw=pose.yaw,
+                       thetas=thetas, t=ctx.now, stopped=cmd.stop, drives=drives)
     if cmd.memorize is not None:
-        positions: dict[str, Any] = ctx.world.sensory.setdefault("positions", {})
+        positions: dict[str, Memorized] = ctx.world.sensory.setdefault("positions", {})
         positions[cmd.memorize] = record
         positions["last"] = record
     return record

@@ -3,10 +3,10 @@
 Reads the linear image ``linear`` (50 Hz: 64 pixels, '1' dark) with ``range`` and the marker
 detector flags ``start_marker``/``end_marker``; determines the binary image's pattern (gap,
 start-marker bars, end-marker bars, nothing), the gap's centre and width and the distance to the
-surface, and sends ``{"range", "pattern", "centre", "width", "marker", "start", "end", "t"}``
-upward. ``start``/``end`` are the detector flag or the recognised bar pattern. A failed sensor is
-reported as ``{"fail": device}``, and so is an image that is not 64 '0'/'1' pixels. Sensory
-only: any command just (re)starts the loop.
+surface, and sends a :class:`~chcos.apps.weld.tasks.sensed.GapImage` (range, pattern, centre,
+width, marker, start, end, t) upward. ``start``/``end`` are the detector flag or the recognised
+bar pattern. A failed sensor is reported as a ``SensorFailed``, and so is an image that is not
+64 '0'/'1' pixels. Sensory only: any command just (re)starts the loop.
 """
 
 from __future__ import annotations
@@ -21,6 +21,8 @@ from chcos.apps.weld.tasks.common import (
     latest,
     report_failure,
 )
+from chcos.apps.weld.tasks.messages import record
+from chcos.apps.weld.tasks.sensed import GapImage
 from chcos.errors import SensorFailure
 from chcos.user.context import TaskContext
 
@@ -48,8 +50,8 @@ async def main(ctx: TaskContext, command: Any) -> None:
         img = analyse(pixels, hint)
         if img.centre is not None:
             wm.sensory["hint"] = img.centre
-        msg = {"range": rng, "pattern": img.pattern, "centre": img.centre, "width": img.width,
-               "marker": img.marker_centre, "start": bool(start) or img.pattern == "start",
-               "end": bool(end) or img.pattern == "end", "t": ctx.now}
-        wm.sensory.update(msg)
+        msg = GapImage(range=rng, pattern=img.pattern, centre=img.centre, width=img.width,
+                       marker=img.marker_centre, start=bool(start) or img.pattern == "start",
+                       end=bool(end) or img.pattern == "end", t=ctx.now)
+        wm.sensory.update(record(msg))
         ctx.put(msg)

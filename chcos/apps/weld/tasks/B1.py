@@ -2,15 +2,16 @@
 
 Commands: :data:`chcos.apps.weld.tasks.messages.WeldCommand` (console: ``op=on volts=... wire=...``,
 ``op=off``). ``WeldOn(volts=V, wire=mm/s)``: gas on (A3) and wait up to ``gas_wait`` s for the flow,
-then the wire feed (A5) and the voltage to its start-up value (A2); report ``{"weld": "on"}`` and
+then the wire feed (A5) and the voltage to its start-up value (A2); report ``WeldState("on")`` and
 stay active, watching the gas (A3.s) while the weld is on. ``WeldOff()``: voltage off, wire off, gas
-off, report ``{"weld": "off"}``, complete. If the gas fails (bottle empty or no flow for
-``gas_grace`` s) while on, the weld is turned off, ``{"weld": "fail", "reason"}`` is reported and
+off, report ``WeldState("off")``, complete. If the gas fails (bottle empty or no flow for
+``gas_grace`` s) while on, the weld is turned off, ``WeldState("fail", reason)`` is reported and
 the activation raises GasFailure (its owner sees an abnormal completion). Installed with A5 among
 its inputs, B1 also watches the electrode supply (A5.s): when the spool is empty the weld is turned
 off the same way, reported as ``wire fail`` and WireFailure is raised. The world model answers
 ``welding`` (is the weld on), the context D3 asks for. A message that is not a WeldCommand is
-refused with a MessageError naming B1 and the message.
+refused with a MessageError naming B1 and the message, and so is a report from A3 or A5 that is
+not theirs (the weld is turned off first).
 """
 
 from __future__ import annotations
@@ -26,7 +27,9 @@ from chcos.apps.weld.tasks.messages import (
     WeldOff,
     WeldOn,
     from_host,
+    refused,
 )
+from chcos.apps.weld.tasks.sensed import GasState, SensorFailed, WeldState, WireState
 from chcos.errors import MessageError
 from chcos.user.context import TaskContext
 from chcos.user.worldmodel import WorldModel, task
@@ -82,7 +85,7 @@ async def _off(ctx: TaskContext) -> None:
 async def _turn_off(ctx: TaskContext) -> str:
     await _off(ctx)
     ctx.world.command["weld"] = "off"
-    ctx.put({"weld": "off"})
+    ctx.put(WeldState("off"))
     return "off"
 
 
@@ -117,37 +120,45 @@ async def _on(ctx: TaskContext, cmd: WeldOn) -> WeldCommand:
         ev = await ctx.wait_any(["A3"], commands=True, timeout=gas_wait)
         if ev.kind == "command":
             return await _next(ctx, ev.value)
-        gas = ev.value
-        if isinstance(gas, dict) and gas.get("flow_ok"):
-            break
+        match ev.value:
+            case GasState(flow_ok=True):
+                break
+            case GasState() | SensorFailed():
+                pass
+            case other:
+                await _turn_off(ctx)
+                raise refused("B1", other, "a GasState or SensorFailed from A3")
         if ctx.now - t0 > gas_wait:
             await _fail(ctx, f"no gas flow {gas_wait} s after the valve opened "
-                             f"(bottle {_bar(gas)})")
+                             f"(bottle {_bar(ev.value)})")
     await ctx.call("A5", SetWire(speed=wire))
     await ctx.call("A2", SetVolts(volts=volts))
     wm.command["weld"] = "on"
-    ctx.put({"weld": "on"})
+    ctx.put(WeldState("on"))
     bad_since: float | None = None
     watch = ["A3", "A5"] if "A5" in ctx.inputs else ["A3"]
     while True:
         ev = await ctx.wait_any(watch, commands=True)
         if ev.kind == "command":
             return await _next(ctx, ev.value)
-        gas = ev.value
-        if ev.source == "A5":
-            if isinstance(gas, dict) and gas.get("empty"):
-                await _fail(ctx, f"electrode supply empty ({gas.get('left', 0.0):.2f} m of wire "
+        match ev.value:
+            case WireState(empty=True, left=left):
+                await _fail(ctx, f"electrode supply empty ({left or 0.0:.2f} m of wire "
                                  f"left)", "wire")
-            continue
-        if not isinstance(gas, dict) or "empty" not in gas:
-            continue
-        if gas["empty"] or not gas["flow_ok"]:
-            bad_since = ctx.now if bad_since is None else bad_since
-            if ctx.now - bad_since >= grace:
-                what = "bottle empty" if gas["empty"] else "no flow"
-                await _fail(ctx, f"{what} (bottle {_bar(gas)}, flow {gas['flow']:.1f} L/min)")
-        else:
-            bad_since = None
+            case WireState() | SensorFailed():
+                continue
+            case GasState(empty=empty, flow_ok=flow_ok, flow=flow) as gas:
+                if empty or not flow_ok:
+                    bad_since = ctx.now if bad_since is None else bad_since
+                    if ctx.now - bad_since >= grace:
+                        what = "bottle empty" if empty else "no flow"
+                        await _fail(ctx, f"{what} (bottle {_bar(gas)}, flow {flow:.1f} L/min)")
+                else:
+                    bad_since = None
+            case other:
+                await _turn_off(ctx)
+                raise refused("B1", other, "a GasState from A3, a WireState from A5 or a "
+                                           "SensorFailed")
 
 
 async def _next(ctx: TaskContext, command: object) -> WeldCommand:
@@ -165,10 +176,14 @@ async def _fail(ctx: TaskContext, why: str, what: str = "gas") -> None:
     ctx.world.command["weld"] = "fail"
     reason = f"{what} fail: {why}"
     ctx.world.command["reason"] = reason
-    ctx.put({"weld": "fail", "reason": reason})
+    ctx.put(WeldState("fail", reason))
     error = WireFailure if what == "wire" else GasFailure
     raise error(f"B1: {reason}; weld turned off")
 
 
-def _bar(gas: Any) -> str:
-    return f"{gas['bottle']:.1f} bar" if isinstance(gas, dict) and "bottle" in gas else "unknown"
+def _bar(gas: object) -> str:
+    match gas:
+        case GasState(bottle=bottle):
+            return f"{bottle:.1f} bar"
+        case _:
+            return "unknown"

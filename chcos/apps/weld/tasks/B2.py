@@ -3,7 +3,7 @@
 Stops the servomotors (A6 ``stop``: the joint drives quick-stop, then the safe-torque-off relay
 drops; A4 ``stop``: the joint targets held where the joints stand), turns the voltage off (A2),
 the wire feed off (A5) and the gas off (A3), in that order, and completes with what each
-answered.
+answered (:class:`chcos.apps.weld.tasks.results.Stopped`).
 Used by the assassin E1 at top priority (its links to the A tasks are set high by setpri, so it
 pre-empts whoever owns them). Raises WeldTaskError naming the A task that did not comply.
 """
@@ -20,6 +20,7 @@ from chcos.apps.weld.tasks.messages import (
     SetWire,
     StopMotion,
 )
+from chcos.apps.weld.tasks.results import Stopped
 from chcos.user.context import TaskContext
 
 STEPS: tuple[tuple[str, Any], ...] = (
@@ -27,7 +28,7 @@ STEPS: tuple[tuple[str, Any], ...] = (
     ("A2", SetVolts(volts=0.0)), ("A5", SetWire(speed=0.0)), ("A3", SetGas(gas="off")))
 
 
-async def main(ctx: TaskContext, command: Any) -> dict[str, str]:
+async def main(ctx: TaskContext, command: Any) -> Stopped:
     """Shut the cell down through the level-1 tasks."""
     answers: dict[str, str] = {}
     failed: list[str] = []
@@ -39,4 +40,4 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, str]:
     ctx.world.command["last"] = answers
     if failed:
         raise WeldTaskError(f"B2: stop incomplete, {', '.join(failed)} did not comply: {answers}")
-    return answers
+    return Stopped(answers)

@@ -2,7 +2,7 @@
 
 Its command is a :class:`chcos.apps.weld.tasks.messages.GoHome` (console: ``invoke B3
 home=[x,y,z] speed=...``). Moves (A4) to ``home`` (command or install parameter, default [500, 0,
-250] mm, yaw 0) at ``speed`` (default 100 mm/s) and completes with the pose reached. Raises
+250] mm, yaw 0) at ``speed`` (default 100 mm/s) and completes with A4's ``Reached``. Raises
 MotionFailed if A4 does not get there, MessageError naming B3 and the message for another
 message.
 """
@@ -12,11 +12,12 @@ from __future__ import annotations
 from typing import Any
 
 from chcos.apps.weld.tasks.common import MotionFailed
-from chcos.apps.weld.tasks.messages import GoHome, MoveTo, from_host
+from chcos.apps.weld.tasks.messages import GoHome, MoveTo, expect, from_host
+from chcos.apps.weld.tasks.results import Reached
 from chcos.user.context import TaskContext
 
 
-async def main(ctx: TaskContext, command: Any) -> Any:
+async def main(ctx: TaskContext, command: Any) -> Reached:
     """Go home."""
     match command:
         case GoHome():
@@ -31,4 +32,4 @@ async def main(ctx: TaskContext, command: Any) -> Any:
     done = await ctx.call("A4", MoveTo(p=home, yaw=0.0, speed=speed))
     if not done.ok:
         raise MotionFailed(f"B3: going home to {home}: A4 {done.status.value}: {done.error}")
-    return done.result
+    return expect("B3", done.result, Reached)

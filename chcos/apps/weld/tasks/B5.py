@@ -5,13 +5,13 @@ sighting, moves sideways by the marker's offset from the image centre, then cree
 the tool yaw until the marker leaves the sensor (which is 5 mm ahead of the tip, and the marker
 reaches 6 mm past the gap start), and backs off ``backoff`` mm so the tip stands at the gap
 start. Its command is a :class:`chcos.apps.weld.tasks.messages.Approach` (yaw, backoff; console:
-``invoke B5 yaw=...``). Completes with ``{"at": pos, "yaw"}``. Raises TargetNotSighted if no
+``invoke B5 yaw=...``). Completes with an ``Aligned`` (at, yaw). Raises TargetNotSighted if no
 marker is seen, MotionFailed if a move fails, MessageError naming B5 and the message for another
 message.
 
 B5.s decides from the present and the previous binary image whether the gap-start marker has
-been sighted (both show it: one stray image is not a sighting) and puts ``{"target": "sighted" |
-"not sighted" | "passed" | "centred", "marker", "at", "t"}`` upward.
+been sighted (both show it: one stray image is not a sighting) and puts a ``TargetState``
+(target ``sighted``, ``not sighted``, ``passed`` or ``centred``; marker, at, t) upward.
 """
 
 from __future__ import annotations
@@ -23,11 +23,13 @@ from chcos.apps.weld.tasks.common import (
     MotionFailed,
     TargetNotSighted,
     add,
-    latest,
     left,
     sighted,
+    tip_pose,
 )
 from chcos.apps.weld.tasks.messages import Approach, MoveTo, from_host
+from chcos.apps.weld.tasks.results import Aligned
+from chcos.apps.weld.tasks.sensed import GapImage, TargetState
 from chcos.errors import ReadTimeout
 from chcos.user.context import TaskContext
 
@@ -38,7 +40,7 @@ async def _move(ctx: TaskContext, p: Any, yaw: float, speed: float) -> None:
         raise MotionFailed(f"B5: A4 {done.status.value}: {done.error}")
 
 
-async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
+async def main(ctx: TaskContext, command: Any) -> Aligned:
     """Centre on the start marker."""
     match command:
         case Approach():
@@ -48,45 +50,46 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
         case _:
             cmd = from_host("B5", command, {"approach": Approach}, "approach", "an Approach")
     backoff = float(ctx.params.get("backoff", 1.5) if cmd.backoff is None else cmd.backoff)
-    seen: dict[str, Any] | None = None
-    previous: Any = None
+    seen: GapImage | None = None
+    previous: object = None
     t0 = ctx.now
     while ctx.now - t0 < 0.5:
         try:
             msg = await ctx.read("A7", timeout=0.5)
         except ReadTimeout:
             break
-        if sighted(msg, "start") and sighted(previous, "start"):
-            seen = msg
-            if msg.get("marker") is not None:
-                break
+        match msg:
+            case GapImage(start=True) as image if sighted(previous, "start"):
+                seen = image
+                if image.marker is not None:
+                    break
         previous = msg
     if seen is None:
-        ctx.put({"target": "not sighted", "marker": None, "at": None, "t": ctx.now})
+        ctx.put(TargetState("not sighted", None, None, ctx.now))
         raise TargetNotSighted("B5: no start-of-gap marker under the linear sensor (two "
                                "successive images)")
-    ctx.put({"target": "sighted", "marker": seen.get("marker"), "at": None, "t": ctx.now})
-    here = await latest(ctx, "A4")
-    yaw = float(here["yaw"] if cmd.yaw is None else cmd.yaw)
+    ctx.put(TargetState("sighted", seen.marker, None, ctx.now))
+    here = await tip_pose(ctx, "B5")
+    yaw = float(here.yaw if cmd.yaw is None else cmd.yaw)
     ctx.world.sensory["sighted"] = seen
-    off = seen.get("marker")
+    off = seen.marker
     if off is None:
-        off = seen.get("centre") or 0.0
+        off = seen.centre or 0.0
     lx, ly = left(yaw)
-    await _move(ctx, add(here["pos"], (lx, ly, 0.0), float(off)), yaw, 10.0)
+    await _move(ctx, add(here.pos, (lx, ly, 0.0), float(off)), yaw, 10.0)
     # creep forward until the marker leaves the sensor
-    here = await latest(ctx, "A4")
+    here = await tip_pose(ctx, "B5")
     fwd = (math.cos(yaw), math.sin(yaw), 0.0)
-    await ctx.invoke("A4", MoveTo(p=add(here["pos"], fwd, 20.0), yaw=yaw, speed=4.0))
+    await ctx.invoke("A4", MoveTo(p=add(here.pos, fwd, 20.0), yaw=yaw, speed=4.0))
     while True:
         msg = await ctx.read("A7", timeout=6.0)
         if not sighted(msg, "start"):
             break
-    here = await latest(ctx, "A4")
-    ctx.put({"target": "passed", "marker": None, "at": here["pos"], "t": ctx.now})
-    await _move(ctx, add(here["pos"], fwd, -backoff), yaw, 4.0)
-    here = await latest(ctx, "A4")
-    result = {"at": here["pos"], "yaw": yaw}
+    here = await tip_pose(ctx, "B5")
+    ctx.put(TargetState("passed", None, here.pos, ctx.now))
+    await _move(ctx, add(here.pos, fwd, -backoff), yaw, 4.0)
+    here = await tip_pose(ctx, "B5")
+    result = Aligned(here.pos, yaw)
     ctx.world.sensory["aligned"] = result
-    ctx.put({"target": "centred", "marker": None, "at": here["pos"], "t": ctx.now})
+    ctx.put(TargetState("centred", None, here.pos, ctx.now))
     return result

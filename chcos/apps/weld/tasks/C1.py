@@ -6,37 +6,39 @@ Commands: :data:`chcos.apps.weld.tasks.messages.TipCommand` (console: ``op=watch
 ``WatchTip()`` or no command (the sensory part, run while D2 welds): reads the arc temperature (A1),
 the arc voltage and current (A2) and the tip position (A4). The tip is stuck when, with the voltage
 on, the arc voltage has collapsed (below 2 V) with a short-circuit current (over 200 A), or the tip
-has not moved for 0.5 s although a motion is commanded while the temperature falls. Reports
-``{"tip": "stuck" | "free", "since"}`` on every change.
+has not moved for 0.5 s although a motion is commanded while the temperature falls. Reports a
+``TipState`` (tip ``stuck`` or ``free``, since) on every change; a sensor failure reported by
+A1, A2 or A4 is skipped, any other message refused (MessageError naming C1 and the message).
 
 Besides these hard-coded tests C1 learns (thesis 5.4, App. 2 C1.s: temperature and position
 over time): when a short circuit shows the tip stuck, the arc voltage's trend over the half
 second before it is kept as an example if it differs from the trends of normal welding (a
 freeze without a precursor teaches nothing; ``chcos.user.knowledge.LearnedPattern``, in
 ``learned/C1-tip.json`` beside the system's map). On later runs, when the burning arc's voltage
-leaves its normal trends and follows a learned one, C1 reports ``{"tip": "sticking"}`` before
-the tip freezes (its commander can cut the wire feed), and ``{"tip": "free"}`` 1 s later; an
+leaves its normal trends and follows a learned one, C1 reports ``TipState("sticking")`` before
+the tip freezes (its commander can cut the wire feed), and ``TipState("free")`` 1 s later; an
 example that keeps firing with no freeze counts false alarms and is forgotten. Every reaction is
 kept in the world model's ``reactions`` (``{"t", "kind": "learned" | "hard-coded"}``).
 
 ``IdleTip()`` stops watching. ``Unstick(lift)``: stop the motors (the joint drives
 quick-stop) and memorize the position (A6), turn the voltage off (A2), enable the drives again
 (A6), move the tip ``lift`` mm (default 10) straight up,
-90 degrees away from the gap (A4), and check that it moved. Completes with ``{"freed": true,
-"memorized": record, "lift"}``; raises TipStillStuck if the tip did not come free,
+90 degrees away from the gap (A4), and check that it moved. Completes with a ``Freed``
+(memorized: A6's record of where it stuck, lift); raises TipStillStuck if the tip did not come free,
 MotionFailed if a lower task failed, MessageError naming C1 and the message for anything but a
 TipCommand.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Sequence
+from typing import Any, Literal
 
 from chcos.apps.weld.tasks.common import (
     MotionFailed,
     TipStillStuck,
     dist,
-    latest,
+    tip_pose,
 )
 from chcos.apps.weld.tasks.messages import (
     DrivesCommand,
@@ -46,8 +48,12 @@ from chcos.apps.weld.tasks.messages import (
     TipCommand,
     Unstick,
     WatchTip,
+    expect,
     from_host,
+    refused,
 )
+from chcos.apps.weld.tasks.results import Freed, Memorized
+from chcos.apps.weld.tasks.sensed import ArcTemp, ArcVolts, SensorFailed, TipPose, TipState
 from chcos.user.context import TaskContext
 from chcos.user.knowledge import LearnedPattern, Store
 
@@ -83,10 +89,10 @@ async def main(ctx: TaskContext, command: Any) -> Any:
 async def _watch(ctx: TaskContext) -> None:
     wm = ctx.world
     ctx.complete("watching")
-    state = "free"
+    state: Literal["stuck", "free", "sticking"] = "free"
     short_since: float | None = None
     still_since: float | None = None
-    last_pos: Any = None
+    last_pos: Sequence[float] | None = None
     temps: list[float] = []
     learned = LearnedPattern(["volts"], Store.beside(ctx.state_dir, f"{ctx.name}-tip"),
                              lead=LEAD_S, guard=0.05, tolerance=0.5)
@@ -94,38 +100,40 @@ async def _watch(ctx: TaskContext) -> None:
     sticking_until: float | None = None
     last_set: float | None = None
     while True:
-        src, msg = await ctx.read_any(["A1", "A2", "A4"])
-        if not isinstance(msg, dict) or "fail" in msg:
-            continue
+        _, msg = await ctx.read_any(["A1", "A2", "A4"])
         now = ctx.now
-        if src == "A2":
-            shorted = msg["set"] > 0.0 and msg["volts"] < 2.0 and msg["amps"] > 200.0
-            # the freeze: learn the trend that led to it
-            if shorted and short_since is None and state == "free" \
-                    and learned.learn(now) is not None:
-                wm.sensory["learned_examples"] = len(learned.examples)
-            short_since = (short_since if short_since is not None else now) if shorted else None
-            burning = msg["set"] > 0.0 and msg["volts"] > 2.0 and msg["amps"] > 50.0
-            if not burning or msg["set"] != last_set:
-                learned.history.clear()
-            last_set = msg["set"]
-            if burning and learned.push(now, {"volts": float(msg["volts"])}) \
-                    and state == "free":
-                state, sticking_until = "sticking", now + 1.0
-                reactions.append({"t": now, "kind": "learned"})
-                wm.sensory.update(tip=state, since=now)
-                ctx.put({"tip": state, "since": now})
-                learned.history.clear()
+        match msg:
+            case SensorFailed():
                 continue
-        elif src == "A1":
-            temps = [*temps[-24:], float(msg["temp"])]
-        elif src == "A4":
-            pos = msg["pos"]
-            if msg["moving"] and last_pos is not None and dist(pos, last_pos) < 0.01:
-                still_since = still_since if still_since is not None else now
-            else:
-                still_since = None
-            last_pos = pos
+            case ArcVolts(volts=volts, amps=amps, setpoint=setpoint):
+                shorted = setpoint > 0.0 and volts < 2.0 and amps > 200.0
+                # the freeze: learn the trend that led to it
+                if shorted and short_since is None and state == "free" \
+                        and learned.learn(now) is not None:
+                    wm.sensory["learned_examples"] = len(learned.examples)
+                short_since = (short_since if short_since is not None else now) if shorted \
+                    else None
+                burning = setpoint > 0.0 and volts > 2.0 and amps > 50.0
+                if not burning or setpoint != last_set:
+                    learned.history.clear()
+                last_set = setpoint
+                if burning and learned.push(now, {"volts": float(volts)}) and state == "free":
+                    state, sticking_until = "sticking", now + 1.0
+                    reactions.append({"t": now, "kind": "learned"})
+                    wm.sensory.update(tip=state, since=now)
+                    ctx.put(TipState(state, now))
+                    learned.history.clear()
+                    continue
+            case ArcTemp(temp=temp):
+                temps = [*temps[-24:], float(temp)]
+            case TipPose(pos=pos, moving=moving):
+                if moving and last_pos is not None and dist(pos, last_pos) < 0.01:
+                    still_since = still_since if still_since is not None else now
+                else:
+                    still_since = None
+                last_pos = pos
+            case other:
+                raise refused("C1", other, "an ArcTemp, ArcVolts, TipPose or SensorFailed")
         cooling = len(temps) >= 25 and temps[-1] < temps[0] - 30.0
         stuck = ((short_since is not None and now - short_since >= 0.1)
                  or (still_since is not None and now - still_since >= 0.5 and cooling))
@@ -133,16 +141,16 @@ async def _watch(ctx: TaskContext) -> None:
             if sticking_until is not None and now < sticking_until:
                 continue
             sticking_until = None
-        new = "stuck" if stuck else "free"
+        new: Literal["stuck", "free"] = "stuck" if stuck else "free"
         if new != state:
             if new == "stuck" and state != "sticking":
                 reactions.append({"t": now, "kind": "hard-coded"})
             state = new
             wm.sensory.update(tip=state, since=now)
-            ctx.put({"tip": state, "since": now})
+            ctx.put(TipState(state, now))
 
 
-async def _unstick(ctx: TaskContext, lift: float) -> dict[str, Any]:
+async def _unstick(ctx: TaskContext, lift: float) -> Freed:
     wm = ctx.world
     wm.command["unstick"] = "stopping"
     mem = await ctx.call("A6", DrivesCommand(stop=True, memorize="stuck"))
@@ -151,18 +159,18 @@ async def _unstick(ctx: TaskContext, lift: float) -> dict[str, Any]:
     off = await ctx.call("A2", SetVolts(volts=0.0))
     if not off.ok:
         raise MotionFailed(f"C1: A2 could not turn the voltage off: {off.error}")
-    record = await ctx.ask("A6", "position", "stuck")
-    p0 = record["pos"]
+    record = expect("C1", await ctx.ask("A6", "position", "stuck"), Memorized)
+    p0 = record.pos
     on = await ctx.call("A6", DrivesCommand(enable=True, memorize=None))
     if not on.ok:
         raise MotionFailed(f"C1: A6 could not enable the joint drives again: {on.error}")
     wm.command["unstick"] = "lifting"
-    up = await ctx.call("A4", MoveTo(p=(p0[0], p0[1], p0[2] + lift), yaw=record["yaw"],
+    up = await ctx.call("A4", MoveTo(p=(p0[0], p0[1], p0[2] + lift), yaw=record.yaw,
                                      speed=10.0))
-    here = await latest(ctx, "A4")
-    if not up.ok or here["pos"][2] - p0[2] < 0.8 * lift:
+    here = await tip_pose(ctx, "C1")
+    if not up.ok or here.pos[2] - p0[2] < 0.8 * lift:
         raise TipStillStuck(f"C1: tip still stuck at {p0} after the lift "
                             f"({up.status.value} {up.error})")
     wm.command["unstick"] = "freed"
     wm.sensory.update(tip="free", since=ctx.now)
-    return {"freed": True, "memorized": record, "lift": lift}
+    return Freed(record, lift)

@@ -9,9 +9,9 @@ raster (lines along the heading ``raster_length`` mm long, ``raster_step`` mm ap
 system's map, ``learned/C2.json``), so a plan that kept failing is tried after one that worked.
 Then B5 centres the tip on the marker.
 
-C2.s puts ``{"gap": "start" | "searching" | "not found", "plan", "at", "t"}`` upward: where the
-tip is with respect to the start of the gap. Completes with ``{"at": pos, "yaw",
-"searched_mm", "plan"}``; raises SearchFail if every plan ends without a sighting, MotionFailed
+C2.s puts a ``GapStartState`` (gap ``start``, ``searching`` or ``not found``; plan, at, t)
+upward: where the tip is with respect to the start of the gap. Completes with a ``StartFound``
+(at, yaw, searched_mm, plan); raises SearchFail if every plan ends without a sighting, MotionFailed
 if a move fails.
 """
 
@@ -28,7 +28,9 @@ from chcos.apps.weld.tasks.common import (
     setting,
     sighted,
 )
-from chcos.apps.weld.tasks.messages import Approach, FindStart, MoveTo, from_host
+from chcos.apps.weld.tasks.messages import Approach, FindStart, MoveTo, expect, from_host
+from chcos.apps.weld.tasks.results import Aligned, StartFound
+from chcos.apps.weld.tasks.sensed import GapStartState
 from chcos.user.context import TaskContext
 from chcos.user.knowledge import Experience, Store
 from chcos.user.plans import Plan, Plans, PlansExhausted
@@ -67,7 +69,7 @@ def raster(cx: float, cy: float, heading: float, radius: float, length: float, s
     return pts
 
 
-async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
+async def main(ctx: TaskContext, command: Any) -> StartFound:
     """Find and centre on the start-of-gap marker."""
     match command:
         case FindStart():
@@ -102,7 +104,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     def search(name: str, points: list[tuple[float, float]], extent: str) -> Plan:
         async def run() -> None:
             wm.command["phase"] = name
-            ctx.put({"gap": "searching", "plan": name, "at": [sx, sy], "t": ctx.now})
+            ctx.put(GapStartState("searching", name, [sx, sy], ctx.now))
             prev = (sx, sy)
             for px, py in points:
                 moved = await ctx.call("A4", MoveTo(p=tip_for(px, py), yaw=heading,
@@ -128,15 +130,15 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
             plan, _ = await plans.attempt(wm)
         except PlansExhausted as exc:
             wm.command["phase"] = "failed"
-            ctx.put({"gap": "not found", "plan": None, "at": [sx, sy], "t": ctx.now})
+            ctx.put(GapStartState("not found", None, [sx, sy], ctx.now))
             raise SearchFail(f"C2: search fail after {searched[0]:.0f} mm: {exc}") from exc
     wm.command["phase"] = "align"
     aligned = await ctx.call("B5", Approach(yaw=heading))
     if not aligned.ok:
         raise WeldTaskError(f"C2: B5 could not align on the target: {aligned.error}")
     wm.command["phase"] = "at start"
-    result = {"at": aligned.result["at"], "yaw": aligned.result["yaw"],
-              "searched_mm": searched[0], "plan": plan}
+    at = expect("C2", aligned.result, Aligned)
+    result = StartFound(at=at.at, yaw=at.yaw, searched_mm=searched[0], plan=plan)
     wm.sensory["found"] = result
-    ctx.put({"gap": "start", "plan": plan, "at": result["at"], "t": ctx.now})
+    ctx.put(GapStartState("start", plan, result.at, ctx.now))
     return result

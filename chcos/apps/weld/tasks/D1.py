@@ -9,26 +9,37 @@ inspection at once. At the end marker the tip is stopped and the inspection is O
 
 The world model predicts the width (the middle of the tolerance, ``chcos.user.worldmodel``
 prediction) and compares each measured width with it: the error vector's surprise is "width not
-OK". D1.s puts ``{"target", "next_centre", "width", "width_ok", "travelled", "t"}`` upward every
-``steer`` s and at the end: target sighted, the predicted next centre, the width check.
+OK". D1.s puts a ``GapInspected`` (target, next_centre, width, width_ok, travelled, t) upward
+every ``steer`` s and at the end: target sighted, the predicted next centre, the width check.
 
-Completes with ``{"inspection": "OK" | "fail", "reason", "at_mm", "width", "start", ...}`` (a
+Completes with an ``Inspection`` (``OK`` or ``fail``, reason, at_mm, width, start, ...; a
 failed inspection is a normal completion: the inspection itself worked). Raises WeldAborted if
-the start cannot be found or a lower task fails.
+the start cannot be found or a lower task fails, MessageError naming D1 and the message for a
+report from A7 that is not an image or a sensor failure.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, Literal
 
 from chcos.apps.weld.tasks.common import (
     Tracker,
     WeldAborted,
-    latest,
     setting,
+    tip_pose,
 )
-from chcos.apps.weld.tasks.messages import FindStart, HoldMotion, Inspect, Step, from_host
+from chcos.apps.weld.tasks.messages import (
+    FindStart,
+    HoldMotion,
+    Inspect,
+    Step,
+    expect,
+    from_host,
+    refused,
+)
+from chcos.apps.weld.tasks.results import Inspection, StartFound
+from chcos.apps.weld.tasks.sensed import GapImage, GapInspected, SensorFailed
 from chcos.tables.messages import LinkStatus
 from chcos.user.context import TaskContext
 from chcos.user.worldmodel import WorldModel, task
@@ -45,7 +56,7 @@ class GapModel(WorldModel):
 
 
 @task(world_model=GapModel)
-async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
+async def main(ctx: TaskContext, command: Any) -> Inspection:
     """Inspect the gap from its start marker to its end marker."""
     match command:
         case Inspect():
@@ -66,34 +77,41 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     if not found.ok:
         wm.command["phase"] = "aborted"
         raise WeldAborted(f"D1: cannot find the start of the gap: {found.error}")
-    start = found.result["at"]
-    heading = float(found.result["yaw"])
+    at = expect("D1", found.result, StartFound)
+    start = at.at
+    heading = float(at.yaw)
     tracker = Tracker(heading, float(start[2]))
     wm.command.update(phase="track", start=start)
     wm.predict("width", (too_narrow + too_wide) / 2.0, (too_wide - too_narrow) / 2.0, ctx.now)
     width_ok = True
-    here = await latest(ctx, "A4")
-    tracker.moved(here["pos"])
+    here = await tip_pose(ctx, "D1")
+    tracker.moved(here.pos)
     bad: dict[str, int] = {"too wide": 0, "too narrow": 0}
     widths: list[float] = []
     last_steer = -math.inf
     end_at: float | None = None
-    outcome: dict[str, Any] | None = None
+    # the verdict: (OK or fail, the reason, the width that failed, where)
+    outcome: tuple[Literal["OK", "fail"], str, float | None, float] | None = None
     while outcome is None:
         if ctx.status("B4") is LinkStatus.ABNORMAL:
             failed = await ctx.done("B4")
             wm.command["phase"] = "aborted"
             raise WeldAborted(f"D1: inspection stopped, B4 failed: {failed.error}")
-        msg = await ctx.read("A7", timeout=1.0)
-        here = await latest(ctx, "A4")
-        travelled = tracker.moved(here["pos"])
-        if not isinstance(msg, dict) or "fail" in msg:
-            continue
-        tracker.ranged(msg.get("range"))
-        if msg["centre"] is not None and msg["pattern"] in ("gap", "start", "end"):
-            tracker.sighting(here["pos"], float(here["yaw"]), float(msg["centre"]))
-        if msg["pattern"] == "gap" and msg["width"] is not None:
-            w = float(msg["width"])
+        image = await ctx.read("A7", timeout=1.0)
+        here = await tip_pose(ctx, "D1")
+        travelled = tracker.moved(here.pos)
+        match image:
+            case GapImage() as msg:
+                pass
+            case SensorFailed():
+                continue
+            case other:
+                raise refused("D1", other, "a GapImage or SensorFailed from A7")
+        tracker.ranged(msg.range)
+        if msg.centre is not None and msg.pattern in ("gap", "start", "end"):
+            tracker.sighting(here.pos, float(here.yaw), float(msg.centre))
+        if msg.pattern == "gap" and msg.width is not None:
+            w = float(msg.width)
             widths.append(w)
             ev = wm.compare("width", w, ctx.now)
             width_ok = ev is None or not ev.surprise
@@ -101,28 +119,27 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
             bad["too narrow"] = bad["too narrow"] + 1 if w < too_narrow else 0
             for reason, n in bad.items():
                 if n >= confirm:
-                    outcome = {"inspection": "fail", "reason": reason, "width": w,
-                               "at_mm": travelled}
-        if msg["end"] and end_at is None:
+                    outcome = ("fail", reason, w, travelled)
+        if msg.end and end_at is None:
             end_at = travelled
         if end_at is not None and travelled - end_at >= 6.0:
-            outcome = {"inspection": "OK", "reason": "", "at_mm": travelled}
-        wm.sensory.update(travelled=travelled, next_centre=tracker.predict(),
-                          width=msg.get("width"))
+            outcome = ("OK", "", None, travelled)
+        wm.sensory.update(travelled=travelled, next_centre=tracker.predict(), width=msg.width)
         if outcome is None and ctx.now - last_steer >= steer_s:
             last_steer = ctx.now
             nxt = tracker.predict()
-            ctx.put({"target": msg["centre"] is not None,
-                     "next_centre": list(nxt) if nxt is not None else None,
-                     "width": msg.get("width"), "width_ok": width_ok, "travelled": travelled,
-                     "t": ctx.now})
-            d, yaw = tracker.steer(here["pos"])
+            ctx.put(GapInspected(target=msg.centre is not None,
+                                 next_centre=list(nxt) if nxt is not None else None,
+                                 width=msg.width, width_ok=width_ok, travelled=travelled,
+                                 t=ctx.now))
+            d, yaw = tracker.steer(here.pos)
             await ctx.invoke("B4", Step(d=d, yaw=yaw, speed=speed))
     await ctx.call("B4", HoldMotion())
-    outcome.update(start=start, heading=heading, length_mm=tracker.travelled,
-                   width_min=min(widths, default=None), width_max=max(widths, default=None))
-    wm.command.update(phase="done", outcome=outcome)
-    ctx.put({"target": True, "next_centre": None, "width": outcome.get("width"),
-             "width_ok": outcome["inspection"] == "OK", "travelled": tracker.travelled,
-             "t": ctx.now, "inspection": outcome["inspection"]})
-    return outcome
+    verdict, reason, width, at_mm = outcome
+    result = Inspection(inspection=verdict, reason=reason, at_mm=at_mm, width=width,
+                        start=start, heading=heading, length_mm=tracker.travelled,
+                        width_min=min(widths, default=None), width_max=max(widths, default=None))
+    wm.command.update(phase="done", outcome=result)
+    ctx.put(GapInspected(target=True, next_centre=None, width=result.width, width_ok=result.ok,
+                         travelled=tracker.travelled, t=ctx.now, inspection=result.inspection))
+    return result

@@ -13,20 +13,21 @@ turns the weld on again. When the end marker comes under the sensor the tip goes
 passed the gap end, then the weld is turned off and the tip held.
 
 The comparison is the world model's: D2 predicts the temperature (the band's middle, tolerance
-``deadband``) and the error vector of each A1 sample gives above/equal/below. D2.s puts
-``{"temp", "cmp", "error", "travelled", "phase", "t"}`` upward at most every ``steer`` s, and
-``{"tip": "stuck"}`` / ``{"phase": "done"}`` when those happen.
+``deadband``) and the error vector of each A1 sample gives above/equal/below. D2.s puts a
+``WeldTemp`` (temp, cmp, error, travelled, phase, t) upward at most every ``steer`` s, and a
+``WeldTip`` (sticking or stuck) / ``WeldDone`` when those happen.
 
-Completes with ``{"welded_mm", "in_band", "unstuck", "speed_range"}``. Raises WeldAborted
+Completes with a ``Welded`` (welded_mm, in_band, unstuck, speed_range). Raises WeldAborted
 (after turning the weld off and holding the tip) when B1 reports a gas failure, the start cannot
 be found, the tip cannot be freed or a lower task ends abnormally; ArcFailure if the arc does not
-strike.
+strike; MessageError naming D2 and the message (after the same shutdown) for a report that is not
+one of the kinds it reads.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, Literal, NoReturn
 
 from chcos.apps.weld.tasks.common import (
     LOOK_AHEAD,
@@ -34,8 +35,8 @@ from chcos.apps.weld.tasks.common import (
     Tracker,
     WeldAborted,
     dist,
-    latest,
     setting,
+    tip_pose,
     unit,
 )
 from chcos.apps.weld.tasks.messages import (
@@ -50,7 +51,20 @@ from chcos.apps.weld.tasks.messages import (
     Weld,
     WeldOff,
     WeldOn,
+    expect,
     from_host,
+    refused,
+)
+from chcos.apps.weld.tasks.results import Freed, StartFound, Welded
+from chcos.apps.weld.tasks.sensed import (
+    ArcTemp,
+    GapImage,
+    SensorFailed,
+    TipState,
+    WeldDone,
+    WeldState,
+    WeldTemp,
+    WeldTip,
 )
 from chcos.errors import ReadTimeout
 from chcos.tables.messages import LinkStatus
@@ -93,6 +107,12 @@ async def _shutdown(ctx: TaskContext) -> None:
     ctx.world.command["phase"] = "stopped"
 
 
+async def _refuse(ctx: TaskContext, src: str, msg: object) -> NoReturn:
+    """Shut the weld down and refuse a report from ``src`` that D2 does not read."""
+    await _shutdown(ctx)
+    raise refused("D2", msg, f"one of the reports D2 reads (from {src})")
+
+
 async def _weld_on(ctx: TaskContext, volts: float, wire: float, band: list[float],
                    strike: float) -> None:
     """Turn the weld on (B1) and wait until the temperature reaches the band."""
@@ -104,16 +124,21 @@ async def _weld_on(ctx: TaskContext, volts: float, wire: float, band: list[float
     while True:
         await _check(ctx, "B1")
         try:
-            _, msg = await ctx.read_any(["B1", "A1"], timeout=0.2)
+            src, msg = await ctx.read_any(["B1", "A1"], timeout=0.2)
         except ReadTimeout:
-            msg = None
-        if isinstance(msg, dict) and msg.get("weld") == "on":
-            on = True
-        if isinstance(msg, dict) and msg.get("weld") == "fail":
-            await _shutdown(ctx)
-            raise WeldAborted(f"D2: weld stopped: {msg['reason']}")
-        if on and isinstance(msg, dict) and "temp" in msg and msg["temp"] >= band[0]:
-            return
+            src, msg = "", None
+        match msg:
+            case WeldState(weld="on"):
+                on = True
+            case WeldState(weld="fail", reason=reason):
+                await _shutdown(ctx)
+                raise WeldAborted(f"D2: weld stopped: {reason}")
+            case ArcTemp(temp=temp) if on and temp >= band[0]:
+                return
+            case WeldState() | ArcTemp() | SensorFailed() | None:
+                pass
+            case other:
+                await _refuse(ctx, src, other)
         if ctx.now - t0 > strike:
             await _shutdown(ctx)
             raise ArcFailure(f"D2: the arc did not bring the pool to {band[0]} degC within "
@@ -121,7 +146,7 @@ async def _weld_on(ctx: TaskContext, volts: float, wire: float, band: list[float
 
 
 @task(world_model=WeldGapModel)
-async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
+async def main(ctx: TaskContext, command: Any) -> Welded:
     """Weld the gap from its start marker to its end marker."""
     match command:
         case Weld():
@@ -146,15 +171,16 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     if not found.ok:
         wm.command["phase"] = "aborted"
         raise WeldAborted(f"D2: cannot find the start of the gap: {found.error}")
-    start = found.result["at"]
-    tracker = Tracker(float(found.result["yaw"]), float(start[2]))
+    at = expect("D2", found.result, StartFound)
+    start = at.at
+    tracker = Tracker(float(at.yaw), float(start[2]))
     wm.predict("temp", centre, deadband, ctx.now)
     last_put = -math.inf
     await ctx.call("C1", WatchTip())
     await _weld_on(ctx, volts, wire0, band, strike)
     wm.command["phase"] = "weld"
-    here = await latest(ctx, "A4")
-    tracker.moved(here["pos"])
+    here = await tip_pose(ctx, "D2")
+    tracker.moved(here.pos)
     speed = speed0
     speeds = [speed, speed]
     last_steer = last_regulate = -math.inf
@@ -165,70 +191,75 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
         for lower in ("B1", "B4", "A5"):
             await _check(ctx, lower)
         src, msg = await ctx.read_any(["A7", "A1", "C1", "B1"], timeout=1.0)
-        here = await latest(ctx, "A4")
-        travelled = tracker.moved(here["pos"])
-        if not isinstance(msg, dict) or "fail" in msg:
-            continue
-        if src == "B1" and msg.get("weld") == "fail":
-            await _shutdown(ctx)
-            raise WeldAborted(f"D2: weld stopped: {msg['reason']}")
-        if src == "C1" and msg.get("tip") == "sticking":
-            # C1 recognized the pattern that precedes a stuck tip: cut the wire feed for a
-            # moment so the arc burns the wire back, then feed again
-            retract_until = ctx.now + RETRACT_S
-            ctx.put({"tip": "sticking", "travelled": travelled, "phase": "weld", "t": ctx.now})
-            wm.command["retracts"] = wm.command.get("retracts", 0) + 1
-            await ctx.call("A5", SetWire(speed=RETRACT_SHARE * wire0 * speed / speed0))
-            continue
+        here = await tip_pose(ctx, "D2")
+        travelled = tracker.moved(here.pos)
+        match msg:
+            case SensorFailed():
+                continue
+            case WeldState(weld="fail", reason=reason):
+                await _shutdown(ctx)
+                raise WeldAborted(f"D2: weld stopped: {reason}")
+            case TipState(tip="sticking"):
+                # C1 recognized the pattern that precedes a stuck tip: cut the wire feed for a
+                # moment so the arc burns the wire back, then feed again
+                retract_until = ctx.now + RETRACT_S
+                ctx.put(WeldTip("sticking", travelled, "weld", ctx.now))
+                wm.command["retracts"] = wm.command.get("retracts", 0) + 1
+                await ctx.call("A5", SetWire(speed=RETRACT_SHARE * wire0 * speed / speed0))
+                continue
+            case WeldState() | TipState() | ArcTemp() | GapImage():
+                pass
+            case other:
+                await _refuse(ctx, src, other)
         if retract_until is not None and ctx.now >= retract_until:
             retract_until = None
             await ctx.call("A5", SetWire(speed=wire0 * speed / speed0))
-        if src == "C1" and msg.get("tip") == "stuck":
-            ctx.put({"tip": "stuck", "travelled": travelled, "phase": "unstick", "t": ctx.now})
-            unstuck += 1
-            wm.command.update(phase="unstick", unstuck=unstuck)
-            await _unstick(ctx, volts, wire0 * speed / speed0, band, strike)
-            wm.command["phase"] = "weld"
-            last_steer = -math.inf
-            continue
-        if src == "A1":
-            temp = float(msg["temp"])
-            samples += 1
-            in_band += band[0] <= temp <= band[1]
-            ev = wm.compare("temp", temp, ctx.now)
-            err = ev.error[""] if ev is not None else temp - centre
-            cmp = "equal" if ev is not None and not ev.surprise else \
-                "above" if err > 0 else "below"
-            wm.sensory.update(temp=temp, cmp=cmp)
-            if ctx.now - last_put >= steer_s:
-                last_put = ctx.now
-                ctx.put({"temp": temp, "cmp": cmp, "error": err, "travelled": travelled,
-                         "phase": "weld", "t": ctx.now})
-            if cmp != "equal" and ctx.now - last_regulate >= 0.2 and retract_until is None:
-                last_regulate = ctx.now
-                speed = max(0.5 * speed0, min(2.0 * speed0, speed + (0.1 if cmp == "above"
-                                                                        else -0.1)))
-                speeds = [min(speeds[0], speed), max(speeds[1], speed)]
-                await ctx.call("A5", SetWire(speed=wire0 * speed / speed0))
-        if src == "A7":
-            tracker.ranged(msg.get("range"))
-            if msg["centre"] is not None and msg["pattern"] in ("gap", "start", "end"):
-                tracker.sighting(here["pos"], float(here["yaw"]), float(msg["centre"]))
-            if msg["end"] and end_at is None:
-                end_at = travelled
-                wm.command["end_seen_at"] = travelled
+        match msg:
+            case TipState(tip="stuck"):
+                ctx.put(WeldTip("stuck", travelled, "unstick", ctx.now))
+                unstuck += 1
+                wm.command.update(phase="unstick", unstuck=unstuck)
+                await _unstick(ctx, volts, wire0 * speed / speed0, band, strike)
+                wm.command["phase"] = "weld"
+                last_steer = -math.inf
+                continue
+            case ArcTemp(temp=temp):
+                samples += 1
+                in_band += band[0] <= temp <= band[1]
+                ev = wm.compare("temp", temp, ctx.now)
+                err = ev.error[""] if ev is not None else temp - centre
+                cmp: Literal["equal", "above", "below"] = \
+                    "equal" if ev is not None and not ev.surprise else \
+                    "above" if err > 0 else "below"
+                wm.sensory.update(temp=temp, cmp=cmp)
+                if ctx.now - last_put >= steer_s:
+                    last_put = ctx.now
+                    ctx.put(WeldTemp(temp, cmp, err, travelled, "weld", ctx.now))
+                if cmp != "equal" and ctx.now - last_regulate >= 0.2 and retract_until is None:
+                    last_regulate = ctx.now
+                    speed = max(0.5 * speed0, min(2.0 * speed0,
+                                                  speed + (0.1 if cmp == "above" else -0.1)))
+                    speeds = [min(speeds[0], speed), max(speeds[1], speed)]
+                    await ctx.call("A5", SetWire(speed=wire0 * speed / speed0))
+            case GapImage() as image:
+                tracker.ranged(image.range)
+                if image.centre is not None and image.pattern in ("gap", "start", "end"):
+                    tracker.sighting(here.pos, float(here.yaw), float(image.centre))
+                if image.end and end_at is None:
+                    end_at = travelled
+                    wm.command["end_seen_at"] = travelled
         wm.command.update(travelled=travelled, speed=speed)
         if end_at is not None and travelled - end_at >= END_RUN_MM:
             break
         if ctx.now - last_steer >= steer_s:
             last_steer = ctx.now
-            d, yaw = tracker.steer(here["pos"])
+            d, yaw = tracker.steer(here.pos)
             await ctx.invoke("B4", Step(d=d, yaw=yaw, speed=speed))
     await _shutdown(ctx)
-    result = {"welded_mm": tracker.travelled, "in_band": in_band / max(1, samples),
-              "unstuck": unstuck, "speed_range": speeds}
+    result = Welded(welded_mm=tracker.travelled, in_band=in_band / max(1, samples),
+                    unstuck=unstuck, speed_range=speeds)
     wm.command.update(phase="done", result=result)
-    ctx.put({"phase": "done", "travelled": tracker.travelled, "t": ctx.now})
+    ctx.put(WeldDone(tracker.travelled, ctx.now))
     return result
 
 
@@ -239,11 +270,11 @@ async def _unstick(ctx: TaskContext, volts: float, wire: float, band: list[float
     if not freed.ok:
         await _shutdown(ctx)
         raise WeldAborted(f"D2: weld stopped, the tip could not be freed: {freed.error}")
-    mem = freed.result["memorized"]
-    here = await latest(ctx, "A4")
-    back = [m - h for m, h in zip(mem["pos"], here["pos"], strict=True)]
-    down = await ctx.call("B4", Step(d=unit(back), dist=dist(mem["pos"], here["pos"]),
-                                     speed=10.0, yaw=mem["yaw"]))
+    mem = expect("D2", freed.result, Freed).memorized
+    here = await tip_pose(ctx, "D2")
+    back = [m - h for m, h in zip(mem.pos, here.pos, strict=True)]
+    down = await ctx.call("B4", Step(d=unit(back), dist=dist(mem.pos, here.pos),
+                                     speed=10.0, yaw=mem.yaw))
     if not down.ok:
         await _shutdown(ctx)
         raise WeldAborted(f"D2: cannot return to the weld after freeing the tip: {down.error}")

@@ -13,7 +13,9 @@ the job E2):
 * ``overheat`` - above ``overheat`` (default 2600 degC) whatever the context.
 
 Anything else worth knowing (a gas failure, which the weld loop handles itself) is kept as a
-notice in the world model. D3 waits on the light curtain and the tap at once
+notice in the world model. D3 judges the kinds of :mod:`chcos.apps.weld.tasks.sensed` that can
+mean danger (``SensorFailed``, A1's ``ArcTemp``, B1's ``WeldState``); every other report of a
+lower task is harmless to it. D3 waits on the light curtain and the tap at once
 (``ctx.wait_any(["intruder"], exceptions=True, when=news)``); the ``news`` filter runs at
 delivery and wakes D3 only for a change of the curtain, a failure not yet reported, a weld failure
 or an arc hotter than the context allows (after B1 said heat is expected, not again for
@@ -27,6 +29,7 @@ import math
 from typing import Any
 
 from chcos.apps.weld.tasks.messages import Alarm
+from chcos.apps.weld.tasks.sensed import ArcTemp, SensorFailed, WeldState
 from chcos.errors import MessageError, SensorFailure
 from chcos.user.context import TaskContext
 from chcos.user.worldmodel import WorldModel, task
@@ -35,20 +38,18 @@ HEAT_RECHECK_S = 0.5
 """After B1 said heat is expected, D3 does not ask again (nor wake for heat) for this long."""
 
 
-def classify(src: str, msg: Any, hot: float, overheat: float) -> tuple[str, str] | None:
+def classify(src: str, msg: object, hot: float, overheat: float) -> tuple[str, str] | None:
     """The alarm a message from task ``src`` raises without context, or ("heat?", detail) when
     only context can tell (a hot arc); None when it is harmless."""
-    if not isinstance(msg, dict):
-        return None
-    if "fail" in msg:
-        return "sensor failure", f"{msg['fail']} (reported by {src}): {msg.get('reason', '')}"
-    if "temp" in msg:
-        temp = float(msg["temp"])
-        if temp > overheat:
+    match msg:
+        case SensorFailed(device=device, reason=reason):
+            return "sensor failure", f"{device} (reported by {src}): {reason}"
+        case ArcTemp(temp=temp) if temp > overheat:
             return "overheat", f"arc temperature {temp:.0f} degC above {overheat:.0f} degC"
-        if temp > hot:
+        case ArcTemp(temp=temp) if temp > hot:
             return "heat?", f"arc temperature {temp:.0f} degC"
-    return None
+        case _:
+            return None
 
 
 class ExceptionModel(WorldModel):
@@ -91,19 +92,17 @@ async def main(ctx: TaskContext, command: Any) -> None:
         than the context allows."""
         if src == "intruder":
             return bool(msg) != seen["intruder"]
-        if not isinstance(msg, dict):
-            return False
-        if "fail" in msg:
-            return str(msg["fail"]) not in failed
-        if msg.get("weld") == "fail":
-            return True
-        if "temp" in msg:
-            temp = float(msg["temp"])
-            if temp > overheat:
+        match msg:
+            case SensorFailed(device=device):
+                return device not in failed
+            case WeldState(weld="fail"):
+                return True
+            case ArcTemp(temp=temp) if temp > overheat:
                 return not wm.sensory.get("overheat")
-            if temp > hot:
+            case ArcTemp(temp=temp) if temp > hot:
                 return not wm.sensory.get("heat_alarm") and ctx.now >= seen["heat_ok_until"]
-        return False
+            case _:
+                return False
 
     try:  # a light curtain that is already dead when D3 starts
         ctx.poll("intruder")
@@ -127,22 +126,24 @@ async def main(ctx: TaskContext, command: Any) -> None:
         src, msg = ev.source, ev.value
         found = classify(src, msg, hot, overheat)
         if found is None:
-            if isinstance(msg, dict) and msg.get("weld") == "fail":
-                wm.sensory.setdefault("notices", []).append(
-                    {"from": src, "notice": msg.get("reason"), "t": ctx.now})
+            match msg:
+                case WeldState(weld="fail", reason=reason):
+                    wm.sensory.setdefault("notices", []).append(
+                        {"from": src, "notice": reason, "t": ctx.now})
             continue
         kind, detail = found
-        if kind == "sensor failure":
-            device = str(msg["fail"])
-            if device not in failed:
-                failed.add(device)
-                _alarm(ctx, kind, detail)
-        elif kind == "heat?":
-            if await _heat_expected(ctx):
-                seen["heat_ok_until"] = ctx.now + HEAT_RECHECK_S
-            elif not wm.sensory.get("heat_alarm"):
-                wm.sensory["heat_alarm"] = True
-                _alarm(ctx, "unexpected heat", f"{detail} while no weld is on")
-        elif not wm.sensory.get(kind):
-            wm.sensory[kind] = True
-            _alarm(ctx, kind, detail)
+        match msg:
+            case SensorFailed(device=device):
+                if device not in failed:
+                    failed.add(device)
+                    _alarm(ctx, kind, detail)
+            case ArcTemp() if kind == "heat?":
+                if await _heat_expected(ctx):
+                    seen["heat_ok_until"] = ctx.now + HEAT_RECHECK_S
+                elif not wm.sensory.get("heat_alarm"):
+                    wm.sensory["heat_alarm"] = True
+                    _alarm(ctx, "unexpected heat", f"{detail} while no weld is on")
+            case _:  # overheat, whatever the context
+                if not wm.sensory.get(kind):
+                    wm.sensory[kind] = True
+                    _alarm(ctx, kind, detail)

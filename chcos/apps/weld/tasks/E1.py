@@ -14,7 +14,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from chcos.apps.weld.tasks.messages import Alarm, DrivesCommand
+from chcos.apps.weld.tasks.messages import Alarm, DrivesCommand, expect
+from chcos.apps.weld.tasks.results import Memorized, Stopped
 from chcos.errors import MessageError
 from chcos.user.context import TaskContext
 from chcos.user.worldmodel import WorldModel, task
@@ -56,7 +57,9 @@ async def main(ctx: TaskContext, command: Any) -> None:
                                   "estop_writes": written, "suspended": frozen}
         reactions.append(record)
         stop = await ctx.call("B2")
-        record["b2"] = stop.result if stop.ok else f"{stop.status.value}: {stop.error}"
+        record["b2"] = (dict(expect("E1", stop.result, Stopped).answers) if stop.ok
+                        else f"{stop.status.value}: {stop.error}")
         mem = await ctx.call("A6", DrivesCommand(memorize="alarm"))
-        record["position"] = mem.result["pos"] if mem.ok else f"{mem.status.value}: {mem.error}"
+        record["position"] = (expect("E1", mem.result, Memorized).pos if mem.ok
+                              else f"{mem.status.value}: {mem.error}")
         record["done"] = ctx.now

@@ -9,9 +9,11 @@ install parameters: ``start`` [x, y] (probable start of the gap, mm), ``heading`
 height, mm), ``home`` [x, y, z]; ``inspect_only`` skips the weld.
 
 Completes with ``{"outcome": "welded" | "inspection failed" | "inspection aborted" |
-"weld failed" | "drives failed" | "aborted", "reason", "drives", "inspection", "weld", "home"}``;
-the phase and the
-outcome are in the world model (``phase``, ``outcome``).
+"weld failed" | "drives failed" | "aborted", "reason", "drives", "inspection", "weld", "home"}``,
+a plain dict for the host (``chcos run``, the viewer): the subordinates' results (A6's
+``Memorized``, D1's ``Inspection``, D2's ``Welded``, B3's ``Reached``) in it as records
+(``messages.record``). The phase and the outcome are in the world model (``phase``,
+``outcome``).
 """
 
 from __future__ import annotations
@@ -27,8 +29,11 @@ from chcos.apps.weld.tasks.messages import (
     Inspect,
     Job,
     Weld,
+    expect,
     from_host,
+    record,
 )
+from chcos.apps.weld.tasks.results import Inspection, Memorized, Reached, Welded
 from chcos.tables.messages import Completion
 from chcos.user.context import TaskContext
 from chcos.user.worldmodel import WorldModel, task
@@ -80,7 +85,8 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
     try:
         wm.command["phase"] = "drives"
         done = await _run(ctx, "A6", DrivesCommand(enable=True, memorize="start"))
-        out["drives"] = done.result["drives"] if done.ok else done.error
+        out["drives"] = dict(expect("E2", done.result, Memorized).drives) if done.ok \
+            else done.error
         if not done.ok:
             out.update(outcome="drives failed", reason=done.error)
             wm.command.update(phase="finished", outcome=out)
@@ -88,20 +94,21 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
             return out
         wm.command["phase"] = "inspect"
         done = await _run(ctx, "D1", Inspect(start=start, heading=heading, z=z))
-        out["inspection"] = done.result if done.ok else done.error
-        if not done.ok:
+        inspection = expect("E2", done.result, Inspection) if done.ok else None
+        out["inspection"] = record(inspection) if inspection is not None else done.error
+        if inspection is None:
             out.update(outcome="inspection aborted", reason=done.error)
-        elif done.result["inspection"] != "OK":
-            out.update(outcome="inspection failed", reason=done.result["reason"])
+        elif not inspection.ok:
+            out.update(outcome="inspection failed", reason=inspection.reason)
         elif setting(ctx, cmd.inspect_only, "inspect_only", False):
             out.update(outcome="inspected")
         else:
             wm.command["phase"] = "weld"
-            found, gap = done.result["start"], float(done.result["heading"])
+            found, gap = inspection.start, float(inspection.heading)
             weld = Weld(start=[found[0] + 5.0 * math.cos(gap), found[1] + 5.0 * math.sin(gap)],
                         heading=gap, z=z)
             done = await _run(ctx, "D2", weld)
-            out["weld"] = done.result if done.ok else done.error
+            out["weld"] = record(expect("E2", done.result, Welded)) if done.ok else done.error
             if done.ok:
                 out.update(outcome="welded")
             else:
@@ -109,7 +116,7 @@ async def main(ctx: TaskContext, command: Any) -> dict[str, Any]:
         wm.command["phase"] = "home"
         home = GoHome(home=setting(ctx, cmd.home, "home", [500.0, 0.0, 250.0]))
         done = await _run(ctx, "B3", home)
-        out["home"] = done.result if done.ok else done.error
+        out["home"] = record(expect("E2", done.result, Reached)) if done.ok else done.error
     except Aborted as exc:
         out.update(outcome="aborted", reason=str(exc))
     wm.command.update(phase="finished", outcome=out)

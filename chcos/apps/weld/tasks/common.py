@@ -1,18 +1,10 @@
 """common - what the welding cell's tasks share: errors, geometry, the linear-image analysis,
 the spike filter and the gap tracker.
 
-Message conventions (every sensory message a task puts is a dict, so the exception task D3 can
-recognise patterns whatever task sent it):
-
-* ``{"fail": device, "reason": text}`` - a sensor failure seen by a level-1 task;
-* A1 ``{"temp", "cmp", "band"}``, A2 ``{"volts", "amps", "set"}``, A3 ``{"bottle", "empty",
-  "flow", "flow_ok", "valve"}``, A4 ``{"pos", "yaw", "moving", "t"}``, A5 ``{"wire", "set"}``,
-  A7 ``{"range", "pattern", "centre", "width", "start", "end"}``;
-* B1 ``{"weld": "on" | "off" | "fail", "reason"}``, C1 ``{"tip": "stuck" | "free"}``;
-
-Commands (every task's) and D3's alarm are typed: the dataclasses of
-:mod:`chcos.apps.weld.tasks.messages`, received with ``match``; a console command (a dict) is
-converted at the boundary by ``messages.from_host``. Completions are still dicts.
+Messages are typed: the commands and D3's alarm are the dataclasses of
+:mod:`chcos.apps.weld.tasks.messages` (a console command, a dict, is converted at the boundary by
+``messages.from_host``), the sensory messages those of :mod:`chcos.apps.weld.tasks.sensed`, the
+completions those of :mod:`chcos.apps.weld.tasks.results`; each is received with ``match``.
 """
 
 from __future__ import annotations
@@ -22,9 +14,11 @@ import types
 from collections import deque
 from collections.abc import Generator, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 from chcos.apps.weld.kinematics import Arm, ToolPose
+from chcos.apps.weld.tasks.messages import refused
+from chcos.apps.weld.tasks.sensed import GapImage, SensorFailed, TipPose
 from chcos.errors import ChcosError, SensorFailure
 from chcos.user.context import Port, TaskContext
 from drivers.codecs.cia402 import Cia402Error, Mode, Op, Result, State
@@ -161,12 +155,25 @@ async def latest(ctx: TaskContext, port: Port, timeout: float = 0.5) -> Any:
     return value
 
 
+async def tip_pose(ctx: TaskContext, who: str) -> TipPose:
+    """A4's newest report of the tip pose (:func:`latest` on the port ``A4``). Raises
+    ServoFailure naming ``who`` when A4 reports a failed joint sensor, MessageError naming
+    ``who`` for any other message, ReadTimeout if A4 reports nothing."""
+    match await latest(ctx, "A4"):
+        case TipPose() as pose:
+            return pose
+        case SensorFailed(device=device, reason=reason):
+            raise ServoFailure(f"{who}: A4 reports joint sensor {device} failed ({reason})")
+        case other:
+            raise refused(who, other, "a TipPose from A4")
+
+
 def report_failure(ctx: TaskContext, exc: SensorFailure) -> None:
     """Send a sensor failure upward once per episode (kept in the world model) and note it."""
     failed: set[str] = ctx.world.sensory.setdefault("failed", set())
     if exc.device not in failed:
         failed.add(exc.device)
-        ctx.put({"fail": exc.device, "reason": exc.reason, "t": ctx.now})
+        ctx.put(SensorFailed(exc.device, exc.reason, ctx.now))
 
 
 async def await_recovery(ctx: TaskContext, exc: SensorFailure) -> None:
@@ -382,6 +389,11 @@ class Tracker:
         return (dx / n, dy / n, dz), self.heading
 
 
-def sighted(msg: Any, which: str) -> bool:
-    """True if an A7 message says the ``which`` (start/end) marker is under the sensor."""
-    return isinstance(msg, dict) and bool(msg.get(which))
+def sighted(msg: object, which: Literal["start", "end"]) -> bool:
+    """True if ``msg`` is an A7 image that says the ``which`` marker is under the sensor (a
+    failure or nothing is no sighting)."""
+    match msg:
+        case GapImage(start=start, end=end):
+            return start if which == "start" else end
+        case _:
+            return False

@@ -16,36 +16,42 @@ per message kind, received with ``match`` on the class.
 
 A command typed at the console (``invoke A4 op=move p=[500,0,250]``) arrives as a dict: it is
 converted at the boundary, by :func:`from_host`, into the receiver's message class, and every
-other wrong message is refused by :func:`refused`, naming the task and the message.
+other wrong message is refused by :func:`refused`, naming the task and the message. The sensory
+messages the tasks put up are in :mod:`chcos.apps.weld.tasks.sensed`, what they complete with in
+:mod:`chcos.apps.weld.tasks.results`; :func:`expect` reads a completion's result as its class,
+:func:`record` gives a message's fields as a plain dict (world models, the job's outcome).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, fields
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from chcos.errors import MessageError
+
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
 
 M = TypeVar("M")
 
 
 # ---- the level-1 set-points (A1, A2, A3, A5) ---------------------------------------------------
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class SetBand:
     """A1: the temperature band ``[low, high]`` (degC) the arc temperature is compared with."""
 
     band: Sequence[float] | None = None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class SetVolts:
     """A2: the arc voltage to set and maintain (V)."""
 
     volts: float | None = None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class SetGas:
     """A3: the gas valve, ``"on"``/``"off"`` (``True``/``1`` also mean on)."""
 
@@ -57,7 +63,7 @@ class SetGas:
         return self.gas in ("on", 1, True)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class SetWire:
     """A5: the wire feed ``speed`` (mm/s), or a ``step`` that advances (positive) or retards
     (negative) it; ``empty_m``: below this much wire on the spool it is empty (None: A5's
@@ -68,7 +74,7 @@ class SetWire:
     empty_m: float | None = None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class DrivesCommand:
     """A command of A6 (stop/memorize position, and the joint drives' power), in this order:
     ``stop`` quick-stops the joint drives and drops the relay; ``enable`` switches the relay on
@@ -81,7 +87,7 @@ class DrivesCommand:
 
 
 # ---- A4: move to position p at speed s ---------------------------------------------------------
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class MoveTo:
     """A4: move the tip along a straight line to ``p`` (mm) at ``speed`` mm/s, turning the tool
     to ``yaw`` (rad; None: the yaw it has)."""
@@ -91,17 +97,17 @@ class MoveTo:
     yaw: float | None = None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class HoldMotion:
     """A4 (and B4): keep the joints where they are."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class StopMotion:
     """A4: keep the joints where they are and drop ``drives_enable`` (safe torque off)."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Monitor:
     """A4: no motion, just report the pose (also what no command means)."""
 
@@ -111,7 +117,7 @@ MotionCommand = MoveTo | HoldMotion | StopMotion | Monitor
 
 
 # ---- B4: move 5 mm in direction d --------------------------------------------------------------
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Step:
     """B4: move ``dist`` mm from the present tip position along direction ``d`` (a 3-vector,
     normalised by B4) at ``speed`` mm/s with tool yaw ``yaw`` (None: unchanged)."""
@@ -127,7 +133,7 @@ StepCommand = Step | HoldMotion
 
 
 # ---- B3: go home, B5: approach target ----------------------------------------------------------
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class GoHome:
     """B3: move the tip to ``home`` [x, y, z] (mm) at ``speed`` mm/s (None: B3's install
     parameters, else [500, 0, 250] and 100 mm/s)."""
@@ -136,7 +142,7 @@ class GoHome:
     speed: float | None = None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Approach:
     """B5: centre the tip on the start marker with tool yaw ``yaw`` (None: the yaw it has),
     ending ``backoff`` mm before it (None: B5's install parameter, else 1.5 mm)."""
@@ -147,7 +153,7 @@ class Approach:
 
 # ---- C2, D1, D2: find the start, inspect, weld ------------------------------------------------
 # A field left None is taken from the receiver's install parameters, else its default.
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class FindStart:
     """C2: find and centre on the start-of-gap marker near ``start`` [x, y] (mm), the gap
     heading ``heading`` (rad), the tip at height ``z`` (mm); the search's speeds and sizes."""
@@ -164,7 +170,7 @@ class FindStart:
     raster_step: float | None = None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Job:
     """E2: the job: the gap's probable ``start`` [x, y] (mm), ``heading`` (rad) and the tip
     height ``z`` (mm), the ``home`` [x, y, z] to return to; ``inspect_only`` skips the weld."""
@@ -176,7 +182,7 @@ class Job:
     inspect_only: bool | None = None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Inspect:
     """D1: inspect the gap from near ``start`` (heading, z as :class:`FindStart`) at ``speed``
     mm/s; widths below ``too_narrow`` or above ``too_wide`` mm, ``confirm`` sightings in a row,
@@ -192,7 +198,7 @@ class Inspect:
     steer: float | None = None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Weld:
     """D2: weld the gap from near ``start`` (heading, z as :class:`FindStart`) at ``speed``
     mm/s, holding the arc temperature in ``band`` [low, high] degC (``deadband`` degC) with
@@ -212,7 +218,7 @@ class Weld:
 
 
 # ---- B1: turn the weld on/off ------------------------------------------------------------------
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class WeldOn:
     """B1: turn the weld on. A field left None is taken from B1's install parameters (else its
     default): ``volts`` (24 V), ``wire`` (80 mm/s), ``gas_wait`` (1 s), ``gas_grace`` (0.15 s)."""
@@ -223,7 +229,7 @@ class WeldOn:
     gas_grace: float | None = None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class WeldOff:
     """B1: voltage, wire and gas off."""
 
@@ -233,17 +239,17 @@ WeldCommand = WeldOn | WeldOff
 
 
 # ---- C1: unstick tip / tip stuck-free ----------------------------------------------------------
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class WatchTip:
     """C1: watch for a stuck tip while the weld runs (also what no command means)."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class IdleTip:
     """C1: stop watching."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Unstick:
     """C1: free a stuck tip, lifting it ``lift`` mm (None: C1's install parameter, else 10)."""
 
@@ -255,7 +261,7 @@ TipCommand = WatchTip | IdleTip | Unstick
 
 
 # ---- D3: the alarm -----------------------------------------------------------------------------
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Alarm:
     """D3's alarm (``intruder``, ``sensor failure``, ``unexpected heat``, ``overheat``) with what
     was seen and when (``t``, s)."""
@@ -300,3 +306,17 @@ def refused(task: str, message: object, expected: str) -> MessageError:
     """The error a task raises for a message it does not take: names the task, what it expects
     and the message received."""
     return MessageError(f"{task}: expected {expected}, got {message!r}")
+
+
+def expect(task: str, message: object, cls: type[M]) -> M:
+    """``message`` (a completion's result, a world model's answer) as the ``cls`` ``task``
+    expects; raises MessageError naming the task, the class and the message otherwise."""
+    if isinstance(message, cls):
+        return message
+    raise refused(task, message, f"a {cls.__name__}")
+
+
+def record(message: DataclassInstance) -> dict[str, Any]:
+    """The fields of ``message`` as a plain dict (not recursive), as a world model keeps them
+    for the viewer and the job reports them to the host."""
+    return {f.name: getattr(message, f.name) for f in fields(message)}
