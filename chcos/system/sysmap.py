@@ -14,6 +14,7 @@ is written atomically (temporary file, fsync, rename), so a crash never leaves h
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import tempfile
@@ -23,7 +24,17 @@ from typing import Any
 from chcos.errors import ConfigError
 
 FORMAT = "chcos-sysfile.map/1"
-_ENCODER = json.JSONEncoder(default=str)  # one encoder for every record (C encoder, no indent)
+
+
+def _plain(value: Any) -> Any:
+    """What JSON has no form for: a dataclass instance (a typed message a task keeps in its
+    world model) as a dict of its fields, anything else as its text."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: getattr(value, f.name) for f in dataclasses.fields(value)}
+    return str(value)
+
+
+_ENCODER = json.JSONEncoder(default=_plain)  # one encoder for every record (C encoder, no indent)
 
 
 def write(path: str | Path, doc: dict[str, Any]) -> None:
