@@ -202,7 +202,7 @@ class Installer:
             link = self.link(p.name, t.name, LinkType.SENSORY, prio, p.kind, EndpointKind.TASK,
                               p.machine, t.machine, queued=req.queued.get(p.name, 0))
             link.dst_port = i
-            port = InPort(link, i)
+            port = InPort(link, i, t)
             link.port = port
             t.in_ports.append(port)
             if p.kind is EndpointKind.TASK:

@@ -87,7 +87,7 @@ class Link:
     tap: bool = False  # an implicit link: exception tap, assassin or host link
     remote: bool = False  # the destination lives on another satellite (set at install)
     _status: LinkStatus = LinkStatus.OK  # see :attr:`status`
-    port: InPort | TapPort | None = None  # where sensory messages to a task land (install)
+    port: InPort | None = None  # where sensory messages to a task land (install)
     src_port: int = -1  # index in the source task's out_links (command links)
     dst_port: int = -1  # index in the destination task's in_ports (sensory links)
     # command-link state
@@ -148,24 +148,28 @@ class Link:
 
 class InPort:
     """One of a task's eight input ports: the newest unread message of its sensory link, or a
-    bounded FIFO for a queued link."""
+    bounded FIFO for a queued link. ``reader`` is the task it belongs to (its only reader);
+    whether that task waits for it is the task's own record (``TaskEntry.wait_ports``)."""
 
-    __slots__ = ("device", "fifo", "fresh", "index", "link", "sent_at", "value", "waiter")
+    __slots__ = ("device", "fifo", "fresh", "index", "link", "reader", "sent_at", "value")
 
-    def __init__(self, link: Link, index: int) -> None:
+    def __init__(self, link: Link, index: int, reader: Any) -> None:
         self.link = link
         self.index = index
+        # the TaskEntry this port belongs to (chcos.tables.tasks imports this module, so the
+        # type is not named: the task table sits on the message table, not beside it)
+        self.reader: Any = reader
         self.device = link.src_kind is EndpointKind.DEVICE
         self.value: Any = None
         self.fresh = False
-        self.sent_at = 0.0
-        # the TaskEntry waiting for a message here (chcos.tables.tasks imports this module, so
-        # the type is not named: the task table sits on the message table, not beside it)
-        self.waiter: Any = None
-        self.fifo: deque[tuple[Any, float]] | None = deque() if link.queued else None
+        #: when the unread message was sent (after :meth:`take`: the one taken), None when no
+        #: instrument measured it
+        self.sent_at: float | None = None
+        self.fifo: deque[tuple[Any, float | None]] | None = deque() if link.queued else None
 
-    def store(self, value: Any, now: float) -> bool:
-        """Put a message in; True if it overwrote an unread one. Raises QueueOverflow when a
+    def store(self, value: Any, sent_at: float | None) -> bool:
+        """Put a message in, sent at clock time ``sent_at`` (None: not measured, no instrument
+        listens to deliveries); True if it overwrote an unread one. Raises QueueOverflow when a
         queued link is full (the message is refused, nothing is lost silently)."""
         fifo = self.fifo
         if fifo is not None:
@@ -173,27 +177,29 @@ class InPort:
                 self.link.refused += 1
                 raise QueueOverflow(
                     f"queued link {self.link.name} is full ({self.link.queued} messages unread)")
-            fifo.append((value, now))
+            fifo.append((value, sent_at))
             self.fresh = True
             return False
         over = self.fresh
         self.value = value
         self.fresh = True
-        self.sent_at = now
+        self.sent_at = sent_at
         return over
 
-    def take(self) -> tuple[Any, float]:
-        """Remove and return (message, time sent); raises MessageError if there is none."""
+    def take(self) -> Any:
+        """Remove and return the message (the oldest unread one on a queued link), leaving the
+        time it was sent in :attr:`sent_at`; raises MessageError if there is none."""
         if not self.fresh:
             raise MessageError(f"no message on {self.link.name}")
         fifo = self.fifo
         if fifo is not None:
-            item = fifo.popleft()
+            value, self.sent_at = fifo.popleft()
             self.fresh = bool(fifo)
-            return item
+            return value
         self.fresh = False
-        value, self.value = self.value, None
-        return value, self.sent_at
+        value = self.value
+        self.value = None
+        return value
 
 
 class TapPort:
