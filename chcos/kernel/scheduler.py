@@ -419,9 +419,9 @@ class Kernel:
         t.steps += 1
         try:
             if t.throw_exc is None:
-                value = t.send_value
-                t.send_value = None
-                trap = coro.send(value)
+                # the value of the last wake-up stays until the next one replaces it: a step
+                # after a yield sends it again, and a yield's await ignores what it is sent
+                trap = coro.send(t.send_value)
             else:
                 exc = t.throw_exc
                 t.throw_exc = None

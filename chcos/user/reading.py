@@ -271,7 +271,7 @@ class Reading(TaskHandle):
         best: InPort | None = None
         for p in ins:
             if (p.fresh and (best is None or p.link.priority > best.link.priority)
-                    and (when is None or _accepts(when, p.link.src, _head(p)))):
+                    and (when is None or _accepts(when, p.link.src, p.head()))):
                 best = p
         if best is not None:
             return Event(EventKind.MESSAGE, best.link.src, self._take(best), best.index)
@@ -317,11 +317,6 @@ class Reading(TaskHandle):
                 tap.waiter = None
         src, value, _at = tap.take()
         return src, value
-
-def _head(p: InPort) -> Any:
-    """The message a fresh port would give next (without taking it)."""
-    return p.fifo[0][0] if p.fifo is not None else p.value
-
 
 def _accepts(when: Callable[[str, Any], bool], source: str, value: Any) -> bool:
     """``when(source, value)``; a filter that raises accepts (a failure is never masked)."""
