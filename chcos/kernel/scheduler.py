@@ -203,7 +203,7 @@ class Kernel:
         """End ``t``'s wait (its timer, and whatever its ``unwait`` undoes) and ready it at
         ``prio`` with ``value`` as the result of its pending ``await`` (or ``exc`` thrown into
         it): every layer that wakes a waiting task calls this (Xinu's signal calls ready)."""
-        unwait = t.unwait  # (Lifecycle.unhook's work, here without its call)
+        unwait = t.unwait
         if unwait is not None:
             t.unwait = None
             unwait(t)
