@@ -96,7 +96,7 @@ class Delivery:
         w = port.reader
         if port in w.wait_ports and (w.wake_filter is None or self._wanted(w, link.src, value)):
             prio = w.prio_src.priority  # the task's base priority (TaskEntry.base_prio)
-            kernel.wake(w, prio if prio > link.priority else link.priority, port)
+            kernel.wake(w, prio if prio > link.priority else link.priority)
         return 1
 
     @staticmethod
