@@ -10,7 +10,7 @@ from typing import Any
 from chcos.devices.spec import DeviceMap
 from chcos.errors import MessageError, ReadTimeout
 from chcos.kernel.clock import VirtualClock
-from chcos.kernel.instrument import Counters, Instrument
+from chcos.kernel.instrument import Counters, Instrument, Latency
 from chcos.system.embedded import System
 from chcos.tables.messages import Link
 from chcos.tables.tasks import TaskEntry, TaskState
@@ -234,3 +234,69 @@ def test_read_finds_a_port_by_index_or_name_and_names_a_bad_one(tmp_path: Path) 
     assert log[8] == "task C: an input port is an index or a source name, not True"
     assert log[9] == "task C: an input port is an index or a source name, not 1.0"
     assert log[10] == "q"
+
+
+async def slow_reader(ctx: TaskContext, cmd: dict[str, Any]) -> None:
+    while True:
+        cmd["log"].append(await ctx.read(cmd.get("port", 0)))
+        await ctx.sleep(cmd["slow"])
+
+
+def test_latency_is_measured_for_the_messages_sent_while_an_instrument_listens(
+        tmp_path: Path) -> None:
+    """A latency instrument hears of each message sent while it listens, with the time from
+    its sending to its reading; a message sent before it was added is delivered all the same
+    (and counted by the link) but not measured, newest-wins and queued links alike."""
+    s = System(DeviceMap(), clock=VirtualClock(), machines=[0], base_dir=tmp_path)
+    s.execute(f"install -m0 --code={M}:idle P")
+    s.execute(f"install -m0 --code={M}:idle Q")
+    s.execute(f"install -m0i1 --code={M}:slow_reader C P")
+    s.execute(f"install -m0i1 --queue=Q=4 --code={M}:slow_reader F Q")
+    c_log: list[Any] = []
+    f_log: list[Any] = []
+    s.invoke("C", {"log": c_log, "slow": 1.0}, priority=20)
+    s.invoke("F", {"log": f_log, "slow": 1.0}, priority=20)
+    s.run(until=0.0)
+    newest, queued = s.msgtab.find("P", "C"), s.msgtab.find("Q", "F")
+    s.msgmgr.deliver(newest, 1)   # before the instrument: read at once, not measured
+    s.msgmgr.deliver(queued, -1)  # idem
+    s.msgmgr.deliver(queued, -2)  # waits in the queue, not measured
+    latency, counters = Latency(), Counters()
+    s.kernel.add_instrument(latency)
+    s.kernel.add_instrument(counters)
+    s.msgmgr.deliver(queued, -3)  # measured: sent at 0, read at 2 (after -2 at 1)
+    s.run(until=0.5)
+    s.msgmgr.deliver(newest, 2)   # measured: sent at 0.5, read at 1
+    s.run(until=2.5)
+    assert (c_log, f_log) == ([1, 2], [-1, -2, -3])
+    assert sorted(latency.samples) == [0.5, 2.0]
+    assert counters.delivered == {newest.name: 1, queued.name: 1}
+    assert (newest.sent, newest.delivered, queued.sent, queued.delivered) == (2, 2, 3, 3)
+    s.msgmgr.deliver(newest, 3)   # measured, but the instrument goes before it is read
+    s.kernel.remove_instrument(latency)
+    s.run(until=3.5)
+    assert c_log == [1, 2, 3] and sorted(latency.samples) == [0.5, 2.0]
+
+
+def test_a_message_to_a_reader_already_woken_leaves_it_in_its_place(tmp_path: Path) -> None:
+    """Two readers of one priority woken in turn run in that order, however many messages
+    reach the first before it runs (a woken reader is readied once); each reads the newest."""
+    s = System(DeviceMap(), clock=VirtualClock(), machines=[0], base_dir=tmp_path)
+    s.execute(f"install -m0 --code={M}:idle P")
+    s.execute(f"install -m0i1 --code={M}:reader A P")
+    s.execute(f"install -m0i1 --code={M}:reader B P")
+    log: list[Any] = []
+    for name in ("A", "B"):
+        s.invoke(name, {"log": log}, priority=20)
+    s.run(until=0.0)
+    to_a, to_b = s.msgtab.find("P", "A"), s.msgtab.find("P", "B")
+    scheduled = _Scheduled()
+    s.kernel.add_instrument(scheduled)
+    s.msgmgr.deliver(to_a, "a1")
+    s.msgmgr.deliver(to_b, "b1")
+    s.msgmgr.deliver(to_a, "a2")  # A is ready already: it stays ahead of B
+    assert [t.name for t in s.kernel.ready_tasks()] == ["A", "B"]
+    s.run()
+    assert log == ["a2", "b1"]
+    assert scheduled.names == ["A", "B"]
+    assert (to_a.sent, to_a.overwritten, to_a.delivered) == (2, 1, 1)

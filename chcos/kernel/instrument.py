@@ -42,7 +42,8 @@ class Instrument:
         """A message on ``link`` replaced an unread older one (newest wins)."""
 
     def message_delivered(self, link: Link, latency: float) -> None:
-        """The receiver took a message from ``link``, ``latency`` seconds after it was sent."""
+        """The receiver took a message from ``link``, ``latency`` seconds after it was sent
+        (told of the messages sent while an instrument listened to this hook)."""
 
     def event(self, kind: str, detail: str) -> None:
         """A system event: install, setpri, preemption, abnormal completion, estop..."""

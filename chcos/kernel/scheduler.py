@@ -203,7 +203,7 @@ class Kernel:
         """End ``t``'s wait (its timer, and whatever its ``unwait`` undoes) and ready it at
         ``prio`` with ``value`` as the result of its pending ``await`` (or ``exc`` thrown into
         it): every layer that wakes a waiting task calls this (Xinu's signal calls ready)."""
-        unwait = t.unwait  # (Lifecycle.unhook's work, here without its call)
+        unwait = t.unwait
         if unwait is not None:
             t.unwait = None
             unwait(t)
@@ -419,9 +419,9 @@ class Kernel:
         t.steps += 1
         try:
             if t.throw_exc is None:
-                value = t.send_value
-                t.send_value = None
-                trap = coro.send(value)
+                # the value of the last wake-up stays until the next one replaces it: a step
+                # after a yield sends it again, and a yield's await ignores what it is sent
+                trap = coro.send(t.send_value)
             else:
                 exc = t.throw_exc
                 t.throw_exc = None

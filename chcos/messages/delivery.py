@@ -15,7 +15,7 @@ from typing import Any, TextIO
 
 from chcos.errors import MessageError, QueueOverflow, SensorFailure
 from chcos.messages.context import MessageContext
-from chcos.tables.messages import EndpointKind, InPort, Link, TapPort
+from chcos.tables.messages import EndpointKind, Link, TapPort
 from chcos.tables.tasks import TaskEntry
 
 log = logging.getLogger("chcos.messages.manager")
@@ -80,21 +80,23 @@ class Delivery:
             link.sent += 1
             return 1
         port = link.port
-        if not isinstance(port, InPort):
+        if port is None:
             raise MessageError(f"sensory link {link.name} has no input port")
         kernel = self.kernel
         hooks = kernel.hooks
-        if port.store(value, kernel.clock.now()):  # a newest-wins port had an unread one
+        # the time sent is kept only for an instrument measuring latency
+        sent_at = kernel.clock.now() if hooks.h_delivered else None
+        if port.store(value, sent_at):  # a newest-wins port had an unread one
             link.overwritten += 1
             if hooks.h_overwritten:
                 hooks.notify(hooks.h_overwritten, "message_overwritten", link)
         link.sent += 1
         if hooks.h_sent:
             hooks.notify(hooks.h_sent, "message_sent", link)
-        w = port.waiter
-        if w is not None and (w.wake_filter is None or self._wanted(w, link.src, value)):
+        w = port.reader
+        if port in w.wait_ports and (w.wake_filter is None or self._wanted(w, link.src, value)):
             prio = w.prio_src.priority  # the task's base priority (TaskEntry.base_prio)
-            kernel.wake(w, prio if prio > link.priority else link.priority, port)
+            kernel.wake(w, prio if prio > link.priority else link.priority)
         return 1
 
     @staticmethod
@@ -137,12 +139,13 @@ class Delivery:
         link.sent += n
         link.overwritten += n
 
-    def taken(self, link: Link, sent_at: float) -> None:
+    def taken(self, link: Link, sent_at: float | None) -> None:
         """The receiver read a message of ``link`` (an input port's: Link.delivered counts it
-        by itself): feed the latency instruments."""
+        by itself), sent at clock time ``sent_at``: feed the latency instruments. A message
+        sent while no instrument listened to deliveries (``sent_at`` None) is not measured."""
         kernel = self.kernel
         hooks = kernel.hooks
-        if hooks.h_delivered:
+        if hooks.h_delivered and sent_at is not None:
             hooks.notify(hooks.h_delivered, "message_delivered", link,
                          kernel.clock.now() - sent_at)
 
@@ -179,8 +182,8 @@ class Delivery:
         kernel = self.kernel
         for link in self._device_links.get(device, ()):
             port = link.port
-            if isinstance(port, InPort) and port.waiter is not None:
-                w = port.waiter
+            if port is not None and port in port.reader.wait_ports:
+                w = port.reader
                 kernel.wake(w, max(w.base_prio, link.priority), exc=failure)
 
     def estop(self, by: str, reason: str) -> int:

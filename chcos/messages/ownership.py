@@ -353,13 +353,7 @@ class Ownership:
             t.restart_timer.cancel()
             t.restart_timer = None
         for p in t.in_ports:  # unread messages are dropped, and counted so
-            if p.fifo is not None:
-                p.link.discarded += len(p.fifo)
-                p.fifo.clear()
-            elif p.fresh:
-                p.link.discarded += 1
-            p.fresh = False
-            p.value = None
+            p.link.discarded += p.discard()
         if isinstance(t.tap, TapPort):
             t.tap.newest.clear()
             t.tap.order.clear()

@@ -12,11 +12,9 @@ from chcos.tables.tasks import TaskEntry
 
 
 def forget(t: TaskEntry) -> None:
-    """End every message-layer wait of ``t``: no port or tap names it as its waiter any more,
-    and it waits for no link, command or query (an :data:`chcos.tables.tasks.Unwait`)."""
-    for p in t.wait_ports:
-        if p.waiter is t:
-            p.waiter = None
+    """End every message-layer wait of ``t``: it waits on no input port, its tap names it as
+    its waiter no more, and it waits for no link, command or query (an
+    :data:`chcos.tables.tasks.Unwait`)."""
     t.wait_ports = ()
     t.wait_link = None
     t.wait_query = None
@@ -31,9 +29,6 @@ def forget(t: TaskEntry) -> None:
 
 
 def forget_ports(t: TaskEntry) -> None:
-    """End a wait of ``t`` on input ports only (``read``, ``read_any``): no port names it as
-    its waiter any more (an :data:`chcos.tables.tasks.Unwait`)."""
-    for p in t.wait_ports:
-        if p.waiter is t:
-            p.waiter = None
+    """End a wait of ``t`` on input ports only (``read``, ``read_any``): it waits on no port
+    any more, so a message there no longer wakes it (an :data:`chcos.tables.tasks.Unwait`)."""
     t.wait_ports = ()

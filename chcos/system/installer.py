@@ -29,11 +29,11 @@ from chcos.tables.messages import (
     PORTS,
     TOP_PRIORITY,
     EndpointKind,
-    InPort,
     Link,
     LinkType,
     Msgtab,
     TapPort,
+    in_port,
 )
 from chcos.tables.tasks import Role, TaskEntry, TaskFunc, Tsktab
 from chcos.user.context import TaskContext
@@ -202,7 +202,7 @@ class Installer:
             link = self.link(p.name, t.name, LinkType.SENSORY, prio, p.kind, EndpointKind.TASK,
                               p.machine, t.machine, queued=req.queued.get(p.name, 0))
             link.dst_port = i
-            port = InPort(link, i)
+            port = in_port(link, i, t)
             link.port = port
             t.in_ports.append(port)
             if p.kind is EndpointKind.TASK:

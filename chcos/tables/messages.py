@@ -87,7 +87,7 @@ class Link:
     tap: bool = False  # an implicit link: exception tap, assassin or host link
     remote: bool = False  # the destination lives on another satellite (set at install)
     _status: LinkStatus = LinkStatus.OK  # see :attr:`status`
-    port: InPort | TapPort | None = None  # where sensory messages to a task land (install)
+    port: InPort | None = None  # where sensory messages to a task land (install)
     src_port: int = -1  # index in the source task's out_links (command links)
     dst_port: int = -1  # index in the destination task's in_ports (sensory links)
     # command-link state
@@ -124,11 +124,9 @@ class Link:
         an actuator or a file, what was sent (written at once); 0 on any other link here (the
         task's own satellite counts a remote link's)."""
         port = self.port
-        if port.__class__ is InPort and not self.remote:
-            fifo = port.fifo
-            unread = len(fifo) if fifo is not None else 1 if port.fresh else 0
+        if port is not None and not self.remote:
             # max: a reader on another thread may see sent before the unread message it made
-            return max(0, self.sent - self.overwritten - self.discarded - unread)
+            return max(0, self.sent - self.overwritten - self.discarded - port.unread())
         if self.dst_kind is EndpointKind.DEVICE or self.dst_kind is EndpointKind.FILE:
             return self.sent
         return 0
@@ -147,53 +145,115 @@ class Link:
 
 
 class InPort:
-    """One of a task's eight input ports: the newest unread message of its sensory link, or a
-    bounded FIFO for a queued link."""
+    """One of a task's eight input ports, on a newest-wins link: the newest unread message (a
+    newer one overwrites it). A queued link's port is a :class:`QueuedInPort` (make either with
+    :func:`in_port`). ``reader`` is the task it belongs to (its only reader); whether that task
+    waits for it is the task's own record (``TaskEntry.wait_ports``)."""
 
-    __slots__ = ("device", "fifo", "fresh", "index", "link", "sent_at", "value", "waiter")
+    __slots__ = ("device", "fresh", "index", "link", "reader", "sent_at", "value")
 
-    def __init__(self, link: Link, index: int) -> None:
+    def __init__(self, link: Link, index: int, reader: Any) -> None:
         self.link = link
         self.index = index
+        # the TaskEntry this port belongs to (chcos.tables.tasks imports this module, so the
+        # type is not named: the task table sits on the message table, not beside it)
+        self.reader: Any = reader
         self.device = link.src_kind is EndpointKind.DEVICE
         self.value: Any = None
+        #: True while a message is unread
         self.fresh = False
-        self.sent_at = 0.0
-        # the TaskEntry waiting for a message here (chcos.tables.tasks imports this module, so
-        # the type is not named: the task table sits on the message table, not beside it)
-        self.waiter: Any = None
-        self.fifo: deque[tuple[Any, float]] | None = deque() if link.queued else None
+        #: when the unread message was sent (after :meth:`take`: the one taken), None when no
+        #: instrument measured it
+        self.sent_at: float | None = None
 
-    def store(self, value: Any, now: float) -> bool:
-        """Put a message in; True if it overwrote an unread one. Raises QueueOverflow when a
-        queued link is full (the message is refused, nothing is lost silently)."""
-        fifo = self.fifo
-        if fifo is not None:
-            if len(fifo) >= self.link.queued:
-                self.link.refused += 1
-                raise QueueOverflow(
-                    f"queued link {self.link.name} is full ({self.link.queued} messages unread)")
-            fifo.append((value, now))
-            self.fresh = True
-            return False
+    def store(self, value: Any, sent_at: float | None) -> bool:
+        """Put a message in, sent at clock time ``sent_at`` (None: not measured, no instrument
+        listens to deliveries); True if it overwrote an unread one."""
         over = self.fresh
         self.value = value
         self.fresh = True
-        self.sent_at = now
+        self.sent_at = sent_at
         return over
 
-    def take(self) -> tuple[Any, float]:
-        """Remove and return (message, time sent); raises MessageError if there is none."""
+    def take(self) -> Any:
+        """Remove and return the message, leaving the time it was sent in :attr:`sent_at`;
+        raises MessageError if there is none."""
+        if not self.fresh:
+            raise MessageError(f"no message on {self.link.name}")
+        self.fresh = False
+        value = self.value
+        self.value = None
+        return value
+
+    def head(self) -> Any:
+        """The message :meth:`take` would return, left in place (None if there is none)."""
+        return self.value
+
+    def unread(self) -> int:
+        """How many messages wait here."""
+        return 1 if self.fresh else 0
+
+    def discard(self) -> int:
+        """Drop every unread message; returns how many."""
+        n = self.unread()
+        self.fresh = False
+        self.value = None
+        return n
+
+
+class QueuedInPort(InPort):
+    """An input port on a queued link: a FIFO of at most ``link.queued`` unread messages,
+    refusing a message when full."""
+
+    __slots__ = ("fifo",)
+
+    def __init__(self, link: Link, index: int, reader: Any) -> None:
+        super().__init__(link, index, reader)
+        self.fifo: deque[tuple[Any, float | None]] = deque()
+
+    def store(self, value: Any, sent_at: float | None) -> bool:
+        """Queue a message sent at clock time ``sent_at`` (None: not measured); never
+        overwrites (False). Raises QueueOverflow when the link's FIFO is full (the message is
+        refused, nothing is lost silently)."""
+        fifo = self.fifo
+        if len(fifo) >= self.link.queued:
+            self.link.refused += 1
+            raise QueueOverflow(
+                f"queued link {self.link.name} is full ({self.link.queued} messages unread)")
+        fifo.append((value, sent_at))
+        self.fresh = True
+        return False
+
+    def take(self) -> Any:
+        """Remove and return the oldest unread message, leaving the time it was sent in
+        :attr:`sent_at`; raises MessageError if there is none."""
         if not self.fresh:
             raise MessageError(f"no message on {self.link.name}")
         fifo = self.fifo
-        if fifo is not None:
-            item = fifo.popleft()
-            self.fresh = bool(fifo)
-            return item
+        value, self.sent_at = fifo.popleft()
+        self.fresh = bool(fifo)
+        return value
+
+    def head(self) -> Any:
+        """The oldest unread message, left in place (None if there is none)."""
+        return self.fifo[0][0] if self.fifo else None
+
+    def unread(self) -> int:
+        """How many messages wait here."""
+        return len(self.fifo)
+
+    def discard(self) -> int:
+        """Drop every unread message; returns how many."""
+        n = len(self.fifo)
+        self.fifo.clear()
         self.fresh = False
-        value, self.value = self.value, None
-        return value, self.sent_at
+        return n
+
+
+def in_port(link: Link, index: int, reader: Any) -> InPort:
+    """Input port ``index`` of task ``reader`` for sensory ``link``: a :class:`QueuedInPort`
+    if the link is queued, else a newest-wins :class:`InPort`."""
+    return QueuedInPort(link, index, reader) if link.queued else InPort(link, index, reader)
 
 
 class TapPort:

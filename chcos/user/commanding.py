@@ -9,14 +9,16 @@ awaited.
 from __future__ import annotations
 
 import types
-from collections.abc import Generator
+from collections.abc import Callable, Generator
+from functools import partial
 from typing import Any
 
 from chcos.errors import MessageError
-from chcos.kernel.scheduler import BLOCK
+from chcos.kernel.scheduler import BLOCK, Kernel
+from chcos.messages.manager import MessageManager
 from chcos.messages.waits import forget
 from chcos.tables.messages import PRIORITIES, Completion, Link, LinkStatus
-from chcos.tables.tasks import TaskState
+from chcos.tables.tasks import TaskEntry, TaskState
 from chcos.user.ports import Port, TaskHandle
 
 
@@ -24,11 +26,14 @@ class Commanding(TaskHandle):
     """Output ports, command messages and the assassin (part of
     :class:`chcos.user.context.TaskContext`)."""
 
+    def __init__(self, task: TaskEntry, kernel: Kernel, msgmgr: MessageManager) -> None:
+        super().__init__(task, kernel, msgmgr)
+        #: ``put(value)``: send ``value`` upward to every task that reads this one (tputc);
+        #: never blocks. Returns how many links took it. Raises QueueOverflow if a queued link
+        #: was full. (The message manager's put for this task.)
+        self.put: Callable[[Any], int] = partial(msgmgr.put, task)
+
     # ---- sensory output (tputc) and actuator output (putc) ----------------------------------
-    def put(self, value: Any) -> int:
-        """Send ``value`` upward to every task that reads this one; never blocks. Returns how
-        many links took it. Raises QueueOverflow if a queued link was full."""
-        return self._mm.put(self._t, value)
 
     def write(self, port: Port, value: Any) -> None:
         """Command actuator (or output file) on ``port`` with ``value``; never blocks.

@@ -100,9 +100,9 @@ class Reading(TaskHandle):
 
     def _take(self, p: InPort) -> Any:
         """Take the message on ``p`` (an instrument hears of its delivery)."""
-        value, at = p.take()
-        if self._k.hooks.h_delivered:
-            self._mm.taken(p.link, at)
+        value = p.take()
+        if p.sent_at is not None:  # sent while an instrument measured latency
+            self._mm.taken(p.link, p.sent_at)
         return value
 
     def _arm_timeout(self, timeout: float | None, what: str) -> None:
@@ -126,16 +126,18 @@ class Reading(TaskHandle):
         Raises MessageError for a bad port, SensorFailure if the source is a failed or stale
         sensor (also while waiting), ReadTimeout after ``timeout`` seconds without a message.
         """
-        ports = self._t.in_ports
-        p = ports[port] if port.__class__ is int and 0 <= port < len(ports) else self._in(port)
+        try:  # an index is looked up at once; a name, a bad index or a bad type through _in
+            p = self._t.in_ports[port] if port.__class__ is int and port >= 0 else self._in(port)
+        except IndexError:
+            p = self._in(port)
         if not p.fresh:
             if p.device:
                 self._check_source(p)
             self._wait_for((p,), timeout)
             yield BLOCK
-        value, at = p.take()
-        if self._k.hooks.h_delivered:
-            self._mm.taken(p.link, at)
+        value = p.take()
+        if p.sent_at is not None:  # sent while an instrument measured latency
+            self._mm.taken(p.link, p.sent_at)
         return value
 
     @overload
@@ -177,8 +179,6 @@ class Reading(TaskHandle):
         """Record that the calling task waits for a message on one of ``ports`` (a delivery
         wakes it through the kernel), for at most ``timeout`` seconds (then ReadTimeout)."""
         t = self._t
-        for p in ports:
-            p.waiter = t
         t.wait_ports = ports
         t.unwait = forget_ports
         t.state = _WAITING
@@ -230,8 +230,6 @@ class Reading(TaskHandle):
                     t.timer.cancel()
                     t.timer = None
                 return ev
-            for p in ins:
-                p.waiter = t
             t.wait_ports = ins
             if tap is not None:
                 tap.waiter = t
@@ -273,7 +271,7 @@ class Reading(TaskHandle):
         best: InPort | None = None
         for p in ins:
             if (p.fresh and (best is None or p.link.priority > best.link.priority)
-                    and (when is None or _accepts(when, p.link.src, _head(p)))):
+                    and (when is None or _accepts(when, p.link.src, p.head()))):
                 best = p
         if best is not None:
             return Event(EventKind.MESSAGE, best.link.src, self._take(best), best.index)
@@ -319,11 +317,6 @@ class Reading(TaskHandle):
                 tap.waiter = None
         src, value, _at = tap.take()
         return src, value
-
-def _head(p: InPort) -> Any:
-    """The message a fresh port would give next (without taking it)."""
-    return p.fifo[0][0] if p.fifo is not None else p.value
-
 
 def _accepts(when: Callable[[str, Any], bool], source: str, value: Any) -> bool:
     """``when(source, value)``; a filter that raises accepts (a failure is never masked)."""
