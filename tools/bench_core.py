@@ -17,7 +17,10 @@ Prints, measured side by side in one run on one core:
   an opcode tracer over 2,000 messages: a figure the machine's load cannot move).
 Targets (issue 2, issue 21): >= 300,000 messages/s; <= 12x the heapq push+pop time per message;
 <= 1.5x the minimal heap kernel; >= 2x asyncio Queue / Event. Issue 40's guard: >= 500,000
-messages/s (the minimal kernel, measured beside it, says how quick the host is).
+messages/s, set when chcos (hand-inlined) measured 1,090,748 messages/s at 1.43x the minimal
+kernel's time (table of 2026-11-25 01:45 UTC): the same guard on any host is chcos at most
+:data:`GUARD_VS_MINIMAL` times the minimal kernel's time per message, measured beside it. Issue 40
+gave the hand-inlining's margin (the old 1.5x target) to clarity; that guard replaces it.
 With ``--where`` it only counts chcos' instructions per message, by function: where a message
 goes.
 Usage: python -m tools.bench_core [--messages N] [--repeat R] [--json FILE] [--where]
@@ -81,6 +84,11 @@ async def consumer_any(ctx: TaskContext, box: list[int]) -> None:
         if v == last:
             box.append(count)
             return
+
+
+#: issue 40's guard as a ratio to the minimal kernel measured in the same run: 500,000 msg/s was
+#: asked where chcos did 1,090,748 msg/s at 1.43x the minimal kernel (1.43 * 1,090,748 / 500,000)
+GUARD_VS_MINIMAL = 3.1
 
 
 def run_chcos(n: int, instrument: bool, any_port: bool = False,
@@ -423,7 +431,9 @@ def main() -> int:
         print(f"  {label:<38}: {_mmm(us[key])} us  ({n / best[key]:12,.0f} /s best)")
     print(f"chcos / minimal heap kernel        : {_mmm(vs_min)}x  (median of {PAIRS} "
           f"alternating pairs per batch; target <= 1.5x: "
-          f"{'met' if statistics.median(vs_min) <= 1.5 else 'MISSED'})")
+          f"{'met' if statistics.median(vs_min) <= 1.5 else 'MISSED'}; issue 40's guard "
+          f"<= {GUARD_VS_MINIMAL}x: "
+          f"{'met' if statistics.median(vs_min) <= GUARD_VS_MINIMAL else 'MISSED'})")
     print(f"asyncio Queue / chcos (speed-up)   : {_mmm(vs_q)}x  (target >= 2x: "
           f"{'met' if statistics.median(vs_q) >= 2 else 'MISSED'})")
     print(f"asyncio Event / chcos (speed-up)   : {_mmm(vs_e)}x  (target >= 2x: "
