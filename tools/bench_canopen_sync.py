@@ -376,8 +376,15 @@ def producer_pid() -> int:
     """The chcos driver's SYNC producer process: this process's child running
     drivers/canopen_sync.py."""
     for task in Path("/proc/self/task").iterdir():
-        for pid in (task / "children").read_text().split():
-            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+        try:                                     # a thread or child may end meanwhile
+            children = (task / "children").read_text().split()
+        except FileNotFoundError:
+            continue
+        for pid in children:
+            try:
+                cmd = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+            except FileNotFoundError:
+                continue
             if any(arg.endswith(b"canopen_sync.py") for arg in cmd):
                 return int(pid)
     raise RuntimeError("the chcos SYNC producer process was not found")

@@ -41,7 +41,11 @@ def producers_of(pid: int) -> list[int]:
     """The SYNC producer processes among ``pid``'s children (what ``ps`` would show)."""
     found = []
     for task in Path(f"/proc/{pid}/task").iterdir():
-        for child in (task / "children").read_text().split():
+        try:                                     # a thread or child may end meanwhile
+            children = (task / "children").read_text().split()
+        except FileNotFoundError:
+            continue
+        for child in children:
             try:
                 cmd = Path(f"/proc/{child}/cmdline").read_bytes().split(b"\0")
             except FileNotFoundError:
