@@ -4,30 +4,36 @@ real SocketCAN (inside the User-Mode-Linux guest on machines without CAN:
 
 Run: ``python -m tools.bench_canopen_sync [--channel vcan0] [--seconds 60] [--rates 1000 250]
 [--cpu N] [--json FILE]``. For each SYNC rate, two figures measured in the same run, the process
-pinned to one CPU (``--cpu``, default the last):
+pinned to one CPU (``--cpu``, default the last); every process it starts inherits that and
+nothing else (the C reference and chcos's SYNC producer process alike: SCHED_OTHER, nice 0,
+printed beside each figure as the kernel has it):
 
 * the reference: a C program (``clock_nanosleep`` on absolute deadlines + a raw CAN socket)
   sending SYNC for ``--seconds``, its SYNC period jitter (|interval - period|) p50/p99/max, late
   SYNCs (more than half a period after the deadline) and its CPU;
 * chcos: :class:`drivers.canopen_node.CanopenDriver` with ``sync_period`` (on SocketCAN the
-  kernel's broadcast manager sends SYNC, paced to its absolute schedule by the driver:
-  :class:`drivers.canopen_sync.SyncPacer`; the driver's reader counts each SYNC it sees, with
-  its kernel time stamp), one node answering every SYNC with a synchronous TPDO (transmission
-  type 1) - a C responder in a child process - its :meth:`sync_stats` (cycles, complete,
-  missing TPDOs, late SYNCs, jitter) and CPU.
+  driver's SYNC producer process sends SYNC on absolute deadlines:
+  :class:`drivers.canopen_sync.SyncProducerProcess`; the driver's reader counts each SYNC it
+  sees, with its kernel time stamp), one node answering every SYNC with a synchronous TPDO
+  (transmission type 1) - a C responder in a child process - its :meth:`sync_stats` (cycles,
+  complete, missing TPDOs, late SYNCs, jitter) and CPU (the driver's process and its producer
+  process).
 
 Beside both, an independent observer (the C program's ``count`` mode, its own socket with a
 1 MiB receive buffer) counts what went on the wire in the same window: SYNCs against the count
 the period asks for (a producer that falls behind its schedule sends fewer: *missed cycles*),
-SYNC intervals longer than 1.5 periods, the node's TPDOs, and the cycles whose TPDO came after
+SYNC intervals longer than 1.5 periods, the node's TPDOs, the cycles whose TPDO came after
 the next SYNC (the driver's *missing*, counted with the same books for the C producer too: what
-the machine's stalls cost either producer).
+the machine's stalls cost either producer), and the SYNC period jitter p50/p99/max from its
+kernel receive time stamps: one instrument for both producers (each producer's own figure is
+printed too: the C program's from its send times, chcos's from its reader's time stamps).
 
 Targets: 0 missed SYNC cycles at 250 Hz (+-2 for the window's edges); chcos's p99 jitter at most
-2x the reference's. Prints a table per rate and a ``RESULT {json}`` line (what
-tools/suite_sections.py reads); ``--json`` writes the figures. Exit status 0 when met, 1
-otherwise, 2 without SocketCAN. Figures from a virtual machine are for comparison in the same
-run, not absolute.
+2x the reference's, both as the producers measured it and as the observer did. Prints a table
+per rate and a ``RESULT {json}`` line (what tools/suite_sections.py reads); ``--json`` writes
+the figures. Exit status 0 when met, 1 otherwise, 2 without SocketCAN. Figures from a virtual
+machine are for comparison in the same run, not absolute; on a machine shared with other work
+both producers share its stalls.
 """
 
 from __future__ import annotations
