@@ -11,7 +11,8 @@ Bus options (``[[bus]] kind = "canopen"``):
   timeout in seconds (optional: no heartbeat supervision), whether the driver puts the node
   OPERATIONAL (default true), the identity 0x1018 it must have, the configuration downloaded at
   each boot and whether it is then stored in the node (0x1010; :mod:`drivers.canopen_config`).
-* ``sync_period`` (s, optional) - produce SYNC at this period; ``poll_period`` (s, default 0.1) -
+* ``sync_period`` (s, optional) - produce SYNC at this period (on SocketCAN from a producer
+  process of the driver's own: :mod:`drivers.canopen_sync`); ``poll_period`` (s, default 0.1) -
   default SDO polling period; ``sdo_timeout`` (s, default 0.3) - SDO response timeout.
 * ``master_heartbeat_ms`` (optional) - produce the master's heartbeat (COB-ID 0x700 +
   ``master_node_id``, default 127, state OPERATIONAL) at this period, so that nodes with a
