@@ -395,16 +395,20 @@ def produce(channel: str, period: float, parent: int) -> int:
     """The producer process's body (``python drivers/canopen_sync.py CHANNEL PERIOD PARENT``):
     SYNC on ``channel`` on :class:`SyncSchedule`, until stdin ends or ``parent`` is no longer
     its parent. Prints :data:`READY` once bound, then one line per report (failing sends, a
-    stall that restarted the schedule).
-    Raises OSError when the socket cannot be opened or bound (the driver reports it)."""
-    sock = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
-    sock.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, b"")   # receives nothing
-    sock.bind((channel,))
+    stall that restarted the schedule); when the socket cannot be opened or bound, says why
+    instead and returns 1."""
+    try:
+        sock = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
+        sock.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, b"")   # receives nothing
+        sock.bind((channel,))
+    except OSError as exc:
+        print(f"cannot open a raw CAN socket on {channel}: {exc}", flush=True)
+        return 1
     frame = struct.pack("=IB3x8s", SYNC_COB_ID, 0, b"")
-    threading.Thread(target=_watch_stdin, args=(sys.stdin.buffer,), daemon=True).start()
-    print(READY, flush=True)
     last = time.monotonic_ns()
     schedule = SyncSchedule(last, round(period * 1e9))
+    threading.Thread(target=_watch_stdin, args=(sys.stdin.buffer,), daemon=True).start()
+    print(READY, flush=True)
     failed = 0
     reported = 0
     resynced = 0

@@ -2,8 +2,9 @@
 SYNC on absolute deadlines t0 + k * period, a late one followed by the next due one no sooner
 than half a period after it (the lost time made up without a burst), and the schedule started
 again after a stall longer than MAX_BEHIND. Pure arithmetic on given times (no clock, no bus);
-the benchmark (tools/bench_canopen_sync.py) measures the process on SocketCAN. Also: the suite's
-row for that benchmark where no SocketCAN guest can run."""
+the benchmark (tools/bench_canopen_sync.py) measures the process on SocketCAN. Also: a producer
+process that cannot open its socket, and the suite's row for that benchmark where no SocketCAN
+guest can run (vcan_tests/test_canopen_sync_socketcan.py has the producer on the wire)."""
 
 from __future__ import annotations
 
@@ -75,3 +76,19 @@ def test_the_suite_row_says_not_measured_without_a_guest(tmp_path: Path,
                          "not measured: no SocketCAN guest (no User-Mode-Linux kernel: "
                          "apt-get install user-mode-linux)", "-")]
     assert run.res["canopen_sync"]["results"] == []
+
+
+def test_a_producer_process_that_cannot_open_its_socket_says_why() -> None:
+    """On a host without CAN (no AF_CAN) or an interface that does not exist (in the guest),
+    the producer process ends at once and :meth:`start` raises with its words: the driver
+    reports them ("cannot start the SYNC producer")."""
+    from drivers.canopen_sync import SyncProducerProcess
+
+    errors: list[str] = []
+    producer = SyncProducerProcess("chcosnone0", 0.01, errors.append, "test-sync")
+    with pytest.raises(OSError, match=r"the SYNC producer process for chcosnone0 did not "
+                                      r"start \(exit status 1\): cannot open a raw CAN socket "
+                                      r"on chcosnone0: \[Errno \d+\]"):
+        producer.start()
+    producer.stop()                              # nothing to stop: no error
+    assert errors == [] and producer.pid is None
