@@ -15,14 +15,15 @@ never counts as missing and never holds a cycle's completeness back.
 
 Two producers. On SocketCAN, :class:`SyncProducerProcess`: a process of the driver's own (this
 file run as a program, :func:`produce`) with its own raw CAN socket sends SYNC on absolute
-deadlines t0 + k * period (:class:`SyncSchedule`; ``time.sleep`` is ``clock_nanosleep`` on an
-absolute deadline), as a C producer would; it needs nothing of the chcos process - not its GIL,
-which a thread may hold for up to ``sys.getswitchinterval()`` - and inherits its CPUs, policy
-and nice value. The driver's reader sees each SYNC come back with its kernel time stamp
-(:meth:`SyncCycle.seen`): cycles and jitter are counted from what went on the wire, late is an
-interval longer than 1.5 periods. The producer ends when the driver stops it and when the chcos
-process dies, SIGKILL included: its stdin is a pipe from the driver (end of file when the
-kernel closes the dying process's end) and it checks each cycle that its parent is unchanged.
+deadlines t0 + k * period (:class:`SyncSchedule`; ``clock_nanosleep`` with ``TIMER_ABSTIME``
+through ctypes, one clock read and one send per SYNC), as a C producer would; it needs nothing
+of the chcos process - not its GIL, which a thread may hold for up to
+``sys.getswitchinterval()`` - and inherits its CPUs, policy and nice value. The driver's
+reader sees each SYNC come back with its kernel time stamp (:meth:`SyncCycle.seen`): cycles and
+jitter are counted from what went on the wire, late is an interval longer than 1.5 periods.
+The producer ends when the driver stops it and when the chcos process dies, SIGKILL included:
+its stdin is a pipe from the driver (end of file when the kernel closes the dying process's
+end) and it checks every 50 ms that its parent is unchanged.
 ``PR_SET_PDEATHSIG`` is not used: it fires when the thread that started the process ends.
 Elsewhere (python-can's ``virtual`` bus, inside the chcos process) a thread sends SYNC on
 absolute deadlines (:meth:`SyncCycle.start`) and counts from its send times.
@@ -37,7 +38,10 @@ jitter of 3.3 ms against the C producer's 0.3 ms at 250 Hz.
 
 from __future__ import annotations
 
+import ctypes
+import errno
 import os
+import signal
 import socket
 import struct
 import subprocess
@@ -62,6 +66,10 @@ MAX_BEHIND = 1.0
 READY = "ready"
 #: at most one report per this many seconds of the producer process's failing sends
 ERROR_EVERY = 1.0
+#: how often (ns) the producer process checks that its parent is still the driver's process
+PARENT_CHECK = 50_000_000
+#: clock_nanosleep's flag for an absolute deadline
+TIMER_ABSTIME = 1
 
 
 class SyncSchedule:
@@ -313,8 +321,8 @@ class SyncProducerProcess:
     """SYNC on SocketCAN from a dedicated child process (see the module doc): it sends SYNC on
     ``channel`` every ``period`` s on absolute deadlines through its own raw CAN socket, and
     stops when :meth:`stop` closes its stdin, or when this process dies (its stdin reaches end
-    of file; it also checks its parent's pid each cycle). A failing send or an unexpected exit
-    is reported through ``on_error``."""
+    of file; it also checks its parent's pid every :data:`PARENT_CHECK` ns). A failing send or
+    an unexpected exit is reported through ``on_error``."""
 
     def __init__(self, channel: str, period: float, on_error: Callable[[str], None],
                  name: str) -> None:
@@ -383,6 +391,31 @@ class SyncProducerProcess:
             t.join(timeout=2.0)
 
 
+def _absolute_sleep() -> Callable[[int], None]:
+    """``sleep_until(t)``: sleep until ``t`` (ns, ``time.monotonic_ns``'s clock) with one
+    ``clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME)`` call, as the C producer does (the GIL
+    is released meanwhile); ``time.sleep`` where libc has no such call."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        call = libc.clock_nanosleep
+    except (OSError, AttributeError):
+        return lambda t: time.sleep(max(0, t - time.monotonic_ns()) * 1e-9)
+
+    class Timespec(ctypes.Structure):
+        _fields_ = [("tv_sec", ctypes.c_long), ("tv_nsec", ctypes.c_long)]
+
+    when = Timespec()
+    ref = ctypes.byref(when)
+    call.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p]
+    call.restype = ctypes.c_int
+
+    def sleep_until(t: int) -> None:
+        when.tv_sec, when.tv_nsec = divmod(t, 1_000_000_000)
+        while call(time.CLOCK_MONOTONIC, TIMER_ABSTIME, ref, None) == errno.EINTR:
+            pass
+    return sleep_until
+
+
 def _watch_stdin(stream: IO[bytes]) -> None:
     """The producer's stdin is a pipe from the driver: at its end (the driver stopped it, or
     the driver's process died and the kernel closed its end) the producer ends at once."""
@@ -397,6 +430,9 @@ def produce(channel: str, period: float, parent: int) -> int:
     its parent. Prints :data:`READY` once bound, then one line per report (failing sends, a
     stall that restarted the schedule); when the socket cannot be opened or bound, says why
     instead and returns 1."""
+    # Ctrl-C at a terminal reaches the whole process group: SYNC goes on until the driver,
+    # shutting down, stops it
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         sock = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
         sock.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, b"")   # receives nothing
@@ -405,6 +441,7 @@ def produce(channel: str, period: float, parent: int) -> int:
         print(f"cannot open a raw CAN socket on {channel}: {exc}", flush=True)
         return 1
     frame = struct.pack("=IB3x8s", SYNC_COB_ID, 0, b"")
+    sleep_until = _absolute_sleep()
     last = time.monotonic_ns()
     schedule = SyncSchedule(last, round(period * 1e9))
     threading.Thread(target=_watch_stdin, args=(sys.stdin.buffer,), daemon=True).start()
@@ -412,11 +449,16 @@ def produce(channel: str, period: float, parent: int) -> int:
     failed = 0
     reported = 0
     resynced = 0
-    while os.getppid() == parent:
-        now = time.monotonic_ns()
+    checked = last
+    while True:
+        now = last                               # one clock read per SYNC, after its send
+        if now - checked >= PARENT_CHECK:
+            if os.getppid() != parent:
+                return 0
+            checked = now
         at = schedule.next(now, last)
         if at > now:
-            time.sleep((at - now) * 1e-9)        # clock_nanosleep to an absolute deadline
+            sleep_until(at)
         if schedule.resynced > resynced:
             print(f"SYNC producer on {channel} stalled: schedule started again, "
                   f"{schedule.resynced - resynced} cycles given up", flush=True)
@@ -431,7 +473,6 @@ def produce(channel: str, period: float, parent: int) -> int:
                       flush=True)
                 failed, reported = 0, now
         last = time.monotonic_ns()
-    return 0
 
 
 if __name__ == "__main__":
