@@ -93,12 +93,12 @@ class SyncSchedule:
         """The time the next SYNC goes out, ``now`` being the time and ``last`` the time the
         previous one went out (t0 for the first)."""
         self._k += 1
-        at = max(self._t0 + self._k * self.step, last + self._gap)
-        if now - at > self._behind_max:
-            self.resynced += (now - at) // self.step
+        due = self._t0 + self._k * self.step
+        if now - due > self._behind_max:
+            self.resynced += (now - due) // self.step
             self._t0, self._k = now, 0
             return now
-        return at
+        return max(due, last + self._gap)
 
 
 @dataclass(frozen=True)

@@ -425,6 +425,8 @@ def chcos(exe: Path, channel: str, rate: int, seconds: float, eds: Path) -> Figu
     from chcos.devices.spec import BusSpec
     from drivers.canopen_node import CanopenDriver
 
+    errors: list[str] = []
+
     class Host:
         def deliver(self, device: str, value: object) -> None: ...
         def deliver_now(self, device: str, value: object) -> None: ...
@@ -433,7 +435,10 @@ def chcos(exe: Path, channel: str, rate: int, seconds: float, eds: Path) -> Figu
         def written(self, device: str, value: object) -> None: ...
         def write_failed(self, device: str, value: object, reason: str) -> None: ...
         def stat(self, bus: str, key: str, n: int = 1, device: str = "") -> None: ...
-        def error(self, bus: str, kind: str, detail: str, device: str = "") -> None: ...
+        def error(self, bus: str, kind: str, detail: str, device: str = "") -> None:
+            if "SYNC" in detail:
+                errors.append(detail)
+
         def every(self, period: float, fn: object) -> None: ...
         def at(self, when: float, fn: object) -> None: ...
         def now(self) -> float:
@@ -468,6 +473,8 @@ def chcos(exe: Path, channel: str, rate: int, seconds: float, eds: Path) -> Figu
            + producer1 - producer0)
     syncs, tpdos, gaps, missing, drops = obs.counts
     w50, w99, wmax = obs.jitter
+    if errors:                                  # stalls the producer reported, failing sends
+        print(f"  ({len(errors)} SYNC reports of the driver, the first: {errors[:3]})")
     return Figure(f"chcos: {PRODUCER}", rate,
                   last.cycles - first.cycles, last.late - first.late,
                   last.missing - first.missing, last.jitter_p50 * 1e6, last.jitter_p99 * 1e6,

@@ -53,10 +53,26 @@ def test_catching_up_never_goes_under_half_a_period() -> None:
 def test_a_stall_longer_than_max_behind_starts_the_schedule_again() -> None:
     s = SyncSchedule(T0, P)
     s.next(T0, T0)
-    stalled = T0 + P + round(MAX_BEHIND * 1e9) + 10 * P
-    assert s.next(stalled, T0 + P) == stalled         # no catching up a whole second
+    stalled = T0 + P + round(MAX_BEHIND * 1e9) + 10 * P   # SYNC 1 went out this late
+    assert s.next(stalled, stalled) == stalled        # no catching up a whole second
     assert s.resynced == (stalled - (T0 + 2 * P)) // P
     assert s.next(stalled, stalled) == stalled + P    # on the new grid
+
+
+def test_a_producer_that_keeps_falling_behind_starts_again_once_a_second_behind() -> None:
+    """Woken late for every SYNC (a machine that cannot keep up with the period), the
+    producer falls further behind at each one; once MAX_BEHIND behind, it starts again."""
+    s = SyncSchedule(T0, P)
+    last = T0
+    sent = 0
+    while s.resynced == 0:
+        at = s.next(last, last)
+        last = at + P                              # every SYNC goes out a period late
+        sent += 1
+    # SYNC k is asked for half a period after SYNC k-1 went out, a period late: the producer
+    # is k/2 - 1 periods behind at SYNC k, and starts again at the first k past MAX_BEHIND
+    assert sent == 2 * (round(MAX_BEHIND * 1e9) // P + 1) + 1
+    assert s.next(last, last) == last + P           # on the new grid
 
 
 def test_a_period_must_be_positive() -> None:
