@@ -65,14 +65,17 @@ def test_a_producer_that_keeps_falling_behind_starts_again_once_a_second_behind(
     s = SyncSchedule(T0, P)
     last = T0
     sent = 0
-    while s.resynced == 0:
+    while True:
         at = s.next(last, last)
-        last = at + P                              # every SYNC goes out a period late
         sent += 1
+        if s.resynced:
+            break
+        last = at + P                              # every SYNC goes out a period late
     # SYNC k is asked for half a period after SYNC k-1 went out, a period late: the producer
     # is k/2 - 1 periods behind at SYNC k, and starts again at the first k past MAX_BEHIND
     assert sent == 2 * (round(MAX_BEHIND * 1e9) // P + 1) + 1
-    assert s.next(last, last) == last + P           # on the new grid
+    assert at == last                              # started again from now
+    assert s.next(at, at) == at + P                # on the new grid, sent on time
 
 
 def test_a_period_must_be_positive() -> None:
