@@ -64,13 +64,12 @@ def test_a_producer_that_keeps_falling_behind_starts_again_once_a_second_behind(
     producer falls further behind at each one; once MAX_BEHIND behind, it starts again."""
     s = SyncSchedule(T0, P)
     last = T0
-    sent = 0
-    while True:
+    for sent in range(1, 10_000):                  # a bound: a producer that never starts again
         at = s.next(last, last)
-        sent += 1
         if s.resynced:
             break
         last = at + P                              # every SYNC goes out a period late
+    assert s.resynced > 0
     # SYNC k is asked for half a period after SYNC k-1 went out, a period late: the producer
     # is k/2 - 1 periods behind at SYNC k, and starts again at the first k past MAX_BEHIND
     assert sent == 2 * (round(MAX_BEHIND * 1e9) // P + 1) + 1
