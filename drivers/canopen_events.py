@@ -66,10 +66,8 @@ class NodeEvents:
         #: the node id of this master's heartbeat (bus option ``master_node_id``)
         self.master_id = DEFAULT_MASTER_ID
         self.sync: SyncCycle | None = None
-        #: True when the kernel produces SYNC and the reader counts each one it sees
+        #: True when a producer process sends SYNC and the reader counts each one it sees
         self.observe_sync = False
-        #: in that mode, told each SYNC's wire time (keeps the kernel's producer on schedule)
-        self.pace_sync: Callable[[float], None] | None = None
         self._watchdog: HeartbeatWatchdog | None = None
         self._bus_failed = False
         #: frames handed to canopen's listeners, written by whoever receives (the reader, or a
@@ -217,9 +215,6 @@ class NodeEvents:
             sync = self.sync
             if sync is not None:
                 sync.seen(frame.timestamp)
-            pace = self.pace_sync
-            if pace is not None:
-                pace(frame.timestamp)
             return
         network = self.network
         if network is None:

@@ -11,7 +11,8 @@ Bus options (``[[bus]] kind = "canopen"``):
   timeout in seconds (optional: no heartbeat supervision), whether the driver puts the node
   OPERATIONAL (default true), the identity 0x1018 it must have, the configuration downloaded at
   each boot and whether it is then stored in the node (0x1010; :mod:`drivers.canopen_config`).
-* ``sync_period`` (s, optional) - produce SYNC at this period; ``poll_period`` (s, default 0.1) -
+* ``sync_period`` (s, optional) - produce SYNC at this period (on SocketCAN from a producer
+  process of the driver's own: :mod:`drivers.canopen_sync`); ``poll_period`` (s, default 0.1) -
   default SDO polling period; ``sdo_timeout`` (s, default 0.3) - SDO response timeout.
 * ``master_heartbeat_ms`` (optional) - produce the master's heartbeat (COB-ID 0x700 +
   ``master_node_id``, default 127, state OPERATIONAL) at this period, so that nodes with a
@@ -115,7 +116,7 @@ from drivers.canopen_od import (
     value_error,
 )
 from drivers.canopen_remote import BootOutcome, ManagedNode, RpdoImages
-from drivers.canopen_sync import SYNC_COB_ID, SyncCycle, SyncPacer, SyncStats
+from drivers.canopen_sync import SYNC_COB_ID, SyncCycle, SyncProducerProcess, SyncStats
 from drivers.codecs.canopen import EMCY_BASE, HEARTBEAT_BASE
 from drivers.codecs.cia402 import Obj, Write, config_from_table, mode_of
 from drivers.jobs import Job, JobOp, WorkerJobDriver
@@ -130,11 +131,6 @@ SDO_TX_BASE = 0x580   # SDO server -> client: COB-ID 0x580 + node id
 IGNORES_RPDOS = (NodeLifecycle.PREOP_HELD, NodeLifecycle.FAILED, NodeLifecycle.WAITING_BOOT)
 #: seconds between two cycles of the axes' engines (timeouts, the fault reset's edge, resends)
 AXIS_CYCLE = 0.01
-#: the shortest delay (s) the SYNC pacing asks of the broadcast manager (0 would stop its timer)
-MIN_BCM_DELAY = 1e-5
-#: a SYNC the reader takes more than this fraction of a period after its wire time does not
-#: re-arm the SYNC job (see :meth:`CanopenDriver._sync_pacing`)
-FRESH = 0.25
 
 
 @dataclass
@@ -197,7 +193,7 @@ class CanopenDriver(WorkerJobDriver):
         self._bindings: dict[str, Binding] = {}
         self._poll_groups: dict[float, list[Binding]] = {}   # SDO-polled sensors by period
         self._master_task: Any = None
-        self._sync_task: Any = None
+        self._sync_task: SyncProducerProcess | None = None
         #: the CiA 402 axes hosted, by actuator name (:mod:`drivers.canopen_axis`); their
         #: engines are used by the I/O thread only
         self._axes: dict[str, AxisHost] = {}
@@ -365,7 +361,7 @@ class CanopenDriver(WorkerJobDriver):
                 rates = [n.remote.object_dictionary.bitrate for n in self._nodes.values()]
                 if any(rates):
                     cfg_bus["bitrate"] = next(r for r in rates if r)
-            # on SocketCAN the kernel produces SYNC and the reader sees each one come back
+            # on SocketCAN a producer process sends SYNC and the reader sees each one
             self._events.observe_sync = ("sync_period" in opts
                                          and cfg_bus.get("interface") == "socketcan")
             filters = node_filters(self._nodes)
@@ -425,8 +421,9 @@ class CanopenDriver(WorkerJobDriver):
 
     def _start_sync(self, bus: can.BusABC, period: float) -> None:
         """The SYNC producer and the cycle's books (:mod:`drivers.canopen_sync`), expecting the
-        nodes' synchronous TPDOs: the kernel's cyclic job on SocketCAN (each SYNC observed by
-        the reader), else a thread."""
+        nodes' synchronous TPDOs: on SocketCAN a producer process of its own (each SYNC
+        observed by the reader, :class:`drivers.canopen_sync.SyncProducerProcess`), else a
+        thread."""
         frame = can.Message(arbitration_id=SYNC_COB_ID, data=b"", is_extended_id=False)
 
         def send() -> None:
@@ -442,54 +439,17 @@ class CanopenDriver(WorkerJobDriver):
                     sync.expect(m.cob_id, int(m.trans_type))
         self._events.sync = sync
         if self._events.observe_sync:
+            producer = SyncProducerProcess(str(getattr(bus, "channel", "")), period, error,
+                                           f"canopen-{self.bus.name}-sync")
             try:
-                self._sync_task = bus.send_periodic(frame, period)
-            except (can.CanError, OSError, NotImplementedError) as exc:
+                producer.start()
+            except OSError as exc:
                 error(f"cannot start the SYNC producer: {exc}")
             else:
-                self._events.pace_sync = self._sync_pacing(self._sync_task, frame, sync,
-                                                           error)
+                self._sync_task = producer
             sync.start(produce=False)
         else:
             sync.start()
-
-    def _sync_pacing(self, task: Any, frame: can.Message, sync: SyncCycle,
-                     error: Callable[[str], None]) -> Callable[[float], None] | None:
-        """What the reader calls with each SYNC's wire time to keep the broadcast manager's
-        cyclic job on its absolute schedule (:class:`drivers.canopen_sync.SyncPacer`): when a
-        SYNC was late, the job's next expiry is set to the next one's due time (a BCM
-        TX_SETUP: one frame after that delay, then every period). None if the task is not a
-        SocketCAN broadcast manager job."""
-        sock, task_id = getattr(task, "bcm_socket", None), getattr(task, "task_id", None)
-        if sock is None or task_id is None:
-            return None
-        from can.interfaces.socketcan import constants as bcm
-        from can.interfaces.socketcan.socketcan import build_bcm_header, build_can_frame
-
-        period = sync.period
-        pacer = sync.pacer = SyncPacer(period)
-        body = build_can_frame(frame)
-        every_s, every_us = int(period), round((period - int(period)) * 1e6)
-
-        def pace(at: float) -> None:
-            due = pacer.seen(at)
-            if due is None:
-                return
-            # socketcan stamps are wall-clock; a SYNC the reader takes late (a backlog) says
-            # nothing the job's timer does not already know: re-arming from it could send the
-            # next SYNC right after the one already on its way
-            now = time.time()
-            if now - at > period * FRESH:
-                return
-            delay = max(due - now, MIN_BCM_DELAY)
-            head = build_bcm_header(bcm.CAN_BCM_TX_SETUP, bcm.SETTIMER | bcm.STARTTIMER, 1,
-                                    int(delay), round((delay - int(delay)) * 1e6), every_s,
-                                    every_us, task_id, 1)
-            try:
-                sock.send(head + body)
-            except OSError as exc:   # the cyclic job goes on at its own pace
-                error(f"SYNC producer not paced: {exc}")
-        return pace
 
     def _bind_devices(self) -> None:
         default_poll = float(self.bus.options.get("poll_period", DEFAULT_POLL))
@@ -668,7 +628,6 @@ class CanopenDriver(WorkerJobDriver):
         self._running = False
         self._stop_worker()     # runs every job queued before: they go out first
         self._events.stop_watchdog()
-        self._events.pace_sync = None       # the reader asks the SYNC job for nothing more
         sync_task, self._sync_task = self._sync_task, None
         if sync_task is not None:
             with contextlib.suppress(Exception):

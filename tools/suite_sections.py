@@ -366,7 +366,7 @@ def canopen_sync(run: SuiteRun) -> None:
         ref_missed = ref["expected"] - ref["on_wire"]
         run.rows.append((
             f"CANopen SYNC at {rate} Hz, {r['seconds']:g} s, UML guest (SocketCAN, pinned): "
-            f"chcos (kernel cyclic SYNC paced to its schedule) beside C (clock_nanosleep + raw "
+            f"chcos (SYNC producer process) beside C (clock_nanosleep + raw "
             f"socket)", "0 missed cycles at 250 Hz; p99 jitter <= 2x C",
             f"missed cycles {r['missed_cycles']} of {ours['expected']:,} (C {ref_missed}); "
             f"jitter p50/p99/max {ours['p50_us'] / 1e3:.3f}/"

@@ -71,8 +71,8 @@ def test_master_heartbeat_stops_when_the_controller_is_killed(tmp_path: Path) ->
 
 @pytest.mark.socketcan
 def test_the_kernel_produces_sync_and_the_driver_counts_what_went_out(tmp_path: Path) -> None:
-    """On SocketCAN the SYNC producer is the broadcast manager's cyclic job; the driver counts
-    the cycles and the jitter from the SYNCs its reader sees on the wire (kernel time stamps)."""
+    """On SocketCAN the SYNC producer is a process of the driver's own; the driver counts the
+    cycles and the jitter from the SYNCs its reader sees on the wire (kernel time stamps)."""
     from chcos.devices.spec import BusSpec
     from drivers.canopen_node import CanopenDriver
     from vcan_tests import uml
@@ -101,10 +101,9 @@ def test_the_kernel_produces_sync_and_the_driver_counts_what_went_out(tmp_path: 
 
 @pytest.mark.socketcan
 def test_the_paced_sync_job_stops_with_the_driver(tmp_path: Path) -> None:
-    """The driver re-arms the broadcast manager's SYNC job after late SYNCs (its pacing,
-    drivers.canopen_sync.SyncPacer); once the driver stopped, nothing re-creates the job: no
-    SYNC on the wire after the stop, on a fast period where late SYNCs are common in the
-    guest."""
+    """The SYNC producer process (drivers.canopen_sync.SyncProducerProcess) catches up after
+    late SYNCs; once the driver stopped, no SYNC is on the wire, on a fast period where late
+    SYNCs are common in the guest."""
     from chcos.devices.spec import BusSpec
     from drivers.canopen_node import CanopenDriver
     from vcan_tests import uml
