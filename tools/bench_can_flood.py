@@ -538,10 +538,10 @@ def inside(seconds: float, own_rate: float, floods: list[Flood], spec: FloodSpec
         print(f"  flood {kind.value}: {spec.describe(kind)}")
     print(f"{'flood':<7} {'reader':<26} {'own delivered':>15} {'share':>7} {'age p50':>9} "
           f"{'age p90':>9} {'age p99':>9} {'age max':>9} {'kernel drops':>12} {'stale':>6} "
-          f"{'flood/s':>13}")
+          f"{'flood/s':>13}  age p99 of each phase")
     pooled: dict[tuple[Flood, str], dict[str, Any]] = {
         (kind, name): {"delivered": 0, "sent": 0, "ages": [], "lost": 0, "stale": 0,
-                       "floods": []} for kind, name, _ in phases}
+                       "floods": [], "p99s": []} for kind, name, _ in phases}
     pairs: list[tuple[float, float]] = []       # (chcos, plain) age of the same frame
     for k in range(rounds):
         for kind, name, run in (phases if k % 2 == 0 else phases[::-1]):
@@ -554,6 +554,7 @@ def inside(seconds: float, own_rate: float, floods: list[Flood], spec: FloodSpec
             acc["lost"] += r["lost"]
             acc["stale"] += r["stale"]
             acc["floods"].append(tr.flood_rate)
+            acc["p99s"].append(_p(_ms(r["ages"]), 0.99))
             if name == PAIRED:
                 pairs += [(a, r["plain"][q]) for q, a in r["by_seq"].items() if q in r["plain"]]
     for kind, name, _ in phases:
@@ -564,7 +565,8 @@ def inside(seconds: float, own_rate: float, floods: list[Flood], spec: FloodSpec
               f"{r['delivered'] / r['sent']:>6.1%} {_p(ages_ms, 0.5):>7.2f}ms "
               f"{_p(ages_ms, 0.9):>7.2f}ms {_p(ages_ms, 0.99):>7.2f}ms "
               f"{max(ages_ms, default=float('nan')):>7.2f}ms {r['lost']:>12} {r['stale']:>6} "
-              f"{min(fl):>6.0f}-{max(fl):<6.0f}", flush=True)
+              f"{min(fl):>6.0f}-{max(fl):<6.0f}  "
+              f"{' '.join(f'{x:.1f}' for x in r['p99s'])}", flush=True)
     if pairs:
         c_ms = [a * 1000 for a, _ in pairs]
         p_ms = [b * 1000 for _, b in pairs]
@@ -579,7 +581,10 @@ def inside(seconds: float, own_rate: float, floods: list[Flood], spec: FloodSpec
     for kind in floods:
         _verdict(kind, spec, pooled)
     print("the plain reader's figures are the guest's own: the time from the kernel's stamp "
-          "until a reader thread of the guest's one CPU runs and takes the frame")
+          "until a reader thread of the guest's one CPU runs and takes the frame; one stall of "
+          "the guest by the host (tens to hundreds of ms on a loaded host) ages every own frame "
+          "queued meanwhile, so a phase's p99 tells whether such a stall hit it (the last "
+          "column: p99 per phase)")
 
 
 def main() -> None:
