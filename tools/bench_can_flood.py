@@ -111,18 +111,19 @@ class BcmFlood:
     (closing its socket deletes it). The rate reached is what the interface counts, not the
     nominal ``jobs * 1e6 / interval_us`` (late timer interrupts skip cycles).
 
-    Raises OSError from :meth:`start` where CAN_BCM is missing (no can-bcm module)."""
+    Raises ValueError for no job, an interval outside 1..999,999 us or ids past 0x7FF; OSError
+    from :meth:`start` where CAN_BCM is missing (no can-bcm module)."""
 
     def __init__(self, channel: str, jobs: int, interval_us: int, first_id: int) -> None:
+        if jobs < 1 or not 0 <= first_id <= first_id + jobs - 1 <= 0x7FF:
+            raise ValueError(f"BCM flood: {jobs} job(s) from id 0x{first_id:X}: expected at "
+                             f"least one job, ids within 0..0x7FF")
+        if not 1 <= interval_us <= 999_999:
+            raise ValueError(f"BCM flood: interval {interval_us} us: expected 1..999999")
         self.channel = channel
         self.ids = [first_id + k for k in range(jobs)]
         self.interval_us = interval_us
         self._socks: list[socket.socket] = []
-
-    @property
-    def nominal(self) -> float:
-        """The rate the jobs are set up for (frames/s)."""
-        return len(self.ids) * 1e6 / self.interval_us
 
     def start(self) -> None:
         """Set up and start every job (one system call each)."""
@@ -611,6 +612,10 @@ def main() -> None:
         return
     floods = [Flood.BCM, Flood.CANGEN] if a.flood == "both" else [Flood(a.flood)]
     spec = FloodSpec(a.bcm_jobs, a.bcm_interval, a.procs, a.burst, a.gap)
+    try:
+        BcmFlood(CHANNEL, spec.bcm_jobs, spec.bcm_interval_us, FLOOD_ID)
+    except ValueError as exc:
+        ap.error(f"--bcm-jobs/--bcm-interval: {exc}")
     if a.inside or _have_vcan():
         inside(a.seconds, a.own_rate, floods, spec, a.rounds)
         return
