@@ -15,6 +15,7 @@ import shutil
 import subprocess
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -74,6 +75,41 @@ def test_kernel_filters_keep_a_cangen_flood_out_of_user_space(channel: str) -> N
     assert unfiltered.received + unfiltered.overrun_lost == 3001
     assert uhost.stats.get("lost") == unfiltered.overrun_lost
     assert uhost.stats.get("unknown-id", 0) == unfiltered.unknown_ids > 0
+
+
+def tx_packets(channel: str) -> int:
+    """Frames the interface has sent (every sender on the guest's vcan)."""
+    return int(Path(f"/sys/class/net/{channel}/statistics/tx_packets").read_text())
+
+
+def test_a_flood_from_the_kernels_broadcast_manager_costs_the_filtered_reader_nothing(
+        channel: str) -> None:
+    """Four CAN_BCM cyclic jobs (the benchmark's flood, made by the guest kernel) send ids
+    0x555-0x558 while cangen sends 200 of the cell's own frames, each with its sequence number:
+    the filtered driver delivers every one of them, in order, receives no flood frame and
+    loses none; an unfiltered python-can socket on the same wire sees the flood."""
+    import can
+
+    from tools.bench_can_flood import BcmFlood
+
+    host = FakeHost()
+    drv = started(host, channel, [OWN])
+    spy = can.Bus(interface="socketcan", channel=channel)
+    try:
+        before = tx_packets(channel)
+        with BcmFlood(channel, jobs=4, interval_us=1000, first_id=0x555):
+            run("cangen", channel, "-I", "120", "-L", "1", "-D", "i", "-g", "2", "-n", "200")
+            assert host.wait(lambda h: len(h.values("S")) >= 200, 30)
+        sent = tx_packets(channel) - before
+        seen = {m.arbitration_id for m in iter(lambda: spy.recv(0), None)}
+        assert drv.settle(WAIT)
+    finally:
+        spy.shutdown()
+        drv.stop()
+    assert host.values("S") == list(range(200))
+    assert drv.received == 200 and drv.overrun_lost == 0 and drv.unknown_ids == 0
+    assert sent > 200 and seen & {0x555, 0x556, 0x557, 0x558}
+    assert "lost" not in host.stats and host.errors == []
 
 
 def test_a_shared_wire_with_ignore_ids_warns_once_per_period_about_the_rest(
