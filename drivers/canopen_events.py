@@ -23,7 +23,7 @@ from typing import Any
 
 import can
 
-from drivers.base import DriverHost, deliver_all, host_clock_virtual
+from drivers.base import DriverHost, deliver_all, host_clock_virtual, host_peers_on_clock
 from drivers.canopen_jobs import BootNode, CanopenJob, ReportHeld
 from drivers.canopen_lifecycle import NmtState, NodeLifecycle, NodeStatus
 from drivers.canopen_od import DEFAULT_MASTER_ID
@@ -71,8 +71,9 @@ class NodeEvents:
         #: in that mode, told each SYNC's wire time (keeps the kernel's producer on schedule)
         self.pace_sync: Callable[[float], None] | None = None
         self._watchdog: HeartbeatWatchdog | None = None
-        #: the clock heartbeats are supervised on: wall time, or the kernel's virtual clock
-        #: (then on kernel timers, not the watchdog thread: a virtual run is deterministic)
+        #: the clock heartbeats are supervised on: wall time, or the kernel's virtual clock when
+        #: the nodes are simulated on it (then on kernel timers, not the watchdog thread: a
+        #: virtual cell is deterministic; a real node's heartbeat keeps wall time)
         self.clock: Callable[[], float] = time.monotonic
         self._watching = False
         self._bus_failed = False
@@ -203,7 +204,7 @@ class NodeEvents:
     def start_watchdog(self) -> None:
         if not any(s.heartbeat_timeout is not None for s in self.nodes.values()):
             return
-        if host_clock_virtual(self.host):
+        if host_clock_virtual(self.host) and host_peers_on_clock(self.host):
             self.clock = self.host.now
             self._watching = True
             self._watch_virtual()
