@@ -268,10 +268,11 @@ class Kernel:
         self._settlers.append(settle)
 
     def add_settle_activity(self, count: Callable[[], int]) -> None:
-        """Register ``count()``, a number that grows whenever a peer on another thread (a
-        simulated slave) handled something a driver sent: while it moves during a round of
-        settles, the round is repeated, so that what the peer sent back meanwhile is delivered
-        too before virtual time moves on."""
+        """Register ``count()``, a number that grows whenever a driver sent something to a peer
+        on threads of its own (a simulated slave) and whenever the peer is done with it: while
+        it moves during a round of settles, the round is repeated, so that virtual time moves
+        on only after a whole round in which nothing reached the peer and the peer handled
+        nothing (everything it sent back was then delivered in that round)."""
         self._activity.append(count)
 
     def settle(self) -> bool:
@@ -427,9 +428,10 @@ class Kernel:
 
     def _settle_rounds(self, timeout: float) -> None:
         """Call every settler, again while an activity count (:meth:`add_settle_activity`)
-        moved during the round: a simulated peer answered a driver on its own thread, and its
-        answer must be delivered in this instant too. At most :data:`SETTLE_ROUNDS` rounds (a
-        peer that keeps talking on its own wall-clock thread would never let it end)."""
+        moved during the round: a driver sent a simulated peer something, or the peer handled
+        it on its own thread, and its answer must be delivered in this instant too. At most
+        :data:`SETTLE_ROUNDS` rounds (a peer that keeps talking on its own wall-clock thread
+        would never let it end)."""
         activity = self._activity
         for _ in range(SETTLE_ROUNDS):
             before = [count() for count in activity]

@@ -321,6 +321,10 @@ class VirtualReceiver:
                                       or not self._thread.is_alive(), timeout)) \
                 and self._queue.unfinished_tasks == 0
 
+    def activity(self) -> int:
+        """Frames put on the node's queue so far plus frames handled so far."""
+        return 2 * self.handled + self._queue.unfinished_tasks   # (queued + handled) + handled
+
     def _loop(self) -> None:
         while self._running:
             try:
@@ -487,11 +491,12 @@ class CanopenSlave:
         return True if rx is None else rx.settle(timeout)
 
     @property
-    def frames_handled(self) -> int:
-        """Frames this node's receiver has handled since it started (``virtual`` interface
-        only; 0 elsewhere): a count that grows while the node is busy with what it was sent."""
+    def activity(self) -> int:
+        """Frames that reached this node plus frames it has handled, since its receiver started
+        (``virtual`` interface only; 0 elsewhere): a count that grows whenever something is sent
+        to the node and whenever the node is done with it (and has sent its answer)."""
         rx = self._rx
-        return 0 if rx is None else rx.handled
+        return 0 if rx is None else rx.activity()
 
     def __enter__(self) -> CanopenSlave:
         self.start()

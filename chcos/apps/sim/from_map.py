@@ -268,7 +268,8 @@ class SimSlaves:
         return all([peer.settle(timeout) for peer in self.peers.values()])
 
     def handled(self) -> int:
-        """How many things sent by the drivers the peers' own threads have handled so far."""
+        """A count that grows whenever a driver sent something to a peer's own threads and
+        whenever they are done with it (the kernel's settle activity)."""
         return sum(peer.handled() for peer in self.peers.values())
 
     def attach(self, kernel: Any) -> None:

@@ -50,8 +50,9 @@ class Peer:
         return True
 
     def handled(self) -> int:
-        """A count that grows whenever the peer's own threads handled something a driver
-        sent (see :meth:`chcos.kernel.scheduler.Kernel.add_settle_activity`)."""
+        """A count that grows whenever a driver sent something to the peer's own threads and
+        whenever they are done with it (see
+        :meth:`chcos.kernel.scheduler.Kernel.add_settle_activity`)."""
         return 0
 
     def silence(self) -> None:
@@ -369,7 +370,7 @@ class CanopenPeer(Peer):
         return all([slave.settle(timeout) for slave in self.slaves.values()])
 
     def handled(self) -> int:
-        return sum(slave.frames_handled for slave in self.slaves.values())
+        return sum(slave.activity for slave in self.slaves.values())
 
     def silence(self) -> None:
         for slave in self.slaves.values():
