@@ -323,7 +323,8 @@ class VirtualReceiver:
 
     def activity(self) -> int:
         """Frames put on the node's queue so far plus frames handled so far."""
-        return 2 * self.handled + self._queue.unfinished_tasks   # (queued + handled) + handled
+        queued: int = self._queue.unfinished_tasks
+        return 2 * self.handled + queued   # (queued + handled) + handled
 
     def _loop(self) -> None:
         while self._running:
