@@ -16,6 +16,11 @@ and read it; every cell is shut down (actuators at their safe values) when the t
         cell.script("level", "ramp(0, 100, 10)")   # a value script, as chcos run --value
         cell.plant(tank)                       # tank(seconds, slaves) every 10 ms
         cell.invoke("fill", setpoint=80)       # a host command
+
+The cell is deterministic: the same maps, tasks and test give the same values at the same
+virtual times, on a quiet or a loaded machine (the simulated slaves step on the virtual clock and
+virtual time waits for what drivers and slaves have in flight; the exceptions, such as SYNC on
+wall time, are listed in docs/first-cell.md, "Virtual time is deterministic").
 """
 
 from __future__ import annotations

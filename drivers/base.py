@@ -88,6 +88,14 @@ def host_clock_virtual(host: DriverHost) -> bool | None:
     return v if isinstance(v, bool) else None
 
 
+def host_peers_on_clock(host: DriverHost) -> bool:
+    """Whether ``host`` says the drivers' peers run on its kernel clock (``host.peers_on_clock``,
+    which :class:`chcos.devices.devtab.Devtab` has: simulated slaves stepped on virtual time):
+    what a peer does on its own (a heartbeat) is then timed on that clock, not on wall time.
+    False for a host that does not say."""
+    return getattr(host, "peers_on_clock", False) is True
+
+
 def deliver_all(host: DriverHost, readings: Sequence[tuple[str, Any]],
                 at: float | None = None) -> None:
     """Hand ``readings`` - ``(device, raw value)`` pairs taken together, such as one poll's - to

@@ -23,7 +23,7 @@ from typing import Any
 
 import can
 
-from drivers.base import DriverHost, deliver_all
+from drivers.base import DriverHost, deliver_all, host_clock_virtual, host_peers_on_clock
 from drivers.canopen_jobs import BootNode, CanopenJob, ReportHeld
 from drivers.canopen_lifecycle import NmtState, NodeLifecycle, NodeStatus
 from drivers.canopen_od import DEFAULT_MASTER_ID
@@ -69,6 +69,11 @@ class NodeEvents:
         #: True when a producer process sends SYNC and the reader counts each one it sees
         self.observe_sync = False
         self._watchdog: HeartbeatWatchdog | None = None
+        #: the clock heartbeats are supervised on: wall time, or the kernel's virtual clock when
+        #: the nodes are simulated on it (then on kernel timers, not the watchdog thread: a
+        #: virtual cell is deterministic; a real node's heartbeat keeps wall time)
+        self.clock: Callable[[], float] = time.monotonic
+        self._watching = False
         self._bus_failed = False
         #: frames handed to canopen's listeners, written by whoever receives (the reader, or a
         #: settle's drain: one at a time, under the reader's lock); of which reported to the
@@ -167,7 +172,7 @@ class NodeEvents:
         frame the operating system already holds: after this process was stalled (a loaded
         machine, a virtual one) the watchdog may wake before the reader, and a heartbeat waiting
         in the socket is not a missing one."""
-        now = time.monotonic()
+        now = self.clock()
         overdue = False
         for s in self.nodes.values():
             with s.lock:
@@ -195,12 +200,25 @@ class NodeEvents:
         return wait
 
     def start_watchdog(self) -> None:
-        if any(s.heartbeat_timeout is not None for s in self.nodes.values()):
-            self._watchdog = HeartbeatWatchdog(self.check_heartbeats,
-                                               f"canopen-{self.bus}-watchdog")
-            self._watchdog.start()
+        if not any(s.heartbeat_timeout is not None for s in self.nodes.values()):
+            return
+        if host_clock_virtual(self.host) and host_peers_on_clock(self.host):
+            self.clock = self.host.now
+            self._watching = True
+            self._watch_virtual()
+            return
+        self._watchdog = HeartbeatWatchdog(self.check_heartbeats,
+                                           f"canopen-{self.bus}-watchdog")
+        self._watchdog.start()
+
+    def _watch_virtual(self) -> None:
+        """The watchdog on a virtual clock: a kernel timer at each deadline."""
+        if self._watching:
+            wait = max(0.001, self.check_heartbeats())
+            self.host.at(round(self.host.now() + wait, 9), self._watch_virtual)
 
     def stop_watchdog(self) -> None:
+        self._watching = False
         wd, self._watchdog = self._watchdog, None
         if wd is not None:
             wd.stop()
@@ -256,7 +274,7 @@ class NodeEvents:
         if nmt is NmtState.BOOT_UP:     # failed for the reboot before the loss ends
             self.rebooted(node)
         with node.lock:
-            node.last_heartbeat = time.monotonic()
+            node.last_heartbeat = self.clock()
             was_lost, node.lost = node.lost, False
         if was_lost:
             self.clear_node(node, "heartbeat", f"canopen node {node.id}: heartbeat back")

@@ -732,7 +732,7 @@ class CanopenDriver(WorkerJobDriver):
             if job.generation != node.lifecycle.generation:
                 return
             node.booting = False        # supervision counts from here
-            node.last_heartbeat = time.monotonic()
+            node.last_heartbeat = self._events.clock()
             lc = node.lifecycle
             match result.outcome:
                 case BootOutcome.SILENT:

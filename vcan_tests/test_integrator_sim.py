@@ -116,9 +116,10 @@ def test_canopen_node_from_an_imported_eds(tmp_path: Path) -> None:
         cell.run_for(0.5)
         assert slaves.get("target_position") == 2048
         assert slaves.get("target_torque") == -250
-        slaves.silence("axis")  # heartbeat and TPDOs stop (the driver's heartbeat
-        cell.run_for(1.0)       # supervision runs on wall time, so it is not asserted here)
-        assert cell.device("position_actual_value").status.value == "stale"
+        slaves.silence("axis")  # heartbeat and TPDOs stop: the driver's heartbeat supervision
+        cell.run_for(1.0)       # runs on the virtual clock, so the node is lost after 0.3 s
+        assert cell.device("position_actual_value").status.value == "failed"
+        assert "no heartbeat" in cell.device("position_actual_value").reason
         slaves.restore("axis")
         cell.run_for(0.5)
         assert cell.device("position_actual_value").status.value == "OK"

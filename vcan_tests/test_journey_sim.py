@@ -66,7 +66,10 @@ def test_a_plant_model_closes_the_loop(cell: Path) -> None:
                    base_dir=cell) as c:
         c.run_for(60.0)
         level = c.device("level").value
-    assert 105.0 < level < 120.0   # 20 % opening balances the 10 cm/s outflow at 110 cm
+    # 20 % opening balances the 10 cm/s outflow at 110 cm; but the level register counts
+    # 0.1 cm and from 105 cm up the plant's 10 ms step adds half a count or less, which the
+    # register rounds away: the level settles between 105 cm and the set-point
+    assert 105.0 <= level < 120.0
 
 
 def test_run_virtual_plant_on_the_command_line(cell: Path, monkeypatch: pytest.MonkeyPatch,
@@ -76,7 +79,7 @@ def test_run_virtual_plant_on_the_command_line(cell: Path, monkeypatch: pytest.M
                      "--plant", "plant.py:tank"]) == 0
     summary = capsys.readouterr().out.split("summary")[-1]
     level = float(summary.split("sensor   level")[1].split("last")[1].split()[0])
-    assert 105.0 < level < 120.0, summary
+    assert 105.0 <= level < 120.0, summary   # see test_a_plant_model_closes_the_loop
 
 
 def test_a_bad_plant_is_refused_naming_it(cell: Path) -> None:
@@ -105,7 +108,7 @@ def test_pytest_plugin_takes_values_and_a_plant(cell: Path, chcos_cell: Any) -> 
     assert scripted.peer("valve") == 60         # 30 cm below: 60 %
     modelled = chcos_cell(cell / "system.toml", plant=tank)
     modelled.run_for(60.0)
-    assert 105.0 < modelled.value("level") < 120.0
+    assert 105.0 <= modelled.value("level") < 120.0   # see test_a_plant_model_closes_the_loop
     assert seen and seen[-1] > 59.0
     modelled.script("level", "40")
     modelled.run_for(0.5)                        # the script wins over the plant it follows

@@ -237,6 +237,7 @@ def open_cell(system_file: str | Path, *, virtual: bool = False, outputs: bool =
                             map_path=work / "sysfile.map")
         if slaves is not None:
             slaves.attach(system.kernel)
+            system.devtab.peers_on_clock = True     # before the install starts the drivers
         counters = Counters()
         system.kernel.add_instrument(counters)
         cell = Cell(sf, system, counters, slaves, virtual)

@@ -89,6 +89,10 @@ class Devtab:
         self.shutdown_window = SHUTDOWN_FLUSH
         #: each stopped driver's last :meth:`drivers.base.Driver.status_doc`, by bus
         self._kept_status: dict[str, dict[str, Any]] = {}
+        #: True when the drivers' peers are simulated on this kernel's virtual clock (a virtual
+        #: cell, :func:`chcos.cli.cellsystem.open_cell`): a driver then supervises their
+        #: heartbeats on that clock, not on wall time (:func:`drivers.base.host_peers_on_clock`)
+        self.peers_on_clock = False
 
     def listen(self, listener: DeviceListener) -> None:
         """Send every reading and sensor failure to ``listener`` from now on (one listener: the

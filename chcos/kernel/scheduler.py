@@ -31,6 +31,8 @@ from chcos.tables.tasks import TaskEntry, TaskState
 __all__ = ["BLOCK", "YIELD", "End", "EndHandler", "Kernel", "Timer"]  # Timer: what call_at returns
 
 log = logging.getLogger("chcos.kernel.scheduler")
+#: the most rounds of settles before virtual time moves on (see Kernel._settle_rounds)
+SETTLE_ROUNDS = 50
 _READY, _CURRENT, _SUSPENDED = TaskState.READY, TaskState.CURRENT, TaskState.SUSPENDED
 
 
@@ -78,6 +80,7 @@ class Kernel:
         #: the ident of the thread running :meth:`run`, None when it is not running
         self.thread_ident: int | None = None
         self._settlers: list[Callable[[float], bool]] = []
+        self._activity: list[Callable[[], int]] = []
         self._idle_hooks: list[Callable[[], None]] = []
         # every task this kernel has started (a dict as an ordered set): steps sums their
         # step counts, so a step counts once, on its task, and nowhere else
@@ -264,6 +267,24 @@ class Kernel:
         that everything already on a bus is delivered first."""
         self._settlers.append(settle)
 
+    def add_settle_activity(self, count: Callable[[], int]) -> None:
+        """Register ``count()``, a number that grows whenever a driver sent something to a peer
+        on threads of its own (a simulated slave) and whenever the peer is done with it: while
+        it moves during a round of settles, the round is repeated, so that virtual time moves
+        on only after a whole round in which nothing reached the peer and the peer handled
+        nothing (everything it sent back was then delivered in that round)."""
+        self._activity.append(count)
+
+    def settle(self) -> bool:
+        """On a virtual clock, let every driver and simulated peer finish what is in flight
+        now (see :meth:`add_settle_activity`); a simulated peer calls it on the kernel thread
+        before and after it steps, so that its step sees, at that virtual instant, exactly what
+        was sent before it, whatever the threads' timing. True if that queued interrupts or
+        readied tasks. Nothing on a real clock."""
+        if not self.clock.virtual:
+            return False
+        return self._settle()
+
     def add_idle_hook(self, hook: Callable[[], None]) -> None:
         """Call ``hook()`` on the kernel thread each time nothing is left to run, before the
         kernel waits (the communications manager flushes its batches there)."""
@@ -397,15 +418,27 @@ class Kernel:
     def _settle_drivers(self, timeout: float) -> bool:
         """Let every driver finish what is in flight (``timeout`` wall seconds at most each);
         True if that queued interrupts."""
-        for settle in self._settlers:
-            settle(min(5.0, timeout))
+        self._settle_rounds(min(5.0, timeout))
         return bool(self._irq)
 
     def _settle(self) -> bool:
         """Let every driver finish what is in flight; True if that produced work."""
-        for settle in self._settlers:
-            settle(5.0)
+        self._settle_rounds(5.0)
         return bool(self._irq or self._ready)
+
+    def _settle_rounds(self, timeout: float) -> None:
+        """Call every settler, again while an activity count (:meth:`add_settle_activity`)
+        moved during the round: a driver sent a simulated peer something, or the peer handled
+        it on its own thread, and its answer must be delivered in this instant too. At most
+        :data:`SETTLE_ROUNDS` rounds (a peer that keeps talking on its own wall-clock thread
+        would never let it end)."""
+        activity = self._activity
+        for _ in range(SETTLE_ROUNDS):
+            before = [count() for count in activity]
+            for settle in self._settlers:
+                settle(timeout)
+            if [count() for count in activity] == before:
+                return
 
     def _step(self, t: TaskEntry) -> bool:
         """Context switch: run ``t`` until its next trap (the thesis' ctxsw), then requeue it

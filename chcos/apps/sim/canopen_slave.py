@@ -35,6 +35,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import enum
+import logging
 import struct
 import sys
 import threading
@@ -52,6 +53,8 @@ from canopen.sdo.exceptions import SdoAbortedError
 from chcos import resources
 from chcos.devices.eds_file import read_eds
 from chcos.errors import BusError, ConfigError
+
+log = logging.getLogger("chcos.apps.sim.canopen_slave")
 
 #: The EDS shipped for the simulated servo drive.
 SERVO_EDS = resources.path("chcos.apps.sim", "eds", "servo_drive.eds")
@@ -278,6 +281,70 @@ def _zero(var: Any) -> Any:
     return b""
 
 
+class VirtualReceiver:
+    """A node's receiving thread on python-can's ``virtual`` interface, in place of canopen's
+    notifier: each frame is handed to ``notify`` (canopen's network) and then marked done on
+    the bus's queue (``task_done``), so that :meth:`settle` can wait until every frame sent to
+    the node so far has been handled, its answers sent. The kernel settles a simulated node so
+    before virtual time moves on (:meth:`chcos.kernel.scheduler.Kernel.settle`)."""
+
+    #: seconds the thread waits for a frame at most before it looks whether it must stop
+    POLL = 0.05
+
+    def __init__(self, bus: Any, notify: Callable[[int, bytearray, float], None],
+                 name: str) -> None:
+        self._bus = bus
+        self._queue: Any = bus.queue   # python-can's virtual bus: the node's receive queue
+        self._notify = notify
+        self._running = False
+        self._thread = threading.Thread(target=self._loop, name=name, daemon=True)
+        #: frames handled so far (error and remote frames included, as ignored)
+        self.handled = 0
+
+    def start(self) -> None:
+        """Start the thread."""
+        self._running = True
+        self._thread.start()
+
+    def stop(self) -> None:
+        """End the thread and wait for it (not from the thread itself)."""
+        self._running = False
+        if self._thread is not threading.current_thread():
+            self._thread.join(timeout=2.0)
+
+    def settle(self, timeout: float) -> bool:
+        """True once every frame put on the node's queue so far has been handled; False if
+        ``timeout`` seconds passed first or the thread has ended with frames left."""
+        done = self._queue.all_tasks_done
+        with done:
+            return bool(done.wait_for(lambda: self._queue.unfinished_tasks == 0
+                                      or not self._thread.is_alive(), timeout)) \
+                and self._queue.unfinished_tasks == 0
+
+    def activity(self) -> int:
+        """Frames put on the node's queue so far plus frames handled so far."""
+        queued: int = self._queue.unfinished_tasks
+        return 2 * self.handled + queued   # (queued + handled) + handled
+
+    def _loop(self) -> None:
+        while self._running:
+            try:
+                msg = self._bus.recv(self.POLL)
+            except (can.CanError, OSError, ValueError):
+                return   # the bus was shut down under it
+            if msg is None:
+                continue
+            try:
+                if not (msg.is_error_frame or msg.is_remote_frame):
+                    self._notify(msg.arbitration_id, msg.data, msg.timestamp)
+            except Exception:   # as canopen's listener: a failing callback drops one frame
+                log.exception("simulated CANopen node: handling frame 0x%X failed",
+                              msg.arbitration_id)
+            finally:
+                self.handled += 1
+                self._queue.task_done()
+
+
 class CanopenSlave:
     """One simulated CANopen node on a CAN bus (see the module doc).
 
@@ -361,6 +428,7 @@ class CanopenSlave:
         self._booted = False
         self._rt_stop = threading.Event()
         self._rt_thread: threading.Thread | None = None
+        self._rx: VirtualReceiver | None = None
         self.stats = SlaveStats()
         #: Set whenever an RPDO has been applied to the object dictionary.
         self.rpdo_received = threading.Event()
@@ -375,7 +443,14 @@ class CanopenSlave:
             if self._started:
                 return
             try:
-                self._network.connect(**self._bus_args)
+                if self._bus_args["interface"] == "virtual":
+                    # its own receiver, which settle() can wait for (see VirtualReceiver)
+                    self._network.bus = can.Bus(**self._bus_args)
+                    self._rx = VirtualReceiver(self._network.bus, self._network.notify,
+                                               f"canopen-slave-{self.node_id}-rx")
+                    self._rx.start()
+                else:
+                    self._network.connect(**self._bus_args)
             except (can.CanError, OSError, ValueError, ImportError) as exc:
                 raise BusError(f"canopen slave node {self.node_id}: cannot open CAN bus "
                                f"{self._bus_args}: {exc}") from exc
@@ -401,9 +476,28 @@ class CanopenSlave:
                 return
             self._started = False   # from here on nothing is sent
             self._stop_hb_task()
-        # outside the lock: the notifier thread, which disconnect joins, may be waiting for it
+        # outside the lock: the receiving thread, which is joined here, may be waiting for it
+        rx, self._rx = self._rx, None
+        if rx is not None:
+            rx.stop()
         with contextlib.suppress(Exception):  # the bus is going away anyway
             self._network.disconnect()
+
+    def settle(self, timeout: float) -> bool:
+        """Wait until every frame sent to this node so far has been handled (its answers
+        sent): virtual time must not move on while it is in flight. Only on python-can's
+        ``virtual`` interface (its own receiver); elsewhere, and when stopped, True at once.
+        False if ``timeout`` wall seconds passed first."""
+        rx = self._rx
+        return True if rx is None else rx.settle(timeout)
+
+    @property
+    def activity(self) -> int:
+        """Frames that reached this node plus frames it has handled, since its receiver started
+        (``virtual`` interface only; 0 elsewhere): a count that grows whenever something is sent
+        to the node and whenever the node is done with it (and has sent its answer)."""
+        rx = self._rx
+        return 0 if rx is None else rx.activity()
 
     def __enter__(self) -> CanopenSlave:
         self.start()

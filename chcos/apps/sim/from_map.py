@@ -262,11 +262,34 @@ class SimSlaves:
         for fault in self._emcy_plan:
             fault.apply(now)
 
+    def settle(self, timeout: float) -> bool:
+        """Wait (``timeout`` wall seconds at most for each peer) until every peer has handled
+        what the drivers sent it so far; True when all have."""
+        return all([peer.settle(timeout) for peer in self.peers.values()])
+
+    def handled(self) -> int:
+        """A count that grows whenever a driver sent something to a peer's own threads and
+        whenever they are done with it (the kernel's settle activity)."""
+        return sum(peer.handled() for peer in self.peers.values())
+
     def attach(self, kernel: Any) -> None:
-        """Run on ``kernel``'s clock from now (virtual time stays deterministic)."""
+        """Run on ``kernel``'s clock from now. Virtual time stays deterministic: the peers are
+        the kernel's settlers (virtual time does not move on while a peer still handles what a
+        driver sent it, nor while a driver waits for the answer or has not yet taken it in,
+        see :meth:`~chcos.kernel.scheduler.Kernel.add_settle_activity`), and each step is
+        settled before and after, so that it sees exactly what was sent before it in its
+        instant and its frames are taken in before anything else runs in that instant."""
         origin = kernel.clock.now()
+        kernel.add_settler(self.settle)
+        kernel.add_settle_activity(self.handled)
+
+        def step() -> None:
+            kernel.settle()
+            self.tick(kernel.clock.now() - origin)
+            kernel.settle()
+
         self.tick(0.0)
-        self._timer = kernel.every(TICK, lambda: self.tick(kernel.clock.now() - origin))
+        self._timer = kernel.every(TICK, step)
 
     def run_realtime(self) -> None:
         """Run on wall-clock time on a thread of its own until :meth:`close`."""

@@ -42,6 +42,19 @@ class Peer:
     def tick(self, now: float) -> None:
         """Clock time ``now`` (seconds since the slaves started): send what is due."""
 
+    def settle(self, timeout: float) -> bool:
+        """Wait (``timeout`` wall seconds at most) until everything the drivers sent to this
+        peer so far has been handled on the peer's own threads; True when it has. A peer
+        that handles what it receives only when asked (on the kernel thread) or whose driver
+        waits for every answer has nothing to wait for."""
+        return True
+
+    def handled(self) -> int:
+        """A count that grows whenever a driver sent something to the peer's own threads and
+        whenever they are done with it (see
+        :meth:`chcos.kernel.scheduler.Kernel.add_settle_activity`)."""
+        return 0
+
     def silence(self) -> None:
         raise NotImplementedError
 
@@ -350,6 +363,14 @@ class CanopenPeer(Peer):
         dt, self.last = max(0.0, now - self.last), now
         for slave in self.slaves.values():
             slave.tick(dt)
+
+    def settle(self, timeout: float) -> bool:
+        """Every node has handled every frame sent to it so far (see
+        :meth:`chcos.apps.sim.canopen_slave.CanopenSlave.settle`)."""
+        return all([slave.settle(timeout) for slave in self.slaves.values()])
+
+    def handled(self) -> int:
+        return sum(slave.activity for slave in self.slaves.values())
 
     def silence(self) -> None:
         for slave in self.slaves.values():
