@@ -80,7 +80,7 @@ from chcos.devices import parsecache
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError
 from drivers import canopen_config
-from drivers.base import DriverHost, deliver_all
+from drivers.base import DriverHost, deliver_all, host_clock_virtual, host_peers_on_clock
 from drivers.canbus import read_frames
 from drivers.canopen_axis import (
     CODE_OPS,
@@ -116,7 +116,13 @@ from drivers.canopen_od import (
     value_error,
 )
 from drivers.canopen_remote import BootOutcome, ManagedNode, RpdoImages
-from drivers.canopen_sync import SYNC_COB_ID, SyncCycle, SyncProducerProcess, SyncStats
+from drivers.canopen_sync import (
+    SYNC_COB_ID,
+    ClockedSyncProducer,
+    SyncCycle,
+    SyncProducerProcess,
+    SyncStats,
+)
 from drivers.codecs.canopen import EMCY_BASE, HEARTBEAT_BASE
 from drivers.codecs.cia402 import Obj, Write, config_from_table, mode_of
 from drivers.jobs import Job, JobOp, WorkerJobDriver
@@ -193,7 +199,7 @@ class CanopenDriver(WorkerJobDriver):
         self._bindings: dict[str, Binding] = {}
         self._poll_groups: dict[float, list[Binding]] = {}   # SDO-polled sensors by period
         self._master_task: Any = None
-        self._sync_task: SyncProducerProcess | None = None
+        self._sync_task: SyncProducerProcess | ClockedSyncProducer | None = None
         #: the CiA 402 axes hosted, by actuator name (:mod:`drivers.canopen_axis`); their
         #: engines are used by the I/O thread only
         self._axes: dict[str, AxisHost] = {}
@@ -422,8 +428,9 @@ class CanopenDriver(WorkerJobDriver):
     def _start_sync(self, bus: can.BusABC, period: float) -> None:
         """The SYNC producer and the cycle's books (:mod:`drivers.canopen_sync`), expecting the
         nodes' synchronous TPDOs: on SocketCAN a producer process of its own (each SYNC
-        observed by the reader, :class:`drivers.canopen_sync.SyncProducerProcess`), else a
-        thread."""
+        observed by the reader, :class:`drivers.canopen_sync.SyncProducerProcess`); on a
+        virtual clock with the nodes simulated on it, the kernel's timers
+        (:class:`drivers.canopen_sync.ClockedSyncProducer`: deterministic); else a thread."""
         frame = can.Message(arbitration_id=SYNC_COB_ID, data=b"", is_extended_id=False)
 
         def send() -> None:
@@ -448,6 +455,10 @@ class CanopenDriver(WorkerJobDriver):
             else:
                 self._sync_task = producer
             sync.start(produce=False)
+        elif host_clock_virtual(self.host) and host_peers_on_clock(self.host):
+            clocked = ClockedSyncProducer(sync, self.host.now, self.host.at)
+            clocked.start()
+            self._sync_task = clocked
         else:
             sync.start()
 

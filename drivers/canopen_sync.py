@@ -26,7 +26,11 @@ its stdin is a pipe from the driver (end of file when the kernel closes the dyin
 end) and it checks every 50 ms that its parent is unchanged.
 ``PR_SET_PDEATHSIG`` is not used: it fires when the thread that started the process ends.
 Elsewhere (python-can's ``virtual`` bus, inside the chcos process) a thread sends SYNC on
-absolute deadlines (:meth:`SyncCycle.start`) and counts from its send times.
+absolute deadlines (:meth:`SyncCycle.start`) and counts from its send times - unless the nodes
+are simulated on the kernel's virtual clock (a virtual cell): then :class:`ClockedSyncProducer`
+sends SYNC n on a kernel timer at exactly t0 + n * period virtual seconds and the cycle counts
+from those virtual times, so synchronous PDOs follow virtual time, not wall time (the kernel
+lets the simulated nodes answer each SYNC before virtual time moves on).
 
 Why not the kernel's broadcast manager: its cyclic job re-arms one period after each expiry
 (``bcm.c``: the next expiry is ``ktime_get()`` + interval), not on a grid, so every late expiry
@@ -204,6 +208,20 @@ class SyncCycle:
             self._thread = threading.Thread(target=self._loop, name=self._name, daemon=True)
             self._thread.start()
 
+    def send_at(self, at: float) -> None:
+        """Send one SYNC now, ``at`` being the time it goes out (clocked mode: the caller's
+        timer, :class:`ClockedSyncProducer`): the cycle turns, counted at ``at``. Nothing once
+        stopped; a failing send is reported through ``on_error`` and the cycle does not turn."""
+        with self._cond:
+            if not self._running:
+                return
+        try:
+            self._send()
+        except Exception as exc:  # a bus error: reported, the cycle goes on
+            self._on_error(f"SYNC not sent: {exc}")
+            return
+        self._sent(at)
+
     def seen(self, at: float) -> None:
         """A SYNC went on the wire at ``at`` (its receive time stamp, seconds): the cycle turns
         (observed mode: reader thread)."""
@@ -315,6 +333,45 @@ class SyncCycle:
             return SyncStats(self.period, self.cycle, self._complete, self._missing, self._late,
                              percentile(values, 0.5), percentile(values, 0.99), self._jitter_max,
                              self._acyclic_count)
+
+
+class ClockedSyncProducer:
+    """SYNC on a clock's timers (see the module doc): SYNC n goes out at exactly
+    ``t0 + n * period`` of that clock, t0 being its time at :meth:`start`, through
+    :meth:`SyncCycle.send_at`. ``now()`` reads the clock; ``at(when, fn)`` runs ``fn`` once at
+    clock time ``when`` (a driver host's kernel timer, :meth:`drivers.base.DriverHost.at`)."""
+
+    def __init__(self, cycle: SyncCycle, now: Callable[[], float],
+                 at: Callable[[float, Callable[[], None]], None]) -> None:
+        self._cycle = cycle
+        self._now = now
+        self._at = at
+        self._t0 = 0.0
+        self._n = 0
+        self._running = False
+
+    def start(self) -> None:
+        """Start the cycle's books and arm the timer of SYNC 1."""
+        self._cycle.start(produce=False)
+        self._t0 = self._now()
+        self._n = 0
+        self._running = True
+        self._arm()
+
+    def _arm(self) -> None:
+        # from t0 each time (not from the previous deadline), so no rounding accumulates
+        self._at(round(self._t0 + (self._n + 1) * self._cycle.period, 9), self._fire)
+
+    def _fire(self) -> None:
+        if not self._running:
+            return
+        self._n += 1
+        self._cycle.send_at(round(self._t0 + self._n * self._cycle.period, 9))
+        self._arm()
+
+    def stop(self) -> None:
+        """No SYNC from now on (a timer already armed does nothing). Idempotent."""
+        self._running = False
 
 
 class SyncProducerProcess:

@@ -11,11 +11,16 @@ import os
 import shutil
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 from typing import Any
 
 from chcos.apps.sim.from_map import SimSlaves
+from chcos.cli import cellsystem
+from chcos.cli import main as cli
 from chcos.testing import TestCell
+from chcos.user.context import TaskContext
+from vcan_tests.support_cia402 import drive_eds
 from vcan_tests.support_docs import doc_commands
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -81,3 +86,82 @@ def test_the_same_cell_twice_gives_the_same_trace(tmp_path: Path, chcos_cell: An
     volts = {row[1 + DEVICES.index("voltage_l1")][0] for row in first}
     assert len(volts) > 5 and all(225.0 <= v <= 235.0 for v in volts), volts
     assert all(status == "OK" for row in first for value, status in row[1:1 + len(DEVICES)])
+
+
+# -- a CANopen bus with sync_period: SYNC on the virtual clock ------------------------------------
+
+NODE = 4
+SYNC_PERIOD = 0.01      # what the importer chooses for synchronous TPDOs
+M = "vcan_tests.test_virtual_determinism"
+SYNC_STEP = 0.01    # virtual seconds between two samples of the SYNC cell (the move is quick)
+
+
+async def move_task(ctx: TaskContext, cmd: dict[str, Any]) -> None:
+    """Enables the imported axis and moves it out to 400 and back to 0."""
+    x = ctx.axis("axis")
+    for op, *args in (("set_mode",), ("enable",), ("move_to", 400.0), ("move_to", 0.0)):
+        await getattr(x, op)(*args)
+
+
+def sync_cell(where: Path) -> Path:
+    """A cell of one CiA 402 drive whose TPDOs are synchronous (transmission type 1, no event
+    timer), imported from its EDS: the importer gives the bus a ``sync_period``."""
+    eds = where / "drive.eds"
+    eds.write_text(drive_eds(name="Synchronous servo", transmission=1, event_timer=0),
+                   encoding="utf-8")
+    devmap = where / "drive.toml"
+    assert cli.main(["import", "eds", str(eds), "--node", str(NODE), "--bus", "drive",
+                     "-o", str(devmap)]) == 0
+    assert tomllib.loads(devmap.read_text(encoding="utf-8"))["bus"][0]["sync_period"] \
+        == SYNC_PERIOD
+    (where / "install.chcos").write_text(
+        f"install -m0 sysfile\ninstall -m0o1 --code={M}:move_task T axis\n", encoding="utf-8")
+    system = where / "system.toml"
+    system.write_text(f'[system]\nname = "sync"\ndevmaps = ["{devmap}"]\n'
+                      'install = "install.chcos"\n', encoding="utf-8")
+    return system
+
+
+def sync_trace(system: Path, work: Path) -> tuple[list[tuple[Any, ...]], list[int]]:
+    """The SYNC cell run for SAMPLES steps of SYNC_STEP: per step the time, the axis's state and
+    position as chcos reports them, what the drive publishes, the SYNCs it received and the
+    bus's SYNC counters; then the SYNCs the drive received in each of the next ten intervals
+    of 0.1 virtual seconds."""
+    out: list[tuple[Any, ...]] = []
+    with cellsystem.open_cell(system, virtual=True, workdir=work) as cell:
+        assert cell.slaves is not None
+        drive = cell.slaves.canopen_node("drive", NODE)
+        cell.system.invoke("T", {})
+        for _ in range(SAMPLES):
+            cell.run_for(SYNC_STEP)
+            sync = cell.system.devtab.bus_status()["drive"]["sync"]
+            out.append((round(cell.now(), 6), cell.device("axis.state").value,
+                        cell.device("axis.position").value, drive.published(),
+                        drive.stats.syncs, sync["cycles"], sync["complete"], sync["missing"],
+                        sync["late"]))
+        counts = []
+        for _ in range(10):
+            before = drive.stats.syncs
+            cell.run_for(0.1)
+            counts.append(drive.stats.syncs - before)
+        stats = cell.system.devtab.bus_status()["drive"]["sync"]
+        assert stats["jitter_max"] < 1e-6, stats      # SYNC n at n * period, virtual time
+        return out, counts
+
+
+def test_a_cell_with_sync_is_deterministic(tmp_path: Path) -> None:
+    system = sync_cell(tmp_path)
+    first, counts = sync_trace(system, tmp_path / "one")
+    second, counts2 = sync_trace(system, tmp_path / "two")
+    for a, b in zip(first, second, strict=True):
+        assert a == b, f"the runs part at t={a[0]} s:\n{a}\n{b}"
+    # SYNC follows virtual time: exactly period by period, each one seen by the drive
+    assert counts == counts2 == [round(0.1 / SYNC_PERIOD)] * 10
+    # the drive went out to 400 and back, reported through its synchronous TPDOs only
+    positions = [row[2] for row in first]
+    assert max(positions) == 400.0 and positions[-1] == 0.0, positions
+    assert any(0.0 < p < 400.0 for p in positions), positions    # seen on the way
+    # every SYNC was answered in its cycle: none late, no synchronous TPDO missing
+    t, _state, _pos, _published, syncs, cycles, complete, missing, late = first[-1]
+    assert missing == 0 and late == 0 and complete >= cycles - 2, first[-1]
+    assert syncs == cycles > t / SYNC_PERIOD - 50, first[-1]
