@@ -267,7 +267,10 @@ class DriveModel:
         goal = {PP: self.setpoint, CSP: float(target_position),
                 HM: 0.0 if self.homing else self.demand}.get(self.mode_display, self.demand)
         reach = max(0, profile_velocity) * dt
-        move = max(-reach, min(reach, goal - self.demand))
+        # within reach up to the rounding of dt (a difference of clock times): the goal itself,
+        # so that the profile ends on it, at standstill, instead of a hair short at full speed
+        gap = goal - self.demand
+        move = gap if abs(gap) <= reach * (1 + 1e-9) else max(-reach, min(reach, gap))
         self.demand += move
         if self.mode_display == CSP:
             self.demand = goal                         # the master interpolates
