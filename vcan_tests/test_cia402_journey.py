@@ -26,7 +26,7 @@ from vcan_tests.support_cia402 import drive_eds
 
 M = "vcan_tests.test_cia402_journey"
 NODE = 4
-WALL = 30.0     # wall seconds a step may take on a loaded machine (SYNC runs on wall time)
+WALL = 30.0     # wall seconds a wait may take on a loaded machine before the test gives up
 
 
 async def journey_task(ctx: TaskContext, cmd: dict[str, Any]) -> None:
