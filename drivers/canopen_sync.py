@@ -202,7 +202,8 @@ class SyncCycle:
 
     def start(self, produce: bool = True) -> None:
         """Begin: with ``produce`` the producer thread sends SYNC; without it the caller's
-        producer does and reports each SYNC on the wire through :meth:`seen`."""
+        producer does: a process whose SYNCs the reader reports through :meth:`seen`, or a
+        clock's timers sending through :meth:`send_at` (:class:`ClockedSyncProducer`)."""
         self._running = True
         if produce:
             self._thread = threading.Thread(target=self._loop, name=self._name, daemon=True)
