@@ -13,6 +13,7 @@ from __future__ import annotations
 import struct
 import threading
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any, Protocol
 
 import canopen
@@ -315,3 +316,17 @@ quick_stop_option = 2
 counts_per_unit = 1000.0
 timeouts = {{ enable = 5.0, disable = 5.0, fault_reset = 5.0, set_mode = 2.0, velocity = 10.0 }}
 """
+
+
+def imported_sync_drive(where: Path, node: int, name: str) -> Path:
+    """``chcos import eds`` of a one-axis drive whose TPDOs are synchronous (transmission type 1,
+    no event timer) as node ``node`` on bus ``drive``: writes ``drive.eds`` and ``drive.toml``
+    in ``where`` and returns the map (the importer gives the bus a ``sync_period``)."""
+    from chcos.cli import main as cli
+
+    eds = where / "drive.eds"
+    eds.write_text(drive_eds(name=name, transmission=1, event_timer=0), encoding="utf-8")
+    devmap = where / "drive.toml"
+    assert cli.main(["import", "eds", str(eds), "--node", str(node), "--bus", "drive",
+                     "-o", str(devmap)]) == 0
+    return devmap

@@ -22,7 +22,6 @@ import pytest
 
 from chcos.apps.sim.cia402_drive import Cia402Drive, Power
 from chcos.cli import cellrun, cellsystem
-from chcos.cli import main as cli
 from chcos.devices import devtab
 from chcos.devices.devmap import check_main
 from chcos.errors import KernelError
@@ -33,7 +32,7 @@ from chcos.tables.tasks import TaskEntry
 from chcos.user.context import TaskContext
 from tools.peers import ModbusPeer
 from vcan_tests.netutil import free_port
-from vcan_tests.support_cia402 import drive_eds
+from vcan_tests.support_cia402 import imported_sync_drive
 from vcan_tests.support_faults import wait_until
 
 M = "vcan_tests.test_faults_shutdown_virtual"
@@ -50,12 +49,7 @@ async def mover(ctx: TaskContext, command: Any) -> None:
 
 
 def _axis_cell(tmp_path: Path) -> Path:
-    eds = tmp_path / "drive.eds"
-    eds.write_text(drive_eds(name="Vendor servo", transmission=1, event_timer=0),
-                   encoding="utf-8")
-    devmap = tmp_path / "drive.toml"
-    assert cli.main(["import", "eds", str(eds), "--node", str(NODE), "--bus", "drive",
-                     "-o", str(devmap)]) == 0
+    devmap = imported_sync_drive(tmp_path, NODE, "Vendor servo")
     assert check_main([str(devmap)]) == 0
     (tmp_path / "install.chcos").write_text(
         f"install -m0 sysfile\ninstall -m0o1 --code={M}:mover mover axis\ninvoke mover\n",

@@ -17,10 +17,9 @@ from typing import Any
 
 from chcos.apps.sim.from_map import SimSlaves
 from chcos.cli import cellsystem
-from chcos.cli import main as cli
 from chcos.testing import TestCell
 from chcos.user.context import TaskContext
-from vcan_tests.support_cia402 import drive_eds
+from vcan_tests.support_cia402 import imported_sync_drive
 from vcan_tests.support_docs import doc_commands
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -106,12 +105,7 @@ async def move_task(ctx: TaskContext, cmd: dict[str, Any]) -> None:
 def sync_cell(where: Path) -> Path:
     """A cell of one CiA 402 drive whose TPDOs are synchronous (transmission type 1, no event
     timer), imported from its EDS: the importer gives the bus a ``sync_period``."""
-    eds = where / "drive.eds"
-    eds.write_text(drive_eds(name="Synchronous servo", transmission=1, event_timer=0),
-                   encoding="utf-8")
-    devmap = where / "drive.toml"
-    assert cli.main(["import", "eds", str(eds), "--node", str(NODE), "--bus", "drive",
-                     "-o", str(devmap)]) == 0
+    devmap = imported_sync_drive(where, NODE, "Synchronous servo")
     assert tomllib.loads(devmap.read_text(encoding="utf-8"))["bus"][0]["sync_period"] \
         == SYNC_PERIOD
     (where / "install.chcos").write_text(
