@@ -20,12 +20,13 @@ printed beside each figure as the kernel has it):
   process).
 
 Beside both, an independent observer (the C program's ``count`` mode, its own socket with a
-1 MiB receive buffer) counts what went on the wire: SYNC intervals longer than 1.5 periods,
-the node's TPDOs, the cycles whose TPDO came after
-the next SYNC (the driver's *missing*, counted with the same books for the C producer too: what
-the machine's stalls cost either producer), and the SYNC period jitter p50/p99/max from its
-kernel receive time stamps: one instrument for both producers (each producer's own figure is
-printed too: the C program's from its send times, chcos's from its reader's time stamps).
+1 MiB receive buffer) counts what went on the wire: SYNC intervals longer than 1.5 periods, the
+node's TPDOs, the cycles whose TPDO came after the next SYNC (the driver's *missing*, counted
+with the same books for the C producer too: what the machine's stalls cost either producer),
+and the SYNC period jitter p50/p99/max from its kernel receive time stamps: one instrument for
+both producers (each producer's own figure is printed too: the C program's from its send
+times, chcos's from its reader's time stamps). These cover the observer's whole count: for the
+C reference its run, for chcos its window and :data:`TAIL` after it.
 
 *Missed cycles*, one definition for both producers (:func:`count_cycles`), from the
 observer's kernel receive time stamps only: the window opens at the first SYNC the observer
@@ -35,15 +36,16 @@ Missed = n - the SYNCs seen in the window. A SYNC still owed when the window clo
 the producer had not made up, or cycles it skipped) is missed, whichever producer it is; a
 SYNC sent late but inside the window is not missed (it shows in the jitter and the gaps). The
 C reference's count is no longer "``seconds`` x rate SYNCs sent whenever it finished": it is
-judged on the wire in the same way. The observer counts on for half a second after chcos's window
-(the C reference's ends when the program has sent all its SYNCs), so both windows are whole.
+judged on the wire in the same way. The observer counts on for :data:`TAIL` after chcos's
+window (the C reference's ends when the program has sent all its SYNCs), so that both windows
+are whole.
 
 Targets: 0 missed SYNC cycles at 250 Hz; chcos's p99 jitter at most 2x the reference's, both
-as the producers measured it and as the observer did. Prints a table
-per rate and a ``RESULT {json}`` line (what tools/suite_sections.py reads); ``--json`` writes
-the figures. Exit status 0 when met, 1 otherwise, 2 without SocketCAN. Figures from a virtual
-machine are for comparison in the same run, not absolute; on a machine shared with other work
-both producers share its stalls.
+as the producers measured it and as the observer did. Prints a table per rate (both
+producers' missed cycles side by side) and a ``RESULT {json}`` line (what
+tools/suite_sections.py reads); ``--json`` writes the figures. Exit status 0 when met, 1
+otherwise, 2 without SocketCAN. Figures from a virtual machine are for comparison in the same
+run, not absolute; on a machine shared with other work both producers share its stalls.
 """
 
 from __future__ import annotations
