@@ -58,7 +58,7 @@ def test_a_late_first_sync_opens_the_window_and_the_count_holds() -> None:
 
 
 def test_more_syncs_than_due_give_a_negative_count() -> None:
-    stamps = sorted(on_schedule(N + 3) + [T0 + 10 * P + P // 2, T0 + 20 * P + P // 2])
+    stamps = sorted([*on_schedule(N + 3), T0 + 10 * P + P // 2, T0 + 20 * P + P // 2])
     count = count_cycles(stamps, RATE, SECONDS, UNTIL)
     assert (count.seen, count.missed) == (N + 2, -2)
 
