@@ -25,20 +25,22 @@ node's TPDOs, the cycles whose TPDO came after the next SYNC (the driver's *miss
 with the same books for the C producer too: what the machine's stalls cost either producer),
 and the SYNC period jitter p50/p99/max from its kernel receive time stamps: one instrument for
 both producers (each producer's own figure is printed too: the C program's from its send
-times, chcos's from its reader's time stamps). These cover the observer's whole count: for the
-C reference its run, for chcos its window and :data:`TAIL` after it.
+times, chcos's from its reader's time stamps). These cover the observer's count from the start
+of the measured ``--seconds`` to the end of the observer (for chcos :data:`TAIL` after them).
 
-*Missed cycles*, one definition for both producers (:func:`count_cycles`), from the
-observer's kernel receive time stamps only: the window opens at the first SYNC the observer
-saw (t0) and holds the ``--seconds`` x rate cycles due from there (n cycles, the k-th due at
-t0 + k periods); it closes half a period after the last one is due (t0 + (n - 1/2) periods).
-Missed = n - the SYNCs seen in the window. A SYNC still owed when the window closes (a backlog
-the producer had not made up, or cycles it skipped) is missed, whichever producer it is; a
-SYNC sent late but inside the window is not missed (it shows in the jitter and the gaps). The
-C reference's count is no longer "``seconds`` x rate SYNCs sent whenever it finished": it is
-judged on the wire in the same way. The observer counts on for :data:`TAIL` after chcos's
-window (the C reference's ends when the program has sent all its SYNCs), so that both windows
-are whole.
+*Missed cycles*, one definition for both producers (:func:`count_cycles`): cycles due from
+the producer's first SYNC until it was stopped, against the SYNCs it put on the wire by then,
+counted from the observer's kernel receive time stamps only (the observer is bound before the
+producer starts, so it sees that first SYNC). The first SYNC (t0) is cycle 0, cycle k is due
+at t0 + k periods; the n cycles due by the stop time S are n = round((S - t0) / period), and
+they are on time when their SYNCs are on the wire before t0 + (n - 1/2) periods. Missed = n -
+the SYNCs seen in [t0, t0 + (n - 1/2) periods). A cycle skipped, or a backlog not made up when
+the producer was stopped, is missed, whichever producer it is; a SYNC sent late but before the
+stop is not missed (it shows in the jitter and the gaps). The C reference's stop is the end of
+its n = ``--seconds`` x rate cycles (it is no longer "n SYNCs sent, whenever it finished": a
+backlog at its end counts too); chcos's producer runs from the driver's start (its settle
+included) and is stopped, for this count, when the ``--seconds`` measured end; the observer
+counts on for :data:`TAIL` after either stop.
 
 Targets: 0 missed SYNC cycles at 250 Hz; chcos's p99 jitter at most 2x the reference's, both
 as the producers measured it and as the observer did. Prints a table per rate (both
@@ -66,8 +68,8 @@ from pathlib import Path
 
 NODE = 5
 PRODUCER = "SYNC producer process"
-#: how long (s) the observer counts on after chcos's window, so that the window from the first
-#: SYNC it saw is whole
+#: how long (s) the observer counts on after chcos's measured seconds, so that SYNCs due by
+#: then and sent in time are seen
 TAIL = 0.5
 
 C_SOURCE = r"""
@@ -122,8 +124,9 @@ int main(int argc, char **argv) {
            TPDOs on the wire, SYNC intervals longer than 1.5 periods (kernel receive time
            stamps), cycles whose TPDO had not come when the next SYNC did (missing, counted as
            the producer's books count them), frames the kernel dropped on this socket; with
-           STAMPS, each SYNC's kernel time stamp (ns, CLOCK_REALTIME) on a line of that file
-           (the missed cycles are counted from them, the same way for either producer) */
+           STAMPS, the kernel time stamp (ns, CLOCK_REALTIME) of each SYNC since it was bound,
+           one a line of that file (the missed cycles are counted from them, the same way for
+           either producer) */
         int s = open_can(argv[2]); double period = atol(argv[3]) * 1e-6; int node = atoi(argv[4]);
         struct can_filter f[2] = { { .can_id = 0x080, .can_mask = 0x7FF },
                                    { .can_id = 0x180 + node, .can_mask = 0x7FF } };
@@ -143,16 +146,21 @@ int main(int argc, char **argv) {
             struct iovec iov = { &in, sizeof in };
             struct msghdr mh = { .msg_iov = &iov, .msg_iovlen = 1, .msg_control = ctrl,
                                  .msg_controllen = sizeof ctrl };
-            if (recvmsg(s, &mh, 0) <= 0 || !go) continue;
+            if (recvmsg(s, &mh, 0) <= 0) continue;
+            if (stamps && in.can_id == 0x080)               /* every SYNC since bound */
+                for (struct cmsghdr *c = CMSG_FIRSTHDR(&mh); c; c = CMSG_NXTHDR(&mh, c))
+                    if (c->cmsg_level == SOL_SOCKET && c->cmsg_type == SCM_TIMESTAMPNS) {
+                        struct timespec *k = (struct timespec *)CMSG_DATA(c);
+                        fprintf(stamps, "%lld\n", (long long)k->tv_sec * 1000000000LL
+                                                   + k->tv_nsec);
+                    }
+            if (!go) continue;
             if (in.can_id == 0x080) {
                 if (syncs && !answered) missing++;
                 syncs++; answered = 0;
                 for (struct cmsghdr *c = CMSG_FIRSTHDR(&mh); c; c = CMSG_NXTHDR(&mh, c))
                     if (c->cmsg_level == SOL_SOCKET && c->cmsg_type == SCM_TIMESTAMPNS) {
-                        struct timespec *k = (struct timespec *)CMSG_DATA(c);
-                        double t = ts(k);
-                        if (stamps) fprintf(stamps, "%lld\n",
-                                            (long long)k->tv_sec * 1000000000LL + k->tv_nsec);
+                        double t = ts((struct timespec *)CMSG_DATA(c));
                         if (last >= 0 && t - last > 1.5 * period) gaps++;
                         if (last >= 0) {
                             if (m == cap) { cap *= 2; j = realloc(j, cap * sizeof *j); }
@@ -295,46 +303,50 @@ DefaultValue=0
 
 @dataclass(frozen=True)
 class CycleCount:
-    """The SYNC cycles of one producer in the observer's window (:func:`count_cycles`):
-    ``expected`` cycles due, ``seen`` SYNCs on the wire in the window."""
+    """The SYNC cycles of one producer (:func:`count_cycles`): ``expected`` cycles due from
+    its first SYNC until it was stopped, ``seen`` its SYNCs on the wire in time for them."""
 
     expected: int
     seen: int
 
     @property
     def missed(self) -> int:
-        """Cycles due in the window without a SYNC in it (negative: more SYNCs than due)."""
+        """Cycles due without a SYNC for them (negative: more SYNCs than cycles due)."""
         return self.expected - self.seen
 
 
-def count_cycles(stamps_ns: Sequence[int], rate: int, seconds: float,
+def count_cycles(stamps_ns: Sequence[int], rate: int, stop_ns: int,
                  until_ns: int) -> CycleCount:
     """The missed-cycle count, the same for every producer: ``stamps_ns`` are the kernel
-    receive time stamps (ns) of the SYNCs the observer saw, ``until_ns`` when it stopped
-    counting (same clock). The window opens at the first SYNC (t0) and holds the
-    round(``seconds`` x ``rate``) cycles due from there, the k-th at t0 + k periods; it closes
-    half a period after the last is due. Raises ValueError for a rate or duration giving no
-    cycle, and when the observer stopped before the window closed (it would count as missed
-    what it did not watch)."""
-    expected = round(seconds * rate)
-    if rate <= 0 or expected <= 0:
-        raise ValueError(f"SYNC at {rate} Hz for {seconds} s: no cycle to count")
+    receive time stamps (ns) of the SYNCs the observer saw since before the producer started
+    (the first is the producer's cycle 0), ``stop_ns`` when the producer was stopped and
+    ``until_ns`` when the observer stopped counting (same clock). The cycles due by the stop
+    are n = round((stop - t0) x rate), the k-th at t0 + k periods; on time when seen before
+    t0 + (n - 1/2) periods. Raises ValueError without a SYNC or a rate, for a stop before the
+    first SYNC, and when the observer stopped before that end (it would count as missed what
+    it did not watch)."""
+    if rate <= 0:
+        raise ValueError(f"SYNC at {rate} Hz: the rate must be positive")
     if not stamps_ns:
-        return CycleCount(expected, 0)
+        raise ValueError("the observer saw no SYNC: no cycle to count from")
     t0 = stamps_ns[0]
+    expected = round((stop_ns - t0) * rate / 1e9)
+    if expected <= 0:
+        raise ValueError(f"the producer stopped {(t0 - stop_ns) / 1e9:.3f} s before its first "
+                         f"SYNC cycle ended: no cycle to count")
     end = t0 + round((expected - 0.5) * 1e9 / rate)
     if until_ns < end:
         raise ValueError(f"the observer stopped {(end - until_ns) / 1e9:.3f} s before the end "
-                         f"of the window of {expected} cycles from its first SYNC")
+                         f"of the {expected} cycles due from the first SYNC")
     return CycleCount(expected, sum(1 for t in stamps_ns if t0 <= t < end))
 
 
 @dataclass
 class Figure:
     """One row: who produced SYNC, at which rate, and what was measured: ``cycles`` as the
-    producer counted them (chcos: the SYNCs its reader saw), ``expected`` the cycles due in
-    the observer's window, ``on_wire`` the SYNCs the observer saw in it, ``missed_cycles``
-    the difference (:func:`count_cycles`, the same for both producers),
+    producer counted them (chcos: the SYNCs its reader saw), ``expected`` the cycles due from
+    the producer's first SYNC to its stop, ``on_wire`` the SYNCs the observer saw in time
+    for them, ``missed_cycles`` the difference (:func:`count_cycles`, the same for both producers),
     ``gaps`` the SYNC intervals it saw longer than 1.5 periods, ``drops`` frames the kernel
     dropped on the observer's socket, ``tpdos`` the node's TPDOs it saw."""
 
@@ -372,13 +384,16 @@ class Observer:
         self._cmd = [str(exe), "count", channel, str(1_000_000 // rate), str(NODE),
                      str(stamps)]
         self._stamps = stamps
+        self._rate = rate
         self.counts = (0, 0, 0, 0, 0)
         #: SYNC period jitter p50/p99/max (s) from the observer's kernel time stamps
         self.jitter = (0.0, 0.0, 0.0)
-        #: the kernel receive time stamp (ns, CLOCK_REALTIME) of each SYNC it counted
+        #: the kernel receive time stamp (ns, CLOCK_REALTIME) of each SYNC since it was bound
         self.sync_stamps: list[int] = []
         #: when it stopped counting (ns, CLOCK_REALTIME, the time stamps' clock)
         self.until_ns = 0
+        #: when the producer was started (:meth:`producer_starts`): SYNCs before are not its
+        self._start_ns = 0
 
     def __enter__(self) -> Observer:
         self._proc = subprocess.Popen(self._cmd, stdout=subprocess.PIPE, text=True)
@@ -386,6 +401,10 @@ class Observer:
         if self._proc.stdout.readline().strip() != "bound":
             raise RuntimeError(f"the observer {self._cmd} did not start")
         return self
+
+    def producer_starts(self) -> None:
+        """The producer is started now: its SYNCs are those seen from now on."""
+        self._start_ns = time.time_ns()
 
     def go(self) -> None:
         """Count from now."""
@@ -397,10 +416,16 @@ class Observer:
             self.until_ns = time.time_ns()
             self._proc.terminate()
 
-    def cycles(self, rate: int, seconds: float) -> CycleCount:
-        """The cycles due and seen in the window of ``seconds`` from the first SYNC it saw
+    def cycles(self, stop_ns: int | None = None, cycles: int | None = None) -> CycleCount:
+        """The cycles due from the first SYNC it saw until the producer's stop (``stop_ns``,
+        or the end of ``cycles`` periods from that SYNC) and the SYNCs seen in time for them
         (:func:`count_cycles`); after the end of the ``with``."""
-        return count_cycles(self.sync_stamps, rate, seconds, self.until_ns)
+        stamps = [t for t in self.sync_stamps if t >= self._start_ns]
+        if stop_ns is None:
+            if not stamps or cycles is None:
+                raise ValueError("the observer saw no SYNC: no cycle to count from")
+            stop_ns = stamps[0] + round(cycles * 1e9 / self._rate)
+        return count_cycles(stamps, self._rate, stop_ns, self.until_ns)
 
     def __exit__(self, *exc: object) -> None:
         self.end()
@@ -471,6 +496,7 @@ def cpu_of(pid: int) -> float:
 def reference(exe: Path, channel: str, rate: int, seconds: float, work: Path) -> Figure:
     with Observer(exe, channel, rate, work / f"stamps-c-{rate}.txt") as obs:
         obs.go()
+        obs.producer_starts()
         proc = subprocess.Popen([str(exe), "sync", channel, str(1_000_000 // rate),
                                  str(seconds)], stdout=subprocess.PIPE, text=True)
         sched = sched_of(proc.pid)
@@ -481,7 +507,7 @@ def reference(exe: Path, channel: str, rate: int, seconds: float, work: Path) ->
     n, late, p50, p99, mx, cpu = stdout.split()
     _, tpdos, gaps, missing, drops = obs.counts
     w50, w99, wmax = obs.jitter
-    window = obs.cycles(rate, seconds)
+    window = obs.cycles(cycles=int(n))
     return Figure("C reference: clock_nanosleep + raw socket", rate, int(n), int(late), None,
                   float(p50) * 1e6, float(p99) * 1e6, float(mx) * 1e6,
                   100.0 * float(cpu) / seconds, window.expected, window.seen, window.missed,
@@ -515,12 +541,14 @@ def chcos(exe: Path, channel: str, rate: int, seconds: float, eds: Path, work: P
         "interface": "socketcan", "channel": channel, "sync_period": 1.0 / rate,
         "sdo_timeout": 0.05, "nodes": [{"id": NODE, "eds": str(eds), "nmt_start": False}]})
     driver = CanopenDriver(bus, [], Host())
-    driver.start()
-    try:
-        driver.settle(5.0)                      # the responder answers no SDO: given up
-        pid = producer_pid()
-        sched = sched_of(pid)
-        with Observer(exe, channel, rate, work / f"stamps-chcos-{rate}.txt") as obs:
+    # bound before the driver starts its SYNC producer: it sees the producer's first SYNC
+    with Observer(exe, channel, rate, work / f"stamps-chcos-{rate}.txt") as obs:
+        obs.producer_starts()
+        driver.start()
+        try:
+            driver.settle(5.0)                  # the responder answers no SDO: given up
+            pid = producer_pid()
+            sched = sched_of(pid)
             cpu0 = resource.getrusage(resource.RUSAGE_SELF)
             producer0 = cpu_of(pid)
             # no settle around the window: a reader slower than the frames (1 kHz in a loaded
@@ -528,20 +556,21 @@ def chcos(exe: Path, channel: str, rate: int, seconds: float, eds: Path, work: P
             first = driver.sync_stats()
             obs.go()
             time.sleep(seconds)
+            stop_ns = time.time_ns()            # the producer's stop, for the missed cycles
             last = driver.sync_stats()
             cpu1 = resource.getrusage(resource.RUSAGE_SELF)
             producer1 = cpu_of(pid)
-            time.sleep(TAIL)                    # the observer's window from its first SYNC
+            time.sleep(TAIL)                    # SYNCs due by the stop, sent in time
             obs.end()
-    finally:
-        driver.stop()
+        finally:
+            driver.stop()
     assert first is not None and last is not None
     # the driver's threads and its producer process
     cpu = ((cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
            + producer1 - producer0)
     _, tpdos, gaps, missing, drops = obs.counts
     w50, w99, wmax = obs.jitter
-    window = obs.cycles(rate, seconds)
+    window = obs.cycles(stop_ns=stop_ns)
     if errors:                                  # stalls the producer reported, failing sends
         print(f"  ({len(errors)} SYNC reports of the driver, the first: {errors[:3]})")
     return Figure(f"chcos: {PRODUCER}", rate,
@@ -598,9 +627,10 @@ def main(argv: list[str] | None = None) -> int:
                           f"{f.expected:8d} {f.on_wire:7d} {f.missed_cycles:6d} {f.gaps:5d} "
                           f"{f.drops:5d} {f.tpdos:6d} {f.wire_missing:6d}")
                 print(f"  missed SYNC cycles, one definition for both (the observer's kernel "
-                      f"time stamps: cycles due in [first SYNC, + {args.seconds:g} s) minus "
-                      f"SYNCs seen in it): C reference {ref.missed_cycles} of {ref.expected}, "
-                      f"chcos {ours.missed_cycles} of {ours.expected}")
+                      f"time stamps: cycles due from the producer's first SYNC to its stop, "
+                      f"minus its SYNCs on the wire in time for them; chcos's from the driver's "
+                      f"start): C reference {ref.missed_cycles} of {ref.expected}, chcos "
+                      f"{ours.missed_cycles} of {ours.expected}")
                 print("  SYNC period jitter the observer measured (kernel time stamps, one "
                       "instrument for both), p50/p99/max µs:")
                 for f in (ref, ours):
