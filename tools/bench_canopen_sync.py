@@ -31,16 +31,17 @@ of the measured ``--seconds`` to the end of the observer (for chcos :data:`TAIL`
 *Missed cycles*, one definition for both producers (:func:`count_cycles`): cycles due from
 the producer's first SYNC until it was stopped, against the SYNCs it put on the wire by then,
 counted from the observer's kernel receive time stamps only (the observer is bound before the
-producer starts, so it sees that first SYNC). The first SYNC (t0) is cycle 0, cycle k is due
-at t0 + k periods; the n cycles due by the stop time S are n = round((S - t0) / period), and
-they are on time when their SYNCs are on the wire before t0 + (n - 1/2) periods. Missed = n -
-the SYNCs seen in [t0, t0 + (n - 1/2) periods). A cycle skipped, or a backlog not made up when
-the producer was stopped, is missed, whichever producer it is; a SYNC sent late but before the
-stop is not missed (it shows in the jitter and the gaps). The C reference's stop is the end of
-its n = ``--seconds`` x rate cycles (it is no longer "n SYNCs sent, whenever it finished": a
-backlog at its end counts too); chcos's producer runs from the driver's start (its settle
-included) and is stopped, for this count, when the ``--seconds`` measured end; the observer
-counts on for :data:`TAIL` after either stop.
+producer starts, so it sees that first SYNC). Cycle 0 is due at t0, the earliest of
+stamp_k - k periods over the first second (neither producer sends before a deadline, so a
+late first SYNC does not shift the grid), cycle k at t0 + k periods; the n cycles due by the
+stop time S are n = round((S - t0) / period), on time when their SYNCs are on the wire before
+t0 + (n - 1/2) periods. Missed = n - the SYNCs seen before then. A cycle skipped, or a backlog
+not made up when the producer was stopped, is missed, whichever producer it is; a SYNC sent
+late but before the stop is not missed (it shows in the jitter and the gaps). The C
+reference's stop is the end of its n = ``--seconds`` x rate cycles (it is no longer "n SYNCs
+sent, whenever it finished": a backlog at its end counts too); chcos's producer runs from the
+driver's start (its settle included) and is stopped, for this count, when the ``--seconds``
+measured end; the observer counts on for :data:`TAIL` after either stop.
 
 Targets: 0 missed SYNC cycles at 250 Hz; chcos's p99 jitter at most 2x the reference's, both
 as the producers measured it and as the observer did. Prints a table per rate (both
@@ -315,13 +316,24 @@ class CycleCount:
         return self.expected - self.seen
 
 
+def grid_origin(stamps_ns: Sequence[int], rate: int) -> int:
+    """When (ns) the producer's cycle 0 was due, from the time stamps of its SYNCs: no SYNC
+    goes out before its deadline, so the earliest of stamp_k - k periods over its first second
+    (a late first SYNC does not move it). Raises ValueError without a SYNC."""
+    if not stamps_ns:
+        raise ValueError("the observer saw no SYNC: no cycle to count from")
+    return min(t - round(k * 1e9 / rate) for k, t in enumerate(stamps_ns[:max(rate, 1)]))
+
+
 def count_cycles(stamps_ns: Sequence[int], rate: int, stop_ns: int,
                  until_ns: int) -> CycleCount:
     """The missed-cycle count, the same for every producer: ``stamps_ns`` are the kernel
     receive time stamps (ns) of the SYNCs the observer saw since before the producer started
     (the first is the producer's cycle 0), ``stop_ns`` when the producer was stopped and
-    ``until_ns`` when the observer stopped counting (same clock). The cycles due by the stop
-    are n = round((stop - t0) x rate), the k-th at t0 + k periods; on time when seen before
+    ``until_ns`` when the observer stopped counting (same clock). Cycle 0 is due at t0, the
+    earliest of stamp_k - k periods over the first second (no SYNC goes before its deadline,
+    so a late first SYNC does not shift the grid); the cycles due by the stop are
+    n = round((stop - t0) x rate), the k-th at t0 + k periods; on time when seen before
     t0 + (n - 1/2) periods. Raises ValueError without a SYNC or a rate, for a stop before the
     first SYNC, and when the observer stopped before that end (it would count as missed what
     it did not watch)."""
@@ -329,16 +341,17 @@ def count_cycles(stamps_ns: Sequence[int], rate: int, stop_ns: int,
         raise ValueError(f"SYNC at {rate} Hz: the rate must be positive")
     if not stamps_ns:
         raise ValueError("the observer saw no SYNC: no cycle to count from")
-    t0 = stamps_ns[0]
-    expected = round((stop_ns - t0) * rate / 1e9)
+    period = 1e9 / rate
+    t0 = grid_origin(stamps_ns, rate)
+    expected = round((stop_ns - t0) / period)
     if expected <= 0:
         raise ValueError(f"the producer stopped {(t0 - stop_ns) / 1e9:.3f} s before its first "
                          f"SYNC cycle ended: no cycle to count")
-    end = t0 + round((expected - 0.5) * 1e9 / rate)
+    end = t0 + round((expected - 0.5) * period)
     if until_ns < end:
         raise ValueError(f"the observer stopped {(end - until_ns) / 1e9:.3f} s before the end "
                          f"of the {expected} cycles due from the first SYNC")
-    return CycleCount(expected, sum(1 for t in stamps_ns if t0 <= t < end))
+    return CycleCount(expected, sum(1 for t in stamps_ns if t < end))
 
 
 @dataclass
@@ -424,7 +437,7 @@ class Observer:
         if stop_ns is None:
             if not stamps or cycles is None:
                 raise ValueError("the observer saw no SYNC: no cycle to count from")
-            stop_ns = stamps[0] + round(cycles * 1e9 / self._rate)
+            stop_ns = grid_origin(stamps, self._rate) + round(cycles * 1e9 / self._rate)
         return count_cycles(stamps, self._rate, stop_ns, self.until_ns)
 
     def __exit__(self, *exc: object) -> None:

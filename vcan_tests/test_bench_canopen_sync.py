@@ -62,7 +62,8 @@ def test_the_cycles_due_follow_the_stop_time() -> None:
 
 
 def test_more_syncs_than_due_give_a_negative_count() -> None:
-    stamps = sorted([*on_schedule(N + 3), T0 + 10 * P + P // 2, T0 + 20 * P + P // 2])
+    """Two SYNCs between cycles (after the first second, which places the grid)."""
+    stamps = sorted([*on_schedule(N + 3), T0 + 300 * P + P // 2, T0 + 400 * P + P // 2])
     count = count_cycles(stamps, RATE, STOP, UNTIL)
     assert (count.seen, count.missed) == (N + 2, -2)
 
@@ -80,3 +81,12 @@ def test_no_sync_a_stop_before_the_first_cycle_or_no_rate_is_refused() -> None:
         count_cycles([T0], RATE, T0 + P // 3, UNTIL)
     with pytest.raises(ValueError, match="the rate must be positive"):
         count_cycles([T0], 0, STOP, UNTIL)
+
+
+def test_a_late_first_sync_does_not_shift_the_grid() -> None:
+    """The first SYNC 0.6 periods late (the producer starting), the rest on the grid: cycle 0
+    is still due at T0, so the cycles due and the SYNCs seen in time are the same as on
+    schedule - neither a cycle credited nor one owed."""
+    stamps = [T0 + 6 * P // 10, *on_schedule(N + 5)[1:]]
+    count = count_cycles(stamps, RATE, STOP, UNTIL)
+    assert (count.expected, count.missed) == (N, 0)
