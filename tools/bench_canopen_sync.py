@@ -329,7 +329,7 @@ def count_cycles(stamps_ns: Sequence[int], rate: int, stop_ns: int,
                  until_ns: int) -> CycleCount:
     """The missed-cycle count, the same for every producer: ``stamps_ns`` are the kernel
     receive time stamps (ns) of the SYNCs the observer saw since before the producer started
-    (the first is the producer's cycle 0), ``stop_ns`` when the producer was stopped and
+    (the first of them is the producer's first), ``stop_ns`` when the producer was stopped and
     ``until_ns`` when the observer stopped counting (same clock). Cycle 0 is due at t0, the
     earliest of stamp_k - k periods over the first second (no SYNC goes before its deadline,
     so a late first SYNC does not shift the grid); the cycles due by the stop are
