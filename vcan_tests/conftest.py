@@ -51,6 +51,24 @@ def make_system(tmp_path: Path) -> Iterator[MakeSystem]:
         s.shutdown()
 
 
+@pytest.fixture(scope="session")
+def good_gap_job(tmp_path_factory: pytest.TempPathFactory) -> Any:
+    """The welding job on a good gap, direct binding, no fault, run ONCE for the session
+    (a :class:`vcan_tests.support_weldcell.JobRun`): several tests check different facts of
+    this same deterministic run, on virtual time. ``extra`` holds, taken once the job is
+    over: ``sent`` (messages sent per link ``src->dst``), ``steps`` (every task's steps) and
+    ``secs`` (virtual seconds since the job started). Tests only read it."""
+    from vcan_tests.support_weldcell import run_job
+
+    def facts(cell: Any) -> dict[str, Any]:
+        s = cell.system
+        return {"sent": {f"{lk.src}->{lk.dst}": lk.sent for lk in s.msgtab},
+                "steps": {t.name: t.steps for t in s.tsktab},
+                "secs": s.kernel.clock.now() - cell.started}
+
+    return run_job("direct", "", tmp=tmp_path_factory.mktemp("good-gap"), after=facts)
+
+
 def pytest_collection_finish(session: pytest.Session) -> None:
     """Start the long User-Mode-Linux runs of the selected tests marked ``uml_background`` (their
     module's ``start_in_background(config)``) now, so they overlap the rest of the session on

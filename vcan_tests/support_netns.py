@@ -156,9 +156,12 @@ class RemoteHost:
     """A host session running inside a namespace (this module's ``main``), driven over its
     standard input and output."""
 
-    def __init__(self, net: Net, node: str, system: Path, log: Path) -> None:
-        self.proc = net.popen(node, ["-m", "vcan_tests.support_netns", str(system)], log,
-                              stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    def __init__(self, net: Net, node: str, system: Path, log: Path,
+                 reach: float = 20.0) -> None:
+        """``reach``: how long the session tries to reach a first satellite (Host timeout)
+        before an operation fails with "no satellite ... is reachable"."""
+        self.proc = net.popen(node, ["-m", "vcan_tests.support_netns", str(system), str(reach)],
+                              log, stdin=subprocess.PIPE, stdout=subprocess.PIPE)
         self._sel = selectors.DefaultSelector()
         assert self.proc.stdout is not None
         self._out: IO[bytes] = self.proc.stdout
@@ -213,7 +216,8 @@ def main() -> int:
     from chcos.satellites.host import Host
 
     sf = sysfile.load(sys.argv[1])
-    with Host(sf, timeout=20.0, settle=5.0) as host:
+    reach = float(sys.argv[2]) if len(sys.argv) > 2 else 20.0
+    with Host(sf, timeout=reach, settle=5.0) as host:
         for line in sys.stdin:
             req = json.loads(line)
             op = req["op"]

@@ -24,6 +24,9 @@ from vcan_tests.support_sat import device, link, task
 ROOT = Path(__file__).resolve().parent.parent
 pytestmark = pytest.mark.slow
 NODES = {"s0": 1, "s1": 2, "s2": 3, "h": 10, "r": 66}
+REACH = 8.0
+"""Seconds a session without the system's credentials is given to reach a satellite (a session
+with them reaches every satellite well within it: the test checks so first)."""
 
 
 def _require() -> None:
@@ -100,18 +103,24 @@ def test_three_hosts_over_mutual_tls(tmp_path: Path) -> None:
             t["name"] for t in doc["tasks"]]
         assert len({tuple(v) for v in host.call("heads").values()}) == 1
 
+        # the refusals below are given REACH seconds to reach a satellite: a fresh session
+        # holding the system's credentials does within that (control)
+        fresh = RemoteHost(net, "h", system, tmp_path / "fresh.log", reach=REACH)
+        hosts.append(fresh)
+        assert len(fresh.call("heads")) == 3
+
         # a process in a fourth namespace without the system's credentials: another CA and
         # another secret. It reaches no satellite, and changes nothing.
         bad = tls_section(*pki(tmp_path / "rogue-pki", [addrs["r"]], cn="rogue CA"))
         rogue_sys = _system(tmp_path, "rogue", bad, tmp_path / "rogue-secret.json", addrs)
-        rogue = RemoteHost(net, "r", rogue_sys, tmp_path / "rogue.log")
+        rogue = RemoteHost(net, "r", rogue_sys, tmp_path / "rogue.log", reach=REACH)
         hosts.append(rogue)
         with pytest.raises(RuntimeError, match="no satellite of fig65net is reachable"):
             rogue.call("exec", line="install -m0 --code=vcan_tests.support_netns:stopper EVIL")
         assert "EVIL" not in [t["name"] for t in host.call("map")["tasks"]]
         # the same process holding the system's certificates but not its secret
         rogue2_sys = _system(tmp_path, "rogue2", good, tmp_path / "rogue-secret.json", addrs)
-        rogue2 = RemoteHost(net, "r", rogue2_sys, tmp_path / "rogue2.log")
+        rogue2 = RemoteHost(net, "r", rogue2_sys, tmp_path / "rogue2.log", reach=REACH)
         hosts.append(rogue2)
         with pytest.raises(RuntimeError, match="no satellite of fig65net is reachable"):
             rogue2.call("exec", line="invoke STOP why=rogue")

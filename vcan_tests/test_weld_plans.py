@@ -5,11 +5,10 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
 
 import pytest
 
-from vcan_tests.support_weldcell import buses_or_skip, run_job
+from vcan_tests.support_weldcell import JobRun, buses_or_skip, run_job
 
 TRUE_START = (550.0, -150.0)
 
@@ -30,11 +29,8 @@ def test_first_search_fails_and_the_gap_is_welded_with_the_second_plan(tmp_path:
     assert all(t["abnormal"] == 0 for t in run.tasks.values()), run.tasks
 
 
-def test_good_gap_sends_sensory_results_up_from_every_level(tmp_path: Path) -> None:
-    def per_link(cell: Any) -> dict[str, Any]:
-        return {"sent": {f"{lk.src}->{lk.dst}": lk.sent for lk in cell.system.msgtab}}
-
-    run = run_job("direct", "", tmp=tmp_path, after=per_link)
+def test_good_gap_sends_sensory_results_up_from_every_level(good_gap_job: JobRun) -> None:
+    run = good_gap_job  # the session's good-gap job, direct binding (conftest.good_gap_job)
     assert run.outcome is not None and run.outcome["outcome"] == "welded", run.outcome
     msgs = run.summary["messages"]
     for level in (1, 2, 3, 4):

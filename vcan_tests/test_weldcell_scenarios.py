@@ -26,9 +26,12 @@ def off(outputs: dict[str, Any]) -> bool:
 
 
 @pytest.mark.parametrize("binding", BINDINGS)
-def test_good_gap_is_welded_start_to_end_in_band(binding: str, tmp_path: Path) -> None:
+def test_good_gap_is_welded_start_to_end_in_band(binding: str, tmp_path: Path,
+                                                 request: pytest.FixtureRequest) -> None:
     buses_or_skip(binding, always=True)
-    run = run_job(binding, "", tmp=tmp_path)
+    # the direct run is the session's shared good-gap job (conftest.good_gap_job)
+    run = (request.getfixturevalue("good_gap_job") if binding == "direct"
+           else run_job(binding, "", tmp=tmp_path))
     assert run.outcome is not None and run.outcome["outcome"] == "welded", run.outcome
     assert run.outcome["inspection"]["inspection"] == "OK"
     s = run.summary
