@@ -12,7 +12,9 @@ Bus options (``[[bus]] kind = "canopen"``):
   OPERATIONAL (default true), the identity 0x1018 it must have, the configuration downloaded at
   each boot and whether it is then stored in the node (0x1010; :mod:`drivers.canopen_config`).
 * ``sync_period`` (s, optional) - produce SYNC at this period (on SocketCAN from a producer
-  process of the driver's own: :mod:`drivers.canopen_sync`); ``poll_period`` (s, default 0.1) -
+  process of the driver's own: :mod:`drivers.canopen_sync`); ``sync_priority`` (0..99, default
+  80) - that process's SCHED_FIFO priority (0: SCHED_OTHER; without the right to set it, it
+  stays SCHED_OTHER and the bus reports it once); ``poll_period`` (s, default 0.1) -
   default SDO polling period; ``sdo_timeout`` (s, default 0.3) - SDO response timeout.
 * ``master_heartbeat_ms`` (optional) - produce the master's heartbeat (COB-ID 0x700 +
   ``master_node_id``, default 127, state OPERATIONAL) at this period, so that nodes with a
@@ -117,6 +119,7 @@ from drivers.canopen_od import (
 )
 from drivers.canopen_remote import BootOutcome, ManagedNode, RpdoImages
 from drivers.canopen_sync import (
+    DEFAULT_SYNC_PRIORITY,
     SYNC_COB_ID,
     ClockedSyncProducer,
     SyncCycle,
@@ -446,8 +449,9 @@ class CanopenDriver(WorkerJobDriver):
                     sync.expect(m.cob_id, int(m.trans_type))
         self._events.sync = sync
         if self._events.observe_sync:
-            producer = SyncProducerProcess(str(getattr(bus, "channel", "")), period, error,
-                                           f"canopen-{self.bus.name}-sync")
+            producer = SyncProducerProcess(
+                str(getattr(bus, "channel", "")), period, error, f"canopen-{self.bus.name}-sync",
+                int(self.bus.options.get("sync_priority", DEFAULT_SYNC_PRIORITY)))
             try:
                 producer.start()
             except OSError as exc:

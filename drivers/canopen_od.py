@@ -20,10 +20,12 @@ from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.helpers import is_int, is_number
 from drivers import canopen_config
 from drivers.base import not_finite
+from drivers.canopen_sync import MAX_SYNC_PRIORITY
 from drivers.codecs.canopen import eds_path
 
-BUS_OPTIONS = ("interface", "channel", "bitrate", "nodes", "sync_period", "poll_period",
-               "sdo_timeout", "poll", "master_heartbeat_ms", "master_node_id", "port")
+BUS_OPTIONS = ("interface", "channel", "bitrate", "nodes", "sync_period", "sync_priority",
+               "poll_period", "sdo_timeout", "poll", "master_heartbeat_ms",
+               "master_node_id", "port")
 NODE_KEYS = ("id", "eds", "heartbeat_timeout", "nmt_start", "identity", "config",
              "store_config")
 #: the node id of the master's heartbeat (0x700 + id) unless the bus's ``master_node_id`` says
@@ -85,6 +87,13 @@ def check_bus(bus: BusSpec) -> list[str]:
     for key in ("sync_period", "poll_period", "sdo_timeout"):
         if key in opts and not (is_number(opts[key]) and opts[key] > 0):
             errs.append(f"{k}.{key}: expected a number of seconds > 0, got {opts[key]!r}")
+    prio = opts.get("sync_priority")
+    if prio is not None and not (is_int(prio) and 0 <= prio <= MAX_SYNC_PRIORITY):
+        errs.append(f"{k}.sync_priority: expected the SYNC producer's SCHED_FIFO priority "
+                    f"1..{MAX_SYNC_PRIORITY}, or 0 for SCHED_OTHER, got {prio!r}")
+    elif prio is not None and "sync_period" not in opts:
+        errs.append(f"{k}.sync_priority: the bus has no sync_period, so no SYNC producer to "
+                    f"give it to; set sync_period or remove sync_priority")
     mh = opts.get("master_heartbeat_ms")
     if mh is not None and not (is_int(mh) and 1 <= mh <= 65535):
         errs.append(f"{k}.master_heartbeat_ms: expected 1..65535 ms, got {mh!r}")

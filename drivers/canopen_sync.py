@@ -18,7 +18,14 @@ file run as a program, :func:`produce`) with its own raw CAN socket sends SYNC o
 deadlines t0 + k * period (:class:`SyncSchedule`; ``clock_nanosleep`` with ``TIMER_ABSTIME``
 through ctypes, one clock read and one send per SYNC), as a C producer would; it needs nothing
 of the chcos process - not its GIL, which a thread may hold for up to
-``sys.getswitchinterval()`` - and inherits its CPUs, policy and nice value. The driver's
+``sys.getswitchinterval()`` - and inherits its CPUs and nice value. Its scheduling is the bus's
+``sync_priority`` (:data:`DEFAULT_SYNC_PRIORITY` unless set): the producer makes itself
+``SCHED_FIFO`` at that priority, above the controller's threads (its reader, at up to most of a
+CPU at 1 kHz, would otherwise compete with it at equal priority, each SYNC waiting for the
+scheduler's wake-up preemption), as a cycle producer in a control system runs; where the
+process may not (neither root nor ``CAP_SYS_NICE``, ``RLIMIT_RTPRIO`` too low) it stays
+``SCHED_OTHER`` and says so once, with the reason (a bus error of the driver);
+``sync_priority = 0`` leaves it ``SCHED_OTHER`` without asking. The driver's
 reader sees each SYNC come back with its kernel time stamp (:meth:`SyncCycle.seen`): cycles and
 jitter are counted from what went on the wire, late is an interval longer than 1.5 periods.
 The producer ends when the driver stops it and when the chcos process dies, SIGKILL included:
@@ -45,6 +52,7 @@ from __future__ import annotations
 import ctypes
 import errno
 import os
+import resource
 import signal
 import socket
 import struct
@@ -74,6 +82,12 @@ ERROR_EVERY = 1.0
 PARENT_CHECK = 50_000_000
 #: clock_nanosleep's flag for an absolute deadline
 TIMER_ABSTIME = 1
+#: the producer process's SCHED_FIFO priority unless the bus's ``sync_priority`` says otherwise
+#: (1..99; 0: SCHED_OTHER): high, above the controller's threads, below the kernel's own
+#: real-time threads (priority 99)
+DEFAULT_SYNC_PRIORITY = 80
+#: the highest SCHED_FIFO priority on Linux
+MAX_SYNC_PRIORITY = 99
 
 
 class SyncSchedule:
@@ -379,13 +393,18 @@ class SyncProducerProcess:
     """SYNC on SocketCAN from a dedicated child process (see the module doc): it sends SYNC on
     ``channel`` every ``period`` s on absolute deadlines through its own raw CAN socket, and
     stops when :meth:`stop` closes its stdin, or when this process dies (its stdin reaches end
-    of file; it also checks its parent's pid every :data:`PARENT_CHECK` ns). A failing send or
-    an unexpected exit is reported through ``on_error``."""
+    of file; it also checks its parent's pid every :data:`PARENT_CHECK` ns). It runs
+    ``SCHED_FIFO`` at ``priority`` (1..99; 0: ``SCHED_OTHER``) when the process may set that,
+    else ``SCHED_OTHER``. A failing send, a refused priority (once) or an unexpected exit is
+    reported through ``on_error``."""
 
     def __init__(self, channel: str, period: float, on_error: Callable[[str], None],
-                 name: str) -> None:
+                 name: str, priority: int = DEFAULT_SYNC_PRIORITY) -> None:
+        if not 0 <= priority <= MAX_SYNC_PRIORITY:
+            raise ValueError(f"sync_priority: expected 0..{MAX_SYNC_PRIORITY}, got {priority}")
         self.channel = channel
         self.period = period
+        self.priority = priority
         self._on_error = on_error
         self._name = name
         self._proc: subprocess.Popen[str] | None = None
@@ -402,7 +421,7 @@ class SyncProducerProcess:
         it cannot start (no such interface, no AF_CAN), with its own words."""
         proc = subprocess.Popen(
             [sys.executable, "-I", os.path.abspath(__file__), self.channel, repr(self.period),
-             str(os.getpid())],
+             str(os.getpid()), str(self.priority)],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         assert proc.stdout is not None
         first = proc.stdout.readline().strip()
@@ -482,10 +501,29 @@ def _watch_stdin(stream: IO[bytes]) -> None:
     os._exit(0)
 
 
-def produce(channel: str, period: float, parent: int) -> int:
-    """The producer process's body (``python drivers/canopen_sync.py CHANNEL PERIOD PARENT``):
-    SYNC on ``channel`` on :class:`SyncSchedule`, until stdin ends or ``parent`` is no longer
-    its parent. Prints :data:`READY` once bound, then one line per report (failing sends, a
+def real_time(priority: int) -> str | None:
+    """Make the calling process ``SCHED_FIFO`` at ``priority`` (0: leave it as it is). None when
+    done (or not asked for), else why it stays ``SCHED_OTHER`` (the kernel's refusal, and what
+    would allow it)."""
+    if priority <= 0:
+        return None
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (OSError, AttributeError) as exc:
+        limit = str(resource.getrlimit(resource.RLIMIT_RTPRIO)[0])
+        return (f"SYNC runs without real-time priority (SCHED_OTHER, competing with the "
+                f"controller's threads): SCHED_FIFO priority {priority} refused ({exc}); it "
+                f"needs root, CAP_SYS_NICE or RLIMIT_RTPRIO >= {priority} (it is {limit}); "
+                f"sync_priority = 0 does not ask")
+    return None
+
+
+def produce(channel: str, period: float, parent: int,
+            priority: int = DEFAULT_SYNC_PRIORITY) -> int:
+    """The producer process's body (``python drivers/canopen_sync.py CHANNEL PERIOD PARENT
+    PRIORITY``): SYNC on ``channel`` on :class:`SyncSchedule`, until stdin ends or ``parent`` is
+    no longer its parent, ``SCHED_FIFO`` at ``priority`` if it may (:func:`real_time`). Prints
+    :data:`READY` once bound, then one line per report (a refused priority, failing sends, a
     stall that restarted the schedule); when the socket cannot be opened or bound, says why
     instead and returns 1."""
     # Ctrl-C at a terminal reaches the whole process group: SYNC goes on until the driver,
@@ -500,10 +538,13 @@ def produce(channel: str, period: float, parent: int) -> int:
         return 1
     frame = struct.pack("=IB3x8s", SYNC_COB_ID, 0, b"")
     sleep_until = _absolute_sleep()
+    refused = real_time(priority)               # before the watcher thread: it inherits it
     last = time.monotonic_ns()
     schedule = SyncSchedule(last, round(period * 1e9))
     threading.Thread(target=_watch_stdin, args=(sys.stdin.buffer,), daemon=True).start()
     print(READY, flush=True)
+    if refused is not None:
+        print(refused, flush=True)
     failed = 0
     reported = 0
     resynced = 0
@@ -534,4 +575,5 @@ def produce(channel: str, period: float, parent: int) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(produce(sys.argv[1], float(sys.argv[2]), int(sys.argv[3])))
+    sys.exit(produce(sys.argv[1], float(sys.argv[2]), int(sys.argv[3]),
+                     int(sys.argv[4]) if len(sys.argv) > 4 else DEFAULT_SYNC_PRIORITY))

@@ -3,10 +3,13 @@ real SocketCAN (inside the User-Mode-Linux guest on machines without CAN:
 ``tools/uml/run-in-uml -- .venv/bin/python -m tools.bench_canopen_sync``).
 
 Run: ``python -m tools.bench_canopen_sync [--channel vcan0] [--seconds 60] [--rates 1000 250]
-[--cpu N] [--json FILE]``. For each SYNC rate, two figures measured in the same run, the process
-pinned to one CPU (``--cpu``, default the last); every process it starts inherits that and
-nothing else (the C reference and chcos's SYNC producer process alike: SCHED_OTHER, nice 0,
-printed beside each figure as the kernel has it):
+[--cpu N] [--sync-priority P] [--json FILE]``. For each SYNC rate, two figures measured in the
+same run, the process pinned to one CPU (``--cpu``, default the last); every process it starts
+inherits that, and both producers get the same scheduling: ``SCHED_FIFO`` at ``--sync-priority``
+(default chcos's own default, the bus's ``sync_priority``; 0: ``SCHED_OTHER``) - chcos's
+producer through the bus option, the C reference set so before it runs; where the bench may
+not set it, both stay ``SCHED_OTHER``. Each producer's policy is printed beside its figure as
+the kernel has it:
 
 * the reference: a C program (``clock_nanosleep`` on absolute deadlines + a raw CAN socket)
   sending SYNC for ``--seconds``, its SYNC period jitter (|interval - period|) p50/p99/max, late
@@ -66,6 +69,8 @@ import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
+
+from drivers.canopen_sync import DEFAULT_SYNC_PRIORITY, MAX_SYNC_PRIORITY, real_time
 
 NODE = 5
 PRODUCER = "SYNC producer process"
@@ -506,12 +511,20 @@ def cpu_of(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def reference(exe: Path, channel: str, rate: int, seconds: float, work: Path) -> Figure:
+def fifo_name(priority: int) -> str:
+    """The scheduling ``--sync-priority`` asks for, as :func:`sched_of` names it."""
+    return f"SCHED_FIFO prio {priority}" if priority else "SCHED_OTHER"
+
+
+def reference(exe: Path, channel: str, rate: int, seconds: float, work: Path,
+              priority: int) -> Figure:
     with Observer(exe, channel, rate, work / f"stamps-c-{rate}.txt") as obs:
         obs.go()
         obs.producer_starts()
         proc = subprocess.Popen([str(exe), "sync", channel, str(1_000_000 // rate),
-                                 str(seconds)], stdout=subprocess.PIPE, text=True)
+                                 str(seconds)], stdout=subprocess.PIPE, text=True,
+                                # as chcos's producer does: SCHED_FIFO where it may, else as is
+                                preexec_fn=lambda: real_time(priority))
         sched = sched_of(proc.pid)
         stdout, _ = proc.communicate()
         if proc.returncode:
@@ -527,7 +540,8 @@ def reference(exe: Path, channel: str, rate: int, seconds: float, work: Path) ->
                   gaps, drops, tpdos, missing, w50 * 1e6, w99 * 1e6, wmax * 1e6, sched)
 
 
-def chcos(exe: Path, channel: str, rate: int, seconds: float, eds: Path, work: Path) -> Figure:
+def chcos(exe: Path, channel: str, rate: int, seconds: float, eds: Path, work: Path,
+          priority: int) -> Figure:
     from chcos.devices.spec import BusSpec
     from drivers.canopen_node import CanopenDriver
 
@@ -552,7 +566,8 @@ def chcos(exe: Path, channel: str, rate: int, seconds: float, eds: Path, work: P
 
     bus = BusSpec(name="co", kind="canopen", key="bus[0]", options={
         "interface": "socketcan", "channel": channel, "sync_period": 1.0 / rate,
-        "sdo_timeout": 0.05, "nodes": [{"id": NODE, "eds": str(eds), "nmt_start": False}]})
+        "sync_priority": priority, "sdo_timeout": 0.05,
+        "nodes": [{"id": NODE, "eds": str(eds), "nmt_start": False}]})
     driver = CanopenDriver(bus, [], Host())
     # bound before the driver starts its SYNC producer: it sees the producer's first SYNC
     with Observer(exe, channel, rate, work / f"stamps-chcos-{rate}.txt") as obs:
@@ -600,6 +615,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--rates", type=int, nargs="+", default=[1000, 250])
     parser.add_argument("--cpu", type=int, default=(os.cpu_count() or 1) - 1)
+    parser.add_argument("--sync-priority", type=int, default=DEFAULT_SYNC_PRIORITY,
+                        choices=range(MAX_SYNC_PRIORITY + 1), metavar="0..99",
+                        help="SCHED_FIFO priority of both SYNC producers (0: SCHED_OTHER)")
     parser.add_argument("--json", help="also write the figures to this file")
     args = parser.parse_args(argv)
     if not have_socketcan(args.channel) or shutil.which("gcc") is None:
@@ -618,8 +636,10 @@ def main(argv: list[str] | None = None) -> int:
         responder = subprocess.Popen([str(exe), "respond", args.channel, str(NODE)])
         try:
             for rate in args.rates:
-                ref = reference(exe, args.channel, rate, args.seconds, work)
-                ours = chcos(exe, args.channel, rate, args.seconds, eds, work)
+                ref = reference(exe, args.channel, rate, args.seconds, work,
+                                args.sync_priority)
+                ours = chcos(exe, args.channel, rate, args.seconds, eds, work,
+                             args.sync_priority)
                 figures += [ref, ours]
                 ratio = ours.p99_us / ref.p99_us if ref.p99_us else float("inf")
                 wire_ratio = (ours.wire_p99_us / ref.wire_p99_us if ref.wire_p99_us
@@ -628,7 +648,8 @@ def main(argv: list[str] | None = None) -> int:
                 met = ratio <= 2.0 and wire_ratio <= 2.0 and (rate != 250 or lost <= 0)
                 ok &= met
                 print(f"\nSYNC at {rate} Hz for {args.seconds:g} s on {args.channel}, pinned "
-                      f"to CPU {args.cpu}")
+                      f"to CPU {args.cpu}, both producers asked for "
+                      f"{fifo_name(args.sync_priority)}")
                 print(f"  {'figure':42} {'cycles':>7} {'late':>5} {'missing':>7} "
                       f"{'p50 µs':>8} {'p99 µs':>8} {'max µs':>8} {'CPU %':>6} "
                       f"{'expected':>8} {'on wire':>7} {'missed':>6} {'gaps':>5} {'drops':>5} "

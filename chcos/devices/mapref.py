@@ -180,6 +180,9 @@ REFERENCE: dict[str, Kind] = {
          Key("nodes", "array of tables", "required", "`{id, eds, heartbeat_timeout, "
              "nmt_start, identity, config, store_config}` per node"),
          Key("sync_period", "float s", "none", "produce SYNC at this period"),
+         Key("sync_priority", "integer 0..99", "80", "SCHED_FIFO priority of the SYNC producer "
+             "process (SocketCAN), above the controller's threads; without root or "
+             "CAP_SYS_NICE it stays SCHED_OTHER and the bus reports it once; 0: SCHED_OTHER"),
          Key("poll_period", "float s", "0.1", "default SDO polling period"),
          Key("sdo_timeout", "float s", "0.3", "SDO response timeout"),
          Key("poll", "float s", "0.005", "receive timeout on interfaces without a file "
