@@ -63,6 +63,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import IO
 
 SYNC_COB_ID = 0x080
@@ -230,12 +231,7 @@ class SyncCycle:
         with self._cond:
             if not self._running:
                 return
-        try:
-            self._send()
-        except Exception as exc:  # a bus error: reported, the cycle goes on
-            self._on_error(f"SYNC not sent: {exc}")
-            return
-        self._sent(at)
+        self._send_counted(at)
 
     def seen(self, at: float) -> None:
         """A SYNC went on the wire at ``at`` (its receive time stamp, seconds): the cycle turns
@@ -270,12 +266,17 @@ class SyncCycle:
                     self._late += 1
                 if now - deadline > self.period:     # far behind: resynchronise, skip cycles
                     start = now - n * self.period
-            try:
-                self._send()
-            except Exception as exc:  # a bus error: reported, the cycle goes on
-                self._on_error(f"SYNC not sent: {exc}")
-                continue
-            self._sent(time.monotonic())
+            self._send_counted(None)
+
+    def _send_counted(self, at: float | None) -> None:
+        """Send one SYNC and turn the cycle, counted at ``at`` (None: the time it was sent);
+        a failing send is reported through ``on_error`` and the cycle does not turn."""
+        try:
+            self._send()
+        except Exception as exc:  # a bus error: reported, the cycle goes on
+            self._on_error(f"SYNC not sent: {exc}")
+            return
+        self._sent(time.monotonic() if at is None else at)
 
     def _sent(self, at: float) -> None:
         """SYNC number ``cycle + 1`` is on the wire: close the previous cycle's books."""
@@ -466,6 +467,26 @@ class SyncProducerProcess:
         t, self._thread = self._thread, None
         if t is not None and t is not threading.current_thread():
             t.join(timeout=2.0)
+
+
+def producer_processes(parent: int) -> list[int]:
+    """The pids of the SYNC producer processes among process ``parent``'s children (what
+    ``ps`` shows as ``... drivers/canopen_sync.py``): for tests and benchmarks that look at the
+    producer from outside. Linux only (``/proc``)."""
+    found = []
+    for task in Path(f"/proc/{parent}/task").iterdir():
+        try:                                     # a thread or child may end meanwhile
+            children = (task / "children").read_text().split()
+        except FileNotFoundError:
+            continue
+        for child in children:
+            try:
+                cmd = Path(f"/proc/{child}/cmdline").read_bytes().split(b"\0")
+            except FileNotFoundError:
+                continue
+            if any(arg.endswith(b"canopen_sync.py") for arg in cmd):
+                found.append(int(child))
+    return found
 
 
 def _absolute_sleep() -> Callable[[int], None]:

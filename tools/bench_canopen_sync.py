@@ -70,7 +70,12 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from drivers.canopen_sync import DEFAULT_SYNC_PRIORITY, MAX_SYNC_PRIORITY, real_time
+from drivers.canopen_sync import (
+    DEFAULT_SYNC_PRIORITY,
+    MAX_SYNC_PRIORITY,
+    producer_processes,
+    real_time,
+)
 
 NODE = 5
 PRODUCER = "SYNC producer process"
@@ -490,19 +495,10 @@ def sched_of(pid: int) -> str:
 def producer_pid() -> int:
     """The chcos driver's SYNC producer process: this process's child running
     drivers/canopen_sync.py."""
-    for task in Path("/proc/self/task").iterdir():
-        try:                                     # a thread or child may end meanwhile
-            children = (task / "children").read_text().split()
-        except FileNotFoundError:
-            continue
-        for pid in children:
-            try:
-                cmd = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
-            except FileNotFoundError:
-                continue
-            if any(arg.endswith(b"canopen_sync.py") for arg in cmd):
-                return int(pid)
-    raise RuntimeError("the chcos SYNC producer process was not found")
+    pids = producer_processes(os.getpid())
+    if not pids:
+        raise RuntimeError("the chcos SYNC producer process was not found")
+    return pids[0]
 
 
 def cpu_of(pid: int) -> float:

@@ -22,6 +22,7 @@ import pytest
 
 from chcos.apps.sim.canopen_slave import SERVO_EDS
 from drivers.canopen_node import CanopenDriver
+from drivers.canopen_sync import producer_processes
 from vcan_tests.support_faults import wait_until
 from vcan_tests.support_fb import WAIT, FakeHost
 
@@ -65,24 +66,6 @@ for e in host.errors:
 """
 
 
-def producers_of(pid: int) -> list[int]:
-    """The SYNC producer processes among ``pid``'s children (what ``ps`` would show)."""
-    found = []
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        try:                                     # a thread or child may end meanwhile
-            children = (task / "children").read_text().split()
-        except FileNotFoundError:
-            continue
-        for child in children:
-            try:
-                cmd = Path(f"/proc/{child}/cmdline").read_bytes().split(b"\0")
-            except FileNotFoundError:
-                continue
-            if any(arg.endswith(b"canopen_sync.py") for arg in cmd):
-                found.append(int(child))
-    return found
-
-
 def gone(pid: int) -> bool:
     """The process has exited (no longer there, or a zombie nobody reaped yet)."""
     try:
@@ -122,7 +105,7 @@ def test_sync_stops_when_the_controller_is_killed(tmp_path: Path) -> None:
             msg = seen.recv(WAIT)
             assert msg is not None, "no SYNC on the wire"
             assert msg.data == b""
-        producers = producers_of(proc.pid)
+        producers = producer_processes(proc.pid)
         assert len(producers) == 1, f"SYNC producer processes of the controller: {producers}"
         proc.kill()
         proc.wait(WAIT)
@@ -153,7 +136,7 @@ def test_a_producer_that_dies_is_reported_and_sync_stops(tmp_path: Path) -> None
     try:
         for _ in range(10):
             assert seen.recv(WAIT) is not None, "no SYNC on the wire"
-        producers = producers_of(os.getpid())
+        producers = producer_processes(os.getpid())
         assert len(producers) == 1, f"SYNC producer processes: {producers}"
         os.kill(producers[0], signal.SIGKILL)
         assert host.wait_for(lambda h: any("SYNC producer process exited" in e[2]
@@ -162,7 +145,7 @@ def test_a_producer_that_dies_is_reported_and_sync_stops(tmp_path: Path) -> None
     finally:
         driver.stop()
         seen.shutdown()
-    assert producers_of(os.getpid()) == []
+    assert producer_processes(os.getpid()) == []
 
 
 def real_time_allowed(priority: int) -> bool:
@@ -200,7 +183,7 @@ def test_the_producer_runs_sched_fifo_at_sync_priority_when_allowed(priority: in
     try:
         for _ in range(10):
             assert seen.recv(WAIT) is not None, "no SYNC on the wire"
-        producers = producers_of(os.getpid())
+        producers = producer_processes(os.getpid())
         assert len(producers) == 1, f"SYNC producer processes: {producers}"
         policy = os.sched_getscheduler(producers[0])
         prio = os.sched_getparam(producers[0]).sched_priority
@@ -244,7 +227,7 @@ def test_a_controller_without_cap_sys_nice_reports_sync_without_real_time_once(
     try:
         assert proc.stdout is not None and proc.stdin is not None
         assert proc.stdout.readline().strip() == "started"
-        producers = producers_of(proc.pid)
+        producers = producer_processes(proc.pid)
         assert len(producers) == 1, f"SYNC producer processes of the controller: {producers}"
         assert os.sched_getscheduler(producers[0]) == os.SCHED_OTHER
         proc.stdin.close()
