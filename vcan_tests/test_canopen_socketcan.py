@@ -5,19 +5,15 @@ watching it with 0x1016 then reacts (docs/canopen.md)."""
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-import textwrap
 from pathlib import Path
 
 import can
 import pytest
 
 from chcos.apps.sim.canopen_slave import SERVO_EDS
+from vcan_tests.support_controller import assert_quiet, controller
 from vcan_tests.support_fb import WAIT
 
-ROOT = Path(__file__).resolve().parent.parent
 MASTER = 100
 
 CONTROLLER = """
@@ -41,36 +37,24 @@ def test_master_heartbeat_stops_when_the_controller_is_killed(tmp_path: Path) ->
     from vcan_tests import uml
 
     channel = uml.can_channel("socketcan")
-    script = tmp_path / "controller.py"
-    script.write_text(textwrap.dedent(CONTROLLER.format(channel=channel, master=MASTER,
-                                                        eds=SERVO_EDS)), encoding="utf-8")
     seen = can.Bus(interface="socketcan", channel=channel,
                    can_filters=[{"can_id": 0x700 + MASTER, "can_mask": 0x7FF}])
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, env=env,
-                            text=True)
     try:
-        assert proc.stdout is not None and proc.stdout.readline().strip() == "started"
-        beats = 0
-        while beats < 5:
-            msg = seen.recv(WAIT)
-            assert msg is not None, "no master heartbeat on the wire"
-            assert msg.data == b"\x05"
-            beats += 1
-        proc.kill()
-        proc.wait(WAIT)
-        while seen.recv(0) is not None:      # what was on the wire before the kill
-            pass
-        assert seen.recv(0.3) is None, "the heartbeat outlived the controller"
-    finally:
-        if proc.poll() is None:
+        with controller(CONTROLLER.format(channel=channel, master=MASTER, eds=SERVO_EDS),
+                        tmp_path) as proc:
+            for _ in range(5):
+                msg = seen.recv(WAIT)
+                assert msg is not None, "no master heartbeat on the wire"
+                assert msg.data == b"\x05"
             proc.kill()
             proc.wait(WAIT)
+            assert_quiet(seen, "the heartbeat outlived the controller")
+    finally:
         seen.shutdown()
 
 
 @pytest.mark.socketcan
-def test_the_kernel_produces_sync_and_the_driver_counts_what_went_out(tmp_path: Path) -> None:
+def test_the_producer_sends_sync_and_the_driver_counts_what_went_out(tmp_path: Path) -> None:
     """On SocketCAN the SYNC producer is a process of the driver's own; the driver counts the
     cycles and the jitter from the SYNCs its reader sees on the wire (kernel time stamps)."""
     from chcos.devices.spec import BusSpec
@@ -100,7 +84,7 @@ def test_the_kernel_produces_sync_and_the_driver_counts_what_went_out(tmp_path: 
 
 
 @pytest.mark.socketcan
-def test_the_paced_sync_job_stops_with_the_driver(tmp_path: Path) -> None:
+def test_the_sync_producer_stops_with_the_driver(tmp_path: Path) -> None:
     """The SYNC producer process (drivers.canopen_sync.SyncProducerProcess) catches up after
     late SYNCs; once the driver stopped, no SYNC is on the wire, on a fast period where late
     SYNCs are common in the guest."""

@@ -23,10 +23,9 @@ import pytest
 from chcos.apps.sim.canopen_slave import SERVO_EDS
 from drivers.canopen_node import CanopenDriver
 from drivers.canopen_sync import producer_processes
+from vcan_tests.support_controller import ROOT, assert_quiet, controller
 from vcan_tests.support_faults import wait_until
 from vcan_tests.support_fb import WAIT, FakeHost
-
-ROOT = Path(__file__).resolve().parent.parent
 
 CONTROLLER = """
 import threading
@@ -80,41 +79,25 @@ def sync_listener(channel: str) -> can.BusABC:
                    can_filters=[{"can_id": 0x080, "can_mask": 0x7FF}])
 
 
-def assert_quiet(seen: can.BusABC, what: str) -> None:
-    """No SYNC on the wire any more: what was queued before is drained, then none comes."""
-    while seen.recv(0) is not None:
-        pass
-    assert seen.recv(0.3) is None, what
-
-
 @pytest.mark.socketcan
 def test_sync_stops_when_the_controller_is_killed(tmp_path: Path) -> None:
     from vcan_tests import uml
 
     channel = uml.can_channel("socketcan")
-    script = tmp_path / "controller.py"
-    script.write_text(textwrap.dedent(CONTROLLER.format(channel=channel, eds=SERVO_EDS)),
-                      encoding="utf-8")
     seen = sync_listener(channel)
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, env=env,
-                            text=True)
     try:
-        assert proc.stdout is not None and proc.stdout.readline().strip() == "started"
-        for _ in range(10):
-            msg = seen.recv(WAIT)
-            assert msg is not None, "no SYNC on the wire"
-            assert msg.data == b""
-        producers = producer_processes(proc.pid)
-        assert len(producers) == 1, f"SYNC producer processes of the controller: {producers}"
-        proc.kill()
-        proc.wait(WAIT)
-        assert wait_until(lambda: gone(producers[0])), "the producer outlived the controller"
-        assert_quiet(seen, "SYNC outlived the controller")
-    finally:
-        if proc.poll() is None:
+        with controller(CONTROLLER.format(channel=channel, eds=SERVO_EDS), tmp_path) as proc:
+            for _ in range(10):
+                msg = seen.recv(WAIT)
+                assert msg is not None, "no SYNC on the wire"
+                assert msg.data == b""
+            producers = producer_processes(proc.pid)
+            assert len(producers) == 1, f"SYNC producer processes of the controller: {producers}"
             proc.kill()
             proc.wait(WAIT)
+            assert wait_until(lambda: gone(producers[0])), "the producer outlived the controller"
+            assert_quiet(seen, "SYNC outlived the controller")
+    finally:
         seen.shutdown()
 
 
