@@ -198,6 +198,70 @@ def effective_cob_id(p: PdoConfig, od: Any, node_id: int) -> int:
     return base + 0x100 * (p.number - 1) + node_id
 
 
+@dataclass(frozen=True)
+class PdoView:
+    """One PDO as the node will have it after its boot: its EDS's parameters with what the
+    configuration downloads over them (``chcos check``'s timing warnings, the axes' check).
+    ``transmission_type`` and ``event_timer_ms`` are None where neither gives them."""
+
+    kind: Literal["rpdo", "tpdo"]
+    number: int
+    enabled: bool
+    transmission_type: int | None
+    event_timer_ms: int | None
+    objects: tuple[tuple[int, int], ...]
+
+    @property
+    def name(self) -> str:
+        return f"{self.kind.upper()}{self.number}"
+
+    @property
+    def synchronous(self) -> bool:
+        """Transmission type 0..240: acted upon (RPDO) or sent (TPDO) at a SYNC."""
+        return self.transmission_type is not None and 0 <= self.transmission_type <= 240
+
+
+def _od_int(od: Any, index: int, sub: int) -> int | None:
+    """An EDS object's value (else its default) if it is an integer, else None."""
+    var = od.get_variable(index, sub)
+    raw = None if var is None else (var.value if var.value is not None else var.default)
+    return raw if isinstance(raw, int) else None
+
+
+def effective_pdos(od: Any, cfg: NodeConfig) -> list[PdoView]:
+    """Every PDO of the node's EDS (``od``) and of ``cfg``, as the node has it once
+    configured: the configuration's keys over the EDS's defaults (COB-ID bit 31 for enabled,
+    transmission type, event timer, mapping)."""
+    out: list[PdoView] = []
+    given = {(p.kind, p.number): p for p in cfg.pdos}
+    kinds: tuple[tuple[Literal["rpdo", "tpdo"], int, int], ...] = (
+        ("rpdo", 0x1400, 0x1600), ("tpdo", 0x1800, 0x1A00))
+    for kind, com_base, map_base in kinds:
+        numbers = {n - com_base + 1 for n in range(com_base, com_base + 512) if n in od}
+        numbers |= {num for (k, num) in given if k == kind}
+        for number in sorted(numbers):
+            com, mp = com_base + number - 1, map_base + number - 1
+            cob = _od_int(od, com, 1)
+            enabled = cob is not None and not cob & COB_DISABLED
+            tt = _od_int(od, com, 2)
+            timer = _od_int(od, com, 5) if kind == "tpdo" else None
+            count = _od_int(od, mp, 0) or 0
+            objects = []
+            for i in range(1, count + 1):
+                entry = _od_int(od, mp, i)
+                if entry:
+                    objects.append((entry >> 16, (entry >> 8) & 0xFF))
+            p = given.get((kind, number))
+            if p is not None:
+                enabled = p.enabled
+                tt = p.transmission_type if p.transmission_type is not None else tt
+                timer = p.event_timer_ms if p.event_timer_ms is not None else timer
+                if p.mapping is not None:
+                    objects = [(index, sub) for index, sub, _bits in p.mapping]
+            out.append(PdoView(kind, number, enabled, tt, timer, tuple(objects)))
+    return out
+
+
 def object_bits(var: Any) -> int | None:
     """The size in bits of an EDS object's data type, None for strings and domains."""
     dt = var.data_type

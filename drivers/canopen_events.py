@@ -24,7 +24,8 @@ from typing import Any
 import can
 
 from drivers.base import DriverHost, deliver_all, host_clock_virtual, host_peers_on_clock
-from drivers.canopen_jobs import BootNode, CanopenJob, ReportHeld
+from drivers.canbus import Tally
+from drivers.canopen_jobs import AxisRefresh, BootNode, CanopenJob, ReportHeld, RestartNode
 from drivers.canopen_lifecycle import NmtState, NodeLifecycle, NodeStatus
 from drivers.canopen_od import DEFAULT_MASTER_ID
 from drivers.canopen_remote import ManagedNode
@@ -45,6 +46,11 @@ RETRY_SILENT = 2.0
 HEARTBEAT_SETTLE = 0.1
 """Bound (s) on handing over received frames before a heartbeat loss is declared (polling
 interfaces; on SocketCAN the drain is immediate)."""
+
+REPORT_PERIOD = 10.0
+"""Seconds between two reports of the same recurring frame problem (a node not in the map
+heartbeating): the first at once, then one line per period with the count
+(:class:`drivers.canbus.Tally`)."""
 
 
 class NodeEvents:
@@ -89,6 +95,11 @@ class NodeEvents:
         #: ``node_up(node)`` once it is ready again (the driver calls its axes' ``lost`` once)
         self.node_down: Callable[[ManagedNode, str], None] | None = None
         self.node_up: Callable[[ManagedNode], None] | None = None
+        #: heartbeats of nodes not in the map, reported once per :data:`REPORT_PERIOD` per
+        #: node with their count (a node heartbeats 10 times a second, forever)
+        self.unknown = Tally(self._report_unknown, REPORT_PERIOD, examples=1)
+        #: False once the driver stops: no restart is armed any more
+        self.running = True
 
     # -- what the driver shows ------------------------------------------------------------------
 
@@ -97,8 +108,13 @@ class NodeEvents:
         out = {}
         for nid, node in self.nodes.items():
             with node.lock:
-                out[nid] = node.lifecycle.status()
+                out[nid] = node.lifecycle.status(self.lost_reason(node))
         return out
+
+    @staticmethod
+    def lost_reason(node: ManagedNode) -> str:
+        """Why a node whose heartbeat is lost is not ready."""
+        return f"no heartbeat for more than heartbeat_timeout {node.heartbeat_timeout} s"
 
     def sync_stats(self) -> SyncStats | None:
         """The SYNC cycle's counters and jitter (None without ``sync_period``)."""
@@ -136,9 +152,54 @@ class NodeEvents:
             if node.axes and self.node_down is not None:
                 self.node_down(node, reason)
 
-    def fail_node(self, node: ManagedNode, cause: str, reason: str) -> None:
+    def restate(self, node: ManagedNode) -> None:
+        """The reason of a node that is not ready changed while it stays so (its recovery
+        moved on: a restart sent, its next one planned): its devices show the new one."""
+        with node.lock:
+            if node.lifecycle.ready() or node.starting:
+                return
+            reason = f"{self.where(node)}: {node.lifecycle.state.value}: {node.lifecycle.reason}"
         for dev in node.devices:
-            self.health.fail(dev, cause, reason)
+            self.health.restate(dev, "lifecycle", reason)
+
+    # -- the recovery policy -----------------------------------------------------------------
+
+    def arm_restart(self, node: ManagedNode, at_once: bool = False) -> None:
+        """Queue the node's next restart (a :class:`RestartNode` job) at the time its policy
+        says (its backoff, from when it left or its last restart was not taken; ``at_once``:
+        its cause cleared, so as soon as the backoff allows). Nothing when the policy is used
+        up or the driver stops. On the host's clock (``host.at``)."""
+        now = self.host.now()
+        with node.lock:
+            lc = node.lifecycle
+            nxt = lc.next_restart()
+            if nxt is None or lc.state is not NodeLifecycle.LEFT_OPERATIONAL \
+                    or not self.running:
+                return
+            if at_once:                     # no sooner than its backoff allows
+                when = max(now, node.retry_at_host or now)
+            else:
+                when = node.retry_at_host = now + nxt[1]
+            episode, nid = lc.episode, node.id
+        def due() -> None:
+            self.submit(RestartNode(nid, episode))
+        self.host.at(round(when, 9), due)
+
+    def left(self, node: ManagedNode) -> None:
+        """The node left OPERATIONAL by itself (its heartbeat said so): reported once, its
+        devices failed with the reason, its axes told (their drive is read at once), and its
+        first restart armed."""
+        with node.lock:
+            reason = node.lifecycle.reason
+        self.host.error(self.bus, "left-operational", f"{self.where(node)}: {reason}")
+        self.arm_restart(node)
+
+    def fail_node(self, node: ManagedNode, cause: str, reason: str,
+                  keep: tuple[str, ...] = ()) -> None:
+        """Fail ``node``'s devices (but those in ``keep``) for ``cause``."""
+        for dev in node.devices:
+            if dev not in keep:
+                self.health.fail(dev, cause, reason)
         if cause != "emcy" and node.axes and self.node_down is not None:
             self.node_down(node, reason)
 
@@ -276,6 +337,8 @@ class NodeEvents:
         with node.lock:
             node.last_heartbeat = self.clock()
             was_lost, node.lost = node.lost, False
+            node.lifecycle.lost = False
+            seen_before, node.last_nmt = node.last_nmt, nmt
         if was_lost:
             self.clear_node(node, "heartbeat", f"canopen node {node.id}: heartbeat back")
             if node.axes and self.node_up is not None:
@@ -286,18 +349,29 @@ class NodeEvents:
             self.host.error(self.bus, "malformed", f"{self.where(node)}: heartbeat with "
                                                         f"unknown NMT state {code:#x}")
             return
+        if seen_before is not None and nmt is not seen_before and node.axes:
+            self.refresh_axes(node)         # a drive that changed state may have faulted
         if self.retry_silent(node):
             return
         with node.lock:
-            before = node.lifecycle.state
-            node.lifecycle.heartbeat(nmt)
+            before, episode = node.lifecycle.state, node.lifecycle.episode
+            node.lifecycle.heartbeat(nmt, self.host.now())
             after, generation = node.lifecycle.state, node.lifecycle.generation
-            if after is NodeLifecycle.PREOP_HELD:
+            moved = node.lifecycle.episode != episode
+            if after in (NodeLifecycle.PREOP_HELD, NodeLifecycle.LEFT_OPERATIONAL):
                 node.starting = False
-        if after is NodeLifecycle.PREOP_HELD and before is not NodeLifecycle.PREOP_HELD:
-            self.submit(ReportHeld(node.id, generation))
         if after is not before or not node.lifecycle.ready():
             self.judge(node, f"heartbeat confirms {nmt.name}")
+        recovering = (NodeLifecycle.PREOP_HELD, NodeLifecycle.LEFT_OPERATIONAL)
+        if moved and before is NodeLifecycle.OPERATIONAL and after in recovering:
+            self.left(node)                 # it ran, and left by itself
+        elif moved and after is NodeLifecycle.LEFT_OPERATIONAL:
+            self.restate(node)              # a restart not taken: the next one
+            self.arm_restart(node)
+        elif was_lost and after is NodeLifecycle.LEFT_OPERATIONAL:
+            self.arm_restart(node, at_once=True)    # the heartbeat is back: its cause cleared
+        if after is NodeLifecycle.PREOP_HELD and (before is not after or moved):
+            self.submit(ReportHeld(node.id, generation))
 
     def retry_silent(self, node: ManagedNode) -> bool:
         """A heartbeat of a node whose boot procedure found it silent (it was busy, or came up
@@ -319,11 +393,18 @@ class NodeEvents:
         """A boot-up message: the node's devices fail, its boot procedure runs again (the safe
         values follow its recovery, through the host)."""
         with node.lock:
+            expected = node.lifecycle.host_reset
             generation = node.lifecycle.booted()
             node.starting = False
             node.booting = True
-        reason = f"{self.where(node)}: rebooted (boot-up message): configuring it again"
-        self.host.error(self.bus, "boot-up", reason)
+            node.retry_at_host = None
+        if expected:        # the host's nmt reset: a reboot asked for, not a fault
+            reason = (f"{self.where(node)}: rebooted by the host's nmt reset (boot-up "
+                      f"message): configuring it again")
+            self.host.stat(self.bus, "host-resets")
+        else:
+            reason = f"{self.where(node)}: rebooted (boot-up message): configuring it again"
+            self.host.error(self.bus, "boot-up", reason)
         self.fail_node(node, "lifecycle", reason)
         self.submit(BootNode(node.id, generation))
 
@@ -332,16 +413,45 @@ class NodeEvents:
         with node.lock:
             node.lifecycle.emcy(f"{entry} register 0x{entry.register:02X}")
         self.host.error(self.bus, "emcy", text)
+        if node.axes:
+            # a drive's fault is its axes' failure, judged from the statusword (failing the
+            # node would refuse the fault reset and the statusword: the deadlock of issue 37);
+            # a drive without the statusword in a TPDO tells it only this way: read it now
+            self.refresh_axes(node)
         if is_error_reset(entry.code):
             self.clear_node(node, "emcy", f"canopen node {node.id}: error-reset EMCY")
+            with node.lock:
+                retry = node.lifecycle.cause_cleared()
+            if retry:
+                self.restate(node)
+                self.arm_restart(node, at_once=True)
         elif is_fatal_emcy(entry.code) and not node.axes:
-            # a drive's fault is its axes' failure, judged from the statusword (failing the
-            # node would refuse the fault reset and the statusword: the deadlock of issue 37)
-            self.fail_node(node, "emcy", text)
+            # the drive's controlword stays writable: its fault reset is how it recovers
+            self.fail_node(node, "emcy", text, keep=node.controlwords)
+
+    def refresh_axes(self, node: ManagedNode) -> None:
+        """Have every axis of ``node`` read its drive's objects by SDO now (statusword 0x6041,
+        error code 0x603F...): an EMCY or a change of NMT state may be a fault that no TPDO
+        brings."""
+        for name in node.axes:
+            self.submit(AxisRefresh(name))
 
     def report_frame(self, kind: str, detail: str) -> None:
         """A frame-level problem seen by the bus listener (see :class:`FrameCheck`)."""
         self.host.error(self.bus, kind, detail)
+
+    def unknown_heartbeat(self, node_id: int, cob: int) -> None:
+        """A heartbeat of node ``node_id``, which is not in the map: counted (``unknown-node``
+        in the bus statistics, each frame), reported at once the first time and then once per
+        :data:`REPORT_PERIOD` with the count."""
+        self.host.stat(self.bus, "unknown-node-frames")
+        self.unknown.add(f"{node_id}", f"0x{cob:03X}")
+
+    def _report_unknown(self, node: str, n: int, examples: list[str]) -> None:
+        cob = examples[0] if examples else "?"
+        self.host.error(self.bus, "unknown-node",
+                        f"{n} heartbeat(s) of node {node} (COB-ID {cob}) since the last "
+                        f"report; the node is not in the bus's nodes")
 
     def knows_node(self, node_id: int) -> bool:
         """True if ``node_id`` is one of this bus's nodes or the master's own id (whose
@@ -363,9 +473,7 @@ class FrameCheck(can.Listener):
             return
         hb, emcy = heartbeat_node(cob), emcy_node(cob)
         if hb is not None and not self._driver.knows_node(hb):
-            self._driver.report_frame("unknown-node",
-                                      f"heartbeat of node {hb} (COB-ID 0x{cob:03X}), "
-                                      f"which is not in the bus's nodes")
+            self._driver.unknown_heartbeat(hb, cob)
         elif emcy is not None and self._driver.knows_node(emcy) and msg.dlc < 8:
             self._driver.report_frame("malformed",
                                       f"EMCY from node {emcy} with {msg.dlc} bytes, "

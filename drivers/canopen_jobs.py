@@ -1,6 +1,7 @@
 """canopen_jobs - the typed jobs of the ``canopen`` driver's I/O thread (beside the shared
 ``poll`` and ``write`` jobs of :mod:`drivers.jobs`): a node's boot procedure, the report of a
-node held in PRE-OPERATIONAL, the probe of an actuator whose write failed, and the work of the
+node held in PRE-OPERATIONAL, a restart of the recovery policy, the probe of an actuator whose
+write failed, and the work of the
 CiA 402 axes it hosts (readings, commands, the node's loss, a cycle of their engines). Each
 travels as the ``what`` of a :class:`drivers.jobs.Job` with op ``JobOp.OWN`` (the axes' cycle
 also as a paced ``JobOp.POLL`` key) and is dispatched with ``match``.
@@ -35,6 +36,16 @@ class ReportHeld:
 
     node: int
     generation: int
+
+
+@dataclass(frozen=True)
+class RestartNode:
+    """Node ``node`` left OPERATIONAL and its recovery step ``episode`` is due: if its cause
+    cleared (error register 0x1001 reads 0), send the next restart of its policy (stale if
+    anything happened to the node meanwhile: a newer step, a boot-up, the host's command)."""
+
+    node: int
+    episode: int
 
 
 @dataclass(frozen=True)
@@ -82,5 +93,5 @@ class AxisRefresh:
     device: str
 
 
-CanopenJob = (BootNode | ReportHeld | Probe | AxisFeed | AxisCommand | AxisLost | AxisRefresh
-              | AxisCycle)
+CanopenJob = (BootNode | ReportHeld | RestartNode | Probe | AxisFeed | AxisCommand | AxisLost
+              | AxisRefresh | AxisCycle)

@@ -104,20 +104,29 @@ from drivers.canopen_jobs import (
     CanopenJob,
     Probe,
     ReportHeld,
+    RestartNode,
 )
-from drivers.canopen_lifecycle import Lifecycle, NodeLifecycle, NodeStatus
+from drivers.canopen_lifecycle import (
+    Lifecycle,
+    NmtCommand,
+    NodeLifecycle,
+    NodeStatus,
+)
 from drivers.canopen_od import (
     DEFAULT_MASTER_ID,
     DEFAULT_POLL,
     accepted,
     check_bus,
     check_device,
+    check_warnings,
     coerce,
     encodable,
+    is_controlword,
     load_od,
+    restart_policy,
     value_error,
 )
-from drivers.canopen_remote import BootOutcome, ManagedNode, RpdoImages
+from drivers.canopen_remote import BootOutcome, ManagedNode, RpdoImages, use_object_sdo_client
 from drivers.canopen_sync import (
     DEFAULT_SYNC_PRIORITY,
     SYNC_COB_ID,
@@ -137,7 +146,8 @@ DEFAULT_RX_POLL = 0.005
 SDO_TX_BASE = 0x580   # SDO server -> client: COB-ID 0x580 + node id
 #: lifecycle states in which a node is known not to be OPERATIONAL: an RPDO to it is sent (a
 #: safe value goes out whatever the state) but not reported written
-IGNORES_RPDOS = (NodeLifecycle.PREOP_HELD, NodeLifecycle.FAILED, NodeLifecycle.WAITING_BOOT)
+IGNORES_RPDOS = (NodeLifecycle.PREOP_HELD, NodeLifecycle.FAILED, NodeLifecycle.WAITING_BOOT,
+                 NodeLifecycle.LEFT_OPERATIONAL, NodeLifecycle.HOST_HELD)
 #: seconds between two cycles of the axes' engines (timeouts, the fault reset's edge, resends)
 AXIS_CYCLE = 0.01
 
@@ -212,7 +222,8 @@ class CanopenDriver(WorkerJobDriver):
         #: the SYNC cycle the writing task answers (see :meth:`watch_cycles`), and per actuator
         #: the cycle each queued RPDO write answers (None: not an answer)
         self._responding: Callable[[], int | None] | None = None
-        self._answers: dict[str, deque[int | None]] = {}
+        #: (the cycle it answers, the node's boot generation when it was queued)
+        self._answers: dict[str, deque[tuple[int | None, int]]] = {}
         self._answers_lock = threading.Lock()
         self._late_writes = 0
 
@@ -238,7 +249,8 @@ class CanopenDriver(WorkerJobDriver):
         """Each node's lifecycle (``nodes``: state name, ready, confirmed, NMT state of its
         last heartbeat, boot-ups seen, NMT starts sent, heartbeat losses, EMCYs received,
         configurations stored (``store_config``), 0x1001, last EMCY, the reason it is not
-        ready, whether its heartbeat is lost now) and the SYNC cycle's counters and jitter
+        ready, whether its heartbeat is lost now, restarts of its recovery policy since its
+        last boot) and the SYNC cycle's counters and jitter
         (``sync``, while it runs; with ``late_writes``: RPDO answers to cycle n that went out
         after SYNC n+1). Thread-safe."""
         nodes = [{"node": st.node, "state": st.lifecycle.name, "ready": st.ready,
@@ -247,7 +259,8 @@ class CanopenDriver(WorkerJobDriver):
                   "heartbeat_losses": st.heartbeat_losses, "emcys": st.emcys,
                   "config_stores": st.stores,
                   "error_register": st.error_register, "last_emcy": st.last_emcy,
-                  "reason": st.reason, "heartbeat_lost": self._nodes[nid].lost}
+                  "reason": st.reason, "heartbeat_lost": st.heartbeat_lost,
+                  "restarts": st.restarts}
                  for nid, st in sorted(self.node_states().items())]
         doc: dict[str, Any] = {"nodes": nodes}
         stats = self.sync_stats()
@@ -277,19 +290,21 @@ class CanopenDriver(WorkerJobDriver):
         responding = self._responding
         b = self._bindings.get(device)
         tag = responding() if responding is not None and b is not None and b.pdo_var else None
+        generation = self._nodes[b.node].lifecycle.generation if b is not None else 0
         with self._answers_lock:
-            self._answers.setdefault(device, deque()).append(tag)
+            self._answers.setdefault(device, deque()).append((tag, generation))
         if not self._submit(JobOp.WRITE, device, value):
             with self._answers_lock:
                 self._answers[device].pop()
             self._refuse(device, value, "stopped", f"{self.kind} bus {self.bus.name} is not "
                                                    f"running")
 
-    def _answered(self, device: str) -> int | None:
-        """The cycle the write of ``device`` now taken by the I/O thread answers, if any."""
+    def _answered(self, device: str) -> tuple[int | None, int | None]:
+        """The cycle the write of ``device`` now taken by the I/O thread answers (None: none),
+        and the boot generation of its node when it was queued (None: not known)."""
         with self._answers_lock:
             q = self._answers.get(device)
-            return q.popleft() if q else None
+            return q.popleft() if q else (None, None)
 
     def _tick(self) -> float:
         """The worker's longest wait for a job; the frames received meanwhile go to the bus
@@ -320,6 +335,14 @@ class CanopenDriver(WorkerJobDriver):
         return check_device(bus, device)
 
     @classmethod
+    def check_warnings(cls, bus: BusSpec, devices: Sequence[DeviceSpec]) -> list[str]:
+        """What is legal but bound to misbehave: the device's timing (synchronous RPDOs or
+        TPDOs never sent without SYNC, consumer times shorter than the producer's period plus
+        its jitter) and CiA 402 axes whose statusword no TPDO carries
+        (:func:`drivers.canopen_od.check_warnings`)."""
+        return check_warnings(bus, devices)
+
+    @classmethod
     def encodable(cls, bus: BusSpec, device: DeviceSpec) -> tuple[float, float] | None:
         """The range of the object's data type in the node's EDS: 0..1 for BOOLEAN, the
         INTEGERn/UNSIGNEDn ranges, the largest REAL32; None for REAL64 and other types."""
@@ -344,6 +367,7 @@ class CanopenDriver(WorkerJobDriver):
         for ncfg in opts["nodes"]:
             nid = int(ncfg["id"])
             remote: Any = canopen.RemoteNode(nid, load_od(self.bus, nid, ncfg["eds"]))
+            use_object_sdo_client(remote)
             remote.sdo.RESPONSE_TIMEOUT = float(opts.get("sdo_timeout", DEFAULT_SDO_TIMEOUT))
             network.add_node(remote)
             remote.tpdo.read(from_od=True)
@@ -355,7 +379,8 @@ class CanopenDriver(WorkerJobDriver):
             hb = ncfg.get("heartbeat_timeout")
             self._nodes[nid] = ManagedNode(
                 remote, cfg, float(hb) if hb is not None else None,
-                Lifecycle(nid, bool(ncfg.get("nmt_start", True)), hb is not None),
+                Lifecycle(nid, bool(ncfg.get("nmt_start", True)), hb is not None,
+                          restart_policy(ncfg)),
                 RpdoImages(remote))
         self._events.network = network
         self._bind_devices()
@@ -391,15 +416,18 @@ class CanopenDriver(WorkerJobDriver):
             node.remote.nmt.add_heartbeat_callback(
                 lambda code, n=node: self._events.on_heartbeat(n, code))
             node.remote.emcy.add_callback(lambda entry, n=node: self._events.on_emcy(n, entry))
+        boots = []
+        for node in self._nodes.values():      # before any write: they count from this boot
+            with node.lock:
+                boots.append(BootNode(node.id, node.lifecycle.restart(
+                    "driver started: identity, configuration and NMT start under way")))
+                node.booting = True
         self._running = True
+        self._events.running = True
         self._start_worker()
         self._events.start_watchdog()
-        for node in self._nodes.values():
-            with node.lock:
-                generation = node.lifecycle.restart("driver started: identity, configuration "
-                                                    "and NMT start under way")
-                node.booting = True
-            self._submit(JobOp.OWN, BootNode(node.id, generation))
+        for boot in boots:
+            self._submit(JobOp.OWN, boot)
         if "master_heartbeat_ms" in opts:
             self._start_master_heartbeat(bus, int(opts["master_heartbeat_ms"]))
         if "sync_period" in opts:
@@ -482,6 +510,9 @@ class CanopenDriver(WorkerJobDriver):
                 dev, nid, index, sub, node.object_dictionary.get_variable(index, sub), pdo_var,
                 float(a.get("poll_period", default_poll)))
             self._nodes[nid].devices.append(dev.name)
+            if dev.direction == "actuator" and is_controlword(node.object_dictionary, index,
+                                                              sub):
+                self._nodes[nid].controlwords += (dev.name,)
             if dev.direction == "sensor" and pdo_var is not None:
                 self._events.pdo_sensors.setdefault((nid, index, sub), []).append(dev.name)
 
@@ -641,8 +672,10 @@ class CanopenDriver(WorkerJobDriver):
         """Put every queued write on the wire (safe values at shutdown), then stop the master
         heartbeat, SYNC, the threads and the bus. Idempotent; never raises."""
         self._running = False
+        self._events.running = False
         self._stop_worker()     # runs every job queued before: they go out first
         self._events.stop_watchdog()
+        self._events.unknown.flush()
         sync_task, self._sync_task = self._sync_task, None
         if sync_task is not None:
             with contextlib.suppress(Exception):
@@ -703,11 +736,13 @@ class CanopenDriver(WorkerJobDriver):
                     self._answered(device)      # an axis command answers no SYNC cycle
                     self._axis_write(device, value)
                 case Job(JobOp.WRITE, device, value):
-                    self._transfer(self._bindings[device], value, self._answered(device))
+                    self._transfer(self._bindings[device], value, *self._answered(device))
                 case Job(JobOp.OWN, BootNode() as boot):
                     self._boot(boot)
                 case Job(JobOp.OWN, ReportHeld() as held):
                     self._report_held(held)
+                case Job(JobOp.OWN, RestartNode() as restart):
+                    self._restart(restart)
                 case Job(JobOp.OWN, Probe() as probe):
                     self._probe(probe)
                 case Job(JobOp.OWN, AxisFeed() | AxisCommand() | AxisLost() | AxisRefresh()
@@ -762,7 +797,7 @@ class CanopenDriver(WorkerJobDriver):
                         lc.stores += 1
                     lc.configured()
                     if lc.nmt_start:
-                        lc.started()
+                        lc.started(self.host.now())
         match result.outcome:
             case BootOutcome.IDENTITY_MISMATCH:
                 self.host.error(self.bus.name, "identity", f"{where}: {result.reason}")
@@ -782,8 +817,10 @@ class CanopenDriver(WorkerJobDriver):
                     else "configured")
 
     def _report_held(self, job: ReportHeld) -> None:
-        """A started node stays PRE-OPERATIONAL: its error register and last EMCY into the
-        reason; reported once per boot, no NMT start again (the node refuses for a reason)."""
+        """A started node stays PRE-OPERATIONAL (or its restarts were used up): its error
+        register and last EMCY into the reason; reported once, no NMT start again (the node
+        refuses for a reason) until its cause clears (an error-reset EMCY) or the host's
+        ``nmt start``."""
         node = self._nodes[job.node]
         try:
             reg: int | None = node.read_error_register()
@@ -798,11 +835,97 @@ class CanopenDriver(WorkerJobDriver):
                 lc.error_register = reg
             parts = [p for p in (got, f"last EMCY {lc.last_emcy}" if lc.last_emcy else
                                  "no EMCY seen") if p]
-            state = lc.nmt.name.replace("_", "-") if lc.nmt is not None else "not OPERATIONAL"
-            lc.reason = f"stays {state} after the NMT start ({'; '.join(parts)})"
+            if lc.left_at is not None:      # it ran, left, and its restarts were used up
+                lc.reason = lc.recovery_reason("; ".join(parts))
+            else:
+                state = lc.nmt.text if lc.nmt is not None else "not OPERATIONAL"
+                lc.reason = f"stays {state} after the NMT start ({'; '.join(parts)})"
             reason = lc.reason
         self.host.error(self.bus.name, "preop-held", f"{self._events.where(node)}: {reason}")
         self._events.judge(node, "operational")
+        self._events.restate(node)
+
+    def _restart(self, job: RestartNode) -> None:
+        """A restart of node ``job.node``'s recovery policy is due (see
+        :class:`drivers.canopen_lifecycle.RestartPolicy`): its error register is read; clear
+        (0, no 0x1001, or a node hosting axes, whose drive's fault is its axes' to reset) it
+        gets the NMT start, else the restart waits and the register is read again after the
+        same backoff. Stale (nothing done) if anything happened to the node meanwhile."""
+        node = self._nodes[job.node]
+
+        def due() -> bool:
+            lc = node.lifecycle
+            return job.episode == lc.episode and lc.state is NodeLifecycle.LEFT_OPERATIONAL
+        with node.lock:
+            if not due():
+                return
+        reg: int | None = None
+        waiting = ""
+        if not node.axes:
+            try:
+                reg = node.read_error_register()
+            except SdoCommunicationError as exc:
+                waiting = f"no SDO answer to the read of 0x1001 ({exc}): asked again"
+            if reg:
+                waiting = (f"error register 0x1001 = 0x{reg:02X}: the restart waits for it "
+                           f"to read 0 or for an error-reset EMCY")
+        with node.lock:
+            if not due():
+                return
+            lc = node.lifecycle
+            if reg is not None:
+                lc.error_register = reg
+            if waiting:
+                lc.waiting_for_cause(waiting)
+            else:
+                lc.restarted()
+        if waiting:
+            self._events.restate(node)
+            self._events.arm_restart(node)
+            return
+        node.send_nmt_start()
+        self.host.stat(self.bus.name, "nmt-restarts")
+        self._events.judge(node, "restarted")
+        self._events.restate(node)
+
+    # -- the host's NMT commands --------------------------------------------------------------
+
+    def nmt(self, command: NmtCommand | str, node: int) -> str:
+        """Send NMT ``command`` (an :class:`NmtCommand`, or its host word: ``start``,
+        ``stop``, ``preop``, ``reset``, ``reset-comm``) to node ``node`` now, from the calling
+        thread (an NMT command is unconfirmed: the node's heartbeat tells what it did). The
+        node's lifecycle takes it: ``start`` ends a hold and the recovery, ``stop``/``preop``
+        hold a started node there (its devices fail, the recovery policy leaves it alone),
+        ``reset``/``reset-comm`` make the boot-up that follows the host's (not a bus error;
+        the boot procedure runs as for any boot-up). Returns the answer naming the node and
+        the state it was in. Raises BusError for a node not on this bus, a driver not running,
+        a command that is none, or a frame that cannot be sent."""
+        try:
+            cmd = command if isinstance(command, NmtCommand) else NmtCommand.of_word(command)
+        except ValueError as exc:
+            raise BusError(f"canopen bus {self.bus.name}: nmt: {exc}") from None
+        managed = self._nodes.get(node)
+        if managed is None:
+            raise BusError(f"canopen bus {self.bus.name}: nmt {cmd.word}: no node {node} on "
+                           f"it (nodes {', '.join(str(n) for n in sorted(self._nodes))})")
+        if not self._running:
+            raise BusError(f"canopen bus {self.bus.name} is not running: nmt {cmd.word} "
+                           f"{node} not sent")
+        with managed.lock:
+            lc = managed.lifecycle
+            before, nmt = lc.state, lc.nmt
+        try:
+            managed.send_nmt(cmd)
+        except can.CanError as exc:
+            raise BusError(f"canopen bus {self.bus.name}: nmt {cmd.word} {node} not sent: "
+                           f"{exc}") from exc
+        with managed.lock:
+            lc.host_command(cmd, self.host.now())
+            managed.starting = False
+        self._events.judge(managed, f"the host's nmt {cmd.word}")
+        said = "" if nmt is None else f", heartbeat {nmt.text}"
+        return (f"nmt {cmd.word} sent to {self._events.where(managed)} (it was "
+                f"{before.value}{said})")
 
     def _sdo_where(self, b: Binding) -> str:
         return f"canopen node {b.node} 0x{b.index:04X}:{b.subindex:02X} (device {b.device.name})"
@@ -827,7 +950,17 @@ class CanopenDriver(WorkerJobDriver):
                                                      f"answered")
         batch.append((b.device.name, value))
 
-    def _transfer(self, b: Binding, value: Any, answers: int | None = None) -> None:
+    def _transfer(self, b: Binding, value: Any, answers: int | None = None,
+                  generation: int | None = None) -> None:
+        node = self._nodes[b.node]
+        if generation is not None and generation != node.lifecycle.generation:
+            # queued before the node rebooted: its configuration, NMT start and safe value
+            # come first (Devtab writes the safe value when the node is ready again)
+            self.host.write_failed(b.device.name, value, f"{self._events.where(node)}: not "
+                                   f"sent: the node rebooted (boot-up) after this command was "
+                                   f"queued; it gets its configuration, NMT start and safe "
+                                   f"value first")
+            return
         try:
             raw = coerce(b.od_var, value)
             data = b.od_var.encode_raw(raw)

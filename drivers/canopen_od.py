@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 import struct
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from canopen.objectdictionary import BOOLEAN, FLOAT_TYPES, INTEGER_TYPES
@@ -20,14 +20,36 @@ from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.helpers import is_int, is_number
 from drivers import canopen_config
 from drivers.base import not_finite
+from drivers.canopen_lifecycle import (
+    DEFAULT_RESTART_BACKOFF,
+    DEFAULT_RESTART_LIMIT,
+    MAX_BACKOFF,
+    RestartPolicy,
+)
 from drivers.canopen_sync import MAX_SYNC_PRIORITY
 from drivers.codecs.canopen import eds_path
 
 BUS_OPTIONS = ("interface", "channel", "bitrate", "nodes", "sync_period", "sync_priority",
                "poll_period", "sdo_timeout", "poll", "master_heartbeat_ms",
-               "master_node_id", "port")
+               "master_node_id", "port", "liveness_ms")
 NODE_KEYS = ("id", "eds", "heartbeat_timeout", "nmt_start", "identity", "config",
-             "store_config")
+             "store_config", "restart_limit", "restart_backoff")
+#: the master heartbeat and SYNC stop when the controller's kernel has completed no scheduling
+#: round for this long (the bus's ``liveness_ms``; 0: only while the process lives)
+DEFAULT_LIVENESS_MS = 1000
+#: the shortest SYNC period and SDO poll period taken (s): a shorter one is no CANopen cycle a
+#: bus can carry, and on virtual time a timer storm that never lets the clock move on
+MIN_PERIOD = 0.0005
+#: the longest SYNC period: 0x1006 (communication cycle period) is an UNSIGNED32 of µs
+MAX_SYNC_PERIOD = 4294.967295
+#: the longest heartbeat timeout ``chcos run --virtual`` can simulate: its node heartbeats every
+#: third of it, and 0x1017 is an UNSIGNED16 of ms
+MAX_HEARTBEAT_TIMEOUT = 3 * 65.535
+#: the most restarts a recovery policy may send
+MAX_RESTART_LIMIT = 1000
+#: a consumer time shorter than this many producer periods leaves no room for the producer's
+#: jitter (a loaded controller, a busy bus): ``chcos check`` warns
+CONSUMER_MARGIN = 1.5
 #: the node id of the master's heartbeat (0x700 + id) unless the bus's ``master_node_id`` says
 #: otherwise: 127, the highest id, which slave nodes rarely use
 DEFAULT_MASTER_ID = 127
@@ -84,9 +106,21 @@ def check_bus(bus: BusSpec) -> list[str]:
                            or not 1 <= opts["port"] <= 65535):
         errs.append(f"{k}.port: the UDP port of interface \"udp_multicast\" (1..65535), got "
                     f"{opts['port']!r} with interface {opts.get('interface')!r}")
-    for key in ("sync_period", "poll_period", "sdo_timeout"):
-        if key in opts and not (is_number(opts[key]) and opts[key] > 0):
-            errs.append(f"{k}.{key}: expected a number of seconds > 0, got {opts[key]!r}")
+    if "sdo_timeout" in opts and not (is_number(opts["sdo_timeout"])
+                                      and 0 < opts["sdo_timeout"] <= 3600):
+        errs.append(f"{k}.sdo_timeout: expected a number of seconds in (0, 3600], got "
+                    f"{opts['sdo_timeout']!r}")
+    if "poll_period" in opts and not (is_number(opts["poll_period"])
+                                      and MIN_PERIOD <= opts["poll_period"] <= 86400):
+        errs.append(f"{k}.poll_period: expected seconds in [{MIN_PERIOD}, 86400], got "
+                    f"{opts['poll_period']!r}")
+    if "sync_period" in opts and not (is_number(opts["sync_period"])
+                                      and MIN_PERIOD <= opts["sync_period"] <= MAX_SYNC_PERIOD):
+        errs.append(f"{k}.sync_period: expected seconds in [{MIN_PERIOD}, {MAX_SYNC_PERIOD}] "
+                    f"(0x1006 is an UNSIGNED32 of µs), got {opts['sync_period']!r}")
+    lv = opts.get("liveness_ms")
+    if lv is not None and not (is_int(lv) and (lv == 0 or 10 <= lv <= 65535)):
+        errs.append(f"{k}.liveness_ms: expected 10..65535 ms (0: off), got {lv!r}")
     prio = opts.get("sync_priority")
     if prio is not None and not (is_int(prio) and 0 <= prio <= MAX_SYNC_PRIORITY):
         errs.append(f"{k}.sync_priority: expected the SYNC producer's SCHED_FIFO priority "
@@ -140,11 +174,52 @@ def check_node(bus: BusSpec, k: str, node: object, seen: set[int]) -> list[str]:
     errs.extend(canopen_config.check(k, node, od, mh if is_int(mh) else None,
                                      "sync_period" in bus.options))
     hb = node.get("heartbeat_timeout")
-    if hb is not None and not (is_number(hb) and hb > 0):
-        errs.append(f"{k}.heartbeat_timeout: expected a number of seconds > 0, got {hb!r}")
+    if hb is not None and not (is_number(hb) and 0.001 <= hb <= MAX_HEARTBEAT_TIMEOUT):
+        errs.append(f"{k}.heartbeat_timeout: expected seconds in [0.001, "
+                    f"{MAX_HEARTBEAT_TIMEOUT:g}] (a simulated node heartbeats every third of "
+                    f"it, in 0x1017's UNSIGNED16 ms), got {hb!r}")
     if "nmt_start" in node and not isinstance(node["nmt_start"], bool):
         errs.append(f"{k}.nmt_start: expected true or false, got {node['nmt_start']!r}")
+    rl = node.get("restart_limit")
+    if rl is not None and not (is_int(rl) and 0 <= rl <= MAX_RESTART_LIMIT):
+        errs.append(f"{k}.restart_limit: expected 0..{MAX_RESTART_LIMIT} restarts (0: never "
+                    f"restarted), got {rl!r}")
+    rb = node.get("restart_backoff")
+    if rb is not None and not (is_number(rb) and 0.05 <= rb <= MAX_BACKOFF):
+        errs.append(f"{k}.restart_backoff: expected seconds in [0.05, {MAX_BACKOFF:g}], got "
+                    f"{rb!r}")
     return errs
+
+
+def restart_policy(node: Mapping[str, Any]) -> RestartPolicy:
+    """The recovery policy of a node entry that :func:`check_node` accepted."""
+    return RestartPolicy(int(node.get("restart_limit", DEFAULT_RESTART_LIMIT)),
+                         float(node.get("restart_backoff", DEFAULT_RESTART_BACKOFF)))
+
+
+def liveness(bus: BusSpec) -> float:
+    """The bus's ``liveness_ms`` in seconds (0: off)."""
+    return int(bus.options.get("liveness_ms", DEFAULT_LIVENESS_MS)) / 1000.0
+
+
+#: CiA 402 device type (0x1000, bits 0..15) and the controlword of axis 0 (0x800 per axis)
+CIA402_PROFILE = 402
+CONTROLWORD = 0x6040
+
+
+def is_controlword(od: Any, index: int, subindex: int) -> bool:
+    """True if ``index``:``subindex`` is a CiA 402 drive's controlword (0x6040 of one of its
+    axes) in the node's EDS ``od``: the device type 0x1000 names profile 402, or the EDS names
+    the object a controlword."""
+    if subindex != 0 or (index - CONTROLWORD) % 0x800 or not 0 <= index - CONTROLWORD < 0x4000:
+        return False
+    var = od.get_variable(index, 0)
+    if var is None:
+        return False
+    dtype = od.get_variable(0x1000, 0)
+    raw = None if dtype is None else (dtype.value if dtype.value is not None else dtype.default)
+    return (isinstance(raw, int) and raw & 0xFFFF == CIA402_PROFILE) \
+        or "controlword" in str(var.name).replace(" ", "").lower()
 
 def check_device(bus: BusSpec, device: DeviceSpec) -> list[str]:
     """Errors of a device address: keys, node on this bus, object present in the node's EDS,
@@ -165,8 +240,8 @@ def check_device(bus: BusSpec, device: DeviceSpec) -> list[str]:
     if not (is_int(sub) and 0 <= sub <= 0xFF):
         errs.append(f"{k}.subindex: expected a subindex 0..255, got {sub!r}")
     pp = a.get("poll_period")
-    if pp is not None and not (is_number(pp) and pp > 0):
-        errs.append(f"{k}.poll_period: expected a number of seconds > 0, got {pp!r}")
+    if pp is not None and not (is_number(pp) and MIN_PERIOD <= pp <= 86400):
+        errs.append(f"{k}.poll_period: expected seconds in [{MIN_PERIOD}, 86400], got {pp!r}")
     if errs or not is_int(nid):
         return errs
     eds = nodes[nid].get("eds")
@@ -281,3 +356,117 @@ def value_error(od_var: Any, index: int, subindex: int, value: Any) -> str | Non
         return (f"expected a value of data type {od_var.data_type:#x} for object "
                 f"0x{index:04X}:{subindex:02X}: {exc}")
     return None
+
+
+# -- chcos check's warnings: the device's timing, and axes without a statusword TPDO ----------
+
+def check_warnings(bus: BusSpec, devices: Sequence[DeviceSpec]) -> list[str]:
+    """What a valid bus does wrong at run time, each naming the node entry and the object:
+    a synchronous RPDO carrying an actuator without SYNC (the node applies nothing), a TPDO
+    carrying a sensor that is never sent (synchronous without SYNC, remote-request only, or
+    event-driven with event timer 0), a consumer time shorter than its producer's period plus
+    its jitter (:data:`CONSUMER_MARGIN`), a node watched for a heartbeat it is configured not
+    to send, and a CiA 402 axis whose statusword 0x6041 is in no enabled TPDO."""
+    out: list[str] = []
+    k = bus.key
+    opts = bus.options
+    has_sync = "sync_period" in opts
+    mh = opts.get("master_heartbeat_ms")
+    for i, node in enumerate(opts.get("nodes", [])):
+        nid = node.get("id")
+        kn = f"{k}.nodes[{i}]"
+        try:
+            od = checked_od(bus, nid, str(node["eds"]))
+        except (ValueError, KeyError):
+            continue                             # reported by check_bus
+        cfg = canopen_config.parse(node)
+        mine = [d for d in devices if d.address.get("node") == nid]
+        out += _pdo_warnings(kn, nid, od, cfg, mine, has_sync)
+        out += _heartbeat_warnings(kn, nid, od, node, cfg, mh)
+        out += _axis_warnings(kn, nid, cfg, od, mine)
+    return out
+
+
+def _pdo_warnings(kn: str, nid: int, od: Any, cfg: canopen_config.NodeConfig,
+                  devices: Sequence[DeviceSpec], has_sync: bool) -> list[str]:
+    """The PDOs carrying the map's devices that the node never sends or never applies."""
+    out: list[str] = []
+    by_object: dict[tuple[int, int], list[str]] = {}
+    for d in devices:
+        if "index" in d.address:
+            key = (int(d.address["index"]), int(d.address.get("subindex", 0)))
+            by_object.setdefault(key, []).append(d.name)
+    for p in canopen_config.effective_pdos(od, cfg):
+        if not p.enabled:
+            continue
+        carried = [f"0x{i:04X}:{s:02X} ({', '.join(by_object[(i, s)])})" for i, s in p.objects
+                   if (i, s) in by_object]
+        if not carried:
+            continue
+        what = f"{kn} (node {nid}): {p.name} (transmission type {p.transmission_type}"
+        if p.kind == "rpdo" and p.synchronous and not has_sync:
+            out.append(f"{what}, synchronous) is applied by the node only at a SYNC, and the "
+                       f"bus has no sync_period: every write of {', '.join(carried)} is lost; "
+                       f"set the bus's sync_period or configure the RPDO with type 255")
+        if p.kind != "tpdo":
+            continue
+        tt = p.transmission_type
+        if p.synchronous and not has_sync:
+            out.append(f"{what}, synchronous) is sent only after a SYNC, and the bus has no "
+                       f"sync_period: {', '.join(carried)} never arrive; set sync_period or "
+                       f"use type 254/255 with event_timer_ms")
+        elif tt in (252, 253):
+            out.append(f"{what}) is sent only on a remote request, which chcos never sends: "
+                       f"{', '.join(carried)} never arrive; use type 254/255 with "
+                       f"event_timer_ms, or a synchronous type with sync_period")
+        elif tt in (254, 255) and not p.event_timer_ms:
+            out.append(f"{what}, event timer 0) is sent only when the node itself decides "
+                       f"(a change of value, if it detects one): {', '.join(carried)} may "
+                       f"never arrive; set event_timer_ms (e.g. 100) in the node's config")
+    return out
+
+
+def _heartbeat_warnings(kn: str, nid: int, od: Any, node: Mapping[str, Any],
+                        cfg: canopen_config.NodeConfig, master_ms: object) -> list[str]:
+    """Consumer times against their producers' periods, both ways."""
+    out: list[str] = []
+    hb = node.get("heartbeat_timeout")
+    producer = cfg.heartbeat_producer_ms
+    if producer is None:
+        var = od.get_variable(0x1017, 0)
+        raw = None if var is None else (var.value if var.value is not None else var.default)
+        producer = raw if isinstance(raw, int) and raw > 0 else None
+    if is_number(hb) and producer == 0:
+        out.append(f"{kn}.heartbeat_timeout: the node is configured to send no heartbeat "
+                   f"(config.heartbeat_producer_ms = 0): it is declared lost "
+                   f"{hb} s after every boot")
+    elif is_number(hb) and producer and hb * 1000 < CONSUMER_MARGIN * producer:
+        out.append(f"{kn}.heartbeat_timeout: {hb} s is shorter than the node's heartbeat "
+                   f"period {producer} ms plus its jitter (at least {CONSUMER_MARGIN:g} "
+                   f"times it): a late heartbeat fails the node; use 2 to 3 times the period")
+    mc = cfg.master_consumer_ms
+    if is_int(master_ms) and mc is not None and master_ms < mc < CONSUMER_MARGIN * master_ms:
+        out.append(f"{kn}.config.master_consumer_ms: {mc} ms is shorter than the master "
+                   f"heartbeat's period {master_ms} ms plus its jitter (at least "
+                   f"{CONSUMER_MARGIN:g} times it): a late master heartbeat makes the node "
+                   f"leave OPERATIONAL; use 2 to 3 times master_heartbeat_ms")
+    return out
+
+
+def _axis_warnings(kn: str, nid: int, cfg: canopen_config.NodeConfig, od: Any,
+                   devices: Sequence[DeviceSpec]) -> list[str]:
+    """CiA 402 axes whose statusword no enabled TPDO carries."""
+    out: list[str] = []
+    tpdo_objects = {o for p in canopen_config.effective_pdos(od, cfg)
+                    if p.kind == "tpdo" and p.enabled for o in p.objects}
+    for d in devices:
+        if d.address.get("profile") != "cia402" or d.direction != "actuator":
+            continue
+        sw = 0x6041 + 0x800 * int(d.address.get("axis", 0))
+        if (sw, 0) not in tpdo_objects:
+            out.append(f"{kn} (node {nid}): axis {d.name}'s statusword 0x{sw:04X} is in no "
+                       f"enabled TPDO: the axis reads it by SDO (at each command, each EMCY "
+                       f"and each change of the node's NMT state), so a fault between "
+                       f"commands is seen only if the drive sends its EMCY; map 0x{sw:04X} "
+                       f"into a TPDO")
+    return out

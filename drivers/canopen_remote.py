@@ -17,14 +17,52 @@ from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any
 
+from canopen.sdo.client import SdoClient
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from drivers.canopen_config import NodeConfig, SdoWrite
-from drivers.canopen_lifecycle import Lifecycle
+from drivers.canopen_lifecycle import Lifecycle, NmtCommand, NmtState
 from drivers.canopen_od import coerce
 
-#: NMT command specifier "start remote node" (CiA 301 7.2.8.3.1)
-NMT_START = 0x01
+#: the client command specifiers of the SDO requests that name an object (CiA 301 7.2.4.3:
+#: initiate download 1, initiate upload 2; the driver makes no block transfers, whose
+#: sub-block frames carry a sequence number where a specifier would be)
+_NAMING_REQUESTS = (1, 2)
+#: the client command specifier of an abort transfer request
+_ABORT = 4
+
+
+class ObjectSdoClient(SdoClient):
+    """canopen's SDO client whose abort transfer requests name the object of the transfer they
+    abort (CiA 301 7.2.4.3.17: multiplexer = index and sub-index), as a server needs to tell
+    which transfer ended; canopen's own sends 0x0000:00. The object is the one the last
+    initiate request named (segments carry none)."""
+
+    def __init__(self, rx_cobid: int, tx_cobid: int, od: Any) -> None:
+        super().__init__(rx_cobid, tx_cobid, od)  # type: ignore[no-untyped-call]
+        self._mux = b"\x00\x00\x00"
+
+    def send_request(self, request: bytes | bytearray) -> None:
+        """Send ``request``, remembering the object it names (an initiate request)."""
+        if request and (request[0] >> 5) in _NAMING_REQUESTS and len(request) >= 4:
+            self._mux = bytes(request[1:4])
+        super().send_request(request)  # type: ignore[no-untyped-call]
+
+    def abort(self, abort_code: int = 0x08000000) -> None:
+        """Abort the transfer in progress: abort code ``abort_code`` for its object."""
+        request = bytearray(8)
+        request[0] = _ABORT << 5
+        request[1:4] = self._mux
+        struct.pack_into("<L", request, 4, abort_code)
+        super().send_request(request)  # type: ignore[no-untyped-call]
+
+
+def use_object_sdo_client(remote: Any) -> None:
+    """Give ``remote`` (a canopen ``RemoteNode`` not yet on a network) an
+    :class:`ObjectSdoClient` as its SDO channel."""
+    client = ObjectSdoClient(0x600 + remote.id, 0x580 + remote.id, remote.object_dictionary)
+    remote.sdo_channels = [client]
+    remote.sdo = client
 
 
 class RpdoImages:
@@ -102,6 +140,14 @@ class ManagedNode:
     booting: bool = True
     #: when a silent node's heartbeat may start its boot procedure again (monotonic s)
     retry_at: float = 0.0
+    #: when the next restart of the recovery policy may go out (host clock; None: not armed)
+    retry_at_host: float | None = None
+    #: the NMT state of the last heartbeat (None before one): a change asks its axes to read
+    #: their drive
+    last_nmt: NmtState | None = None
+    #: devices that are a CiA 402 drive's controlword (0x6040 of an axis) in a plain map: a
+    #: fatal EMCY does not fail them, so that the fault reset can be written
+    controlwords: tuple[str, ...] = ()
 
     @property
     def id(self) -> int:
@@ -112,7 +158,11 @@ class ManagedNode:
 
     def send_nmt_start(self) -> None:
         """Send the NMT start command to this node (raises ``can.CanError``)."""
-        self.remote.network.send_message(0, bytes((NMT_START, self.id)))
+        self.send_nmt(NmtCommand.START)
+
+    def send_nmt(self, command: NmtCommand) -> None:
+        """Send NMT ``command`` to this node (COB-ID 0x000; raises ``can.CanError``)."""
+        self.remote.network.send_message(0, bytes((int(command), self.id)))
 
     # -- the boot procedure (driver's I/O thread) ---------------------------------------------
 

@@ -27,6 +27,17 @@ class Health:
         if report:
             self._host.fail(device, reason)
 
+    def restate(self, device: str, cause: str, reason: str) -> None:
+        """``device`` stays failed for ``cause``, now for ``reason`` (a recovery that moved
+        on): ``host.fail`` again with it, so that the reason shown is the true one; nothing if
+        the device has no such cause or the reason is the same."""
+        with self._lock:
+            causes = self._causes.get(device)
+            if not causes or causes.get(cause) in (None, reason):
+                return
+            causes[cause] = reason
+        self._host.fail(device, reason)
+
     def clear(self, device: str, cause: str, why: str = "") -> None:
         """Remove ``cause`` from ``device``; ``host.recover`` (with ``why``, the event that ended
         it) when it was the last one."""

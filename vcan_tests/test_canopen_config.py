@@ -10,7 +10,13 @@ import pytest
 
 from chcos.devices.spec import BusSpec
 from drivers.canopen_config import NodeConfig, parse, with_bits
-from drivers.canopen_lifecycle import Lifecycle, NmtState, NodeLifecycle
+from drivers.canopen_lifecycle import (
+    Lifecycle,
+    NmtCommand,
+    NmtState,
+    NodeLifecycle,
+    RestartPolicy,
+)
 from drivers.canopen_node import CanopenDriver
 from drivers.canopen_od import load_od
 from vcan_tests.netutil import unique_channel
@@ -119,8 +125,10 @@ def test_lifecycle_one_start_per_boot_and_held_after_the_start() -> None:
     assert "stays PRE-OPERATIONAL" in lc.status().reason
     lc.heartbeat(NmtState.OPERATIONAL)             # it started after all
     assert lc.ready() and lc.status().confirmed
-    lc.heartbeat(NmtState.STOPPED)                 # confirmed before: at once
-    assert lc.state is NodeLifecycle.PREOP_HELD
+    lc.heartbeat(NmtState.STOPPED, now=13.25)      # confirmed before: it left, at once
+    assert lc.state is NodeLifecycle.LEFT_OPERATIONAL and not lc.ready()
+    assert lc.status().reason == ("left OPERATIONAL at t=13.2 s (heartbeat says STOPPED); "
+                                  "restart 1 of 5 in 1.0 s")
     assert lc.booted() == 1 and lc.boots == 1 and lc.state is NodeLifecycle.WAITING_BOOT
     unsupervised = Lifecycle(6, nmt_start=True, supervised=False)
     unsupervised.configured()
@@ -131,3 +139,89 @@ def test_lifecycle_one_start_per_boot_and_held_after_the_start() -> None:
     assert passive.ready()
     passive.heartbeat(NmtState.STOPPED)
     assert not passive.ready()
+
+
+def running(policy: RestartPolicy) -> Lifecycle:
+    lc = Lifecycle(5, nmt_start=True, supervised=True, policy=policy)
+    lc.configured()
+    lc.started(0.0)
+    lc.heartbeat(NmtState.OPERATIONAL, 0.5)
+    assert lc.ready()
+    return lc
+
+
+def test_the_recovery_policy_counts_restarts_backs_off_and_ends_refusing() -> None:
+    lc = running(RestartPolicy(limit=3, backoff=0.5))
+    lc.heartbeat(NmtState.PRE_OPERATIONAL, 4.0)
+    assert lc.state is NodeLifecycle.LEFT_OPERATIONAL
+    assert lc.next_restart() == (1, 0.5)
+    lc.waiting_for_cause("error register 0x1001 = 0x11")     # not cleared: no restart counted
+    assert lc.next_restart() == (1, 0.5) and lc.restarts == 0
+    assert "restart 1 of 3 in 0.5 s; error register 0x1001 = 0x11" in lc.status().reason
+    lc.restarted()
+    assert lc.state is NodeLifecycle.STARTED and lc.nmt_starts == 2
+    assert "restart 1 of 3 sent" in lc.status().reason
+    for _ in range(2):                                   # not taken: the next one, longer
+        lc.heartbeat(NmtState.PRE_OPERATIONAL, 5.0)
+    assert lc.state is NodeLifecycle.LEFT_OPERATIONAL and lc.next_restart() == (2, 1.0)
+    assert "restart 1 not taken" in lc.status().reason
+    lc.restarted()
+    lc.heartbeat(NmtState.OPERATIONAL, 6.0)              # taken
+    assert lc.ready() and lc.status().restarts == 2
+    lc.heartbeat(NmtState.PRE_OPERATIONAL, 7.0)          # again, soon: the count goes on
+    assert lc.next_restart() == (3, 2.0)
+    lc.restarted()
+    lc.heartbeat(NmtState.STOPPED, 8.0)
+    lc.heartbeat(NmtState.STOPPED, 8.1)
+    assert lc.state is NodeLifecycle.PREOP_HELD and lc.next_restart() is None
+    assert "3 restart(s) of 3 did not keep it OPERATIONAL: it refuses" in lc.status().reason
+    assert lc.cause_cleared()                            # an error-reset EMCY: a new round
+    assert lc.state is NodeLifecycle.LEFT_OPERATIONAL and lc.next_restart() == (1, 0.5)
+
+
+def test_restarts_count_from_zero_after_a_stable_run_and_a_boot() -> None:
+    lc = running(RestartPolicy(limit=2, backoff=1.0))
+    lc.heartbeat(NmtState.PRE_OPERATIONAL, 1.0)
+    lc.restarted()
+    lc.heartbeat(NmtState.OPERATIONAL, 2.0)
+    lc.heartbeat(NmtState.PRE_OPERATIONAL, 30.0)         # ran for 28 s: counts from 0
+    assert lc.next_restart() == (1, 1.0)
+    lc.booted()
+    assert lc.restarts == 0 and lc.status().restarts == 0
+
+
+def test_a_policy_of_no_restarts_holds_the_node_saying_so() -> None:
+    lc = running(RestartPolicy(limit=0))
+    lc.heartbeat(NmtState.PRE_OPERATIONAL, 2.0)
+    assert lc.state is NodeLifecycle.PREOP_HELD
+    assert "not restarted (restart_limit = 0)" in lc.status().reason
+    assert not lc.cause_cleared()
+
+
+def test_the_hosts_commands_hold_and_release_a_node() -> None:
+    lc = running(RestartPolicy())
+    lc.host_command(NmtCommand.START, 1.0)               # running: nothing changes
+    assert lc.ready() and lc.nmt_starts == 2
+    lc.host_command(NmtCommand.STOP, 2.0)
+    assert lc.state is NodeLifecycle.HOST_HELD and not lc.ready()
+    lc.heartbeat(NmtState.STOPPED, 2.1)                  # what it was told: no recovery
+    assert lc.state is NodeLifecycle.HOST_HELD and "nmt stop at t=2.0 s" in lc.reason
+    lc.host_command(NmtCommand.START, 3.0)
+    assert lc.state is NodeLifecycle.STARTED
+    lc.heartbeat(NmtState.OPERATIONAL, 3.1)
+    assert lc.ready()
+    lc.host_command(NmtCommand.RESET, 4.0)
+    lc.booted()
+    assert lc.reason == "rebooted by the host's nmt reset (boot-up message)"
+    assert NmtCommand.of_word("reset-comm") is NmtCommand.RESET_COMM
+    with pytest.raises(ValueError, match="reset-comm"):
+        NmtCommand.of_word("halt")
+
+
+def test_a_lost_heartbeat_makes_the_status_not_ready() -> None:
+    lc = running(RestartPolicy())
+    lc.heartbeat_lost()
+    st = lc.status("no heartbeat for more than heartbeat_timeout 0.3 s")
+    assert not st.ready and st.heartbeat_lost and "heartbeat_timeout 0.3 s" in st.reason
+    lc.heartbeat(NmtState.OPERATIONAL, 1.0)
+    assert lc.status().ready
