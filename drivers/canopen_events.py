@@ -72,6 +72,8 @@ class NodeEvents:
         #: the node id of this master's heartbeat (bus option ``master_node_id``)
         self.master_id = DEFAULT_MASTER_ID
         self.sync: SyncCycle | None = None
+        #: True on SocketCAN: producer processes send the master heartbeat and SYNC
+        self.observe = False
         #: True when a producer process sends SYNC and the reader counts each one it sees
         self.observe_sync = False
         self._watchdog: HeartbeatWatchdog | None = None
@@ -87,8 +89,9 @@ class NodeEvents:
         self._frames_in = 0
         self._frames_told = 0
         self._told_lock = threading.Lock()
-        #: the SYNC counters last added to the host's statistics (cycles, missing, late)
-        self._sync_told = (0, 0, 0)
+        #: the SYNC counters last added to the host's statistics (cycles, missing, late,
+        #: given up)
+        self._sync_told = (0, 0, 0, 0)
         #: the TPDO values of a node hosting axes: ``axis_feed(node id, [(index, sub, raw)])``
         self.axis_feed: Callable[[int, list[tuple[int, int, int]]], None] | None = None
         #: a node hosting axes failed (lifecycle, heartbeat): ``node_down(node, reason)``;
@@ -222,8 +225,8 @@ class NodeEvents:
             now = sync.counters()
             with self._told_lock:
                 told, self._sync_told = self._sync_told, now
-            for key, a, b in zip(("sync-cycles", "sync-missing", "sync-late"), told, now,
-                                 strict=True):
+            for key, a, b in zip(("sync-cycles", "sync-missing", "sync-late",
+                                  "sync-given-up"), told, now, strict=True):
                 if b > a:
                     self.host.stat(self.bus, key, b - a)
 

@@ -66,6 +66,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import logging
 import struct
 import threading
 import time
@@ -94,6 +95,14 @@ from drivers.canopen_axis import (
     device_write,
 )
 from drivers.canopen_events import FrameCheck, NodeEvents
+from drivers.canopen_heartbeat import (
+    ClockedHeartbeat,
+    HeartbeatThread,
+    Liveness,
+    LivenessFeed,
+    is_hold,
+    is_resume,
+)
 from drivers.canopen_jobs import (
     AxisCommand,
     AxisCycle,
@@ -122,6 +131,7 @@ from drivers.canopen_od import (
     coerce,
     encodable,
     is_controlword,
+    liveness,
     load_od,
     restart_policy,
     value_error,
@@ -131,6 +141,8 @@ from drivers.canopen_sync import (
     DEFAULT_SYNC_PRIORITY,
     SYNC_COB_ID,
     ClockedSyncProducer,
+    HeartbeatProducerProcess,
+    ProducerProcess,
     SyncCycle,
     SyncProducerProcess,
     SyncStats,
@@ -139,6 +151,8 @@ from drivers.codecs.canopen import EMCY_BASE, HEARTBEAT_BASE
 from drivers.codecs.cia402 import Obj, Write, config_from_table, mode_of
 from drivers.jobs import Job, JobOp, WorkerJobDriver
 from drivers.threaded import ReaderThread
+
+log = logging.getLogger(__name__)
 
 DEFAULT_SDO_TIMEOUT = 0.3
 #: The reader's default receive timeout on interfaces without a file descriptor.
@@ -211,8 +225,13 @@ class CanopenDriver(WorkerJobDriver):
         self._nodes = self._events.nodes
         self._bindings: dict[str, Binding] = {}
         self._poll_groups: dict[float, list[Binding]] = {}   # SDO-polled sensors by period
-        self._master_task: Any = None
+        self._master_task: HeartbeatProducerProcess | HeartbeatThread | ClockedHeartbeat | \
+            None = None
         self._sync_task: SyncProducerProcess | ClockedSyncProducer | None = None
+        #: the controller's liveness (:mod:`drivers.canopen_heartbeat`): what the master
+        #: heartbeat and SYNC go out under, and the thread that feeds the producer processes
+        self._liveness: Liveness | None = None
+        self._feed: LivenessFeed | None = None
         #: the CiA 402 axes hosted, by actuator name (:mod:`drivers.canopen_axis`); their
         #: engines are used by the I/O thread only
         self._axes: dict[str, AxisHost] = {}
@@ -395,9 +414,10 @@ class CanopenDriver(WorkerJobDriver):
                 rates = [n.remote.object_dictionary.bitrate for n in self._nodes.values()]
                 if any(rates):
                     cfg_bus["bitrate"] = next(r for r in rates if r)
-            # on SocketCAN a producer process sends SYNC and the reader sees each one
-            self._events.observe_sync = ("sync_period" in opts
-                                         and cfg_bus.get("interface") == "socketcan")
+            # on SocketCAN producer processes send SYNC and the master heartbeat; the reader
+            # sees each SYNC
+            self._events.observe = cfg_bus.get("interface") == "socketcan"
+            self._events.observe_sync = "sync_period" in opts and self._events.observe
             filters = node_filters(self._nodes)
             if self._events.observe_sync:
                 filters.append({"can_id": SYNC_COB_ID, "can_mask": 0x7FF})
@@ -428,10 +448,12 @@ class CanopenDriver(WorkerJobDriver):
         self._events.start_watchdog()
         for boot in boots:
             self._submit(JobOp.OWN, boot)
+        self._liveness = Liveness(self.host, liveness(self.bus))
         if "master_heartbeat_ms" in opts:
             self._start_master_heartbeat(bus, int(opts["master_heartbeat_ms"]))
         if "sync_period" in opts:
             self._start_sync(bus, float(opts["sync_period"]))
+        self._start_feed()
         groups: dict[float, list[Binding]] = {}
         for b in self._bindings.values():
             if b.device.direction == "sensor" and b.pdo_var is None:
@@ -445,16 +467,69 @@ class CanopenDriver(WorkerJobDriver):
         if self._axes:
             self._poll_every(AxisCycle(), AXIS_CYCLE)
 
+    def _on_clock(self) -> bool:
+        """True in a virtual cell: a virtual clock, the nodes simulated on it."""
+        return bool(host_clock_virtual(self.host)) and host_peers_on_clock(self.host)
+
+    def _producer_report(self, text: str) -> None:
+        """A report of a producer (master heartbeat, SYNC): a hold by the liveness gate is a
+        ``controller-stalled`` error of the bus, its end a log line, anything else a ``can``
+        error."""
+        where = f"canopen bus {self.bus.name}: {text}"
+        if is_hold(text):
+            self.host.error(self.bus.name, "controller-stalled", where)
+        elif is_resume(text):
+            log.warning("%s", where)
+        else:
+            self.host.error(self.bus.name, "can", where)
+
     def _start_master_heartbeat(self, bus: can.BusABC, period_ms: int) -> None:
-        """The master's heartbeat (state OPERATIONAL) at ``period_ms``: a cyclic task of the
-        interface (SocketCAN's broadcast manager: the kernel stops it when this process dies)."""
-        msg = can.Message(arbitration_id=HEARTBEAT_BASE + self._events.master_id, data=b"\x05",
+        """The master's heartbeat (state OPERATIONAL) every ``period_ms``, while the controller
+        is alive (:mod:`drivers.canopen_heartbeat`): on SocketCAN from a producer process of
+        its own (``SCHED_FIFO`` at ``sync_priority``, fed by the liveness thread); in a virtual
+        cell on the kernel's timers; else from a thread of the driver."""
+        node = self._events.master_id
+        msg = can.Message(arbitration_id=HEARTBEAT_BASE + node, data=b"\x05",
                           is_extended_id=False)
-        try:
-            self._master_task = bus.send_periodic(msg, period_ms / 1000.0)
-        except (can.CanError, OSError, NotImplementedError) as exc:
-            self.host.error(self.bus.name, "can", f"canopen bus {self.bus.name}: cannot start "
-                                                  f"the master heartbeat: {exc}")
+        assert self._liveness is not None
+        period = period_ms / 1000.0
+
+        def send() -> None:
+            bus.send(msg)
+
+        task: HeartbeatProducerProcess | HeartbeatThread | ClockedHeartbeat
+        if self._events.observe:
+            task = HeartbeatProducerProcess(
+                str(getattr(bus, "channel", "")), period, node, self._producer_report,
+                f"canopen-{self.bus.name}-heartbeat",
+                int(self.bus.options.get("sync_priority", DEFAULT_SYNC_PRIORITY)),
+                self._liveness.bound)
+            try:
+                task.start()
+            except OSError as exc:
+                self.host.error(self.bus.name, "can", f"canopen bus {self.bus.name}: cannot "
+                                                      f"start the master heartbeat: {exc}")
+                return
+        elif self._on_clock():
+            task = ClockedHeartbeat(send, period, self.host, self._producer_report)
+            task.start()
+        else:
+            task = HeartbeatThread(send, period, self._liveness, self._producer_report,
+                                   f"canopen-{self.bus.name}-heartbeat")
+            task.start()
+        self._master_task = task
+
+    def _start_feed(self) -> None:
+        """The thread that tells the producer processes whether the controller is alive (none
+        without a process, or with ``liveness_ms = 0``)."""
+        live = self._liveness
+        feeds: list[Callable[[bool], None]] = [
+            t.feed for t in (self._master_task, self._sync_task)
+            if isinstance(t, ProducerProcess)]
+        if live is None or live.bound <= 0 or not feeds:
+            return
+        self._feed = LivenessFeed(live, feeds, f"canopen-{self.bus.name}-liveness")
+        self._feed.start()
 
     def _start_sync(self, bus: can.BusABC, period: float) -> None:
         """The SYNC producer and the cycle's books (:mod:`drivers.canopen_sync`), expecting the
@@ -467,10 +542,12 @@ class CanopenDriver(WorkerJobDriver):
         def send() -> None:
             bus.send(frame)
 
-        def error(text: str) -> None:
-            self.host.error(self.bus.name, "can", f"canopen bus {self.bus.name}: {text}")
-
-        sync = SyncCycle(period, send, error, f"canopen-{self.bus.name}-sync")
+        error = self._producer_report
+        live = self._liveness
+        assert live is not None
+        sync = SyncCycle(period, send, error, f"canopen-{self.bus.name}-sync",
+                         live.alive if live.gated else None)
+        sync.liveness = live.bound
         for node in self._nodes.values():
             for m in node.remote.tpdo.map.values():
                 if m.enabled and m.cob_id and m.trans_type is not None:
@@ -479,7 +556,8 @@ class CanopenDriver(WorkerJobDriver):
         if self._events.observe_sync:
             producer = SyncProducerProcess(
                 str(getattr(bus, "channel", "")), period, error, f"canopen-{self.bus.name}-sync",
-                int(self.bus.options.get("sync_priority", DEFAULT_SYNC_PRIORITY)))
+                int(self.bus.options.get("sync_priority", DEFAULT_SYNC_PRIORITY)), live.bound,
+                sync.gave_up)
             try:
                 producer.start()
             except OSError as exc:
@@ -487,7 +565,7 @@ class CanopenDriver(WorkerJobDriver):
             else:
                 self._sync_task = producer
             sync.start(produce=False)
-        elif host_clock_virtual(self.host) and host_peers_on_clock(self.host):
+        elif self._on_clock():
             clocked = ClockedSyncProducer(sync, self.host.now, self.host.at)
             clocked.start()
             self._sync_task = clocked
@@ -676,6 +754,9 @@ class CanopenDriver(WorkerJobDriver):
         self._stop_worker()     # runs every job queued before: they go out first
         self._events.stop_watchdog()
         self._events.unknown.flush()
+        feed, self._feed = self._feed, None
+        if feed is not None:
+            feed.stop()
         sync_task, self._sync_task = self._sync_task, None
         if sync_task is not None:
             with contextlib.suppress(Exception):

@@ -89,6 +89,14 @@ TIMER_ABSTIME = 1
 DEFAULT_SYNC_PRIORITY = 80
 #: the highest SCHED_FIFO priority on Linux
 MAX_SYNC_PRIORITY = 99
+#: what the driver writes to a producer process's stdin: the controller is alive (its gate
+#: opens for the gate's time), or it is not (the gate closes at once)
+FED = "+"
+HELD = "-"
+#: the first argument of the producer program in its heartbeat mode
+HEARTBEAT_MODE = "heartbeat"
+#: a producer's report of cycles given up starts with this, then their number and ": "
+GIVEN_UP = "given-up "
 
 
 class SyncSchedule:
@@ -107,6 +115,16 @@ class SyncSchedule:
         self._gap = round(MIN_INTERVAL * step)
         self._behind_max = round(MAX_BEHIND * 1e9)
         self.resynced = 0
+
+    def restart(self, now: int) -> int:
+        """Start the schedule again from ``now`` (the producer was held by the liveness gate:
+        a controller that made no progress); the cycles that fell due meanwhile are given up
+        (counted in :attr:`resynced`, and returned), not caught up."""
+        due = self._t0 + (self._k + 1) * self.step
+        skipped = max(0, (now - due) // self.step + 1) if now >= due else 0
+        self.resynced += skipped
+        self._t0, self._k = now, 0
+        return skipped
 
     def next(self, now: int, last: int) -> int:
         """The time the next SYNC goes out, ``now`` being the time and ``last`` the time the
@@ -134,6 +152,10 @@ class SyncStats:
     jitter_max: float
     #: acyclic synchronous TPDOs (transmission type 0) received, each in the cycle it came in
     acyclic: int = 0
+    #: cycles the producer gave up: not sent after a stall of the machine (more than
+    #: :data:`MAX_BEHIND` s behind) or while the controller made no progress (the liveness
+    #: gate held it), and not caught up
+    given_up: int = 0
 
 
 @dataclass
@@ -158,11 +180,17 @@ class SyncCycle:
     on the wire (raises on a bus error: reported through ``on_error`` and the cycle goes on)."""
 
     def __init__(self, period: float, send: Callable[[], None],
-                 on_error: Callable[[str], None], name: str) -> None:
+                 on_error: Callable[[str], None], name: str,
+                 alive: Callable[[], bool] | None = None) -> None:
         self.period = period
         self._send = send
         self._on_error = on_error
         self._name = name
+        #: the liveness gate of the producer thread (:meth:`start`): no SYNC while it says
+        #: the controller makes no progress (None: always open); its bound (s), for reports
+        self._alive = alive
+        self.liveness = 0.0
+        self._given_up = 0
         self._cond = threading.Condition()
         self._running = False
         self._thread: threading.Thread | None = None
@@ -249,9 +277,17 @@ class SyncCycle:
         if t is not None and t is not threading.current_thread():
             t.join(timeout=2.0)
 
+    def gave_up(self, n: int) -> None:
+        """``n`` cycles were given up by the producer (not sent, not caught up): counted in
+        :meth:`stats` (``given_up``) and :meth:`counters`."""
+        with self._cond:
+            self._given_up += n
+
     def _loop(self) -> None:
         start = time.monotonic()
         n = 0
+        held_since: float | None = None
+        missed = 0
         while True:
             n += 1
             deadline = start + n * self.period
@@ -260,12 +296,29 @@ class SyncCycle:
                     self._cond.wait(left)
                 if not self._running:
                     return
+            alive = self._alive
+            if alive is not None and not alive():
+                if held_since is None:
+                    held_since, missed = time.monotonic(), 0
+                    self._on_error(f"SYNC held: no sign of the controller's progress within "
+                                   f"liveness_ms {round(self.liveness * 1000)} (a stuck or "
+                                   f"stopped controller)")
+                missed += 1
+                self.gave_up(1)
+                continue
+            if held_since is not None:
+                self._on_error(f"SYNC resumed after {time.monotonic() - held_since:.2f} s "
+                               f"held: {missed} not sent")
+                held_since = None
             now = time.monotonic()
             if now - deadline > self.period / 2:
                 with self._cond:
                     self._late += 1
                 if now - deadline > self.period:     # far behind: resynchronise, skip cycles
+                    skipped = int((now - deadline) // self.period)
                     start = now - n * self.period
+                    if skipped:
+                        self.gave_up(skipped)
             self._send_counted(None)
 
     def _send_counted(self, at: float | None) -> None:
@@ -338,17 +391,17 @@ class SyncCycle:
                                 or not self._running, timeout)
             return self._completed_upto >= n
 
-    def counters(self) -> tuple[int, int, int]:
-        """(cycles, missing, late) without the jitter percentiles (cheap)."""
+    def counters(self) -> tuple[int, int, int, int]:
+        """(cycles, missing, late, given up) without the jitter percentiles (cheap)."""
         with self._cond:
-            return self.cycle, self._missing, self._late
+            return self.cycle, self._missing, self._late, self._given_up
 
     def stats(self) -> SyncStats:
         with self._cond:
             values = sorted(self._jitter)
             return SyncStats(self.period, self.cycle, self._complete, self._missing, self._late,
                              percentile(values, 0.5), percentile(values, 0.99), self._jitter_max,
-                             self._acyclic_count)
+                             self._acyclic_count, self._given_up)
 
 
 class ClockedSyncProducer:
@@ -390,27 +443,39 @@ class ClockedSyncProducer:
         self._running = False
 
 
-class SyncProducerProcess:
-    """SYNC on SocketCAN from a dedicated child process (see the module doc): it sends SYNC on
-    ``channel`` every ``period`` s on absolute deadlines through its own raw CAN socket, and
-    stops when :meth:`stop` closes its stdin, or when this process dies (its stdin reaches end
-    of file; it also checks its parent's pid every :data:`PARENT_CHECK` ns). It runs
-    ``SCHED_FIFO`` at ``priority`` (1..99; 0: ``SCHED_OTHER``) when the process may set that,
-    else ``SCHED_OTHER``. A failing send, a refused priority (once) or an unexpected exit is
-    reported through ``on_error``."""
+class ProducerProcess:
+    """A frame producer on SocketCAN in a dedicated child process (see the module doc): this
+    file run as a program with ``args`` (after the channel, period, parent pid and priority),
+    its own raw CAN socket, absolute deadlines. It stops when :meth:`stop` closes its stdin, or
+    when this process dies (its stdin reaches end of file; it also checks its parent's pid every
+    :data:`PARENT_CHECK` ns). It runs ``SCHED_FIFO`` at ``priority`` (1..99; 0:
+    ``SCHED_OTHER``) when the process may set that. With ``gate`` (s, > 0) it sends only while
+    it is fed (:meth:`feed`) within ``gate`` seconds and the last feed said alive: the
+    controller's liveness (:mod:`drivers.canopen_heartbeat`). Its reports (a failing send, a
+    refused priority, a hold and its end, an unexpected exit) go to ``on_error``; a report of
+    cycles given up (``given-up N: ...``) also to ``on_given_up(N)``."""
+
+    #: what it produces, in its error messages
+    what = "frame"
 
     def __init__(self, channel: str, period: float, on_error: Callable[[str], None],
-                 name: str, priority: int = DEFAULT_SYNC_PRIORITY) -> None:
+                 name: str, priority: int = DEFAULT_SYNC_PRIORITY, gate: float = 0.0,
+                 args: tuple[str, ...] = (),
+                 on_given_up: Callable[[int], None] | None = None) -> None:
         if not 0 <= priority <= MAX_SYNC_PRIORITY:
             raise ValueError(f"sync_priority: expected 0..{MAX_SYNC_PRIORITY}, got {priority}")
         self.channel = channel
         self.period = period
         self.priority = priority
+        self.gate = gate
+        self._args = args
         self._on_error = on_error
+        self._on_given_up = on_given_up
         self._name = name
         self._proc: subprocess.Popen[str] | None = None
         self._thread: threading.Thread | None = None
         self._stopping = False
+        self._feed_lock = threading.Lock()
 
     @property
     def pid(self) -> int | None:
@@ -421,8 +486,8 @@ class SyncProducerProcess:
         """Start the producer process and wait until its socket is bound. Raises OSError when
         it cannot start (no such interface, no AF_CAN), with its own words."""
         proc = subprocess.Popen(
-            [sys.executable, "-I", os.path.abspath(__file__), self.channel, repr(self.period),
-             str(os.getpid()), str(self.priority)],
+            [sys.executable, "-I", os.path.abspath(__file__), *self._args, self.channel,
+             repr(self.period), str(os.getpid()), str(self.priority), repr(self.gate)],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         assert proc.stdout is not None
         first = proc.stdout.readline().strip()
@@ -432,23 +497,44 @@ class SyncProducerProcess:
                 proc.stdin.close()
             rc = proc.wait()
             words = " ".join(f"{first} {rest}".split()) or "no output"
-            raise OSError(f"the SYNC producer process for {self.channel} did not start "
+            raise OSError(f"the {self.what} producer process for {self.channel} did not start "
                           f"(exit status {rc}): {words}")
         self._proc = proc
         self._thread = threading.Thread(target=self._listen, args=(proc, proc.stdout),
                                         name=self._name, daemon=True)
         self._thread.start()
 
+    def feed(self, alive: bool) -> None:
+        """Tell the producer whether the controller is alive (its gate opens for ``gate``
+        seconds, or closes at once). Never blocks for long, never raises (a producer that
+        ended is reported by its listener)."""
+        proc = self._proc
+        if proc is None or proc.stdin is None:
+            return
+        with self._feed_lock:
+            try:
+                proc.stdin.write(FED if alive else HELD)
+                proc.stdin.flush()
+            except (OSError, ValueError):
+                pass
+
     def _listen(self, proc: subprocess.Popen[str], out: IO[str]) -> None:
         """The producer's reports (one line each) to ``on_error``, until it exits; an exit
         that :meth:`stop` did not ask for is reported too."""
         for line in out:
-            if line.strip():
-                self._on_error(line.strip())
+            text = line.strip()
+            if not text:
+                continue
+            head, sep, rest = text.partition(": ")
+            if sep and head.startswith(GIVEN_UP) and head[len(GIVEN_UP):].strip().isdigit():
+                if self._on_given_up is not None:
+                    self._on_given_up(int(head[len(GIVEN_UP):]))
+                text = rest
+            self._on_error(text)
         rc = proc.wait()
         if not self._stopping:
-            self._on_error(f"the SYNC producer process exited (status {rc}): no SYNC on "
-                           f"{self.channel} any more")
+            self._on_error(f"the {self.what} producer process exited (status {rc}): no "
+                           f"{self.what} on {self.channel} any more")
 
     def stop(self) -> None:
         """End the producer: close its stdin, wait for it (killed if it does not end within
@@ -458,8 +544,9 @@ class SyncProducerProcess:
         if proc is None:
             return
         try:
-            if proc.stdin is not None:
-                proc.stdin.close()
+            with self._feed_lock:
+                if proc.stdin is not None:
+                    proc.stdin.close()
             proc.wait(timeout=2.0)
         except (OSError, subprocess.TimeoutExpired):
             proc.kill()
@@ -469,10 +556,38 @@ class SyncProducerProcess:
             t.join(timeout=2.0)
 
 
-def producer_processes(parent: int) -> list[int]:
-    """The pids of the SYNC producer processes among process ``parent``'s children (what
-    ``ps`` shows as ``... drivers/canopen_sync.py``): for tests and benchmarks that look at the
-    producer from outside. Linux only (``/proc``)."""
+class SyncProducerProcess(ProducerProcess):
+    """SYNC on SocketCAN from a dedicated child process (see :class:`ProducerProcess` and the
+    module doc): SYNC every ``period`` s on absolute deadlines; cycles given up (a stall, the
+    liveness gate) are reported to ``on_given_up``."""
+
+    what = "SYNC"
+
+    def __init__(self, channel: str, period: float, on_error: Callable[[str], None],
+                 name: str, priority: int = DEFAULT_SYNC_PRIORITY, gate: float = 0.0,
+                 on_given_up: Callable[[int], None] | None = None) -> None:
+        super().__init__(channel, period, on_error, name, priority, gate, (),
+                         on_given_up)
+
+
+class HeartbeatProducerProcess(ProducerProcess):
+    """The master's heartbeat (COB-ID 0x700 + ``node_id``, state OPERATIONAL) on SocketCAN
+    from a dedicated child process (see :class:`ProducerProcess`): one every ``period`` s on
+    absolute deadlines (a late one is not caught up: the next goes on the grid)."""
+
+    what = "master heartbeat"
+
+    def __init__(self, channel: str, period: float, node_id: int,
+                 on_error: Callable[[str], None], name: str,
+                 priority: int = DEFAULT_SYNC_PRIORITY, gate: float = 0.0) -> None:
+        super().__init__(channel, period, on_error, name, priority, gate,
+                         (HEARTBEAT_MODE, str(node_id)))
+
+
+def producer_processes(parent: int, kind: str = "sync") -> list[int]:
+    """The pids of the producer processes of ``kind`` (``"sync"``, ``"heartbeat"``) among
+    process ``parent``'s children (what ``ps`` shows as ``... drivers/canopen_sync.py``): for
+    tests and benchmarks that look at a producer from outside. Linux only (``/proc``)."""
     found = []
     for task in Path(f"/proc/{parent}/task").iterdir():
         try:                                     # a thread or child may end meanwhile
@@ -484,7 +599,11 @@ def producer_processes(parent: int) -> list[int]:
                 cmd = Path(f"/proc/{child}/cmdline").read_bytes().split(b"\0")
             except FileNotFoundError:
                 continue
-            if any(arg.endswith(b"canopen_sync.py") for arg in cmd):
+            at = next((i for i, arg in enumerate(cmd) if arg.endswith(b"canopen_sync.py")), -1)
+            if at < 0:
+                continue
+            beat = at + 1 < len(cmd) and cmd[at + 1] == HEARTBEAT_MODE.encode()
+            if beat == (kind == "heartbeat"):
                 found.append(int(child))
     return found
 
@@ -514,58 +633,127 @@ def _absolute_sleep() -> Callable[[int], None]:
     return sleep_until
 
 
-def _watch_stdin(stream: IO[bytes]) -> None:
-    """The producer's stdin is a pipe from the driver: at its end (the driver stopped it, or
-    the driver's process died and the kernel closed its end) the producer ends at once."""
-    while stream.read(4096):
-        pass
+class _Gate:
+    """The producer program's liveness gate: open while the driver fed it (:data:`FED`)
+    within ``bound`` ns and did not say :data:`HELD` since; always open without a bound. Fed by
+    the stdin thread, asked by the main loop (plain attributes: one writer)."""
+
+    def __init__(self, bound: int) -> None:
+        self.bound = bound
+        self.fed_at = time.monotonic_ns()
+        self.held = False
+
+    def feed(self, data: bytes) -> None:
+        """What the driver wrote: its last word counts."""
+        last = data.rstrip()[-1:]
+        if last == FED.encode():
+            self.fed_at, self.held = time.monotonic_ns(), False
+        elif last == HELD.encode():
+            self.held = True
+
+    def open(self, now: int) -> bool:
+        return self.bound <= 0 or (not self.held and now - self.fed_at <= self.bound)
+
+
+def _watch_stdin(fd: int, gate: _Gate) -> None:
+    """The producer's stdin is a pipe from the driver: what it writes feeds the gate; at its
+    end (the driver stopped it, or the driver's process died and the kernel closed its end)
+    the producer ends at once."""
+    while data := os.read(fd, 4096):
+        gate.feed(data)
     os._exit(0)
 
 
-def real_time(priority: int) -> str | None:
+def real_time(priority: int, what: str = "SYNC") -> str | None:
     """Make the calling process ``SCHED_FIFO`` at ``priority`` (0: leave it as it is). None when
     done (or not asked for), else why it stays ``SCHED_OTHER`` (the kernel's refusal, and what
-    would allow it)."""
+    would allow it); ``what`` names what it produces."""
     if priority <= 0:
         return None
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
     except (OSError, AttributeError) as exc:
         limit = str(resource.getrlimit(resource.RLIMIT_RTPRIO)[0])
-        return (f"SYNC runs without real-time priority (SCHED_OTHER, competing with the "
+        return (f"{what} runs without real-time priority (SCHED_OTHER, competing with the "
                 f"controller's threads): SCHED_FIFO priority {priority} refused ({exc}); it "
                 f"needs root, CAP_SYS_NICE or RLIMIT_RTPRIO >= {priority} (it is {limit}); "
                 f"sync_priority = 0 does not ask")
     return None
 
 
-def produce(channel: str, period: float, parent: int,
-            priority: int = DEFAULT_SYNC_PRIORITY) -> int:
-    """The producer process's body (``python drivers/canopen_sync.py CHANNEL PERIOD PARENT
-    PRIORITY``): SYNC on ``channel`` on :class:`SyncSchedule`, until stdin ends or ``parent`` is
-    no longer its parent, ``SCHED_FIFO`` at ``priority`` if it may (:func:`real_time`). Prints
-    :data:`READY` once bound, then one line per report (a refused priority, failing sends, a
-    stall that restarted the schedule); when the socket cannot be opened or bound, says why
-    instead and returns 1."""
-    # Ctrl-C at a terminal reaches the whole process group: SYNC goes on until the driver,
-    # shutting down, stops it
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+def _open(channel: str) -> socket.socket | None:
+    """A raw CAN socket on ``channel`` that receives nothing; None after saying why not."""
     try:
         sock = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
-        sock.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, b"")   # receives nothing
+        sock.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, b"")
         sock.bind((channel,))
     except OSError as exc:
         print(f"cannot open a raw CAN socket on {channel}: {exc}", flush=True)
-        return 1
-    frame = struct.pack("=IB3x8s", SYNC_COB_ID, 0, b"")
+        return None
+    return sock
+
+
+def _begin(priority: int, what: str, gate: float) -> tuple[_Gate, Callable[[int], None]]:
+    """The common start of a producer program once its socket is bound: its priority, the
+    stdin watcher feeding its gate (``gate`` s), :data:`READY`, the refusal if any."""
     sleep_until = _absolute_sleep()
-    refused = real_time(priority)               # before the watcher thread: it inherits it
-    last = time.monotonic_ns()
-    schedule = SyncSchedule(last, round(period * 1e9))
-    threading.Thread(target=_watch_stdin, args=(sys.stdin.buffer,), daemon=True).start()
+    refused = real_time(priority, what)         # before the watcher thread: it inherits it
+    g = _Gate(round(gate * 1e9))
+    threading.Thread(target=_watch_stdin, args=(sys.stdin.fileno(), g), daemon=True).start()
     print(READY, flush=True)
     if refused is not None:
         print(refused, flush=True)
+    return g, sleep_until
+
+
+class _Hold:
+    """The producer's reports of the gate: once when it closes, once (with what was not sent)
+    when it opens again."""
+
+    def __init__(self, what: str, channel: str, gate: float) -> None:
+        self.what, self.channel, self.gate = what, channel, gate
+        self.since: int | None = None
+        self.missed = 0
+
+    def closed(self, now: int) -> None:
+        if self.since is None:
+            self.since = now
+            print(f"{self.what} on {self.channel} held: no sign of the controller's progress "
+                  f"within liveness_ms {round(self.gate * 1000)} (a stuck or stopped "
+                  f"controller)", flush=True)
+        self.missed += 1
+
+    def opened(self, now: int, given_up: bool) -> None:
+        if self.since is None:
+            return
+        held = (now - self.since) / 1e9
+        head = f"{GIVEN_UP}{self.missed}: " if given_up else ""
+        print(f"{head}{self.what} on {self.channel} resumed after {held:.2f} s held: "
+              f"{self.missed} not sent", flush=True)
+        self.since, self.missed = None, 0
+
+
+def produce(channel: str, period: float, parent: int,
+            priority: int = DEFAULT_SYNC_PRIORITY, gate: float = 0.0) -> int:
+    """The SYNC producer process's body (``python drivers/canopen_sync.py CHANNEL PERIOD
+    PARENT PRIORITY GATE``): SYNC on ``channel`` on :class:`SyncSchedule`, until stdin ends or
+    ``parent`` is no longer its parent, ``SCHED_FIFO`` at ``priority`` if it may
+    (:func:`real_time`), only while its liveness gate is open (``gate`` s; 0: always). Prints
+    :data:`READY` once bound, then one line per report (a refused priority, failing sends, a
+    hold of the gate and its end, a stall that restarted the schedule; cycles given up as
+    ``given-up N: ...``); when the socket cannot be opened or bound, says why instead and
+    returns 1."""
+    # Ctrl-C at a terminal reaches the whole process group: SYNC goes on until the driver,
+    # shutting down, stops it
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    sock = _open(channel)
+    if sock is None:
+        return 1
+    frame = struct.pack("=IB3x8s", SYNC_COB_ID, 0, b"")
+    g, sleep_until = _begin(priority, "SYNC", gate)
+    last = time.monotonic_ns()
+    schedule = SyncSchedule(last, round(period * 1e9))
+    hold = _Hold("SYNC", channel, gate)
     failed = 0
     reported = 0
     resynced = 0
@@ -580,9 +768,15 @@ def produce(channel: str, period: float, parent: int,
         if at > now:
             sleep_until(at)
         if schedule.resynced > resynced:
-            print(f"SYNC producer on {channel} stalled: schedule started again, "
-                  f"{schedule.resynced - resynced} cycles given up", flush=True)
+            n = schedule.resynced - resynced
+            print(f"{GIVEN_UP}{n}: SYNC producer on {channel} stalled: schedule started "
+                  f"again, {n} cycles given up", flush=True)
             resynced = schedule.resynced
+        if not g.open(at):
+            hold.closed(at)                      # this cycle is given up, not caught up
+            last = max(at, time.monotonic_ns())
+            continue
+        hold.opened(at, given_up=True)
         try:
             sock.send(frame)
         except OSError as exc:
@@ -595,6 +789,57 @@ def produce(channel: str, period: float, parent: int,
         last = time.monotonic_ns()
 
 
+def produce_heartbeat(channel: str, period: float, parent: int, priority: int, gate: float,
+                      node_id: int) -> int:
+    """The master heartbeat producer process's body (``python drivers/canopen_sync.py
+    heartbeat NODE CHANNEL PERIOD PARENT PRIORITY GATE``): the heartbeat of node ``node_id``
+    (state OPERATIONAL) on ``channel`` at t0 + k * ``period`` (a deadline missed is not caught
+    up: the next goes on the grid), only while its liveness gate is open; ends as
+    :func:`produce` does, reports as it does."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    sock = _open(channel)
+    if sock is None:
+        return 1
+    frame = struct.pack("=IB3x8s", 0x700 + node_id, 1, b"\x05")
+    g, sleep_until = _begin(priority, "the master heartbeat", gate)
+    step = round(period * 1e9)
+    t0 = checked = time.monotonic_ns()
+    hold = _Hold("the master heartbeat", channel, gate)
+    k = 0
+    failed = reported = 0
+    while True:
+        now = time.monotonic_ns()
+        if now - checked >= PARENT_CHECK:
+            if os.getppid() != parent:
+                return 0
+            checked = now
+        k = max(k + 1, (now - t0) // step + 1)   # the next grid point, none caught up
+        at = t0 + k * step
+        sleep_until(at)
+        if not g.open(at):
+            hold.closed(at)
+            continue
+        hold.opened(at, given_up=False)
+        try:
+            sock.send(frame)
+        except OSError as exc:
+            failed += 1
+            if at - reported >= ERROR_EVERY * 1e9:
+                print(f"the master heartbeat not sent on {channel} ({failed} since the last "
+                      f"report): {exc}", flush=True)
+                failed, reported = 0, at
+
+
+def main(argv: list[str]) -> int:
+    """The producer program: ``[heartbeat NODE] CHANNEL PERIOD PARENT [PRIORITY [GATE]]``."""
+    if argv[:1] == [HEARTBEAT_MODE]:
+        node, rest = int(argv[1]), argv[2:]
+        return produce_heartbeat(rest[0], float(rest[1]), int(rest[2]), int(rest[3]),
+                                 float(rest[4]), node)
+    return produce(argv[0], float(argv[1]), int(argv[2]),
+                   int(argv[3]) if len(argv) > 3 else DEFAULT_SYNC_PRIORITY,
+                   float(argv[4]) if len(argv) > 4 else 0.0)
+
+
 if __name__ == "__main__":
-    sys.exit(produce(sys.argv[1], float(sys.argv[2]), int(sys.argv[3]),
-                     int(sys.argv[4]) if len(sys.argv) > 4 else DEFAULT_SYNC_PRIORITY))
+    sys.exit(main(sys.argv[1:]))

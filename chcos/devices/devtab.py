@@ -459,6 +459,12 @@ class Devtab:
         """The kernel clock's time."""
         return self.kernel.clock.now()
 
+    def progress(self) -> float:
+        """When the kernel was last seen making progress, in kernel-clock time
+        (:attr:`chcos.kernel.scheduler.Kernel.progress`): a driver's liveness gate stops what
+        tells the devices the controller is alive once it is too old. Thread-safe."""
+        return self.kernel.progress
+
     # ---- interrupt handlers (kernel thread) -------------------------------------------------
     def _reading(self, device: str, raw: Any, at: float, now: float) -> None:
         """One reading on the kernel thread (see :meth:`_readings`): got by the driver at

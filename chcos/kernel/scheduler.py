@@ -87,6 +87,11 @@ class Kernel:
         self._tasks: dict[TaskEntry, None] = {}
         #: suspend, resume, cancel and the end of activations
         self.lifecycle = Lifecycle(self)
+        # scheduling rounds completed (one per turn of run's loop), and when a reader of
+        # progress last saw the count move (see progress)
+        self._rounds = 0
+        self._seen_rounds = -1
+        self._progress_at = 0.0
 
     # ---- instruments, the lifecycle of activations, timers, collected errors (owned objects) --
     def add_instrument(self, instrument: Instrument) -> None:
@@ -302,6 +307,20 @@ class Kernel:
         """True while :meth:`run` is executing."""
         return self._running
 
+    @property
+    def progress(self) -> float:
+        """The clock time at which the kernel was last seen making progress: completing a
+        scheduling round (interrupts drained, due timers fired, a task stepped), waiting idle
+        for work, or not running. A reader on another thread (a driver's liveness gate) looks
+        now and then: the time is that of the look that saw the round count move, so a kernel
+        stuck in a step or an interrupt handler (a deadlock, a task that never awaits) shows
+        ``clock.now() - progress`` growing. Thread-safe (a read of plain attributes)."""
+        rounds = self._rounds
+        if rounds != self._seen_rounds or self._idle or not self._running:
+            self._seen_rounds = rounds
+            self._progress_at = self.clock.now()
+        return self._progress_at
+
     def on_kernel_thread(self) -> bool:
         """True when called from the thread that is running :meth:`run`."""
         return self.thread_ident == threading.get_ident()
@@ -321,6 +340,7 @@ class Kernel:
         hooks = self.hooks
         try:
             while True:
+                self._rounds += 1   # progress: read by the liveness gates of drivers
                 if irq:  # interrupts first, and stop(), which queues one
                     self._drain_irq()
                     if self._stop:
@@ -394,6 +414,7 @@ class Kernel:
         clock, irq, timers = self.clock, self._irq, self.timers
         try:
             while True:
+                self._rounds += 1
                 if irq:
                     self._drain_irq()
                 if done() or time.monotonic() >= wall_deadline:

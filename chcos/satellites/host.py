@@ -342,6 +342,21 @@ class Host:
         except (InstallError, LinkError):
             pass  # the next attempt finds out again
 
+    def _nmt(self, line: str, req: cmdline.NmtCmd, up: list[int]) -> str:
+        """``nmt WORD NODE BUS``: to the satellite driving ``BUS`` (the machine of its
+        devices). Raises InstallError without a bus or for a bus no device is on, LinkError
+        when its satellite is not up."""
+        if not req.bus:
+            raise InstallError(f"nmt {req.word} {req.node}: on a system of satellites name the "
+                               f"bus (nmt {req.word} {req.node} BUS)")
+        machines = {d["machine"] for d in self.map_doc()["devices"] if d["bus"] == req.bus}
+        if not machines:
+            raise InstallError(f"nmt: no device on bus {req.bus!r} in {self.sf.name}")
+        machine = min(machines)
+        if machine not in up:
+            raise LinkError(f"bus {req.bus} is driven by machine {machine}, which is not up")
+        return str(self._ask(machine, ExecRequest(line))["answer"])
+
     def rejected(self, machine: int) -> dict[str, int]:
         """How many payloads satellite ``machine`` refused so far, by cause."""
         return dict(self._map_answer(machine)["rejected"])
@@ -373,6 +388,8 @@ class Host:
         if isinstance(req, cmdline.TaskOp) and req.op == "reset" and not req.task:
             return "; ".join(f"machine {m}: {self._ask(m, ExecRequest(line))['answer']}"
                              for m in up)
+        if isinstance(req, cmdline.NmtCmd):
+            return self._nmt(line, req, up)
         name = (req.task if isinstance(req, cmdline.Invoke | cmdline.TaskOp)
                 else req.device if isinstance(req, cmdline.Inject | cmdline.AxisCmd) else "")
         if name not in self._where:

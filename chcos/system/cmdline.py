@@ -5,7 +5,8 @@
 always`` and ``--backoff=S`` for its restart policy; ``install -m1 sysfile`` loads a satellite, a
 second time reloads it), ``setpri -# srctsk dsttsk``, ``resetpri tsk`` / ``resetpri srctsk
 dsttsk``, ``invoke [-#] tsk [key=value...]``, plus ``suspend``, ``resume``, ``close``, ``reset``,
-``inject``, ``axis`` (the commands of a CiA 402 axis) and ``map``.
+``inject``, ``axis`` (the commands of a CiA 402 axis), ``nmt`` (an NMT command to a CANopen
+node) and ``map``.
 Parsing is pure: it returns a request record and raises CommandSyntaxError naming the command,
 the word and what was expected.
 """
@@ -127,7 +128,22 @@ class AxisCmd:
     mode: str = ""
 
 
-Request = Install | Boot | SetPri | ResetPri | Invoke | TaskOp | Inject | ShowMap | AxisCmd
+#: ``nmt WORD NODE [BUS]``: the NMT commands of CiA 301 (7.2.8.3.1), as the host words them
+NMT_WORDS = ("start", "stop", "preop", "reset", "reset-comm")
+
+
+@dataclass(frozen=True)
+class NmtCmd:
+    """``nmt WORD NODE [BUS]``: send NMT command ``word`` (one of :data:`NMT_WORDS`) to
+    CANopen node ``node`` (1..127) of bus ``bus`` ("": the one CANopen bus that has it)."""
+
+    word: str
+    node: int
+    bus: str = ""
+
+
+Request = (Install | Boot | SetPri | ResetPri | Invoke | TaskOp | Inject | ShowMap | AxisCmd
+           | NmtCmd)
 
 
 def _int(cmd: str, word: str, what: str, lo: int = 0, hi: int | None = None) -> int:
@@ -431,9 +447,23 @@ def parse(line: str | list[str]) -> Request | None:
         return ShowMap()
     if cmd == "axis":
         return _axis(args)
+    if cmd == "nmt":
+        return _nmt(args)
     raise CommandSyntaxError(
         f"unknown command {cmd!r} (expected install, setpri, resetpri, invoke, suspend, "
-        "resume, close, reset, inject, axis or map)")
+        "resume, close, reset, inject, axis, nmt or map)")
+
+
+def _nmt(args: list[str]) -> NmtCmd:
+    usage = f"nmt {'|'.join(NMT_WORDS)} NODE [BUS]"
+    if len(args) not in (2, 3):
+        raise CommandSyntaxError(f"nmt: expected {usage}, got {' '.join(args) or 'nothing'}")
+    word = args[0]
+    if word not in NMT_WORDS:
+        raise CommandSyntaxError(f"nmt: unknown command {word!r}; expected one of "
+                                 f"{', '.join(NMT_WORDS)}")
+    node = _int(f"nmt {word}", args[1], "node id", 1, 127)
+    return NmtCmd(word, node, args[2] if len(args) == 3 else "")
 
 
 def _axis(args: list[str]) -> AxisCmd:

@@ -202,6 +202,20 @@ class System:
         self.call(self.sysmgr.flush_map)  # one map write for the script's last changes
         return answers
 
+    def nmt(self, command: str, node: int, bus: str = "") -> str:
+        """Send NMT ``command`` (start, stop, preop, reset, reset-comm) to CANopen node
+        ``node`` (of ``bus`` if given): the host's ``nmt`` command as a Python call, logged as
+        it is (see :meth:`SystemManager.nmt`); on the kernel thread. Raises CommandSyntaxError
+        for a command that is none or a node id outside 1..127, InstallError for a node no
+        bus has, BusError when it cannot be sent."""
+        return self.execute(cmdline.NmtCmd(*self._nmt_args(command, node), bus))
+
+    @staticmethod
+    def _nmt_args(command: str, node: int) -> tuple[str, int]:
+        req = cmdline.parse(["nmt", command, str(node)])
+        assert isinstance(req, cmdline.NmtCmd)
+        return req.word, req.node
+
     def invoke(self, task: str, command: Any = None, priority: int | None = None) -> str:
         """Send a command message from the host to ``task`` (see SystemManager.invoke)."""
         return self.sysmgr.invoke(task, command, priority)

@@ -22,6 +22,7 @@ from chcos.system.cmdline import (
     Inject,
     Install,
     Invoke,
+    NmtCmd,
     Request,
     ResetPri,
     SetPri,
@@ -30,7 +31,7 @@ from chcos.system.cmdline import (
 )
 from chcos.system.installer import Installer, is_path
 from chcos.system.mapfile import MAP_COST_FACTOR, MAP_MIN_GAP, MapFile
-from chcos.system.ports import Devices, Messages, Scheduler, Setup
+from chcos.system.ports import Devices, Messages, NodeMaster, Scheduler, Setup
 from chcos.tables.messages import (
     DEFAULT_COMMAND_PRIORITY,
     DEFAULT_SENSORY_PRIORITY,
@@ -268,6 +269,28 @@ class SystemManager:
             return f"{name} <- {value!r}"
         raise InstallError(f"inject: no sensor or terminal named {name!r}")
 
+    def nmt(self, word: str, node: int, bus: str = "") -> str:
+        """The host's ``nmt WORD NODE [BUS]``: NMT command ``word`` (start, stop, preop, reset,
+        reset-comm) to CANopen node ``node`` of ``bus`` (""): the one bus this process drives
+        that has the node), sent at once by the bus's driver; logged as an ``nmt`` event.
+        Raises InstallError for a node no bus (or not that bus) has, or that two buses have,
+        BusError when the driver cannot send it."""
+        masters = [d for d in self.devtab.drivers if isinstance(d, NodeMaster)
+                   and (not bus or d.bus.name == bus)]
+        having = [d for d in masters if node in d.node_states()]
+        if not having:
+            where = f"bus {bus}" if bus else "any CANopen bus this process drives"
+            known = ", ".join(f"{d.bus.name}: {', '.join(str(n) for n in sorted(d.node_states()))}"
+                              for d in masters) or "none"
+            raise InstallError(f"nmt {word} {node}: no node {node} on {where} (nodes: {known})")
+        if len(having) > 1:
+            raise InstallError(f"nmt {word} {node}: node {node} is on buses "
+                               f"{', '.join(d.bus.name for d in having)}; name one (nmt {word} "
+                               f"{node} BUS)")
+        answer = having[0].nmt(word, node)
+        self.msgmgr.event("nmt", f"host nmt {word} {node}: {answer}")
+        return answer
+
     # ---- dispatch and map -------------------------------------------------------------------
     def execute(self, req: Request) -> str:
         """Carry out one parsed host request; returns a one-line answer. Raises ChcosError."""
@@ -288,6 +311,8 @@ class SystemManager:
             return self.task_op(req.op, req.task)
         if isinstance(req, Inject):
             return self.inject(req.device, req.value)
+        if isinstance(req, NmtCmd):
+            return self.nmt(req.word, req.node, req.bus)
         if isinstance(req, ShowMap):
             from chcos.system.textview import render_text
 

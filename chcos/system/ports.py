@@ -9,10 +9,10 @@ so it depends on no ``System`` (no service locator, no import cycle).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 from chcos.kernel.clock import Clock
 from chcos.tables.messages import Link, TapPort
@@ -94,8 +94,28 @@ class Messages(Protocol):
         ...
 
 
+@runtime_checkable
+class NodeMaster(Protocol):
+    """A driver that is the NMT master of its bus's nodes (the CANopen driver): the host's
+    ``nmt`` command reaches it through this."""
+
+    #: the bus it drives (its ``name``)
+    bus: Any
+
+    def node_states(self) -> Mapping[int, Any]:
+        """Each node's status by node id."""
+        ...
+
+    def nmt(self, command: str, node: int) -> str:
+        """Send NMT ``command`` (a host word) to ``node``; the answer. Raises BusError."""
+        ...
+
+
 class Devices(Protocol):
     """The device table, as the system manager sees it."""
+
+    #: the running drivers (their ``bus.name`` says which bus)
+    drivers: list[Any]
 
     def __contains__(self, name: object) -> bool:
         """Whether a device ``name`` exists."""
