@@ -135,6 +135,13 @@ class NodeEvents:
     def where(self, node: ManagedNode) -> str:
         return node.where(self.bus)
 
+    def reason(self, node: ManagedNode) -> str:
+        """Why ``node``'s devices fail for its lifecycle: the node, its state (unless its
+        reason says it already) and the reason (call with the node's lock held)."""
+        lc = node.lifecycle
+        state = "" if lc.reason.startswith(lc.state.value) else f"{lc.state.value}: "
+        return f"{self.where(node)}: {state}{lc.reason}"
+
     def judge(self, node: ManagedNode, why_ok: str) -> None:
         """Fail or recover ``node``'s devices (cause ``lifecycle``) by its lifecycle: OK only
         while it is ready; while the driver is first bringing it up, not failed yet."""
@@ -143,7 +150,7 @@ class NodeEvents:
             if ready:
                 node.starting = False
             hold = node.starting
-            reason = f"{self.where(node)}: {node.lifecycle.state.value}: {node.lifecycle.reason}"
+            reason = self.reason(node)
         if ready:
             for dev in node.devices:
                 self.health.clear(dev, "lifecycle", f"{self.where(node)}: {why_ok}")
@@ -161,7 +168,7 @@ class NodeEvents:
         with node.lock:
             if node.lifecycle.ready() or node.starting:
                 return
-            reason = f"{self.where(node)}: {node.lifecycle.state.value}: {node.lifecycle.reason}"
+            reason = self.reason(node)
         for dev in node.devices:
             self.health.restate(dev, "lifecycle", reason)
 

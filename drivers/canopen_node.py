@@ -888,7 +888,8 @@ class CanopenDriver(WorkerJobDriver):
                 reg = result.error_register
                 if reg and not node.axes:
                     self._events.fail_node(node, "emcy", f"{where}: error register 0x1001 = "
-                                                  f"0x{reg:02X} at boot")
+                                                  f"0x{reg:02X} at boot",
+                                           keep=node.controlwords)
                 else:
                     self._events.clear_node(node, "emcy",
                                             f"{where}: error register 0x1001 clear at boot")

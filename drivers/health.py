@@ -16,6 +16,8 @@ class Health:
         self._host = host
         self._lock = threading.Lock()
         self._causes: dict[str, dict[str, str]] = {}
+        #: the reason last given to ``host.fail`` per failed device
+        self._shown: dict[str, str] = {}
 
     def fail(self, device: str, cause: str, reason: str) -> None:
         """Add ``cause`` (a key such as ``"heartbeat"``, ``"link"``) to ``device``;
@@ -24,6 +26,8 @@ class Health:
             causes = self._causes.setdefault(device, {})
             report = cause not in causes
             causes[cause] = reason
+            if report:
+                self._shown[device] = reason
         if report:
             self._host.fail(device, reason)
 
@@ -33,9 +37,10 @@ class Health:
         the device has no such cause or the reason is the same."""
         with self._lock:
             causes = self._causes.get(device)
-            if not causes or causes.get(cause) in (None, reason):
+            if not causes or cause not in causes or self._shown.get(device) == reason:
                 return
             causes[cause] = reason
+            self._shown[device] = reason
         self._host.fail(device, reason)
 
     def clear(self, device: str, cause: str, why: str = "") -> None:
@@ -49,6 +54,8 @@ class Health:
                 return
             del causes[cause]
             recovered = not causes
+            if recovered:
+                self._shown.pop(device, None)
         if recovered:
             self._host.recover(device, why or f"{cause} failure ended")
 

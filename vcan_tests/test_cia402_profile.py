@@ -228,8 +228,21 @@ def test_fault_reset_is_a_rising_edge_in_two_writes_and_retried() -> None:
     assert cws(axis.poll(0.25)) == [0x00]           # still in FAULT: a new edge
     assert cws(axis.poll(0.27)) == [0x80]
     out = axis.update(Reading(statusword=0x0250), 0.3)
-    assert [r.ok for r in out.results] == [True] and out.faults == (None,)
+    # out of FAULT: done once the drive's new 0x603F is read (the result shows it)
+    assert out.results == () and out.faults == (None,) and Obj.ERROR_CODE in out.reads
+    (result,) = axis.update(Reading(error_code=0x0000, answer=True), 0.31).results
+    assert result.ok and result.error_code == 0 and "0x603F 0x0000" in str(result)
     assert axis.fault is None
+
+
+def test_a_fault_reset_whose_new_error_code_is_not_answered_is_done_saying_so() -> None:
+    axis = Axis(AxisConfig("x", edge_gap=0.01, timeouts=Timeouts(error_code=0.2)))
+    axis.update(Reading(statusword=0x0218, error_code=0x8611), 0.0)
+    axis.fault_reset(0.0)
+    axis.poll(0.011)
+    assert not axis.update(Reading(statusword=0x0250), 0.05).results
+    (result,) = axis.poll(0.3).results
+    assert result.ok and result.error_code is None and "not read" in result.reason
 
 
 def test_fault_reset_that_the_drive_refuses_fails_naming_the_code() -> None:

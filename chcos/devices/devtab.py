@@ -49,6 +49,9 @@ SHUTDOWN_RETRY_PAUSE = 0.1
 # module constants: read on every reading and every command
 _FAILED = DeviceStatus.FAILED
 _SUSPENDED = DeviceStatus.SUSPENDED
+_INF = float("inf")
+#: the start of the failure of a sensor whose reading is no number (NaN, an infinity)
+NOT_A_VALUE = "reading is not a finite number"
 
 
 class Devtab:
@@ -481,6 +484,12 @@ class Devtab:
         kind = raw.__class__  # int and float first: scalable() for the rest (bool is not scaled)
         value = (raw * spec.scale + spec.offset if kind is int or kind is float or scalable(raw)
                  else raw)
+        if value.__class__ is float and not -_INF < value < _INF:     # NaN, an infinity
+            self._not_a_value(e, raw)
+            return
+        if e.failure and e.failure.startswith(NOT_A_VALUE):
+            e.failure = ""       # a number again: the failure it made ends (a driver's stays)
+            self._health.refresh(e, "a finite reading")
         e.value = value
         e.updated_at = now
         e.rx_at = at
@@ -490,6 +499,16 @@ class Devtab:
             self._health.refresh(e, "fresh data")
         if self._listener is not None and self._listener.reading(device, value):
             e.overwrites += 1
+
+    def _not_a_value(self, e: DeviceEntry, raw: Any) -> None:
+        """Sensor ``e`` received NaN or an infinity (after scale and offset): no value for a
+        task. The reading is counted and dropped; the sensor fails with the reason until a
+        finite reading comes (a failure its driver reported stays the driver's)."""
+        e.readings += 1
+        if not e.failure:
+            e.failure = (f"{NOT_A_VALUE}: the device sent {raw!r}"
+                         + ("" if e.value is None else f" (last value {e.value!r})"))
+            self._health.refresh(e, "")
 
     def _readings(self, readings: Sequence[tuple[str, Any]], at: float) -> None:
         """The interrupt of :meth:`deliver_many` and :meth:`deliver`: each reading in turn, all

@@ -594,6 +594,7 @@ class _Phase(Enum):
     LOW = "bit 7 low"          # fault reset: 0x00 sent
     HIGH = "bit 7 high"        # fault reset: 0x80 sent
     RETRY = "retry"            # fault reset: the drive stayed in FAULT, a new edge
+    LEFT = "left the fault"    # fault reset: out of FAULT, reading the new 0x603F
     CONFIRMING = "confirming"  # set mode: waiting for 0x6061
     RUNNING = "running"        # motion: under way
     STOPPING = "stopping"      # safe stop: waiting for standstill
@@ -669,6 +670,9 @@ class Axis:
         self._write_mark = 0
         #: readings (or some of their values) ignored as older than what the engine holds
         self.stale_readings = 0
+        #: the objects that have come in readings the drive sent by itself (PDOs), not only
+        #: as answers to reads: a statusword never pushed is read at each command's start
+        self._pushed: set[Obj] = set()
 
     # -- readings ----------------------------------------------------------------------------
 
@@ -708,6 +712,8 @@ class Axis:
         back to an earlier state of the drive."""
         mark = reading.received if reading.received is not None else self.order.mark()
         stale = False
+        if not reading.answer:
+            self._pushed.update(reading.values())
         for obj, value in reading.values().items():
             if mark < self._held.get(obj, 0) or (reading.answer
                                                  and self.order.last_pdo(obj) > mark):
@@ -845,6 +851,14 @@ class Axis:
         self._job = job
         if self.statusword is None:
             out.reads.append(Obj.STATUSWORD)
+        elif Obj.STATUSWORD not in self._pushed and job.op not in (Op.SAFE_STOP,
+                                                                    Op.QUICK_STOP):
+            # no PDO brings the statusword: the one held may be old (a fault since, seen only
+            # by its EMCY), so the command is judged on one read now (the stops act at once on
+            # the last state known, with controlwords safe in any state, as always)
+            self._write_mark = self.order.mark()
+            out.reads.append(Obj.STATUSWORD)
+            self._last_read[Obj.STATUSWORD] = now
         self._watch_fault(out, now)
         self._advance(out, now)
         return out.actions()
@@ -859,6 +873,8 @@ class Axis:
         """Track the drive's fault: note when it began, ask for 0x603F, report it once the code
         is fresh (or could not be read in time), and report its end."""
         faulted = self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE)
+        if self.state is State.FAULT_REACTION_ACTIVE and Obj.STATUSWORD not in self._pushed:
+            self._request(out, now, Obj.STATUSWORD)   # no PDO says when the reaction ends
         if faulted and self._fault_since is None:
             self._fault_since = now
             self._fault_reported = False
@@ -1025,8 +1041,20 @@ class Axis:
         if state is not State.FAULT:
             if job.phase == _Phase.START:
                 self._finish(out, now, True, "not in a fault")
-            else:
-                self._finish(out, now, True)
+                return
+            if not self._after_write(Obj.ERROR_CODE):
+                # out of FAULT: the result shows the drive's new 0x603F, read after the reset
+                # (at most error_code seconds: a drive that does not answer it is done anyway)
+                if job.phase is not _Phase.LEFT:
+                    job.phase, job.since = _Phase.LEFT, now
+                    self.error_code = None      # the fault's code is no longer the drive's
+                if now < job.since + self.config.timeouts.error_code:
+                    self._request(out, now, Obj.ERROR_CODE)
+                    return
+                self._finish(out, now, True, "the drive left FAULT; its new 0x603F was not "
+                                             "read")
+                return
+            self._finish(out, now, True)
             return
         # the edge: bit 7 clear, edge_gap later set; again if the drive stays in FAULT
         if job.phase in (_Phase.START, _Phase.RETRY):
