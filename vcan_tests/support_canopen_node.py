@@ -9,7 +9,7 @@ what CiA 301 asks of a real node beside durand's own objects, for the CANopen dr
   armed by the producer's first heartbeat after the entry is set, it declares the producer lost
   when no heartbeat came within the time, sends EMCY 0x8130 (heartbeat error, error register
   communication bit) and applies the error behaviour 0x1029:01 (0 PRE-OPERATIONAL if it was
-  OPERATIONAL, 1 no change, 2 STOPPED).
+  OPERATIONAL, 1 no change, 2 STOPPED); the producer's first heartbeat after that is an event.
 
 Every such happening is recorded in :attr:`Cia301Node.events` (and told to ``on_event``).
 Run as a process (``python -m vcan_tests.support_canopen_node --interface udp_multicast
@@ -62,6 +62,7 @@ class Cia301Node(DurandNode):
         self._beat = 0                      # the heartbeat a consumer timer was armed for
         self._watched: int | None = None    # the COB-ID the consumer subscribed to
         self._restoring = False             # 0x1010 reads its capability again after a save
+        self._lost_unheard = False          # a loss declared, no heartbeat since
         super().__init__(channel, node_id, **kw)
 
     # -- what happens to it -------------------------------------------------------------------
@@ -160,12 +161,16 @@ class Cia301Node(DurandNode):
         self._beat += 1
         if self.master_beats == 1:
             self.event("consumer armed")
+        if self._lost_unheard:
+            self._lost_unheard = False
+            self.event("producer heartbeat back")
         get_scheduler().add(ms / 1000.0, self._timeout, args=(self._beat,))
 
     def _timeout(self, armed: int) -> None:
         if armed != self._beat:
             return                              # a heartbeat came meanwhile
         self.consumer_losses += 1
+        self._lost_unheard = True
         self.event(f"producer heartbeat lost after {self.master_beats} heartbeats")
         self.node.emcy.set(EMCY_HEARTBEAT, REGISTER_COMMUNICATION)
         self.event(f"emcy 0x{EMCY_HEARTBEAT:04X}")

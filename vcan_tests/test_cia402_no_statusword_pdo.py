@@ -21,7 +21,8 @@ from drivers.codecs.cia402 import AxisCommandFailed
 from vcan_tests.netutil import unique_channel
 from vcan_tests.peers.durand_cia402 import ENABLED, FAULT, SOD, DurandCia402Drive
 from vcan_tests.support_cia402 import drive_eds
-from vcan_tests.test_cia402_axis_stack import M as STACK, axis_map
+from vcan_tests.test_cia402_axis_stack import M as STACK
+from vcan_tests.test_cia402_axis_stack import axis_map
 
 NODE = 5
 STEP = 0.02
