@@ -426,6 +426,19 @@ def check_store(k: str, node: Mapping[str, Any], od: Any | None) -> list[str]:
     return []
 
 
+#: the CAN-IDs CiA 301 (7.3.5) restricts to the services of the pre-defined connection set
+RESTRICTED_COB_IDS = ((0x000, 0x000, "NMT"), (0x001, 0x07F, "reserved"),
+                      (0x080, 0x080, "SYNC"), (0x081, 0x0FF, "EMCY"), (0x100, 0x100, "TIME"),
+                      (0x101, 0x180, "reserved"), (0x581, 0x5FF, "an SDO answer"),
+                      (0x601, 0x67F, "an SDO request"), (0x6E0, 0x6FF, "reserved"),
+                      (0x701, 0x77F, "a heartbeat"), (0x780, 0x7FF, "reserved"))
+
+
+def restricted_cob_id(cob: int) -> str | None:
+    """What restricted CAN-ID ``cob`` is kept for, None if a PDO may use it."""
+    return next((what for lo, hi, what in RESTRICTED_COB_IDS if lo <= cob <= hi), None)
+
+
 def _check_pdo(k: str, p: object, od: Any | None, seen: set[str]) -> list[str]:
     if not isinstance(p, Mapping):
         return [f"{k}: expected a table {{pdo, cob_id, transmission_type, map...}}, got {p!r}"]
@@ -445,6 +458,9 @@ def _check_pdo(k: str, p: object, od: Any | None, seen: set[str]) -> list[str]:
         errs.append(f"{k}.pdo: the node's EDS has no {name} (no object 0x{com:04X})")
     if "cob_id" in p and not (is_int(p["cob_id"]) and 0x001 <= p["cob_id"] <= 0x7FF):
         errs.append(f"{k}.cob_id: expected an 11-bit COB-ID 0x001..0x7FF, got {p['cob_id']!r}")
+    elif "cob_id" in p and (why := restricted_cob_id(p["cob_id"])):
+        errs.append(f"{k}.cob_id: 0x{p['cob_id']:03X} is {why} (a restricted CAN-ID, CiA 301 "
+                    f"7.3.5); a PDO cannot use it")
     tt = p.get("transmission_type")
     if tt is not None and not (_uint(tt, 8) and (tt <= 240 or tt >= 252)):
         errs.append(f"{k}.transmission_type: expected 0..240 (synchronous) or 252..255, got "

@@ -6,19 +6,24 @@ Bus options (``[[bus]] kind = "canopen"``):
   own configuration (``can.util.load_config``: ``CAN_INTERFACE``, ``CAN_CHANNEL``, config files).
   ``port``: the UDP port of interface ``udp_multicast`` (``channel`` is its multicast group; a bus
   shared by processes on any machine, e.g. ``chcos sim --from`` beside ``chcos run``).
-* ``nodes = [{id, eds, heartbeat_timeout, nmt_start, identity, config, store_config}]`` - node
-  id 1..127, the node's EDS file (absolute, or relative to the device-map file), heartbeat
-  timeout in seconds (optional: no heartbeat supervision), whether the driver puts the node
-  OPERATIONAL (default true), the identity 0x1018 it must have, the configuration downloaded at
-  each boot and whether it is then stored in the node (0x1010; :mod:`drivers.canopen_config`).
+* ``nodes = [{id, eds, heartbeat_timeout, nmt_start, identity, config, store_config,
+  restart_limit, restart_backoff}]`` - node id 1..127, the node's EDS file (absolute, or
+  relative to the device-map file), heartbeat timeout in seconds (optional: no heartbeat
+  supervision), whether the driver puts the node OPERATIONAL (default true), the identity 0x1018
+  it must have, the configuration downloaded at each boot and whether it is then stored in the
+  node (0x1010; :mod:`drivers.canopen_config`), and its recovery policy (default 5 restarts,
+  the first 1 s after it left OPERATIONAL, doubling:
+  :class:`drivers.canopen_lifecycle.RestartPolicy`).
 * ``sync_period`` (s, optional) - produce SYNC at this period (on SocketCAN from a producer
   process of the driver's own: :mod:`drivers.canopen_sync`); ``sync_priority`` (0..99, default
-  80) - that process's SCHED_FIFO priority (0: SCHED_OTHER; without the right to set it, it
-  stays SCHED_OTHER and the bus reports it once); ``poll_period`` (s, default 0.1) -
-  default SDO polling period; ``sdo_timeout`` (s, default 0.3) - SDO response timeout.
+  80) - the SCHED_FIFO priority of the producer processes (0: SCHED_OTHER; without the right to
+  set it, they stay SCHED_OTHER and the bus reports it once); ``poll_period`` (s, default 0.1)
+  - default SDO polling period; ``sdo_timeout`` (s, default 0.3) - SDO response timeout.
 * ``master_heartbeat_ms`` (optional) - produce the master's heartbeat (COB-ID 0x700 +
   ``master_node_id``, default 127, state OPERATIONAL) at this period, so that nodes with a
-  heartbeat consumer (0x1016) notice a dead controller.
+  heartbeat consumer (0x1016) notice a dead or frozen controller; ``liveness_ms`` (default
+  1000; 0: off) - the master heartbeat and SYNC stop when the controller's kernel completed no
+  scheduling round for this long (:mod:`drivers.canopen_heartbeat`).
 * ``poll`` (s, default 0.005) - the receive timeout of the driver's reader on interfaces it cannot
   wait on without receiving; it bounds :meth:`CanopenDriver.settle` there. Not used on SocketCAN
   or python-can's ``virtual`` interface (see :func:`drivers.canbus.read_frames`).
@@ -27,8 +32,12 @@ Each node is a :class:`drivers.canopen_remote.ManagedNode` with a lifecycle
 (:mod:`drivers.canopen_lifecycle`): at start and after every boot-up message the I/O thread checks
 its identity, reads its error register 0x1001, downloads its configuration (every write read
 back), sends one NMT start, and its devices are OK once its heartbeat confirms OPERATIONAL
-(:meth:`CanopenDriver.node_states` shows where each node is). The kernel receives only the
-nodes' COB-IDs (``can_filters``: heartbeats, EMCY, SDO answers, TPDOs).
+(:meth:`CanopenDriver.node_states` shows where each node is). A node that leaves OPERATIONAL by
+itself is started again by its recovery policy once its cause cleared (a :class:`RestartNode`
+job reads 0x1001 first); :meth:`CanopenDriver.nmt` is the host's NMT command. A command queued
+before a node's boot-up is not sent (its configuration, NMT start and safe value come first).
+The kernel receives only the nodes' COB-IDs (``can_filters``: heartbeats, EMCY, SDO answers,
+TPDOs).
 
 Frames are received by the driver's own reader thread (:func:`drivers.canbus.read_frames`), not
 by canopen's notifier, and handed to canopen's listeners (SDO responses, PDOs, heartbeats, EMCY),
@@ -57,9 +66,12 @@ rebooted makes each of its axes forget the drive and start its safe stop.
 Failures are listed in :mod:`drivers.canopen_events`. Every EMCY is reported through
 ``host.error(bus, "emcy", ...)``; EMCY codes of the classes current (2xxx), voltage (3xxx),
 temperature (4xxx), device hardware (50xx) and monitoring (8xxx) are fatal: they fail the node's
-devices until an error-reset EMCY (code 0000) or a boot that reads 0x1001 clear. Other
-``host.error`` kinds: ``boot-up`` (a node rebooted), ``identity``, ``config``, ``preop-held``,
-``sdo-abort``, ``timeout``, ``malformed``, ``unknown-node``.
+devices (but a CiA 402 drive's controlword in a plain map: the fault reset must get through)
+until an error-reset EMCY (code 0000) or a boot that reads 0x1001 clear. Other ``host.error``
+kinds: ``boot-up`` (a node rebooted; not for the host's ``nmt reset``), ``identity``,
+``config``, ``left-operational``, ``preop-held``, ``controller-stalled`` (the master heartbeat
+or SYNC held: the controller made no progress), ``sdo-abort``, ``timeout``, ``malformed``,
+``unknown-node`` (once per node per 10 s, with the count).
 """
 
 from __future__ import annotations

@@ -100,8 +100,8 @@ def check_bus(bus: BusSpec) -> list[str]:
             errs.append(f"{k}.{key}: expected a python-can {key} name, got {opts[key]!r}")
     if "bitrate" in opts and not (is_int(opts["bitrate"]) and opts["bitrate"] > 0):
         errs.append(f"{k}.bitrate: expected an integer > 0 (bit/s), got {opts['bitrate']!r}")
-    if "poll" in opts and not (is_number(opts["poll"]) and 0 < opts["poll"] <= 1):
-        errs.append(f"{k}.poll: expected seconds in (0, 1], got {opts['poll']!r}")
+    if "poll" in opts and not (is_number(opts["poll"]) and 0.0001 <= opts["poll"] <= 1):
+        errs.append(f"{k}.poll: expected seconds in [0.0001, 1], got {opts['poll']!r}")
     if "port" in opts and (opts.get("interface") != "udp_multicast" or not is_int(opts["port"])
                            or not 1 <= opts["port"] <= 65535):
         errs.append(f"{k}.port: the UDP port of interface \"udp_multicast\" (1..65535), got "
@@ -125,9 +125,10 @@ def check_bus(bus: BusSpec) -> list[str]:
     if prio is not None and not (is_int(prio) and 0 <= prio <= MAX_SYNC_PRIORITY):
         errs.append(f"{k}.sync_priority: expected the SYNC producer's SCHED_FIFO priority "
                     f"1..{MAX_SYNC_PRIORITY}, or 0 for SCHED_OTHER, got {prio!r}")
-    elif prio is not None and "sync_period" not in opts:
-        errs.append(f"{k}.sync_priority: the bus has no sync_period, so no SYNC producer to "
-                    f"give it to; set sync_period or remove sync_priority")
+    elif prio is not None and "sync_period" not in opts and "master_heartbeat_ms" not in opts:
+        errs.append(f"{k}.sync_priority: the bus has no sync_period and no "
+                    f"master_heartbeat_ms, so no producer process to give it to; set one or "
+                    f"remove sync_priority")
     mh = opts.get("master_heartbeat_ms")
     if mh is not None and not (is_int(mh) and 1 <= mh <= 65535):
         errs.append(f"{k}.master_heartbeat_ms: expected 1..65535 ms, got {mh!r}")

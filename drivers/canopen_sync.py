@@ -14,7 +14,9 @@ its data changed, so it is never due: each one received in cycle n is counted (`
 never counts as missing and never holds a cycle's completeness back.
 
 Two producers. On SocketCAN, :class:`SyncProducerProcess`: a process of the driver's own (this
-file run as a program, :func:`produce`) with its own raw CAN socket sends SYNC on absolute
+file run as a program, :func:`produce`; :class:`HeartbeatProducerProcess` is the same kind of
+process for the master heartbeat, :func:`produce_heartbeat`) with its own raw CAN socket sends
+SYNC on absolute
 deadlines t0 + k * period (:class:`SyncSchedule`; ``clock_nanosleep`` with ``TIMER_ABSTIME``
 through ctypes, one clock read and one send per SYNC), as a C producer would; it needs nothing
 of the chcos process - not its GIL, which a thread may hold for up to
@@ -30,7 +32,12 @@ reader sees each SYNC come back with its kernel time stamp (:meth:`SyncCycle.see
 jitter are counted from what went on the wire, late is an interval longer than 1.5 periods.
 The producer ends when the driver stops it and when the chcos process dies, SIGKILL included:
 its stdin is a pipe from the driver (end of file when the kernel closes the dying process's
-end) and it checks every 50 ms that its parent is unchanged.
+end) and it checks every 50 ms that its parent is unchanged. The same pipe carries its
+liveness gate (:mod:`drivers.canopen_heartbeat`): it sends only while the driver wrote
+:data:`FED` within the gate's time (``liveness_ms``) and not :data:`HELD` since, so a frozen
+controller (its kernel stuck, its process stopped) stops SYNC too; the cycles not sent are
+given up (reported as ``given-up N: ...``, counted in :attr:`SyncStats.given_up`), not caught
+up.
 ``PR_SET_PDEATHSIG`` is not used: it fires when the thread that started the process ends.
 Elsewhere (python-can's ``virtual`` bus, inside the chcos process) a thread sends SYNC on
 absolute deadlines (:meth:`SyncCycle.start`) and counts from its send times - unless the nodes

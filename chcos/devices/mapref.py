@@ -174,28 +174,43 @@ REFERENCE: dict[str, Kind] = {
         'direction = "sensor"\nbus = "cellcan"\naddress = { message = "Temps", signal = "T1" }'),
     "canopen": Kind(
         "remote CANopen nodes (canopen): node lifecycle (identity, configuration at boot, one "
-        "NMT start, OPERATIONAL confirmed by the heartbeat), SDO, PDO (as configured, else from "
-        "the EDS), master heartbeat, SYNC, EMCY; guide: docs/canopen.md",
+        "NMT start, OPERATIONAL confirmed by the heartbeat, a node that leaves OPERATIONAL "
+        "restarted by its recovery policy), SDO, PDO (as configured, else from the EDS), master "
+        "heartbeat and SYNC while the controller makes progress, EMCY, the host's `nmt` "
+        "command; guide: docs/canopen.md",
         (*_CAN_BUS,
          Key("nodes", "array of tables", "required", "`{id, eds, heartbeat_timeout, "
              "nmt_start, identity, config, store_config}` per node"),
-         Key("sync_period", "float s", "none", "produce SYNC at this period"),
-         Key("sync_priority", "integer 0..99", "80", "SCHED_FIFO priority of the SYNC producer "
-             "process (SocketCAN), above the controller's threads; without root or "
-             "CAP_SYS_NICE it stays SCHED_OTHER and the bus reports it once; 0: SCHED_OTHER"),
-         Key("poll_period", "float s", "0.1", "default SDO polling period"),
-         Key("sdo_timeout", "float s", "0.3", "SDO response timeout"),
-         Key("poll", "float s", "0.005", "receive timeout on interfaces without a file "
-             "descriptor"),
+         Key("sync_period", "float s 0.0005..4294.967295", "none", "produce SYNC at this "
+             "period (while the controller makes progress: liveness_ms)"),
+         Key("sync_priority", "integer 0..99", "80", "SCHED_FIFO priority of the producer "
+             "processes (SocketCAN: SYNC and the master heartbeat), above the controller's "
+             "threads; without root or CAP_SYS_NICE they stay SCHED_OTHER and the bus reports "
+             "it once; 0: SCHED_OTHER"),
+         Key("poll_period", "float s 0.0005..86400", "0.1", "default SDO polling period"),
+         Key("sdo_timeout", "float s (0, 3600]", "0.3", "SDO response timeout"),
+         Key("poll", "float s 0.0001..1", "0.005", "receive timeout on interfaces without a "
+             "file descriptor"),
          Key("master_heartbeat_ms", "integer 1..65535", "none", "produce the master's "
-             "heartbeat (0x700 + master_node_id, state OPERATIONAL) at this period"),
+             "heartbeat (0x700 + master_node_id, state OPERATIONAL) at this period; needed by "
+             "every node with master_consumer_ms"),
+         Key("liveness_ms", "integer 0 or 10..65535", "1000", "the master heartbeat and SYNC "
+             "stop when the controller's kernel completed no scheduling round for this long (a "
+             "stuck or stopped controller); 0: only while the process lives"),
          Key("master_node_id", "integer 1..127", "127", "the master's node id (its heartbeat "
              "COB-ID; what the nodes' 0x1016 entry watches)"),
          _UDP_PORT,
          Key("id", "integer 1..127", "required", "node id", "nodes[]"),
          Key("eds", "path", "required", "the node's EDS (relative to the map)", "nodes[]"),
-         Key("heartbeat_timeout", "float s", "none", "a node silent longer fails its devices; "
-             "with it, OPERATIONAL must be confirmed by a heartbeat", "nodes[]"),
+         Key("heartbeat_timeout", "float s 0.001..196.605", "none", "a node silent longer "
+             "fails its devices; with it, OPERATIONAL must be confirmed by a heartbeat",
+             "nodes[]"),
+         Key("restart_limit", "integer 0..1000", "5", "restarts of the recovery policy: a node "
+             "that leaves OPERATIONAL by itself gets an NMT start once its cause cleared (0x1001 "
+             "reads 0, an error-reset EMCY, its heartbeat back), at most this many times "
+             "(counted again after 10 s OPERATIONAL); 0: never", "nodes[]"),
+         Key("restart_backoff", "float s 0.05..30", "1.0", "the wait before restart 1, doubled "
+             "for each next one (at most 30 s)", "nodes[]"),
          Key("nmt_start", "boolean", "true", "the driver starts the node (once per boot) and "
              "requires OPERATIONAL; false: required state is PRE-OPERATIONAL or OPERATIONAL",
              "nodes[]"),
@@ -224,8 +239,8 @@ REFERENCE: dict[str, Kind] = {
         (Key("node", "integer", "required", "a node id of the bus"),
          Key("index", "integer", "required", "object index (write it `0x6064`)"),
          Key("subindex", "integer", "0", "sub-index"),
-         Key("poll_period", "float s", "the bus's", "SDO polling period (objects not in a "
-             "TPDO)")),
+         Key("poll_period", "float s 0.0005..86400", "the bus's", "SDO polling period "
+             "(objects not in a TPDO)")),
         '[[bus]]\nname = "axis"\nkind = "canopen"\nmaster_heartbeat_ms = 100\n\n'
         '[[bus.nodes]]\nid = 5\neds = "drive.eds"\nheartbeat_timeout = 0.3\n'
         'identity = { vendor = 0x1234, product = 0x42, revision = 0x10001 }\n'

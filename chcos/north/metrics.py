@@ -28,10 +28,13 @@ Exported (``chcos_`` prefix; labels in brackets):
 ``node_boots_total``, ``node_nmt_starts``   boot-up messages seen, NMT starts sent [bus, node]
 ``node_heartbeat_losses_total``             heartbeat losses declared [bus, node]
 ``node_emcys_total``                        EMCY messages received [bus, node]
+``node_restarts_total``                     restarts of the recovery policy since the node's
+                                            last boot [bus, node]
 ``node_error_register``                     0x1001 as last read [bus, node]
 ``sync_cycles_total`` … ``_late_writes``    SYNC cycles, complete cycles, missing TPDOs, late
                                             SYNCs, RPDO answers after SYNC n+1 [bus];
-                                            ``sync_acyclic_total`` type-0 TPDOs received
+                                            ``sync_acyclic_total`` type-0 TPDOs received,
+                                            ``sync_given_up_total`` cycles given up
 ``sync_period_seconds``, ``sync_jitter``    the period; jitter [bus, quantile 0.5/0.99/max]
 =========================================== ====================================================
 
@@ -235,6 +238,8 @@ def node_families(status: dict[str, dict[str, Any]]) -> list[Any]:
                                  labels=["bus", "node"])
     emcys = CounterMetricFamily("chcos_node_emcys", "EMCY messages received",
                                 labels=["bus", "node"])
+    restarts = CounterMetricFamily("chcos_node_restarts", "restarts of the node's recovery "
+                                   "policy since its last boot", labels=["bus", "node"])
     lost = GaugeMetricFamily("chcos_node_heartbeat_lost", "1 while the node's heartbeat is "
                              "lost", labels=["bus", "node"])
     ereg = GaugeMetricFamily("chcos_node_error_register", "error register 0x1001 as last read",
@@ -244,7 +249,9 @@ def node_families(status: dict[str, dict[str, Any]]) -> list[Any]:
         ("missing", "synchronous TPDOs missing at the end of their cycle"),
         ("late", "SYNCs sent late"),
         ("late_writes", "RPDO answers to cycle n sent after SYNC n+1"),
-        ("acyclic", "acyclic synchronous TPDOs (type 0) received"))}
+        ("acyclic", "acyclic synchronous TPDOs (type 0) received"),
+        ("given_up", "SYNC cycles the producer gave up (a stall, a controller making no "
+                     "progress)"))}
     period = GaugeMetricFamily("chcos_sync_period_seconds", "SYNC period", labels=["bus"])
     jitter = GaugeMetricFamily("chcos_sync_jitter_seconds", "SYNC period jitter "
                                "|interval - period|", labels=["bus", "quantile"])
@@ -259,6 +266,7 @@ def node_families(status: dict[str, dict[str, Any]]) -> list[Any]:
             starts.add_metric(labels, float(n["nmt_starts"]))
             losses.add_metric(labels, float(n.get("heartbeat_losses", 0)))
             emcys.add_metric(labels, float(n.get("emcys", 0)))
+            restarts.add_metric(labels, float(n.get("restarts", 0)))
             if n.get("error_register") is not None:
                 ereg.add_metric(labels, float(n["error_register"]))
         st = doc.get("sync")
@@ -268,7 +276,8 @@ def node_families(status: dict[str, dict[str, Any]]) -> list[Any]:
             period.add_metric([bus], float(st["period"]))
             for q, key in (("0.5", "jitter_p50"), ("0.99", "jitter_p99"), ("max", "jitter_max")):
                 jitter.add_metric([bus, q], float(st[key]))
-    return [state, ready, lost, boots, starts, losses, emcys, ereg, *sync.values(), period, jitter]
+    return [state, ready, lost, boots, starts, losses, emcys, restarts, ereg, *sync.values(),
+            period, jitter]
 
 
 class MetricsServer:
