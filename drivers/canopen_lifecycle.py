@@ -312,15 +312,16 @@ class Lifecycle:
         self.episode += 1
         self.reason = self.recovery_reason(why)
 
-    def restarted(self) -> None:
-        """A restart of the policy went out (the cause cleared): counted, and confirmed as any
-        start is."""
+    def restarted(self, now: float = 0.0) -> None:
+        """A restart of the policy went out at host time ``now`` (the cause cleared): counted,
+        and confirmed as any start is."""
         self.restarts += 1
         self.restarts_total += 1
-        self.started()
-        self.restarting = True
-        self.reason = (f"{self._left_text()}; restart {self.restarts} of {self.policy.limit} "
-                       f"sent, waiting for an OPERATIONAL heartbeat")
+        self.started(now)
+        if self.state is NodeLifecycle.STARTED:     # to be confirmed by its heartbeat
+            self.restarting = True
+            self.reason = (f"{self._left_text()}; restart {self.restarts} of "
+                           f"{self.policy.limit} sent, waiting for an OPERATIONAL heartbeat")
 
     def cause_cleared(self) -> bool:
         """An error-reset EMCY (or the heartbeat back): True if the node waits for a restart

@@ -972,7 +972,7 @@ class CanopenDriver(WorkerJobDriver):
             if waiting:
                 lc.waiting_for_cause(waiting)
             else:
-                lc.restarted()
+                lc.restarted(self.host.now())
         if waiting:
             self._events.restate(node)
             self._events.arm_restart(node)
