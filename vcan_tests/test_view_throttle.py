@@ -15,8 +15,9 @@ import pytest
 from aiohttp.test_utils import TestClient, TestServer
 
 from chcos.kernel.clock import VirtualClock
+from chcos.north.auth import LoginThrottle
 from chcos.system.embedded import System
-from chcos.viewer.server import LoginThrottle, Viewer
+from chcos.viewer.server import Viewer
 from vcan_tests.support_view import PASSWORDS, fig65_system, viewer_users
 
 
@@ -71,7 +72,8 @@ def test_repeated_wrong_logins_are_slowed_down(fig65: System) -> None:
         assert (await attempt("wrong"))[0] == 401  # 4 s
         clock.now += 3.0
         assert (await attempt(PASSWORDS["alice"]))[1:] == (
-            {"ok": False, "error": "too many wrong logins from 127.0.0.1: try again in 1 s"},
+            {"ok": False, "error": "too many wrong logins from 127.0.0.1 or for 'alice': "
+                         "try again in 1 s"},
             "1")
         clock.now += 1.0
         assert (await attempt(PASSWORDS["alice"]))[0] == 200  # and the count is cleared
