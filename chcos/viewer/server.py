@@ -55,6 +55,16 @@ from aiohttp import web
 from chcos import resources
 from chcos.comm.config import is_loopback
 from chcos.north.auth import LoginThrottle
+from chcos.north.guard import (
+    MAX_BODY,
+    REQUEST_TIMEOUT,
+    ConnectionGate,
+    bound_port,
+    connection_cap,
+    http_limits,
+    serve_http,
+    throttle_library_logs,
+)
 from chcos.north.loopthread import LoopThread
 from chcos.system.textview import render_text
 from chcos.viewer import ViewerError
@@ -78,6 +88,9 @@ log = logging.getLogger("chcos.viewer")
 STATIC = resources.path("chcos.viewer", "static")
 #: Events a newly connected page receives from before it connected.
 HISTORY = 200
+#: Concurrent connections the view takes (less if the descriptor limit is low: see
+#: :func:`chcos.north.guard.connection_cap`).
+MAX_CONNECTIONS = 128
 def _dumps(obj: Any) -> str:
     return json.dumps(obj, default=str, separators=(",", ":"))
 
@@ -95,7 +108,7 @@ class Viewer:
                  svg_period: float = 1.0, stall_timeout: float = 5.0,
                  max_buffer: int = 1 << 20, ssl_context: ssl.SSLContext | None = None,
                  login_throttle: LoginThrottle | None = None,
-                 history: History | None = None) -> None:
+                 history: History | None = None, max_connections: int | None = None) -> None:
         if period <= 0:
             raise ViewerError(f"snapshot period {period} s: must be positive")
         if stall_timeout <= 0 or max_buffer <= 0:
@@ -126,6 +139,8 @@ class Viewer:
         self._prev: dict[str, Any] | None = None
         self._svg: tuple[Any, float, str] | None = None  # (structure, when, svg)
         self.login_throttle = login_throttle or LoginThrottle()
+        #: the cap, deadlines and counts of this server's connections
+        self.gate = ConnectionGate("view", max_connections or connection_cap(MAX_CONNECTIONS))
         self.commands = PageCommands(system, users, secure=ssl_context is not None,
                                      throttle=self.login_throttle)
         self._clients = 0
@@ -133,6 +148,7 @@ class Viewer:
         self.dropped = 0
         self.sent_bytes = 0
         self._stopping = False
+        self._listener: asyncio.AbstractServer
 
     @property
     def read_only(self) -> bool:
@@ -185,7 +201,8 @@ class Viewer:
     def app(self) -> web.Application:
         """The aiohttp application (routes, the Host/Origin guard, login throttling and the
         answer to bodies nested too deeply); also for test clients."""
-        app = web.Application(middlewares=[self._guard, self._limits])
+        app = web.Application(middlewares=[http_limits(self.gate), self._guard, self._limits],
+                              client_max_size=MAX_BODY)
         app.router.add_get("/", self._index)
         app.router.add_static("/static/", STATIC)
         app.router.add_get("/api/snapshot", self._snapshot)
@@ -212,19 +229,22 @@ class Viewer:
         ticker.cancel()
         async with self._tick:
             self._tick.notify_all()
+        self._listener.close()
         await runner.cleanup()
 
     async def _start(self) -> web.AppRunner:
         self._tick = asyncio.Condition()
-        runner = web.AppRunner(self.app(), access_log=None, shutdown_timeout=1.0)
+        throttle_library_logs()
+        runner = web.AppRunner(self.app(), access_log=None, shutdown_timeout=1.0,
+                               keepalive_timeout=REQUEST_TIMEOUT)
         await runner.setup()
         try:
-            site = web.TCPSite(runner, self.host, self.port, ssl_context=self.ssl_context)
-            await site.start()
+            self._listener = await serve_http(runner, self.gate, self.host, self.port,
+                                              self.ssl_context)
         except BaseException:
             await runner.cleanup()
             raise
-        self.port = int(runner.addresses[0][1])
+        self.port = bound_port(self._listener)
         return runner
 
     # ---- the state the streams send ---------------------------------------------------------
