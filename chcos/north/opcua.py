@@ -152,6 +152,8 @@ class OpcUaServer(AlarmsMixin):
         #: seconds between refreshes of ages, task and link figures
         self.slow_period = 0.5
         self.refused: list[tuple[str, str, str]] = []
+        #: the username/password check and its throttle (per address and per user name)
+        self.logins = Logins(users)
         self._service = LoopThread("chcos-opcua")
         self._instrument: _Events | None = None
         self._nodes: dict[str, dict[str, Node]] = {}
@@ -205,7 +207,7 @@ class OpcUaServer(AlarmsMixin):
 
     async def _serve_until_stopped(self, service: LoopThread) -> None:
         throttle_library_logs()
-        server = Server(user_manager=Logins(self.users))
+        server = Server(user_manager=self.logins)
         await server.init()
         iserver = server.iserver
         # bounded as every north-side server (chcos.north.guard): a cap on connections, and
