@@ -113,7 +113,7 @@ class LivenessFeed:
     def __init__(self, liveness: Liveness, feeds: list[Callable[[bool], None]],
                  name: str) -> None:
         self._liveness = liveness
-        self._feeds = feeds
+        self._feeds = list(feeds)
         self._name = name
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -122,6 +122,12 @@ class LivenessFeed:
     def start(self) -> None:
         self._thread = threading.Thread(target=self._loop, name=self._name, daemon=True)
         self._thread.start()
+
+    def add(self, feed: Callable[[bool], None]) -> None:
+        """Feed one more producer from now on (fed once at once: a producer process's gate is
+        open for the gate's time from its start, however long the next one takes to start)."""
+        self._feeds.append(feed)
+        feed(self._liveness.alive())
 
     def stop(self) -> None:
         """End the thread and wait for it. Idempotent."""
@@ -133,7 +139,7 @@ class LivenessFeed:
     def _loop(self) -> None:
         while not self._stop.is_set():
             alive = self._liveness.alive()
-            for feed in self._feeds:
+            for feed in list(self._feeds):
                 feed(alive)
             self._stop.wait(self._every)
 

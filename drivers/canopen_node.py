@@ -465,7 +465,6 @@ class CanopenDriver(WorkerJobDriver):
             self._start_master_heartbeat(bus, int(opts["master_heartbeat_ms"]))
         if "sync_period" in opts:
             self._start_sync(bus, float(opts["sync_period"]))
-        self._start_feed()
         groups: dict[float, list[Binding]] = {}
         for b in self._bindings.values():
             if b.device.direction == "sensor" and b.pdo_var is None:
@@ -522,6 +521,7 @@ class CanopenDriver(WorkerJobDriver):
                 self.host.error(self.bus.name, "can", f"canopen bus {self.bus.name}: cannot "
                                                       f"start the master heartbeat: {exc}")
                 return
+            self._feed_producer(task)
         elif self._on_clock():
             task = ClockedHeartbeat(send, period, self.host, self._producer_report)
             task.start()
@@ -531,17 +531,16 @@ class CanopenDriver(WorkerJobDriver):
             task.start()
         self._master_task = task
 
-    def _start_feed(self) -> None:
-        """The thread that tells the producer processes whether the controller is alive (none
-        without a process, or with ``liveness_ms = 0``)."""
+    def _feed_producer(self, producer: ProducerProcess) -> None:
+        """Have the liveness thread feed ``producer`` (a process just started), the thread
+        started with the first one (none with ``liveness_ms = 0``)."""
         live = self._liveness
-        feeds: list[Callable[[bool], None]] = [
-            t.feed for t in (self._master_task, self._sync_task)
-            if isinstance(t, ProducerProcess)]
-        if live is None or live.bound <= 0 or not feeds:
+        if live is None or live.bound <= 0:
             return
-        self._feed = LivenessFeed(live, feeds, f"canopen-{self.bus.name}-liveness")
-        self._feed.start()
+        if self._feed is None:
+            self._feed = LivenessFeed(live, [], f"canopen-{self.bus.name}-liveness")
+            self._feed.start()
+        self._feed.add(producer.feed)
 
     def _start_sync(self, bus: can.BusABC, period: float) -> None:
         """The SYNC producer and the cycle's books (:mod:`drivers.canopen_sync`), expecting the
@@ -576,6 +575,7 @@ class CanopenDriver(WorkerJobDriver):
                 error(f"cannot start the SYNC producer: {exc}")
             else:
                 self._sync_task = producer
+                self._feed_producer(producer)
             sync.start(produce=False)
         elif self._on_clock():
             clocked = ClockedSyncProducer(sync, self.host.now, self.host.at)
