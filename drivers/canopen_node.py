@@ -127,12 +127,8 @@ from drivers.canopen_jobs import (
     ReportHeld,
     RestartNode,
 )
-from drivers.canopen_lifecycle import (
-    Lifecycle,
-    NmtCommand,
-    NodeLifecycle,
-    NodeStatus,
-)
+from drivers.canopen_lifecycle import Lifecycle, NmtCommand, NodeLifecycle, NodeStatus
+from drivers.canopen_nmt import NmtMaster
 from drivers.canopen_od import (
     DEFAULT_MASTER_ID,
     DEFAULT_POLL,
@@ -235,6 +231,8 @@ class CanopenDriver(WorkerJobDriver):
         #: the nodes and what happens to them (the receive side, heartbeats, EMCY, SYNC)
         self._events = NodeEvents(bus.name, host, self._submit_job)
         self._nodes = self._events.nodes
+        #: the NMT master's own commands: the recovery policy's restarts, the host's commands
+        self._master = NmtMaster(self._events)
         self._bindings: dict[str, Binding] = {}
         self._poll_groups: dict[float, list[Binding]] = {}   # SDO-polled sensors by period
         self._master_task: HeartbeatProducerProcess | HeartbeatThread | ClockedHeartbeat | \
@@ -835,7 +833,7 @@ class CanopenDriver(WorkerJobDriver):
                 case Job(JobOp.OWN, ReportHeld() as held):
                     self._report_held(held)
                 case Job(JobOp.OWN, RestartNode() as restart):
-                    self._restart(restart)
+                    self._master.restart(restart)
                 case Job(JobOp.OWN, Probe() as probe):
                     self._probe(probe)
                 case Job(JobOp.OWN, AxisFeed() | AxisCommand() | AxisLost() | AxisRefresh()
@@ -939,87 +937,13 @@ class CanopenDriver(WorkerJobDriver):
         self._events.judge(node, "operational")
         self._events.restate(node)
 
-    def _restart(self, job: RestartNode) -> None:
-        """A restart of node ``job.node``'s recovery policy is due (see
-        :class:`drivers.canopen_lifecycle.RestartPolicy`): its error register is read; clear
-        (0, no 0x1001, or a node hosting axes, whose drive's fault is its axes' to reset) it
-        gets the NMT start, else the restart waits and the register is read again after the
-        same backoff. Stale (nothing done) if anything happened to the node meanwhile."""
-        node = self._nodes[job.node]
-
-        def due() -> bool:
-            lc = node.lifecycle
-            return job.episode == lc.episode and lc.state is NodeLifecycle.LEFT_OPERATIONAL
-        with node.lock:
-            if not due():
-                return
-        reg: int | None = None
-        waiting = ""
-        if not node.axes:
-            try:
-                reg = node.read_error_register()
-            except SdoCommunicationError as exc:
-                waiting = f"no SDO answer to the read of 0x1001 ({exc}): asked again"
-            if reg:
-                waiting = (f"error register 0x1001 = 0x{reg:02X}: the restart waits for it "
-                           f"to read 0 or for an error-reset EMCY")
-        with node.lock:
-            if not due():
-                return
-            lc = node.lifecycle
-            if reg is not None:
-                lc.error_register = reg
-            if waiting:
-                lc.waiting_for_cause(waiting)
-            else:
-                lc.restarted(self.host.now())
-        if waiting:
-            self._events.restate(node)
-            self._events.arm_restart(node)
-            return
-        node.send_nmt_start()
-        self.host.stat(self.bus.name, "nmt-restarts")
-        self._events.judge(node, "restarted")
-        self._events.restate(node)
-
-    # -- the host's NMT commands --------------------------------------------------------------
-
     def nmt(self, command: NmtCommand | str, node: int) -> str:
         """Send NMT ``command`` (an :class:`NmtCommand`, or its host word: ``start``,
-        ``stop``, ``preop``, ``reset``, ``reset-comm``) to node ``node`` now, from the calling
-        thread (an NMT command is unconfirmed: the node's heartbeat tells what it did). The
-        node's lifecycle takes it: ``start`` ends a hold and the recovery, ``stop``/``preop``
-        hold a started node there (its devices fail, the recovery policy leaves it alone),
-        ``reset``/``reset-comm`` make the boot-up that follows the host's (not a bus error;
-        the boot procedure runs as for any boot-up). Returns the answer naming the node and
+        ``stop``, ``preop``, ``reset``, ``reset-comm``) to node ``node`` now (see
+        :meth:`drivers.canopen_nmt.NmtMaster.command`). Returns the answer naming the node and
         the state it was in. Raises BusError for a node not on this bus, a driver not running,
         a command that is none, or a frame that cannot be sent."""
-        try:
-            cmd = command if isinstance(command, NmtCommand) else NmtCommand.of_word(command)
-        except ValueError as exc:
-            raise BusError(f"canopen bus {self.bus.name}: nmt: {exc}") from None
-        managed = self._nodes.get(node)
-        if managed is None:
-            raise BusError(f"canopen bus {self.bus.name}: nmt {cmd.word}: no node {node} on "
-                           f"it (nodes {', '.join(str(n) for n in sorted(self._nodes))})")
-        if not self._running:
-            raise BusError(f"canopen bus {self.bus.name} is not running: nmt {cmd.word} "
-                           f"{node} not sent")
-        with managed.lock:
-            lc = managed.lifecycle
-            before, nmt = lc.state, lc.nmt
-        try:
-            managed.send_nmt(cmd)
-        except can.CanError as exc:
-            raise BusError(f"canopen bus {self.bus.name}: nmt {cmd.word} {node} not sent: "
-                           f"{exc}") from exc
-        with managed.lock:
-            lc.host_command(cmd, self.host.now())
-            managed.starting = False
-        self._events.judge(managed, f"the host's nmt {cmd.word}")
-        said = "" if nmt is None else f", heartbeat {nmt.text}"
-        return (f"nmt {cmd.word} sent to {self._events.where(managed)} (it was "
-                f"{before.value}{said})")
+        return self._master.command(command, node, self._running)
 
     def _sdo_where(self, b: Binding) -> str:
         return f"canopen node {b.node} 0x{b.index:04X}:{b.subindex:02X} (device {b.device.name})"
