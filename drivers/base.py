@@ -19,6 +19,15 @@ from chcos.errors import DeviceError
 
 _T = TypeVar("_T")
 
+#: The write templates of :class:`Driver` no driver overrides, and the hook each calls.
+_TEMPLATES = {"write": "_write", "write_now": "_write_now", "write_now_many": "_write_now_many"}
+#: Modules whose drivers still override ``write_now``/``write_now_many`` themselves (and count
+#: their own writes) until they rename them to the hooks: the CAN engineer's branch renames
+#: ``drivers.threaded``'s (``write_now`` -> ``_write_now``, ``write_now_many`` ->
+#: ``_write_now_many``, without its ``write_counts`` lines: :meth:`Driver._handed` counts);
+#: then this set is emptied and the override of a template is refused everywhere.
+_PENDING_RENAME = frozenset({"drivers.threaded"})
+
 
 def not_finite(value: Any) -> str | None:
     """Why ``value`` is no finite number (``"expected a finite number, got ..."``), or None if it
@@ -41,6 +50,13 @@ class DriverHost(Protocol):
         :meth:`every` or :meth:`at`: handled at once instead of through the interrupt queue
         (called anywhere else, it is :meth:`deliver`). It overtakes what waits in the
         interrupt queue: a driver that also calls :meth:`fail` uses :meth:`deliver`."""
+
+    def deliver_many(self, readings: Sequence[tuple[str, Any]], at: float | None = None) -> None:
+        """Readings ``(device, raw value)`` taken together (one poll's, one frame's signals),
+        handed over as one interrupt: one kernel wake-up for all of them, each handled as by
+        :meth:`deliver`, in order. ``at``, if given, is when they were received on the kernel
+        clock (see :func:`drivers.canbus.receive_time`); staleness and age are judged from it.
+        Drivers call it through :func:`deliver_all`."""
 
     def fail(self, device: str, reason: str) -> None:
         """Device ``device`` failed (heartbeat lost, bus error, timeout); ``reason`` says why."""
@@ -102,23 +118,11 @@ def host_peers_on_clock(host: DriverHost) -> bool:
 def deliver_all(host: DriverHost, readings: Sequence[tuple[str, Any]],
                 at: float | None = None) -> None:
     """Hand ``readings`` - ``(device, raw value)`` pairs taken together, such as one poll's - to
-    ``host``: as one interrupt through the host's ``deliver_many(readings)`` where it has one
-    (:class:`chcos.devices.devtab.Devtab` does: one kernel wake-up per poll instead of one per
-    reading), else one :meth:`DriverHost.deliver` each, in order. ``at``, if given, is when
-    they were received on the kernel clock (a frame's receive time stamp, see
-    :func:`drivers.canbus.receive_time`), passed as ``deliver_many(readings, at=at)``: staleness
-    and age are then judged from it (a host without ``deliver_many`` does not get it)."""
-    if not readings:
-        return
-    many = getattr(host, "deliver_many", None)
-    if many is not None:
-        if at is None:
-            many(readings)
-        else:
-            many(readings, at=at)
-        return
-    for device, value in readings:
-        host.deliver(device, value)
+    ``host`` as one interrupt (:meth:`DriverHost.deliver_many`); nothing for no reading. ``at``,
+    if given, is when they were received on the kernel clock (a frame's receive time stamp, see
+    :func:`drivers.canbus.receive_time`): staleness and age are then judged from it."""
+    if readings:
+        host.deliver_many(readings, at)
 
 
 class Driver(ABC):
@@ -167,9 +171,11 @@ class Driver(ABC):
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
-        if "write" in cls.__dict__:
-            raise TypeError(f"{cls.__module__}.{cls.__qualname__} overrides Driver.write, the "
-                            f"template that checks every write; implement _write instead")
+        for name, hook in _TEMPLATES.items():
+            if name in cls.__dict__ and cls.__module__ not in _PENDING_RENAME:
+                raise TypeError(f"{cls.__module__}.{cls.__qualname__} overrides Driver.{name}, "
+                                f"the template that checks every write; implement {hook} "
+                                f"instead")
 
     @property
     def running(self) -> bool:
@@ -311,24 +317,62 @@ class Driver(ABC):
             self._refuse(device, value, "stopped", f"{self.kind} bus {self.bus.name} is not "
                                                    f"running")
             return
-        self.write_counts[device] += 1
+        self._handed(device)
         self._write(device, value)
 
+    @final
     def write_now(self, device: str, value: Any) -> bool:
         """Put raw ``value`` for actuator ``device`` on the wire now, in the caller's thread and
         without blocking, confirmed by the answer: True if it is on the wire (counted in
         :attr:`write_counts`, and *not* reported through ``host.written``), False if this
         driver cannot do that right now (nothing done, nothing counted or reported: the caller
-        then uses :meth:`write`). Devtab calls it on the kernel thread for a value
-        :meth:`check_value` accepted and only when no earlier write of ``device`` is
-        outstanding, so order is kept. Never raises for a bus problem. The default: False."""
-        return False
+        then uses :meth:`write`, which reports what it refuses). Devtab calls it on the kernel
+        thread for a value :meth:`check_value` accepted and only when no earlier write of
+        ``device`` is outstanding, so order is kept. Never raises for a bus problem.
 
+        The template of the fast path, as :meth:`write` is of the queued one: anything but an
+        actuator of this bus, or a driver not running, is False without asking the driver; the
+        rest goes to the driver's :meth:`_write_now` and is counted by :meth:`_handed`."""
+        return self.write_now_many(((device, value),))[0]
+
+    @final
     def write_now_many(self, writes: Sequence[tuple[str, Any]]) -> list[bool]:
         """:meth:`write_now` for several actuators of this bus at once, in order: which of
         them are on the wire. Devtab's emergency stop puts every safe value out this way before
-        it does any bookkeeping. The default asks :meth:`write_now` for each."""
-        return [self.write_now(device, value) for device, value in writes]
+        it does any bookkeeping. Those :meth:`write_now` would refuse are False; the others go
+        to the driver's :meth:`_write_now_many` together."""
+        takes = [self._takes(device) for device, _value in writes]
+        asked = [w for w, ok in zip(writes, takes, strict=True) if ok]
+        sent = iter(self._write_now_many(asked) if asked else ())
+        out = [ok and next(sent) for ok in takes]
+        for (device, _value), ok in zip(writes, out, strict=True):
+            if ok:
+                self._handed(device)
+        return out
+
+    def _takes(self, device: str) -> bool:
+        """True if a write to ``device`` passes :meth:`write`'s checks: an actuator of this bus,
+        the driver running."""
+        spec = self.devices.get(device)
+        return self._running and spec is not None and spec.direction == "actuator"
+
+    def _handed(self, device: str) -> None:
+        """The driver's bookkeeping of a write it took (by :meth:`write` or the fast path):
+        the one place it is counted."""
+        self.write_counts[device] += 1
+
+    def _write_now(self, device: str, value: Any) -> bool:
+        """The driver's fast path behind :meth:`write_now`: put raw ``value`` for actuator
+        ``device`` (an actuator of this bus, the driver running when it was asked) on the wire
+        now, without blocking and without reporting it through ``host.written``; True if it is
+        there, False (nothing done) if it cannot now. The default: False (no fast path)."""
+        return False
+
+    def _write_now_many(self, writes: Sequence[tuple[str, Any]]) -> list[bool]:
+        """The fast path behind :meth:`write_now_many` (each write as :meth:`write_now` checked
+        it), in order; a driver that can send several frames under one hold of its link
+        overrides it. The default asks :meth:`_write_now` for each."""
+        return [self._write_now(device, value) for device, value in writes]
 
     def _refuse(self, device: str, value: Any, kind: str, reason: str) -> None:
         """Report a write that does not reach :meth:`_write` (see :meth:`write`); also for a

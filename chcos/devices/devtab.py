@@ -541,8 +541,6 @@ class Devtab:
         if the driver confirms writes."""
         spec = e.spec
         device = spec.name
-        e.updated_at = self.kernel.clock.now()
-        e.commands += 1
         w: Write | None = None
         if not self._table.is_local(spec.machine):
             remote = self._health.remote
@@ -550,30 +548,35 @@ class Devtab:
                 raise DeviceError(f"actuator {device} is on machine {spec.machine}, which this "
                                   f"process does not drive, and no link leads there")
             remote.actuator(device, spec.machine, value, source)
-            e.value = value
         elif e.driver is not None and e.driver.confirms_writes:
-            if not safe and self._write_now(e, device, raw):
-                e.value = value         # on the wire already, confirmed by the driver's answer
-                for hook in self.on_write:
-                    hook(device, value)
-                return None
-            w = Write(device, value, raw, safe)
-            self._writes.track(w)
-            e.pending = value
-            e.driver.write(device, raw)
-        else:
-            e.value = value
-            if e.driver is not None:
+            if safe or not self._write_now(e, device, raw):   # else on the wire, confirmed
+                w = Write(device, value, raw, safe)
+                self._writes.track(w)
+                e.pending = value       # before the hand-over: the outcome may come at once
                 e.driver.write(device, raw)
-        for hook in self.on_write:
-            hook(device, value)
+        elif e.driver is not None:
+            e.driver.write(device, raw)
+        self._commanded(e, value, self.kernel.clock.now(), shown=w is None)
         return w
 
+    def _commanded(self, e: DeviceEntry, value: Any, now: float, shown: bool) -> None:
+        """The bookkeeping of a write handed over (to the driver, to the device's satellite, or
+        on the wire already): when and how often the actuator was commanded, the value it shows
+        (``shown``; else it stays ``pending`` until the driver's outcome), and the
+        :attr:`on_write` hooks. The one place a write is recorded, for every path to a bus."""
+        e.updated_at = now
+        e.commands += 1
+        if shown:
+            e.value = value
+        for hook in self.on_write:
+            hook(e.name, value)
+
     def _write_now(self, e: DeviceEntry, device: str, raw: Any) -> bool:
-        """The driver's synchronous fast path (:meth:`drivers.base.Driver.write_now`), tried
-        only on the kernel thread and when no earlier write of ``device`` is outstanding or has
-        an outcome on its way here (so the shown value and the order stay those of the wire).
-        True if ``raw`` is on the wire; then nothing is tracked."""
+        """The driver's synchronous fast path (:meth:`drivers.base.Driver.write_now`, the
+        template that checks it as :meth:`drivers.base.Driver.write` does), tried only on the
+        kernel thread and when no earlier write of ``device`` is outstanding or has an outcome
+        on its way here (so the shown value and the order stay those of the wire). True if
+        ``raw`` is on the wire; then nothing is tracked."""
         assert e.driver is not None
         if not self.kernel.on_kernel_thread() or self._writes.outstanding(device):
             return False
@@ -632,11 +635,7 @@ class Devtab:
             written += [e for (e, _raw), ok in zip(items, sent, strict=True) if ok]
         now = self.kernel.clock.now()
         for e in written:   # as Devtab.write's fast path: on the wire, confirmed, not tracked
-            e.updated_at = now
-            e.commands += 1
-            e.value = e.spec.safe_value
-            for hook in self.on_write:
-                hook(e.name, e.value)
+            self._commanded(e, e.spec.safe_value, now, shown=True)
         return {e.name for e in written}
 
     def _safe(self, device: str, why: str = "abnormal completion") -> bool:
