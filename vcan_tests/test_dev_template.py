@@ -123,7 +123,7 @@ def test_readings_taken_together_reach_the_host_as_one_batch() -> None:
 
 
 def test_every_registered_driver_uses_the_template() -> None:
-    from drivers.base import _PENDING_RENAME
+    from chcos.devices.driver import _PENDING_RENAME
 
     for ep in entry_points(group="chcos.drivers"):
         cls = driver_class(ep.name)

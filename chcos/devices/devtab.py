@@ -8,7 +8,7 @@ manager: Devtab knows devices and drivers, not links). Health (FAILED, STALE, SU
 :mod:`chcos.devices.health`, the bus counters :mod:`chcos.devices.busstats`. Actuator
 writes are checked against limits (refused, never clamped), scaled, and handed to the driver
 without blocking; safe values go out on e-stop, abnormal completion of the owning task and
-shutdown. Devtab is the :class:`drivers.base.DriverHost` its drivers talk to.
+shutdown. Devtab is the :class:`chcos.devices.driver.DriverHost` its drivers talk to.
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ from chcos.errors import BusError, DeviceError
 from chcos.kernel.scheduler import Kernel
 
 if TYPE_CHECKING:
-    from drivers.base import Driver
+    from chcos.devices.driver import Driver
 
 #: Seconds the drivers get at shutdown, in all, to put the safe values on the wire (a safe value
 #: reported failed is re-issued until it is confirmed or this window ends).
@@ -87,11 +87,12 @@ class Devtab:
         self.safe_outcomes: dict[str, SafeOutcome] = {}
         #: seconds :meth:`stop_drivers` keeps trying to put the safe values on the wire
         self.shutdown_window = SHUTDOWN_FLUSH
-        #: each stopped driver's last :meth:`drivers.base.Driver.status_doc`, by bus
+        #: each stopped driver's last :meth:`chcos.devices.driver.Driver.status_doc`, by bus
         self._kept_status: dict[str, dict[str, Any]] = {}
         #: True when the drivers' peers are simulated on this kernel's virtual clock (a virtual
         #: cell, :func:`chcos.cli.cellsystem.open_cell`): a driver then supervises their
-        #: heartbeats on that clock, not on wall time (:func:`drivers.base.host_peers_on_clock`)
+        #: heartbeats on that clock, not on wall time
+        #: (:func:`chcos.devices.driver.host_peers_on_clock`)
         self.peers_on_clock = False
 
     def listen(self, listener: DeviceListener) -> None:
@@ -196,7 +197,7 @@ class Devtab:
         Raises BusError (every driver started so far is stopped again) if one fails to start, and
         DriverNotAvailable for an unknown bus kind.
         """
-        from drivers.registry import driver_class
+        from chcos.devices.registry import driver_class
 
         wanted = None if machines is None else set(machines)
         started: list[Driver] = []
@@ -387,7 +388,7 @@ class Devtab:
     @property
     def virtual_clock(self) -> bool:
         """True if the kernel runs on a virtual clock (a driver then stamps readings ``now``,
-        see :func:`drivers.base.host_clock_virtual`)."""
+        see :func:`chcos.devices.driver.host_clock_virtual`)."""
         return self.kernel.clock.virtual
 
     def deliver(self, device: str, value: Any, at: float | None = None) -> None:
@@ -421,7 +422,7 @@ class Devtab:
         """New raw readings taken together (one poll of a driver: ``(device, value)`` pairs, in
         order) as one interrupt, so the kernel wakes once per poll; each is handled as
         :meth:`deliver` would, all stamped with this call's time, or ``at`` as in
-        :meth:`deliver` (see :func:`drivers.base.deliver_all`)."""
+        :meth:`deliver` (see :func:`chcos.devices.driver.deliver_all`)."""
         now = self.kernel.clock.now()
         at = now if at is None or at > now else at
         stamp = self._rx_stamp
@@ -572,10 +573,10 @@ class Devtab:
             hook(e.name, value)
 
     def _write_now(self, e: DeviceEntry, device: str, raw: Any) -> bool:
-        """The driver's synchronous fast path (:meth:`drivers.base.Driver.write_now`, the
-        template that checks it as :meth:`drivers.base.Driver.write` does), tried only on the
-        kernel thread and when no earlier write of ``device`` is outstanding or has an outcome
-        on its way here (so the shown value and the order stay those of the wire). True if
+        """The driver's synchronous fast path (:meth:`chcos.devices.driver.Driver.write_now`, the
+        template that checks it as :meth:`chcos.devices.driver.Driver.write` does), tried only on
+        the kernel thread and when no earlier write of ``device`` is outstanding or has an
+        outcome on its way here (so the shown value and the order stay those of the wire). True if
         ``raw`` is on the wire; then nothing is tracked."""
         assert e.driver is not None
         if not self.kernel.on_kernel_thread() or self._writes.outstanding(device):
@@ -612,7 +613,7 @@ class Devtab:
     def _safe_burst(self, entries: list[DeviceEntry]) -> set[str]:
         """On the kernel thread, put the safe values of ``entries`` that nothing of theirs is
         outstanding for on the wire back to back, one call per driver
-        (:meth:`drivers.base.Driver.write_now_many`), before any bookkeeping: an emergency
+        (:meth:`chcos.devices.driver.Driver.write_now_many`), before any bookkeeping: an emergency
         stop's last safe frame leaves as early as it can. Returns the names written; the rest
         (a value the check refuses, a driver that cannot send now) are left to the tracked
         path, which reports them."""

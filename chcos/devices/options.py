@@ -17,8 +17,8 @@ device-map reference (``docs/device-map-reference.md``) is generated from::
 ``"<key path>: expected ..., got ..."`` (the form :mod:`chcos.devices.devmap` places at the file
 and line). It is called once, when the map is checked; the parsed value travels with the map
 (:attr:`chcos.devices.spec.BusSpec.config`, :attr:`chcos.devices.spec.DeviceSpec.addr`) and a
-driver reads typed attributes from it (:meth:`drivers.base.Driver.bus_options`), never the raw
-table. Adding a key to a bus kind is adding one field.
+driver reads typed attributes from it (:meth:`chcos.devices.driver.Driver.bus_options`), never
+the raw table. Adding a key to a bus kind is adding one field.
 
 Supported annotations: ``bool``, ``int`` (not a bool), ``float`` (an integer is taken as a
 float; NaN is refused), ``str``, ``Literal[...]``, an :class:`enum.Enum` (by value), ``X | None``

@@ -32,7 +32,8 @@ class BusSpec:
     key: str = "bus[?]"
     #: ``options`` parsed into the driver's option dataclass (:mod:`chcos.devices.options`) when
     #: the map was checked; None where the kind declares none or the spec was built in code
-    #: (the driver then parses ``options`` itself, see :meth:`drivers.base.Driver.bus_options`)
+    #: (the driver then parses ``options`` itself, see
+    #: :meth:`chcos.devices.driver.Driver.bus_options`)
     config: Any = field(default=None, compare=False, repr=False)
 
 
