@@ -158,6 +158,11 @@ class Driver(ABC):
     Options: ClassVar[type | None] = None
     #: The option dataclass of a device's ``address`` (None: by hand in :meth:`check_device`).
     Address: ClassVar[type | None] = None
+    #: Where a device's address takes one of several shapes (a variant chosen by a key or by
+    #: the device's direction, see :meth:`address_kind`): every one, for the device-map
+    #: reference (each may name itself in a ``VARIANT`` class attribute). Empty: just
+    #: :attr:`Address`.
+    Addresses: ClassVar[tuple[type, ...]] = ()
 
     def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
         self.bus = bus
@@ -198,12 +203,30 @@ class Driver(ABC):
         return opts.parse(cls.Options, bus.options, bus.key)
 
     @classmethod
+    def address_kind(cls, bus: BusSpec, device: DeviceSpec) -> type | None:
+        """The option dataclass ``device``'s address parses into (None: checked by hand in
+        :meth:`check_device`). The default: :attr:`Address`; a kind with variants picks one of
+        :attr:`Addresses` from the raw address or the device's direction."""
+        return cls.Address
+
+    @classmethod
+    def address_problems(cls, bus: BusSpec, device: DeviceSpec, addr: Any) -> list[str]:
+        """Errors of an address valid by itself (``addr``, parsed) that only the device around
+        it shows (its direction, its name), each as ``"<key path>: <what was expected>"``; []
+        by default."""
+        return []
+
+    @classmethod
     def parse_device(cls, bus: BusSpec, device: DeviceSpec) -> tuple[Any, list[str]]:
-        """``device.address`` parsed into :attr:`Address`, as :meth:`parse_bus` (kept in
-        :attr:`DeviceSpec.addr`)."""
-        if cls.Address is None:
+        """``device.address`` parsed into :meth:`address_kind`, as :meth:`parse_bus` (kept in
+        :attr:`DeviceSpec.addr`), then asked :meth:`address_problems`."""
+        kind = cls.address_kind(bus, device)
+        if kind is None:
             return None, cls.check_device(bus, device)
-        return opts.parse(cls.Address, device.address, f"{device.key}.address")
+        addr, errs = opts.parse(kind, device.address, f"{device.key}.address")
+        if addr is not None:
+            errs = cls.address_problems(bus, device, addr)
+        return (None if errs else addr), errs
 
     @classmethod
     def check_bus(cls, bus: BusSpec) -> list[str]:
@@ -216,10 +239,10 @@ class Driver(ABC):
     @classmethod
     def check_device(cls, bus: BusSpec, device: DeviceSpec) -> list[str]:
         """Errors in ``device.address`` for this bus kind, like :meth:`check_bus`. The default:
-        those of :attr:`Address`."""
-        if cls.Address is None:
+        those :meth:`parse_device` finds (none for an address checked by hand)."""
+        if cls.address_kind(bus, device) is None:
             return []
-        return opts.parse(cls.Address, device.address, f"{device.key}.address")[1]
+        return cls.parse_device(bus, device)[1]
 
     @classmethod
     def bus_options(cls, bus: BusSpec, kind: type[_T]) -> _T:

@@ -8,6 +8,7 @@ raises.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -35,6 +36,12 @@ class BusSpec:
     #: (the driver then parses ``options`` itself, see
     #: :meth:`chcos.devices.driver.Driver.bus_options`)
     config: Any = field(default=None, compare=False, repr=False)
+
+    def with_options(self, options: Mapping[str, Any]) -> BusSpec:
+        """This bus with ``options`` instead of its own: the config parsed from the file goes
+        with them (``dataclasses.replace(bus, options=...)`` would keep it, stale), so the driver
+        parses the new ones."""
+        return dataclasses.replace(self, options=options, config=None)
 
 
 @dataclass(frozen=True)
