@@ -33,6 +33,7 @@ from chcos.devices.entry import (
 )
 from chcos.devices.health import DeviceHealth, HealthListener, faults, log
 from chcos.devices.spec import DeviceMap
+from chcos.devices.status import DriverStatus
 from chcos.devices.table import DeviceTable
 from chcos.devices.writes import WriteTracking
 from chcos.errors import BusError, DeviceError
@@ -87,8 +88,8 @@ class Devtab:
         self.safe_outcomes: dict[str, SafeOutcome] = {}
         #: seconds :meth:`stop_drivers` keeps trying to put the safe values on the wire
         self.shutdown_window = SHUTDOWN_FLUSH
-        #: each stopped driver's last :meth:`chcos.devices.driver.Driver.status_doc`, by bus
-        self._kept_status: dict[str, dict[str, Any]] = {}
+        #: each stopped driver's last :meth:`chcos.devices.driver.Driver.status`, by bus
+        self._kept_status: dict[str, DriverStatus] = {}
         #: True when the drivers' peers are simulated on this kernel's virtual clock (a virtual
         #: cell, :func:`chcos.cli.cellsystem.open_cell`): a driver then supervises their
         #: heartbeats on that clock, not on wall time
@@ -264,25 +265,30 @@ class Devtab:
         self.drivers.clear()
         return undelivered
 
-    def bus_status(self) -> dict[str, dict[str, Any]]:
-        """What each bus's driver shows beyond the counters (:meth:`Driver.status_doc`: e.g.
+    def statuses(self) -> dict[str, DriverStatus]:
+        """What each bus's driver shows beyond the counters (:meth:`Driver.status`: e.g.
         CANopen nodes' lifecycles and the SYNC cycle), by bus name, only buses with something
         to show; a stopped driver's as it was when it stopped. Thread-safe."""
         out = dict(self._kept_status)
         for drv in list(self.drivers):
-            doc = drv.status_doc()
-            if doc:
-                out[drv.bus.name] = doc
+            st = drv.status()
+            if st:
+                out[drv.bus.name] = st
         return dict(sorted(out.items()))
+
+    def bus_status(self) -> dict[str, dict[str, Any]]:
+        """:meth:`statuses` as JSON (:meth:`DriverStatus.to_json`), for the system map and the
+        consumers that still read documents."""
+        return {bus: st.to_json() for bus, st in self.statuses().items()}
 
     def _keep_status(self, drv: Driver) -> None:
         try:
-            doc = drv.status_doc()
+            st = drv.status()
         except Exception:   # shutdown must go on
             log.exception("driver %s: status not kept", drv.bus.name)
             return
-        if doc:
-            self._kept_status[drv.bus.name] = doc
+        if st:
+            self._kept_status[drv.bus.name] = st
 
     def _shutdown_safe_values(self, deadline: float) -> list[SafeOutcome]:
         """Every local actuator's safe value, issued and then re-issued while it is reported

@@ -20,9 +20,11 @@ from typing import Any, ClassVar, Protocol, TypeVar, final
 
 from chcos.devices import options as opts
 from chcos.devices.spec import BusSpec, DeviceSpec
+from chcos.devices.status import DriverStatus
 from chcos.errors import DeviceError
 
 _T = TypeVar("_T")
+_NO_STATUS = DriverStatus()
 
 #: The write templates of :class:`Driver` no driver overrides, and the hook each calls.
 _TEMPLATES = {"write": "_write", "write_now": "_write_now", "write_now_many": "_write_now_many"}
@@ -303,14 +305,19 @@ class Driver(ABC):
         answer must not change; a driver whose check depends on state returns None."""
         return None
 
+    def status(self) -> DriverStatus:
+        """What the driver knows of its bus beyond the bus statistics (its remote nodes, its
+        SYNC cycle, its controller's error state), for the system map, ``chcos run``'s
+        summary, metrics and OPC UA; thread-safe (a scrape thread asks). A driver overrides
+        this; the default reads the older :meth:`status_doc` (ValueError if it holds a key
+        :class:`DriverStatus` does not know)."""
+        doc = self.status_doc()
+        return DriverStatus.from_json(doc) if doc else _NO_STATUS
+
     def status_doc(self) -> dict[str, Any]:
-        """What the driver knows of its bus beyond the bus statistics, JSON-ready, for the
-        system map, ``chcos run``'s summary, metrics and OPC UA; thread-safe (a scrape thread
-        asks). Keys, each optional: ``nodes`` - a list of ``{"node": id, "state": name,
-        "ready": bool, ...}`` (one per remote node with a life of its own, e.g. CANopen's
-        lifecycle); ``sync`` - ``{"period", "cycles", "complete", "missing", "late",
-        "late_writes", "jitter_p50", "jitter_p99", "jitter_max"}`` (seconds) of a SYNC cycle.
-        The default: {} (nothing to show)."""
+        """The older, untyped form of :meth:`status`, for drivers not moved to it yet: the JSON
+        document of a :class:`DriverStatus` (``nodes``, ``sync``, ``bus_state``). The default:
+        {} (nothing to show). Read it from :meth:`status` only."""
         return {}
 
     def flush(self, timeout: float) -> bool:
