@@ -23,13 +23,13 @@ from typing import Any
 
 from chcos.apps.sim.from_map import Plant, SimSlaves, load_plant, simulate
 from chcos.devices.devmap import load
+from chcos.devices.driver import Driver
 from chcos.devices.entry import DeviceEntry
 from chcos.errors import ConfigError
 from chcos.kernel.clock import Clock, RealClock, VirtualClock
 from chcos.kernel.instrument import Counters
 from chcos.satellites import sysfile
 from chcos.system.embedded import System
-from drivers.base import Driver
 
 
 class SinceStartClock(RealClock):

@@ -49,7 +49,7 @@ from chcos.devices.spec import DeviceMap, DeviceSpec
 from chcos.errors import ChcosError, DeviceError
 from chcos.north import NorthError
 from chcos.north.health import device_health
-from chcos.north.loopthread import LoopThread
+from chcos.serving.loopthread import LoopThread
 from chcos.tables.tasks import TaskState
 
 if TYPE_CHECKING:

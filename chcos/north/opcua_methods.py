@@ -30,7 +30,7 @@ from chcos.errors import Busy, ChcosError
 if TYPE_CHECKING:
     from asyncua.common.node import Node
 
-    from chcos.north.auth import Users
+    from chcos.serving.auth import Users
     from chcos.system.embedded import System
 
 #: asyncua's ua module, untyped here (see :mod:`chcos.north.opcua`)

@@ -27,7 +27,7 @@ from chcos.errors import Busy, ChcosError
 from chcos.system import cmdline
 
 if TYPE_CHECKING:
-    from chcos.north.auth import User, Users
+    from chcos.serving.auth import User, Users
     from chcos.system.embedded import System
 
 log = logging.getLogger("chcos.viewer")
@@ -95,7 +95,7 @@ class PageCommands:
         return web.json_response(self._session_json(s))
 
     def _session_json(self, s: Session) -> dict[str, Any]:
-        from chcos.north.auth import ROLE_COMMANDS
+        from chcos.serving.auth import ROLE_COMMANDS
 
         return {"user": s.user.name, "role": s.user.role, "token": s.token,
                 "read_only": self.read_only,

@@ -54,7 +54,7 @@ from aiohttp import web
 
 from chcos import resources
 from chcos.comm.config import is_loopback
-from chcos.north.loopthread import LoopThread
+from chcos.serving.loopthread import LoopThread
 from chcos.system.textview import render_text
 from chcos.viewer import ViewerError
 from chcos.viewer.commands import PageCommands
@@ -70,7 +70,7 @@ from chcos.viewer.snapshot import (
 )
 
 if TYPE_CHECKING:
-    from chcos.north.auth import Users
+    from chcos.serving.auth import Users
     from chcos.system.embedded import System
 
 log = logging.getLogger("chcos.viewer")
