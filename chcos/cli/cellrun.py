@@ -180,7 +180,8 @@ def run(system_file: str | Path, *, virtual: bool = False, duration: float | Non
               "stops", file=out)
         if not outputs and not virtual:
             print("  (give --outputs on to drive the actuators)", file=out)
-        if not virtual:
+        # (only with a CAN bus: the simulators' module, and every bus library, loads then)
+        if not virtual and any(b.kind in ("can", "canopen") for b in s.devmap.buses):
             from chcos.apps.sim.from_map import process_local
 
             for bus in process_local(s.devmap):

@@ -16,6 +16,10 @@ from chcos.errors import DriverNotAvailable
 
 _GROUP = "chcos.drivers"
 _cache: dict[str, type[Driver]] = {}
+#: The extra of the chcos distribution that brings each built-in kind's bus library (the kinds
+#: not named need none); ``vcan_tests/test_packaging.py`` checks each is declared.
+EXTRAS: dict[str, str] = {"can": "can", "canopen": "canopen", "modbus-tcp": "modbus",
+                          "modbus-rtu": "modbus", "serial": "serial"}
 
 
 def known_kinds() -> list[str]:
@@ -27,7 +31,8 @@ def driver_class(kind: str) -> type[Driver]:
     """The driver class for bus kind ``kind``, imported lazily.
 
     Raises :class:`chcos.errors.DriverNotAvailable` if no entry point names ``kind``, its module
-    fails to import (the import error is chained: an extra not installed, see the README), or
+    fails to import (the import error is chained; the message names the extra that brings the
+    kind's bus library, :data:`EXTRAS`), or
     what it names is no :class:`chcos.devices.driver.Driver`.
     """
     if kind in _cache:
@@ -41,8 +46,10 @@ def driver_class(kind: str) -> type[Driver]:
     try:
         cls = getattr(import_module(mod_name), attr)
     except (ImportError, AttributeError) as exc:
-        raise DriverNotAvailable(f"driver for bus kind {kind!r} ({ref}) is not available: {exc}") \
-            from exc
+        extra = EXTRAS.get(kind)
+        hint = f" (pip install 'chcos[{extra}]')" if extra and isinstance(exc, ImportError) else ""
+        raise DriverNotAvailable(f"driver for bus kind {kind!r} ({ref}) is not available: "
+                                 f"{exc}{hint}") from exc
     if not (isinstance(cls, type) and issubclass(cls, Driver)):
         raise DriverNotAvailable(f"{ref} (bus kind {kind!r}) is not a chcos.devices.driver.Driver")
     _cache[kind] = cls
