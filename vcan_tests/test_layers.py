@@ -6,8 +6,7 @@ applications (``chcos/apps``) sit beside the OS and only the command line (``chc
 ``chcos/testing.py``) may reach them. Every ``import`` counts - inside functions and under
 ``TYPE_CHECKING`` too - because a cycle closed by a lazy import is still a cycle.
 
-Also checked here: the one deprecated alias (``chcos.usrmgr``, for users' task code) is imported
-by nothing in the tree and warns; the tools (``tools/``) import the package as installed - no
+Also checked here: the tools (``tools/``) import the package as installed - no
 ``sys.path`` edits, no import of the tests.
 """
 
@@ -15,7 +14,6 @@ from __future__ import annotations
 
 import ast
 import shutil
-import warnings
 from pathlib import Path
 
 import pytest
@@ -29,10 +27,7 @@ LAYERS: dict[str, int] = {
     "chcos.devices": 3, "drivers": 3, "chcos.comm": 4, "chcos.messages": 5, "chcos.user": 6,
     "chcos.system": 7, "chcos.satellites": 8, "chcos.serving": 9,
     "chcos.north": 10, "chcos.viewer": 10, "chcos.cli": 11, "chcos.testing": 11,
-    "chcos.usrmgr": 6,   # the deprecated alias of chcos.user.context (see DEPRECATED)
 }
-#: old module names kept as aliases for users' code only; nothing in the tree may import them.
-DEPRECATED = ("chcos.usrmgr",)
 APPS = "chcos.apps"
 #: pure codecs: no I/O (no bus library, socket, thread or event loop).
 CODECS = ("drivers.codecs",)
@@ -165,8 +160,6 @@ def violations(root: Path = ROOT) -> list[str]:
         for imp in sorted(imports_of(name, path)):
             their = owner(imp)
             where = f"{path.relative_to(root)} imports {imp}"
-            if under(imp, DEPRECATED) and not under(name, DEPRECATED):
-                bad.append(f"{where}: a deprecated alias (import its new name)")
             if under(name, CODECS) and under(imp, IO_MODULES):
                 bad.append(f"{where}: a codec imports I/O")
             if under(name, SIMULATORS) and under(imp, ("drivers",)) and not under(imp, CODECS):
@@ -283,38 +276,21 @@ def test_owner_finds_the_layer(case: str, expected: str) -> None:
 
 def test_the_rules_catch_what_they_forbid(tmp_path: Path) -> None:
     """The checker is not vacuous: in a copy of the tree, an OS module importing an application,
-    a higher layer or the deprecated alias, and a codec importing I/O, are reported."""
+    a higher layer, and a codec importing I/O, are reported."""
     for top in ("chcos", "drivers"):
         shutil.copytree(ROOT / top, tmp_path / top,
                         ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
     assert violations(tmp_path) == violations()
     (tmp_path / "chcos" / "kernel" / "_layer_probe.py").write_text(
-        "from chcos.apps import weld\nfrom chcos.system import manager\n"
-        "from chcos.usrmgr import TaskContext\n")
+        "from chcos.apps import weld\nfrom chcos.system import manager\n")
     (tmp_path / "drivers" / "codecs").mkdir(exist_ok=True)
     (tmp_path / "drivers" / "codecs" / "_probe.py").write_text("import socket\n")
     bad = violations(tmp_path)
     assert any("_probe.py imports socket: a codec imports I/O" in b for b in bad)
-    assert any("_layer_probe.py imports chcos.usrmgr: a deprecated alias" in b for b in bad)
     assert any("_layer_probe.py imports chcos.apps: the OS imports an application" in b
                for b in bad)
     assert any("_layer_probe.py imports chcos.system.manager: layer chcos.kernel imports the "
                "higher layer chcos.system" in b for b in bad)
-
-
-def test_the_deprecated_alias_warns_and_is_the_new_class() -> None:
-    import importlib
-    import sys
-
-    from chcos.user.context import TaskContext
-
-    sys.modules.pop("chcos.usrmgr", None)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        old = importlib.import_module("chcos.usrmgr")
-    assert old.TaskContext is TaskContext
-    assert any(issubclass(w.category, DeprecationWarning)
-               and "chcos.user.context" in str(w.message) for w in caught)
 
 
 def test_tools_neither_edit_sys_path_nor_import_the_tests() -> None:
@@ -326,8 +302,6 @@ def test_tools_neither_edit_sys_path_nor_import_the_tests() -> None:
             bad.append(f"{path.relative_to(ROOT)} edits sys.path")
         bad += [f"{path.relative_to(ROOT)} imports {imp} (tests are not a library)"
                 for imp in sorted(imports_of(name, path)) if under(imp, ("vcan_tests",))]
-        bad += [f"{path.relative_to(ROOT)} imports {imp}: a deprecated alias"
-                for imp in sorted(imports_of(name, path)) if under(imp, DEPRECATED)]
     assert not bad, "\n".join(bad)
 
 
