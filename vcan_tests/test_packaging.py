@@ -190,7 +190,7 @@ def test_the_version_and_the_extras_are_declared() -> None:
     assert {"pymodbus", "pyserial"} <= by_extra["modbus"]
     assert "pyserial" in by_extra["serial"]
     assert {"eclipse-zenoh", "cryptography"} <= by_extra["satellites"]
-    assert {"asyncua", "prometheus-client", "pymodbus"} <= by_extra["north"]
+    assert {"asyncua", "prometheus-client", "pymodbus", "aiohttp"} <= by_extra["north"]
     assert "aiohttp" in by_extra["view"]
 
 
