@@ -41,6 +41,9 @@ class NodeStatus:
     #: why it is not ready ("" when it is)
     reason: str = ""
     heartbeat_lost: bool = False
+    #: restarts of its recovery policy since its last boot (a CANopen node that left
+    #: OPERATIONAL by itself)
+    restarts: int = 0
 
 
 @dataclass(frozen=True)
@@ -59,6 +62,8 @@ class SyncStatus:
     late_writes: int = 0
     #: acyclic synchronous TPDOs (transmission type 0) received
     acyclic: int = 0
+    #: cycles the producer gave up (a stall, a controller making no progress), not caught up
+    given_up: int = 0
 
 
 class ErrorState(enum.StrEnum):

@@ -27,8 +27,9 @@ def _rate(lk: dict[str, Any], rates: Mapping[str, float] | None) -> str:
 
 def bus_status_lines(status: Mapping[str, DriverStatus]) -> list[str]:
     """One line per remote node (its lifecycle state, boot-ups seen, NMT starts, heartbeat
-    losses, EMCYs, error register, last EMCY, why it is not ready), one per SYNC cycle (cycles,
-    complete, missing TPDOs, late SYNCs, late answers, acyclic TPDOs, jitter) and one per bus
+    losses, EMCYs, error register, last EMCY, restarts of its recovery policy, why it is not
+    ready), one per SYNC cycle (cycles, complete, missing TPDOs, late SYNCs, late answers,
+    acyclic TPDOs, jitter, cycles given up) and one per bus
     controller's error state, from :meth:`chcos.devices.devtab.Devtab.statuses`."""
     out = []
     for bus, st in status.items():
@@ -39,6 +40,8 @@ def bus_status_lines(status: Mapping[str, DriverStatus]) -> list[str]:
                     f"loss(es), {n.emcys} EMCY(s), error register "
                     f"{'-' if reg is None else f'0x{reg:02X}'}, last EMCY "
                     f"{n.last_emcy or 'none'}")
+            if n.restarts:
+                text += f", {n.restarts} restart(s)"
             if n.heartbeat_lost:
                 text += ", heartbeat LOST"
             if n.reason:
@@ -51,7 +54,8 @@ def bus_status_lines(status: Mapping[str, DriverStatus]) -> list[str]:
                        f"{sy.late} late, {sy.late_writes} late answers, "
                        f"{sy.acyclic} acyclic TPDOs; jitter p50 "
                        f"{sy.jitter_p50 * 1e3:.3f} ms, p99 {sy.jitter_p99 * 1e3:.3f} ms, "
-                       f"max {sy.jitter_max * 1e3:.3f} ms")
+                       f"max {sy.jitter_max * 1e3:.3f} ms"
+                       + (f"; {sy.given_up} cycles given up" if sy.given_up else ""))
         bs = st.bus_state
         if bs is not None:
             counters = ("" if bs.tx_errors is None or bs.rx_errors is None
