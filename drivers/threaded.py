@@ -28,6 +28,13 @@ put on the wire in the caller's thread (the kernel thread) without waiting; when
 take it at once (``_send_now`` returns False: a full transmit buffer), the write goes to the
 front of the queue and the writer thread sends it with the usual timeout. Either way every write
 is reported exactly once and in order through ``host.written``/``host.write_failed``.
+
+The synchronous mode (``_synchronous``, set by a subclass before the threads would start):
+a link that is a direct hand-off on the kernel thread (the in-process bus of virtual time,
+whose peer answers inside the send) needs no thread at all. Neither thread is started; every
+write is sent in the caller's thread by ``_send_direct`` (the fast path, and on its failure the
+driver's own report of it), input arrives through the link's own callback, and
+:meth:`ThreadedDriver.settle` returns at once: nothing is ever in flight.
 """
 
 from __future__ import annotations
@@ -183,6 +190,8 @@ class ThreadedDriver(Driver):
         self._settling = 0      # callers waiting in settle() (under _lock)
         #: whether writes may take the fast path (see the module doc); set by a subclass
         self._inline = False
+        #: the synchronous mode (see the module doc): no threads; set by a subclass
+        self._synchronous = False
         self._writer: threading.Thread | None = None
         self._rx = ReaderThread(self._read_loop, f"{self.kind}-{bus.name}-rx")
         self.error_counts: Counter[str] = Counter()
@@ -206,6 +215,13 @@ class ThreadedDriver(Driver):
     def _can_send(self) -> bool:
         """Whether a taken command may go now (checked under ``_cond``); default always."""
         return True
+
+    def _send_direct(self, device: str, value: Any) -> None:
+        """Synchronous mode: put one command on the wire in the caller's thread and report it
+        (``host.written``, or ``host.write_failed`` and what a failure means for the device).
+        The default: the fast path, else ``_send``."""
+        if not self._send_now(device, value):
+            self._send(device, value)
 
     def _write_loop(self) -> None:
         while True:
@@ -238,8 +254,11 @@ class ThreadedDriver(Driver):
         self.host.error(self.bus.name, kind, detail)
 
     def _start_threads(self) -> None:
-        """Start the reader and the writer, named ``<kind>-<bus>-rx``/``-tx``."""
+        """Start the reader and the writer, named ``<kind>-<bus>-rx``/``-tx`` (none in the
+        synchronous mode)."""
         self._running = True
+        if self._synchronous:
+            return
         self._rx.start()
         self._writer = threading.Thread(target=self._write_loop,
                                         name=f"{self.kind}-{self.bus.name}-tx", daemon=True)
@@ -266,7 +285,14 @@ class ThreadedDriver(Driver):
         """Send ``value`` to actuator ``device`` on the fast path when nothing is queued or being
         sent and the link takes it at once (see the module doc), else queue it for the writer
         thread; the outcome arrives as ``host.written``/``host.write_failed`` (on the fast path
-        before this returns). Never blocks."""
+        before this returns). Never blocks. In the synchronous mode it is sent here and now."""
+        if self._synchronous:
+            if self._running:
+                self._send_direct(device, value)
+            else:
+                self._refuse(device, value, "stopped", f"{self.kind} bus {self.bus.name} is "
+                                                       f"not running")
+            return
         with self._lock:
             running = self._running     # stop() may have come between write's check and here
             inline = (running and self._inline and not self._outbox and not self._sending
@@ -332,7 +358,10 @@ class ThreadedDriver(Driver):
         """Run ``send`` (a frame that is no queued command: a probe, see
         :mod:`drivers.sendprobe`) holding the send as the writer thread does, once nothing is
         queued or being sent, so commands keep their order; its result, or why it did not run
-        (stopped, or the link busy for ``timeout`` seconds)."""
+        (stopped, or the link busy for ``timeout`` seconds). In the synchronous mode nothing
+        else can be sending: it runs at once."""
+        if self._synchronous:
+            return send() if self._running else f"{self.kind} bus {self.bus.name} stopped"
         with self._lock:
             free = self._cond.wait_for(
                 lambda: not self._running or (not self._outbox and not self._sending), timeout)
@@ -360,7 +389,9 @@ class ThreadedDriver(Driver):
     def settle(self, timeout: float) -> bool:
         """Hand the host every frame or line that arrived before this call and wait until no
         command is queued or on its way (see the module doc). True at once when stopped; False
-        on timeout."""
+        on timeout; at once in the synchronous mode (nothing is in flight)."""
+        if self._synchronous:
+            return True
         deadline = time.monotonic() + timeout
         if not self._rx.settle(timeout):
             return False
