@@ -8,11 +8,14 @@ and read it; every cell is shut down (actuators at their safe values) when the t
 
     def test_valve_opens(chcos_cell):
         cell = chcos_cell("system.toml")       # relative to the pytest root directory
-        cell.set("level", 100.0)               # the simulated PLC now serves 100 cm
+        cell.set("level", 100.0)               # the simulated PLC now serves 100 cm (held:
+                                               # a value script waits for cell.release)
         cell.run_for(1.0)                      # one second of virtual time
         assert cell.value("level") == 100.0    # what Devtab holds
         assert cell.peer("valve") == 40        # what the simulated PLC was sent
         cell.silence("plc")                    # fault: the PLC stops answering
+        cell.bus_fault("can0", "bus-off", 2.0) # fault: a CAN bus off for 2 s, then restarted
+        cell.set("volts", raw=1400)            # a raw value past the DBC's limits
         cell.script("level", "ramp(0, 100, 10)")   # a value script, as chcos run --value
         cell.plant(tank)                       # tank(seconds, slaves) every 10 ms
         cell.invoke("fill", setpoint=80)       # a host command
@@ -92,12 +95,39 @@ class TestCell:
         self.system.devtab.inject(device, value)
 
     # ---- the simulated slaves ---------------------------------------------------------------
-    def set(self, device: str, value: Any) -> None:
+    def set(self, device: str, value: Any = None, *, raw: Any = None) -> None:
         """Put ``value`` (engineering units) into the simulated slave serving sensor
-        ``device``; the system reads it at its next poll. Raises DeviceError for a device with
-        no simulated slave (use :meth:`inject`)."""
+        ``device`` - or ``raw``, the value on the wire before the device's scale and offset,
+        anything the wire can carry (on CAN the signal's bits, past the DBC's minimum and
+        maximum: a reading no real device should send) -; the system reads it at its next
+        poll or frame. The value wins over the device's value script and plant until
+        :meth:`release`. Raises DeviceError for a device with no simulated slave (use
+        :meth:`inject`) or a raw value the wire cannot carry."""
         assert self.cell.slaves is not None
-        self.cell.slaves.set(device, value)
+        self.cell.slaves.hold(device, value, raw=raw)
+
+    def release(self, device: str) -> None:
+        """End :meth:`set`'s hold of ``device``: its value script (or plant) drives it again.
+        Raises DeviceError if it is not held."""
+        assert self.cell.slaves is not None
+        self.cell.slaves.release(device)
+
+    def bus_fault(self, bus: str, kind: str, duration: float | None = None) -> None:
+        """Fault on the simulated CAN bus ``bus``, as a test step: ``"error-frame"`` (one
+        error frame; with ``duration`` one every 10 ms, the receive error counters climbing
+        to error-passive), ``"error-passive"``, ``"bus-off"`` (every device of the bus fails
+        with that reason; after the restart the actuators get their safe values first), or
+        ``"recover"``; with ``duration`` seconds of virtual time the fault ends by itself
+        (the controllers restart). Raises DeviceError for a bus that is no simulated CAN bus
+        or an unknown fault."""
+        assert self.cell.slaves is not None
+        self.cell.slaves.bus_fault(bus, kind, duration)
+
+    def bus_state(self, bus: str) -> dict[str, Any]:
+        """What chcos reports of ``bus``'s controller (the driver's ``status_doc``
+        ``controller``: ``state``, ``tx_errors``, ``rx_errors``, ``error_frames``,
+        ``bus_offs``, ``restarts``...); {} for a bus without one."""
+        return dict(self.system.devtab.bus_status().get(bus, {}).get("controller", {}))
 
     def peer(self, device: str) -> Any:
         """What the simulated slave holds for ``device``: for an actuator, what the system last
@@ -127,7 +157,9 @@ class TestCell:
         self.cell.slaves.restore(bus)
 
     def fail(self, device: str, reason: str = "failed by the test") -> None:
-        """Fault: mark ``device`` failed, as its driver would (readers get SensorFailure)."""
+        """Fault: mark ``device`` failed, as its driver would: readers get SensorFailure, and
+        a failed sensor delivers nothing (its readings are dropped, as every failed sensor's)
+        until :meth:`recover`."""
         self.system.devtab.get(device)
         self.system.devtab.fail(device, reason)
 

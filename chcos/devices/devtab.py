@@ -49,6 +49,7 @@ SHUTDOWN_RETRY_PAUSE = 0.1
 # module constants: read on every reading and every command
 _FAILED = DeviceStatus.FAILED
 _SUSPENDED = DeviceStatus.SUSPENDED
+_OPEN = (None, None)   # limits that say nothing
 
 
 class Devtab:
@@ -468,13 +469,15 @@ class Devtab:
             self._counters.bus_error("?", "unknown-device",
                                      f"reading for unknown device {device!r}")
             return
-        if e.status is _SUSPENDED:
-            e.dropped += 1
+        if e.status is _SUSPENDED or e.failure:   # a failed sensor delivers nothing until
+            e.dropped += 1                         # the end of its failure is reported
             return
         spec = e.spec
         kind = raw.__class__  # int and float first: scalable() for the rest (bool is not scaled)
         value = (raw * spec.scale + spec.offset if kind is int or kind is float or scalable(raw)
                  else raw)
+        if spec.limits != _OPEN and self._limit(e, value):
+            return
         e.value = value
         e.updated_at = now
         e.rx_at = at
@@ -484,6 +487,26 @@ class Devtab:
             self._health.refresh(e, "fresh data")
         if self._listener is not None and self._listener.reading(device, value):
             e.overwrites += 1
+
+    def _limit(self, e: DeviceEntry, value: Any) -> bool:
+        """The limit rule of every bus: a reading outside its sensor's limits is not delivered
+        and fails the sensor, reason ``limit: ...`` (readers get SensorFailure), until a
+        reading within them ends it. True if ``value`` was outside."""
+        lo, hi = e.spec.limits
+        if scalable(value) and ((lo is not None and value < lo) or (hi is not None and value > hi)):
+            e.dropped += 1
+            e.stale = False
+            why = (f"limit: reading {value:g} {e.spec.units}".rstrip() +
+                   f" outside [{'-inf' if lo is None else f'{lo:g}'}, "
+                   f"{'inf' if hi is None else f'{hi:g}'}]")
+            if e.limit != why:
+                e.limit = why
+                self._health.refresh(e, "")
+            return True
+        if e.limit:
+            e.limit = ""
+            self._health.refresh(e, "a reading within the limits")
+        return False
 
     def _readings(self, readings: Sequence[tuple[str, Any]], at: float) -> None:
         """The interrupt of :meth:`deliver_many` and :meth:`deliver`: each reading in turn, all

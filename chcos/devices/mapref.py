@@ -159,6 +159,12 @@ REFERENCE: dict[str, Kind] = {
          Key("unknown_ids", "string", "`warn`", "a frame of an id of no device that reaches "
              "chcos: `ignore` (counted), `warn` (counted, one warning per 10 s), `fail` (a bus "
              "error: the run is unhealthy)"),
+         Key("message", "array of tables", "[]", "`[[bus.message]]`, one per DBC message that "
+             "needs more than the DBC says: `name`, `cycle_time` (s; default the DBC's "
+             "GenMsgCycleTime, 0: event-driven; chcos repeats its own cyclic commands), "
+             "`counter = \"SIGNAL\"` (rolling, +1 per frame, checked on receive), `checksum = "
+             "{ signal, algorithm }` (`xor`, `sum`, `crc8-sae-j1850`, `crc8-autosar`, `python` "
+             "with `function = \"module:callable\"`); docs/can-faults.md"),
          _UDP_PORT),
         (Key("message", "string", "required (DBC form)", "message name in the DBC", "DBC form"),
          Key("signal", "string", "required (DBC form)", "signal name; the DBC's scale and "

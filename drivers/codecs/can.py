@@ -444,6 +444,38 @@ class CanCodec:
         the DBC signal's range or bit width); the remembered values are then unchanged."""
         return CanFrame(*self.encode_raw(device, value))
 
+    def held(self, device: str) -> tuple[int, bytes, bool]:
+        """The frame of ``device``'s message with every signal at its held value (the last
+        written, else the DBC's initial value), as :meth:`encode_raw` returns it. Raises
+        KeyError for an unknown device."""
+        fr, sig, _ = self._by_device[device]
+        data = bytes(fr.message.encode(selected(fr, dict(fr.values), sig), strict=False))
+        return fr.frame_id, data, fr.extended
+
+    def encode_unchecked(self, device: str, value: Any) -> tuple[int, bytes, bool]:
+        """As :meth:`encode_raw`, checked only against what the signal's bits carry, not the
+        DBC's minimum and maximum (a simulated node sending what the DBC's limits exclude).
+        Raises :class:`BusError` when the bits cannot carry ``value``."""
+        fr, sig, _ = self._by_device[device]
+        s = fr.message.get_signal_by_name(sig)
+        cap = capacity(s)
+        if (why := not_finite(value)) is not None:
+            raise BusError(f"{device}: {why}")
+        if cap is not None and not cap[0] - 1e-9 <= value <= cap[1] + 1e-9:
+            raise BusError(f"{device}: {value!r} is outside what signal {sig} carries "
+                           f"([{cap[0]:g}, {cap[1]:g}])")
+        values = dict(fr.values)
+        values[sig] = value
+        try:
+            data = bytes(fr.message.encode(selected(fr, values, sig), strict=False))
+        except (cantools.database.EncodeError, ValueError, KeyError, OverflowError) as exc:
+            raise BusError(f"cannot encode {device}={value!r} into {fr.message.name}: {exc}") \
+                from exc
+        fr.values = values
+        if fr.whole_bytes is not None:
+            fr.data = data
+        return fr.frame_id, data, fr.extended
+
     def encode_raw(self, device: str, value: Any) -> tuple[int, bytes, bool]:
         """:meth:`encode`'s frame as ``(id, payload, extended)``, without building a
         :class:`CanFrame` (the driver's send path). Raises as :meth:`encode`."""

@@ -55,7 +55,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from chcos.apps.sim.peers import CanopenPeer, CanPeer, ModbusPeer, Peer
+from chcos.apps.sim.can_peer import CanPeer
+from chcos.apps.sim.peers import CanopenPeer, ModbusPeer, Peer
 from chcos.apps.sim.scripts import Script, parse_script
 from chcos.apps.sim.serial_peer import SerialPeer
 from chcos.devices.spec import BusSpec, DeviceMap, DeviceSpec
@@ -125,6 +126,8 @@ class SimSlaves:
     _rt_stop: threading.Event = dataclasses.field(default_factory=threading.Event)
     _closed: bool = False
     _emcy_plan: list[EmcyFault] = dataclasses.field(default_factory=list)
+    #: devices :meth:`hold` holds, with what they hold
+    held: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     def simulated(self, device: str) -> bool:
         """True if ``device`` has a simulated peer that :meth:`set`/:meth:`get` reach."""
@@ -142,13 +145,57 @@ class SimSlaves:
 
     def set(self, device: str, value: Any) -> None:
         """Put ``value`` (engineering units) where the peer serves ``device``; the system reads
-        it at its next poll or frame. Raises DeviceError for an unknown or in-process device and
-        ConfigError if the raw value does not fit the register or signal."""
+        it at its next poll or frame. A device :meth:`hold` holds keeps its held value (the
+        call is ignored: a script's or a plant's value does not overwrite a test's). Raises
+        DeviceError for an unknown or in-process device and ConfigError if the raw value does
+        not fit the register or signal."""
+        if device in self.held:
+            self._peer(device)
+            return
+        self._put(device, value)
+
+    def _put(self, device: str, value: Any) -> None:
         peer, spec = self._peer(device)
         raw = value
         if is_number(value):
             raw = (value - spec.offset) / spec.scale
         peer.set(spec, raw)
+
+    def hold(self, device: str, value: Any = None, *, raw: Any = None) -> None:
+        """Serve ``value`` (engineering units) for ``device`` - or ``raw``, the value on the
+        bus before the device's scale and offset, checked only against what the wire can
+        carry (on CAN: the signal's bits, not the DBC's minimum and maximum) - and keep it
+        until :meth:`release`: value scripts and plants no longer set it. Raises DeviceError
+        for an unknown or in-process device, for a raw value the wire cannot carry, and
+        unless exactly one of ``value`` and ``raw`` is given."""
+        if (value is None) == (raw is None):
+            raise DeviceError(f"{device}: give a value or raw=..., not both or neither")
+        peer, spec = self._peer(device)
+        if raw is None:
+            self._put(device, value)
+        else:
+            set_raw = getattr(peer, "set_raw", None)
+            (set_raw or peer.set)(spec, raw)
+        self.held[device] = value if raw is None else ("raw", raw)
+
+    def release(self, device: str) -> None:
+        """End :meth:`hold` of ``device``: its value script or plant sets it again from the
+        next tick (a device without either keeps the held value). Raises DeviceError if
+        ``device`` is not held."""
+        if self.held.pop(device, None) is None:
+            raise DeviceError(f"{device!r} is not held (held: "
+                              f"{', '.join(sorted(self.held)) or 'none'})")
+
+    def bus_fault(self, bus: str, kind: str, duration: float | None = None) -> None:
+        """Provoke a fault on the simulated CAN bus ``bus``: ``error-frame``, ``error-passive``,
+        ``bus-off`` or ``recover`` (see :meth:`chcos.apps.sim.can_peer.CanPeer.fault`); with a
+        ``duration`` (seconds of this handle's clock) it ends by itself. Raises DeviceError for
+        a bus without a simulated CAN peer or an unknown fault."""
+        peer = self._bus(bus)
+        if not isinstance(peer, CanPeer):
+            raise DeviceError(f"bus {bus!r} is a {peer.bus.kind!r} bus: bus faults are "
+                              f"simulated on can buses")
+        peer.fault(kind, duration)
 
     def get(self, device: str) -> Any:
         """What the peer holds for ``device``, in engineering units (an actuator: the last value

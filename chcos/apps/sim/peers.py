@@ -6,7 +6,6 @@ The CAN peer codes frames with the driver's own pure codec (:mod:`drivers.codecs
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import itertools
 import os
@@ -164,87 +163,6 @@ def on_channel(options: Any, args: dict[str, Any]) -> dict[str, Any]:
     :func:`can_args` (``rewrite``): the map's interface and channel replaced, its
     ``udp_multicast`` port dropped (it names the map's own group, not the private channel)."""
     return {**{k: v for k, v in options.items() if k != "port"}, **args}
-
-
-class CanPeer(Mutable, Peer):
-    def __init__(self, bus: BusSpec, devices: tuple[DeviceSpec, ...], rewrite: bool) -> None:
-        import can
-
-        from drivers.codecs.can import CanCodec
-
-        flipped = [dataclasses.replace(d, direction="actuator" if d.direction == "sensor"
-                                       else "sensor") for d in devices]
-        self.codec = CanCodec(bus, flipped)
-        self.args = can_args(bus.options, rewrite, bus.name)
-        options = on_channel(bus.options, self.args) if rewrite else dict(bus.options)
-        self.bus = dataclasses.replace(bus, options=options)
-        self.sensors = [d for d in devices if d.direction == "sensor"]
-        self.actuators = {d.name: d for d in devices if d.direction == "actuator"}
-        self.values: dict[str, Any] = {}
-        self.muted = False
-        self.lock = threading.Lock()
-        self.received: dict[str, Any] = {}
-        self.can: Any = can.Bus(**self.args)
-        self.period: dict[str, float] = {}
-        dbc_msgs: dict[str, Any] = {}
-        for d in self.sensors:
-            cycle = None
-            if "message" in d.address and "dbc" in bus.options:
-                if not dbc_msgs:
-                    from drivers.codecs.can import load_dbc
-
-                    dbc_msgs = {m.name: m for m in load_dbc(str(bus.options["dbc"])).messages}
-                cycle = dbc_msgs[d.address["message"]].cycle_time
-            self.period[d.name] = (cycle or 100) / 1000.0
-        self.next_due: dict[str, float] = {d.name: 0.0 for d in self.sensors}
-
-    def set(self, device: DeviceSpec, raw: Any) -> None:
-        with self.lock:
-            self.values[device.name] = raw
-            if not self.muted:
-                self._send(device.name)
-
-    def _send(self, name: str) -> None:
-        import can
-
-        coded = self.codec.encode(name, self.values.get(name, 0))
-        msg = can.Message(arbitration_id=coded.arbitration_id, data=coded.data,
-                          is_extended_id=coded.is_extended_id)
-        with contextlib.suppress(can.CanError):  # a full queue: the next cycle sends it again
-            self.can.send(msg)
-
-    def get(self, device: DeviceSpec) -> Any:
-        from drivers.codecs.can import Decoded
-
-        with self.lock:
-            while True:
-                frame = self.can.recv(timeout=0)
-                if frame is None:
-                    break
-                result = self.codec.decode(frame)
-                if isinstance(result, Decoded):
-                    for dev, v in result.readings:
-                        self.received[dev] = v
-            return self.received.get(device.name)
-
-    def tick(self, now: float) -> None:
-        with self.lock:
-            if self.muted:
-                return
-            sent: set[int] = set()
-            for d in self.sensors:
-                if now + 1e-9 >= self.next_due[d.name]:
-                    self.next_due[d.name] = now + self.period[d.name]
-                    frame = self.codec.encode(d.name, self.values.get(d.name, 0))
-                    if frame.arbitration_id not in sent:  # one frame carries all its signals
-                        sent.add(frame.arbitration_id)
-                        self._send(d.name)
-
-    def describe(self) -> str:
-        return f"CAN node on {self.args.get('interface')} channel {self.args.get('channel')}"
-
-    def close(self) -> None:
-        self.can.shutdown()
 
 
 def cia402_eds(eds: Any, node: int) -> bool:
