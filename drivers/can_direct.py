@@ -12,8 +12,10 @@ receives for ``recv()`` (a copy: the one place a frame is copied). Opened throug
 Each endpoint has a controller with ISO 11898-1 fault confinement (:class:`Controller`): transmit
 and receive error counters and the state they give (error-active, error-warning, error-passive,
 bus-off). :meth:`DirectChannel.inject` provokes what a disturbed wire does (:class:`BusFault`): an
-error frame seen by every controller (receive counter +1 each, and -1 for each frame received
-well, as the standard says), error-passive, bus-off, and the restart out of it. Every change of
+error frame seen by every controller (its receive counter +8, as for a receiver that sees the
+dominant bits after its own error flag, and for each frame received well -1, or back to 127
+from error-passive, as ISO 11898-1's fault confinement says), error-passive, bus-off, and the
+restart out of it. Every change of
 state reaches the endpoint's receiver as the error frame Linux SocketCAN would deliver
 (:func:`drivers.codecs.can_errors.error_frame`), so the driver reads the simulated bus and a real
 one with the same decoder. A controller that is bus-off neither sends (``send`` raises
@@ -46,12 +48,15 @@ from drivers.codecs.can_errors import (
 INTERFACE = "chcos-direct"
 
 Receiver = Callable[[can.Message], None]
+#: What an error frame adds to a receiver's error counter, and the counter's top (SocketCAN
+#: reports it in a byte).
+RX_ERROR_STEP, RX_ERRORS_MAX = 8, 255
 
 
 class BusFault(enum.StrEnum):
     """What :meth:`DirectChannel.inject` provokes on a wire."""
 
-    ERROR_FRAME = "error-frame"       # one bus error seen by every controller (receive +1)
+    ERROR_FRAME = "error-frame"       # one bus error seen by every controller (receive +8)
     ERROR_PASSIVE = "error-passive"   # every controller's transmit counter at 128
     BUS_OFF = "bus-off"               # every controller's transmit counter past 255
     RECOVER = "recover"               # the restart: counters 0, error-active
@@ -96,7 +101,7 @@ class DirectChannel:
                 case BusFault.ERROR_FRAME:
                     if c.state is ControllerState.BUS_OFF:
                         continue
-                    old = c.set(c.tx_errors, c.rx_errors + 1)
+                    old = c.set(c.tx_errors, min(RX_ERRORS_MAX, c.rx_errors + RX_ERROR_STEP))
                     ep._controller_frame(old, protocol=True)
                     continue
                 case BusFault.ERROR_PASSIVE:
@@ -189,7 +194,8 @@ class DirectBus(can.BusABC):
         counter down; then the filters, then the receiver or the kept frames."""
         c = self.controller
         if c.rx_errors and not msg.is_error_frame:
-            old = c.set(c.tx_errors, c.rx_errors - 1)
+            old = c.set(c.tx_errors, PASSIVE_LEVEL - 1 if c.rx_errors >= PASSIVE_LEVEL
+                        else c.rx_errors - 1)
             if c.state is not old:
                 self._controller_frame(old)
         if not self._matches_filters(msg):
