@@ -1,7 +1,8 @@
 """The pytest plugin as faithful as the device: a failed sensor delivers nothing until it
 recovers, cell.set holds against a value script until cell.release, a reading outside the
 sensor's limits is a failure with the reason ``limit`` (on Modbus and on CAN), and cell.set
-reaches any raw value the wire carries (past a DBC's limits)."""
+reaches any raw value the wire carries (past a DBC's limits: raw is the value on the bus before
+the device's own scale and offset, a DBC signal's physical value)."""
 
 from __future__ import annotations
 
@@ -78,12 +79,12 @@ def test_set_raw_sends_what_the_dbc_forbids_and_the_limit_rule_catches_it_on_can
     cell = chcos_cell(_project(tmp_path) / "system.toml")   # LEVEL: DBC [0, 200], map [0, 150]
     with pytest.raises(Exception, match="LEVEL"):
         cell.set("level", 600.0)          # the ECU encodes within the DBC's limits
-    cell.set("level", raw=6000)            # 600.0 cm: the 16 bits carry it
+    cell.set("level", raw=600.0)           # the 16 bits x 0.1 carry up to 6553.5
     cell.run_for(0.2)
     assert cell.status("level") == "failed"
     assert cell.system.devtab.get("level").reason.startswith("limit: reading 600 cm")
     with pytest.raises(DeviceError, match="outside what signal LEVEL carries"):
-        cell.set("level", raw=70000)      # more than 16 bits
-    cell.set("level", raw=900)
+        cell.set("level", raw=7000.0)     # more than the 16 bits carry
+    cell.set("level", raw=90.0)
     cell.run_for(0.2)
     assert cell.status("level") == "OK" and cell.value("level") == pytest.approx(90.0)
