@@ -15,6 +15,7 @@ import pytest
 from chcos.cli import scaffold
 from chcos.errors import DeviceError
 from chcos.testing import TestCell
+from drivers.can_direct import DirectBus
 
 DBC = """VERSION ""
 NS_ :
@@ -199,3 +200,39 @@ def test_bus_fault_names_the_faults_and_refuses_other_buses(
         cell.bus_fault("plc", "melt")
     with pytest.raises(DeviceError, match="bus 'nobus' has no simulated peer"):
         cell.bus_fault("nobus", "bus-off")
+
+
+def test_sim_fault_syntax_names_bus_faults_and_applies_them_on_the_wire(
+        project: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from chcos.apps.sim.from_map import _apply_faults, _fault, simulate
+    from chcos.cli import main as cli
+    from chcos.devices.devmap import load
+    from drivers.codecs.can_errors import ControllerState, decode_error_frame
+
+    scaffold.create(project.parent / "plain", port=5020)
+    assert cli.main(["sim", "--from", str(project.parent / "plain" / "devices.toml"),
+                     "--fault", "plc:bus-off@1-2"]) == 2
+    assert "bus-off is a CAN bus fault; 'plc' is a 'modbus-tcp' bus" in capsys.readouterr().err
+    slaves = simulate(load([str(project / "devices.toml")]))
+    try:
+        with pytest.raises(Exception, match="no fault 'melt'; expected one of silence, "
+                                            "error-frame, error-passive, bus-off"):
+            _fault("plc:melt@1", slaves)
+        faults = [_fault("plc:bus-off@0.5-1.5", slaves)]
+        spy = DirectBus(channel=slaves.peers["plc"].args["channel"])
+        seen: list[Any] = []
+        spy.set_receiver(seen.append)
+        active: set[int] = set()
+        lines = []
+        for k in range(0, 200):                     # the peer's clock, ticked every 10 ms
+            t = k / 100
+            slaves.tick(t)
+            lines += _apply_faults(slaves, faults, active, t)
+        states = [decode_error_frame(f.arbitration_id, f.data).state for f in seen
+                  if f.is_error_frame]
+        assert states == [ControllerState.BUS_OFF, ControllerState.ERROR_ACTIVE]
+        assert lines == ["fault: plc bus-off", "fault over: plc bus-off ended (controllers "
+                         "restarted)"]
+        spy.shutdown()
+    finally:
+        slaves.close()

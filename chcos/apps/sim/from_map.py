@@ -397,19 +397,56 @@ def simulate(devmap: DeviceMap, *, rewrite: bool = True) -> SimSlaves:
     return slaves
 
 
-def _fault(item: str, slaves: SimSlaves) -> tuple[str, float, float]:
-    """``BUS@START[-END]`` -> (bus, start, end); raises ConfigError naming the item."""
-    m = re.fullmatch(r"([\w.\-]+)@([0-9.]+)(?:-([0-9.]+))?", item.strip())
+#: ``--fault`` kinds: ``silence`` (the default) and the CAN bus faults of the simulated bus
+FAULT_KINDS = ("silence", "error-frame", "error-passive", "bus-off")
+
+
+def _fault(item: str, slaves: SimSlaves) -> tuple[str, str, float, float]:
+    """``BUS[:KIND]@START[-END]`` -> (bus, kind, start, end); raises ConfigError naming the
+    item (an unknown kind, a bus fault on a bus that is not simulated CAN)."""
+    m = re.fullmatch(r"([\w.\-]+)(?::([\w\-]+))?@([0-9.]+)(?:-([0-9.]+))?", item.strip())
     if not m:
-        raise ConfigError(f"--fault {item!r}: expected BUS@START[-END] (seconds), e.g. plc@5-8")
-    bus, t0 = m.group(1), float(m.group(2))
-    t1 = float(m.group(3)) if m.group(3) else math.inf
+        raise ConfigError(f"--fault {item!r}: expected BUS[:KIND]@START[-END] (seconds), e.g. "
+                          f"plc@5-8 or can0:bus-off@2-4")
+    bus, kind, t0 = m.group(1), m.group(2) or "silence", float(m.group(3))
+    t1 = float(m.group(4)) if m.group(4) else math.inf
     if bus not in slaves.peers:
         raise ConfigError(f"--fault {item!r}: bus {bus!r} has no simulated peer (simulated: "
                           f"{', '.join(sorted(slaves.peers)) or 'none'})")
+    if kind not in FAULT_KINDS:
+        raise ConfigError(f"--fault {item!r}: no fault {kind!r}; expected one of "
+                          f"{', '.join(FAULT_KINDS)}")
+    if kind != "silence" and not isinstance(slaves.peers[bus], CanPeer):
+        raise ConfigError(f"--fault {item!r}: {kind} is a CAN bus fault; {bus!r} is a "
+                          f"{slaves.peers[bus].bus.kind!r} bus")
     if t1 <= t0:
         raise ConfigError(f"--fault {item!r}: the end must come after the start")
-    return bus, t0, t1
+    return bus, kind, t0, t1
+
+
+def _apply_faults(slaves: SimSlaves, faults: list[tuple[str, str, float, float]],
+                  active: set[int], t: float) -> list[str]:
+    """Start and end the ``--fault`` items due at ``t`` seconds (``active``: the indexes of
+    those under way, updated); one line for each change. A bus fault with an end ends by
+    itself on the peer's clock (the restart)."""
+    lines = []
+    for i, (bus, kind, t0, t1) in enumerate(faults):
+        if i not in active and t0 <= t < t1:
+            active.add(i)
+            if kind == "silence":
+                slaves.silence(bus)
+                lines.append(f"fault: {bus} silenced")
+            else:
+                slaves.bus_fault(bus, kind, None if math.isinf(t1) else t1 - t0)
+                lines.append(f"fault: {bus} {kind}")
+        elif i in active and t >= t1:
+            active.discard(i)
+            if kind == "silence":
+                slaves.restore(bus)
+                lines.append(f"fault over: {bus} answers again")
+            else:
+                lines.append(f"fault over: {bus} {kind} ended (controllers restarted)")
+    return lines
 
 
 def load_plant(ref: str, base_dir: Path | None = None) -> Plant:
@@ -506,9 +543,12 @@ def main(argv: list[str]) -> int:
                     help="raise fault CODE on CANopen node NODE of BUS from START seconds (to "
                          "END): 0x1001 set, an EMCY sent, an error-reset EMCY when it ends, "
                          "e.g. axis:5:0x4210@2-6")
-    ap.add_argument("--fault", action="append", default=[], metavar="BUS@START[-END]",
-                    help="silence the peer of BUS from START seconds (to END), e.g. plc@5-8: "
-                         "a Modbus server closes its port, CAN and CANopen nodes stop sending")
+    ap.add_argument("--fault", action="append", default=[], metavar="BUS[:KIND]@START[-END]",
+                    help="from START seconds (to END) a fault on BUS: silence (the default: "
+                         "a Modbus server closes its port, CAN and CANopen nodes stop "
+                         "sending), or on a CAN bus error-frame (one every 10 ms), "
+                         "error-passive or bus-off (the controllers restart at END), e.g. "
+                         "plc@5-8, can0:bus-off@2-4")
     ap.add_argument("--plant", action="append", default=[], metavar="FILE.py:FUNCTION",
                     help="a plant model called every 10 ms as FUNCTION(seconds, slaves): it reads "
                          "actuators (slaves.get) and sets sensors (slaves.set)")
@@ -544,19 +584,11 @@ def main(argv: list[str]) -> int:
             start = time.monotonic()
             shown_at = -math.inf
             last_shown: dict[str, str] = {}
-            silenced: set[str] = set()
+            active: set[int] = set()
             while not stop.wait(0.1):
                 t = time.monotonic() - start
-                for bus, t0, t1 in faults:
-                    want = t0 <= t < t1
-                    if want and bus not in silenced:
-                        slaves.silence(bus)
-                        silenced.add(bus)
-                        print(f"t={t:6.1f} s  fault: {bus} silenced", flush=True)
-                    elif not want and bus in silenced and t >= t1:
-                        slaves.restore(bus)
-                        silenced.discard(bus)
-                        print(f"t={t:6.1f} s  fault over: {bus} answers again", flush=True)
+                for line in _apply_faults(slaves, faults, active, t):
+                    print(f"t={t:6.1f} s  {line}", flush=True)
                 if t + 1e-9 < shown_at + args.every:
                     continue
                 shown_at = t
