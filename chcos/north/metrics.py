@@ -248,7 +248,25 @@ def node_families(status: dict[str, dict[str, Any]]) -> list[Any]:
     period = GaugeMetricFamily("chcos_sync_period_seconds", "SYNC period", labels=["bus"])
     jitter = GaugeMetricFamily("chcos_sync_jitter_seconds", "SYNC period jitter "
                                "|interval - period|", labels=["bus", "quantile"])
+    ctl_state = GaugeMetricFamily("chcos_can_controller_state", "1 for the CAN controller's "
+                                  "state (error-active, error-warning, error-passive, bus-off)",
+                                  labels=["bus", "state"])
+    ctl_errors = GaugeMetricFamily("chcos_can_controller_errors", "the CAN controller's error "
+                                   "counters as its last error frame gave them",
+                                   labels=["bus", "direction"])
+    ctl_events = CounterMetricFamily("chcos_can_controller_events", "CAN error frames, "
+                                     "error-passive and bus-off episodes, restarts",
+                                     labels=["bus", "event"])
     for bus, doc in status.items():
+        ctl = doc.get("controller")
+        if ctl:
+            for name in ("error-active", "error-warning", "error-passive", "bus-off"):
+                ctl_state.add_metric([bus, name], 1.0 if ctl["state"] == name else 0.0)
+            if ctl.get("tx_errors") is not None:
+                ctl_errors.add_metric([bus, "tx"], float(ctl["tx_errors"]))
+                ctl_errors.add_metric([bus, "rx"], float(ctl["rx_errors"]))
+            for event in ("error_frames", "error_passive", "bus_offs", "restarts"):
+                ctl_events.add_metric([bus, event], float(ctl[event]))
         for n in doc.get("nodes", ()):
             labels = [bus, str(n["node"])]
             for name in states:
@@ -268,7 +286,8 @@ def node_families(status: dict[str, dict[str, Any]]) -> list[Any]:
             period.add_metric([bus], float(st["period"]))
             for q, key in (("0.5", "jitter_p50"), ("0.99", "jitter_p99"), ("max", "jitter_max")):
                 jitter.add_metric([bus, q], float(st[key]))
-    return [state, ready, lost, boots, starts, losses, emcys, ereg, *sync.values(), period, jitter]
+    return [state, ready, lost, boots, starts, losses, emcys, ereg, *sync.values(), period, jitter,
+            ctl_state, ctl_errors, ctl_events]
 
 
 class MetricsServer:

@@ -25,7 +25,9 @@ def _rate(lk: dict[str, Any], rates: Mapping[str, float] | None) -> str:
 
 def bus_status_lines(status: dict[str, dict[str, Any]]) -> list[str]:
     """One line per remote node (its lifecycle state, boot-ups seen, NMT starts, heartbeat
-    losses, EMCYs, error register, last EMCY, why it is not ready) and one per SYNC cycle
+    losses, EMCYs, error register, last EMCY, why it is not ready), one per CAN controller
+    (error-active / error-warning / error-passive / bus-off, its error counters, error frames,
+    error-passive and bus-off episodes, restarts) and one per SYNC cycle
     (cycles, complete, missing TPDOs, late SYNCs, late answers, acyclic TPDOs, jitter), from
     :meth:`chcos.devices.devtab.Devtab.bus_status` (the map's ``bus_status``)."""
     out = []
@@ -42,6 +44,13 @@ def bus_status_lines(status: dict[str, dict[str, Any]]) -> list[str]:
             if n.get("reason"):
                 text += f" ({n['reason']})"
             out.append(text)
+        ctl = doc.get("controller")
+        if ctl:
+            counters = ("" if ctl.get("tx_errors") is None else
+                        f", TX errors {ctl['tx_errors']}, RX errors {ctl['rx_errors']}")
+            out.append(f"CAN      {bus:<16} {ctl['state']}{counters}, {ctl['error_frames']} "
+                       f"error frame(s), {ctl['error_passive']} time(s) error-passive, "
+                       f"{ctl['bus_offs']} bus-off, {ctl['restarts']} restart(s)")
         st = doc.get("sync")
         if st:
             out.append(f"SYNC     {bus:<16} {st['cycles']} cycles of {st['period'] * 1e3:g} ms, "
