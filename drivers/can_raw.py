@@ -449,6 +449,8 @@ class CanDriver(ThreadedDriver):
                 [i for i, e in ids if not e], [i for i, e in ids if e])
         self._synchronous = cfg.get("interface") == DIRECT_INTERFACE
         self._clocked = virtual is True
+        if self._clocked:    # the reports' periods on the kernel clock too
+            self._tally.now = self._overruns.now = self.host.now
         try:
             self._bus = can.Bus(**cfg)
         except (can.CanError, OSError, ValueError, ImportError) as exc:

@@ -5,6 +5,7 @@ cyclic messages on real time through python-can's periodic sender."""
 
 from __future__ import annotations
 
+import threading
 import time
 from pathlib import Path
 
@@ -172,3 +173,32 @@ def test_real_time_cycles_go_through_pythons_can_periodic_sender(
     finally:
         drv.stop()
         peer.shutdown()
+
+
+def test_canopen_networks_talk_over_the_direct_bus_without_a_notifier_thread(
+        request: pytest.FixtureRequest) -> None:
+    """The direct bus is ready for the CANopen master and nodes: canopen's Network sends
+    through it and is fed by network.notify from the receiver, so an SDO upload is answered
+    inside the request's send, no thread in between."""
+    import canopen
+
+    from chcos.apps.sim.canopen_slave import SERVO_EDS
+
+    master, node_net = canopen.Network(), canopen.Network()
+    buses = []
+    for net in (master, node_net):
+        b = DirectBus(channel=request.node.name)
+        b.set_receiver(lambda m, net=net: net.notify(m.arbitration_id, bytes(m.data),
+                                                     m.timestamp))
+        net.bus = b
+        buses.append(b)
+    try:
+        local = node_net.create_node(5, str(SERVO_EDS))
+        local.sdo["Device type"].raw = 0x00020192
+        remote = master.add_node(5, str(SERVO_EDS))
+        before = threading.active_count()
+        assert remote.sdo["Device type"].raw == 0x00020192
+        assert threading.active_count() == before
+    finally:
+        for b in buses:
+            b.shutdown()
