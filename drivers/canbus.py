@@ -180,9 +180,9 @@ class StampClock:
 class Tally:
     """Rate-limited reports of recurring events (unknown ids on a shared wire): the first
     event of a kind is reported at once, the others counted and reported as one line per kind
-    per ``period`` seconds (wall time, or the clock ``now`` gives) with their count and a few examples, at the next event
-    after the period or at :meth:`flush`. ``report(kind, count, examples)`` does the reporting.
-    Thread-safe."""
+    per ``period`` seconds (wall time, or the clock ``now`` gives) with their count and a few
+    examples, at the next event after the period or at :meth:`flush`. ``report(kind, count,
+    examples)`` does the reporting. Thread-safe."""
 
     def __init__(self, report: Callable[[str, int, list[str]], None], period: float = 10.0,
                  examples: int = 5, now: Callable[[], float] = time.monotonic) -> None:
