@@ -236,3 +236,29 @@ def test_sim_fault_syntax_names_bus_faults_and_applies_them_on_the_wire(
         spy.shutdown()
     finally:
         slaves.close()
+
+
+def test_the_ecu_rejects_a_command_frame_with_a_wrong_crc_or_counter(
+        project: Path, chcos_cell: Callable[..., TestCell]) -> None:
+    from vcan_tests.test_can_e2e import j1850
+
+    cell = chcos_cell(_devices_only(project))     # nobody else sends VALVE_CMD
+    ecu = _ecu(cell)
+    db = cantools.database.load_file(str(project / "plc.dbc"))
+    other = DirectBus(channel=ecu.args["channel"])
+
+    def send(counter: int, opening: int, crc_ok: bool = True) -> None:
+        data = bytearray(db.encode_message("VALVE_CMD", {"CHECKSUM": 0, "COUNTER": counter,
+                                                         "OPENING": opening}))
+        data[0] = j1850(bytes(data[1:])) ^ (0 if crc_ok else 0xFF)
+        other.send(can.Message(arbitration_id=0x200, data=bytes(data), is_extended_id=False))
+    try:
+        send(0, 30)
+        assert cell.peer("valve") == 30
+        send(1, 70, crc_ok=False)                 # refused: the ECU keeps 30
+        send(1, 70)
+        send(1, 80)                               # the counter repeated: refused
+        assert cell.peer("valve") == 70
+        assert ecu.rejected == {"checksum": 1, "counter": 1}
+    finally:
+        other.shutdown()
