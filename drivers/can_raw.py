@@ -595,6 +595,8 @@ class CanDriver(ThreadedDriver):
                 self._controller(frame)
                 return
             if self._failed:
+                if self.controller.on_bus():     # bus-off, and no restart frame was seen
+                    self._on_bus_again("a frame was received after bus-off")
                 self._bus_up()
             match self.codec.decode(frame):
                 case Decoded(readings):

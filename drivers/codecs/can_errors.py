@@ -174,6 +174,16 @@ class ControllerStatus:
         self.state = new
         return new
 
+    def on_bus(self) -> bool:
+        """A data frame arrived while the state said bus-off (a restart whose error frame was
+        not seen): the controller is on the bus again, counted as a restart. True if that
+        changed the state."""
+        if self.state is not ControllerState.BUS_OFF:
+            return False
+        self.state = ControllerState.ERROR_ACTIVE
+        self.restarts += 1
+        return True
+
     def as_doc(self) -> dict[str, object]:
         """JSON-ready, for the driver's ``status_doc`` (key ``controller``)."""
         return {"state": self.state.value, "tx_errors": self.tx_errors,
