@@ -67,7 +67,9 @@ def test_a_reading_outside_the_limits_fails_the_sensor_with_the_reason_limit(
     assert cell.status("level") == "failed"
     reason = cell.system.devtab.get("level").reason
     assert reason == "limit: reading 250 cm outside [0, 200]"
-    assert cell.value("level") == pytest.approx(90.0)     # never delivered as a value
+    assert cell.value("level") == pytest.approx(250.0)    # shown as the device sent it, ...
+    with pytest.raises(SensorFailure, match="limit"):     # ... but no reader gets it
+        cell.system.devtab.check_readable("level")
     assert cell.task("fill").abnormal == 1 and "limit" in cell.task("fill").last_error
     cell.set("level", 100.0)
     cell.run_for(0.5)

@@ -476,7 +476,7 @@ class Devtab:
         kind = raw.__class__  # int and float first: scalable() for the rest (bool is not scaled)
         value = (raw * spec.scale + spec.offset if kind is int or kind is float or scalable(raw)
                  else raw)
-        if spec.limits != _OPEN and self._limit(e, value):
+        if spec.limits != _OPEN and self._limit(e, value, at, now):
             return
         e.value = value
         e.updated_at = now
@@ -488,13 +488,15 @@ class Devtab:
         if self._listener is not None and self._listener.reading(device, value):
             e.overwrites += 1
 
-    def _limit(self, e: DeviceEntry, value: Any) -> bool:
+    def _limit(self, e: DeviceEntry, value: Any, at: float, now: float) -> bool:
         """The limit rule of every bus: a reading outside its sensor's limits is not delivered
-        and fails the sensor, reason ``limit: ...`` (readers get SensorFailure), until a
-        reading within them ends it. True if ``value`` was outside."""
+        (no reader gets it; the entry shows it, as what the device sent) and fails the sensor,
+        reason ``limit: ...`` (readers get SensorFailure), until a reading within them ends
+        it. True if ``value`` was outside."""
         lo, hi = e.spec.limits
         if scalable(value) and ((lo is not None and value < lo) or (hi is not None and value > hi)):
             e.dropped += 1
+            e.value, e.updated_at, e.rx_at = value, now, at
             e.stale = False
             why = (f"limit: reading {value:g} {e.spec.units}".rstrip() +
                    f" outside [{'-inf' if lo is None else f'{lo:g}'}, "
