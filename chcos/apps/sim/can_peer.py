@@ -4,8 +4,9 @@ devices, as strict as a real ECU.
 It sends the messages that carry the map's sensors (coded with the bus's DBC, or the raw layout,
 by the driver's own codec with the directions turned round) at their cycle - the DBC's
 ``GenMsgCycleTime``, else the map's ``cycle_time`` (``[[bus.message]]``) - and an event-driven
-message (no cycle) whenever a value is set; the counter and checksum the map declares for a
-message are in every frame. It takes the frames of the map's actuators as an ECU does:
+message (no cycle) once at power-up and then whenever a value is set; the counter and checksum
+the map declares for a message are in every frame. It takes the frames of the map's actuators
+as an ECU does:
 
 - a frame whose checksum or counter is wrong is rejected (not applied, counted by cause in
   :attr:`CanPeer.rejected`);
@@ -188,7 +189,12 @@ class CanPeer(Mutable, Peer):
             self._fault_step(now)
             if not self.muted:
                 for out in self._out.values():
-                    if out.period is not None and now + 1e-9 >= out.due:
+                    if out.period is None:     # event-driven: once at power-up (once a
+                        if out.due <= now and self._heard():   # driver is on the wire), then
+                            out.due = math.inf                  # on set
+                            self._send(out)
+                        continue
+                    if now + 1e-9 >= out.due:
                         # drift-free: each frame due one period after the last was due
                         out.due = out.due + out.period if out.due + out.period > now else \
                             now + out.period
@@ -200,6 +206,11 @@ class CanPeer(Mutable, Peer):
                     self.timeouts += 1
                     for dev in entry.devices:
                         self.received[dev] = self._fallback[dev]
+
+    def _heard(self) -> bool:
+        """Whether a frame sent now reaches anyone: on the direct bus another endpoint is on
+        it; on a real channel always (who listens cannot be known)."""
+        return not self.direct or len(self.can.wire.endpoints) > 1
 
     # ---- what the ECU receives --------------------------------------------------------------
     def _frame(self, frame: can.Message) -> None:
