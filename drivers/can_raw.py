@@ -22,7 +22,14 @@ Bus options:
 - ``ignore_ids``: ids and ranges (``["0x700-0x77F", 0x80]``) another node owns: never warned
   about, counted as ``ignored-id``
 - ``unknown_ids``: ``ignore`` | ``warn`` (default) | ``fail``, see :class:`UnknownIds`
-- ``counter``, ``crc``, ``checksum`` (here or in an address) are refused: chcos computes neither
+- ``message``: ``[[bus.message]]`` tables, one per DBC message that needs more than the DBC says
+  (:mod:`drivers.codecs.can_e2e`): ``cycle_time`` (default the DBC's ``GenMsgCycleTime``),
+  ``counter``, ``checksum``; ``counter``, ``crc``, ``checksum`` as a bus option or address key
+  are refused, naming where they belong
+- ``interface = "chcos-direct"``: the in-process direct bus of virtual time
+  (:mod:`drivers.can_direct`), which a virtual cell's simulated ECU is on; the driver then runs
+  in the synchronous mode of :mod:`drivers.threaded` (no thread: frames handled inside the
+  peer's send, commands sent in the caller's thread, probes on the kernel clock)
 
 Device addresses, one of two forms:
 
@@ -41,7 +48,13 @@ id is counted (``unknown-id``, or ``ignored-id`` for ``ignore_ids``) and handled
 a bus error. A frame of the wrong length is ``host.error(bus, "wrong-length")``, one cantools
 cannot decode ``"undecodable"``; either fails its message's sensors after :data:`BAD_FRAMES` in a
 row (at the first if the message never had a well-formed frame) until a well-formed one comes.
-An error frame is ``"error-frame"``, a remote frame (a data request, which chcos does not answer)
+A frame whose declared checksum or rolling counter is wrong is ``"checksum"`` / ``"counter"``,
+not delivered, and fails its message's sensors after :data:`BAD_FRAMES` in a row the same way.
+An error frame (SocketCAN's ``CAN_ERR_FLAG`` frames, or the direct bus's alike) is
+``"error-frame"`` and tells the controller's state (:mod:`drivers.codecs.can_errors`, shown in
+:meth:`CanDriver.status_doc`): error-passive is an ``"error-passive"`` bus error, bus-off
+(``"bus-off"``) fails every device of the bus until the restart (actuators then, sensors with
+their next frame). A remote frame (a data request, which chcos does not answer) is
 ``"remote-frame"``. On a real-time kernel clock, on the interfaces of :data:`WALL_STAMPED`, each
 reading carries its frame's receive time (the kernel's stamp on SocketCAN,
 :func:`drivers.canbus.receive_time`) to the host, and a reading older than its sensor's
@@ -70,6 +83,11 @@ safe value, backing off over :data:`PROBE_BACKOFF`), and the first frame that
 goes out on the bus, probe or command of any actuator, reports ``host.recover`` for every
 actuator failed by a send. Bus errors are also counted in
 ``CanDriver.error_counts``.
+
+A message with actuators and a cycle time is chcos' own cyclic message (:mod:`drivers.can_cyclic`):
+a command goes to its cycle, which repeats the last one every period (on kernel timers under a
+virtual clock, else through python-can's ``send_periodic``: the broadcast manager on SocketCAN);
+every frame sent carries its message's counter and checksum.
 """
 
 from __future__ import annotations
