@@ -745,17 +745,6 @@ class CanDriver(ThreadedDriver):
         """A raw integer signal's range (see :meth:`CanCodec.accepts`)."""
         return self.codec.accepts(device)
 
-    def _frame(self, device: str, value: Any, report: bool = True) -> can.Message | None:
-        """The frame carrying ``value`` for ``device``; None if the value does not fit (then
-        refused and, with ``report``, reported: the device is fine)."""
-        try:
-            fid, data, ext = self.codec.encode_raw(device, value)
-        except BusError as exc:
-            if report:
-                self._unencodable(device, value, exc)
-            return None
-        return can.Message(arbitration_id=fid, data=data, is_extended_id=ext)
-
     def _unencodable(self, device: str, value: Any, exc: BusError) -> None:
         """``value`` does not fit ``device``'s signal: counted (``range``) and the write
         reported failed (the device is fine)."""
