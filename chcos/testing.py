@@ -28,6 +28,7 @@ wall time, are listed in docs/first-cell.md, "Virtual time is deterministic").
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import ExitStack
 from pathlib import Path
@@ -124,10 +125,16 @@ class TestCell:
         self.cell.slaves.bus_fault(bus, kind, duration)
 
     def bus_state(self, bus: str) -> dict[str, Any]:
-        """What chcos reports of ``bus``'s controller (the driver's ``status_doc``
-        ``controller``: ``state``, ``tx_errors``, ``rx_errors``, ``error_frames``,
-        ``bus_offs``, ``restarts``...); {} for a bus without one."""
-        return dict(self.system.devtab.bus_status().get(bus, {}).get("controller", {}))
+        """What chcos reports of ``bus``'s controller (the driver's status ``bus_state``:
+        ``state`` ("error-active", "error-warning", "error-passive", "bus-off"),
+        ``tx_errors``, ``rx_errors``, ``bus_offs``, ``error_passive``, ``restarts``,
+        ``error_frames``, ``last``); {} for a bus without one."""
+        st = self.system.devtab.statuses().get(bus)
+        if st is None or st.bus_state is None:
+            return {}
+        doc = dataclasses.asdict(st.bus_state)
+        doc["state"] = st.bus_state.state.value
+        return doc
 
     def peer(self, device: str) -> Any:
         """What the simulated slave holds for ``device``: for an actuator, what the system last

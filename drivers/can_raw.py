@@ -52,7 +52,7 @@ A frame whose declared checksum or rolling counter is wrong is ``"checksum"`` / 
 not delivered, and fails its message's sensors after :data:`BAD_FRAMES` in a row the same way.
 An error frame (SocketCAN's ``CAN_ERR_FLAG`` frames, or the direct bus's alike) is
 ``"error-frame"`` and tells the controller's state (:mod:`drivers.codecs.can_errors`, shown in
-:meth:`CanDriver.status_doc`): error-passive is an ``"error-passive"`` bus error, bus-off
+:meth:`CanDriver.status`): error-passive is an ``"error-passive"`` bus error, bus-off
 (``"bus-off"``) fails every device of the bus until the restart (actuators then, sensors with
 their next frame). A remote frame (a data request, which chcos does not answer) is
 ``"remote-frame"``. On a real-time kernel clock, on the interfaces of :data:`WALL_STAMPED`, each
@@ -107,6 +107,7 @@ from typing import Any
 import can
 
 from chcos.devices.spec import BusSpec, DeviceSpec
+from chcos.devices.status import CyclicStatus, DriverStatus
 from chcos.errors import BusError
 from chcos.helpers import is_int
 from drivers.base import DriverHost, deliver_all, host_clock_virtual
@@ -588,18 +589,15 @@ class CanDriver(ThreadedDriver):
         for fid, ext in self.codec.sensor_ids():
             self.codec.reset_counter(fid, ext)   # the senders' counters went on meanwhile
 
-    def status_doc(self) -> dict[str, Any]:
-        """The controller's state (``controller``: error-active / error-warning /
-        error-passive / bus-off, the TX and RX error counters its last error frame gave,
-        error frames, error-passive and bus-off episodes, restarts) and chcos' cyclic
-        messages (``cyclic``: message, period s, frames sent by a clocked cycle)."""
-        doc: dict[str, Any] = {"controller": self.controller.as_doc()}
-        if self._cyclic:
-            doc["cyclic"] = [{"message": self.codec.message_name(*key), "period": period,
-                              "started": key in self._cycles,
-                              "frames": getattr(self._cycles.get(key), "sent", None)}
-                             for key, period in self._cyclic.items()]
-        return doc
+    def status(self) -> DriverStatus:
+        """The controller's state (``bus_state``: error-active / error-warning / error-passive
+        / bus-off, the TX and RX error counters its last error frame gave, error frames,
+        error-passive and bus-off episodes, restarts) and chcos' cyclic messages (``cyclic``:
+        message, period, started, frames sent by a clocked cycle)."""
+        cyclic = tuple(CyclicStatus(self.codec.message_name(*key), period, key in self._cycles,
+                                    getattr(self._cycles.get(key), "sent", None))
+                       for key, period in self._cyclic.items())
+        return DriverStatus(bus_state=self.controller.as_state(), cyclic=cyclic)
 
     def _receive(self, frame: can.Message) -> None:
         """One received frame (reader thread): counted, recorded, decoded; its readings join

@@ -321,7 +321,7 @@ class ThreadedDriver(Driver):
             self.host.write_failed(device, value, f"{self.kind} bus {self.bus.name} stopped "
                                                   f"before the write was sent")
 
-    def write_now(self, device: str, value: Any) -> bool:
+    def _write_now(self, device: str, value: Any) -> bool:
         """The fast path without a confirmation to the host (see :meth:`Driver.write_now`):
         taken only when nothing is queued or being sent and the link takes the frame at once.
         The send holds ``_lock`` instead of claiming it: ``_send_now`` never waits, and with
@@ -331,28 +331,19 @@ class ThreadedDriver(Driver):
         if not self._inline:
             return False
         with self._lock:
-            if (not self._running or self._outbox or self._sending
-                    or (self._gated and not self._can_send()) or device not in self.devices
-                    or not self._send_now(device, value, False)):
-                return False
-        self.write_counts[device] += 1
-        return True
+            return not (not self._running or self._outbox or self._sending
+                        or (self._gated and not self._can_send())
+                        or not self._send_now(device, value, False))
 
-    def write_now_many(self, writes: Sequence[tuple[str, Any]]) -> list[bool]:
-        """:meth:`write_now` for several actuators under one hold of ``_lock`` (an emergency
-        stop's safe values, back to back): each as :meth:`write_now` would, in order."""
+    def _write_now_many(self, writes: Sequence[tuple[str, Any]]) -> list[bool]:
+        """:meth:`_write_now` for several actuators under one hold of ``_lock`` (an emergency
+        stop's safe values, back to back): each as :meth:`_write_now` would, in order."""
         if not self._inline:
             return [False] * len(writes)
         with self._lock:
             free = (self._running and not self._outbox and not self._sending
                     and (not self._gated or self._can_send()))
-            sent = [free and device in self.devices
-                    and self._send_now(device, value, False)
-                    for device, value in writes]
-        for (device, _value), ok in zip(writes, sent, strict=True):
-            if ok:
-                self.write_counts[device] += 1
-        return sent
+            return [free and self._send_now(device, value, False) for device, value in writes]
 
     def _claimed(self, send: Callable[[], str | None], timeout: float = 0.5) -> str | None:
         """Run ``send`` (a frame that is no queued command: a probe, see

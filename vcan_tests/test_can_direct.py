@@ -125,7 +125,7 @@ def test_the_driver_reports_bus_off_and_recovers_the_actuators_at_the_restart(
         assert [f.data[0] & 0xF for f in seen] == [0, 1, 2, 3, 4, 5]   # its counter
         ecu.wire.inject(BusFault.BUS_OFF)
         assert {d for d, _ in host.failures} == {"speed", "temp"}
-        assert drv.status_doc()["controller"]["state"] == "bus-off"
+        assert drv.status().bus_state.state == "bus-off"
         host.advance(0.1)
         assert sum(not f.is_error_frame for f in seen) == 6   # nothing left while bus-off
         ecu.wire.inject(BusFault.RECOVER)
@@ -134,8 +134,9 @@ def test_the_driver_reports_bus_off_and_recovers_the_actuators_at_the_restart(
         assert host.recoveries == ["speed", "speed", "temp"] and host.values("temp") == [42]
         host.advance(0.02)
         assert seen[-1].data[1] == 50 and not seen[-1].is_error_frame   # the cycle goes on
-        doc = drv.status_doc()["controller"]
-        assert doc["state"] == "error-active" and doc["bus_offs"] == 1 and doc["restarts"] == 1
+        bs = drv.status().bus_state
+        assert bs is not None and bs.state == "error-active" and bs.bus_offs == 1
+        assert bs.restarts == 1
     finally:
         drv.stop()
         ecu.shutdown()

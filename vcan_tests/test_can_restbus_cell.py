@@ -102,9 +102,10 @@ def test_the_scaffold_on_can_runs_cyclic_with_counters_and_checksums(
     assert ecu.rejected == {} and ecu.timeouts == 0  # every frame's counter and CRC right
     state = cell.bus_state("plc")
     assert state["state"] == "error-active" and state["bus_offs"] == 0
-    cyclic = cell.system.devtab.bus_status()["plc"]["cyclic"]
+    cyclic = cell.system.devtab.statuses()["plc"].cyclic
     # VALVE_CMD every 20 ms of virtual time since the task's first command: ~50 in 1 s
-    assert cyclic[0]["message"] == "VALVE_CMD" and 45 <= cyclic[0]["frames"] <= 51
+    assert cyclic[0].message == "VALVE_CMD" and 45 <= (cyclic[0].frames or 0) <= 51
+    assert "cyclic   plc              VALVE_CMD every 20 ms, " in cell.execute("map")
 
 
 def _devices_only(root: Path) -> Path:
@@ -133,7 +134,7 @@ def test_the_same_command_on_the_dbc_cycle_is_kept_by_the_ecu(
     cell.system.devtab.write("valve", 60.0)
     cell.run_for(5.0)
     assert cell.peer("valve") == 60 and _ecu(cell).timeouts == 0
-    frames = cell.system.devtab.bus_status()["plc"]["cyclic"][0]["frames"]
+    frames = cell.system.devtab.statuses()["plc"].cyclic[0].frames
     assert frames == 251                 # at 0, 0.02, ... 5.0 s: drift-free on virtual time
 
 

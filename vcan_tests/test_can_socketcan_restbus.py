@@ -95,7 +95,7 @@ def test_the_cyclic_command_goes_out_through_the_bcm_with_its_counter_and_crc(
     gaps = [b[0] - a[0] for a, b in itertools.pairwise(frames)]
     assert min(gaps) > 0.010                     # never faster than the cycle
     assert abs(statistics.median(gaps) - 0.020) < 0.004, gaps
-    assert drv.status_doc()["cyclic"][0]["period"] == pytest.approx(0.02)
+    assert drv.status().cyclic[0].period == pytest.approx(0.02)
 
 
 def test_error_frames_written_with_cansend_tell_the_driver_bus_off_and_the_restart(
@@ -115,13 +115,14 @@ def test_error_frames_written_with_cansend_tell_the_driver_bus_off_and_the_resta
                        timeout=STEP)
         assert host.wait(lambda h: len(h.failures) == 2, STEP), host.errors
         assert all("bus-off" in why for _, why in host.failures)
-        assert drv.status_doc()["controller"]["state"] == "bus-off"
+        assert drv.status().bus_state.state == "bus-off"
         # CAN_ERR_FLAG | CAN_ERR_RESTARTED | CAN_ERR_CNT: the restart
         subprocess.run(["cansend", channel, "20000300#0000000000000000"], check=True,
                        timeout=STEP)
         assert host.wait(lambda h: "speed" in h.recoveries, STEP)
-        doc = drv.status_doc()["controller"]
-        assert doc["state"] == "error-active" and doc["bus_offs"] == 1 and doc["restarts"] == 1
+        bs = drv.status().bus_state
+        assert bs is not None and bs.state == "error-active" and bs.bus_offs == 1
+        assert bs.restarts == 1
         subprocess.run(["cansend", channel, "100#2A"], check=True, timeout=STEP)
         assert host.wait(lambda h: h.values("temp") == [42], STEP)
         assert "temp" in host.recoveries

@@ -12,8 +12,9 @@ violation, ``data[6]``/``data[7]`` the transmit and receive error counters (vali
 
 from __future__ import annotations
 
-import enum
 from dataclasses import dataclass
+
+from chcos.devices.status import BusState, ErrorState
 
 # error classes in the id (<linux/can/error.h>)
 CAN_ERR_TX_TIMEOUT = 0x001
@@ -54,13 +55,9 @@ _CRTL = ((CAN_ERR_CRTL_RX_OVERFLOW, "RX buffer overflow"),
          (CAN_ERR_CRTL_ACTIVE, "back to error-active"))
 
 
-class ControllerState(enum.StrEnum):
-    """A CAN controller's fault confinement state (ISO 11898-1), as chcos reports it."""
-
-    ERROR_ACTIVE = "error-active"
-    ERROR_WARNING = "error-warning"     # a counter reached 96: still error-active
-    ERROR_PASSIVE = "error-passive"     # a counter reached 128: sends, but passive error flags
-    BUS_OFF = "bus-off"                 # the transmit counter passed 255: off the bus
+#: A CAN controller's fault confinement state (ISO 11898-1): the device layer's, which chcos
+#: reports (error-active, error-warning, error-passive, bus-off).
+ControllerState = ErrorState
 
 
 @dataclass(frozen=True)
@@ -184,9 +181,7 @@ class ControllerStatus:
         self.restarts += 1
         return True
 
-    def as_doc(self) -> dict[str, object]:
-        """JSON-ready, for the driver's ``status_doc`` (key ``controller``)."""
-        return {"state": self.state.value, "tx_errors": self.tx_errors,
-                "rx_errors": self.rx_errors, "error_frames": self.error_frames,
-                "error_passive": self.passive, "bus_offs": self.bus_offs,
-                "restarts": self.restarts, "last": self.last}
+    def as_state(self) -> BusState:
+        """As the device layer's :class:`chcos.devices.status.BusState`."""
+        return BusState(self.state, self.tx_errors, self.rx_errors, self.bus_offs, self.passive,
+                        self.restarts, self.error_frames, self.last)
