@@ -23,12 +23,10 @@ import argparse
 import struct
 import sys
 import threading
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
-from typing import Any
 
 from chcos import resources
 from chcos.apps.sim.canopen_slave import (
@@ -333,7 +331,7 @@ class Cia402Drive(CanopenSlave):
             self.get(index)                            # ConfigError naming the missing object
         #: the objects the model shows that this EDS has (vendor files leave some out)
         self._shown = {i for i in (0x603F, 0x6061, 0x6064, 0x606C)
-                       if self._node.object_dictionary.get_variable(i, 0) is not None}
+                       if self._store.find(i, 0) is not None}
         self.model = DriveModel(refused_modes=refused_modes)
         if quick_stop_option is not None:
             # a power-on value: it survives an NMT reset node, as a stored parameter would
@@ -342,12 +340,12 @@ class Cia402Drive(CanopenSlave):
             self.set(0x605A, 0, quick_stop_option)
         #: every controlword applied, in order
         self.received: list[int] = []
-        # the write hook of canopen's LocalNode: each RPDO entry and SDO download, in order
-        self._node.add_write_callback(self._on_write)
+        # each RPDO entry and SDO download, in order
+        self.add_write_hook(self._on_write)
         self.add_plant(self._step_model)
         self.add_master_lost_hook(self._master_lost)
 
-    def _on_write(self, *, index: int, subindex: int, od: Any, data: bytes) -> None:
+    def _on_write(self, index: int, subindex: int, data: bytes) -> None:
         if subindex != 0 or index not in (0x6040, 0x6060):
             return
         with self._lock:
@@ -489,11 +487,11 @@ def main(argv: Sequence[str] | None = None, stop: threading.Event | None = None)
     drive.run_realtime(args.step)
     print(f"CiA 402 drive node {args.node} on {args.interface}:{args.channel}", flush=True)
     done = stop if stop is not None else threading.Event()
-    start = time.monotonic()
+    start = drive.now()
     active: set[str] = set()
     try:
         while not done.wait(0.02):
-            t = time.monotonic() - start
+            t = drive.now() - start
             for name, (t0, t1) in spans.items():
                 on = t0 <= t < t1
                 if on == (name in active):
