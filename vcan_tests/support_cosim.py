@@ -61,6 +61,11 @@ class Script:
             out += self._keep(self.slave.take())
         return out
 
+    def set(self, index: int, subindex: int, value: object) -> list[Seen]:
+        """Set an object as the device would (its own measurement); what that sent."""
+        self.slave.set(index, subindex, value)
+        return self._keep(self.slave.take())
+
     def nmt(self, command: int) -> list[Seen]:
         return self.send(0x000, bytes([command, self.node_id]))
 
