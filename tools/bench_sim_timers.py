@@ -7,9 +7,11 @@ Run: ``python -m tools.bench_sim_timers [--seconds 60] [--real-seconds 60] [--pe
 
 * virtual: the node's pure core (``attach``, no bus) advanced by :meth:`tick` in 10 ms steps, as
   the kernel's slaves advance it, for ``--seconds`` of its clock;
-* real: the node on python-can's ``virtual`` bus with ``Clock.REAL`` (its timers on their own
-  thread, on the wall clock), every period's node at once, for ``--real-seconds`` of wall time;
-  an observer on the same bus counts what they sent (``--real-seconds 0`` skips it).
+* real: the node on python-can's ``virtual`` bus as ``chcos sim canopen`` runs it (``Clock.REAL``:
+  the heartbeat on its own thread on the wall clock; ``run_realtime``: the node's time, and so
+  the event timer, ticked on the wall clock every 10 ms), every period's node at once, for
+  ``--real-seconds`` of wall time; an observer on the same bus counts what they sent
+  (``--real-seconds 0`` skips it).
 
 Drift, slow when positive: on virtual time (expected - counted) / expected, expected the whole
 periods in the run; on real time the growth of the frames' lateness over the run
@@ -74,6 +76,7 @@ def real(periods: Sequence[int], seconds: float) -> dict[int, tuple[list[float],
     try:
         for node, period in zip(nodes, periods, strict=True):
             node.start()
+            node.run_realtime(STEP)      # as chcos sim canopen: the node's time on the wall
             for frame in _setup(node, period):
                 master.send(can.Message(arbitration_id=frame.arbitration_id, data=frame.data,
                                         is_extended_id=False))

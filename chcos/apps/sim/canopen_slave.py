@@ -7,7 +7,7 @@ sent, :meth:`CanopenSlave.next_due` says when the next timer is due. No thread a
 needed for that: an in-process bus on the kernel's thread calls them directly
 (:meth:`~CanopenSlave.attach` starts the node without a python-can bus). :meth:`start` puts the
 same node on a python-can bus instead (:mod:`chcos.apps.sim.canopen_transport`: a receiving
-thread, and on ``Clock.REAL`` a timer thread on the wall clock).
+thread, and on ``Clock.REAL`` the heartbeat producer's thread on the wall clock).
 
 What the node does (every rule on the wire: ``docs/canopen-sim.md``):
 
@@ -32,8 +32,9 @@ What the node does (every rule on the wire: ``docs/canopen-sim.md``):
 * **Heartbeat** - the producer (0x1017) and a consumer (0x1016): when the node it watches falls
   silent: EMCY 0x8130, the 0x1029 error behaviour, the master-lost hooks (with 0x6007).
 * **Timers** - drift-free (:mod:`chcos.apps.sim.canopen_timers`): each due time is the last due
-  time plus the period. ``Clock.TICK``: the node's time is the sum of :meth:`tick` steps (the
-  kernel's virtual clock, a test); ``Clock.REAL``: :func:`time.monotonic`, the timers on a thread.
+  time plus the period. The node's time is the sum of its :meth:`tick` steps (the kernel's
+  virtual clock, a test's steps, or :meth:`run_realtime` on the wall clock); on ``Clock.REAL``
+  the heartbeat producer alone runs on :func:`time.monotonic`, on a thread of its own.
 
 canopen's object dictionary objects are held as ``Any``: the library is only partly typed.
 """
@@ -125,8 +126,9 @@ class NmtCommand(enum.IntEnum):
 
 
 class Clock(enum.Enum):
-    """What the node's time is: :func:`time.monotonic` with the timers on a thread of their own
-    (``REAL``), or the sum of :meth:`CanopenSlave.tick` steps (``TICK``: virtual time)."""
+    """What times the heartbeat producer: :func:`time.monotonic` on a thread of its own
+    (``REAL``: a node that is alive without being ticked), or the node's time, the sum of
+    :meth:`CanopenSlave.tick` steps, as every other timer (``TICK``: virtual time)."""
 
     REAL = "real"
     TICK = "tick"
@@ -394,7 +396,7 @@ class CanopenSlave:
                                      f"canopen-slave-{self.node_id}")
             self._transport = transport
             if self._clock is Clock.REAL:
-                self._timer = WallTimer(self._advance_now, self.next_due,
+                self._timer = WallTimer(self._wall_heartbeat, lambda: self._hb.due,
                                         f"canopen-slave-{self.node_id}")
             self._begin(transport.send)
 
@@ -459,9 +461,13 @@ class CanopenSlave:
     # -- the node as a function of frames and time --------------------------------------------
 
     def now(self) -> float:
-        """The node's time: the sum of the :meth:`tick` steps (``Clock.TICK``) or
-        :func:`time.monotonic` (``Clock.REAL``)."""
-        return time.monotonic() if self._clock is Clock.REAL else self._tick_time
+        """The node's time: the sum of the :meth:`tick` steps."""
+        return self._tick_time
+
+    def _hb_now(self) -> float:
+        """The heartbeat producer's time: :func:`time.monotonic` on ``Clock.REAL``, else the
+        node's."""
+        return time.monotonic() if self._clock is Clock.REAL else self._at(None)
 
     def handle(self, frame: FrameLike, now: float | None = None) -> list[CanFrame]:
         """Take one received frame at the node's time ``now`` (None: :meth:`now`), after the
@@ -486,11 +492,12 @@ class CanopenSlave:
             return self.take()
 
     def next_due(self) -> float | None:
-        """The node time at which a timer of the node is due next (None: none is running)."""
+        """The node time at which a timer of the node is due next (None: none is running; on
+        ``Clock.REAL`` the heartbeat producer, on the wall clock, is not counted)."""
         with self._lock:
             if not self._started:
                 return None
-            times = [self._hb.due, self._sdo.deadline,
+            times = [self._hb.due if self._clock is Clock.TICK else None, self._sdo.deadline,
                      *(t.due() for t in self._tpdo_timers.values()),
                      *(c.due() for c in self._consumers.values())]
             if self._emcy_queue and self._emcy_last is not None:
@@ -505,11 +512,10 @@ class CanopenSlave:
             return out
 
     def tick(self, dt: float) -> None:
-        """Advance ``dt`` seconds: the plants, then (``Clock.TICK``) the node's time and its
-        timers. What the node sends goes to its bus (or sink)."""
+        """Advance the node's time ``dt`` seconds: the plants, then the timers due. What the
+        node sends goes to its bus (or sink)."""
         with self._lock:
-            if self._clock is Clock.TICK:
-                self._tick_time += dt
+            self._tick_time += dt
             for plant in self._plants:
                 plant(self, dt)
             self._run_timers(self._at(None))
@@ -521,13 +527,23 @@ class CanopenSlave:
         return self._time
 
     def _receive(self, frame: Any) -> list[CanFrame]:
-        """A frame from the python-can transport's thread."""
-        return self.handle(frame)
-
-    def _advance_now(self) -> None:
-        """The wall-clock timer thread's step (``Clock.REAL``)."""
+        """A frame from the python-can transport's thread: handled and answered under the
+        node's lock, so that what the node sends from its threads keeps its order."""
         with self._lock:
-            self._run_timers(self._at(None))
+            out = self.handle(frame)
+            if self._sink is not None:
+                for answer in out:
+                    self._sink(answer)
+                return []
+            return out
+
+    def _wall_heartbeat(self) -> None:
+        """The heartbeat thread's step (``Clock.REAL``): one heartbeat when due (a thread
+        that was late skips the periods it missed rather than sending a burst, as a device
+        that stalled would)."""
+        with self._lock:
+            if self._started and self._hb.fire(time.monotonic(), limit=1):
+                self._heartbeat_frame()
             self._flush()
 
     def _flush(self) -> None:
@@ -558,8 +574,9 @@ class CanopenSlave:
     def _run_timers(self, now: float) -> None:
         if not self._started:
             return
-        for _due in self._hb.fire(now):
-            self._heartbeat_frame()
+        if self._clock is Clock.TICK:
+            for _due in self._hb.fire(now):
+                self._heartbeat_frame()
         self._supervise(now)
         for pdo in self._tpdos:
             timer = self._tpdo_timers.get(pdo.number)
@@ -723,7 +740,7 @@ class CanopenSlave:
             if period is not None and self._store.find(*HEARTBEAT_TIME) is not None:
                 self._store.put(*HEARTBEAT_TIME,
                                 self._var(*HEARTBEAT_TIME).encode_raw(round(period * 1000)))
-                self._hb.start(self._at(None), self._hb_period())
+                self._hb.start(self._hb_now(), self._hb_period())
             self._flush()
 
     def silence(self) -> None:
@@ -764,8 +781,8 @@ class CanopenSlave:
     # -- real time ----------------------------------------------------------------------------
 
     def run_realtime(self, step: float = 0.01) -> None:
-        """Start a thread calling :meth:`tick` every ``step`` seconds of real time (the plants;
-        on ``Clock.REAL`` the timers run on their own thread, at their due times)."""
+        """Start a thread calling :meth:`tick` every ``step`` seconds of real time, with the
+        wall time since the last call: the node's time follows the wall clock."""
         if self._rt_thread is not None:
             return
         self._rt_stop.clear()
@@ -884,7 +901,7 @@ class CanopenSlave:
             pdos.check_write(self._store, index, subindex, value)
         self._store.put(index, subindex, data)
         if index == 0x1017:
-            self._hb.start(now, self._hb_period())
+            self._hb.start(self._hb_now(), self._hb_period())
         elif index == 0x1016:
             self._read_consumers()
         elif 0x1400 <= index <= 0x1BFF:
@@ -1102,7 +1119,7 @@ class CanopenSlave:
         self.stats.boots += 1
         self._send(0x700 + self.node_id, b"\x00")
         self._set_state(NmtState.PRE_OPERATIONAL)
-        self._hb.start(now, self._hb_period())
+        self._hb.start(self._hb_now(), self._hb_period())
         for fault in self._faults.values():   # a fault still present is reported again
             self._emcy(fault.code, self.error_register, fault.data, now)
 

@@ -38,12 +38,13 @@ class Periodic:
         """Stop the timer."""
         self.due = None
 
-    def fire(self, now: float) -> list[float]:
-        """The due times reached by ``now`` (oldest first), the timer moved past them."""
+    def fire(self, now: float, limit: int = CATCH_UP) -> list[float]:
+        """The due times reached by ``now`` (oldest first, ``limit`` at most: the timer skips
+        the others, keeping its phase), the timer moved past them."""
         times: list[float] = []
         due = self.due
         while due is not None and due <= now + EPSILON:
-            if len(times) == CATCH_UP:
+            if len(times) == limit:
                 due += self.period * (math.floor((now - due) / self.period) + 1)
                 break
             times.append(due)
