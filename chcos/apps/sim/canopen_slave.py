@@ -7,7 +7,7 @@ sent, :meth:`CanopenSlave.next_due` says when the next timer is due. No thread a
 needed for that: an in-process bus on the kernel's thread calls them directly
 (:meth:`~CanopenSlave.attach` starts the node without a python-can bus). :meth:`start` puts the
 same node on a python-can bus instead (:mod:`chcos.apps.sim.canopen_transport`: a receiving
-thread, and on ``Clock.REAL`` the heartbeat producer's thread on the wall clock).
+thread, and on ``Clock.REAL`` the bus's periodic send for the heartbeat).
 
 What the node does (every rule on the wire: ``docs/canopen-sim.md``):
 
@@ -34,7 +34,7 @@ What the node does (every rule on the wire: ``docs/canopen-sim.md``):
 * **Timers** - drift-free (:mod:`chcos.apps.sim.canopen_timers`): each due time is the last due
   time plus the period. The node's time is the sum of its :meth:`tick` steps (the kernel's
   virtual clock, a test's steps, or :meth:`run_realtime` on the wall clock); on ``Clock.REAL``
-  the heartbeat producer alone runs on :func:`time.monotonic`, on a thread of its own.
+  the heartbeat producer alone is the bus's periodic send (on SocketCAN the kernel's).
 
 canopen's object dictionary objects are held as ``Any``: the library is only partly typed.
 """
@@ -57,7 +57,7 @@ from chcos import resources
 from chcos.apps.sim import canopen_pdo as pdos
 from chcos.apps.sim.canopen_pdo import PdoConfig
 from chcos.apps.sim.canopen_timers import EPSILON, Periodic, TpdoTimer
-from chcos.apps.sim.canopen_transport import BusTransport, WallTimer
+from chcos.apps.sim.canopen_transport import BusTransport
 from chcos.apps.sim.object_store import ObjectStore, fixed_size
 from chcos.apps.sim.sdo_server import TIMEOUT, AbortCode, SdoAbort, SdoServer
 from chcos.devices.eds_file import read_eds
@@ -126,9 +126,10 @@ class NmtCommand(enum.IntEnum):
 
 
 class Clock(enum.Enum):
-    """What times the heartbeat producer: :func:`time.monotonic` on a thread of its own
-    (``REAL``: a node that is alive without being ticked), or the node's time, the sum of
-    :meth:`CanopenSlave.tick` steps, as every other timer (``TICK``: virtual time)."""
+    """What times the heartbeat producer: the python-can bus's periodic send (``REAL``: a node
+    alive on the wall clock without being ticked; on SocketCAN the kernel's broadcast manager
+    times it), or the node's time, the sum of :meth:`CanopenSlave.tick` steps, as every other
+    timer (``TICK``: virtual time)."""
 
     REAL = "real"
     TICK = "tick"
@@ -376,7 +377,6 @@ class CanopenSlave:
         self._started = False
         self._booted = False
         self._transport: BusTransport | None = None
-        self._timer: WallTimer | None = None
         self._rt_stop = threading.Event()
         self._rt_thread: threading.Thread | None = None
         self.stats = SlaveStats()
@@ -395,9 +395,6 @@ class CanopenSlave:
             transport = BusTransport(self._bus_args, self._receive,
                                      f"canopen-slave-{self.node_id}")
             self._transport = transport
-            if self._clock is Clock.REAL:
-                self._timer = WallTimer(self._wall_heartbeat, lambda: self._hb.due,
-                                        f"canopen-slave-{self.node_id}")
             self._begin(transport.send)
 
     def attach(self, sink: Callable[[CanFrame], None] | None = None) -> None:
@@ -405,7 +402,11 @@ class CanopenSlave:
         methods called from outside cause) goes to ``sink`` (None: kept until the next
         :meth:`handle`, :meth:`advance` or :meth:`take` returns it); frames reach the node by
         :meth:`handle`, time by :meth:`advance` or :meth:`tick`. For an in-process bus on
-        the kernel's thread (``clock=Clock.TICK``) and for tests scripting the wire."""
+        the kernel's thread and for tests scripting the wire; raises :class:`ConfigError` on
+        ``Clock.REAL`` (its heartbeat is a bus's periodic send)."""
+        if self._clock is not Clock.TICK:
+            raise ConfigError(f"canopen slave node {self.node_id}: attach() runs the node on "
+                              "its tick time: build it with clock=Clock.TICK")
         with self._lock:
             if not self._started:
                 self._begin(sink)
@@ -427,11 +428,8 @@ class CanopenSlave:
             self._started = False   # from here on nothing is sent
             self._sink = None
             self._out.clear()
-            timer, self._timer = self._timer, None
             transport, self._transport = self._transport, None
-        # outside the lock: the threads, which are joined here, may be waiting for it
-        if timer is not None:
-            timer.close()
+        # outside the lock: the receiving thread, which is joined here, may be waiting for it
         if transport is not None:
             transport.close()
 
@@ -464,10 +462,6 @@ class CanopenSlave:
         """The node's time: the sum of the :meth:`tick` steps."""
         return self._tick_time
 
-    def _hb_now(self) -> float:
-        """The heartbeat producer's time: :func:`time.monotonic` on ``Clock.REAL``, else the
-        node's."""
-        return time.monotonic() if self._clock is Clock.REAL else self._at(None)
 
     def handle(self, frame: FrameLike, now: float | None = None) -> list[CanFrame]:
         """Take one received frame at the node's time ``now`` (None: :meth:`now`), after the
@@ -479,10 +473,7 @@ class CanopenSlave:
             self._run_timers(at)
             if self._started and not frame.is_remote_frame and not frame.is_extended_id:
                 self._dispatch(frame.arbitration_id, bytes(frame.data), at)
-            out = self.take()
-        if self._timer is not None:
-            self._timer.poke()
-        return out
+            return self.take()
 
     def advance(self, now: float) -> list[CanFrame]:
         """Run the timers due by ``now`` (heartbeat, event timers, the heartbeat consumer, the
@@ -537,23 +528,12 @@ class CanopenSlave:
                 return []
             return out
 
-    def _wall_heartbeat(self) -> None:
-        """The heartbeat thread's step (``Clock.REAL``): one heartbeat when due (a thread
-        that was late skips the periods it missed rather than sending a burst, as a device
-        that stalled would)."""
-        with self._lock:
-            if self._started and self._hb.fire(time.monotonic(), limit=1):
-                self._heartbeat_frame()
-            self._flush()
-
     def _flush(self) -> None:
         """Hand what was sent to the sink, if there is one (else it waits for :meth:`take`)."""
         if self._sink is not None and self._out:
             out, self._out = self._out, []
             for frame in out:
                 self._sink(frame)
-        if self._timer is not None:
-            self._timer.poke()
 
     def _send(self, cob_id: int, data: bytes) -> None:
         if self._started:
@@ -731,16 +711,19 @@ class CanopenSlave:
         """Stop producing heartbeats (simulates a lost node; SDO and PDO keep working)."""
         with self._lock:
             self._hb_suppressed = True
+            self._real_heartbeat()
 
     def start_heartbeat(self, period: float | None = None) -> None:
-        """Resume heartbeats (at the producer's next due time), every ``period`` seconds from
-        now when given (written to 0x1017)."""
+        """Resume heartbeats, every ``period`` seconds from now when given (written to
+        0x1017); else at the producer's next due time (``Clock.TICK``) or at once
+        (``Clock.REAL``)."""
         with self._lock:
             self._hb_suppressed = False
             if period is not None and self._store.find(*HEARTBEAT_TIME) is not None:
                 self._store.put(*HEARTBEAT_TIME,
                                 self._var(*HEARTBEAT_TIME).encode_raw(round(period * 1000)))
-                self._hb.start(self._hb_now(), self._hb_period())
+                self._hb.start(self._at(None), self._hb_period())
+            self._real_heartbeat()
             self._flush()
 
     def silence(self) -> None:
@@ -748,11 +731,13 @@ class CanopenSlave:
         kept and go out with the next change or event timer after :meth:`restore`."""
         with self._lock:
             self._muted = True
+            self._real_heartbeat()
 
     def restore(self) -> None:
         """Undo :meth:`silence`."""
         with self._lock:
             self._muted = False
+            self._real_heartbeat()
 
     def send_emcy(self, code: int, register: int = 0, data: bytes = b"") -> None:
         """Send one raw EMCY frame (``code`` 0 is an error reset); 0x1001 is not changed (see
@@ -901,7 +886,8 @@ class CanopenSlave:
             pdos.check_write(self._store, index, subindex, value)
         self._store.put(index, subindex, data)
         if index == 0x1017:
-            self._hb.start(self._hb_now(), self._hb_period())
+            self._hb.start(now, self._hb_period())
+            self._real_heartbeat()
         elif index == 0x1016:
             self._read_consumers()
         elif 0x1400 <= index <= 0x1BFF:
@@ -1119,7 +1105,8 @@ class CanopenSlave:
         self.stats.boots += 1
         self._send(0x700 + self.node_id, b"\x00")
         self._set_state(NmtState.PRE_OPERATIONAL)
-        self._hb.start(self._hb_now(), self._hb_period())
+        self._hb.start(now, self._hb_period())
+        self._real_heartbeat()
         for fault in self._faults.values():   # a fault still present is reported again
             self._emcy(fault.code, self.error_register, fault.data, now)
 
@@ -1129,7 +1116,27 @@ class CanopenSlave:
         if state in (NmtState.STOPPED, NmtState.INITIALISING):
             self._sdo.reset()
         self._state = state
+        transport = self._transport
+        if self._clock is Clock.REAL and transport is not None:
+            if state is NmtState.INITIALISING:
+                transport.stop_periodic()
+            else:   # the next heartbeat carries the new state, its timing kept
+                transport.modify_periodic(CanFrame(0x700 + self.node_id, bytes([int(state)])))
         self._changed.notify_all()
+
+    def _real_heartbeat(self) -> None:
+        """``Clock.REAL``: (re)start the bus's periodic heartbeat (the first at once), or stop
+        it while the node is silenced, suppressed or initialising."""
+        transport = self._transport
+        if self._clock is not Clock.REAL or transport is None:
+            return
+        self._flush()   # what the node sent before (its boot-up) goes out first
+        if self._started and not (self._hb_suppressed or self._muted) \
+                and self._state is not NmtState.INITIALISING:
+            transport.periodic(CanFrame(0x700 + self.node_id, bytes([int(self._state)])),
+                               self._hb_period())
+        else:
+            transport.stop_periodic()
 
     def _hb_period(self) -> float:
         return self._int(*HEARTBEAT_TIME) / 1000

@@ -8,8 +8,10 @@ queue and marks each done (``task_done``), so that :meth:`BusTransport.settle` c
 every frame sent to the node so far has been handled and answered: the kernel settles a
 simulated node so before virtual time moves on (:meth:`chcos.kernel.scheduler.Kernel.settle`);
 there the thread blocks on the queue with no timeout and is woken to stop by a marker frame.
-:class:`WallTimer` runs a real-time node's timers on the wall clock (a thread that sleeps
-until the node's next due time); a node on virtual time has none (its owner advances it).
+:meth:`BusTransport.periodic` sends a real-time node's heartbeat with python-can's periodic send
+(on SocketCAN the kernel's broadcast manager: timed by the kernel, on due times, unaffected by
+the load of the process); a node on virtual time has none (its own timers, advanced by its
+owner, send it).
 """
 
 from __future__ import annotations
@@ -17,7 +19,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import threading
-import time
 from collections.abc import Callable
 from typing import Any
 
@@ -51,6 +52,7 @@ class BusTransport:
         self._stop_marker = can.Message(arbitration_id=0x7FF, is_remote_frame=True)
         self._running = True
         self._send_lock = threading.Lock()
+        self._periodic: Any = None
         self._thread = threading.Thread(target=self._loop, name=f"{name}-rx", daemon=True)
         #: frames handled so far (error and remote frames included, as ignored)
         self.handled = 0
@@ -64,9 +66,38 @@ class BusTransport:
         with self._send_lock, contextlib.suppress(can.CanError, OSError, ValueError):
             self._bus.send(msg)
 
+    def periodic(self, frame: CanFrame, period: float) -> None:
+        """Send ``frame`` every ``period`` seconds from now on (the first at once), replacing
+        the periodic frame there was; a period of 0 or less stops it. A bus that refuses is not
+        fatal (a stopped node sends nothing anyway)."""
+        self.stop_periodic()
+        if period <= 0:
+            return
+        msg = can.Message(arbitration_id=frame.arbitration_id, data=frame.data,
+                          is_extended_id=frame.is_extended_id)
+        with contextlib.suppress(can.CanError, OSError, ValueError):
+            self._periodic = self._bus.send_periodic(msg, period, store_task=False)
+
+    def modify_periodic(self, frame: CanFrame) -> None:
+        """New data for the periodic frame, its timing kept (nothing if none runs)."""
+        task = self._periodic
+        if task is not None:
+            msg = can.Message(arbitration_id=frame.arbitration_id, data=frame.data,
+                              is_extended_id=frame.is_extended_id)
+            with contextlib.suppress(can.CanError, OSError, ValueError):
+                task.modify_data(msg)
+
+    def stop_periodic(self) -> None:
+        """Stop the periodic frame, if one runs."""
+        task, self._periodic = self._periodic, None
+        if task is not None:
+            with contextlib.suppress(Exception):
+                task.stop()
+
     def close(self) -> None:
         """End the thread, wait for it (not from the thread itself) and shut the bus down.
         Idempotent; never raises."""
+        self.stop_periodic()
         self._running = False
         if self._queue is not None:
             self._queue.put(self._stop_marker)
@@ -120,44 +151,3 @@ class BusTransport:
                 self.handled += 1
                 if self._queue is not None:
                     self._queue.task_done()
-
-
-class WallTimer:
-    """A thread that calls ``advance()`` whenever ``next_due()`` (seconds of
-    :func:`time.monotonic`, None: nothing due) has come, and again after :meth:`poke` (the node
-    was changed: its next due time may be earlier). For real-time nodes only."""
-
-    def __init__(self, advance: Callable[[], None], next_due: Callable[[], float | None],
-                 name: str) -> None:
-        self._advance = advance
-        self._next_due = next_due
-        self._wake = threading.Event()
-        self._running = True
-        self._thread = threading.Thread(target=self._loop, name=f"{name}-timers", daemon=True)
-        self._thread.start()
-
-    def poke(self) -> None:
-        """Look at the next due time again."""
-        self._wake.set()
-
-    def close(self) -> None:
-        """End the thread and wait for it (not from the thread itself). Idempotent."""
-        self._running = False
-        self._wake.set()
-        if self._thread is not threading.current_thread():
-            self._thread.join(timeout=2.0)
-
-    def _loop(self) -> None:
-        while self._running:
-            due = self._next_due()
-            if due is None:
-                self._wake.wait()
-            else:
-                self._wake.wait(max(0.0, due - time.monotonic()))
-            self._wake.clear()
-            if not self._running:
-                return
-            try:
-                self._advance()
-            except Exception:   # the timers live on: one failing step is logged
-                log.exception("simulated CANopen node: a timer step failed")
