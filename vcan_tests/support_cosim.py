@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from chcos.apps.sim.canopen_slave import CanopenSlave, Clock
+from chcos.apps.sim.cia402_drive import Cia402Drive
 from drivers.codecs.can import CanFrame
 
 STRICT_EDS = Path(__file__).resolve().parent / "vendor" / "strict_node.eds"
@@ -29,13 +30,16 @@ class Seen:
 
 
 class Script:
-    """The wire of one node ``node_id`` (``eds``), its time starting at 0."""
+    """The wire of one node ``node_id`` (``eds``; a :class:`Cia402Drive` with ``drive``), its
+    time starting at 0."""
 
-    def __init__(self, node_id: int, eds: Path = STRICT_EDS, **kw: object) -> None:
+    def __init__(self, node_id: int, eds: Path = STRICT_EDS, drive: bool = False,
+                 **kw: object) -> None:
         kw.setdefault("heartbeat_period", 0)
         self.node_id = node_id
-        self.slave = CanopenSlave(node_id, eds, channel="unused", clock=Clock.TICK,
-                                  **kw)  # type: ignore[arg-type]
+        kind = Cia402Drive if drive else CanopenSlave
+        self.slave = kind(node_id, eds, channel="unused", clock=Clock.TICK,
+                          **kw)  # type: ignore[arg-type]
         self.seen: list[Seen] = []
         self.slave.attach()
         self._keep(self.slave.take())

@@ -113,3 +113,23 @@ def test_a_short_rpdo_on_the_virtual_bus(bus: tuple[can.BusABC, CanopenSlave]) -
         if msg.arbitration_id == EMCY:
             break
     assert bytes(msg.data) == emcy(0x8210, 0x11, bytes([1, 0, 2, 6]))
+
+
+def test_the_drives_fault_emcy_and_0x1001_agree() -> None:
+    from chcos.apps.sim.cia402_drive import CIA402_EDS, Cia402Drive
+
+    wire = Script(NODE, CIA402_EDS, drive=True)
+    assert isinstance(wire.slave, Cia402Drive)
+    wire.run(0.02)                                                   # self test done
+    wire.slave.set_temperature(95.0)
+    mark = len(wire.seen)
+    wire.run(0.02)
+    assert wire.emcys(mark) == [emcy(0x4310, 0x09)]                  # generic + temperature
+    assert wire.sdo1(upload(0x1001, 0)) == bytes.fromhex("4f01100009000000")
+    assert wire.sdo1(upload(0x603F, 0)) == bytes.fromhex("4b3f600010430000")
+    wire.slave.set_temperature(25.0)
+    mark = len(wire.seen)
+    assert wire.sdo1(bytes.fromhex("2b40600080000000"))[0] == 0x60   # fault reset (bit 7)
+    wire.run(0.02)
+    assert wire.emcys(mark) == [emcy(0x0000, 0x00)]
+    assert wire.sdo1(upload(0x1001, 0)) == bytes.fromhex("4f01100000000000")

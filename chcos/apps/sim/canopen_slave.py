@@ -156,10 +156,15 @@ class ErrorBehaviour(enum.IntEnum):
 
 
 def error_bits(code: int) -> ErrorBits:
-    """The error-register bits an EMCY error code sets (its class, plus generic)."""
+    """The error-register bits an EMCY error code sets (its class, plus generic): current 2xxx,
+    voltage 3xxx, temperature 4xxx, communication 81xx and 82xx (other 8xxx monitoring codes,
+    a CiA 402 following error 8611 say, are generic only), device profile Fxxx, manufacturer
+    FFxx."""
     bits = ErrorBits.GENERIC
     bits |= {0x2: ErrorBits.CURRENT, 0x3: ErrorBits.VOLTAGE, 0x4: ErrorBits.TEMPERATURE,
-             0x8: ErrorBits.COMMUNICATION, 0xF: ErrorBits.PROFILE}.get(code >> 12, ErrorBits(0))
+             0xF: ErrorBits.PROFILE}.get(code >> 12, ErrorBits(0))
+    if code >> 8 in (0x81, 0x82):
+        bits |= ErrorBits.COMMUNICATION
     if code >> 8 == 0xFF:
         bits |= ErrorBits.MANUFACTURER
     return bits

@@ -33,6 +33,7 @@ from chcos.apps.sim.canopen_slave import (
     EMCY_HEARTBEAT_LOST,
     CanopenSlave,
     Clock,
+    ErrorBits,
     MasterLost,
     NmtCommand,
 )
@@ -340,6 +341,7 @@ class Cia402Drive(CanopenSlave):
             self.set(0x605A, 0, quick_stop_option)
         #: every controlword applied, in order
         self.received: list[int] = []
+        self._model_fault: int | None = None   # the model's fault raised on the node
         # each RPDO entry and SDO download, in order
         self.add_write_hook(self._on_write)
         self.add_plant(self._step_model)
@@ -363,11 +365,22 @@ class Cia402Drive(CanopenSlave):
         return self._int(index, 0, missing)
 
     def _publish(self) -> None:
-        """Show the model in the objects (TPDOs go out on change) and send its EMCYs."""
+        """Show the model in the objects (TPDOs go out on change) and raise or clear its
+        faults: each fault's EMCY and 0x1001 (with 0x1003) say the same; the fault reset sends
+        the error-reset EMCY with the register of what is left."""
         m = self.model
         for code in m.emcys:
             self._show(0x603F, m.error_code)
-            self.send_emcy(code, ERROR_REGISTER.get(code, 0x01) if code else 0)
+            now = self._at(None)
+            if code:
+                self._model_fault = code
+                self._raise(code, ErrorBits(ERROR_REGISTER.get(code, 0x01)) | ErrorBits.GENERIC,
+                            b"", now)
+            elif self._model_fault is not None:
+                self._clear(self._model_fault, now)
+                self._model_fault = None
+            else:   # the reset of a fault the node raised (a lost master): the drive's EMCY
+                self._emcy(0, self.error_register, b"", now)
         m.emcys.clear()
         self._show(0x603F, m.error_code)
         self._show(0x6061, m.mode_display)
@@ -397,7 +410,11 @@ class Cia402Drive(CanopenSlave):
             self._publish()
 
     def _boot(self, command: NmtCommand, power_on: bool = False) -> None:
-        """As the node's boot; a reset node (not the first power-on) reboots the drive too."""
+        """As the node's boot; a reset node (not the first power-on) reboots the drive too,
+        which ends its fault (a cause that persists faults it again at the next step)."""
+        if command is NmtCommand.RESET_NODE and not power_on and self._model_fault is not None:
+            self._faults.pop(self._model_fault, None)
+            self._model_fault = None
         super()._boot(command, power_on)
         if command is NmtCommand.RESET_NODE:
             if power_on:                               # the first start: the stored mode

@@ -12,9 +12,11 @@ that answers the bus's devices on the real protocol:
   round) every cycle (the DBC's ``GenMsgCycleTime``, else 0.1 s) and decodes the actuators'
   frames;
 * ``canopen`` - per node, :class:`chcos.apps.sim.canopen_slave.CanopenSlave` over the node's EDS
-  on the slaves' clock: boot-up, NMT state machine, SDO server (zero for objects without a
-  default), RPDOs applied, TPDOs on change, event timer and SYNC, EMCY on injected faults
-  (:meth:`SimSlaves.canopen_node`), a heartbeat every third of the map's ``heartbeat_timeout``;
+  on the slaves' clock, as strict as a CiA 301 device: boot-up, NMT state machine, SDO server
+  (every refusal the device's abort; zero for objects without a default), RPDOs applied (a
+  wrong length raises EMCY 0x8210/0x8220), TPDOs on change, event timer and SYNC, EMCY on
+  injected faults (:meth:`SimSlaves.canopen_node`), a heartbeat every third of the map's
+  ``heartbeat_timeout``;
   a node whose EDS is a CiA 402 drive's is a :class:`chcos.apps.sim.cia402_drive.Cia402Drive`
   (the state machine answers the controlword; 0x605A as the map's axis says, else the EDS);
 * ``serial`` - a TCP serial server (the driver reaches it as ``socket://127.0.0.1:PORT``)

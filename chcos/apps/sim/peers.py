@@ -264,8 +264,9 @@ class CanopenPeer(Peer):
     :class:`chcos.apps.sim.cia402_drive.Cia402Drive` when the node's EDS is a CiA 402 drive's
     (the state machine answers the controlword; 0x605A as the EDS says), else a
     :class:`chcos.apps.sim.canopen_slave.CanopenSlave` without a plant (values come from
-    :meth:`set` and scripts). Both send a heartbeat every third of the node's
-    ``heartbeat_timeout`` (none without it), TPDOs on change, event timer and SYNC.
+    :meth:`set` and scripts). Both are as strict as CiA 301 devices (``docs/canopen-sim.md``)
+    and send a heartbeat every third of the node's ``heartbeat_timeout`` (none without it),
+    TPDOs on change, event timer and SYNC, every timer on the slaves' clock.
     :meth:`node` hands a node to fault scripts."""
 
     def __init__(self, bus: BusSpec, devices: tuple[DeviceSpec, ...], rewrite: bool) -> None:
@@ -360,9 +361,11 @@ class CanopenPeer(Peer):
         return values[str(reading)]
 
     def tick(self, now: float) -> None:
-        dt, self.last = max(0.0, now - self.last), now
+        """Each node's time to ``now`` (its own time, not a sum of rounded steps: its timers
+        are due at the kernel's times)."""
+        self.last = now
         for slave in self.slaves.values():
-            slave.tick(dt)
+            slave.tick(max(0.0, now - slave.now()))
 
     def settle(self, timeout: float) -> bool:
         """Every node has handled every frame sent to it so far (see
