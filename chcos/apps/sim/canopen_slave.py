@@ -349,25 +349,7 @@ class CanopenSlave:
             self._factory[HEARTBEAT_TIME] = bytes(hb_var.encode_raw(
                 round(heartbeat_period * 1000)))
         self._saved: dict[tuple[int, int], bytes] = {}
-        self._state = NmtState.INITIALISING
-        self._tick_time = 0.0      # Clock.TICK: the sum of the tick steps
-        self._time = 0.0           # the latest time the node was given
-        self._hb = Periodic()
-        self._hb_suppressed = False
-        self._muted = False
-        self._faults: dict[int, Fault] = {}
-        self._history: list[int] = []   # 0x1003, newest first
-        self._aborts: dict[tuple[int, int], int] = {}
-        self._tpdos: list[PdoConfig] = []
-        self._rpdos: list[PdoConfig] = []
-        self._tpdo_timers: dict[int, TpdoTimer] = {}
-        self._syncs_seen: dict[int, int] = {}     # synchronous TPDO -> SYNCs since the last
-        self._sync_changed: set[int] = set()      # type-0 TPDOs changed since the last SYNC
-        self._pending_rpdos: dict[int, bytes] = {}
-        self._length_errors: dict[int, int] = {}  # RPDO number -> its length error's EMCY code
-        self._consumers: dict[int, _Consumer] = {}
-        self._emcy_queue: list[bytes] = []
-        self._emcy_last: float | None = None
+        self._init_state()
         self._plants: list[Plant] = []
         self._master_lost_hooks: list[Callable[[CanopenSlave, MasterLost], None]] = []
         self._write_hooks: list[WriteHook] = []
@@ -388,6 +370,28 @@ class CanopenSlave:
         #: Set whenever an RPDO has been applied to the object dictionary.
         self.rpdo_received = threading.Event()
         self._power_on()
+
+    def _init_state(self) -> None:
+        """The node's state before its first start: time, timers, faults, PDOs, consumers."""
+        self._state = NmtState.INITIALISING
+        self._tick_time = 0.0      # the sum of the tick steps
+        self._time = 0.0           # the latest time the node was given
+        self._hb = Periodic()
+        self._hb_suppressed = False
+        self._muted = False
+        self._faults: dict[int, Fault] = {}
+        self._history: list[int] = []   # 0x1003, newest first
+        self._aborts: dict[tuple[int, int], int] = {}
+        self._tpdos: list[PdoConfig] = []
+        self._rpdos: list[PdoConfig] = []
+        self._tpdo_timers: dict[int, TpdoTimer] = {}
+        self._syncs_seen: dict[int, int] = {}     # synchronous TPDO -> SYNCs since the last
+        self._sync_changed: set[int] = set()      # type-0 TPDOs changed since the last SYNC
+        self._pending_rpdos: dict[int, bytes] = {}
+        self._length_errors: dict[int, int] = {}  # RPDO number -> its length error's EMCY code
+        self._consumers: dict[int, _Consumer] = {}
+        self._emcy_queue: list[bytes] = []
+        self._emcy_last: float | None = None
 
     # -- life cycle ---------------------------------------------------------------------------
 
