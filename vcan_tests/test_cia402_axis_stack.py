@@ -15,7 +15,6 @@ from typing import Any
 
 import pytest
 
-from chcos.apps.sim.canopen_slave import Clock
 from chcos.apps.sim.cia402_drive import Cia402Drive
 from chcos.errors import ChcosError
 from chcos.kernel.clock import VirtualClock
@@ -423,7 +422,7 @@ def test_shutdown_says_so_when_the_drive_does_not_stop(tmp_path: Path) -> None:
 def test_the_simulated_drive_as_an_axis(tmp_path: Path) -> None:
     channel = unique_channel("axissim")
     d = Cia402Drive(NODE, channel=channel, heartbeat_period=0, quick_stop_option=2,
-                    refused_modes=(6,), clock=Clock.TICK)   # stepped on virtual time
+                    refused_modes=(6,))
     d.start()
     s = make_system(tmp_path, channel)
     r = Rig(s, d)
