@@ -86,8 +86,9 @@ _UDP_PORT = Key("port", "integer 1..65535", "43113", "UDP port of interface `udp
                "bus shared by processes on any machine; `channel` is its multicast group): give "
                "each bus its own group and port")
 _MODBUS_COMMON = (
-    Key("timeout", "float s", "1.0", "per request"),
-    Key("retries", "integer", "1", "retries per request"),
+    Key("timeout", "float s", "1.0", "per request: the longest wait for its answer"),
+    Key("retries", "integer", "1", "repeats of a request that got no usable answer, at once, "
+        "before it counts as unanswered"),
     Key("reconnect_delay", "float s", "0.1", "first reconnect back-off; doubled after each "
         "failure"),
     Key("reconnect_delay_max", "float s", "5.0", "longest back-off"),
@@ -100,21 +101,35 @@ _MODBUS_COMMON = (
         "an integer written each time); a counter writes 1, 2, ... "
         "(a coil toggles); a write not answered fails devices as any request, an exception "
         "answer fails the devices of its unit (see docs/modbus-faults.md)"),
+    Key("direct", "string", '""', "the name of an in-process simulated slave reached without a "
+        "socket or serial port (written by `chcos run --virtual` and the pytest plugin; not "
+        "for hand-written maps)"),
 )
 _MODBUS_ADDRESS = (
-    Key("unit", "integer 0..255", "1", "unit (slave / device) id"),
     Key("table", "string", "required", "`coil`, `discrete`, `holding` or `input`; actuators "
         "only `coil` or `holding`"),
     Key("address", "integer", "required", "protocol address, 0-based (register 40001 is "
         "`holding` 0)"),
+    Key("unit", "integer 0..247", "1", "unit (slave / device) id; 0 is a serial line's "
+        "broadcast: actuators only, written to every unit, never answered"),
     Key("type", "string", "`bool` (bits), `uint16`", "`bool` for coils and discrete inputs; "
-        "`int16 uint16 int32 uint32 float32 float64` for registers"),
+        "`int16 uint16 int32 uint32 int64 uint64 float32 float64` or `string` (with `count`) "
+        "for registers"),
+    Key("count", "integer 1..125", "none", "registers of a `string` (two ASCII characters "
+        "each, NUL-padded): the value is text (a sensor)"),
     Key("word_order", "string", "`ABCD`", "for 32/64-bit types, by the bytes of a 32-bit "
         "value A B C D (A most significant): `ABCD` (high word first), `CDAB` (words "
         "swapped), `BADC` (bytes swapped in each word), `DCBA` (both); `big` and `little` "
         "are aliases of `ABCD` and `CDAB`; a 64-bit value follows the same rule over its four "
         "words"),
     Key("poll_period", "float s", "the bus's", "this sensor's polling period"),
+    Key("scale_factor", "integer", "none", "the address of an int16 register of the same unit "
+        "and table holding a power of ten (SunSpec's `sunssf`): the value is raw x 10^sf "
+        "(then `scale` and `offset`), the factor read in the same request where it is next to "
+        "the value, else in its own; 0x8000 there means not implemented"),
+    Key("unimplemented", "integer, float or string", "none", "the raw value meaning \"not "
+        "implemented\" (SunSpec: 0x8000 for an int16, 0xFFFF for a uint16...): such a reading "
+        "is no value, the sensor fails with that reason"),
 )
 
 REFERENCE: dict[str, Kind] = {
@@ -235,19 +250,25 @@ REFERENCE: dict[str, Kind] = {
         '[[device]]\nname = "position"\ndirection = "sensor"\n'
         'bus = "axis"\naddress = { node = 5, index = 0x6064 }'),
     "modbus-tcp": Kind(
-        "Modbus TCP client (pymodbus)",
+        "Modbus TCP client (an answer matched to its request by transaction id, unit, "
+        "function and byte count; pymodbus' PDU codec); under faults: docs/modbus-faults.md",
         (Key("host", "string", "required", "server address"),
          Key("port", "integer", "502", "server TCP port"),
          Key("connections", "integer 1..16", "1", "TCP connections a poll of several "
              "requests spreads them over, all outstanding at once (a server taking fewer is "
              "polled over those)"),
+         Key("server", "string", "`device` for one unit, `gateway` for several", "what "
+             "answers at the address: one `device` (the unit id is not significant: its "
+             "simulation answers any id) or a `gateway` to units behind it (an absent unit is "
+             "exception 0x0B, and a unit that stops answering fails its own devices only)"),
          *_MODBUS_COMMON),
         _MODBUS_ADDRESS,
         '[[bus]]\nname = "plc"\nkind = "modbus-tcp"\nhost = "127.0.0.1"\nport = 5020\n\n'
         '[[device]]\nname = "level"\ndirection = "sensor"\nbus = "plc"\n'
         'address = { table = "input", address = 0 }'),
     "modbus-rtu": Kind(
-        "Modbus RTU client on a serial line (pymodbus)",
+        "Modbus RTU client on a serial line (an answer matched by unit, function, byte count "
+        "and CRC, the input flushed before each request); under faults: docs/modbus-faults.md",
         (Key("port", "string", "required", "serial device or pyserial URL "
              "(`socket://host:port`)"),
          Key("baudrate", "integer", "19200", "bit/s"),
@@ -259,6 +280,9 @@ REFERENCE: dict[str, Kind] = {
              "out, the gaps doubling up to this); by default 8, raised so a dead unit's tries "
              "take at most a twentieth of the line's time; while another unit answers, the "
              "first gap already keeps to that share"),
+         Key("turnaround", "float s", "0.1", "the silence kept after a broadcast write (unit "
+             "0), so that every slave has carried it out before the next request (the serial "
+             "line specification's turnaround delay, typically 0.1 to 0.2 s)"),
          *_MODBUS_COMMON),
         _MODBUS_ADDRESS,
         '[[bus]]\nname = "rtu"\nkind = "modbus-rtu"\nport = "/dev/ttyUSB0"\nbaudrate = 19200'),

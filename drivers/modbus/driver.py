@@ -37,7 +37,7 @@ from drivers.codecs.modbus_options import (
 )
 from drivers.health import Health
 from drivers.jobqueue import JobQueue, Poll
-from drivers.modbus import checks
+from drivers.modbus.checks import device_errors, line_warnings, parse_device
 from drivers.modbus.config import (
     BusPlan,
     build_plan,
@@ -256,7 +256,7 @@ def _validate(kind: str, devices: Sequence[DeviceSpec]) -> None:
     """Check the devices built in code (those a map check parsed are valid); raises
     ConfigError naming every bad key."""
     errors = [e for d in devices if not isinstance(d.addr, ModbusAddress)
-              for e in checks.parse_device(kind, d)[1]]
+              for e in parse_device(kind, d)[1]]
     if errors:
         raise ConfigError("; ".join(errors))
 
@@ -278,13 +278,18 @@ class ModbusTcpDriver(Driver):
     @classmethod
     def parse_device(cls, bus: BusSpec, device: DeviceSpec) -> tuple[Any, list[str]]:
         """The typed address, and the rules of the device and kind."""
-        return checks.parse_device(cls.kind, device)
+        return parse_device(cls.kind, device)
+
+    @classmethod
+    def check_device(cls, bus: BusSpec, device: DeviceSpec) -> list[str]:
+        """The errors of :meth:`parse_device`."""
+        return parse_device(cls.kind, device)[1]
 
     @classmethod
     def check_devices(cls, bus: BusSpec, devices: Sequence[DeviceSpec]) -> list[
             tuple[DeviceSpec, str]]:
         """See :func:`drivers.modbus.checks.device_errors`."""
-        return checks.device_errors(bus, cls.bus_options(bus, TcpOptions), devices)
+        return device_errors(bus, cls.bus_options(bus, TcpOptions), devices)
 
     @classmethod
     def encodable(cls, bus: BusSpec, device: DeviceSpec) -> tuple[float, float] | None:
@@ -349,18 +354,23 @@ class ModbusRtuDriver(Driver):
     @classmethod
     def parse_device(cls, bus: BusSpec, device: DeviceSpec) -> tuple[Any, list[str]]:
         """The typed address, and the rules of the device and kind."""
-        return checks.parse_device(cls.kind, device)
+        return parse_device(cls.kind, device)
+
+    @classmethod
+    def check_device(cls, bus: BusSpec, device: DeviceSpec) -> list[str]:
+        """The errors of :meth:`parse_device`."""
+        return parse_device(cls.kind, device)[1]
 
     @classmethod
     def check_devices(cls, bus: BusSpec, devices: Sequence[DeviceSpec]) -> list[
             tuple[DeviceSpec, str]]:
         """See :func:`drivers.modbus.checks.device_errors`."""
-        return checks.device_errors(bus, cls.bus_options(bus, RtuOptions), devices)
+        return device_errors(bus, cls.bus_options(bus, RtuOptions), devices)
 
     @classmethod
     def check_warnings(cls, bus: BusSpec, devices: Sequence[DeviceSpec]) -> list[str]:
         """See :func:`drivers.modbus.checks.line_warnings`."""
-        return checks.line_warnings(cls.bus_options(bus, RtuOptions), devices)
+        return line_warnings(cls.bus_options(bus, RtuOptions), devices)
 
     @classmethod
     def encodable(cls, bus: BusSpec, device: DeviceSpec) -> tuple[float, float] | None:
