@@ -128,8 +128,14 @@ class JobQueue(Generic[J]):
         return job
 
     def take_nowait(self) -> J | Poll | None:
-        """The next job, None if there is none."""
-        return self.take(0.0) if self._jobs else None
+        """The next job, None if there is none (never waits: the kernel thread's runner)."""
+        with self._cond:
+            if not self._jobs:
+                return None
+            job = self._jobs.popleft()
+        if isinstance(job, Poll):
+            self._taken(job.key)
+        return job
 
     def done(self) -> None:
         """One job taken is finished (run or dropped); wakes :meth:`settle` at the last one."""

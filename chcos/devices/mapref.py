@@ -280,6 +280,10 @@ REFERENCE: dict[str, Kind] = {
              "out, the gaps doubling up to this); by default 8, raised so a dead unit's tries "
              "take at most a twentieth of the line's time; while another unit answers, the "
              "first gap already keeps to that share"),
+         Key("line_guard", "float s", "0.5", "how long after a request nobody answered the "
+             "slaves may still be waiting for its answer and deaf to the next request (a "
+             "stock libmodbus slave: its response timeout, 0.5 s): the line is kept quiet that "
+             "long from the request (nothing more when `timeout` is as long)"),
          Key("turnaround", "float s", "0.1", "the silence kept after a broadcast write (unit "
              "0), so that every slave has carried it out before the next request (the serial "
              "line specification's turnaround delay, typically 0.1 to 0.2 s)"),

@@ -459,7 +459,8 @@ class UnitBackoff:
     """Which units of an RTU line answer, and how often a unit that does not is tried: after
     its ``k``-th unanswered request in a row a unit sits out ``min(start * 2**(k-1), cap) - 1``
     of its requests, so a dead unit takes a bounded share of the line and the live units keep
-    their rate. ``start`` is ``first`` while another unit of the line (``units``) answers -
+    their rate. ``start`` is ``first`` while another unit of the line (``units``) answers (it
+answered once at least, and its last request too) -
     chosen by the driver so that even the second try of a unit that just died keeps the live
     units' share (see :func:`drivers.modbus.config.dead_unit_first`) - and 1 when none does
     (nobody pays for the tries: the unit is tried again at once, then ever less often); the
@@ -478,6 +479,7 @@ class UnitBackoff:
         self._misses: dict[int, int] = {}      # unit -> unanswered requests in a row
         self._skip: dict[int, int] = {}        # unit -> requests still to sit out
         self._epoch: dict[int, int] = {}
+        self._heard: set[int] = set()          # units that answered at least once
 
     def due(self, unit: int) -> bool:
         """Whether a request to ``unit`` goes out now; a dead unit's request that sits out
@@ -492,7 +494,7 @@ class UnitBackoff:
         """``unit`` did not answer a request; True if it answered until then (it fails now)."""
         k = self._misses.get(unit, 0) + 1
         self._misses[unit] = k
-        others = any(u != unit and not self.dead(u) for u in self.units)
+        others = any(u != unit and u in self._heard and not self.dead(u) for u in self.units)
         start = self.first if others else 1
         self._skip[unit] = min(start * 2 ** min(k - 1, 30), self.cap) - 1
         if k == 1:
@@ -501,6 +503,7 @@ class UnitBackoff:
 
     def answered(self, unit: int) -> bool:
         """``unit`` answered (data or an exception); True if it had stopped answering."""
+        self._heard.add(unit)
         self._skip.pop(unit, None)
         return self._misses.pop(unit, 0) > 0
 

@@ -193,6 +193,12 @@ class RtuOptions(ModbusOptions):
             "requests are thinned out, the gaps doubling up to this); by default 8, raised so "
             "a dead unit's tries take at most a twentieth of the line's time; while another "
             "unit answers, the first gap already keeps to that share")
+    line_guard: float = option(0.5, unit="s", check=seconds,
+                               doc="how long after a request nobody answered the slaves may "
+                                   "still be waiting for its answer and deaf to the next "
+                                   "request (a stock libmodbus slave: its response timeout, "
+                                   "0.5 s): the line is kept quiet that long from the request "
+                                   "(nothing more when `timeout` is as long)")
     turnaround: float = option(0.1, unit="s", check=seconds,
                                doc="the silence kept after a broadcast write (unit 0), so that "
                                    "every slave has carried it out before the next request "
@@ -202,6 +208,10 @@ class RtuOptions(ModbusOptions):
     def link(self) -> str:
         """The port - for reasons."""
         return self.port
+
+    def guard_after_silence(self) -> float:
+        """Seconds the line stays quiet after a request's timeout passed unanswered."""
+        return max(0.0, self.line_guard - self.timeout)
 
 
 # ---- a device's address ------------------------------------------------------------------------

@@ -27,7 +27,7 @@ from drivers.codecs.modbus_options import (
     address_rules,
     point_of,
 )
-from drivers.modbus.config import dead_unit_backoff, sensor_period
+from drivers.modbus.config import dead_unit_backoff, sensor_period, try_cost
 
 
 def parse_device(kind: str, device: DeviceSpec) -> tuple[ModbusAddress | None, list[str]]:
@@ -95,12 +95,13 @@ def line_warnings(options: RtuOptions, devices: Sequence[DeviceSpec]) -> list[st
                    f"({longest * 1e3:.1f} ms at {line.baudrate} baud with the 3.5-character "
                    f"silences): that answer can never arrive in time")
     units = {p.unit for p in points if not p.broadcast}
-    cost = timeout * (options.retries + 1)
+    cost = try_cost(options)
     periods = [sensor_period(options, d) for d in devices if d.direction == "sensor"]
     period = min(periods, default=options.probe_period())
     if len(units) > 1 and cost * (len(units) - 1) > period:
         out.append(f"timeout: a unit that does not answer holds the line {cost:g} s per try "
-                   f"(timeout x (retries + 1)), {len(units) - 1} such unit(s) "
+                   f"(timeout x (retries + 1), then what is left of line_guard), "
+                   f"{len(units) - 1} such unit(s) "
                    f"{cost * (len(units) - 1):g} s, longer than the poll period {period:g} s: "
                    f"while units are dead the live ones miss polls at each try (a dead unit is "
                    f"tried at most every {dead_unit_backoff(options)} poll periods, "

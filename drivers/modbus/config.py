@@ -47,10 +47,16 @@ def planned(r: ReadRequest) -> PlannedRead:
     return PlannedRead(r, read_request(r.unit, r.table, r.address, r.count, r.describe()))
 
 
-def share_turns(timeout: float, retries: int, period: float) -> int:
-    """Poll periods per try of a dead unit that keep its tries (``timeout`` x (``retries`` +
-    1) each, the time such a try holds the line) within a twentieth of the line's time."""
-    cost = timeout * (retries + 1)
+def try_cost(o: ModbusOptions) -> float:
+    """Seconds one try of a dead unit holds the line: ``timeout`` x (``retries`` + 1), and on
+    a serial line the quiet kept after it (``line_guard``)."""
+    guard = o.guard_after_silence() if isinstance(o, RtuOptions) else 0.0
+    return o.timeout * (o.retries + 1) + guard
+
+
+def share_turns(cost: float, period: float) -> int:
+    """Poll periods per try of a dead unit that keep its tries (``cost`` s each, the time such
+    a try holds the line) within a twentieth of the line's time."""
     return max(1, math.ceil((DEAD_UNIT_SHARE - 1) * cost / period - 1e-9))
 
 
@@ -60,7 +66,7 @@ def dead_unit_backoff(o: ModbusOptions) -> int:
     a twentieth of the line's time (the live units keep 95 % of their polls)."""
     if isinstance(o, RtuOptions) and o.dead_unit_backoff is not None:
         return o.dead_unit_backoff
-    return max(DEFAULT_DEAD_UNIT_BACKOFF, share_turns(o.timeout, o.retries, o.sensor_period()))
+    return max(DEFAULT_DEAD_UNIT_BACKOFF, share_turns(try_cost(o), o.sensor_period()))
 
 
 def dead_unit_first(o: ModbusOptions) -> int:
@@ -69,7 +75,7 @@ def dead_unit_first(o: ModbusOptions) -> int:
     of the line's time from its first miss on, so the live units keep their rate while the
     unit is backed off too; 1 (the next poll) when a try costs little beside the poll period.
     Never more than the cap."""
-    return min(dead_unit_backoff(o), share_turns(o.timeout, o.retries, o.sensor_period()))
+    return min(dead_unit_backoff(o), share_turns(try_cost(o), o.sensor_period()))
 
 
 @dataclass(frozen=True)

@@ -95,11 +95,14 @@ class ModbusBus:
         self.name = f"{kind} bus {bus.name}"
         self.health = Health(host)
         self.reports = Reports(host, bus.name)
+        distinct = sum(len(plan) for plan in self.plan.polls.values()) + len(self.plan.probed)
         self.link = Link(host, bus.name, self.name, options.link(), self.health,
-                         self.plan.points, per_unit=self.plan.serial)
+                         self.plan.points, per_unit=self.plan.serial, distinct=distinct)
         self.units = Units(self.name, self.health, self.plan.points, dead_unit_backoff(options),
                            dead_unit_first(options), self.plan.units,
-                           guard=options.timeout if self.plan.serial else 0.0)
+                           guard=options.timeout if self.plan.serial else 0.0,
+                           line_guard=(options.guard_after_silence()
+                                       if isinstance(options, RtuOptions) else 0.0))
         slave = lookup(options.direct) if options.direct else None
         if options.direct and slave is None:
             raise BusError(f"{self.name} ({bus.file}): {bus.key}.direct: no in-process "
@@ -142,6 +145,11 @@ class ModbusBus:
             engine.wake()
 
     # ---- life cycle -------------------------------------------------------------------------
+    @property
+    def settles(self) -> bool:
+        """False when the jobs run on the kernel thread (see :mod:`drivers.modbus.engine`)."""
+        return not isinstance(self.engine, KernelEngine)
+
     def start(self) -> None:
         """Connect (or make the first attempt) and pace the polls."""
         self.engine.start()
@@ -223,6 +231,7 @@ class ModbusBus:
 
     # ---- counts -------------------------------------------------------------------------------
     def _late(self) -> None:
+        self.link.alive()
         self.host.stat(self.bus.name, "late-answers")
 
     def _late_frames(self, n: int) -> None:
@@ -302,8 +311,10 @@ class ModbusTcpDriver(Driver):
         return sensor_period(cls.bus_options(bus, TcpOptions), device)
 
     def start(self) -> None:
-        """Connect and poll (see :class:`ModbusBus`)."""
+        """Connect and poll (see :class:`ModbusBus`); on the kernel thread nothing is in
+        flight between two interrupts (``settles`` False: the kernel waits for nothing)."""
         self.modbus.start()
+        self.settles = self.modbus.settles
         self._running = True
 
     def stop(self) -> None:
@@ -383,8 +394,10 @@ class ModbusRtuDriver(Driver):
         return sensor_period(cls.bus_options(bus, RtuOptions), device)
 
     def start(self) -> None:
-        """Open the port and poll (see :class:`ModbusBus`)."""
+        """Open the port and poll (see :class:`ModbusBus`); on the kernel thread nothing is in
+        flight between two interrupts (``settles`` False: the kernel waits for nothing)."""
         self.modbus.start()
+        self.settles = self.modbus.settles
         self._running = True
 
     def stop(self) -> None:

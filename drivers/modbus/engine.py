@@ -269,7 +269,8 @@ class ThreadEngine:
             self._transport.broadcast(req, t.turnaround)
             return Sent()
         outcome: Outcome | None = None
-        for _ in range(t.retries + 1):
+        extra = 1 if self._units.extra_try(req.unit) else 0
+        for _ in range(t.retries + 1 + extra):
             until = self._units.guard(req.unit, req.pdu, time.monotonic())
             if until:
                 self._transport.hold_quiet(until)
@@ -304,6 +305,7 @@ class KernelEngine:
         self._tid = 0
         self._delay = timing.reconnect_delay
         self._shutting_down = False
+        self._tries = timing.retries + 1     # of the exchange under way
 
     @property
     def clock(self) -> Callable[[], float]:
@@ -479,6 +481,9 @@ class KernelEngine:
         timer resumes the job with it: the wire time, the timeout, a retry, the guard).
         Raises TransportLost when a TCP slave closed."""
         now = self._host.now()
+        if attempt == 0:
+            self._tries = self._timing.retries + 1 + (1 if self._units.extra_try(req.unit)
+                                                      else 0)
         if req.broadcast:
             direct_exchange(self._slave, req, 0, now)
             self._later(now + self._wire(req, 0) + self._timing.turnaround, Sent(), req, attempt)
@@ -495,7 +500,7 @@ class KernelEngine:
             self._later(now + self._timing.timeout, later, req, attempt)
             return None
         wire = self._wire(req, 5 if isinstance(outcome, Refused) else req.rtu_answer_bytes())
-        if wire > 0 or (not _usable(outcome) and attempt < self._timing.retries):
+        if wire > 0 or (not _usable(outcome) and attempt < self._tries - 1):
             self._later(now + wire, outcome, req, attempt)
             return None
         return outcome
@@ -515,7 +520,7 @@ class KernelEngine:
         if self._stopped or run is not self._run:
             return
         if not isinstance(outcome, Sent) and not _usable(outcome) \
-                and attempt < self._timing.retries:
+                and attempt < self._tries - 1:
             self._resume_exchange(run, req, attempt + 1)
             return
         value = self._collect(outcome)

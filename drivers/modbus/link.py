@@ -4,9 +4,10 @@ stop answering. No I/O: the engines (:mod:`drivers.modbus.engine`) tell it what 
 
 Connection-level causes (:class:`Link`): a connection that cannot be made, one the peer closes
 or resets, a byte stream that is no Modbus any more, and - on ``modbus-tcp`` - requests that go
-unanswered with nothing at all coming back on the connection: the first request after a connect
-(a server that accepts connections but does not answer: frozen, SIGSTOPped), or
-:data:`SILENT_REQUESTS` requests in a row. One request that always times out while the others
+unanswered with nothing at all coming back on the connection: :data:`SILENT_REQUESTS` different
+requests in a row (fewer on a bus that makes fewer), also right after a connect (a server that
+accepts connections but does not answer: frozen, SIGSTOPped). A late answer shows the peer
+there (:meth:`Link.alive`). One request that always times out while the others
 are answered is that request's devices' failure, not the connection's: the connection is kept.
 A connect is not health: the devices recover (cause ``link``) once a request is answered - on
 ``modbus-rtu`` the devices of the unit that answered.
@@ -15,7 +16,9 @@ Units (:class:`Units`, ``modbus-rtu`` and a ``modbus-tcp`` gateway): a unit that
 (after the bus's ``retries``) fails every device of that unit (cause ``unit``), is backed off
 (:class:`drivers.codecs.modbus.UnitBackoff`) so the live units keep their rate, and - RTU -
 is held quiet for one ``timeout`` before a different request goes to it (:meth:`Units.guard`),
-so that its late answer is taken for nothing: RTU answers carry no transaction id.
+so that its late answer is taken for nothing: RTU answers carry no transaction id. A request
+right after another unit's silence gets one try more before its own unit counts as silent
+(:meth:`Units.extra_try`: slaves may still be deaf, waiting for the silent unit's answer).
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ class Link:
     """The state of one bus's connection (see the module doc)."""
 
     def __init__(self, host: DriverHost, bus: str, name: str, where: str, health: Health,
-                 points: Mapping[str, Point], per_unit: bool) -> None:
+                 points: Mapping[str, Point], per_unit: bool, distinct: int) -> None:
         self._host = host
         self.bus = bus
         #: ``modbus-tcp bus mb`` - the start of every reason
@@ -52,6 +55,9 @@ class Link:
         self._answered = True
         self._units_answered: set[int] = set()
         self._silent = 0
+        #: unanswered requests in a row that lose the connection: SILENT_REQUESTS, or fewer
+        #: on a bus that makes fewer different requests (nothing else could answer)
+        self.silent_limit = max(1, min(SILENT_REQUESTS, distinct))
         #: set once stop began: the first unanswered request ends the link
         self.stopping = False
 
@@ -65,8 +71,11 @@ class Link:
         self._answered = False
         self._units_answered = set()
         self._silent = 0
-        if self._per_unit:
+        if self._per_unit:       # a broadcast's devices: nothing ever answers for them
             for device, p in self._points.items():
+                if p.broadcast:
+                    self._health.clear(device, LINK_CAUSE, f"{self.name}: {self.where} is open")
+                    continue
                 self._health.fail(device, LINK_CAUSE, f"{self.name}: {self.where} is open, unit "
                                                       f"{p.unit} has not answered a request yet")
 
@@ -94,12 +103,23 @@ class Link:
                 if p.unit == unit:
                     self._health.clear(device, LINK_CAUSE, f"{self.name}: unit {unit} on "
                                                            f"{self.where} answered")
-            self._answered = self._units_answered >= {p.unit for p in self._points.values()}
+            self._answered = self._units_answered >= {p.unit for p in self._points.values()
+                                                      if not p.broadcast}
             return
         self._answered = True
         for device in self._points:
             self._health.clear(device, LINK_CAUSE, f"{self.name}: a request to {self.where} "
                                                    f"was answered")
+
+    @property
+    def proven(self) -> bool:
+        """True once a request was answered since the last connect."""
+        return self._answered
+
+    def alive(self) -> None:
+        """Bytes came back on the connection that answer no outstanding request (a late
+        answer): the peer is there, the silence streak ends."""
+        self._silent = 0
 
     def unanswered(self) -> str:
         """A request got nothing back: why that loses the connection, or "" if it does not (a
@@ -107,27 +127,34 @@ class Link:
         if self._per_unit:
             return ""
         self._silent += 1
-        if not self._answered:
-            return f"{self.where} accepted the connection but sent no response"
         if self.stopping:
             return f"{self.where} did not answer while the bus stops"
-        if self._silent >= SILENT_REQUESTS:
-            return f"{self.where} answered none of the last {self._silent} requests"
-        return ""
+        if self._silent < self.silent_limit:
+            return ""
+        if not self._answered:
+            return f"{self.where} accepted the connection but sent no response"
+        return f"{self.where} answered none of the last {self._silent} requests"
 
 
 class Units:
     """The units of one bus that can stop answering one by one (see the module doc)."""
 
     def __init__(self, name: str, health: Health, points: Mapping[str, Point], cap: int,
-                 first: int, units: Iterable[int], guard: float) -> None:
+                 first: int, units: Iterable[int], guard: float, line_guard: float = 0.0
+                 ) -> None:
         self.name = name
         self._health = health
         self._points = points
         self.backoff = UnitBackoff(cap, first, units)
         #: seconds a unit that missed a request is held quiet before a different request
         self.guard_time = guard
+        #: seconds the whole line is held quiet after a request nobody answered (its timeout
+        #: passed): the other slaves may still be waiting for that answer
+        self.line_guard = line_guard
+        self._line_quiet_until = 0.0
         self._quiet: dict[int, tuple[float, bytes]] = {}
+        #: the unit whose request went unanswered last, while nothing was answered since
+        self._line_silent: int | None = None
 
     def due(self, unit: int) -> bool:
         """Whether a request to ``unit`` goes out now (a dead unit sits out some turns)."""
@@ -146,6 +173,8 @@ class Units:
         ``now``): every device of the unit fails (cause ``unit``), its later requests are
         thinned out and held behind the guard, and writes queued for it are not sent."""
         self.backoff.silent(unit)
+        self._line_silent = unit
+        self._line_quiet_until = now + self.line_guard
         self._quiet[unit] = (now + self.guard_time, request)
         for device, q in self._points.items():
             if q.unit == unit:
@@ -154,22 +183,31 @@ class Units:
     def back(self, unit: int) -> None:
         """``unit`` answered: if it had stopped, its devices lose the cause ``unit``."""
         self._quiet.pop(unit, None)
+        self._line_silent = None
         if not self.backoff.answered(unit):
             return
         for device, q in self._points.items():
             if q.unit == unit:
                 self._health.clear(device, UNIT_CAUSE, f"{self.name}: unit {unit} answers again")
 
+    def extra_try(self, unit: int) -> bool:
+        """Whether a request to ``unit`` gets one try beyond the bus's ``retries``: the last
+        request on the line went unanswered by another unit, and slaves may still be waiting
+        for that unit's answer (a stock libmodbus slave ignores the line for its response
+        timeout, 0.5 s): a silence now would be theirs, not this unit's death."""
+        return self._line_silent is not None and self._line_silent != unit
+
     def guard(self, unit: int, request: bytes, now: float) -> float:
         """Until when the line must stay quiet before ``request`` goes to ``unit``: after its
         missed request, one ``timeout`` for its late answer to come (and be thrown away) -
-        unless this is that same request again, whose late answer would be its own. 0: no
-        wait."""
+        unless this is that same request again, whose late answer would be its own - and after
+        any unit's silence the line's guard (:attr:`line_guard`). 0: no wait."""
+        line = self._line_quiet_until if now < self._line_quiet_until else 0.0
         held = self._quiet.get(unit)
         if held is None:
-            return 0.0
+            return line
         until, missed = held
         if now >= until:
             del self._quiet[unit]
-            return 0.0
-        return 0.0 if missed == request else until
+            return line
+        return max(line, 0.0 if missed == request else until)

@@ -327,11 +327,20 @@ class ModbusRequests:
 
     # ---- the liveness probe and the first read after a connect ------------------------------
     def contact(self) -> JobRun:
-        """Right after a TCP connect: read one entry of the first device; nothing back loses
-        the connection (see :meth:`drivers.modbus.link.Link.unanswered`)."""
-        p = next((q for q in self.plan.points.values() if not q.broadcast), None)
-        if p is not None:
+        """Right after a TCP connect: read one entry of the first device of each different
+        request, until one is answered; as many silent ones as lose a connection lose this
+        one (see :meth:`drivers.modbus.link.Link.unanswered`)."""
+        for p in self.contact_points():
             yield from self._probe_one(p, "probe after connect", OTHER)
+            if self.link.proven:
+                return
+
+    def contact_points(self) -> list[Point]:
+        """The points probed after a connect: the first of each planned read, then those of
+        the units no poll reads, at most :data:`drivers.modbus.link.SILENT_REQUESTS`."""
+        firsts = [next(q for q in r.read.points if q.device) for plan in self.plan.polls.values()
+                  for r in plan if any(q.device for q in r.read.points)]
+        return (firsts + list(self.plan.probed))[:self.link.silent_limit]
 
     def probe(self) -> JobRun:
         """The periodic probe of the units no poll reads (an actuator-only bus, or on a line

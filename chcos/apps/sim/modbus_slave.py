@@ -84,17 +84,29 @@ def merge(spans: Iterable[Span]) -> list[Span]:
 
 class RegisterStore:
     """The four tables of each unit. Only mapped addresses exist: by default ``size`` entries
-    from 0 in each table; with ``spans`` (table -> runs of (first, count)) only those runs, so a
-    device with registers at 0 and 64512 costs a few entries, not 64513. Thread-safe.
+    from 0 in each table; with ``spans`` (table -> runs of (first, count)) only those runs, in
+    every unit, so a device with registers at 0 and 64512 costs a few entries, not 64513; with
+    ``unit_spans`` (unit -> table -> runs) each unit has its own (the units are its keys).
+    Thread-safe.
 
     Raises :class:`chcos.errors.ConfigError` for an unknown unit/table or an address that is
     not mapped, or for an address beyond 65535.
     """
 
     def __init__(self, units: Iterable[int] = (1,), size: int = 1000, *,
-                 spans: Mapping[str, Iterable[Span]] | None = None) -> None:
+                 spans: Mapping[str, Iterable[Span]] | None = None,
+                 unit_spans: Mapping[int, Mapping[str, Iterable[Span]]] | None = None) -> None:
+        layout: dict[int, dict[str, list[Span]]]
+        if unit_spans is not None:
+            layout = {u: {t: merge(per.get(t, ())) for t in TABLES}
+                      for u, per in unit_spans.items()}
+        else:
+            shared: dict[str, list[Span]] = {
+                t: merge(spans.get(t, ()) if spans is not None else [(0, size)]) for t in TABLES}
+            layout = {u: shared for u in units}
+        #: the mapped runs of each table, of every unit together
         self.spans: dict[str, list[Span]] = {
-            t: merge(spans.get(t, ()) if spans is not None else [(0, size)]) for t in TABLES}
+            t: merge(r for per in layout.values() for r in per[t]) for t in TABLES}
         for table, runs in self.spans.items():
             for first, count in runs:
                 if first < 0 or first + count > 0x10000:
@@ -102,10 +114,11 @@ class RegisterStore:
                                       f"{first + count - 1} outside 0..65535")
         self.size = max([f + c for runs in self.spans.values() for f, c in runs] + [0])
         self._cond = threading.Condition()
+        self._layout = layout
         self._units: dict[int, dict[str, dict[int, Any]]] = {
             u: {t: {a: (False if t in BIT_TABLES else 0)
-                    for first, count in self.spans[t] for a in range(first, first + count)}
-                for t in TABLES} for u in units}
+                    for first, count in per[t] for a in range(first, first + count)}
+                for t in TABLES} for u, per in layout.items()}
         #: write requests carried out, and requests handled (any unit, any outcome)
         self.client_writes = 0
         self.requests = 0
@@ -141,7 +154,7 @@ class RegisterStore:
         data = self._units[unit][table]
         if address < 0 or count < 0 or not all(a in data for a in range(address,
                                                                         address + count)):
-            mapped = " and ".join(f"{f}..{f + c - 1}" for f, c in self.spans[table])
+            mapped = " and ".join(f"{f}..{f + c - 1}" for f, c in self._layout[unit][table])
             raise ConfigError(f"modbus store unit {unit} {table}: addresses {address}.."
                               f"{address + count - 1} outside {mapped or 'nothing mapped'}")
         return data
@@ -256,12 +269,18 @@ class ModbusSlave:
         self.framing: Framing = framing
         self.role: TcpRole = role
         self.silent = False
+        #: units that answer nothing (dead units of the line, or behind the gateway)
+        self.silent_units: frozenset[int] = frozenset()
         #: requests that got silence because of their unit (RTU) or framing
         self.ignored = 0
 
     def silence(self) -> None:
         """Stop answering (see the class doc)."""
         self.silent = True
+
+    def silence_units(self, units: Iterable[int]) -> None:
+        """Make ``units`` answer nothing from now on (an empty set: all answer again)."""
+        self.silent_units = frozenset(units)
 
     def restore(self) -> None:
         """Answer again."""
@@ -294,6 +313,8 @@ class ModbusSlave:
             return None
         if self.role == "device":
             units: tuple[int, ...] = (self.store.units[0],) if self.store.units else ()
+        elif unit in self.silent_units:
+            return None
         elif self.store.has_unit(unit):
             units = (unit,)
         else:
@@ -315,6 +336,8 @@ class ModbusSlave:
             return None
         if not self.store.has_unit(unit):
             self.ignored += 1
+            return None
+        if unit in self.silent_units:
             return None
         answer = self.handle_pdu((unit,), pdu, broadcast=False)
         return None if answer is None else with_crc(bytes([unit]) + answer)

@@ -107,10 +107,11 @@ class ModbusPeer(Peer):
         pts = list(self.points.values())
         pts += [scale_factor_point(p) for p in pts if p.scale_factor is not None]
         units = sorted({p.unit for p in pts if not p.broadcast}) or [1]
-        spans: dict[str, list[tuple[int, int]]] = {}
-        for p in pts:  # only the mapped addresses exist (a register at 64512 costs one entry)
-            spans.setdefault(p.table, []).append((p.address, p.size))
-        self.store = RegisterStore(units, spans=spans)
+        spans: dict[int, dict[str, list[tuple[int, int]]]] = {u: {} for u in units}
+        for p in pts:  # only the mapped addresses exist, per unit (64512 costs one entry)
+            for u in (units if p.broadcast else [p.unit]):
+                spans[u].setdefault(p.table, []).append((p.address, p.size))
+        self.store = RegisterStore(unit_spans=spans)
         framer: Literal["tcp", "rtu"] = "tcp" if bus.kind == "modbus-tcp" else "rtu"
         kind = TcpOptions if framer == "tcp" else RtuOptions
         config = bus.config if isinstance(bus.config, kind) else parsed(
@@ -168,17 +169,22 @@ class ModbusPeer(Peer):
             raw = raw / 10.0 ** self._factor(p)
         if p.type not in ("bool", "string") and not p.type.startswith("float"):
             raw = round(raw)
-        self.store.set_value(p.unit, p.table, p.address, raw, p.type, p.word_order, p.count)
+        for unit in self._units_of(p):      # a broadcast address: every unit's
+            self.store.set_value(unit, p.table, p.address, raw, p.type, p.word_order, p.count)
+
+    def _units_of(self, p: Any) -> list[int]:
+        return list(self.store.units) if p.broadcast else [p.unit]
 
     def get(self, device: DeviceSpec) -> Any:
         p = self.points[device.name]
-        value = self.store.get_value(p.unit, p.table, p.address, p.type, p.word_order, p.count)
+        value = self.store.get_value(self._units_of(p)[0], p.table, p.address, p.type,
+                                     p.word_order, p.count)
         if p.scale_factor is not None:
             return value * 10.0 ** self._factor(p)
         return value
 
     def _factor(self, p: Any) -> int:
-        return int(self.store.get_value(p.unit, p.table, p.scale_factor, "int16"))
+        return int(self.store.get_value(self._units_of(p)[0], p.table, p.scale_factor, "int16"))
 
     def silence(self) -> None:
         if self.server is not None:
