@@ -121,6 +121,32 @@ def value(system: System, name: str) -> Any:
     return system.devtab.get(name).value
 
 
+async def reader(ctx: Any, cmd: dict[str, Any]) -> None:
+    """Reads its input (the model string) into the command."""
+    cmd["seen"] = await ctx.read("model")
+
+
+def test_a_task_reads_a_string_sensor_as_text(tmp_path: Path) -> None:
+    path = tmp_path / "cell.toml"
+    path.write_text(MAP.format(timeout=0.3), encoding="utf-8")
+    slaves = simulate(load([path]))
+    system = System(slaves.devmap, clock=VirtualClock(), base_dir=tmp_path)
+    slaves.attach(system.kernel)
+    try:
+        slaves.peers["inv"].store.set_value(    # type: ignore[attr-defined]
+            1, "holding", 40004, "SE5000H", "string", count=8)
+        system.execute("install -m0 sysfile")
+        system.execute("install -m0i1 --code=vcan_tests.test_modbus_virtual:reader R model")
+        cmd: dict[str, Any] = {}
+        system.run_for(0.2)
+        system.invoke("R", cmd)
+        system.run_for(0.2)
+        assert cmd["seen"] == "SE5000H"
+    finally:
+        system.shutdown()
+        slaves.close()
+
+
 def test_no_thread_socket_or_settle_and_the_values_arrive(rig: tuple[System, SimSlaves]) -> None:
     system, slaves = rig
     store = slaves.peers["inv"].store        # type: ignore[attr-defined]
