@@ -69,6 +69,13 @@ direction = "sensor"
 bus = "inv"
 address = {{ table = "holding", address = 40093, type = "uint64" }}
 
+[[device]]
+name = "limit"
+direction = "actuator"
+bus = "inv"
+address = {{ table = "holding", address = 40300, type = "int16", scale_factor = 40301 }}
+safe_value = 100
+
 [[bus]]
 name = "line"
 kind = "modbus-rtu"
@@ -194,6 +201,23 @@ def test_a_broadcast_is_written_to_every_unit_never_read_and_confirmed_at_shutdo
     store.write(1, "holding", 9, [5])
     assert system.devtab.stop_drivers() == []     # the safe value went out: written
     assert store.read(1, "holding", 9) == [0] and store.read(2, "holding", 9) == [0]
+
+
+def test_an_actuator_with_a_scale_factor_reads_it_before_each_write(
+        rig: tuple[System, SimSlaves]) -> None:
+    system, slaves = rig
+    store = slaves.peers["inv"].store        # type: ignore[attr-defined]
+    store.set_value(1, "holding", 40301, -1, "int16")      # tenths
+    system.run_for(0.2)
+    system.devtab.write("limit", 12.3)
+    system.run_for(0.1)
+    assert store.get_value(1, "holding", 40300, "int16") == 123
+    assert value(system, "limit") == 12.3
+    system.devtab.write("limit", 12.34)                     # not a multiple of 0.1
+    system.run_for(0.1)
+    assert store.get_value(1, "holding", 40300, "int16") == 123
+    limit = system.devtab.get("limit")
+    assert limit.write_errors == 1 and "no integer multiple of 10^-1" in limit.last_write_error
 
 
 def events(tmp_path: Path) -> list[tuple[float, str, bool, str]]:

@@ -162,3 +162,35 @@ def test_rtu_frames_exceptions_and_a_broadcast_against_libmodbus(
     assert store.wait_for(lambda s: s.read(1, "holding", 5) == [42]
                           and s.read(2, "holding", 5) == [42], 5.0)   # both units carried it out
     assert raw(client, "rtu", str(port), "0", "0300050001") == "TIMEOUT"   # nobody answers
+
+
+# ---- chcos sim --from: the scripts apply before the first request -----------------------------
+def test_sim_from_serves_the_scripts_value_from_its_first_answer(tmp_path: Path,
+                                                                  client: Path) -> None:
+    """``chcos sim --from MAP --value level=77``: the first request that gets an answer, sent
+    as early as the port takes a connection, reads 77 (it used to read 0 until the script's
+    first tick)."""
+    import os
+    import sys
+    import time
+
+    port = free_port()
+    (tmp_path / "m.toml").write_text(
+        f'[[bus]]\nname = "plc"\nkind = "modbus-tcp"\nhost = "127.0.0.1"\nport = {port}\n\n'
+        '[[device]]\nname = "level"\ndirection = "sensor"\nbus = "plc"\n'
+        'address = { table = "holding", address = 3 }\n', encoding="utf-8")
+    sim = subprocess.Popen([sys.executable, "-m", "chcos.cli.main", "sim", "--from", "m.toml",
+                            "--value", "level=77", "--duration", "30"], cwd=tmp_path,
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                           env=dict(os.environ))
+    try:
+        deadline = time.monotonic() + 30
+        answer = ""
+        while time.monotonic() < deadline:
+            answer = raw(client, "tcp", "127.0.0.1", str(port), "1", "0300030001")
+            if answer.startswith("ADU"):
+                break
+        assert tcp_pdu(answer).hex() == "0302004d", answer      # 77, not 0
+    finally:
+        sim.terminate()
+        sim.wait(20)
