@@ -194,3 +194,30 @@ def test_sim_from_serves_the_scripts_value_from_its_first_answer(tmp_path: Path,
     finally:
         sim.terminate()
         sim.wait(20)
+
+
+def test_chcos_sim_modbus_serves_rtu_on_a_pty(tmp_path: Path) -> None:
+    """``chcos sim modbus --serial PATH``: the command-line slave on one end of a pty pair, read
+    by mbpoll on the other (entries 0..SIZE-1 exist, SIZE does not)."""
+    import threading
+
+    from chcos.apps.sim import modbus_server
+
+    pair = PtyPair(tmp_path, "cli")
+    done: list[int] = []
+    runner = threading.Thread(target=lambda: done.append(modbus_server.main(
+        ["--serial", str(pair.b), "--units", "4", "--size", "8", "--duration", "4"])))
+    runner.start()
+    try:
+        rtu = ["-m", "rtu", "-b", "19200", "-P", "none", "-t", "4", "-a", "4"]
+        got = None
+        for _ in range(20):                   # until the slave has its end of the pty open
+            got = mbpoll(*rtu, "-r", "7", str(pair.a))
+            if got.returncode == 0:
+                break
+        assert got is not None and got.returncode == 0 and "[7]: \t0" in got.stdout
+        assert "Illegal data address" in mbpoll(*rtu, "-r", "8", str(pair.a)).stderr
+    finally:
+        runner.join(20)
+        pair.close()
+    assert done == [0]
