@@ -250,3 +250,27 @@ def test_a_silent_unit_costs_its_timeout_in_virtual_time_and_runs_repeat(
     assert 1.0 + 5.0 < t_fail < 1.1 + 5.0 + 0.02, first
     assert not [e for e in first if e[1] == "level1" and e[0] > 1.0]   # the live unit: never
     assert [d for t, d, ok, _ in first if ok and t > t_fail] == ["level2"]   # and came back
+
+
+def test_a_simulated_tcp_server_that_stops_is_a_lost_link_and_its_return_recovers(
+        rig: tuple[System, SimSlaves]) -> None:
+    """On the kernel's thread too: a silenced server takes no connection (the devices fail
+    with the link, reconnects are tried on virtual time) and its return recovers them; the
+    safe value of an actuator is written first."""
+    system, slaves = rig
+    system.run_for(0.5)
+    assert system.devtab.get("energy").status.value == "OK"
+    slaves.silence("inv")
+    system.run_for(1.0)
+    energy = system.devtab.get("energy")
+    assert energy.status.value == "failed" and "127.0.0.1" not in energy.reason
+    assert "192.0.2.10:502" in energy.reason and "connect" in energy.reason
+    failed_at = system.devtab.bus_stats["inv"].counts.get("connect-failed", 0)
+    assert failed_at >= 2
+    store = slaves.peers["inv"].store        # type: ignore[attr-defined]
+    store.set_value(1, "holding", 40300, 7, "int16")
+    store.set_value(1, "holding", 40301, -1, "int16")     # tenths
+    slaves.restore("inv")
+    system.run_for(6.0)                      # the backoff has grown to 1.6 s at most by then
+    assert energy.status.value == "OK" and system.devtab.get("limit").status.value == "OK"
+    assert store.get_value(1, "holding", 40300, "int16") == 1000      # 100 at factor 10^-1
