@@ -205,7 +205,7 @@ def test_simulator_serves_holding_64512_to_an_independent_client(tmp_path: Path)
                    encoding="utf-8")
     out = tmp_path / "meter.toml"
     out.write_text(render(import_modbus_csv(csv)), encoding="utf-8")
-    slaves = simulate(load([out]))
+    slaves = simulate(load([out]), direct=False)     # on a socket: a client of its own
     try:
         slaves.set("tariff", 7)
         slaves.set("voltage", 230)
