@@ -2,7 +2,7 @@
 
 :data:`DESCRIPTION` is what ``chcos --help`` shows; each subcommand's parser and help live in its
 module (``chcos.cli.cellrun``, ``chcos.apps.weld.runner``, ``chcos.cli.scaffold``,
-``chcos.devices.importers``,
+``chcos.cli.diff``, ``chcos.devices.importers``,
 ``chcos.cli.monitor``, ``chcos.apps.sim``, ``chcos.devices.devmap``, ``chcos.viewer.cli``), except
 ``shell``,
 ``satellite`` and ``host``, which are here.
@@ -29,6 +29,7 @@ Your own cell:
   chcos check FILE...            validate device maps without opening a bus
                                  (--system SYSTEM: a system file and its maps)
   chcos sim --from MAP           simulated slaves for every device of a map
+  chcos diff GOLDEN NEW          compare two traces of a run (chcos run --virtual --trace FILE)
 
 The thesis' systems:
   chcos run [weld]               the arc-welding cell end to end (chcos run weld --help)
@@ -265,6 +266,10 @@ def _dispatch(argv: list[str]) -> int:
         from chcos.apps.weld.runner import main as weld_main
 
         return weld_main(rest)
+    if argv[:1] == ["diff"]:
+        from chcos.cli.diff import main as diff_main
+
+        return diff_main(argv[1:])
     if argv[:1] == ["import"]:
         from chcos.devices.importers import main as import_main
 
@@ -341,6 +346,7 @@ def _dispatch(argv: list[str]) -> int:
     p.add_argument("command", nargs=argparse.REMAINDER, help="one command, e.g. setpri -9 A4 C1")
     p.set_defaults(func=_host)
     sub.add_parser("new", help="create a new cell project (chcos new DIR)")
+    sub.add_parser("diff", help="compare two traces of a run (chcos diff GOLDEN NEW)")
     sub.add_parser("import", help="device map from an EDS, a DBC or a Modbus register list "
                                   "(chcos import eds|dbc|modbus FILE)")
     sub.add_parser("monitor", help="commission a live bus listen-only (chcos monitor SYSTEM)")

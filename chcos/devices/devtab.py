@@ -32,6 +32,7 @@ from chcos.devices.entry import (
     scalable,
 )
 from chcos.devices.health import DeviceHealth, HealthListener, faults, log
+from chcos.devices.observers import CommandReport, DeviceObserver, Observers, WriteStage
 from chcos.devices.spec import DeviceMap
 from chcos.devices.table import DeviceTable
 from chcos.devices.writes import WriteTracking
@@ -78,8 +79,10 @@ class Devtab:
         self._health = DeviceHealth(kernel, self._table, self._rx_stamp)
         self.remote = remote
         self._checks = CommandChecks(self._table)
-        self._counters = BusCounters(kernel, lambda: self.drivers)
-        self._writes = WriteTracking(kernel, self._table, self._safe_failed)
+        #: told of every bus error and every command's stage (:mod:`chcos.devices.observers`)
+        self._observers = Observers()
+        self._counters = BusCounters(kernel, lambda: self.drivers, self._observers)
+        self._writes = WriteTracking(kernel, self._table, self._safe_failed, self._observers)
         #: (device, reason) of every safe value that could not be put on the wire, oldest first.
         self.safe_failures: list[tuple[str, str]] = []
         #: what became of each local actuator's safe value at the last shutdown
@@ -167,6 +170,24 @@ class Devtab:
     def remove_health_listener(self, fn: HealthListener) -> None:
         """Stop calling ``fn`` (added by :meth:`add_health_listener`; no error if it is not)."""
         self._health.remove_health_listener(fn)
+
+    def add_observer(self, observer: DeviceObserver) -> None:
+        """Tell ``observer`` of every bus error and every command's stage (handed to the
+        driver, confirmed, failed), on the kernel thread (see :mod:`chcos.devices.observers`)."""
+        self._observers.add(observer)
+
+    def remove_observer(self, observer: DeviceObserver) -> None:
+        """Stop telling ``observer`` (no error if it was not added)."""
+        self._observers.remove(observer)
+
+    def _commanded(self, device: str, value: Any, source: str, safe: str,
+                   stage: WriteStage) -> None:
+        """A command handed over (``stage`` sent) or on the wire already (confirmed): the
+        :attr:`on_write` hooks and the observers."""
+        for hook in self.on_write:
+            hook(device, value)
+        if self._observers:
+            self._observers.command(CommandReport(device, value, stage, source, safe))
 
     # ---- bus counters (BusCounters) ---------------------------------------------------------
     @property
@@ -554,8 +575,7 @@ class Devtab:
         elif e.driver is not None and e.driver.confirms_writes:
             if not safe and self._write_now(e, device, raw):
                 e.value = value         # on the wire already, confirmed by the driver's answer
-                for hook in self.on_write:
-                    hook(device, value)
+                self._commanded(device, value, source, safe, WriteStage.CONFIRMED)
                 return None
             w = Write(device, value, raw, safe)
             self._writes.track(w)
@@ -565,8 +585,10 @@ class Devtab:
             e.value = value
             if e.driver is not None:
                 e.driver.write(device, raw)
-        for hook in self.on_write:
-            hook(device, value)
+        # a remote actuator's satellite confirms it there: here it is only sent
+        done = w is None and self._table.is_local(spec.machine)
+        self._commanded(device, value, source, safe,
+                        WriteStage.CONFIRMED if done else WriteStage.SENT)
         return w
 
     def _write_now(self, e: DeviceEntry, device: str, raw: Any) -> bool:
@@ -602,11 +624,11 @@ class Devtab:
         at once (:meth:`_safe_burst`), then the others one by one, tracked and tried again as
         any safe value; one :class:`SafeIssue` each."""
         todo = self._table.local_safe_actuators()
-        done = self._safe_burst(todo)
+        done = self._safe_burst(todo, reason)
         return [SafeIssue(e.name) if e.name in done else self._safe_write(e, reason)
                 for e in todo]
 
-    def _safe_burst(self, entries: list[DeviceEntry]) -> set[str]:
+    def _safe_burst(self, entries: list[DeviceEntry], why: str) -> set[str]:
         """On the kernel thread, put the safe values of ``entries`` that nothing of theirs is
         outstanding for on the wire back to back, one call per driver
         (:meth:`drivers.base.Driver.write_now_many`), before any bookkeeping: an emergency
@@ -635,8 +657,7 @@ class Devtab:
             e.updated_at = now
             e.commands += 1
             e.value = e.spec.safe_value
-            for hook in self.on_write:
-                hook(e.name, e.value)
+            self._commanded(e.name, e.value, "safe-value", why, WriteStage.CONFIRMED)
         return {e.name for e in written}
 
     def _safe(self, device: str, why: str = "abnormal completion") -> bool:
