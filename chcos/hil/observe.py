@@ -92,8 +92,9 @@ def event_subject(kind: str, detail: str, tasks: Iterable[str]) -> str:
         return str(m.group(1))
     names = set(tasks)
     for word in _WORD.findall(detail):
-        if word.rstrip(".:") in names:
-            return word.rstrip(".:")
+        name = str(word).rstrip(".:")
+        if name in names:
+            return name
     return kind
 
 

@@ -301,7 +301,7 @@ def write_mcap(trace: Trace, path: str | Path) -> Path:
                 ns = round(e.t * 1e9)
                 writer.add_message(channel_id=channels[topic], log_time=ns, publish_time=ns,
                                    data=data, sequence=seq)
-            writer.finish()
+            writer.finish()  # type: ignore[no-untyped-call]
     except OSError as exc:
         raise TraceError(f"{p}: cannot write the MCAP file: {exc}") from exc
     return p
