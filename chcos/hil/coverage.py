@@ -48,6 +48,12 @@ _ABORT_CODE = re.compile(r"0x([0-9A-Fa-f]{8})\b")
 #: heartbeat NMT names (drivers.canopen_lifecycle.NmtState) as the catalogue names them
 _NMT_NAMES = {"PRE_OPERATIONAL": "PRE-OPERATIONAL", "OPERATIONAL": "OPERATIONAL",
               "STOPPED": "STOPPED", "BOOT_UP": "boot-up"}
+#: the driver's lifecycle of a node (drivers.canopen_lifecycle.NodeLifecycle names) as NMT
+#: states: OPERATIONAL after the NMT start (confirmed by a heartbeat where there is one), held
+#: in PRE-OPERATIONAL
+_LIFECYCLE_NMT = {"OPERATIONAL": "OPERATIONAL", "PREOP_HELD": "PRE-OPERATIONAL"}
+#: bus errors of a CANopen node that are its devices' states (NMT, EMCY), not the bus's
+_NODE_ERRORS = frozenset({"emcy", "boot-up"})
 
 
 @dataclass
@@ -146,11 +152,12 @@ class CellCoverage:
     def _bus_error(self, rec: Record) -> None:
         bus, kind = rec.subject, str(rec.value)
         key = f"{SubjectKind.BUS}:{bus}"
+        canopen = self._bus_kind.get(bus) == "canopen"
         if kind in ("bus-off", "error-passive", "disconnected"):
             self.hits.add(key, State(StateClass.BUS_STATE, kind))
-        else:
+        elif not (canopen and kind in _NODE_ERRORS):
             self.hits.add(key, State(StateClass.BUS_ERRORS, kind))
-        m = _NODE.search(rec.text) if self._bus_kind.get(bus) == "canopen" else None
+        m = _NODE.search(rec.text) if canopen else None
         if m is None:
             return
         node = (bus, int(m.group(1)))
@@ -182,6 +189,9 @@ class CellCoverage:
         if rec.cause == "nmt" and str(rec.value) in _NMT_NAMES:
             for k in keys:
                 self.hits.add(k, State(StateClass.NMT, _NMT_NAMES[str(rec.value)]))
+        elif rec.cause == "state" and str(rec.value) in _LIFECYCLE_NMT:
+            for k in keys:
+                self.hits.add(k, State(StateClass.NMT, _LIFECYCLE_NMT[str(rec.value)]))
         elif rec.cause == "boots" and isinstance(rec.value, int) and rec.value > 0:
             for k in keys:
                 self.hits.add(k, State(StateClass.NMT, "boot-up"))
