@@ -8,11 +8,8 @@ first diverging device at the time its commands first differ."""
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +17,7 @@ import pytest
 
 from chcos.cli.scaffold import create
 from chcos.hil.trace import read_trace
+from vcan_tests.support_hil import busy_processes, chcos, env
 
 BLIP = "tests/test_cell.py::test_the_cell_rides_through_a_plc_blip"
 FAILED = "tests/test_cell.py::test_a_failed_sensor_makes_the_valve_safe"
@@ -27,22 +25,13 @@ OPENS = "tests/test_cell.py::test_valve_opens_below_the_setpoint"
 RAMP = "level=ramp(0, 200, 5)"
 
 
-def _env() -> dict[str, str]:
-    env = dict(os.environ)
-    for key in ("PYTEST_ADDOPTS", "PYTEST_XDIST_WORKER", "PYTEST_CURRENT_TEST"):
-        env.pop(key, None)
-    env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
-    return env
-
-
 def _pytest(cell: Path, *args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "pytest", "-p", "no:cacheprovider", *args],
-                          cwd=cell, env=_env(), text=True, capture_output=True, timeout=600)
+                          cwd=cell, env=env(), text=True, capture_output=True, timeout=600)
 
 
 def _chcos(cell: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "chcos.cli.main", *args], cwd=cell,
-                          env=_env(), text=True, capture_output=True, timeout=600)
+    return chcos(cell, args)
 
 
 def _states(doc: dict[str, Any], group: str, name: str) -> dict[str, dict[str, Any]]:
@@ -126,19 +115,6 @@ def test_one_test_alone_meets_a_low_threshold_and_reaches_only_its_own_states(
     assert _reached(doc) == {("devices", "level", "status: OK"),
                              ("devices", "valve", "status: OK"),
                              ("devices", "valve", "safe value: shutdown")}
-
-
-@contextmanager
-def busy_processes(n: int = 2) -> Iterator[list[subprocess.Popen[bytes]]]:
-    """``n`` processes that spin on the CPU until the block ends (then killed)."""
-    procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
-    try:
-        yield procs
-    finally:
-        for p in procs:
-            p.kill()
-        for p in procs:
-            p.wait(timeout=30)
 
 
 def _run(cell: Path, trace: str) -> None:

@@ -36,7 +36,7 @@ from typing import Any, TextIO
 from chcos.cli.cellsystem import Cell, CellSystem, OutputsOff, SinceStartClock, open_cell
 from chcos.devices.entry import DeviceStatus
 from chcos.errors import ChcosError
-from chcos.hil.trace import RunTracer
+from chcos.hil.evidence import RunEvidence
 from chcos.north.services import NorthOptions, add_north_arguments
 from chcos.system.mapfile import describe_os_error
 from chcos.system.textview import bus_status_lines
@@ -180,7 +180,8 @@ def run(system_file: str | Path, *, virtual: bool = False, duration: float | Non
     :func:`~chcos.cli.cellsystem.open_cell`). ``write_checks`` say what else could not be
     written (the ``--log`` file: :meth:`LogFile.check`); a workdir that cannot be written is a
     ChcosError before the cell starts. ``traces`` are the files the run's trace goes to
-    (:class:`chcos.hil.trace.RunTracer`; one that cannot be written makes the run unhealthy)."""
+    (:class:`chcos.hil.evidence.RunEvidence`; one that cannot be written makes the run
+    unhealthy)."""
     from chcos.north.services import start as start_north
     from chcos.satellites import sysfile
     from chcos.system.affinity import pin_process
@@ -262,13 +263,13 @@ def run(system_file: str | Path, *, virtual: bool = False, duration: float | Non
 
 
 def _tracer(system_file: str | Path, traces: Sequence[str | Path], virtual: bool
-            ) -> RunTracer | None:
+            ) -> RunEvidence | None:
     """The ``--trace`` files' tracer (None without any); the system's name in the header."""
     if not traces:
         return None
     from chcos.satellites import sysfile
 
-    return RunTracer(traces, system=sysfile.load(system_file).name,
+    return RunEvidence(traces, system=sysfile.load(system_file).name,
                      clock="virtual" if virtual else "real")
 
 

@@ -299,7 +299,7 @@ class Coverage:
                 "states": [{"class": str(e.state.cls), "state": e.state.name,
                             "catalogued": e.catalogued, "reached": bool(e.tests),
                             "tests": sorted(e.tests), "details": sorted(e.details)}
-                           for e in _ordered(se)]}
+                           for e in ordered_states(se)]}
         return {"format": FORMAT, "tests": sorted(self.tests), "catalogued": total,
                 "reached": reached, "share": round(self.share(), 2), **groups}
 
@@ -332,7 +332,7 @@ def _rel(path: str, root: Path | None) -> str:
         return path
 
 
-def _ordered(se: SubjectEntry) -> list[StateEntry]:
+def ordered_states(se: SubjectEntry) -> list[StateEntry]:
     """The states of a subject: the catalogue in its order, then the others by class."""
     order = {st: i for i, st in enumerate(se.subject.states)}
     return sorted(se.states.values(),
@@ -363,8 +363,8 @@ def table_lines(cov: Coverage, verbose: bool = False) -> list[str]:
             cells.append(f"{text + (f' +{extra}' if extra else ''):>{w}}")
         out.append("  ".join([f"{_label(se):<{width}}", *cells]))
         if verbose:
-            missing = [f"{e.state}" for e in _ordered(se) if e.catalogued and not e.tests]
-            beyond = [f"{e.state}" for e in _ordered(se) if not e.catalogued and e.tests]
+            missing = [f"{e.state}" for e in ordered_states(se) if e.catalogued and not e.tests]
+            beyond = [f"{e.state}" for e in ordered_states(se) if not e.catalogued and e.tests]
             if missing:
                 out.append(f"{'':<{width}}  not reached: {', '.join(missing)}")
             if beyond:

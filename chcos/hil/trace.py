@@ -25,7 +25,7 @@ run gives the same bytes).
 
 :class:`TraceRecorder` is the :class:`chcos.hil.observe.Sink` that keeps a trace;
 :func:`read_trace` reads a file (raising :class:`TraceError` naming the file and line);
-:func:`write_mcap` writes MCAP (needs the ``mcap`` extra); :class:`RunTracer` is ``--trace``.
+:func:`write_mcap` writes MCAP (needs the ``mcap`` extra).
 """
 
 from __future__ import annotations
@@ -35,16 +35,13 @@ import gzip
 import io
 import json
 import re
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, TYPE_CHECKING, Any
+from typing import IO, Any
 
 from chcos.errors import ChcosError
-from chcos.hil.observe import TRACE_KINDS, Kind, Observer, Record
-
-if TYPE_CHECKING:
-    from chcos.system.embedded import System
+from chcos.hil.observe import TRACE_KINDS, Kind, Record
 
 FORMAT = "chcos-trace 1"
 """The first line of every trace file."""
@@ -67,7 +64,7 @@ class Entry:
     value: Any
     cause: str = ""
     text: str = ""
-    line: int = 0
+    line: int = field(default=0, compare=False)
 
     def describe(self) -> str:
         """The entry as a person reads it: ``t=1.100000 s status failed (disconnected)``."""
@@ -136,23 +133,28 @@ def format_entry(e: Entry) -> str:
     return f"{line} {_word(e.cause)}" if e.cause else line
 
 
-def entry_of(rec: Record) -> Entry:
-    """The entry ``rec`` becomes in a file: the time to six decimals, the value as JSON reads
-    it back (a tuple becomes a list), so an in-memory trace equals the one read from disk."""
+def entry_of(rec: Record, line: int = 0) -> Entry:
+    """The entry ``rec`` becomes in a file (as line ``line``): the time to six decimals, the
+    value as JSON reads it back (a tuple becomes a list), so an in-memory trace equals the one
+    read from disk."""
     value = json.loads(_json(rec.value))
-    return Entry(float(f"{rec.t:.6f}"), rec.kind.value, rec.subject, value, rec.cause, rec.text)
+    return Entry(float(f"{rec.t:.6f}"), rec.kind.value, rec.subject, value, rec.cause, rec.text,
+                 line)
 
 
 class TraceRecorder:
-    """The sink that keeps a run's trace (the records of :data:`TRACE_KINDS`)."""
+    """The sink that keeps a run's trace (the records of :data:`TRACE_KINDS`), each entry with
+    the line number it gets in the file."""
 
     def __init__(self, **header: str) -> None:
-        self.trace = Trace(dict(header))
+        self.trace = Trace(dict(header), path="this run")
+        self._first_line = 2 + len(header)
 
     def record(self, rec: Record) -> None:
         """Keep ``rec`` if it belongs in a trace."""
         if rec.kind in TRACE_KINDS:
-            self.trace.entries.append(entry_of(rec))
+            entries = self.trace.entries
+            entries.append(entry_of(rec, self._first_line + len(entries)))
 
 
 # ---- reading ----------------------------------------------------------------------------------
@@ -306,35 +308,3 @@ def write_mcap(trace: Trace, path: str | Path) -> Path:
         raise TraceError(f"{p}: cannot write the MCAP file: {exc}") from exc
     return p
 
-
-# ---- a run's trace files ----------------------------------------------------------------------
-class RunTracer:
-    """``--trace FILE``: a run watched from its start (:meth:`attach`, before the install
-    script) and its trace written at the end (:meth:`finish`) to each of ``paths`` (``.mcap``:
-    MCAP, else the text format; ``.gz`` compressed). ``header`` goes into the text file."""
-
-    def __init__(self, paths: Sequence[str | Path], **header: str) -> None:
-        self.paths = [Path(p) for p in paths]
-        self.recorder = TraceRecorder(**header)
-        self.observer: Observer | None = None
-
-    def attach(self, system: System, start: float) -> None:
-        """Watch ``system`` from clock time ``start`` on."""
-        self.observer = Observer(system, start=start)
-        self.observer.sinks.append(self.recorder)
-        self.observer.attach()
-
-    def finish(self) -> list[str]:
-        """Stop watching and write every file; what could not be written, one line each."""
-        if self.observer is not None:
-            self.observer.detach()
-        errors = []
-        for p in self.paths:
-            try:
-                if p.suffix == ".mcap":
-                    write_mcap(self.recorder.trace, p)
-                else:
-                    self.recorder.trace.write(p)
-            except TraceError as exc:
-                errors.append(str(exc))
-        return errors
