@@ -154,3 +154,35 @@ def test_a_rerun_is_the_same_under_load_and_a_changed_setpoint_is_not(cell: Path
     broken.write_text("# chcos-trace 1\n0.1 value level\n", encoding="utf-8")
     bad = _chcos(cell, "diff", "golden.trace", "broken.trace")
     assert bad.returncode == 2 and "broken.trace:2: missing value" in bad.stderr, bad.stderr
+
+
+GOLDEN_TEST = '''
+def test_the_run_is_its_golden_run(chcos_cell):
+    cell = chcos_cell("system.toml", values={"level": "ramp(0, 200, 5)"})
+    cell.run_for(3.0)
+    assert cell.trace().entries
+    cell.assert_golden("tests/golden/fill.trace")
+'''
+
+
+def test_a_cell_asserts_its_golden_trace_written_by_update_golden(cell: Path) -> None:
+    (cell / "tests" / "test_golden.py").write_text(GOLDEN_TEST, encoding="utf-8")
+    golden = cell / "tests" / "golden" / "fill.trace"
+    missing = _pytest(cell, "tests/test_golden.py")
+    assert missing.returncode == 1 and "no golden trace" in missing.stdout, missing.stdout
+    assert "--chcos-update-golden" in missing.stdout
+    written = _pytest(cell, "tests/test_golden.py", "--chcos-update-golden")
+    assert written.returncode == 0, written.stdout
+    trace = read_trace(golden)
+    assert trace.header["system"] == "tank" and trace.header["clock"] == "virtual"
+    assert {e.subject for e in trace.entries} >= {"level", "valve", "fill"}
+    again = _pytest(cell, "tests/test_golden.py")
+    assert again.returncode == 0, again.stdout
+    install = cell / "install.chcos"
+    install.write_text(install.read_text(encoding="utf-8").replace("setpoint=120",
+                                                                   "setpoint=110"),
+                       encoding="utf-8")
+    changed = _pytest(cell, "tests/test_golden.py")
+    assert changed.returncode == 1, changed.stdout
+    assert "the run parts from its golden trace" in changed.stdout
+    assert "valve: first divergence at t=" in changed.stdout, changed.stdout

@@ -79,3 +79,19 @@ def test_the_simulated_buses_run_their_golden_run(tmp_path: Path, chcos_golden: 
     res = chcos(tmp_path, ["diff", str(quiet), str(loaded)])
     assert res.returncode == 0, res.stdout + res.stderr
     chcos_golden(quiet, golden("buses"))
+
+
+def test_the_report_shows_the_states_reached_and_where_the_run_parts(tmp_path: Path) -> None:
+    report = tmp_path / "report.html"
+    res = chcos(tmp_path, ["run", "weld", "--binding", "direct", "--duration", "2", "--seed", "1",
+                           "--golden", str(golden("direct")), "--report", str(report),
+                           "--tolerance", "arc_temp=0.5", "--workdir", str(tmp_path / "w")])
+    assert res.returncode == 1, res.stdout + res.stderr      # cut short at 2 s
+    # another measurement-noise seed: the joints' readings part from the golden run at once
+    assert "golden run: " in res.stdout and "diverge; the first at t=0.010000 s" in res.stdout
+    page = report.read_text(encoding="utf-8")
+    assert "<h2>Device states this run reached</h2>" in page
+    assert '<table class="cov">' in page and "device drives_enable" in page
+    assert "<h2>Against the golden run</h2>" in page
+    assert page.count('class="diverge-plot') == 4      # the first four diverging signals
+    assert "golden (solid) and new (dashed), parting at t=0.010000 s" in page

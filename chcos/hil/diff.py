@@ -28,6 +28,8 @@ from chcos.hil.trace import Entry, Trace
 
 #: the tolerance key that applies to every subject without one of its own
 ANY = "*"
+#: what a divergence of two value signals is called
+HELD, ONE_SIDED = "value held", "a value only one trace has"
 
 
 @dataclass(frozen=True)
@@ -42,13 +44,21 @@ class Divergence:
     what: str
 
     def describe(self) -> str:
-        """One line: the subject, the time, both sides."""
-        g = self.golden.describe() if self.golden is not None else "nothing"
-        n = self.new.describe() if self.new is not None else "nothing"
+        """One line: the subject, the time, both sides (for a value: what each trace holds
+        then, and since when)."""
+        g = self._side(self.golden)
+        n = self._side(self.new)
         lines = (f" [lines {self.golden.line if self.golden else '-'}/"
                  f"{self.new.line if self.new else '-'}]")
         return (f"{self.subject}: first divergence at t={self.t:.6f} s ({self.what}): "
                 f"golden {g}, new {n}{lines if (self.golden or self.new) else ''}")
+
+    def _side(self, e: Entry | None) -> str:
+        if e is None:
+            return "nothing"
+        if self.what in (HELD, ONE_SIDED):
+            return f"holds {e.value!r} (since t={e.t:.6f} s)"
+        return e.describe()
 
 
 @dataclass
@@ -103,9 +113,9 @@ def _signal(subject: str, g: Sequence[Entry], n: Sequence[Entry], tol: float
         while j < len(n) and n[j].t <= t:
             nv, j = n[j], j + 1
         if gv is None or nv is None:
-            return Divergence(subject, t, gv, nv, "a value only one trace has")
+            return Divergence(subject, t, gv, nv, ONE_SIDED)
         if not close(gv.value, nv.value, tol):
-            return Divergence(subject, t, gv, nv, "value")
+            return Divergence(subject, t, gv, nv, HELD)
     return None
 
 
