@@ -39,11 +39,13 @@ comment line, not one warning each.
 
 from __future__ import annotations
 
+import math
+import re
 from collections.abc import Callable, Collection
 from pathlib import Path
 from typing import Any
 
-from chcos.devices.importers.draft import Hex, MapDraft, limits
+from chcos.devices.importers.draft import Hex, MapDraft, clamp_limits, limits
 from chcos.errors import ConfigError
 
 ACCESS_SENSOR = ("ro", "const", "rw", "rwr")
@@ -70,6 +72,53 @@ def _load(path: str | Path, node: int) -> tuple[Any, tuple[str, ...]]:
 
 def _every(index: int) -> bool:
     return True
+
+
+def freshness(trans: int, timer: int, sync_period: float | None) -> tuple[float | None, str]:
+    """``stale_after`` (None: none can be known) of a sensor in a TPDO of transmission type
+    ``trans`` with event timer ``timer`` ms on a bus with SYNC every ``sync_period`` s, and the
+    comment saying why: five PDO periods (a few frames lost in a row are tolerated, a node that
+    stopped is seen within five of its periods)."""
+    if 1 <= trans <= 240 and sync_period is not None:
+        return (round(5 * trans * sync_period, 6),
+                f"synchronous (type {trans}): every {'' if trans == 1 else f'{trans}th '}SYNC; "
+                "stale after five PDO periods")
+    if trans == 0:
+        return None, ("acyclic synchronous (type 0): sent at a SYNC only when its data "
+                      "changed, so no stale timeout can be known")
+    if timer:
+        return round(5 * timer / 1000, 6), f"event timer {timer} ms: stale after five periods"
+    return None, (f"transmission type {trans}, no event timer: sent only when the node decides "
+                  "(on change, if at all): no stale timeout")
+
+
+def _never_sent(draft: MapDraft, node_table: dict[str, Any], silent: dict[int, list[str]],
+                tpdos: dict[int, tuple[int, int, int]], where: str, node: int,
+                event_timer: int | None) -> None:
+    """Warn about the asynchronous TPDOs without an event timer (the node never sends them on
+    its own), with the fix; with ``event_timer`` write it into the node's configuration."""
+    pdos = ", ".join(f'{{pdo = "tpdo{n}", event_timer_ms = {event_timer or 100}}}'
+                     for n in sorted(silent))
+    for n, devices in sorted(silent.items()):
+        cob, trans, _timer = tpdos.get(n, (0, 255, 0))
+        shown = ", ".join(devices[:6]) + (", ..." if len(devices) > 6 else "")
+        if event_timer:
+            draft.header.append(f"TPDO{n} of node {node} (0x{0x1800 + n - 1:04X}) had no event "
+                                f"timer: the node's config sets {event_timer} ms at boot.")
+            continue
+        draft.warnings.append(
+            f"{where}: node {node} TPDO{n} (0x{0x1800 + n - 1:04X}, COB-ID 0x{cob:03X}): "
+            f"transmission type {trans} with event timer 0: the node never sends it on its own, "
+            f"so {shown} may never be delivered; fix: an event timer (chcos import eds "
+            f"--event-timer MS, or in the node's entry config = {{pdos = [{pdos}]}}) or a "
+            f"synchronous transmission type with a SYNC (sync_period)")
+    if event_timer:
+        node_table["config"] = {"pdos": [{"pdo": f"tpdo{n}", "event_timer_ms": event_timer}
+                                         for n in sorted(silent)]}
+    else:
+        draft.header.append(f"Never sent on its own: TPDO{', TPDO'.join(map(str, sorted(silent)))} "
+                            f"of node {node} (no event timer). To have it sent, add to the "
+                            f"node's entry: config = {{pdos = [{pdos}]}}")
 
 
 def od_default(od: Any, index: int, sub: int) -> int | None:
@@ -144,44 +193,80 @@ def _numeric(var: Any) -> bool:
         or var.data_type == BOOLEAN
 
 
-def _name(var: Any) -> str:
+#: words a short name (``--names short``) leaves out
+FILLER = frozenset({"of", "the", "a", "an", "and", "for", "value", "object", "parameter",
+                    "number", "actual", "sub", "index", "entry", "manufacturer", "specific"})
+#: significant words a short name keeps
+SHORT_WORDS = 3
+
+
+def _name(var: Any, short: bool = False) -> str:
+    """A device name's text for ``var``: its record's ParameterName joined with its own
+    (``short``: its own alone for a record entry, filler words dropped, at most
+    :data:`SHORT_WORDS` words)."""
     parent = getattr(var, "parent", None)
+    full = str(var.name)
     if parent is not None and getattr(parent, "name", None) and var.subindex:
-        return f"{parent.name} {var.name}"
-    return str(var.name)
+        full = f"{parent.name} {var.name}"
+    if not short:
+        return full
+    own = str(var.name) if var.subindex and not re.fullmatch(r"(?i)\s*(sub)?\s*\d+\s*",
+                                                           str(var.name)) else full
+    words = [w for w in re.split(r"[^0-9A-Za-z]+", own) if w]
+    kept = [w for w in words if w.lower() not in FILLER] or words
+    return " ".join(kept[:SHORT_WORDS]) or full
 
 
 def _device(draft: MapDraft, var: Any, direction: str, bus: str, machine: int, prefix: str,
-            node: int) -> dict[str, Any]:
-    dev: dict[str, Any] = {
-        "name": draft.name(_name(var), prefix), "direction": direction, "machine": machine,
-        "bus": bus, "address": {"node": node, "index": Hex(var.index), "subindex": var.subindex}}
-    factor = float(getattr(var, "factor", 1) or 1)
-    if factor != 1:
-        dev["scale"] = factor
-    lo, hi = var.min, var.max
-    if direction == "actuator":
-        from drivers.canopen_od import accepted
+            node: int, short: bool = False) -> dict[str, Any]:
+    """The device table of object ``var``: address, scale (canopen's factor), units, and
+    limits: LowLimit/HighLimit clamped to what the object's data type carries (a warning
+    says so); an actuator's open end is the data type's, so check has nothing to warn about
+    and the driver refuses what the object cannot hold before it reaches the bus."""
+    from drivers.canopen_od import accepted
 
-        # an open end is the data type's: check then has nothing to warn about, the driver
-        # refuses what the object cannot hold before it reaches the bus
-        span = accepted(var)
-        if span is not None:
-            lo = span[0] if lo is None else lo
-            hi = span[1] if hi is None else hi
-    lim = limits(None if lo is None else lo * factor, None if hi is None else hi * factor)
+    dev: dict[str, Any] = {
+        "name": draft.name(_name(var, short), prefix), "direction": direction,
+        "machine": machine, "bus": bus,
+        "address": {"node": node, "index": Hex(var.index), "subindex": var.subindex}}
+    factor = float(getattr(var, "factor", 1) or 1)
+    if factor != 1 and math.isfinite(factor):
+        dev["scale"] = factor
+    else:
+        factor = 1.0
+    lo, hi = _finite(var.min), _finite(var.max)
+    span = accepted(var)
+    what = f"node {node} 0x{var.index:04X}:{var.subindex:02X} {_name(var)}"
+    if span is not None and (direction == "actuator" or lo is not None or hi is not None):
+        lim = clamp_limits(None if lo is None else lo * factor,
+                           None if hi is None else hi * factor,
+                           (span[0] * factor, span[1] * factor), what, draft.warnings)
+    else:
+        lim = limits(None if lo is None else lo * factor, None if hi is None else hi * factor)
     if lim is not None:
         dev["limits"] = lim
+        default = _finite(var.default) if isinstance(var.default, int | float) else None
+        if default is not None and not lim[0] <= default * factor <= lim[1]:
+            draft.warnings.append(f"{what}: DefaultValue {var.default} is outside its limits "
+                                  f"{lim[0]:g}..{lim[1]:g}")
     if getattr(var, "unit", ""):
-        dev["units"] = str(var.unit)
+        dev["units"] = str(var.unit)[:40]
     return dev
+
+
+def _finite(v: Any) -> float | None:
+    """``v`` as a finite number, else None (an EDS limit of ``nan`` or text)."""
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        return None
+    return float(v) if math.isfinite(v) else None
 
 
 def import_eds(path: str | Path, node: int, *, bus: str = "canopen", machine: int = 0,
                prefix: str = "", sdo: bool = True, eds_ref: str | None = None,
                interface: str = "socketcan", channel: str = "can0", axes: bool = True,
                objects: Collection[int] | None = None, all_objects: bool = False,
-               udp_port: int | None = None) -> MapDraft:
+               udp_port: int | None = None, short: bool = False,
+               event_timer: int | None = None) -> MapDraft:
     """The device map draft of node ``node`` described by the EDS at ``path`` (see the module
     doc); ``eds_ref`` is how the map names the EDS (default: ``path`` as given).
 
@@ -191,9 +276,16 @@ def import_eds(path: str | Path, node: int, *, bus: str = "canopen", machine: in
     ``axes=False``) gives every object, or only those in ``objects`` when given. Raises
     ConfigError naming the file if it is not a readable EDS, the node id is out of range, an
     index of ``objects`` is not in the EDS, or ``udp_port`` (the bus's ``port``) is given for an
-    interface other than ``udp_multicast``."""
+    interface other than ``udp_multicast``.
+
+    ``short``: short device names (:func:`_name`). ``event_timer`` (ms): the event timer the
+    node's configuration gives each asynchronous TPDO that has none (else such a TPDO is only a
+    warning and a comment: the node never sends it on its own)."""
     if udp_port is not None and interface != "udp_multicast":
         raise ConfigError(f"--udp-port {udp_port}: only with --interface udp_multicast")
+    if event_timer is not None and not 1 <= event_timer <= 65535:
+        raise ConfigError(f"--event-timer {event_timer}: expected milliseconds 1..65535 "
+                          "(0x1800:05 is UNSIGNED16)")
     od, read_warnings = _load(path, node)
     from chcos.devices.importers.cia402 import (
         HOSTED,
@@ -298,6 +390,7 @@ def import_eds(path: str | Path, node: int, *, bus: str = "canopen", machine: in
     for n, index, sub, _timer, _cob in pdo_mappings(od, 0x1400, 0x1600):
         rpdos_of.setdefault((index, sub), []).append(n)
     done: set[tuple[int, int]] = set(taken)
+    silent: dict[int, list[str]] = {}      # TPDO number -> its sensors, when it is never sent
     for kind, comm, mapping, direction in (("TPDO", 0x1800, 0x1A00, "sensor"),
                                            ("RPDO", 0x1400, 0x1600, "actuator")):
         for n, index, sub, timer, cob in pdo_mappings(od, comm, mapping):
@@ -305,19 +398,17 @@ def import_eds(path: str | Path, node: int, *, bus: str = "canopen", machine: in
             if var is None or (index, sub) in done or not wanted(index):
                 continue
             done.add((index, sub))
-            dev = _device(draft, var, direction, bus, machine, prefix, node)
+            dev = _device(draft, var, direction, bus, machine, prefix, node, short)
             notes = [f"0x{index:04X}:{sub:02X} {_name(var)}: {kind}{n} (COB-ID 0x{cob:03X})"]
             trans = (tpdos if kind == "TPDO" else rpdos).get(n, (0, 255, 0))[1]
-            if direction == "sensor" and trans <= 240 and sync_period is not None:
-                every = max(1, trans)
-                dev["stale_after"] = round(5 * every * sync_period, 6)
-                notes.append(f"synchronous (type {trans}): every "
-                             f"{'changed ' if trans == 0 else ''}"
-                             f"{'' if every == 1 else f'{every}th '}SYNC; stale after five "
-                             f"PDO periods")
-            elif direction == "sensor" and timer:
-                dev["stale_after"] = round(5 * timer / 1000, 3)
-                notes.append(f"event timer {timer} ms: stale after five periods")
+            if direction == "sensor":
+                if trans > 240 and not timer:
+                    silent.setdefault(n, []).append(dev["name"])
+                    timer = event_timer or 0
+                stale, note = freshness(trans, timer, sync_period)
+                if stale is not None:
+                    dev["stale_after"] = stale
+                notes.append(note)
             if direction == "actuator":
                 also = [f"RPDO{m}" for m in rpdos_of.get((index, sub), []) if m != n]
                 if also:
@@ -330,6 +421,8 @@ def import_eds(path: str | Path, node: int, *, bus: str = "canopen", machine: in
                     notes.append("set safe_value: written on e-stop, task failure and "
                                  "shutdown")
             draft.add(notes, dev)
+    if silent:
+        _never_sent(draft, node_table, silent, tpdos, where, node, event_timer)
     if sdo:
         for index in sorted(i for i in od.indices if 0x2000 <= i <= 0x9FFF):
             obj = od[index]
@@ -347,7 +440,7 @@ def import_eds(path: str | Path, node: int, *, bus: str = "canopen", machine: in
                 else:
                     continue
                 done.add(key)
-                dev = _device(draft, var, direction, bus, machine, prefix, node)
+                dev = _device(draft, var, direction, bus, machine, prefix, node, short)
                 notes = [f"0x{var.index:04X}:{var.subindex:02X} {_name(var)}: SDO, access "
                          f"{access}"]
                 reason = no_safe_value(var.index) if var.subindex == 0 else None
@@ -369,7 +462,7 @@ def import_eds(path: str | Path, node: int, *, bus: str = "canopen", machine: in
                 direction = "actuator" if access in ACCESS_ACTUATOR else "sensor"
                 draft.add([f"0x{var.index:04X}:{var.subindex:02X} {_name(var)}: SDO, access "
                            f"{access}, asked for with --objects"],
-                          _device(draft, var, direction, bus, machine, prefix, node))
+                          _device(draft, var, direction, bus, machine, prefix, node, short))
     if not draft.devices:
         raise ConfigError(f"{path}: no PDO-mapped or application object in node {node}'s EDS")
     missing = _no_default(od)
