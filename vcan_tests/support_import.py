@@ -64,7 +64,13 @@ port = 1502
 name = "w"
 direction = "sensor"
 bus = "b"
-address = { unit = 1, table = "holding", address = 40084, type = "int16", unimplemented = 0x8000, scale_factor = 40085 }
+[device.address]
+unit = 1
+table = "holding"
+address = 40084
+type = "int16"
+unimplemented = 0x8000
+scale_factor = 40085
 
 [[device]]
 name = "w_sf"
