@@ -3,11 +3,12 @@
 A DBC says which bits a counter or a checksum occupies but not that they are one, nor how the
 checksum is computed. :func:`computed_signals` finds them: by name (``COUNTER``, ``CNT``,
 ``ALIVE``, ``ROLLING``, ``SEQ``, VW's ``_BZ``; ``CHECKSUM``, ``CRC``, ``CHKSUM``, ``CHK``...),
-and by the common layouts: in a message with a checksum, an unsigned 2- or 4-bit signal in the
-first or last byte is its counter; an 8-bit signal filling the first or last byte, named like a
-checksum (``CS``, ``SUM``, ``CKS``), is one. :func:`likely_algorithm` guesses the checksum's
-algorithm (a guess the import report says must be confirmed). The ``can`` driver computes what
-the map declares (``[[bus.message]]``: ``counter``, ``checksum = {signal, algorithm}``).
+and by the common layouts: an 8-bit signal filling the first or last byte, named like a
+checksum (``CS``, ``SUM``, ``CKS``), is one; in a message with a checksum, an unsigned 2- or
+4-bit signal in the first or last byte, or in or beside the checksum's byte (AUTOSAR E2E
+profile 1), is its counter. :func:`likely_algorithm` guesses the checksum's algorithm (a guess
+the import report says must be confirmed). The ``can`` driver computes what the map declares
+(``[[bus.message]]``: ``counter``, ``checksum = {signal, algorithm}``).
 """
 
 from __future__ import annotations
@@ -46,11 +47,14 @@ def bits(sig: Any) -> set[int]:
     return out
 
 
-def _edge(sig: Any, length: int) -> bool:
-    """Whether ``sig`` lies within the first or the last byte of a ``length``-byte frame."""
-    occupied = bits(sig)
-    return all(b < 8 for b in occupied) or all(8 * (length - 1) <= b < 8 * length
-                                               for b in occupied)
+def _edge(sig: Any, length: int, beside: Any = None) -> bool:
+    """Whether ``sig`` lies within the first or the last byte of a ``length``-byte frame, or
+    (``beside``: a checksum signal) within a byte the checksum occupies or next to one."""
+    occupied = {b // 8 for b in bits(sig)}
+    allowed = {0, length - 1}
+    if beside is not None:
+        allowed |= {n + d for n in {b // 8 for b in bits(beside)} for d in (-1, 0, 1)}
+    return len(occupied) == 1 and occupied <= allowed
 
 
 def _plain_unsigned(sig: Any) -> bool:
@@ -77,12 +81,13 @@ def computed_signals(msg: Any) -> list[Computed]:
                                              "by its name and place (8 bits, first/last byte)")
                 break
     if "checksum" in found and "counter" not in found:
+        checksum = msg.get_signal_by_name(found["checksum"].signal)
         for sig in msg.signals:
-            if sig.name != found["checksum"].signal and sig.length in (2, 4) \
-                    and _plain_unsigned(sig) and _edge(sig, msg.length):
+            if sig.name != checksum.name and sig.length in (2, 4) \
+                    and _plain_unsigned(sig) and _edge(sig, msg.length, checksum):
                 found["counter"] = Computed(sig.name, "counter",
-                                            f"by its place ({sig.length}-bit unsigned in the "
-                                            "first/last byte beside a checksum)")
+                                            f"by its place: {sig.length}-bit unsigned beside "
+                                            "the checksum")
                 break
     return [found[k] for k in ("counter", "checksum") if k in found]
 

@@ -66,8 +66,36 @@ def _load(path: str | Path, node: int) -> tuple[Any, tuple[str, ...]]:
     try:
         read = read_eds(path, node)
     except ValueError as exc:
-        raise ConfigError(str(exc)) from exc
+        raise ConfigError(locate_error(Path(path), str(exc))) from exc
     return read.od, read.warnings
+
+
+_NO_OPTION = re.compile(r"No option '([^']*)' in section: '([^']*)'")
+_QUOTED = re.compile(r"'([^']{1,80})'")
+
+
+def locate_error(path: Path, message: str) -> str:
+    """``message`` (canopen's refusal of the EDS at ``path``) with the section and key, or
+    the line, it is about: a missing key as ``[section] key: missing``, a bad value by the
+    line that holds it. Unchanged when it already names a section or nothing can be found."""
+    if re.search(r"\[[0-9A-Za-z]+\] \w+", message):
+        return message
+    m = _NO_OPTION.search(message)
+    if m:
+        return f"{message} ([{m.group(2)}] {m.group(1)}: missing; CiA 306 requires it)"
+    try:
+        lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
+    except OSError:
+        return message
+    for value in _QUOTED.findall(message):
+        section = "?"
+        for no, line in enumerate(lines, 1):
+            text = line.strip()
+            if text.startswith("[") and text.endswith("]"):
+                section = text[1:-1]
+            elif "=" in text and text.split("=", 1)[1].strip() == value:
+                return f"{message} (line {no}: [{section}] {text[:80]})"
+    return message
 
 
 def _every(index: int) -> bool:
@@ -464,7 +492,9 @@ def import_eds(path: str | Path, node: int, *, bus: str = "canopen", machine: in
                            f"{access}, asked for with --objects"],
                           _device(draft, var, direction, bus, machine, prefix, node, short))
     if not draft.devices:
-        raise ConfigError(f"{path}: no PDO-mapped or application object in node {node}'s EDS")
+        raise ConfigError(f"{path}: no PDO-mapped or application object in node {node}'s EDS "
+                          "(no object mapped by [1600]-[17FF] or [1A00]-[1BFF], no numeric "
+                          "object in [2000]-[9FFF])")
     missing = _no_default(od)
     if missing:
         draft.header.append(
