@@ -263,7 +263,9 @@ def _read_rows(path: Path) -> tuple[list[list[str]], dict[str, int]]:
                                       f"characters (at most {MAX_CELL})")
             rows.append(row)
     except csv.Error as exc:
-        raise ConfigError(f"{path}: row {reader.line_num}: {exc}") from None
+        limit = csv.field_size_limit()
+        why = f"a cell longer than {limit} characters" if "field limit" in str(exc) else exc
+        raise ConfigError(f"{path}: row {reader.line_num}: {why}") from None
     return rows, _columns([c.strip() for c in rows[0]], path)
 
 
