@@ -301,6 +301,7 @@ def main(argv: Sequence[str]) -> int:
             print(f"warning: {warning}", file=sys.stderr)
         write_checked(render(draft), args.output)
     except (ConfigError, OSError) as exc:
-        print(f"chcos import {args.kind}: {exc}", file=sys.stderr)
+        one_line = " ".join(str(exc).split("\n"))      # a refusal is one line, however long
+        print(f"chcos import {args.kind}: {one_line[:2000]}", file=sys.stderr)
         return 2
     return 0

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import fnmatch
 import math
+import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -81,8 +82,12 @@ def _load(path: Path) -> tuple[Any, DbcLines]:
     try:
         db = cantools.database.load_string(text, database_format="dbc", strict=True)
     except Exception as exc:  # cantools' parse and consistency errors, of every kind
-        detail = str(exc).replace("\n", " ")[:300] or type(exc).__name__
-        where = "" if "line " in detail else (locate(lines, detail) or "")
+        full = str(exc).replace("\n", " ")
+        detail = full[:300] or type(exc).__name__
+        where = "" if re.search(r"line \d+", detail) else (locate(lines, full, text) or "")
+        if not where and "list index out of range" in full:
+            # cantools' tokenizer ran past the last token: the file ends inside a statement
+            where = f"line {len(text.splitlines())} (the file ends inside a statement)"
         raise ConfigError(f"{path}: " + (f"{where}: " if where else "")
                           + f"not a readable DBC: {detail}") from exc
     return db, lines
@@ -229,7 +234,7 @@ def import_dbc(path: str | Path, *, bus: str = "can0", node: str | None = None,
     if not draft.devices:
         raise ConfigError(f"{path}: no signals to import"
                           + (f" (--signals {' '.join(signals)} matched none)" if signals
-                             else ""))
+                             else " (no SG_ line the importer can use)"))
     return draft
 
 

@@ -23,8 +23,9 @@ MAX_SIGNAL = 64
 #: bytes of a DBC read by the importer (a vendor's whole vehicle DBC is a few megabytes)
 MAX_FILE = 64 * 1024 * 1024
 
-_BO = re.compile(r"^\s*BO_\s+(\d+)\s+(\w+)\s*:\s*(\d+)")
-_SG = re.compile(r"^\s*SG_\s+(\w+)\s*(?:\w+\s*)?:\s*(\d+)\s*\|\s*(\d+)\s*@")
+# linear on any line: no two adjacent repeats can match the same characters
+_BO = re.compile(r"^\s*BO_\s+(-?\d+)\s+(\w+)\s*:\s*(\d+)")
+_SG = re.compile(r"^\s*SG_\s+(\w+)(?:\s+\w+)?\s*:\s*(\d+)\s*\|\s*(\d+)\s*@")
 
 
 @dataclass
@@ -70,9 +71,10 @@ def prescan(path: Path, text: str) -> DbcLines:
     return lines
 
 
-def locate(lines: DbcLines, text: str) -> str | None:
-    """``line N`` of the first message or signal that ``text`` (an error message) names, or
-    None when it names none."""
+def locate(lines: DbcLines, text: str, source: str = "") -> str | None:
+    """``line N`` of the first message or signal that ``text`` (an error message) names, else
+    of the first line of ``source`` (the DBC) holding a word ``text`` quotes; None when
+    nothing is found."""
     for (message, signal), no in lines.signals.items():
         if re.search(rf"\b{re.escape(signal)}\b", text) and (
                 message in text or f"'{signal}'" in text or f'"{signal}"' in text):
@@ -83,4 +85,9 @@ def locate(lines: DbcLines, text: str) -> str | None:
     for (message, signal), no in lines.signals.items():
         if re.search(rf"\b{re.escape(signal)}\b", text):
             return f"line {no} (SG_ {signal} of {message})"
+    for quoted in re.findall(r"'([^']{3,})'", text):
+        needle = quoted[:60]
+        for no, line in enumerate(source.splitlines(), 1):
+            if needle in line:
+                return f"line {no}"
     return None

@@ -66,12 +66,13 @@ def _load(path: str | Path, node: int) -> tuple[Any, tuple[str, ...]]:
     try:
         read = read_eds(path, node)
     except ValueError as exc:
-        raise ConfigError(locate_error(Path(path), str(exc))) from exc
+        message = re.sub(r"'([^'\n]{60})[^'\n]+'", r"'\1...'", str(exc))   # a 140 kB value
+        raise ConfigError(locate_error(Path(path), str(exc)).replace(str(exc), message)) \
+            from exc
     return read.od, read.warnings
 
 
 _NO_OPTION = re.compile(r"No option '([^']*)' in section: '([^']*)'")
-_QUOTED = re.compile(r"'([^']{1,80})'")
 
 
 def locate_error(path: Path, message: str) -> str:
@@ -87,14 +88,15 @@ def locate_error(path: Path, message: str) -> str:
         lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
     except OSError:
         return message
-    for value in _QUOTED.findall(message):
+    for value in re.findall(r"'([^'\n]+)'?", message):   # Python cuts a long literal
         section = "?"
         for no, line in enumerate(lines, 1):
             text = line.strip()
             if text.startswith("[") and text.endswith("]"):
                 section = text[1:-1]
-            elif "=" in text and text.split("=", 1)[1].strip() == value:
-                return f"{message} (line {no}: [{section}] {text[:80]})"
+            elif "=" in text and text.split("=", 1)[1].strip().startswith(value[:80]):
+                key = text.split("=", 1)[0].strip()
+                return f"{message} (line {no}: [{section[:20]}] {key[:40]})"
     return message
 
 
