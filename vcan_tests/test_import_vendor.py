@@ -23,7 +23,6 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from chcos.cli.main import main as cli_main
-from chcos.devices.devmap import check
 from chcos.devices.importers.dbc import import_dbc
 from chcos.devices.importers.draft import MapDraft, render
 from chcos.devices.importers.eds import import_eds
@@ -89,7 +88,7 @@ def test_io_module_with_an_event_timer_runs_healthy(tmp_path: Path,
                        "--interface", "virtual", "--channel", "io401",
                        "--rename", "read_input_1h=inputs")
     assert status == 0, err
-    text, devs, bus = _doc_of(tmp_path / "map.toml")
+    _text, devs, bus = _doc_of(tmp_path / "map.toml")
     assert bus["nodes"][0]["eds"] == "io_module.eds"          # relative to the map
     assert bus["nodes"][0]["config"] == {"pdos": [{"pdo": "tpdo1", "event_timer_ms": 50},
                                                   {"pdo": "tpdo2", "event_timer_ms": 50}]}
@@ -117,7 +116,7 @@ def test_vehicle_dbc_without_nodes_send_decides_the_actuators() -> None:
         import_dbc(DOCS_VENDOR / "vehicle.dbc", node="EPS")
     draft = import_dbc(DOCS_VENDOR / "vehicle.dbc", send=["STEERING_CONTROL", "BRAKE_*"],
                        checksums={"BRAKE_COMMAND": {"algorithm": "crc8-sae-j1850"}})
-    text, devs, bus = _doc(draft)
+    _text, devs, bus = _doc(draft)
     actuators = {n for n, d in devs.items() if d["direction"] == "actuator"}
     assert actuators == {"steer_torque", "steer_torque_request", "set_me_x00",
                          "brake_pressure_req", "brake_request"}
@@ -521,8 +520,8 @@ def test_mutated_vendor_files_give_no_traceback_hang_or_invalid_map(seed: int,
                                                                     kind: str) -> None:
     """A mutation of a shipped vendor file (tools/fuzz_importers.py's, seeded) is imported to a
     map that passes check, or refused with the file and its line, row or key named."""
-    from tools.fuzz_importers import SOURCES, Findings, run_case
     from tools.fuzz_importers import ROOT as FUZZ_ROOT
+    from tools.fuzz_importers import SOURCES, Findings, run_case
 
     rng = random.Random(seed)
     findings = Findings()
