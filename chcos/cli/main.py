@@ -118,10 +118,28 @@ def _shell(args: argparse.Namespace) -> int:
             return ""
         return system.execute(line)
 
+    reported: list[str] = []
+
+    def map_failure() -> None:
+        """A sysfile.map that could not be written: one line, once per failure (the map is a
+        record: the script goes on, the status becomes 1)."""
+        error = system.sysmgr.map.error
+        if error is not None and (not reported or reported[-1] != error):
+            reported.append(error)
+            print(f"error: {error}", file=sys.stderr, flush=True)
+
+    def execute_and_check(line: str) -> str:
+        try:
+            return execute(line)
+        finally:
+            map_failure()
+
     try:
-        return _console(lines, execute)
+        status = _console(lines, execute_and_check)
     finally:
         system.shutdown()
+    map_failure()  # the last write, at shutdown
+    return status or (1 if reported else 0)
 
 
 def _console(lines: Iterable[str], execute: Callable[[str], str]) -> int:
