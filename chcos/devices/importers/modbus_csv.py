@@ -413,13 +413,14 @@ def _type(r: _Row, where: str, warnings: list[str]) -> _Type | None:
 
 
 def _bus(draft: MapDraft, path: Path, bus: str, host: str | None, port: int, rtu: str | None,
-         baudrate: int, parity: str) -> None:
-    """The map's Modbus bus: TCP to ``host:port`` or RTU on ``rtu``."""
+         baudrate: int, parity: str, command: str = "chcos import modbus") -> None:
+    """The map's Modbus bus: TCP to ``host:port`` or RTU on ``rtu``; the header names
+    ``command``."""
     if rtu is not None:
         if parity not in ("N", "E", "O"):
             raise ConfigError(f"--parity {parity!r}: expected N, E or O")
         draft.header = [f"Modbus RTU bus on {rtu} ({baudrate} bit/s, parity {parity}), imported "
-                        f"from {path.name} by chcos import."]
+                        f"from {path.name} by {command}."]
         draft.buses.append({"name": bus, "kind": "modbus-rtu", "port": rtu,
                             "baudrate": baudrate, "parity": parity})
     else:
@@ -427,8 +428,8 @@ def _bus(draft: MapDraft, path: Path, bus: str, host: str | None, port: int, rtu
             host = "127.0.0.1"
             draft.warnings.append(f"{path}: no --host: the map names 127.0.0.1 (a simulator on "
                                   "this machine); give the device's address for a real bus")
-        draft.header = [f"Modbus TCP server {host}:{port}, imported from {path.name} by chcos "
-                        "import."]
+        draft.header = [f"Modbus TCP server {host}:{port}, imported from {path.name} by "
+                        f"{command}."]
         draft.buses.append({"name": bus, "kind": "modbus-tcp", "host": host, "port": port})
     draft.header.append("Check with chcos check; set safe_value on the actuators and "
                         "stale_after on the sensors.")

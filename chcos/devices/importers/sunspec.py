@@ -201,8 +201,7 @@ def import_sunspec(models: Sequence[ModelSpec], *, source: str, base: int = 4000
     if not 0 <= unit <= 255 or (rtu is not None and not 1 <= unit <= 247):
         raise ConfigError(f"--unit {unit}: expected 1..247 (0..255 on TCP)")
     draft = MapDraft()
-    _bus(draft, Path(source), bus, host, port, rtu, baudrate, parity)
-    draft.header[0] = draft.header[0].replace("by chcos import.", "by chcos import sunspec.")
+    _bus(draft, Path(source), bus, host, port, rtu, baudrate, parity, "chcos import sunspec")
     laid: list[tuple[ModelSpec, Any, int]] = []
     address = base + 2
     for spec in models:
