@@ -195,6 +195,20 @@ def run_case(kind: str, source: Path, rng: random.Random, work: Path, hang: floa
         findings.add("other status", case)
 
 
+def _report(path: str | None, cases: int, seed: int, started: float,
+            findings: Findings) -> dict[str, Any]:
+    """The summary of the first ``cases`` cases, also written with the examples to ``path``."""
+    summary = {"cases": cases, "seed": seed,
+               "seconds": round(time.perf_counter() - started, 1),
+               "counts": dict(findings.counts),
+               "worst_seconds_per_MB": round(findings.worst_s_per_mb, 3),
+               "worst_case": findings.worst_case}
+    if path:
+        Path(path).write_text(json.dumps({"summary": summary, "examples": findings.examples},
+                                         indent=2), encoding="utf-8")
+    return summary
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the fuzz; print the counts; 1 when a traceback, hang or invalid output was found."""
     ap = argparse.ArgumentParser(prog="python -m tools.fuzz_importers", description=__doc__)
@@ -218,17 +232,11 @@ def main(argv: list[str] | None = None) -> int:
             kind = kinds[n % len(kinds)]
             source = ROOT / rng.choice(SOURCES[kind])
             run_case(kind, source, rng, Path(tmp), args.hang, findings)
+            if args.report and (n + 1) % 250 == 0:      # a long run's findings so far
+                _report(args.report, n + 1, args.seed, started, findings)
     resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
-    elapsed = time.perf_counter() - started
-    summary = {"cases": args.cases, "seed": args.seed, "seconds": round(elapsed, 1),
-               "counts": dict(findings.counts),
-               "worst_seconds_per_MB": round(findings.worst_s_per_mb, 3),
-               "worst_case": findings.worst_case}
+    summary = _report(args.report, args.cases, args.seed, started, findings)
     print(json.dumps(summary, indent=2))
-    if args.report:
-        Path(args.report).write_text(json.dumps({"summary": summary,
-                                                 "examples": findings.examples}, indent=2),
-                                     encoding="utf-8")
     bad = sum(findings.counts[k] for k in ("traceback", "hang", "invalid output"))
     return 1 if bad else 0
 
