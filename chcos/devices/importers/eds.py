@@ -54,6 +54,9 @@ ACCESS_ACTUATOR = ("wo", "rww")
 
 #: SYNC period chosen for synchronous TPDOs when the EDS gives no cycle (0x1006), seconds.
 DEFAULT_SYNC_PERIOD = 0.01
+#: Objects one PDO maps at most (CiA 301: mapping sub-indices 1..64); a larger count in an
+#: EDS is read as this many, so a corrupt count costs no more than a real one.
+MAX_MAPPED = 64
 #: Producer heartbeat time suggested for a node that has none, milliseconds.
 SUGGESTED_HEARTBEAT_MS = 100
 
@@ -176,7 +179,7 @@ def pdo_mappings(od: Any, comm: int, mapping: int) -> list[tuple[int, int, int, 
         if cob is None or cob & 0x8000_0000:
             continue  # no COB-ID, or the PDO is disabled
         timer = od_default(od, comm + n, 5) or 0
-        count = od_default(od, mapping + n, 0) or 0
+        count = min(od_default(od, mapping + n, 0) or 0, MAX_MAPPED)
         for sub in range(1, count + 1):
             entry = od_default(od, mapping + n, sub)
             if not entry:
