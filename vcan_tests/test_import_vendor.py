@@ -184,6 +184,17 @@ def test_dbc_limits_beyond_the_signal_are_clamped(tmp_path: Path) -> None:
                for w in draft.warnings)
 
 
+def test_dbc_capacity_beyond_what_limits_hold_is_an_open_end(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A 64-bit or float signal carries more than a map's limits hold (1e15): the end is open,
+    and the map passes check."""
+    path = _dbc(tmp_path, ' SG_ Big : 0|64@1+ (1,0) [0|0] "" B\n', 'SIG_VALTYPE_ 256 Big : 2;\n')
+    status, err = _cli(tmp_path, capsys, "dbc", str(path), "--node", "A")
+    assert status == 0, err
+    _t, devs, _b = _doc_of(tmp_path / "map.toml")
+    assert devs["big"]["limits"] == [-float("inf"), float("inf")]     # a float64
+
+
 @pytest.mark.parametrize("bits", ["4294967296", "1000000", "65", "0"])
 def test_dbc_signal_sizes_are_refused_before_cantools(tmp_path: Path, bits: str) -> None:
     path = _dbc(tmp_path, f' SG_ Huge : 0|{bits}@1+ (1,0) [0|0] "" B\n')

@@ -14,11 +14,9 @@ import re
 from dataclasses import dataclass, field
 from typing import Any
 
+from chcos.devices.mapparse import MAX_MAGNITUDE, MAX_NAME
 from chcos.errors import ConfigError
 from chcos.helpers import NAME_PATTERN
-
-#: characters in a device or bus name (the map parser's limit)
-MAX_NAME = 64
 
 
 @dataclass
@@ -159,7 +157,14 @@ def clamp_limits(lo: float | None, hi: float | None, capacity: tuple[float, floa
         out_lo, out_hi = cap_lo, cap_hi
     if lo is None and hi is None and not all(map(math.isfinite, (out_lo, out_hi))):
         return None
-    return [tidy(out_lo), tidy(out_hi)]
+    return [_open(tidy(out_lo)), _open(tidy(out_hi))]
+
+
+def _open(x: float) -> float:
+    """An end beyond what a map's limits hold (:data:`MAX_MAGNITUDE`: a float holds every
+    integer below it) as an open end, ``inf`` (the driver still refuses what the address
+    cannot carry)."""
+    return x if abs(x) <= MAX_MAGNITUDE else math.copysign(math.inf, x)
 
 
 def check_name(option: str, value: str, *, prefix: bool = False) -> str:
