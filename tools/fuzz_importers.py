@@ -10,7 +10,8 @@ process and classifies what happened:
 * **hang**: the case ran longer than ``--hang`` seconds (interrupted by a timer);
 * **invalid output**: the import wrote a map that ``chcos check`` then refuses;
 * **unlocated refusal**: a refusal whose message names neither a line, a row, a section, a
-  key nor an option;
+  key nor an option (a refusal of the file as a whole, "no signals to import", is counted
+  apart: there is no line to name);
 * the slowest case in seconds per megabyte of input (the target: at most 1 s/MB).
 
 Run it as ``.venv/bin/python -m tools.fuzz_importers --cases 6000`` (about ten minutes on a
@@ -55,6 +56,10 @@ NAMES = ["", "x", "9bad", "a b", "é", "a" * 70, "ok_", "-x", "a.b", "a\"b", "\u
 #: what a located refusal names
 LOCATED = re.compile(r"line \d+|row \d+|\[[0-9A-Za-z]+\]|\bbus\[|\bdevice\[|models\[|--\w|"
                      r"\.toml:\d+|key \w+|header|0x[0-9A-F]{4}|: [A-Za-z_]+\.[A-Za-z_]")
+#: a refusal of the file as a whole (nothing in it to import): it names the file and what is
+#: missing, and there is no line to name
+WHOLE_FILE = re.compile(r"no signals to import|no PDO-mapped or application object|expected a "
+                        r"header row|no register the modbus driver|key models:")
 
 
 @dataclass
@@ -187,9 +192,13 @@ def run_case(kind: str, source: Path, rng: random.Random, work: Path, hang: floa
             findings.add("written", case, keep=0)
     elif status == 2:
         case["message"] = message[0][:300]
-        located = LOCATED.search(message[0].replace(str(path), "FILE"))
-        findings.add("refused" if located else "unlocated refusal", case,
-                     keep=0 if located else 20)
+        text = message[0].replace(str(path), "FILE")
+        if WHOLE_FILE.search(text):
+            findings.add("refused (the whole file)", case, keep=3)
+        elif LOCATED.search(text):
+            findings.add("refused", case, keep=0)
+        else:
+            findings.add("unlocated refusal", case)
     else:
         case["status"] = status
         findings.add("other status", case)

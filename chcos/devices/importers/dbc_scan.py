@@ -85,6 +85,10 @@ def locate(lines: DbcLines, text: str, source: str = "") -> str | None:
     for (message, signal), no in lines.signals.items():
         if re.search(rf"\b{re.escape(signal)}\b", text):
             return f"line {no} (SG_ {signal} of {message})"
+    for statement in re.findall(r"\b([A-Z_]{2,}_ -?\d+ \w+)", text):   # "VAL_ 385 State"
+        for no, line in enumerate(source.splitlines(), 1):
+            if " ".join(line.split()).startswith(statement):
+                return f"line {no}"
     for quoted in re.findall(r"'([^']{3,})'", text):
         needle = quoted[:60]
         for no, line in enumerate(source.splitlines(), 1):
