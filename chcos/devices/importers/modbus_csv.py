@@ -552,6 +552,56 @@ def import_modbus_csv(path: str | Path, *, bus: str = "plc", host: str | None = 
     return draft
 
 
+def _address_of(r: _Row, typ: _Type, where: str, *, unit: int,
+                rtu: str | None) -> tuple[dict[str, Any], int]:
+    """Row ``r``'s address table, and 1 when it is a wide value without a word order (else 0).
+    Raises ConfigError naming the row."""
+    cells = r.cells
+    if r.address + typ.width - 1 > 65535:
+        raise ConfigError(f"{where}: address {cells.get('address')!r}: {r.table} {r.address} "
+                          f"({typ.width} register(s)) is beyond 65535, the protocol's last "
+                          "address")
+    uid = cells.get("unit_id", "")
+    unit_id = int(_number(uid, where, "unit id")) if uid else unit
+    if not 0 <= unit_id <= 255:
+        raise ConfigError(f"{where}: unit id {unit_id}: expected 0..255")
+    if rtu is not None and not 1 <= unit_id <= 247:
+        raise ConfigError(f"{where}: unit id {unit_id}: an RTU slave answers only at "
+                          "1..247 (0 is broadcast)")
+    address: dict[str, Any] = {"unit": unit_id, "table": r.table, "address": r.address,
+                               "type": typ.name}
+    if typ.name == "string":
+        address["count"] = typ.width
+    unordered = 0
+    order_text = cells.get("word_order", "")
+    if typ.name in WIDE:
+        if order_text:
+            order = ORDERS.get(_key(order_text))
+            if order is None:
+                raise ConfigError(f"{where}: word order {order_text[:40]!r}: expected big/ABCD, "
+                                  "little/CDAB, BADC or DCBA")
+            address["word_order"] = order
+        else:
+            unordered = 1
+    if typ.unimplemented is not None:
+        address["unimplemented"] = Hex(typ.unimplemented)
+    return address, unordered
+
+
+def _overlaps(r: _Row, address: dict[str, Any], width: int,
+              used: dict[tuple[int, str, int], int], where: str, warnings: list[str]) -> None:
+    """Warn when row ``r``'s registers are also another row's; record them."""
+    unit_id, table, first = address["unit"], address["table"], address["address"]
+    for reg in range(first, first + width):
+        other = used.get((unit_id, table, reg))
+        if other is not None:
+            warnings.append(f"{where}: {r.cells['name'][:60]}: {table} {reg} of unit {unit_id} "
+                            f"is also read by row {other}: overlapping registers")
+            break
+    for reg in range(first, first + width):
+        used.setdefault((unit_id, table, reg), r.no)
+
+
 def _row_device(draft: MapDraft, path: Path, r: _Row, typ: _Type,
                 used: dict[tuple[int, str, int], int], by_name: dict[str, _Row],
                 types: dict[int, _Type], *, unit: int, rtu: str | None, bus: str,
@@ -564,42 +614,9 @@ def _row_device(draft: MapDraft, path: Path, r: _Row, typ: _Type,
     def cell(col: str) -> str:
         return r.cells.get(col, "")
 
-    name, addr_text, table = cell("name"), cell("address"), r.table
-    if r.address + typ.width - 1 > 65535:
-        raise ConfigError(f"{where}: address {addr_text!r}: {table} {r.address} ({typ.width} "
-                          "register(s)) is beyond 65535, the protocol's last address")
-    uid = cell("unit_id")
-    unit_id = int(_number(uid, where, "unit id")) if uid else unit
-    if not 0 <= unit_id <= 255:
-        raise ConfigError(f"{where}: unit id {unit_id}: expected 0..255")
-    if rtu is not None and not 1 <= unit_id <= 247:
-        raise ConfigError(f"{where}: unit id {unit_id}: an RTU slave answers only at "
-                          "1..247 (0 is broadcast)")
-    address: dict[str, Any] = {"unit": unit_id, "table": table, "address": r.address,
-                               "type": typ.name}
-    if typ.name == "string":
-        address["count"] = typ.width
-    unordered = 0
-    order_text = cell("word_order")
-    if typ.name in WIDE:
-        if order_text:
-            order = ORDERS.get(_key(order_text))
-            if order is None:
-                raise ConfigError(f"{where}: word order {order_text[:40]!r}: expected big/ABCD, "
-                                  "little/CDAB, BADC or DCBA")
-            address["word_order"] = order
-        else:
-            unordered = 1
-    if typ.unimplemented is not None:
-        address["unimplemented"] = Hex(typ.unimplemented)
-    for reg in range(r.address, r.address + typ.width):
-        other = used.get((unit_id, table, reg))
-        if other is not None:
-            warnings.append(f"{where}: {name[:60]}: {table} {reg} of unit {unit_id} is also "
-                            f"read by row {other}: overlapping registers")
-            break
-    for reg in range(r.address, r.address + typ.width):
-        used.setdefault((unit_id, table, reg), r.no)
+    name, table = cell("name"), r.table
+    address, unordered = _address_of(r, typ, where, unit=unit, rtu=rtu)
+    _overlaps(r, address, typ.width, used, where, warnings)
     access = cell("access").lower()
     wants_write = "w" in access or "actuator" in access or "output" in access
     writable = table in ("coil", "holding") and wants_write and typ.name != "string"
@@ -617,15 +634,14 @@ def _row_device(draft: MapDraft, path: Path, r: _Row, typ: _Type,
     hi = _number(cell("max"), where, "max") if cell("max") else None
     device_limits(dev, typ.name, lo, hi, f"{where}: {name[:60]}", warnings)
     units = cell("units")
-    if units:
-        if len(units) > MAX_UNITS:
-            warnings.append(f"{where}: units {units[:20]!r}...: longer than {MAX_UNITS} "
-                            "characters, left out")
-        else:
-            dev["units"] = units
+    if len(units) > MAX_UNITS:
+        warnings.append(f"{where}: units {units[:20]!r}...: longer than {MAX_UNITS} "
+                        "characters, left out")
+    elif units:
+        dev["units"] = units
     comment = cell("comment")[:MAX_COMMENT]
     notes = [f"row {r.no}: {name[:80]}" + (f" - {comment}" if comment else "")
-             + f" ({table} {addr_text})"]
+             + f" ({table} {cell('address')})"]
     if typ.unimplemented is not None:
         notes.append(f"SunSpec: 0x{typ.unimplemented:X} means not implemented (no value)")
     if writable:
