@@ -125,8 +125,9 @@ def mutate(text: str, rng: random.Random) -> tuple[str, list[str]]:
     return text, done
 
 
-class _Hang(Exception):
-    pass
+class _Hang(BaseException):
+    """The timer's interruption: a BaseException, so no ``except Exception`` of the code under
+    test swallows it."""
 
 
 def _alarm(_sig: int, _frame: Any) -> None:
@@ -163,7 +164,7 @@ def run_case(kind: str, source: Path, rng: random.Random, work: Path, hang: floa
             "args": [a[:60] for a in argv[2:]]}
     err = io.StringIO()
     start = time.perf_counter()
-    signal.setitimer(signal.ITIMER_REAL, hang)
+    signal.setitimer(signal.ITIMER_REAL, hang, 1.0)   # again each second, should one be lost
     try:
         with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
             status = import_main(argv)
