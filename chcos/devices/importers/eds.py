@@ -7,15 +7,21 @@ A CiA 402 drive (0x6040, 0x6041, 0x6060, 0x6061 at an axis's offset) becomes one
 (``--plain``) writes the drive's objects as plain devices. Plain devices, for any other node:
 
 * every object mapped in an enabled TPDO (COB-ID bit 31 clear in 0x1800+n, mapping 0x1A00+n):
-  a sensor, delivered by the PDO; ``stale_after`` is five event-timer periods when the TPDO has an
-  event timer;
+  a sensor, delivered by the PDO; ``stale_after`` is five PDO periods (:func:`freshness`: the
+  event timer, or n SYNC periods for transmission type n), none for type 0 (sent on change at a
+  SYNC); an asynchronous TPDO with event timer 0 is never sent on the node's own: a warning
+  names the node and the TPDO with the fix, and ``event_timer`` (``--event-timer``) writes the
+  fix into the node's ``config``;
 * every object mapped in an enabled RPDO (0x1400+n / 0x1600+n): an actuator, written by the PDO;
 * with ``sdo`` (the default), every other numeric or boolean application object (0x2000-0x9FFF,
   sub-index 0 of records and arrays excepted): read-only, constant and read-write objects as
   sensors polled by SDO, write-only and ``rww`` (process output) objects as actuators.
 
-Names come from the EDS's ParameterName (a record's name joined with the entry's); limits from
-LowLimit/HighLimit; units and scale from canopen's ``unit``/``factor`` where the EDS has them.
+Names come from the EDS's ParameterName (a record's name joined with the entry's; ``short``:
+the entry's own, :func:`_name`); limits from LowLimit/HighLimit, clamped to what the object's
+data type carries (a warning says so; a DefaultValue outside them is warned about too); units
+and scale from canopen's ``unit``/``factor`` where the EDS has them. A refusal names the
+section and key, or the line, it is about (:func:`locate_error`).
 The bus gets ``nodes = [{id, eds, heartbeat_timeout}]`` (three producer-heartbeat periods, from
 0x1017, when it is set). Nothing else is guessed: safe values are left for the user to set,
 but a CiA 402 set-point (target position or velocity, profile velocity, mode, quick stop option)
