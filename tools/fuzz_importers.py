@@ -54,7 +54,7 @@ EXTREMES = ["1e400", "nan", "-inf", "-1", "0", "4294967296", "1000000", "9" * 40
             "0xFFFFFFFFF", "", "65536", "-32769", "1.5", "3.4e39", "$NODEID+0x80000000"]
 NAMES = ["", "x", "9bad", "a b", "é", "a" * 70, "ok_", "-x", "a.b", "a\"b", "\u0000", "bus-1"]
 #: what a located refusal names
-LOCATED = re.compile(r"line \d+|row \d+|\[[0-9A-Za-z]+\]|\bbus\[|\bdevice\[|models\[|--\w|"
+LOCATED = re.compile(r"line\s+\d+|row \d+|\[[0-9A-Za-z]+\]|\bbus\[|\bdevice\[|models\[|--\w|"
                      r"\.toml:\d+|key \w+|header|0x[0-9A-F]{4}|: [A-Za-z_]+\.[A-Za-z_]")
 #: a refusal of the file as a whole (nothing in it to import): it names the file and what is
 #: missing, and there is no line to name

@@ -14,6 +14,7 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from chcos.devices.importers.draft import unrepr
 from chcos.errors import ConfigError
 
 #: bytes of the largest CAN (FD) frame
@@ -90,7 +91,7 @@ def locate(lines: DbcLines, text: str, source: str = "") -> str | None:
             if " ".join(line.split()).startswith(statement):
                 return f"line {no}"
     for quoted in re.findall(r"'([^']{3,})'", text):
-        needle = quoted[:60]
+        needle = unrepr(quoted)[:60]
         for no, line in enumerate(source.splitlines(), 1):
             if needle in line:
                 return f"line {no}"

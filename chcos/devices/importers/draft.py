@@ -202,3 +202,11 @@ def rename(draft: MapDraft, pairs: list[str]) -> None:
             raise ConfigError(f"--rename: {new!r} would name two devices")
     for _c, dev in draft.devices:
         dev["name"] = plan.get(dev["name"], dev["name"])
+
+
+def unrepr(text: str) -> str:
+    """``text`` as quoted by ``repr`` (``\\x00``, ``\\t``) back to the characters a file holds."""
+    try:
+        return text.encode("latin-1", "backslashreplace").decode("unicode_escape")
+    except UnicodeDecodeError:
+        return text

@@ -51,7 +51,7 @@ from collections.abc import Callable, Collection
 from pathlib import Path
 from typing import Any
 
-from chcos.devices.importers.draft import Hex, MapDraft, clamp_limits, limits
+from chcos.devices.importers.draft import Hex, MapDraft, clamp_limits, limits, unrepr
 from chcos.errors import ConfigError
 
 ACCESS_SENSOR = ("ro", "const", "rw", "rwr")
@@ -97,7 +97,8 @@ def locate_error(path: Path, message: str) -> str:
         lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
     except OSError:
         return message
-    for value in re.findall(r"'([^'\n]+)'?", message):   # Python cuts a long literal
+    for quoted in re.findall(r"'([^'\n]+)'?", message):   # Python cuts a long literal
+        value = unrepr(quoted)
         section = "?"
         for no, line in enumerate(lines, 1):
             text = line.strip()
