@@ -134,6 +134,16 @@ def _alarm(_sig: int, _frame: Any) -> None:
     raise _Hang()
 
 
+def _disarm() -> None:
+    """Stop the hang timer, even if it fires once more while it is being stopped."""
+    while True:
+        try:
+            signal.setitimer(signal.ITIMER_REAL, 0)
+            return
+        except _Hang:
+            continue
+
+
 def args_for(kind: str, path: Path, out: Path, rng: random.Random) -> list[str]:
     """The ``chcos import`` arguments of a case."""
     argv = [kind, str(path), "-o", str(out)]
@@ -178,7 +188,7 @@ def run_case(kind: str, source: Path, rng: random.Random, work: Path, hang: floa
         findings.add("traceback", case)
         return
     finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
+        _disarm()
     seconds = time.perf_counter() - start
     per_mb = seconds / max(len(text.encode("utf-8", errors="replace")) / 1e6, 1.0)
     if per_mb > findings.worst_s_per_mb:
