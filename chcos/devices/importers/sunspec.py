@@ -204,8 +204,8 @@ def import_sunspec(models: Sequence[ModelSpec], *, source: str, base: int = 4000
     _bus(draft, Path(source), bus, host, port, rtu, baudrate, parity, "chcos import sunspec")
     laid: list[tuple[ModelSpec, Any, int]] = []
     address = base + 2
-    for spec in models:
-        model = _model(spec, address, source)
+    for i, spec in enumerate(models):
+        model = _model(spec, address, f"{source}: models[{i}]")
         length = int(model.len) - 2
         laid.append((spec, model, address))
         address += 2 + length
