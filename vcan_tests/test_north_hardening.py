@@ -28,11 +28,11 @@ from pyModbusTCP.client import ModbusClient
 from chcos.devices.spec import BusSpec, DeviceMap, DeviceSpec
 from chcos.kernel.clock import RealClock
 from chcos.north import NorthError
-from chcos.north.auth import LoginThrottle, User, Users, hash_password
-from chcos.north.guard import throttle_library_logs
 from chcos.north.metrics import serve as serve_metrics
 from chcos.north.modbus_facade import ModbusFacade
 from chcos.north.opcua import OpcUaServer
+from chcos.serving.auth import LoginThrottle, User, Users, hash_password
+from chcos.serving.guard import throttle_library_logs
 from chcos.system.embedded import System
 from chcos.user.context import TaskContext
 from chcos.viewer.server import Viewer

@@ -15,7 +15,7 @@ import pytest
 from aiohttp.test_utils import TestClient, TestServer
 
 from chcos.kernel.clock import VirtualClock
-from chcos.north.auth import LoginThrottle
+from chcos.serving.auth import LoginThrottle
 from chcos.system.embedded import System
 from chcos.viewer.server import Viewer
 from vcan_tests.support_view import PASSWORDS, fig65_system, viewer_users

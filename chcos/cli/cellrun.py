@@ -122,7 +122,7 @@ def report(cell: Cell, snap: dict[str, Any], found: list[str], out: TextIO) -> N
     for t in snap["tasks"]:
         print(f"  task     {t['name']:<16} {t['steps']} executions, {t['completions']} "
               f"completions, {t['abnormal']} abnormal", file=out)
-    for line in bus_status_lines(cell.system.devtab.bus_status()):
+    for line in bus_status_lines(cell.system.devtab.statuses()):
         print(f"  {line}", file=out)
     print(f"  messages: {snap['messages']} ({snap['messages'] / secs:.0f}/s)", file=out)
     outcomes = cell.system.devtab.safe_outcomes
@@ -211,7 +211,8 @@ def run(system_file: str | Path, *, virtual: bool = False, duration: float | Non
               "stops", file=out)
         if not outputs and not virtual:
             print("  (give --outputs on to drive the actuators)", file=out)
-        if not virtual:
+        # (only with a CAN bus: the simulators' module, and every bus library, loads then)
+        if not virtual and any(b.kind in ("can", "canopen") for b in s.devmap.buses):
             from chcos.apps.sim.from_map import process_local
 
             for bus in process_local(s.devmap):
@@ -290,7 +291,7 @@ def _loop(cell: Cell, virtual: bool, duration: float | None, period: float,
         rate = (snap["messages"] - last_msgs) / max(1e-9, snap["t"] - last_t)
         last_msgs, last_t = snap["messages"], snap["t"]
         show_progress(snap, rate, out)
-        for line in bus_status_lines(s.devtab.bus_status()):
+        for line in bus_status_lines(s.devtab.statuses()):
             print(f"  {line}", file=out, flush=True)
         tick += 1
         if duration is not None and snap["t"] >= duration - 1e-9:

@@ -66,7 +66,8 @@ from prometheus_client.registry import Collector
 from chcos.comm.config import is_loopback
 from chcos.kernel.instrument import Instrument
 from chcos.north import NorthError
-from chcos.north.guard import (
+from chcos.north.health import bus_stats, device_health
+from chcos.serving.guard import (
     MAX_BODY,
     REQUEST_TIMEOUT,
     ConnectionGate,
@@ -76,8 +77,7 @@ from chcos.north.guard import (
     serve_http,
     throttle_library_logs,
 )
-from chcos.north.health import bus_stats, device_health
-from chcos.north.loopthread import LoopThread
+from chcos.serving.loopthread import LoopThread
 
 if TYPE_CHECKING:
     from chcos.system.embedded import System

@@ -58,9 +58,9 @@ from chcos.comm.secret import Throttle
 from chcos.devices.spec import DeviceMap, DeviceSpec
 from chcos.errors import ChcosError, DeviceError
 from chcos.north import NorthError
-from chcos.north.guard import ConnectionGate, connection_cap, throttle_library_logs
 from chcos.north.health import device_health
-from chcos.north.loopthread import LoopThread
+from chcos.serving.guard import ConnectionGate, connection_cap, throttle_library_logs
+from chcos.serving.loopthread import LoopThread
 from chcos.tables.tasks import TaskState
 
 if TYPE_CHECKING:

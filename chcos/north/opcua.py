@@ -76,16 +76,16 @@ from chcos.comm.config import is_loopback
 from chcos.helpers import free_port
 from chcos.kernel.instrument import Instrument
 from chcos.north import NorthError
-from chcos.north.guard import REQUEST_TIMEOUT, connection_cap, throttle_library_logs
 from chcos.north.health import add_health_listener, device_health, remove_health_listener
-from chcos.north.loopthread import LoopThread
 from chcos.north.opcua_alarms import Alarm, AlarmsMixin
 from chcos.north.opcua_methods import CURRENT_USER, Logins, Rules, Session
+from chcos.serving.guard import REQUEST_TIMEOUT, connection_cap, throttle_library_logs
+from chcos.serving.loopthread import LoopThread
 
 if TYPE_CHECKING:
     from asyncua.common.node import Node
 
-    from chcos.north.auth import Users
+    from chcos.serving.auth import Users
     from chcos.system.embedded import System
 
 #: asyncua's ua module, untyped here: its NewType-wrapped scalars (UInt32, Int16, String...)

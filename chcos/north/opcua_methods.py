@@ -34,7 +34,7 @@ from chcos.errors import Busy, ChcosError
 if TYPE_CHECKING:
     from asyncua.common.node import Node
 
-    from chcos.north.auth import LoginThrottle, Users
+    from chcos.serving.auth import LoginThrottle, Users
     from chcos.system.embedded import System
 
 #: asyncua's ua module, untyped here (see :mod:`chcos.north.opcua`)
@@ -76,7 +76,7 @@ class Logins(UserManager):
     certificate: anonymous; a bad password: refused."""
 
     def __init__(self, users: Users | None, throttle: LoginThrottle | None = None) -> None:
-        from chcos.north.auth import LoginThrottle
+        from chcos.serving.auth import LoginThrottle
 
         self.users = users
         self.throttle = throttle or LoginThrottle()

@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 from chcos.north import NorthError
 
 if TYPE_CHECKING:
-    from chcos.north.auth import Users
+    from chcos.serving.auth import Users
     from chcos.system.embedded import System
 
 DEFAULTS = {"metrics": "127.0.0.1:9464", "modbus_facade": "127.0.0.1:5020",
@@ -95,7 +95,7 @@ class NorthOptions:
         file."""
         users = None
         if getattr(args, "north_users", None):
-            from chcos.north.auth import Users
+            from chcos.serving.auth import Users
 
             users = Users.from_file(args.north_users)
         return cls(args.metrics, args.modbus_facade, args.opcua, args.view, users,
@@ -189,7 +189,7 @@ def start(system: System, options: NorthOptions) -> NorthHandle:
 def north_main(argv: Sequence[str], stdin: TextIO | None = None) -> int:
     """``chcos north passwd``: print a password hash for a users file. Returns 0, or 1 if the
     two entries differ or the password is empty."""
-    from chcos.north.auth import hash_password
+    from chcos.serving.auth import hash_password
 
     ap = argparse.ArgumentParser(prog="chcos north", description="North-side accounts.")
     sub = ap.add_subparsers(dest="cmd", required=True)

@@ -28,7 +28,7 @@ from chcos.errors import Busy, ChcosError
 from chcos.system import cmdline
 
 if TYPE_CHECKING:
-    from chcos.north.auth import LoginThrottle, User, Users
+    from chcos.serving.auth import LoginThrottle, User, Users
     from chcos.system.embedded import System
 
 log = logging.getLogger("chcos.viewer")
@@ -76,7 +76,7 @@ class PageCommands:
 
     def __init__(self, system: System, users: Users | None, *, secure: bool = False,
                  throttle: LoginThrottle | None = None) -> None:
-        from chcos.north.auth import LoginThrottle
+        from chcos.serving.auth import LoginThrottle
 
         self.system = system
         self.users = users
@@ -100,7 +100,7 @@ class PageCommands:
         return web.json_response(self._session_json(s))
 
     def _session_json(self, s: Session) -> dict[str, Any]:
-        from chcos.north.auth import ROLE_COMMANDS
+        from chcos.serving.auth import ROLE_COMMANDS
 
         return {"user": s.user.name, "role": s.user.role, "token": s.token,
                 "read_only": self.read_only,

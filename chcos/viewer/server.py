@@ -54,8 +54,8 @@ from aiohttp import web
 
 from chcos import resources
 from chcos.comm.config import is_loopback
-from chcos.north.auth import LoginThrottle
-from chcos.north.guard import (
+from chcos.serving.auth import LoginThrottle
+from chcos.serving.guard import (
     MAX_BODY,
     REQUEST_TIMEOUT,
     ConnectionGate,
@@ -65,7 +65,7 @@ from chcos.north.guard import (
     serve_http,
     throttle_library_logs,
 )
-from chcos.north.loopthread import LoopThread
+from chcos.serving.loopthread import LoopThread
 from chcos.system.textview import render_text
 from chcos.viewer import ViewerError
 from chcos.viewer.commands import PageCommands
@@ -81,7 +81,7 @@ from chcos.viewer.snapshot import (
 )
 
 if TYPE_CHECKING:
-    from chcos.north.auth import Users
+    from chcos.serving.auth import Users
     from chcos.system.embedded import System
 
 log = logging.getLogger("chcos.viewer")
