@@ -543,3 +543,12 @@ def test_mutated_vendor_files_give_no_traceback_hang_or_invalid_map(seed: int,
                                                  "other status") if findings.counts[k]}
     assert not bad, bad
 
+
+
+def test_the_register_types_the_importers_write_are_the_drivers() -> None:
+    """What the importers take the modbus driver to read is what its codec reads (with bool and
+    the string type of the Modbus branch): a type the driver gains or loses shows here."""
+    from chcos.devices.importers.modbus_types import DRIVER_TYPES
+    from drivers.codecs.modbus import REGISTER_TYPES
+
+    assert set(DRIVER_TYPES) == set(REGISTER_TYPES) | {"bool", "string"}

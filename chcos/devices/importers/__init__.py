@@ -23,6 +23,9 @@ from typing import Any
 from chcos.devices.importers.draft import MapDraft, check_name, rename, render
 from chcos.errors import ConfigError
 
+#: the extra of the chcos distribution each importer's library comes with
+NEEDS = {"eds": "canopen", "dbc": "can", "modbus": "modbus", "sunspec": "sunspec"}
+
 
 def write_checked(text: str, output: str | None) -> None:
     """Write ``text`` (a device map) to ``output`` (None or ``-``: standard output) once
@@ -295,7 +298,12 @@ def main(argv: Sequence[str]) -> int:
     row or key, and what was expected)."""
     args = _parser().parse_args(list(argv))
     try:
-        draft = _import(args)
+        try:
+            draft = _import(args)
+        except ImportError as exc:     # an optional package of the kind's extra is missing
+            extra = NEEDS.get(args.kind, args.kind)
+            raise ConfigError(f"needs the Python package {exc.name or exc}: pip install "
+                              f"'chcos[{extra}]'") from exc
         rename(draft, args.rename)
         for warning in draft.warnings:
             print(f"warning: {warning}", file=sys.stderr)
