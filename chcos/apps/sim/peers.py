@@ -263,6 +263,10 @@ class CanPeer(Mutable, Peer):
                 cycle = dbc_msgs[d.address["message"]].cycle_time
             self.period[d.name] = (cycle or 100) / 1000.0
         self.next_due: dict[str, float] = {d.name: 0.0 for d in self.sensors}
+        #: the multiplexer branch each sensor's signal is carried in (() outside one): a
+        #: cycle sends one frame per branch, so every branch of the mux tree is simulated
+        self.branch: dict[str, tuple[Any, ...]] = {d.name: mux_branch(dbc_msgs, d)
+                                                   for d in self.sensors}
 
     def set(self, device: DeviceSpec, raw: Any) -> None:
         with self.lock:
@@ -297,13 +301,14 @@ class CanPeer(Mutable, Peer):
         with self.lock:
             if self.muted:
                 return
-            sent: set[int] = set()
+            sent: set[tuple[int, tuple[Any, ...]]] = set()
             for d in self.sensors:
                 if now + 1e-9 >= self.next_due[d.name]:
                     self.next_due[d.name] = now + self.period[d.name]
                     frame = self.codec.encode(d.name, self.values.get(d.name, 0))
-                    if frame.arbitration_id not in sent:  # one frame carries all its signals
-                        sent.add(frame.arbitration_id)
+                    key = (frame.arbitration_id, self.branch[d.name])
+                    if key not in sent:  # one frame carries all its (branch's) signals
+                        sent.add(key)
                         self._send(d.name)
 
     def describe(self) -> str:
@@ -311,6 +316,20 @@ class CanPeer(Mutable, Peer):
 
     def close(self) -> None:
         self.can.shutdown()
+
+
+def mux_branch(messages: dict[str, Any], device: DeviceSpec) -> tuple[Any, ...]:
+    """The multiplexer values that select ``device``'s DBC signal, outermost last (empty for a
+    signal outside any multiplexer, or a raw address)."""
+    msg = messages.get(str(device.address.get("message", "")))
+    if msg is None:
+        return ()
+    by_name = {s.name: s for s in msg.signals}
+    sig, out = by_name.get(str(device.address.get("signal"))), []
+    while sig is not None and sig.multiplexer_ids and sig.multiplexer_signal is not None:
+        out.append((sig.multiplexer_signal, sig.multiplexer_ids[0]))
+        sig = by_name.get(sig.multiplexer_signal)
+    return tuple(out)
 
 
 def cia402_eds(eds: Any, node: int) -> bool:
