@@ -46,6 +46,37 @@ FLOAT_MAX = {"float32": 3.4028234663852886e38, "float64": 1.7976931348623157e308
 RAW_RANGE: dict[str, tuple[float, float]] = {
     "bool": (0, 1), **{t: (float(lo), float(hi)) for t, (lo, hi) in INT_RANGES.items()},
     "float32": (-FLOAT_MAX["float32"], FLOAT_MAX["float32"])}
+#: An address's "not implemented" value, as the map writes it.
+Unimplemented = int | float | str | None
+
+
+def unimplemented_value(register_type: str, u: Unimplemented) -> Unimplemented:
+    """The decoded value an address's ``unimplemented`` stands for: the value itself, or, where
+    it is written as the registers' bit pattern the way SunSpec publishes it (0x8000 for an
+    int16, 0x7FC00000 for a float32's NaN), the value those bits decode to. None stays None."""
+    if u is None or isinstance(u, str) or register_type not in REGISTER_TYPES:
+        return u
+    regs = REGISTER_TYPES[register_type][1]
+    bits = 16 * regs
+    if isinstance(u, int) and register_type in INT_RANGES:
+        lo, hi = INT_RANGES[register_type]
+        if hi < u < 2 ** bits and lo < 0:      # a signed type's bit pattern
+            return int(u - 2 ** bits)
+        return u
+    if isinstance(u, int) and 0 <= u < 2 ** bits:    # a float's bit pattern
+        return float(VALUE_STRUCT[register_type].unpack(u.to_bytes(2 * regs, "big"))[0])
+    return u
+
+
+def is_unimplemented(value: Any, u: Unimplemented) -> bool:
+    """True if decoded ``value`` is the "not implemented" value ``u`` (NaN matches NaN)."""
+    if u is None:
+        return False
+    if isinstance(u, float) and math.isnan(u):
+        return isinstance(value, float) and math.isnan(value)
+    return bool(value == u)
+
+
 Table = Literal["coil", "discrete", "holding", "input"]
 TABLES: tuple[Table, ...] = ("coil", "discrete", "holding", "input")
 BIT_TABLES = ("coil", "discrete")
@@ -345,7 +376,7 @@ def reading_of(p: Point, entries: Sequence[Any], sf: int | None = None) -> Any:
     if len(entries) < p.size:
         raise IndexError(f"{len(entries)} entries for a {p.type}, expected {p.size}")
     value = p.decode(entries)
-    if p.unimplemented is not None and value == p.unimplemented:
+    if is_unimplemented(value, p.unimplemented):
         return Absent(f"{p.describe()} holds {value!r}: not implemented")
     if isinstance(value, float) and not math.isfinite(value):
         raise ValueError(f"{p.type} registers {list(entries)} hold {value}, not a finite number")

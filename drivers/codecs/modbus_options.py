@@ -8,6 +8,7 @@ dataclasses. What each key does under faults: ``docs/modbus-faults.md``.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -28,6 +29,7 @@ from drivers.codecs.modbus import (
     WRITABLE,
     Point,
     Table,
+    unimplemented_value,
 )
 
 MAX_CONNECTIONS = 16   # the most connections a modbus-tcp bus may open for parallel polls
@@ -249,8 +251,11 @@ class ModbusAddress:
             "own; 0x8000 there means not implemented")
     unimplemented: int | float | str | None = option(
         None, default_doc="none", type_doc="integer, float or string",
-        doc="the raw value meaning \"not implemented\" (SunSpec: 0x8000 for an int16, 0xFFFF "
-            "for a uint16...): such a reading is no value, the sensor fails with that reason")
+        nan=True,
+        doc="the raw value meaning \"not implemented\", as a value or as the registers' bit "
+            "pattern the way SunSpec publishes it (0x8000 for an int16, 0xFFFF for a uint16, "
+            "0x7FC00000 or `nan` for a float32): such a reading is no value, the sensor fails "
+            "with that reason")
 
     @property
     def value_type(self) -> str:
@@ -313,12 +318,17 @@ class ModbusAddress:
         if t == STRING:
             return [] if isinstance(u, str) else [
                 ("unimplemented", f"text for a string, got {u!r}")]
+        bits = 16 * REGISTER_TYPES[t][1]
         if t in INT_RANGES:
             lo, hi = INT_RANGES[t]
-            return [] if isinstance(u, int) and lo <= u <= hi else [
-                ("unimplemented", f"a {t} value {lo}..{hi}, got {u!r}")]
-        return [] if isinstance(u, int | float) and abs(u) <= FLOAT_MAX[t] else [
-            ("unimplemented", f"a {t} value, got {u!r}")]
+            top = 2 ** bits - 1 if lo < 0 else hi     # a signed type's bit pattern too
+            return [] if isinstance(u, int) and lo <= u <= top else [
+                ("unimplemented", f"a {t} value {lo}..{hi} or its bit pattern "
+                                  f"0..0x{2 ** bits - 1:X}, got {u!r}")]
+        if isinstance(u, int) and 0 <= u < 2 ** bits:     # the float's bit pattern
+            return []
+        return [] if isinstance(u, float) and (math.isnan(u) or abs(u) <= FLOAT_MAX[t]) else [
+            ("unimplemented", f"a {t} value, nan or its bit pattern, got {u!r}")]
 
 
 def address_rules(a: ModbusAddress, direction: str, kind: str) -> list[tuple[str, str]]:
@@ -346,7 +356,8 @@ def point_of(device: DeviceSpec) -> Point:
     if the map's check did not). Raises :class:`chcos.errors.ConfigError` for an invalid one."""
     a = address_of(device)
     return Point(device.name, a.unit, a.table, a.address, a.value_type,
-                 WORD_ORDERS[a.word_order], a.count or 0, a.scale_factor, a.unimplemented)
+                 WORD_ORDERS[a.word_order], a.count or 0, a.scale_factor,
+                 unimplemented_value(a.value_type, a.unimplemented))
 
 
 def address_of(device: DeviceSpec) -> ModbusAddress:

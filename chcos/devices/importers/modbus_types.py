@@ -5,7 +5,7 @@
 register type, its size in registers and the raw value meaning "not implemented" (the map's
 ``unimplemented``); :func:`capacity` is the engineering range a register type carries with a scale
 and offset; :func:`supported` says whether the driver has a register type
-(:data:`DRIVER_TYPES`: ``uint64`` is missing).
+(:data:`DRIVER_TYPES`).
 """
 
 from __future__ import annotations
@@ -69,10 +69,9 @@ def capacity(register_type: str, scale: float = 1.0, offset: float = 0.0) -> tup
 
 
 #: the register types the ``modbus`` driver reads (its codec's, ``drivers.codecs.modbus``, with
-#: ``bool`` and the agreed ``string``); ``int64``/``uint64`` are not among them, so such points
-#: are left out with a warning (``test_import_vendor`` checks this list against the codec)
-DRIVER_TYPES = frozenset({"bool", "int16", "uint16", "int32", "uint32", "float32", "float64",
-                          "string"})
+#: ``bool`` and ``string``; ``test_import_vendor`` checks this list against the codec)
+DRIVER_TYPES = frozenset({"bool", "int16", "uint16", "int32", "uint32", "int64", "uint64",
+                          "float32", "float64", "string"})
 
 
 def supported(register_type: str) -> bool:
