@@ -4,8 +4,9 @@ devices, as strict as a real ECU.
 It sends the messages that carry the map's sensors (coded with the bus's DBC, or the raw layout,
 by the driver's own codec with the directions turned round) at their cycle - the DBC's
 ``GenMsgCycleTime``, else the map's ``cycle_time`` (``[[bus.message]]``) - and an event-driven
-message (no cycle) once at power-up and then whenever a value is set; the counter and checksum
-the map declares for a message are in every frame. It takes the frames of the map's actuators
+message (no cycle) once at power-up and then whenever a value is set; a multiplexed message
+once per branch its sensors are in; the counter and checksum the map declares for a message
+are in every frame. It takes the frames of the map's actuators
 as an ECU does:
 
 - a frame whose checksum or counter is wrong is rejected (not applied, counted by cause in
@@ -56,11 +57,30 @@ def direct_args(tag: str) -> dict[str, Any]:
     return {"interface": DIRECT, "channel": f"chcos-sim-{tag}-{os.getpid()}-{next(_channels)}"}
 
 
+def mux_branch(dbc: Any, device: DeviceSpec) -> tuple[Any, ...]:
+    """The multiplexer values that select ``device``'s DBC signal, outermost last (empty for a
+    signal outside any multiplexer, or a raw address)."""
+    if dbc is None or "message" not in device.address:
+        return ()
+    msg = dbc.get_message_by_name(device.address["message"])
+    by_name = {s.name: s for s in msg.signals}
+    sig, out = by_name.get(str(device.address.get("signal"))), []
+    while sig is not None and sig.multiplexer_ids and sig.multiplexer_signal is not None:
+        out.append((sig.multiplexer_signal, sig.multiplexer_ids[0]))
+        sig = by_name.get(sig.multiplexer_signal)
+    return tuple(out)
+
+
+#: One frame the ECU sends: the message's (id, extended) and the multiplexer branch it carries
+#: (() for a plain message: a multiplexed one is sent once per branch, each cycle)
+OutKey = tuple[int, bool, tuple[Any, ...]]
+
+
 @dataclasses.dataclass
 class _Out:
-    """One message the ECU sends: its period (None: on change), when the next frame is due."""
+    """One frame the ECU sends: its period (None: on change), when the next is due."""
 
-    key: tuple[int, bool]
+    key: OutKey
     device: str
     period: float | None
     due: float = 0.0
@@ -102,16 +122,20 @@ class CanPeer(Mutable, Peer):
         self.frames_out = 0
         self.frames_in = 0
         dbc = load_dbc(str(bus.options["dbc"])) if "dbc" in bus.options else None
-        self._out: dict[tuple[int, bool], _Out] = {}
+        self._out: dict[OutKey, _Out] = {}
+        #: each sensor's frame (its message, its multiplexer branch)
+        self._out_of: dict[str, OutKey] = {}
         for d in self.sensors:
-            key = self.codec.key_of(d.name)
+            mkey = self.codec.key_of(d.name)
+            key: OutKey = (*mkey, mux_branch(dbc, d))
+            self._out_of[d.name] = key
             if key not in self._out:
-                self._out[key] = _Out(key, d.name, self._cycle(dbc, d, key))
+                self._out[key] = _Out(key, d.name, self._cycle(dbc, d, mkey))
         self._in: dict[tuple[int, bool], _In] = {}
         for d in devices:
             if d.direction == "actuator":
-                key = self.codec.key_of(d.name)
-                entry = self._in.setdefault(key, _In(key, [], self._cycle(dbc, d, key)))
+                ikey = self.codec.key_of(d.name)
+                entry = self._in.setdefault(ikey, _In(ikey, [], self._cycle(dbc, d, ikey)))
                 entry.devices.append(d.name)
         self._fallback = {d.name: self._initial(dbc, d) for d in devices
                           if d.direction == "actuator"}
@@ -151,7 +175,7 @@ class CanPeer(Mutable, Peer):
 
     def _hold(self, device: DeviceSpec, raw: Any, encode: Any) -> None:
         with self.lock:
-            key = self.codec.key_of(device.name)
+            key = self._out_of[device.name]
             self._payload[key] = encode(device.name, raw)[1]
             self.values[device.name] = raw
             out = self._out.get(key)
@@ -169,7 +193,7 @@ class CanPeer(Mutable, Peer):
 
     def _send(self, out: _Out) -> None:
         """One frame of ``out``'s message with the values held, counter and checksum in."""
-        fid, ext = out.key
+        fid, ext, _branch = out.key
         data = self._payload[out.key]
         msg = can.Message(arbitration_id=fid, data=self.codec.stamp(fid, ext, data),
                           is_extended_id=ext)
