@@ -90,3 +90,18 @@ def test_set_raw_sends_what_the_dbc_forbids_and_the_limit_rule_catches_it_on_can
     cell.set("level", raw=90.0)
     cell.run_for(0.2)
     assert cell.status("level") == "OK" and cell.value("level") == pytest.approx(90.0)
+
+
+def test_a_simulated_sensor_starts_at_a_value_its_device_would_show() -> None:
+    from chcos.apps.sim.from_map import within_limits
+    from chcos.devices.spec import DeviceSpec
+
+    def sensor(**kw: object) -> DeviceSpec:
+        return DeviceSpec("s", "sensor", 0, "b", **kw)  # type: ignore[arg-type]
+
+    assert within_limits(sensor()) is None                          # 0 is served
+    assert within_limits(sensor(limits=(0.0, 60.0))) is None
+    assert within_limits(sensor(limits=(103.0, 103.0))) == 103.0    # a SunSpec model id
+    assert within_limits(sensor(limits=(-40.0, -5.0))) == -5.0
+    assert within_limits(sensor(address={"unimplemented": 0}, scale=10.0)) == 10.0
+    assert within_limits(sensor(address={"unimplemented": 0x8000})) is None

@@ -50,6 +50,7 @@ simulated only with ``rewrite``; a pattern with back-references is refused, nami
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import re
@@ -65,7 +66,7 @@ from chcos.apps.sim.peers import CanopenPeer, ModbusPeer, Peer
 from chcos.apps.sim.scripts import Script, parse_script
 from chcos.apps.sim.serial_peer import SerialPeer
 from chcos.devices.spec import BusSpec, DeviceMap, DeviceSpec
-from chcos.errors import ConfigError, DeviceError
+from chcos.errors import ChcosError, ConfigError, DeviceError
 from chcos.helpers import is_number
 
 if TYPE_CHECKING:
@@ -382,7 +383,9 @@ def simulate(devmap: DeviceMap, *, rewrite: bool = True, direct: bool = True,
     """Start a simulated peer for every bus of ``devmap`` that has devices; returns the handle,
     whose ``devmap`` is the map the system should load (pointed at the peers when ``rewrite``:
     a Modbus bus reaches its slave in-process, ``direct``, unless ``direct`` is False - then a
-    socket server on a free port). Idle actuators hold their safe values. With ``serve`` False
+    socket server on a free port). Idle actuators hold their safe values; a sensor whose
+    limits leave 0 out serves the limit nearest 0 until something sets it (a reading outside
+    the limits fails a sensor: a device shows what its map pins). With ``serve`` False
     the peers at the map's own addresses (``rewrite`` False) begin answering only at
     :meth:`SimSlaves.serve`, so that value scripts apply before the first request. Raises
     ConfigError naming the bus and its file for a bus kind without a simulated peer, BusError
@@ -405,6 +408,8 @@ def simulate(devmap: DeviceMap, *, rewrite: bool = True, direct: bool = True,
                     if d.direction == "actuator" and d.safe_value is not None \
                             and bus.kind.startswith("modbus"):
                         slaves.set(d.name, d.safe_value)  # an idle output holds its safe value
+                    elif d.direction == "sensor" and (start := within_limits(d)) is not None:
+                        _serve_first(slaves, d, start)
             else:
                 buses.append(bus)
         if serve:
@@ -414,6 +419,31 @@ def simulate(devmap: DeviceMap, *, rewrite: bool = True, direct: bool = True,
         raise
     slaves.devmap = dataclasses.replace(devmap, buses=tuple(buses))
     return slaves
+
+
+def within_limits(device: DeviceSpec) -> float | None:
+    """What a simulated sensor serves before anything sets it when 0 is no value its device
+    would show: the limit nearest 0 when 0 is outside its limits (a SunSpec marker or model id
+    the map pins with equal limits is served as the device shows it), the raw value 1 when its
+    address calls 0 "not implemented" (a SunSpec accumulator: the simulated device implements
+    what the map reads); None when 0 is such a value (0 is served)."""
+    lo, hi = device.limits
+    if lo is not None and lo > 0:
+        return lo
+    if hi is not None and hi < 0:
+        return hi
+    gap = device.address.get("unimplemented")
+    if is_number(gap) and not isinstance(gap, bool) and gap == 0:
+        return 1 * device.scale + device.offset
+    return None
+
+
+def _serve_first(slaves: SimSlaves, device: DeviceSpec, value: float) -> None:
+    """Serve ``value`` for ``device`` unless its peer cannot (a CiA 402 axis's value, owned by
+    the simulated drive, or a value its address cannot carry): then 0 stays, which the limit
+    rule reports, as it would of a device that showed it."""
+    with contextlib.suppress(ChcosError, ValueError, TypeError, OverflowError):
+        slaves.set(device.name, value)
 
 
 #: ``--fault`` kinds: ``silence`` (the default) and the CAN bus faults of the simulated bus
