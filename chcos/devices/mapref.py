@@ -68,7 +68,8 @@ COMMON_DEVICE = (
     Key("scale", "float", "1.0", "engineering value = raw x scale + offset (not 0)"),
     Key("offset", "float", "0.0", "see scale"),
     Key("limits", "[lo, hi]", "[-inf, inf]", "engineering units, inclusive: actuator commands "
-        "outside are refused (never clamped); `chcos monitor` flags sensor values outside"),
+        "outside are refused (never clamped); a sensor reading outside is not delivered and "
+        "fails the sensor (reason `limit: ...`) until one within; `chcos monitor` flags it"),
     Key("safe_value", "float or \"none\"", "none", "actuators: written on e-stop, on abnormal "
         "completion of the commanding task and on shutdown; within limits. `\"none\"` with "
         "`safe_reason`: the actuator has no safe value (a target position), said once instead "
