@@ -136,6 +136,12 @@ class Driver(ABC):
     confirms_writes: ClassVar[bool] = False
     #: True if every actuator of the bus takes numbers only (Devtab refuses anything else).
     numeric_only: ClassVar[bool] = False
+    #: False when all this driver does runs on the kernel thread (its I/O in kernel timers and
+    #: interrupts, and on virtual time its simulated peer too): nothing is in flight between
+    #: two interrupts, so Devtab registers no settler for it and virtual time jumps as soon as
+    #: the system is idle (the contract: :mod:`chcos.kernel.scheduler`, "Virtual time"). Read
+    #: once, after :meth:`start`; a driver may set it there for the path it took.
+    settles: bool = True
 
     def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
         self.bus = bus

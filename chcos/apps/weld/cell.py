@@ -105,7 +105,9 @@ class Cell:
     closers: list[Callable[[], None]] = field(default_factory=list)
     #: the joint drives as the drives see themselves (joint 1..5): state, controlwords received
     drives: list[JointDrive] = field(default_factory=list)
-    #: called before the System's shutdown (the simulator goes on on wall-clock time)
+    #: called before the System's shutdown (on real time the simulator goes on on wall-clock
+    #: time, its kernel timers no longer running; on virtual time they run in the shutdown
+    #: window, :meth:`chcos.kernel.scheduler.Kernel.run_drivers`)
     before_shutdown: list[Callable[[], None]] = field(default_factory=list)
     injector: Callable[[str], None] | None = None
     recorder: Recorder | None = None
@@ -173,8 +175,9 @@ class Cell:
         return {d.name: d.value for d in self.system.devtab if not d.is_sensor}
 
     def close(self) -> None:
-        """Shut the System down (safe values out: the simulator, if any, goes on on wall-clock
-        time meanwhile, so the joint drives confirm their safe stop), then the simulator."""
+        """Shut the System down (safe values out: the simulator, if any, goes on meanwhile, on
+        the virtual clock or the wall clock, so the joint drives confirm their safe stop),
+        then the simulator."""
         try:
             for prepare in self.before_shutdown:
                 prepare()
@@ -314,6 +317,9 @@ def open_cell(binding: str = "direct", *, scenario: str = "", seed: int = 0,
             closers.append(sim.close)
             system = System([mapfile], clock=clock, task_path=[TASK_PATH], base_dir=work,
                             map_path=work / "sysfile.map")
+            # the simulator steps on the kernel's clock: the drivers supervise its heartbeats
+            # there too (before the install starts them)
+            system.devtab.peers_on_clock = clock.virtual
         counters = Counters()
         system.kernel.add_instrument(counters)
         timeline = Timeline(system)
@@ -337,7 +343,8 @@ def open_cell(binding: str = "direct", *, scenario: str = "", seed: int = 0,
         cell = Cell(system, model, binding, counters, timeline, closers=closers,
                     injector=sim.inject if sim is not None else None,
                     drives=drives,
-                    before_shutdown=[sim.continue_realtime] if sim is not None else [])
+                    before_shutdown=[sim.continue_realtime]
+                    if sim is not None and real_time else [])
         cell.recorder = Recorder(system.kernel, model, cell.phase)
         cell.recorder.start()
     except BaseException:

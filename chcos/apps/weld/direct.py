@@ -147,6 +147,7 @@ class WeldDirectDriver(Driver):
 
     kind: ClassVar[str] = "weld-direct"
     confirms_writes: ClassVar[bool] = True
+    settles = False     # the model steps in a kernel timer: nothing is ever in flight
 
     def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
         super().__init__(bus, devices, host)
