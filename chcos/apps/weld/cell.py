@@ -40,6 +40,7 @@ from chcos.errors import ChcosError
 from chcos.helpers import free_ports
 from chcos.kernel.clock import Clock, RealClock, VirtualClock
 from chcos.kernel.instrument import Counters, Instrument
+from chcos.system.digest import EventRecord
 from chcos.system.embedded import System
 from chcos.tables.messages import Link, LinkType
 
@@ -111,6 +112,8 @@ class Cell:
     before_shutdown: list[Callable[[], None]] = field(default_factory=list)
     injector: Callable[[str], None] | None = None
     recorder: Recorder | None = None
+    #: every system event with its clock time, from the install on (for the run digest)
+    events: EventRecord | None = None
 
     def write_report(self, path: str | Path, title: str | None = None) -> Path:
         """Write the run as a picture (``chcos.apps.weld.report``: one self-contained HTML page) to
@@ -322,6 +325,8 @@ def open_cell(binding: str = "direct", *, scenario: str = "", seed: int = 0,
             system.devtab.peers_on_clock = clock.virtual
         counters = Counters()
         system.kernel.add_instrument(counters)
+        events = EventRecord(system.kernel.clock)
+        system.kernel.add_instrument(events)
         timeline = Timeline(system)
         system.kernel.add_instrument(timeline)
         for line in Path(script).read_text(encoding="utf-8").splitlines():
@@ -344,7 +349,7 @@ def open_cell(binding: str = "direct", *, scenario: str = "", seed: int = 0,
                     injector=sim.inject if sim is not None else None,
                     drives=drives,
                     before_shutdown=[sim.continue_realtime]
-                    if sim is not None and real_time else [])
+                    if sim is not None and real_time else [], events=events)
         cell.recorder = Recorder(system.kernel, model, cell.phase)
         cell.recorder.start()
     except BaseException:
