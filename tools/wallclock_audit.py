@@ -93,7 +93,7 @@ class WallClockAudit:
     def _wrap_clock(self, name: str) -> Callable[..., Any]:
         return _Watched(getattr(time, name), f"time.{name}", self._charge)
 
-    def _wrap_wait(self, cls: type, label: str) -> Callable[..., Any]:
+    def _wrap_wait(self, cls: Any, label: str) -> Callable[..., Any]:
         real = cls.wait
         inside = self._inside
 
