@@ -11,10 +11,13 @@ import math
 from abc import ABC, abstractmethod
 from collections import Counter
 from collections.abc import Callable, Sequence
-from typing import Any, ClassVar, Protocol, final
+from typing import Any, ClassVar, Protocol, TypeVar, final
 
+from chcos.devices import options as opts
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import DeviceError
+
+_T = TypeVar("_T")
 
 
 def not_finite(value: Any) -> str | None:
@@ -128,6 +131,11 @@ class Driver(ABC):
     bus and a write while the driver is not running, counts the rest and only then calls the
     driver's :meth:`_write`. :meth:`check_bus` and :meth:`check_device` validate the
     kind-specific options of a device map without touching any bus (used by ``chcos check``).
+
+    A kind that declares :attr:`Options` and :attr:`Address` (frozen dataclasses of
+    :mod:`chcos.devices.options`) gets both checks from them: the map is parsed once, when it is
+    checked, and the driver reads the typed values (:meth:`bus_options`, :meth:`address_of`)
+    instead of the raw tables.
     """
 
     kind: ClassVar[str] = ""
@@ -136,6 +144,11 @@ class Driver(ABC):
     confirms_writes: ClassVar[bool] = False
     #: True if every actuator of the bus takes numbers only (Devtab refuses anything else).
     numeric_only: ClassVar[bool] = False
+    #: The option dataclass of the ``[[bus]]`` table (None: the kind checks by hand in
+    #: :meth:`check_bus`).
+    Options: ClassVar[type | None] = None
+    #: The option dataclass of a device's ``address`` (None: by hand in :meth:`check_device`).
+    Address: ClassVar[type | None] = None
     #: False when all this driver does runs on the kernel thread (its I/O in kernel timers and
     #: interrupts, and on virtual time its simulated peer too): nothing is in flight between
     #: two interrupts, so Devtab registers no settler for it and virtual time jumps as soon as
@@ -170,14 +183,55 @@ class Driver(ABC):
         return self._running
 
     @classmethod
+    def parse_bus(cls, bus: BusSpec) -> tuple[Any, list[str]]:
+        """``bus.options`` parsed into :attr:`Options` and the errors found, each as
+        ``"<key path>: <what was expected>"``: ``(config, [])`` or ``(None, errors)``; a kind
+        without :attr:`Options` gives ``(None, check_bus(bus))``. Called once per bus when a map
+        is checked (:mod:`chcos.devices.devmap` keeps the result in :attr:`BusSpec.config`)."""
+        if cls.Options is None:
+            return None, cls.check_bus(bus)
+        return opts.parse(cls.Options, bus.options, bus.key)
+
+    @classmethod
+    def parse_device(cls, bus: BusSpec, device: DeviceSpec) -> tuple[Any, list[str]]:
+        """``device.address`` parsed into :attr:`Address`, as :meth:`parse_bus` (kept in
+        :attr:`DeviceSpec.addr`)."""
+        if cls.Address is None:
+            return None, cls.check_device(bus, device)
+        return opts.parse(cls.Address, device.address, f"{device.key}.address")
+
+    @classmethod
     def check_bus(cls, bus: BusSpec) -> list[str]:
-        """Errors in ``bus.options``, each as ``"<key path>: <what was expected>"``; [] if valid."""
-        return []
+        """Errors in ``bus.options``, each as ``"<key path>: <what was expected>"``; [] if valid.
+        The default: those of :attr:`Options` (none when there is none)."""
+        if cls.Options is None:
+            return []
+        return opts.parse(cls.Options, bus.options, bus.key)[1]
 
     @classmethod
     def check_device(cls, bus: BusSpec, device: DeviceSpec) -> list[str]:
-        """Errors in ``device.address`` for this bus kind, like :meth:`check_bus`."""
-        return []
+        """Errors in ``device.address`` for this bus kind, like :meth:`check_bus`. The default:
+        those of :attr:`Address`."""
+        if cls.Address is None:
+            return []
+        return opts.parse(cls.Address, device.address, f"{device.key}.address")[1]
+
+    @classmethod
+    def bus_options(cls, bus: BusSpec, kind: type[_T]) -> _T:
+        """The typed options of ``bus`` as ``kind`` (the driver's :attr:`Options`): the value the
+        map's check parsed, or, for a spec built in code, ``bus.options`` parsed now. Raises
+        :class:`chcos.errors.ConfigError` naming every bad key."""
+        if isinstance(bus.config, kind):
+            return bus.config
+        return opts.parsed(kind, bus.options, bus.key, bus.file)
+
+    @classmethod
+    def address_of(cls, device: DeviceSpec, kind: type[_T]) -> _T:
+        """The typed address of ``device`` as ``kind`` (the driver's :attr:`Address`), as
+        :meth:`bus_options`."""
+        if isinstance(device.addr, kind):
+            return device.addr
+        return opts.parsed(kind, device.address, f"{device.key}.address", device.file)
 
     @classmethod
     def check_devices(cls, bus: BusSpec, devices: Sequence[DeviceSpec]) -> list[

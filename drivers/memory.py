@@ -12,13 +12,30 @@ from __future__ import annotations
 import threading
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, ClassVar
 
+from chcos.devices.options import between, option
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import DeviceError
 from drivers.base import Driver, DriverHost
 
 MAX_HISTORY = 1_000_000  # writes kept per actuator
+
+
+@dataclass(frozen=True)
+class MemoryOptions:
+    """The options of a ``memory`` bus."""
+
+    history: int = option(100, doc="writes kept per actuator",
+                          check=between(1, MAX_HISTORY))
+
+
+@dataclass(frozen=True)
+class NoAddress:
+    """The address of a device on a bus whose devices have none (``memory``): no key."""
+
+    NO_KEYS: ClassVar[str] = "a memory device takes no address"
 #: Most bytes of kept history per actuator (approximate: text and byte strings by length, other
 #: values by the length of their repr), beyond the last write.
 HISTORY_BYTES = 1024 * 1024
@@ -119,24 +136,14 @@ class MemoryDriver(Driver):
     """Driver for kind ``memory``: no I/O at all; writes land in :attr:`store`."""
 
     kind = "memory"
-    OPTIONS = ("history",)
+    Options: ClassVar[type | None] = MemoryOptions
+    Address: ClassVar[type | None] = NoAddress
 
     def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
         super().__init__(bus, devices, host)
+        self.config = self.bus_options(bus, MemoryOptions)
         self.store = ActuatorStore(
-            (d.name for d in devices if d.direction == "actuator"),
-            int(bus.options.get("history", 100)))
-
-    @classmethod
-    def check_bus(cls, bus: BusSpec) -> list[str]:
-        """Only ``history`` is allowed."""
-        return check_history(bus, cls.OPTIONS)
-
-    @classmethod
-    def check_device(cls, bus: BusSpec, device: DeviceSpec) -> list[str]:
-        """A memory device has no address."""
-        return [f"{device.key}.address.{k}: unknown key; a memory device takes no address"
-                for k in device.address]
+            (d.name for d in devices if d.direction == "actuator"), self.config.history)
 
     def start(self) -> None:
         """Nothing to open."""

@@ -85,6 +85,7 @@ class SignalDriver(MemoryDriver):
     ``history`` option) as on a ``memory`` bus."""
 
     kind = "signal"
+    Address = None      # waveform addresses are checked by hand (check_device)
 
     def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
         super().__init__(bus, devices, host)

@@ -62,7 +62,7 @@ BAD = [
     ("unknown kind", '[[bus]]\nname="q"\nkind="profibus"\n',
      "f.toml:1: bus[0].kind: bus kind 'profibus' has no usable driver"),
     ("memory option", MEM_BUS + "speed = 3\n",
-     "bus[0].speed: unknown option for a memory bus; valid options: history"),
+     "bus[0].speed: unknown key; expected one of history"),
     ("signal waveform", '[[bus]]\nname="s"\nkind="signal"\n[[device]]\nname="S"\n'
      'direction="sensor"\nbus="s"\naddress={waveform="saw", rate_hz=10}\n',
      "f.toml:4: device[0].address.waveform: expected one of sine, square, ramp"),

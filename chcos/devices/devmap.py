@@ -44,6 +44,7 @@ within that file.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
@@ -70,13 +71,23 @@ def _guarded(fe: FileErrors, key: str, fn: Callable[..., Iterable[T]], *args: An
         return []
 
 
+def _parse_into(parse: Callable[..., tuple[Any, list[str]]], into: list[Any],
+                *args: Any) -> list[str]:
+    """``parse(*args)`` (a driver's ``parse_bus``/``parse_device``): its errors returned, its
+    parsed value appended to ``into``."""
+    value, errors = parse(*args)
+    into.append(value)
+    return errors
+
+
 def _driver_checks(fe_by_file: Mapping[str, FileErrors], buses: Sequence[BusSpec],
-                   devices: Sequence[DeviceSpec]) -> tuple[dict[str, type[Driver] | None],
-                                                           set[int]]:
-    """Run each bus kind's check_bus / check_device, then its check_devices over the devices
-    of each bus that passed; normalise their key paths. Returns the driver class of each bus
-    (None where the kind has no usable driver or the bus is invalid) and the ids of the
-    devices whose address the driver refused."""
+                   devices: Sequence[DeviceSpec], configs: dict[int, Any]) -> tuple[
+                       dict[str, type[Driver] | None], set[int]]:
+    """Run each bus kind's parse_bus / parse_device (its check_bus / check_device), then its
+    check_devices over the devices of each bus that passed; normalise their key paths. Returns
+    the driver class of each bus (None where the kind has no usable driver or the bus is
+    invalid) and the ids of the devices whose address the driver refused; ``configs`` gets the
+    typed options and addresses parsed, by the id of their spec."""
     classes: dict[str, type[Driver] | None] = {}
     refused: set[int] = set()
     for b in buses:
@@ -88,7 +99,10 @@ def _driver_checks(fe_by_file: Mapping[str, FileErrors], buses: Sequence[BusSpec
             cls = None
         classes[b.name] = cls
         if cls is not None:
-            msgs = _guarded(fe, b.key, cls.check_bus, b)
+            parsed: list[Any] = []
+            msgs = _guarded(fe, b.key, _parse_into, cls.parse_bus, parsed, b)
+            if parsed and parsed[0] is not None:
+                configs[id(b)] = parsed[0]
             for msg in msgs:
                 fe.add(*_split(msg, b.key, ""))
             if msgs:
@@ -101,8 +115,11 @@ def _driver_checks(fe_by_file: Mapping[str, FileErrors], buses: Sequence[BusSpec
             continue
         fe = fe_by_file[d.file]
         before = len(fe.errors)
-        for msg in _guarded(fe, f"{d.key}.address", cls.check_device, bus, d):
+        got: list[Any] = []
+        for msg in _guarded(fe, f"{d.key}.address", _parse_into, cls.parse_device, got, bus, d):
             fe.add(*_split(msg, d.key, "address."))
+        if got and got[0] is not None and len(fe.errors) == before:
+            configs[id(d)] = got[0]
         if len(fe.errors) != before:
             refused.add(id(d))
     on_bus: dict[str, list[DeviceSpec]] = {}
@@ -241,16 +258,38 @@ def check(paths: str | Path | Iterable[str | Path]) -> tuple[DeviceMap | None, l
             fe_by_file[d.file].add(f"{d.key}.bus",
                                    f"no bus named {short(d.bus)}; expected one of: "
                                    f"{', '.join(seen_bus) or 'no buses declared'}")
+    configs: dict[int, Any] = {}
     with parsecache.scope():   # each DBC / EDS file parsed once, not once per device
-        classes, refused = _driver_checks(fe_by_file, list(seen_bus.values()), checkable)
-        valid = {id(d) for d in devices} - refused
-        warnings = _warnings(fe_by_file, seen_bus, classes,
-                             [d for d in checkable if id(d) in valid], empty)
+        classes, refused = _driver_checks(fe_by_file, list(seen_bus.values()), checkable,
+                                          configs)
+        listed = {id(d) for d in devices}
+        valid = [d for d in checkable if id(d) in listed and id(d) not in refused]
+        if configs:    # the typed options and addresses travel with the specs
+            buses, devices, valid = (_typed(buses, configs), _typed(devices, configs),
+                                     _typed(valid, configs))
+            seen_bus = {name: _typed([b], configs)[0] for name, b in seen_bus.items()}
+        warnings = _warnings(fe_by_file, seen_bus, classes, valid, empty)
     errors = [e for fe in fe_by_file.values() for e in fe.errors]
     if errors:
         return None, errors, warnings
     return (DeviceMap(buses=tuple(buses), devices=tuple(devices), files=tuple(fe_by_file),
                       warnings=tuple(warnings)), [], warnings)
+
+
+S = TypeVar("S", BusSpec, DeviceSpec)
+
+
+def _typed(specs: Sequence[S], configs: dict[int, Any]) -> list[S]:
+    """``specs`` with their parsed options (a bus's ``config``, a device's ``addr``) set."""
+    out: list[S] = []
+    for spec in specs:
+        value = configs.get(id(spec))
+        if value is None:
+            out.append(spec)
+        else:
+            field = "config" if isinstance(spec, BusSpec) else "addr"
+            out.append(dataclasses.replace(spec, **{field: value}))
+    return out
 
 
 def load(paths: str | Path | Iterable[str | Path]) -> DeviceMap:

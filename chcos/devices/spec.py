@@ -30,6 +30,10 @@ class BusSpec:
     options: Mapping[str, Any] = field(default_factory=dict)
     file: str = "<memory>"
     key: str = "bus[?]"
+    #: ``options`` parsed into the driver's option dataclass (:mod:`chcos.devices.options`) when
+    #: the map was checked; None where the kind declares none or the spec was built in code
+    #: (the driver then parses ``options`` itself, see :meth:`drivers.base.Driver.bus_options`)
+    config: Any = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -69,6 +73,9 @@ class DeviceSpec:
     #: why the actuator has no safe value (``safe_value = "none"`` in the map, e.g. a target
     #: position, where any value would move the machine); "" when it has one or none was said
     safe_reason: str = ""
+    #: ``address`` parsed into the driver's address dataclass when the map was checked (see
+    #: :attr:`BusSpec.config`); None where the kind declares none or the spec was built in code
+    addr: Any = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
