@@ -55,6 +55,14 @@ class WeldRunError(ChcosError):
     """The welding job could not be set up: unknown binding, the real-bus simulator missing."""
 
 
+class CellCounters(Counters):
+    """:class:`Counters` without the step hook: messages per link and the events, but no
+    executions (those are each task's ``steps`` in Tsktab, and a step hook would make the kernel
+    tell every step of the job to the instruments)."""
+
+    before_step = Instrument.before_step
+
+
 class Timeline(Instrument):
     """Watches the interrupt that matters (the light curtain) and every actuator write, so the
     assassin's reaction latency can be measured: from the first ``intruder`` = 1 reading that
@@ -323,7 +331,7 @@ def open_cell(binding: str = "direct", *, scenario: str = "", seed: int = 0,
             # the simulator steps on the kernel's clock: the drivers supervise its heartbeats
             # there too (before the install starts them)
             system.devtab.peers_on_clock = clock.virtual
-        counters = Counters()
+        counters = CellCounters()
         system.kernel.add_instrument(counters)
         events = EventRecord(system.kernel.clock)
         system.kernel.add_instrument(events)

@@ -285,8 +285,10 @@ class WeldDirectDriver(Driver):
             period, model_name, get = spec
             if model_name in r.silent:
                 continue
-            value = get(r)
             due = n // period != prev // period
+            if not due and sig not in ON_CHANGE:
+                continue    # read only what is sent: the linear row is costly
+            value = get(r)
             changed = sig in ON_CHANGE and dev in self._last and self._last[dev] != value
             if changed:
                 self.changes.append((now, dev, value))
