@@ -62,8 +62,8 @@ from chcos.kernel.lifecycle import BLOCK, YIELD, End, EndHandler, Lifecycle
 from chcos.kernel.timers import HandlerErrors, Timer, Timers
 from chcos.tables.tasks import TaskEntry, TaskState
 
+# Timer: what call_at returns
 __all__ = ["BLOCK", "YIELD", "End", "EndHandler", "Kernel", "SettleBound", "Timer"]
-# (Timer: what call_at returns)
 
 log = logging.getLogger("chcos.kernel.scheduler")
 #: the most rounds of settles before virtual time moves on (see Kernel._settle_rounds)
@@ -83,6 +83,8 @@ class SettleBound(Enum):
     #: the peer is real, in another process, living in real time: wait at most the virtual
     #: time left to the next timer (virtual time does not run ahead of it)
     CLOCK = "clock"
+
+
 _READY, _CURRENT, _SUSPENDED = TaskState.READY, TaskState.CURRENT, TaskState.SUSPENDED
 
 
