@@ -11,10 +11,16 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from hypothesis import settings
 
 from chcos.devices.spec import BusSpec, DeviceMap, DeviceSpec
 from chcos.kernel.clock import VirtualClock
 from chcos.system.embedded import System
+
+# no property test depends on the machine's speed: hypothesis' per-example deadline (200 ms) is
+# a wall-clock limit that a loaded machine (two workers, other jobs) overruns
+settings.register_profile("chcos", deadline=None)
+settings.load_profile("chcos")
 
 MakeSystem = Callable[..., System]
 

@@ -19,9 +19,10 @@ import pytest
 from chcos.system.digest import differences
 from vcan_tests.support_vtime import busy_cores, digest_in_subprocess
 
-#: virtual seconds of each run: the whole direct job (it ends at about 94 s, welded), and a
-#: stretch of the buses job long enough for its threads to part the runs
-SECONDS = {"direct": 120.0, "buses": 15.0}
+#: virtual seconds of each run: the direct job's inspection and the first quarter of its weld
+#: (the loaded run costs every core for as long as it runs), and a stretch of the buses job long
+#: enough for its threads to part the runs
+SECONDS = {"direct": 45.0, "buses": 15.0}
 
 
 def _three_runs(binding: str, where: Path) -> list[tuple[str, str, dict[str, object]]]:
@@ -52,9 +53,8 @@ def test_the_direct_binding_gives_one_digest_quiet_loaded_and_hash_seeded(
     _assert_same(runs)
     weld = runs[0][2]["weld"]
     assert isinstance(weld, dict)
-    # worth comparing: the job ran to its end and welded the seam in band
-    assert weld["outcome"] is not None and weld["outcome"]["outcome"] == "welded", weld
-    assert weld["welded_mm"] >= 0.99 * weld["seam_mm"] and weld["in_band_pct"] > 95.0, weld
+    # worth comparing: the gap was inspected and the weld is under way, in band
+    assert weld["welded_mm"] > 50.0 and weld["in_band_mm"] >= 0.95 * weld["welded_mm"], weld
 
 
 @pytest.mark.slow
