@@ -56,11 +56,14 @@ class WeldRunError(ChcosError):
 
 
 class CellCounters(Counters):
-    """:class:`Counters` without the step hook: messages per link and the events, but no
-    executions (those are each task's ``steps`` in Tsktab, and a step hook would make the kernel
-    tell every step of the job to the instruments)."""
+    """:class:`Counters` keeping the events only: executions are each task's ``steps`` in Tsktab
+    and messages each link's counts in Msgtab, and hooking them would make the kernel tell every
+    step and the message layer every message (stamped for its latency) to the instruments."""
 
     before_step = Instrument.before_step
+    message_sent = Instrument.message_sent
+    message_overwritten = Instrument.message_overwritten
+    message_delivered = Instrument.message_delivered
 
 
 class Timeline(Instrument):
