@@ -36,6 +36,8 @@ class NoAddress:
     """The address of a device on a bus whose devices have none (``memory``): no key."""
 
     NO_KEYS: ClassVar[str] = "a memory device takes no address"
+
+
 #: Most bytes of kept history per actuator (approximate: text and byte strings by length, other
 #: values by the length of their repr), beyond the last write.
 HISTORY_BYTES = 1024 * 1024
@@ -53,20 +55,6 @@ def _size(value: Any) -> int:
     if isinstance(value, _TEXT):
         return len(value)
     return len(repr(value))
-
-
-def check_history(bus: BusSpec, allowed: Iterable[str]) -> list[str]:
-    """Errors of the ``history`` option and of keys outside ``allowed`` (shared with ``signal``)."""
-    errs: list[str] = []
-    valid = sorted(allowed)
-    for k in bus.options:
-        if k not in valid:
-            errs.append(f"{bus.key}.{k}: unknown option for a {bus.kind} bus; valid options: "
-                        f"{', '.join(valid) or 'none'}")
-    h = bus.options.get("history", 100)
-    if not isinstance(h, int) or isinstance(h, bool) or not 1 <= h <= MAX_HISTORY:
-        errs.append(f"{bus.key}.history: expected an integer 1..{MAX_HISTORY}, got {h!r}")
-    return errs
 
 
 class ActuatorStore:

@@ -56,7 +56,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -254,7 +254,7 @@ def _chcos_phase(traffic: _Traffic, use_filter: bool, paired: bool = False) -> d
         def now(self) -> float:
             return time.monotonic()
 
-        def deliver_many(self, readings: list[tuple[str, Any]], at: float | None = None
+        def deliver_many(self, readings: Sequence[tuple[str, Any]], at: float | None = None
                          ) -> None:
             now = time.monotonic()
             with lock:

@@ -1,10 +1,12 @@
 #!/usr/bin/env bash
-# bootstrap.sh - make sure the repository's .venv exists and holds `pip install -e '.[dev]'`.
+# bootstrap.sh - make sure the repository's .venv exists and holds `pip install -e '.[dev]'` at the
+# exact versions of constraints.txt (pyproject.toml declares ranges; CI and tools/run-cell run the
+# pinned set).
 #
 # Source it (`. tools/bootstrap.sh`) from bash, or run it. Idempotent: the virtual environment is
 # created with `python3 -m venv` only when .venv/bin/python is missing or broken, and pip runs only
-# when pyproject.toml differs from the last successful install (its SHA-256 is kept in
-# .venv/.chcos-bootstrap.sha256). Concurrent callers are serialised with flock on this file.
+# when pyproject.toml or constraints.txt differs from the last successful install (their SHA-256
+# is kept in .venv/.chcos-bootstrap.sha256). Concurrent callers are serialised with flock on this file.
 # On success it exports CHCOS_ROOT (the repository) and CHCOS_VENV (its .venv).
 #
 # Environment: CHCOS_PYTHON picks the interpreter that creates the venv (default python3, which
@@ -45,7 +47,8 @@ chcos_bootstrap() {
     fi
 
     if ((rc == 0)); then
-        want=$(sha256sum "$root/pyproject.toml") && want=${want%% *} || rc=1
+        want=$(cat "$root/pyproject.toml" "$root/constraints.txt" | sha256sum) \
+            && want=${want%% *} || rc=1
     fi
     if ((rc == 0)); then
         have=$(cat -- "$stamp" 2>/dev/null) || have=
@@ -53,11 +56,13 @@ chcos_bootstrap() {
             echo "bootstrap: installing chcos and its dev dependencies into $venv" >&2
             # pip's and the build backend's chatter goes to a log, shown only when pip fails.
             if (cd "$root" && "$venv/bin/python" -m pip install --quiet --disable-pip-version-check \
-                    --editable '.[dev]') >"$venv/.chcos-bootstrap.log" 2>&1; then
+                    --editable '.[dev]' --constraint constraints.txt) \
+                    >"$venv/.chcos-bootstrap.log" 2>&1; then
                 printf '%s\n' "$want" >"$stamp.tmp" && mv -f -- "$stamp.tmp" "$stamp" || rc=1
             else
                 cat -- "$venv/.chcos-bootstrap.log" >&2
-                echo "bootstrap: pip install -e '.[dev]' failed (log: $venv/.chcos-bootstrap.log)" >&2
+                echo "bootstrap: pip install -e '.[dev]' -c constraints.txt failed (log:" \
+                     "$venv/.chcos-bootstrap.log)" >&2
                 rc=1
             fi
         fi

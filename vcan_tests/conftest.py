@@ -16,6 +16,7 @@ from hypothesis import settings
 from chcos.devices.spec import BusSpec, DeviceMap, DeviceSpec
 from chcos.kernel.clock import VirtualClock
 from chcos.system.embedded import System
+from vcan_tests.support_env import OPT_IN, opt_in, require, under_ci  # noqa: F401 (tests import them from here)
 
 # no property test depends on the machine's speed: hypothesis' per-example deadline (200 ms) is
 # a wall-clock limit that a loaded machine (two workers, other jobs) overruns
@@ -97,35 +98,7 @@ def pytest_sessionfinish(session: pytest.Session) -> None:
 
 
 # -- environment requirements, opt-in runs, and what ran where ------------------------------------
-
-OPT_IN = "opt-in: "
-"""Prefix of the reason of every allowed skip (see :func:`opt_in`)."""
-
-
-def under_ci() -> bool:
-    """True under CI (the CI variable set to true/1/yes), where nothing may skip for a missing
-    tool."""
-    return os.environ.get("CI", "").strip().lower() in ("1", "true", "yes")
-
-
-def require(ok: object, what: str) -> None:
-    """Declare an environment requirement of the running test: when ``ok`` is false, the test
-    is skipped with ``missing: what`` locally and fails with that message under CI (see
-    :func:`under_ci`). ``what`` names the missing thing and how to get it, e.g.
-    ``"/usr/bin/chromium (apt-get install chromium)"``."""
-    if ok:
-        return
-    if under_ci():
-        pytest.fail(f"missing under CI=true: {what}", pytrace=False)
-    pytest.skip(f"missing: {what}")
-
-
-def opt_in(variable: str, what: str) -> None:
-    """Skip the running test unless the environment variable ``variable`` is 1: the only kind of
-    skip allowed under CI. ``what`` says what the run costs (it lands in the skip reason)."""
-    if os.environ.get(variable) != "1":
-        pytest.skip(f"{OPT_IN}{what}; set {variable}=1 to run it")
-
+# (require, opt_in, under_ci: vcan_tests.support_env, which the helpers import without a circle)
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) -> Iterator[None]:

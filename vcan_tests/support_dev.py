@@ -9,7 +9,7 @@ driver thread does instead of sleeping. ``every()`` registrations are kept and r
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +40,12 @@ class FakeHost:
             self._cond.notify_all()
 
     deliver_now = deliver  # (no kernel thread here: the same)
+
+    def deliver_many(self, readings: Sequence[tuple[str, Any]], at: float | None = None) -> None:
+        """A batch of readings: each recorded as by :meth:`deliver`, in order."""
+        with self._cond:
+            self.delivered.extend(readings)
+            self._cond.notify_all()
 
     def fail(self, device: str, reason: str) -> None:
         with self._cond:

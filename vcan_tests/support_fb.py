@@ -8,7 +8,7 @@ when the test calls :meth:`FakeHost.tick`, on a virtual clock the test advances.
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -47,6 +47,12 @@ class FakeHost:
             self.cond.notify_all()
 
     deliver_now = deliver  # (no kernel thread here: the same)
+
+    def deliver_many(self, readings: Sequence[tuple[str, Any]], at: float | None = None) -> None:
+        """A batch of readings: each recorded as by :meth:`deliver`, in order."""
+        with self.cond:
+            self.delivered.extend(readings)
+            self.cond.notify_all()
 
     def fail(self, device: str, reason: str) -> None:
         with self.cond:

@@ -99,9 +99,9 @@ class Cluster:
         self.procs: dict[int, subprocess.Popen[bytes]] = {}
         self._host: Host | None = None
 
-    def start(self, machine: int) -> None:
-        """Start satellite ``machine`` as a separate process."""
-        env = dict(os.environ, PYTHONPATH=str(ROOT))
+    def start(self, machine: int, env: dict[str, str] | None = None) -> None:
+        """Start satellite ``machine`` as a separate process (``env``: more environment)."""
+        env = dict(os.environ, PYTHONPATH=str(ROOT), **(env or {}))
         log = open(self.tmp / f"sat{machine}.log", "ab")  # noqa: SIM115 - the child keeps it
         self.procs[machine] = subprocess.Popen(
             [sys.executable, "-m", "chcos.cli.main", "-v", "satellite", "-m", str(machine),

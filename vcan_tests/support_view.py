@@ -17,7 +17,7 @@ from chcos.apps.fig65.common import condense
 from chcos.apps.fig65.runner import default_devmap
 from chcos.devices.spec import BusSpec, DeviceMap, DeviceSpec
 from chcos.kernel.clock import Clock, VirtualClock
-from chcos.north.auth import User, Users, hash_password
+from chcos.serving.auth import User, Users, hash_password
 from chcos.system.embedded import System
 from chcos.user.context import TaskContext
 from chcos.viewer.snapshot import EventLog

@@ -94,7 +94,7 @@ def buses_or_skip(binding: str, *, always: bool = False) -> None:
     """Skip the real-bus variant unless it always runs or CHCOS_WELD_BUSES=1 (an opt-in run)."""
     if binding != "buses" or always:
         return
-    from vcan_tests.conftest import opt_in
+    from vcan_tests.support_env import opt_in
 
     opt_in("CHCOS_WELD_BUSES", "full welding jobs on the real buses take about a minute each; "
            "the good gap always runs on them")

@@ -65,7 +65,7 @@ BAD = [
      "bus[0].speed: unknown key; expected one of history"),
     ("signal waveform", '[[bus]]\nname="s"\nkind="signal"\n[[device]]\nname="S"\n'
      'direction="sensor"\nbus="s"\naddress={waveform="saw", rate_hz=10}\n',
-     "f.toml:4: device[0].address.waveform: expected one of sine, square, ramp"),
+     "f.toml:4: device[0].address.waveform: expected one of 'sine', 'square', 'ramp'"),
     ("can dbc signal", f'[[bus]]\nname="c"\nkind="can"\ninterface="virtual"\nchannel="x"\n'
      f'dbc="{CELL_DBC}"\n[[device]]\nname="T"\ndirection="sensor"\nbus="c"\n'
      'address={message="Temps", signal="T9"}\n',

@@ -12,13 +12,14 @@ from typing import Any
 import pytest
 
 from chcos.devices.devmap import load
+from chcos.devices.options import parsed
 from chcos.errors import DeviceError
 from chcos.kernel.clock import VirtualClock
 from chcos.system.embedded import System
 from chcos.tables.tasks import TaskEntry
 from drivers.memory import HISTORY_BYTES, ActuatorStore, MemoryDriver, _size
 from drivers.registry import driver_class
-from drivers.signal import SignalDriver, make_waveform
+from drivers.signal import SignalDriver, WaveAddress, make_waveform
 from vcan_tests.support_dev import FakeHost, bus, device
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -56,6 +57,10 @@ def test_memory_check_rejects_options_and_addresses() -> None:
         "device[0].address.x: unknown key; a memory device takes no address"]
 
 
+def _wave(address: dict[str, Any]) -> WaveAddress:
+    return parsed(WaveAddress, {"rate_hz": 1, **address}, "address")
+
+
 @pytest.mark.parametrize(("address", "samples"), [
     ({"waveform": "sine", "amplitude": 2.0, "period": 4.0}, [0.0, 2.0, 0.0, -2.0]),
     ({"waveform": "square", "center": 1.0, "period": 2.0}, [2.0, 0.0, 2.0, 0.0]),
@@ -63,14 +68,14 @@ def test_memory_check_rejects_options_and_addresses() -> None:
     ({"waveform": "constant", "value": 7.5}, [7.5, 7.5, 7.5, 7.5]),
 ])
 def test_waveforms(address: dict[str, float], samples: list[float]) -> None:
-    wave = make_waveform(address)
+    wave = make_waveform(_wave(address))
     assert [wave(t) for t in (0.0, 1.0, 2.0, 3.0)] == [pytest.approx(s, abs=1e-9)
                                                        for s in samples]
 
 
 def test_random_waveform_is_seeded_and_bounded() -> None:
-    a = make_waveform({"waveform": "random", "seed": 3, "center": 10.0, "amplitude": 1.0})
-    b = make_waveform({"waveform": "random", "seed": 3, "center": 10.0, "amplitude": 1.0})
+    a = make_waveform(_wave({"waveform": "random", "seed": 3, "center": 10.0, "amplitude": 1.0}))
+    b = make_waveform(_wave({"waveform": "random", "seed": 3, "center": 10.0, "amplitude": 1.0}))
     xs = [a(0.0) for _ in range(50)]
     assert xs == [b(0.0) for _ in range(50)] and all(9.0 <= x <= 11.0 for x in xs)
     assert len(set(xs)) == 50
@@ -101,10 +106,14 @@ def test_signal_check_device() -> None:
     errs = SignalDriver.check_device(bus("signal"), device(
         "S", "sensor", waveform="sine", rate_hz=0, period=-1, colour=1))
     assert errs == [
-        "device[0].address.colour: unknown key; valid keys: waveform, rate_hz, amplitude, center, "
-        "period, phase, value, seed, actuator",
-        "device[0].address.rate_hz: expected samples per second > 0, got 0",
-        "device[0].address.period: expected seconds > 0, got -1"]
+        "device[0].address.colour: unknown key for the waveform variant; expected one of "
+        "amplitude, center, period, phase, rate_hz, seed, value, waveform",
+        "device[0].address.rate_hz: expected a finite value > 0, got 0",
+        "device[0].address.period: expected a finite value > 0, got -1"]
+    assert SignalDriver.check_device(bus("signal"), device(
+        "S", "sensor", waveform="saw", rate_hz=5)) == [
+        "device[0].address.waveform: expected one of 'sine', 'square', 'ramp', 'constant', "
+        "'random', 'echo', got 'saw'"]
 
 
 def test_memory_history_keeps_what_a_recount_would_keep() -> None:
@@ -214,7 +223,7 @@ def test_echo_sensor_reads_its_actuator_back_at_once_and_every_sample() -> None:
         drv.write("M", 4.0)
     assert host.values("S") == [1.5, 3.0, 3.0, 3.0]   # a refused write echoes nothing
     with pytest.raises(ValueError, match="no waveform of time"):
-        make_waveform({"waveform": "echo"})
+        make_waveform(_wave({"waveform": "echo"}))
 
 
 def test_echo_address_check() -> None:
@@ -223,13 +232,15 @@ def test_echo_address_check() -> None:
         "S", "sensor", waveform="echo", rate_hz=5, actuator="M", value=2.0)) == []
     assert SignalDriver.check_device(b, device(
         "S", "sensor", waveform="echo", rate_hz=5, amplitude=1.0)) == [
-        "device[0].address.amplitude: not for an echo sensor; it takes waveform, rate_hz, "
-        "value, actuator",
-        "device[0].address.actuator: expected the name of an actuator of bus 'b' on machine 0, "
-        "got None"]
+        "device[0].address.amplitude: unknown key for the echo variant; expected one of "
+        "actuator, rate_hz, value, waveform",
+        "device[0].address.actuator: required; expected a string"]
     assert SignalDriver.check_device(b, device(
         "S", "sensor", waveform="sine", rate_hz=5, actuator="M")) == [
-        "device[0].address.actuator: only for waveform \"echo\", not 'sine'"]
+        "device[0].address.actuator: unknown key for the waveform variant; expected one of "
+        "amplitude, center, period, phase, rate_hz, seed, value, waveform"]
+    assert SignalDriver.check_device(b, device("A", "actuator", x=1)) == [
+        "device[0].address.x: unknown key; an actuator on a signal bus takes no address"]
 
 
 @pytest.mark.parametrize(("actuator", "machine", "error"), [

@@ -61,10 +61,75 @@ def test_a_driver_cannot_override_the_template() -> None:
                 self.seen.append((device, value))
 
 
+class FastPath(Recording):
+    """A confirming driver with a fast path that records what reached it and can refuse."""
+
+    def __init__(self, *args: Any) -> None:
+        super().__init__(*args)
+        self.now_seen: list[tuple[str, Any]] = []
+        self.link_free = True
+
+    def _write_now(self, device: str, value: Any) -> bool:
+        self.now_seen.append((device, value))
+        return self.link_free
+
+
+def test_a_driver_cannot_override_the_fast_path_templates() -> None:
+    for name, hook in (("write_now", "_write_now"), ("write_now_many", "_write_now_many")):
+        with pytest.raises(TypeError, match=rf"overrides Driver\.{name}, .*implement {hook} "):
+            type("Bypass", (Recording,), {name: lambda self, *a: True})
+
+
+def test_the_fast_path_checks_as_write_does_and_counts_in_one_place() -> None:
+    host = FakeHost()
+    drv = FastPath(bus("memory"), [device("S", "sensor", i=0), device("A", "actuator", i=1),
+                                   device("B", "actuator", i=2)], host)
+    assert drv.write_now("A", 1.0) is False                 # not started: the hook not asked
+    drv.start()
+    assert drv.write_now("S", 2.0) is False and drv.write_now("nope", 3.0) is False
+    assert drv.write_now("A", 4.0) is True
+    drv.link_free = False
+    assert drv.write_now("B", 5.0) is False                 # the hook said no: not counted
+    drv.link_free = True
+    assert drv.write_now_many([("B", 6.0), ("S", 7.0), ("A", 8.0)]) == [True, False, True]
+    drv.stop()
+    assert drv.write_now_many([("A", 9.0)]) == [False]
+    assert drv.now_seen == [("A", 4.0), ("B", 5.0), ("B", 6.0), ("A", 8.0)]
+    assert drv.write_counts == {"A": 2, "B": 1}
+    drv.start()
+    drv.write("A", 10.0)                                    # the queued path counts there too
+    assert drv.write_counts == {"A": 3, "B": 1}
+    # the fast path reports nothing: no error, no written() (Devtab records it itself)
+    assert host.errors == [] and host.writes == [("A", 10.0, "")]
+
+
+def test_readings_taken_together_reach_the_host_as_one_batch() -> None:
+    from drivers.base import deliver_all
+
+    class Batches(FakeHost):
+        def __init__(self) -> None:
+            super().__init__()
+            self.batches: list[tuple[list[tuple[str, Any]], float | None]] = []
+
+        def deliver_many(self, readings: Any, at: float | None = None) -> None:
+            self.batches.append((list(readings), at))
+
+    host = Batches()
+    deliver_all(host, [])
+    deliver_all(host, [("S1", 1), ("S2", 2)], at=0.5)
+    deliver_all(host, [("S1", 3)])
+    assert host.batches == [([("S1", 1), ("S2", 2)], 0.5), ([("S1", 3)], None)]
+    assert host.delivered == []
+
+
 def test_every_registered_driver_uses_the_template() -> None:
+    from chcos.devices.driver import _PENDING_RENAME
+
     for ep in entry_points(group="chcos.drivers"):
         cls = driver_class(ep.name)
         assert cls.write is Driver.write, ep.name
+        owner = next(k for k in cls.__mro__ if "write_now" in vars(k))
+        assert owner is Driver or owner.__module__ in _PENDING_RENAME, ep.name
         assert "_write" in {n for k in cls.__mro__ if k is not Driver for n in vars(k)}, ep.name
 
 

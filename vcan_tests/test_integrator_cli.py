@@ -109,7 +109,7 @@ def test_the_readme_satellite_example_has_its_system_file() -> None:
     assert [p.name for p in sf.install] == ["install.chcos"] and sf.install[0].exists()
     assert all(p.exists() for p in sf.devmaps)
     readme = (root / "README.md").read_text(encoding="utf-8")
-    assert "cd chcos/examples/fig65" in readme
+    assert "cd chcos/apps/fig65" in readme   # the folder the assertions above read
 
 
 def test_shell_run_on_real_time_and_times_since_start(

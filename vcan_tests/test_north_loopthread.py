@@ -1,4 +1,4 @@
-"""chcos.north.loopthread: the one loop-in-a-thread scaffolding of the north servers and the
+"""chcos.serving.loopthread: the one loop-in-a-thread scaffolding of the north servers and the
 viewer."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import threading
 
 import pytest
 
-from chcos.north.loopthread import LoopThread, LoopThreadError
+from chcos.serving.loopthread import LoopThread, LoopThreadError
 
 WAIT = 10.0
 
@@ -64,7 +64,7 @@ def test_a_failure_after_ready_is_logged_and_start_twice_refused(
         await service.stopped()
         raise RuntimeError("broke while cleaning up")
 
-    with caplog.at_level(logging.ERROR, logger="chcos.north.loopthread"):
+    with caplog.at_level(logging.ERROR, logger="chcos.serving.loopthread"):
         lt.start(serve)
         with pytest.raises(LoopThreadError, match="already started"):
             lt.start(serve)

@@ -217,8 +217,8 @@ def test_chcos_run_serves_every_north_service(tmp_path: Path) -> None:
 
 def test_users_file_and_passwd(tmp_path: Path) -> None:
     from chcos.errors import ConfigError
-    from chcos.north.auth import Users
     from chcos.north.services import north_main
+    from chcos.serving.auth import Users
 
     out = io.StringIO()
     import contextlib

@@ -214,7 +214,7 @@ CONTROL: list[control.ControlRequest] = [
     control.HelloRequest("9f" * 16), control.SyncRequest(2, 14),
     control.ExecRequest("invoke D2 gap=1.5"),
     control.ChangeRequest(control.Phase.PREPARE, "install -m1 A1 S1", 3, 0),
-    control.ChangeRequest(control.Phase.APPEND, "setpri -9 A4 C1", 4),
+    control.ChangeRequest(control.Phase.ACCEPT, "setpri -9 A4 C1", 4),
     control.ChangeRequest(control.Phase.COMMIT, "install -m0 sysfile", 0, 1),
 ]
 
@@ -232,7 +232,7 @@ def test_every_host_request_survives_the_wire_as_its_type(req: control.ControlRe
     (b'{"op": "hello", "nonce": "' + b"n" * 65 + b'"}', "nonce: expected 1 to 64 characters"),
     (b'{"op": "prepare", "line": "install -m0 A", "seq": -1}', "seq: expected a log position"),
     (b'{"op": "commit", "line": 7, "seq": 0}', "line: expected a command line string"),
-    (b'{"op": "append", "line": "x", "seq": 0, "leader": "0"}', "leader: expected a machine"),
+    (b'{"op": "accept", "line": "x", "seq": 0, "leader": "0"}', "leader: expected a machine"),
 ])
 def test_malformed_host_requests_are_refused_naming_the_key(raw: bytes, expected: str) -> None:
     with pytest.raises(TypeError) as err:

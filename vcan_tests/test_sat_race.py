@@ -81,9 +81,10 @@ def test_a_host_that_lost_the_race_is_told_so(cluster: Cluster) -> None:
     h.execute(f"install -m0 --code={S}:worker FIRST")
     # a second host still believing the log has ``seq`` entries
     with pytest.raises(RaceLost, match="another host changed the log"):
-        h._ask(0, ChangeRequest(Phase.APPEND, f"install -m1 --code={S}:worker LATE", seq))
+        h._ask(0, ChangeRequest(Phase.ACCEPT, f"install -m1 --code={S}:worker LATE", seq, 0))
     with pytest.raises(RaceLost, match="another host changed the log"):
         h._ask(1, ChangeRequest(Phase.PREPARE, f"install -m1 --code={S}:worker LATE", seq))
     with pytest.raises(RaceLost, match="not the sequencer"):
-        h._ask(2, ChangeRequest(Phase.APPEND, f"install -m1 --code={S}:worker LATE", seq + 1))
+        h._ask(2, ChangeRequest(Phase.ACCEPT, f"install -m1 --code={S}:worker LATE", seq + 1,
+                                2))
     assert [t["name"] for t in h.map_doc()["tasks"]] == ["FIRST"]

@@ -138,7 +138,7 @@ def test_direct_binding_checks_its_options_and_addresses() -> None:
                   key="bus[0]")
     errs = WeldDirectDriver.check_bus(bus)
     assert len(errs) == 3
-    assert any("bus[0].speed: unknown option" in e for e in errs)
+    assert any("bus[0].speed: unknown key" in e for e in errs)
     assert any("bus[0].scenario:" in e and "trigger" in e for e in errs)
     assert any("bus[0].tick:" in e for e in errs)
     dev = DeviceSpec("nozzle", "sensor", 0, "cell", key="device[3]")

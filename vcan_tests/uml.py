@@ -128,7 +128,7 @@ def uml_boot_problem() -> str | None:
 
 def require_uml() -> None:
     """Skip the running test (fail under CI=true) when UML cannot boot here, naming the cause."""
-    from vcan_tests.conftest import require
+    from vcan_tests.support_env import require
 
     reason = uml_boot_problem()
     require(reason is None, str(reason))
@@ -274,7 +274,7 @@ def can_channel(interface: str) -> str:
     if interface == "virtual":
         return unique_channel("can")
     if interface == "socketcan":
-        from vcan_tests.conftest import require
+        from vcan_tests.support_env import require
 
         channel = socketcan_channel()
         require(channel is not None, socketcan_skip_reason())

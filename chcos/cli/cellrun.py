@@ -8,17 +8,26 @@ is the whole command: it runs until Ctrl-C, SIGTERM or the duration, prints each
 age and status, each task's state and the message rate once a second (times since the start),
 then puts every actuator at its safe value and prints a summary; its result says whether the run
 was healthy.
+
+A full disk is an error, never a traceback: a ``--workdir`` (or ``--log``) that cannot be written
+stops the command with status 2 and one line naming the file and the error (``No space left on
+device (ENOSPC)``) before the cell starts; a disk that fills while the cell runs keeps it under
+control (sysfile.map and the log are records: :mod:`chcos.system.mapfile`), and the summary
+says what could not be written, which makes the run unhealthy (status 1).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
+import logging.handlers
 import math
+import os
 import signal
 import sys
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
@@ -28,7 +37,11 @@ from chcos.cli.cellsystem import Cell, CellSystem, OutputsOff, SinceStartClock, 
 from chcos.devices.entry import DeviceStatus
 from chcos.errors import ChcosError
 from chcos.north.services import NorthOptions, add_north_arguments
+from chcos.system.mapfile import describe_os_error
 from chcos.system.textview import bus_status_lines
+
+#: Bytes written (and fsync'd) to prove that a workdir takes a file before the cell starts.
+PROBE_BYTES = 64 * 1024
 
 __all__ = ["Cell", "CellSystem", "LogFile", "OutputsOff", "RunResult", "SinceStartClock", "main",
            "open_cell", "parser", "problems", "report", "run", "show_progress"]
@@ -67,8 +80,12 @@ def show_progress(snap: dict[str, Any], rate: float, out: TextIO) -> None:
 def problems(cell: Cell, snap: dict[str, Any]) -> list[str]:
     """What made the run unhealthy: devices failed or stale at the end, sensors on a bus that
     never delivered, tasks that ended abnormally, bus errors, actuators whose safe value was not
-    written."""
+    written, a sysfile.map that could not be written."""
     found = []
+    mapfile = cell.system.sysmgr.map
+    if mapfile.error is not None:
+        found.append(f"could not be written: {mapfile.error} ({mapfile.failures} failed "
+                     "write(s); the tables ran as installed)")
     for d in snap["devices"]:
         if not d["driven"]:
             continue
@@ -105,7 +122,7 @@ def report(cell: Cell, snap: dict[str, Any], found: list[str], out: TextIO) -> N
     for t in snap["tasks"]:
         print(f"  task     {t['name']:<16} {t['steps']} executions, {t['completions']} "
               f"completions, {t['abnormal']} abnormal", file=out)
-    for line in bus_status_lines(cell.system.devtab.bus_status()):
+    for line in bus_status_lines(cell.system.devtab.statuses()):
         print(f"  {line}", file=out)
     print(f"  messages: {snap['messages']} ({snap['messages'] / secs:.0f}/s)", file=out)
     outcomes = cell.system.devtab.safe_outcomes
@@ -149,7 +166,8 @@ def run(system_file: str | Path, *, virtual: bool = False, duration: float | Non
         outputs: bool = True, workdir: str | Path | None = None, period: float = 1.0,
         out: TextIO | None = None, stop: threading.Event | None = None,
         north: NorthOptions | None = None, pin: bool = False, values: Sequence[str] = (),
-        plants: Sequence[str] = ()) -> RunResult:
+        plants: Sequence[str] = (),
+        write_checks: Sequence[Callable[[], str | None]] = ()) -> RunResult:
     """The ``chcos run SYSTEM`` job: build, run until ``stop`` is set (SIGINT/SIGTERM in the
     command), or ``duration`` seconds of clock time, printing progress every ``period``; then
     safe values and the summary. ``north`` names the north-side services (OPC UA, Modbus
@@ -157,7 +175,9 @@ def run(system_file: str | Path, *, virtual: bool = False, duration: float | Non
     process (the command's own) is pinned first to the CPUs of ``system.cpus``, if any. Raises
     ChcosError if the system or a service cannot be set up (ConfigError for CPUs this process
     may not use). ``values`` and ``plants`` drive the simulated slaves (``virtual`` only; see
-    :func:`~chcos.cli.cellsystem.open_cell`)."""
+    :func:`~chcos.cli.cellsystem.open_cell`). ``write_checks`` say what else could not be
+    written (the ``--log`` file: :meth:`LogFile.check`); a workdir that cannot be written is a
+    ChcosError before the cell starts."""
     from chcos.north.services import start as start_north
     from chcos.satellites import sysfile
     from chcos.system.affinity import pin_process
@@ -171,16 +191,28 @@ def run(system_file: str | Path, *, virtual: bool = False, duration: float | Non
     if cpus is not None:  # before the drivers' threads start (they inherit it)
         pin_process(cpus, f"{Path(system_file).resolve()}: system.cpus")
         print(f"pinned to CPU(s) {', '.join(map(str, sorted(cpus)))} (system.cpus)", file=out)
-    with open_cell(system_file, virtual=virtual, outputs=outputs, workdir=workdir,
-                   values=values, plants=plants) as cell:
+    if workdir is not None:
+        check_writable(Path(workdir))
+    with contextlib.ExitStack() as stack:
+        try:
+            cell = stack.enter_context(open_cell(system_file, virtual=virtual, outputs=outputs,
+                                                 workdir=workdir, values=values,
+                                                 plants=plants))
+        except OSError as exc:
+            raise ChcosError(f"cannot set up the cell: {exc.filename or ''}: "
+                             f"{describe_os_error(exc)}") from exc
         s = cell.system
+        if s.sysmgr.map.error is not None:  # the install script's map: before the cell starts
+            raise ChcosError(f"{s.sysmgr.map.error} (the workdir must take sysfile.map: "
+                             "--workdir DIR)")
         print(f"system {cell.sf.name}: {len(s.devtab)} devices, {len(s.tsktab)} tasks, "
               f"{'virtual time, simulated slaves' if virtual else 'real time'}, outputs "
               f"{'on' if outputs else 'OFF: actuator writes are logged, not sent'}; Ctrl-C "
               "stops", file=out)
         if not outputs and not virtual:
             print("  (give --outputs on to drive the actuators)", file=out)
-        if not virtual:
+        # (only with a CAN bus: the simulators' module, and every bus library, loads then)
+        if not virtual and any(b.kind in ("can", "canopen") for b in s.devmap.buses):
             from chcos.apps.sim.from_map import process_local
 
             for bus in process_local(s.devmap):
@@ -209,7 +241,6 @@ def run(system_file: str | Path, *, virtual: bool = False, duration: float | Non
         snap = cell.snapshot()  # the devices as the run left them (the shutdown window's
         cell.close()            # readings, on virtual time, come after it)
         found = problems(cell, snap)
-        report(cell, snap, found, out)
         runlog = logging.getLogger("chcos.run")
         if found:
             runlog.warning("system %s: UNHEALTHY after %.1f s: %s", cell.sf.name, snap["t"],
@@ -217,7 +248,29 @@ def run(system_file: str | Path, *, virtual: bool = False, duration: float | Non
         else:
             runlog.info("system %s: healthy after %.1f s, %d messages", cell.sf.name,
                         snap["t"], snap["messages"])
+        # what could not be written, the log line just above included, is in the summary
+        found += [f"could not be written: {e}" for check in write_checks
+                  if (e := check()) is not None]
+        report(cell, snap, found, out)
         return RunResult(not found, found, snap["t"], snap)
+
+
+def check_writable(workdir: Path) -> None:
+    """Make sure ``workdir`` takes a file (created, PROBE_BYTES written and fsync'd, removed).
+    Raises ChcosError naming the directory and the error (ENOSPC, EACCES, EROFS...)."""
+    probe = workdir / f".chcos-probe-{os.getpid()}"
+    try:
+        workdir.mkdir(parents=True, exist_ok=True)
+        with open(probe, "wb") as fh:
+            fh.write(b"\0" * PROBE_BYTES)
+            fh.flush()
+            os.fsync(fh.fileno())
+    except OSError as exc:
+        raise ChcosError(f"--workdir {workdir}: cannot write there: "
+                         f"{describe_os_error(exc)}") from exc
+    finally:
+        with contextlib.suppress(OSError):
+            probe.unlink()
 
 
 def _loop(cell: Cell, virtual: bool, duration: float | None, period: float,
@@ -238,7 +291,7 @@ def _loop(cell: Cell, virtual: bool, duration: float | None, period: float,
         rate = (snap["messages"] - last_msgs) / max(1e-9, snap["t"] - last_t)
         last_msgs, last_t = snap["messages"], snap["t"]
         show_progress(snap, rate, out)
-        for line in bus_status_lines(s.devtab.bus_status()):
+        for line in bus_status_lines(s.devtab.statuses()):
             print(f"  {line}", file=out, flush=True)
         tick += 1
         if duration is not None and snap["t"] >= duration - 1e-9:
@@ -304,7 +357,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         logfile = LogFile(args.log, args.log_size, args.log_keep) if args.log else None
     except OSError as exc:
-        print(f"chcos run: --log {args.log}: {exc}", file=sys.stderr)
+        print(f"chcos run: --log {args.log}: {describe_os_error(exc)}", file=sys.stderr)
         return 2
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
@@ -315,7 +368,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         result = run(args.system, virtual=args.virtual, duration=args.duration,
                      outputs=args.outputs == "on" or (args.outputs is None and args.virtual),
                      workdir=args.workdir, stop=stop, north=NorthOptions.from_args(args),
-                     pin=True, values=args.value, plants=args.plant)
+                     pin=True, values=args.value, plants=args.plant,
+                     write_checks=[logfile.check] if logfile is not None else [])
     except ChcosError as exc:
         print(f"chcos run: {exc}", file=sys.stderr)
         logging.getLogger("chcos.run").error("chcos run: %s", exc)
@@ -328,6 +382,30 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0 if result.healthy else 1
 
 
+class _RotatingLog(logging.handlers.RotatingFileHandler):
+    """The log file's handler: a record that cannot be written (a full disk) costs one line
+    on stderr per distinct error, never a traceback, and is counted; the file is reopened at
+    the next record."""
+
+    error: str | None = None
+    failures = 0
+
+    def handleError(self, record: logging.LogRecord) -> None:
+        exc = sys.exc_info()[1]
+        self.failures += 1
+        what = describe_os_error(exc) if isinstance(exc, OSError) else repr(exc)
+        text = f"cannot write {self.baseFilename}: {what}"
+        if text != self.error:
+            with contextlib.suppress(OSError):
+                print(f"chcos run: {text}; the cell goes on, log lines are lost",
+                      file=sys.stderr, flush=True)
+        self.error = text
+        stream, self.stream = self.stream, None
+        if stream is not None:
+            with contextlib.suppress(OSError):
+                stream.close()  # its unwritten buffer goes with it
+
+
 class LogFile:
     """``chcos run --log``: a rotating log file on the root logger at INFO level while the run
     lasts (the terminal keeps the level the command line set): the file is renamed ``FILE.1``
@@ -335,10 +413,8 @@ class LogFile:
     puts the levels back. Raises OSError if the file cannot be opened."""
 
     def __init__(self, path: str, megabytes: float, keep: int) -> None:
-        from logging.handlers import RotatingFileHandler
-
-        self.handler = RotatingFileHandler(path, maxBytes=int(megabytes * 1024 * 1024),
-                                           backupCount=keep, encoding="utf-8")
+        self.handler = _RotatingLog(path, maxBytes=int(megabytes * 1024 * 1024),
+                                    backupCount=keep, encoding="utf-8")
         self.handler.setLevel(logging.INFO)
         self.handler.setFormatter(logging.Formatter(
             "%(asctime)s %(levelname)s %(name)s: %(message)s"))
@@ -351,11 +427,29 @@ class LogFile:
         if root.level > logging.INFO or root.level == logging.NOTSET:
             root.setLevel(logging.INFO)
 
+    def check(self) -> str | None:
+        """Flush the file; what could not be written to it, in one line (None: all was)."""
+        self.handler.acquire()
+        try:
+            if self.handler.stream is not None:
+                self.handler.stream.flush()
+        except OSError as exc:
+            self.handler.failures += 1
+            self.handler.error = f"cannot write {self.handler.baseFilename}: " \
+                                 f"{describe_os_error(exc)}"
+        finally:
+            self.handler.release()
+        if self.handler.error is None:
+            return None
+        return f"{self.handler.error} ({self.handler.failures} failed write(s))"
+
     def close(self) -> None:
-        """Detach and close the file; the root logger and the terminal get their levels back."""
+        """Detach and close the file; the root logger and the terminal get their levels back
+        (a close that cannot flush raises nothing: :meth:`check` said what was lost)."""
         root = logging.getLogger()
         root.removeHandler(self.handler)
-        self.handler.close()
+        with contextlib.suppress(OSError):
+            self.handler.close()
         root.setLevel(self._root_level)
         for h in self._quieted:
             h.setLevel(logging.NOTSET)

@@ -19,17 +19,19 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from chcos.apps.sim.from_map import Plant, SimSlaves, load_plant, simulate
 from chcos.devices.devmap import load
+from chcos.devices.driver import Driver
 from chcos.devices.entry import DeviceEntry
 from chcos.errors import ConfigError
 from chcos.kernel.clock import Clock, RealClock, VirtualClock
 from chcos.kernel.instrument import Counters
 from chcos.satellites import sysfile
 from chcos.system.embedded import System
-from drivers.base import Driver
+
+if TYPE_CHECKING:   # the simulators' bus libraries load only for a virtual run (open_cell)
+    from chcos.apps.sim.from_map import Plant, SimSlaves
 
 
 class SinceStartClock(RealClock):
@@ -215,6 +217,8 @@ def open_cell(system_file: str | Path, *, virtual: bool = False, outputs: bool =
     cell: Cell | None = None
     try:
         if devmap is not None and virtual:
+            from chcos.apps.sim.from_map import load_plant, simulate
+
             slaves = simulate(devmap)
             devmap = slaves.devmap
             where = base_dir or Path.cwd()

@@ -11,10 +11,12 @@ module (``chcos.cli.cellrun``, ``chcos.apps.weld.runner``, ``chcos.cli.scaffold`
 from __future__ import annotations
 
 import argparse
+import importlib
 import logging
 import sys
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
+from typing import Any
 
 from chcos.errors import ChcosError, CommandSyntaxError
 
@@ -118,10 +120,28 @@ def _shell(args: argparse.Namespace) -> int:
             return ""
         return system.execute(line)
 
+    reported: list[str] = []
+
+    def map_failure() -> None:
+        """A sysfile.map that could not be written: one line, once per failure (the map is a
+        record: the script goes on, the status becomes 1)."""
+        error = system.sysmgr.map.error
+        if error is not None and (not reported or reported[-1] != error):
+            reported.append(error)
+            print(f"error: {error}", file=sys.stderr, flush=True)
+
+    def execute_and_check(line: str) -> str:
+        try:
+            return execute(line)
+        finally:
+            map_failure()
+
     try:
-        return _console(lines, execute)
+        status = _console(lines, execute_and_check)
     finally:
         system.shutdown()
+    map_failure()  # the last write, at shutdown
+    return status or (1 if reported else 0)
 
 
 def _console(lines: Iterable[str], execute: Callable[[str], str]) -> int:
@@ -215,72 +235,107 @@ def _verbose(argv: list[str]) -> list[str]:
     return argv
 
 
+#: The subcommands another module parses itself: name -> (module, its main, the help line).
+#: Imported only when asked for, so ``chcos check`` loads no simulator and no north service.
+DELEGATED: dict[str, tuple[str, str, str]] = {
+    "new": ("chcos.cli.scaffold", "main", "create a new cell project (chcos new DIR)"),
+    "import": ("chcos.devices.importers", "main", "device map from an EDS, a DBC or a Modbus "
+               "register list (chcos import eds|dbc|modbus FILE)"),
+    "monitor": ("chcos.cli.monitor", "main", "commission a live bus listen-only (chcos monitor "
+                "SYSTEM)"),
+    "check": ("chcos.cli.check", "main", "validate device-map files (chcos check FILE...) or "
+              "system files (chcos check --system FILE...)"),
+    "sim": ("chcos.apps.sim.cli", "main", "simulated devices (chcos sim KIND ..., chcos sim "
+            "--from MAP)"),
+    "map": ("chcos.viewer.cli", "map_main", "draw a sysfile.map (chcos map [MAP] --format "
+            "text|dot|svg)"),
+    "view": ("chcos.cli.view", "view_main", "live page of a running system (chcos view "
+             "--example fig65)"),
+    "facade": ("chcos.north.modbus_facade", "facade_main", "north-side facades (chcos facade "
+               "modbus --print-map FILE)"),
+    "north": ("chcos.north.services", "north_main", "north-side accounts (chcos north passwd: "
+              "a password hash)"),
+}
+
+
 def _dispatch(argv: list[str]) -> int:
     """Hand ``argv`` to its subcommand; returns the exit status."""
     # warnings are shown by default (a handler set by an embedding program or pytest is kept)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     argv = _verbose(argv)
-    if argv[:1] == ["check"]:
-        from chcos.cli.check import main as check_main
-
-        return check_main(argv[1:])
-    if argv[:1] == ["sim"] and argv[1:2] and argv[1].split("=")[0] == "--from":
+    cmd, rest = (argv[0], argv[1:]) if argv else ("", [])
+    if cmd == "run":
+        return _run(rest)
+    if cmd == "sim" and rest[:1] and rest[0].split("=")[0] == "--from":
         from chcos.apps.sim.from_map import main as sim_from_main
 
-        return sim_from_main(argv[1:])
-    if argv[:1] == ["sim"]:
-        from chcos.apps.sim.cli import main as sim_main
+        return sim_from_main(rest)
+    if cmd in DELEGATED:
+        module, func, _help = DELEGATED[cmd]
+        sub_main: Callable[[list[str]], int] = getattr(importlib.import_module(module), func)
+        return sub_main(rest)
+    args = _parser().parse_args(argv)
+    if args.verbose:
+        logging.getLogger().setLevel(logging.INFO)
+    try:
+        return int(args.func(args))
+    except ChcosError as exc:
+        print(f"chcos: {exc}", file=sys.stderr)
+        return 1
 
-        return sim_main(argv[1:])
-    if argv[:1] == ["run"]:
-        rest = argv[1:]
-        if rest[:1] in (["-h"], ["--help"]):
-            return _run_help()
-        if rest[:2] == ["--example", "fig65"] or rest[:1] == ["--example=fig65"]:
-            return _run_example(rest[2:] if rest[:1] == ["--example"] else rest[1:])
-        if rest[:1] == ["weld"]:
-            rest = rest[1:]
-        elif rest and not rest[0].startswith("-"):
-            from chcos.cli.cellrun import main as cell_main
 
-            return cell_main(rest)
-        from chcos.apps.weld.runner import main as weld_main
+def _run(rest: list[str]) -> int:
+    """``chcos run``: a system file, the welding cell (no file, or ``weld``) or figure 6.5."""
+    if rest[:1] in (["-h"], ["--help"]):
+        return _run_help()
+    if rest[:2] == ["--example", "fig65"] or rest[:1] == ["--example=fig65"]:
+        return _run_example(rest[2:] if rest[:1] == ["--example"] else rest[1:])
+    if rest[:1] == ["weld"]:
+        rest = rest[1:]
+    elif rest and not rest[0].startswith("-"):
+        from chcos.cli.cellrun import main as cell_main
 
-        return weld_main(rest)
-    if argv[:1] == ["import"]:
-        from chcos.devices.importers import main as import_main
+        return cell_main(rest)
+    from chcos.apps.weld.runner import main as weld_main
 
-        return import_main(argv[1:])
-    if argv[:1] == ["monitor"]:
-        from chcos.cli.monitor import main as monitor_main
+    return weld_main(rest)
 
-        return monitor_main(argv[1:])
-    if argv[:1] == ["new"]:
-        from chcos.cli.scaffold import main as new_main
 
-        return new_main(argv[1:])
-    if argv[:1] == ["map"]:
-        from chcos.viewer.cli import map_main
-
-        return map_main(argv[1:])
-    if argv[:1] == ["view"]:
-        from chcos.cli.view import view_main
-
-        return view_main(argv[1:])
-    if argv[:1] == ["facade"]:
-        from chcos.north.modbus_facade import facade_main
-
-        return facade_main(argv[1:])
-    if argv[:1] == ["north"]:
-        from chcos.north.services import north_main
-
-        return north_main(argv[1:])
+def _parser() -> argparse.ArgumentParser:
+    """The parser of the subcommands this module carries out (``shell``, ``satellite``,
+    ``host``), listing the others for ``chcos --help``."""
     parser = argparse.ArgumentParser(prog="chcos", description=DESCRIPTION,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
     sub = parser.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
     sub.add_parser("run", help="run a system file, the welding cell or figure 6.5 "
                                "(chcos run --help)")
+    _shell_parser(sub)
+    p = sub.add_parser("satellite", help="run one machine of a multi-process system",
+                       description="Run machine N of the system file's satellites in this "
+                                   "process (its kernel, tasks and devices) until Ctrl-C or "
+                                   "SIGTERM; actuators go to their safe values on the way out.")
+    p.add_argument("-m", "--machine", type=int, required=True, metavar="N",
+                   help="the machine number (a [[satellite]] of the system file)")
+    p.add_argument("--system", required=True, metavar="SYSTEM", help="the system file (TOML)")
+    p.set_defaults(func=_satellite)
+    p = sub.add_parser("host", help="host commands to a running multi-process system",
+                       description="Connect to the satellites of a system file and carry out "
+                                   "host commands: one given on the command line, or every "
+                                   "line of --script, or stdin.")
+    p.add_argument("--system", required=True, metavar="SYSTEM", help="the system file (TOML)")
+    p.add_argument("--script", help="read commands from this file")
+    p.add_argument("--wait", type=float, default=0.0, metavar="S",
+                   help="first wait up to S seconds for every satellite to be up")
+    p.add_argument("command", nargs=argparse.REMAINDER, help="one command, e.g. setpri -9 A4 C1")
+    p.set_defaults(func=_host)
+    for name, (_module, _func, text) in DELEGATED.items():
+        sub.add_parser(name, help=text)
+    return parser
+
+
+def _shell_parser(sub: Any) -> None:
+    """``chcos shell``'s arguments."""
     p = sub.add_parser("shell", help="host console for an in-process system",
                        description="Build a system from device maps in this process and carry "
                                    "out host commands (install, setpri, invoke, suspend, "
@@ -304,43 +359,6 @@ def _dispatch(argv: list[str]) -> int:
     p.add_argument("--virtual", action="store_true",
                    help="virtual time: only 'run SECONDS' advances it")
     p.set_defaults(func=_shell)
-    p = sub.add_parser("satellite", help="run one machine of a multi-process system",
-                       description="Run machine N of the system file's satellites in this "
-                                   "process (its kernel, tasks and devices) until Ctrl-C or "
-                                   "SIGTERM; actuators go to their safe values on the way out.")
-    p.add_argument("-m", "--machine", type=int, required=True, metavar="N",
-                   help="the machine number (a [[satellite]] of the system file)")
-    p.add_argument("--system", required=True, metavar="SYSTEM", help="the system file (TOML)")
-    p.set_defaults(func=_satellite)
-    p = sub.add_parser("host", help="host commands to a running multi-process system",
-                       description="Connect to the satellites of a system file and carry out "
-                                   "host commands: one given on the command line, or every "
-                                   "line of --script, or stdin.")
-    p.add_argument("--system", required=True, metavar="SYSTEM", help="the system file (TOML)")
-    p.add_argument("--script", help="read commands from this file")
-    p.add_argument("--wait", type=float, default=0.0, metavar="S",
-                   help="first wait up to S seconds for every satellite to be up")
-    p.add_argument("command", nargs=argparse.REMAINDER, help="one command, e.g. setpri -9 A4 C1")
-    p.set_defaults(func=_host)
-    sub.add_parser("new", help="create a new cell project (chcos new DIR)")
-    sub.add_parser("import", help="device map from an EDS, a DBC or a Modbus register list "
-                                  "(chcos import eds|dbc|modbus FILE)")
-    sub.add_parser("monitor", help="commission a live bus listen-only (chcos monitor SYSTEM)")
-    sub.add_parser("check", help="validate device-map files (chcos check FILE...) or system "
-                                 "files (chcos check --system FILE...)")
-    sub.add_parser("sim", help="simulated devices (chcos sim KIND ..., chcos sim --from MAP)")
-    sub.add_parser("map", help="draw a sysfile.map (chcos map [MAP] --format text|dot|svg)")
-    sub.add_parser("view", help="live page of a running system (chcos view --example fig65)")
-    sub.add_parser("facade", help="north-side facades (chcos facade modbus --print-map FILE)")
-    sub.add_parser("north", help="north-side accounts (chcos north passwd: a password hash)")
-    args = parser.parse_args(argv)
-    if args.verbose:
-        logging.getLogger().setLevel(logging.INFO)
-    try:
-        return int(args.func(args))
-    except ChcosError as exc:
-        print(f"chcos: {exc}", file=sys.stderr)
-        return 1
 
 
 if __name__ == "__main__":

@@ -351,8 +351,7 @@ class Monitor:
                           and devmap.bus(d.bus).kind in READ_BACK}
         # raw CAN: no receive filters and every id of no device an error, so they are flagged
         # (ids the map's ignore_ids names stay quiet)
-        buses = tuple(dataclasses.replace(b, options={"unknown_ids": "fail", **b.options,
-                                                      "filter": False})
+        buses = tuple(b.with_options({"unknown_ids": "fail", **b.options, "filter": False})
                       if b.kind == "can" else b for b in devmap.buses if b.kind != "canopen")
         rest = DeviceMap(buses,
                          tuple(dataclasses.replace(d, direction="sensor", stale_after=None)

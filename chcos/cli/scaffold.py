@@ -36,6 +36,11 @@ kind = "modbus-tcp"
 host = "{host}"
 port = {port}
 poll_period = 0.1        # seconds between polls of the sensors
+# If chcos is killed (SIGKILL, power cut of this computer) nothing writes the valve any more and
+# the PLC keeps its last value: the protection is the PLC's own comm-loss watchdog. chcos
+# writes this register every second (1, 2, 3 ...); program the PLC to close the valve when it
+# stops changing for 3 s (docs/modbus-faults.md, "The watchdog register"). Uncomment:
+# watchdog = {{ unit = 1, table = "holding", address = 900, period = 1.0, value = "counter" }}
 
 [[device]]
 name = "level"
@@ -56,7 +61,8 @@ bus = "plc"
 address = {{ unit = 1, table = "holding", address = 1, type = "uint16" }}
 units = "%"
 limits = [0.0, 100.0]    # commands outside are refused, never clamped
-safe_value = 0.0         # written on Ctrl-C, on e-stop and when the task fails
+safe_value = 0.0         # written on Ctrl-C, on e-stop and when the task fails; NOT after a
+                         # SIGKILL of chcos: then only the PLC's watchdog (bus above) helps
 """
 
 TASK = '''\

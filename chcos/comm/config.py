@@ -69,12 +69,13 @@ from __future__ import annotations
 import ipaddress
 import json
 from dataclasses import dataclass
-from typing import Any
-
-import zenoh
+from typing import TYPE_CHECKING, Any
 
 from chcos.comm.tls import TlsSettings, UsrPwdAuth
 from chcos.errors import ConfigError
+
+if TYPE_CHECKING:
+    import zenoh
 
 __all__ = ["LOOPBACK", "LinkConfig", "TlsSettings", "UsrPwdAuth", "check_host", "check_port",
            "is_loopback"]
@@ -301,7 +302,11 @@ class LinkConfig:
         }
 
     def to_zenoh(self) -> zenoh.Config:
-        """A fresh :class:`zenoh.Config`. Raises ConfigError if Zenoh rejects it."""
+        """A fresh :class:`zenoh.Config`. Raises ConfigError if Zenoh rejects it. (Zenoh is
+        imported here, when a link is opened: checking a configuration needs none, and it comes
+        with the ``satellites`` extra.)"""
+        import zenoh
+
         try:
             return zenoh.Config.from_json5(json.dumps(self.to_json()))
         except zenoh.ZError as exc:

@@ -32,6 +32,7 @@ needs a copy of the same file (copy it with ``scp -p``; keep it 0600).
 from __future__ import annotations
 
 import enum
+import functools
 import hashlib
 import hmac
 import itertools
@@ -46,17 +47,16 @@ import subprocess
 import tempfile
 import threading
 import time
+import types
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import NoReturn
-
-from cryptography.exceptions import InvalidTag
-from cryptography.hazmat.primitives import hashes
-from cryptography.hazmat.primitives.ciphers.aead import AESGCM
-from cryptography.hazmat.primitives.kdf.hkdf import HKDF
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from chcos.errors import ConfigError, LinkError
+
+if TYPE_CHECKING:
+    from cryptography.hazmat.primitives.ciphers.aead import AESGCM
 
 log = logging.getLogger("chcos.comm")
 
@@ -234,12 +234,31 @@ class SealRefused(LinkError):
         self.refusal = refusal
 
 
+@functools.cache
+def _crypto() -> Any:
+    """The pieces of the cryptography package a seal needs (``AESGCM``, ``HKDF``, ``hashes``,
+    ``InvalidTag``), imported when a seal is first made or opened: a system in one process
+    needs none (cryptography comes with the ``satellites`` extra). Raises ConfigError naming
+    the extra when it is not installed."""
+    try:
+        from cryptography.exceptions import InvalidTag
+        from cryptography.hazmat.primitives import hashes
+        from cryptography.hazmat.primitives.ciphers.aead import AESGCM
+        from cryptography.hazmat.primitives.kdf.hkdf import HKDF
+    except ImportError as exc:
+        raise ConfigError(f"sealed messages between satellites need the cryptography package "
+                          f"(pip install 'chcos[satellites]'): {exc}") from exc
+    return types.SimpleNamespace(AESGCM=AESGCM, HKDF=HKDF, hashes=hashes, InvalidTag=InvalidTag)
+
+
 def _derive(key: bytes, role: int, sender: bytes, epoch: bytes) -> AESGCM:
     """The AEAD of one run (``epoch``) of one sender of ``role``: its own key, derived from the
     role's key of the system secret with HKDF-SHA256."""
-    hkdf = HKDF(algorithm=hashes.SHA256(), length=32, salt=None,
-                info=b"chcos-seal/2 " + bytes((role,)) + sender + epoch)
-    return AESGCM(hkdf.derive(key))
+    c = _crypto()
+    hkdf = c.HKDF(algorithm=c.hashes.SHA256(), length=32, salt=None,
+                  info=b"chcos-seal/2 " + bytes((role,)) + sender + epoch)
+    aead: AESGCM = c.AESGCM(hkdf.derive(key))
+    return aead
 
 
 class _Window:
@@ -418,7 +437,7 @@ class Sealer:
         try:
             payload = aead.decrypt(data[_NONCE_RUN] + data[_NONCE_SEQ], data[_HEADER_SIZE:],
                                    data[:_HEADER_SIZE] + key_expr.encode())
-        except InvalidTag:
+        except _crypto().InvalidTag:    # (evaluated only when decrypt raised)
             return self._refuse(Refusal.UNAUTHENTICATED, "bad seal (not sealed by a member of "
                                 "this system, altered, or sent on another key)")
         if stamp < self._started and stamp < self._start_now():

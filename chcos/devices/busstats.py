@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 from chcos.kernel.scheduler import Kernel
 
 if TYPE_CHECKING:
-    from drivers.base import Driver
+    from chcos.devices.driver import Driver
 
 log = logging.getLogger("chcos.devices.devtab")
 
@@ -40,7 +40,8 @@ class BusStats:
                         {d: Counter(c) for d, c in self.devices.items()}, self.last_error)
 
     def add_sent(self, sent: dict[str, int]) -> None:
-        """Add a driver's frames sent per device (see :attr:`drivers.base.Driver.sent_frames`)
+        """Add a driver's frames sent per device (see
+        :attr:`chcos.devices.driver.Driver.sent_frames`)
         as ``frames-sent``, per device and in all."""
         for device, n in sent.items():
             if n:

@@ -45,7 +45,7 @@ class CommandChecks:
 
     def _number_check(self, e: DeviceEntry) -> NumberCheck:
         """Make ``e``'s :class:`NumberCheck` for its current driver (from the device's limits
-        and the driver's :meth:`~drivers.base.Driver.accepts`) and keep it in
+        and the driver's :meth:`~chcos.devices.driver.Driver.accepts`) and keep it in
         ``e.number_check``; the one place it is written."""
         spec, drv = e.spec, e.driver
         if spec.scale != 1 or spec.offset != 0 or spec.round:

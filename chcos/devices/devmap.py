@@ -51,11 +51,11 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from chcos.devices import parsecache
+from chcos.devices.driver import Driver
 from chcos.devices.mapparse import FileErrors, read_file, short
+from chcos.devices.registry import driver_class
 from chcos.devices.spec import BusSpec, DeviceMap, DeviceSpec
 from chcos.errors import ConfigError, DriverNotAvailable
-from drivers.base import Driver
-from drivers.registry import driver_class
 
 T = TypeVar("T")
 

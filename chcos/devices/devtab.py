@@ -8,7 +8,7 @@ manager: Devtab knows devices and drivers, not links). Health (FAILED, STALE, SU
 :mod:`chcos.devices.health`, the bus counters :mod:`chcos.devices.busstats`. Actuator
 writes are checked against limits (refused, never clamped), scaled, and handed to the driver
 without blocking; safe values go out on e-stop, abnormal completion of the owning task and
-shutdown. Devtab is the :class:`drivers.base.DriverHost` its drivers talk to.
+shutdown. Devtab is the :class:`chcos.devices.driver.DriverHost` its drivers talk to.
 """
 
 from __future__ import annotations
@@ -33,13 +33,14 @@ from chcos.devices.entry import (
 )
 from chcos.devices.health import DeviceHealth, HealthListener, faults, log
 from chcos.devices.spec import DeviceMap
+from chcos.devices.status import DriverStatus
 from chcos.devices.table import DeviceTable
 from chcos.devices.writes import WriteTracking
 from chcos.errors import BusError, DeviceError
 from chcos.kernel.scheduler import Kernel, SettleBound
 
 if TYPE_CHECKING:
-    from drivers.base import Driver
+    from chcos.devices.driver import Driver
 
 #: Seconds the drivers get at shutdown, in all, to put the safe values on the wire (a safe value
 #: reported failed is re-issued until it is confirmed or this window ends).
@@ -87,11 +88,12 @@ class Devtab:
         self.safe_outcomes: dict[str, SafeOutcome] = {}
         #: seconds :meth:`stop_drivers` keeps trying to put the safe values on the wire
         self.shutdown_window = SHUTDOWN_FLUSH
-        #: each stopped driver's last :meth:`drivers.base.Driver.status_doc`, by bus
-        self._kept_status: dict[str, dict[str, Any]] = {}
+        #: each stopped driver's last :meth:`chcos.devices.driver.Driver.status`, by bus
+        self._kept_status: dict[str, DriverStatus] = {}
         #: True when the drivers' peers are simulated on this kernel's virtual clock (a virtual
         #: cell, :func:`chcos.cli.cellsystem.open_cell`): a driver then supervises their
-        #: heartbeats on that clock, not on wall time (:func:`drivers.base.host_peers_on_clock`)
+        #: heartbeats on that clock, not on wall time
+        #: (:func:`chcos.devices.driver.host_peers_on_clock`)
         self.peers_on_clock = False
         #: True when the drivers' peers are real, in other processes, while the clock is
         #: virtual (a test of a real PLC or a peer process on virtual time): a driver that
@@ -201,7 +203,7 @@ class Devtab:
         Raises BusError (every driver started so far is stopped again) if one fails to start, and
         DriverNotAvailable for an unknown bus kind.
         """
-        from drivers.registry import driver_class
+        from chcos.devices.registry import driver_class
 
         wanted = None if machines is None else set(machines)
         started: list[Driver] = []
@@ -270,25 +272,30 @@ class Devtab:
         self.drivers.clear()
         return undelivered
 
-    def bus_status(self) -> dict[str, dict[str, Any]]:
-        """What each bus's driver shows beyond the counters (:meth:`Driver.status_doc`: e.g.
+    def statuses(self) -> dict[str, DriverStatus]:
+        """What each bus's driver shows beyond the counters (:meth:`Driver.status`: e.g.
         CANopen nodes' lifecycles and the SYNC cycle), by bus name, only buses with something
         to show; a stopped driver's as it was when it stopped. Thread-safe."""
         out = dict(self._kept_status)
         for drv in list(self.drivers):
-            doc = drv.status_doc()
-            if doc:
-                out[drv.bus.name] = doc
+            st = drv.status()
+            if st:
+                out[drv.bus.name] = st
         return dict(sorted(out.items()))
+
+    def bus_status(self) -> dict[str, dict[str, Any]]:
+        """:meth:`statuses` as JSON (:meth:`DriverStatus.to_json`), for the system map and the
+        consumers that still read documents."""
+        return {bus: st.to_json() for bus, st in self.statuses().items()}
 
     def _keep_status(self, drv: Driver) -> None:
         try:
-            doc = drv.status_doc()
+            st = drv.status()
         except Exception:   # shutdown must go on
             log.exception("driver %s: status not kept", drv.bus.name)
             return
-        if doc:
-            self._kept_status[drv.bus.name] = doc
+        if st:
+            self._kept_status[drv.bus.name] = st
 
     def _shutdown_safe_values(self, deadline: float) -> list[SafeOutcome]:
         """Every local actuator's safe value, issued and then re-issued while it is reported
@@ -398,7 +405,7 @@ class Devtab:
     @property
     def virtual_clock(self) -> bool:
         """True if the kernel runs on a virtual clock (a driver then stamps readings ``now``,
-        see :func:`drivers.base.host_clock_virtual`)."""
+        see :func:`chcos.devices.driver.host_clock_virtual`)."""
         return self.kernel.clock.virtual
 
     def deliver(self, device: str, value: Any, at: float | None = None) -> None:
@@ -432,7 +439,7 @@ class Devtab:
         """New raw readings taken together (one poll of a driver: ``(device, value)`` pairs, in
         order) as one interrupt, so the kernel wakes once per poll; each is handled as
         :meth:`deliver` would, all stamped with this call's time, or ``at`` as in
-        :meth:`deliver` (see :func:`drivers.base.deliver_all`)."""
+        :meth:`deliver` (see :func:`chcos.devices.driver.deliver_all`)."""
         now = self.kernel.clock.now()
         at = now if at is None or at > now else at
         stamp = self._rx_stamp
@@ -552,8 +559,6 @@ class Devtab:
         if the driver confirms writes."""
         spec = e.spec
         device = spec.name
-        e.updated_at = self.kernel.clock.now()
-        e.commands += 1
         w: Write | None = None
         if not self._table.is_local(spec.machine):
             remote = self._health.remote
@@ -561,30 +566,35 @@ class Devtab:
                 raise DeviceError(f"actuator {device} is on machine {spec.machine}, which this "
                                   f"process does not drive, and no link leads there")
             remote.actuator(device, spec.machine, value, source)
-            e.value = value
         elif e.driver is not None and e.driver.confirms_writes:
-            if not safe and self._write_now(e, device, raw):
-                e.value = value         # on the wire already, confirmed by the driver's answer
-                for hook in self.on_write:
-                    hook(device, value)
-                return None
-            w = Write(device, value, raw, safe)
-            self._writes.track(w)
-            e.pending = value
-            e.driver.write(device, raw)
-        else:
-            e.value = value
-            if e.driver is not None:
+            if safe or not self._write_now(e, device, raw):   # else on the wire, confirmed
+                w = Write(device, value, raw, safe)
+                self._writes.track(w)
+                e.pending = value       # before the hand-over: the outcome may come at once
                 e.driver.write(device, raw)
-        for hook in self.on_write:
-            hook(device, value)
+        elif e.driver is not None:
+            e.driver.write(device, raw)
+        self._commanded(e, value, self.kernel.clock.now(), shown=w is None)
         return w
 
+    def _commanded(self, e: DeviceEntry, value: Any, now: float, shown: bool) -> None:
+        """The bookkeeping of a write handed over (to the driver, to the device's satellite, or
+        on the wire already): when and how often the actuator was commanded, the value it shows
+        (``shown``; else it stays ``pending`` until the driver's outcome), and the
+        :attr:`on_write` hooks. The one place a write is recorded, for every path to a bus."""
+        e.updated_at = now
+        e.commands += 1
+        if shown:
+            e.value = value
+        for hook in self.on_write:
+            hook(e.name, value)
+
     def _write_now(self, e: DeviceEntry, device: str, raw: Any) -> bool:
-        """The driver's synchronous fast path (:meth:`drivers.base.Driver.write_now`), tried
-        only on the kernel thread and when no earlier write of ``device`` is outstanding or has
-        an outcome on its way here (so the shown value and the order stay those of the wire).
-        True if ``raw`` is on the wire; then nothing is tracked."""
+        """The driver's synchronous fast path (:meth:`chcos.devices.driver.Driver.write_now`, the
+        template that checks it as :meth:`chcos.devices.driver.Driver.write` does), tried only on
+        the kernel thread and when no earlier write of ``device`` is outstanding or has an
+        outcome on its way here (so the shown value and the order stay those of the wire). True if
+        ``raw`` is on the wire; then nothing is tracked."""
         assert e.driver is not None
         if not self.kernel.on_kernel_thread() or self._writes.outstanding(device):
             return False
@@ -620,7 +630,7 @@ class Devtab:
     def _safe_burst(self, entries: list[DeviceEntry]) -> set[str]:
         """On the kernel thread, put the safe values of ``entries`` that nothing of theirs is
         outstanding for on the wire back to back, one call per driver
-        (:meth:`drivers.base.Driver.write_now_many`), before any bookkeeping: an emergency
+        (:meth:`chcos.devices.driver.Driver.write_now_many`), before any bookkeeping: an emergency
         stop's last safe frame leaves as early as it can. Returns the names written; the rest
         (a value the check refuses, a driver that cannot send now) are left to the tracked
         path, which reports them."""
@@ -643,11 +653,7 @@ class Devtab:
             written += [e for (e, _raw), ok in zip(items, sent, strict=True) if ok]
         now = self.kernel.clock.now()
         for e in written:   # as Devtab.write's fast path: on the wire, confirmed, not tracked
-            e.updated_at = now
-            e.commands += 1
-            e.value = e.spec.safe_value
-            for hook in self.on_write:
-                hook(e.name, e.value)
+            self._commanded(e, e.spec.safe_value, now, shown=True)
         return {e.name for e in written}
 
     def _safe(self, device: str, why: str = "abnormal completion") -> bool:

@@ -14,7 +14,7 @@ from chcos.devices.spec import DeviceSpec
 from chcos.errors import SensorFailure
 
 if TYPE_CHECKING:
-    from drivers.base import Driver
+    from chcos.devices.driver import Driver
 
 
 class DeviceStatus(enum.Enum):

@@ -1,30 +1,43 @@
 """mapref - the device-map reference: every key of every bus kind, with type, default and meaning.
 
-:data:`REFERENCE` lists, per bus kind, the bus options and the device-address keys each driver's
-``check_bus``/``check_device`` accepts (``vcan_tests/test_integrator_reference.py`` probes the
-drivers and fails when one accepts a key missing here, or rejects one listed), and :data:`COMMON`
-the keys of every ``[[bus]]`` and ``[[device]]`` table (``chcos.devices.devmap``'s own lists).
-:func:`render` writes it as Markdown: ``python -m chcos.devices.mapref >
-docs/device-map-reference.md``
-(a test checks the committed file is current).
+A kind whose driver declares its tables as option dataclasses (``Driver.Options``,
+``Driver.Address`` / ``Driver.Addresses``, :mod:`chcos.devices.options`) is documented from their
+fields (:func:`chcos.devices.options.reference`): the key, its type, its one default and its
+meaning are written once, in the field. The driver is found by kind through the registry
+(:mod:`chcos.devices.registry`), so this module imports no driver. A kind not converted yet keeps
+its hand-written tables in :data:`HAND` (``vcan_tests/test_integrator_reference.py`` probes the
+drivers and fails when one accepts a key missing here, or rejects one listed, and when a
+hand-written table is shadowed by a typed one). :data:`COMMON` holds the keys of every
+``[[bus]]`` and ``[[device]]`` table (``chcos.devices.devmap``'s own lists); :data:`SUMMARY`
+and :data:`EXAMPLE` the prose of each kind. :func:`render` writes it all as Markdown:
+``python -m chcos.devices.mapref > docs/device-map-reference.md`` (a test checks the committed
+file is current).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import sys
 from dataclasses import dataclass
 
+from chcos.devices.options import KeyDoc, reference
+from chcos.devices.registry import driver_class
+
+#: One key: its name, TOML type, default ("required" or "-" when there is none), meaning, and
+#: for which variant of the kind it applies ("" for all).
+Key = KeyDoc
+
 
 @dataclass(frozen=True)
-class Key:
-    """One key: its name, TOML type, default ("required" or "-" when there is none), meaning,
-    and for which variant of the kind it applies ("" for all)."""
+class _Doc:
+    """What this module writes of a kind by hand: its summary and example, and its tables where
+    the driver declares none (None: generated from the driver's dataclasses)."""
 
-    name: str
-    type: str
-    default: str
-    meaning: str
-    variant: str = ""
+    summary: str
+    options: tuple[Key, ...] | None
+    address: tuple[Key, ...] | None
+    example: str
 
 
 @dataclass(frozen=True)
@@ -117,33 +130,23 @@ _MODBUS_ADDRESS = (
     Key("poll_period", "float s", "the bus's", "this sensor's polling period"),
 )
 
-REFERENCE: dict[str, Kind] = {
-    "memory": Kind(
+#: The prose of every kind (summary, example) and, for a kind whose driver does not declare its
+#: tables as option dataclasses yet, the hand-written tables (None where they are generated: see
+#: :func:`kinds`). A bus engineer who converts a kind replaces its tables here by None.
+DOCS: dict[str, _Doc] = {
+    "memory": _Doc(
         "values from the host (`inject`); actuator writes kept in memory (tests, demos)",
-        (Key("history", "integer", "100", "writes kept per actuator"),),
-        (),
+        None, None,
         '[[bus]]\nname = "bench"\nkind = "memory"\n\n[[device]]\nname = "M1"\n'
         'direction = "actuator"\nbus = "bench"\nsafe_value = 0.0'),
-    "signal": Kind(
-        "waveform generators on the kernel clock (demos, load)",
-        (Key("history", "integer", "100", "writes kept per actuator"),),
-        (Key("waveform", "string", "required", "`sine`, `square`, `ramp`, `constant`, "
-             "`random` or `echo` (reads `actuator` back: each write at once, as an interrupt, "
-             "and every sample the last one)"),
-         Key("rate_hz", "float", "required", "samples per second"),
-         Key("actuator", "string", "required for `echo`", "the actuator an `echo` sensor reads "
-             "back (same bus, same machine)"),
-         Key("amplitude", "float", "1.0", "peak deviation from center"),
-         Key("center", "float", "0.0", "mid value"),
-         Key("period", "float s", "1.0", "waveform period"),
-         Key("phase", "float", "0.0", "fraction of a period"),
-         Key("value", "float", "center", "the `constant` value; an `echo` sensor's reading "
-             "before the first write (default 0.0)"),
-         Key("seed", "integer", "0", "`random` seed")),
+    "signal": _Doc(
+        "waveform generators on the kernel clock (demos, load); actuators as on `memory`, "
+        "without an address",
+        None, None,
         '[[device]]\nname = "S1"\ndirection = "sensor"\nbus = "demo"\n'
         'address = { waveform = "sine", rate_hz = 10, amplitude = 50.0, center = 50.0, '
         'period = 4.0 }'),
-    "can": Kind(
+    "can": _Doc(
         "raw CAN through python-can; signals from a DBC (cantools) or given raw",
         (*_CAN_BUS,
          Key("fd", "boolean", "false", "CAN FD"),
@@ -172,7 +175,7 @@ REFERENCE: dict[str, Kind] = {
          Key("extended", "boolean", "false", "29-bit id", "raw form")),
         '[[bus]]\nname = "cellcan"\nkind = "can"\ndbc = "cell.dbc"\n\n[[device]]\nname = "T1"\n'
         'direction = "sensor"\nbus = "cellcan"\naddress = { message = "Temps", signal = "T1" }'),
-    "canopen": Kind(
+    "canopen": _Doc(
         "remote CANopen nodes (canopen): node lifecycle (identity, configuration at boot, one "
         "NMT start, OPERATIONAL confirmed by the heartbeat), SDO, PDO (as configured, else from "
         "the EDS), master heartbeat, SYNC, EMCY; guide: docs/canopen.md",
@@ -234,7 +237,7 @@ REFERENCE: dict[str, Kind] = {
         '\nsdo = [{ index = 0x6007, value = 3 }]\n\n'
         '[[device]]\nname = "position"\ndirection = "sensor"\n'
         'bus = "axis"\naddress = { node = 5, index = 0x6064 }'),
-    "modbus-tcp": Kind(
+    "modbus-tcp": _Doc(
         "Modbus TCP client (pymodbus)",
         (Key("host", "string", "required", "server address"),
          Key("port", "integer", "502", "server TCP port"),
@@ -246,7 +249,7 @@ REFERENCE: dict[str, Kind] = {
         '[[bus]]\nname = "plc"\nkind = "modbus-tcp"\nhost = "127.0.0.1"\nport = 5020\n\n'
         '[[device]]\nname = "level"\ndirection = "sensor"\nbus = "plc"\n'
         'address = { table = "input", address = 0 }'),
-    "modbus-rtu": Kind(
+    "modbus-rtu": _Doc(
         "Modbus RTU client on a serial line (pymodbus)",
         (Key("port", "string", "required", "serial device or pyserial URL "
              "(`socket://host:port`)"),
@@ -262,7 +265,7 @@ REFERENCE: dict[str, Kind] = {
          *_MODBUS_COMMON),
         _MODBUS_ADDRESS,
         '[[bus]]\nname = "rtu"\nkind = "modbus-rtu"\nport = "/dev/ttyUSB0"\nbaudrate = 19200'),
-    "serial": Kind(
+    "serial": _Doc(
         "a serial line (pyserial): a text line protocol (regex) or binary frames (struct); "
         "when the port or a write fails: docs/serial-faults.md",
         (Key("url", "string", "required", "device path or pyserial URL (`socket://`, `loop://`)"),
@@ -291,15 +294,51 @@ REFERENCE: dict[str, Kind] = {
         '[[bus]]\nname = "scale"\nkind = "serial"\nurl = "socket://127.0.0.1:7001"\n'
         'protocol = "line"\npattern = "W=(?P<w>[-0-9.]+)"\n\n[[device]]\nname = "weight"\n'
         'direction = "sensor"\nbus = "scale"\naddress = { group = "w" }'),
-    "weld-direct": Kind(
+    "weld-direct": _Doc(
         "the welding cell's model in-process (chcos' own demo binding)",
-        (Key("scenario", "string", '""', "fault scenario (`chcos.apps.weld.faults` syntax)"),
-         Key("seed", "integer", "0", "measurement-noise seed"),
-         Key("tick", "float s", "model default", "model step")),
-        (Key("signal", "string", "required", "a model signal (see `chcos/apps/weld/DEVICES.md`)"),),
+        None, None,
         '[[device]]\nname = "arc_temp"\ndirection = "sensor"\nbus = "cell"\n'
         'address = { signal = "arc_temp" }'),
 }
+
+
+def _address_keys(variants: tuple[type, ...]) -> tuple[Key, ...]:
+    """The address keys of a kind whose address takes one of ``variants``: a key the same in
+    every variant that has keys is listed once, any other with its variant's ``VARIANT``."""
+    docs = [(getattr(v, "VARIANT", ""), reference(v)) for v in variants]
+    shaped = [keys for _label, keys in docs if keys]
+    out: list[Key] = []
+    for label, keys in docs:
+        for k in keys:
+            if all(k in other for other in shaped):
+                if k not in out:
+                    out.append(k)
+            else:
+                out.append(dataclasses.replace(k, variant=k.variant or label))
+    return tuple(out)
+
+
+def kind_reference(kind: str) -> Kind:
+    """Bus kind ``kind`` as the reference documents it: its tables from its driver's option
+    dataclasses where it declares them, else from :data:`DOCS`. Raises KeyError for a kind
+    :data:`DOCS` does not describe, LookupError for one with neither, and
+    :class:`chcos.errors.DriverNotAvailable` if its driver cannot be imported."""
+    doc = DOCS[kind]
+    cls = driver_class(kind)
+    variants = cls.Addresses or ((cls.Address,) if cls.Address is not None else ())
+    options = reference(cls.Options) if cls.Options is not None else doc.options
+    address = _address_keys(variants) if variants else doc.address
+    if options is None or address is None:
+        raise LookupError(f"bus kind {kind!r}: its driver declares no option dataclass for its "
+                          f"{'options' if options is None else 'address'} and mapref.DOCS has "
+                          f"no hand-written table")
+    return Kind(doc.summary, options, address, doc.example)
+
+
+@functools.cache
+def kinds() -> dict[str, Kind]:
+    """Every documented bus kind, in the reference's order (see :func:`kind_reference`)."""
+    return {name: kind_reference(name) for name in DOCS}
 
 
 def _table(keys: tuple[Key, ...]) -> list[str]:
@@ -313,14 +352,16 @@ def _table(keys: tuple[Key, ...]) -> list[str]:
 def render() -> str:
     """The reference as Markdown."""
     out = ["# Device-map reference", "",
-           "Generated by `python -m chcos.devices.mapref` from `chcos/devices/mapref.py`; "
+           "Generated by `python -m chcos.devices.mapref` from the bus kinds' option dataclasses "
+           "(`Options`/`Address` of each driver, `chcos.devices.options`) and, for kinds not "
+           "converted yet, the tables in `chcos/devices/mapref.py`; "
            "`vcan_tests/test_integrator_reference.py` fails when a driver accepts a key this "
            "page does not list. Device maps are TOML files of `[[bus]]` and `[[device]]` tables "
            "(`busconfig/README.md`); `chcos check FILE...` validates them without opening a bus, "
            "and `chcos import eds|dbc|modbus` writes them from vendor files.", "",
            "## Every `[[bus]]`", "", *_table(COMMON_BUS), "",
            "## Every `[[device]]`", "", *_table(COMMON_DEVICE), ""]
-    for name, kind in REFERENCE.items():
+    for name, kind in kinds().items():
         out += [f"## `{name}`", "", kind.summary + ".", "", "Bus options:", ""]
         out += _table(kind.options) if kind.options else ["none"]
         out += ["", "Device address:", ""]

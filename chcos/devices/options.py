@@ -17,8 +17,8 @@ device-map reference (``docs/device-map-reference.md``) is generated from::
 ``"<key path>: expected ..., got ..."`` (the form :mod:`chcos.devices.devmap` places at the file
 and line). It is called once, when the map is checked; the parsed value travels with the map
 (:attr:`chcos.devices.spec.BusSpec.config`, :attr:`chcos.devices.spec.DeviceSpec.addr`) and a
-driver reads typed attributes from it (:meth:`drivers.base.Driver.bus_options`), never the raw
-table. Adding a key to a bus kind is adding one field.
+driver reads typed attributes from it (:meth:`chcos.devices.driver.Driver.bus_options`), never
+the raw table. Adding a key to a bus kind is adding one field.
 
 Supported annotations: ``bool``, ``int`` (not a bool), ``float`` (an integer is taken as a
 float; NaN is refused), ``str``, ``Literal[...]``, an :class:`enum.Enum` (by value), ``X | None``
@@ -277,8 +277,9 @@ def parse(cls: type[T], table: Mapping[str, Any], path: str,
     """Parse ``table`` (a map's table; keys in ``ignore`` are someone else's) into ``cls``.
 
     Returns ``(value, [])``, or ``(None, errors)`` with every error found: an unknown key (with
-    the valid ones), a required key missing, a value of the wrong type or outside its check, and
-    what the dataclass' own ``problems()`` method (if it has one: cross-key rules, returning
+    the valid ones, and the variant of the table if ``cls`` names one in ``VARIANT``), a
+    required key missing, a value of the wrong type or outside its check, and what the
+    dataclass' own ``problems()`` method (if it has one: cross-key rules, returning
     ``(key, expected)`` pairs) finds in an otherwise valid value. Each error is
     ``"<path>.<key>: expected ..., got ..."``. Never raises for bad input; raises TypeError for
     an annotation this module does not support (a programming error)."""
@@ -288,9 +289,11 @@ def parse(cls: type[T], table: Mapping[str, Any], path: str,
     errors: list[str] = []
     for k in table:
         if k not in fields and k not in skip:
-            if fields:
-                errors.append(f"{path}.{k}: unknown key; expected one of "
-                              f"{', '.join(sorted(fields))}")
+            if fields:   # a variant of a kind's table (VARIANT) says which
+                variant = getattr(cls, "VARIANT", "")
+                errors.append(f"{path}.{k}: unknown key"
+                              f"{f' for the {variant} variant' if variant else ''}; expected "
+                              f"one of {', '.join(sorted(fields))}")
             else:   # a kind whose table takes no key says why in NO_KEYS
                 errors.append(f"{path}.{k}: unknown key; "
                               f"{getattr(cls, 'NO_KEYS', 'expected no key here')}")

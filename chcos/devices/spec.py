@@ -8,6 +8,7 @@ raises.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -32,8 +33,15 @@ class BusSpec:
     key: str = "bus[?]"
     #: ``options`` parsed into the driver's option dataclass (:mod:`chcos.devices.options`) when
     #: the map was checked; None where the kind declares none or the spec was built in code
-    #: (the driver then parses ``options`` itself, see :meth:`drivers.base.Driver.bus_options`)
+    #: (the driver then parses ``options`` itself, see
+    #: :meth:`chcos.devices.driver.Driver.bus_options`)
     config: Any = field(default=None, compare=False, repr=False)
+
+    def with_options(self, options: Mapping[str, Any]) -> BusSpec:
+        """This bus with ``options`` instead of its own: the config parsed from the file goes
+        with them (``dataclasses.replace(bus, options=...)`` would keep it, stale), so the driver
+        parses the new ones."""
+        return dataclasses.replace(self, options=options, config=None)
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,7 @@ time the kernel looks, and there are two ways for a driver to be so:
    simulated peer run in kernel timers and interrupt handlers (``host.every``/``host.at``, a
    direct hand-off of the encoded bytes to the peer, the peer's answer handled in the same
    call). Nothing is in flight between two interrupts, so the driver needs no settle: it sets
-   :attr:`drivers.base.Driver.settles` False and Devtab registers nothing with the kernel.
+   :attr:`chcos.devices.driver.Driver.settles` False and Devtab registers nothing with the kernel.
    Every timeout it has is a kernel timer, so a request to a silent peer times out at its
    virtual deadline, whatever the machine's load.
 2. **Threads and a transport of its own** (python-can notifiers, sockets, ptys): work handed to
@@ -284,8 +284,25 @@ class Kernel:
 
     def block(self, t: TaskEntry, state: TaskState) -> None:
         """Record that the current task ``t`` is about to wait in ``state`` (instruments hear
-        of it when its step ends in the block: see :meth:`_watched_step`)."""
+        of it when its step ends in the block: see :meth:`_watched_step`): the one place a
+        task's wait is written, as :meth:`ready` is the one place it is readied."""
         t.state = state
+
+    def set_priority(self, t: TaskEntry, prio: int) -> None:
+        """``t`` runs at priority ``prio`` from now on (Xinu's chprio): a ready task is
+        re-queued at it through :meth:`ready` (behind the others there); any other task keeps
+        it for the step it runs next or the :meth:`ready` that wakes it with its own priority;
+        a suspended (frozen) task's kept wake-up is moved to ``prio`` too, so that
+        :meth:`resume` readies it there. The one place a task's priority changes outside
+        :meth:`ready`."""
+        if t.frozen:
+            t.prio = prio
+            if t.frozen_ready is not None:
+                t.frozen_ready = prio
+        elif t.state is _READY:
+            self.ready(t, prio)
+        else:
+            t.prio = prio
 
     def ready_priorities(self) -> list[int]:
         """Priorities of the tasks now ready, highest first (for tests and monitors)."""

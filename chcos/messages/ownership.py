@@ -167,10 +167,7 @@ class Ownership:
     def _back_to_default(self, t: TaskEntry) -> None:
         """A released task goes back to its default priority (resetpri)."""
         if t.prio != t.default_prio:
-            if t.state is TaskState.READY and not t.frozen:
-                self.kernel.ready(t, t.default_prio)
-            else:
-                t.prio = t.default_prio
+            self.kernel.set_priority(t, t.default_prio)
 
     def report(self, link: Link, status: LinkStatus, result: Any = None, error: str = "") -> None:
         """Set ``link``'s status and tell the calling task (wakes it if it waits in ``done``)."""
@@ -238,7 +235,7 @@ class Ownership:
                     return
             t.state = TaskState.SUSPENDED
             if t.owner is None:
-                t.prio = t.default_prio
+                self.kernel.set_priority(t, t.default_prio)
                 if how is End.ERROR:
                     self.restarts.plan(t, value)
                 elif how is End.PREEMPTED:  # released (tclose): suspended with actuators safe
@@ -320,7 +317,7 @@ class Ownership:
         self.resume_task(t)
         t.frozen_ready = None
         if t.coro is None:
-            t.prio = t.default_prio
+            self.kernel.set_priority(t, t.default_prio)
         return frozen
 
     def wipe(self, t: TaskEntry, why: str) -> None:
@@ -360,27 +357,25 @@ class Ownership:
         for link in self.msgtab:
             if link.dst == t.name and link.status is LinkStatus.SUSPENDED:
                 link.status = LinkStatus.OK
-        t.prio = t.default_prio
         t.state = TaskState.SUSPENDED
+        self.kernel.set_priority(t, t.default_prio)
 
     def resetpri(self, t: TaskEntry) -> int:
         """resetpri: ``t`` runs again at the priority of its owning link, or at its default
         priority when unowned (a ready task is re-queued). Returns the priority."""
         prio = t.owner.priority if t.owner is not None else t.default_prio
-        if t.state is TaskState.READY:
-            self.kernel.ready(t, prio)
-        else:
-            t.prio = prio
+        self.kernel.set_priority(t, prio)
         return prio
 
     # ---- status (msgstat) and priorities ----------------------------------------------------
     def setpri(self, link: Link, prio: int) -> None:
-        """Change ``link``'s priority now; a ready task it owns is re-queued at the new one."""
+        """Change ``link``'s priority now; the task it owns runs at the new one (re-queued if
+        it is ready: :meth:`Kernel.set_priority`)."""
         link.set_priority(prio)
         if link.dst_kind is EndpointKind.TASK and link.dst in self.tsktab:
             target = self.tsktab.get(link.dst)
-            if target.owner is link and target.state is TaskState.READY:
-                self.kernel.ready(target, prio)
+            if target.owner is link:
+                self.kernel.set_priority(target, prio)
 
     def done_now(self, link: Link) -> Completion | None:
         """The pending report on ``link`` if there is one (and consume it), else None."""

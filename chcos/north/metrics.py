@@ -35,41 +35,59 @@ Exported (``chcos_`` prefix; labels in brackets):
 ``sync_period_seconds``, ``sync_jitter``    the period; jitter [bus, quantile 0.5/0.99/max]
 =========================================== ====================================================
 
-The endpoint (:func:`serve`) binds loopback by default; another address needs a TLS certificate
-and key, as every north-side service here.
+The endpoint (:func:`serve`, aiohttp on its own loop thread) binds loopback by default; another
+address needs a TLS certificate and key, as every north-side service here, *and* a bearer token
+(``--metrics-token FILE``: the file holds the token; a scraper sends ``Authorization: Bearer
+TOKEN``, Prometheus' ``authorization: {credentials_file: ...}``); a request without it is
+answered 401 and sees nothing. A token given on loopback is required there too. Connections are
+bounded as every north-side server's (:mod:`chcos.north.guard`: at most
+:data:`MAX_CONNECTIONS`, request timeouts, refusals counted and logged once per period).
 """
 
 from __future__ import annotations
 
+import asyncio
 import bisect
-import threading
+import hmac
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from prometheus_client import CollectorRegistry
+from aiohttp import web
+from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
 from prometheus_client.core import (
     CounterMetricFamily,
     GaugeMetricFamily,
     HistogramMetricFamily,
 )
-from prometheus_client.exposition import start_http_server
 from prometheus_client.registry import Collector
 
 from chcos.comm.config import is_loopback
 from chcos.kernel.instrument import Instrument
 from chcos.north import NorthError
 from chcos.north.health import bus_stats, device_health
+from chcos.serving.guard import (
+    MAX_BODY,
+    REQUEST_TIMEOUT,
+    ConnectionGate,
+    bound_port,
+    connection_cap,
+    http_limits,
+    serve_http,
+    throttle_library_logs,
+)
+from chcos.serving.loopthread import LoopThread
 
 if TYPE_CHECKING:
-    from wsgiref.simple_server import WSGIServer
-
     from chcos.system.embedded import System
     from chcos.tables.tasks import TaskEntry
 
 #: Histogram bucket upper bounds, seconds (the last, +Inf, is implicit).
 BUCKETS = (1e-5, 2.5e-5, 5e-5, 1e-4, 2.5e-4, 5e-4, 1e-3, 2.5e-3, 5e-3, 1e-2, 2.5e-2, 0.1)
 STATUSES = ("OK", "suspended", "failed", "stale")
+#: Concurrent scrapes the endpoint takes (less if the descriptor limit is low).
+MAX_CONNECTIONS = 32
 
 
 class _Hist:
@@ -271,45 +289,113 @@ def node_families(status: dict[str, dict[str, Any]]) -> list[Any]:
     return [state, ready, lost, boots, starts, losses, emcys, ereg, *sync.values(), period, jitter]
 
 
-class MetricsServer:
-    """The running endpoint: ``url``, :meth:`stop`."""
+def read_token(path: str) -> str:
+    """The bearer token in file ``path`` (its first line). Raises NorthError naming the file
+    if it cannot be read or holds less than 16 characters."""
+    try:
+        token = Path(path).read_text(encoding="utf-8").strip().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise NorthError(f"--metrics-token {path}: cannot read: {exc}") from exc
+    if not token or len(token[0].strip()) < 16:
+        raise NorthError(f"--metrics-token {path}: expected a token of at least 16 characters "
+                         "on its first line (e.g. `openssl rand -hex 32 > FILE`)")
+    return token[0].strip()
 
-    def __init__(self, httpd: WSGIServer, thread: threading.Thread, system: System,
-                 steps: StepTimes, url: str) -> None:
-        self.httpd = httpd
-        self.thread = thread
+
+class MetricsServer:
+    """The running endpoint: ``url``, :meth:`stop`; ``gate`` bounds its connections and
+    counts refusals; ``unauthorized`` counts requests refused for a missing or wrong token."""
+
+    def __init__(self, system: System, registry: CollectorRegistry, steps: StepTimes,
+                 host: str, port: int, ssl_context: Any, token: str | None) -> None:
         self.system = system
+        self.registry = registry
         self.steps = steps
-        self.url = url
+        self.host, self.port = host, port
+        self.ssl_context = ssl_context
+        self.token = token
+        self.unauthorized = 0
+        self.gate = ConnectionGate("metrics", connection_cap(MAX_CONNECTIONS))
+        self._service = LoopThread("chcos-metrics")
+        self.url = ""
+
+    def start(self) -> MetricsServer:
+        """Serve; returns self. Raises NorthError if the address cannot be bound."""
+        try:
+            self._service.start(self._serve)
+        except Exception as exc:
+            raise NorthError(f"metrics: cannot serve on {self.host}:{self.port}: "
+                             f"{exc}") from exc
+        self.system.kernel.add_instrument(self.steps)
+        scheme = "https" if self.ssl_context is not None else "http"
+        h = f"[{self.host}]" if ":" in self.host else self.host
+        self.url = f"{scheme}://{h}:{self.port}/metrics"
+        return self
+
+    async def _metrics(self, request: web.Request) -> web.Response:
+        if self.token is not None:
+            given = request.headers.get("Authorization", "")
+            if not hmac.compare_digest(given.encode(), f"Bearer {self.token}".encode()):
+                self.unauthorized += 1
+                self.gate.throttle.note("metrics: request without the right bearer token "
+                                        "refused", f"from {request.remote}")
+                return web.Response(status=401, text="a bearer token is required\n",
+                                    headers={"WWW-Authenticate": 'Bearer realm="chcos"'})
+        loop = asyncio.get_running_loop()
+        body = await loop.run_in_executor(None, generate_latest, self.registry)
+        return web.Response(body=body, headers={"Content-Type": CONTENT_TYPE_LATEST})
+
+    async def _serve(self, service: LoopThread) -> None:
+        throttle_library_logs()
+        app = web.Application(middlewares=[http_limits(self.gate)], client_max_size=MAX_BODY)
+        app.router.add_get("/metrics", self._metrics)
+        app.router.add_get("/", self._metrics)
+        runner = web.AppRunner(app, access_log=None, shutdown_timeout=1.0,
+                               keepalive_timeout=REQUEST_TIMEOUT)
+        await runner.setup()
+        try:
+            listener = await serve_http(runner, self.gate, self.host, self.port,
+                                        self.ssl_context)
+            self.port = bound_port(listener)
+            service.ready()
+            await service.stopped()
+            listener.close()
+        finally:
+            await runner.cleanup()
 
     def stop(self) -> None:
         """Stop serving and remove the step timer from the kernel."""
-        self.httpd.shutdown()
-        self.httpd.server_close()
-        self.thread.join(timeout=10)
+        self._service.stop(timeout=10)
         self.system.kernel.remove_instrument(self.steps)
 
 
 def serve(system: System, host: str = "127.0.0.1", port: int = 0, *,
-          certfile: str | None = None, keyfile: str | None = None) -> MetricsServer:
+          certfile: str | None = None, keyfile: str | None = None,
+          token_file: str | None = None) -> MetricsServer:
     """Serve ``/metrics`` of ``system`` on ``host:port`` (0: a free port). Raises NorthError if
-    the address is not loopback and no TLS certificate and key are given, or it cannot bind."""
+    the address is not loopback and no TLS certificate and key, or no bearer token file, are
+    given, if the token file is unusable, or if it cannot bind."""
     if not is_loopback(host) and not (certfile and keyfile):
         raise NorthError(f"metrics on {host}: a non-loopback address needs TLS: give "
                          "--north-tls-cert and --north-tls-key (PEM certificate and key)")
+    if not is_loopback(host) and not token_file:
+        raise NorthError(f"metrics on {host}: a non-loopback address needs a bearer token: "
+                         "give --metrics-token FILE (scrapers send Authorization: Bearer ...)")
+    token = read_token(token_file) if token_file else None
+    ctx = None
+    if certfile and keyfile:
+        import ssl
+
+        ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+        try:
+            ctx.load_cert_chain(certfile, keyfile)
+        except (OSError, ssl.SSLError) as exc:
+            raise NorthError(f"metrics: cannot load {certfile} / {keyfile}: {exc}") from exc
     steps = StepTimes()
     registry = CollectorRegistry(auto_describe=False)
     registry.register(SystemCollector(system, steps))
-    try:
-        httpd, thread = start_http_server(port, host, registry=registry,
-                                          certfile=certfile, keyfile=keyfile)
-    except OSError as exc:
-        raise NorthError(f"metrics: cannot serve on {host}:{port}: {exc}") from exc
-    system.kernel.add_instrument(steps)
-    scheme = "https" if certfile else "http"
-    h = f"[{host}]" if ":" in host else host
-    return MetricsServer(httpd, thread, system, steps,
-                         f"{scheme}://{h}:{httpd.server_address[1]}/metrics")
+    return MetricsServer(system, registry, steps, host, port, ctx, token).start()
 
 
-__all__ = ["MetricsServer", "StepTimes", "SystemCollector", "node_families", "serve"]
+__all__ = ["MetricsServer", "StepTimes", "SystemCollector", "node_families", "read_token",
+           "serve"]

@@ -26,8 +26,15 @@ code  name                  when
 0x06  DEVICE_BUSY           an active task owns the actuator
 ====  ====================  ==========================================================
 
+A request whose function code has the exception bit set (0x80 and above: no request is) is
+answered ILLEGAL_FUNCTION as pymodbus answers any exception, not passed to the datastore.
+
 The unit id is ignored (one device table). The server binds 127.0.0.1 by default; Modbus has no
 authentication, so another address must be asked for explicitly (``allow_remote``).
+Connections are bounded (:mod:`chcos.north.guard`): at most :data:`MAX_CONNECTIONS` at once
+(a connection beyond is closed as soon as accepted), one silent for
+:data:`chcos.north.guard.IDLE_TIMEOUT` seconds is closed; refusals, refused writes and what
+pymodbus logs about junk are counted and logged once per period per cause.
 """
 
 from __future__ import annotations
@@ -36,20 +43,24 @@ import asyncio
 import logging
 import math
 import struct
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from pymodbus.constants import ExcCodes
 from pymodbus.datastore import ModbusServerContext
+from pymodbus.pdu import ExceptionResponse, ModbusPDU
 from pymodbus.server import ModbusTcpServer
 
 from chcos.comm.config import is_loopback
+from chcos.comm.secret import Throttle
 from chcos.devices.spec import DeviceMap, DeviceSpec
 from chcos.errors import ChcosError, DeviceError
 from chcos.north import NorthError
 from chcos.north.health import device_health
-from chcos.north.loopthread import LoopThread
+from chcos.serving.guard import ConnectionGate, connection_cap, throttle_library_logs
+from chcos.serving.loopthread import LoopThread
 from chcos.tables.tasks import TaskState
 
 if TYPE_CHECKING:
@@ -57,6 +68,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("chcos.north.modbus")
 INPUT, DISCRETE, HOLDING = "input", "discrete", "holding"
+#: Concurrent Modbus connections the facade takes (less if the descriptor limit is low).
+MAX_CONNECTIONS = 64
 
 
 @dataclass(frozen=True)
@@ -223,7 +236,7 @@ class _Context(ModbusServerContext):
                 await loop.run_in_executor(None, f.system.call, north_write, f.system,
                                            e.device.name, value, "modbus-facade")
             except Refused as exc:
-                log.warning("modbus facade: write refused: %s", exc)
+                f.rejected.note(f"modbus facade: write refused ({exc.code.name})", str(exc))
                 f.refusals.append((exc.code, str(exc)))
                 return exc.code
             except ChcosError as exc:
@@ -232,9 +245,37 @@ class _Context(ModbusServerContext):
         return None
 
 
+class _NotARequest(ExceptionResponse):
+    """A received frame whose function code has the exception bit set: no request is. Answered
+    ILLEGAL_FUNCTION in pymodbus' own exception form, never passed to the datastore."""
+
+    async def datastore_update(self, context: Any, device_id: int) -> ModbusPDU:
+        return ExceptionResponse(self.function_code & 0x7F, ExcCodes.ILLEGAL_FUNCTION)
+
+
+def _requests_only(sending: bool, pdu: ModbusPDU) -> ModbusPDU:
+    """pymodbus' trace hook: a received exception frame becomes :class:`_NotARequest`."""
+    if not sending and isinstance(pdu, ExceptionResponse):
+        return _NotARequest(pdu.function_code & 0x7F, device_id=pdu.dev_id,
+                            transaction=pdu.transaction_id)
+    return pdu
+
+
+class _GatedServer(ModbusTcpServer):
+    """pymodbus' TCP server with its connections through a :class:`ConnectionGate`."""
+
+    def __init__(self, gate: ConnectionGate, context: ModbusServerContext,
+                 address: tuple[str, int]) -> None:
+        self._gate = gate
+        super().__init__(context, address=address, trace_pdu=_requests_only)
+
+    def handle_new_connection(self) -> Any:
+        return self._gate.factory(super().handle_new_connection)()
+
+
 class ModbusFacade:
     """The facade of ``system`` served on ``host:port`` (port 0: a free one) from a background
-    thread. ``refusals`` lists (code, reason) of refused writes, newest last."""
+    thread. ``refusals`` lists (code, reason) of the last 100 refused writes, newest last."""
 
     def __init__(self, system: System, host: str = "127.0.0.1", port: int = 0, *,
                  allow_remote: bool = False) -> None:
@@ -245,7 +286,12 @@ class ModbusFacade:
         self.host = host
         self.port = port
         self.map = RegisterMap(system.devmap)
-        self.refusals: list[tuple[int, str]] = []
+        self.refusals: deque[tuple[int, str]] = deque(maxlen=100)
+        #: refused writes by cause, logged once per period
+        self.rejected = Throttle(log)
+        #: the cap, idle timeout and counts of the facade's connections
+        self.gate = ConnectionGate("modbus facade", connection_cap(MAX_CONNECTIONS),
+                                   stream=True)
         self._server: ModbusTcpServer | None = None
         self._service = LoopThread("chcos-modbus-facade")
 
@@ -260,7 +306,8 @@ class ModbusFacade:
 
     async def _serve(self, service: LoopThread) -> None:
         """The server's life on its loop: bind, serve until stopped, shut down."""
-        server = ModbusTcpServer(_Context(self), address=(self.host, self.port))
+        throttle_library_logs()
+        server = _GatedServer(self.gate, _Context(self), (self.host, self.port))
         await server.serve_forever(background=True)
         self._server = server
         try:

@@ -43,10 +43,19 @@ Device values and health are copied from the tables on the server's own thread e
 seconds (0.05), ages and the task and link figures every 0.5 s (only what changed is written;
 subscriptions see it at their next publishing interval); the kernel only pays for the event hook
 (and shares the interpreter: ``tools/bench_north.py`` measures what the server costs the control
-loops). Anonymous sessions may read and subscribe; username/password sessions get their role
+loops). Connections are bounded (asyncua's cap and activation timeout, set from
+:mod:`chcos.north.guard`: at most :data:`MAX_CONNECTIONS`, a session activated within
+:data:`chcos.north.guard.REQUEST_TIMEOUT` seconds of connecting); what asyncua logs about junk
+is rate-limited, once per cause per period. Wrong logins are throttled as the live view's
+(:class:`chcos.north.auth.LoginThrottle`, per address and per user name). Anonymous sessions
+may read and subscribe; username/password sessions get their role
 (:mod:`chcos.north.opcua_methods`: sessions, rules and the methods; the alarms are
 :mod:`chcos.north.opcua_alarms`). The endpoint is loopback by default; any other address needs
-a certificate and private key and then offers only Basic256Sha256 Sign&Encrypt.
+a certificate and private key and then offers only Basic256Sha256 Sign&Encrypt. On loopback
+without a certificate the only endpoint has security policy None: a username and password then
+cross the loopback interface unencrypted (readable only by a process that can capture loopback
+traffic, i.e. root or CAP_NET_RAW); give a certificate and key (and ``secure=True``) to offer
+Sign&Encrypt only there too (``docs/security.md``).
 """
 
 from __future__ import annotations
@@ -68,14 +77,15 @@ from chcos.helpers import free_port
 from chcos.kernel.instrument import Instrument
 from chcos.north import NorthError
 from chcos.north.health import add_health_listener, device_health, remove_health_listener
-from chcos.north.loopthread import LoopThread
 from chcos.north.opcua_alarms import Alarm, AlarmsMixin
 from chcos.north.opcua_methods import CURRENT_USER, Logins, Rules, Session
+from chcos.serving.guard import REQUEST_TIMEOUT, connection_cap, throttle_library_logs
+from chcos.serving.loopthread import LoopThread
 
 if TYPE_CHECKING:
     from asyncua.common.node import Node
 
-    from chcos.north.auth import Users
+    from chcos.serving.auth import Users
     from chcos.system.embedded import System
 
 #: asyncua's ua module, untyped here: its NewType-wrapped scalars (UInt32, Int16, String...)
@@ -84,6 +94,8 @@ ua: Any = _ua
 log = logging.getLogger("chcos.north.opcua")
 NAMESPACE = "urn:chcos"
 EVENT_KINDS = {"device-failed": 900, "device-stale": 700, "estop": 900, "abnormal": 800}
+#: Concurrent OPC UA connections the server takes (less if the descriptor limit is low).
+MAX_CONNECTIONS = 64
 
 
 def _status(direction: str, status: str, has_value: bool) -> ua.StatusCode:
@@ -140,6 +152,8 @@ class OpcUaServer(AlarmsMixin):
         #: seconds between refreshes of ages, task and link figures
         self.slow_period = 0.5
         self.refused: list[tuple[str, str, str]] = []
+        #: the username/password check and its throttle (per address and per user name)
+        self.logins = Logins(users)
         self._service = LoopThread("chcos-opcua")
         self._instrument: _Events | None = None
         self._nodes: dict[str, dict[str, Node]] = {}
@@ -192,9 +206,14 @@ class OpcUaServer(AlarmsMixin):
                 remove_health_listener(self.system.devtab, self._on_health)
 
     async def _serve_until_stopped(self, service: LoopThread) -> None:
-        server = Server(user_manager=Logins(self.users))
+        throttle_library_logs()
+        server = Server(user_manager=self.logins)
         await server.init()
         iserver = server.iserver
+        # bounded as every north-side server (chcos.north.guard): a cap on connections, and
+        # a connection that has not activated a session within REQUEST_TIMEOUT is closed
+        iserver.max_connections = connection_cap(MAX_CONNECTIONS)
+        iserver.max_pending_activation_seconds = REQUEST_TIMEOUT
 
         def create_session(name: str, user: User = User(role=UserRole.Anonymous),  # noqa: B008
                            external: bool = False) -> InternalSession:

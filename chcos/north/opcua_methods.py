@@ -2,8 +2,11 @@
 
 Sessions carry their user (:class:`Session` sets :data:`CURRENT_USER` while a method call runs;
 :class:`Logins` checks username/password against :class:`chcos.north.auth.Users`, anonymous
-otherwise); :class:`Rules` lets everyone read, browse, subscribe and call and nobody write
-attributes or change the address space. The methods on the ``chcos`` object -
+otherwise, through the same :class:`chcos.north.auth.LoginThrottle` bar as the live view: per
+client address and per user name, each attempt counted before its password is checked, a
+barred attempt refused (BadUserAccessDenied) unchecked); :class:`Rules` lets everyone read,
+browse, subscribe and call and nobody write attributes or change the address space. The
+methods on the ``chcos`` object -
 ``Invoke(Task, Args, Priority)``, ``SetPri(Src, Dst, Priority)``, ``Suspend(Task)``,
 ``Resume(Task)``, ``EStop(Reason)`` - are :class:`MethodsMixin`'s: each checks the caller's role
 (BadUserAccessDenied), runs through the host's command path (:meth:`System.execute`) or
@@ -25,17 +28,21 @@ from asyncua.crypto.permission_rules import USER_TYPES, PermissionRuleset, User,
 from asyncua.server.internal_session import InternalSession
 from asyncua.server.user_managers import UserManager
 
+from chcos.comm.secret import Throttle
 from chcos.errors import Busy, ChcosError
 
 if TYPE_CHECKING:
     from asyncua.common.node import Node
 
-    from chcos.north.auth import Users
+    from chcos.serving.auth import LoginThrottle, Users
     from chcos.system.embedded import System
 
 #: asyncua's ua module, untyped here (see :mod:`chcos.north.opcua`)
 ua: Any = _ua
 log = logging.getLogger("chcos.north.opcua")
+#: The client address of the session being activated (for the login throttle).
+CURRENT_PEER: contextvars.ContextVar[str] = contextvars.ContextVar("chcos_opcua_peer",
+                                                                   default="?")
 #: The user of the OPC UA session whose method call is running.
 CURRENT_USER: contextvars.ContextVar[User | None] = contextvars.ContextVar("chcos_opcua_user",
                                                                            default=None)
@@ -68,8 +75,13 @@ class Logins(UserManager):
     """Username/password sessions get their account (role checked per method); no name and no
     certificate: anonymous; a bad password: refused."""
 
-    def __init__(self, users: Users | None) -> None:
+    def __init__(self, users: Users | None, throttle: LoginThrottle | None = None) -> None:
+        from chcos.serving.auth import LoginThrottle
+
         self.users = users
+        self.throttle = throttle or LoginThrottle()
+        #: logins refused unchecked, logged once per period with a count
+        self.rejected = Throttle(log)
 
     def get_user(self, iserver: Any, username: str | None = None, password: str | None = None,
                  certificate: Any = None) -> User | None:
@@ -77,12 +89,27 @@ class Logins(UserManager):
             return User(role=UserRole.Anonymous)
         if self.users is None or not username:
             return None
+        peer = CURRENT_PEER.get()
+        if self.throttle.begin(peer, username) > 0:
+            self.rejected.note("opcua: logins refused unchecked (too many wrong logins)",
+                               f"{username[:64]!r} from {peer}")
+            return None
         u = self.users.check(username, password or "")
+        self.throttle.end(peer, username, u is not None)
         return None if u is None else User(role=UserRole.User, name=u.name)
 
 
 class Session(InternalSession):
-    """A session whose method calls see its user in :data:`CURRENT_USER`."""
+    """A session whose method calls see its user in :data:`CURRENT_USER`, and whose
+    activation tells the login check its client address (:data:`CURRENT_PEER`)."""
+
+    def activate_session(self, params: Any, peer_certificate: bytes | None) -> Any:
+        peer = self.name[0] if isinstance(self.name, tuple) and self.name else str(self.name)
+        token = CURRENT_PEER.set(str(peer))
+        try:
+            return super().activate_session(params, peer_certificate)
+        finally:
+            CURRENT_PEER.reset(token)
 
     async def call(self, params: list[ua.CallMethodRequest]) -> list[ua.CallMethodResult]:
         token = CURRENT_USER.set(self.user)

@@ -11,6 +11,7 @@ all. Flags (every address is loopback unless given; a service not named does not
 ``--view [HOST:PORT]``           the live page (default 127.0.0.1:8765)
 ``--north-users FILE``           accounts and roles (:mod:`chcos.north.auth`): without it the
                                  view and OPC UA are read-only
+``--metrics-token FILE``         bearer token scrapers must send (required off loopback)
 ``--north-tls-cert/--north-tls-key``  certificate and key (PEM): TLS for the metrics endpoint
                                  and the view, the OPC UA server certificate (Basic256Sha256);
                                  required for any address off loopback
@@ -33,7 +34,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 from chcos.north import NorthError
 
 if TYPE_CHECKING:
-    from chcos.north.auth import Users
+    from chcos.serving.auth import Users
     from chcos.system.embedded import System
 
 DEFAULTS = {"metrics": "127.0.0.1:9464", "modbus_facade": "127.0.0.1:5020",
@@ -61,6 +62,9 @@ def add_north_arguments(parser: argparse.ArgumentParser) -> None:
                    help=f"serve OPC UA (default {DEFAULTS['opcua']})")
     g.add_argument("--view", nargs="?", const=DEFAULTS["view"], metavar="HOST:PORT",
                    help=f"serve the live page (default {DEFAULTS['view']})")
+    g.add_argument("--metrics-token", metavar="FILE",
+                   help="file holding the bearer token a scraper must send (Authorization: "
+                        "Bearer ...); required for metrics off loopback")
     g.add_argument("--north-users", metavar="FILE",
                    help="users file (roles observer/operator/supervisor); without it the view "
                         "and OPC UA are read-only")
@@ -83,6 +87,7 @@ class NorthOptions:
     tls_cert: str | None = None
     tls_key: str | None = None
     modbus_allow_remote: bool = False
+    metrics_token: str | None = None
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> NorthOptions:
@@ -90,12 +95,13 @@ class NorthOptions:
         file."""
         users = None
         if getattr(args, "north_users", None):
-            from chcos.north.auth import Users
+            from chcos.serving.auth import Users
 
             users = Users.from_file(args.north_users)
         return cls(args.metrics, args.modbus_facade, args.opcua, args.view, users,
                    args.north_tls_cert, args.north_tls_key,
-                   bool(getattr(args, "modbus_allow_remote", False)))
+                   bool(getattr(args, "modbus_allow_remote", False)),
+                   getattr(args, "metrics_token", None))
 
     @property
     def any(self) -> bool:
@@ -138,7 +144,7 @@ def start(system: System, options: NorthOptions) -> NorthHandle:
 
             host, port = host_port(options.metrics, "metrics")
             m = serve_metrics(system, host, port, certfile=options.tls_cert,
-                              keyfile=options.tls_key)
+                              keyfile=options.tls_key, token_file=options.metrics_token)
             h.services["metrics"], h.urls["metrics"] = m, m.url
             h._stops.append(m.stop)
         if options.modbus_facade:
@@ -183,7 +189,7 @@ def start(system: System, options: NorthOptions) -> NorthHandle:
 def north_main(argv: Sequence[str], stdin: TextIO | None = None) -> int:
     """``chcos north passwd``: print a password hash for a users file. Returns 0, or 1 if the
     two entries differ or the password is empty."""
-    from chcos.north.auth import hash_password
+    from chcos.serving.auth import hash_password
 
     ap = argparse.ArgumentParser(prog="chcos north", description="North-side accounts.")
     sub = ap.add_subparsers(dest="cmd", required=True)

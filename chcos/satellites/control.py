@@ -14,15 +14,18 @@ op              request                                answer
                                                        one page of the JSON text of ``map``,
                                                        ``alive``, ``rejected``
 ``log``         :class:`LogRequest`                    ``log``: the install log
-``head``        :class:`HeadRequest`                   ``length``, ``hash`` of the install log
+``head``        :class:`HeadRequest`                   ``length``, ``hash`` of the committed
+                                                       install log, ``pending``: the entry
+                                                       accepted at ``length`` (or null)
 ``hello``       :class:`HelloRequest` (nonce)          ``machine``, ``nonce``: proof that this
                                                        satellite is up now (its sealed answer
                                                        repeats the host's fresh nonce)
 ``sync``        :class:`SyncRequest` (source, need)    ``applied``: entries fetched and applied
 ``exec``        :class:`ExecRequest` (line)            ``answer``: a runtime command's answer
-``prepare``     :class:`ChangeRequest` (PREPARE)       ``seq``: checked at this log length
-``append``      :class:`ChangeRequest` (APPEND)        ``answer``, ``seq``: applied as entry seq
-``commit``      :class:`ChangeRequest` (COMMIT)        ``answer``, ``seq``
+``prepare``     :class:`ChangeRequest` (PREPARE)       ``seq``: checked at this log length;
+                                                       ``pending``: the entry accepted at seq
+``accept``      :class:`ChangeRequest` (ACCEPT)        ``seq``: saved as the uncommitted entry
+``commit``      :class:`ChangeRequest` (COMMIT)        ``answer``, ``seq``: applied as entry seq
 =============== ====================================== =========================================
 """
 
@@ -44,8 +47,9 @@ class Phase(enum.Enum):
     """The step of a table change (see :mod:`chcos.satellites.satellite`)."""
 
     PREPARE = "prepare"   # every live satellite checks the line at log length ``seq``
-    APPEND = "append"     # the sequencer applies it as entry ``seq`` (compare-and-append)
-    COMMIT = "commit"     # every other satellite applies entry ``seq``
+    ACCEPT = "accept"     # saved as the uncommitted entry ``seq`` (the sequencer first:
+                          # compare-and-set), durably, not applied
+    COMMIT = "commit"     # applied as entry ``seq`` (the sequencer first: the commit point)
 
 
 @dataclass(frozen=True)
@@ -182,6 +186,6 @@ def decode(payload: bytes) -> ControlRequest:
         phase = Phase(op)
     except ValueError:
         raise TypeError(f"op: expected one of map, log, head, hello, sync, exec, prepare, "
-                        f"append, commit, got {op!r:.40}") from None
+                        f"accept, commit, got {op!r:.40}") from None
     return ChangeRequest(phase, _line(doc), _int(doc, "seq", "a log position >= 0"),
                          _int(doc, "leader", "a machine", optional=True))

@@ -2,11 +2,21 @@
 
 ``Host.execute("install -m1i1o1 A2 S3 M2")`` reaches a running multi-satellite system from another
 terminal, exactly as the thesis' shell script of section 6.3 does. Table changes are prepared on
-every live satellite (each checks them; the target machine also loads the task's code) and only
-then appended to the install log by the sequencer (the lowest-numbered live satellite, a
-compare-and-append at the log length every satellite prepared at) and committed everywhere else;
-a host that lost the race to another host prepares again at the new length (up to
-:data:`RACE_RETRIES` times, then InstallError). A refused install changes no satellite's tables.
+every live satellite (each checks them; the target machine also checks the task's code), then
+accepted (saved uncommitted) by the sequencer - the lowest-numbered live satellite, a
+compare-and-set at the log length every satellite prepared at - and by every other live
+satellite, then committed on the sequencer (the commit point) and everywhere else (the protocol
+and why the logs cannot diverge: :mod:`chcos.satellites.satellite`). A host that lost the race
+to another host prepares again at the new length (up to :data:`RACE_RETRIES` times, then
+InstallError); one that finds an accepted, uncommitted entry completes it first. A refused
+install changes no satellite's tables.
+
+The answer is what the replicated log holds: a satellite that stops answering during a change
+(killed, its link cut) is left out, and the change goes on with the others - it replays the
+entry when it rejoins, and the answer says so; when the sequencer stops answering, the host
+asks the next one whether the line is in the log (committed, or accepted and then completed)
+and carries on from there, so an install is never reported failed while a log holds it, nor
+applied twice.
 Runtime commands go to the satellite of the task or device concerned. Every request is sealed with
 the host role's key of the system secret (see :mod:`chcos.comm.secret`).
 
@@ -38,6 +48,7 @@ from chcos.satellites.control import (
     ExecRequest,
     HeadRequest,
     HelloRequest,
+    LogRequest,
     MapRequest,
     Phase,
     SyncRequest,
@@ -56,6 +67,11 @@ HELLO_RETRY = 0.5
 
 class RaceLost(InstallError):
     """Another host changed the install log first; the install was not applied."""
+
+
+class Unreachable(LinkError):
+    """A satellite did not answer a request (down, or its link cut): whether it carried the
+    request out is not known from here."""
 
 
 class Host:
@@ -199,9 +215,14 @@ class Host:
     # ---- requests ---------------------------------------------------------------------------
     def _ask(self, machine: int, req: ControlRequest) -> dict[str, Any]:
         """Send ``req`` to satellite ``machine`` and return its answer. Raises the refusal as
-        CommandSyntaxError, LinkError, RaceLost or InstallError naming the machine."""
-        raw = self.transport.request(f"{self.sf.prefix}/m/{machine}/ctl", control.encode(req),
-                                     timeout=self.timeout, roles=frozenset({"satellite"}))
+        CommandSyntaxError, LinkError, RaceLost or InstallError naming the machine, and
+        Unreachable if it did not answer."""
+        try:
+            raw = self.transport.request(f"{self.sf.prefix}/m/{machine}/ctl",
+                                         control.encode(req), timeout=self.timeout,
+                                         roles=frozenset({"satellite"}))
+        except LinkError as exc:
+            raise Unreachable(f"machine {machine}: {exc}") from exc
         reply: dict[str, Any] = json.loads(raw)
         if not reply.get("ok"):
             kind = reply.get("type", "")
@@ -304,31 +325,99 @@ class Host:
         return doc
 
     def _change(self, line: str, target: int | None) -> str:
-        """Prepare ``line`` everywhere, have the sequencer append it to the install log at the
-        length everybody prepared at, commit it everywhere else; start again when another host
-        got there first. Returns the answer of the task's own satellite."""
+        """Put ``line`` in the replicated install log (see the module doc); start again when
+        another host got there first or a satellite stopped answering. Returns the answer of
+        the task's own satellite (or the sequencer's, saying who replays it later). Raises
+        InstallError if it is refused (nothing changed), RaceLost after RACE_RETRIES rounds."""
+        tried: set[int] = set()  # log positions where this line was accepted
         for attempt in range(RACE_RETRIES):
             up = self._up() if attempt == 0 else self.alive() or self._up()
-            leader = min(up)
-            order = sorted(up, key=lambda m: (m != target, m))
             try:
-                seq = int(self._ask(leader, HeadRequest())["length"])
-                for m in order:
-                    self._ask(m, ChangeRequest(Phase.PREPARE, line, seq, leader))
-                answers = {leader: self._ask(leader, ChangeRequest(Phase.APPEND, line,
-                                                            seq))["answer"]}
-            except RaceLost:
-                self.races_lost += 1
-                self._sync_sequencer(up)
+                answer = self._round(line, target, up, tried)
+            except (RaceLost, Unreachable) as exc:
+                if isinstance(exc, RaceLost):
+                    self.races_lost += 1
+                    self._sync_sequencer(up)
+                else:
+                    log.info("install %r: %s; asking the satellites up again", line, exc)
                 time.sleep(random.uniform(0.0, 0.02 * (attempt + 1)))  # back off, then retry
                 continue
-            for m in order:
-                if m != leader:
-                    answers[m] = self._ask(m, ChangeRequest(Phase.COMMIT, line, seq,
-                                                             leader))["answer"]
-            return str(answers.get(target if target in answers else leader))
+            if answer is not None:
+                return answer
         raise RaceLost(f"{line!r} not applied: other hosts changed the install log first "
                        f"{RACE_RETRIES} times in a row")
+
+    def _round(self, line: str, target: int | None, up: list[int],
+               tried: set[int]) -> str | None:
+        """One attempt: the answer once ``line`` is committed, None if the round committed
+        another host's accepted entry first (try again). Raises RaceLost, Unreachable (the
+        sequencer did not answer), InstallError (refused)."""
+        leader = min(up)
+        head = self._ask(leader, HeadRequest())
+        seq = int(head["length"])
+        if any(s < seq for s in tried):  # an earlier attempt may have been committed
+            held = self._ask(leader, LogRequest())["log"]
+            if any(s < len(held) and held[s] == line for s in tried):
+                return f"{line}: committed (the sequencer stopped answering meanwhile)"
+        if head.get("pending") is not None:
+            value = str(head["pending"])
+            answers = self._complete(value, seq, up, leader, tried if value == line else None)
+            return self._answer(answers, target, up) if value == line else None
+        order = sorted(up, key=lambda m: (m != target, m))
+        live, pending = [], {}
+        for m in order:
+            try:
+                reply = self._ask(m, ChangeRequest(Phase.PREPARE, line, seq, leader))
+            except Unreachable:
+                if m == leader:
+                    raise
+                continue  # down: it catches up when it rejoins
+            live.append(m)
+            if reply.get("pending") is not None:
+                pending[m] = str(reply["pending"])
+        value = pending[min(pending)] if pending else line
+        answers = self._complete(value, seq, live, leader, tried if value == line else None)
+        return self._answer(answers, target, up) if value == line else None
+
+    def _complete(self, value: str, seq: int, live: list[int], leader: int,
+                  tried: set[int] | None) -> dict[int, str]:
+        """Accept ``value`` as entry ``seq`` on the sequencer then on the others of ``live``,
+        commit it on the sequencer (the commit point) then on the others; a follower that does
+        not answer is left out (it replays the entry when it rejoins). Returns the answers of
+        the satellites that committed it. Raises RaceLost, Unreachable (the sequencer)."""
+        self._ask(leader, ChangeRequest(Phase.ACCEPT, value, seq, leader))
+        if tried is not None:
+            tried.add(seq)
+        accepted = [leader]
+        for m in live:
+            if m != leader:
+                try:
+                    self._ask(m, ChangeRequest(Phase.ACCEPT, value, seq, leader))
+                    accepted.append(m)
+                except Unreachable:
+                    continue
+        answers = {leader: str(self._ask(leader, ChangeRequest(Phase.COMMIT, value, seq,
+                                                               leader))["answer"])}
+        for m in accepted[1:]:
+            try:
+                answers[m] = str(self._ask(m, ChangeRequest(Phase.COMMIT, value, seq,
+                                                            leader))["answer"])
+            except Unreachable:
+                continue
+        return answers
+
+    def _answer(self, answers: dict[int, str], target: int | None, up: list[int]) -> str:
+        """The answer of the task's own satellite, or the sequencer's saying which satellites
+        replay the committed entry when they rejoin."""
+        if target in answers:
+            return answers[target]
+        later = sorted(m for m in self.sf.satellites
+                       if m not in answers and (m in up or m == target))
+        text = answers[min(answers)]
+        if later:
+            text += (f" (committed on machine(s) {sorted(answers)}; machine(s) {later} did not "
+                     "answer and apply it when they rejoin)")
+        return text
 
     def _sync_sequencer(self, up: list[int]) -> None:
         """If the sequencer holds fewer log entries than another satellite (it restarted alone

@@ -3,9 +3,12 @@ check of a task's code reference before anything is imported (see
 :mod:`chcos.satellites.satellite`).
 
 The log is a list of host command lines that change the tables (install, setpri, resetpri,
-boot), applied in order on every satellite. A satellite keeps it in ``m<N>.log`` in the
-system's state directory, one JSON string per line, fsync'd on every append; peers exchange it
-as one JSON list.
+boot), applied in order on every satellite. A satellite keeps its *committed* entries in
+``m<N>.log`` in the system's state directory, one JSON string per line, fsync'd on every
+append; peers exchange it as one JSON list. The one entry it accepted but does not yet know to
+be committed (see :mod:`chcos.satellites.satellite` for the protocol) is kept apart, in
+``m<N>.pending`` (``{"seq": N, "line": "..."}``, fsync'd), so that a restart can tell its
+committed log from its uncommitted tail.
 """
 
 from __future__ import annotations
@@ -130,3 +133,37 @@ def append_log(path: Path, line: str) -> None:
         f.write(json.dumps(line) + "\n")
         f.flush()
         os.fsync(f.fileno())
+
+
+def read_pending(path: Path) -> tuple[int, str] | None:
+    """The uncommitted entry saved in ``path`` as (log position, line), or None if there is no
+    file. Raises LinkError naming the file if it is corrupt."""
+    try:
+        raw = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        return None
+    try:
+        doc = json.loads(raw)
+        seq, line = doc["seq"], doc["line"]
+        if isinstance(seq, bool) or not isinstance(seq, int) or seq < 0:
+            raise ValueError(f"seq: expected a log position, got {seq!r:.40}")
+        parse_log(json.dumps([line]).encode())
+    except (ValueError, KeyError, TypeError, LinkError) as exc:
+        raise LinkError(f"{path}: not an uncommitted install log entry ({exc})") from exc
+    return seq, str(line)
+
+
+def write_pending(path: Path, seq: int, line: str) -> None:
+    """Save the uncommitted entry ``line`` at log position ``seq`` in ``path`` (atomically,
+    fsync'd, owner-only). Raises OSError if it cannot be written."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    with os.fdopen(_open_private(tmp, os.O_WRONLY | os.O_TRUNC), "w", encoding="utf-8") as f:
+        f.write(json.dumps({"seq": seq, "line": line}))
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def clear_pending(path: Path) -> None:
+    """Remove the uncommitted entry saved in ``path`` (no error if there is none)."""
+    path.unlink(missing_ok=True)

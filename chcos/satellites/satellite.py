@@ -4,18 +4,40 @@ A satellite runs the kernel, tasks and devices of its machine and keeps a copy o
 tables, which every satellite builds from the same *install log*: the host's install, setpri and
 boot commands in the order they were committed (thesis 6: "every processor keeps the same
 message table, updated by broadcast at each install"). Each log entry is a plain host command
-line. A host command that changes the tables goes in three steps:
+line. A host command that changes the tables goes in three steps, driven by the host
+(:mod:`chcos.satellites.host`) over the satellites it found up, the lowest-numbered of them
+being the *sequencer*:
 
-1. ``prepare`` (every live satellite checks it against its tables at the log length the host
-   expects; nobody imports any code, the task's satellite only checks that its code reference
-   names a module on the Python path or a file inside the system's task path);
-2. ``append`` on the *sequencer*, the lowest-numbered live satellite: a compare-and-append that
-   applies the line as entry ``seq`` only if its log still has exactly ``seq`` entries; a host
-   that lost the race to another host is told so (:class:`RaceLost`) and starts again at the new
-   length;
-3. ``commit`` on every other live satellite: entry ``seq`` is applied in order (a satellite that
-   misses earlier entries first fetches them from the sequencer); a commit below the log length
-   compares the line with the entry held there and refuses a different one (the logs diverged).
+1. ``prepare`` (every live satellite checks the line against its tables at the log length
+   ``seq`` the host read from the sequencer; nobody imports any code, the task's satellite only
+   checks that its code reference names a module on the Python path or a file inside the
+   system's task path); each answers the entry it holds *accepted but uncommitted* at ``seq``,
+   if any;
+2. ``accept`` on the sequencer first (a compare-and-set: its log has exactly ``seq`` entries
+   and it holds no other uncommitted entry at ``seq``; a host that lost the race to another
+   host is told so, :class:`RaceLost`, and starts again at the new length), then on every
+   other live satellite: each saves the line as its uncommitted entry ``seq``
+   (``m<N>.pending``, fsync'd) and applies nothing;
+3. ``commit`` on the sequencer first, then everywhere else: the entry is applied and appended
+   to the committed log ``m<N>.log`` (fsync'd), and the uncommitted copy removed.
+
+**Why the logs cannot diverge.** An entry enters a committed log only after every live
+satellite holds it durably (step 2 before step 3), so whoever of them is up next holds it,
+committed or accepted. A host (this one retrying, or any other) that finds an accepted entry at
+the log's end - on the sequencer (``head``) or on any satellite (``prepare``) - completes *that*
+entry first (accept everywhere, commit), before its own line: the entry may have been
+committed by a sequencer that died since, and completing it is the one choice that agrees with
+every outcome. A restarted satellite keeps its committed log and drops its uncommitted entry
+once its peers' committed log covers that position, logging whether the peers hold the same
+line there (it was committed) or another one (it never was: nobody had been told it was);
+alone, it keeps it for the next host to complete. So a committed entry is never lost and never
+contradicted while at least one satellite that held it is up; the host's answer is what the
+replicated log holds (:meth:`chcos.satellites.host.Host.execute`). The limit, stated: the
+membership is "every satellite up", not a quorum (one satellite alone keeps its machine
+running and takes installs, as the thesis' system does), so if every satellite that holds a
+committed entry is down while the others commit a different entry at that position (a
+partition), the two logs contradict: the returning satellite refuses to start naming the first
+entry that differs (below), never silently.
 
 Code named by an install is imported only when the committed entry is applied on the task's own
 satellite; if it then fails to load, the task is still entered in the tables (so every satellite
@@ -26,9 +48,14 @@ anything, checks that it is a list of install lines that extends its own, and ap
 as an install would be; with nobody up it replays its own saved install log ``m<N>.log`` from
 the system's state directory (or, without one, its sysfile.map there). A satellite
 whose saved log is longer than its peers' and extends theirs replays its own (the host then
-brings the sequencer up to date); one whose saved log contradicts its peers' refuses to start,
-naming the first entry that differs. Runtime commands (invoke, suspend, resume, close, inject)
-go only to the satellite that runs the task or device.
+brings the sequencer up to date); one whose committed log contradicts its peers' refuses to
+start, naming the first entry that differs. Runtime commands (invoke, suspend, resume, close,
+inject) go only to the satellite that runs the task or device.
+
+Tests only: ``CHCOS_TEST_CRASH_AT=PHASE:WHEN`` (``prepare``/``accept``/``commit``, ``before``
+or ``after`` the step's durable effect) makes the satellite SIGKILL itself at that point of
+its first such request, so a test can stop it at every step of the commit path
+deterministically.
 
 Control keys, under ``chcos/<system>``: ``m/<N>/ctl`` (host requests to machine N, JSON; only
 payloads sealed by the host role are accepted), ``log`` and ``m/<N>/log`` (the install log, to
@@ -41,6 +68,8 @@ import hashlib
 import itertools
 import json
 import logging
+import os
+import signal
 import threading
 import time
 from dataclasses import replace
@@ -56,10 +85,13 @@ from chcos.satellites import control
 from chcos.satellites.installlog import (
     MUTATING,
     append_log,
+    clear_pending,
     code_problem,
     parse_log,
     read_log,
+    read_pending,
     write_log,
+    write_pending,
 )
 from chcos.satellites.sysfile import SystemFile, link_config_for
 from chcos.system import cmdline, sysmap
@@ -120,6 +152,9 @@ class Satellite:
         assert self.system.comm is not None  # built by System for its link
         self.comm: CommManager = self.system.comm
         self.log: list[str] = []
+        #: the accepted, not yet committed entry (log position, line), saved in pending_path
+        self.pending: tuple[int, str] | None = None
+        self._crash_at = os.environ.get("CHCOS_TEST_CRASH_AT", "")
         self._lock = threading.RLock()
         self._map_lock = threading.Lock()
         self._map_answers: dict[str, str] = {}   # token -> the map answer's JSON text
@@ -213,6 +248,8 @@ class Satellite:
         with self._lock:
             start = not self.log
             saved = self._saved_log() if start else None
+            if start:
+                self.pending = read_pending(self.pending_path)
             if entries is None:
                 if need:
                     raise LinkError(f"satellite {self.machine} needs log entry {need - 1} and "
@@ -247,7 +284,42 @@ class Satellite:
             finally:
                 if start or n:
                     self._save_log()
+                self._settle_pending()
             return n
+
+    def _settle_pending(self) -> None:
+        """Drop the uncommitted entry once the committed log covers its position (logged:
+        the same line there means it was committed; another means it never was)."""
+        if self.pending is None or self.pending[0] >= len(self.log):
+            return
+        seq, line = self.pending
+        held = self.log[seq]
+        if held == line:
+            log.info("satellite %d: its uncommitted log entry %d was committed meanwhile "
+                     "(%r)", self.machine, seq, line)
+        else:
+            log.warning("satellite %d: dropped its uncommitted log entry %d (%r): the peers "
+                        "committed %r there (it was never committed)", self.machine, seq,
+                        line, held)
+        self._set_pending(None)
+
+    def _set_pending(self, entry: tuple[int, str] | None) -> None:
+        """Save (or remove) the uncommitted entry durably, then keep it."""
+        if entry is None:
+            clear_pending(self.pending_path)
+        else:
+            write_pending(self.pending_path, *entry)
+        self.pending = entry
+
+    def _crash_point(self, phase: control.Phase, when: str) -> None:
+        """Tests: SIGKILL this process at ``phase``/``when`` if CHCOS_TEST_CRASH_AT says so
+        (see the module doc)."""
+        if self._crash_at == f"{phase.value}:{when}":
+            log.warning("satellite %d: CHCOS_TEST_CRASH_AT=%s: killing myself", self.machine,
+                        self._crash_at)
+            for h in logging.getLogger().handlers:
+                h.flush()
+            os.kill(os.getpid(), signal.SIGKILL)
 
     def _map_changed(self) -> None:
         """Write sysfile.map MAP_DELAY seconds after the first change not yet written (the
@@ -273,6 +345,11 @@ class Satellite:
         """Where this satellite keeps its install log (one JSON string per line)."""
         return self.sf.state_dir / f"m{self.machine}.log"
 
+    @property
+    def pending_path(self) -> Path:
+        """Where this satellite keeps its accepted, not yet committed, log entry."""
+        return self.sf.state_dir / f"m{self.machine}.pending"
+
     def _saved_log(self) -> list[str]:
         """The install log this satellite saved last time ([] if none). Raises LinkError if the
         file is corrupt."""
@@ -282,15 +359,17 @@ class Satellite:
         """Write the whole install log (atomically, fsync'd)."""
         write_log(self.log_path, self.log)
 
-    def _apply(self, line: str, persist: bool = True) -> str:
+    def _apply(self, line: str, persist: bool = True, committed: bool = False) -> str:
         """Validate ``line`` as an install would be and apply it as the next log entry (appended
-        to the saved log if ``persist``). Raises InstallError (nothing applied) if it is not
-        valid here."""
+        to the saved log if ``persist``). A ``committed`` entry (the host's commit: every live
+        satellite prepared it at this log length) is checked against the tables only, not for
+        its code, which then fails to load as any code may. Raises InstallError (nothing
+        applied) if it is not valid here."""
         req = cmdline.parse(line)
         if not isinstance(req, MUTATING):
             raise InstallError(f"log entry {len(self.log)} ({line!r}) is not an install, setpri "
                                "or boot")
-        self.system.call(self._check, req)
+        self.system.call(self._check, req, not committed)
         try:
             answer = self.system.execute(req)
         except InstallError as exc:
@@ -360,7 +439,8 @@ class Satellite:
             return {"ok": True, "machine": self.machine, "nonce": req.nonce}
         if isinstance(req, control.HeadRequest):
             with self._lock:
-                return {"ok": True, "length": len(self.log), "hash": self.log_hash()}
+                return {"ok": True, "length": len(self.log), "hash": self.log_hash(),
+                        "pending": self._pending_at(len(self.log))}
         if isinstance(req, control.SyncRequest):  # the host found this one behind another
             if req.source not in self.sf.satellites or req.source == self.machine:
                 raise TypeError("sync: expected another machine and a log length")
@@ -380,46 +460,72 @@ class Satellite:
             raise TypeError("leader: expected a machine of the system")
         return self._change(req, parsed)
 
+    def _pending_at(self, seq: int) -> str | None:
+        """The uncommitted entry held at log position ``seq``, if any."""
+        return self.pending[1] if self.pending is not None and self.pending[0] == seq else None
+
     def _change(self, req: control.ChangeRequest, parsed: cmdline.Request) -> dict[str, Any]:
-        """One step (prepare, append, commit) of a table change. Raises RaceLost when another
-        host changed the log first, InstallError when the line is refused here."""
+        """One step (prepare, accept, commit; see the module doc) of a table change. Raises
+        RaceLost when the log moved on (another host, or this satellite is not the sequencer),
+        InstallError when the line is refused here or contradicts the committed log."""
         seq, line, phase = req.seq, req.line, req.phase
+        leads = req.leader == self.machine
         with self._lock:
-            if seq > len(self.log) and phase is not control.Phase.APPEND:
-                self.catch_up(None if req.leader == self.machine else req.leader, need=seq)
-            if phase is control.Phase.PREPARE:
-                if seq != len(self.log):
-                    raise RaceLost(f"satellite {self.machine} has {len(self.log)} log entries, "
-                                   f"the host expected {seq}: another host changed the log")
-                self.system.call(self._check, parsed)
-                return {"ok": True, "seq": seq}
-            if phase is control.Phase.APPEND:
-                sequencer = min(set(self.comm.alive))
-                if sequencer != self.machine:
-                    raise RaceLost(f"satellite {self.machine} is not the sequencer (machine "
-                                   f"{sequencer} is)")
-                if seq != len(self.log):
-                    raise RaceLost(f"log entry {seq} is taken: another host changed the log "
-                                   f"first (it has {len(self.log)} entries)")
-                return {"ok": True, "answer": self._apply(line), "seq": seq}
-            # COMMIT
+            self._crash_point(phase, "before")
+            if seq > len(self.log) and not leads:
+                self.catch_up(req.leader, need=seq)
             if seq < len(self.log):
-                if self.log[seq] != line:
-                    raise InstallError(f"satellite {self.machine}: log entry {seq} is "
-                                       f"{self.log[seq]!r}, not {line!r} (the logs diverged)")
+                held = self.log[seq]
+                if phase is control.Phase.PREPARE or held != line:
+                    if phase is control.Phase.COMMIT:
+                        raise InstallError(f"satellite {self.machine}: log entry {seq} is "
+                                           f"{held!r}, not {line!r} (the logs diverged)")
+                    raise RaceLost(f"satellite {self.machine} has {len(self.log)} log entries, "
+                                   f"the host expected {seq}: another host changed the log "
+                                   f"(entry {seq} is {held!r})")
                 return {"ok": True, "answer": "already applied", "seq": seq}
             if seq != len(self.log):
-                raise InstallError(f"satellite {self.machine} cannot apply log entry {seq}: "
-                                   f"it has {len(self.log)}")
-            return {"ok": True, "answer": self._apply(line), "seq": seq}
+                raise RaceLost(f"log entry {seq} is beyond the sequencer's log "
+                               f"({len(self.log)} entries): another host changed the log")
+            if phase is control.Phase.PREPARE:
+                self.system.call(self._check, parsed)
+                self._crash_point(phase, "after")
+                return {"ok": True, "seq": seq, "pending": self._pending_at(seq)}
+            if phase is control.Phase.ACCEPT:
+                self._accept(seq, line, leads)
+                self._crash_point(phase, "after")
+                return {"ok": True, "seq": seq}
+            if leads and self._pending_at(seq) != line:  # COMMIT on the sequencer
+                raise RaceLost(f"satellite {self.machine} did not accept {line!r} as log entry "
+                               f"{seq}: prepare again")
+            answer = self._apply(line, committed=True)
+            self._set_pending(None)
+            self._crash_point(phase, "after")
+            return {"ok": True, "answer": answer, "seq": seq}
 
-    def _check(self, req: cmdline.Request) -> None:
+    def _accept(self, seq: int, line: str, leads: bool) -> None:
+        """Save ``line`` as the uncommitted entry ``seq``; on the sequencer a compare-and-set
+        (it must be the sequencer, and hold no other entry at ``seq``). Raises RaceLost."""
+        if leads:
+            sequencer = min(set(self.comm.alive) | {self.machine})
+            if sequencer != self.machine:
+                raise RaceLost(f"satellite {self.machine} is not the sequencer (machine "
+                               f"{sequencer} is)")
+            other = self._pending_at(seq)
+            if other is not None and other != line:
+                raise RaceLost(f"log entry {seq} is being committed ({other!r}): another host "
+                               "changed the log first")
+        if self._pending_at(seq) != line:
+            self._set_pending((seq, line))
+
+    def _check(self, req: cmdline.Request, code: bool = True) -> None:
         """Validate a table-changing request against this satellite's tables (kernel thread)
-        without importing any code. Raises InstallError saying why it is refused."""
+        without importing any code (and, with ``code``, its code reference if the task is this
+        satellite's). Raises InstallError saying why it is refused."""
         mgr = self.system.sysmgr
         if isinstance(req, cmdline.Install):
             problem = None
-            if req.machine == self.machine:
+            if code and req.machine == self.machine:
                 problem = code_problem(req.code or req.name, self.sf.task_path)
             try:
                 mgr.check_install(replace(req, code=FAILED_CODE))

@@ -189,11 +189,12 @@ class Installer:
         if getattr(func, "chcos_system_driver", False):
             role = Role.SYSTEM
         t = TaskEntry(tid=self.tsktab.next_tid(), name=req.name, machine=req.machine, level=level,
-                      func=func, code=req.code, role=role, params=dict(req.params))
+                      func=func, code=req.code, role=role, params=dict(req.params),
+                      prio=DEFAULT_COMMAND_PRIORITY)
         factory = getattr(func, "world_model", None)
         t.world = factory() if callable(factory) else WorldModel()
         t.ctx = self.setup.context(t)
-        t.prio = t.default_prio = DEFAULT_COMMAND_PRIORITY
+        t.default_prio = DEFAULT_COMMAND_PRIORITY
         t.standing, t.restart, t.backoff = req.standing, req.restart, req.backoff
         self.tsktab.add(t)
         for i, p in enumerate(ins):

@@ -355,16 +355,16 @@ class SystemManager:
         self.map.clock = clock
 
     def save_map(self) -> None:
-        """Write sysfile.map now (atomically) if the system has a map path. Raises OSError if
-        it cannot be written."""
+        """Write sysfile.map now (atomically) if the system has a map path; a failure raises
+        nothing and is kept in ``self.map.error`` (see :mod:`chcos.system.mapfile`)."""
         self.map.save()
 
     def map_changed(self) -> None:
-        """The tables changed: write sysfile.map now or soon (see :mod:`chcos.system.mapfile`).
-        Raises OSError if a write due now fails."""
+        """The tables changed: write sysfile.map now or soon (see :mod:`chcos.system.mapfile`;
+        a failed write raises nothing)."""
         self.map.changed()
 
     def flush_map(self) -> None:
-        """Write sysfile.map if a change is not written yet. Raises OSError if it cannot be
-        written."""
+        """Write sysfile.map if a change is not written yet (a failure raises nothing: see
+        ``self.map.error``)."""
         self.map.flush()

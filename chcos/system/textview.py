@@ -14,6 +14,8 @@ from collections import defaultdict
 from collections.abc import Mapping
 from typing import Any
 
+from chcos.devices.status import DriverStatus
+
 
 def _rate(lk: dict[str, Any], rates: Mapping[str, float] | None) -> str:
     if rates is None:
@@ -23,33 +25,39 @@ def _rate(lk: dict[str, Any], rates: Mapping[str, float] | None) -> str:
     return f" {rates.get(key, 0.0):6.1f}/s"
 
 
-def bus_status_lines(status: dict[str, dict[str, Any]]) -> list[str]:
+def bus_status_lines(status: Mapping[str, DriverStatus]) -> list[str]:
     """One line per remote node (its lifecycle state, boot-ups seen, NMT starts, heartbeat
-    losses, EMCYs, error register, last EMCY, why it is not ready) and one per SYNC cycle
-    (cycles, complete, missing TPDOs, late SYNCs, late answers, acyclic TPDOs, jitter), from
-    :meth:`chcos.devices.devtab.Devtab.bus_status` (the map's ``bus_status``)."""
+    losses, EMCYs, error register, last EMCY, why it is not ready), one per SYNC cycle (cycles,
+    complete, missing TPDOs, late SYNCs, late answers, acyclic TPDOs, jitter) and one per bus
+    controller's error state, from :meth:`chcos.devices.devtab.Devtab.statuses`."""
     out = []
-    for bus, doc in status.items():
-        for n in doc.get("nodes", ()):
-            reg = n.get("error_register")
-            text = (f"node     {bus}/{n['node']:<13} {n['state']}, {n['boots']} boot-up(s) seen, "
-                    f"{n['nmt_starts']} NMT start(s), {n.get('heartbeat_losses', 0)} heartbeat "
-                    f"loss(es), {n.get('emcys', 0)} EMCY(s), error register "
+    for bus, st in status.items():
+        for n in st.nodes:
+            reg = n.error_register
+            text = (f"node     {bus}/{n.node:<13} {n.state}, {n.boots} boot-up(s) seen, "
+                    f"{n.nmt_starts} NMT start(s), {n.heartbeat_losses} heartbeat "
+                    f"loss(es), {n.emcys} EMCY(s), error register "
                     f"{'-' if reg is None else f'0x{reg:02X}'}, last EMCY "
-                    f"{n['last_emcy'] or 'none'}")
-            if n.get("heartbeat_lost"):
+                    f"{n.last_emcy or 'none'}")
+            if n.heartbeat_lost:
                 text += ", heartbeat LOST"
-            if n.get("reason"):
-                text += f" ({n['reason']})"
+            if n.reason:
+                text += f" ({n.reason})"
             out.append(text)
-        st = doc.get("sync")
-        if st:
-            out.append(f"SYNC     {bus:<16} {st['cycles']} cycles of {st['period'] * 1e3:g} ms, "
-                       f"{st['complete']} complete, {st['missing']} TPDOs missing, "
-                       f"{st['late']} late, {st['late_writes']} late answers, "
-                       f"{st.get('acyclic', 0)} acyclic TPDOs; jitter p50 "
-                       f"{st['jitter_p50'] * 1e3:.3f} ms, p99 {st['jitter_p99'] * 1e3:.3f} ms, "
-                       f"max {st['jitter_max'] * 1e3:.3f} ms")
+        sy = st.sync
+        if sy is not None:
+            out.append(f"SYNC     {bus:<16} {sy.cycles} cycles of {sy.period * 1e3:g} ms, "
+                       f"{sy.complete} complete, {sy.missing} TPDOs missing, "
+                       f"{sy.late} late, {sy.late_writes} late answers, "
+                       f"{sy.acyclic} acyclic TPDOs; jitter p50 "
+                       f"{sy.jitter_p50 * 1e3:.3f} ms, p99 {sy.jitter_p99 * 1e3:.3f} ms, "
+                       f"max {sy.jitter_max * 1e3:.3f} ms")
+        bs = st.bus_state
+        if bs is not None:
+            counters = ("" if bs.tx_errors is None or bs.rx_errors is None
+                        else f", TEC {bs.tx_errors}, REC {bs.rx_errors}")
+            out.append(f"CAN      {bus:<16} {bs.state.value}{counters}, "
+                       f"{bs.bus_offs} bus-off(s)")
     return out
 
 
@@ -106,7 +114,8 @@ def render_text(doc: dict[str, Any], rates: Mapping[str, float] | None = None,
         errors = " ".join(f"{k} {v}" for k, v in sorted(st.get("errors", {}).items()))
         out.append(f"  bus {bus}: {counts or 'no traffic'}"
                    f"{'; errors: ' + errors if errors else ''}")
-    out.extend(f"  {line}" for line in bus_status_lines(doc.get("bus_status") or {}))
+    status = {bus: DriverStatus.from_json(st) for bus, st in (doc.get("bus_status") or {}).items()}
+    out.extend(f"  {line}" for line in bus_status_lines(status))
     k = doc.get("kernel")
     if k:
         out.append(f"  kernel: {k.get('steps', 0)} steps, {k.get('ready', 0)} ready, "

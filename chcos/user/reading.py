@@ -181,7 +181,7 @@ class Reading(TaskHandle):
         t = self._t
         t.wait_ports = ports
         t.unwait = forget_ports
-        t.state = _WAITING
+        self._k.block(t, _WAITING)
         if timeout is not None:
             self._arm_timeout(timeout, ", ".join(p.link.name for p in ports))
 

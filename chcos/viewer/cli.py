@@ -161,7 +161,7 @@ def view_main(argv: Sequence[str], *, examples: Mapping[str, ExampleBuilder] | N
             print(f"host: {system.execute(f'invoke {task}')}", file=out)
         users = None
         if args.users and not args.read_only:
-            from chcos.north.auth import Users
+            from chcos.serving.auth import Users
 
             users = Users.from_file(args.users)
         viewer = Viewer(system, args.host, args.port, period=args.period, events=events,
@@ -217,7 +217,7 @@ def _view_remote(args: argparse.Namespace, stop: threading.Event | None,
         remote.map_doc()  # fails early (LinkError) if no satellite answers
         users = None
         if args.users and not args.read_only:
-            from chcos.north.auth import Users
+            from chcos.serving.auth import Users
 
             users = Users.from_file(args.users)
         # duck-typed: the viewer reads only map_doc, execute, the clock and the event hook

@@ -15,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import hmac
 import logging
+import math
 import secrets
 import time
 from collections import OrderedDict
@@ -27,7 +28,7 @@ from chcos.errors import Busy, ChcosError
 from chcos.system import cmdline
 
 if TYPE_CHECKING:
-    from chcos.north.auth import User, Users
+    from chcos.serving.auth import LoginThrottle, User, Users
     from chcos.system.embedded import System
 
 log = logging.getLogger("chcos.viewer")
@@ -73,9 +74,13 @@ class PageCommands:
     handlers that log in, out and command. ``secure``: the session cookie is sent over TLS
     only."""
 
-    def __init__(self, system: System, users: Users | None, *, secure: bool = False) -> None:
+    def __init__(self, system: System, users: Users | None, *, secure: bool = False,
+                 throttle: LoginThrottle | None = None) -> None:
+        from chcos.serving.auth import LoginThrottle
+
         self.system = system
         self.users = users
+        self.throttle = throttle or LoginThrottle()
         self.secure = secure
         self.sessions: OrderedDict[str, Session] = OrderedDict()
 
@@ -95,7 +100,7 @@ class PageCommands:
         return web.json_response(self._session_json(s))
 
     def _session_json(self, s: Session) -> dict[str, Any]:
-        from chcos.north.auth import ROLE_COMMANDS
+        from chcos.serving.auth import ROLE_COMMANDS
 
         return {"user": s.user.name, "role": s.user.role, "token": s.token,
                 "read_only": self.read_only,
@@ -125,8 +130,17 @@ class PageCommands:
         except (ValueError, KeyError, TypeError) as exc:
             return web.json_response({"ok": False, "error": 'expected JSON {"user": ..., '
                                       f'"password": ...}}: {exc}'}, status=400)
+        client = request.remote or "?"
+        wait = self.throttle.begin(client, name)  # counted before the check: see LoginThrottle
+        if wait > 0:
+            retry = max(1, math.ceil(wait))
+            return web.json_response(
+                {"ok": False, "error": f"too many wrong logins from {client} or for {name!r}: "
+                                       f"try again in {retry} s"},
+                status=429, headers={"Retry-After": str(retry)})
         loop = asyncio.get_running_loop()
         user = await loop.run_in_executor(None, self.users.check, name, password)
+        self.throttle.end(client, name, user is not None)
         if user is None:
             return web.json_response({"ok": False, "error": "unknown user or wrong password"},
                                      status=401)

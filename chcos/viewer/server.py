@@ -26,9 +26,11 @@ Security. Every request's ``Host`` must be this server's own address (``127.0.0.
 ``localhost:PORT`` on loopback) and an ``Origin``, when sent, the same: a page from another site,
 also one reached through DNS rebinding, can neither read nor command. Logins and commands
 (read-only without ``users``; session cookie and token; setpri and invoke only) are
-:mod:`chcos.viewer.commands`. Wrong logins are slowed down per client address
-(:class:`LoginThrottle`: after a few, each further attempt waits longer, answered ``429`` with
-``Retry-After`` meanwhile); a JSON body nested too deeply to parse is answered ``400``.
+:mod:`chcos.viewer.commands`. Wrong logins are slowed down per client address and per user
+name, each attempt counted before its password is checked
+(:class:`chcos.north.auth.LoginThrottle`: after a few, each further attempt waits longer,
+answered ``429`` with ``Retry-After`` meanwhile); a JSON body nested too deeply to parse is
+answered ``400``.
 
 The cell is never slowed by the page: snapshots are taken on the viewer's thread at the viewer's
 rate, only while a page is connected, by reading the tables (torn reads accepted, see
@@ -42,11 +44,9 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-import math
 import ssl
 import threading
 import time
-from collections import OrderedDict
 from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any
 
@@ -54,7 +54,18 @@ from aiohttp import web
 
 from chcos import resources
 from chcos.comm.config import is_loopback
-from chcos.north.loopthread import LoopThread
+from chcos.serving.auth import LoginThrottle
+from chcos.serving.guard import (
+    MAX_BODY,
+    REQUEST_TIMEOUT,
+    ConnectionGate,
+    bound_port,
+    connection_cap,
+    http_limits,
+    serve_http,
+    throttle_library_logs,
+)
+from chcos.serving.loopthread import LoopThread
 from chcos.system.textview import render_text
 from chcos.viewer import ViewerError
 from chcos.viewer.commands import PageCommands
@@ -70,49 +81,16 @@ from chcos.viewer.snapshot import (
 )
 
 if TYPE_CHECKING:
-    from chcos.north.auth import Users
+    from chcos.serving.auth import Users
     from chcos.system.embedded import System
 
 log = logging.getLogger("chcos.viewer")
 STATIC = resources.path("chcos.viewer", "static")
 #: Events a newly connected page receives from before it connected.
 HISTORY = 200
-class LoginThrottle:
-    """Slows down repeated wrong logins, per client address: the first ``free`` failures cost
-    nothing, then each further failure bars that client for ``base`` seconds doubled per
-    failure (at most ``longest``); a successful login clears its count. ``clock`` is in
-    seconds (monotonic). At most ``clients`` addresses are remembered (the least recently
-    failed is forgotten first). Used on the viewer's loop thread only."""
-
-    def __init__(self, *, free: int = 5, base: float = 1.0, longest: float = 300.0,
-                 clients: int = 10_000, clock: Callable[[], float] = time.monotonic) -> None:
-        self.free = free
-        self.base = base
-        self.longest = longest
-        self.clients = clients
-        self.clock = clock
-        self.refused = 0
-        self._failed: OrderedDict[str, tuple[int, float]] = OrderedDict()  # count, barred to
-
-    def wait(self, client: str) -> float:
-        """Seconds ``client`` must still wait before it may try again (0: it may now)."""
-        entry = self._failed.get(client)
-        return 0.0 if entry is None else max(0.0, entry[1] - self.clock())
-
-    def failed(self, client: str) -> None:
-        """Count a wrong login of ``client`` and bar it if it had its free attempts."""
-        count = self._failed.pop(client, (0, 0.0))[0] + 1
-        delay = (0.0 if count <= self.free
-                 else min(self.longest, self.base * 2.0 ** (count - self.free - 1)))
-        self._failed[client] = (count, self.clock() + delay)
-        while len(self._failed) > self.clients:
-            self._failed.popitem(last=False)
-
-    def succeeded(self, client: str) -> None:
-        """A right login of ``client``: forget its failures."""
-        self._failed.pop(client, None)
-
-
+#: Concurrent connections the view takes (less if the descriptor limit is low: see
+#: :func:`chcos.north.guard.connection_cap`).
+MAX_CONNECTIONS = 128
 def _dumps(obj: Any) -> str:
     return json.dumps(obj, default=str, separators=(",", ":"))
 
@@ -130,7 +108,7 @@ class Viewer:
                  svg_period: float = 1.0, stall_timeout: float = 5.0,
                  max_buffer: int = 1 << 20, ssl_context: ssl.SSLContext | None = None,
                  login_throttle: LoginThrottle | None = None,
-                 history: History | None = None) -> None:
+                 history: History | None = None, max_connections: int | None = None) -> None:
         if period <= 0:
             raise ViewerError(f"snapshot period {period} s: must be positive")
         if stall_timeout <= 0 or max_buffer <= 0:
@@ -160,13 +138,17 @@ class Viewer:
         self._patch: Any = SAME
         self._prev: dict[str, Any] | None = None
         self._svg: tuple[Any, float, str] | None = None  # (structure, when, svg)
-        self.commands = PageCommands(system, users, secure=ssl_context is not None)
         self.login_throttle = login_throttle or LoginThrottle()
+        #: the cap, deadlines and counts of this server's connections
+        self.gate = ConnectionGate("view", max_connections or connection_cap(MAX_CONNECTIONS))
+        self.commands = PageCommands(system, users, secure=ssl_context is not None,
+                                     throttle=self.login_throttle)
         self._clients = 0
         self._count = threading.Condition()
         self.dropped = 0
         self.sent_bytes = 0
         self._stopping = False
+        self._listener: asyncio.AbstractServer
 
     @property
     def read_only(self) -> bool:
@@ -219,7 +201,8 @@ class Viewer:
     def app(self) -> web.Application:
         """The aiohttp application (routes, the Host/Origin guard, login throttling and the
         answer to bodies nested too deeply); also for test clients."""
-        app = web.Application(middlewares=[self._guard, self._limits])
+        app = web.Application(middlewares=[http_limits(self.gate), self._guard, self._limits],
+                              client_max_size=MAX_BODY)
         app.router.add_get("/", self._index)
         app.router.add_static("/static/", STATIC)
         app.router.add_get("/api/snapshot", self._snapshot)
@@ -246,19 +229,22 @@ class Viewer:
         ticker.cancel()
         async with self._tick:
             self._tick.notify_all()
+        self._listener.close()
         await runner.cleanup()
 
     async def _start(self) -> web.AppRunner:
         self._tick = asyncio.Condition()
-        runner = web.AppRunner(self.app(), access_log=None, shutdown_timeout=1.0)
+        throttle_library_logs()
+        runner = web.AppRunner(self.app(), access_log=None, shutdown_timeout=1.0,
+                               keepalive_timeout=REQUEST_TIMEOUT)
         await runner.setup()
         try:
-            site = web.TCPSite(runner, self.host, self.port, ssl_context=self.ssl_context)
-            await site.start()
+            self._listener = await serve_http(runner, self.gate, self.host, self.port,
+                                              self.ssl_context)
         except BaseException:
             await runner.cleanup()
             raise
-        self.port = int(runner.addresses[0][1])
+        self.port = bound_port(self._listener)
         return runner
 
     # ---- the state the streams send ---------------------------------------------------------
@@ -339,31 +325,14 @@ class Viewer:
     async def _limits(self, request: web.Request,
                       handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
                       ) -> web.StreamResponse:
-        """Wrong logins throttled per client (429 with Retry-After while barred); a body the
-        JSON parser cannot descend (nested too deeply) answered 400, not 500."""
-        login = request.method == "POST" and request.path == "/api/login"
-        client = request.remote or "?"
-        if login:
-            wait = self.login_throttle.wait(client)
-            if wait > 0:
-                self.login_throttle.refused += 1
-                retry = max(1, math.ceil(wait))
-                return web.json_response(
-                    {"ok": False, "error": f"too many wrong logins from {client}: try again in "
-                                           f"{retry} s"},
-                    status=429, headers={"Retry-After": str(retry)})
+        """A body the JSON parser cannot descend (nested too deeply) answered 400, not 500
+        (wrong logins are throttled in the login handler: :class:`LoginThrottle`)."""
         try:
-            resp = await handler(request)
+            return await handler(request)
         except RecursionError:
             return web.json_response(
                 {"ok": False, "error": "request body nested too deeply: expected a flat JSON "
                                        "object"}, status=400)
-        if login:
-            if resp.status == 401:
-                self.login_throttle.failed(client)
-            elif resp.status == 200:
-                self.login_throttle.succeeded(client)
-        return resp
 
     # ---- handlers ---------------------------------------------------------------------------
     async def _index(self, request: web.Request) -> web.StreamResponse:

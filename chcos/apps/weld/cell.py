@@ -256,8 +256,7 @@ class Cell:
 
 def _direct_map(scenario: str, seed: int) -> Any:
     devmap = load([DIRECT_MAP])
-    buses = tuple(dataclasses.replace(b, options={**b.options, "scenario": scenario,
-                                                  "seed": seed})
+    buses = tuple(b.with_options({**b.options, "scenario": scenario, "seed": seed})
                   if b.kind == "weld-direct" else b for b in devmap.buses)
     return dataclasses.replace(devmap, buses=buses)
 

@@ -43,21 +43,21 @@ tasks call ``ctx.axis("jointN")`` on both bindings. The axis's actuator takes th
 of :class:`drivers.canopen_axis.AxisCode` (its safe value is the safe stop sequence, confirmed
 when the drive confirms it); its sensors are ``jointN.state``, ``.statusword``, ...
 
-Bus options: ``scenario`` (fault scenario string, :func:`chcos.apps.weld.parse_scenario`, default
-none), ``seed`` (int, noise seed, default 0), ``tick`` (model step in s, default 0.01, at most
-0.01 so that joints really come at 100 Hz). Device address: ``{ signal = "<name>" }`` where the
-name is one of :data:`SENSORS` / :data:`ACTUATORS`; an empty address means the device's own name.
+Bus options: :class:`WeldDirectOptions` (``scenario``, ``seed``, ``tick``). Device address:
+:class:`WeldAddress` (``{ signal = "<name>" }`` where the name is one of :data:`SENSORS` /
+:data:`ACTUATORS`; an empty address means the device's own name), or an axis table's.
 """
 
 from __future__ import annotations
 
 import functools
-import math
 from collections.abc import Callable, Collection, Sequence
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from chcos.apps.weld import LinearView, Readings, WeldCell, parse_scenario
 from chcos.apps.weld.servo import POSITION_SCALE, JointDrive
+from chcos.devices.options import option
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError, ChcosError, ConfigError
 from drivers.base import Driver, DriverHost, deliver_all
@@ -118,8 +118,39 @@ AXIS_ADDRESS = ("profile", "node", "axis", "index", "subindex", "mode", "config"
 """The address keys of an axis table's devices (written by the device-map parser)."""
 
 ON_CHANGE = ("intruder", "start_marker", "end_marker")
-OPTIONS = ("scenario", "seed", "tick")
 BASE_TICK = 0.01
+
+
+def _scenario(text: str) -> str | None:
+    try:
+        parse_scenario(text)
+    except ConfigError as exc:
+        return f"a fault scenario ({exc})"
+    return None
+
+
+def _tick(tick: float) -> str | None:
+    return None if 0 < tick <= BASE_TICK else f"seconds, 0 < tick <= {BASE_TICK}"
+
+
+@dataclass(frozen=True)
+class WeldDirectOptions:
+    """The options of a ``weld-direct`` bus."""
+
+    scenario: str = option("", doc="fault scenario (`chcos.apps.weld.faults` syntax)",
+                           check=_scenario)
+    seed: int = option(0, doc="measurement-noise seed")
+    tick: float = option(BASE_TICK, unit="s", doc="model step; at most 0.01 so that the joints "
+                         "really come at 100 Hz", check=_tick)
+
+
+@dataclass(frozen=True)
+class WeldAddress:
+    """The address of a welding-cell device that is no axis."""
+
+    signal: str | None = option(None, default_doc="the device's name", doc="a sensor or "
+                                "actuator of the cell model (`chcos/apps/weld/DEVICES.md`), "
+                                "as the device's direction")
 
 
 class _Cell(WeldCell):
@@ -147,22 +178,18 @@ class WeldDirectDriver(Driver):
 
     kind: ClassVar[str] = "weld-direct"
     confirms_writes: ClassVar[bool] = True
+    Options: ClassVar[type | None] = WeldDirectOptions
+    Address: ClassVar[type | None] = WeldAddress
     settles = False     # the model steps in a kernel timer: nothing is ever in flight
 
     def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
         super().__init__(bus, devices, host)
-        errs = self.check_bus(bus)
-        if errs:
-            raise ConfigError("; ".join(errs))
-        try:
-            scenario = parse_scenario(str(bus.options.get("scenario", "")))
-        except ConfigError as exc:
-            raise ConfigError(f"{bus.key}.scenario: {exc}") from exc
-        self.tick = float(bus.options.get("tick", BASE_TICK))
-        self.cell: WeldCell = _Cell(scenario=scenario, seed=int(bus.options.get("seed", 0)))
+        config = self.bus_options(bus, WeldDirectOptions)
+        self.tick = config.tick
+        self.cell: WeldCell = _Cell(scenario=parse_scenario(config.scenario), seed=config.seed)
         #: the joints' CiA 402 drives, joint 1..5 at index 0..4
         self.drives = [JointDrive(j) for j in range(1, 6)]
-        self.signal = {name: str(d.address.get("signal", name))
+        self.signal = {name: self.address_of(d, WeldAddress).signal or name
                        for name, d in self.devices.items() if not is_axis_address(d.address)}
         #: the in-process axes by actuator name, and the joint (0..4) each drives
         self.axes: dict[str, AxisHost] = {}
@@ -179,49 +206,37 @@ class WeldDirectDriver(Driver):
 
     # ---- checking ---------------------------------------------------------------------------
     @classmethod
-    def check_bus(cls, bus: BusSpec) -> list[str]:
-        """Errors in the bus options ``scenario``, ``seed``, ``tick``."""
-        errs = [f"{bus.key}.{k}: unknown option for a weld-direct bus; valid options: "
-                f"{', '.join(OPTIONS)}" for k in bus.options if k not in OPTIONS]
-        scen = bus.options.get("scenario", "")
-        if not isinstance(scen, str):
-            errs.append(f"{bus.key}.scenario: expected a scenario string, got {scen!r}")
-        else:
-            try:
-                parse_scenario(scen)
-            except ConfigError as exc:
-                errs.append(f"{bus.key}.scenario: {exc}")
-        seed = bus.options.get("seed", 0)
-        if not isinstance(seed, int) or isinstance(seed, bool):
-            errs.append(f"{bus.key}.seed: expected an integer, got {seed!r}")
-        tick = bus.options.get("tick", BASE_TICK)
-        if (not isinstance(tick, int | float) or isinstance(tick, bool)
-                or not (math.isfinite(tick) and 0 < tick <= BASE_TICK)):
-            errs.append(f"{bus.key}.tick: expected seconds, 0 < tick <= {BASE_TICK}, got {tick!r}")
-        return errs
+    def address_kind(cls, bus: BusSpec, device: DeviceSpec) -> type | None:
+        """A :class:`WeldAddress`, or None for an axis table's (checked in
+        :meth:`check_device`)."""
+        return None if is_axis_address(device.address) else WeldAddress
+
+    @classmethod
+    def address_problems(cls, bus: BusSpec, device: DeviceSpec, addr: Any) -> list[str]:
+        """``signal`` (the device's name when left out) must name a sensor or an actuator of
+        the cell as the device's direction."""
+        name = addr.signal or device.name
+        known = SENSORS if device.direction == "sensor" else ACTUATORS
+        if name in known:
+            return []
+        return [f"{device.key}.address.signal: {name!r} is not a {device.direction} of the "
+                f"welding cell; expected one of {', '.join(known)}"]
 
     @classmethod
     def check_device(cls, bus: BusSpec, device: DeviceSpec) -> list[str]:
-        """The address may only hold ``signal``, naming a sensor or actuator of the cell that
-        matches the device's direction."""
+        """An axis table's address (its keys written by the map parser) must name a joint
+        drive; any other is a :class:`WeldAddress` (:meth:`address_problems`)."""
+        if not is_axis_address(device.address):
+            return super().check_device(bus, device)
         key = f"{device.key}.address"
-        if is_axis_address(device.address):
-            node = device.address.get("node")
-            errs = [f"{key}.{k}: unknown key of an axis" for k in device.address
-                    if k not in AXIS_ADDRESS]
-            if node not in range(1, 6):
-                errs.append(f"{key}.node: {node!r} is no joint drive of the welding cell; "
-                            f"expected 1..5 (joint1..joint5)")
-            if device.address.get("axis", 0) != 0:
-                errs.append(f"{key}.axis: the joint drives have one axis each; expected 0")
-            return errs
-        errs = [f"{key}.{k}: unknown key; valid keys: signal" for k in device.address
-                if k != "signal"]
-        name = device.address.get("signal", device.name)
-        known = SENSORS if device.direction == "sensor" else ACTUATORS
-        if name not in known:
-            errs.append(f"{key}.signal: {name!r} is not a {device.direction} of the welding cell; "
-                        f"expected one of {', '.join(known)}")
+        node = device.address.get("node")
+        errs = [f"{key}.{k}: unknown key of an axis" for k in device.address
+                if k not in AXIS_ADDRESS]
+        if node not in range(1, 6):
+            errs.append(f"{key}.node: {node!r} is no joint drive of the welding cell; "
+                        f"expected 1..5 (joint1..joint5)")
+        if device.address.get("axis", 0) != 0:
+            errs.append(f"{key}.axis: the joint drives have one axis each; expected 0")
         return errs
 
     # ---- running ----------------------------------------------------------------------------
