@@ -60,11 +60,12 @@ class TestCell:
         """Run virtual time in ``step``s until ``condition()`` holds; returns the virtual
         seconds it took. Raises TimeoutError, saying how long it ran, if ``condition`` still
         fails after ``limit`` virtual seconds. A cell whose drivers all run on the kernel
-        thread (:attr:`chcos.devices.driver.Driver.settles` false) decides this on virtual time alone:
-        the answer is the same on any machine. While a driver still works on threads of its own
-        (a bus whose driver has not moved onto the kernel thread yet, issue 47), it may still
-        decide something on the wall clock (a reconnect after a back-off), so past ``limit``
-        this waits up to ``timeout`` real seconds more, a ``step`` of real time at a time."""
+        thread (:attr:`chcos.devices.driver.Driver.settles` false) decides this on virtual time
+        alone: the answer is the same on any machine. While a driver still works on threads of
+        its own (a bus whose driver has not moved onto the kernel thread yet, issue 47), it may
+        still decide something on the wall clock (a reconnect after a back-off), so past
+        ``limit`` this waits up to ``timeout`` real seconds more, a ``step`` of real time at a
+        time."""
         import time
 
         kernel = self.system.kernel
