@@ -11,10 +11,10 @@ from typing import Any
 import pytest
 
 from chcos.devices.devtab import Devtab
+from chcos.devices.driver import Driver
 from chcos.devices.spec import BusSpec, DeviceMap, DeviceSpec
 from chcos.kernel.clock import VirtualClock
 from chcos.kernel.scheduler import SETTLE_TIMEOUT, Kernel, SettleBound
-from drivers.base import Driver
 from tools.wallclock_audit import WallClockAudit
 
 
@@ -102,7 +102,7 @@ class _ThreadedDriver(_KernelThreadDriver):
 @pytest.mark.parametrize("cls", [_KernelThreadDriver, _ThreadedDriver])
 def test_devtab_settles_only_drivers_with_work_on_threads(cls: type[Driver],
                                                           monkeypatch: pytest.MonkeyPatch) -> None:
-    from drivers import registry
+    from chcos.devices import registry
 
     monkeypatch.setattr(registry, "driver_class", lambda kind: cls)
     k = Kernel(VirtualClock())
