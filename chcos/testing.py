@@ -16,6 +16,11 @@ and read it; every cell is shut down (actuators at their safe values) when the t
         cell.script("level", "ramp(0, 100, 10)")   # a value script, as chcos run --value
         cell.plant(tank)                       # tank(seconds, slaves) every 10 ms
         cell.invoke("fill", setpoint=80)       # a host command
+        cell.assert_golden("tests/golden/fill.trace")   # the run so far against its golden trace
+
+With ``pytest --chcos-coverage`` the plugin records which device states the tests' cells reached
+(docs/hil-evidence.md; :mod:`chcos.hil.plugin` holds the options, the summary and the golden
+traces: ``--chcos-update-golden`` writes them).
 
 Results do not depend on the machine: the same maps, tasks and test give the same values at the
 same virtual times on a laptop and on a loaded CI machine, whatever ``PYTHONHASHSEED`` (the
@@ -35,9 +40,22 @@ from typing import TYPE_CHECKING, Any
 
 import pytest
 
+# the HIL evidence: options, summary, golden traces (chcos.hil.plugin imports chcos only when used)
+from chcos.hil.plugin import (  # noqa: F401 (pytest finds the hooks and the fixture here)
+    CellWatch,
+    Evidence,
+    chcos_golden,
+    pytest_addoption,
+    pytest_configure,
+    pytest_sessionfinish,
+    pytest_terminal_summary,
+    pytest_testnodedown,
+)
+
 if TYPE_CHECKING:  # the plugin loads in every pytest run: import chcos only when used
     from chcos.apps.sim.from_map import Plant
     from chcos.cli.cellrun import Cell
+    from chcos.hil.trace import Trace
     from chcos.tables.tasks import TaskEntry
 
 
@@ -46,9 +64,10 @@ class TestCell:
 
     __test__ = False  # not a test class for pytest's collector
 
-    def __init__(self, cell: Cell) -> None:
+    def __init__(self, cell: Cell, watch: CellWatch | None = None) -> None:
         self.cell = cell
         self.system = cell.system
+        self._watch = watch
 
     # ---- time -------------------------------------------------------------------------------
     def run_for(self, seconds: float) -> None:
@@ -179,6 +198,25 @@ class TestCell:
         """Actuator writes logged instead of sent (``outputs=False``)."""
         return self.cell.outputs_log
 
+    # ---- the run's trace (chcos.hil.trace) --------------------------------------------------
+    def trace(self) -> Trace:
+        """The cell's trace so far: every device value and status change, every command and its
+        confirmation, bus errors and task events, on virtual time since the cell was built.
+        Raises RuntimeError for a cell the ``chcos_cell`` fixture did not build."""
+        if self._watch is None:
+            raise RuntimeError("this cell is not watched: build it with the chcos_cell fixture")
+        return self._watch.trace()
+
+    def assert_golden(self, golden: str | Path, *, tolerance: Mapping[str, float] | None = None,
+                      text: bool = False) -> None:
+        """Assert that :meth:`trace` matches the golden trace file ``golden`` (relative to the
+        pytest root directory), within ``tolerance`` per device (``{"level": 0.5}``); with
+        ``pytest --chcos-update-golden`` write it instead. Raises AssertionError naming the
+        first divergence of each device and task with its virtual time."""
+        if self._watch is None:
+            raise RuntimeError("this cell is not watched: build it with the chcos_cell fixture")
+        self._watch.assert_golden(golden, tolerance=tolerance, text=text)
+
     def close(self) -> None:
         """Shut down now (actuators at their safe values); the fixture also does this."""
         self.cell.close()
@@ -196,12 +234,14 @@ def chcos_cell(request: pytest.FixtureRequest,
 
     stack = ExitStack()
     built = [0]
+    evidence = Evidence(request)
+    stack.callback(evidence.finish)     # last: after every cell's shutdown
+    root = Path(request.config.rootpath)
 
     def build(system_file: str | Path = "system.toml", *, outputs: bool = True,
               values: Mapping[str, str | float] | None = None,
               plant: Plant | str | None = None) -> TestCell:
         path = Path(system_file)
-        root = Path(request.config.rootpath)
         if not path.is_absolute():
             path = root / path
         built[0] += 1
@@ -210,8 +250,8 @@ def chcos_cell(request: pytest.FixtureRequest,
         cell = stack.enter_context(open_cell(path, virtual=True, outputs=outputs,
                                              workdir=work, values=items,
                                              plants=[plant] if plant is not None else [],
-                                             base_dir=root))
-        return TestCell(cell)
+                                             base_dir=root, observe=[evidence.watch]))
+        return TestCell(cell, evidence.watch_of(cell))
 
     with stack:
         yield build

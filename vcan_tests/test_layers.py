@@ -27,6 +27,8 @@ LAYERS: dict[str, int] = {
     "chcos.devices": 3, "drivers": 3, "chcos.comm": 4, "chcos.messages": 5, "chcos.user": 6,
     "chcos.system": 7, "chcos.satellites": 8, "chcos.serving": 9,
     "chcos.north": 10, "chcos.viewer": 10, "chcos.cli": 11, "chcos.testing": 11,
+    # the HIL evidence watches a whole system; its pytest half is the plugin's
+    "chcos.hil": 10, "chcos.hil.plugin": 11,
 }
 APPS = "chcos.apps"
 #: pure codecs: no I/O (no bus library, socket, thread or event loop).

@@ -32,6 +32,7 @@ from chcos.devices.entry import (
     scalable,
 )
 from chcos.devices.health import DeviceHealth, HealthListener, faults, log
+from chcos.devices.observers import CommandReport, DeviceObserver, Observers, WriteStage
 from chcos.devices.spec import DeviceMap
 from chcos.devices.status import DriverStatus
 from chcos.devices.table import DeviceTable
@@ -79,8 +80,10 @@ class Devtab:
         self._health = DeviceHealth(kernel, self._table, self._rx_stamp)
         self.remote = remote
         self._checks = CommandChecks(self._table)
-        self._counters = BusCounters(kernel, lambda: self.drivers)
-        self._writes = WriteTracking(kernel, self._table, self._safe_failed)
+        #: told of every bus error and every command's stage (:mod:`chcos.devices.observers`)
+        self._observers = Observers()
+        self._counters = BusCounters(kernel, lambda: self.drivers, self._observers)
+        self._writes = WriteTracking(kernel, self._table, self._safe_failed, self._observers)
         #: (device, reason) of every safe value that could not be put on the wire, oldest first.
         self.safe_failures: list[tuple[str, str]] = []
         #: what became of each local actuator's safe value at the last shutdown
@@ -174,6 +177,16 @@ class Devtab:
     def remove_health_listener(self, fn: HealthListener) -> None:
         """Stop calling ``fn`` (added by :meth:`add_health_listener`; no error if it is not)."""
         self._health.remove_health_listener(fn)
+
+    def add_observer(self, observer: DeviceObserver) -> None:
+        """Tell ``observer`` of every bus error and every command's stage (handed to the
+        driver, confirmed, failed), on the kernel thread (see :mod:`chcos.devices.observers`)."""
+        self._observers.add(observer)
+
+    def remove_observer(self, observer: DeviceObserver) -> None:
+        """Stop telling ``observer`` (no error if it was not added)."""
+        self._observers.remove(observer)
+
 
     # ---- bus counters (BusCounters) ---------------------------------------------------------
     @property
@@ -574,20 +587,30 @@ class Devtab:
                 e.driver.write(device, raw)
         elif e.driver is not None:
             e.driver.write(device, raw)
-        self._commanded(e, value, self.kernel.clock.now(), shown=w is None)
+        # a remote actuator's satellite confirms it there: here it is only sent
+        self._commanded(e, value, self.kernel.clock.now(), shown=w is None, source=source,
+                        safe=safe, confirmed=w is None and self._table.is_local(spec.machine))
         return w
 
-    def _commanded(self, e: DeviceEntry, value: Any, now: float, shown: bool) -> None:
+    def _commanded(self, e: DeviceEntry, value: Any, now: float, shown: bool,
+                   source: str = "", safe: str = "", confirmed: bool | None = None) -> None:
         """The bookkeeping of a write handed over (to the driver, to the device's satellite, or
         on the wire already): when and how often the actuator was commanded, the value it shows
-        (``shown``; else it stays ``pending`` until the driver's outcome), and the
-        :attr:`on_write` hooks. The one place a write is recorded, for every path to a bus."""
+        (``shown``; else it stays ``pending`` until the driver's outcome), the
+        :attr:`on_write` hooks and the observers (a command from ``source``, a safe value
+        for ``safe``; ``confirmed``, default ``shown``: on the wire already). The one place a
+        write is recorded, for every path to a bus."""
         e.updated_at = now
         e.commands += 1
         if shown:
             e.value = value
         for hook in self.on_write:
             hook(e.name, value)
+        if self._observers:
+            done = shown if confirmed is None else confirmed
+            self._observers.command(CommandReport(
+                e.name, value, WriteStage.CONFIRMED if done else WriteStage.SENT,
+                source or "host", safe))
 
     def _write_now(self, e: DeviceEntry, device: str, raw: Any) -> bool:
         """The driver's synchronous fast path (:meth:`chcos.devices.driver.Driver.write_now`, the
@@ -623,11 +646,11 @@ class Devtab:
         at once (:meth:`_safe_burst`), then the others one by one, tracked and tried again as
         any safe value; one :class:`SafeIssue` each."""
         todo = self._table.local_safe_actuators()
-        done = self._safe_burst(todo)
+        done = self._safe_burst(todo, reason)
         return [SafeIssue(e.name) if e.name in done else self._safe_write(e, reason)
                 for e in todo]
 
-    def _safe_burst(self, entries: list[DeviceEntry]) -> set[str]:
+    def _safe_burst(self, entries: list[DeviceEntry], why: str) -> set[str]:
         """On the kernel thread, put the safe values of ``entries`` that nothing of theirs is
         outstanding for on the wire back to back, one call per driver
         (:meth:`chcos.devices.driver.Driver.write_now_many`), before any bookkeeping: an emergency
@@ -653,7 +676,8 @@ class Devtab:
             written += [e for (e, _raw), ok in zip(items, sent, strict=True) if ok]
         now = self.kernel.clock.now()
         for e in written:   # as Devtab.write's fast path: on the wire, confirmed, not tracked
-            self._commanded(e, e.spec.safe_value, now, shown=True)
+            self._commanded(e, e.spec.safe_value, now, shown=True, source="safe-value",
+                            safe=why)
         return {e.name for e in written}
 
     def _safe(self, device: str, why: str = "abnormal completion") -> bool:

@@ -82,10 +82,13 @@ class DriverHost(Protocol):
         """Raw ``value`` for actuator ``device`` did not reach the wire (refused, not answered,
         link down, dropped at stop); ``reason`` says why."""
 
-    def stat(self, bus: str, key: str, n: int = 1, device: str = "") -> None:
+    def stat(self, bus: str, key: str, n: int = 1, device: str = "", error: bool = False
+             ) -> None:
         """Add ``n`` to counter ``key`` of bus ``bus`` (and of ``device`` if given) in the bus
         statistics: ``frames``, ``requests``, ``reconnects``, ``lost`` (frames the OS dropped).
-        Error classes go through :meth:`error`. Cheap; callable per frame."""
+        Error classes go through :meth:`error`; with ``error`` ``n`` errors of class ``key``
+        are counted without a report (a driver that reports a streak of the same error once,
+        :class:`drivers.reports.Reports`, counts its repeats so). Cheap; callable per frame."""
 
     def error(self, bus: str, kind: str, detail: str, device: str = "") -> None:
         """Count and report a bus-level error: a malformed frame, an unknown id, garbage on a

@@ -4,17 +4,22 @@
 peer
 that answers the bus's devices on the real protocol:
 
-* ``modbus-tcp`` - a pymodbus server (:class:`chcos.apps.sim.modbus_server.ModbusSimServer`) holding
-  every mapped register, coil and input; ``modbus-rtu`` - the same with RTU framing over a TCP
-  socket (the bus's ``port`` becomes ``socket://127.0.0.1:PORT``);
+* ``modbus-tcp``, ``modbus-rtu`` - a slave as strict as a device
+  (:class:`chcos.apps.sim.modbus_slave.ModbusSlave`: exception 01/02/03, silence or 0x0B for
+  other units, broadcast) holding exactly the mapped registers, coils and inputs; reached
+  in-process when ``rewrite`` (the bus's ``direct``), else on a socket
+  (:class:`chcos.apps.sim.modbus_server.ModbusSimServer`: Modbus TCP at the bus's loopback
+  address, RTU framing over TCP for ``socket://127.0.0.1:PORT``);
 * ``can`` - a node on the bus's python-can channel that sends the sensors' messages (coded with
   the bus's DBC, or the raw signal layout, by the driver's own codec with the directions turned
   round) every cycle (the DBC's ``GenMsgCycleTime``, else 0.1 s) and decodes the actuators'
   frames;
 * ``canopen`` - per node, :class:`chcos.apps.sim.canopen_slave.CanopenSlave` over the node's EDS
-  on the slaves' clock: boot-up, NMT state machine, SDO server (zero for objects without a
-  default), RPDOs applied, TPDOs on change, event timer and SYNC, EMCY on injected faults
-  (:meth:`SimSlaves.canopen_node`), a heartbeat every third of the map's ``heartbeat_timeout``;
+  on the slaves' clock, as strict as a CiA 301 device: boot-up, NMT state machine, SDO server
+  (every refusal the device's abort; zero for objects without a default), RPDOs applied (a
+  wrong length raises EMCY 0x8210/0x8220), TPDOs on change, event timer and SYNC, EMCY on
+  injected faults (:meth:`SimSlaves.canopen_node`), a heartbeat every third of the map's
+  ``heartbeat_timeout``;
   a node whose EDS is a CiA 402 drive's is a :class:`chcos.apps.sim.cia402_drive.Cia402Drive`
   (the state machine answers the controlword; 0x605A as the map's axis says, else the EDS);
 * ``serial`` - a TCP serial server (the driver reaches it as ``socket://127.0.0.1:PORT``)
@@ -74,6 +79,7 @@ SIMULATED = ("modbus-tcp", "modbus-rtu", "can", "canopen", "serial", *IN_PROCESS
 TICK = 0.01
 """Seconds between two updates of scripted values and cyclic frames."""
 
+MODBUS = ("modbus-tcp", "modbus-rtu")
 PEERS: dict[str, type[Peer]] = {"modbus-tcp": ModbusPeer, "modbus-rtu": ModbusPeer,
                                 "can": CanPeer, "canopen": CanopenPeer, "serial": SerialPeer}
 
@@ -247,6 +253,11 @@ class SimSlaves:
             plan.append(EmcyFault(node, code, t0, t1, report))
         self._emcy_plan.extend(plan)
 
+    def serve(self) -> None:
+        """Make every peer answer at its address (see :func:`simulate`'s ``serve``)."""
+        for peer in self.peers.values():
+            peer.serve()
+
     def describe(self) -> list[str]:
         """One line per peer: the bus and where it listens."""
         return [f"{name}: {peer.describe()}" for name, peer in self.peers.items()]
@@ -319,11 +330,16 @@ class SimSlaves:
             peer.close()
 
 
-def simulate(devmap: DeviceMap, *, rewrite: bool = True) -> SimSlaves:
+def simulate(devmap: DeviceMap, *, rewrite: bool = True, direct: bool = True,
+             serve: bool = True) -> SimSlaves:
     """Start a simulated peer for every bus of ``devmap`` that has devices; returns the handle,
-    whose ``devmap`` is the map the system should load (pointed at the peers when ``rewrite``).
-    Idle actuators hold their safe values. Raises ConfigError naming the bus and its file for a
-    bus kind without a simulated peer, BusError if a peer cannot listen or open its channel."""
+    whose ``devmap`` is the map the system should load (pointed at the peers when ``rewrite``:
+    a Modbus bus reaches its slave in-process, ``direct``, unless ``direct`` is False - then a
+    socket server on a free port). Idle actuators hold their safe values. With ``serve`` False
+    the peers at the map's own addresses (``rewrite`` False) begin answering only at
+    :meth:`SimSlaves.serve`, so that value scripts apply before the first request. Raises
+    ConfigError naming the bus and its file for a bus kind without a simulated peer, BusError
+    if a peer cannot listen or open its channel."""
     for bus in devmap.buses:
         if bus.kind not in SIMULATED and devmap.devices_on(bus.name):
             raise ConfigError(f"{bus.file}: {bus.key} ({bus.name}): no simulated peer for a "
@@ -334,7 +350,8 @@ def simulate(devmap: DeviceMap, *, rewrite: bool = True) -> SimSlaves:
         for bus in devmap.buses:
             devs = devmap.devices_on(bus.name)
             if bus.kind in PEERS and devs:
-                peer = PEERS[bus.kind](bus, devs, rewrite)
+                peer = (ModbusPeer(bus, devs, rewrite, direct) if bus.kind in MODBUS
+                        else PEERS[bus.kind](bus, devs, rewrite))
                 slaves.peers[bus.name] = peer
                 buses.append(peer.bus)
                 for d in devs:
@@ -343,6 +360,8 @@ def simulate(devmap: DeviceMap, *, rewrite: bool = True) -> SimSlaves:
                         slaves.set(d.name, d.safe_value)  # an idle output holds its safe value
             else:
                 buses.append(bus)
+        if serve:
+            slaves.serve()
     except BaseException:
         slaves.close()
         raise
@@ -484,16 +503,17 @@ def main(argv: list[str]) -> int:
                               "\"udp_multicast\" (any machine, loopback) or a SocketCAN vcan "
                               "channel; or 'chcos run SYSTEM --virtual', which simulates in its "
                               "own process")
-        slaves = simulate(devmap, rewrite=False)
+        slaves = simulate(devmap, rewrite=False, serve=False)
         try:
             slaves.values(args.value, Path.cwd())
             for ref in args.plant:
                 slaves.add_plant(load_plant(ref, Path.cwd()))
             faults = [_fault(item, slaves) for item in args.fault]
             slaves.schedule_emcy(args.emcy, report=lambda line: print(line, flush=True))
+            slaves.run_realtime()      # the scripts' values at t = 0, before the first request
+            slaves.serve()
             for line in slaves.describe():
                 print(f"simulating {line}", flush=True)
-            slaves.run_realtime()
             start = time.monotonic()
             shown_at = -math.inf
             last_shown: dict[str, str] = {}

@@ -22,7 +22,7 @@ import itertools
 import os
 import tempfile
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -126,12 +126,14 @@ class Cell:
     #: every system event with its clock time, from the install on (for the run digest)
     events: EventRecord | None = None
 
-    def write_report(self, path: str | Path, title: str | None = None) -> Path:
+    def write_report(self, path: str | Path, title: str | None = None,
+                     evidence: str = "") -> Path:
         """Write the run as a picture (``chcos.apps.weld.report``: one self-contained HTML page) to
-        ``path``; returns it. Raises ChcosError if it cannot be written."""
+        ``path``, with the run's HIL ``evidence`` (HTML, :mod:`chcos.hil.report`); returns it.
+        Raises ChcosError if it cannot be written."""
         samples = self.recorder.samples if self.recorder is not None else []
         return write_report(path, self.summary(), samples,
-                            title or f"welding cell, {self.binding} binding")
+                            title or f"welding cell, {self.binding} binding", evidence)
 
     # ---- driving the job --------------------------------------------------------------------
     def start_job(self, command: dict[str, Any] | None = None) -> str:
@@ -279,13 +281,15 @@ def open_cell(binding: str = "direct", *, scenario: str = "", seed: int = 0,
               real_time: bool = False, record: str | Path | None = None,
               workdir: str | Path | None = None,
               script: str | Path = SCRIPT, replace: dict[str, str] | None = None,
-              interface: str = "virtual", channels: tuple[str, str] | None = None
-              ) -> Iterator[Cell]:
+              interface: str = "virtual", channels: tuple[str, str] | None = None,
+              observe: Sequence[Callable[[System], None]] = ()) -> Iterator[Cell]:
     """The welding cell, booted and installed, ready for :meth:`Cell.start_job`; shut down on
     exit. ``replace`` maps task names to code references (``pkg.mod:fn``) installed instead of
     the standard code (test-only tasks). ``interface``/``channels`` put the buses binding's two
     CAN buses (CANopen, raw sensors) on python-can ``virtual`` channels of their own (default) or
     on given channels of another interface, e.g. ``socketcan`` ``("vcan0", "vcan1")``.
+    ``observe`` are called with the System once it is built, before the install script runs
+    (the HIL evidence watches it from there: :mod:`chcos.hil.observe`).
     Raises WeldRunError for an unknown binding or a missing
     real-bus simulator, ConfigError for a bad scenario, InstallError if the script fails."""
     if binding not in BINDINGS:
@@ -333,6 +337,8 @@ def open_cell(binding: str = "direct", *, scenario: str = "", seed: int = 0,
             # the simulator steps on the kernel's clock: the drivers supervise its heartbeats
             # there too (before the install starts them)
             system.devtab.peers_on_clock = clock.virtual
+        for watch in observe:
+            watch(system)
         counters = CellCounters()
         system.kernel.add_instrument(counters)
         events = EventRecord(system.kernel.clock)

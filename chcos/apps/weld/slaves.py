@@ -39,10 +39,9 @@ from typing import Any
 
 import can
 import canopen
-from pymodbus.constants import ExcCodes
 
 from chcos import resources
-from chcos.apps.sim.modbus_server import RegisterStore
+from chcos.apps.sim.modbus_slave import GATEWAY_NO_RESPONSE, RegisterStore
 from chcos.apps.weld.model import Readings, WeldCell
 from chcos.apps.weld.servo import POSITION_SCALE as POSITION_SCALE
 from chcos.apps.weld.servo import JointDrive
@@ -112,15 +111,13 @@ class WeldRegisterStore(RegisterStore):
         super().__init__((UNIT,), size=200)
         self.silent_inputs: frozenset[int] = frozenset()
 
-    def mirror(self, unit: int, function_code: int, start: int, address: int, count: int,
-               image: list[int], values: list[Any] | None) -> ExcCodes | None:
-        """The server hook of :class:`RegisterStore`, refusing reads of silent inputs."""
+    def refusal(self, unit: int, table: str, address: int, count: int, write: bool
+                ) -> int | None:
+        """Exception 11 for a read of a silent input (see :class:`RegisterStore`)."""
         silent = self.silent_inputs
-        if function_code == 4 and any(address <= a < address + count for a in silent):
-            with self._cond:
-                self.requests += 1
-            return ExcCodes.GATEWAY_NO_RESPONSE
-        return super().mirror(unit, function_code, start, address, count, image, values)
+        if table == "input" and any(address <= a < address + count for a in silent):
+            return GATEWAY_NO_RESPONSE
+        return None
 
 
 class PowerSource:
