@@ -38,7 +38,7 @@ from chcos.devices.status import DriverStatus
 from chcos.devices.table import DeviceTable
 from chcos.devices.writes import WriteTracking
 from chcos.errors import BusError, DeviceError
-from chcos.kernel.scheduler import Kernel
+from chcos.kernel.scheduler import Kernel, SettleBound
 
 if TYPE_CHECKING:
     from chcos.devices.driver import Driver
@@ -99,6 +99,11 @@ class Devtab:
         #: heartbeats on that clock, not on wall time
         #: (:func:`chcos.devices.driver.host_peers_on_clock`)
         self.peers_on_clock = False
+        #: True when the drivers' peers are real, in other processes, while the clock is
+        #: virtual (a test of a real PLC or a peer process on virtual time): a driver that
+        #: settles then waits for them at most the virtual time to the next timer
+        #: (:class:`chcos.kernel.scheduler.SettleBound`), instead of until they are done
+        self.real_peers = False
 
     def listen(self, listener: DeviceListener) -> None:
         """Send every reading and sensor failure to ``listener`` from now on (one listener: the
@@ -227,7 +232,9 @@ class Devtab:
                 started.append(drv)
                 for d in devs:
                     self._table.get(d.name).driver = drv
-                self.kernel.add_settler(drv.settle)
+                if drv.settles:     # work in flight on threads of its own (kernel module doc)
+                    self.kernel.add_settler(drv.settle, SettleBound.CLOCK if self.real_peers
+                                            else SettleBound.PEER)
         except Exception as exc:
             for drv in started:
                 drv.stop()
@@ -329,16 +336,21 @@ class Devtab:
         kernel runs: the window is :attr:`shutdown_window` seconds of virtual time, during which
         the kernel runs the drivers' timers and interrupts without stepping tasks
         (:meth:`Kernel.run_drivers`: a drive ramps down to standstill, a driver's timeout and
-        retries run, a simulated peer steps), and no more wall time than the window either (a
-        real peer that does not answer costs wall time that virtual time does not count)."""
+        retries run, a simulated peer steps). No wall-clock decision is made here: what the
+        drivers have in flight is waited for by the kernel's settlers, each bounded by its
+        :class:`~chcos.kernel.scheduler.SettleBound` (a real peer that does not answer costs
+        at most the window's virtual seconds in wall time)."""
         clock = self.kernel.clock
         end = clock.now() + self.shutdown_window
-        wall_end = time.monotonic() + self.shutdown_window
         issued = {i.device: i for i in self._safe_all("shutdown")}
         attempts = dict.fromkeys(issued, 1)
         # a flush that does not wait tells each driver the shutdown began (a Modbus link
         # lost now reconnects every reconnect_delay); the kernel's settle does the waiting
-        self._flush_drivers(time.monotonic())
+        for drv in self.drivers:
+            try:
+                drv.flush(0.0)
+            except Exception:
+                log.exception("driver %s failed to flush", drv.bus.name)
 
         def settled() -> bool:
             return all(i.write is None or i.write.done is not None for i in issued.values())
@@ -347,14 +359,13 @@ class Devtab:
             return False
 
         while True:
-            self.kernel.run_drivers(end, settled, wall_end)
+            self.kernel.run_drivers(end, settled)
             again = [name for name, i in issued.items()
                      if i.write is not None and i.write.done is False]
-            if (not again or clock.now() + SHUTDOWN_RETRY_PAUSE >= end
-                    or time.monotonic() >= wall_end):
+            if not again or clock.now() + SHUTDOWN_RETRY_PAUSE >= end:
                 break
             # let the peer come back (a reconnect, a reboot), on virtual time
-            self.kernel.run_drivers(clock.now() + SHUTDOWN_RETRY_PAUSE, never, wall_end)
+            self.kernel.run_drivers(clock.now() + SHUTDOWN_RETRY_PAUSE, never)
             for name in again:
                 issued[name] = self._safe_write(self._table.get(name), "shutdown")
                 attempts[name] += 1

@@ -165,6 +165,12 @@ class Driver(ABC):
     #: reference (each may name itself in a ``VARIANT`` class attribute). Empty: just
     #: :attr:`Address`.
     Addresses: ClassVar[tuple[type, ...]] = ()
+    #: False when all this driver does runs on the kernel thread (its I/O in kernel timers and
+    #: interrupts, and on virtual time its simulated peer too): nothing is in flight between
+    #: two interrupts, so Devtab registers no settler for it and virtual time jumps as soon as
+    #: the system is idle (the contract: :mod:`chcos.kernel.scheduler`, "Virtual time"). Read
+    #: once, after :meth:`start`; a driver may set it there for the path it took.
+    settles: bool = True
 
     def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
         self.bus = bus

@@ -40,6 +40,7 @@ from chcos.errors import ChcosError
 from chcos.helpers import free_ports
 from chcos.kernel.clock import Clock, RealClock, VirtualClock
 from chcos.kernel.instrument import Counters, Instrument
+from chcos.system.digest import EventRecord
 from chcos.system.embedded import System
 from chcos.tables.messages import Link, LinkType
 
@@ -52,6 +53,17 @@ _channels = itertools.count()
 
 class WeldRunError(ChcosError):
     """The welding job could not be set up: unknown binding, the real-bus simulator missing."""
+
+
+class CellCounters(Counters):
+    """:class:`Counters` keeping the events only: executions are each task's ``steps`` in Tsktab
+    and messages each link's counts in Msgtab, and hooking them would make the kernel tell every
+    step and the message layer every message (stamped for its latency) to the instruments."""
+
+    before_step = Instrument.before_step
+    message_sent = Instrument.message_sent
+    message_overwritten = Instrument.message_overwritten
+    message_delivered = Instrument.message_delivered
 
 
 class Timeline(Instrument):
@@ -105,10 +117,14 @@ class Cell:
     closers: list[Callable[[], None]] = field(default_factory=list)
     #: the joint drives as the drives see themselves (joint 1..5): state, controlwords received
     drives: list[JointDrive] = field(default_factory=list)
-    #: called before the System's shutdown (the simulator goes on on wall-clock time)
+    #: called before the System's shutdown (on real time the simulator goes on on wall-clock
+    #: time, its kernel timers no longer running; on virtual time they run in the shutdown
+    #: window, :meth:`chcos.kernel.scheduler.Kernel.run_drivers`)
     before_shutdown: list[Callable[[], None]] = field(default_factory=list)
     injector: Callable[[str], None] | None = None
     recorder: Recorder | None = None
+    #: every system event with its clock time, from the install on (for the run digest)
+    events: EventRecord | None = None
 
     def write_report(self, path: str | Path, title: str | None = None,
                      evidence: str = "") -> Path:
@@ -175,8 +191,9 @@ class Cell:
         return {d.name: d.value for d in self.system.devtab if not d.is_sensor}
 
     def close(self) -> None:
-        """Shut the System down (safe values out: the simulator, if any, goes on on wall-clock
-        time meanwhile, so the joint drives confirm their safe stop), then the simulator."""
+        """Shut the System down (safe values out: the simulator, if any, goes on meanwhile, on
+        the virtual clock or the wall clock, so the joint drives confirm their safe stop),
+        then the simulator."""
         try:
             for prepare in self.before_shutdown:
                 prepare()
@@ -317,10 +334,15 @@ def open_cell(binding: str = "direct", *, scenario: str = "", seed: int = 0,
             closers.append(sim.close)
             system = System([mapfile], clock=clock, task_path=[TASK_PATH], base_dir=work,
                             map_path=work / "sysfile.map")
+            # the simulator steps on the kernel's clock: the drivers supervise its heartbeats
+            # there too (before the install starts them)
+            system.devtab.peers_on_clock = clock.virtual
         for watch in observe:
             watch(system)
-        counters = Counters()
+        counters = CellCounters()
         system.kernel.add_instrument(counters)
+        events = EventRecord(system.kernel.clock)
+        system.kernel.add_instrument(events)
         timeline = Timeline(system)
         system.kernel.add_instrument(timeline)
         for line in Path(script).read_text(encoding="utf-8").splitlines():
@@ -342,7 +364,8 @@ def open_cell(binding: str = "direct", *, scenario: str = "", seed: int = 0,
         cell = Cell(system, model, binding, counters, timeline, closers=closers,
                     injector=sim.inject if sim is not None else None,
                     drives=drives,
-                    before_shutdown=[sim.continue_realtime] if sim is not None else [])
+                    before_shutdown=[sim.continue_realtime]
+                    if sim is not None and real_time else [], events=events)
         cell.recorder = Recorder(system.kernel, model, cell.phase)
         cell.recorder.start()
     except BaseException:

@@ -37,7 +37,7 @@ def _progress(out: TextIO) -> Callable[[Cell], None]:
     def show(cell: Cell) -> None:
         s = cell.system
         now = s.kernel.clock.now()
-        sent = sum(cell.counters.sent.values())
+        sent = sum(lk.sent for lk in s.msgtab)
         dt = max(1e-9, now - last["t"])
         rate = (sent - last["sent"]) / dt
         last.update(sent=sent, t=now)
