@@ -171,10 +171,6 @@ class ThreadedDriver(Driver):
     #: True for a class that overrides :meth:`_can_send` (set for each subclass): the fast
     #: path asks it only then (otherwise a command may always go: a call less per frame)
     _gated: ClassVar[bool] = False
-    #: whether the device table must settle this driver before virtual time moves on (the
-    #: kernel's virtual-time contract for drivers): False in the synchronous mode, set when
-    #: the threads would start, since nothing is in flight then
-    settles: bool = True
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -262,7 +258,7 @@ class ThreadedDriver(Driver):
         synchronous mode)."""
         self._running = True
         if self._synchronous:
-            self.settles = False
+            self.settles = False      # nothing in flight: Devtab registers no settler
             return
         self._rx.start()
         self._writer = threading.Thread(target=self._write_loop,
