@@ -22,7 +22,14 @@ Bus options:
 - ``ignore_ids``: ids and ranges (``["0x700-0x77F", 0x80]``) another node owns: never warned
   about, counted as ``ignored-id``
 - ``unknown_ids``: ``ignore`` | ``warn`` (default) | ``fail``, see :class:`UnknownIds`
-- ``counter``, ``crc``, ``checksum`` (here or in an address) are refused: chcos computes neither
+- ``message``: ``[[bus.message]]`` tables, one per DBC message that needs more than the DBC says
+  (:mod:`drivers.codecs.can_e2e`): ``cycle_time`` (default the DBC's ``GenMsgCycleTime``),
+  ``counter``, ``checksum``; ``counter``, ``crc``, ``checksum`` as a bus option or address key
+  are refused, naming where they belong
+- ``interface = "chcos-direct"``: the in-process direct bus of virtual time
+  (:mod:`drivers.can_direct`), which a virtual cell's simulated ECU is on; the driver then runs
+  in the synchronous mode of :mod:`drivers.threaded` (no thread: frames handled inside the
+  peer's send, commands sent in the caller's thread, probes on the kernel clock)
 
 Device addresses, one of two forms:
 
@@ -41,7 +48,13 @@ id is counted (``unknown-id``, or ``ignored-id`` for ``ignore_ids``) and handled
 a bus error. A frame of the wrong length is ``host.error(bus, "wrong-length")``, one cantools
 cannot decode ``"undecodable"``; either fails its message's sensors after :data:`BAD_FRAMES` in a
 row (at the first if the message never had a well-formed frame) until a well-formed one comes.
-An error frame is ``"error-frame"``, a remote frame (a data request, which chcos does not answer)
+A frame whose declared checksum or rolling counter is wrong is ``"checksum"`` / ``"counter"``,
+not delivered, and fails its message's sensors after :data:`BAD_FRAMES` in a row the same way.
+An error frame (SocketCAN's ``CAN_ERR_FLAG`` frames, or the direct bus's alike) is
+``"error-frame"`` and tells the controller's state (:mod:`drivers.codecs.can_errors`, shown in
+:meth:`CanDriver.status`): error-passive is an ``"error-passive"`` bus error, bus-off
+(``"bus-off"``) fails every device of the bus until the restart (actuators then, sensors with
+their next frame). A remote frame (a data request, which chcos does not answer) is
 ``"remote-frame"``. On a real-time kernel clock, on the interfaces of :data:`WALL_STAMPED`, each
 reading carries its frame's receive time (the kernel's stamp on SocketCAN,
 :func:`drivers.canbus.receive_time`) to the host, and a reading older than its sensor's
@@ -70,6 +83,11 @@ safe value, backing off over :data:`PROBE_BACKOFF`), and the first frame that
 goes out on the bus, probe or command of any actuator, reports ``host.recover`` for every
 actuator failed by a send. Bus errors are also counted in
 ``CanDriver.error_counts``.
+
+A message with actuators and a cycle time is chcos' own cyclic message (:mod:`drivers.can_cyclic`):
+a command goes to its cycle, which repeats the last one every period (on kernel timers under a
+virtual clock, else through python-can's ``send_periodic``: the broadcast manager on SocketCAN);
+every frame sent carries its message's counter and checksum.
 """
 
 from __future__ import annotations
@@ -79,6 +97,7 @@ import enum
 import errno
 import functools
 import logging
+import re
 import time
 from collections import Counter
 from collections.abc import Sequence
@@ -88,9 +107,13 @@ from typing import Any
 import can
 
 from chcos.devices.spec import BusSpec, DeviceSpec
+from chcos.devices.status import CyclicStatus, DriverStatus
 from chcos.errors import BusError
 from chcos.helpers import is_int
 from drivers.base import DriverHost, deliver_all, host_clock_virtual
+from drivers.can_cyclic import ClockedCycle, Cycle, PeriodicCycle
+from drivers.can_direct import INTERFACE as DIRECT_INTERFACE
+from drivers.can_direct import DirectBus
 from drivers.canbus import (
     SocketcanReceive,
     StampClock,
@@ -112,18 +135,35 @@ from drivers.codecs.can import (
     check_address,
     checked_dbc,
     int_range,
+    limits_beyond,
     load_dbc,
 )
+from drivers.codecs.can_e2e import cycle_of, parse_messages
+from drivers.codecs.can_errors import ControllerState, ControllerStatus, decode_error_frame
 from drivers.recording import LOG_SUFFIXES, Recorder
-from drivers.sendprobe import SendProbe, safe_raw
+from drivers.sendprobe import ClockedSendProbe, SendProbe, safe_raw
 from drivers.threaded import ThreadedDriver
 
 BUS_OPTIONS = ("interface", "channel", "bitrate", "fd", "dbc", "record", "poll", "filter",
-               "ignore_ids", "unknown_ids", "port")
+               "ignore_ids", "unknown_ids", "port", "message")
 #: Bus keys that would declare counters or checksums: refused by ``check`` with the reason.
 REFUSED_OPTIONS = ("counter", "crc", "checksum")
 
 log = logging.getLogger("chcos.drivers.can")
+
+
+#: Signal names that usually are a rolling counter or a checksum (opendbc's, AUTOSAR's).
+_LOOKS_PROTECTED = re.compile(r"(?i)(counter|checksum|chksum|crc|alive|rolling)")
+
+
+def _dbc_message(bus: BusSpec, device: DeviceSpec) -> Any:
+    """The DBC message of a valid ``{message, signal}`` device, or None (raw form, no DBC)."""
+    if "message" not in device.address or not isinstance(bus.options.get("dbc"), str):
+        return None
+    try:
+        return checked_dbc(bus.options["dbc"]).get_message_by_name(device.address["message"])
+    except (BusError, KeyError):
+        return None
 
 
 class UnknownIds(enum.Enum):
@@ -217,6 +257,23 @@ class CanDriver(ThreadedDriver):
         self._outgoing: dict[str, can.Message] = {}
         # the batch being received (reader thread, see _end_batch)
         self._batch: list[tuple[str, Any]] = []
+        #: the messages chcos sends cyclically, by (id, extended): their period, the actuator
+        #: their frames count under; their cycles from their first command on
+        self._cyclic: dict[tuple[int, bool], float] = {}
+        self._cyclic_owner: dict[tuple[int, bool], str] = {}
+        for d in devices:
+            if d.direction == "actuator":
+                key = self.codec.key_of(d.name)
+                period = self.codec.cycle(*key)
+                if period is not None:
+                    self._cyclic[key] = period
+                    self._cyclic_owner.setdefault(key, d.name)
+        self._cycles_any = bool(self._cyclic)
+        self._cycles: dict[tuple[int, bool], Cycle] = {}
+        self._cycle_down: set[tuple[int, bool]] = set()
+        self._clocked = False       # the host's clock is virtual: cycles on kernel timers
+        #: the controller's state as its error frames tell it
+        self.controller = ControllerStatus()
         self._counted = 0       # of :attr:`received`, the frames in the bus statistics
 
     @classmethod
@@ -254,11 +311,20 @@ class CanDriver(ThreadedDriver):
                     load_dbc(o["dbc"])
                 except BusError as exc:
                     errs.append(f"{bus.key}.dbc: {exc}")
-        errs += [f"{bus.key}.{k}: unknown option for a can bus: chcos does not compute "
-                 f"counters or checksums, and a map cannot declare them (an actuator "
-                 f"message carrying one is sent with the signal at its last written or "
-                 f"initial value)" for k in REFUSED_OPTIONS
-                 if k in o]
+        errs += [f"{bus.key}.{k}: unknown option for a can bus: a rolling counter or a checksum "
+                 f"is declared per message, in a [[bus.message]] table (name, counter, "
+                 f"checksum = {{ signal, algorithm }})" for k in REFUSED_OPTIONS if k in o]
+        if "message" in o:
+            if not isinstance(o.get("dbc"), str):
+                errs.append(f"{bus.key}.message: [[bus.message]] describes DBC messages; the "
+                            f"bus needs the option dbc")
+            else:
+                try:
+                    dbc = checked_dbc(o["dbc"])
+                except BusError:
+                    dbc = None            # reported above
+                if dbc is not None:
+                    errs += parse_messages(o, bus.key, dbc)[1]
         if "filter" in o and not isinstance(o["filter"], bool):
             errs.append(f"{bus.key}.filter: expected true or false, got {o['filter']!r}")
         if "ignore_ids" in o:
@@ -315,6 +381,50 @@ class CanDriver(ThreadedDriver):
         return out
 
     @classmethod
+    def poll_period(cls, bus: BusSpec, device: DeviceSpec) -> float | None:
+        """A DBC sensor's message cycle (the map's cycle_time, else the DBC's): ``chcos check``
+        warns when ``stale_after`` is shorter. None for raw and event-driven messages."""
+        msg = _dbc_message(bus, device)
+        if msg is None:
+            return None
+        return cycle_of(parse_messages(bus.options, bus.key, None)[0].get(msg.name), msg)
+
+    @classmethod
+    def check_warnings(cls, bus: BusSpec, devices: Sequence[DeviceSpec]) -> list[str]:
+        """Sensor messages with no cycle time whose sensors have no ``stale_after`` (silence
+        never makes them stale), sensor signals whose DBC limits reach past what their bits
+        carry, and signals of a message chcos sends that look like a counter or checksum the
+        map does not declare."""
+        specs = parse_messages(bus.options, bus.key, None)[0]
+        out: list[str] = []
+        quiet: dict[str, list[str]] = {}
+        sent: set[str] = set()
+        for d in devices:
+            msg = _dbc_message(bus, d)
+            if msg is None:
+                continue
+            if d.direction == "actuator":
+                sent.add(msg.name)
+                continue
+            if cycle_of(specs.get(msg.name), msg) is None and d.stale_after is None:
+                quiet.setdefault(msg.name, []).append(d.name)
+            beyond = limits_beyond(msg.get_signal_by_name(d.address["signal"]))
+            if beyond:
+                out.append(f"{d.key}.address.signal: {beyond}: a reading there cannot come")
+        out += [f"message: {name} has no cycle time (GenMsgCycleTime, or cycle_time in "
+                f"[[bus.message]]) and its sensor(s) {', '.join(devs)} no stale_after: a silent "
+                f"sender never makes them stale" for name, devs in quiet.items()]
+        for name in sorted(sent):
+            spec = specs.get(name)
+            declared = {spec.counter, spec.checksum and spec.checksum.signal} if spec else set()
+            for sig in checked_dbc(str(bus.options["dbc"])).get_message_by_name(name).signals:
+                if sig.name not in declared and _LOOKS_PROTECTED.search(sig.name):
+                    out.append(f"message: {name}.{sig.name} looks like a rolling counter or "
+                               f"checksum; undeclared, chcos sends it unchanged, which a "
+                               f"receiver checking it rejects (declare it in [[bus.message]])")
+        return out
+
+    @classmethod
     def encodable(cls, bus: BusSpec, device: DeviceSpec) -> tuple[float, float] | None:
         """What the signal can carry: a raw address's integer range from its length and
         signedness; a DBC signal's raw range (integer, or float32; None for float64) through
@@ -356,25 +466,37 @@ class CanDriver(ThreadedDriver):
             ids = [(i, e) for i, e in self.codec.sensor_ids() if not in_ranges(i, self._ignore)]
             self.filters = cfg["can_filters"] = can_filters(
                 [i for i, e in ids if not e], [i for i, e in ids if e])
+        self._synchronous = cfg.get("interface") == DIRECT_INTERFACE
+        self._clocked = virtual is True
+        if self._clocked:    # the reports' periods on the kernel clock too
+            self._tally.now = self._overruns.now = self.host.now
         try:
             self._bus = can.Bus(**cfg)
         except (can.CanError, OSError, ValueError, ImportError) as exc:
             raise BusError(f"{where}: cannot open {cfg.get('interface')} channel "
                            f"{cfg.get('channel')!r}: {exc}") from exc
+        if isinstance(self._bus, DirectBus):   # the direct hand-off: frames come to _direct
+            self._bus.set_receiver(self._direct)
+            self.probe = ClockedSendProbe(f"{self.kind}-{self.bus.name}", self._probe_send,
+                                          PROBE_BACKOFF, self.host.at, self.host.now)
         if "record" in self.bus.options:
             try:
                 self._recorder = Recorder(self.bus.options["record"], str(cfg.get("channel")))
             except BusError:
                 self._bus.shutdown()
                 raise
-        # no file I/O on the kernel thread: a recording bus sends from its writer thread
-        self._inline = cfg.get("interface") in INLINE_INTERFACES and self._recorder is None
+        # no file I/O on the kernel thread: a recording bus sends from its writer thread (but
+        # the direct bus has no other thread: a recording one records there)
+        self._inline = self._synchronous or (cfg.get("interface") in INLINE_INTERFACES
+                                             and self._recorder is None)
         self._start_threads()
 
     def stop(self) -> None:
         """Stop the threads, close the bus and the record file, report what the aggregated
         warnings still count. Idempotent; never raises."""
         self.probe.stop()
+        for cycle in self._cycles.values():
+            cycle.stop()
         self._stop_threads()
         self._tally.flush()
         self._overruns.flush()
@@ -421,19 +543,77 @@ class CanDriver(ThreadedDriver):
         self._error(kind, f"{n} frame(s) lost on bus {self.bus.name!r}: the socket's receive "
                           f"buffer overflowed ({examples[-1] if examples else 'no drop count'})")
 
+    def _direct(self, frame: can.Message) -> None:
+        """A frame from the direct bus (the sender's thread: the kernel's): handled as the
+        reader would, and handed over at once."""
+        self._receive(frame)
+        self._end_batch()
+
+    def _controller(self, frame: can.Message) -> None:
+        """An error frame (SocketCAN's, or the direct bus's alike): counted (``error-frame``),
+        and the state it tells taken: entering error-passive is a bus error
+        (``error-passive``); bus-off fails every device of the bus with that reason
+        (``bus-off``); the restart out of it recovers the actuators (the device table then
+        writes their safe values first) and the sensors with their next frame."""
+        report = decode_error_frame(frame.arbitration_id, bytes(frame.data))
+        self._error("error-frame", f"CAN error frame: {report.what}")
+        was = self.controller.state
+        new = self.controller.take(report)
+        if new is None:
+            return
+        self.host.stat(self.bus.name, f"controller-{new.value}")
+        if new is ControllerState.BUS_OFF:
+            self._error("bus-off", f"the controller is bus-off ({report.what})")
+            self._off_bus(f"CAN bus {self.bus.name!r} is bus-off ({report.what})")
+        elif new is ControllerState.ERROR_PASSIVE:
+            self._error("error-passive", f"the controller is error-passive ({report.what})")
+        elif was is ControllerState.BUS_OFF:
+            self._on_bus_again(f"the controller restarted ({report.what})")
+
+    def _off_bus(self, reason: str) -> None:
+        """The controller is off the bus: every device fails with ``reason``; nothing is
+        probed (no frame can go out until the restart)."""
+        self._failed = True
+        if self._batch:
+            self._end_batch()
+        for name in self.devices:
+            self.host.fail(name, reason)
+
+    def _on_bus_again(self, why: str) -> None:
+        """The controller is back on the bus: the actuators recover now (what failed them was
+        the bus), the sensors with their next frame (:meth:`_bus_up`)."""
+        self.probe.clear()
+        for name, spec in self.devices.items():
+            if spec.direction == "actuator":
+                self.host.recover(name, why)
+        for fid, ext in self.codec.sensor_ids():
+            self.codec.reset_counter(fid, ext)   # the senders' counters went on meanwhile
+
+    def status(self) -> DriverStatus:
+        """The controller's state (``bus_state``: error-active / error-warning / error-passive
+        / bus-off, the TX and RX error counters its last error frame gave, error frames,
+        error-passive and bus-off episodes, restarts) and chcos' cyclic messages (``cyclic``:
+        message, period, started, frames sent by a clocked cycle)."""
+        cyclic = tuple(CyclicStatus(self.codec.message_name(*key), period, key in self._cycles,
+                                    getattr(self._cycles.get(key), "sent", None))
+                       for key, period in self._cyclic.items())
+        return DriverStatus(bus_state=self.controller.as_state(), cyclic=cyclic)
+
     def _receive(self, frame: can.Message) -> None:
         """One received frame (reader thread): counted, recorded, decoded; its readings join
-        the batch :meth:`_end_batch` hands over. Never raises: what fails is an ``internal``
-        error."""
-        if self._failed:
-            self._bus_up()
+        the batch :meth:`_end_batch` hands over. An error frame tells the controller's state
+        (:meth:`_controller`). Never raises: what fails is an ``internal`` error."""
         try:
             self.received += 1
             if self._recorder is not None:
                 self._recorder.on_message_received(frame)
             if frame.is_error_frame:
-                self._error("error-frame", "CAN error frame received")
+                self._controller(frame)
                 return
+            if self._failed:
+                if self.controller.on_bus():     # bus-off, and no restart frame was seen
+                    self._on_bus_again("a frame was received after bus-off")
+                self._bus_up()
             match self.codec.decode(frame):
                 case Decoded(readings):
                     key = (frame.arbitration_id, bool(frame.is_extended_id))
@@ -445,10 +625,13 @@ class CanDriver(ThreadedDriver):
                     self._unknown_id(frame)
                 case Rejected(FrameFault.UNKNOWN_MUX):
                     self._pending_stats[FrameFault.UNKNOWN_MUX.value, ""] += 1
-                case Rejected(FrameFault.WRONG_LENGTH | FrameFault.UNDECODABLE as fault, detail):
+                case Rejected(FrameFault.WRONG_LENGTH | FrameFault.UNDECODABLE
+                              | FrameFault.CHECKSUM | FrameFault.COUNTER as fault, detail):
+                    key = (frame.arbitration_id, bool(frame.is_extended_id))
                     self._error(fault.value, detail)
-                    self._malformed((frame.arbitration_id, bool(frame.is_extended_id)),
-                                    fault.value, detail)
+                    for dev in self.codec.sensors_of(*key):
+                        self._pending_stats[f"rejected-{fault.value}", dev] += 1
+                    self._malformed(key, fault.value, detail)
                 case Rejected(fault, detail):
                     self._error(fault.value, detail)
                 case Ignored():
@@ -560,17 +743,6 @@ class CanDriver(ThreadedDriver):
         """A raw integer signal's range (see :meth:`CanCodec.accepts`)."""
         return self.codec.accepts(device)
 
-    def _frame(self, device: str, value: Any, report: bool = True) -> can.Message | None:
-        """The frame carrying ``value`` for ``device``; None if the value does not fit (then
-        refused and, with ``report``, reported: the device is fine)."""
-        try:
-            fid, data, ext = self.codec.encode_raw(device, value)
-        except BusError as exc:
-            if report:
-                self._unencodable(device, value, exc)
-            return None
-        return can.Message(arbitration_id=fid, data=data, is_extended_id=ext)
-
     def _unencodable(self, device: str, value: Any, exc: BusError) -> None:
         """``value`` does not fit ``device``'s signal: counted (``range``) and the write
         reported failed (the device is fine)."""
@@ -581,7 +753,8 @@ class CanDriver(ThreadedDriver):
         """Fast path (the kernel thread, see drivers.threaded): send with ``timeout=0``, which
         :data:`INLINE_INTERFACES` honour without blocking; any error there (a full transmit
         buffer, ENOBUFS, the bus closing) leaves the frame to the writer thread, which tries
-        again with the usual timeout and reports what still fails."""
+        again with the usual timeout and reports what still fails. A command of a cyclic
+        message goes to its cycle instead (:meth:`_to_cycle`)."""
         bus = self._bus
         if bus is None:
             return False
@@ -591,12 +764,16 @@ class CanDriver(ThreadedDriver):
             if report:
                 self._unencodable(device, value, exc)
             return report
+        if self._cycles_any and (fid, ext) in self._cyclic:
+            return self._to_cycle(device, value, (fid, ext), data, report)
+        data = self.codec.stamp(fid, ext, data)
         # one frame object per actuator, its payload replaced by the codec's (immutable) bytes:
         # the fast path's interfaces take the frame's content during send, and only one
         # fast-path send runs at a time. python-can's virtual bus deep-copies the frame for
         # every receiver - a bytes payload is copied as the same object, a bytearray by a
         # copyreg round trip - and its Message() gives each copy a bytearray again; SocketCAN
-        # packs bytes(data), which takes bytes as they are
+        # packs bytes(data), which takes bytes as they are; the direct bus's receivers take
+        # it during the send and keep nothing
         frame = self._outgoing.get(device)
         if frame is None:
             frame = self._outgoing[device] = can.Message(arbitration_id=fid, data=data,
@@ -604,27 +781,116 @@ class CanDriver(ThreadedDriver):
         frame.data = data  # type: ignore[assignment]  # private frame: see above
         try:
             bus.send(frame, 0)  # timeout 0: never blocks (see INLINE_INTERFACES)
-        except (can.CanError, OSError):
+        except (can.CanError, OSError) as exc:
+            if self._synchronous and report:   # no writer thread to try again: failed now
+                self._send_failure(device, value, exc)
+                return True
             return False
         self._sent(device, value, frame, report)
         return True
 
+    def _send_direct(self, device: str, value: Any) -> None:
+        """Synchronous mode (the direct bus): the fast path reports every outcome itself."""
+        self._send_now(device, value)
+
     def _send(self, device: str, value: Any) -> None:
         assert self._bus is not None
-        frame = self._frame(device, value)
-        if frame is None:
+        try:
+            fid, data, ext = self.codec.encode_raw(device, value)
+        except BusError as exc:
+            self._unencodable(device, value, exc)
             return
+        if (fid, ext) in self._cyclic:
+            self._to_cycle(device, value, (fid, ext), data, True)
+            return
+        frame = can.Message(arbitration_id=fid, data=self.codec.stamp(fid, ext, data),
+                            is_extended_id=ext)
         try:
             self._send_waiting(self._bus, frame)
         except (can.CanError, OSError) as exc:
-            reason = f"CAN send on bus {self.bus.name!r} failed: {exc}"
-            self._error("send", reason)
-            self.host.write_failed(device, value, reason)
-            self.host.fail(device, reason)
-            self._send_failed(device)
+            self._send_failure(device, value, exc)
             return
         self.sent_queued += 1
         self._sent(device, value, frame)
+
+    def _send_failure(self, device: str, value: Any, exc: Exception) -> None:
+        """A command's frame could not be sent: reported, the actuator failed and probed."""
+        reason = f"CAN send on bus {self.bus.name!r} failed: {exc}"
+        self._error("send", reason)
+        self.host.write_failed(device, value, reason)
+        self.host.fail(device, reason)
+        self._send_failed(device)
+
+    # -- cyclic messages (drivers.can_cyclic) ----------------------------------------------
+
+    def _to_cycle(self, device: str, value: Any, key: tuple[int, bool], data: bytes,
+                  report: bool) -> bool:
+        """A command of a cyclic message: the message's cycle holds the new payload (started
+        by its first command, sending a frame at once) and sends it with every frame from now
+        on; confirmed (``report``) once the cycle holds it. False, nothing done, if the cycle
+        cannot take it (then the caller reports the failure)."""
+        cycle = self._cycles.get(key)
+        try:
+            if cycle is None:
+                cycle = self._cycles[key] = self._new_cycle(key)
+            cycle.update(data)
+        except (can.CanError, OSError, ValueError) as exc:
+            if report:
+                self._send_failure(device, value, exc)
+                return True
+            return False
+        self._last_sent[device] = value
+        if report:
+            self.host.written(device, value)
+        return True
+
+    def _new_cycle(self, key: tuple[int, bool]) -> Cycle:
+        """The cycle of message ``key``: on kernel timers when the host's clock is virtual,
+        else python-can's periodic sender of the interface (see drivers.can_cyclic)."""
+        period = self._cyclic[key]
+        assert self._bus is not None
+        if self._clocked:
+            return ClockedCycle(period, functools.partial(self._cycle_frame, key),
+                                self.host.at, self.host.now,
+                                lambda: self.controller.state is ControllerState.BUS_OFF)
+        return PeriodicCycle(self._bus, period, functools.partial(self._cycle_frames, key))
+
+    def _cycle_frame(self, key: tuple[int, bool], data: bytes) -> bool:
+        """One frame of a clocked cycle (the kernel thread): stamped, sent without waiting,
+        counted under the message's first actuator; True if it went out. A frame the bus does
+        not take is a ``send`` error (once per outage: the cycle keeps trying)."""
+        bus = self._bus
+        if bus is None:
+            return False
+        fid, ext = key
+        frame = can.Message(arbitration_id=fid, data=self.codec.stamp(fid, ext, data),
+                            is_extended_id=ext)
+        owner = self._cyclic_owner[key]
+        try:
+            bus.send(frame, 0)
+        except (can.CanError, OSError) as exc:
+            if key not in self._cycle_down:
+                self._cycle_down.add(key)
+                self._error("send", f"cyclic {self.codec.message_name(fid, ext)} on bus "
+                                    f"{self.bus.name!r} not sent: {exc}")
+            return False
+        self._cycle_down.discard(key)
+        self.sent_frames[owner] += 1
+        if self.probe.any_failed:
+            self._link_works(owner, "a cyclic frame was sent")
+        if self._recorder is not None:
+            frame.is_rx = False
+            self._recorder.on_message_received(frame)
+        return True
+
+    def _cycle_frames(self, key: tuple[int, bool], data: bytes) -> list[can.Message]:
+        """The frames of a periodic send task of message ``key`` holding ``data``: one per
+        counter value in counter order (the checksum of each computed), one without a
+        counter."""
+        fid, ext = key
+        prot = self.codec.protection(fid, ext)
+        payloads = [data] if prot is None else [prot.stamp(data, c) for c in range(prot.modulo)]
+        return [can.Message(arbitration_id=fid, data=p, is_extended_id=ext) for p in payloads]
 
     def _send_waiting(self, bus: can.BusABC, frame: can.Message) -> None:
         """Send ``frame``, waiting up to SEND_TIMEOUT for room (writer thread): python-can
@@ -668,8 +934,15 @@ class CanDriver(ThreadedDriver):
                 return f"CAN bus {self.bus.name!r} is closed"
             try:
                 fid, data, ext = self.codec.encode_raw(device, value)
-                frame = can.Message(arbitration_id=fid, data=data, is_extended_id=ext)
-                self._send_waiting(bus, frame)
+                if (fid, ext) in self._cyclic:    # the cycle sends it: one frame now
+                    return (None if self._cycle_frame((fid, ext), data) else
+                            f"cyclic {self.codec.message_name(fid, ext)} not sent")
+                frame = can.Message(arbitration_id=fid, data=self.codec.stamp(fid, ext, data),
+                                    is_extended_id=ext)
+                if self._synchronous:
+                    bus.send(frame, 0)
+                else:
+                    self._send_waiting(bus, frame)
             except (BusError, can.CanError, OSError) as exc:
                 return f"CAN send on bus {self.bus.name!r} failed: {exc}"
             self.sent_frames[device] += 1

@@ -180,13 +180,16 @@ class StampClock:
 class Tally:
     """Rate-limited reports of recurring events (unknown ids on a shared wire): the first
     event of a kind is reported at once, the others counted and reported as one line per kind
-    per ``period`` seconds (wall time) with their count and a few examples, at the next event
-    after the period or at :meth:`flush`. ``report(kind, count, examples)`` does the reporting.
-    Thread-safe."""
+    per ``period`` seconds (wall time, or the clock ``now`` gives) with their count and a few
+    examples, at the next event after the period or at :meth:`flush`. ``report(kind, count,
+    examples)`` does the reporting. Thread-safe."""
 
     def __init__(self, report: Callable[[str, int, list[str]], None], period: float = 10.0,
-                 examples: int = 5) -> None:
+                 examples: int = 5, now: Callable[[], float] = time.monotonic) -> None:
         self._report = report
+        #: the clock the period is counted on (wall time; a driver on virtual time gives its
+        #: host's, so that no report depends on the machine's speed)
+        self.now = now
         self.period = period
         self._examples = examples
         self._lock = threading.Lock()
@@ -205,7 +208,7 @@ class Tally:
             if example not in seen:
                 seen.append(example)
                 del seen[:-self._examples]     # the newest few
-            now = time.monotonic()
+            now = self.now()
             last = self._last.get(kind)
             if last is not None and now - last < self.period:
                 return

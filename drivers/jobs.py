@@ -1,4 +1,5 @@
-"""jobs - the job-queue scaffolding of the request/response drivers (CANopen, Modbus).
+"""jobs - the job-queue scaffolding of the CANopen driver (the Modbus drivers own a
+:class:`drivers.jobqueue.JobQueue` instead, which this driver can adopt).
 
 Their bus I/O runs as jobs, in order, on one I/O thread of the driver: a poll of some sensors, a
 write, a probe, an NMT command. The kernel side only enqueues (kernel timer callbacks and
@@ -16,9 +17,9 @@ thread (counted ``polls-late`` in the bus statistics), so the kernel is not woke
 all then, where a periodic timer would wake it every period while a slow poll is in flight. On a
 virtual clock the polls fall exactly on the period's grid. The transport is
 :class:`WorkerJobDriver`: a plain worker thread taking jobs from a :class:`queue.Queue` (the
-CANopen and Modbus drivers, whose library calls block); a subclass writes ``_run(job)`` and may
-override ``_tick()`` (the longest wait for a job: its watchdog's period), or replace the worker's
-loop ``_work()`` by its own that takes the jobs (the Modbus drivers: connect, serve, reconnect).
+CANopen driver, whose library calls block); a subclass writes ``_run(job)`` and may override
+``_tick()`` (the longest wait for a job: its watchdog's period), or replace the worker's loop
+``_work()`` by its own that takes the jobs.
 
 :meth:`WorkerJobDriver._stop_worker` queues a ``stop`` job behind every job already queued, so
 writes queued before the stop (the safe values at shutdown) still go out; a write the thread did
@@ -56,9 +57,8 @@ class JobOp(StrEnum):
 
 
 class Job(NamedTuple):
-    """One unit of bus I/O: ``op``, what it is about (a poll's key - typed by the driver, e.g.
-    :class:`drivers.modbus_jobs.SensorPoll` -, a write's device, a driver's own job object) and
-    a write's value."""
+    """One unit of bus I/O: ``op``, what it is about (a poll's key, typed by the driver; a
+    write's device; a driver's own job object) and a write's value."""
 
     op: JobOp
     what: Any = None

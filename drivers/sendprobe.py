@@ -158,3 +158,51 @@ class SendProbe:
                 if self._due.get(device) is due:    # (the driver ended it already)
                     del self._due[device]
                 self.sent += 1
+
+
+class ClockedSendProbe(SendProbe):
+    """:class:`SendProbe` on the kernel clock, for a link whose sends run on the kernel thread
+    (the direct bus of virtual time): each probe is a kernel timer (``at(when, fn)``, ``now()``:
+    the driver host's), backing off the same way, so no thread and no wall clock decide when a
+    probe goes out."""
+
+    def __init__(self, name: str, send: Callable[[str, Any], str | None],
+                 backoff: tuple[float, float], at: Callable[[float, Callable[[], None]], None],
+                 now: Callable[[], float]) -> None:
+        super().__init__(name, send, backoff)
+        self._at = at
+        self._now = now
+
+    def failed(self, device: str, value: Any | None) -> None:
+        """As :meth:`SendProbe.failed`; the probe is armed on the kernel clock."""
+        with self._cond:
+            self._failed.add(device)
+            if value is None or not self._running:
+                return
+            due = self._due.get(device)
+            if due is not None:
+                due.value = value
+                return
+            due = self._due[device] = _Due(self._now() + self._backoff[0], self._backoff[0],
+                                           value)
+        self._at(due.at, lambda: self._fire(device, due))
+
+    def _fire(self, device: str, due: _Due) -> None:
+        """One probe of ``device`` (a kernel timer); armed again, backing off, if it fails."""
+        if not self._running or self._due.get(device) is not due:
+            return
+        try:
+            why = self._send(device, due.value)
+        except Exception as exc:    # a driver bug must not end the probing
+            why = f"probe failed: {exc!r}"
+        if why is None:
+            if self._due.get(device) is due:
+                del self._due[device]
+            self.sent += 1
+            return
+        if self._due.get(device) is not due:
+            return
+        self.failed_tries += 1
+        due.delay = min(due.delay * 2, self._backoff[1])
+        due.at = self._now() + due.delay
+        self._at(due.at, lambda: self._fire(device, due))

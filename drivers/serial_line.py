@@ -2,7 +2,10 @@
 
 The port is opened with ``serial.serial_for_url``, so ``url`` may be a device path
 (``/dev/ttyUSB0``, a pty slave such as ``/dev/pts/7``), ``socket://127.0.0.1:5000`` (a TCP
-serial server) or ``loop://``. A reader thread reads and decodes; a writer thread sends
+serial server) or ``loop://``; ``chcos-direct://NAME`` is the in-process line of virtual time
+(:mod:`drivers.serial_direct`: no thread, the peer's bytes handled inside its write, the
+commands written in the caller's thread, probes on the kernel clock), which the simulated
+instrument of a virtual cell is on. A reader thread reads and decodes; a writer thread sends
 actuator commands, so :meth:`SerialDriver.write` never blocks. When the port goes away
 (read/write error, socket closed, open fails) every device is ``host.fail``-ed and the reader
 reopens it with a backoff doubling from ``reconnect_min`` to ``reconnect_max`` seconds; on
@@ -70,7 +73,9 @@ from drivers.codecs.serial import (
     parse_hex,
     struct_of,
 )
-from drivers.sendprobe import SendProbe, safe_raw
+from drivers.sendprobe import ClockedSendProbe, SendProbe, safe_raw
+from drivers.serial_direct import SCHEME as DIRECT_SCHEME
+from drivers.serial_direct import open_end
 from drivers.threaded import ThreadedDriver
 
 
@@ -212,7 +217,24 @@ class SerialDriver(ThreadedDriver):
                            f"{self.bus.name!r}: {exc}") from exc
 
     def start(self) -> None:
-        """Start the reader (which opens the port, and reopens it) and the writer thread."""
+        """Start the reader (which opens the port, and reopens it) and the writer thread; on a
+        direct line (``chcos-direct://``, virtual time) open it and start no thread: its bytes
+        arrive in the peer's write and commands go out in the caller's (see
+        :mod:`drivers.serial_direct`). Raises :class:`BusError` if the direct line is taken."""
+        url = str(self.bus.options["url"])
+        if url.startswith(DIRECT_SCHEME):
+            try:
+                end = open_end(url)
+            except OSError as exc:
+                raise BusError(f"bus {self.bus.name!r} ({self.bus.file} {self.bus.key}): "
+                               f"{exc}") from exc
+            self._synchronous = True
+            self.probe = ClockedSendProbe(f"{self.kind}-{self.bus.name}", self._probe_send,
+                                          self._backoff, self.host.at, self.host.now)
+            self._port = end
+            self.connects = 1
+            framer = self._framer()
+            end.set_receiver(lambda data: self._feed(framer, data))
         self._start_threads()
 
     def wait_open(self, timeout: float) -> bool:

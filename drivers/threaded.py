@@ -28,6 +28,13 @@ put on the wire in the caller's thread (the kernel thread) without waiting; when
 take it at once (``_send_now`` returns False: a full transmit buffer), the write goes to the
 front of the queue and the writer thread sends it with the usual timeout. Either way every write
 is reported exactly once and in order through ``host.written``/``host.write_failed``.
+
+The synchronous mode (``_synchronous``, set by a subclass before the threads would start):
+a link that is a direct hand-off on the kernel thread (the in-process bus of virtual time,
+whose peer answers inside the send) needs no thread at all. Neither thread is started; every
+write is sent in the caller's thread by ``_send_direct`` (the fast path, and on its failure the
+driver's own report of it), input arrives through the link's own callback, and
+:meth:`ThreadedDriver.settle` returns at once: nothing is ever in flight.
 """
 
 from __future__ import annotations
@@ -183,6 +190,8 @@ class ThreadedDriver(Driver):
         self._settling = 0      # callers waiting in settle() (under _lock)
         #: whether writes may take the fast path (see the module doc); set by a subclass
         self._inline = False
+        #: the synchronous mode (see the module doc): no threads; set by a subclass
+        self._synchronous = False
         self._writer: threading.Thread | None = None
         self._rx = ReaderThread(self._read_loop, f"{self.kind}-{bus.name}-rx")
         self.error_counts: Counter[str] = Counter()
@@ -206,6 +215,13 @@ class ThreadedDriver(Driver):
     def _can_send(self) -> bool:
         """Whether a taken command may go now (checked under ``_cond``); default always."""
         return True
+
+    def _send_direct(self, device: str, value: Any) -> None:
+        """Synchronous mode: put one command on the wire in the caller's thread and report it
+        (``host.written``, or ``host.write_failed`` and what a failure means for the device).
+        The default: the fast path, else ``_send``."""
+        if not self._send_now(device, value):
+            self._send(device, value)
 
     def _write_loop(self) -> None:
         while True:
@@ -238,8 +254,12 @@ class ThreadedDriver(Driver):
         self.host.error(self.bus.name, kind, detail)
 
     def _start_threads(self) -> None:
-        """Start the reader and the writer, named ``<kind>-<bus>-rx``/``-tx``."""
+        """Start the reader and the writer, named ``<kind>-<bus>-rx``/``-tx`` (none in the
+        synchronous mode)."""
         self._running = True
+        if self._synchronous:
+            self.settles = False      # nothing in flight: Devtab registers no settler
+            return
         self._rx.start()
         self._writer = threading.Thread(target=self._write_loop,
                                         name=f"{self.kind}-{self.bus.name}-tx", daemon=True)
@@ -266,7 +286,14 @@ class ThreadedDriver(Driver):
         """Send ``value`` to actuator ``device`` on the fast path when nothing is queued or being
         sent and the link takes it at once (see the module doc), else queue it for the writer
         thread; the outcome arrives as ``host.written``/``host.write_failed`` (on the fast path
-        before this returns). Never blocks."""
+        before this returns). Never blocks. In the synchronous mode it is sent here and now."""
+        if self._synchronous:
+            if self._running:
+                self._send_direct(device, value)
+            else:
+                self._refuse(device, value, "stopped", f"{self.kind} bus {self.bus.name} is "
+                                                       f"not running")
+            return
         with self._lock:
             running = self._running     # stop() may have come between write's check and here
             inline = (running and self._inline and not self._outbox and not self._sending
@@ -295,7 +322,7 @@ class ThreadedDriver(Driver):
             self.host.write_failed(device, value, f"{self.kind} bus {self.bus.name} stopped "
                                                   f"before the write was sent")
 
-    def write_now(self, device: str, value: Any) -> bool:
+    def _write_now(self, device: str, value: Any) -> bool:
         """The fast path without a confirmation to the host (see :meth:`Driver.write_now`):
         taken only when nothing is queued or being sent and the link takes the frame at once.
         The send holds ``_lock`` instead of claiming it: ``_send_now`` never waits, and with
@@ -305,34 +332,28 @@ class ThreadedDriver(Driver):
         if not self._inline:
             return False
         with self._lock:
-            if (not self._running or self._outbox or self._sending
-                    or (self._gated and not self._can_send()) or device not in self.devices
-                    or not self._send_now(device, value, False)):
-                return False
-        self.write_counts[device] += 1
-        return True
+            return not (not self._running or self._outbox or self._sending
+                        or (self._gated and not self._can_send())
+                        or not self._send_now(device, value, False))
 
-    def write_now_many(self, writes: Sequence[tuple[str, Any]]) -> list[bool]:
-        """:meth:`write_now` for several actuators under one hold of ``_lock`` (an emergency
-        stop's safe values, back to back): each as :meth:`write_now` would, in order."""
+    def _write_now_many(self, writes: Sequence[tuple[str, Any]]) -> list[bool]:
+        """:meth:`_write_now` for several actuators under one hold of ``_lock`` (an emergency
+        stop's safe values, back to back): each as :meth:`_write_now` would, in order."""
         if not self._inline:
             return [False] * len(writes)
         with self._lock:
             free = (self._running and not self._outbox and not self._sending
                     and (not self._gated or self._can_send()))
-            sent = [free and device in self.devices
-                    and self._send_now(device, value, False)
-                    for device, value in writes]
-        for (device, _value), ok in zip(writes, sent, strict=True):
-            if ok:
-                self.write_counts[device] += 1
-        return sent
+            return [free and self._send_now(device, value, False) for device, value in writes]
 
     def _claimed(self, send: Callable[[], str | None], timeout: float = 0.5) -> str | None:
         """Run ``send`` (a frame that is no queued command: a probe, see
         :mod:`drivers.sendprobe`) holding the send as the writer thread does, once nothing is
         queued or being sent, so commands keep their order; its result, or why it did not run
-        (stopped, or the link busy for ``timeout`` seconds)."""
+        (stopped, or the link busy for ``timeout`` seconds). In the synchronous mode nothing
+        else can be sending: it runs at once."""
+        if self._synchronous:
+            return send() if self._running else f"{self.kind} bus {self.bus.name} stopped"
         with self._lock:
             free = self._cond.wait_for(
                 lambda: not self._running or (not self._outbox and not self._sending), timeout)
@@ -360,7 +381,9 @@ class ThreadedDriver(Driver):
     def settle(self, timeout: float) -> bool:
         """Hand the host every frame or line that arrived before this call and wait until no
         command is queued or on its way (see the module doc). True at once when stopped; False
-        on timeout."""
+        on timeout; at once in the synchronous mode (nothing is in flight)."""
+        if self._synchronous:
+            return True
         deadline = time.monotonic() + timeout
         if not self._rx.settle(timeout):
             return False

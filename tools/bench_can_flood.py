@@ -281,7 +281,8 @@ def _chcos_phase(traffic: _Traffic, use_filter: bool, paired: bool = False) -> d
         def write_failed(self, device: str, value: Any, reason: str) -> None:
             pass
 
-        def stat(self, bus: str, key: str, n: int = 1, device: str = "") -> None:
+        def stat(self, bus: str, key: str, n: int = 1, device: str = "",
+                 error: bool = False) -> None:
             pass
 
         def error(self, bus: str, kind: str, detail: str, device: str = "") -> None:

@@ -100,7 +100,8 @@ class CountingHost:
     def write_failed(self, device: str, value: Any, reason: str) -> None:
         self.failures.append(f"{device}: write {value!r} failed: {reason}")
 
-    def stat(self, bus: str, key: str, n: int = 1, device: str = "") -> None:
+    def stat(self, bus: str, key: str, n: int = 1, device: str = "", error: bool = False
+             ) -> None:
         """Counters do not matter to the rate."""
 
     def every(self, period: float, fn: Callable[[], None]) -> None:

@@ -18,7 +18,12 @@ Sections (tools/suite_sections.py, in this order):
 5. resident size over a soak at 10,000 frames/s;
 6. satellite scaling with 1, 2 and 3 CPU-bound satellite processes beside the model's ratios,
    and cross-satellite latency beside the bare transport;
-7. setup growth at 10², 10³ and 10⁴ with its exponent (1.0 = linear).
+7. setup growth at 10², 10³ and 10⁴ with its exponent (1.0 = linear);
+8. the real-time factor of each shipped cell on virtual time (tools/bench_rtf.py: the welding
+   cell on the simulated buses and on the protocol-free binding, the from-vendor-files cell, the
+   ``chcos new`` scaffold; virtual s per wall s and CPU-s per virtual s) beside the plain loop
+   that only moves the same frames;
+9. on request (``--only "test suite"``): the test suite's own wall time on two workers.
 Every real-time figure is measured in ``--repeat`` batches (default 3), chcos and its baseline
 interleaved, and printed as min / median / max; targets are judged on the median. Prints the
 table (figure and what it includes, target, measured, met?), writes results.json, table.md and
@@ -47,7 +52,7 @@ import can
 
 from chcos.apps.bench.svg import Series, write_ecdf_svg
 from tools.suite_common import ROOT, Row, SuiteRun
-from tools.suite_sections import SECTIONS
+from tools.suite_sections import ON_REQUEST, SECTIONS
 
 BEGIN = "<!-- bench_suite table: begin (python -m tools.bench_suite --update-readme) -->"
 END = "<!-- bench_suite table: end -->"
@@ -137,8 +142,9 @@ def _run(args: argparse.Namespace) -> int:
     run.res.update({"machine": info, "quick": q, "repeat": run.reps, "seed": args.seed})
     only = {s.strip() for s in args.only.split(",") if s.strip()}
     t_start = time.perf_counter()
-    for name, section in SECTIONS:
-        if only and not any(o in name for o in only):
+    for name, section in [*SECTIONS, *ON_REQUEST]:
+        if (only and not any(o in name for o in only)) or (
+                not only and (name, section) in ON_REQUEST):
             continue
         t0 = time.perf_counter()
         print(f"[bench] {name} ...", file=sys.stderr, flush=True)

@@ -1,8 +1,9 @@
-"""peer_rtu - libmodbus RTU slaves as independent Modbus RTU peers for the tests and benchmarks:
-the slave program (``vcan_tests/peers/rtu_slave.c``, compiled with gcc against libmodbus), the
-process running it (:class:`RtuSlave`), and a multi-drop line joining the master and several
-slaves over ptys (:class:`LineHub`). The fault relay and socat pty pairs of the single-slave
-tests are in ``vcan_tests/support_rtu.py``, which uses these.
+"""peer_rtu - libmodbus peers as independent Modbus peers for the tests and benchmarks: the RTU
+slave program (``vcan_tests/peers/rtu_slave.c``) and a one-request client (``mb_client.c``),
+compiled with gcc against libmodbus, the process running a slave (:class:`RtuSlave`), and a
+multi-drop line joining the master and several slaves over ptys (:class:`LineHub`). The fault
+relay and socat pty pairs of the single-slave tests are in ``vcan_tests/support_rtu.py``, which
+uses these.
 """
 
 from __future__ import annotations
@@ -19,13 +20,27 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO
 
-SOURCE = Path(__file__).resolve().parent.parent / "vcan_tests" / "peers" / "rtu_slave.c"
+PEERS = Path(__file__).resolve().parent.parent / "vcan_tests" / "peers"
+SOURCE = PEERS / "rtu_slave.c"
+CLIENT_SOURCE = PEERS / "mb_client.c"
 
 
 def compile_slave(out_dir: Path) -> Path:
     """Compile the libmodbus RTU slave into ``out_dir`` and return its path. Raises
     RuntimeError naming what is missing (gcc, pkg-config, libmodbus-dev) or the compiler's
     message."""
+    return compile_peer(SOURCE, out_dir)
+
+
+def compile_client(out_dir: Path) -> Path:
+    """Compile the libmodbus client (``vcan_tests/peers/mb_client.c``: one raw request, TCP or
+    RTU, the answer printed) into ``out_dir``, as :func:`compile_slave`."""
+    return compile_peer(CLIENT_SOURCE, out_dir)
+
+
+def compile_peer(source: Path, out_dir: Path) -> Path:
+    """Compile the C program ``source`` against libmodbus into ``out_dir``; its path. Raises
+    RuntimeError naming what is missing or the compiler's message."""
     for tool in ("gcc", "pkg-config"):
         if shutil.which(tool) is None:
             raise RuntimeError(f"missing: {tool} (apt-get install gcc pkg-config libmodbus-dev)")
@@ -33,11 +48,11 @@ def compile_slave(out_dir: Path) -> Path:
                            capture_output=True, text=True)
     if flags.returncode != 0:
         raise RuntimeError("missing: libmodbus-dev (pkg-config libmodbus)")
-    exe = out_dir / "rtu_slave"
+    exe = out_dir / source.stem
     done = subprocess.run(["gcc", "-Wall", "-Wextra", "-Werror", "-O2", "-o", str(exe),
-                           str(SOURCE), *flags.stdout.split()], capture_output=True, text=True)
+                           str(source), *flags.stdout.split()], capture_output=True, text=True)
     if done.returncode != 0:
-        raise RuntimeError(f"cannot compile {SOURCE.name}: {done.stderr}")
+        raise RuntimeError(f"cannot compile {source.name}: {done.stderr}")
     return exe
 
 
@@ -51,10 +66,14 @@ def open_raw(path: Path | str) -> int:
 class RtuSlave:
     """The libmodbus slave process on ``port`` as ``unit``; reads its report lines."""
 
-    def __init__(self, exe: Path, port: Path, unit: int, response_timeout: str = "") -> None:
+    def __init__(self, exe: Path, port: Path, unit: int, response_timeout: str = "",
+                 reply_delay_ms: int = 0) -> None:
         """``response_timeout``: the slave's libmodbus response timeout in ms, or ``"default"``
-        for libmodbus' own (500 ms); empty: 50 ms (see rtu_slave.c)."""
-        extra = [response_timeout] if response_timeout else []
+        for libmodbus' own (500 ms); empty: 50 ms (see rtu_slave.c). ``reply_delay_ms``: how
+        late it answers."""
+        extra = [response_timeout or "50"] if response_timeout or reply_delay_ms else []
+        if reply_delay_ms:
+            extra.append(str(reply_delay_ms))
         self.proc = subprocess.Popen([str(exe), str(port), str(unit), *extra],
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         self._cond = threading.Condition()

@@ -17,6 +17,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import time
 from collections.abc import Callable
 from fractions import Fraction
 from pathlib import Path
@@ -509,6 +510,35 @@ def growth(run: SuiteRun) -> None:
                          yes(g["met"] and g["slope"] < 1.3)))
 
 
+def real_time_factor(run: SuiteRun) -> None:
+    """8. The real-time factor of each shipped cell on virtual time, side by side with the
+    plain loop that only moves the buses cell's frames (tools/bench_rtf.py, issue 47)."""
+    from tools import bench_rtf
+
+    seconds = 10.0 if run.quick else 30.0
+    results = bench_rtf.run_all(seconds, run.reps)
+    run.res["real_time_factor"] = {c: [vars(f) | {"rtf": f.rtf,
+                                                   "cpu_per_virtual": f.cpu_per_virtual}
+                                       for f in fs] for c, fs in results.items()}
+    run.rows += bench_rtf.rows(results)
+
+
+def test_suite(run: SuiteRun) -> None:
+    """9. The test suite's own wall time on two workers (tools/run-tests' pytest), a benchmark
+    line and not a limit (issue 47: 5 minutes on 2 cores at load ~1). Runs only when asked
+    (``--only "test suite"``): it takes the suite's minutes."""
+    t0 = time.perf_counter()
+    res = subprocess.run([str(ROOT / ".venv" / "bin" / "pytest"), "-q", "-p",
+                          "no:cacheprovider", "-n", "2"], cwd=ROOT,
+                         capture_output=True, text=True, check=False)
+    wall = time.perf_counter() - t0
+    tail = (res.stdout.strip().splitlines() or [""])[-1]
+    run.res["test_suite"] = {"wall_s": wall, "returncode": res.returncode, "last_line": tail}
+    run.rows.append(("test suite wall time, pytest on two workers (tools/run-tests)",
+                     "<= 300 s at load ~1 (a benchmark, not a limit)",
+                     f"{wall:.0f} s ({tail})", yes(wall <= 300.0 and res.returncode == 0)))
+
+
 #: the sections in the order they run, with their names for the progress lines
 SECTIONS: list[tuple[str, Callable[[SuiteRun], None]]] = [
     ("6.4 cycle model", cycle_model), ("executions (virtual time)", executions),
@@ -516,4 +546,7 @@ SECTIONS: list[tuple[str, Callable[[SuiteRun], None]]] = [
     ("field buses", field_buses), ("saturated bus", saturated_bus),
     ("emergency reaction", emergency_reaction), ("CANopen SYNC (UML guest)", canopen_sync),
     ("memory soak", soak),
-    ("satellites", satellites), ("setup growth", growth)]
+    ("satellites", satellites), ("setup growth", growth),
+    ("real-time factor", real_time_factor)]
+#: sections run only when named in ``--only``
+ON_REQUEST: list[tuple[str, Callable[[SuiteRun], None]]] = [("test suite", test_suite)]

@@ -11,11 +11,17 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from hypothesis import settings
 
 from chcos.devices.spec import BusSpec, DeviceMap, DeviceSpec
 from chcos.kernel.clock import VirtualClock
 from chcos.system.embedded import System
 from vcan_tests.support_env import OPT_IN, opt_in, require, under_ci  # noqa: F401 (tests import them from here)
+
+# no property test depends on the machine's speed: hypothesis' per-example deadline (200 ms) is
+# a wall-clock limit that a loaded machine (two workers, other jobs) overruns
+settings.register_profile("chcos", deadline=None)
+settings.load_profile("chcos")
 
 MakeSystem = Callable[..., System]
 
@@ -74,6 +80,8 @@ def pytest_collection_finish(session: pytest.Session) -> None:
     """Start the long User-Mode-Linux runs of the selected tests marked ``uml_background`` (their
     module's ``start_in_background(config)``) now, so they overlap the rest of the session on
     the other core; each test then waits for its run's result."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        return  # each worker collects every test: the test itself starts its run when it runs
     for item in session.items:
         if isinstance(item, pytest.Function) and item.get_closest_marker("uml_background"):
             start = getattr(item.module, "start_in_background", None)
@@ -152,5 +160,11 @@ def pytest_configure(config: pytest.Config) -> None:
     """Run state (satellites' maps, logs and secrets, run reports, learned data) goes to a
     directory of this session, never to the user's ~/.local/state: CHCOS_STATE_DIR is set for
     the whole session (and every process it starts) unless the caller set it."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER")
     if not os.environ.get("CHCOS_STATE_DIR"):
         os.environ["CHCOS_STATE_DIR"] = tempfile.mkdtemp(prefix="chcos-test-state-")
+        os.environ["CHCOS_TEST_STATE"] = "session"  # ours: a worker takes one of its own
+    elif worker and os.environ.get("CHCOS_TEST_STATE") == "session":
+        # a pytest-xdist worker: its own state directory, so that two tests on two workers
+        # never share a system's state (the weld cell's report, a satellite's map)
+        os.environ["CHCOS_STATE_DIR"] = tempfile.mkdtemp(prefix=f"chcos-test-state-{worker}-")

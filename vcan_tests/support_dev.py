@@ -72,7 +72,8 @@ class FakeHost:
             self.writes.append((device, value, reason or "failed"))
             self._cond.notify_all()
 
-    def stat(self, bus: str, key: str, n: int = 1, device: str = "") -> None:
+    def stat(self, bus: str, key: str, n: int = 1, device: str = "", error: bool = False
+             ) -> None:
         with self._cond:
             self.stats[key] = self.stats.get(key, 0) + n
 

@@ -35,6 +35,8 @@ class FakeHost:
     errors: list[tuple[str, str, str]] = field(default_factory=list)
     writes: list[tuple[str, Any, str]] = field(default_factory=list)  # (device, raw, failure)
     stats: dict[str, int] = field(default_factory=dict)
+    #: errors counted without a report (the repeats of a streak, see drivers.reports)
+    error_counts: dict[str, int] = field(default_factory=dict)
     periodics: list[Periodic] = field(default_factory=list)
     clock: float = 0.0
     cond: threading.Condition = field(default_factory=threading.Condition)
@@ -79,9 +81,11 @@ class FakeHost:
             self.writes.append((device, value, reason or "failed"))
             self.cond.notify_all()
 
-    def stat(self, bus: str, key: str, n: int = 1, device: str = "") -> None:
+    def stat(self, bus: str, key: str, n: int = 1, device: str = "", error: bool = False
+             ) -> None:
         with self.cond:
-            self.stats[key] = self.stats.get(key, 0) + n
+            counts = self.error_counts if error else self.stats
+            counts[key] = counts.get(key, 0) + n
             self.cond.notify_all()
 
     def every(self, period: float, fn: Callable[[], None]) -> None:

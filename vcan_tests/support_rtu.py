@@ -20,10 +20,11 @@ import subprocess
 import threading
 from pathlib import Path
 
-from tools.peer_rtu import LineHub, RtuSlave, compile_slave, open_raw
+from tools.peer_rtu import LineHub, RtuSlave, compile_client, compile_slave, open_raw
 from vcan_tests.conftest import require
 
-__all__ = ["FaultRelay", "LineHub", "PtyPair", "RtuSlave", "build_slave", "need"]
+__all__ = ["FaultRelay", "LineHub", "PtyPair", "RtuSlave", "build_client", "build_slave",
+           "need"]
 
 GAP = 0.004      # seconds of quiet that end one answer (t3.5 at 19200 baud is 1.8 ms)
 
@@ -34,15 +35,25 @@ def need(what: str, ok: bool) -> None:
     require(ok, f"{what} (apt-get install socat libmodbus-dev gcc)")
 
 
-def build_slave(out_dir: Path) -> Path:
-    """Compile the libmodbus RTU slave into ``out_dir``; skip/fail (see :func:`need`) when gcc,
-    pkg-config or libmodbus-dev is missing."""
+def _need_toolchain() -> None:
     need("gcc", shutil.which("gcc") is not None)
     need("pkg-config", shutil.which("pkg-config") is not None)
     flags = subprocess.run(["pkg-config", "--cflags", "--libs", "libmodbus"],
                            capture_output=True, text=True)
     need("libmodbus-dev (pkg-config libmodbus)", flags.returncode == 0)
+
+
+def build_slave(out_dir: Path) -> Path:
+    """Compile the libmodbus RTU slave into ``out_dir``; skip/fail (see :func:`need`) when gcc,
+    pkg-config or libmodbus-dev is missing."""
+    _need_toolchain()
     return compile_slave(out_dir)
+
+
+def build_client(out_dir: Path) -> Path:
+    """Compile the libmodbus one-request client into ``out_dir`` (as :func:`build_slave`)."""
+    _need_toolchain()
+    return compile_client(out_dir)
 
 
 class PtyPair:

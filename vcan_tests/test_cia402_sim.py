@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from chcos.apps.sim.canopen_slave import Clock
 from chcos.apps.sim.cia402_drive import (
     FOLLOWING_ERROR,
     OVER_TEMPERATURE,
@@ -34,7 +35,7 @@ def config(option: int) -> AxisConfig:
 def sim_rig(option: int = 2) -> tuple[Cia402Drive, Cia402Host]:
     channel = f"cia402sim-{uuid.uuid4().hex}"
     drive = Cia402Drive(NODE, channel=channel, heartbeat_period=0, quick_stop_option=option,
-                        refused_modes=(6,))
+                        refused_modes=(6,), clock=Clock.TICK)
     drive.start()
     host = Cia402Host(channel, NODE, drive, config(option))
     host.start_node()
@@ -202,7 +203,7 @@ def test_an_eds_without_the_cia402_objects_is_refused(tmp_path: Path) -> None:
 
 def test_homing_on_a_drive_that_accepts_it() -> None:
     channel = f"cia402sim-{uuid.uuid4().hex}"
-    drive = Cia402Drive(NODE, channel=channel, heartbeat_period=0)
+    drive = Cia402Drive(NODE, channel=channel, heartbeat_period=0, clock=Clock.TICK)
     drive.start()
     host = Cia402Host(channel, NODE, drive, config(2))
     try:

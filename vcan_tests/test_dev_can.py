@@ -156,4 +156,4 @@ def test_driver_is_a_driver_and_check_bus_rejects_unknown_options() -> None:
     errs = CanDriver.check_bus(bus("can", interface="virtual", channel="x", speed=5))
     assert errs == ["bus[0].speed: unknown option for a can bus; valid options: interface, "
                     "channel, bitrate, fd, dbc, record, poll, filter, ignore_ids, unknown_ids, "
-                    "port"]
+                    "port, message"]

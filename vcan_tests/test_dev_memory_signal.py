@@ -152,22 +152,22 @@ def test_a_reading_on_the_kernel_thread_is_handled_at_once_and_elsewhere_as_an_i
         seen.append((where, e.value, e.readings))
 
     def in_timer() -> None:
-        dt.deliver_now("S3", 5.0)
+        dt.deliver_now("S3", 15.0)     # within S3's limits (a reading outside fails it)
         note("timer")
 
     async def in_step() -> None:
-        dt.deliver_now("S3", 6.0)
+        dt.deliver_now("S3", 16.0)
         note("step")
 
     k.call_at(0.05, in_timer)  # between two samples of the 10 Hz signals
     s.run(until=0.06)
-    assert seen == [("timer", 5.0 * dt.get("S3").spec.scale + dt.get("S3").spec.offset, 1)]
+    assert seen == [("timer", 15.0 * dt.get("S3").spec.scale + dt.get("S3").spec.offset, 1)]
     t = TaskEntry(tid=99, name="X", machine=0, level=1, func=lambda *a: None)  # type: ignore
     t.coro = in_step()
     k.ready(t, 50)
     s.run(until=0.07)
     assert seen[1] == ("step", seen[0][1], 1) and dt.get("S3").readings == 2  # after the step
-    other = threading.Thread(target=dt.deliver_now, args=("S3", 7.0))
+    other = threading.Thread(target=dt.deliver_now, args=("S3", 17.0))
     other.start()
     other.join()
     assert dt.get("S3").readings == 2

@@ -214,12 +214,14 @@ def test_settle_before_the_port_opens_waits_for_it_and_hands_over_waiting_input(
         opener.join()
     finally:
         rx.stop()
-    # and the simulated serial peer accepts on the thread that ticks: data set after the driver
-    # connected reaches it with no accept thread in between
+    # and the simulated serial peer's TCP server (chcos sim --from; a virtual cell's is a direct
+    # line) accepts on the thread that ticks: data set after the driver connected reaches it
+    # with no accept thread in between
     from chcos.apps.sim.serial_peer import SerialPeer
-    peer = SerialPeer(bus("serial", url="socket://127.0.0.1:0", protocol="line",
+    from chcos.helpers import free_port
+    peer = SerialPeer(bus("serial", url=f"socket://127.0.0.1:{free_port()}", protocol="line",
                           pattern=r"W=(?P<w>\d+)"),
-                      (device("W", "sensor", group="w"),), rewrite=True)
+                      (device("W", "sensor", group="w"),), rewrite=False)
     try:
         port = int(str(peer.bus.options["url"]).rsplit(":", 1)[1])
         with socket.create_connection(("127.0.0.1", port), timeout=WAIT) as c:

@@ -64,7 +64,8 @@ def test_the_text_view_reads_the_type_and_the_map_reads_the_json() -> None:
     assert lines[0].startswith("node     axis/5") and "error register 0x81" in lines[0]
     assert "100 cycles of 10 ms, 98 complete, 2 TPDOs missing" in lines[1]
     assert lines[2].split() == ["CAN", "axis", "error-passive,", "TEC", "130,", "REC", "0,",
-                                "1", "bus-off(s)"]
+                                "1", "bus-off(s),", "0", "restart(s),", "0", "time(s)",
+                                "error-passive,", "0", "error", "frame(s)"]
     text = render_text({"tasks": [], "links": [], "machines": [0],
                         "bus_status": {"axis": DriverStatus((NODE,)).to_json()}})
     assert "node     axis/5" in text

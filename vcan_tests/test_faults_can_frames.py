@@ -129,12 +129,14 @@ def test_check_refuses_an_actuator_on_a_multiplexed_message_and_counters(
     assert CanDriver.check_device(b, device("A", "sensor", message="Mux", signal="A")) == []
     errs = CanDriver.check_device(b, device("P", "actuator", message="Plain", signal="P",
                                             counter="P"))
-    assert len(errs) == 1 and errs[0].startswith("device[0].address.counter: unknown key: "
-                                                 "chcos does not compute counters")
+    assert len(errs) == 1 and errs[0].startswith("device[0].address.counter: unknown key: a "
+                                                 "rolling counter or a checksum is declared "
+                                                 "per message, in the bus's [[bus.message]]")
     errs = CanDriver.check_bus(bus("can", interface="virtual", channel="x",
                                    crc={"signal": "P", "kind": "xor"}))
-    assert len(errs) == 1 and errs[0].startswith("bus[0].crc: unknown option for a can bus: "
-                                                 "chcos does not compute counters")
+    assert len(errs) == 1 and errs[0].startswith("bus[0].crc: unknown option for a can bus: a "
+                                                 "rolling counter or a checksum is declared "
+                                                 "per message")
 
 
 # -- malformed frames ------------------------------------------------------------------------

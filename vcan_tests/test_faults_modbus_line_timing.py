@@ -99,7 +99,9 @@ def test_check_warns_when_a_dead_unit_costs_more_than_the_poll_period(tmp_path: 
     _, warnings = run_check(tmp_path, 19200, 1.0, "dead_unit_backoff = 20")
     assert "every 20 poll periods" in warnings[0]
     _, warnings = run_check(tmp_path, 19200, 0.04, "retries = 1")
-    assert warnings == []
+    assert "holds the line 0.54 s per try" in warnings[0]     # 2 x 0.04 s, then the line guard
+    _, warnings = run_check(tmp_path, 19200, 0.04, "retries = 1\nline_guard = 0.04")
+    assert warnings == []                                     # slaves that are never deaf
 
 
 def test_check_refuses_a_bad_dead_unit_backoff(tmp_path: Path) -> None:

@@ -177,6 +177,7 @@ def gaps_of_a_dead_unit_2(units: UnitBackoff) -> list[int]:
 
 def test_the_backoff_starts_at_first_while_another_unit_answers() -> None:
     units = UnitBackoff(cap=16, first=4, units=(1, 2))
+    units.answered(1)                                    # unit 1 answers
     gaps = gaps_of_a_dead_unit_2(units)
     assert gaps[:3] == [4, 8, 16] and set(gaps[3:]) == {16}
     assert units.due(1)                                  # the live unit is never held back
@@ -185,9 +186,11 @@ def test_the_backoff_starts_at_first_while_another_unit_answers() -> None:
 
 def test_a_unit_alone_on_its_line_is_tried_again_at_once() -> None:
     """Nobody else pays for its tries: the next poll, then ever less often (also when the
-    line's other units are dead too)."""
+    line's other units are dead too, or have not answered yet)."""
     gaps = gaps_of_a_dead_unit_2(UnitBackoff(cap=16, first=4, units=(2,)))
     assert gaps[:5] == [1, 2, 4, 8, 16]
-    both = UnitBackoff(cap=16, first=4, units=(1, 2))
+    assert gaps_of_a_dead_unit_2(UnitBackoff(cap=16, first=4, units=(1, 2)))[:2] == [1, 2]
+    both = UnitBackoff(cap=16, first=4, units=(1, 2))    # unit 1 never heard from, then dead
+    both.answered(1)
     both.silent(1)
     assert gaps_of_a_dead_unit_2(both)[:2] == [1, 2]

@@ -119,13 +119,15 @@ def test_a_refused_watchdog_fails_its_units_devices_until_taken(
 
 
 @pytest.mark.parametrize("wd, key, text", [
-    ({"period": 1.0}, "watchdog.address", "expected an integer 0..65535, got None"),
-    ({"address": 1, "table": "input"}, "watchdog.table", "expected \"holding\" or \"coil\""),
+    ({"period": 1.0}, "watchdog.address", "required; expected an integer"),
+    ({"address": 70000}, "watchdog.address", "expected an integer 0..65535, got 70000"),
+    ({"address": 1, "table": "input"}, "watchdog.table", "expected one of 'holding', 'coil'"),
     ({"address": 1, "period": 0}, "watchdog.period", "seconds > 0"),
     ({"address": 1, "table": "coil", "value": 2}, "watchdog.value", "integer 0..1"),
-    ({"address": 1, "value": "tick"}, "watchdog.value", "\"counter\" or an integer 0..65535"),
+    ({"address": 1, "value": "tick"}, "watchdog.value", "'counter' or an integer, got 'tick'"),
+    ({"address": 1, "value": 70000}, "watchdog.value", "\"counter\" or an integer 0..65535"),
     ({"address": 1, "every": 1}, "watchdog.every", "unknown key"),
-    (5, "watchdog", "expected a table"),
+    (5, "watchdog", "expected an inline table"),
 ])
 def test_a_bad_watchdog_is_refused_naming_the_key(wd: Any, key: str, text: str) -> None:
     for cls, opts in ((ModbusTcpDriver, {"host": "x"}), (ModbusRtuDriver, {"port": "/dev/x"})):

@@ -15,7 +15,7 @@ from pyModbusTCP.server import DataBank, ModbusServer
 
 from chcos.devices.spec import BusSpec
 from chcos.errors import ConfigError
-from drivers.codecs.modbus import check_address, from_registers, to_registers
+from drivers.codecs.modbus import from_registers, to_registers
 from drivers.modbus import ModbusTcpDriver
 from vcan_tests.netutil import free_port
 from vcan_tests.support_fb import WAIT, FakeHost, make_device
@@ -69,9 +69,9 @@ def test_check_names_the_key_of_a_bad_word_order(bad: object) -> None:
     bus = BusSpec(name="mb", kind="modbus-tcp", key="bus[0]", options={"host": "x"})
     dev = make_device("t", "sensor", "mb", key="device[3]", table="holding", address=0,
                       type="float32", word_order=bad)
-    errs = check_address(bus, dev)
-    assert len(errs) == 1 and errs[0].startswith("device[3].address.word_order: expected "
-                                                 "\"ABCD\", \"CDAB\", \"BADC\" or \"DCBA\"")
+    errs = ModbusTcpDriver.check_device(bus, dev)
+    assert len(errs) == 1 and errs[0].startswith("device[3].address.word_order: expected one "
+                                                 "of 'ABCD', 'CDAB', 'BADC', 'DCBA'"), errs
     assert repr(bad) in errs[0]
 
 
@@ -141,7 +141,7 @@ def test_a_register_list_may_name_every_order(tmp_path: Path) -> None:
     bus = BusSpec(name="plc", kind="modbus-tcp", key="bus[0]", options={"host": "x"})
     for _, d in draft.devices:
         dev = make_device(d["name"], "sensor", "plc", **d["address"])
-        assert check_address(bus, dev) == []
+        assert ModbusTcpDriver.check_device(bus, dev) == []
     path.write_text(rows[0] + "\nz;Holding Register;0;REAL;ACBD\n", encoding="utf-8")
     with pytest.raises(ConfigError, match=r"regs\.csv.*'ACBD'.*BADC or DCBA"):
         import_modbus_csv(path)

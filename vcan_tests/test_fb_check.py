@@ -9,7 +9,7 @@ import pytest
 
 from chcos.apps.sim.canopen_slave import SERVO_EDS
 from chcos.devices.spec import BusSpec
-from chcos.errors import BusError
+from chcos.errors import ConfigError
 from drivers.base import Driver
 from drivers.canopen_node import CanopenDriver
 from drivers.modbus import ModbusRtuDriver, ModbusTcpDriver
@@ -52,16 +52,21 @@ BUS_ROWS = [
      "bus[4].nodes[0].nmt_start: expected true or false"),
     (CanopenDriver, {"nodes": [{"id": 3, "eds": str(SERVO_EDS), "ed": 1}]},
      "bus[4].nodes[0].ed: unknown key"),
-    (ModbusTcpDriver, {"port": 1502}, "bus[4].host: expected a host name"),
+    (ModbusTcpDriver, {"port": 1502}, "bus[4].host: required; expected a string"),
+    (ModbusTcpDriver, {"host": ""}, "bus[4].host: expected a host name or address"),
     (ModbusTcpDriver, {**TCP_OK, "port": 70000}, "bus[4].port: expected a TCP port 1..65535"),
     (ModbusTcpDriver, {**TCP_OK, "timeout": -1}, "bus[4].timeout: expected a number of seconds"),
-    (ModbusTcpDriver, {**TCP_OK, "retries": 1.5}, "bus[4].retries: expected an integer >= 0"),
-    (ModbusTcpDriver, {**TCP_OK, "baudrate": 9600}, "bus[4].baudrate: unknown option"),
-    (ModbusRtuDriver, {"baudrate": 9600}, "bus[4].port: expected a serial port"),
-    (ModbusRtuDriver, {**RTU_OK, "parity": "X"}, "bus[4].parity: expected \"N\", \"E\" or \"O\""),
-    (ModbusRtuDriver, {**RTU_OK, "stopbits": 3}, "bus[4].stopbits: expected 1 or 2"),
-    (ModbusRtuDriver, {**RTU_OK, "bytesize": 9}, "bus[4].bytesize: expected 7 or 8"),
-    (ModbusRtuDriver, {**RTU_OK, "host": "x"}, "bus[4].host: unknown option"),
+    (ModbusTcpDriver, {**TCP_OK, "retries": 1.5}, "bus[4].retries: expected an integer, got"),
+    (ModbusTcpDriver, {**TCP_OK, "retries": -1}, "bus[4].retries: expected an integer >= 0"),
+    (ModbusTcpDriver, {**TCP_OK, "baudrate": 9600}, "bus[4].baudrate: unknown key; expected one "
+     "of connections"),
+    (ModbusRtuDriver, {"baudrate": 9600}, "bus[4].port: required; expected a string"),
+    (ModbusRtuDriver, {"port": ""}, "bus[4].port: expected a serial port"),
+    (ModbusRtuDriver, {**RTU_OK, "parity": "X"}, "bus[4].parity: expected one of 'N', 'E', 'O'"),
+    (ModbusRtuDriver, {**RTU_OK, "stopbits": 3}, "bus[4].stopbits: expected one of 1, 2, got 3"),
+    (ModbusRtuDriver, {**RTU_OK, "bytesize": 9}, "bus[4].bytesize: expected one of 7, 8, got 9"),
+    (ModbusRtuDriver, {**RTU_OK, "host": "x"},
+     "bus[4].host: unknown key; expected one of baudrate"),
 ]
 
 
@@ -98,11 +103,12 @@ DEVICE_ROWS = [
     (ModbusTcpDriver, TCP_OK, "sensor", {"table": "holding", "address": 0, "type": "float64"},
      None),
     (ModbusTcpDriver, TCP_OK, "sensor", {"table": "register", "address": 0},
-     "device[7].address.table: expected one of coil, discrete, holding, input"),
+     "device[7].address.table: expected one of 'coil', 'discrete', 'holding', 'input', got "
+     "'register'"),
     (ModbusTcpDriver, TCP_OK, "actuator", {"table": "input", "address": 0},
      "device[7].address.table: input is read-only"),
     (ModbusTcpDriver, TCP_OK, "sensor", {"table": "coil", "address": 0, "type": "int16"},
-     "device[7].address.type: a coil holds one bit"),
+     "device[7].address.type: expected \"bool\" (a coil holds one bit), got 'int16'"),
     (ModbusTcpDriver, TCP_OK, "sensor", {"table": "holding", "address": 0, "type": "bool"},
      "device[7].address.type: expected one of int16"),
     (ModbusTcpDriver, TCP_OK, "sensor", {"table": "holding", "address": 65535, "type": "int32"},
@@ -112,7 +118,8 @@ DEVICE_ROWS = [
     (ModbusTcpDriver, TCP_OK, "sensor", {"unit": 300, "table": "coil", "address": 1},
      "device[7].address.unit: expected a Modbus device id 0..247"),
     (ModbusRtuDriver, RTU_OK, "sensor", {"table": "holding", "address": 1, "word_order": "mid"},
-     "device[7].address.word_order: expected \"ABCD\", \"CDAB\", \"BADC\" or \"DCBA\""),
+     "device[7].address.word_order: expected one of 'ABCD', 'CDAB', 'BADC', 'DCBA', 'big', "
+     "'little', got 'mid'"),
     (ModbusRtuDriver, RTU_OK, "sensor", {"table": "holding", "address": 1, "poll_period": -2},
      "device[7].address.poll_period: expected a number of seconds > 0"),
 ]
@@ -141,11 +148,10 @@ def test_relative_eds_is_resolved_against_the_device_map_file(tmp_path: Path) ->
     assert CanopenDriver.check_device(spec, dev) == []
 
 
-def test_start_refuses_invalid_device_with_its_key() -> None:
+def test_a_driver_refuses_an_invalid_device_built_in_code_with_its_key() -> None:
     dev = make_device("d", "actuator", "b", key="device[2]", table="discrete", address=1)
-    drv = ModbusTcpDriver(bus(ModbusTcpDriver, TCP_OK), [dev], FakeHost())
-    with pytest.raises(BusError, match=r"device\[2\]\.address\.table"):
-        drv.start()
+    with pytest.raises(ConfigError, match=r"device\[2\]\.address\.table: discrete is read-only"):
+        ModbusTcpDriver(bus(ModbusTcpDriver, TCP_OK), [dev], FakeHost())
 
 
 @pytest.mark.parametrize(("kind", "cls"), [("canopen", CanopenDriver),

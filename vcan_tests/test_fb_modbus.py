@@ -151,7 +151,7 @@ def test_exception_responses_fail_only_their_devices() -> None:
                make_device("edge", "sensor", "mb", table="holding", address=19, type="float32"),
                make_device("ghost", "sensor", "mb", unit=9, table="input", address=0)]
     host = FakeHost()
-    with ModbusSimServer(store, port):
+    with ModbusSimServer(store, port, role="gateway"):     # unit 1 behind it, no unit 9
         driver = ModbusTcpDriver(tcp_bus(port), devices, host)
         driver.start()
         try:
@@ -162,7 +162,7 @@ def test_exception_responses_fail_only_their_devices() -> None:
     assert host.values("ok") == [0]
     assert "exception code 2 (illegal data address)" in host.failed("edge")[0]
     assert "unit 1 holding 19..20" in host.failed("edge")[0]
-    assert "unit 9" in host.failed("ghost")[0] and "exception code" in host.failed("ghost")[0]
+    assert "unit 9" in host.failed("ghost")[0] and "exception code 11" in host.failed("ghost")[0]
     assert host.failed("ok") == []
 
 
@@ -323,9 +323,10 @@ class ScriptedRtuPeer:
 
 def test_rtu_over_socket_classifies_bad_answers_and_a_lost_connection() -> None:
     """RTU through a serial server on TCP (``socket://``), against a scripted slave: the answer's
-    bytes reach the classification (crc, framing), a closed connection is a lost link (the
-    device fails, the port is re-opened), and good answers recover the device."""
-    peer = ScriptedRtuPeer(["good", "crc", "junk", "close"])
+    bytes reach the classification (crc, framing), never the device; the third unusable answer
+    in a row fails it; a closed connection is a lost link (the device fails, the port is
+    re-opened), and good answers recover the device."""
+    peer = ScriptedRtuPeer(["good", "crc", "junk", "crc", "close"])
     bus = BusSpec(name="rtu", kind="modbus-rtu", key="bus[2]",
                   options={"port": f"socket://127.0.0.1:{peer.port}", "timeout": 0.2,
                            "retries": 0, "reconnect_delay": 0.02})
@@ -340,7 +341,12 @@ def test_rtu_over_socket_classifies_bad_answers_and_a_lost_connection() -> None:
         assert host.values("lvl") == [11]
         assert driver.unanswered == {"crc": 1, "framing": 1}
         assert [k for k in host.error_kinds() if k in ("crc", "framing")] == ["crc", "framing"]
-        assert "fails its CRC" in host.failed("lvl")[-1]            # still failed after junk
+        assert len(host.failed("lvl")) == 1          # "not answered yet" at the open only
+        host.tick(0.1)                        # crc: the third unusable answer in a row
+        assert driver.settle(WAIT)
+        assert host.values("lvl") == [11]
+        assert "3 unusable answers in a row" in host.failed("lvl")[-1]
+        assert "fails its CRC" in host.failed("lvl")[-1]
         assert any(k == "framing" and "55aa001742" in detail for _, k, detail in host.errors)
         host.tick(0.1)                        # the slave's side closes
         assert driver.settle(WAIT)
@@ -356,4 +362,4 @@ def test_rtu_over_socket_classifies_bad_answers_and_a_lost_connection() -> None:
         peer.close()
     request = bytes([3, 3, 0, 1, 0, 1])       # unit 3, read holding 1, count 1, then its CRC
     assert all(r.startswith(request) and len(r) == 8 for r in peer.requests), peer.requests
-    assert len(peer.requests) == 5
+    assert len(peer.requests) == 6

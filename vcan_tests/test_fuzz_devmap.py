@@ -97,7 +97,7 @@ BIG = "9" * 400
      'nodes = [{id = [1]}]\n', "bus[0].nodes[0].id", "expected a CANopen node id"),
     ('[[bus]]\nname = "mb"\nkind = "modbus-tcp"\nhost = "127.0.0.1"\n[[device]]\nname = "S"\n'
      'direction = "sensor"\nbus = "mb"\naddress = { table = "holding", address = 1, type = [] }\n',
-     "device[0].address.type", "expected one of int16"),
+     "device[0].address.type", "expected one of 'bool', 'int16'"),
     ('[[bus]]\nname = "s"\nkind = "serial"\nurl = "loop://"\nprotocol = "binary"\nsync = "AA"\n'
      'struct = "<h\u00e9"\nfields = ["a"]\n', "bus[0].struct", "ASCII struct format"),
     ('[[bus]]\nname = "s"\nkind = "serial"\nurl = "loop://"\nprotocol = "binary"\nsync = "AA"\n'

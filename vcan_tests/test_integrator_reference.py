@@ -26,7 +26,7 @@ DBC = ROOT / "busconfig" / "examples" / "cell.dbc"
 
 def _candidates() -> set[str]:
     words: set[str] = set()
-    for path in (ROOT / "drivers").glob("*.py"):
+    for path in (ROOT / "drivers").rglob("*.py"):
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
             if isinstance(node, ast.Constant) and isinstance(node.value, str) \
                     and re.fullmatch(r"[a-z][a-z0-9_]{0,30}", node.value):

@@ -25,6 +25,7 @@ from chcos.devices.importers.draft import render
 from chcos.devices.importers.modbus_csv import import_modbus_csv
 from chcos.errors import ConfigError
 from chcos.helpers import free_port
+from vcan_tests.support_import import needs_can_messages
 
 VENDOR = Path(__file__).resolve().parent / "vendor" / "journey"
 
@@ -43,10 +44,16 @@ def _imported(tmp_path: Path, capsys: pytest.CaptureFixture[str],
 
 
 # ---- DBC --------------------------------------------------------------------------------------
-def test_dbc_with_every_awkward_feature_passes_check(tmp_path: Path,
-                                                     capsys: pytest.CaptureFixture[str]) -> None:
-    text, devs, _err = _imported(tmp_path, capsys, "dbc", str(VENDOR / "awkward.dbc"),
-                                "--node", "ECU")
+def _drafted(path: Path, **kw: Any) -> tuple[str, dict[str, Any], list[str]]:
+    """The map an import writes (its text, devices by name, warnings), not checked: for what
+    the map says whatever the drivers of this branch accept."""
+    draft = import_dbc(path, **kw)
+    text = render(draft)
+    return text, {d["name"]: d for d in tomllib.loads(text)["device"]}, draft.warnings
+
+
+def test_dbc_with_every_awkward_feature(tmp_path: Path) -> None:
+    text, devs, _warnings = _drafted(VENDOR / "awkward.dbc", node="ECU", dbc_ref="awkward.dbc")
     # the three-line comment: every line a comment, the quotes and the '#' kept as text
     assert "# Measured at the encoder, not the load." in text
     assert '# Third line: [brackets] = "quoted" # hash' in text
@@ -60,26 +67,46 @@ def test_dbc_with_every_awkward_feature_passes_check(tmp_path: Path,
     assert devs["voltage"]["direction"] == "sensor"
 
 
-def test_dbc_counters_and_crcs_are_never_silently_writable(
-        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    text, devs, err = _imported(tmp_path, capsys, "dbc", str(VENDOR / "awkward.dbc"),
-                                "--node", "ECU")
-    # in the message chcos sends they are left out, said in the map and warned about
+@needs_can_messages
+def test_dbc_with_counters_passes_check(tmp_path: Path,
+                                        capsys: pytest.CaptureFixture[str]) -> None:
+    text, devs, _err = _imported(tmp_path, capsys, "dbc", str(VENDOR / "awkward.dbc"),
+                                 "--node", "ECU")
+    assert "[[bus.message]]" in text and devs["setpoint"]["direction"] == "actuator"
+
+
+def test_dbc_counters_and_crcs_are_declared_for_the_driver(tmp_path: Path) -> None:
+    text, devs, warnings = _drafted(VENDOR / "awkward.dbc", node="ECU", dbc_ref="awkward.dbc")
+    doc = tomllib.loads(text)
+    tables = {m["name"]: m for m in doc["bus"][0]["message"]}
+    # the message chcos sends: the driver computes them, they are not devices
     assert "rolling_counter" not in devs and "crc8" not in devs
     assert devs["setpoint"]["direction"] == "actuator"
-    assert "Left out of Command (0x200): RollingCounter (rolling counter), CRC8 (checksum)" \
-        in text
-    assert "warning:" in err and "RollingCounter" in err and "drop the frames" in err
-    # in a message chcos receives they are sensors, noted as computed by the sender
+    assert tables["Command"] == {"name": "Command", "counter": "RollingCounter",
+                                 "checksum": {"signal": "CRC8",
+                                              "algorithm": "crc8-sae-j1850"}}
+    assert "# checksum algorithm crc8-sae-j1850: a GUESS" in text
+    assert any("Command: checksum CRC8: algorithm crc8-sae-j1850 is a guess" in w
+               for w in warnings)
+    # the message chcos receives: the driver checks them; they stay sensors, noted
+    assert tables["Status"]["counter"] == "AliveCounter"
+    assert tables["Status"]["checksum"]["signal"] == "Checksum"
     assert devs["alive_counter"]["direction"] == "sensor"
     assert devs["checksum"]["direction"] == "sensor"
     assert "a checksum the sender computes per frame" in text
+    # the algorithm given on the command line replaces the guess, and is not warned about
+    text, _devs, warnings = _drafted(VENDOR / "awkward.dbc", node="ECU",
+                                     checksums={"Command": {"algorithm": "xor"}})
+    assert 'checksum = { signal = "CRC8", algorithm = "xor" }' in text
+    assert not any("Command: checksum" in w for w in warnings)
 
 
 def test_dbc_signals_picks_by_pattern(tmp_path: Path,
                                       capsys: pytest.CaptureFixture[str]) -> None:
     _text, devs, _err = _imported(tmp_path, capsys, "dbc", str(VENDOR / "awkward.dbc"),
-                                  "--signals", "Diag.*", "Setpoint")
+                                  "--signals", "Diag.*")
+    assert set(devs) == {"mux", "voltage", "current"}
+    _text, devs, _warnings = _drafted(VENDOR / "awkward.dbc", signals=["Diag.*", "Setpoint"])
     assert set(devs) == {"mux", "voltage", "current", "setpoint"}
     with pytest.raises(ConfigError, match="--signals Nope matched none"):
         import_dbc(VENDOR / "awkward.dbc", signals=["Nope"])
@@ -205,7 +232,7 @@ def test_simulator_serves_holding_64512_to_an_independent_client(tmp_path: Path)
                    encoding="utf-8")
     out = tmp_path / "meter.toml"
     out.write_text(render(import_modbus_csv(csv)), encoding="utf-8")
-    slaves = simulate(load([out]))
+    slaves = simulate(load([out]), direct=False)     # on a socket: a client of its own
     try:
         slaves.set("tariff", 7)
         slaves.set("voltage", 230)
@@ -243,7 +270,7 @@ def test_a_multiplexed_dbc_message_is_simulated_one_multiplexer_value_per_frame(
     import cantools
 
     channel = f"mux-{uuid.uuid4().hex}"
-    _imported(tmp_path, capsys, "dbc", str(VENDOR / "awkward.dbc"), "--node", "ECU",
+    _imported(tmp_path, capsys, "dbc", str(VENDOR / "awkward.dbc"), "--signals", "Diag.*",
               "--interface", "virtual", "--channel", channel)
     listener = can.Bus(interface="virtual", channel=channel)
     slaves = simulate(load([tmp_path / "imported.toml"]), rewrite=False)
@@ -269,7 +296,7 @@ def test_a_multiplexed_dbc_message_is_simulated_one_multiplexer_value_per_frame(
 def test_a_multiplexed_dbc_map_runs_on_virtual_time(tmp_path: Path,
                                                     capsys: pytest.CaptureFixture[str]) -> None:
     """`chcos run --virtual` of the map: both multiplexed sensors get their values."""
-    _imported(tmp_path, capsys, "dbc", str(VENDOR / "awkward.dbc"), "--node", "ECU")
+    _imported(tmp_path, capsys, "dbc", str(VENDOR / "awkward.dbc"), "--signals", "Diag.*")
     (tmp_path / "install.chcos").write_text("install -m0 sysfile\n", encoding="utf-8")
     (tmp_path / "system.toml").write_text('[system]\nname = "mux"\ndevmaps = ["imported.toml"]\n'
                                           'install = "install.chcos"\n', encoding="utf-8")

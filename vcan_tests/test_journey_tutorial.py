@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 
 from vcan_tests.support_docs import doc_commands
+from vcan_tests.support_import import needs_can_messages, needs_modbus_sunspec
 from vcan_tests.support_netns import loopback_only
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -35,8 +36,10 @@ def netns() -> Iterator[str]:
         yield name
 
 
+@needs_can_messages
+@needs_modbus_sunspec
 def test_from_vendor_files_verbatim(tmp_path: Path, netns: str) -> None:
-    for f in ("drive.eds", "gripper.dbc", "meter.csv"):
+    for f in ("drive.eds", "gripper.dbc", "meter.csv", "vehicle.dbc", "inverter.json"):
         shutil.copy(ROOT / "docs" / "vendor" / f, tmp_path / f)
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
@@ -90,8 +93,15 @@ def test_from_vendor_files_verbatim(tmp_path: Path, netns: str) -> None:
             if proc.poll() is None:
                 proc.kill()
                 proc.wait()
-    imported = next(r for c, r in outputs.items() if c.startswith("chcos import dbc"))
-    assert "RollingCounter (rolling counter), CRC8 (checksum), left out" in imported.stderr
+    imported = next(r for c, r in outputs.items() if c.startswith("chcos import dbc gripper"))
+    assert "GripCommand" not in imported.stderr           # the algorithm given: no guess
+    gripper = (tmp_path / "gripper.toml").read_text(encoding="utf-8")
+    assert 'checksum = { signal = "CRC8", algorithm = "crc8-sae-j1850" }' in gripper
+    vehicle = next(r for c, r in outputs.items() if c.startswith("chcos import dbc vehicle"))
+    assert "STEERING_CONTROL: checksum CHECKSUM: algorithm sum is a guess" in vehicle.stderr
+    assert "no cycle time (GenMsgCycleTime) for DOORS_STATUS" in vehicle.stderr
+    more = next(r.stdout for c, r in outputs.items() if c.startswith("chcos run more.toml"))
+    assert "healthy" in more.split("summary")[-1] and "wheel_speed_fl" in more, more
     checked = next(r for c, r in outputs.items() if c.startswith("chcos check drive.toml"))
     assert checked.stdout.startswith("ok: 3 buses, 19 devices"), checked.stdout
     virtual = next(r.stdout for c, r in outputs.items() if c.startswith("chcos run"))

@@ -155,10 +155,11 @@ def test_installed_wheel_welds_the_seam_from_another_directory(wheel: Path,
 
 
 # ---- the distribution's metadata: ranges, pins, extras, a core without them ------------------
-EXTRAS = ("can", "canopen", "modbus", "serial", "satellites", "north", "view", "all", "dev")
+EXTRAS = ("can", "canopen", "modbus", "serial", "satellites", "north", "view", "mcap", "sunspec",
+          "all", "dev")
 #: the optional packages by import name: what the core must import without
 OPTIONAL = ("can", "canopen", "pymodbus", "serial", "cantools", "zenoh", "aiohttp", "asyncua",
-            "prometheus_client", "msgpack", "cryptography")
+            "prometheus_client", "msgpack", "cryptography", "mcap", "sunspec2")
 
 
 def _requirements() -> list[Any]:
@@ -192,6 +193,8 @@ def test_the_version_and_the_extras_are_declared() -> None:
     assert {"eclipse-zenoh", "cryptography"} <= by_extra["satellites"]
     assert {"asyncua", "prometheus-client", "pymodbus", "aiohttp"} <= by_extra["north"]
     assert "aiohttp" in by_extra["view"]
+    assert "mcap" in by_extra["mcap"]
+    assert "pysunspec2" in by_extra["sunspec"]             # chcos import sunspec
 
 
 def test_runtime_dependencies_are_ranges_and_constraints_pin_them_inside() -> None:

@@ -82,24 +82,33 @@ def test_reads_and_writes_reach_the_libmodbus_slave(rig: Rig) -> None:
 
 
 def test_damaged_answers_are_bus_errors_by_class(rig: Rig) -> None:
+    """Each damaged answer is counted by its class and never delivered; one between good ones
+    does not fail the sensor (as CAN, after three in a row it does), silence fails its unit."""
     rig.poll(1)
     for fault in ("crc", "junk", "truncate", "silence"):
         rig.relay.damage(fault)
         rig.poll(1)                                      # the damaged answer
-        rig.poll(1)                                      # a good one: the sensor recovers
+        rig.poll(1)                                      # a good one
     assert rig.relay.damaged == {"crc": 1, "junk": 1, "truncate": 1, "silence": 1}
     assert rig.driver.unanswered == {"crc": 1, "framing": 2, "timeout": 1}
     assert rig.host.error_kinds() == ["crc", "framing", "framing", "timeout"]
-    opened, *reasons = rig.host.failed("level")
+    texts = [detail for _, _, detail in rig.host.errors]
+    assert "fails its CRC" in texts[0]
+    assert "bytes that are no answer: f700ee" in texts[1]
+    assert "truncated answer" in texts[2] and "(4 of 7 bytes)" in texts[2]
+    assert all("unit 1 input 2..2" in t for t in texts)
+    opened, silent = rig.host.failed("level")
     assert "is open, unit 1 has not answered a request yet" in opened    # until the first answer
-    assert len(reasons) == 4
-    assert "fails its CRC" in reasons[0]
-    assert "bytes that are no answer: f700ee" in reasons[1]
-    assert "truncated answer" in reasons[2] and "(4 of 7 bytes)" in reasons[2]
-    assert "no response (silence)" in reasons[3]
-    assert all("unit 1 input 2..2 (device level)" in r for r in reasons)
+    assert "unit 1 input 2..2 (device level): no response (silence)" in silent
     assert rig.host.values("level") == [102] * 5         # every good answer delivered
     assert rig.slave.answered == 9                       # the slave answered all nine polls
+    rig.relay.damage("crc", "junk", "truncate")          # three in a row: the sensor fails
+    rig.poll(3)
+    assert "3 unusable answers in a row, the last: truncated answer" in \
+        rig.host.failed("level")[-1]
+    assert rig.host.values("level") == [102] * 5
+    rig.poll(1)
+    assert rig.host.values("level") == [102] * 6 and rig.host.recoveries[-1] == "level"
 
 
 def test_a_damaged_write_answer_still_left_the_value_in_the_slave(rig: Rig) -> None:
@@ -135,7 +144,8 @@ def test_a_missing_unit_fails_only_its_own_devices(rig: Rig) -> None:
     tries = [d for _, k, d in rig.host.errors if "unit 2" in d]
     assert 1 <= len(tries) <= 2 and set(rig.host.error_kinds()) == {"timeout"}
     assert rig.driver.unanswered["timeout"] >= len(tries)
-    assert rig.driver._client.connected                  # the port stayed open
+    assert "disconnected" not in rig.host.error_kinds()  # the port stayed open
+    assert "reconnects" not in rig.host.stats
 
 
 def test_an_open_port_is_not_health_a_silent_slave_never_shows_ok(rig: Rig) -> None:

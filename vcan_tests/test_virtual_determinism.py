@@ -82,8 +82,8 @@ def test_the_same_cell_twice_gives_the_same_trace(tmp_path: Path, chcos_cell: An
     assert max(sent) == 100.0 and min(sent) == 0.0, sent
     followed = [row[1 + DEVICES.index("position")][0] for row in first]
     assert max(followed) > 50.0 > min(followed), followed
-    volts = {row[1 + DEVICES.index("voltage_l1")][0] for row in first}
-    assert len(volts) > 5 and all(225.0 <= v <= 235.0 for v in volts), volts
+    volts = {row[1 + DEVICES.index("voltage_l1")][0] for row in first}   # samples on the
+    assert len(volts) >= 5 and all(225.0 <= v <= 235.0 for v in volts), volts  # polls' grid
     assert all(status == "OK" for row in first for value, status in row[1:1 + len(DEVICES)])
 
 

@@ -282,6 +282,17 @@ def can_channel(interface: str) -> str:
     raise ValueError(f"can_channel: unknown CAN interface {interface!r} (virtual or socketcan)")
 
 
+def socketcan_test_files() -> list[str]:
+    """The test files (paths from the checkout's root) that hold ``socketcan`` tests: those
+    marking it, or parametrising over :func:`can_interfaces` or asking :func:`socketcan_channel`
+    (the guest collects only these; the whole suite took minutes to collect inside UML, where
+    every system call is slow)."""
+    here = REPO_ROOT / "vcan_tests"
+    signs = ("mark.socketcan", "can_interfaces(", "socketcan_channel()")
+    return [p.relative_to(REPO_ROOT).as_posix() for p in sorted(here.glob("test_*.py"))
+            if any(s in p.read_text(encoding="utf-8") for s in signs)]
+
+
 GUEST_RESULTS = pytest.StashKey[list[str]]()
 """Lines for the terminal summary: what the guest runs did (counts, times), by the UML tests."""
 

@@ -36,6 +36,7 @@ from typing import Any, TextIO
 from chcos.cli.cellsystem import Cell, CellSystem, OutputsOff, SinceStartClock, open_cell
 from chcos.devices.entry import DeviceStatus
 from chcos.errors import ChcosError
+from chcos.hil.evidence import RunEvidence
 from chcos.north.services import NorthOptions, add_north_arguments
 from chcos.system.mapfile import describe_os_error
 from chcos.system.textview import bus_status_lines
@@ -167,7 +168,8 @@ def run(system_file: str | Path, *, virtual: bool = False, duration: float | Non
         out: TextIO | None = None, stop: threading.Event | None = None,
         north: NorthOptions | None = None, pin: bool = False, values: Sequence[str] = (),
         plants: Sequence[str] = (),
-        write_checks: Sequence[Callable[[], str | None]] = ()) -> RunResult:
+        write_checks: Sequence[Callable[[], str | None]] = (),
+        traces: Sequence[str | Path] = ()) -> RunResult:
     """The ``chcos run SYSTEM`` job: build, run until ``stop`` is set (SIGINT/SIGTERM in the
     command), or ``duration`` seconds of clock time, printing progress every ``period``; then
     safe values and the summary. ``north`` names the north-side services (OPC UA, Modbus
@@ -177,7 +179,9 @@ def run(system_file: str | Path, *, virtual: bool = False, duration: float | Non
     may not use). ``values`` and ``plants`` drive the simulated slaves (``virtual`` only; see
     :func:`~chcos.cli.cellsystem.open_cell`). ``write_checks`` say what else could not be
     written (the ``--log`` file: :meth:`LogFile.check`); a workdir that cannot be written is a
-    ChcosError before the cell starts."""
+    ChcosError before the cell starts. ``traces`` are the files the run's trace goes to
+    (:class:`chcos.hil.evidence.RunEvidence`; one that cannot be written makes the run
+    unhealthy)."""
     from chcos.north.services import start as start_north
     from chcos.satellites import sysfile
     from chcos.system.affinity import pin_process
@@ -193,11 +197,13 @@ def run(system_file: str | Path, *, virtual: bool = False, duration: float | Non
         print(f"pinned to CPU(s) {', '.join(map(str, sorted(cpus)))} (system.cpus)", file=out)
     if workdir is not None:
         check_writable(Path(workdir))
+    tracer = _tracer(system_file, traces, virtual)
     with contextlib.ExitStack() as stack:
         try:
-            cell = stack.enter_context(open_cell(system_file, virtual=virtual, outputs=outputs,
-                                                 workdir=workdir, values=values,
-                                                 plants=plants))
+            cell = stack.enter_context(open_cell(
+                system_file, virtual=virtual, outputs=outputs, workdir=workdir, values=values,
+                plants=plants, observe=[lambda c: tracer.attach(c.system, c.start)]
+                if tracer is not None else ()))
         except OSError as exc:
             raise ChcosError(f"cannot set up the cell: {exc.filename or ''}: "
                              f"{describe_os_error(exc)}") from exc
@@ -251,8 +257,21 @@ def run(system_file: str | Path, *, virtual: bool = False, duration: float | Non
         # what could not be written, the log line just above included, is in the summary
         found += [f"could not be written: {e}" for check in write_checks
                   if (e := check()) is not None]
+        if tracer is not None:  # after the shutdown: its safe values are part of the run
+            found += [f"could not be written: {e}" for e in tracer.finish()]
         report(cell, snap, found, out)
         return RunResult(not found, found, snap["t"], snap)
+
+
+def _tracer(system_file: str | Path, traces: Sequence[str | Path], virtual: bool
+            ) -> RunEvidence | None:
+    """The ``--trace`` files' tracer (None without any); the system's name in the header."""
+    if not traces:
+        return None
+    from chcos.satellites import sysfile
+
+    return RunEvidence(traces, system=sysfile.load(system_file).name,
+                     clock="virtual" if virtual else "real")
 
 
 def check_writable(workdir: Path) -> None:
@@ -338,6 +357,11 @@ def parser() -> argparse.ArgumentParser:
                     help="keep N rotated log files, FILE.1 ... FILE.N (default 5)")
     ap.add_argument("-v", "--verbose", action="store_true",
                     help="log at INFO level (also accepted before 'run': chcos -v run ...)")
+    ap.add_argument("--trace", action="append", default=[], metavar="FILE",
+                    help="write the run's trace to FILE: every device value and status change, "
+                         "every command written and confirmed, task events, on the run's clock "
+                         "(a text file that diffs well, chcos diff; .gz compressed; .mcap: MCAP "
+                         "for viewers, needs chcos[mcap]) (repeatable)")
     add_north_arguments(ap)
     return ap
 
@@ -369,7 +393,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                      outputs=args.outputs == "on" or (args.outputs is None and args.virtual),
                      workdir=args.workdir, stop=stop, north=NorthOptions.from_args(args),
                      pin=True, values=args.value, plants=args.plant,
-                     write_checks=[logfile.check] if logfile is not None else [])
+                     write_checks=[logfile.check] if logfile is not None else [],
+                     traces=args.trace)
     except ChcosError as exc:
         print(f"chcos run: {exc}", file=sys.stderr)
         logging.getLogger("chcos.run").error("chcos run: %s", exc)

@@ -190,7 +190,8 @@ def open_cell(system_file: str | Path, *, virtual: bool = False, outputs: bool =
               workdir: str | Path | None = None, clock: Clock | None = None,
               quiet_slaves: bool = False, values: Sequence[str] = (),
               plants: Sequence[Plant | str] = (),
-              base_dir: Path | None = None) -> Iterator[Cell]:
+              base_dir: Path | None = None,
+              observe: Sequence[Callable[[Cell], None]] = ()) -> Iterator[Cell]:
     """Build and install the system of ``system_file``; shut it down (actuators safe) on exit.
 
     ``virtual``: virtual time against simulated slaves from the device maps; ``outputs=False``:
@@ -199,7 +200,9 @@ def open_cell(system_file: str | Path, *, virtual: bool = False, outputs: bool =
     installed. ``values`` (``DEVICE=SCRIPT``, as ``chcos sim --from --value``) and ``plants``
     (callables, or ``FILE.py:function`` references; see :data:`~chcos.apps.sim.from_map.Plant`)
     drive the simulated slaves, so they need ``virtual``; their files are relative to
-    ``base_dir`` (default the current directory). Raises ConfigError for a bad system file,
+    ``base_dir`` (default the current directory). ``observe`` are called with the cell once it
+    is built, before its install script runs (the HIL evidence watches it from there:
+    :mod:`chcos.hil.observe`). Raises ConfigError for a bad system file,
     device map, value script or plant (naming it), BusError if a bus cannot be opened,
     InstallError naming the script's file and line."""
     if (values or plants) and not virtual:
@@ -247,6 +250,8 @@ def open_cell(system_file: str | Path, *, virtual: bool = False, outputs: bool =
         cell = Cell(sf, system, counters, slaves, virtual)
         holder.append(cell)
         cell.start = system.kernel.clock.now()
+        for watch in observe:
+            watch(cell)
         if sf.install:
             for script in sf.install:
                 cell.answers += system.run_script(script)

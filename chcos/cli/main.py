@@ -2,7 +2,7 @@
 
 :data:`DESCRIPTION` is what ``chcos --help`` shows; each subcommand's parser and help live in its
 module (``chcos.cli.cellrun``, ``chcos.apps.weld.runner``, ``chcos.cli.scaffold``,
-``chcos.devices.importers``,
+``chcos.cli.diff``, ``chcos.devices.importers``,
 ``chcos.cli.monitor``, ``chcos.apps.sim``, ``chcos.devices.devmap``, ``chcos.viewer.cli``), except
 ``shell``,
 ``satellite`` and ``host``, which are here.
@@ -31,6 +31,7 @@ Your own cell:
   chcos check FILE...            validate device maps without opening a bus
                                  (--system SYSTEM: a system file and its maps)
   chcos sim --from MAP           simulated slaves for every device of a map
+  chcos diff GOLDEN NEW          compare two traces of a run (chcos run --virtual --trace FILE)
 
 The thesis' systems:
   chcos run [weld]               the arc-welding cell end to end (chcos run weld --help)
@@ -245,6 +246,7 @@ DELEGATED: dict[str, tuple[str, str, str]] = {
                 "SYSTEM)"),
     "check": ("chcos.cli.check", "main", "validate device-map files (chcos check FILE...) or "
               "system files (chcos check --system FILE...)"),
+    "diff": ("chcos.cli.diff", "main", "compare two traces of a run (chcos diff GOLDEN NEW)"),
     "sim": ("chcos.apps.sim.cli", "main", "simulated devices (chcos sim KIND ..., chcos sim "
             "--from MAP)"),
     "map": ("chcos.viewer.cli", "map_main", "draw a sysfile.map (chcos map [MAP] --format "

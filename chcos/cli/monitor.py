@@ -393,8 +393,10 @@ class Monitor:
                         flags.append(f"no answer: {reason}")
                 elif d.direction == "actuator":
                     value, age, state = None, None, "output: not read, never written"
+                elif status is DeviceStatus.FAILED and not reason.startswith("limit: "):
+                    flags.append(f"no answer: {reason}")   # (a limit: flagged below)
                 elif status is DeviceStatus.FAILED:
-                    flags.append(f"no answer: {reason}")
+                    pass
                 elif readings == 0 and now - self.start > self.grace:
                     flags.append(f"no answer within {self.grace:g} s")
             else:

@@ -173,6 +173,7 @@ blip).
 ```sh
 chcos check devices.toml                     # validate the device map
 pytest                                       # the tests, no hardware needed
+pytest --chcos-coverage -v                   # which device states the tests reached
 chcos run system.toml --virtual --duration 5 # the cell against a simulated PLC
 chcos run system.toml                        # the real PLC: tasks run, the valve is not driven
 chcos run system.toml --outputs on           # the real PLC, driven; Ctrl-C: the valve goes to 0

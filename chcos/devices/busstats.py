@@ -12,6 +12,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from chcos.devices.observers import BusReport, Observers
 from chcos.kernel.scheduler import Kernel
 
 if TYPE_CHECKING:
@@ -59,11 +60,14 @@ class BusCounters:
     """Bus statistics for :class:`chcos.devices.devtab.Devtab`, which owns one: what the drivers
     count through :meth:`stat` and :meth:`error` (any thread, under one lock), and what each
     running driver counts itself (``drivers()``: the running drivers, read when the statistics
-    are), kept from a stopping driver by :meth:`keep_sent`."""
+    are), kept from a stopping driver by :meth:`keep_sent`. Every error is also told to
+    ``observers`` (on the kernel thread, :meth:`bus_error`)."""
 
-    def __init__(self, kernel: Kernel, drivers: Callable[[], Sequence[Driver]]) -> None:
+    def __init__(self, kernel: Kernel, drivers: Callable[[], Sequence[Driver]],
+                 observers: Observers | None = None) -> None:
         self._kernel = kernel
         self._drivers = drivers
+        self._observers = observers if observers is not None else Observers()
         #: what the drivers count through :meth:`stat`, per bus (under ``_lock``)
         self._stats: dict[str, BusStats] = {}
         self._lock = threading.Lock()
@@ -91,7 +95,7 @@ class BusCounters:
     def error(self, bus: str, kind: str, detail: str, device: str = "") -> None:
         """Count a bus-level error of class ``kind`` (from a driver thread)."""
         self.stat(bus, kind, device=device, error=True)
-        self._kernel.interrupt(self.bus_error, bus, kind, detail, False)
+        self._kernel.interrupt(self.bus_error, bus, kind, detail, False, device)
 
     def stat(self, bus: str, key: str, n: int = 1, device: str = "", error: bool = False
              ) -> None:
@@ -125,9 +129,11 @@ class BusCounters:
         with self._lock:
             return {bus: st.last_error for bus, st in self._stats.items() if st.last_error}
 
-    def bus_error(self, bus: str, kind: str, detail: str, count: bool = True) -> None:
-        """On the kernel thread: an error of class ``kind`` on ``bus`` becomes its last error
-        and a WARNING (counted too unless ``count`` is False: :meth:`error` counted it)."""
+    def bus_error(self, bus: str, kind: str, detail: str, count: bool = True,
+                  device: str = "") -> None:
+        """On the kernel thread: an error of class ``kind`` on ``bus`` (of ``device``, if
+        given) becomes its last error, a WARNING and a report to the observers (counted too
+        unless ``count`` is False: :meth:`error` counted it)."""
         if count:
             self.stat(bus, kind, error=True)
         with self._lock:
@@ -135,3 +141,5 @@ class BusCounters:
             if st is not None:
                 st.last_error = f"{kind}: {detail}"
         log.warning("bus %s: %s: %s", bus, kind, detail)
+        if self._observers:
+            self._observers.bus_error(BusReport(bus, kind, detail, device))

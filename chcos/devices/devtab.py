@@ -32,12 +32,13 @@ from chcos.devices.entry import (
     scalable,
 )
 from chcos.devices.health import DeviceHealth, HealthListener, faults, log
+from chcos.devices.observers import CommandReport, DeviceObserver, Observers, WriteStage
 from chcos.devices.spec import DeviceMap
 from chcos.devices.status import DriverStatus
 from chcos.devices.table import DeviceTable
 from chcos.devices.writes import WriteTracking
 from chcos.errors import BusError, DeviceError
-from chcos.kernel.scheduler import Kernel
+from chcos.kernel.scheduler import Kernel, SettleBound
 
 if TYPE_CHECKING:
     from chcos.devices.driver import Driver
@@ -53,6 +54,7 @@ _SUSPENDED = DeviceStatus.SUSPENDED
 _INF = float("inf")
 #: the start of the failure of a sensor whose reading is no number (NaN, an infinity)
 NOT_A_VALUE = "reading is not a finite number"
+_OPEN = (None, None)   # limits that say nothing
 
 
 class Devtab:
@@ -82,8 +84,10 @@ class Devtab:
         self._health = DeviceHealth(kernel, self._table, self._rx_stamp)
         self.remote = remote
         self._checks = CommandChecks(self._table)
-        self._counters = BusCounters(kernel, lambda: self.drivers)
-        self._writes = WriteTracking(kernel, self._table, self._safe_failed)
+        #: told of every bus error and every command's stage (:mod:`chcos.devices.observers`)
+        self._observers = Observers()
+        self._counters = BusCounters(kernel, lambda: self.drivers, self._observers)
+        self._writes = WriteTracking(kernel, self._table, self._safe_failed, self._observers)
         #: (device, reason) of every safe value that could not be put on the wire, oldest first.
         self.safe_failures: list[tuple[str, str]] = []
         #: what became of each local actuator's safe value at the last shutdown
@@ -98,6 +102,11 @@ class Devtab:
         #: heartbeats on that clock, not on wall time
         #: (:func:`chcos.devices.driver.host_peers_on_clock`)
         self.peers_on_clock = False
+        #: True when the drivers' peers are real, in other processes, while the clock is
+        #: virtual (a test of a real PLC or a peer process on virtual time): a driver that
+        #: settles then waits for them at most the virtual time to the next timer
+        #: (:class:`chcos.kernel.scheduler.SettleBound`), instead of until they are done
+        self.real_peers = False
 
     def listen(self, listener: DeviceListener) -> None:
         """Send every reading and sensor failure to ``listener`` from now on (one listener: the
@@ -173,6 +182,16 @@ class Devtab:
         """Stop calling ``fn`` (added by :meth:`add_health_listener`; no error if it is not)."""
         self._health.remove_health_listener(fn)
 
+    def add_observer(self, observer: DeviceObserver) -> None:
+        """Tell ``observer`` of every bus error and every command's stage (handed to the
+        driver, confirmed, failed), on the kernel thread (see :mod:`chcos.devices.observers`)."""
+        self._observers.add(observer)
+
+    def remove_observer(self, observer: DeviceObserver) -> None:
+        """Stop telling ``observer`` (no error if it was not added)."""
+        self._observers.remove(observer)
+
+
     # ---- bus counters (BusCounters) ---------------------------------------------------------
     @property
     def bus_stats(self) -> dict[str, BusStats]:
@@ -216,7 +235,9 @@ class Devtab:
                 started.append(drv)
                 for d in devs:
                     self._table.get(d.name).driver = drv
-                self.kernel.add_settler(drv.settle)
+                if drv.settles:     # work in flight on threads of its own (kernel module doc)
+                    self.kernel.add_settler(drv.settle, SettleBound.CLOCK if self.real_peers
+                                            else SettleBound.PEER)
         except Exception as exc:
             for drv in started:
                 drv.stop()
@@ -318,16 +339,21 @@ class Devtab:
         kernel runs: the window is :attr:`shutdown_window` seconds of virtual time, during which
         the kernel runs the drivers' timers and interrupts without stepping tasks
         (:meth:`Kernel.run_drivers`: a drive ramps down to standstill, a driver's timeout and
-        retries run, a simulated peer steps), and no more wall time than the window either (a
-        real peer that does not answer costs wall time that virtual time does not count)."""
+        retries run, a simulated peer steps). No wall-clock decision is made here: what the
+        drivers have in flight is waited for by the kernel's settlers, each bounded by its
+        :class:`~chcos.kernel.scheduler.SettleBound` (a real peer that does not answer costs
+        at most the window's virtual seconds in wall time)."""
         clock = self.kernel.clock
         end = clock.now() + self.shutdown_window
-        wall_end = time.monotonic() + self.shutdown_window
         issued = {i.device: i for i in self._safe_all("shutdown")}
         attempts = dict.fromkeys(issued, 1)
         # a flush that does not wait tells each driver the shutdown began (a Modbus link
         # lost now reconnects every reconnect_delay); the kernel's settle does the waiting
-        self._flush_drivers(time.monotonic())
+        for drv in self.drivers:
+            try:
+                drv.flush(0.0)
+            except Exception:
+                log.exception("driver %s failed to flush", drv.bus.name)
 
         def settled() -> bool:
             return all(i.write is None or i.write.done is not None for i in issued.values())
@@ -336,14 +362,13 @@ class Devtab:
             return False
 
         while True:
-            self.kernel.run_drivers(end, settled, wall_end)
+            self.kernel.run_drivers(end, settled)
             again = [name for name, i in issued.items()
                      if i.write is not None and i.write.done is False]
-            if (not again or clock.now() + SHUTDOWN_RETRY_PAUSE >= end
-                    or time.monotonic() >= wall_end):
+            if not again or clock.now() + SHUTDOWN_RETRY_PAUSE >= end:
                 break
             # let the peer come back (a reconnect, a reboot), on virtual time
-            self.kernel.run_drivers(clock.now() + SHUTDOWN_RETRY_PAUSE, never, wall_end)
+            self.kernel.run_drivers(clock.now() + SHUTDOWN_RETRY_PAUSE, never)
             for name in again:
                 issued[name] = self._safe_write(self._table.get(name), "shutdown")
                 attempts[name] += 1
@@ -484,8 +509,8 @@ class Devtab:
             self._counters.bus_error("?", "unknown-device",
                                      f"reading for unknown device {device!r}")
             return
-        if e.status is _SUSPENDED:
-            e.dropped += 1
+        if e.status is _SUSPENDED or e.failure:   # a failed sensor delivers nothing until
+            e.dropped += 1                         # the end of its failure is reported
             return
         spec = e.spec
         kind = raw.__class__  # int and float first: scalable() for the rest (bool is not scaled)
@@ -494,8 +519,11 @@ class Devtab:
         if value.__class__ is float and not -_INF < value < _INF:     # NaN, an infinity
             self._not_a_value(e, raw)
             return
-        if e.failure and e.failure.startswith(NOT_A_VALUE):
-            e.failure = ""       # a number again: the failure it made ends (a driver's stays)
+        if spec.limits != _OPEN:
+            if self._limit(e, value, at, now):
+                return
+        elif e.limit:           # a number again: the failure a NaN made ends
+            e.limit = ""
             self._health.refresh(e, "a finite reading")
         e.value = value
         e.updated_at = now
@@ -509,13 +537,37 @@ class Devtab:
 
     def _not_a_value(self, e: DeviceEntry, raw: Any) -> None:
         """Sensor ``e`` received NaN or an infinity (after scale and offset): no value for a
-        task. The reading is counted and dropped; the sensor fails with the reason until a
-        finite reading comes (a failure its driver reported stays the driver's)."""
-        e.readings += 1
-        if not e.failure:
-            e.failure = (f"{NOT_A_VALUE}: the device sent {raw!r}"
-                         + ("" if e.value is None else f" (last value {e.value!r})"))
+        task. The reading is dropped (counted in ``dropped``) and the sensor fails with the
+        reason (as a reading outside its limits does, :meth:`_limit`) until a finite reading
+        comes; its value stays the last number it had."""
+        e.dropped += 1
+        why = (f"{NOT_A_VALUE}: the device sent {raw!r}"
+               + ("" if e.value is None else f" (last value {e.value!r})"))
+        if e.limit != why:
+            e.limit = why
             self._health.refresh(e, "")
+
+    def _limit(self, e: DeviceEntry, value: Any, at: float, now: float) -> bool:
+        """The limit rule of every bus: a reading outside its sensor's limits is not delivered
+        (no reader gets it; the entry shows it, as what the device sent) and fails the sensor,
+        reason ``limit: ...`` (readers get SensorFailure), until a reading within them ends
+        it. True if ``value`` was outside."""
+        lo, hi = e.spec.limits
+        if scalable(value) and ((lo is not None and value < lo) or (hi is not None and value > hi)):
+            e.dropped += 1
+            e.value, e.updated_at, e.rx_at = value, now, at
+            e.stale = False
+            why = (f"limit: reading {value:g} {e.spec.units}".rstrip() +
+                   f" outside [{'-inf' if lo is None else f'{lo:g}'}, "
+                   f"{'inf' if hi is None else f'{hi:g}'}]")
+            if e.limit != why:
+                e.limit = why
+                self._health.refresh(e, "")
+            return True
+        if e.limit:
+            e.limit = ""
+            self._health.refresh(e, "a reading within the limits")
+        return False
 
     def _readings(self, readings: Sequence[tuple[str, Any]], at: float) -> None:
         """The interrupt of :meth:`deliver_many` and :meth:`deliver`: each reading in turn, all
@@ -588,20 +640,30 @@ class Devtab:
                 e.driver.write(device, raw)
         elif e.driver is not None:
             e.driver.write(device, raw)
-        self._commanded(e, value, self.kernel.clock.now(), shown=w is None)
+        # a remote actuator's satellite confirms it there: here it is only sent
+        self._commanded(e, value, self.kernel.clock.now(), shown=w is None, source=source,
+                        safe=safe, confirmed=w is None and self._table.is_local(spec.machine))
         return w
 
-    def _commanded(self, e: DeviceEntry, value: Any, now: float, shown: bool) -> None:
+    def _commanded(self, e: DeviceEntry, value: Any, now: float, shown: bool,
+                   source: str = "", safe: str = "", confirmed: bool | None = None) -> None:
         """The bookkeeping of a write handed over (to the driver, to the device's satellite, or
         on the wire already): when and how often the actuator was commanded, the value it shows
-        (``shown``; else it stays ``pending`` until the driver's outcome), and the
-        :attr:`on_write` hooks. The one place a write is recorded, for every path to a bus."""
+        (``shown``; else it stays ``pending`` until the driver's outcome), the
+        :attr:`on_write` hooks and the observers (a command from ``source``, a safe value
+        for ``safe``; ``confirmed``, default ``shown``: on the wire already). The one place a
+        write is recorded, for every path to a bus."""
         e.updated_at = now
         e.commands += 1
         if shown:
             e.value = value
         for hook in self.on_write:
             hook(e.name, value)
+        if self._observers:
+            done = shown if confirmed is None else confirmed
+            self._observers.command(CommandReport(
+                e.name, value, WriteStage.CONFIRMED if done else WriteStage.SENT,
+                source or "host", safe))
 
     def _write_now(self, e: DeviceEntry, device: str, raw: Any) -> bool:
         """The driver's synchronous fast path (:meth:`chcos.devices.driver.Driver.write_now`, the
@@ -637,11 +699,11 @@ class Devtab:
         at once (:meth:`_safe_burst`), then the others one by one, tracked and tried again as
         any safe value; one :class:`SafeIssue` each."""
         todo = self._table.local_safe_actuators()
-        done = self._safe_burst(todo)
+        done = self._safe_burst(todo, reason)
         return [SafeIssue(e.name) if e.name in done else self._safe_write(e, reason)
                 for e in todo]
 
-    def _safe_burst(self, entries: list[DeviceEntry]) -> set[str]:
+    def _safe_burst(self, entries: list[DeviceEntry], why: str) -> set[str]:
         """On the kernel thread, put the safe values of ``entries`` that nothing of theirs is
         outstanding for on the wire back to back, one call per driver
         (:meth:`chcos.devices.driver.Driver.write_now_many`), before any bookkeeping: an emergency
@@ -667,7 +729,8 @@ class Devtab:
             written += [e for (e, _raw), ok in zip(items, sent, strict=True) if ok]
         now = self.kernel.clock.now()
         for e in written:   # as Devtab.write's fast path: on the wire, confirmed, not tracked
-            self._commanded(e, e.spec.safe_value, now, shown=True)
+            self._commanded(e, e.spec.safe_value, now, shown=True, source="safe-value",
+                            safe=why)
         return {e.name for e in written}
 
     def _safe(self, device: str, why: str = "abnormal completion") -> bool:

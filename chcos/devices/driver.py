@@ -28,12 +28,9 @@ _NO_STATUS = DriverStatus()
 
 #: The write templates of :class:`Driver` no driver overrides, and the hook each calls.
 _TEMPLATES = {"write": "_write", "write_now": "_write_now", "write_now_many": "_write_now_many"}
-#: Modules whose drivers still override ``write_now``/``write_now_many`` themselves (and count
-#: their own writes) until they rename them to the hooks: the CAN engineer's branch renames
-#: ``drivers.threaded``'s (``write_now`` -> ``_write_now``, ``write_now_many`` ->
-#: ``_write_now_many``, without its ``write_counts`` lines: :meth:`Driver._handed` counts);
-#: then this set is emptied and the override of a template is refused everywhere.
-_PENDING_RENAME = frozenset({"drivers.threaded"})
+#: Modules whose drivers may still override ``write_now``/``write_now_many`` themselves: none
+#: (``drivers.threaded`` implements the hooks): the override of a template is refused everywhere.
+_PENDING_RENAME: frozenset[str] = frozenset()
 
 
 def not_finite(value: Any) -> str | None:
@@ -82,10 +79,13 @@ class DriverHost(Protocol):
         """Raw ``value`` for actuator ``device`` did not reach the wire (refused, not answered,
         link down, dropped at stop); ``reason`` says why."""
 
-    def stat(self, bus: str, key: str, n: int = 1, device: str = "") -> None:
+    def stat(self, bus: str, key: str, n: int = 1, device: str = "", error: bool = False
+             ) -> None:
         """Add ``n`` to counter ``key`` of bus ``bus`` (and of ``device`` if given) in the bus
         statistics: ``frames``, ``requests``, ``reconnects``, ``lost`` (frames the OS dropped).
-        Error classes go through :meth:`error`. Cheap; callable per frame."""
+        Error classes go through :meth:`error`; with ``error`` ``n`` errors of class ``key``
+        are counted without a report (a driver that reports a streak of the same error once,
+        :class:`drivers.reports.Reports`, counts its repeats so). Cheap; callable per frame."""
 
     def error(self, bus: str, kind: str, detail: str, device: str = "") -> None:
         """Count and report a bus-level error: a malformed frame, an unknown id, garbage on a
@@ -165,6 +165,12 @@ class Driver(ABC):
     #: reference (each may name itself in a ``VARIANT`` class attribute). Empty: just
     #: :attr:`Address`.
     Addresses: ClassVar[tuple[type, ...]] = ()
+    #: False when all this driver does runs on the kernel thread (its I/O in kernel timers and
+    #: interrupts, and on virtual time its simulated peer too): nothing is in flight between
+    #: two interrupts, so Devtab registers no settler for it and virtual time jumps as soon as
+    #: the system is idle (the contract: :mod:`chcos.kernel.scheduler`, "Virtual time"). Read
+    #: once, after :meth:`start`; a driver may set it there for the path it took.
+    settles: bool = True
 
     def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
         self.bus = bus

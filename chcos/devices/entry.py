@@ -58,6 +58,7 @@ class DeviceEntry:
     driver: Driver | None = None
     failure: str = ""          # the driver-reported failure ("" none); cleared only by the driver
     stale: bool = False        # no fresh data for stale_after; cleared only by fresh data
+    limit: str = ""            # why the last reading was outside the limits; cleared by one within
     since: float | None = None  # kernel time of the last status change
     rx_at: float | None = None  # driver receive time of the last reading
     pending: Any = None        # a command handed to the driver, not yet on the wire

@@ -1,7 +1,8 @@
 """health - the health half of the device table: status (OK, FAILED, STALE, SUSPENDED) from
 what the drivers report and from staleness, the host's suspend/resume, and who is told.
 
-A device is FAILED while its driver reports a failure (cleared only by the driver), STALE while
+A device is FAILED while its driver reports a failure (cleared only by the driver) or while a
+sensor's last reading was outside its limits (cleared by a reading within them), STALE while
 a sensor has had no fresh data for ``stale_after`` seconds (cleared only by fresh data), and
 SUSPENDED while the host holds it; every change is an event, a WARNING on the faults logger,
 a call to each health listener, and for a local device a status message to the other
@@ -96,6 +97,8 @@ class DeviceHealth:
         staleness, else OK."""
         if e.failure:
             return DeviceStatus.FAILED, e.failure
+        if e.limit:
+            return DeviceStatus.FAILED, e.limit
         if e.stale:
             return DeviceStatus.STALE, f"no data for {e.spec.stale_after} s (stale_after)"
         return DeviceStatus.OK, ""

@@ -68,7 +68,8 @@ COMMON_DEVICE = (
     Key("scale", "float", "1.0", "engineering value = raw x scale + offset (not 0)"),
     Key("offset", "float", "0.0", "see scale"),
     Key("limits", "[lo, hi]", "[-inf, inf]", "engineering units, inclusive: actuator commands "
-        "outside are refused (never clamped); `chcos monitor` flags sensor values outside"),
+        "outside are refused (never clamped); a sensor reading outside is not delivered and "
+        "fails the sensor (reason `limit: ...`) until one within; `chcos monitor` flags it"),
     Key("safe_value", "float or \"none\"", "none", "actuators: written on e-stop, on abnormal "
         "completion of the commanding task and on shutdown; within limits. `\"none\"` with "
         "`safe_reason`: the actuator has no safe value (a target position), said once instead "
@@ -98,38 +99,6 @@ _CAN_BUS = (
 _UDP_PORT = Key("port", "integer 1..65535", "43113", "UDP port of interface `udp_multicast` (a "
                "bus shared by processes on any machine; `channel` is its multicast group): give "
                "each bus its own group and port")
-_MODBUS_COMMON = (
-    Key("timeout", "float s", "1.0", "per request"),
-    Key("retries", "integer", "1", "retries per request"),
-    Key("reconnect_delay", "float s", "0.1", "first reconnect back-off; doubled after each "
-        "failure"),
-    Key("reconnect_delay_max", "float s", "5.0", "longest back-off"),
-    Key("poll_period", "float s", "0.1", "default polling period of the sensors and of the "
-        "read-back of an actuator whose write failed; on a bus (or RTU unit) with no sensor "
-        "the liveness probe's period (default 1.0)"),
-    Key("watchdog", "inline table", "none", "a register written every `period` s so the PLC's "
-        "comm-loss logic sees the controller alive: `{unit = 1, table = \"holding\", "
-        "address, period = 1.0, value = \"counter\"}` (`table` also `\"coil\"`, `value` also "
-        "an integer written each time); a counter writes 1, 2, ... "
-        "(a coil toggles); a write not answered fails devices as any request, an exception "
-        "answer fails the devices of its unit (see docs/modbus-faults.md)"),
-)
-_MODBUS_ADDRESS = (
-    Key("unit", "integer 0..255", "1", "unit (slave / device) id"),
-    Key("table", "string", "required", "`coil`, `discrete`, `holding` or `input`; actuators "
-        "only `coil` or `holding`"),
-    Key("address", "integer", "required", "protocol address, 0-based (register 40001 is "
-        "`holding` 0)"),
-    Key("type", "string", "`bool` (bits), `uint16`", "`bool` for coils and discrete inputs; "
-        "`int16 uint16 int32 uint32 float32 float64` for registers"),
-    Key("word_order", "string", "`ABCD`", "for 32/64-bit types, by the bytes of a 32-bit "
-        "value A B C D (A most significant): `ABCD` (high word first), `CDAB` (words "
-        "swapped), `BADC` (bytes swapped in each word), `DCBA` (both); `big` and `little` "
-        "are aliases of `ABCD` and `CDAB`; a 64-bit value follows the same rule over its four "
-        "words"),
-    Key("poll_period", "float s", "the bus's", "this sensor's polling period"),
-)
-
 #: The prose of every kind (summary, example) and, for a kind whose driver does not declare its
 #: tables as option dataclasses yet, the hand-written tables (None where they are generated: see
 #: :func:`kinds`). A bus engineer who converts a kind replaces its tables here by None.
@@ -162,6 +131,12 @@ DOCS: dict[str, _Doc] = {
          Key("unknown_ids", "string", "`warn`", "a frame of an id of no device that reaches "
              "chcos: `ignore` (counted), `warn` (counted, one warning per 10 s), `fail` (a bus "
              "error: the run is unhealthy)"),
+         Key("message", "array of tables", "[]", "`[[bus.message]]`, one per DBC message that "
+             "needs more than the DBC says: `name`, `cycle_time` (s; default the DBC's "
+             "GenMsgCycleTime, 0: event-driven; chcos repeats its own cyclic commands), "
+             "`counter = \"SIGNAL\"` (rolling, +1 per frame, checked on receive), `checksum = "
+             "{ signal, algorithm }` (`xor`, `sum`, `crc8-sae-j1850`, `crc8-autosar`, `python` "
+             "with `function = \"module:callable\"`); docs/can-faults.md"),
          _UDP_PORT),
         (Key("message", "string", "required (DBC form)", "message name in the DBC", "DBC form"),
          Key("signal", "string", "required (DBC form)", "signal name; the DBC's scale and "
@@ -253,32 +228,16 @@ DOCS: dict[str, _Doc] = {
         '[[device]]\nname = "position"\ndirection = "sensor"\n'
         'bus = "axis"\naddress = { node = 5, index = 0x6064 }'),
     "modbus-tcp": _Doc(
-        "Modbus TCP client (pymodbus)",
-        (Key("host", "string", "required", "server address"),
-         Key("port", "integer", "502", "server TCP port"),
-         Key("connections", "integer 1..16", "1", "TCP connections a poll of several "
-             "requests spreads them over, all outstanding at once (a server taking fewer is "
-             "polled over those)"),
-         *_MODBUS_COMMON),
-        _MODBUS_ADDRESS,
+        "Modbus TCP client (an answer matched to its request by transaction id, unit, "
+        "function and byte count; pymodbus' PDU codec); under faults: docs/modbus-faults.md",
+        None, None,
         '[[bus]]\nname = "plc"\nkind = "modbus-tcp"\nhost = "127.0.0.1"\nport = 5020\n\n'
         '[[device]]\nname = "level"\ndirection = "sensor"\nbus = "plc"\n'
         'address = { table = "input", address = 0 }'),
     "modbus-rtu": _Doc(
-        "Modbus RTU client on a serial line (pymodbus)",
-        (Key("port", "string", "required", "serial device or pyserial URL "
-             "(`socket://host:port`)"),
-         Key("baudrate", "integer", "19200", "bit/s"),
-         Key("parity", "string", "`N`", "`N`, `E` or `O`"),
-         Key("stopbits", "integer", "1", "1 or 2"),
-         Key("bytesize", "integer", "8", "7 or 8"),
-         Key("dead_unit_backoff", "integer >= 1", "8, or more", "the most poll periods "
-             "between two tries of a unit that stopped answering (its requests are thinned "
-             "out, the gaps doubling up to this); by default 8, raised so a dead unit's tries "
-             "take at most a twentieth of the line's time; while another unit answers, the "
-             "first gap already keeps to that share"),
-         *_MODBUS_COMMON),
-        _MODBUS_ADDRESS,
+        "Modbus RTU client on a serial line (an answer matched by unit, function, byte count "
+        "and CRC, the input flushed before each request); under faults: docs/modbus-faults.md",
+        None, None,
         '[[bus]]\nname = "rtu"\nkind = "modbus-rtu"\nport = "/dev/ttyUSB0"\nbaudrate = 19200'),
     "serial": _Doc(
         "a serial line (pyserial): a text line protocol (regex) or binary frames (struct); "

@@ -70,17 +70,19 @@ class OptionDoc:
     default_doc: str = ""
     variant: str = ""
     check: Check | None = None
+    nan: bool = False
 
 
 def option(default: Any = REQUIRED, *, doc: str, unit: str = "", type_doc: str = "",
            default_doc: str = "", variant: str = "", check: Check | None = None,
-           factory: Callable[[], Any] | None = None) -> Any:
+           factory: Callable[[], Any] | None = None, nan: bool = False) -> Any:
     """A field of an option dataclass: ``default`` (:data:`REQUIRED` when the key must be
     given; ``factory`` for a mutable or computed default), the meaning ``doc``, the ``unit``
     (``"s"``, ``"ms"``, ``"Hz"``), how the reference shows the type and the default where the
     annotation and ``repr`` would not read well, the ``variant`` of the kind the key belongs to,
-    and a ``check`` of the parsed value (see :data:`Check`)."""
-    meta = {_META: OptionDoc(doc, unit, type_doc, default_doc, variant, check)}
+    and a ``check`` of the parsed value (see :data:`Check`); ``nan`` lets a float key be NaN
+    (TOML's ``nan``: a value that means "none", never a measurement)."""
+    meta = {_META: OptionDoc(doc, unit, type_doc, default_doc, variant, check, nan)}
     if factory is not None:
         return dataclasses.field(default_factory=factory, metadata=meta)
     return dataclasses.field(default=default, metadata=meta)
@@ -305,6 +307,10 @@ def parse(cls: type[T], table: Mapping[str, Any], path: str,
                 errors.append(f"{key}: required; expected {_describe(hints[name])}")
             continue
         raw = table[name]
+        meta = f.metadata.get(_META)
+        if meta is not None and meta.nan and isinstance(raw, float) and math.isnan(raw):
+            values[name] = raw
+            continue
         try:
             value = _convert(hints[name], raw, key, errors)
         except _Bad as bad:
@@ -313,7 +319,6 @@ def parse(cls: type[T], table: Mapping[str, Any], path: str,
                 shown = raw if not bad.key else _element(raw, bad.key, key)
                 errors.append(f"{where}: expected {bad.expected}, got {_short(shown)}")
             continue
-        meta = f.metadata.get(_META)
         if meta is not None and meta.check is not None and value is not None:
             why = meta.check(value)
             if why is not None:

@@ -1,5 +1,5 @@
 """status - what a driver knows of its bus beyond the bus statistics, typed: its remote nodes, its
-SYNC cycle and its controller's error state.
+SYNC cycle, its controller's error state and the messages it sends every cycle.
 
 :class:`DriverStatus` is what :meth:`chcos.devices.driver.Driver.status` returns and what the
 consumers (the run summary, the system map's text view, metrics, OPC UA) read; it becomes JSON
@@ -70,19 +70,38 @@ class ErrorState(enum.StrEnum):
     """A CAN controller's fault confinement state (ISO 11898-1)."""
 
     ERROR_ACTIVE = "error-active"
-    ERROR_PASSIVE = "error-passive"
-    BUS_OFF = "bus-off"
+    ERROR_WARNING = "error-warning"     # a counter reached 96: still error-active
+    ERROR_PASSIVE = "error-passive"     # a counter reached 128: sends, passive error flags
+    BUS_OFF = "bus-off"                 # the transmit counter passed 255: off the bus
 
 
 @dataclass(frozen=True)
 class BusState:
     """A bus controller's error state and its error counters (None: the interface does not
-    tell them), with how often it went bus-off."""
+    tell them), with how often it went bus-off, error-passive and was restarted, and the error
+    frames that told it."""
 
     state: ErrorState
     tx_errors: int | None = None
     rx_errors: int | None = None
     bus_offs: int = 0
+    error_passive: int = 0
+    restarts: int = 0
+    error_frames: int = 0
+    #: what the last error frame said ("" before the first)
+    last: str = ""
+
+
+@dataclass(frozen=True)
+class CyclicStatus:
+    """One message the driver sends every cycle (chcos' own cyclic CAN message): its name,
+    period (seconds), whether its first command started it, and the frames sent so far where
+    the driver sends them itself (None: the interface's periodic sender does)."""
+
+    message: str
+    period: float
+    started: bool = False
+    frames: int | None = None
 
 
 @dataclass(frozen=True)
@@ -92,9 +111,11 @@ class DriverStatus:
     nodes: tuple[NodeStatus, ...] = ()
     sync: SyncStatus | None = None
     bus_state: BusState | None = None
+    cyclic: tuple[CyclicStatus, ...] = ()
 
     def __bool__(self) -> bool:
-        return bool(self.nodes) or self.sync is not None or self.bus_state is not None
+        return (bool(self.nodes) or self.sync is not None or self.bus_state is not None
+                or bool(self.cyclic))
 
     def to_json(self) -> dict[str, Any]:
         """The JSON document (only the parts there are): ``nodes`` a list of objects, ``sync``
@@ -107,21 +128,26 @@ class DriverStatus:
         if self.bus_state is not None:
             doc["bus_state"] = {**dataclasses.asdict(self.bus_state),
                                 "state": self.bus_state.state.value}
+        if self.cyclic:
+            doc["cyclic"] = [dataclasses.asdict(c) for c in self.cyclic]
         return doc
 
     @classmethod
     def from_json(cls, doc: Mapping[str, Any]) -> DriverStatus:
         """The status a :meth:`to_json` document (or a driver's ``status_doc``) describes.
         Raises ValueError naming the key that is unknown, missing or of the wrong kind."""
-        _known(doc, ("nodes", "sync", "bus_state"), "status")
+        _known(doc, ("nodes", "sync", "bus_state", "cyclic"), "status")
         nodes = tuple(_build(NodeStatus, n, f"nodes[{i}]")
                       for i, n in enumerate(doc.get("nodes") or ()))
+        cyclic = tuple(_build(CyclicStatus, c, f"cyclic[{i}]")
+                       for i, c in enumerate(doc.get("cyclic") or ()))
         sync = doc.get("sync")
         state = doc.get("bus_state")
         if state is not None:
             state = _build(BusState, {**_table(state, "bus_state"),
                                       "state": _error_state(state.get("state"))}, "bus_state")
-        return cls(nodes, None if sync is None else _build(SyncStatus, sync, "sync"), state)
+        return cls(nodes, None if sync is None else _build(SyncStatus, sync, "sync"), state,
+                   cyclic)
 
 
 def _table(v: Any, key: str) -> Mapping[str, Any]:

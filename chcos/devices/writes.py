@@ -24,6 +24,7 @@ from typing import Any
 
 from chcos.devices.entry import Write
 from chcos.devices.health import faults
+from chcos.devices.observers import CommandReport, Observers, WriteStage
 from chcos.devices.table import DeviceTable
 from chcos.kernel.scheduler import Kernel
 
@@ -36,13 +37,16 @@ class WriteTracking:
     """Confirmed and failed writes for :class:`chcos.devices.devtab.Devtab`, which owns one:
     the writes in flight per device (:meth:`track`), their outcomes from the drivers
     (:meth:`written`, :meth:`write_failed`) applied to the entries of ``table`` on the kernel
-    thread, and a safe value finally not written handed to ``safe_failed(device, reason)``."""
+    thread, and a safe value finally not written handed to ``safe_failed(device, reason)``;
+    each outcome is told to ``observers``."""
 
     def __init__(self, kernel: Kernel, table: DeviceTable,
-                 safe_failed: Callable[[str, str], None]) -> None:
+                 safe_failed: Callable[[str, str], None],
+                 observers: Observers | None = None) -> None:
         self._kernel = kernel
         self._table = table
         self._safe_failed = safe_failed
+        self._observers = observers if observers is not None else Observers()
         self._lock = threading.Lock()
         self._inflight: dict[str, deque[Write]] = {}
         #: per device, outcomes queued to the kernel thread and not yet applied (under
@@ -133,6 +137,10 @@ class WriteTracking:
             left = len(self._inflight.get(w.device, ()))
         if left == 0:
             e.pending = None
+        if self._observers:
+            self._observers.command(CommandReport(
+                w.device, w.value, WriteStage.CONFIRMED if w.done else WriteStage.FAILED,
+                safe=w.safe, reason=w.reason))
         if w.done:
             e.value = w.value
             e.updated_at = self._kernel.clock.now()

@@ -8,6 +8,39 @@ wakes the kernel; timers (the thesis' delta list, kept here as a heap of deadlin
 read timeouts and periodic device polls. Nothing busy-waits: an idle kernel blocks in its clock.
 A failing interrupt handler or timer callback does not stop the kernel: it is logged and
 collected, and :meth:`Kernel.check` raises it.
+
+Virtual time: the contract for drivers and simulated peers. On a :class:`VirtualClock` the kernel
+jumps to the next timer as soon as nothing is ready and no interrupt is queued: it never waits
+for the wall clock, and it makes no wall-clock decision of its own (no ``time.*`` call on this
+path). Whatever must happen at a virtual instant must therefore be *on the kernel thread* by the
+time the kernel looks, and there are two ways for a driver to be so:
+
+1. **On the kernel thread** (the aim for every simulated bus): the driver's I/O and its
+   simulated peer run in kernel timers and interrupt handlers (``host.every``/``host.at``, a
+   direct hand-off of the encoded bytes to the peer, the peer's answer handled in the same
+   call). Nothing is in flight between two interrupts, so the driver needs no settle: it sets
+   :attr:`chcos.devices.driver.Driver.settles` False and Devtab registers nothing with the kernel.
+   Every timeout it has is a kernel timer, so a request to a silent peer times out at its
+   virtual deadline, whatever the machine's load.
+2. **Threads and a transport of its own** (python-can notifiers, sockets, ptys): work handed to
+   those threads is in flight, and virtual time must not move on before it is back. Such a
+   driver registers ``settle(timeout)`` (:meth:`Kernel.add_settler`; Devtab does it for every
+   driver whose ``settles`` is true) and, with a simulated peer on threads of its own, that
+   peer's activity count (:meth:`Kernel.add_settle_activity`). The kernel calls the settlers
+   before every jump, in rounds until no activity count moves. How long a settler may wait
+   depends on its peer (:class:`SettleBound`): a simulated peer in this process (``PEER``) is
+   waited for until it is done, :data:`SETTLE_TIMEOUT` wall seconds at most (a guard against a
+   hung thread, never reached by a working one); a real peer in another process (``CLOCK``)
+   gets at most the virtual time left to the next timer, so that virtual time never runs ahead
+   of the real time the peer lives in while something is in flight (a silent real peer costs
+   as many wall seconds as the virtual time it is silent for, and its answer is taken at the
+   virtual instant it arrives in).
+
+A driver may not use ``time.monotonic``/``time.time``/``time.sleep`` or an ``Event.wait``
+timeout for a decision on virtual time (a timeout, a period, a retry): those come from
+``host.now()``/``host.at()``/``host.every()``. ``tools/wallclock_audit.py`` lists the calls that
+are still made (``vcan_tests/test_vtime_wallclock.py`` asserts there are none in the kernel,
+Devtab and the protocol-free binding).
 """
 
 from __future__ import annotations
@@ -17,6 +50,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Coroutine
+from enum import Enum
 from heapq import heapify, heappop, heappush
 from itertools import count
 from typing import Any
@@ -28,11 +62,29 @@ from chcos.kernel.lifecycle import BLOCK, YIELD, End, EndHandler, Lifecycle
 from chcos.kernel.timers import HandlerErrors, Timer, Timers
 from chcos.tables.tasks import TaskEntry, TaskState
 
-__all__ = ["BLOCK", "YIELD", "End", "EndHandler", "Kernel", "Timer"]  # Timer: what call_at returns
+# Timer: what call_at returns
+__all__ = ["BLOCK", "YIELD", "End", "EndHandler", "Kernel", "SettleBound", "Timer"]
 
 log = logging.getLogger("chcos.kernel.scheduler")
 #: the most rounds of settles before virtual time moves on (see Kernel._settle_rounds)
 SETTLE_ROUNDS = 50
+#: wall seconds a settler may wait for a simulated peer on threads of this process to finish
+#: what is in flight (:attr:`SettleBound.PEER`): a guard against a hung thread, which a
+#: working peer never reaches (it decides nothing a run's results depend on)
+SETTLE_TIMEOUT = 5.0
+
+
+class SettleBound(Enum):
+    """How long a settler may wait (see the module doc, "Virtual time")."""
+
+    #: the peer is simulated in this process, on threads of its own: wait until it is done
+    #: (at most :data:`SETTLE_TIMEOUT` wall seconds)
+    PEER = "peer"
+    #: the peer is real, in another process, living in real time: wait at most the virtual
+    #: time left to the next timer (virtual time does not run ahead of it)
+    CLOCK = "clock"
+
+
 _READY, _CURRENT, _SUSPENDED = TaskState.READY, TaskState.CURRENT, TaskState.SUSPENDED
 
 
@@ -79,7 +131,7 @@ class Kernel:
         self._running = False
         #: the ident of the thread running :meth:`run`, None when it is not running
         self.thread_ident: int | None = None
-        self._settlers: list[Callable[[float], bool]] = []
+        self._settlers: list[tuple[Callable[[float], bool], SettleBound]] = []
         self._activity: list[Callable[[], int]] = []
         self._idle_hooks: list[Callable[[], None]] = []
         # every task this kernel has started (a dict as an ordered set): steps sums their
@@ -284,10 +336,19 @@ class Kernel:
             except Exception as exc:
                 self.errors.record(getattr(handler, "__qualname__", repr(handler)), exc)
 
-    def add_settler(self, settle: Callable[[float], bool]) -> None:
-        """Register a driver's ``settle(timeout)``; called before virtual time jumps ahead so
-        that everything already on a bus is delivered first."""
-        self._settlers.append(settle)
+    def add_settler(self, settle: Callable[[float], bool],
+                    bound: SettleBound = SettleBound.PEER) -> None:
+        """Register a driver's ``settle(timeout)``: called before virtual time jumps ahead so
+        that everything already on a bus is delivered first, with a ``timeout`` in wall seconds
+        set by ``bound`` (see :class:`SettleBound` and the module doc). A driver whose work all
+        runs on the kernel thread registers none."""
+        self._settlers.append((settle, bound))
+
+    @property
+    def settling(self) -> bool:
+        """Whether any settler is registered: some driver or peer still works on threads of its
+        own, and virtual time waits for it before each jump (see the module doc)."""
+        return bool(self._settlers)
 
     def add_settle_activity(self, count: Callable[[], int]) -> None:
         """Register ``count()``, a number that grows whenever a driver sent something to a peer
@@ -302,10 +363,10 @@ class Kernel:
         now (see :meth:`add_settle_activity`); a simulated peer calls it on the kernel thread
         before and after it steps, so that its step sees, at that virtual instant, exactly what
         was sent before it, whatever the threads' timing. True if that queued interrupts or
-        readied tasks. Nothing on a real clock."""
-        if not self.clock.virtual:
+        readied tasks. Nothing on a real clock, nor when no settler is registered."""
+        if not self.clock.virtual or not self._settlers:
             return False
-        return self._settle()
+        return self._settle(self.timers.next_deadline())
 
     def add_idle_hook(self, hook: Callable[[], None]) -> None:
         """Call ``hook()`` on the kernel thread each time nothing is left to run, before the
@@ -391,7 +452,7 @@ class Kernel:
         if until is not None and (deadline is None or deadline > until):
             deadline = until
         if clock.virtual:
-            if self._settle():
+            if self._settlers and self._settle(deadline):
                 return True
             if deadline is None:
                 return False
@@ -412,16 +473,20 @@ class Kernel:
             self.idle_time += clock.now() - began
         return True
 
-    def run_drivers(self, until: float, done: Callable[[], bool], wall_deadline: float) -> None:
+    def run_drivers(self, until: float, done: Callable[[], bool],
+                    wall_deadline: float | None = None) -> None:
         """The shutdown window on a virtual clock: interrupts and timers run and virtual time
         jumps from timer to timer as in :meth:`run` (drivers poll, simulated peers step, a
         drive ramps down), but no task is stepped (user tasks have ended; a task woken now
-        stays ready and never runs). Returns as soon as ``done()`` is true, clock time
-        ``until`` is reached (at once when nothing more can happen: no timer, nothing in flight), or
-        ``time.monotonic()`` passes ``wall_deadline`` (real peers that do not answer cost wall
-        time, which virtual time does not count). Runs on the calling thread, which is the
-        kernel thread meanwhile. Raises KernelError if the kernel is running or its clock is not
-        virtual."""
+        stays ready and never runs). Returns as soon as ``done()`` is true or clock time
+        ``until`` is reached (at once when nothing more can happen: no timer, nothing in
+        flight); what the drivers have in flight is waited for as in :meth:`run` (the
+        settlers, each bounded by its :class:`SettleBound`: a real peer that does not answer
+        costs at most the window's virtual seconds in wall time). ``wall_deadline``, if given,
+        also ends it once ``time.monotonic()`` passes it (for a caller that must bound its own
+        wall time; the kernel makes no such decision itself). Runs on the calling thread, which
+        is the kernel thread meanwhile. Raises KernelError if the kernel is running or its
+        clock is not virtual."""
         if self._running:
             raise KernelError("kernel is already running")
         if not self.clock.virtual:
@@ -434,15 +499,17 @@ class Kernel:
                 self._rounds += 1
                 if irq:
                     self._drain_irq()
-                if done() or time.monotonic() >= wall_deadline:
+                if done() or (wall_deadline is not None and time.monotonic() >= wall_deadline):
                     return
                 now = clock.now()
                 due = timers.next_deadline()
                 if due is not None and due <= now:
                     timers.fire(now)
                     continue
-                if self._settle_drivers(max(0.0, wall_deadline - time.monotonic())):
-                    continue
+                if self._settlers:
+                    self._settle_rounds(min(until, due) if due is not None else until)
+                    if irq:
+                        continue
                 if now >= until:
                     return
                 if due is None:     # nothing can happen any more: the time passes
@@ -453,28 +520,33 @@ class Kernel:
             self._running = False
             self.thread_ident = None
 
-    def _settle_drivers(self, timeout: float) -> bool:
-        """Let every driver finish what is in flight (``timeout`` wall seconds at most each);
-        True if that queued interrupts."""
-        self._settle_rounds(min(5.0, timeout))
-        return bool(self._irq)
-
-    def _settle(self) -> bool:
-        """Let every driver finish what is in flight; True if that produced work."""
-        self._settle_rounds(5.0)
+    def _settle(self, deadline: float | None = None) -> bool:
+        """Let every driver finish what is in flight (the next timer or the run's end at clock
+        time ``deadline``, None: none); True if that produced work."""
+        self._settle_rounds(deadline)
         return bool(self._irq or self._ready)
 
-    def _settle_rounds(self, timeout: float) -> None:
+    def _settle_timeout(self, bound: SettleBound, deadline: float | None) -> float:
+        """The wall seconds a settler of ``bound`` may wait when the next timer is at clock
+        time ``deadline`` (see :class:`SettleBound`)."""
+        if bound is SettleBound.PEER or deadline is None:
+            return SETTLE_TIMEOUT
+        return min(SETTLE_TIMEOUT, max(0.0, deadline - self.clock.now()))
+
+    def _settle_rounds(self, deadline: float | None) -> None:
         """Call every settler, again while an activity count (:meth:`add_settle_activity`)
         moved during the round: a driver sent a simulated peer something, or the peer handled
         it on its own thread, and its answer must be delivered in this instant too. At most
         :data:`SETTLE_ROUNDS` rounds (a peer that keeps talking on its own wall-clock thread
-        would never let it end)."""
+        would never let it end). ``deadline``: the clock time of the next timer (see
+        :meth:`_settle_timeout`)."""
         activity = self._activity
+        peer = SETTLE_TIMEOUT
         for _ in range(SETTLE_ROUNDS):
             before = [count() for count in activity]
-            for settle in self._settlers:
-                settle(timeout)
+            for settle, bound in self._settlers:
+                settle(peer if bound is SettleBound.PEER
+                       else self._settle_timeout(bound, deadline))
             if [count() for count in activity] == before:
                 return
 

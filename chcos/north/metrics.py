@@ -241,6 +241,7 @@ class SystemCollector(Collector):
 def node_families(status: dict[str, dict[str, Any]]) -> list[Any]:
     """The ``chcos_node_*`` and ``chcos_sync_*`` families from the drivers' status documents
     (:meth:`chcos.devices.devtab.Devtab.bus_status`)."""
+    from chcos.devices.status import ErrorState
     from drivers.canopen_lifecycle import NodeLifecycle
 
     states = [s.name for s in NodeLifecycle]
@@ -273,7 +274,25 @@ def node_families(status: dict[str, dict[str, Any]]) -> list[Any]:
     period = GaugeMetricFamily("chcos_sync_period_seconds", "SYNC period", labels=["bus"])
     jitter = GaugeMetricFamily("chcos_sync_jitter_seconds", "SYNC period jitter "
                                "|interval - period|", labels=["bus", "quantile"])
+    ctl_state = GaugeMetricFamily("chcos_can_controller_state", "1 for the CAN controller's "
+                                  "state (error-active, error-warning, error-passive, bus-off)",
+                                  labels=["bus", "state"])
+    ctl_errors = GaugeMetricFamily("chcos_can_controller_errors", "the CAN controller's error "
+                                   "counters as its last error frame gave them",
+                                   labels=["bus", "direction"])
+    ctl_events = CounterMetricFamily("chcos_can_controller_events", "CAN error frames, "
+                                     "error-passive and bus-off episodes, restarts",
+                                     labels=["bus", "event"])
     for bus, doc in status.items():
+        ctl = doc.get("bus_state")
+        if ctl:
+            for es in ErrorState:
+                ctl_state.add_metric([bus, es.value], 1.0 if ctl["state"] == es else 0.0)
+            if ctl.get("tx_errors") is not None and ctl.get("rx_errors") is not None:
+                ctl_errors.add_metric([bus, "tx"], float(ctl["tx_errors"]))
+                ctl_errors.add_metric([bus, "rx"], float(ctl["rx_errors"]))
+            for event in ("error_frames", "error_passive", "bus_offs", "restarts"):
+                ctl_events.add_metric([bus, event], float(ctl.get(event, 0)))
         for n in doc.get("nodes", ()):
             labels = [bus, str(n["node"])]
             for name in states:
@@ -295,7 +314,7 @@ def node_families(status: dict[str, dict[str, Any]]) -> list[Any]:
             for q, key in (("0.5", "jitter_p50"), ("0.99", "jitter_p99"), ("max", "jitter_max")):
                 jitter.add_metric([bus, q], float(st[key]))
     return [state, ready, lost, boots, starts, losses, emcys, restarts, ereg, *sync.values(),
-            period, jitter]
+            period, jitter, ctl_state, ctl_errors, ctl_events]
 
 
 def read_token(path: str) -> str:

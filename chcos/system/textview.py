@@ -61,7 +61,13 @@ def bus_status_lines(status: Mapping[str, DriverStatus]) -> list[str]:
             counters = ("" if bs.tx_errors is None or bs.rx_errors is None
                         else f", TEC {bs.tx_errors}, REC {bs.rx_errors}")
             out.append(f"CAN      {bus:<16} {bs.state.value}{counters}, "
-                       f"{bs.bus_offs} bus-off(s)")
+                       f"{bs.bus_offs} bus-off(s), {bs.restarts} restart(s), "
+                       f"{bs.error_passive} time(s) error-passive, {bs.error_frames} error "
+                       f"frame(s)")
+        for c in st.cyclic:
+            sent = "" if c.frames is None else f", {c.frames} frame(s) sent"
+            out.append(f"cyclic   {bus:<16} {c.message} every {c.period * 1e3:g} ms"
+                       f"{sent if c.started else ', not started (no command yet)'}")
     return out
 
 

@@ -21,11 +21,19 @@ from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import BusError
 from chcos.helpers import is_int
 from drivers.base import not_finite
+from drivers.codecs.can_e2e import (
+    CounterCheck,
+    MessageSpec,
+    Protection,
+    cycle_of,
+    parse_messages,
+)
 
 DBC_KEYS = ("message", "signal")
 RAW_KEYS = ("id", "start", "length", "byte_order", "signed", "dlc", "extended")
 BYTE_ORDERS = ("little_endian", "big_endian")
-#: Keys that would declare an alive counter or a checksum: refused by ``check`` with a reason.
+#: Address keys that would declare an alive counter or a checksum: refused by ``check``, which
+#: points at the message's ``[[bus.message]]`` table, where they are declared.
 UNSUPPORTED_KEYS = ("counter", "crc", "checksum")
 
 
@@ -71,6 +79,8 @@ class FrameFault(enum.StrEnum):
     WRONG_LENGTH = "wrong-length"    # not the message's length
     UNDECODABLE = "undecodable"      # the DBC cannot decode it, or a signal is not finite
     UNKNOWN_MUX = "unknown-mux"      # a multiplexer value the DBC does not list
+    CHECKSUM = "checksum"            # the message's checksum signal is wrong
+    COUNTER = "counter"              # the message's rolling counter did not follow the last
 
 
 @dataclass(frozen=True, slots=True)
@@ -156,6 +166,14 @@ class _Frame:
     frame_id: int = 0
     extended: bool = False
     multiplexed: bool = False
+    #: what the map says of the message ([[bus.message]]), None if nothing
+    spec: MessageSpec | None = None
+    #: its counter and checksum (None: neither), the next counter to send, the receive check
+    protection: Protection | None = None
+    tx_counter: int = 0
+    rx_counter: CounterCheck | None = None
+    #: seconds between two frames (the map's cycle_time, else the DBC's), None: event-driven
+    cycle: float | None = None
 
     def __post_init__(self) -> None:
         self.multiplexed = bool(self.message.is_multiplexed())
@@ -204,6 +222,9 @@ class CanCodec:
 
     def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec]) -> None:
         dbc = load_dbc(str(bus.options["dbc"])) if "dbc" in bus.options else None
+        #: what the map says of its DBC messages (checked already: errors are not repeated)
+        self.specs: dict[str, MessageSpec] = (parse_messages(bus.options, bus.key, dbc)[0]
+                                              if dbc is not None else {})
         self._by_id: dict[tuple[int, bool], _Frame] = {}
         #: device -> its message, signal name, and in a whole-byte message its slot (first
         #: byte, bytes, signed, whether it is the whole payload), else None
@@ -225,7 +246,7 @@ class CanCodec:
             msg = DbcMessage(fid, f"raw_0x{fid:X}", int(a0.get("dlc", 8)), sigs,
                              is_extended_frame=bool(a0.get("extended", False)), strict=False)
             for d in group:
-                self._attach(msg, d, d.name)
+                self._attach(msg, d, d.name, from_dbc=False)
             fr = self._by_id[(fid, bool(a0.get("extended", False)))]
             fr.whole_bytes = _whole_bytes(msg)
             if fr.whole_bytes is not None:
@@ -246,12 +267,18 @@ class CanCodec:
                 self._raw_ranges[d.name] = int_range(int(d.address["length"]),
                                                      bool(d.address.get("signed", False)))
 
-    def _attach(self, msg: Any, device: DeviceSpec, signal: str) -> None:
+    def _attach(self, msg: Any, device: DeviceSpec, signal: str, from_dbc: bool = True) -> None:
         key = (msg.frame_id, bool(msg.is_extended_frame))
         fr = self._by_id.get(key)
         if fr is None:
             fr = _Frame(msg, values={s.name: _initial(s) for s in msg.signals})
             self._by_id[key] = fr
+            if from_dbc:
+                spec = fr.spec = self.specs.get(msg.name)
+                fr.cycle = cycle_of(spec, msg)
+                if spec is not None and (spec.counter or spec.checksum):
+                    fr.protection = Protection(msg, spec)
+                    fr.rx_counter = CounterCheck(fr.protection.modulo)
         side = fr.sensors if device.direction == "sensor" else fr.actuators
         side[signal] = device.name
         self._by_device[device.name] = (fr, signal, None)
@@ -290,6 +317,9 @@ class CanCodec:
             return Rejected(FrameFault.WRONG_LENGTH,
                             f"frame id 0x{frame.arbitration_id:X} ({fr.message.name}) has "
                             f"{len(data)} bytes, expected {fr.length}")
+        prot = fr.protection
+        if prot is not None and (fault := self._unprotected(fr, prot, bytes(data))) is not None:
+            return fault
         one = fr.read1
         if one is not None:    # one raw whole-byte sensor signal: the int cantools would give
             dev, o, n, sg, whole = one
@@ -314,6 +344,62 @@ class CanCodec:
                                 f"frame id 0x{frame.arbitration_id:X}: signal of {dev} is {v}, "
                                 f"not a finite number")
         return Decoded(out)
+
+    @staticmethod
+    def _unprotected(fr: _Frame, prot: Protection, data: bytes) -> Rejected | None:
+        """Why a received frame of a message with a counter or checksum is not to be trusted
+        (:class:`Rejected`, ``checksum`` or ``counter``), None if it is. A wrong checksum says
+        nothing of the counter, which is then not taken."""
+        counter, why = prot.check(data)
+        name = fr.message.name
+        if why:
+            return Rejected(FrameFault.CHECKSUM, f"frame id 0x{fr.frame_id:X} ({name}): {why}")
+        if counter is not None and fr.rx_counter is not None:
+            why = fr.rx_counter.next(counter)
+            if why:
+                return Rejected(FrameFault.COUNTER, f"frame id 0x{fr.frame_id:X} ({name}): "
+                                                    f"{why}")
+        return None
+
+    def key_of(self, device: str) -> tuple[int, bool]:
+        """``(id, extended)`` of the message carrying ``device``. Raises KeyError."""
+        fr = self._by_device[device][0]
+        return fr.frame_id, fr.extended
+
+    def cycle(self, can_id: int, extended: bool) -> float | None:
+        """Seconds between two frames of the message with ``can_id`` (the map's cycle_time,
+        else the DBC's GenMsgCycleTime); None when event-driven or unknown."""
+        fr = self._by_id.get((can_id, extended))
+        return None if fr is None else fr.cycle
+
+    def actuators_of(self, can_id: int, extended: bool) -> list[str]:
+        """The actuator devices of the message with ``can_id`` (none for an unknown id)."""
+        fr = self._by_id.get((can_id, extended))
+        return [] if fr is None else list(fr.actuators.values())
+
+    def protection(self, can_id: int, extended: bool) -> Protection | None:
+        """The counter and checksum of the message with ``can_id`` (None: neither)."""
+        fr = self._by_id.get((can_id, extended))
+        return None if fr is None else fr.protection
+
+    def stamp(self, can_id: int, extended: bool, data: bytes) -> bytes:
+        """``data`` of the message with ``can_id`` ready to send: its counter set to the next
+        value (counted as sent) and its checksum computed; unchanged for a message without
+        either. Call once per frame that goes on the wire."""
+        fr = self._by_id.get((can_id, extended))
+        prot = None if fr is None else fr.protection
+        if prot is None or fr is None:
+            return data
+        counter = fr.tx_counter
+        fr.tx_counter = (counter + 1) % prot.modulo
+        return prot.stamp(data, counter)
+
+    def reset_counter(self, can_id: int, extended: bool) -> None:
+        """Forget the last counter received of the message with ``can_id`` (its sender
+        restarted: the next frame only sets the base again)."""
+        fr = self._by_id.get((can_id, extended))
+        if fr is not None and fr.rx_counter is not None:
+            fr.rx_counter.reset()
 
     def accepts(self, device: str) -> tuple[float, float, bool] | None:
         """What :meth:`check` accepts for ``device`` without a trial encode: a raw (non-DBC)
@@ -357,6 +443,38 @@ class CanCodec:
         Raises :class:`BusError` if ``device`` is unknown or the value cannot be encoded (outside
         the DBC signal's range or bit width); the remembered values are then unchanged."""
         return CanFrame(*self.encode_raw(device, value))
+
+    def held(self, device: str) -> tuple[int, bytes, bool]:
+        """The frame of ``device``'s message with every signal at its held value (the last
+        written, else the DBC's initial value), as :meth:`encode_raw` returns it. Raises
+        KeyError for an unknown device."""
+        fr, sig, _ = self._by_device[device]
+        data = bytes(fr.message.encode(selected(fr, dict(fr.values), sig), strict=False))
+        return fr.frame_id, data, fr.extended
+
+    def encode_unchecked(self, device: str, value: Any) -> tuple[int, bytes, bool]:
+        """As :meth:`encode_raw`, checked only against what the signal's bits carry, not the
+        DBC's minimum and maximum (a simulated node sending what the DBC's limits exclude).
+        Raises :class:`BusError` when the bits cannot carry ``value``."""
+        fr, sig, _ = self._by_device[device]
+        s = fr.message.get_signal_by_name(sig)
+        cap = capacity(s)
+        if (why := not_finite(value)) is not None:
+            raise BusError(f"{device}: {why}")
+        if cap is not None and not cap[0] - 1e-9 <= value <= cap[1] + 1e-9:
+            raise BusError(f"{device}: {value!r} is outside what signal {sig} carries "
+                           f"([{cap[0]:g}, {cap[1]:g}])")
+        values = dict(fr.values)
+        values[sig] = value
+        try:
+            data = bytes(fr.message.encode(selected(fr, values, sig), strict=False))
+        except (cantools.database.EncodeError, ValueError, KeyError, OverflowError) as exc:
+            raise BusError(f"cannot encode {device}={value!r} into {fr.message.name}: {exc}") \
+                from exc
+        fr.values = values
+        if fr.whole_bytes is not None:
+            fr.data = data
+        return fr.frame_id, data, fr.extended
 
     def encode_raw(self, device: str, value: Any) -> tuple[int, bytes, bool]:
         """:meth:`encode`'s frame as ``(id, payload, extended)``, without building a
@@ -424,15 +542,40 @@ def selected(fr: _Frame, values: dict[str, Any], sig: str) -> dict[str, Any]:
     return {name: v for name, v in values.items() if carried(name)}
 
 
+def capacity(sig: Any) -> tuple[float, float] | None:
+    """The physical values a DBC signal's bits carry (raw range through scale and offset), or
+    None for a float signal."""
+    if sig.is_float:
+        return None
+    lo, hi = int_range(int(sig.length), bool(sig.is_signed))
+    ends = sorted((lo * sig.scale + sig.offset, hi * sig.scale + sig.offset))
+    return float(ends[0]), float(ends[1])
+
+
+def limits_beyond(sig: Any) -> str:
+    """Why the DBC's minimum and maximum of ``sig`` reach past what its bits carry ("" if they
+    do not, or are not given): an 8-bit signal of scale 0.1 cannot carry 0..125."""
+    cap = capacity(sig)
+    if cap is None or (sig.minimum is None and sig.maximum is None):
+        return ""
+    lo = sig.minimum if sig.minimum is not None else cap[0]
+    hi = sig.maximum if sig.maximum is not None else cap[1]
+    eps = 1e-9 * max(1.0, abs(cap[0]), abs(cap[1]))
+    if lo >= cap[0] - eps and hi <= cap[1] + eps:
+        return ""
+    return (f"the DBC's limits of {sig.name} [{lo:g}, {hi:g}] reach past what its "
+            f"{sig.length} {'signed ' if sig.is_signed else ''}bits carry at scale {sig.scale:g}"
+            f", offset {sig.offset:g} ([{cap[0]:g}, {cap[1]:g}])")
+
+
 def check_address(bus: BusSpec, device: DeviceSpec, dbc: Any) -> list[str]:
     """Errors of one device address on a ``can`` bus (``dbc`` is the loaded DBC or None)."""
     key = f"{device.key}.address"
     a = device.address
-    refused = [f"{key}.{k}: unknown key: chcos does not compute counters or checksums (an "
-               f"actuator's "
-               f"message is sent with the signal at its last written or initial value, which a "
-               f"receiver checking it rejects); a sensor reads such a signal as a plain value"
-               for k in a if k in UNSUPPORTED_KEYS]
+    refused = [f"{key}.{k}: unknown key: a rolling counter or a checksum is declared per "
+               f"message, in the bus's [[bus.message]] table (name = \"MESSAGE\", counter = "
+               f"\"SIGNAL\", checksum = {{ signal = \"SIGNAL\", algorithm = \"...\" }}): "
+               f"docs/can-faults.md" for k in a if k in UNSUPPORTED_KEYS]
     if refused:
         return refused
     if "message" in a or "signal" in a:
@@ -458,6 +601,17 @@ def check_address(bus: BusSpec, device: DeviceSpec, dbc: Any) -> list[str]:
             errs.append(f"{key}.message: {msg_name} is multiplexed; chcos decodes multiplexed "
                         f"messages for sensors but does not send them: an actuator needs a "
                         f"message without multiplexer")
+        if device.direction == "actuator":
+            spec = parse_messages(bus.options, bus.key, None)[0].get(msg_name)
+            if spec is not None and sig_name in (spec.counter, spec.checksum and
+                                                 spec.checksum.signal):
+                errs.append(f"{key}.signal: {sig_name} is the counter or checksum of "
+                            f"{msg_name} ({spec.key}): chcos computes it for every frame, an "
+                            f"actuator cannot set it")
+            beyond = limits_beyond(msg.get_signal_by_name(sig_name))
+            if beyond:
+                errs.append(f"{key}.signal: {beyond}: a command inside the DBC's limits could "
+                            f"not be sent")
         return errs
     errs = [f"{key}.{k}: unknown key; valid keys: {', '.join(DBC_KEYS)} (DBC form) or "
             f"{', '.join(RAW_KEYS)} (raw form)" for k in a if k not in RAW_KEYS]

@@ -1,6 +1,6 @@
 /* rtu_slave - an independent Modbus RTU slave for chcos' peer tests, on libmodbus.
  *
- * Usage: rtu_slave DEVICE UNIT [RESPONSE_TIMEOUT_MS]
+ * Usage: rtu_slave DEVICE UNIT [RESPONSE_TIMEOUT_MS|default [REPLY_DELAY_MS]]
  * Opens DEVICE (a serial port or pty) at 19200 8N1 as unit UNIT with 16 coils, 16 discrete
  * inputs, 16 holding and 16 input registers (input register i holds 100 + i, holding register
  * i holds 1000 + i at start). Requests for other units are ignored, as on a real line.
@@ -13,19 +13,23 @@
  * answer and ignores it; its response timeout is set to 50 ms so that an absent unit's request
  * (which nobody answers) costs the line 50 ms rather than the next request (the master's
  * request timeout must be longer, as it is on any multi-drop line). RESPONSE_TIMEOUT_MS sets
- * another one; "default" keeps libmodbus' own (500 ms), as a stock slave has it.
+ * another one; "default" keeps libmodbus' own (500 ms), as a stock slave has it. REPLY_DELAY_MS
+ * makes it answer that late (a slow slave: an answer that arrives after the master's timeout).
  */
 #include <errno.h>
 #include <modbus.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <unistd.h>
 
 int main(int argc, char **argv) {
-    if (argc != 3 && argc != 4) {
-        fprintf(stderr, "usage: %s DEVICE UNIT [RESPONSE_TIMEOUT_MS|default]\n", argv[0]);
+    if (argc < 3 || argc > 5) {
+        fprintf(stderr, "usage: %s DEVICE UNIT [RESPONSE_TIMEOUT_MS|default [REPLY_DELAY_MS]]\n",
+                argv[0]);
         return 2;
     }
+    long delay_ms = argc == 5 ? atol(argv[4]) : 0;
     int unit = atoi(argv[2]);
     modbus_t *ctx = modbus_new_rtu(argv[1], 19200, 'N', 8, 1);
     if (ctx == NULL || modbus_set_slave(ctx, unit) == -1) {
@@ -65,6 +69,8 @@ int main(int argc, char **argv) {
             fprintf(stderr, "rtu_slave: receive: %s\n", modbus_strerror(errno));
             break;
         }
+        if (delay_ms > 0)
+            usleep((useconds_t)(delay_ms * 1000));
         if (modbus_reply(ctx, query, rc, map) < 0) {
             fprintf(stderr, "rtu_slave: reply: %s\n", modbus_strerror(errno));
             continue;

@@ -23,18 +23,17 @@ import argparse
 import struct
 import sys
 import threading
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
-from typing import Any
 
 from chcos import resources
 from chcos.apps.sim.canopen_slave import (
     EMCY_HEARTBEAT_LOST,
     CanopenSlave,
     Clock,
+    ErrorBits,
     MasterLost,
     NmtCommand,
 )
@@ -333,7 +332,7 @@ class Cia402Drive(CanopenSlave):
             self.get(index)                            # ConfigError naming the missing object
         #: the objects the model shows that this EDS has (vendor files leave some out)
         self._shown = {i for i in (0x603F, 0x6061, 0x6064, 0x606C)
-                       if self._node.object_dictionary.get_variable(i, 0) is not None}
+                       if self._store.find(i, 0) is not None}
         self.model = DriveModel(refused_modes=refused_modes)
         if quick_stop_option is not None:
             # a power-on value: it survives an NMT reset node, as a stored parameter would
@@ -342,12 +341,13 @@ class Cia402Drive(CanopenSlave):
             self.set(0x605A, 0, quick_stop_option)
         #: every controlword applied, in order
         self.received: list[int] = []
-        # the write hook of canopen's LocalNode: each RPDO entry and SDO download, in order
-        self._node.add_write_callback(self._on_write)
+        self._model_fault: int | None = None   # the model's fault raised on the node
+        # each RPDO entry and SDO download, in order
+        self.add_write_hook(self._on_write)
         self.add_plant(self._step_model)
         self.add_master_lost_hook(self._master_lost)
 
-    def _on_write(self, *, index: int, subindex: int, od: Any, data: bytes) -> None:
+    def _on_write(self, index: int, subindex: int, data: bytes) -> None:
         if subindex != 0 or index not in (0x6040, 0x6060):
             return
         with self._lock:
@@ -365,11 +365,22 @@ class Cia402Drive(CanopenSlave):
         return self._int(index, 0, missing)
 
     def _publish(self) -> None:
-        """Show the model in the objects (TPDOs go out on change) and send its EMCYs."""
+        """Show the model in the objects (TPDOs go out on change) and raise or clear its
+        faults: each fault's EMCY and 0x1001 (with 0x1003) say the same; the fault reset sends
+        the error-reset EMCY with the register of what is left."""
         m = self.model
         for code in m.emcys:
             self._show(0x603F, m.error_code)
-            self.send_emcy(code, ERROR_REGISTER.get(code, 0x01) if code else 0)
+            now = self._at(None)
+            if code:
+                self._model_fault = code
+                self._raise(code, ErrorBits(ERROR_REGISTER.get(code, 0x01)) | ErrorBits.GENERIC,
+                            b"", now)
+            elif self._model_fault is not None:
+                self._clear(self._model_fault, now)
+                self._model_fault = None
+            else:   # the reset of a fault the node raised (a lost master): the drive's EMCY
+                self._emcy(0, self.error_register, b"", now)
         m.emcys.clear()
         self._show(0x603F, m.error_code)
         self._show(0x6061, m.mode_display)
@@ -399,7 +410,11 @@ class Cia402Drive(CanopenSlave):
             self._publish()
 
     def _boot(self, command: NmtCommand, power_on: bool = False) -> None:
-        """As the node's boot; a reset node (not the first power-on) reboots the drive too."""
+        """As the node's boot; a reset node (not the first power-on) reboots the drive too,
+        which ends its fault (a cause that persists faults it again at the next step)."""
+        if command is NmtCommand.RESET_NODE and not power_on and self._model_fault is not None:
+            self._faults.pop(self._model_fault, None)
+            self._model_fault = None
         super()._boot(command, power_on)
         if command is NmtCommand.RESET_NODE:
             if power_on:                               # the first start: the stored mode
@@ -489,11 +504,11 @@ def main(argv: Sequence[str] | None = None, stop: threading.Event | None = None)
     drive.run_realtime(args.step)
     print(f"CiA 402 drive node {args.node} on {args.interface}:{args.channel}", flush=True)
     done = stop if stop is not None else threading.Event()
-    start = time.monotonic()
+    start = drive.now()
     active: set[str] = set()
     try:
         while not done.wait(0.02):
-            t = time.monotonic() - start
+            t = drive.now() - start
             for name, (t0, t1) in spans.items():
                 on = t0 <= t < t1
                 if on == (name in active):

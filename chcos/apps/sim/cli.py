@@ -180,7 +180,8 @@ def _parser() -> argparse.ArgumentParser:
     _common(s)
     delegated_help = {"canopen": "a CANopen servo drive (SDO, PDOs, heartbeat, EMCY)",
                       "cia402": "a CiA 402 drive (state machine, modes, faults, quick stop)",
-                      "modbus": "a Modbus TCP or RTU server with a shared register store",
+                      "modbus": "a Modbus slave as strict as a device (TCP, RTU over TCP, or RTU "
+                                "on a serial port or pty: --serial PATH)",
                       "weld": "the whole welding cell on its real protocols"}
     for name in DELEGATED:
         sub.add_parser(name, help=delegated_help.get(name, "a simulated device"),

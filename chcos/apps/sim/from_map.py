@@ -4,17 +4,22 @@
 peer
 that answers the bus's devices on the real protocol:
 
-* ``modbus-tcp`` - a pymodbus server (:class:`chcos.apps.sim.modbus_server.ModbusSimServer`) holding
-  every mapped register, coil and input; ``modbus-rtu`` - the same with RTU framing over a TCP
-  socket (the bus's ``port`` becomes ``socket://127.0.0.1:PORT``);
+* ``modbus-tcp``, ``modbus-rtu`` - a slave as strict as a device
+  (:class:`chcos.apps.sim.modbus_slave.ModbusSlave`: exception 01/02/03, silence or 0x0B for
+  other units, broadcast) holding exactly the mapped registers, coils and inputs; reached
+  in-process when ``rewrite`` (the bus's ``direct``), else on a socket
+  (:class:`chcos.apps.sim.modbus_server.ModbusSimServer`: Modbus TCP at the bus's loopback
+  address, RTU framing over TCP for ``socket://127.0.0.1:PORT``);
 * ``can`` - a node on the bus's python-can channel that sends the sensors' messages (coded with
   the bus's DBC, or the raw signal layout, by the driver's own codec with the directions turned
   round) every cycle (the DBC's ``GenMsgCycleTime``, else 0.1 s) and decodes the actuators'
   frames;
 * ``canopen`` - per node, :class:`chcos.apps.sim.canopen_slave.CanopenSlave` over the node's EDS
-  on the slaves' clock: boot-up, NMT state machine, SDO server (zero for objects without a
-  default), RPDOs applied, TPDOs on change, event timer and SYNC, EMCY on injected faults
-  (:meth:`SimSlaves.canopen_node`), a heartbeat every third of the map's ``heartbeat_timeout``;
+  on the slaves' clock, as strict as a CiA 301 device: boot-up, NMT state machine, SDO server
+  (every refusal the device's abort; zero for objects without a default), RPDOs applied (a
+  wrong length raises EMCY 0x8210/0x8220), TPDOs on change, event timer and SYNC, EMCY on
+  injected faults (:meth:`SimSlaves.canopen_node`), a heartbeat every third of the map's
+  ``heartbeat_timeout``;
   a node whose EDS is a CiA 402 drive's is a :class:`chcos.apps.sim.cia402_drive.Cia402Drive`
   (the state machine answers the controlword; 0x605A as the map's axis says, else the EDS);
 * ``serial`` - a TCP serial server (the driver reaches it as ``socket://127.0.0.1:PORT``)
@@ -45,6 +50,7 @@ simulated only with ``rewrite``; a pattern with back-references is refused, nami
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import re
@@ -55,11 +61,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from chcos.apps.sim.peers import CanopenPeer, CanPeer, ModbusPeer, Peer
+from chcos.apps.sim.can_peer import CanPeer
+from chcos.apps.sim.peers import CanopenPeer, ModbusPeer, Peer
 from chcos.apps.sim.scripts import Script, parse_script
 from chcos.apps.sim.serial_peer import SerialPeer
 from chcos.devices.spec import BusSpec, DeviceMap, DeviceSpec
-from chcos.errors import ConfigError, DeviceError
+from chcos.errors import ChcosError, ConfigError, DeviceError
 from chcos.helpers import is_number
 
 if TYPE_CHECKING:
@@ -74,6 +81,7 @@ SIMULATED = ("modbus-tcp", "modbus-rtu", "can", "canopen", "serial", *IN_PROCESS
 TICK = 0.01
 """Seconds between two updates of scripted values and cyclic frames."""
 
+MODBUS = ("modbus-tcp", "modbus-rtu")
 PEERS: dict[str, type[Peer]] = {"modbus-tcp": ModbusPeer, "modbus-rtu": ModbusPeer,
                                 "can": CanPeer, "canopen": CanopenPeer, "serial": SerialPeer}
 
@@ -125,6 +133,8 @@ class SimSlaves:
     _rt_stop: threading.Event = dataclasses.field(default_factory=threading.Event)
     _closed: bool = False
     _emcy_plan: list[EmcyFault] = dataclasses.field(default_factory=list)
+    #: devices :meth:`hold` holds, with what they hold
+    held: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     def simulated(self, device: str) -> bool:
         """True if ``device`` has a simulated peer that :meth:`set`/:meth:`get` reach."""
@@ -142,13 +152,57 @@ class SimSlaves:
 
     def set(self, device: str, value: Any) -> None:
         """Put ``value`` (engineering units) where the peer serves ``device``; the system reads
-        it at its next poll or frame. Raises DeviceError for an unknown or in-process device and
-        ConfigError if the raw value does not fit the register or signal."""
+        it at its next poll or frame. A device :meth:`hold` holds keeps its held value (the
+        call is ignored: a script's or a plant's value does not overwrite a test's). Raises
+        DeviceError for an unknown or in-process device and ConfigError if the raw value does
+        not fit the register or signal."""
+        if device in self.held:
+            self._peer(device)
+            return
+        self._put(device, value)
+
+    def _put(self, device: str, value: Any) -> None:
         peer, spec = self._peer(device)
         raw = value
         if is_number(value):
             raw = (value - spec.offset) / spec.scale
         peer.set(spec, raw)
+
+    def hold(self, device: str, value: Any = None, *, raw: Any = None) -> None:
+        """Serve ``value`` (engineering units) for ``device`` - or ``raw``, the value on the
+        bus before the device's scale and offset, checked only against what the wire can
+        carry (on CAN: the signal's bits, not the DBC's minimum and maximum) - and keep it
+        until :meth:`release`: value scripts and plants no longer set it. Raises DeviceError
+        for an unknown or in-process device, for a raw value the wire cannot carry, and
+        unless exactly one of ``value`` and ``raw`` is given."""
+        if (value is None) == (raw is None):
+            raise DeviceError(f"{device}: give a value or raw=..., not both or neither")
+        peer, spec = self._peer(device)
+        if raw is None:
+            self._put(device, value)
+        else:
+            set_raw = getattr(peer, "set_raw", None)
+            (set_raw or peer.set)(spec, raw)
+        self.held[device] = value if raw is None else ("raw", raw)
+
+    def release(self, device: str) -> None:
+        """End :meth:`hold` of ``device``: its value script or plant sets it again from the
+        next tick (a device without either keeps the held value). Raises DeviceError if
+        ``device`` is not held."""
+        if self.held.pop(device, None) is None:
+            raise DeviceError(f"{device!r} is not held (held: "
+                              f"{', '.join(sorted(self.held)) or 'none'})")
+
+    def bus_fault(self, bus: str, kind: str, duration: float | None = None) -> None:
+        """Provoke a fault on the simulated CAN bus ``bus``: ``error-frame``, ``error-passive``,
+        ``bus-off`` or ``recover`` (see :meth:`chcos.apps.sim.can_peer.CanPeer.fault`); with a
+        ``duration`` (seconds of this handle's clock) it ends by itself. Raises DeviceError for
+        a bus without a simulated CAN peer or an unknown fault."""
+        peer = self._bus(bus)
+        if not isinstance(peer, CanPeer):
+            raise DeviceError(f"bus {bus!r} is a {peer.bus.kind!r} bus: bus faults are "
+                              f"simulated on can buses")
+        peer.fault(kind, duration)
 
     def get(self, device: str) -> Any:
         """What the peer holds for ``device``, in engineering units (an actuator: the last value
@@ -247,6 +301,11 @@ class SimSlaves:
             plan.append(EmcyFault(node, code, t0, t1, report))
         self._emcy_plan.extend(plan)
 
+    def serve(self) -> None:
+        """Make every peer answer at its address (see :func:`simulate`'s ``serve``)."""
+        for peer in self.peers.values():
+            peer.serve()
+
     def describe(self) -> list[str]:
         """One line per peer: the bus and where it listens."""
         return [f"{name}: {peer.describe()}" for name, peer in self.peers.items()]
@@ -319,11 +378,18 @@ class SimSlaves:
             peer.close()
 
 
-def simulate(devmap: DeviceMap, *, rewrite: bool = True) -> SimSlaves:
+def simulate(devmap: DeviceMap, *, rewrite: bool = True, direct: bool = True,
+             serve: bool = True) -> SimSlaves:
     """Start a simulated peer for every bus of ``devmap`` that has devices; returns the handle,
-    whose ``devmap`` is the map the system should load (pointed at the peers when ``rewrite``).
-    Idle actuators hold their safe values. Raises ConfigError naming the bus and its file for a
-    bus kind without a simulated peer, BusError if a peer cannot listen or open its channel."""
+    whose ``devmap`` is the map the system should load (pointed at the peers when ``rewrite``:
+    a Modbus bus reaches its slave in-process, ``direct``, unless ``direct`` is False - then a
+    socket server on a free port). Idle actuators hold their safe values; a sensor whose
+    limits leave 0 out serves the limit nearest 0 until something sets it (a reading outside
+    the limits fails a sensor: a device shows what its map pins). With ``serve`` False
+    the peers at the map's own addresses (``rewrite`` False) begin answering only at
+    :meth:`SimSlaves.serve`, so that value scripts apply before the first request. Raises
+    ConfigError naming the bus and its file for a bus kind without a simulated peer, BusError
+    if a peer cannot listen or open its channel."""
     for bus in devmap.buses:
         if bus.kind not in SIMULATED and devmap.devices_on(bus.name):
             raise ConfigError(f"{bus.file}: {bus.key} ({bus.name}): no simulated peer for a "
@@ -334,15 +400,20 @@ def simulate(devmap: DeviceMap, *, rewrite: bool = True) -> SimSlaves:
         for bus in devmap.buses:
             devs = devmap.devices_on(bus.name)
             if bus.kind in PEERS and devs:
-                peer = PEERS[bus.kind](bus, devs, rewrite)
+                peer = (ModbusPeer(bus, devs, rewrite, direct) if bus.kind in MODBUS
+                        else PEERS[bus.kind](bus, devs, rewrite))
                 slaves.peers[bus.name] = peer
                 buses.append(peer.bus)
                 for d in devs:
                     if d.direction == "actuator" and d.safe_value is not None \
                             and bus.kind.startswith("modbus"):
                         slaves.set(d.name, d.safe_value)  # an idle output holds its safe value
+                    elif d.direction == "sensor" and (start := within_limits(d)) is not None:
+                        _serve_first(slaves, d, start)
             else:
                 buses.append(bus)
+        if serve:
+            slaves.serve()
     except BaseException:
         slaves.close()
         raise
@@ -350,19 +421,81 @@ def simulate(devmap: DeviceMap, *, rewrite: bool = True) -> SimSlaves:
     return slaves
 
 
-def _fault(item: str, slaves: SimSlaves) -> tuple[str, float, float]:
-    """``BUS@START[-END]`` -> (bus, start, end); raises ConfigError naming the item."""
-    m = re.fullmatch(r"([\w.\-]+)@([0-9.]+)(?:-([0-9.]+))?", item.strip())
+def within_limits(device: DeviceSpec) -> float | None:
+    """What a simulated sensor serves before anything sets it when 0 is no value its device
+    would show: the limit nearest 0 when 0 is outside its limits (a SunSpec marker or model id
+    the map pins with equal limits is served as the device shows it), the raw value 1 when its
+    address calls 0 "not implemented" (a SunSpec accumulator: the simulated device implements
+    what the map reads); None when 0 is such a value (0 is served)."""
+    lo, hi = device.limits
+    if lo is not None and lo > 0:
+        return lo
+    if hi is not None and hi < 0:
+        return hi
+    gap = device.address.get("unimplemented")
+    if is_number(gap) and not isinstance(gap, bool) and gap == 0:
+        return 1 * device.scale + device.offset
+    return None
+
+
+def _serve_first(slaves: SimSlaves, device: DeviceSpec, value: float) -> None:
+    """Serve ``value`` for ``device`` unless its peer cannot (a CiA 402 axis's value, owned by
+    the simulated drive, or a value its address cannot carry): then 0 stays, which the limit
+    rule reports, as it would of a device that showed it."""
+    with contextlib.suppress(ChcosError, ValueError, TypeError, OverflowError):
+        slaves.set(device.name, value)
+
+
+#: ``--fault`` kinds: ``silence`` (the default) and the CAN bus faults of the simulated bus
+FAULT_KINDS = ("silence", "error-frame", "error-passive", "bus-off")
+
+
+def _fault(item: str, slaves: SimSlaves) -> tuple[str, str, float, float]:
+    """``BUS[:KIND]@START[-END]`` -> (bus, kind, start, end); raises ConfigError naming the
+    item (an unknown kind, a bus fault on a bus that is not simulated CAN)."""
+    m = re.fullmatch(r"([\w.\-]+)(?::([\w\-]+))?@([0-9.]+)(?:-([0-9.]+))?", item.strip())
     if not m:
-        raise ConfigError(f"--fault {item!r}: expected BUS@START[-END] (seconds), e.g. plc@5-8")
-    bus, t0 = m.group(1), float(m.group(2))
-    t1 = float(m.group(3)) if m.group(3) else math.inf
+        raise ConfigError(f"--fault {item!r}: expected BUS[:KIND]@START[-END] (seconds), e.g. "
+                          f"plc@5-8 or can0:bus-off@2-4")
+    bus, kind, t0 = m.group(1), m.group(2) or "silence", float(m.group(3))
+    t1 = float(m.group(4)) if m.group(4) else math.inf
     if bus not in slaves.peers:
         raise ConfigError(f"--fault {item!r}: bus {bus!r} has no simulated peer (simulated: "
                           f"{', '.join(sorted(slaves.peers)) or 'none'})")
+    if kind not in FAULT_KINDS:
+        raise ConfigError(f"--fault {item!r}: no fault {kind!r}; expected one of "
+                          f"{', '.join(FAULT_KINDS)}")
+    if kind != "silence" and not isinstance(slaves.peers[bus], CanPeer):
+        raise ConfigError(f"--fault {item!r}: {kind} is a CAN bus fault; {bus!r} is a "
+                          f"{slaves.peers[bus].bus.kind!r} bus")
     if t1 <= t0:
         raise ConfigError(f"--fault {item!r}: the end must come after the start")
-    return bus, t0, t1
+    return bus, kind, t0, t1
+
+
+def _apply_faults(slaves: SimSlaves, faults: list[tuple[str, str, float, float]],
+                  active: set[int], t: float) -> list[str]:
+    """Start and end the ``--fault`` items due at ``t`` seconds (``active``: the indexes of
+    those under way, updated); one line for each change. A bus fault with an end ends by
+    itself on the peer's clock (the restart)."""
+    lines = []
+    for i, (bus, kind, t0, t1) in enumerate(faults):
+        if i not in active and t0 <= t < t1:
+            active.add(i)
+            if kind == "silence":
+                slaves.silence(bus)
+                lines.append(f"fault: {bus} silenced")
+            else:
+                slaves.bus_fault(bus, kind, None if math.isinf(t1) else t1 - t0)
+                lines.append(f"fault: {bus} {kind}")
+        elif i in active and t >= t1:
+            active.discard(i)
+            if kind == "silence":
+                slaves.restore(bus)
+                lines.append(f"fault over: {bus} answers again")
+            else:
+                lines.append(f"fault over: {bus} {kind} ended (controllers restarted)")
+    return lines
 
 
 def load_plant(ref: str, base_dir: Path | None = None) -> Plant:
@@ -459,9 +592,12 @@ def main(argv: list[str]) -> int:
                     help="raise fault CODE on CANopen node NODE of BUS from START seconds (to "
                          "END): 0x1001 set, an EMCY sent, an error-reset EMCY when it ends, "
                          "e.g. axis:5:0x4210@2-6")
-    ap.add_argument("--fault", action="append", default=[], metavar="BUS@START[-END]",
-                    help="silence the peer of BUS from START seconds (to END), e.g. plc@5-8: "
-                         "a Modbus server closes its port, CAN and CANopen nodes stop sending")
+    ap.add_argument("--fault", action="append", default=[], metavar="BUS[:KIND]@START[-END]",
+                    help="from START seconds (to END) a fault on BUS: silence (the default: "
+                         "a Modbus server closes its port, CAN and CANopen nodes stop "
+                         "sending), or on a CAN bus error-frame (one every 10 ms), "
+                         "error-passive or bus-off (the controllers restart at END), e.g. "
+                         "plc@5-8, can0:bus-off@2-4")
     ap.add_argument("--plant", action="append", default=[], metavar="FILE.py:FUNCTION",
                     help="a plant model called every 10 ms as FUNCTION(seconds, slaves): it reads "
                          "actuators (slaves.get) and sets sensors (slaves.set)")
@@ -484,32 +620,25 @@ def main(argv: list[str]) -> int:
                               "\"udp_multicast\" (any machine, loopback) or a SocketCAN vcan "
                               "channel; or 'chcos run SYSTEM --virtual', which simulates in its "
                               "own process")
-        slaves = simulate(devmap, rewrite=False)
+        slaves = simulate(devmap, rewrite=False, serve=False)
         try:
             slaves.values(args.value, Path.cwd())
             for ref in args.plant:
                 slaves.add_plant(load_plant(ref, Path.cwd()))
             faults = [_fault(item, slaves) for item in args.fault]
             slaves.schedule_emcy(args.emcy, report=lambda line: print(line, flush=True))
+            slaves.run_realtime()      # the scripts' values at t = 0, before the first request
+            slaves.serve()
             for line in slaves.describe():
                 print(f"simulating {line}", flush=True)
-            slaves.run_realtime()
             start = time.monotonic()
             shown_at = -math.inf
             last_shown: dict[str, str] = {}
-            silenced: set[str] = set()
+            active: set[int] = set()
             while not stop.wait(0.1):
                 t = time.monotonic() - start
-                for bus, t0, t1 in faults:
-                    want = t0 <= t < t1
-                    if want and bus not in silenced:
-                        slaves.silence(bus)
-                        silenced.add(bus)
-                        print(f"t={t:6.1f} s  fault: {bus} silenced", flush=True)
-                    elif not want and bus in silenced and t >= t1:
-                        slaves.restore(bus)
-                        silenced.discard(bus)
-                        print(f"t={t:6.1f} s  fault over: {bus} answers again", flush=True)
+                for line in _apply_faults(slaves, faults, active, t):
+                    print(f"t={t:6.1f} s  {line}", flush=True)
                 if t + 1e-9 < shown_at + args.every:
                     continue
                 shown_at = t

@@ -1,225 +1,124 @@
-"""modbus_server - a simulated Modbus slave: a pymodbus server over a datastore Python code shares.
+"""modbus_server - the simulated Modbus slave on a network or a serial line, and ``chcos sim
+modbus``.
 
-:class:`RegisterStore` holds, per unit (device id), the four Modbus tables (coils, discrete inputs,
-holding and input registers) under one lock; the owner (a test, a simulated cell) reads and writes
-it from any thread. :class:`ModbusSimServer` serves that store with pymodbus on its own asyncio
-thread - TCP on ``127.0.0.1:port``, or RTU framing over a TCP socket (pymodbus's
-``socket://host:port`` serial port) - and can be stopped and restarted on the same port with the
-data kept. ``chcos sim modbus`` runs one from the command line.
+The slave itself - the store and the strict request handler - is
+:mod:`chcos.apps.sim.modbus_slave`; this module moves its bytes:
 
-pymodbus's server keeps its own register image; a per-request ``action`` hook copies the store into
-that image before every request and records client writes in the store, so the store is the one
-truth and survives restarts.
+* :class:`ModbusSimServer` - on ``127.0.0.1:port`` (loopback unless told otherwise) on a
+  thread of its own: Modbus TCP (MBAP frames), or RTU frames over the TCP stream (what a client
+  reaches as the serial port ``socket://host:port``); at most :data:`MAX_CONNECTIONS`
+  connections at once (one more is closed at once). It can be stopped (every client sees its
+  connection close) and restarted on the same port with the data kept.
+* :class:`SerialSlaveServer` - Modbus RTU on a serial device or pty (one end of a socat pty
+  pair: the master opens the other).
+
+RTU frames are delimited as a slave does: by the length the function code fixes, else by the
+silence after the last byte (:data:`FRAME_GAP`). ``chcos sim modbus`` runs one from the command
+line.
 """
 
 from __future__ import annotations
 
 import argparse
-import asyncio
 import contextlib
+import os
+import selectors
+import socket
 import sys
 import threading
-from collections.abc import Callable, Iterable, Mapping, Sequence
-from typing import Any, Literal
+import time
+import tty
+from collections.abc import Sequence
+from typing import Literal
 
-from pymodbus.client.mixin import ModbusClientMixin
-from pymodbus.constants import ExcCodes
-from pymodbus.framer import FramerType
-from pymodbus.server import ModbusSerialServer, ModbusTcpServer
-from pymodbus.simulator import DataType, SimData, SimDevice
+from chcos.apps.sim.modbus_slave import (
+    Framing,
+    ModbusSlave,
+    RegisterStore,
+    TcpRole,
+    merge,
+    request_size,
+)
+from chcos.errors import BusError
 
-from chcos.errors import BusError, ConfigError
-from drivers.codecs.modbus import WORD_ORDERS
+__all__ = ["FRAME_GAP", "MAX_CONNECTIONS", "ModbusSimServer", "RegisterStore",
+           "SerialSlaveServer", "main", "merge"]
 
-Table = Literal["coil", "discrete", "holding", "input"]
-TABLES: tuple[Table, ...] = ("coil", "discrete", "holding", "input")
-BIT_TABLES = ("coil", "discrete")
-#: Modbus function code -> the table it addresses (22/23, mask write and read/write multiple, are
-#: answered with "illegal function").
-FUNCTION_TABLE: dict[int, Table] = {1: "coil", 5: "coil", 15: "coil", 2: "discrete",
-                                    3: "holding", 6: "holding", 16: "holding", 4: "input"}
-DATATYPES: dict[str, Any] = {
-    "int16": ModbusClientMixin.DATATYPE.INT16, "uint16": ModbusClientMixin.DATATYPE.UINT16,
-    "int32": ModbusClientMixin.DATATYPE.INT32, "uint32": ModbusClientMixin.DATATYPE.UINT32,
-    "float32": ModbusClientMixin.DATATYPE.FLOAT32, "float64": ModbusClientMixin.DATATYPE.FLOAT64,
-}
-
-
-def _pymodbus_order(word_order: str) -> tuple[Literal["big", "little"], bool]:
-    """pymodbus' word order for ``word_order`` and whether the bytes of each register are
-    swapped on top of it (``BADC``, ``DCBA``)."""
-    named = WORD_ORDERS[word_order]
-    return ("little" if named in ("CDAB", "DCBA") else "big"), named in ("BADC", "DCBA")
+#: the most client connections a simulated server keeps at once
+MAX_CONNECTIONS = 32
+#: seconds of silence that end an RTU frame whose length its function code does not fix
+FRAME_GAP = 0.004
+_MBAP_BYTES = 7
 
 
-def _swap_bytes(regs: list[int], swap: bool) -> list[int]:
-    return [((r & 0xFF) << 8) | (r >> 8) for r in regs] if swap and len(regs) > 1 else regs
+class _Deframer:
+    """The request frames of one byte stream, as a slave takes them (see the module doc)."""
 
+    def __init__(self, framing: Framing) -> None:
+        self.framing = framing
+        self.buf = bytearray()
+        self.last = 0.0
+        #: set when the stream holds bytes that are no Modbus TCP frame
+        self.broken = False
 
-Span = tuple[int, int]
-"""A run of mapped addresses: (first, count)."""
+    def feed(self, data: bytes, now: float) -> list[bytes]:
+        """The whole frames the stream holds after ``data``."""
+        self.buf += data
+        self.last = now
+        return self._whole()
 
-
-def merge(spans: Iterable[Span]) -> list[Span]:
-    """``spans`` sorted, with overlapping and adjacent runs joined."""
-    out: list[Span] = []
-    for first, count in sorted(s for s in spans if s[1] > 0):
-        if out and first <= out[-1][0] + out[-1][1]:
-            last_first, last_count = out[-1]
-            out[-1] = (last_first, max(last_count, first + count - last_first))
-        else:
-            out.append((first, count))
-    return out
-
-
-class RegisterStore:
-    """The four tables of each unit. Only mapped addresses exist: by default ``size`` entries
-    from 0 in each table; with ``spans`` (table -> runs of (first, count)) only those runs, so a
-    device with registers at 0 and 64512 costs a few entries, not 64513. Thread-safe.
-
-    Raises :class:`chcos.errors.ConfigError` for an unknown unit/table or an address that is
-    not mapped, or for an address beyond 65535.
-    """
-
-    def __init__(self, units: Iterable[int] = (1,), size: int = 1000, *,
-                 spans: Mapping[str, Iterable[Span]] | None = None) -> None:
-        self.spans: dict[str, list[Span]] = {
-            t: merge(spans.get(t, ()) if spans is not None else [(0, size)]) for t in TABLES}
-        for table, runs in self.spans.items():
-            for first, count in runs:
-                if first < 0 or first + count > 0x10000:
-                    raise ConfigError(f"modbus store {table}: addresses {first}.."
-                                      f"{first + count - 1} outside 0..65535")
-        self.size = max([f + c for runs in self.spans.values() for f, c in runs] + [0])
-        self._cond = threading.Condition()
-        self._units: dict[int, dict[str, dict[int, Any]]] = {
-            u: {t: {a: (False if t in BIT_TABLES else 0)
-                    for first, count in self.spans[t] for a in range(first, first + count)}
-                for t in TABLES} for u in units}
-        self.client_writes = 0
-        self.requests = 0
-
-    @property
-    def units(self) -> list[int]:
-        """The unit ids served."""
-        return sorted(self._units)
-
-    def _table(self, unit: int, table: str, address: int, count: int) -> dict[int, Any]:
-        if unit not in self._units:
-            raise ConfigError(f"modbus store: no unit {unit}; units are {self.units}")
-        if table not in TABLES:
-            raise ConfigError(f"modbus store: table {table!r}; expected one of {TABLES}")
-        data = self._units[unit][table]
-        if address < 0 or count < 0 or not all(a in data for a in range(address,
-                                                                        address + count)):
-            mapped = " and ".join(f"{f}..{f + c - 1}" for f, c in self.spans[table])
-            raise ConfigError(f"modbus store unit {unit} {table}: addresses {address}.."
-                              f"{address + count - 1} outside {mapped or 'nothing mapped'}")
-        return data
-
-    def read(self, unit: int, table: str, address: int, count: int = 1) -> list[Any]:
-        """``count`` raw entries (bools or 16-bit ints) from ``address``."""
-        with self._cond:
-            data = self._table(unit, table, address, count)
-            return [data[a] for a in range(address, address + count)]
-
-    def write(self, unit: int, table: str, address: int, values: Sequence[Any]) -> None:
-        """Store raw entries (bools for bit tables, 0..65535 for registers) from ``address``."""
-        with self._cond:
-            data = self._table(unit, table, address, len(values))
-            bits = table in BIT_TABLES
-            for v in values:
-                if not bits and not (isinstance(v, int) and 0 <= v <= 0xFFFF):
-                    raise ConfigError(f"modbus store unit {unit} {table}: register value {v!r} "
-                                      f"is not 0..65535")
-            for a, v in enumerate(values, address):
-                data[a] = bool(v) if bits else v
-            self._cond.notify_all()
-
-    def set_value(self, unit: int, table: str, address: int, value: Any, type: str = "uint16",
-                  word_order: str = "ABCD") -> None:
-        """Store an engineering value of ``type`` (bool, int16 ... float64) with pymodbus's own
-        register conversion, in ``word_order`` (one of the codec's ``WORD_ORDERS``)."""
-        if type == "bool":
-            self.write(unit, table, address, [bool(value)])
-            return
-        try:
-            words, swap = _pymodbus_order(word_order)
-            regs = _swap_bytes(ModbusClientMixin.convert_to_registers(value, DATATYPES[type],
-                                                                      words), swap)
-        except KeyError as exc:
-            raise ConfigError(f"modbus store: type {type!r}; expected bool or one of "
-                              f"{', '.join(DATATYPES)}") from exc
-        except Exception as exc:  # struct.error and TypeError from pymodbus's packing
-            raise ConfigError(f"modbus store: {value!r} is not a valid {type}: {exc}") from exc
-        self.write(unit, table, address, regs)
-
-    def get_value(self, unit: int, table: str, address: int, type: str = "uint16",
-                  word_order: str = "ABCD") -> Any:
-        """The value of ``type`` at ``address`` (see :meth:`set_value`)."""
-        if type == "bool":
-            return self.read(unit, table, address, 1)[0]
-        if type not in DATATYPES:
-            raise ConfigError(f"modbus store: type {type!r}; expected bool or one of "
-                              f"{', '.join(DATATYPES)}")
-        dt = DATATYPES[type]
-        regs = self.read(unit, table, address, dt.value[1])
-        words, swap = _pymodbus_order(word_order)
-        return ModbusClientMixin.convert_from_registers(_swap_bytes(regs, swap), dt, words)
-
-    def wait_for(self, pred: Callable[[RegisterStore], bool], timeout: float) -> bool:
-        """Block until ``pred(store)`` holds, re-checked after every write; False on timeout."""
-        with self._cond:
-            return self._cond.wait_for(lambda: pred(self), timeout)
-
-    def mirror(self, unit: int, function_code: int, start: int, address: int, count: int,
-               image: list[int], values: list[Any] | None) -> ExcCodes | None:
-        """The server-side hook: refresh pymodbus's register ``image`` (whose first entry is
-        ``start``) for a request, and record the client's written ``values``."""
-        table = FUNCTION_TABLE.get(function_code)
-        if table is None:
-            return ExcCodes.ILLEGAL_FUNCTION
-        with self._cond:
-            self.requests += 1
-            data = self._units.get(unit, self._units.get(0))
-            if data is None:
-                return ExcCodes.GATEWAY_NO_RESPONSE
-            entries = data[table]
-            if table in BIT_TABLES:
-                first = address // 16
-                for i in range(count):
-                    word = 0
-                    for bit in range(16):
-                        word |= int(entries.get((first + i) * 16 + bit, False)) << bit
-                    image[first - start + i] = word
-            else:
-                for a in range(address, address + count):
-                    image[a - start] = entries.get(a, 0)
-            if values:
-                for a, v in enumerate(values, address):
-                    if a in entries:   # pymodbus refuses unmapped addresses itself
-                        entries[a] = v
-                self.client_writes += 1
-                self._cond.notify_all()
+    def due(self, now: float) -> bytes | None:
+        """An RTU frame ended by silence (its bytes), if the gap has passed."""
+        if self.framing == "rtu" and self.buf and now - self.last >= FRAME_GAP:
+            frame = bytes(self.buf)
+            self.buf.clear()
+            return frame
         return None
+
+    def _whole(self) -> list[bytes]:
+        out: list[bytes] = []
+        buf = self.buf
+        while buf:
+            if self.framing == "tcp":
+                if len(buf) < _MBAP_BYTES:
+                    break
+                length = int.from_bytes(buf[4:6], "big")
+                if not 2 <= length <= 254:
+                    self.broken = True
+                    break
+                end = 6 + length
+            else:
+                size = request_size(bytes(buf[:7]))
+                if size is None:
+                    break
+                end = size
+            if len(buf) < end:
+                break
+            out.append(bytes(buf[:end]))
+            del buf[:end]
+        return out
 
 
 class ModbusSimServer:
     """Serves a :class:`RegisterStore` on ``host:port`` (``framer`` ``"tcp"`` or ``"rtu"``: RTU
-    frames over a TCP socket, what a client reaches as serial port ``socket://host:port``).
+    frames over a TCP socket). ``role``: ``device`` or ``gateway`` (default: gateway when the
+    store has several units). :attr:`slave` is the request handler (``slave``, or one made
+    here).
 
     :meth:`start` raises :class:`chcos.errors.BusError` when the port cannot be bound.
     """
 
     def __init__(self, store: RegisterStore, port: int, *, host: str = "127.0.0.1",
-                 framer: Literal["tcp", "rtu"] = "tcp") -> None:
+                 framer: Literal["tcp", "rtu"] = "tcp", role: TcpRole | None = None,
+                 slave: ModbusSlave | None = None) -> None:
         self.store = store
         self.host = host
         self.port = port
-        self.framer = framer
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._server: Any = None
+        self.framer: Framing = framer
+        chosen: TcpRole = role or ("gateway" if len(store.units) > 1 else "device")
+        self.slave = slave if slave is not None else ModbusSlave(store, framer, chosen)
         self._thread: threading.Thread | None = None
+        self._stop_r, self._stop_w = -1, -1
         self._lock = threading.Lock()
 
     @property
@@ -232,91 +131,28 @@ class ModbusSimServer:
         with self._lock:
             if self._thread is not None:
                 return
-            ready = threading.Event()
-            failure: list[BaseException] = []
-            loop = asyncio.new_event_loop()
-
-            def run() -> None:
-                asyncio.set_event_loop(loop)
-                try:
-                    loop.run_until_complete(self._listen())
-                except BaseException as exc:  # reported to start() below
-                    failure.append(exc)
-                    ready.set()
-                    loop.close()
-                    return
-                ready.set()
-                loop.run_forever()
-                loop.close()
-
-            thread = threading.Thread(target=run, name=f"modbus-sim-{self.port}", daemon=True)
-            thread.start()
-            ready.wait()
-            if failure:
-                thread.join()
-                exc = failure[0]
-                if isinstance(exc, OSError) or "listen" in str(exc).lower():
-                    raise BusError(f"modbus sim server: cannot listen on {self.host}:"
-                                   f"{self.port}: {exc}") from exc
-                # not the port: say what it was (a MemoryError's text is empty)
-                raise BusError(f"modbus sim server on {self.host}:{self.port} failed to start: "
-                               f"{type(exc).__name__}: {exc}".rstrip(": ")) from exc
-            self._loop, self._thread = loop, thread
-
-    async def _listen(self) -> None:
-        devices = [SimDevice(u, simdata=self._blocks(), action=self._action(u))
-                   for u in self.store.units]
-        if self.framer == "tcp":
-            self._server = ModbusTcpServer(devices, address=(self.host, self.port))
-        else:
-            self._server = ModbusSerialServer(devices, framer=FramerType.RTU,
-                                              port=f"socket://{self.host}:{self.port}")
-        await self._server.serve_forever(background=True)
-
-    def _blocks(self) -> tuple[list[SimData], list[SimData], list[SimData], list[SimData]]:
-        """pymodbus's register image: one entry per mapped address (pymodbus's checks grow with
-        the square of an entry's count: one entry of 64512 registers asked for gigabytes); an
-        address outside them is answered "illegal data address". A table with nothing mapped
-        gets address 0, as pymodbus wants a block in every table."""
-        def block(table: str, value: Any, datatype: DataType) -> list[SimData]:
-            runs = self.store.spans[table] or [(0, 1)]
-            return [SimData(a, count=1, values=value, datatype=datatype)
-                    for first, count in runs for a in range(first, first + count)]
-
-        return (block("coil", False, DataType.BITS), block("discrete", False, DataType.BITS),
-                block("holding", 0, DataType.REGISTERS), block("input", 0, DataType.REGISTERS))
-
-    def _action(self, unit: int) -> Any:
-        store = self.store
-
-        async def action(function_code: int, start: int, address: int, count: int,
-                         image: list[int], values: list[Any] | None) -> ExcCodes | None:
-            return store.mirror(unit, function_code, start, address, count, image, values)
-
-        return action
+            try:
+                listener = socket.create_server((self.host, self.port), reuse_port=False)
+            except OSError as exc:
+                raise BusError(f"modbus sim server: cannot listen on {self.host}:{self.port}: "
+                               f"{exc}") from exc
+            listener.setblocking(False)
+            self._stop_r, self._stop_w = os.pipe()
+            self._thread = threading.Thread(target=self._serve, args=(listener, self._stop_r),
+                                            name=f"modbus-sim-{self.port}", daemon=True)
+            self._thread.start()
 
     def stop(self) -> None:
         """Close the listener and every client connection; the store is kept. Idempotent."""
         with self._lock:
-            loop, thread, server = self._loop, self._thread, self._server
-            self._loop = self._thread = self._server = None
-            if loop is None or thread is None:
+            thread, self._thread = self._thread, None
+            if thread is None:
                 return
-            if server is not None:
-                fut = asyncio.run_coroutine_threadsafe(self._shutdown(server), loop)
-                # A server already torn down raises here; the loop is stopped below anyway.
-                with contextlib.suppress(Exception):
-                    fut.result(timeout=5.0)
-            loop.call_soon_threadsafe(loop.stop)
+            os.write(self._stop_w, b"x")
             thread.join(timeout=5.0)
-
-    @staticmethod
-    async def _shutdown(server: Any) -> None:
-        """Close the listener and the client connections, and let the loop run the transports'
-        close callbacks so every socket is really closed (clients see the connection drop)."""
-        await server.shutdown()
-        for _ in range(3):
-            await asyncio.sleep(0)
+            for fd in (self._stop_r, self._stop_w):
+                with contextlib.suppress(OSError):
+                    os.close(fd)
 
     def restart(self) -> None:
         """:meth:`stop` then :meth:`start` on the same port."""
@@ -330,28 +166,184 @@ class ModbusSimServer:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
+    def _serve(self, listener: socket.socket, stop_fd: int) -> None:
+        sel = selectors.DefaultSelector()
+        sel.register(listener, selectors.EVENT_READ, None)
+        sel.register(stop_fd, selectors.EVENT_READ, "stop")
+        conns: dict[socket.socket, _Deframer] = {}
+        try:
+            while True:
+                pending = [d for d in conns.values() if d.framing == "rtu" and d.buf]
+                wait = FRAME_GAP if pending else None
+                for key, _ in sel.select(wait):
+                    if key.data == "stop":
+                        return
+                    if key.fileobj is listener:
+                        self._accept(listener, sel, conns)
+                    else:
+                        self._receive(key.fileobj, sel, conns)  # type: ignore[arg-type]
+                now = time.monotonic()
+                for sock, d in list(conns.items()):
+                    frame = d.due(now)
+                    if frame is not None:
+                        self._answer(sock, frame, sel, conns)
+        finally:
+            for sock in list(conns):
+                sock.close()
+            sel.close()
+            listener.close()
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """``chcos sim modbus``: serve a fresh store until interrupted or ``--duration`` elapses.
-    Returns the exit status (0 ok, 2 when the port cannot be bound)."""
-    parser = argparse.ArgumentParser(prog="chcos sim modbus",
-                                     description="Simulated Modbus slave (pymodbus server).")
+    def _accept(self, listener: socket.socket, sel: selectors.BaseSelector,
+                conns: dict[socket.socket, _Deframer]) -> None:
+        try:
+            sock, _ = listener.accept()
+        except OSError:
+            return
+        if len(conns) >= MAX_CONNECTIONS:
+            sock.close()                         # as a device out of connections does
+            return
+        sock.setblocking(False)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        conns[sock] = _Deframer(self.framer)
+        sel.register(sock, selectors.EVENT_READ, "conn")
+
+    def _receive(self, sock: socket.socket, sel: selectors.BaseSelector,
+                 conns: dict[socket.socket, _Deframer]) -> None:
+        try:
+            data = sock.recv(4096)
+        except OSError:
+            data = b""
+        d = conns.get(sock)
+        if not data or d is None:
+            self._drop(sock, sel, conns)
+            return
+        for frame in d.feed(data, time.monotonic()):
+            self._answer(sock, frame, sel, conns)
+        if d.broken:
+            self._drop(sock, sel, conns)
+
+    def _answer(self, sock: socket.socket, frame: bytes, sel: selectors.BaseSelector,
+                conns: dict[socket.socket, _Deframer]) -> None:
+        answer = self.slave.exchange(frame, time.monotonic())
+        if answer is None:
+            return
+        try:
+            sock.setblocking(True)
+            sock.sendall(answer)
+            sock.setblocking(False)
+        except OSError:
+            self._drop(sock, sel, conns)
+
+    @staticmethod
+    def _drop(sock: socket.socket, sel: selectors.BaseSelector,
+              conns: dict[socket.socket, _Deframer]) -> None:
+        conns.pop(sock, None)
+        with contextlib.suppress(KeyError, ValueError):
+            sel.unregister(sock)
+        sock.close()
+
+
+class SerialSlaveServer:
+    """The slave answering Modbus RTU on the serial device or pty ``path`` (raw mode), on a
+    thread of its own, until :meth:`stop`."""
+
+    def __init__(self, store: RegisterStore, path: str) -> None:
+        self.store = store
+        self.path = path
+        self.slave = ModbusSlave(store, "rtu")
+        self._fd = -1
+        self._stop_r, self._stop_w = os.pipe()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        """Open the port and serve; raises BusError if it cannot be opened."""
+        try:
+            self._fd = os.open(self.path, os.O_RDWR | os.O_NOCTTY)
+            tty.setraw(self._fd)
+        except OSError as exc:
+            raise BusError(f"modbus sim: cannot open {self.path}: {exc}") from exc
+        self._thread = threading.Thread(target=self._serve, name=f"modbus-sim-{self.path}",
+                                        daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stop serving and close the port. Idempotent."""
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            os.write(self._stop_w, b"x")
+            thread.join(timeout=5.0)
+        for fd in (self._fd, self._stop_r, self._stop_w):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        self._fd = self._stop_r = self._stop_w = -1
+
+    def _serve(self) -> None:
+        d = _Deframer("rtu")
+        sel = selectors.DefaultSelector()
+        sel.register(self._fd, selectors.EVENT_READ, "port")
+        sel.register(self._stop_r, selectors.EVENT_READ, "stop")
+        try:
+            while True:
+                ready = sel.select(FRAME_GAP if d.buf else None)
+                if any(key.data == "stop" for key, _ in ready):
+                    return
+                now = time.monotonic()
+                frames = []
+                if ready:
+                    try:
+                        data = os.read(self._fd, 4096)
+                    except OSError:
+                        return
+                    frames = d.feed(data, now)
+                frame = d.due(now)
+                if frame is not None:
+                    frames.append(frame)
+                for f in frames:
+                    answer = self.slave.exchange(f, now)
+                    if answer is not None:
+                        os.write(self._fd, answer)
+        finally:
+            sel.close()
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="chcos sim modbus",
+        description="A simulated Modbus slave: functions 1-6, 15, 16 on the mapped entries "
+                    "(0..SIZE-1 of each table), exception 01/02/03 as a device answers.")
     parser.add_argument("--host", default="127.0.0.1")
     parser.add_argument("--port", type=int, default=5020)
     parser.add_argument("--framer", choices=("tcp", "rtu"), default="tcp",
                         help="tcp, or rtu frames over TCP (client port socket://host:port)")
+    parser.add_argument("--serial", metavar="PATH",
+                        help="Modbus RTU on this serial device or pty instead of a TCP port")
     parser.add_argument("--units", type=int, nargs="+", default=[1], help="unit ids served")
+    parser.add_argument("--role", choices=("device", "gateway"),
+                        help="Modbus TCP: one device (any unit id) or a gateway (0x0B for a "
+                             "unit not served); default: gateway with several units")
     parser.add_argument("--size", type=int, default=1000, help="entries per table")
     parser.add_argument("--duration", type=float, default=None, help="run this long, s")
-    args = parser.parse_args(list(argv) if argv is not None else None)
-    server = ModbusSimServer(RegisterStore(args.units, args.size), args.port, host=args.host,
-                             framer=args.framer)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``chcos sim modbus``: serve a fresh store until interrupted or ``--duration`` elapses.
+    Returns the exit status (0 ok, 2 when the port cannot be bound or opened)."""
+    args = _parser().parse_args(list(argv) if argv is not None else None)
+    store = RegisterStore(args.units, args.size)
+    server: ModbusSimServer | SerialSlaveServer
+    if args.serial:
+        server, where = SerialSlaveServer(store, args.serial), f"rtu on {args.serial}"
+    else:
+        server = ModbusSimServer(store, args.port, host=args.host, framer=args.framer,
+                                 role=args.role)
+        where = f"{args.framer} server on {args.host}:{args.port}"
     try:
         server.start()
     except BusError as exc:
         print(f"chcos sim modbus: {exc}", file=sys.stderr)
         return 2
-    print(f"modbus {args.framer} server on {args.host}:{args.port} units {args.units}", flush=True)
+    print(f"modbus {where} units {args.units}", flush=True)
     try:
         threading.Event().wait(args.duration)
     except KeyboardInterrupt:

@@ -6,7 +6,6 @@ The CAN peer codes frames with the driver's own pure codec (:mod:`drivers.codecs
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import itertools
 import os
@@ -14,11 +13,13 @@ import re
 import threading
 from typing import Any, Literal
 
-from chcos.apps.sim.modbus_server import ModbusSimServer, RegisterStore
+from chcos.apps.sim.modbus_server import ModbusSimServer
+from chcos.apps.sim.modbus_slave import ModbusSlave, RegisterStore
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import ConfigError, DeviceError
 from chcos.helpers import free_port
 from drivers.codecs.cia402 import is_axis_address
+from drivers.codecs.modbus_direct import register, unregister
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 _channels = itertools.count()
@@ -38,6 +39,10 @@ class Peer:
 
     def get(self, device: DeviceSpec) -> Any:
         raise NotImplementedError
+
+    def serve(self) -> None:
+        """Begin answering at the bus's address (a socket server listens); a peer that
+        answers from its construction on has nothing to do."""
 
     def tick(self, now: float) -> None:
         """Clock time ``now`` (seconds since the slaves started): send what is due."""
@@ -85,17 +90,52 @@ class Mutable:
 
 
 class ModbusPeer(Peer):
-    def __init__(self, bus: BusSpec, devices: tuple[DeviceSpec, ...], rewrite: bool) -> None:
-        from drivers.codecs.modbus import point_of
+    """The slaves of a Modbus bus: a :class:`chcos.apps.sim.modbus_slave.ModbusSlave` over a
+    store holding exactly the map's entries (and the scale-factor registers they name), as one
+    TCP device or a gateway as the bus's ``server`` says. Reached in-process (``direct``,
+    rewritten maps: no socket), or over a socket: a TCP server, or RTU frames over TCP (the
+    bus's ``socket://127.0.0.1:PORT``), started by :meth:`serve`."""
+
+    def __init__(self, bus: BusSpec, devices: tuple[DeviceSpec, ...], rewrite: bool,
+                 direct: bool = True) -> None:
+        from chcos.devices.options import parsed
+        from drivers.codecs.modbus import scale_factor_point
+        from drivers.codecs.modbus_options import RtuOptions, TcpOptions, point_of
 
         self.points = {d.name: point_of(d) for d in devices}
         pts = list(self.points.values())
-        units = sorted({p.unit for p in pts}) or [1]
-        spans: dict[str, list[tuple[int, int]]] = {}
-        for p in pts:  # only the mapped addresses exist (a register at 64512 costs one entry)
-            spans.setdefault(p.table, []).append((p.address, p.size))
-        self.store = RegisterStore(units, spans=spans)
+        pts += [scale_factor_point(p) for p in pts if p.scale_factor is not None]
+        units = sorted({p.unit for p in pts if not p.broadcast}) or [1]
+        spans: dict[int, dict[str, list[tuple[int, int]]]] = {u: {} for u in units}
+        for p in pts:  # only the mapped addresses exist, per unit (64512 costs one entry)
+            for u in (units if p.broadcast else [p.unit]):
+                spans[u].setdefault(p.table, []).append((p.address, p.size))
+        self.store = RegisterStore(unit_spans=spans)
         framer: Literal["tcp", "rtu"] = "tcp" if bus.kind == "modbus-tcp" else "rtu"
+        kind = TcpOptions if framer == "tcp" else RtuOptions
+        config = bus.config if isinstance(bus.config, kind) else parsed(
+            kind, bus.options, bus.key, bus.file)
+        role = config.server_kind(set(units)) if isinstance(config, TcpOptions) else "gateway"
+        self.slave = ModbusSlave(self.store, framer, role)
+        self.server: ModbusSimServer | None = None
+        self.direct = ""
+        if rewrite and direct:
+            self.direct = f"chcos-sim-{bus.name}-{os.getpid()}-{next(_channels)}"
+            register(self.direct, self.slave)
+            self.bus = dataclasses.replace(bus, options={**bus.options, "direct": self.direct},
+                                           config=dataclasses.replace(config,
+                                                                      direct=self.direct))
+            return
+        host, port, options = self._address(bus, framer, rewrite)
+        self.bus = dataclasses.replace(bus, options=options, config=None)
+        self.server = ModbusSimServer(self.store, port, host=host, framer=framer,
+                                      slave=self.slave)
+        if rewrite:
+            self.server.start()
+
+    @staticmethod
+    def _address(bus: BusSpec, framer: str, rewrite: bool) -> tuple[str, int, dict[str, Any]]:
+        """Where a socket server listens, and the bus's options pointed there."""
         options = dict(bus.options)
         if rewrite:
             port = free_port()
@@ -103,46 +143,71 @@ class ModbusPeer(Peer):
                 options.update(host="127.0.0.1", port=port)
             else:
                 options["port"] = f"socket://127.0.0.1:{port}"
-            host = "127.0.0.1"
-        elif framer == "tcp":
+            return "127.0.0.1", port, options
+        if framer == "tcp":
             host, port = str(options["host"]), int(options.get("port", 502))
             if host not in LOOPBACK:
                 raise ConfigError(f"{bus.file}: {bus.key} ({bus.name}): host {host!r}: a "
                                   "simulated slave listens on loopback only (expected "
                                   "127.0.0.1)")
-        else:
-            m = re.fullmatch(r"socket://(127\.0\.0\.1|localhost):(\d+)", str(options["port"]))
-            if not m:
-                raise ConfigError(f"{bus.file}: {bus.key} ({bus.name}): port "
-                                  f"{options['port']!r}: a simulated RTU slave needs "
-                                  "socket://127.0.0.1:PORT")
-            host, port = "127.0.0.1", int(m.group(2))
-        self.bus = dataclasses.replace(bus, options=options)
-        self.server = ModbusSimServer(self.store, port, host=host, framer=framer)
-        self.server.start()
+            return host, port, options
+        m = re.fullmatch(r"socket://(127\.0\.0\.1|localhost):(\d+)", str(options["port"]))
+        if not m:
+            raise ConfigError(f"{bus.file}: {bus.key} ({bus.name}): port "
+                              f"{options['port']!r}: a simulated RTU slave needs "
+                              "socket://127.0.0.1:PORT")
+        return "127.0.0.1", int(m.group(2)), options
+
+    def serve(self) -> None:
+        if self.server is not None:
+            self.server.start()
 
     def set(self, device: DeviceSpec, raw: Any) -> None:
         p = self.points[device.name]
-        if p.type != "bool" and not p.type.startswith("float"):
+        if p.scale_factor is not None:
+            raw = raw / 10.0 ** self._factor(p)
+        if p.type not in ("bool", "string") and not p.type.startswith("float"):
             raw = round(raw)
-        self.store.set_value(p.unit, p.table, p.address, raw, p.type, p.word_order)
+        for unit in self._units_of(p):      # a broadcast address: every unit's
+            self.store.set_value(unit, p.table, p.address, raw, p.type, p.word_order, p.count)
+
+    def _units_of(self, p: Any) -> list[int]:
+        return list(self.store.units) if p.broadcast else [p.unit]
 
     def get(self, device: DeviceSpec) -> Any:
         p = self.points[device.name]
-        return self.store.get_value(p.unit, p.table, p.address, p.type, p.word_order)
+        value = self.store.get_value(self._units_of(p)[0], p.table, p.address, p.type,
+                                     p.word_order, p.count)
+        if p.scale_factor is not None:
+            return value * 10.0 ** self._factor(p)
+        return value
+
+    def _factor(self, p: Any) -> int:
+        return int(self.store.get_value(self._units_of(p)[0], p.table, p.scale_factor, "int16"))
 
     def silence(self) -> None:
-        self.server.stop()
+        if self.server is not None:
+            self.server.stop()
+        self.slave.silence()
 
     def restore(self) -> None:
-        self.server.start()
+        self.slave.restore()
+        if self.server is not None:
+            self.server.start()
 
     def describe(self) -> str:
-        kind = "Modbus TCP" if self.server.framer == "tcp" else "Modbus RTU over TCP"
-        return f"{kind} server on {self.server.host}:{self.server.port}"
+        kind = "Modbus TCP" if self.slave.framing == "tcp" else "Modbus RTU"
+        if self.server is None:
+            return f"{kind} {self.slave.role if kind == 'Modbus TCP' else 'line'} in-process " \
+                   f"({self.direct})"
+        over = "" if self.slave.framing == "tcp" else " over TCP"
+        return f"{kind} server{over} on {self.server.host}:{self.server.port}"
 
     def close(self) -> None:
-        self.server.stop()
+        if self.server is not None:
+            self.server.stop()
+        if self.direct:
+            unregister(self.direct)
 
 
 def can_args(options: Any, rewrite: bool, tag: str) -> dict[str, Any]:
@@ -166,87 +231,6 @@ def on_channel(options: Any, args: dict[str, Any]) -> dict[str, Any]:
     return {**{k: v for k, v in options.items() if k != "port"}, **args}
 
 
-class CanPeer(Mutable, Peer):
-    def __init__(self, bus: BusSpec, devices: tuple[DeviceSpec, ...], rewrite: bool) -> None:
-        import can
-
-        from drivers.codecs.can import CanCodec
-
-        flipped = [dataclasses.replace(d, direction="actuator" if d.direction == "sensor"
-                                       else "sensor") for d in devices]
-        self.codec = CanCodec(bus, flipped)
-        self.args = can_args(bus.options, rewrite, bus.name)
-        options = on_channel(bus.options, self.args) if rewrite else dict(bus.options)
-        self.bus = dataclasses.replace(bus, options=options)
-        self.sensors = [d for d in devices if d.direction == "sensor"]
-        self.actuators = {d.name: d for d in devices if d.direction == "actuator"}
-        self.values: dict[str, Any] = {}
-        self.muted = False
-        self.lock = threading.Lock()
-        self.received: dict[str, Any] = {}
-        self.can: Any = can.Bus(**self.args)
-        self.period: dict[str, float] = {}
-        dbc_msgs: dict[str, Any] = {}
-        for d in self.sensors:
-            cycle = None
-            if "message" in d.address and "dbc" in bus.options:
-                if not dbc_msgs:
-                    from drivers.codecs.can import load_dbc
-
-                    dbc_msgs = {m.name: m for m in load_dbc(str(bus.options["dbc"])).messages}
-                cycle = dbc_msgs[d.address["message"]].cycle_time
-            self.period[d.name] = (cycle or 100) / 1000.0
-        self.next_due: dict[str, float] = {d.name: 0.0 for d in self.sensors}
-
-    def set(self, device: DeviceSpec, raw: Any) -> None:
-        with self.lock:
-            self.values[device.name] = raw
-            if not self.muted:
-                self._send(device.name)
-
-    def _send(self, name: str) -> None:
-        import can
-
-        coded = self.codec.encode(name, self.values.get(name, 0))
-        msg = can.Message(arbitration_id=coded.arbitration_id, data=coded.data,
-                          is_extended_id=coded.is_extended_id)
-        with contextlib.suppress(can.CanError):  # a full queue: the next cycle sends it again
-            self.can.send(msg)
-
-    def get(self, device: DeviceSpec) -> Any:
-        from drivers.codecs.can import Decoded
-
-        with self.lock:
-            while True:
-                frame = self.can.recv(timeout=0)
-                if frame is None:
-                    break
-                result = self.codec.decode(frame)
-                if isinstance(result, Decoded):
-                    for dev, v in result.readings:
-                        self.received[dev] = v
-            return self.received.get(device.name)
-
-    def tick(self, now: float) -> None:
-        with self.lock:
-            if self.muted:
-                return
-            sent: set[int] = set()
-            for d in self.sensors:
-                if now + 1e-9 >= self.next_due[d.name]:
-                    self.next_due[d.name] = now + self.period[d.name]
-                    frame = self.codec.encode(d.name, self.values.get(d.name, 0))
-                    if frame.arbitration_id not in sent:  # one frame carries all its signals
-                        sent.add(frame.arbitration_id)
-                        self._send(d.name)
-
-    def describe(self) -> str:
-        return f"CAN node on {self.args.get('interface')} channel {self.args.get('channel')}"
-
-    def close(self) -> None:
-        self.can.shutdown()
-
-
 def cia402_eds(eds: Any, node: int) -> bool:
     """True when the EDS at ``eds`` describes a CiA 402 drive (0x6040, 0x6041, 0x6060), read
     as the simulated node reads it; an unreadable EDS is left to the node to refuse."""
@@ -264,8 +248,9 @@ class CanopenPeer(Peer):
     :class:`chcos.apps.sim.cia402_drive.Cia402Drive` when the node's EDS is a CiA 402 drive's
     (the state machine answers the controlword; 0x605A as the EDS says), else a
     :class:`chcos.apps.sim.canopen_slave.CanopenSlave` without a plant (values come from
-    :meth:`set` and scripts). Both send a heartbeat every third of the node's
-    ``heartbeat_timeout`` (none without it), TPDOs on change, event timer and SYNC.
+    :meth:`set` and scripts). Both are as strict as CiA 301 devices (``docs/canopen-sim.md``)
+    and send a heartbeat every third of the node's ``heartbeat_timeout`` (none without it),
+    TPDOs on change, event timer and SYNC, every timer on the slaves' clock.
     :meth:`node` hands a node to fault scripts."""
 
     def __init__(self, bus: BusSpec, devices: tuple[DeviceSpec, ...], rewrite: bool) -> None:
@@ -360,9 +345,11 @@ class CanopenPeer(Peer):
         return values[str(reading)]
 
     def tick(self, now: float) -> None:
-        dt, self.last = max(0.0, now - self.last), now
+        """Each node's time to ``now`` (its own time, not a sum of rounded steps: its timers
+        are due at the kernel's times)."""
+        self.last = now
         for slave in self.slaves.values():
-            slave.tick(dt)
+            slave.tick(max(0.0, now - slave.now()))
 
     def settle(self, timeout: float) -> bool:
         """Every node has handled every frame sent to it so far (see

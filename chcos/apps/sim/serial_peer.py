@@ -1,14 +1,19 @@
-"""serial_peer - the simulated peer of a ``serial`` bus: a TCP serial server speaking the bus's
-framing. Sensor lines are generated from the line protocol's ``pattern`` (an example string for
-each named group, built from the pattern's own parse tree, then checked against the pattern);
-binary frames are sync + ``struct`` payload + checksum (:mod:`drivers.codecs.serial`); actuator
-commands are parsed back from their ``format`` or ``struct``.
+"""serial_peer - the simulated peer of a ``serial`` bus: in a virtual cell the other end of an
+in-process direct line (:mod:`drivers.serial_direct`: its bytes reach the driver inside its tick
+on the kernel thread, and the driver's commands reach it inside the driver's write), else
+(``chcos sim --from``) a TCP serial server, speaking the bus's framing. Sensor lines are
+generated from the line protocol's ``pattern`` (an example string for each named group, built
+from the pattern's own parse tree, then checked against the pattern); binary frames are sync +
+``struct`` payload + checksum (:mod:`drivers.codecs.serial`); actuator commands are parsed back
+from their ``format`` or ``struct``.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import itertools
+import os
 import re
 import socket
 import threading
@@ -17,7 +22,9 @@ from typing import Any
 from chcos.apps.sim.peers import Mutable, Peer
 from chcos.devices.spec import BusSpec, DeviceSpec
 from chcos.errors import ConfigError
-from chcos.helpers import free_port
+from drivers.serial_direct import SCHEME, LineEnd, open_end
+
+_lines = itertools.count()
 
 
 def _sre() -> Any:
@@ -86,15 +93,19 @@ class SerialPeer(Mutable, Peer):
         o = bus.options
         url = str(o["url"])
         m = re.fullmatch(r"socket://(127\.0\.0\.1|localhost):(\d+)", url)
+        options = dict(o)
+        #: the direct line of a virtual cell (rewrite), else None: a TCP serial server
+        self.end: LineEnd | None = None
+        port = 0
         if rewrite:
-            port = free_port()
+            options["url"] = f"{SCHEME}chcos-sim-{bus.name}-{os.getpid()}-{next(_lines)}"
+            self.end = open_end(options["url"])
         elif m:
             port = int(m.group(2))
+            options["url"] = f"socket://127.0.0.1:{port}"
         else:
             raise ConfigError(f"{bus.file}: {bus.key} ({bus.name}): url {url!r}: a simulated "
                               "serial peer serves socket://127.0.0.1:PORT only")
-        options = dict(o)
-        options["url"] = f"socket://127.0.0.1:{port}"
         self.bus = dataclasses.replace(bus, options=options)
         self.proto = str(o["protocol"])
         self.sensors = [d for d in devices if d.direction == "sensor"]
@@ -130,15 +141,25 @@ class SerialPeer(Mutable, Peer):
                             str(d.address["struct"]), d.name) for d in self.actuators]
         self.buf = b""
         self.conn: socket.socket | None = None
-        self.server = socket.create_server(("127.0.0.1", port))
-        self.server.setblocking(False)
+        self.server: socket.socket | None = None
+        if self.end is not None:
+            self.end.set_receiver(self._bytes_in)
+        else:
+            self.server = socket.create_server(("127.0.0.1", port))
+            self.server.setblocking(False)
+
+    def _bytes_in(self, data: bytes) -> None:
+        """Bytes from the driver on the direct line (inside its write, the kernel thread)."""
+        with self.lock:
+            self.buf += data
+            self._parse()
 
     def _accept(self) -> None:
         """Take the newest waiting connection, if any (under ``lock``). Accepting here, on the
         thread that ticks or asks, rather than on a thread of its own, makes a virtual-time run
         deterministic: once the driver has connected (the kernel settles the driver before
         virtual time moves), the next tick sends to it."""
-        while True:
+        while self.server is not None:
             try:
                 conn, _ = self.server.accept()
             except (BlockingIOError, OSError):
@@ -177,8 +198,15 @@ class SerialPeer(Mutable, Peer):
         return self.sync + payload + self._checksum(self.check, payload)
 
     def _send(self) -> None:
+        if self.muted or not self.sensors:
+            return
+        if self.end is not None:
+            if self.end.line.other(self.end) is not None:   # the driver's end is there
+                with contextlib.suppress(OSError):
+                    self.end.write(self._line() if self.proto == "line" else self._frame())
+            return
         self._accept()
-        if self.conn is None or self.muted or not self.sensors:
+        if self.conn is None:
             return
         data = self._line() if self.proto == "line" else self._frame()
         with contextlib.suppress(OSError):
@@ -239,4 +267,7 @@ class SerialPeer(Mutable, Peer):
         with self.lock:
             if self.conn is not None:
                 self.conn.close()
-        self.server.close()
+        if self.server is not None:
+            self.server.close()
+        if self.end is not None:
+            self.end.close()

@@ -22,7 +22,7 @@ import itertools
 import os
 import tempfile
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,6 +40,7 @@ from chcos.errors import ChcosError
 from chcos.helpers import free_ports
 from chcos.kernel.clock import Clock, RealClock, VirtualClock
 from chcos.kernel.instrument import Counters, Instrument
+from chcos.system.digest import EventRecord
 from chcos.system.embedded import System
 from chcos.tables.messages import Link, LinkType
 
@@ -52,6 +53,17 @@ _channels = itertools.count()
 
 class WeldRunError(ChcosError):
     """The welding job could not be set up: unknown binding, the real-bus simulator missing."""
+
+
+class CellCounters(Counters):
+    """:class:`Counters` keeping the events only: executions are each task's ``steps`` in Tsktab
+    and messages each link's counts in Msgtab, and hooking them would make the kernel tell every
+    step and the message layer every message (stamped for its latency) to the instruments."""
+
+    before_step = Instrument.before_step
+    message_sent = Instrument.message_sent
+    message_overwritten = Instrument.message_overwritten
+    message_delivered = Instrument.message_delivered
 
 
 class Timeline(Instrument):
@@ -105,17 +117,23 @@ class Cell:
     closers: list[Callable[[], None]] = field(default_factory=list)
     #: the joint drives as the drives see themselves (joint 1..5): state, controlwords received
     drives: list[JointDrive] = field(default_factory=list)
-    #: called before the System's shutdown (the simulator goes on on wall-clock time)
+    #: called before the System's shutdown (on real time the simulator goes on on wall-clock
+    #: time, its kernel timers no longer running; on virtual time they run in the shutdown
+    #: window, :meth:`chcos.kernel.scheduler.Kernel.run_drivers`)
     before_shutdown: list[Callable[[], None]] = field(default_factory=list)
     injector: Callable[[str], None] | None = None
     recorder: Recorder | None = None
+    #: every system event with its clock time, from the install on (for the run digest)
+    events: EventRecord | None = None
 
-    def write_report(self, path: str | Path, title: str | None = None) -> Path:
+    def write_report(self, path: str | Path, title: str | None = None,
+                     evidence: str = "") -> Path:
         """Write the run as a picture (``chcos.apps.weld.report``: one self-contained HTML page) to
-        ``path``; returns it. Raises ChcosError if it cannot be written."""
+        ``path``, with the run's HIL ``evidence`` (HTML, :mod:`chcos.hil.report`); returns it.
+        Raises ChcosError if it cannot be written."""
         samples = self.recorder.samples if self.recorder is not None else []
         return write_report(path, self.summary(), samples,
-                            title or f"welding cell, {self.binding} binding")
+                            title or f"welding cell, {self.binding} binding", evidence)
 
     # ---- driving the job --------------------------------------------------------------------
     def start_job(self, command: dict[str, Any] | None = None) -> str:
@@ -173,8 +191,9 @@ class Cell:
         return {d.name: d.value for d in self.system.devtab if not d.is_sensor}
 
     def close(self) -> None:
-        """Shut the System down (safe values out: the simulator, if any, goes on on wall-clock
-        time meanwhile, so the joint drives confirm their safe stop), then the simulator."""
+        """Shut the System down (safe values out: the simulator, if any, goes on meanwhile, on
+        the virtual clock or the wall clock, so the joint drives confirm their safe stop),
+        then the simulator."""
         try:
             for prepare in self.before_shutdown:
                 prepare()
@@ -262,13 +281,15 @@ def open_cell(binding: str = "direct", *, scenario: str = "", seed: int = 0,
               real_time: bool = False, record: str | Path | None = None,
               workdir: str | Path | None = None,
               script: str | Path = SCRIPT, replace: dict[str, str] | None = None,
-              interface: str = "virtual", channels: tuple[str, str] | None = None
-              ) -> Iterator[Cell]:
+              interface: str = "virtual", channels: tuple[str, str] | None = None,
+              observe: Sequence[Callable[[System], None]] = ()) -> Iterator[Cell]:
     """The welding cell, booted and installed, ready for :meth:`Cell.start_job`; shut down on
     exit. ``replace`` maps task names to code references (``pkg.mod:fn``) installed instead of
     the standard code (test-only tasks). ``interface``/``channels`` put the buses binding's two
     CAN buses (CANopen, raw sensors) on python-can ``virtual`` channels of their own (default) or
     on given channels of another interface, e.g. ``socketcan`` ``("vcan0", "vcan1")``.
+    ``observe`` are called with the System once it is built, before the install script runs
+    (the HIL evidence watches it from there: :mod:`chcos.hil.observe`).
     Raises WeldRunError for an unknown binding or a missing
     real-bus simulator, ConfigError for a bad scenario, InstallError if the script fails."""
     if binding not in BINDINGS:
@@ -313,8 +334,15 @@ def open_cell(binding: str = "direct", *, scenario: str = "", seed: int = 0,
             closers.append(sim.close)
             system = System([mapfile], clock=clock, task_path=[TASK_PATH], base_dir=work,
                             map_path=work / "sysfile.map")
-        counters = Counters()
+            # the simulator steps on the kernel's clock: the drivers supervise its heartbeats
+            # there too (before the install starts them)
+            system.devtab.peers_on_clock = clock.virtual
+        for watch in observe:
+            watch(system)
+        counters = CellCounters()
         system.kernel.add_instrument(counters)
+        events = EventRecord(system.kernel.clock)
+        system.kernel.add_instrument(events)
         timeline = Timeline(system)
         system.kernel.add_instrument(timeline)
         for line in Path(script).read_text(encoding="utf-8").splitlines():
@@ -336,7 +364,8 @@ def open_cell(binding: str = "direct", *, scenario: str = "", seed: int = 0,
         cell = Cell(system, model, binding, counters, timeline, closers=closers,
                     injector=sim.inject if sim is not None else None,
                     drives=drives,
-                    before_shutdown=[sim.continue_realtime] if sim is not None else [])
+                    before_shutdown=[sim.continue_realtime]
+                    if sim is not None and real_time else [], events=events)
         cell.recorder = Recorder(system.kernel, model, cell.phase)
         cell.recorder.start()
     except BaseException:

@@ -180,6 +180,7 @@ class WeldDirectDriver(Driver):
     confirms_writes: ClassVar[bool] = True
     Options: ClassVar[type | None] = WeldDirectOptions
     Address: ClassVar[type | None] = WeldAddress
+    settles = False     # the model steps in a kernel timer: nothing is ever in flight
 
     def __init__(self, bus: BusSpec, devices: Sequence[DeviceSpec], host: DriverHost) -> None:
         super().__init__(bus, devices, host)
@@ -299,8 +300,10 @@ class WeldDirectDriver(Driver):
             period, model_name, get = spec
             if model_name in r.silent:
                 continue
-            value = get(r)
             due = n // period != prev // period
+            if not due and sig not in ON_CHANGE:
+                continue    # read only what is sent: the linear row is costly
+            value = get(r)
             changed = sig in ON_CHANGE and dev in self._last and self._last[dev] != value
             if changed:
                 self.changes.append((now, dev, value))

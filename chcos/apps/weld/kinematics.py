@@ -77,18 +77,16 @@ def dh_transform(theta: float, link: DHLink) -> Mat4:
 
 
 def matmul(m: Mat4, n: Mat4) -> Mat4:
-    """The product ``m @ n`` of two 4x4 matrices."""
-
-    def row(i: int) -> Row4:
-        r = m[i]
-        return (
-            r[0] * n[0][0] + r[1] * n[1][0] + r[2] * n[2][0] + r[3] * n[3][0],
-            r[0] * n[0][1] + r[1] * n[1][1] + r[2] * n[2][1] + r[3] * n[3][1],
-            r[0] * n[0][2] + r[1] * n[1][2] + r[2] * n[2][2] + r[3] * n[3][2],
-            r[0] * n[0][3] + r[1] * n[1][3] + r[2] * n[2][3] + r[3] * n[3][3],
-        )
-
-    return (row(0), row(1), row(2), row(3))
+    """The product ``m @ n`` of two 4x4 matrices (each row summed in the order of the plain
+    formula, so the result is the same to the last bit; unrolled: the arm's forward kinematics
+    multiply five of them per pose, several poses per servo tick)."""
+    (n00, n01, n02, n03), (n10, n11, n12, n13), (n20, n21, n22, n23), (n30, n31, n32, n33) = n
+    return tuple(
+        (r0 * n00 + r1 * n10 + r2 * n20 + r3 * n30,
+         r0 * n01 + r1 * n11 + r2 * n21 + r3 * n31,
+         r0 * n02 + r1 * n12 + r2 * n22 + r3 * n32,
+         r0 * n03 + r1 * n13 + r2 * n23 + r3 * n33)
+        for r0, r1, r2, r3 in m)  # type: ignore[return-value]
 
 
 def translation(m: Mat4) -> Vec3:

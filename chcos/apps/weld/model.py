@@ -162,7 +162,8 @@ class Readings:
 
     joints rad; servo_ok per joint; arc_temperature degC; arc_voltage V; arc_current A;
     gas_bottle_pressure and gas_line_pressure bar (gauge); gas_flow L/min; wire_speed mm/s;
-    wire_remaining m; start_marker/end_marker flags; linear_pixels (True = dark); range_mm to the
+    wire_remaining m; start_marker/end_marker flags; linear, the line sensor's view, whose
+    pixels (:attr:`linear_pixels`, True = dark) are computed when first read; range_mm to the
     surface (None: beyond 0..100 mm); intruder (light curtain broken).
     """
 
@@ -179,10 +180,15 @@ class Readings:
     wire_remaining: float
     start_marker: bool
     end_marker: bool
-    linear_pixels: tuple[bool, ...]
+    linear: LinearView
     range_mm: float | None
     intruder: bool
     silent: frozenset[str] = frozenset()
+
+    @property
+    def linear_pixels(self) -> tuple[bool, ...]:
+        """The line sensor's pixels (True = dark), computed on the first read."""
+        return self.linear.pixels
 
 
 @dataclass(frozen=True)
@@ -738,7 +744,7 @@ class WeldCell:
             wire_remaining=self.wire_remaining,
             start_marker=view.start_marker,
             end_marker=view.end_marker,
-            linear_pixels=view.pixels,
+            linear=view,
             range_mm=view.range_mm,
             intruder=self.intruder_input,
             silent=frozenset(self._dropouts),
@@ -767,7 +773,7 @@ _FIELDS: dict[str, tuple[str, ...]] = {
     name: (name,) for name in SENSOR_NAMES if not name.startswith("joint")
 }
 _FIELDS["gap_markers"] = ("start_marker", "end_marker")
-_FIELDS["linear_sensor"] = ("linear_pixels", "range_mm")
+_FIELDS["linear_sensor"] = ("linear", "range_mm")
 
 
 DBC_MESSAGE_SENSORS: dict[str, tuple[str, ...]] = {

@@ -371,6 +371,7 @@ class WeldSim:
                     continue
                 self.servo.send_tpdo(nid, round(r.joints[j] / POSITION_SCALE))
                 self.servo.send_status(nid, force=slot % STATUS_EVERY == 0)
+            self.servo.beat(self._steps * self.tick)
             self.power.publish(r)
             if self.sensors is not None and self.sensors.due(slot, dbc_signals(r, 0)):
                 self._later(PHASES["can"] - PHASES["servo"], functools.partial(self._on_can, slot))

@@ -11,7 +11,6 @@ anywhere. Raises ChcosError if the file cannot be written.
 from __future__ import annotations
 
 import html
-import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,11 +18,9 @@ from typing import Any
 
 from chcos.apps.weld.model import WeldCell
 from chcos.errors import ChcosError
+from chcos.hil.report import STYLE as EVIDENCE_STYLE
+from chcos.hil.svgplot import ML, MT, H, W, axes, path, scale
 from chcos.kernel.scheduler import Kernel, Timer
-
-W, H = 760, 240
-"""Plot size (px) inside the margins."""
-ML, MR, MT, MB = 60, 20, 20, 36
 
 
 @dataclass
@@ -68,60 +65,16 @@ class Recorder:
                                    m.temperature, m.voltage_setpoint, self.phase()))
 
 
-def _scale(lo: float, hi: float, a: float, b: float) -> Callable[[float], float]:
-    if hi - lo < 1e-12:
-        hi = lo + 1.0
-    return lambda v: a + (v - lo) * (b - a) / (hi - lo)
-
-
-def _ticks(lo: float, hi: float, n: int = 6) -> list[float]:
-    span = max(hi - lo, 1e-9)
-    raw = span / n
-    mag = 10 ** math.floor(math.log10(raw))
-    step = min((k * mag for k in (1, 2, 5, 10) if k * mag >= raw), default=10 * mag)
-    first = math.ceil(lo / step) * step
-    return [first + i * step for i in range(int((hi - first) / step) + 1)]
-
-
-def _axes(title: str, xlabel: str, ylabel: str, xr: tuple[float, float],
-          yr: tuple[float, float], body: str, cls: str) -> str:
-    fx = _scale(xr[0], xr[1], ML, ML + W)
-    fy = _scale(yr[0], yr[1], MT + H, MT)
-    grid = []
-    for x in _ticks(*xr):
-        grid.append(f'<line x1="{fx(x):.1f}" y1="{MT}" x2="{fx(x):.1f}" y2="{MT + H}" '
-                    f'class="grid"/><text x="{fx(x):.1f}" y="{MT + H + 14}" '
-                    f'text-anchor="middle">{x:g}</text>')
-    for y in _ticks(*yr, n=5):
-        grid.append(f'<line x1="{ML}" y1="{fy(y):.1f}" x2="{ML + W}" y2="{fy(y):.1f}" '
-                    f'class="grid"/><text x="{ML - 6}" y="{fy(y) + 4:.1f}" '
-                    f'text-anchor="end">{y:g}</text>')
-    return (f'<figure><figcaption>{html.escape(title)}</figcaption>'
-            f'<svg class="{cls}" width="{ML + W + MR}" height="{MT + H + MB}" '
-            f'viewBox="0 0 {ML + W + MR} {MT + H + MB}" xmlns="http://www.w3.org/2000/svg">'
-            f'{"".join(grid)}'
-            f'<rect x="{ML}" y="{MT}" width="{W}" height="{H}" class="frame"/>{body}'
-            f'<text x="{ML + W / 2}" y="{MT + H + 30}" text-anchor="middle">'
-            f'{html.escape(xlabel)}</text>'
-            f'<text x="14" y="{MT + H / 2}" transform="rotate(-90 14 {MT + H / 2})" '
-            f'text-anchor="middle">{html.escape(ylabel)}</text></svg></figure>')
-
-
-def _path(points: Sequence[tuple[float, float]], fx: Callable[[float], float],
-          fy: Callable[[float], float], cls: str) -> str:
-    if not points:
-        return ""
-    d = " ".join(f"{'M' if i == 0 else 'L'}{fx(x):.1f},{fy(y):.1f}"
-                 for i, (x, y) in enumerate(points))
-    return f'<path d="{d}" class="{cls}"/>'
-
 
 PHASE_COLOURS = ("#cfe2f3", "#d9ead3", "#fff2cc", "#f4cccc", "#d9d2e9", "#fce5cd", "#d0e0e3",
                  "#ead1dc", "#e6e6e6")
 
 
-def render(summary: dict[str, Any], samples: Sequence[Sample], title: str) -> str:
-    """The report page (HTML text) for a run's ``summary`` and its ``samples``."""
+def render(summary: dict[str, Any], samples: Sequence[Sample], title: str,
+           evidence: str = "") -> str:
+    """The report page (HTML text) for a run's ``summary`` and its ``samples``; ``evidence``
+    is HTML of the run's HIL evidence (:mod:`chcos.hil.report`: the device states reached, the
+    divergences from a golden run), shown after the pictures."""
     lo, hi = summary["band"]
     seam = float(summary["seam_mm"])
     t_end = max((s.t for s in samples), default=1.0)
@@ -130,20 +83,20 @@ def render(summary: dict[str, Any], samples: Sequence[Sample], title: str) -> st
     ymax = max([hi * 1.15, *(t for _, t in arc)]) if arc else hi * 1.15
     xr = (0.0, seam)
     yr = (0.0, ymax)
-    fx = _scale(*xr, ML, ML + W)
-    fy = _scale(*yr, MT + H, MT)
+    fx = scale(*xr, ML, ML + W)
+    fy = scale(*yr, MT + H, MT)
     band = (f'<rect x="{ML}" y="{fy(hi):.1f}" width="{W}" height="{fy(lo) - fy(hi):.1f}" '
             f'class="band"/>')
-    temp_fig = _axes("Arc temperature along the seam (the band shaded)", "seam position s (mm)",
-                     "degC", xr, yr, band + _path(arc, fx, fy, "temp"), "temp-plot")
+    temp_fig = axes("Arc temperature along the seam (the band shaded)", "seam position s (mm)",
+                    "degC", xr, yr, band + path(arc, fx, fy, "temp"), "temp-plot")
     # position over time, with the phases as coloured spans behind
     tr = (t0, t_end)
-    ft = _scale(*tr, ML, ML + W)
+    ft = scale(*tr, ML, ML + W)
     pos = [(s.t, s.s) for s in samples]
     smin = min([0.0, *(p for _, p in pos)])
     smax = max([seam, *(p for _, p in pos)])
     smin, smax = max(smin, -100.0), min(smax, seam + 100.0)
-    fs = _scale(smin, smax, MT + H, MT)
+    fs = scale(smin, smax, MT + H, MT)
     spans: list[tuple[float, float, str]] = []
     for s in samples:
         if spans and spans[-1][2] == s.phase:
@@ -159,16 +112,16 @@ def render(summary: dict[str, Any], samples: Sequence[Sample], title: str) -> st
     fault_marks = "".join(
         f'<line x1="{ft(t):.1f}" y1="{MT}" x2="{ft(t):.1f}" y2="{MT + H}" class="fault"/>'
         for t in _fault_times(summary))
-    pos_fig = _axes("Tip position along the seam over time (phases behind, faults in red)",
-                    "time (s)", "s (mm)", tr, (smin, smax),
-                    rects + _path([(t, max(smin, min(smax, p))) for t, p in pos], ft, fs, "pos")
-                    + fault_marks, "pos-plot")
+    pos_fig = axes("Tip position along the seam over time (phases behind, faults in red)",
+                   "time (s)", "s (mm)", tr, (smin, smax),
+                   rects + path([(t, max(smin, min(smax, p))) for t, p in pos], ft, fs, "pos")
+                   + fault_marks, "pos-plot")
     so = [(s.t, s.standoff) for s in samples]
     so_hi = min(60.0, max([12.0, *(v for _, v in so)]))
-    fso = _scale(0.0, so_hi, MT + H, MT)
-    so_fig = _axes("Stand-off over time", "time (s)", "mm above the plate", tr, (0.0, so_hi),
-                   _path([(t, max(0.0, min(so_hi, v))) for t, v in so], ft, fso, "standoff"),
-                   "standoff-plot")
+    fso = scale(0.0, so_hi, MT + H, MT)
+    so_fig = axes("Stand-off over time", "time (s)", "mm above the plate", tr, (0.0, so_hi),
+                  path([(t, max(0.0, min(so_hi, v))) for t, v in so], ft, fso, "standoff"),
+                  "standoff-plot")
     legend = "".join(f'<span class="key" style="background:{colour[p]}">{html.escape(p)}</span>'
                      for p in names)
     oc = summary.get("outcome") or {"outcome": "unfinished", "reason": ""}
@@ -203,6 +156,7 @@ svg text {{ font: 11px sans-serif; fill: #333; }}
 .fault {{ stroke: #e00; stroke-width: 2; stroke-dasharray: 4 3; }}
 .key {{ display: inline-block; padding: 2px 6px; margin: 2px; border: 1px solid #aaa; }}
 table {{ border-collapse: collapse; }} th, td {{ text-align: left; padding: 2px 10px; }}
+{EVIDENCE_STYLE}
 </style></head><body>
 <h1>{html.escape(title)}</h1>
 <table class="figures">{table}</table>
@@ -210,6 +164,7 @@ table {{ border-collapse: collapse; }} th, td {{ text-align: left; padding: 2px 
 {pos_fig}
 <div class="legend">{legend}</div>
 {so_fig}
+{evidence}
 <h2>Faults injected</h2><ul class="faults">{rows}</ul>
 <h2>How they were handled</h2><ul class="handled">{handled}</ul>
 </body></html>
@@ -227,12 +182,13 @@ def _fault_times(summary: dict[str, Any]) -> list[float]:
 
 
 def write_report(path: str | Path, summary: dict[str, Any], samples: Sequence[Sample],
-                 title: str = "welding cell run") -> Path:
-    """Write the report page to ``path``; returns it. Raises ChcosError if it cannot."""
+                 title: str = "welding cell run", evidence: str = "") -> Path:
+    """Write the report page to ``path`` (with ``evidence``, see :func:`render`); returns it.
+    Raises ChcosError if it cannot."""
     p = Path(path)
     try:
         p.parent.mkdir(parents=True, exist_ok=True)
-        p.write_text(render(summary, samples, title), encoding="utf-8")
+        p.write_text(render(summary, samples, title, evidence), encoding="utf-8")
     except OSError as exc:
         raise ChcosError(f"{p}: cannot write the run report: {exc}") from exc
     return p

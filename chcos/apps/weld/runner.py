@@ -19,11 +19,12 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TextIO
 
 from chcos.apps.weld.cell import BINDINGS, SAFE_DEVICES, Cell, WeldRunError, open_cell
+from chcos.apps.weld.report import write_report
 from chcos.errors import ChcosError, ConfigError
 from chcos.north.services import NorthOptions, add_north_arguments
 
@@ -36,7 +37,7 @@ def _progress(out: TextIO) -> Callable[[Cell], None]:
     def show(cell: Cell) -> None:
         s = cell.system
         now = s.kernel.clock.now()
-        sent = sum(cell.counters.sent.values())
+        sent = sum(lk.sent for lk in s.msgtab)
         dt = max(1e-9, now - last["t"])
         rate = (sent - last["sent"]) / dt
         last.update(sent=sent, t=now)
@@ -85,6 +86,10 @@ def report(summary: dict[str, Any], out: TextIO) -> None:
               + (f" (worst {1000 * max(lat):.2f} ms)" if lat else ""), file=out)
     else:
         print("  assassin reaction: no intruder interrupt in this run", file=out)
+    for line in summary.get("golden") or ():
+        print(f"  golden run: {line.strip()}", file=out)
+    for line in summary.get("not_written") or ():
+        print(f"  could not be written: {line}", file=out)
     if summary.get("report"):
         print(f"  the run as a picture: {summary['report']}", file=out)
 
@@ -93,16 +98,22 @@ def run(binding: str = "direct", *, scenario: str = "", seed: int = 0, real_time
         record: str | Path | None = None, duration: float = 300.0,
         workdir: str | Path | None = None, out: TextIO = sys.stdout,
         north: NorthOptions | None = None,
-        report_to: str | Path | None = None) -> dict[str, Any]:
+        report_to: str | Path | None = None, traces: Sequence[str | Path] = (),
+        golden: str | Path | None = None,
+        tolerance: Mapping[str, float] | None = None) -> dict[str, Any]:
     """Run the main job (see the module doc) and return the summary figures; ``north`` names
     the north-side services to serve while it runs (:mod:`chcos.north.services`); the run's
     picture (``chcos.apps.weld.report``) goes to ``report_to`` (default: ``weld-report.html`` beside
     the map in ``workdir``, or in the welding cell's state directory, ``<state base>/weld``
     (:func:`chcos.satellites.sysfile.default_state_base`), when the map is temporary — never into
     the
-    source tree). Raises
-    ChcosError (WeldRunError, ConfigError, InstallError, BusError, NorthError) if the cell or
-    a service cannot be set up."""
+    source tree). The run is watched from its start (:class:`chcos.hil.evidence.RunEvidence`):
+    its trace goes to ``traces``, the device states it reached into the report, and with
+    ``golden`` (a trace file) the report shows where the run parts from it (within
+    ``tolerance`` per device), with the diverging signals drawn; ``summary["golden"]`` holds the
+    comparison's lines. Raises ChcosError (WeldRunError, ConfigError, InstallError, BusError,
+    NorthError, TraceError for an unreadable ``golden``) if the cell or a service cannot be set
+    up."""
     from chcos.north.services import start as start_north
 
     if report_to is None:
@@ -110,8 +121,14 @@ def run(binding: str = "direct", *, scenario: str = "", seed: int = 0, real_time
 
         report_to = (Path(workdir) if workdir is not None
                      else default_state_base() / "weld") / "weld-report.html"
+    from chcos.hil.evidence import RunEvidence
+    from chcos.hil.trace import read_trace
+
+    reference = read_trace(golden) if golden is not None else None   # unreadable: before the run
+    evidence = RunEvidence(traces, coverage=True, system=f"weld ({binding})",
+                           clock="real" if real_time else "virtual")
     with open_cell(binding, scenario=scenario, seed=seed, real_time=real_time, record=record,
-                   workdir=workdir) as cell:
+                   workdir=workdir, observe=[evidence.attach]) as cell:
         print(f"welding cell on the {binding} binding, scenario: {scenario or 'none'}, "
               f"{'real' if real_time else 'virtual'} time", file=out)
         services = start_north(cell.system, north) if north is not None and north.any else None
@@ -124,9 +141,29 @@ def run(binding: str = "direct", *, scenario: str = "", seed: int = 0, real_time
         finally:
             if services is not None:
                 services.stop()
-        summary["report"] = str(cell.write_report(report_to))
+    # after the shutdown: its safe values are part of the run's trace
+    summary["not_written"] = evidence.finish()
+    summary["golden"], html = _evidence_html(evidence, reference, tolerance)
+    samples = cell.recorder.samples if cell.recorder is not None else []
+    summary["report"] = str(write_report(report_to, summary, samples,
+                                         f"welding cell, {binding} binding", html))
     report(summary, out)
     return summary
+
+
+def _evidence_html(evidence: Any, reference: Any, tolerance: Mapping[str, float] | None
+                   ) -> tuple[list[str], str]:
+    """The report's evidence sections (the states reached; the divergences from the golden
+    ``reference``, if any) and the comparison's lines for the summary."""
+    from chcos.hil.diff import compare, report_lines
+    from chcos.hil.report import coverage_html, divergence_html
+
+    cov = evidence.coverage()
+    html = coverage_html(cov, "Device states this run reached") if cov is not None else ""
+    if reference is None:
+        return [], html
+    result = compare(reference, evidence.trace, tolerance)
+    return report_lines(result, 5), html + divergence_html(result)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -159,6 +196,16 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="where the run's picture goes (default: weld-report.html in --workdir, "
                          "else in the state directory: $CHCOS_STATE_DIR/weld or "
                          "~/.local/state/chcos/weld)")
+    ap.add_argument("--trace", action="append", default=[], metavar="FILE",
+                    help="write the run's trace to FILE (as chcos run SYSTEM --trace: .gz "
+                         "compressed, .mcap MCAP; repeatable)")
+    ap.add_argument("--golden", metavar="FILE",
+                    help="compare the run's trace with the golden trace FILE: the summary and "
+                         "the report show the first divergences, the report draws the "
+                         "diverging signals (chcos diff compares two files)")
+    ap.add_argument("--tolerance", action="append", default=[], metavar="DEVICE=NUMBER",
+                    help="with --golden: numbers of DEVICE within NUMBER are the same "
+                         "(repeatable; *=NUMBER for every device)")
     ap.add_argument("--hierarchy", choices=("chc", "nbs"), default="chc",
                     help="chc (default): the CHC-OS task hierarchy; nbs: run the job under CHC "
                          "and then under the NBS baseline (Appendix 1's H1-H3, cyclic at 28 ms) "
@@ -168,6 +215,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         ap.error(f"--duration {args.duration}: expected seconds > 0")
     if args.hierarchy == "nbs":
         return _main_nbs(ap, args)
+    from chcos.hil.diff import parse_tolerances
+
+    try:
+        tolerance = parse_tolerances(args.tolerance)
+    except ValueError as exc:
+        ap.error(str(exc))
     try:
         north = NorthOptions.from_args(args)
         if north.any and not args.real_time:
@@ -176,7 +229,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         summary = run(args.binding, scenario=args.scenario, seed=args.seed,
                       real_time=args.real_time or north.any, record=args.record,
                       duration=args.duration, workdir=args.workdir, north=north,
-                      report_to=args.report)
+                      report_to=args.report, traces=args.trace, golden=args.golden,
+                      tolerance=tolerance)
     except (ChcosError, ConfigError) as exc:
         print(f"chcos run: {exc}", file=sys.stderr)
         return 2
@@ -187,8 +241,9 @@ def _main_nbs(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     """``chcos run --hierarchy nbs``: CHC, then NBS, side by side (chcos.apps.nbs.compare)."""
     from chcos.apps.nbs.compare import run_side_by_side
 
-    if args.record or NorthOptions.from_args(args).any:
-        ap.error("--hierarchy nbs: --record and north-side services are for the CHC job alone")
+    if args.record or NorthOptions.from_args(args).any or args.trace or args.golden:
+        ap.error("--hierarchy nbs: --record, --trace, --golden and north-side services are for "
+                 "the CHC job alone")
     try:
         both = run_side_by_side(args.binding, scenario=args.scenario, seed=args.seed,
                                 real_time=args.real_time, duration=args.duration,

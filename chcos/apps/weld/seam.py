@@ -22,8 +22,9 @@ from the true start, from which it must spiral-search for the start marker.
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from chcos.errors import ConfigError
@@ -107,16 +108,51 @@ class SeamPoint:
     lateral: float
 
 
-@dataclass(frozen=True)
 class LinearView:
     """What the linear light sensor sees: ``pixels`` (``True`` = dark), ``range_mm`` to the surface
     (``None`` when beyond 0..100 mm, then all pixels are ``False``), and the start/end marker flags
-    of the marker detector at the sensor centre."""
+    of the marker detector at the sensor centre.
 
-    pixels: tuple[bool, ...]
-    range_mm: float | None
-    start_marker: bool
-    end_marker: bool
+    ``pixels`` is given as the tuple or as a function that computes it: the row is the model's
+    costliest reading and most views are never asked for it (the raw-CAN markers and the range
+    need only the centre), so it is computed on the first read and kept. The function must be
+    pure (it sees the pose the view was taken at), so the answer does not depend on when it is
+    asked. Immutable; equal when every field and the pixels are."""
+
+    __slots__ = ("_pixels", "_sample", "end_marker", "range_mm", "start_marker")
+
+    def __init__(self, pixels: tuple[bool, ...] | Callable[[], tuple[bool, ...]],
+                 range_mm: float | None, start_marker: bool, end_marker: bool) -> None:
+        self._pixels: tuple[bool, ...] | None = pixels if isinstance(pixels, tuple) else None
+        self._sample: Callable[[], tuple[bool, ...]] | None = (
+            None if isinstance(pixels, tuple) else pixels)
+        self.range_mm = range_mm
+        self.start_marker = start_marker
+        self.end_marker = end_marker
+
+    @property
+    def pixels(self) -> tuple[bool, ...]:
+        """The row of pixels, ``True`` = dark (computed on the first read)."""
+        row = self._pixels
+        if row is None:
+            assert self._sample is not None
+            row = self._pixels = self._sample()
+            self._sample = None
+        return row
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, LinearView):
+            return NotImplemented
+        return (self.range_mm == other.range_mm and self.start_marker == other.start_marker
+                and self.end_marker == other.end_marker and self.pixels == other.pixels)
+
+    def __hash__(self) -> int:
+        return hash((self.range_mm, self.start_marker, self.end_marker, self.pixels))
+
+    def __repr__(self) -> str:
+        row = "".join("1" if p else "0" for p in self.pixels)
+        return (f"LinearView(pixels={row}, range_mm={self.range_mm!r}, "
+                f"start_marker={self.start_marker!r}, end_marker={self.end_marker!r})")
 
 
 @dataclass(frozen=True)
@@ -156,6 +192,12 @@ def _integrate(spec: SeamSpec) -> _Geometry:
     return _Geometry(ds, tuple(xs), tuple(ys), tuple(hs))
 
 
+def _half_gap(spec: SeamSpec, overrides: Sequence[WidthOverride]) -> float:
+    """Half the widest gap anywhere on the seam (mm): the width is piecewise linear between its
+    knots, so its largest value is at a knot or in an override."""
+    return max([w for _s, w in spec.width] + [o.width for o in overrides]) / 2.0
+
+
 class Seam:
     """A seam on a flat plate (see the module docstring). Immutable: overrides make a new seam.
 
@@ -185,6 +227,7 @@ class Seam:
         self.plate_z = spec.plate_z
         self.overrides: tuple[WidthOverride, ...] = tuple(overrides)
         self._g = _integrate(spec)
+        self._half_gap = _half_gap(spec, self.overrides)
 
     def with_width_override(self, s_from: float, s_to: float, width: float) -> Seam:
         """A copy of this seam whose gap is ``width`` mm between ``s_from`` and ``s_to`` (mm)."""
@@ -199,6 +242,7 @@ class Seam:
             )
         new.overrides = (*self.overrides, override)
         new._g = self._g
+        new._half_gap = _half_gap(new.spec, new.overrides)
         return new
 
     # --- the centre line -------------------------------------------------------------------
@@ -263,19 +307,28 @@ class Seam:
         Cheap and exact near the seam (lateral offset much smaller than the radius of curvature);
         use :meth:`nearest` when no good guess is known or the point may be far.
         """
-        s = s_guess
+        s, cx, cy, h, lateral = self._foot(x, y, s_guess)
+        return SeamPoint(s, cx, cy, h, lateral)
+
+    def _foot(self, x: float, y: float, s: float) -> tuple[float, float, float, float, float]:
+        """:meth:`project`'s Newton steps from ``s``: (s, centre x, centre y, heading, lateral)
+        of the foot point, without building a :class:`SeamPoint` (the line sensor asks this for
+        its pixels)."""
+        frame, curvature, length = self._frame, self.spec.curvature, self.length
+        cos, sin = math.cos, math.sin
         for _ in range(8):
-            cx, cy, h = self._frame(s)
-            along = (x - cx) * math.cos(h) + (y - cy) * math.sin(h)
-            lateral = -(x - cx) * math.sin(h) + (y - cy) * math.cos(h)
-            kappa = _interp(self.spec.curvature, s) if 0.0 < s < self.length else 0.0
+            cx, cy, h = frame(s)
+            ch, sh = cos(h), sin(h)
+            along = (x - cx) * ch + (y - cy) * sh
+            lateral = -(x - cx) * sh + (y - cy) * ch
+            kappa = _interp(curvature, s) if 0.0 < s < length else 0.0
             step = along / max(0.1, 1.0 - kappa * lateral)
             s += step
             if abs(step) < 1e-7:
                 break
-        cx, cy, h = self._frame(s)
-        lateral = -(x - cx) * math.sin(h) + (y - cy) * math.cos(h)
-        return SeamPoint(s, cx, cy, h, lateral)
+        cx, cy, h = frame(s)
+        lateral = -(x - cx) * sin(h) + (y - cy) * cos(h)
+        return s, cx, cy, h, lateral
 
     def nearest(self, x: float, y: float) -> SeamPoint:
         """The seam point nearest (x, y) (mm), over the whole seam and its tangent extensions.
@@ -342,14 +395,46 @@ class Seam:
         centre = self.nearest(x, y) if s_guess is None else self.project(x, y, s_guess)
         if abs(centre.lateral) > 100.0 and s_guess is not None:
             centre = self.nearest(x, y)
+        start, end = self.markers(centre)
+        row = functools.partial(self._row, x, y, axis, centre, pixels, pitch)
+        return LinearView(row, height, start, end)
+
+    def _dark_reach(self, centre: SeamPoint, pixels: int, pitch: float) -> float:
+        """How far (mm) from the centre line anything dark can be under a sensor row over
+        ``centre``: the widest half gap, or the marker bars' outer edge where a marker may lie
+        under the row (its ends within the row's half length, with room for the curvature)."""
+        half_row = (pixels - 1) / 2.0 * abs(pitch)
+        near = self.spec.marker_length / 2.0 + 2.0 * half_row + 10.0
+        if (abs(centre.lateral) > 40.0 or abs(centre.s) <= near
+                or abs(centre.s - self.length) <= near):
+            return max(self._half_gap, *(max(abs(lo), abs(hi)) for lo, hi in
+                                         (*START_MARKER_BANDS, *END_MARKER_BANDS)))
+        return self._half_gap
+
+    def _row(self, x: float, y: float, axis: float, centre: SeamPoint, pixels: int,
+             pitch: float) -> tuple[bool, ...]:
+        """The pixels of :meth:`sense` (see there), each pixel's seam coordinates found as
+        :meth:`project` finds them from the guess the centre gives. A pixel whose foot lies
+        farther from the centre line than anything dark can (:meth:`_dark_reach`) is bright,
+        and so are the next ones as long as that distance, less their distance along the row,
+        stays beyond it (a point's distance to the curve changes no faster than the point
+        moves): only the pixels near the gap and the marker bars are projected."""
         ca, sa = math.cos(axis), math.sin(axis)
         ct, st = math.cos(centre.heading), math.sin(centre.heading)
-        out: list[bool] = []
-        for i in range(pixels):
-            off = (i - (pixels - 1) / 2.0) * pitch
+        cs = centre.s
+        reach = self._dark_reach(centre, pixels, pitch) + 1e-9
+        step_mm = abs(pitch)
+        foot, dark = self._foot, self.dark
+        out = [False] * pixels
+        half = (pixels - 1) / 2.0
+        i = 0
+        while i < pixels:
+            off = (i - half) * pitch
             px, py = x + off * ca, y + off * sa
-            guess = centre.s + (px - x) * ct + (py - y) * st
-            p = self.project(px, py, guess)
-            out.append(self.dark(p.s, p.lateral))
-        start, end = self.markers(centre)
-        return LinearView(tuple(out), height, start, end)
+            guess = cs + (px - x) * ct + (py - y) * st
+            s, _cx, _cy, _h, lateral = foot(px, py, guess)
+            if dark(s, lateral):
+                out[i] = True
+            clear = abs(lateral) - reach    # mm of row beyond pixel i that is surely bright
+            i += 1 if clear <= 0.0 or step_mm == 0.0 else max(1, math.ceil(clear / step_mm))
+        return tuple(out)

@@ -39,10 +39,9 @@ from typing import Any
 
 import can
 import canopen
-from pymodbus.constants import ExcCodes
 
 from chcos import resources
-from chcos.apps.sim.modbus_server import RegisterStore
+from chcos.apps.sim.modbus_slave import GATEWAY_NO_RESPONSE, RegisterStore
 from chcos.apps.weld.model import Readings, WeldCell
 from chcos.apps.weld.servo import POSITION_SCALE as POSITION_SCALE
 from chcos.apps.weld.servo import JointDrive
@@ -62,7 +61,7 @@ DRIVE_OBJECTS = (0x603F, 0x6040, 0x6041, 0x605A, 0x6060, 0x6061, 0x6064, 0x606C,
 STATUS_EVERY = 10
 """TPDO2 (the statusword) goes out on change and at least every this many servo periods."""
 HEARTBEAT_PERIOD = 0.05
-"""Heartbeat producer period (s of wall time), as 0x1017 of the EDS."""
+"""Heartbeat producer period (s of the simulator's clock), as 0x1017 of the EDS."""
 
 SERVO_PERIOD = 0.01
 """TPDO1 period and Modbus input-register refresh period (s of simulated time)."""
@@ -112,15 +111,13 @@ class WeldRegisterStore(RegisterStore):
         super().__init__((UNIT,), size=200)
         self.silent_inputs: frozenset[int] = frozenset()
 
-    def mirror(self, unit: int, function_code: int, start: int, address: int, count: int,
-               image: list[int], values: list[Any] | None) -> ExcCodes | None:
-        """The server hook of :class:`RegisterStore`, refusing reads of silent inputs."""
+    def refusal(self, unit: int, table: str, address: int, count: int, write: bool
+                ) -> int | None:
+        """Exception 11 for a read of a silent input (see :class:`RegisterStore`)."""
         silent = self.silent_inputs
-        if function_code == 4 and any(address <= a < address + count for a in silent):
-            with self._cond:
-                self.requests += 1
-            return ExcCodes.GATEWAY_NO_RESPONSE
-        return super().mirror(unit, function_code, start, address, count, image, values)
+        if table == "input" and any(address <= a < address + count for a in silent):
+            return GATEWAY_NO_RESPONSE
+        return None
 
 
 class PowerSource:
@@ -207,14 +204,24 @@ class NodeReset:
 
 DriveCommand = TargetWrite | ControlWrite | NodeReset
 
+NMT_PRE_OPERATIONAL = 0x7F
+"""The NMT state code a heartbeat carries after boot-up (CiA 301)."""
+_NMT_AFTER = {0x01: 0x05, 0x02: 0x04, 0x80: 0x7F, 0x81: 0x7F, 0x82: 0x7F}
+"""NMT command -> the state code the node's heartbeat then carries (operational, stopped,
+pre-operational; a reset boots into pre-operational)."""
+
 
 class ServoDrives:
     """The five joint drives on one CAN channel, each a CiA 402 drive
     (:class:`chcos.apps.weld.servo.JointDrive`, in :attr:`drives` by node id).
 
-    A canopen ``Network`` of ``LocalNode`` objects answers SDO and NMT and produces heartbeats on
-    wall time (its own notifier thread); its object dictionaries hold what the drives show, so
-    an SDO upload of 0x6041, 0x6061, 0x6064, 0x606C or 0x603F answers the drive's present value.
+    A canopen ``Network`` of ``LocalNode`` objects answers SDO and NMT (its own notifier
+    thread); its object dictionaries hold what the drives show, so an SDO upload of 0x6041,
+    0x6061, 0x6064, 0x606C or 0x603F answers the drive's present value. The heartbeats are not
+    canopen's producer (a wall-clock thread, late on a loaded machine and far too slow for
+    virtual time): :meth:`beat` sends them from the simulator's cycle, on its clock, every
+    heartbeat period (0x1017) with the NMT state the drive is in as the NMT commands on the
+    synchronous handle left it.
     A second python-can handle on the same channel is read only synchronously by :meth:`drain`
     (NMT, RPDO1 targets and RPDO2 controlwords, in arrival order) and sends the TPDOs, so the
     simulated-time side never depends on thread timing. SDO downloads of 0x6040, 0x6060 or
@@ -226,6 +233,11 @@ class ServoDrives:
     def __init__(self, interface: str, channel: str, eds: Path = WELD_EDS,
                  heartbeat_period: float = HEARTBEAT_PERIOD) -> None:
         self._hb_ms = max(1, round(heartbeat_period * 1000))
+        #: each node's heartbeat period (ms, 0x1017; 0: no heartbeat) and NMT state code as the
+        #: NMT commands read by :meth:`drain` left it (what :meth:`beat` sends)
+        self.hb_ms = dict.fromkeys(NODE_IDS, self._hb_ms)
+        self.nmt_state = dict.fromkeys(NODE_IDS, NMT_PRE_OPERATIONAL)
+        self._hb_due = dict.fromkeys(NODE_IDS, 0.0)
         self.nodes: dict[int, Any] = {}
         self.drives: dict[int, JointDrive] = {}
         self._sdo_writes: deque[DriveCommand] = deque()
@@ -279,14 +291,18 @@ class ServoDrives:
                 node.object_dictionary[0x1017].encode_raw(self._hb_ms)
             self._store(nid)
             node.nmt.state = "INITIALISING"
-            node.nmt.state = "PRE-OPERATIONAL"  # boot-up message, heartbeat starts
+            node.nmt.state = "PRE-OPERATIONAL"  # boot-up message (canopen's heartbeat starts)
+            node.nmt.stop_heartbeat()           # ...and stops: beat() sends them on the clock
 
     def _on_sdo_write(self, nid: int, *, index: int, subindex: int, od: Any,
                       data: bytes) -> None:
         """An SDO download (canopen's notifier thread): queued for the next :meth:`drain`."""
         if subindex != 0:
             return
-        if index == 0x6040:
+        if index == 0x1017:     # canopen restarted its wall-clock producer: beat() does it
+            self.nodes[nid].nmt.stop_heartbeat()
+            self.hb_ms[nid] = struct.unpack("<H", bytes(data[:2]))[0]
+        elif index == 0x6040:
             self._sdo_writes.append(ControlWrite(nid, struct.unpack("<H", bytes(data[:2]))[0],
                                                  None))
         elif index == 0x6060:
@@ -316,6 +332,7 @@ class ServoDrives:
                 for nid in NODE_IDS:
                     if target in (0, nid):
                         self.operational[nid] = cmd == 0x01
+                        self.nmt_state[nid] = _NMT_AFTER.get(cmd, self.nmt_state[nid])
                         if cmd == 0x81:
                             out.append(NodeReset(nid))
             elif cob - 0x200 in self.nodes and len(data) >= 4:
@@ -399,15 +416,18 @@ class ServoDrives:
             self.send_errors += 1
 
     def heartbeat(self, nid: int, on: bool) -> None:
-        """Start or stop node ``nid``'s heartbeat producer (a servo timeout silences it)."""
-        if self.beating[nid] == on:
-            return
+        """Start or stop node ``nid``'s heartbeat (a servo timeout silences it)."""
         self.beating[nid] = on
-        nmt = self.nodes[nid].nmt
-        if on:
-            nmt.start_heartbeat(self._hb_ms)
-        else:
-            nmt.stop_heartbeat()
+
+    def beat(self, now: float) -> None:
+        """Send the heartbeat of every beating node whose period (0x1017) is up at simulated
+        time ``now`` (s): the first at once, then one a period apart."""
+        for nid in NODE_IDS:
+            period = self.hb_ms[nid] / 1000.0
+            if not self.beating[nid] or period <= 0.0 or now + 1e-9 < self._hb_due[nid]:
+                continue
+            self._hb_due[nid] = max(self._hb_due[nid] + period, now)
+            self._send(0x700 + nid, bytes([self.nmt_state[nid]]))
 
     def sync_heartbeats(self, ok: Sequence[bool]) -> None:
         """Joint ``j``'s drive beats while ``ok[j]`` (a servo timeout silences it)."""

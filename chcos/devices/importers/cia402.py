@@ -187,7 +187,7 @@ def pdos_of(od: Any) -> dict[tuple[int, int], list[Pdo]]:
             pdo = Pdo(kind, n + 1, cob & 0x1FFF_FFFF,
                       255 if kind_of_sending is None else kind_of_sending,
                       _int(od, comm + n, 5) or 0)
-            for sub in range(1, (_int(od, mapping + n, 0) or 0) + 1):
+            for sub in range(1, min(_int(od, mapping + n, 0) or 0, 64) + 1):  # CiA 301: 64
                 entry = _int(od, mapping + n, sub)
                 if entry and entry >> 16 >= 0x1000:
                     out.setdefault((entry >> 16, (entry >> 8) & 0xFF), []).append(pdo)
