@@ -152,7 +152,9 @@ def test_exception_responses_fail_only_their_devices() -> None:
                make_device("ghost", "sensor", "mb", unit=9, table="input", address=0)]
     host = FakeHost()
     with ModbusSimServer(store, port, role="gateway"):     # unit 1 behind it, no unit 9
-        driver = ModbusTcpDriver(tcp_bus(port), devices, host)
+        # every request is answered: a long timeout only keeps a loaded machine from
+        # turning an answer into a timeout
+        driver = ModbusTcpDriver(tcp_bus(port, timeout=5.0), devices, host)
         driver.start()
         try:
             host.tick(0.1)
